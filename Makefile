@@ -1,0 +1,39 @@
+# The two commands: `make demo` and `make test`. Each creates .venv if it is missing.
+PY      ?= python3
+VENV    := .venv
+BIN     := $(VENV)/bin
+STAMP   := $(VENV)/.installed
+# torch==2.13.0 is the CPU wheel on this machine's disk; a bare `torch` would pull a CUDA build.
+TORCH   ?= torch==2.13.0
+
+.PHONY: venv demo test test-all bench schemas clean
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q "$(TORCH)"
+	$(BIN)/python -m pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	OMP_NUM_THREADS=1 $(BIN)/lasagna demo -o out/demo
+
+# pytest's exit code 5 ("no tests collected") is a failure, not a pass.
+test: $(STAMP)
+	OMP_NUM_THREADS=1 $(BIN)/python -m pytest; rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests"; exit 1; fi; exit $$rc
+
+# Everything, including slow runs and the real-application checks (Krita, GIMP) where installed.
+test-all: $(STAMP)
+	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -m ""
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/compositing.py
+
+schemas: $(STAMP)
+	$(BIN)/lasagna schema --out schemas
+
+clean:
+	rm -rf $(VENV) out build dist *.egg-info .pytest_cache .hypothesis

@@ -1,0 +1,33 @@
+"""Numerics in one place: named epsilons with their reasons, safe division, upcasts.
+
+Every tolerance the package uses lives here, so a reader can audit them together.
+"""
+from __future__ import annotations
+
+import torch
+
+# Divisions by a standard deviation (L_k of the LMC-SDS paper, eq. 10): a constant image has
+# sigma = 0. 1e-6 is far below the sigma of any image worth normalising (one 8-bit step is 3.9e-3)
+# and far above float32's tiny (1.2e-38), so the quotient stays finite in float32 and bfloat16.
+STD_EPS = 1e-6
+
+# Divisions by (1 - alpha_bar) and alpha_bar near t = 0 and t = 1 of a diffusion schedule.
+SCHEDULE_EPS = 1e-8
+
+# Colour-dodge export of a multiplier y > 1 uses d = 1 - 1/y; keep 1 - d >= DODGE_EPS so the
+# written layer is finite even for y = +inf-like outliers (clamped earlier to the layer's range).
+DODGE_EPS = 1.0 / 65535.0
+
+# Logit of a value in [0, 1] (inverting y = lo + (hi - lo) * sigmoid(x)): clamp to
+# [LOGIT_EPS, 1 - LOGIT_EPS] so an exact 0 or 1 maps to a large finite logit (+-13.8).
+LOGIT_EPS = 1e-6
+
+
+def safe_div(num: torch.Tensor, den: torch.Tensor, eps: float = STD_EPS) -> torch.Tensor:
+    """``num / max(den, eps)`` for non-negative ``den``; finite gradient at den = 0."""
+    return num / den.clamp_min(eps)
+
+
+def reduction_dtype(dtype: torch.dtype) -> torch.dtype:
+    """Reductions (means, norms, std) of half-precision tensors run in float32."""
+    return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
