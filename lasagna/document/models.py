@@ -1,0 +1,278 @@
+"""The stack document (``stack.json``, format ``lasagna.stack`` version 1) as pydantic v2 models.
+
+One model per layer kind, each with ``kind: Literal[...]``, gathered in the discriminated union
+``Layer`` (the geojson-pydantic pattern). Every rule of docs/ARCHITECTURE.md ("The stack folder and
+stack.json") is a validator whose message quotes the rule. Models are frozen: change a document
+with the ``with_*``/``replace*`` helpers, which return a new, re-validated document.
+
+Serialisation choice: ``to_json`` writes *explicit, full* documents (every field, defaults
+included, in declaration order, 2-space indent, short number arrays on one line), so a reader of
+a stack.json sees every setting that affects the render without knowing the defaults, and the
+output of a canonical document is byte-for-byte stable.
+"""
+from __future__ import annotations
+
+import json
+from typing import Annotated, Any, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError, model_validator
+
+from lasagna.errors import DocumentError
+from lasagna.document.types import (
+    RANGE_FOR_BLEND_SCHEMA, UNIT_RANGE, Blend, Colour, Coordinate, LayerId, NameOrPath, OpaqueColour, Pixels,
+    Range, RelativePath, Sha256, StrictModel, Unit, check_range_for_blend,
+)
+from lasagna.document.validation import RuleError, document_error, parse_json
+
+FORMAT = "lasagna.stack"
+VERSION = 1
+
+
+class Canvas(StrictModel):
+    """The output image: its size and the opaque colour the composite starts from."""
+
+    width: Pixels = Field(description="Width in pixels, an integer in [1, 32768].")
+    height: Pixels = Field(description="Height in pixels, an integer in [1, 32768].")
+    background: OpaqueColour = Field(
+        (0.0, 0.0, 0.0), description="Opaque RGB background in [0, 1]; every blend composes over it."
+    )
+
+
+class Offset(StrictModel):
+    """Position of a layer's top-left corner on the canvas; may be negative or off-canvas."""
+
+    x: Coordinate = Field(0, description="Pixels to the right of the canvas's left edge.")
+    y: Coordinate = Field(0, description="Pixels below the canvas's top edge.")
+
+
+class Size(StrictModel):
+    """Size of a solid layer's rectangle."""
+
+    width: Pixels = Field(description="Width in pixels, an integer in [1, 32768].")
+    height: Pixels = Field(description="Height in pixels, an integer in [1, 32768].")
+
+
+class Condition(StrictModel):
+    """What a learned layer is asked for: a label of its preset's vocabulary, optionally a prompt."""
+
+    label: str = Field(min_length=1, description="A label of the preset's condition vocabulary, e.g. 'left'.")
+    prompt: str | None = Field(None, min_length=1, description="Prompt overriding the preset's template.")
+
+
+class GeneratorRef(StrictModel):
+    """The weights that produce a learned layer."""
+
+    checkpoint: RelativePath = Field(description="Relative POSIX path of the generator's safetensors file.")
+    sha256: Sha256 | None = Field(None, description="Lower-case hex SHA-256 of the checkpoint, checked on load.")
+
+
+def _layer_schema(schema: dict[str, Any]) -> None:
+    # ``kind`` has a default for Python callers (PixelsLayer(id=..., source=...)), but a file must
+    # state it: it selects the union member, and pydantic refuses a layer without it.
+    schema["required"] = ["kind", *(r for r in schema.get("required", []) if r != "kind")]
+    schema.update(RANGE_FOR_BLEND_SCHEMA)
+
+
+class _LayerBase(StrictModel):
+    """Fields every layer kind shares (listed bottom to top in ``Document.layers``)."""
+
+    model_config = ConfigDict(json_schema_extra=_layer_schema)
+
+    id: LayerId = Field(description="Unique (case-insensitively) id, safe as a file name: layers/<id>.png.")
+    name: str = Field(default_factory=lambda data: data["id"], min_length=1, description="Display name; defaults to the id.")
+    kind: str  # each kind redeclares it as a Literal tag; declared here so it is written third
+    blend: Blend = Field("normal", description="How the layer composes onto what lies below it.")
+    opacity: Unit = Field(1.0, description="Opacity in [0, 1]; alpha_effective = alpha * mask * opacity.")
+    visible: bool = Field(True, strict=True, description="Hidden layers are kept but not composed.")
+    offset: Offset = Field(Offset(), description="Top-left corner on the canvas, integer pixels.")
+    range: Range = Field(
+        UNIT_RANGE,
+        description="[lo, hi], lo < hi: stored values v in [0, 1] mean y = lo + (hi - lo) * v (alpha is never "
+        "mapped). Only multiply and plus may use a range other than [0, 1].",
+    )
+    mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
+
+    @model_validator(mode="after")
+    def _range_allowed_for_blend(self) -> "_LayerBase":
+        check_range_for_blend(self.range, self.blend)
+        return self
+
+
+class PixelsLayer(_LayerBase):
+    """A layer whose pixels are a PNG in the stack folder."""
+
+    kind: Literal["pixels"] = Field("pixels", description="Layer kind: pixels from a PNG.")
+    source: RelativePath = Field(description="The layer's PNG, e.g. layers/<id>.png.")
+
+
+class SolidLayer(_LayerBase):
+    """A rectangle of one colour. Its RGB is mapped by ``range`` exactly as a PNG's values are."""
+
+    kind: Literal["solid"] = Field("solid", description="Layer kind: one colour.")
+    color: Colour = Field(description="RGB or RGBA floats in [0, 1] (alpha multiplies opacity).")
+    size: Size | None = Field(None, description="Rectangle size; null means the canvas size.")
+
+
+class LearnedLayer(_LayerBase):
+    """A layer produced by a generator from the layer it is conditioned on (Lasagna, Sec. 3)."""
+
+    kind: Literal["learned"] = Field("learned", description="Layer kind: produced by a learned generator.")
+    preset: NameOrPath = Field(
+        description="A preset name (layers/<name>/preset.json in the stack folder or the catalogue) or, "
+        "if it contains '/', a relative path to a preset.json inside the stack folder.",
+    )
+    condition: Condition = Field(description="The label (and optional prompt) the layer is generated for.")
+    conditioned_on: LayerId = Field(description="Id of a layer below this one, the generator's input.")
+    source: RelativePath | None = Field(None, description="Rendered pixels, stored exactly as a pixels layer's.")
+    generator: GeneratorRef | None = Field(None, description="The generator's checkpoint, if trained.")
+    settings: dict[str, JsonValue] = Field(default_factory=dict, description="Free-form generator/distillation settings.")
+
+
+Layer = Annotated[Union[PixelsLayer, SolidLayer, LearnedLayer], Field(discriminator="kind")]
+LAYER_KINDS: tuple[str, ...] = tuple(m.model_fields["kind"].default for m in (PixelsLayer, SolidLayer, LearnedLayer))
+
+
+class Document(StrictModel):
+    """A layer stack: the canvas, how to blend, and the layers bottom to top."""
+
+    format: Literal["lasagna.stack"] = Field(description="Always 'lasagna.stack'.")
+    version: Literal[1] = Field(description="Format version; this is version 1.")
+    canvas: Canvas = Field(description="Output size and background.")
+    blend_space: Literal["srgb", "linear"] = Field(
+        "srgb", description="'srgb' blends encoded values (GIMP, Krita, Photoshop); 'linear' blends linear light."
+    )
+    clamp: Literal["layer", "output"] = Field(
+        "layer", description="'layer' clamps to [0, 1] after each blend; 'output' clamps once at the end."
+    )
+    layers: tuple[Layer, ...] = Field(min_length=1, description="Layers, bottom to top.")
+    metadata: dict[str, JsonValue] = Field(default_factory=dict, description="Free-form metadata.")
+
+    @model_validator(mode="after")
+    def _ids_and_references(self) -> "Document":
+        seen: dict[str, int] = {}  # casefolded id -> index, for uniqueness
+        below: set[str] = set()  # exact ids of the layers below the current one
+        for i, layer in enumerate(self.layers):
+            key = layer.id.casefold()
+            if key in seen:
+                j = seen[key]
+                raise RuleError(
+                    f"id {layer.id!r} repeats layers[{j}].id {self.layers[j].id!r}; ids are unique case-insensitively",
+                    loc=("layers", i, "id"),
+                )
+            if isinstance(layer, LearnedLayer) and layer.conditioned_on not in below:
+                raise RuleError(
+                    f"{layer.conditioned_on!r} is not the id of a layer below {layer.id!r}; "
+                    "conditioned_on names a layer below the learned layer",
+                    loc=("layers", i, "conditioned_on"),
+                )
+            seen[key] = i
+            below.add(layer.id)
+        return self
+
+    # ---- reading -------------------------------------------------------------------------------
+
+    @property
+    def ids(self) -> tuple[str, ...]:
+        """Layer ids, bottom to top."""
+        return tuple(layer.id for layer in self.layers)
+
+    def index(self, id: str) -> int:
+        """Position of layer ``id`` (0 = bottom); ``DocumentError`` naming the ids if absent."""
+        for i, layer in enumerate(self.layers):
+            if layer.id == id:
+                return i
+        raise DocumentError(f"no layer with id {id!r}; expected one of {', '.join(self.ids)}", "layers")
+
+    def layer(self, id: str) -> Layer:
+        """The layer with id ``id``."""
+        return self.layers[self.index(id)]
+
+    # ---- changing (each returns a new, validated document) ------------------------------------
+
+    def replace(self, **changes: Any) -> "Document":
+        """A copy with top-level fields changed, e.g. ``doc.replace(blend_space="linear")``."""
+        return self._validated({**self.model_dump(), **changes})
+
+    def with_layers(self, layers: list[Layer | dict[str, Any]]) -> "Document":
+        """A copy whose layer list is ``layers`` (models or plain dicts)."""
+        dumped = [l.model_dump() if isinstance(l, BaseModel) else l for l in layers]
+        return self._validated({**self.model_dump(), "layers": dumped})
+
+    def with_layer(self, layer: Layer | dict[str, Any], index: int | None = None) -> "Document":
+        """Replace the layer with ``layer``'s id in place, or insert it at ``index`` (default: on top)."""
+        id = layer.get("id") if isinstance(layer, dict) else layer.id
+        layers: list[Layer | dict[str, Any]] = list(self.layers)
+        if id in self.ids:
+            if index is not None:
+                raise DocumentError(f"layer {id!r} already exists; index applies to new layers only", "layers")
+            layers[self.index(id)] = layer
+        else:
+            layers.insert(len(layers) if index is None else index, layer)
+        return self.with_layers(layers)  # validates a dict layer with the rest, so errors name layers[i]
+
+    def replace_layer(self, id: str, **changes: Any) -> "Document":
+        """A copy where layer ``id`` has ``changes`` applied, e.g. ``replace_layer("shade", opacity=0.5)``."""
+        layers: list[Layer | dict[str, Any]] = list(self.layers)
+        layers[self.index(id)] = {**self.layer(id).model_dump(), **changes}
+        return self.with_layers(layers)
+
+    def without_layer(self, id: str) -> "Document":
+        """A copy without layer ``id`` (a learned layer conditioned on it makes this an error)."""
+        layers = list(self.layers)
+        del layers[self.index(id)]
+        return self.with_layers(layers)
+
+    @classmethod
+    def _validated(cls, data: dict[str, Any], where: str | None = None) -> "Document":
+        try:
+            return cls.model_validate(data)
+        except ValidationError as err:
+            raise document_error(err, where, cls) from None
+
+    # ---- JSON ------------------------------------------------------------------------------------
+
+    def to_dict(self) -> dict[str, Any]:
+        """The document as plain JSON data: every field, canonical blend names."""
+        return self.model_dump(mode="json")
+
+    def to_json(self) -> str:
+        """The stack.json text: full, stable, 2-space indent, trailing newline (see the module doc)."""
+        return dumps(self.to_dict()) + "\n"
+
+    @classmethod
+    def from_dict(cls, data: Any, where: str | None = None) -> "Document":
+        """Validate parsed JSON data; errors become one-line ``DocumentError``s naming the JSON path."""
+        return cls._validated(data, where)
+
+    @classmethod
+    def from_json(cls, text: str, where: str = "stack.json") -> "Document":
+        """Parse and validate stack.json text; ``where`` names the file in error messages."""
+        return cls.from_dict(parse_json(text, where), where)
+
+
+def _is_scalar(value: Any) -> bool:
+    return not isinstance(value, (list, dict))
+
+
+def _inline(value: Any) -> str | None:
+    """One-line form of a list of scalars, or of a small object of scalars and such lists."""
+    if isinstance(value, list) and all(_is_scalar(v) for v in value):
+        return "[" + ", ".join(json.dumps(v, ensure_ascii=False, allow_nan=False) for v in value) + "]"
+    if isinstance(value, dict) and all(_is_scalar(v) or _inline(v) is not None for v in value.values()):
+        parts = [f"{json.dumps(k, ensure_ascii=False)}: {dumps(v)}" for k, v in value.items()]
+        line = "{" + ", ".join(parts) + "}"
+        return line if len(line) <= 72 else None
+    return None
+
+
+def dumps(value: Any, indent: int = 0) -> str:
+    """JSON, 2-space indent, with small objects and arrays of numbers (colours, ranges) on one line."""
+    if _is_scalar(value):
+        return json.dumps(value, ensure_ascii=False, allow_nan=False)
+    if (line := _inline(value)) is not None:
+        return line
+    pad, inner = "  " * indent, "  " * (indent + 1)
+    if isinstance(value, dict):
+        items = [f"{inner}{json.dumps(k, ensure_ascii=False)}: {dumps(v, indent + 1)}" for k, v in value.items()]
+        return "{\n" + ",\n".join(items) + f"\n{pad}}}"
+    return "[\n" + ",\n".join(f"{inner}{dumps(v, indent + 1)}" for v in value) + f"\n{pad}]"

@@ -1,0 +1,177 @@
+"""Learned-layer presets (``layers/<name>/preset.json``): what a learned layer is and how to distil it.
+
+A preset fixes the layer's blend, channel count and value range (the Lasagna paper's shading layer
+is a 1-channel luminosity multiplier, its colour layer an alpha-linear RGBA layer), names the
+conditional prior that scores it and, for LMC-SDS (Alldieck et al., eq. 10), the corrective b̂,
+lists the condition vocabulary with the prompt template ("A photo of an object with [r] lighting",
+Lasagna Sec. 3), and gives default distillation settings. Weights are referenced by name and
+resolved by the priors tier; this module only reads JSON. See layers/README.md.
+"""
+from __future__ import annotations
+
+import os
+import string
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from lasagna.errors import ConditionError, DocumentError
+from lasagna.document.models import dumps
+from lasagna.document.types import (
+    RANGE_FOR_BLEND_SCHEMA, UNIT_RANGE, Blend, FiniteFloat, LayerId, NameOrPath, Range, StrictModel, Unit, check_id,
+    check_range_for_blend,
+)
+from lasagna.document.validation import RuleError, document_error, parse_json
+
+LossName = Literal["sds", "lmc-sds", "dds", "nfsd", "ms-sds"]
+
+
+class DistillDefaults(StrictModel):
+    """Default settings of a per-image distillation run (overridable per layer via ``settings``)."""
+
+    loss: LossName = Field("sds", description="Score-distillation loss: sds, lmc-sds, dds, nfsd or ms-sds.")
+    guidance: FiniteFloat = Field(
+        1.0, gt=0, description="Classifier-free guidance weight omega in eps_u + omega * (eps_c - eps_u).",
+    )
+    steps: int = Field(150, ge=1, strict=True, description="Optimisation steps.")
+    lr: FiniteFloat = Field(0.03, gt=0, description="Adam learning rate.")
+    t_min: Unit = Field(0.02, description="Lower end of t ~ U(t_min, t_max), as a fraction of the schedule.")
+    t_max: Unit = Field(0.98, description="Upper end of t ~ U(t_min, t_max).")
+    seed: int = Field(0, ge=0, strict=True, description="Random seed of noise and timesteps.")
+
+    @model_validator(mode="after")
+    def _t_interval(self) -> "DistillDefaults":
+        if not self.t_min < self.t_max:
+            raise RuleError(f"t_min {self.t_min} >= t_max {self.t_max}; the rule is t_min < t_max", loc=("t_min",))
+        return self
+
+
+class Preset(StrictModel):
+    """A learned-layer preset, the content of ``layers/<name>/preset.json``."""
+
+    model_config = ConfigDict(json_schema_extra=RANGE_FOR_BLEND_SCHEMA)
+
+    format: Literal["lasagna.preset"] = Field(description="Always 'lasagna.preset'.")
+    version: Literal[1] = Field(description="Preset format version; this is version 1.")
+    name: LayerId = Field(description="The preset's name; equals its folder name in a catalogue.")
+    description: str = Field(min_length=1, description="What the layer does, one or two sentences.")
+    blend: Blend = Field(description="The blend the layer is composed with.")
+    channels: Literal[1, 3, 4] = Field(description="1: gray (a multiplier broadcast over RGB), 3: RGB, 4: RGBA.")
+    range: Range = Field(UNIT_RANGE, description="[lo, hi] of the layer's values; not [0, 1] only for multiply/plus.")
+    prior: NameOrPath = Field(description="The conditional prior: a registered name, or a path (with '/') "
+                              "relative to this preset's folder.")
+    corrective: NameOrPath | None = Field(None, description="LMC-SDS corrective b-hat, named like the prior.")
+    vocabulary: tuple[str, ...] = Field(
+        min_length=1, json_schema_extra={"uniqueItems": True}, description="Condition labels the prior was trained on."
+    )
+    prompt: str = Field(description="Prompt template with one '{label}' placeholder.")
+    distill: DistillDefaults = Field(DistillDefaults(), description="Default distillation settings.")
+
+    @field_validator("vocabulary")
+    @classmethod
+    def _labels(cls, labels: tuple[str, ...]) -> tuple[str, ...]:
+        for i, label in enumerate(labels):
+            if not label or label != label.strip():
+                raise RuleError(f"label {label!r} is empty or has outer spaces; labels are trimmed, non-empty", loc=(i,))
+            if label in labels[:i]:
+                raise RuleError(f"label {label!r} repeats; vocabulary labels are unique", loc=(i,))
+        return labels
+
+    @field_validator("prompt")
+    @classmethod
+    def _template(cls, prompt: str) -> str:
+        try:
+            fields = [f for _, f, _, _ in string.Formatter().parse(prompt) if f is not None]
+        except ValueError as exc:
+            raise RuleError(f"prompt {prompt!r} is not a valid template ({exc}); use {{label}} once") from None
+        if fields != ["label"]:
+            raise RuleError(f"prompt {prompt!r} has placeholders {fields}; the rule is exactly one '{{label}}'")
+        return prompt
+
+    @model_validator(mode="after")
+    def _rules(self) -> "Preset":
+        check_range_for_blend(self.range, self.blend)
+        if self.distill.loss == "lmc-sds" and self.corrective is None:
+            raise RuleError("loss 'lmc-sds' needs a corrective (b-hat of LMC-SDS eq. 10); name one", loc=("corrective",))
+        return self
+
+    def prompt_for(self, label: str) -> str:
+        """The prompt for ``label``; ``ConditionError`` if it is not in the vocabulary."""
+        if label not in self.vocabulary:
+            raise ConditionError(
+                f"label {label!r} is not in preset {self.name!r}'s vocabulary; expected one of {', '.join(self.vocabulary)}",
+                "condition.label",
+            )
+        return self.prompt.format(label=label)
+
+    def to_json(self) -> str:
+        """The preset.json text: every field, canonical names, stable layout."""
+        return dumps(self.model_dump(mode="json")) + "\n"
+
+    @classmethod
+    def from_dict(cls, data: Any, where: str | None = None) -> "Preset":
+        try:
+            return cls.model_validate(data)
+        except ValidationError as err:
+            raise document_error(err, where, cls) from None
+
+    @classmethod
+    def from_json(cls, text: str, where: str = "preset.json") -> "Preset":
+        return cls.from_dict(parse_json(text, where), where)
+
+
+def load_preset(path: str | os.PathLike) -> Preset:
+    """Read a preset from ``preset.json`` or from the folder holding it; its name must match the folder."""
+    file = Path(path)
+    file = file / "preset.json" if file.is_dir() else file
+    try:
+        text = file.read_text(encoding="utf-8-sig")
+    except OSError as exc:
+        raise DocumentError(f"cannot read preset ({exc.strerror}); expected a preset.json file", str(file)) from None
+    preset = Preset.from_json(text, str(file))
+    if file.name == "preset.json" and file.parent.name != preset.name:
+        raise DocumentError(
+            f"name {preset.name!r} differs from its folder {file.parent.name!r}; a preset lives in layers/<name>/",
+            f"{file}: name",
+        )
+    return preset
+
+
+def default_catalogues() -> list[Path]:
+    """Catalogue folders searched for preset names: ``$LASAGNA_LAYERS`` (os.pathsep-separated),
+    then the repository's ``layers/`` when running from a checkout."""
+    dirs = [Path(p) for p in os.environ.get("LASAGNA_LAYERS", "").split(os.pathsep) if p]
+    checkout = Path(__file__).resolve().parents[2] / "layers"
+    return dirs + ([checkout] if checkout.is_dir() else [])
+
+
+def resolve_preset(
+    ref: str, stack_dir: str | os.PathLike | None = None, catalogues: list[Path] | None = None
+) -> Path:
+    """The preset.json a learned layer's ``preset`` names.
+
+    A reference containing '/' is a path relative to the stack folder. A name is looked up as
+    ``<stack_dir>/layers/<name>/preset.json``, then ``<catalogue>/<name>/preset.json`` in each
+    catalogue (default ``default_catalogues()``); the first that exists wins.
+    """
+    if "/" in ref:
+        if stack_dir is None:
+            raise DocumentError(f"preset path {ref!r} needs the stack folder to resolve against", "preset")
+        return Path(stack_dir) / ref
+    try:
+        check_id(ref)
+    except DocumentError as exc:
+        raise DocumentError(str(exc), "preset") from None
+    places = ([Path(stack_dir) / "layers"] if stack_dir is not None else []) + list(
+        default_catalogues() if catalogues is None else catalogues
+    )
+    for place in places:
+        if (place / ref / "preset.json").is_file():
+            return place / ref / "preset.json"
+    known = sorted({p.parent.name for place in places for p in place.glob("*/preset.json")})
+    raise DocumentError(
+        f"no preset named {ref!r} in {', '.join(map(str, places)) or 'no catalogue'}; "
+        f"expected one of {', '.join(known) or '(none found)'}",
+        "preset",
+    )

@@ -1,0 +1,193 @@
+"""Field types shared by the document and preset models: ids, safe paths, unit floats, colours, ranges.
+
+Each type is an ``Annotated`` alias: its validator enforces a rule of docs/ARCHITECTURE.md and
+quotes it when it fails, and its JSON Schema states as much of the rule as JSON Schema can.
+Numbers are strict (``"0.5"`` and ``true`` are not numbers) and finite: bad input is refused, never
+silently coerced.
+"""
+from __future__ import annotations
+
+import re
+from typing import Annotated
+
+from pydantic import AfterValidator, AllowInfNan, BaseModel, BeforeValidator, ConfigDict, Field, Strict, WithJsonSchema
+
+from lasagna.document.blend import ACCEPTED_BLEND_NAMES, BLEND_MODES, BlendMode, RANGED_BLENDS, canonical_blend
+from lasagna.document.validation import RuleError
+
+
+class StrictModel(BaseModel):
+    """Base of every document and preset model: unknown keys refused, frozen, finite floats."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+# ---- ids -----------------------------------------------------------------------------------------
+
+ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+_ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # used with fullmatch: "$" would accept "a\n"
+
+# Windows refuses these as file names even with an extension ("con.png", "aux.mask.png"), so an id
+# that is one of them would not be "safe as a file name on every OS" as layers/<id>.png.
+WINDOWS_RESERVED: frozenset[str] = frozenset(
+    {"CON", "PRN", "AUX", "NUL"} | {f"COM{i}" for i in range(1, 10)} | {f"LPT{i}" for i in range(1, 10)}
+)
+
+
+def _any_case(word: str) -> str:
+    return "".join(f"[{c.upper()}{c.lower()}]" if c.isalpha() else c for c in word)
+
+
+# The same names as a JSON Schema pattern (ECMA-262 regexes have no case-insensitive flag).
+_RESERVED_PATTERN = (
+    "^(" + "|".join(_any_case(w) for w in ("con", "prn", "aux", "nul"))
+    + f"|({_any_case('com')}|{_any_case('lpt')})[1-9]" + r")(\.|$)"
+)
+
+
+def check_id(value: str) -> str:
+    """Rule: id matches ^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$ and is not a Windows device name."""
+    if not _ID_RE.fullmatch(value):
+        raise RuleError(
+            f"id {value!r} breaks the rule: ids match {ID_PATTERN} "
+            "(a letter or digit, then up to 63 letters, digits, '_', '.', '-')"
+        )
+    if value.split(".")[0].upper() in WINDOWS_RESERVED:
+        raise RuleError(f"id {value!r} is a reserved device name on Windows; ids must be safe file names on every OS")
+    return value
+
+
+LayerId = Annotated[
+    str,
+    Strict(),
+    AfterValidator(check_id),
+    WithJsonSchema({"type": "string", "pattern": ID_PATTERN, "not": {"pattern": _RESERVED_PATTERN}}),
+]
+
+# ---- safe relative paths --------------------------------------------------------------------------
+
+# What JSON Schema can say about a safe path: not absolute, no drive letter, no backslash or control
+# character, no empty segment, no leading "..". (A ".." deeper in the path is checked by the model.)
+PATH_PATTERN = r"^(?!/)(?![A-Za-z]:)(?!\.\.(/|$))(?!.*//)(?!.*/$)[^\\\x00-\x1f]+$"
+_DRIVE_RE = re.compile(r"[A-Za-z]:")
+
+
+def check_relative_path(value: str) -> str:
+    """Rule: a relative POSIX path inside the stack folder (no absolute path, drive letter,
+    backslash, empty segment or '..' that escapes). Returns ``value`` unchanged."""
+    rule = "paths are relative POSIX paths inside the stack folder"
+    if not value:
+        raise RuleError(f"empty path; {rule}")
+    if any(ord(c) < 0x20 or c == "\x7f" for c in value):
+        raise RuleError(f"path {value!r} contains a control character; {rule}")
+    if "\\" in value:
+        raise RuleError(f"path {value!r} contains a backslash; {rule}, separated by '/'")
+    if value.startswith("/"):
+        raise RuleError(f"path {value!r} is absolute; {rule}")
+    if _DRIVE_RE.match(value):
+        raise RuleError(f"path {value!r} starts with a drive letter; {rule}")
+    depth = 0
+    for segment in value.split("/"):
+        if segment == "":
+            raise RuleError(f"path {value!r} has an empty segment ('//' or a trailing '/'); {rule}")
+        if segment == "..":
+            depth -= 1
+            if depth < 0:
+                raise RuleError(f"path {value!r} escapes the stack folder with '..'; {rule}")
+        elif segment != ".":
+            depth += 1
+    if depth == 0:
+        raise RuleError(f"path {value!r} names the stack folder itself, not a file inside it; {rule}")
+    return value
+
+
+RelativePath = Annotated[
+    str,
+    Strict(),
+    AfterValidator(check_relative_path),
+    WithJsonSchema({"type": "string", "pattern": PATH_PATTERN}),
+]
+
+def check_name_or_path(value: str) -> str:
+    """Rule: a reference is a name (the id rule) or, if it contains '/', a safe relative path."""
+    return check_relative_path(value) if "/" in value else check_id(value)
+
+
+NameOrPath = Annotated[
+    str,
+    Strict(),
+    AfterValidator(check_name_or_path),
+    WithJsonSchema({"anyOf": [
+        {"type": "string", "pattern": ID_PATTERN, "not": {"pattern": _RESERVED_PATTERN}},
+        {"type": "string", "pattern": "/", "allOf": [{"pattern": PATH_PATTERN}]},
+    ]}),
+]
+
+_SHA256_RE = re.compile(r"[0-9a-f]{64}")
+
+
+def check_sha256(value: str) -> str:
+    """Rule: a SHA-256 digest is 64 lower-case hex digits."""
+    if not _SHA256_RE.fullmatch(value):
+        raise RuleError(f"{value!r} is not a SHA-256 digest; expected 64 lower-case hex digits")
+    return value
+
+
+Sha256 = Annotated[
+    str, Strict(), AfterValidator(check_sha256), WithJsonSchema({"type": "string", "pattern": "^[0-9a-f]{64}$"})
+]
+
+# ---- numbers and colours ----------------------------------------------------------------------------
+
+FiniteFloat = Annotated[float, Strict(), AllowInfNan(False)]
+Unit = Annotated[float, Strict(), AllowInfNan(False), Field(ge=0.0, le=1.0)]
+Pixels = Annotated[int, Strict(), Field(ge=1, le=32768)]
+
+# An offset must fit the signed 32-bit integers PSD and OpenRaster store layer positions in.
+INT32_MAX = 2**31 - 1
+Coordinate = Annotated[int, Strict(), Field(ge=-INT32_MAX, le=INT32_MAX)]
+
+Colour = Annotated[tuple[Unit, ...], Field(min_length=3, max_length=4)]
+OpaqueColour = tuple[Unit, Unit, Unit]
+
+
+def check_range(value: tuple[float, float]) -> tuple[float, float]:
+    """Rule: range [lo, hi] with lo < hi (finiteness is checked by the item type)."""
+    lo, hi = value
+    if not lo < hi:
+        raise RuleError(f"range [{lo}, {hi}] breaks the rule lo < hi")
+    return value
+
+
+Range = Annotated[tuple[FiniteFloat, FiniteFloat], AfterValidator(check_range)]
+UNIT_RANGE: tuple[float, float] = (0.0, 1.0)
+
+
+def check_range_for_blend(range_: tuple[float, float], blend: str) -> None:
+    """Rule: a range other than [0, 1] is allowed only for multiply and plus."""
+    if tuple(range_) != UNIT_RANGE and blend not in RANGED_BLENDS:
+        raise RuleError(
+            f"range [{range_[0]}, {range_[1]}] with blend {blend!r} breaks the rule: a range other "
+            f"than [0, 1] is allowed only for {' and '.join(sorted(RANGED_BLENDS))}",
+            loc=("range",),
+        )
+
+
+# JSON Schema form of check_range_for_blend, for objects with "blend" and "range" (default normal).
+RANGE_FOR_BLEND_SCHEMA = {
+    "if": {"properties": {"blend": {"enum": [b for b in ACCEPTED_BLEND_NAMES if canonical_blend(b) not in RANGED_BLENDS]}}},
+    "then": {"properties": {"range": {"const": list(UNIT_RANGE)}}},
+}
+
+# ---- blend -------------------------------------------------------------------------------------------
+
+Blend = Annotated[
+    BlendMode,
+    BeforeValidator(canonical_blend),
+    WithJsonSchema({
+        "type": "string",
+        "enum": list(ACCEPTED_BLEND_NAMES),
+        "description": f"Blend mode, one of {', '.join(BLEND_MODES)}; the aliases alpha-linear, "
+        "multiply-luminosity and additive are accepted and written canonical.",
+    }),
+]

@@ -1,0 +1,1 @@
+"""Tests of lasagna.document (the document tier)."""
