@@ -1,0 +1,396 @@
+"""Training the manifold corrective b̂_ψ on triplets (z, ẑ_t, t) with L_k (LMC-SDS, Sec. 4 and suppl.).
+
+Triplets, as in the paper: z = ``prior.encode(images)`` of clean images from a data source,
+t ~ U(t_min, t_max) (default 0.02–0.98, mapped to integer steps), z_t = √ᾱ_t z + √(1 − ᾱ_t) ε and
+ẑ_t = the prior's x̂₀-prediction. The branch defaults to the **unconditional** one (null label,
+conditioning image kept): the paper writes ẑ_t = z_φ(z_t, t) without y (eq. 7), and L_lmc replaces
+the projection term L_proj, which uses the unconditional ε_φ(z_t, t) (eq. 6c). ``branch="cond"`` is
+available for experiments. A ``sees_condition`` b̂ is given the sample's conditioning image and
+label (whichever branch ẑ_t comes from), as LMC-SDS passes them at use time. L_k (eq. 10) is the
+only loss; Adam, lr 1e-4 (the paper's; decay optional: 0.9 every 100 k steps in the paper).
+
+Output folder::
+
+    out_dir/
+      train_config.json        the CorrectiveTrainConfig (a resumed run must match it)
+      checkpoint.safetensors   ONE atomic file: model, EMA, Adam state, RNG state; step + config in metadata
+      log.jsonl                {"step", "lk", "lr", "elapsed_s"} every log_every steps
+      corrective/              the final b̂ (EMA weights when enabled): model.safetensors + config.json
+      metrics.json             held-out L_k of the trained b̂ and of the trivial b̂ = z, and their ratio
+
+Start again with the same ``out_dir`` after a kill and training continues from the last checkpoint
+with the same random stream (every random draw — data, t, ε — comes from one generator whose state
+is checkpointed), so a resumed run reproduces the uninterrupted one. ``max_minutes`` bounds one
+invocation; the run then checkpoints and stops, and the next invocation continues.
+
+The data source is a callable ``sample_batch(batch, generator) -> (images in [0, 1] (B, 3, H, W),
+label_idx (B,) into the prior's vocabulary, cond_image (B, C, H, W) in [0, 1] or None)``.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import importlib
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Literal
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from tqdm.auto import tqdm
+
+from lasagna.errors import LasagnaError
+from lasagna.io.atomic import atomic_write_text
+from lasagna.losses.corrective import Corrective, CorrectiveConfig, TrivialCorrective, lk_loss
+from lasagna.priors import io
+from lasagna.priors.base import Condition, Prior
+from lasagna.priors.nn import randn
+
+Source = Callable[[int, torch.Generator], tuple[torch.Tensor, torch.Tensor, "torch.Tensor | None"]]
+
+CHECKPOINT = "checkpoint.safetensors"
+CHECKPOINT_FORMAT = "lasagna.corrective_checkpoint"
+# Fields that may change between invocations on one out_dir (they do not change the random stream
+# or the model): extending ``steps``, a new time budget, other logging cadences.
+_RESUMABLE_CHANGES = {"steps", "max_minutes", "progress", "checkpoint_every", "log_every", "eval_batches"}
+_EVAL_SEED_OFFSET = 1_000_003  # the held-out batches come from their own generator, never the training one
+
+
+class CorrectiveTrainConfig(BaseModel):
+    """How b̂ is trained (saved as train_config.json and inside every checkpoint)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    corrective: CorrectiveConfig
+    steps: int = Field(20_000, ge=1)
+    batch_size: int = Field(32, ge=1)
+    lr: float = Field(1e-4, gt=0.0)
+    lr_decay: float = Field(1.0, gt=0.0, le=1.0, description="lr multiplied by this every lr_decay_every steps")
+    lr_decay_every: int = Field(100_000, ge=1)
+    t_min: float = Field(0.02, ge=0.0, le=1.0)
+    t_max: float = Field(0.98, ge=0.0, le=1.0)
+    branch: Literal["uncond", "cond"] = "uncond"
+    ema_decay: float | None = Field(None, ge=0.0, lt=1.0)
+    checkpoint_every: int = Field(500, ge=1)
+    log_every: int = Field(10, ge=1)
+    eval_batches: int = Field(8, ge=1)
+    max_minutes: float | None = Field(None, gt=0.0)
+    seed: int = 0
+    progress: bool = True
+
+    @model_validator(mode="after")
+    def _t_range(self) -> "CorrectiveTrainConfig":
+        if self.t_min > self.t_max:
+            raise ValueError(f"t_min {self.t_min} must be <= t_max {self.t_max}")
+        return self
+
+
+def corrective_config_for(prior: Prior, filters: tuple[int, ...] = (32, 64, 128), sees_condition: bool = False, cond_channels: int = 0) -> CorrectiveConfig:
+    """A ``CorrectiveConfig`` matching ``prior`` (channels, resolution, T, vocabulary)."""
+    c, h, _ = prior.sample_shape
+    return CorrectiveConfig(
+        channels=c, resolution=h, filters=filters, num_timesteps=prior.schedule.num_steps,
+        sees_condition=sees_condition, cond_channels=cond_channels if sees_condition else 0, vocabulary=tuple(prior.vocabulary),
+    )
+
+
+@dataclass
+class Triplet:
+    """One batch of training triplets. ``label`` is the sample's label, which a ``sees_condition`` b̂ is
+    given — whichever branch ẑ_t comes from — because that is what LMC-SDS passes it at use time."""
+
+    z: torch.Tensor  # (B, C, h, w) clean, in the prior's space
+    t: torch.Tensor  # (B,) integer timesteps
+    z_hat: torch.Tensor  # (B, C, h, w) the prior's x̂₀-prediction, float32
+    label: torch.Tensor  # (B,)
+    image: torch.Tensor | None  # (B, C_cond, H, W) in [0, 1]
+
+
+def make_triplets(prior: Prior, source: Source, batch: int, generator: torch.Generator, branch: str, t_min: float, t_max: float, device: torch.device) -> Triplet:
+    """Draw clean images, noise them at t ~ U(t_min, t_max), and take the prior's x̂₀ (one network pass)."""
+    images, label_idx, cond_image = source(batch, generator)
+    if images.dim() != 4 or images.shape[0] != batch:
+        raise LasagnaError(f"images have shape {tuple(images.shape)}; expected ({batch}, C, H, W)", "source")
+    images, label_idx = images.to(device), label_idx.to(device=device, dtype=torch.long)
+    cond_image = cond_image.to(device) if cond_image is not None else None
+    sched = prior.schedule
+    null = len(prior.vocabulary)
+    with torch.no_grad():
+        z = prior.encode(images).float()
+    u = t_min + (t_max - t_min) * torch.rand((batch,), generator=generator, device=generator.device)
+    t = sched.continuous_to_index(u).to(device)
+    z_t = sched.add_noise(z, randn(tuple(z.shape), generator, device, z.dtype), t)
+    if int(label_idx.min()) < 0 or int(label_idx.max()) > null:
+        raise LasagnaError(f"label_idx must lie in [0, {null}] (the null index is {null}); got {label_idx.tolist()}", "source")
+    labels = [prior.vocabulary[i] if i < null else "" for i in label_idx.tolist()]
+    eps = prior.predict(z_t, t, Condition(labels, image=cond_image), branches=(branch,)).eps[branch]
+    z_hat = sched.x0_from_eps(z_t, eps.float(), t)
+    return Triplet(z=z, t=t, z_hat=z_hat, label=label_idx, image=cond_image)
+
+
+@torch.no_grad()
+def evaluate_lk(model: torch.nn.Module, triplets: list[Triplet]) -> float:
+    """Mean L_k of ``model`` over the held-out triplets."""
+    total = sum(float(lk_loss(model(tr.z, tr.t, cond_image=tr.image, label_idx=tr.label), tr.z_hat)) for tr in triplets)
+    return total / len(triplets)
+
+
+@dataclass
+class TrainResult:
+    corrective: Corrective  # the final b̂ (EMA weights when enabled), in eval mode
+    step: int
+    stopped: Literal["done", "time"]
+    lk_trained: float
+    lk_trivial: float
+
+    @property
+    def ratio(self) -> float:
+        """L_k(trained) / L_k(b̂ = z) on held-out batches; the issue's target is ≤ 0.5."""
+        return self.lk_trained / self.lk_trivial if self.lk_trivial > 0 else math.nan
+
+
+# -- checkpoints --------------------------------------------------------------------------------
+def _save_checkpoint(path: Path, step: int, cfg: CorrectiveTrainConfig, model, ema, opt, gen: torch.Generator) -> None:
+    tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
+    if ema is not None:
+        tensors.update({f"ema.{k}": v for k, v in ema.items()})
+    osd = opt.state_dict()
+    scalars: dict[str, dict[str, object]] = {}
+    for idx, state in osd["state"].items():
+        for key, val in state.items():
+            if torch.is_tensor(val):
+                tensors[f"optim.{idx}.{key}"] = val
+            else:
+                scalars.setdefault(str(idx), {})[key] = val
+    tensors["rng.train"] = gen.get_state()
+    meta = {
+        "format": CHECKPOINT_FORMAT,
+        "step": str(step),
+        "config": cfg.model_dump_json(),
+        "optim.param_groups": json.dumps(osd["param_groups"]),
+        "optim.scalars": json.dumps(scalars),
+    }
+    io.save_tensors(path, tensors, meta)
+
+
+def _load_checkpoint(path: Path, model, ema, opt, gen: torch.Generator, device) -> int:
+    tensors, meta = io.load_tensors(path)
+    if meta.get("format") != CHECKPOINT_FORMAT:
+        raise LasagnaError(f"format is {meta.get('format')!r}; expected {CHECKPOINT_FORMAT!r}", str(path))
+    io.load_state_strict(model, {k[6:]: v for k, v in tensors.items() if k.startswith("model.")}, str(path))
+    if ema is not None:
+        for k in ema:
+            if f"ema.{k}" not in tensors:
+                raise LasagnaError(f"checkpoint has no EMA tensor {k}; expected one (ema_decay is set)", str(path))
+            ema[k] = tensors[f"ema.{k}"].to(device)
+    state: dict[int, dict[str, object]] = {}
+    for k, v in tensors.items():
+        if k.startswith("optim."):
+            _, idx, key = k.split(".", 2)
+            state.setdefault(int(idx), {})[key] = v.to(device) if key != "step" else v
+    for idx, vals in json.loads(meta.get("optim.scalars", "{}")).items():
+        state.setdefault(int(idx), {}).update(vals)
+    opt.load_state_dict({"state": state, "param_groups": json.loads(meta["optim.param_groups"])})
+    gen.set_state(tensors["rng.train"])
+    return int(meta["step"])
+
+
+def _check_same_run(out: Path, cfg: CorrectiveTrainConfig) -> None:
+    path = out / "train_config.json"
+    if not path.is_file():
+        atomic_write_text(path, cfg.model_dump_json(indent=2) + "\n")
+        return
+    try:
+        old = CorrectiveTrainConfig.model_validate_json(path.read_text(encoding="utf-8"))
+    except ValidationError as exc:
+        raise LasagnaError(*io.describe_validation_error(exc, str(path))) from None
+    a = old.model_dump(exclude=_RESUMABLE_CHANGES)
+    b = cfg.model_dump(exclude=_RESUMABLE_CHANGES)
+    diff = sorted(k for k in a if a[k] != b[k])
+    if diff:
+        raise LasagnaError(f"this folder holds a run with different {', '.join(diff)}; expected the same config to resume (or a new folder)", str(out))
+    atomic_write_text(path, cfg.model_dump_json(indent=2) + "\n")
+
+
+def _trim_log(path: Path, step: int) -> None:
+    """Keep only log lines up to the checkpointed step (a killed run may have logged past it; a
+    half-written last line is dropped)."""
+    if not path.is_file():
+        return
+    kept = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(rec, dict) and rec.get("step", math.inf) <= step:
+            kept.append(line)
+    atomic_write_text(path, "".join(f"{line}\n" for line in kept))
+
+
+# -- the loop -----------------------------------------------------------------------------------
+def train_corrective(prior: Prior, source: Source, config: CorrectiveTrainConfig, out_dir: str | Path, device: str | torch.device | None = None) -> TrainResult:
+    """Train b̂_ψ (or resume training it) in ``out_dir``; see the module docstring."""
+    cfg = config
+    cc = cfg.corrective
+    if cc.channels != prior.sample_shape[0] or cc.num_timesteps != prior.schedule.num_steps:
+        raise LasagnaError(
+            f"corrective has channels={cc.channels}, num_timesteps={cc.num_timesteps}; expected the prior's {prior.sample_shape[0]} and {prior.schedule.num_steps}",
+            "config.corrective",
+        )
+    if cc.sees_condition and tuple(cc.vocabulary) != tuple(prior.vocabulary):
+        raise LasagnaError(f"corrective vocabulary {list(cc.vocabulary)}; expected the prior's {list(prior.vocabulary)}", "config.corrective.vocabulary")
+    if device is None:
+        p = next(iter(prior.parameters()), None)
+        device = p.device if p is not None else torch.device("cpu")
+    device = torch.device(device)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    _check_same_run(out, cfg)
+    for stale in out.glob(f".{CHECKPOINT}.*"):  # temporaries of a write killed half-way (ours only)
+        stale.unlink()
+
+    with torch.random.fork_rng(devices=[]):  # a seeded initialisation without touching the global RNG
+        torch.manual_seed(cfg.seed)
+        model = Corrective(cc)
+    model.to(device).train()
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    ema = {k: v.detach().clone() for k, v in model.state_dict().items()} if cfg.ema_decay is not None else None
+    gen = torch.Generator().manual_seed(cfg.seed)
+    ckpt, log_path = out / CHECKPOINT, out / "log.jsonl"
+    step = 0
+    if ckpt.is_file():
+        step = _load_checkpoint(ckpt, model, ema, opt, gen, device)
+        _trim_log(log_path, step)
+    elif log_path.exists():
+        log_path.unlink()
+
+    # Held-out batches: their own generator, drawn before training, identical across resumes.
+    eval_gen = torch.Generator().manual_seed(cfg.seed + _EVAL_SEED_OFFSET)
+    held_out = [make_triplets(prior, source, cfg.batch_size, eval_gen, cfg.branch, cfg.t_min, cfg.t_max, device) for _ in range(cfg.eval_batches)]
+
+    start, saved_at, stopped = time.monotonic(), step, "done"
+    bar = tqdm(total=cfg.steps, initial=step, desc="corrective", disable=not cfg.progress, dynamic_ncols=True)
+    with open(log_path, "a", encoding="utf-8") as log:
+        while step < cfg.steps:
+            if cfg.max_minutes is not None and time.monotonic() - start > cfg.max_minutes * 60:
+                stopped = "time"
+                break
+            lr = cfg.lr * cfg.lr_decay ** (step // cfg.lr_decay_every)
+            for group in opt.param_groups:
+                group["lr"] = lr
+            tr = make_triplets(prior, source, cfg.batch_size, gen, cfg.branch, cfg.t_min, cfg.t_max, device)
+            loss = lk_loss(model(tr.z, tr.t, cond_image=tr.image, label_idx=tr.label), tr.z_hat)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            if ema is not None:
+                with torch.no_grad():
+                    for k, v in model.state_dict().items():
+                        ema[k].mul_(cfg.ema_decay).add_(v.detach(), alpha=1 - cfg.ema_decay)
+            step += 1
+            bar.update(1)
+            if step % cfg.log_every == 0:
+                lk = float(loss.detach())
+                bar.set_postfix(lk=f"{lk:.4f}")
+                log.write(json.dumps({"step": step, "lk": lk, "lr": lr, "elapsed_s": round(time.monotonic() - start, 3)}) + "\n")
+                log.flush()
+            if step % cfg.checkpoint_every == 0:
+                _save_checkpoint(ckpt, step, cfg, model, ema, opt, gen)
+                saved_at = step
+    bar.close()
+    if saved_at != step or not ckpt.is_file():
+        _save_checkpoint(ckpt, step, cfg, model, ema, opt, gen)
+
+    final = copy.deepcopy(model).eval()
+    if ema is not None:
+        final.load_state_dict(ema)
+    final.save_pretrained(out / "corrective")
+    lk_trained = evaluate_lk(final, held_out)
+    lk_trivial = evaluate_lk(TrivialCorrective(), held_out)
+    result = TrainResult(corrective=final, step=step, stopped=stopped, lk_trained=lk_trained, lk_trivial=lk_trivial)
+    ratio = result.ratio if math.isfinite(result.ratio) else None  # strict JSON has no NaN
+    metrics = {"step": step, "stopped": stopped, "lk_trained": lk_trained, "lk_trivial": lk_trivial, "ratio": ratio,
+               "held_out_samples": cfg.eval_batches * cfg.batch_size}
+    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    return result
+
+
+# -- command line (wired as `lasagna train-corrective` by the CLI) -------------------------------
+def _import_callable(spec: str) -> Source:
+    module, sep, attr = spec.partition(":")
+    if not sep or not module or not attr:
+        raise LasagnaError(f"got {spec!r}; expected module:callable, e.g. lasagna.world.source:sample_batch", "--source")
+    try:
+        obj = getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as exc:
+        raise LasagnaError(f"cannot import {spec!r} ({exc})", "--source") from None
+    if not callable(obj):
+        raise LasagnaError(f"{spec!r} is not callable; expected sample_batch(batch, generator)", "--source")
+    return obj
+
+
+def _filters(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers such as 32,64,128; got {text!r}") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="lasagna train-corrective", description="Train the LMC-SDS manifold corrective b̂ for a prior (resumable).")
+    p.add_argument("--prior", required=True, help="folder of a UNetPrior (model.safetensors + config.json)")
+    p.add_argument("--source", required=True, help="module:callable, sample_batch(batch, generator) -> (images, label_idx, cond_image)")
+    p.add_argument("--out", required=True, help="output folder; run again with the same folder to resume")
+    p.add_argument("--steps", type=int, default=20_000)
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--lr", type=float, default=1e-4)
+    p.add_argument("--filters", type=_filters, default=(32, 64, 128), help="filters per level, e.g. 32,64,128")
+    p.add_argument("--sees-condition", action="store_true", help="b̂ also sees the conditioning image and the label")
+    p.add_argument("--branch", choices=("uncond", "cond"), default="uncond")
+    p.add_argument("--t-min", type=float, default=0.02)
+    p.add_argument("--t-max", type=float, default=0.98)
+    p.add_argument("--ema", type=float, default=None, help="EMA decay, e.g. 0.999 (off by default)")
+    p.add_argument("--checkpoint-every", type=int, default=500)
+    p.add_argument("--log-every", type=int, default=10)
+    p.add_argument("--eval-batches", type=int, default=8)
+    p.add_argument("--max-minutes", type=float, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        from lasagna.priors.unet import UNetPrior
+
+        prior = UNetPrior.from_pretrained(args.prior, device=args.device)
+        source = _import_callable(args.source)
+        cond_channels = prior.config.cond_channels
+        config = CorrectiveTrainConfig(
+            corrective=corrective_config_for(prior, args.filters, args.sees_condition, cond_channels),
+            steps=args.steps, batch_size=args.batch_size, lr=args.lr, t_min=args.t_min, t_max=args.t_max,
+            branch=args.branch, ema_decay=args.ema, checkpoint_every=args.checkpoint_every, log_every=args.log_every,
+            eval_batches=args.eval_batches, max_minutes=args.max_minutes, seed=args.seed, progress=not args.no_progress,
+        )
+        result = train_corrective(prior, source, config, args.out, device=args.device)
+    except ValidationError as exc:
+        msg, where = io.describe_validation_error(exc, "train-corrective")
+        print(f"error: {where}: {msg}", file=sys.stderr)
+        return 2
+    except LasagnaError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps({"step": result.step, "stopped": result.stopped, "lk_trained": result.lk_trained,
+                      "lk_trivial": result.lk_trivial, "ratio": result.ratio}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
