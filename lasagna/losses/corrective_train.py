@@ -29,19 +29,16 @@ label_idx (B,) into the prior's vocabulary, cond_image (B, C, H, W) in [0, 1] or
 from __future__ import annotations
 
 import argparse
-import copy
 import importlib
 import json
 import math
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Literal
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
-from tqdm.auto import tqdm
+from pydantic import ConfigDict, Field, ValidationError, model_validator
 
 from lasagna.errors import LasagnaError
 from lasagna.io.atomic import atomic_write_text
@@ -49,38 +46,26 @@ from lasagna.losses.corrective import Corrective, CorrectiveConfig, TrivialCorre
 from lasagna.priors import io
 from lasagna.priors.base import Condition, Prior
 from lasagna.priors.nn import randn
+from lasagna.training import LoopConfig, train_loop
 
 Source = Callable[[int, torch.Generator], tuple[torch.Tensor, torch.Tensor, "torch.Tensor | None"]]
 
-CHECKPOINT = "checkpoint.safetensors"
 CHECKPOINT_FORMAT = "lasagna.corrective_checkpoint"
-# Fields that may change between invocations on one out_dir (they do not change the random stream
-# or the model): extending ``steps``, a new time budget, other logging cadences.
-_RESUMABLE_CHANGES = {"steps", "max_minutes", "progress", "checkpoint_every", "log_every", "eval_batches"}
 _EVAL_SEED_OFFSET = 1_000_003  # the held-out batches come from their own generator, never the training one
 
 
-class CorrectiveTrainConfig(BaseModel):
-    """How b̂ is trained (saved as train_config.json and inside every checkpoint)."""
+class CorrectiveTrainConfig(LoopConfig):
+    """How b̂ is trained (saved as train_config.json and inside every checkpoint); the loop's
+    settings (steps, lr, EMA, checkpoints, time budget, seed) come from ``LoopConfig``."""
 
     model_config = ConfigDict(extra="forbid")
 
     corrective: CorrectiveConfig
-    steps: int = Field(20_000, ge=1)
     batch_size: int = Field(32, ge=1)
-    lr: float = Field(1e-4, gt=0.0)
-    lr_decay: float = Field(1.0, gt=0.0, le=1.0, description="lr multiplied by this every lr_decay_every steps")
-    lr_decay_every: int = Field(100_000, ge=1)
     t_min: float = Field(0.02, ge=0.0, le=1.0)
     t_max: float = Field(0.98, ge=0.0, le=1.0)
     branch: Literal["uncond", "cond"] = "uncond"
-    ema_decay: float | None = Field(None, ge=0.0, lt=1.0)
-    checkpoint_every: int = Field(500, ge=1)
-    log_every: int = Field(10, ge=1)
     eval_batches: int = Field(8, ge=1)
-    max_minutes: float | None = Field(None, gt=0.0)
-    seed: int = 0
-    progress: bool = True
 
     @model_validator(mode="after")
     def _t_range(self) -> "CorrectiveTrainConfig":
@@ -153,85 +138,6 @@ class TrainResult:
         return self.lk_trained / self.lk_trivial if self.lk_trivial > 0 else math.nan
 
 
-# -- checkpoints --------------------------------------------------------------------------------
-def _save_checkpoint(path: Path, step: int, cfg: CorrectiveTrainConfig, model, ema, opt, gen: torch.Generator) -> None:
-    tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
-    if ema is not None:
-        tensors.update({f"ema.{k}": v for k, v in ema.items()})
-    osd = opt.state_dict()
-    scalars: dict[str, dict[str, object]] = {}
-    for idx, state in osd["state"].items():
-        for key, val in state.items():
-            if torch.is_tensor(val):
-                tensors[f"optim.{idx}.{key}"] = val
-            else:
-                scalars.setdefault(str(idx), {})[key] = val
-    tensors["rng.train"] = gen.get_state()
-    meta = {
-        "format": CHECKPOINT_FORMAT,
-        "step": str(step),
-        "config": cfg.model_dump_json(),
-        "optim.param_groups": json.dumps(osd["param_groups"]),
-        "optim.scalars": json.dumps(scalars),
-    }
-    io.save_tensors(path, tensors, meta)
-
-
-def _load_checkpoint(path: Path, model, ema, opt, gen: torch.Generator, device) -> int:
-    tensors, meta = io.load_tensors(path)
-    if meta.get("format") != CHECKPOINT_FORMAT:
-        raise LasagnaError(f"format is {meta.get('format')!r}; expected {CHECKPOINT_FORMAT!r}", str(path))
-    io.load_state_strict(model, {k[6:]: v for k, v in tensors.items() if k.startswith("model.")}, str(path))
-    if ema is not None:
-        for k in ema:
-            if f"ema.{k}" not in tensors:
-                raise LasagnaError(f"checkpoint has no EMA tensor {k}; expected one (ema_decay is set)", str(path))
-            ema[k] = tensors[f"ema.{k}"].to(device)
-    state: dict[int, dict[str, object]] = {}
-    for k, v in tensors.items():
-        if k.startswith("optim."):
-            _, idx, key = k.split(".", 2)
-            state.setdefault(int(idx), {})[key] = v.to(device) if key != "step" else v
-    for idx, vals in json.loads(meta.get("optim.scalars", "{}")).items():
-        state.setdefault(int(idx), {}).update(vals)
-    opt.load_state_dict({"state": state, "param_groups": json.loads(meta["optim.param_groups"])})
-    gen.set_state(tensors["rng.train"])
-    return int(meta["step"])
-
-
-def _check_same_run(out: Path, cfg: CorrectiveTrainConfig) -> None:
-    path = out / "train_config.json"
-    if not path.is_file():
-        atomic_write_text(path, cfg.model_dump_json(indent=2) + "\n")
-        return
-    try:
-        old = CorrectiveTrainConfig.model_validate_json(path.read_text(encoding="utf-8"))
-    except ValidationError as exc:
-        raise LasagnaError(*io.describe_validation_error(exc, str(path))) from None
-    a = old.model_dump(exclude=_RESUMABLE_CHANGES)
-    b = cfg.model_dump(exclude=_RESUMABLE_CHANGES)
-    diff = sorted(k for k in a if a[k] != b[k])
-    if diff:
-        raise LasagnaError(f"this folder holds a run with different {', '.join(diff)}; expected the same config to resume (or a new folder)", str(out))
-    atomic_write_text(path, cfg.model_dump_json(indent=2) + "\n")
-
-
-def _trim_log(path: Path, step: int) -> None:
-    """Keep only log lines up to the checkpointed step (a killed run may have logged past it; a
-    half-written last line is dropped)."""
-    if not path.is_file():
-        return
-    kept = []
-    for line in path.read_text(encoding="utf-8").splitlines():
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if isinstance(rec, dict) and rec.get("step", math.inf) <= step:
-            kept.append(line)
-    atomic_write_text(path, "".join(f"{line}\n" for line in kept))
-
-
 # -- the loop -----------------------------------------------------------------------------------
 def train_corrective(prior: Prior, source: Source, config: CorrectiveTrainConfig, out_dir: str | Path, device: str | torch.device | None = None) -> TrainResult:
     """Train b̂_ψ (or resume training it) in ``out_dir``; see the module docstring."""
@@ -249,66 +155,22 @@ def train_corrective(prior: Prior, source: Source, config: CorrectiveTrainConfig
         device = p.device if p is not None else torch.device("cpu")
     device = torch.device(device)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    _check_same_run(out, cfg)
-    for stale in out.glob(f".{CHECKPOINT}.*"):  # temporaries of a write killed half-way (ours only)
-        stale.unlink()
 
     with torch.random.fork_rng(devices=[]):  # a seeded initialisation without touching the global RNG
         torch.manual_seed(cfg.seed)
         model = Corrective(cc)
-    model.to(device).train()
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    ema = {k: v.detach().clone() for k, v in model.state_dict().items()} if cfg.ema_decay is not None else None
-    gen = torch.Generator().manual_seed(cfg.seed)
-    ckpt, log_path = out / CHECKPOINT, out / "log.jsonl"
-    step = 0
-    if ckpt.is_file():
-        step = _load_checkpoint(ckpt, model, ema, opt, gen, device)
-        _trim_log(log_path, step)
-    elif log_path.exists():
-        log_path.unlink()
 
     # Held-out batches: their own generator, drawn before training, identical across resumes.
     eval_gen = torch.Generator().manual_seed(cfg.seed + _EVAL_SEED_OFFSET)
     held_out = [make_triplets(prior, source, cfg.batch_size, eval_gen, cfg.branch, cfg.t_min, cfg.t_max, device) for _ in range(cfg.eval_batches)]
 
-    start, saved_at, stopped = time.monotonic(), step, "done"
-    bar = tqdm(total=cfg.steps, initial=step, desc="corrective", disable=not cfg.progress, dynamic_ncols=True)
-    with open(log_path, "a", encoding="utf-8") as log:
-        while step < cfg.steps:
-            if cfg.max_minutes is not None and time.monotonic() - start > cfg.max_minutes * 60:
-                stopped = "time"
-                break
-            lr = cfg.lr * cfg.lr_decay ** (step // cfg.lr_decay_every)
-            for group in opt.param_groups:
-                group["lr"] = lr
-            tr = make_triplets(prior, source, cfg.batch_size, gen, cfg.branch, cfg.t_min, cfg.t_max, device)
-            loss = lk_loss(model(tr.z, tr.t, cond_image=tr.image, label_idx=tr.label), tr.z_hat)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if ema is not None:
-                with torch.no_grad():
-                    for k, v in model.state_dict().items():
-                        ema[k].mul_(cfg.ema_decay).add_(v.detach(), alpha=1 - cfg.ema_decay)
-            step += 1
-            bar.update(1)
-            if step % cfg.log_every == 0:
-                lk = float(loss.detach())
-                bar.set_postfix(lk=f"{lk:.4f}")
-                log.write(json.dumps({"step": step, "lk": lk, "lr": lr, "elapsed_s": round(time.monotonic() - start, 3)}) + "\n")
-                log.flush()
-            if step % cfg.checkpoint_every == 0:
-                _save_checkpoint(ckpt, step, cfg, model, ema, opt, gen)
-                saved_at = step
-    bar.close()
-    if saved_at != step or not ckpt.is_file():
-        _save_checkpoint(ckpt, step, cfg, model, ema, opt, gen)
+    def step_fn(net: torch.nn.Module, gen: torch.Generator, step: int) -> tuple[torch.Tensor, dict[str, float]]:
+        tr = make_triplets(prior, source, cfg.batch_size, gen, cfg.branch, cfg.t_min, cfg.t_max, device)
+        loss = lk_loss(net(tr.z, tr.t, cond_image=tr.image, label_idx=tr.label), tr.z_hat)
+        return loss, {"lk": float(loss.detach())}
 
-    final = copy.deepcopy(model).eval()
-    if ema is not None:
-        final.load_state_dict(ema)
+    done = train_loop(model, step_fn, cfg, cfg, out, checkpoint_format=CHECKPOINT_FORMAT, desc="corrective", device=device)
+    final, step, stopped = done.model, done.step, done.stopped
     final.save_pretrained(out / "corrective")
     lk_trained = evaluate_lk(final, held_out)
     lk_trivial = evaluate_lk(TrivialCorrective(), held_out)

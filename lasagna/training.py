@@ -1,0 +1,237 @@
+"""One resumable training loop for every network Lasagna trains (prior, corrective b̂, layer generator).
+
+A run lives in one folder::
+
+    out_dir/
+      train_config.json        the run's full config (a resumed run must match it, up to RESUMABLE fields)
+      checkpoint.safetensors   ONE atomic file: model, EMA, Adam state, RNG state; step + config in metadata
+      log.jsonl                {"step", "loss", ..., "lr", "elapsed_s"} every ``log_every`` steps
+
+Start again with the same ``out_dir`` after a kill and training continues from the last checkpoint
+with the same random stream: every random draw of a step (data, t, ε, dropout) must come from the one
+``torch.Generator`` the loop passes to ``step_fn``, whose state is checkpointed, so a resumed run
+reproduces the uninterrupted one bit for bit. ``max_minutes`` bounds one invocation; the run then
+checkpoints and stops, and the next invocation continues.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Literal, TypeVar
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from tqdm.auto import tqdm
+
+from lasagna.errors import LasagnaError
+from lasagna.io.atomic import atomic_write_text
+from lasagna.priors import io
+
+CHECKPOINT = "checkpoint.safetensors"
+CONFIG_FILE = "train_config.json"
+LOG_FILE = "log.jsonl"
+# Fields that may change between invocations on one out_dir: they change neither the random stream
+# nor the model (extending ``steps``, a new time budget, other logging cadences).
+RESUMABLE = frozenset({"steps", "max_minutes", "progress", "checkpoint_every", "log_every", "eval_batches"})
+
+M = TypeVar("M", bound=BaseModel)
+StepFn = Callable[[torch.nn.Module, torch.Generator, int], "tuple[torch.Tensor, dict[str, float]]"]
+
+
+class LoopConfig(BaseModel):
+    """The loop's own settings; embedded (flattened) in each trainer's config."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    steps: int = Field(20_000, ge=1)
+    lr: float = Field(1e-4, gt=0.0)
+    lr_decay: float = Field(1.0, gt=0.0, le=1.0, description="lr multiplied by this every lr_decay_every steps")
+    lr_decay_every: int = Field(100_000, ge=1)
+    warmup_steps: int = Field(0, ge=0, description="linear lr warm-up from 0 over this many steps")
+    grad_clip: float | None = Field(None, gt=0.0, description="clip the global gradient norm to this")
+    ema_decay: float | None = Field(None, ge=0.0, lt=1.0)
+    checkpoint_every: int = Field(500, ge=1)
+    log_every: int = Field(10, ge=1)
+    max_minutes: float | None = Field(None, gt=0.0)
+    seed: int = 0
+    progress: bool = True
+
+    def lr_at(self, step: int) -> float:
+        warm = min(1.0, (step + 1) / self.warmup_steps) if self.warmup_steps else 1.0
+        return self.lr * warm * self.lr_decay ** (step // self.lr_decay_every)
+
+
+@dataclass
+class LoopResult:
+    model: torch.nn.Module  # the final network (EMA weights when enabled), in eval mode
+    step: int
+    stopped: Literal["done", "time"]
+
+
+# -- checkpoints --------------------------------------------------------------------------------
+def save_checkpoint(path: Path, fmt: str, step: int, config: BaseModel, model, ema, opt, gen: torch.Generator) -> None:
+    tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
+    if ema is not None:
+        tensors.update({f"ema.{k}": v for k, v in ema.items()})
+    osd = opt.state_dict()
+    scalars: dict[str, dict[str, object]] = {}
+    for idx, state in osd["state"].items():
+        for key, val in state.items():
+            if torch.is_tensor(val):
+                tensors[f"optim.{idx}.{key}"] = val
+            else:
+                scalars.setdefault(str(idx), {})[key] = val
+    tensors["rng.train"] = gen.get_state()
+    meta = {
+        "format": fmt,
+        "step": str(step),
+        "config": config.model_dump_json(),
+        "optim.param_groups": json.dumps(osd["param_groups"]),
+        "optim.scalars": json.dumps(scalars),
+    }
+    io.save_tensors(path, tensors, meta)
+
+
+def load_checkpoint(path: Path, fmt: str, model, ema, opt, gen: torch.Generator, device) -> int:
+    tensors, meta = io.load_tensors(path)
+    if meta.get("format") != fmt:
+        raise LasagnaError(f"format is {meta.get('format')!r}; expected {fmt!r}", str(path))
+    io.load_state_strict(model, {k[6:]: v for k, v in tensors.items() if k.startswith("model.")}, str(path))
+    if ema is not None:
+        for k in ema:
+            if f"ema.{k}" not in tensors:
+                raise LasagnaError(f"checkpoint has no EMA tensor {k}; expected one (ema_decay is set)", str(path))
+            ema[k] = tensors[f"ema.{k}"].to(device)
+    state: dict[int, dict[str, object]] = {}
+    for k, v in tensors.items():
+        if k.startswith("optim."):
+            _, idx, key = k.split(".", 2)
+            state.setdefault(int(idx), {})[key] = v.to(device) if key != "step" else v
+    for idx, vals in json.loads(meta.get("optim.scalars", "{}")).items():
+        state.setdefault(int(idx), {}).update(vals)
+    opt.load_state_dict({"state": state, "param_groups": json.loads(meta["optim.param_groups"])})
+    gen.set_state(tensors["rng.train"])
+    return int(meta["step"])
+
+
+def check_same_run(out: Path, config: M) -> None:
+    """Record ``config`` in ``out``; refuse to resume a folder trained with a different config."""
+    path = out / CONFIG_FILE
+    if path.is_file():
+        try:
+            old = type(config).model_validate_json(path.read_text(encoding="utf-8"))
+        except ValidationError as exc:
+            raise LasagnaError(*io.describe_validation_error(exc, str(path))) from None
+        a, b = old.model_dump(exclude=set(RESUMABLE)), config.model_dump(exclude=set(RESUMABLE))
+        diff = sorted(k for k in a if a[k] != b[k])
+        if diff:
+            raise LasagnaError(
+                f"this folder holds a run with different {', '.join(diff)}; expected the same config to resume (or a new folder)", str(out)
+            )
+    atomic_write_text(path, config.model_dump_json(indent=2) + "\n")
+
+
+def trim_log(path: Path, step: int) -> None:
+    """Keep only log lines up to the checkpointed step (a killed run may have logged past it; a
+    half-written last line is dropped)."""
+    if not path.is_file():
+        return
+    kept = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(rec, dict) and rec.get("step", math.inf) <= step:
+            kept.append(line)
+    atomic_write_text(path, "".join(f"{line}\n" for line in kept))
+
+
+def read_log(out_dir: str | Path) -> list[dict]:
+    """The run's log records (for loss curves)."""
+    path = Path(out_dir) / LOG_FILE
+    if not path.is_file():
+        return []
+    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
+
+
+# -- the loop -----------------------------------------------------------------------------------
+def train_loop(
+    model: torch.nn.Module,
+    step_fn: StepFn,
+    loop: LoopConfig,
+    run_config: BaseModel,
+    out_dir: str | Path,
+    *,
+    checkpoint_format: str,
+    desc: str = "train",
+    device: torch.device | str = "cpu",
+) -> LoopResult:
+    """Train ``model`` with Adam on ``step_fn(model, generator, step) -> (loss, metrics)`` (or resume).
+
+    ``model`` must arrive freshly initialised (seeded by the caller); on resume its weights are replaced
+    by the checkpoint's. ``run_config`` is the trainer's whole config: saved beside the checkpoint and
+    compared on resume.
+    """
+    device = torch.device(device)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    check_same_run(out, run_config)
+    for stale in out.glob(f".{CHECKPOINT}.*"):  # temporaries of a write killed half-way (ours only)
+        stale.unlink()
+
+    model.to(device).train()
+    opt = torch.optim.Adam(model.parameters(), lr=loop.lr)
+    ema = {k: v.detach().clone() for k, v in model.state_dict().items()} if loop.ema_decay is not None else None
+    gen = torch.Generator().manual_seed(loop.seed)
+    ckpt, log_path = out / CHECKPOINT, out / LOG_FILE
+    step = 0
+    if ckpt.is_file():
+        step = load_checkpoint(ckpt, checkpoint_format, model, ema, opt, gen, device)
+        trim_log(log_path, step)
+    elif log_path.exists():
+        log_path.unlink()
+
+    start, saved_at, stopped = time.monotonic(), step, "done"
+    bar = tqdm(total=loop.steps, initial=step, desc=desc, disable=not loop.progress, dynamic_ncols=True)
+    with open(log_path, "a", encoding="utf-8") as log:
+        while step < loop.steps:
+            if loop.max_minutes is not None and time.monotonic() - start > loop.max_minutes * 60:
+                stopped = "time"
+                break
+            lr = loop.lr_at(step)
+            for group in opt.param_groups:
+                group["lr"] = lr
+            loss, metrics = step_fn(model, gen, step)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            if loop.grad_clip is not None:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), loop.grad_clip)
+            opt.step()
+            if ema is not None:
+                with torch.no_grad():
+                    for k, v in model.state_dict().items():
+                        ema[k].mul_(loop.ema_decay).add_(v.detach(), alpha=1 - loop.ema_decay)
+            step += 1
+            bar.update(1)
+            if step % loop.log_every == 0:
+                rec = {"step": step, "loss": float(loss.detach()), **metrics, "lr": lr,
+                       "elapsed_s": round(time.monotonic() - start, 3)}
+                bar.set_postfix(loss=f"{rec['loss']:.4f}")
+                log.write(json.dumps(rec) + "\n")
+                log.flush()
+            if step % loop.checkpoint_every == 0:
+                save_checkpoint(ckpt, checkpoint_format, step, run_config, model, ema, opt, gen)
+                saved_at = step
+    bar.close()
+    if saved_at != step or not ckpt.is_file():
+        save_checkpoint(ckpt, checkpoint_format, step, run_config, model, ema, opt, gen)
+
+    final = copy.deepcopy(model).eval()
+    if ema is not None:
+        final.load_state_dict(ema)
+    return LoopResult(model=final, step=step, stopped=stopped)
