@@ -1,1 +1,28 @@
-"""lasagna.world"""
+"""lasagna.world: procedural scenes with ground truth (albedo, normals, shading, labels, masks).
+
+Textured analytic objects before a textured wall, seen by an orthographic camera and lit by one of
+eight named directional lights (the contract in `lasagna.world.lighting`). Deterministic by
+(split, seed, index); vectorised in torch; fast enough to generate training data on the fly.
+
+    from lasagna.world import generate
+    scene = generate("train", count=64, seed=0, resolution=32)
+    scene.image, scene.albedo, scene.shading, scene.normals, scene.mask, scene.label
+
+Modules: ``lighting`` (the vocabulary and shading formula), ``shapes`` and ``textures`` (the
+families), ``splits`` (which split uses which families; per-scene random streams), ``params``
+(scene parameters and their sampling), ``scene`` (rendering), ``tasks`` (colourisation and
+additive-light data), ``export`` and ``cli`` (stack folders, ``lasagna world``).
+"""
+from lasagna.world.lighting import AMBIENT, LIGHTS, VOCABULARY, WALL_SHADING, lambert, light_vectors
+from lasagna.world.params import SceneParams, sample_scenes
+from lasagna.world.scene import Scene, batches, generate, relight, render
+from lasagna.world.splits import SPLIT_NAMES, SPLITS
+from lasagna.world.tasks import AdditiveLight, Colorization, additive_light, colorization
+
+__all__ = [
+    "AMBIENT", "LIGHTS", "VOCABULARY", "WALL_SHADING", "lambert", "light_vectors",
+    "SceneParams", "sample_scenes",
+    "Scene", "batches", "generate", "relight", "render",
+    "SPLIT_NAMES", "SPLITS",
+    "AdditiveLight", "Colorization", "additive_light", "colorization",
+]

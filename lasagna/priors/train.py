@@ -1,0 +1,166 @@
+"""Training the bundled conditional priors on the procedural world, on this CPU (resumable).
+
+Two tasks, each a ``UNetPrior`` trained with the simple diffusion objective (v-prediction by default)
+and classifier-free label dropout, on fresh world batches generated on the fly (no data set on disk):
+
+* ``relight``: x₀ = the lit image (albedo × shading), conditioned ControlNet-style on the albedo
+  (3 channels) and on the lighting label (the world's eight named directions);
+* ``colorize``: x₀ = the colour image, conditioned on its Rec. 709 luma (1 channel) and the single
+  label ``natural``.
+
+The conditioning image is what Lasagna's base layer will be at distillation time. Every random draw
+(which scenes, t, ε, label dropout) comes from the loop's checkpointed generator, so a killed run
+resumes bit for bit (``lasagna.training``). Scenes come from the ``train`` split only; ``val`` and
+``heldout`` stay unseen for evaluation.
+
+    lasagna train-prior --task relight --out runs/relight-32 --minutes 30
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Literal
+
+import torch
+from pydantic import ConfigDict, Field, ValidationError
+
+from lasagna.errors import LasagnaError
+from lasagna.priors import io
+from lasagna.priors.unet import UNetConfig, UNetPrior
+from lasagna.training import LoopConfig, train_loop
+
+CHECKPOINT_FORMAT = "lasagna.prior_checkpoint"
+Task = Literal["relight", "colorize"]
+# The world's scene index range the trainer draws batches from: large enough that no batch repeats
+# in any run this CPU can afford (2**30 scenes), small enough for int32 seeds.
+_SCENE_RANGE = 2**30
+
+
+class PriorTrainConfig(LoopConfig):
+    """How a bundled prior is trained (saved as train_config.json and inside every checkpoint)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    task: Task = "relight"
+    unet: UNetConfig
+    batch_size: int = Field(64, ge=1)
+    p_uncond: float = Field(0.15, ge=0.0, le=1.0, description="label dropout for classifier-free guidance")
+    split: str = Field("train", description="world split the training scenes come from")
+    world_seed: int = Field(0, description="seed of the world split (scenes are (split, seed, index))")
+    shadows: bool = Field(False, description="render cast shadows in the training scenes")
+
+
+def task_vocabulary(task: Task) -> tuple[str, ...]:
+    from lasagna.world import VOCABULARY
+
+    return tuple(VOCABULARY) if task == "relight" else ("natural",)
+
+
+def task_cond_channels(task: Task) -> int:
+    return 3 if task == "relight" else 1
+
+
+def unet_config_for(task: Task, resolution: int = 32, channels: tuple[int, ...] = (32, 64, 128), res_blocks: int = 1,
+                    attention: bool = False, prediction: Literal["epsilon", "v"] = "v") -> UNetConfig:
+    """The UNetConfig of a task's prior: image 3 channels, its conditioning channels and vocabulary."""
+    return UNetConfig(image_channels=3, cond_channels=task_cond_channels(task), resolution=resolution, channels=channels,
+                      res_blocks=res_blocks, attention=attention, vocabulary=task_vocabulary(task), prediction=prediction)
+
+
+def task_batch(task: Task, scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(x₀ in [0, 1], label index, conditioning image in [0, 1]) of a world ``Scene`` batch for ``task``."""
+    from lasagna.world import colorization
+
+    if task == "relight":
+        return scene.image, scene.label_index.long(), scene.albedo
+    col = colorization(scene)
+    return col.target, torch.zeros(scene.image.shape[0], dtype=torch.long), col.base[:, :1]
+
+
+def world_source(task: Task, resolution: int, split: str = "train", seed: int = 0, shadows: bool = False):
+    """``sample_batch(batch, generator) -> (images, label_idx, cond_image)`` drawing world scenes.
+
+    The data-source signature shared with the corrective's trainer; the scenes drawn depend only on
+    ``generator``'s stream.
+    """
+    from lasagna.world import generate
+
+    def sample_batch(batch: int, generator: torch.Generator):
+        start = int(torch.randint(0, _SCENE_RANGE, (1,), generator=generator))
+        scene = generate(split, batch, seed, resolution, start=start, shadows=shadows)
+        return task_batch(task, scene)
+
+    return sample_batch
+
+
+def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | torch.device = "cpu") -> UNetPrior:
+    """Train (or resume) the prior in ``out_dir``; the final EMA weights go to ``out_dir/prior``."""
+    source = world_source(config.task, config.unet.resolution, config.split, config.world_seed, config.shadows)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        prior = UNetPrior(config.unet)
+
+    def step_fn(net: UNetPrior, gen: torch.Generator, step: int):
+        images, labels, cond = source(config.batch_size, gen)
+        loss = net.training_loss(net.encode(images.to(device)), labels.to(device), cond.to(device), gen, config.p_uncond)
+        return loss, {}
+
+    done = train_loop(prior, step_fn, config, config, out_dir, checkpoint_format=CHECKPOINT_FORMAT,
+                      desc=f"prior:{config.task}", device=device)
+    final: UNetPrior = done.model  # type: ignore[assignment]
+    final.save_pretrained(Path(out_dir) / "prior")
+    return final
+
+
+def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    p = p or argparse.ArgumentParser(prog="lasagna train-prior", description=__doc__.splitlines()[0])
+    p.add_argument("--task", choices=("relight", "colorize"), default="relight")
+    p.add_argument("--out", required=True, help="run folder; run again with the same folder to resume")
+    p.add_argument("--resolution", type=int, default=32)
+    p.add_argument("--channels", default="32,64,128", help="feature channels per level")
+    p.add_argument("--res-blocks", type=int, default=1)
+    p.add_argument("--attention", action="store_true")
+    p.add_argument("--prediction", choices=("v", "epsilon"), default="v")
+    p.add_argument("--steps", type=int, default=100_000, help="upper bound; --minutes usually stops first")
+    p.add_argument("--minutes", type=float, default=None, help="time budget of this invocation")
+    p.add_argument("--batch-size", type=int, default=64)
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--warmup", type=int, default=200)
+    p.add_argument("--ema", type=float, default=0.999)
+    p.add_argument("--grad-clip", type=float, default=1.0)
+    p.add_argument("--checkpoint-every", type=int, default=200)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    channels = tuple(int(c) for c in str(args.channels).split(","))
+    config = PriorTrainConfig(
+        task=args.task,
+        unet=unet_config_for(args.task, args.resolution, channels, args.res_blocks, args.attention, args.prediction),
+        steps=args.steps, max_minutes=args.minutes, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,
+        ema_decay=args.ema, grad_clip=args.grad_clip, checkpoint_every=args.checkpoint_every, seed=args.seed,
+        progress=not args.no_progress,
+    )
+    train_prior(config, args.out)
+    print(json.dumps({"out": str(Path(args.out) / "prior"), "task": args.task}))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        return run(build_parser().parse_args(argv))
+    except ValidationError as exc:
+        msg, where = io.describe_validation_error(exc, "train-prior")
+        print(f"lasagna: error: {where}: {msg}", file=sys.stderr)
+        return 2
+    except LasagnaError as exc:
+        print(f"lasagna: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,66 @@
+"""The ``lasagna world`` subcommand: write scenes of a split as ground-truth stack folders.
+
+    lasagna world -o DIR --split NAME --count N --seed S [--resolution R] [--task shading|color|light]
+                  [--start I] [--shadows] [--ambient A]
+
+Wired into ``lasagna.cli`` by its owner: either ``add_world_parser(subparsers)`` or, in the
+``COMMANDS`` table, ``Command(WORLD_HELP, world_arguments, run_world)``.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+WORLD_HELP = "write procedural scenes with ground truth as layer-stack folders"
+
+
+def world_arguments(p: argparse.ArgumentParser) -> None:
+    """Add the ``world`` options to ``p``."""
+    from lasagna.world.export import TASKS
+    from lasagna.world.lighting import AMBIENT
+    from lasagna.world.splits import SPLIT_NAMES
+
+    p.add_argument("-o", "--output", required=True, metavar="DIR", help="folder to write the stack folders into")
+    p.add_argument("--split", required=True, choices=SPLIT_NAMES, help="which named split to draw scenes from")
+    p.add_argument("--count", required=True, type=int, metavar="N", help="number of scenes")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the split's scenes (default 0)")
+    p.add_argument("--start", type=int, default=0, metavar="I", help="index of the first scene (default 0)")
+    p.add_argument("--resolution", type=int, default=64, metavar="R", help="image side in pixels (default 64)")
+    p.add_argument("--task", choices=TASKS, default="shading",
+                   help="shading: albedo + multiply shading; color: gray + normal colour layer; "
+                        "light: image + plus glow (default shading)")
+    p.add_argument("--shadows", action="store_true", help="cast shadows (off by default)")
+    p.add_argument("--ambient", type=float, default=AMBIENT, metavar="A",
+                   help=f"ambient term a of a + (1 - a) max(0, n.l) (default {AMBIENT})")
+
+
+def add_world_parser(subparsers) -> argparse.ArgumentParser:
+    """Register ``world`` on an ``argparse`` subparsers object; ``args.run`` is ``run_world``."""
+    p = subparsers.add_parser("world", help=WORLD_HELP, description=WORLD_HELP)
+    world_arguments(p)
+    p.set_defaults(run=run_world)
+    return p
+
+
+def run_world(args: argparse.Namespace) -> int:
+    """Write the stacks; prints one summary line; returns the exit status 0 (errors raise LasagnaError)."""
+    from lasagna.errors import LasagnaError, PathError
+    from lasagna.world.export import MANIFEST, write_world_stacks
+    from lasagna.world.scene import check_resolution
+
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():
+        raise PathError("exists and is not a folder; expected a folder to write into", where=str(out))
+    if args.count < 1:
+        raise LasagnaError(f"expected a positive integer, got {args.count}", where="--count")
+    for name in ("seed", "start"):
+        if getattr(args, name) < 0:
+            raise LasagnaError(f"expected a non-negative integer, got {getattr(args, name)}", where=f"--{name}")
+    check_resolution(args.resolution)
+    folders = write_world_stacks(
+        out, args.split, args.count, args.seed, args.resolution, args.task,
+        start=args.start, shadows=args.shadows, ambient=args.ambient, progress=args.count >= 64,
+    )
+    print(f"wrote {len(folders)} {args.task} stacks ({args.split}, seed {args.seed}, "
+          f"{args.resolution}x{args.resolution}) and {out / MANIFEST}")
+    return 0

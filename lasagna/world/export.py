@@ -1,0 +1,158 @@
+"""Writing world scenes as ground-truth layer-stack folders (the world dogfoods the document model).
+
+``write_world_stacks`` renders scenes ``start … start + count − 1`` of a split and writes one stack
+folder per scene, ``<out>/<split>-s<seed>-<index:06d>/``, plus ``<out>/world.json`` listing them.
+Every stack uses ``blend_space: "srgb"`` (the world is defined on stored values, see
+`lasagna.world.lighting`) and ``clamp: "layer"``; its layers, by task:
+
+=========  ===========================================  =====================================
+task       layers (bottom first)                         composite.png
+=========  ===========================================  =====================================
+shading    ``albedo`` pixels; ``shading`` multiply,      image = albedo × shading
+           1 channel, range [0, 2]
+color      ``gray`` pixels (Rec. 709 luma, 1 channel);   the colour image
+           ``color`` normal (alpha-linear), RGBA, α = 1
+light      ``image`` pixels (the unlit image);           lit = image + glow
+           ``light`` plus, RGB (the glow)
+=========  ===========================================  =====================================
+
+Every layer PNG is 16-bit, so the engine's re-composite equals ``composite.png`` (8-bit, the
+rendered float image rounded once) to within one 8-bit step. Beside the stack, not in its layer
+list: ``normals.png`` (16-bit RGB, n = 2v − 1, camera frame) and ``mask.png`` (8-bit gray, 255 on
+object pixels). ``metadata["lasagna.world"]`` holds the label, the light vector, the task, the
+files, and the scene's full parameters (``SceneParams.describe``), enough to re-render it.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+
+from lasagna.errors import LasagnaError, PathError
+from lasagna.io.atomic import atomic_write_text
+from lasagna.world.lighting import AMBIENT, LIGHTS, VOCABULARY
+from lasagna.world.scene import Scene, generate
+from lasagna.world.splits import STREAM_VERSION
+from lasagna.world.tasks import additive_light, colorization, luma
+
+Task = Literal["shading", "color", "light"]
+TASKS: tuple[str, ...] = ("shading", "color", "light")
+MANIFEST = "world.json"
+# Scenes rendered per batch while writing: large enough to amortise the renderer's per-call cost,
+# small enough to keep memory flat at 256² and above.
+_RENDER_BATCH = 16
+
+
+def scene_folder_name(split: str, seed: int, index: int) -> str:
+    return f"{split}-s{seed}-{index:06d}"
+
+
+def _layers(task: str, scene: Scene, i: int) -> tuple[list[dict[str, Any]], torch.Tensor]:
+    """The stack's layer specs (for ``stack_from_tensors``) and its composite, for scene ``i``."""
+    if task == "shading":
+        return [
+            dict(id="albedo", name="Albedo", image=scene.albedo[i], bit_depth=16),
+            dict(id="shading", name="Shading", image=scene.shading[i], blend="multiply", range=(0.0, 2.0),
+                 bit_depth=16),
+        ], scene.image[i]
+    if task == "color":
+        data = colorization(scene.select(i))
+        return [
+            dict(id="gray", name="Grayscale", image=luma(scene.image[i: i + 1])[0], bit_depth=16),
+            dict(id="color", name="Colour", image=data.layer[0], blend="normal", bit_depth=16),
+        ], data.target[0]
+    data = additive_light(scene.select(i))
+    return [
+        dict(id="image", name="Image", image=data.base[0], bit_depth=16),
+        dict(id="light", name="Light", image=data.glow[0], blend="plus", bit_depth=16),
+    ], data.lit[0]
+
+
+def write_scene_stack(folder: str | os.PathLike, scene: Scene, i: int, task: Task = "shading") -> Path:
+    """Write scene ``i`` of a rendered batch as a stack folder; returns the folder."""
+    from lasagna.io.png import write_png
+    from lasagna.io.render import write_composite
+    from lasagna.io.stack import save_stack, stack_from_tensors
+
+    if task not in TASKS:
+        raise LasagnaError(f"unknown task {task!r}; expected one of {', '.join(TASKS)}", where="task")
+    folder = Path(folder)
+    layers, composite = _layers(task, scene, i)
+    p = scene.params
+    meta = {
+        "lasagna.world": {
+            "stream_version": STREAM_VERSION,
+            "task": task,
+            "split": p.split,
+            "seed": p.seed,
+            "index": int(p.index[i]),
+            "label": scene.label[i],
+            "light": list(LIGHTS[scene.label[i]]),  # the contract's exact vector, not its float32 copy
+            "ambient": scene.ambient,
+            "shadows": scene.shadows,
+            "blend_space_note": "image = albedo × shading on stored (sRGB-encoded) values",
+            "files": {"normals": "normals.png", "normals_encoding": "n = 2*v - 1, 16-bit RGB, camera frame "
+                      "(x right, y up, z toward the viewer)", "mask": "mask.png"},
+            "scene": p.describe(i),
+        }
+    }
+    stack = stack_from_tensors(layers, blend_space="srgb", clamp="layer", metadata=meta)
+    save_stack(stack, folder)
+    # Normals are unit vectors, so (n + 1)/2 is in [0, 1] up to float rounding of the last bit.
+    write_png(folder / "normals.png", ((scene.normals[i] + 1.0) * 0.5).clamp(0.0, 1.0), bit_depth=16)
+    write_png(folder / "mask.png", scene.mask[i], bit_depth=8)
+    write_composite(composite, folder / "composite.png")
+    return folder
+
+
+def write_world_stacks(
+    out_dir: str | os.PathLike,
+    split: str,
+    count: int,
+    seed: int = 0,
+    resolution: int = 64,
+    task: Task = "shading",
+    *,
+    start: int = 0,
+    shadows: bool = False,
+    ambient: float = AMBIENT,
+    progress: bool = False,
+) -> list[Path]:
+    """Write ``count`` scenes of ``split`` as stack folders under ``out_dir``, and ``world.json``."""
+    if task not in TASKS:
+        raise LasagnaError(f"unknown task {task!r}; expected one of {', '.join(TASKS)}", where="task")
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise LasagnaError(f"expected a positive integer, got {count!r}", where="count")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise PathError("exists and is not a folder; expected a folder to write into", where=str(out))
+    folders: list[Path] = []
+    labels: list[str] = []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=count, unit="scene", desc=f"world {split}")
+    for first in range(start, start + count, _RENDER_BATCH):
+        n = min(_RENDER_BATCH, start + count - first)
+        scene = generate(split, n, seed, resolution, start=first, shadows=shadows, ambient=ambient)
+        for i in range(n):
+            name = scene_folder_name(split, seed, first + i)
+            folders.append(write_scene_stack(out / name, scene, i, task))
+            labels.append(scene.label[i])
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+    manifest = {
+        "format": "lasagna.world",
+        "stream_version": STREAM_VERSION,
+        "split": split, "seed": seed, "start": start, "count": count, "resolution": resolution, "task": task,
+        "shadows": bool(shadows), "ambient": float(ambient), "vocabulary": list(VOCABULARY),
+        "scenes": [{"folder": f.name, "label": lab} for f, lab in zip(folders, labels)],
+    }
+    atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
+    return folders

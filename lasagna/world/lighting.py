@@ -1,0 +1,108 @@
+"""The lighting vocabulary: eight named directional lights and the Lambertian shading they give.
+
+This is a contract other tools rely on (the relighting prior's condition vocabulary, the `shading`
+preset, the evaluation of learned layers). The text below is normative:
+
+- camera frame x right, y up, z toward the viewer; orthographic camera looking down −z; image row 0
+  is the TOP (y up means row index decreases y).
+- `left` = (−sin 60°, 0, cos 60°), `right` = (sin 60°, 0, cos 60°), `top` = (0, sin 60°, cos 60°),
+  `bottom` = (0, −sin 60°, cos 60°), and `top-left`, `top-right`, `bottom-left`, `bottom-right`
+  likewise with the in-plane part along the normalised diagonal (e.g. top-left =
+  (−sin60/√2, sin60/√2, cos60)). `LIGHTS: dict[str, tuple[float,float,float]]` with exactly these
+  eight names in a fixed order (`VOCABULARY`).
+- shading = a + (1 − a)·max(0, n·l) with ambient a = 0.25 by default; the wall faces the camera
+  (n = +z), so the wall's shading is a + (1−a)·cos 60° = 0.625 with no shadows; optional cast
+  shadows (a point is in shadow when the light ray toward l hits an object: then shading = a).
+- image = albedo × shading.
+
+Decisions this module documents (the rest of `lasagna.world` follows them):
+
+- **Shadows are off by default** (`shadows=False` everywhere): the shading is then a pointwise
+  function of the normal, the wall is exactly 0.625, and a per-pixel shading layer can represent the
+  truth. `shadows=True` casts exact shadows: the light ray from each visible point is intersected
+  analytically with every object of the scene (not a height-field approximation), so objects
+  floating before the wall shadow the wall and each other correctly.
+- **The world is defined on stored (sRGB-encoded) values**: image_values = albedo_values × shading,
+  with no decoding. A ground-truth stack therefore uses ``blend_space: "srgb"``, where the document
+  engine multiplies the stored values directly, and `composite.png` equals the rendered image to
+  within 8-bit quantisation.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from lasagna.errors import ConditionError, LasagnaError
+
+# The elevation of every light: 30° above the image plane, i.e. 60° from the viewing axis +z.
+_S = math.sin(math.radians(60.0))
+_C = math.cos(math.radians(60.0))
+_D = _S / math.sqrt(2.0)
+
+VOCABULARY: tuple[str, ...] = (
+    "left",
+    "right",
+    "top",
+    "bottom",
+    "top-left",
+    "top-right",
+    "bottom-left",
+    "bottom-right",
+)
+
+LIGHTS: dict[str, tuple[float, float, float]] = {
+    "left": (-_S, 0.0, _C),
+    "right": (_S, 0.0, _C),
+    "top": (0.0, _S, _C),
+    "bottom": (0.0, -_S, _C),
+    "top-left": (-_D, _D, _C),
+    "top-right": (_D, _D, _C),
+    "bottom-left": (-_D, -_D, _C),
+    "bottom-right": (_D, -_D, _C),
+}
+assert tuple(LIGHTS) == VOCABULARY
+
+AMBIENT = 0.25
+"""Default ambient term a of shading = a + (1 − a)·max(0, n·l)."""
+
+WALL_SHADING = AMBIENT + (1.0 - AMBIENT) * _C
+"""The unshadowed wall's shading with the default ambient (n = +z, so n·l = cos 60° = 0.5): 0.625."""
+
+
+def label_index(label: str) -> int:
+    """Position of ``label`` in `VOCABULARY`; raises `ConditionError` for an unknown name."""
+    try:
+        return VOCABULARY.index(label)
+    except ValueError:
+        raise ConditionError(
+            f"unknown light label {label!r}; expected one of {', '.join(VOCABULARY)}", where="light"
+        ) from None
+
+
+def light_vectors(
+    labels: list[str] | tuple[str, ...], dtype: torch.dtype = torch.float32, device: torch.device | str | None = None
+) -> torch.Tensor:
+    """Unit light directions for ``labels``: (B, 3) in the camera frame."""
+    rows = [LIGHTS[VOCABULARY[label_index(name)]] for name in labels]
+    return torch.tensor(rows, dtype=dtype, device=device).reshape(len(rows), 3)
+
+
+def check_ambient(ambient: float) -> float:
+    """Ambient must lie in [0, 1): at 1 the light would have no effect."""
+    if not (0.0 <= ambient < 1.0) or math.isnan(ambient):
+        raise LasagnaError(f"ambient must be in [0, 1), got {ambient}", where="ambient")
+    return float(ambient)
+
+
+def lambert(normals: torch.Tensor, light: torch.Tensor, ambient: float = AMBIENT) -> torch.Tensor:
+    """shading = a + (1 − a)·max(0, n·l), without shadows.
+
+    normals (B, 3, H, W) unit vectors; light (B, 3) unit vectors; returns (B, 1, H, W).
+    The dot product is written out per component (no matmul) so every pixel's value is independent of
+    the batch it was computed in — a scene renders bit-identically alone or in a batch.
+    """
+    check_ambient(ambient)
+    lx, ly, lz = (light[:, i, None, None, None] for i in range(3))
+    ndotl = normals[:, 0:1] * lx + normals[:, 1:2] * ly + normals[:, 2:3] * lz
+    return ambient + (1.0 - ambient) * ndotl.clamp_min(0.0)

@@ -1,0 +1,290 @@
+"""Analytic shape families and their exact ray intersections, on flat lists of rays.
+
+Every family is defined in its own local frame (centred at the origin; the scene places it with a
+rotation R and a centre c: p_camera = R·p_local + c) by three size parameters. Its ``intersect``
+takes M rays in that local frame — origins ``o`` and directions ``d``, each a tuple of three (M,)
+tensors — and returns the ray parameter t of the first surface point with t > ``t_min`` (``inf``
+where the ray misses) and the unit outward normal there, in the local frame.
+
+Flat lists keep the work proportional to the pixels an object can cover (the renderer culls each
+object to its bounding circle first) and keep every ray independent of the others, so a scene
+renders bit-identically alone or in any batch. Vectors are tuples of components rather than (M, 3)
+tensors with matmuls for the same reason: elementwise arithmetic gives the same bits at any size.
+
+Families (``SHAPES``; which split uses which is in ``lasagna.world.splits``):
+
+============  =====================================  ===========================================
+family        size parameters (s0, s1, s2)           intersection
+============  =====================================  ===========================================
+ellipsoid     semi-axes along x, y, z (s0=s1=s2:     quadratic
+              a sphere)
+box           half-extents along x, y, z             slab method (Kay & Kajiya 1986)
+cylinder      radius s0, half-height s1 (axis y)     quadratic (side) + two cap planes
+torus         major radius s0, minor s1 (ring in     sphere tracing (Hart 1996) of the exact
+              the xz plane, around y)                signed distance, from the bounding sphere
+capsule       radius s0, half-length s1 of the       cylinder side + two spheres
+              axis segment (axis y)
+cone          base radius s0, half-height s1: apex   quadratic (side) + base cap plane
+              at y = +s1, base disc at y = −s1
+============  =====================================  ===========================================
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+Tensor = torch.Tensor
+Vec = tuple[Tensor, Tensor, Tensor]
+
+# Ray directions with a zero component make 1/d infinite in the slab test; a tiny substitute keeps
+# the arithmetic finite (0·inf would give NaN) and changes no hit: the slab bounds become ±1e30.
+_DIR_EPS = 1e-30
+# Sphere tracing stops when the signed distance is below this fraction of the shape's size; a
+# pixel of a 256² render is 7.8e-3 wide, so the silhouette error is far below a pixel.
+_TRACE_TOL = 1e-5
+_TRACE_STEPS = 96
+
+
+def dot(a: Vec, b: Vec) -> Tensor:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def normalize(v: Vec) -> Vec:
+    # The norm of a surface gradient is > 0 except at a cone's apex (a measure-zero set); the clamp
+    # keeps that one point finite instead of NaN.
+    inv = torch.rsqrt((v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).clamp_min(1e-30))
+    return (v[0] * inv, v[1] * inv, v[2] * inv)
+
+
+def _roots(a: Tensor, b_half: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
+    """Both roots (t1 ≤ t2) of a·t² + 2·b_half·t + c = 0; NaN where there is no real root.
+
+    The cancellation-free form q = −(b_half + sign(b_half)·√disc), t = q/a and c/q (Press et al.,
+    Numerical Recipes §5.6), so a grazing ray far from the origin keeps its precision.
+    """
+    disc = b_half * b_half - a * c
+    sq = torch.sqrt(disc)  # NaN where disc < 0: comparisons with NaN are False, i.e. "no hit"
+    q = -(b_half + torch.where(b_half >= 0, sq, -sq))
+    r1, r2 = q / a, c / q
+    return torch.minimum(r1, r2), torch.maximum(r1, r2)
+
+
+def _first(t_min: float, *candidates: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
+    """Smallest valid t > t_min among (t, valid) candidates, and the index of the winning candidate."""
+    best = None
+    which = None
+    for i, (t, ok) in enumerate(candidates):
+        t = torch.where(ok & (t > t_min), t, torch.full_like(t, math.inf))
+        if best is None:
+            best, which = t, torch.zeros_like(t, dtype=torch.int64)
+        else:
+            closer = t < best
+            best = torch.where(closer, t, best)
+            which = torch.where(closer, torch.full_like(which, i), which)
+    return best, which
+
+
+def _at(o: Vec, d: Vec, t: Tensor) -> Vec:
+    # Where t is inf the point is inf/NaN; callers only read points where t is finite.
+    tt = torch.where(torch.isfinite(t), t, torch.zeros_like(t))
+    return (o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2])
+
+
+def _select(which: Tensor, *normals: Vec) -> Vec:
+    out = list(normals[0])
+    for i, n in enumerate(normals[1:], start=1):
+        pick = which == i
+        out = [torch.where(pick, n[j], out[j]) for j in range(3)]
+    return (out[0], out[1], out[2])
+
+
+def _sphere(o: Vec, d: Vec, cy: Tensor | float, r: Tensor) -> tuple[Tensor, Tensor]:
+    """Roots of a ray with a sphere of radius r centred at (0, cy, 0)."""
+    oy = o[1] - cy
+    a = dot(d, d)
+    b = o[0] * d[0] + oy * d[1] + o[2] * d[2]
+    c = o[0] * o[0] + oy * oy + o[2] * o[2] - r * r
+    return _roots(a, b, c)
+
+
+def ellipsoid(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    # Scale to the unit sphere: |o/s + t·d/s|² = 1 has the same t.
+    os_ = (o[0] / s[0], o[1] / s[1], o[2] / s[2])
+    ds_ = (d[0] / s[0], d[1] / s[1], d[2] / s[2])
+    t1, t2 = _roots(dot(ds_, ds_), dot(os_, ds_), dot(os_, os_) - 1.0)
+    ok = torch.ones_like(t1, dtype=torch.bool)
+    t, _ = _first(t_min, (t1, ok), (t2, ok))
+    p = _at(o, d, t)
+    # Gradient of x²/a² + y²/b² + z²/c².
+    n = normalize((p[0] / (s[0] * s[0]), p[1] / (s[1] * s[1]), p[2] / (s[2] * s[2])))
+    return t, n
+
+
+def box(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    lo, hi, near_axis_t = [], [], []
+    for i in range(3):
+        di = torch.where(d[i] == 0, torch.full_like(d[i], _DIR_EPS), d[i])
+        ta, tb = (-s[i] - o[i]) / di, (s[i] - o[i]) / di
+        lo.append(torch.minimum(ta, tb))
+        hi.append(torch.maximum(ta, tb))
+    t_near = torch.maximum(torch.maximum(lo[0], lo[1]), lo[2])
+    t_far = torch.minimum(torch.minimum(hi[0], hi[1]), hi[2])
+    hit = t_near <= t_far
+    t, _ = _first(t_min, (t_near, hit), (t_far, hit))
+    # The entry face is the axis whose slab was entered last; its normal points against the ray.
+    zero = torch.zeros_like(t)
+    n = []
+    for i in range(3):
+        n.append(torch.where(lo[i] == t_near, -torch.sign(d[i]), zero))
+    n[1] = torch.where(n[0] != 0, zero, n[1])
+    n[2] = torch.where((n[0] != 0) | (n[1] != 0), zero, n[2])
+    return t, (n[0], n[1], n[2])
+
+
+def _cylinder_side(o: Vec, d: Vec, r: Tensor, h: Tensor) -> tuple[tuple[Tensor, Tensor], tuple[Tensor, Tensor]]:
+    a = d[0] * d[0] + d[2] * d[2]
+    b = o[0] * d[0] + o[2] * d[2]
+    c = o[0] * o[0] + o[2] * o[2] - r * r
+    t1, t2 = _roots(a, b, c)
+    y1, y2 = o[1] + t1 * d[1], o[1] + t2 * d[1]
+    return (t1, y1.abs() <= h), (t2, y2.abs() <= h)
+
+
+def _cap(o: Vec, d: Vec, y: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
+    dy = torch.where(d[1] == 0, torch.full_like(d[1], _DIR_EPS), d[1])
+    t = (y - o[1]) / dy
+    x, z = o[0] + t * d[0], o[2] + t * d[2]
+    return t, x * x + z * z <= r * r
+
+
+def cylinder(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    r, h = s[0], s[1]
+    side1, side2 = _cylinder_side(o, d, r, h)
+    t, which = _first(t_min, side1, side2, _cap(o, d, h, r), _cap(o, d, -h, r))
+    p = _at(o, d, t)
+    zero, one = torch.zeros_like(t), torch.ones_like(t)
+    side = (p[0] / r, zero, p[2] / r)
+    n = _select(which, side, side, (zero, one, zero), (zero, -one, zero))
+    return t, normalize(n)
+
+
+def capsule(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    # The union of convex pieces: the first entry is the first entry of any piece; the side of the
+    # finite cylinder suffices because its caps lie inside the end spheres.
+    r, h = s[0], s[1]
+    side1, side2 = _cylinder_side(o, d, r, h)
+    ok = torch.ones_like(r, dtype=torch.bool)
+    a1, a2 = _sphere(o, d, h, r)
+    b1, b2 = _sphere(o, d, -h, r)
+    t, which = _first(t_min, side1, side2, (a1, ok), (a2, ok), (b1, ok), (b2, ok))
+    p = _at(o, d, t)
+    zero = torch.zeros_like(t)
+    side = (p[0], zero, p[2])
+    top = (p[0], p[1] - h, p[2])
+    bottom = (p[0], p[1] + h, p[2])
+    return t, normalize(_select(which, side, side, top, top, bottom, bottom))
+
+
+def cone(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    # Side: x² + z² = k²·(h − y)² with k = r / (2h), restricted to −h ≤ y ≤ h (which also drops the
+    # mirrored nappe above the apex).
+    r, h = s[0], s[1]
+    k2 = (r / (2.0 * h)) ** 2
+    u = h - o[1]
+    a = d[0] * d[0] + d[2] * d[2] - k2 * d[1] * d[1]
+    b = o[0] * d[0] + o[2] * d[2] + k2 * u * d[1]
+    c = o[0] * o[0] + o[2] * o[2] - k2 * u * u
+    t1, t2 = _roots(a, b, c)
+    y1, y2 = o[1] + t1 * d[1], o[1] + t2 * d[1]
+    t, which = _first(
+        t_min, (t1, y1.abs() <= h), (t2, y2.abs() <= h), _cap(o, d, -h, r)
+    )
+    p = _at(o, d, t)
+    zero, one = torch.zeros_like(t), torch.ones_like(t)
+    side = (p[0], k2 * (h - p[1]), p[2])  # half the gradient of x² + z² − k²(h − y)²
+    return t, normalize(_select(which, side, side, (zero, -one, zero)))
+
+
+def _torus_sdf(p: Vec, big_r: Tensor, small_r: Tensor) -> Tensor:
+    q = torch.sqrt(p[0] * p[0] + p[2] * p[2]) - big_r
+    return torch.sqrt(q * q + p[1] * p[1]) - small_r
+
+
+def torus(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    big_r, small_r = s[0], s[1]
+    # Directions are unit in the camera frame and R is a rotation, so |d| = 1 here: sphere tracing
+    # steps by the signed distance (Hart 1996, "Sphere tracing", eq. 1), which needs unit speed.
+    t1, t2 = _sphere(o, d, 0.0, big_r + small_r)
+    inside = t2 > t_min  # False also where the bounding sphere is missed (t2 is NaN)
+    zero = torch.zeros_like(t1)
+    t = torch.where(inside, torch.clamp_min(t1, t_min), zero)
+    t_end = torch.where(inside, t2, zero)
+    tol = _TRACE_TOL * (big_r + small_r)
+    for _ in range(_TRACE_STEPS):
+        dist = _torus_sdf(_at(o, d, t), big_r, small_r)
+        t = t + torch.where(dist > tol, dist, torch.zeros_like(dist))
+    dist = _torus_sdf(_at(o, d, t), big_r, small_r)
+    hit = inside & (dist <= tol * 4) & (t <= t_end)
+    t = torch.where(hit, t, torch.full_like(t, math.inf))
+    p = _at(o, d, t)
+    ring = torch.sqrt(p[0] * p[0] + p[2] * p[2]).clamp_min(1e-30)
+    scale = 1.0 - big_r / ring
+    return t, normalize((p[0] * scale, p[1], p[2] * scale))
+
+
+@dataclass(frozen=True)
+class ShapeFamily:
+    """One analytic family: its exact intersection, bounding radius and size distribution."""
+
+    name: str
+    intersect: Callable[[Vec, Vec, Vec, float], tuple[Tensor, Vec]]
+    bounding_radius: Callable[[np.ndarray], float]
+    sample_size: Callable[[np.ndarray], tuple[float, float, float]]
+
+
+def _lerp(u: float, lo: float, hi: float) -> float:
+    return lo + (hi - lo) * float(u)
+
+
+def _ellipsoid_size(u: np.ndarray) -> tuple[float, float, float]:
+    # One scene in three gets a sphere (the family includes spheres; they are also the easiest
+    # shape to check against a closed form).
+    if u[3] < 1.0 / 3.0:
+        r = _lerp(u[0], 0.24, 0.45)
+        return (r, r, r)
+    return (_lerp(u[0], 0.18, 0.5), _lerp(u[1], 0.18, 0.5), _lerp(u[2], 0.18, 0.5))
+
+
+SHAPES: dict[str, ShapeFamily] = {
+    f.name: f
+    for f in (
+        ShapeFamily("ellipsoid", ellipsoid, lambda s: float(max(s)), _ellipsoid_size),
+        ShapeFamily(
+            "box", box, lambda s: float(np.linalg.norm(s)),
+            lambda u: (_lerp(u[0], 0.14, 0.34), _lerp(u[1], 0.14, 0.34), _lerp(u[2], 0.14, 0.34)),
+        ),
+        ShapeFamily(
+            "cylinder", cylinder, lambda s: float(math.hypot(s[0], s[1])),
+            lambda u: (_lerp(u[0], 0.14, 0.33), _lerp(u[1], 0.14, 0.4), 0.0),
+        ),
+        ShapeFamily(
+            "torus", torus, lambda s: float(s[0] + s[1]),
+            lambda u: (_lerp(u[0], 0.24, 0.4), _lerp(u[1], 0.07, 0.16), 0.0),
+        ),
+        ShapeFamily(
+            "capsule", capsule, lambda s: float(s[0] + s[1]),
+            lambda u: (_lerp(u[0], 0.12, 0.25), _lerp(u[1], 0.1, 0.3), 0.0),
+        ),
+        ShapeFamily(
+            "cone", cone, lambda s: float(math.hypot(s[0], s[1])),
+            lambda u: (_lerp(u[0], 0.2, 0.36), _lerp(u[1], 0.2, 0.4), 0.0),
+        ),
+    )
+}
+SHAPE_NAMES: tuple[str, ...] = tuple(SHAPES)
+MAX_BOUNDING_RADIUS = 0.6
+"""Largest bounding radius any family samples (box: √3·0.34 = 0.589); the scene keeps objects in front of the wall with it."""

@@ -1,0 +1,124 @@
+"""Exact ray intersections of every shape family, against closed forms in float64."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings, strategies as st
+
+from lasagna.world.shapes import SHAPES, MAX_BOUNDING_RADIUS
+
+F64 = torch.float64
+
+
+def rays(origins, directions):
+    o = torch.tensor(origins, dtype=F64).reshape(-1, 3)
+    d = torch.tensor(directions, dtype=F64).reshape(-1, 3)
+    d = d / d.norm(dim=1, keepdim=True)
+    return tuple(o.T), tuple(d.T)
+
+
+def sizes(m, s):
+    return tuple(torch.full((m,), float(v), dtype=F64) for v in s)
+
+
+def cast(family, origins, directions, size, t_min=0.0):
+    o, d = rays(origins, directions)
+    t, n = SHAPES[family].intersect(o, d, sizes(o[0].shape[0], size), t_min)
+    return t.numpy(), np.stack([c.numpy() for c in n], 1)
+
+
+DOWN = (0.0, 0.0, -1.0)
+
+
+class TestClosedForms:
+    def test_sphere_front_point_and_normal(self):
+        # Sphere of radius 0.5: a ray down −z at (x, y) meets z = √(r² − x² − y²), normal p/r.
+        pts = [(0.1, -0.2), (0.0, 0.0), (0.3, 0.35)]
+        t, n = cast("ellipsoid", [(x, y, 2.0) for x, y in pts], [DOWN] * 3, (0.5, 0.5, 0.5))
+        for (x, y), ti, ni in zip(pts, t, n):
+            z = math.sqrt(0.25 - x * x - y * y)
+            assert ti == pytest.approx(2.0 - z, abs=1e-12)
+            np.testing.assert_allclose(ni, np.array([x, y, z]) / 0.5, atol=1e-12)
+
+    def test_ellipsoid_axes(self):
+        t, n = cast("ellipsoid", [(3.0, 0, 0), (0, 3.0, 0), (0, 0, 3.0)], [(-1, 0, 0), (0, -1, 0), (0, 0, -1)],
+                    (0.2, 0.3, 0.4))
+        np.testing.assert_allclose(t, [2.8, 2.7, 2.6], atol=1e-12)
+        np.testing.assert_allclose(n, np.eye(3), atol=1e-12)
+
+    def test_box_faces(self):
+        t, n = cast("box", [(0.05, -0.1, 2.0), (2.0, 0.1, 0.0), (0.0, -2.0, 0.1)],
+                    [DOWN, (-1, 0, 0), (0, 1, 0)], (0.2, 0.3, 0.4))
+        np.testing.assert_allclose(t, [1.6, 1.8, 1.7], atol=1e-12)
+        np.testing.assert_allclose(n, [[0, 0, 1], [1, 0, 0], [0, -1, 0]], atol=0)
+
+    def test_cylinder_cap_and_side(self):
+        # Axis y, radius 0.3, half-height 0.4: down the axis meets the cap y = 0.4; along −z the side.
+        t, n = cast("cylinder", [(0.1, 2.0, 0.0), (0.1, 0.2, 2.0)], [(0, -1, 0), DOWN], (0.3, 0.4, 0.0))
+        z = math.sqrt(0.09 - 0.01)
+        np.testing.assert_allclose(t, [1.6, 2.0 - z], atol=1e-12)
+        np.testing.assert_allclose(n, [[0, 1, 0], [0.1 / 0.3, 0, z / 0.3]], atol=1e-12)
+
+    def test_torus_ring_and_hole(self):
+        # Ring in the xz plane (around y), R = 0.3, r = 0.1: down −y at x = R meets y = r; at x = 0 the hole.
+        t, n = cast("torus", [(0.3, 2.0, 0.0), (0.0, 2.0, 0.0), (0.0, 0.0, 2.0)], [(0, -1, 0)] * 2 + [DOWN],
+                    (0.3, 0.1, 0.0))
+        assert t[0] == pytest.approx(1.9, abs=1e-5)
+        np.testing.assert_allclose(n[0], [0, 1, 0], atol=1e-4)
+        assert np.isinf(t[1])
+        assert t[2] == pytest.approx(2.0 - 0.4, abs=1e-5)  # along −z through the centre: outer equator
+        np.testing.assert_allclose(n[2], [0, 0, 1], atol=1e-4)
+
+    def test_capsule_tip_and_side(self):
+        t, n = cast("capsule", [(0.0, 2.0, 0.0), (0.0, 0.05, 2.0)], [(0, -1, 0), DOWN], (0.15, 0.2, 0.0))
+        np.testing.assert_allclose(t, [2.0 - 0.35, 2.0 - 0.15], atol=1e-12)
+        np.testing.assert_allclose(n, [[0, 1, 0], [0, 0, 1]], atol=1e-12)
+
+    def test_cone_apex_side_and_base(self):
+        # Base radius 0.3 at y = −0.4, apex at y = 0.4: at height y the radius is 0.3·(0.4 − y)/0.8.
+        t, n = cast("cone", [(0.0, 0.0, 2.0), (0.05, -2.0, 0.0)], [DOWN, (0, 1, 0)], (0.3, 0.4, 0.0))
+        k = 0.3 / 0.8
+        np.testing.assert_allclose(t, [2.0 - 0.4 * k, 1.6], atol=1e-12)
+        side = np.array([0.0, k, 1.0]) / math.hypot(k, 1.0)  # outward normal of the side at (0, 0, 0.4k)
+        np.testing.assert_allclose(n, [side, [0, -1, 0]], atol=1e-12)
+
+    @pytest.mark.parametrize("family", sorted(SHAPES))
+    def test_miss_is_inf(self, family):
+        t, _ = cast(family, [(5.0, 5.0, 2.0)], [DOWN], (0.2, 0.2, 0.2))
+        assert np.isinf(t).all()
+
+    @pytest.mark.parametrize("family", sorted(SHAPES))
+    def test_t_min_skips_hits_behind(self, family):
+        # From the centre outward, only the exit point lies ahead; from beyond the shape, nothing.
+        t, _ = cast(family, [(0.0, 0.0, 2.0)], [DOWN], (0.3, 0.1, 0.3), t_min=3.0)
+        assert np.isinf(t).all()
+
+    def test_zero_direction_component_box(self):
+        # d has exact zeros in x and y: the slab test must neither NaN nor miss.
+        t, n = cast("box", [(0.0, 0.0, 1.0)], [DOWN], (0.2, 0.2, 0.2))
+        assert t[0] == pytest.approx(0.8) and n[0].tolist() == [0, 0, 1]
+
+
+@pytest.mark.parametrize("family", sorted(SHAPES))
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_hits_lie_on_the_surface_with_unit_normals(family, seed):
+    """Property: every hit is within the bounding sphere, its normal is unit and faces the ray."""
+    rng = np.random.default_rng(seed)
+    size = tuple(rng.uniform(0.1, 0.3, 3))
+    m = 64
+    d = rng.normal(size=(m, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    target = rng.uniform(-0.3, 0.3, size=(m, 3))
+    o = target - 2.0 * d
+    t, n = cast(family, o.tolist(), d.tolist(), size)
+    hit = np.isfinite(t)
+    p = o + t[:, None] * d
+    radius = SHAPES[family].bounding_radius(np.asarray(size))
+    assert radius <= MAX_BOUNDING_RADIUS
+    assert (np.linalg.norm(p[hit], axis=1) <= radius * (1 + 1e-6) + 1e-5).all()
+    np.testing.assert_allclose(np.linalg.norm(n[hit], axis=1), 1.0, atol=1e-9)
+    assert ((n[hit] * d[hit]).sum(1) <= 1e-9).all()
