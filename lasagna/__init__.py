@@ -1,5 +1,23 @@
 """Lasagna: layered image compositing with learned layers.
 
-The public API is filled in as the tiers land; see docs/ARCHITECTURE.md.
+    import lasagna
+    stack = lasagna.load("examples/stacks/basic")      # a folder or its stack.json
+    result = lasagna.render(stack)                     # RenderResult(image, skipped, evaluated)
+    lasagna.save(stack, "out/mystack")                 # stack.json + layer PNGs + composite.png
+
+The API names are loaded lazily so that ``import lasagna.document`` (pydantic only) never imports
+torch. See docs/ARCHITECTURE.md for the tiers.
 """
 __version__ = "0.1.0"
+
+_API = ("load", "render", "save", "Stack", "from_image", "from_tensors", "export_ora", "export_psd",
+        "import_ora", "export_layer_pngs", "write_composite", "RenderResult")
+__all__ = ["__version__", *_API]
+
+
+def __getattr__(name: str):
+    if name in _API:
+        from lasagna import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'lasagna' has no attribute {name!r}")

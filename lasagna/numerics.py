@@ -31,3 +31,8 @@ def safe_div(num: torch.Tensor, den: torch.Tensor, eps: float = STD_EPS) -> torc
 def reduction_dtype(dtype: torch.dtype) -> torch.dtype:
     """Reductions (means, norms, std) of half-precision tensors run in float32."""
     return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
+
+# Saving a layer checks that its values lie in its range [lo, hi]. Values within this fraction of
+# the range's width outside it are float32 rounding of values on the boundary (y = lo + (hi - lo)·v
+# computed in float32), not content, and are saved as the boundary. 1e-6 is 1/15 of a 16-bit step.
+RANGE_SAVE_TOLERANCE = 1e-6

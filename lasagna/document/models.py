@@ -13,6 +13,8 @@ output of a canonical document is byte-for-byte stable.
 from __future__ import annotations
 
 import json
+import os
+import pathlib
 from typing import Annotated, Any, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError, model_validator
@@ -234,6 +236,15 @@ class Document(StrictModel):
     def to_dict(self) -> dict[str, Any]:
         """The document as plain JSON data: every field, canonical blend names."""
         return self.model_dump(mode="json")
+
+    def save(self, path: "str | os.PathLike") -> "pathlib.Path":
+        """Write this document to ``path`` (a stack folder or its stack.json), atomically.
+
+        Only the JSON document; ``lasagna.save`` writes a stack with its layer PNGs.
+        """
+        from lasagna.document.io import save_document
+
+        return save_document(self, path)
 
     def to_json(self) -> str:
         """The stack.json text: full, stable, 2-space indent, trailing newline (see the module doc)."""

@@ -52,7 +52,7 @@ def parse_json(text: str, where: str) -> Any:
         return json.loads(text, object_pairs_hook=_no_duplicate_keys, parse_constant=_no_constants)
     except json.JSONDecodeError as exc:
         raise DocumentError(
-            f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}", where
+            f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}; expected a JSON object (see schemas/stack.schema.json)", where
         ) from None
     except DocumentError as exc:
         raise DocumentError(str(exc), where) from None

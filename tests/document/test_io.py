@@ -39,7 +39,7 @@ def test_malformed_json_names_file_line_and_column(tmp_path):
     (tmp_path / "stack.json").write_text('{\n  "format": "lasagna.stack",\n  "version": 1,,\n}', encoding="utf-8")  # 2nd comma: column 16
     with pytest.raises(DocumentError) as info:
         load_document(tmp_path)
-    assert str(info.value) == f"{tmp_path / 'stack.json'}: invalid JSON at line 3, column 16: Expecting property name enclosed in double quotes"
+    assert str(info.value) == f"{tmp_path / 'stack.json'}: invalid JSON at line 3, column 16: Expecting property name enclosed in double quotes; expected a JSON object (see schemas/stack.schema.json)"
 
 
 @pytest.mark.parametrize(("text", "fragment"), [

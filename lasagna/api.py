@@ -1,0 +1,77 @@
+"""The small Python API: load, build, render, save and export layer stacks.
+
+    import lasagna
+    stack = lasagna.load("examples/stacks/basic")          # a Stack: document + layer tensors
+    result = lasagna.render(stack)                         # RenderResult(image (3, H, W), skipped, evaluated)
+    lasagna.save(stack, "out/copy", composite=True)        # stack.json, layers/*.png, composite.png
+
+    stack = lasagna.from_image(albedo)                     # a tensor (C, h, w), numpy array or PIL image
+    stack.add_layer("shade", shading, blend="multiply", range=(0, 2))
+    stack.add_solid("tint", (1.0, 0.5, 0.0, 0.25), blend="normal")
+    lasagna.export_ora(stack, "out/stack.ora")
+
+Tensors and float arrays are layer values y (a [0, 2] multiplier is given in [0, 2]); PIL images and
+integer arrays are stored codes, mapped by the layer's range like a PNG in a stack folder. Everything
+here is a thin name for a function of ``lasagna.io`` / ``lasagna.export``; see them for details.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from lasagna.compose.render import RenderResult
+from lasagna.export.ora import export_ora, import_ora
+from lasagna.export.png import export_layer_pngs
+from lasagna.io.render import render_stack, write_composite
+from lasagna.io.stack import Stack, load_stack, save_stack, stack_from_tensors
+
+__all__ = [
+    "Stack", "RenderResult", "load", "render", "save", "from_image", "from_tensors",
+    "export_ora", "export_psd", "import_ora", "export_layer_pngs", "write_composite",
+]
+
+
+def load(path: str | os.PathLike, **limits: Any) -> Stack:
+    """Load a stack folder (or its stack.json); ``limits``: ``max_pixels``, ``max_total_pixels``."""
+    return load_stack(path, **limits)
+
+
+def render(stack: Stack | str | os.PathLike, *, dtype: torch.dtype = torch.float32, cull: bool = True) -> RenderResult:
+    """Composite a stack (or the stack folder at a path): ``RenderResult(image (3, H, W), skipped, evaluated)``.
+
+    Differentiable: layer tensors that require grad receive gradients through ``result.image``.
+    """
+    if not isinstance(stack, Stack):
+        stack = load_stack(stack)
+    return render_stack(stack, dtype=dtype, cull=cull)
+
+
+def save(stack: Stack, folder: str | os.PathLike | None = None, *, clip: bool = False, composite: bool = False) -> Path:
+    """Write the stack folder (stack.json, layer PNGs; ``composite.png`` too if ``composite``).
+
+    Values outside a layer's range are an error unless ``clip``. Returns the stack.json written.
+    """
+    written = save_stack(stack, folder, clip=clip)
+    if composite:
+        write_composite(render_stack(stack), written.parent / "composite.png")
+    return written
+
+
+def from_image(image, **kwargs: Any) -> Stack:
+    """A new stack whose canvas is ``image``'s size and whose bottom layer is ``image`` (see ``Stack.from_image``)."""
+    return Stack.from_image(image, **kwargs)
+
+
+def from_tensors(layers, **kwargs: Any) -> Stack:
+    """A new stack from ``(id, image)`` pairs or layer dicts, bottom first (see ``stack_from_tensors``)."""
+    return stack_from_tensors(layers, **kwargs)
+
+
+def export_psd(stack: Stack, path: str | os.PathLike, **kwargs: Any) -> Path:
+    """Write a layered PSD (needs ``pip install 'lasagna[psd]'``)."""
+    from lasagna.export.psd import export_psd as _export_psd
+
+    return _export_psd(stack, path, **kwargs)

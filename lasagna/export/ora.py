@@ -1,0 +1,353 @@
+"""OpenRaster (.ora) export and import.
+
+The file (OpenRaster spec, https://www.openraster.org/baseline/file-layout-spec.html) is a zip whose
+*first* entry is ``mimetype``, stored uncompressed, reading exactly ``image/openraster``; then
+``stack.xml`` (``<image w h><stack>`` with layers **topmost first**, each ``<layer name src x y
+opacity visibility composite-op>``), ``data/*.png`` (8-bit RGBA, what every reader supports),
+``mergedimage.png`` (our exact composite) and ``Thumbnails/thumbnail.png`` (at most 256×256).
+Blends map to ``svg:src-over``, ``svg:multiply``, ``svg:plus`` and ``svg:screen``; values a
+reader cannot blend directly are expressed as in :mod:`lasagna.export.rasters` (multiplier y > 1 as
+a multiply + ``svg:color-dodge`` pair). A bottom background layer makes the file flatten to our
+opaque composite. Alpha × mask is baked into each PNG's alpha, opacity into ``opacity``.
+
+Import is the inverse for flat stacks and refuses what it cannot read safely: entry names that are
+absolute or contain ``..`` (zip-slip), archives whose declared or actual uncompressed size exceeds
+a limit, PNGs over the pixel limit (checked from the header before decoding), DTDs/entities in
+stack.xml, nested stacks (groups) and unknown composite-ops.
+"""
+from __future__ import annotations
+
+import io
+import math
+import os
+import re
+import zipfile
+import zlib
+from pathlib import Path, PurePosixPath
+from typing import Callable
+from xml.etree import ElementTree as ET
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+import torch
+from PIL import Image
+
+from lasagna.errors import ExportError, ImageError
+from lasagna.export.rasters import ExportLayer, export_layers
+from lasagna.io.atomic import atomic_write_bytes
+from lasagna.io.png import DEFAULT_MAX_PIXELS, decode_png, encode_png, check_size, parse_header
+
+MIMETYPE = b"image/openraster"
+THUMBNAIL_MAX = 256
+_EPOCH = (1980, 1, 1, 0, 0, 0)  # fixed entry dates: the same stack gives the same bytes
+
+OPS_TO_SVG = {
+    "normal": "svg:src-over",
+    "multiply": "svg:multiply",
+    "plus": "svg:plus",
+    "screen": "svg:screen",
+    "color-dodge": "svg:color-dodge",
+}
+SVG_TO_BLEND = {"svg:src-over": "normal", "svg:multiply": "multiply", "svg:plus": "plus", "svg:screen": "screen"}
+
+# An archive whose entries inflate to more than this is refused (zip bombs); 4 GiB holds 2^28
+# RGBA pixels, the per-image limit, with room to spare.
+DEFAULT_MAX_UNCOMPRESSED = 4 * 2**30
+
+
+# ---- export --------------------------------------------------------------------------------------
+
+
+def _thumbnail(composite_hwc: np.ndarray) -> bytes:
+    im = Image.fromarray(composite_hwc)
+    im.thumbnail((THUMBNAIL_MAX, THUMBNAIL_MAX), Image.Resampling.LANCZOS)
+    buf = io.BytesIO()
+    im.save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def _stack_xml(width: int, height: int, layers: list[ExportLayer]) -> str:
+    lines = ["<?xml version='1.0' encoding='UTF-8'?>",
+             f'<image version="0.0.5" w="{width}" h="{height}">', "  <stack>"]
+    for layer in reversed(layers):  # topmost first
+        attrs = {
+            "name": layer.name,
+            "src": f"data/{layer.key}.png",
+            "x": str(layer.x),
+            "y": str(layer.y),
+            "opacity": f"{layer.opacity:.6f}",
+            "visibility": "visible" if layer.visible else "hidden",
+            "composite-op": OPS_TO_SVG[layer.op],
+        }
+        lines.append("    <layer " + " ".join(f"{k}={quoteattr(v)}" for k, v in attrs.items()) + " />")
+    lines += ["  </stack>", "</image>", ""]
+    return "\n".join(lines)
+
+
+def composite_uint8(image: torch.Tensor) -> np.ndarray:
+    """(3, H, W) composite → (H, W, 3) uint8: clamped to [0, 1], rounded to nearest."""
+    if not bool(torch.isfinite(image.detach()).all()):
+        raise ExportError("composite has NaN or infinite values; expected finite layer values", where="composite")
+    return (image.detach().cpu().double().clamp(0.0, 1.0) * 255.0).round().to(torch.uint8).permute(1, 2, 0).numpy()
+
+
+def encode_ora(stack, *, composite: torch.Tensor | None = None, warn: Callable[[str], None] | None = None) -> bytes:
+    """The OpenRaster file of ``stack`` as bytes (see the module docstring).
+
+    ``composite`` (3, H, W) is the exact composite for ``mergedimage.png``; rendered if not given.
+    """
+    if composite is None:
+        from lasagna.io.render import render_stack
+
+        composite = render_stack(stack).image
+    merged = composite_uint8(composite)
+    layers = export_layers(stack, composite.detach().cpu().double().numpy(), target="OpenRaster", warn=warn)
+    entries: list[tuple[str, bytes]] = [("stack.xml", _stack_xml(stack.width, stack.height, layers).encode("utf-8"))]
+    for layer in layers:
+        rgba = layer.rgba_uint8().transpose(2, 0, 1) / 255.0
+        entries.append((f"data/{layer.key}.png", encode_png(rgba[:3], rgba[3:], where=layer.key)))
+    buf = io.BytesIO()
+    Image.fromarray(merged).save(buf, format="PNG")
+    entries.append(("mergedimage.png", buf.getvalue()))
+    entries.append(("Thumbnails/thumbnail.png", _thumbnail(merged)))
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as zf:
+        # The spec: mimetype first, stored (not deflated), no extra field, so that the bytes
+        # "image/openraster" sit at offset 38 for magic-number sniffing.
+        zf.writestr(zipfile.ZipInfo("mimetype", date_time=_EPOCH), MIMETYPE, compress_type=zipfile.ZIP_STORED)
+        for name, data in entries:
+            # PNGs are already deflated; storing them saves time and loses nothing.
+            kind = zipfile.ZIP_STORED if name.endswith(".png") else zipfile.ZIP_DEFLATED
+            zf.writestr(zipfile.ZipInfo(name, date_time=_EPOCH), data, compress_type=kind)
+    return out.getvalue()
+
+
+def export_ora(stack, path: str | os.PathLike, *, composite: torch.Tensor | None = None,
+               warn: Callable[[str], None] | None = None) -> Path:
+    """Write ``stack`` as an OpenRaster file at ``path`` (atomically); returns the path."""
+    data = encode_ora(stack, composite=composite, warn=warn)
+    try:
+        atomic_write_bytes(path, data)
+    except OSError as exc:
+        raise ExportError(f"cannot write ({exc.strerror or exc}); expected a writable location", where=str(path)) from None
+    return Path(path)
+
+
+# ---- import --------------------------------------------------------------------------------------
+
+_SAFE_ENTRY = re.compile(r"^[^\\\x00-\x1f]+$")
+
+
+def _check_entry_name(name: str, where: str) -> None:
+    p = PurePosixPath(name)
+    if (not _SAFE_ENTRY.match(name) or name.startswith("/") or re.match(r"^[A-Za-z]:", name)
+            or ".." in p.parts):
+        raise ImageError(
+            f"archive entry {name!r} is absolute or escapes the archive (zip-slip); expected relative names without '..'",
+            where=where,
+        )
+
+
+def _id_from(src: str, name: str, taken: set[str]) -> str:
+    stem = PurePosixPath(src).stem or name
+    base = re.sub(r"[^A-Za-z0-9_.-]", "-", stem).lstrip("_.-")[:56] or "layer"
+    candidate, n = base, 2
+    while candidate.casefold() in taken or candidate.split(".")[0].upper() in {"CON", "PRN", "AUX", "NUL"}:
+        candidate, n = f"{base}-{n}", n + 1
+    taken.add(candidate.casefold())
+    return candidate
+
+
+def _float_attr(el, name: str, default: float, where: str) -> float:
+    raw = el.get(name)
+    if raw is None:
+        return default
+    try:
+        value = float(raw)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise ImageError(f"{name}={raw!r}; expected a finite number", where=where)
+    return value
+
+
+def _int_attr(el, name: str, where: str) -> int:
+    raw = el.get(name, "0")
+    try:
+        return int(raw)
+    except ValueError:
+        try:
+            f = float(raw)
+        except ValueError:
+            f = math.nan
+        if not math.isfinite(f) or f != int(f):
+            raise ImageError(f"{name}={raw!r}; expected an integer", where=where) from None
+        return int(f)
+
+
+def read_ora(path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS,
+             max_uncompressed: int = DEFAULT_MAX_UNCOMPRESSED) -> tuple[int, int, list[dict]]:
+    """Read and check an OpenRaster file: canvas size and its layers bottom to top (decoded).
+
+    Each layer is a dict with ``name``, ``src``, ``x``, ``y``, ``opacity``, ``visible``,
+    ``blend`` (ours, or ``"color-dodge"``) and ``image`` (a decoded :class:`PngImage`).
+    """
+    where = str(path)
+    try:
+        zf = zipfile.ZipFile(path)
+    except FileNotFoundError:
+        raise ImageError("does not exist; expected an OpenRaster (.ora) file", where=where) from None
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise ImageError(f"not a zip archive ({exc}); expected an OpenRaster (.ora) file", where=where) from None
+    with zf:
+        infos = zf.infolist()
+        for info in infos:
+            _check_entry_name(info.filename, where)
+        declared = sum(i.file_size for i in infos)
+        if declared > max_uncompressed:
+            raise ImageError(f"entries inflate to {declared} bytes, over the limit of {max_uncompressed}; "
+                             "expected a smaller archive (zip-bomb guard)", where=where)
+        names = {i.filename: i for i in infos}
+        budget = [max_uncompressed]
+
+        def read(name: str, limit: int | None = None) -> bytes:
+            info = names.get(name)
+            if info is None:
+                raise ImageError(f"archive has no entry {name!r}; expected it (named by stack.xml)", where=where)
+            cap = min(budget[0], limit if limit is not None else budget[0])
+            try:
+                with zf.open(info) as fh:
+                    data = fh.read(cap + 1)
+            except (zipfile.BadZipFile, OSError, EOFError, zlib.error) as exc:
+                raise ImageError(f"entry {name!r} is corrupt ({exc}); expected a valid zip entry", where=where) from None
+            if len(data) > cap:
+                raise ImageError(f"entry {name!r} inflates past {cap} bytes (zip-bomb guard); expected a smaller entry", where=where)
+            budget[0] -= len(data)
+            return data
+
+        if "mimetype" not in names or read("mimetype", 64).strip() != MIMETYPE:
+            raise ImageError("no 'mimetype' entry reading 'image/openraster'; expected an OpenRaster file", where=where)
+        xml_text = read("stack.xml", 16 * 2**20)
+        if b"<!DOCTYPE" in xml_text or b"<!ENTITY" in xml_text:
+            raise ImageError("stack.xml declares a DTD or entities; expected plain OpenRaster XML", where=f"{where}: stack.xml")
+        try:
+            root = ET.fromstring(xml_text)
+        except ET.ParseError as exc:
+            raise ImageError(f"stack.xml is not well-formed XML ({exc}); expected OpenRaster XML", where=f"{where}: stack.xml") from None
+        xwhere = f"{where}: stack.xml"
+        if root.tag != "image":
+            raise ImageError(f"root element is <{root.tag}>; expected <image>", where=xwhere)
+        width, height = _int_attr(root, "w", xwhere), _int_attr(root, "h", xwhere)
+        if not (1 <= width <= 32768 and 1 <= height <= 32768):
+            raise ImageError(f"canvas is {width}x{height}; expected w and h in [1, 32768]", where=xwhere)
+        stacks = [c for c in root if c.tag == "stack"]
+        if len(stacks) != 1:
+            raise ImageError(f"<image> holds {len(stacks)} <stack> elements; expected exactly one", where=xwhere)
+        layers = []
+        for n, el in enumerate(stacks[0]):
+            lwhere = f"{xwhere}: stack[{n}]"
+            if el.tag == "stack":
+                raise ImageError("nested <stack> (a layer group) is not supported; expected a flat stack "
+                                 "(merge or ungroup groups in your editor before exporting)", where=lwhere)
+            if el.tag != "layer":
+                raise ImageError(f"<{el.tag}> element is not supported; expected <layer>", where=lwhere)
+            op = el.get("composite-op", "svg:src-over")
+            if op not in SVG_TO_BLEND and op != "svg:color-dodge":
+                raise ImageError(f"composite-op {op!r} is not supported; expected one of "
+                                 f"{', '.join(SVG_TO_BLEND)} (or svg:color-dodge directly above an svg:multiply layer)",
+                                 where=lwhere)
+            src = el.get("src")
+            if not src:
+                raise ImageError("layer has no src; expected src naming a PNG in the archive", where=lwhere)
+            _check_entry_name(src, lwhere)
+            opacity = _float_attr(el, "opacity", 1.0, lwhere)
+            if not 0.0 <= opacity <= 1.0:
+                raise ImageError(f"opacity={opacity}; expected a number in [0, 1]", where=lwhere)
+            visibility = el.get("visibility", "visible")
+            if visibility not in ("visible", "hidden"):
+                raise ImageError(f"visibility={visibility!r}; expected 'visible' or 'hidden'", where=lwhere)
+            # Check the PNG's header before inflating the rest of it.
+            entry = names.get(src)
+            if entry is None:
+                raise ImageError(f"src {src!r} is not in the archive; expected a PNG entry", where=lwhere)
+            pwhere = f"{where}: {src}"
+            with zf.open(entry) as fh:
+                head = fh.read(33)
+            check_size(parse_header(head, pwhere), pwhere, max_pixels, 32768)
+            image = decode_png(read(src), pwhere, max_pixels=max_pixels, max_side=32768)
+            layers.append(dict(
+                name=el.get("name") or PurePosixPath(src).stem, src=src,
+                x=_int_attr(el, "x", lwhere), y=_int_attr(el, "y", lwhere), opacity=opacity,
+                visible=visibility == "visible", blend=SVG_TO_BLEND.get(op, "color-dodge"), image=image, where=lwhere,
+            ))
+    layers.reverse()  # stack.xml is topmost first; documents are bottom first
+    return width, height, layers
+
+
+def _same_geometry(a: dict, b: dict) -> bool:
+    ia, ib = a["image"], b["image"]
+    return (a["x"], a["y"], a["opacity"], a["visible"], ia.width, ia.height) == (
+        b["x"], b["y"], b["opacity"], b["visible"], ib.width, ib.height
+    ) and ((ia.alpha is None and ib.alpha is None) or (
+        ia.alpha is not None and ib.alpha is not None and np.array_equal(ia.alpha, ib.alpha)))
+
+
+def import_ora(path: str | os.PathLike, out_folder: str | os.PathLike | None = None, *,
+               max_pixels: int = DEFAULT_MAX_PIXELS, max_uncompressed: int = DEFAULT_MAX_UNCOMPRESSED):
+    """Read an OpenRaster file as a :class:`~lasagna.io.stack.Stack` (saved to ``out_folder`` if given).
+
+    Ids come from the layers' PNG names. A ``svg:color-dodge`` layer directly above an ``svg:multiply``
+    layer of the same geometry, opacity and alpha (what :func:`export_ora` writes for a multiplier
+    above 1) becomes one multiply layer y = m/(1 − d) with range [0, ⌈max y⌉]; any other colour-dodge
+    layer is refused. The background layer :func:`export_ora` adds becomes the canvas background, and
+    its "Composite (exact)" top layer, if any, is dropped (the stack is re-composed from its layers).
+    """
+    from lasagna.io.stack import stack_from_tensors
+
+    width, height, layers = read_ora(path, max_pixels=max_pixels, max_uncompressed=max_uncompressed)
+    background = (0.0, 0.0, 0.0)
+    if layers and layers[-1]["src"] == "data/_composite.png":
+        layers = layers[:-1]  # the exact composite export_ora adds when layers cannot express the stack
+    if layers and layers[0]["src"] == "data/_background.png":
+        bg = layers[0]["image"]
+        c = bg.color if bg.color.shape[0] == 3 else np.repeat(bg.color, 3, axis=0)
+        opaque = bg.alpha is None or bool((bg.alpha == 1.0).all())
+        if (opaque and (bg.width, bg.height) == (width, height) and layers[0]["x"] == layers[0]["y"] == 0
+                and layers[0]["opacity"] == 1.0 and layers[0]["visible"] and (c == c[:, :1, :1]).all()):
+            background = tuple(float(v) for v in c[:, 0, 0])
+            layers = layers[1:]
+    # Merge multiply + colour-dodge pairs; refuse lone colour-dodge layers.
+    merged: list[dict] = []
+    for layer in layers:
+        if layer["blend"] == "color-dodge":
+            below = merged[-1] if merged else None
+            if below is None or below["blend"] != "multiply" or below.get("dodged") or not _same_geometry(below, layer):
+                raise ImageError("svg:color-dodge is supported only directly above an svg:multiply layer of the same "
+                                 "position, size, opacity and alpha (a multiplier above 1); expected one of "
+                                 + ", ".join(SVG_TO_BLEND), where=layer["where"])
+            m, d = below["image"].color, layer["image"].color
+            below["values"] = m / np.maximum(1.0 - d, 1.0 / 255.0)
+            below["dodged"] = True
+            continue
+        merged.append(dict(layer))
+    if not merged:
+        raise ImageError("the file has no layers besides the background; expected at least one layer", where=str(path))
+    taken: set[str] = set()
+    specs = []
+    for layer in merged:
+        img = layer["image"]
+        values = layer.get("values", img.color)
+        hi = max(1.0, float(np.ceil(values.max()))) if layer.get("dodged") else 1.0
+        lid = _id_from(layer["src"], layer["name"], taken)
+        specs.append(dict(
+            id=lid, image=torch.from_numpy(np.ascontiguousarray(values, dtype=np.float32)),
+            alpha=torch.from_numpy(img.alpha) if img.alpha is not None else None,
+            name=layer["name"], blend=layer["blend"], opacity=layer["opacity"], visible=layer["visible"],
+            offset=(layer["x"], layer["y"]), range=(0.0, hi),
+            bit_depth=16 if layer.get("dodged") or img.header.bit_depth == 16 else 8,
+        ))
+    stack = stack_from_tensors(specs, width=width, height=height, background=background)
+    if out_folder is not None:
+        stack.save(out_folder)
+    return stack
+

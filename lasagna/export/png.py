@@ -1,0 +1,73 @@
+"""Per-layer PNG export: each layer's raw values, exactly as a stack folder stores them.
+
+Never min–max normalised: a pixel stores v = (y − lo)/(hi − lo) for the layer's ``range``
+[lo, hi] (16-bit for a range other than [0, 1] and for learned layers, so a multiplier round-trips to
+within 1/65535 of its range), alpha in the PNG's alpha. ``DIR/<id>.png`` per layer, ``DIR/masks/<id>.png``
+per mask, and ``DIR/layers.json`` listing, bottom to top, each file with what is needed to read the
+values back: blend, range, offset, bit depth. Solid layers are written as rectangles of their colour;
+learned layers not rendered yet are listed without a file.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from lasagna.document import LearnedLayer, SolidLayer
+from lasagna.errors import ExportError
+from lasagna.io.atomic import atomic_write_bytes, atomic_write_text
+from lasagna.io.png import encode_png
+from lasagna.io.stack import NOT_RENDERED, encode_layer
+
+
+def layer_pngs(stack, *, clip: bool = False) -> tuple[dict[str, bytes], dict]:
+    """The files of a per-layer export (relative name → bytes) and the index written as layers.json."""
+    files: dict[str, bytes] = {}
+    index = []
+    for layer in stack.document.layers:
+        entry = {"id": layer.id, "name": layer.name, "kind": layer.kind, "blend": layer.blend,
+                 "range": list(layer.range), "offset": {"x": layer.offset.x, "y": layer.offset.y},
+                 "opacity": layer.opacity, "visible": layer.visible}
+        lo, hi = layer.range
+        if isinstance(layer, SolidLayer):
+            w, h = (layer.size.width, layer.size.height) if layer.size else (stack.width, stack.height)
+            rgba = list(layer.color)
+            color = np.broadcast_to(np.asarray(rgba[:3], dtype=np.float64)[:, None, None], (3, h, w))
+            alpha = np.full((1, h, w), rgba[3]) if len(rgba) == 4 else None
+            depth = 8 if tuple(layer.range) == (0.0, 1.0) else 16
+            files[f"{layer.id}.png"] = encode_png(color, alpha, bit_depth=depth, where=f"layer {layer.id!r}")
+            entry.update(file=f"{layer.id}.png", bit_depth=depth)
+        elif layer.id in stack.tensors:
+            data, mask = encode_layer(stack, layer.id, clip=clip)
+            files[f"{layer.id}.png"] = data
+            entry.update(file=f"{layer.id}.png", bit_depth=int.from_bytes(data[24:25], "big"))
+            if mask is not None:
+                files[f"masks/{layer.id}.png"] = mask
+                entry["mask"] = f"masks/{layer.id}.png"
+        elif isinstance(layer, LearnedLayer):
+            entry["file"] = None
+            entry["note"] = NOT_RENDERED
+        index.append(entry)
+    meta = {"format": "lasagna.layers", "version": 1,
+            "canvas": {"width": stack.width, "height": stack.height},
+            "values": "each PNG stores v = (y - lo) / (hi - lo) for range [lo, hi]; alpha is not mapped",
+            "layers": index}
+    return files, meta
+
+
+def export_layer_pngs(stack, folder: str | os.PathLike, *, clip: bool = False) -> list[Path]:
+    """Write every layer's raw values into ``folder`` (see the module docstring); returns the files."""
+    files, meta = layer_pngs(stack, clip=clip)
+    folder = Path(folder)
+    written = []
+    try:
+        for name, data in files.items():
+            atomic_write_bytes(folder / name, data)
+            written.append(folder / name)
+        atomic_write_text(folder / "layers.json", json.dumps(meta, indent=2) + "\n")
+    except OSError as exc:
+        raise ExportError(f"cannot write ({exc.strerror or exc}); expected a writable folder", where=str(folder)) from None
+    written.append(folder / "layers.json")
+    return written

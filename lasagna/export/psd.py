@@ -1,0 +1,103 @@
+"""Layered PSD export through psd-tools (the optional extra ``lasagna[psd]``).
+
+Each layer of :func:`lasagna.export.rasters.export_layers` becomes an 8-bit RGBA pixel layer made
+with ``create_pixel_layer(..., blend_mode=...)`` (``PixelLayer.frompil`` ignores blend mode and
+opacity, so it is not used): normal → NORMAL, multiply → MULTIPLY, plus → LINEAR_DODGE (Photoshop's
+"Linear Dodge (Add)"), screen → SCREEN, and the colour-dodge half of a multiplier above 1 →
+COLOR_DODGE. Opacity is stored as round(255·opacity); hidden layers are hidden. After each plus layer
+and each dodge pair comes an opaque white DARKEN layer, min(Cb, 1): the identity in 8/16-bit tools,
+and the clamp GIMP 2.10's float compositing otherwise skips (it keeps Cb·y > 1 for the next layer).
+The file's merged image is our exact composite, not psd-tools' own flattening.
+"""
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+from typing import Callable
+
+import torch
+from PIL import Image
+
+from lasagna.errors import ExportError
+from lasagna.export.ora import composite_uint8
+from lasagna.export.rasters import export_layers
+from lasagna.io.atomic import atomic_write_bytes
+
+INSTALL_HINT = "pip install 'lasagna[psd]'"
+
+
+def _psd_tools():
+    try:
+        from psd_tools import PSDImage
+        from psd_tools.constants import BlendMode
+    except ImportError:
+        raise ExportError(f"PSD export needs psd-tools, which is not installed; expected it: {INSTALL_HINT}",
+                          where="psd") from None
+    return PSDImage, BlendMode
+
+
+def _set_merged_image(psd, merged) -> None:
+    """Store ``merged`` (H, W, 3) uint8 as the file's composite instead of psd-tools' own.
+
+    psd-tools recomputes the merged image on save when the document was edited; it exposes no public
+    setter, so this writes the image-data record and turns the recomputation off for this object.
+    Without those internals (another psd-tools version) the file keeps psd-tools' flattening.
+    """
+    try:
+        from psd_tools.api import numpy_io
+
+        color = merged.astype("float32") / 255.0
+        alpha = color[:, :, :1] * 0.0 + 1.0
+        psd._record.image_data.set_data(numpy_io.encode_image_data(psd, color, alpha), psd._record.header)
+        psd._update_preview = lambda: None
+    except (AttributeError, ImportError, TypeError, ValueError):
+        pass
+
+
+def encode_psd(stack, *, composite: torch.Tensor | None = None, warn: Callable[[str], None] | None = None) -> bytes:
+    """The layered 8-bit RGB PSD of ``stack`` as bytes (``composite``: the merged image, rendered if None)."""
+    PSDImage, BlendMode = _psd_tools()
+    modes = {"normal": BlendMode.NORMAL, "multiply": BlendMode.MULTIPLY, "plus": BlendMode.LINEAR_DODGE,
+             "screen": BlendMode.SCREEN, "color-dodge": BlendMode.COLOR_DODGE}
+    if composite is None:
+        from lasagna.io.render import render_stack
+
+        composite = render_stack(stack).image
+    merged = composite_uint8(composite)
+    background = tuple(float(c) for c in stack.document.canvas.background)
+    # An RGBA document: layer alpha is stored as each layer's transparency channel (in an RGB document
+    # psd-tools would store it as a user layer mask instead).
+    psd = PSDImage.new("RGBA", (stack.width, stack.height), color=background + (1.0,))
+    layers = export_layers(stack, composite.detach().cpu().double().numpy(), target="PSD", warn=warn)
+    for i, layer in enumerate(layers):
+        pil = Image.fromarray(layer.rgba_uint8())
+        created = psd.create_pixel_layer(
+            pil, name=layer.name, top=layer.y, left=layer.x, opacity=int(round(255 * layer.opacity)),
+            blend_mode=modes[layer.op],
+        )
+        created.visible = layer.visible
+        last_part = i + 1 == len(layers) or layers[i + 1].source != layer.source
+        if layer.op in ("plus", "color-dodge") and last_part:
+            # GIMP 2.10 composites PSD layers in float and keeps a dodge or addition result above 1
+            # unclamped, so a layer with alpha above it would blend with that value. An opaque
+            # white "darken" layer, min(Cb, 1), clamps it there and is the identity in 8/16-bit tools.
+            white = Image.new("RGBA", pil.size, (255, 255, 255, 255))
+            clamp = psd.create_pixel_layer(white, name=f"{stack.layer(layer.source).name} (clamp to 1)", top=layer.y, left=layer.x,
+                                           blend_mode=BlendMode.DARKEN)
+            clamp.visible = layer.visible
+    _set_merged_image(psd, merged)
+    buf = io.BytesIO()
+    psd.save(buf)
+    return buf.getvalue()
+
+
+def export_psd(stack, path: str | os.PathLike, *, composite: torch.Tensor | None = None,
+               warn: Callable[[str], None] | None = None) -> Path:
+    """Write ``stack`` as a layered PSD at ``path`` (atomically); returns the path."""
+    data = encode_psd(stack, composite=composite, warn=warn)
+    try:
+        atomic_write_bytes(path, data)
+    except OSError as exc:
+        raise ExportError(f"cannot write ({exc.strerror or exc}); expected a writable location", where=str(path)) from None
+    return Path(path)

@@ -1,0 +1,210 @@
+"""Layers as interchange formats see them: one RGBA raster per layer, on the canvas, in [0, 1].
+
+OpenRaster and PSD layers are 8-bit RGBA images blended with per-layer clamping in gamma-encoded
+sRGB. This module turns a stack's layers into that form and says, with one-line warnings, what the
+target cannot express exactly:
+
+* A multiply layer with values y > 1 becomes a multiply layer of min(y, 1) and, directly above it,
+  a colour-dodge layer of d = 1 − 1/max(y, 1) with the same alpha and opacity. Colour dodge is
+  B(Cb, Cs) = min(1, Cb/(1 − Cs)) (W3C Compositing Level 1), so with α ∈ {0, 1} the pair gives
+  Cb·min(y, 1)/(1 − d) = Cb·y, clamped to 1 like every interop blend. For 0 < α < 1 two lerps
+  would not compose to one, so alpha × mask × opacity is first baked into the values: over an
+  opaque backdrop Cb + α(Cb·y − Cb) = Cb·g with g = 1 + α(y − 1), written as an opaque pair of g
+  (exact for any α; the price is that the file's opacity slider no longer scales that layer).
+  d is chosen per pixel as the 8-bit code whose 1/(1 − d) is nearest y, not the code nearest d.
+* Paint programs blend "plus" (Krita's Addition, Photoshop's Linear Dodge) as
+  Cb + α(min(1, Cb + Cs) − Cb), clamping inside the blend; the W3C plus is min(1, Cb + α·Cs). The
+  two differ where Cb + Cs > 1 and 0 < α < 1, so a plus layer with fractional alpha × mask ×
+  opacity is written with α baked into its values (Cs' = α·Cs, opaque), on which both agree.
+  Values above 1 are split into ⌈max y⌉ plus layers of min(max(y − k, 0), 1): additions of
+  non-negative values commute with clamping at 1, so the split is exact.
+* Negative values, colours above 1 in normal/screen layers, ``blend_space="linear"`` and a
+  ``clamp="output"`` that changes the result cannot be expressed. The layers are then written as
+  they are (values clipped to [0, 0] / [.., 1]), and an opaque top layer "Composite (exact)" holds
+  the exact composite, so the file still flattens to our image in any reader; a one-line warning
+  says why (hide that layer to edit the others). The merged image is always the exact composite.
+
+Every raster is cropped to the canvas (layers may lie partly outside), with its offset adjusted.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+
+from lasagna.document import LearnedLayer, SolidLayer
+from lasagna.errors import ExportError
+
+# ORA/PSD blend names for our blends and the helper layers.
+Op = str
+COMPOSITE_NAME = "Composite (exact)"  # "normal" | "multiply" | "plus" | "screen" | "color-dodge"
+
+
+@dataclass
+class ExportLayer:
+    """One layer of an interchange file: RGBA in [0, 1] on a canvas rectangle."""
+
+    name: str
+    key: str  # unique, file-name safe: "<id>", "_dodge/<id>", "_plus1/<id>", "_background"
+    op: Op
+    x: int
+    y: int
+    color: np.ndarray  # (3, h, w) float64 in [0, 1]
+    alpha: np.ndarray  # (1, h, w) float64 in [0, 1]: layer alpha × mask (not opacity)
+    opacity: float
+    visible: bool
+    source: str = ""  # id of the document layer it comes from ("" for the background)
+
+    def rgba_uint8(self) -> np.ndarray:
+        """(h, w, 4) uint8, rounded to nearest."""
+        rgba = np.concatenate([self.color, self.alpha]).transpose(1, 2, 0)
+        return np.rint(np.clip(rgba, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def _warn(warn: Callable[[str], None] | None, message: str) -> None:
+    if warn is not None:
+        warn(message)
+    else:
+        warnings.warn(message, stacklevel=3)
+
+
+def _layer_raster(stack, layer) -> tuple[np.ndarray, np.ndarray] | None:
+    """(color (C, h, w), alpha (1, h, w)) float64 values y of a layer, or None if it has no pixels."""
+    if isinstance(layer, SolidLayer):
+        rgba = list(layer.color)
+        size = layer.size
+        w, h = (size.width, size.height) if size else (stack.width, stack.height)
+        lo, hi = layer.range
+        color = np.empty((3, h, w))
+        color[:] = (lo + (hi - lo) * np.asarray(rgba[:3], dtype=np.float64))[:, None, None]
+        return color, np.full((1, h, w), rgba[3] if len(rgba) == 4 else 1.0)
+    t = stack.tensors.get(layer.id)
+    if t is None:
+        return None
+    color = t.color.detach().cpu().double().numpy()
+    if color.ndim != 3:
+        raise ExportError(f"colour has shape {tuple(color.shape)}; expected (C, h, w) (no batch) to export", where=f"layer {layer.id!r}")
+    h, w = color.shape[1:]
+    alpha = np.ones((1, h, w)) if t.alpha is None else t.alpha.detach().cpu().double().numpy().reshape(1, h, w)
+    if t.mask is not None:
+        alpha = alpha * t.mask.detach().cpu().double().numpy().reshape(1, h, w)
+    return color, alpha
+
+
+def _crop(color, alpha, x, y, W, H):
+    h, w = color.shape[1:]
+    x0, y0, x1, y1 = max(x, 0), max(y, 0), min(x + w, W), min(y + h, H)
+    if x0 >= x1 or y0 >= y1:
+        return None
+    sl = (slice(None), slice(y0 - y, y1 - y), slice(x0 - x, x1 - x))
+    return color[sl], alpha[sl], x0, y0
+
+
+def dodge_codes(y: np.ndarray) -> np.ndarray:
+    """Colour-dodge values d (multiples of 1/255) whose 255/(255 − 255d) is nearest y ≥ 1."""
+    y = np.maximum(y, 1.0)
+    q0 = np.clip(np.floor(255.0 * (1.0 - 1.0 / y)), 0, 253)
+    gain = lambda q: 255.0 / (255.0 - q)  # noqa: E731
+    q = np.where(np.abs(gain(q0 + 1) - y) < np.abs(gain(q0) - y), q0 + 1, q0)
+    return q / 255.0
+
+
+def background_layer(stack) -> ExportLayer:
+    """An opaque canvas-size layer of the background colour (files flatten to our opaque composite)."""
+    W, H = stack.width, stack.height
+    color = np.empty((3, H, W))
+    color[:] = np.asarray(stack.document.canvas.background, dtype=np.float64)[:, None, None]
+    return ExportLayer("Background", "_background", "normal", 0, 0, color, np.ones((1, H, W)), 1.0, True)
+
+
+def composite_layer(composite: np.ndarray) -> ExportLayer:
+    """The exact composite (3, H, W) in [0, 1] as an opaque top layer."""
+    color = np.clip(np.asarray(composite, dtype=np.float64), 0.0, 1.0)
+    H, W = color.shape[1:]
+    return ExportLayer(COMPOSITE_NAME, "_composite", "normal", 0, 0, color, np.ones((1, H, W)), 1.0, True)
+
+
+def export_layers(stack, composite, *, target: str, warn: Callable[[str], None] | None = None) -> list[ExportLayer]:
+    """The stack's layers as interchange layers, bottom to top: background first, and on top, when
+    the layers cannot reproduce it, the exact ``composite`` (3, H, W) (see the module docstring).
+
+    ``target`` names the format in warnings ("OpenRaster", "PSD").
+    """
+    layers, inexact = _layers(stack, target, warn)
+    if stack.document.clamp == "output" and _clamp_matters(stack, composite):
+        inexact.append("clamp='output' (intermediate values outside [0, 1]; paint programs clamp after every layer)")
+    if inexact:
+        _warn(warn, f"{target} cannot express {'; '.join(inexact)}: the layers are written as they are, and a top layer "
+              f"{COMPOSITE_NAME!r} holds the exact composite so the file flattens to it (hide it to edit the layers)")
+        layers.append(composite_layer(np.asarray(composite, dtype=np.float64)))
+    return layers
+
+
+def _clamp_matters(stack, composite) -> bool:
+    """Whether clamping after every layer changes the 8-bit composite of a clamp='output' stack."""
+    from lasagna.io.render import render_stack
+    from lasagna.io.stack import Stack
+
+    interop = Stack(stack.document.replace(clamp="layer"), stack.folder, stack.tensors, stack.bit_depths)
+    codes = lambda img: np.rint(np.clip(np.asarray(img, dtype=np.float64), 0, 1) * 255)  # noqa: E731
+    return bool((codes(render_stack(interop, dtype=torch.float64).image.numpy()) != codes(composite)).any())
+
+
+def _layers(stack, target: str, warn) -> tuple[list[ExportLayer], list[str]]:
+    doc = stack.document
+    W, H = stack.width, stack.height
+    inexact: list[str] = []
+    if doc.blend_space == "linear":
+        inexact.append("blend_space='linear' (paint programs blend sRGB-encoded values)")
+    out = [background_layer(stack)]
+    for layer in doc.layers:
+        raster = _layer_raster(stack, layer)
+        if raster is None:
+            if isinstance(layer, LearnedLayer):
+                _warn(warn, f"layer {layer.id!r} is not rendered (run `lasagna render`); left out of the {target} file")
+            continue
+        color, alpha = raster
+        bad = int((~np.isfinite(color)).sum() + (~np.isfinite(alpha)).sum())
+        if bad:
+            raise ExportError(f"{bad} values are NaN or infinite; expected finite values to export", where=f"layer {layer.id!r}")
+        if color.shape[0] == 1:
+            color = np.repeat(color, 3, axis=0)  # a 1-channel multiplier is written as gray in RGB
+        cropped = _crop(color, alpha, layer.offset.x, layer.offset.y, W, H)
+        if cropped is None:
+            continue  # entirely outside the canvas: contributes nothing
+        color, alpha, x, y = cropped
+        if float(color.min(initial=0.0)) < 0.0:
+            inexact.append(f"the negative values of layer {layer.id!r} (min {color.min():.4g}; written as 0)")
+        color = np.maximum(color, 0.0)
+        common = dict(x=x, y=y, alpha=alpha, opacity=float(layer.opacity), visible=bool(layer.visible), source=layer.id)
+        a = alpha * float(layer.opacity)
+        fractional = not bool(np.isin(a, (0.0, 1.0)).all())
+        if layer.blend == "multiply":
+            if float(color.max(initial=0.0)) > 1.0 and fractional:
+                # Over an opaque backdrop a multiply with alpha is a multiply by the gain
+                # g = 1 + α(y − 1): bake α into the values, so the pair is exact for any α.
+                color = 1.0 + a * (color - 1.0)
+                common.update(alpha=np.ones_like(alpha), opacity=1.0)
+            out.append(ExportLayer(layer.name, layer.id, "multiply", color=np.minimum(color, 1.0), **common))
+            if float(color.max(initial=0.0)) > 1.0:
+                out.append(ExportLayer(f"{layer.name} (colour dodge: values above 1)", f"_dodge/{layer.id}", "color-dodge",
+                                       color=dodge_codes(color), **common))
+        elif layer.blend == "plus":
+            if fractional:
+                # Paint programs clamp inside the blend, Cb + α(min(1, Cb + Cs) − Cb), where the
+                # W3C plus is min(1, Cb + α·Cs); with α baked in (Cs' = α·Cs, opaque) both agree.
+                color = a * color
+                common.update(alpha=np.ones_like(alpha), opacity=1.0)
+            parts = max(1, int(np.ceil(float(color.max(initial=0.0)) - 1e-12)))
+            for k in range(parts):
+                name = layer.name if k == 0 else f"{layer.name} (part {k + 1})"
+                key = layer.id if k == 0 else f"_plus{k + 1}/{layer.id}"
+                out.append(ExportLayer(name, key, "plus", color=np.clip(color - k, 0.0, 1.0), **common))
+        else:
+            if float(color.max(initial=0.0)) > 1.0:
+                inexact.append(f"the values above 1 of {layer.blend} layer {layer.id!r} (max {color.max():.4g}; written as 1)")
+            out.append(ExportLayer(layer.name, layer.id, layer.blend, color=np.minimum(color, 1.0), **common))
+    return out, inexact

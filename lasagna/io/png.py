@@ -1,0 +1,384 @@
+"""PNG read/write: 8- and 16-bit gray, gray+alpha, RGB, RGBA and palette images as float32 in [0, 1].
+
+Reading is in two steps. First the file's chunk structure is checked *without decoding pixels*:
+signature, IHDR first, CRCs, IEND present, the pixel count under a limit (decompression bombs are
+refused from the 25-byte header), and the IDAT stream inflated in bounded pieces and counted — it
+must expand to exactly the bytes the header's size needs (a "huge header, tiny IDAT" bomb and a
+"tiny header, huge IDAT" bomb both fail here, in bounded memory). Only then are the pixels decoded:
+by Pillow for 8-bit and lower depths (fast, C), by pypng for 16-bit (Pillow drops the low byte of
+16-bit RGB(A) and gray+alpha PNGs).
+
+Values are channels first: ``color`` (C, h, w) with C = 1 (gray) or 3 (RGB), ``alpha`` (1, h, w) or
+None. A PNG stores unsigned integers q in [0, 2^d − 1]; the value is q / (2^d − 1). Writing rounds
+v · (2^d − 1) to nearest; values outside [0, 1] or NaN are an error unless the caller asks to clip.
+"""
+from __future__ import annotations
+
+import io
+import os
+import struct
+import zlib
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import png as pypng
+from PIL import Image
+
+from lasagna.errors import ImageError
+from lasagna.io.atomic import atomic_write_bytes
+
+# Pixels beyond which a PNG is refused before decoding. 2^28 (16384²) float32 RGBA pixels are 4 GiB:
+# anything larger is not a layer a CPU session can composite, and is what decompression bombs claim.
+DEFAULT_MAX_PIXELS = 2**28
+
+# zlib's deflate expands at most ~1032:1 (a 258-byte match coded in 2 bits, RFC 1951); an IDAT stream
+# shorter than needed/1032 cannot hold the image its header claims, so it is refused unread.
+DEFLATE_MAX_RATIO = 1032
+
+# A file whose size is far above what its pixels could need (twice the raw bytes plus room for ICC
+# profiles, EXIF and text chunks) is not read into memory.
+_ANCILLARY_SLACK = 64 * 2**20
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+# PNG colour types (PNG spec, 11.2.2) -> (name, samples per pixel, allowed bit depths).
+_COLOR_TYPES: dict[int, tuple[str, int, tuple[int, ...]]] = {
+    0: ("gray", 1, (1, 2, 4, 8, 16)),
+    2: ("rgb", 3, (8, 16)),
+    3: ("palette", 1, (1, 2, 4, 8)),
+    4: ("gray+alpha", 2, (8, 16)),
+    6: ("rgba", 4, (8, 16)),
+}
+
+# Adam7 passes: (x0, y0, dx, dy) (PNG spec, 8.2).
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+
+_EXPECTED_PNG = "expected a complete PNG (8/16-bit gray, gray+alpha, RGB, RGBA or palette)"
+
+BitDepth = Literal[8, 16]
+
+
+@dataclass(frozen=True)
+class PngHeader:
+    """The IHDR of a PNG: what the file claims before any pixel is decoded."""
+
+    width: int
+    height: int
+    bit_depth: int
+    color_type: int
+    interlaced: bool
+
+    @property
+    def kind(self) -> str:
+        """``gray``, ``gray+alpha``, ``rgb``, ``rgba`` or ``palette``."""
+        return _COLOR_TYPES[self.color_type][0]
+
+    @property
+    def pixels(self) -> int:
+        return self.width * self.height
+
+    def raw_bytes(self) -> int:
+        """Bytes the inflated IDAT stream must hold: filtered rows, one filter byte each."""
+        bits = _COLOR_TYPES[self.color_type][1] * self.bit_depth
+        if not self.interlaced:
+            return self.height * (1 + (self.width * bits + 7) // 8)
+        total = 0
+        for x0, y0, dx, dy in _ADAM7:
+            w = (self.width - x0 + dx - 1) // dx if self.width > x0 else 0
+            h = (self.height - y0 + dy - 1) // dy if self.height > y0 else 0
+            if w and h:
+                total += h * (1 + (w * bits + 7) // 8)
+        return total
+
+
+@dataclass
+class PngImage:
+    """A decoded PNG: ``color`` (C, h, w) float32 in [0, 1], C ∈ {1, 3}; ``alpha`` (1, h, w) or None."""
+
+    color: np.ndarray
+    alpha: np.ndarray | None
+    header: PngHeader
+    where: str
+
+    @property
+    def width(self) -> int:
+        return self.header.width
+
+    @property
+    def height(self) -> int:
+        return self.header.height
+
+
+def _fail(where: str, what: str, expected: str = _EXPECTED_PNG) -> ImageError:
+    return ImageError(f"{what}; {expected}", where=where)
+
+
+def parse_header(data: bytes, where: str) -> PngHeader:
+    """Parse and check the signature and IHDR (the first 33 bytes of a PNG)."""
+    if len(data) < 8 or data[:8] != PNG_SIGNATURE:
+        what = "empty file" if not data else "not a PNG file (bad signature)"
+        raise _fail(where, what)
+    if len(data) < 33:
+        raise _fail(where, "truncated PNG header")
+    length, ctype = struct.unpack(">I4s", data[8:16])
+    if ctype != b"IHDR" or length != 13:
+        raise _fail(where, f"first chunk is {ctype!r} of {length} bytes, not a 13-byte IHDR")
+    body = data[16:29]
+    (crc,) = struct.unpack(">I", data[29:33])
+    if zlib.crc32(b"IHDR" + body) != crc:
+        raise _fail(where, "corrupt PNG header (IHDR CRC mismatch)")
+    width, height, depth, color_type, compression, filter_method, interlace = struct.unpack(">IIBBBBB", body)
+    if not (1 <= width < 2**31 and 1 <= height < 2**31):
+        raise _fail(where, f"invalid size {width}x{height} in IHDR")
+    if color_type not in _COLOR_TYPES or depth not in _COLOR_TYPES[color_type][2]:
+        raise _fail(where, f"invalid colour type {color_type} with bit depth {depth}")
+    if compression != 0 or filter_method != 0 or interlace not in (0, 1):
+        raise _fail(where, "unknown compression, filter or interlace method in IHDR")
+    return PngHeader(width, height, depth, color_type, bool(interlace))
+
+
+def read_png_header(path: str | os.PathLike) -> PngHeader:
+    """Read only the header of the PNG at ``path`` (33 bytes)."""
+    where = str(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(33)
+    except OSError as exc:
+        raise _open_error(where, exc) from None
+    return parse_header(head, where)
+
+
+def check_size(header: PngHeader, where: str, max_pixels: int = DEFAULT_MAX_PIXELS, max_side: int | None = None) -> None:
+    """Refuse an image larger than ``max_pixels`` (or wider/taller than ``max_side``) before decoding."""
+    if header.pixels > max_pixels:
+        raise ImageError(
+            f"image is {header.width}x{header.height} = {header.pixels} pixels, over the limit of {max_pixels} "
+            f"(decompression-bomb guard); expected at most {max_pixels} pixels (raise max_pixels, or --max-pixels, if this is intended)",
+            where=where,
+        )
+    if max_side is not None and max(header.width, header.height) > max_side:
+        raise ImageError(
+            f"image is {header.width}x{header.height}; expected width and height at most {max_side}", where=where
+        )
+
+
+def _check_chunks(data: bytes, header: PngHeader, where: str) -> None:
+    """Walk every chunk: CRCs, IEND present, and the IDAT stream inflating to exactly raw_bytes().
+
+    Inflation runs in bounded pieces that are counted and discarded, so a bomb costs no memory.
+    """
+    need = header.raw_bytes()
+    pos = 33
+    idat_total = 0
+    inflater = zlib.decompressobj()
+    produced = 0
+    seen_plte = False
+    ended = False
+    # First count IDAT bytes: a stream that cannot expand to `need` is refused before inflating.
+    while pos + 12 <= len(data):
+        length, ctype = struct.unpack(">I4s", data[pos : pos + 8])
+        end = pos + 12 + length
+        if length > 2**31 - 1 or end > len(data):
+            raise _fail(where, f"truncated file: chunk {ctype!r} at byte {pos} claims {length} bytes past the end")
+        body = data[pos + 8 : pos + 8 + length]
+        (crc,) = struct.unpack(">I", data[pos + 8 + length : end])
+        if zlib.crc32(ctype + body) != crc:
+            raise _fail(where, f"corrupt file: CRC mismatch in chunk {ctype.decode('latin-1')!r} at byte {pos}")
+        if ctype == b"IDAT":
+            idat_total += length
+        elif ctype == b"PLTE":
+            seen_plte = True
+        elif ctype == b"IEND":
+            ended = True
+            break
+        pos = end
+    if not ended:
+        raise _fail(where, "truncated file: no IEND chunk")
+    if header.color_type == 3 and not seen_plte:
+        raise _fail(where, "palette image without a PLTE chunk")
+    if idat_total * DEFLATE_MAX_RATIO + 64 < need:
+        raise _fail(
+            where,
+            f"IDAT holds {idat_total} compressed bytes, which cannot expand to the {need} bytes a "
+            f"{header.width}x{header.height} image needs (corrupt or decompression bomb)",
+        )
+    pos = 33
+    piece = 1 << 20
+    while True:
+        length, ctype = struct.unpack(">I4s", data[pos : pos + 8])
+        if ctype == b"IEND":
+            break
+        if ctype == b"IDAT":
+            chunk = data[pos + 8 : pos + 8 + length]
+            try:
+                out = inflater.decompress(chunk, piece)
+                produced += len(out)
+                while inflater.unconsumed_tail and produced <= need:
+                    out = inflater.decompress(inflater.unconsumed_tail, piece)
+                    produced += len(out)
+            except zlib.error as exc:
+                raise _fail(where, f"corrupt image data (zlib: {exc})") from None
+            if produced > need:
+                raise _fail(
+                    where,
+                    f"image data expands beyond the {need} bytes a {header.width}x{header.height} image needs "
+                    "(corrupt or decompression bomb)",
+                )
+        pos += 12 + length
+    if produced < need or not inflater.eof:
+        raise _fail(where, f"truncated image data: {produced} of {need} bytes")
+
+
+def _open_error(where: str, exc: OSError) -> ImageError:
+    reason = exc.strerror or type(exc).__name__
+    return ImageError(f"cannot read file ({reason}); {_EXPECTED_PNG}", where=where)
+
+
+def decode_png(
+    data: bytes, where: str, *, max_pixels: int = DEFAULT_MAX_PIXELS, max_side: int | None = None
+) -> PngImage:
+    """Check and decode PNG bytes (see the module docstring). ``where`` names the source in errors."""
+    header = parse_header(data[:33], where)
+    check_size(header, where, max_pixels, max_side)
+    _check_chunks(data, header, where)
+    try:
+        if header.bit_depth == 16 or header.pixels > _pillow_pixel_limit():
+            return _decode_pypng(data, header, where)
+        return _decode_pillow(data, header, where)
+    except ImageError:
+        raise
+    except (OSError, ValueError, SyntaxError, pypng.Error, zlib.error) as exc:
+        raise _fail(where, f"cannot decode PNG ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+
+
+def read_png(path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS, max_side: int | None = None) -> PngImage:
+    """Read the PNG at ``path`` as float32 channels-first values; refuse bombs before decoding."""
+    where = str(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(33)
+            header = parse_header(head, where)
+            check_size(header, where, max_pixels, max_side)
+            size = os.fstat(fh.fileno()).st_size
+            if size > 2 * header.raw_bytes() + _ANCILLARY_SLACK:
+                raise _fail(where, f"file is {size} bytes, far more than a {header.width}x{header.height} PNG holds")
+            data = head + fh.read()
+    except IsADirectoryError:
+        raise ImageError(f"is a folder; {_EXPECTED_PNG}", where=where) from None
+    except OSError as exc:
+        raise _open_error(where, exc) from None
+    return decode_png(data, where, max_pixels=max_pixels, max_side=max_side)
+
+
+def _pillow_pixel_limit() -> float:
+    # Pillow warns above MAX_IMAGE_PIXELS and refuses above twice that; larger images (already
+    # admitted by our own limit) go through pypng, which has no such global switch.
+    limit = Image.MAX_IMAGE_PIXELS
+    return float("inf") if limit is None else limit
+
+
+def _split(values: np.ndarray, planes: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """(h, w, planes) float32 -> color (C, h, w), alpha (1, h, w) | None."""
+    chw = np.ascontiguousarray(values.transpose(2, 0, 1))
+    if planes in (2, 4):
+        return chw[:-1], chw[-1:]
+    return chw, None
+
+
+def _decode_pillow(data: bytes, header: PngHeader, where: str) -> PngImage:
+    with Image.open(io.BytesIO(data), formats=["PNG"]) as im:
+        has_trns = "transparency" in im.info
+        ct = header.color_type
+        if ct == 0:
+            mode = "LA" if has_trns else "L"
+        elif ct == 4:
+            mode = "LA"
+        elif ct == 6 or has_trns:
+            mode = "RGBA"
+        else:
+            mode = "RGB"
+        im.load()
+        converted = im.convert(mode) if im.mode != mode else im
+        values = np.asarray(converted, dtype=np.float32).reshape(header.height, header.width, len(mode)) / 255.0
+    color, alpha = _split(values, len(mode))
+    return PngImage(color, alpha, header, where)
+
+
+def _decode_pypng(data: bytes, header: PngHeader, where: str) -> PngImage:
+    # asDirect expands palettes and tRNS into RGB(A)/alpha and honours sBIT (the reported bitdepth
+    # is then the significant bits), so the maximum code is 2**bitdepth - 1.
+    width, height, rows, info = pypng.Reader(bytes=data).asDirect()
+    planes = info["planes"]
+    maxval = float(2 ** info["bitdepth"] - 1)
+    dtype = np.uint16 if info["bitdepth"] > 8 else np.uint8
+    out = np.empty((height, width * planes), dtype=np.float32)
+    for i, row in enumerate(rows):
+        out[i] = np.asarray(row, dtype=dtype)
+    values = (out / maxval).reshape(height, width, planes)
+    return PngImage(*_split(values, planes), header=header, where=where)
+
+
+# --- writing ---------------------------------------------------------------------------------------
+
+
+def _as_numpy(x) -> np.ndarray:
+    if hasattr(x, "detach"):  # a torch tensor, without importing torch here
+        x = x.detach().cpu().double().numpy()
+    return np.asarray(x, dtype=np.float64)
+
+
+def quantize(values, bit_depth: BitDepth, where: str, *, clip: bool = False) -> np.ndarray:
+    """Round values in [0, 1] to unsigned integer codes; out-of-range or NaN values are an error."""
+    v = _as_numpy(values)
+    if not np.isfinite(v).all():
+        raise ImageError(f"{int((~np.isfinite(v)).sum())} values are NaN or infinite; expected finite values in [0, 1]", where=where)
+    if clip:
+        v = np.clip(v, 0.0, 1.0)
+    elif v.size and (v.min() < 0.0 or v.max() > 1.0):
+        raise ImageError(
+            f"values span [{v.min():.6g}, {v.max():.6g}]; expected values in [0, 1] (pass clip=True to clamp)",
+            where=where,
+        )
+    maxval = 2**bit_depth - 1
+    return np.rint(v * maxval).astype(np.uint16 if bit_depth == 16 else np.uint8)
+
+
+def encode_png(color, alpha=None, *, bit_depth: BitDepth = 8, clip: bool = False, where: str = "png") -> bytes:
+    """Encode ``color`` (C, h, w), C ∈ {1, 3}, and optional ``alpha`` (1, h, w) as PNG bytes."""
+    if bit_depth not in (8, 16):
+        raise ImageError(f"bit depth {bit_depth!r}; expected 8 or 16", where=where)
+    c = _as_numpy(color)
+    if c.ndim == 2:
+        c = c[None]
+    if c.ndim != 3 or c.shape[0] not in (1, 3) or c.shape[1] < 1 or c.shape[2] < 1:
+        raise ImageError(f"colour has shape {tuple(c.shape)}; expected (1 or 3, h, w)", where=where)
+    planes = [c]
+    if alpha is not None:
+        a = _as_numpy(alpha)
+        if a.ndim == 2:
+            a = a[None]
+        if a.shape != (1,) + c.shape[1:]:
+            raise ImageError(f"alpha has shape {tuple(a.shape)}; expected {(1,) + c.shape[1:]}", where=where)
+        planes.append(a)
+    q = quantize(np.concatenate(planes, axis=0), bit_depth, where, clip=clip)  # (P, h, w)
+    n, h, w = q.shape
+    hwc = np.ascontiguousarray(q.transpose(1, 2, 0))
+    buf = io.BytesIO()
+    if bit_depth == 8:
+        # fromarray infers L / LA / RGB / RGBA from the uint8 array's shape.
+        Image.fromarray(hwc[:, :, 0] if n == 1 else hwc).save(buf, format="PNG")
+    else:
+        # Pillow cannot write 16-bit RGB(A) or gray+alpha; pypng writes every 16-bit kind.
+        writer = pypng.Writer(w, h, greyscale=n in (1, 2), alpha=n in (2, 4), bitdepth=16, compression=6)
+        writer.write_array(buf, hwc.reshape(-1))
+    return buf.getvalue()
+
+
+def write_png(path: str | os.PathLike, color, alpha=None, *, bit_depth: BitDepth = 8, clip: bool = False) -> None:
+    """Write a PNG atomically (temporary file beside ``path``, then rename). See :func:`encode_png`."""
+    data = encode_png(color, alpha, bit_depth=bit_depth, clip=clip, where=str(path))
+    try:
+        atomic_write_bytes(path, data)
+    except OSError as exc:
+        raise ImageError(f"cannot write file ({exc.strerror or type(exc).__name__}); expected a writable location", where=str(path)) from None

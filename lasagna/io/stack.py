@@ -1,0 +1,578 @@
+"""Stack folders: a validated document, the folder it lives in, and its layers' tensors.
+
+``load_stack`` reads ``stack.json`` (through the document tier), resolves every ``source`` and
+``mask`` inside the stack folder (symlinks included), refuses oversized PNGs from their headers
+before decoding any, and maps stored values to each layer's range, y = lo + (hi − lo)·v (alpha and
+masks are never mapped). ``save_stack`` is the inverse: v = (y − lo)/(hi − lo), 16-bit for ranged
+and learned layers; a value outside the range is an error unless the caller asks to clip.
+
+Layer images given to the API (``Stack.add_layer``) follow one rule: *tensors and float arrays
+are values y* (a shading tensor in [0, 2] is given as is), channels first (C, h, w) or (h, w);
+*PIL images and integer arrays are stored codes v*, exactly as a PNG in the folder would be.
+C = 1 gray, 2 gray+alpha, 3 RGB, 4 RGBA.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+import torch
+
+from lasagna.document import (
+    Document, LearnedLayer, PixelsLayer, SolidLayer, load_document, save_document, stack_file,
+)
+from lasagna.errors import DocumentError, ImageError, LasagnaError, PathError
+from lasagna.io.png import (
+    DEFAULT_MAX_PIXELS, PngImage, check_size, encode_png, read_png, read_png_header,
+)
+from lasagna.io.atomic import atomic_write_bytes
+from lasagna.numerics import RANGE_SAVE_TOLERANCE
+
+# The document's largest canvas side; a layer PNG may not be larger either.
+MAX_SIDE = 32768
+
+# Decoded pixels summed over all layers and masks of one stack, checked from the PNG headers
+# before any is decoded: 4 layers at the per-image limit (16 GiB of float32 RGBA) is the ceiling.
+DEFAULT_MAX_TOTAL_PIXELS = 4 * DEFAULT_MAX_PIXELS
+
+NOT_RENDERED = "not rendered (run `lasagna render`)"
+
+
+def _layer_tensors_cls():
+    # The compose tier defines LayerTensors; imported lazily so that reading a document stays cheap.
+    from lasagna.compose.layer import LayerTensors
+
+    return LayerTensors
+
+
+def _rewhere(err: LasagnaError, where: str) -> LasagnaError:
+    """The same error with ``where`` replaced (its message without the old prefix)."""
+    text = str(err)
+    if err.where and text.startswith(f"{err.where}: "):
+        text = text[len(err.where) + 2 :]
+    return type(err)(text, where=where)
+
+
+# ---- safe paths -------------------------------------------------------------------------------------
+
+
+def resolve_inside(folder: Path, relative: str, where: str) -> Path:
+    """``folder/relative`` resolved (symlinks followed); ``PathError`` if it leaves ``folder``."""
+    root = folder.resolve()
+    target = (folder / relative).resolve()
+    if target != root and root not in target.parents:
+        raise PathError(
+            f"{relative!r} resolves to {target}, outside the stack folder {root}; "
+            "expected a path inside the stack folder (symlinks included)",
+            where=where,
+        )
+    return target
+
+
+# ---- the stack ------------------------------------------------------------------------------------
+
+
+@dataclass
+class Stack:
+    """A document, the folder it was loaded from (or None), and the tensors of its raster layers.
+
+    ``tensors[id]`` is a ``LayerTensors(color, alpha, mask)`` of values y (range-mapped) for every
+    pixels layer and every learned layer that has a ``source``; solid layers need none (the
+    compositor draws them from the document). ``bit_depths[id]`` is the depth a layer was read at,
+    so saving never loses precision it had.
+    """
+
+    document: Document
+    folder: Path | None = None
+    tensors: dict[str, Any] = field(default_factory=dict)
+    bit_depths: dict[str, int] = field(default_factory=dict)
+
+    # ---- reading ----------------------------------------------------------------------------------
+
+    @property
+    def ids(self) -> tuple[str, ...]:
+        return self.document.ids
+
+    @property
+    def width(self) -> int:
+        return self.document.canvas.width
+
+    @property
+    def height(self) -> int:
+        return self.document.canvas.height
+
+    @property
+    def not_rendered(self) -> dict[str, str]:
+        """Learned layers without pixels yet: id → reason (composite skips them)."""
+        return {l.id: NOT_RENDERED for l in self.document.layers if l.id not in self.tensors and isinstance(l, LearnedLayer)}
+
+    def layer(self, id: str):
+        return self.document.layer(id)
+
+    def __repr__(self) -> str:
+        layers = ", ".join(f"{l.id}:{l.kind}/{l.blend}" for l in self.document.layers)
+        return f"Stack({self.width}x{self.height}, {self.document.blend_space}, [{layers}], folder={self.folder})"
+
+    # ---- building ---------------------------------------------------------------------------------
+
+    @classmethod
+    def from_image(
+        cls,
+        image,
+        *,
+        id: str = "base",
+        alpha=None,
+        mask=None,
+        bit_depth: int | None = None,
+        background: Sequence[float] = (0.0, 0.0, 0.0),
+        blend_space: str = "srgb",
+        clamp: str = "layer",
+        metadata: Mapping[str, Any] | None = None,
+        **fields: Any,
+    ) -> "Stack":
+        """A stack whose canvas is ``image``'s size, with ``image`` as its bottom pixels layer ``id``.
+
+        ``fields`` are the layer's document fields, as for :meth:`add_layer`.
+        """
+        range_ = tuple(fields.get("range", (0.0, 1.0)))
+        color, a = image_to_tensors(image, range_, where=f"layer {id!r}", alpha=alpha)
+        h, w = color.shape[-2:]
+        doc = Document.from_dict({
+            "format": "lasagna.stack", "version": 1,
+            "canvas": {"width": int(w), "height": int(h), "background": [float(c) for c in background]},
+            "blend_space": blend_space, "clamp": clamp,
+            "layers": [_layer_dict(id, "pixels", fields, has_mask=mask is not None)],
+            "metadata": dict(metadata or {}),
+        }, where="Stack.from_image")
+        tensors = _make_tensors(id, color, a, mask, bit_depth)
+        stack = cls(doc)
+        stack._store(id, tensors, bit_depth)
+        return stack
+
+    def add_layer(
+        self,
+        id: str,
+        image,
+        *,
+        alpha=None,
+        mask=None,
+        index: int | None = None,
+        bit_depth: int | None = None,
+        **fields: Any,
+    ) -> "Stack":
+        """Add (on top, or at ``index``) or replace the pixels layer ``id``; returns ``self``.
+
+        ``fields`` are document fields: ``blend``, ``opacity``, ``visible``, ``offset`` ({x, y} or
+        (x, y)), ``range``, ``name``. ``image``: see the module docstring. ``bit_depth`` forces 8 or
+        16 on save (default: 16 for a range other than [0, 1], else the depth it was read at, else 8).
+        """
+        fields = dict(fields)
+        range_ = tuple(fields.get("range", (0.0, 1.0)))
+        color, a = image_to_tensors(image, range_, where=f"layer {id!r}", alpha=alpha)
+        tensors = _make_tensors(id, color, a, mask, bit_depth)
+        existing = self.document.layer(id) if id in self.ids else None
+        if existing is not None and not isinstance(existing, PixelsLayer):
+            raise DocumentError(f"layer {id!r} is a {existing.kind} layer; expected set_pixels for it, or a new id",
+                                where="add_layer")
+        source = existing.source if existing is not None else None
+        layer = _layer_dict(id, "pixels", fields, has_mask=mask is not None, source=source)
+        self.document = (
+            self.document.with_layer(layer) if existing is not None else self.document.with_layer(layer, index)
+        )
+        self._store(id, tensors, bit_depth)
+        return self
+
+    def add_solid(self, id: str, color: Sequence[float], *, index: int | None = None, **fields: Any) -> "Stack":
+        """Add a solid layer (RGB or RGBA ``color`` in [0, 1]; optional ``size`` {width, height})."""
+        layer = _layer_dict(id, "solid", fields, has_mask=False)
+        layer["color"] = [float(c) for c in color]
+        if "size" in fields and fields["size"] is not None:
+            size = fields["size"]
+            layer["size"] = size if isinstance(size, Mapping) else {"width": int(size[0]), "height": int(size[1])}
+        self.document = self.document.with_layer(layer, index if id not in self.ids else None)
+        self.tensors.pop(id, None)
+        return self
+
+    def set_pixels(self, id: str, image, *, alpha=None, mask=None, bit_depth: int | None = None) -> "Stack":
+        """Give the existing pixels or learned layer ``id`` new pixels (a learned layer gets a ``source``)."""
+        layer = self.document.layer(id)
+        if isinstance(layer, SolidLayer):
+            raise DocumentError(f"layer {id!r} is a solid layer; expected a pixels or learned layer", "set_pixels")
+        color, a = image_to_tensors(image, tuple(layer.range), where=f"layer {id!r}", alpha=alpha)
+        old_mask = self.tensors[id].mask if id in self.tensors and mask is None else mask
+        tensors = _make_tensors(id, color, a, old_mask, bit_depth)
+        changes: dict[str, Any] = {}
+        if layer.source is None:
+            changes["source"] = f"layers/{id}.png"
+        if mask is not None and layer.mask is None:
+            changes["mask"] = f"masks/{id}.png"
+        if changes:
+            self.document = self.document.replace_layer(id, **changes)
+        self._store(id, tensors, bit_depth)
+        return self
+
+    def remove_layer(self, id: str) -> "Stack":
+        self.document = self.document.without_layer(id)
+        self.tensors.pop(id, None)
+        self.bit_depths.pop(id, None)
+        return self
+
+    def _store(self, id: str, tensors, bit_depth: int | None) -> None:
+        self.tensors[id] = tensors
+        if bit_depth is not None:
+            self.bit_depths[id] = bit_depth
+
+    # ---- verbs ------------------------------------------------------------------------------------
+
+    def render(self, dtype: torch.dtype = torch.float32, **kwargs: Any):
+        """Composite the stack; see :func:`lasagna.io.render.render_stack`."""
+        from lasagna.io.render import render_stack
+
+        return render_stack(self, dtype=dtype, **kwargs)
+
+    def save(self, folder: str | os.PathLike | None = None, *, clip: bool = False) -> Path:
+        """Write stack.json and every layer PNG into ``folder`` (default: where it was loaded from)."""
+        return save_stack(self, folder, clip=clip)
+
+
+def _make_tensors(id: str, color: torch.Tensor, alpha, mask, bit_depth: int | None):
+    """Checked ``LayerTensors`` (mask the layer's size, bit depth 8/16) before the document changes."""
+    m = None
+    if mask is not None:
+        m = mask_to_tensor(mask, where=f"layer {id!r} mask")
+        if m.shape[-2:] != color.shape[-2:]:
+            raise ImageError(
+                f"mask is {m.shape[-1]}x{m.shape[-2]}; expected the layer's size {color.shape[-1]}x{color.shape[-2]}",
+                where=f"layer {id!r}",
+            )
+    if bit_depth not in (None, 8, 16):
+        raise ImageError(f"bit_depth {bit_depth!r}; expected 8 or 16", where=f"layer {id!r}")
+    # A gray (1-channel) colour stays one channel: the compositor broadcasts it over RGB.
+    return _layer_tensors_cls()(color, alpha, m)
+
+
+def _layer_dict(id: str, kind: str, fields: Mapping[str, Any], *, has_mask: bool, source: str | None = None) -> dict[str, Any]:
+    allowed = {"name", "blend", "opacity", "visible", "offset", "range"} | ({"size"} if kind == "solid" else set())
+    unknown = set(fields) - allowed
+    if unknown:
+        raise DocumentError(
+            f"unknown layer field(s) {', '.join(sorted(unknown))}; expected some of {', '.join(sorted(allowed))}",
+            where=f"layer {id!r}",
+        )
+    out: dict[str, Any] = {"id": id, "kind": kind}
+    for key in ("name", "blend", "opacity", "visible"):
+        if key in fields and fields[key] is not None:
+            out[key] = fields[key]
+    if fields.get("offset") is not None:
+        off = fields["offset"]
+        out["offset"] = dict(off) if isinstance(off, Mapping) else {"x": int(off[0]), "y": int(off[1])}
+    if fields.get("range") is not None:
+        out["range"] = [float(v) for v in fields["range"]]
+    if kind != "solid":
+        out["source"] = source or f"layers/{id}.png"
+    if has_mask:
+        out["mask"] = f"masks/{id}.png"
+    return out
+
+
+# ---- images given by the caller -----------------------------------------------------------------
+
+
+def _pil_to_codes(image) -> np.ndarray:
+    """A PIL image as (C, h, w) float64 stored codes v in [0, 1]."""
+    mode = image.mode
+    if mode in ("I;16", "I;16B", "I;16L"):
+        arr = np.asarray(image, dtype=np.float64)[None] / 65535.0
+        return arr
+    if mode == "P":
+        image = image.convert("RGBA" if "transparency" in image.info else "RGB")
+    elif mode == "1":
+        image = image.convert("L")
+    elif mode not in ("L", "LA", "RGB", "RGBA"):
+        raise ImageError(f"PIL mode {mode!r}; expected L, LA, RGB, RGBA, P, 1 or I;16", where="image")
+    arr = np.asarray(image, dtype=np.float64) / 255.0
+    return arr[None] if arr.ndim == 2 else arr.transpose(2, 0, 1)
+
+
+def _channels_first(image, where: str) -> tuple[torch.Tensor, bool]:
+    """(C, h, w) tensor of a caller's image, and whether it holds stored codes v (not values y)."""
+    if hasattr(image, "mode") and hasattr(image, "getbands"):  # a PIL image: stored codes
+        return torch.from_numpy(_pil_to_codes(image)), True
+    if not isinstance(image, (torch.Tensor, np.ndarray)):
+        raise ImageError(f"got {type(image).__name__}; expected a torch tensor, numpy array or PIL image", where=where)
+    t = image if isinstance(image, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(image))
+    codes = not t.is_floating_point()
+    if codes:
+        if t.dtype not in (torch.uint8, torch.uint16):
+            raise ImageError(f"dtype {t.dtype}; expected float values, or uint8/uint16 codes", where=where)
+        t = t.double() / (255.0 if t.dtype == torch.uint8 else 65535.0)
+    if t.ndim == 4 and t.shape[0] == 1:
+        t = t[0]
+    if t.ndim == 2:
+        t = t[None]
+    if t.ndim != 3 or t.shape[0] not in (1, 2, 3, 4) or t.shape[1] < 1 or t.shape[2] < 1:
+        raise ImageError(f"shape {tuple(t.shape)}; expected (C, h, w) or (h, w) with C in 1..4, channels first", where=where)
+    return t, codes
+
+
+def image_to_tensors(image, range_: tuple[float, float], *, where: str, alpha=None) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Colour (C, h, w), C ∈ {1, 3}, of values y and alpha (1, h, w) or None, from a caller's image.
+
+    C = 2 or 4 means gray+alpha or RGBA; alpha is never range-mapped. Codes (PIL images, integer
+    arrays) are mapped y = lo + (hi − lo)·v and returned as float32; float tensors are kept as
+    given (dtype, device and autograd graph included), so gradients reach whatever produced them.
+    """
+    t, codes = _channels_first(image, where)
+    _check_finite(t, where)
+    color, a = (t[:-1], t[-1:]) if t.shape[0] in (2, 4) else (t, None)
+    if codes:
+        lo, hi = float(range_[0]), float(range_[1])
+        color = (lo + (hi - lo) * color).float()
+        a = a.float() if a is not None else None
+    if alpha is not None:
+        if a is not None:
+            raise ImageError("image already has an alpha channel and alpha= was given; expected one of them", where=where)
+        a = mask_to_tensor(alpha, where=f"{where} alpha")
+        if a.shape[-2:] != color.shape[-2:]:
+            raise ImageError(f"alpha is {a.shape[-1]}x{a.shape[-2]}; expected {color.shape[-1]}x{color.shape[-2]}", where=where)
+    return color, a
+
+
+def mask_to_tensor(mask, *, where: str) -> torch.Tensor:
+    """A mask or alpha given by the caller as (1, h, w) values in [0, 1] (PIL images, integer arrays: codes)."""
+    t, codes = _channels_first(mask, where)
+    if t.shape[0] != 1:
+        raise ImageError(f"has {t.shape[0]} channels; expected one (a gray image, (1, h, w) or (h, w))", where=where)
+    _check_finite(t, where)
+    return t.float() if codes else t  # float tensors are kept as given (they may carry gradients)
+
+
+def _check_finite(t: torch.Tensor, where: str) -> None:
+    bad = ~torch.isfinite(t.detach())
+    if bool(bad.any()):
+        raise ImageError(f"{int(bad.sum())} values are NaN or infinite; expected finite values", where=where)
+
+
+def stack_from_tensors(
+    layers: Sequence[Mapping[str, Any] | tuple[str, Any]],
+    *,
+    width: int | None = None,
+    height: int | None = None,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    blend_space: str = "srgb",
+    clamp: str = "layer",
+    metadata: Mapping[str, Any] | None = None,
+) -> Stack:
+    """Build a stack from images, bottom first: ``(id, image)`` pairs or dicts with ``id``, ``image``
+    (or ``color`` for a solid layer) and layer fields. The canvas defaults to the first image's size.
+    """
+    if not layers:
+        raise DocumentError("no layers given; expected at least one", where="stack_from_tensors")
+    specs = [dict(id=l[0], image=l[1]) if isinstance(l, tuple) else dict(l) for l in layers]
+    first = specs[0]
+    if "image" not in first:
+        raise DocumentError("the bottom layer needs an image (it sets the canvas)", where="stack_from_tensors")
+    fid, fimage = first.pop("id"), first.pop("image")
+    stack = Stack.from_image(
+        fimage, id=fid, background=background, blend_space=blend_space, clamp=clamp, metadata=metadata, **first
+    )
+    if width is not None or height is not None:
+        canvas = {"width": width or stack.width, "height": height or stack.height, "background": list(background)}
+        stack.document = stack.document.replace(canvas=canvas)
+    for spec in specs[1:]:
+        lid = spec.pop("id")
+        if "color" in spec:
+            stack.add_solid(lid, spec.pop("color"), **spec)
+        else:
+            stack.add_layer(lid, spec.pop("image"), **spec)
+    return stack
+
+
+def solid_tensors(layer: SolidLayer, width: int, height: int, dtype: torch.dtype = torch.float32):
+    """``LayerTensors`` of a solid layer: its RGB mapped by ``range`` (as a PNG's values are), its
+    alpha component as alpha; zero-stride views, so a canvas-size rectangle costs no memory."""
+    lo, hi = layer.range
+    rgba = [float(c) for c in layer.color]
+    w, h = (layer.size.width, layer.size.height) if layer.size is not None else (width, height)
+    color = (lo + (hi - lo) * torch.tensor(rgba[:3], dtype=torch.float64)).to(dtype).view(3, 1, 1).expand(3, h, w)
+    alpha = None
+    if len(rgba) == 4 and rgba[3] != 1.0:
+        alpha = torch.tensor([rgba[3]], dtype=dtype).view(1, 1, 1).expand(1, h, w)
+    return _layer_tensors_cls()(color, alpha)
+
+
+# ---- loading -------------------------------------------------------------------------------------
+
+
+def _rasters(doc: Document) -> Iterable[tuple[int, Any, str, str]]:
+    """(index, layer, field, relative path) for every PNG the document names."""
+    for i, layer in enumerate(doc.layers):
+        if isinstance(layer, (PixelsLayer, LearnedLayer)) and layer.source is not None:
+            yield i, layer, "source", layer.source
+            if layer.mask is not None:
+                yield i, layer, "mask", layer.mask
+
+
+def load_stack(
+    path: str | os.PathLike,
+    *,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    max_total_pixels: int = DEFAULT_MAX_TOTAL_PIXELS,
+) -> Stack:
+    """Load a stack folder (or its stack.json): the validated document and every layer's tensors.
+
+    All paths are resolved and all PNG headers checked (size limits, per image and in total) before
+    any pixel is decoded. Errors are one-line ``LasagnaError``s naming the file and the layer.
+    """
+    file = stack_file(path)
+    doc = load_document(path)
+    folder = file.parent
+    LayerTensors = _layer_tensors_cls()
+
+    # 1. Resolve every path and read every header (cheap) before decoding anything.
+    planned = []
+    headers = {}
+    total = 0
+    for i, layer, fieldname, rel in _rasters(doc):
+        where = f"{file}: layers[{i}].{fieldname}"
+        target = resolve_inside(folder, rel, where)
+        if not target.is_file():
+            what = "is not a file" if target.exists() else "does not exist"
+            raise ImageError(f"{rel!r} {what} (looked for {target}); expected a PNG file", where=where)
+        try:
+            header = read_png_header(target)
+            check_size(header, str(target), max_pixels, MAX_SIDE)
+        except ImageError as err:
+            raise _rewhere(err, f"{where} ({rel})") from None
+        total += header.pixels
+        if total > max_total_pixels:
+            raise ImageError(
+                f"the stack's PNGs hold more than {max_total_pixels} pixels in total; expected at most that many",
+                where=where,
+            )
+        planned.append((i, layer, fieldname, rel, target))
+        headers[(i, fieldname)] = header
+        if fieldname == "mask":
+            src = headers[(i, "source")]
+            if (header.width, header.height) != (src.width, src.height):
+                raise ImageError(
+                    f"mask is {header.width}x{header.height}; expected the size of its layer's source, "
+                    f"{src.width}x{src.height}",
+                    where=f"{where} ({rel})",
+                )
+
+    # 2. Decode.
+    images: dict[tuple[int, str], PngImage] = {}
+    for i, layer, fieldname, rel, target in planned:
+        try:
+            images[(i, fieldname)] = read_png(target, max_pixels=max_pixels, max_side=MAX_SIDE)
+        except ImageError as err:
+            raise _rewhere(err, f"{file}: layers[{i}].{fieldname} ({rel})") from None
+
+    stack = Stack(doc, folder)
+    for i, layer, fieldname, rel, target in planned:
+        if fieldname != "source":
+            continue
+        img = images[(i, "source")]
+        lo, hi = layer.range
+        color = torch.from_numpy(img.color)
+        if (lo, hi) != (0.0, 1.0):
+            color = lo + (hi - lo) * color
+        alpha = torch.from_numpy(img.alpha) if img.alpha is not None else None
+        mask = None
+        if layer.mask is not None:
+            m = images[(i, "mask")]
+            mwhere = f"{file}: layers[{i}].mask ({layer.mask})"
+            if m.color.shape[0] == 3 and not (np.array_equal(m.color[0], m.color[1]) and np.array_equal(m.color[0], m.color[2])):
+                raise ImageError("mask is a colour image; expected a gray PNG (or RGB with equal channels)", where=mwhere)
+            mask_np = m.color[:1]
+            if m.alpha is not None:
+                mask_np = mask_np * m.alpha  # a transparent mask pixel hides the layer
+            mask = torch.from_numpy(np.ascontiguousarray(mask_np))
+        stack.tensors[layer.id] = LayerTensors(color, alpha, mask)
+        stack.bit_depths[layer.id] = img.header.bit_depth if img.header.bit_depth == 16 else 8
+    return stack
+
+
+# ---- saving --------------------------------------------------------------------------------------
+
+
+def _stored_codes(values: torch.Tensor, lo: float, hi: float, where: str, clip: bool) -> np.ndarray:
+    """v = (y − lo)/(hi − lo) as float64; values outside [lo, hi] are an error unless ``clip``."""
+    y = values.detach().cpu().double().numpy()
+    if not np.isfinite(y).all():
+        raise ImageError(f"{int((~np.isfinite(y)).sum())} values are NaN or infinite; expected finite values", where=where)
+    v = (y - lo) / (hi - lo)
+    if not clip and v.size:
+        vmin, vmax = float(v.min()), float(v.max())
+        if vmin < -RANGE_SAVE_TOLERANCE or vmax > 1 + RANGE_SAVE_TOLERANCE:
+            raise ImageError(
+                f"values span [{y.min():.6g}, {y.max():.6g}], outside the layer's range [{lo:g}, {hi:g}]; "
+                "expected values inside the range (widen `range`, or save with clip=True to clamp)",
+                where=where,
+            )
+    return np.clip(v, 0.0, 1.0)
+
+
+def _unit(values, where: str, clip: bool) -> np.ndarray:
+    return _stored_codes(values, 0.0, 1.0, where, clip)
+
+
+def encode_layer(stack: Stack, id: str, *, clip: bool = False) -> tuple[bytes, bytes | None]:
+    """PNG bytes of layer ``id``'s source and of its mask (None without one)."""
+    layer = stack.document.layer(id)
+    t = stack.tensors[id]
+    where = f"layer {id!r}"
+    lo, hi = layer.range
+    depth = 16 if (tuple(layer.range) != (0.0, 1.0) or isinstance(layer, LearnedLayer)) else stack.bit_depths.get(id, 8)
+    depth = max(depth, stack.bit_depths.get(id, 8))
+    if t.color.ndim != 3:
+        raise ImageError(f"colour has shape {tuple(t.color.shape)}; expected (C, h, w) to save (no batch)", where=where)
+    color = _stored_codes(t.color, lo, hi, where, clip)
+    alpha = _unit(t.alpha, f"{where} alpha", clip) if t.alpha is not None else None
+    data = encode_png(color, alpha, bit_depth=depth, where=where)
+    mask_data = None
+    if t.mask is not None:
+        mask_data = encode_png(_unit(t.mask, f"{where} mask", clip), bit_depth=depth, where=f"{where} mask")
+    return data, mask_data
+
+
+def save_stack(stack: Stack, folder: str | os.PathLike | None = None, *, clip: bool = False) -> Path:
+    """Write ``stack`` into ``folder``: every layer PNG, then stack.json (each file atomically).
+
+    Everything is encoded and every path checked before the first file is written, so a bad value
+    or path leaves the folder as it was. Returns the stack.json written.
+    """
+    if folder is None:
+        if stack.folder is None:
+            raise PathError("the stack was not loaded from a folder; expected save(folder)", where="save_stack")
+        folder = stack.folder
+    folder = Path(folder)
+    if folder.suffix.lower() == ".json":
+        raise PathError(f"{folder} is a file name; expected a stack folder", where="save_stack")
+    doc = stack.document
+    missing = [l.id for l in doc.layers if isinstance(l, PixelsLayer) and l.id not in stack.tensors]
+    if missing:
+        raise ImageError(f"pixels layer(s) {', '.join(missing)} have no tensors; expected add_layer/set_pixels first", where="save_stack")
+    writes: list[tuple[Path, bytes]] = []
+    for i, layer in enumerate(doc.layers):
+        if layer.id not in stack.tensors or isinstance(layer, SolidLayer):
+            continue
+        data, mask_data = encode_layer(stack, layer.id, clip=clip)
+        writes.append((resolve_inside(folder, layer.source, f"layers[{i}].source"), data))
+        if mask_data is not None:
+            if layer.mask is None:
+                raise DocumentError(f"layer {layer.id!r} has a mask tensor but no `mask` path", where=f"layers[{i}].mask")
+            writes.append((resolve_inside(folder, layer.mask, f"layers[{i}].mask"), mask_data))
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        for target, data in writes:
+            atomic_write_bytes(target, data)
+        written = save_document(doc, folder)
+    except OSError as exc:
+        raise PathError(f"cannot write ({exc.strerror or exc}); expected a writable folder", where=str(folder)) from None
+    stack.folder = folder
+    return written

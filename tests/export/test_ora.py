@@ -1,0 +1,201 @@
+"""OpenRaster export and import: the file layout the spec requires, the dodge pair for multipliers
+above 1, what an independent W3C flattener makes of the layers, warnings, and the import round trip."""
+from __future__ import annotations
+
+import warnings
+import zipfile
+from pathlib import Path
+from xml.etree import ElementTree as ET
+
+import numpy as np
+import pytest
+import torch
+
+from lasagna.errors import ImageError
+from lasagna.export.ora import encode_ora, export_ora, import_ora, read_ora
+from lasagna.export.rasters import dodge_codes
+from lasagna.io.render import render_stack
+from lasagna.io.stack import Stack, load_stack
+from tests.export.oraflat import flatten, png_size, read_png_rgb
+from tests.reference import composite_reference, to_uint8
+from tests.stackcraft import random_stack
+
+BASIC = Path(__file__).resolve().parents[2] / "examples" / "stacks" / "basic"
+
+
+def _ora(tmp_path, stack, name="x.ora", **kw) -> Path:
+    return export_ora(stack, tmp_path / name, **kw)
+
+
+def test_layout_mimetype_first_and_stored(tmp_path):
+    path = _ora(tmp_path, load_stack(BASIC))
+    raw = path.read_bytes()
+    assert raw[:4] == b"PK\x03\x04" and raw[30:38] == b"mimetype" and raw[38:54] == b"image/openraster"
+    with zipfile.ZipFile(path) as zf:
+        first = zf.infolist()[0]
+        assert first.filename == "mimetype" and first.compress_type == zipfile.ZIP_STORED and first.extra == b""
+        assert zf.read("mimetype") == b"image/openraster"
+        names = set(zf.namelist())
+        assert {"stack.xml", "mergedimage.png", "Thumbnails/thumbnail.png"} <= names
+        root = ET.fromstring(zf.read("stack.xml"))
+        for el in root.find("stack"):
+            assert el.get("src") in names
+            assert png_size(zf.read(el.get("src")))  # every layer is a readable PNG
+
+
+def test_stack_xml_order_ops_and_attributes(tmp_path):
+    stack = load_stack(BASIC)
+    with zipfile.ZipFile(_ora(tmp_path, stack)) as zf:
+        root = ET.fromstring(zf.read("stack.xml"))
+    assert (root.tag, root.get("w"), root.get("h")) == ("image", "64", "48")
+    layers = list(root.find("stack"))
+    # Topmost first; the shading multiplier (values up to 1.6) is a multiply + colour-dodge pair.
+    assert [l.get("src") for l in layers] == [
+        "data/hidden.png", "data/glow.png", "data/sticker.png", "data/_dodge/shade.png", "data/shade.png",
+        "data/base.png", "data/_background.png"]
+    assert [l.get("composite-op") for l in layers] == [
+        "svg:src-over", "svg:plus", "svg:src-over", "svg:color-dodge", "svg:multiply", "svg:src-over", "svg:src-over"]
+    assert [l.get("visibility") for l in layers] == ["hidden"] + ["visible"] * 6
+    assert layers[2].get("x") == "44" and layers[2].get("y") == "0"  # offset y = -6 is cropped to the canvas
+    assert all(float(l.get("opacity")) == 1.0 for l in layers)
+
+
+def test_merged_image_and_thumbnail(tmp_path):
+    stack = Stack.from_image(torch.rand(3, 40, 300))
+    ours = to_uint8(render_stack(stack, dtype=torch.float64).image.numpy())
+    with zipfile.ZipFile(_ora(tmp_path, stack)) as zf:
+        merged = read_png_rgb(zf.read("mergedimage.png"))
+        thumb = zf.read("Thumbnails/thumbnail.png")
+    np.testing.assert_array_equal(np.rint(merged * 255).astype(np.uint8), ours)
+    w, h = png_size(thumb)
+    assert max(w, h) == 256 and (w, h) == (256, 34)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_flattened_layers_match_our_composite(tmp_path, seed):
+    """Layers as an 8-bit W3C paint program flattens them ≈ our composite (sRGB, per-layer clamp)."""
+    folder = random_stack(tmp_path / "s", 100 + seed, unit_only=seed % 2 == 0)
+    stack = load_stack(folder)
+    negative = [l.id for l in stack.document.layers if l.range[0] < 0]
+    seen: list[str] = []
+    path = _ora(tmp_path, stack, warn=seen.append)
+    with zipfile.ZipFile(path) as zf:
+        top = list(ET.fromstring(zf.read("stack.xml")).find("stack"))[0].get("src")
+    # Negative plus values cannot be expressed: said in one line, and the exact composite goes on top.
+    assert len(seen) == (1 if negative else 0) and (top == "data/_composite.png") == bool(negative)
+    ours = to_uint8(render_stack(stack, dtype=torch.float64).image.numpy()).astype(float)
+    err = np.abs(flatten(path) * 255 - ours)
+    assert err.max() <= 1.5 and err.mean() <= 0.5, (err.max(), err.mean())
+
+
+def test_dodge_pair_reproduces_a_0_2_multiplier(tmp_path):
+    base = torch.randint(0, 256, (3, 16, 32)) / 255.0  # 8-bit exact: isolates the pair's own error
+    y = torch.linspace(0, 2, 32).expand(1, 16, 32).contiguous()
+    stack = Stack.from_image(base)
+    stack.add_layer("shade", y, blend="multiply", range=(0, 2))
+    path = _ora(tmp_path, stack)
+    exact = (base.double() * y.double()).clamp(0, 1).numpy().transpose(1, 2, 0)
+    assert np.abs(flatten(path) - exact).max() <= 1.0 / 255  # exact pair, 8-bit layer values
+    # Blending in 8 bits (as Krita does) the flattened codes are within one code of the exact ones.
+    assert np.abs(np.rint(flatten(path, quantize=True) * 255) - np.rint(exact * 255)).max() <= 1
+
+
+def test_dodge_codes_are_the_nearest_gain():
+    y = np.linspace(1, 3, 2001)
+    d = dodge_codes(y)
+    gain = 1.0 / (1.0 - d)
+    all_gains = 255.0 / (255.0 - np.arange(0, 255))
+    best = np.abs(all_gains[None, :] - y[:, None]).min(axis=1)
+    np.testing.assert_allclose(np.abs(gain - y), best, atol=1e-12)
+    assert dodge_codes(np.array([1.0, 0.5]))[0] == 0.0 and dodge_codes(np.array([0.5]))[0] == 0.0
+
+
+def test_plus_above_one_is_split_exactly(tmp_path):
+    stack = Stack.from_image(torch.full((3, 4, 4), 0.1))
+    stack.add_layer("light", torch.full((3, 4, 4), 1.6), blend="plus", range=(0, 2))
+    path = _ora(tmp_path, stack)
+    with zipfile.ZipFile(path) as zf:
+        ops = [l.get("composite-op") for l in ET.fromstring(zf.read("stack.xml")).find("stack")]
+    assert ops == ["svg:plus", "svg:plus", "svg:src-over", "svg:src-over"]
+    assert np.abs(flatten(path) - 1.0).max() == 0  # 0.1 + 1.6, clamped
+    stack.document = stack.document.replace_layer("light", opacity=0.5)  # α baked in: 0.8, one layer
+    path = _ora(tmp_path, stack)
+    assert np.abs(flatten(path) - (0.1 + 0.5 * 1.6)).max() <= 1 / 255
+
+
+def test_inexpressible_features_warn_and_add_the_exact_composite(tmp_path):
+    stack = Stack.from_image(torch.full((3, 4, 4), 0.5), blend_space="linear", clamp="output")
+    stack.add_layer("big", torch.full((3, 4, 4), 0.9), blend="plus")  # above 1 in between ...
+    stack.add_layer("neg", torch.full((3, 4, 4), -0.5), blend="plus", range=(-0.5, 0.5))  # ... and back
+    seen = []
+    path = export_ora(stack, tmp_path / "x.ora", warn=seen.append)
+    assert len(seen) == 1 and "\n" not in seen[0]
+    for fragment in ("blend_space='linear'", "negative values of layer 'neg'", "clamp='output'", "Composite (exact)"):
+        assert fragment in seen[0]
+    ours = to_uint8(render_stack(stack).image.double().numpy())  # the float32 render the export made
+    np.testing.assert_array_equal(np.rint(flatten(path) * 255), ours)  # flattens to the exact composite
+    assert import_ora(path).ids == ("base", "big", "neg")  # the composite layer is not imported
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        encode_ora(stack)  # without warn=, it is a Python warning
+    assert len(record) == 1 and issubclass(record[0].category, UserWarning)
+
+
+def test_clamp_output_that_does_not_matter_adds_nothing(tmp_path):
+    stack = Stack.from_image(torch.rand(3, 4, 4), clamp="output")
+    stack.add_layer("m", torch.rand(1, 4, 4), blend="multiply")
+    seen = []
+    encode_ora(stack, warn=seen.append)
+    assert seen == []
+
+
+def test_export_is_atomic_on_error(tmp_path):
+    target = tmp_path / "keep.ora"
+    target.write_bytes(b"old")
+    stack = Stack.from_image(torch.rand(3, 4, 4))
+    stack.tensors["base"].color.fill_(float("nan"))
+    with pytest.raises(Exception):
+        export_ora(stack, target)
+    assert target.read_bytes() == b"old" and [p.name for p in tmp_path.iterdir()] == ["keep.ora"]
+
+
+# ---- import ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_import_round_trip_unit_stacks(tmp_path, seed):
+    folder = random_stack(tmp_path / "s", 200 + seed, unit_only=True)
+    stack = load_stack(folder)
+    path = _ora(tmp_path, stack)
+    back = import_ora(path, tmp_path / "back")
+    ours = to_uint8(composite_reference(folder)).astype(int)
+    again = to_uint8(composite_reference(tmp_path / "back")).astype(int)
+    assert np.abs(ours - again).max() <= 1
+    canvas, back_canvas = stack.document.canvas, back.document.canvas
+    assert (back_canvas.width, back_canvas.height) == (canvas.width, canvas.height)
+    assert np.abs(np.subtract(back_canvas.background, canvas.background)).max() <= 0.5 / 255  # 8-bit layer
+    assert set(back.ids) <= set(stack.ids)  # layers wholly outside the canvas are dropped, nothing added
+    for layer in back.document.layers:
+        original = stack.layer(layer.id)
+        assert (layer.blend, layer.visible) == (original.blend, original.visible)
+        if layer.blend != "plus":  # (a plus layer's fractional alpha and opacity are baked into its values)
+            assert layer.opacity == pytest.approx(original.opacity, abs=1e-6)
+
+
+def test_import_restores_ids_blends_and_the_multiplier(tmp_path):
+    stack = load_stack(BASIC)
+    back = import_ora(_ora(tmp_path, stack))
+    assert back.ids == stack.ids
+    assert [l.blend for l in back.document.layers] == [l.blend for l in stack.document.layers]
+    assert back.layer("shade").range == (0.0, 2.0)
+    assert back.layer("hidden").visible is False and back.layer("sticker").offset.x == 44
+    err = (back.tensors["shade"].color - stack.tensors["shade"].color.expand(3, -1, -1)).abs().max().item()
+    assert err <= 2 * 2 / 255  # 8-bit multiply and dodge codes
+
+
+def test_read_ora_limits(tmp_path):
+    path = _ora(tmp_path, load_stack(BASIC))
+    with pytest.raises(ImageError, match="zip-bomb"):
+        read_ora(path, max_uncompressed=1000)
+    with pytest.raises(ImageError, match="over the limit of 100"):
+        read_ora(path, max_pixels=100)

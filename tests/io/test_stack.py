@@ -1,0 +1,231 @@
+"""Stack folders: loading (range mapping, channel rules, masks, safe paths, limits), saving (16-bit
+ranged layers, range errors, atomicity), building stacks from tensors and PIL images, rendering."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+from PIL import Image
+
+from lasagna.errors import DocumentError, ImageError, PathError
+from lasagna.io.png import read_png
+from lasagna.io.render import render_stack, write_composite
+from lasagna.io.stack import NOT_RENDERED, Stack, load_stack, save_stack, stack_from_tensors
+from tests.reference import composite_reference, read_png64, to_uint8
+from tests.stackcraft import random_stack, write_png8, write_png16, write_stack
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "stacks"
+
+
+def _doc(layers, w=6, h=4, **extra):
+    return {"format": "lasagna.stack", "version": 1, "canvas": {"width": w, "height": h}, "layers": layers, **extra}
+
+
+# ---- loading ----------------------------------------------------------------------------------------
+
+
+def test_load_examples_and_range_mapping():
+    stack = load_stack(EXAMPLES / "basic")
+    assert stack.ids == ("base", "shade", "sticker", "glow", "hidden")
+    shade = stack.tensors["shade"]
+    assert shade.color.shape == (1, 48, 64) and shade.color.dtype == torch.float32
+    stored, _ = read_png64(EXAMPLES / "basic/layers/shade.png")  # independent read: v
+    np.testing.assert_allclose(shade.color.double().numpy(), 2.0 * stored, atol=1e-6)  # y = 0 + 2v
+    assert "hidden" not in stack.tensors  # a solid layer: drawn from the document
+    assert stack.bit_depths["shade"] == 16
+
+
+def test_gray_alpha_multiply_is_one_channel_with_alpha(tmp_path):
+    codes = np.stack([np.full((4, 6), 30000), np.full((4, 6), 65535)], axis=-1)
+    codes[0, 0, 1] = 0
+    write_png16(tmp_path / "layers/m.png", codes)
+    write_png8(tmp_path / "layers/base.png", np.full((4, 6, 3), 200))
+    write_stack(tmp_path, _doc([{"id": "base", "kind": "pixels", "source": "layers/base.png"},
+                                {"id": "m", "kind": "pixels", "source": "layers/m.png", "blend": "multiply", "range": [0, 2]}]))
+    t = load_stack(tmp_path).tensors["m"]
+    assert t.color.shape == (1, 4, 6) and t.alpha.shape == (1, 4, 6)
+    assert t.color[0, 1, 1].item() == pytest.approx(2 * 30000 / 65535, abs=1e-6)
+    assert t.alpha[0, 0, 0].item() == 0.0 and t.alpha[0, 1, 1].item() == 1.0  # alpha never range-mapped
+
+
+def test_learned_layer_without_source_is_skipped_with_reason(tmp_path):
+    write_png8(tmp_path / "layers/base.png", np.full((4, 6, 3), 100))
+    write_stack(tmp_path, _doc([{"id": "base", "kind": "pixels", "source": "layers/base.png"},
+                                {"id": "relit", "kind": "learned", "preset": "shading", "condition": {"label": "left"},
+                                 "conditioned_on": "base", "blend": "multiply"}]))
+    stack = load_stack(tmp_path)
+    assert stack.not_rendered == {"relit": NOT_RENDERED}
+    result = render_stack(stack)
+    assert result.skipped == {"relit": NOT_RENDERED} and result.evaluated == ["base"]
+
+
+def test_symlink_inside_the_folder_is_fine(tmp_path):
+    write_png8(tmp_path / "layers/real.png", np.full((4, 6, 3), 10))
+    os.symlink(tmp_path / "layers/real.png", tmp_path / "layers/alias.png")
+    write_stack(tmp_path, _doc([{"id": "base", "kind": "pixels", "source": "layers/alias.png"}]))
+    assert load_stack(tmp_path / "stack.json").tensors["base"].color.shape == (3, 4, 6)
+
+
+def test_escapes_and_limits(tmp_path):
+    (tmp_path / "out").mkdir()
+    write_png8(tmp_path / "out/x.png", np.zeros((4, 6, 3)))
+    s = tmp_path / "s"
+    (s / "layers").mkdir(parents=True)
+    os.symlink(tmp_path / "out/x.png", s / "layers/x.png")
+    write_stack(s, _doc([{"id": "base", "kind": "pixels", "source": "layers/x.png"}]))
+    with pytest.raises(PathError, match="outside the stack folder"):
+        load_stack(s)
+    (s / "layers/x.png").unlink()
+    write_png8(s / "layers/x.png", np.zeros((4, 6, 3)))
+    with pytest.raises(ImageError, match="over the limit of 10"):
+        load_stack(s, max_pixels=10)
+    with pytest.raises(ImageError, match="in total"):
+        load_stack(s, max_total_pixels=10)
+    write_stack(s, _doc([{"id": "base", "kind": "pixels", "source": "layers/x.png"}]) | {"blend_space": "sRGB"})
+    with pytest.raises(DocumentError, match="blend_space"):
+        load_stack(s)
+
+
+# ---- saving -----------------------------------------------------------------------------------------
+
+
+@settings(max_examples=20, deadline=None)
+@given(lo=st.floats(-2, 0), width=st.floats(0.5, 4), seed=st.integers(0, 2**16), channels=st.sampled_from([1, 3]))
+def test_16bit_multiplier_round_trip_within_half_a_step(tmp_path_factory, lo, width, seed, channels):
+    """A ranged layer saved as 16-bit comes back within (hi − lo)/65535/2 (plus float32 rounding)."""
+    hi = lo + width
+    assume((lo, hi) != (0.0, 1.0))  # [0, 1] layers are stored 8-bit (their own rule)
+    rng = np.random.default_rng(seed)
+    y = torch.from_numpy(lo + width * rng.random((channels, 5, 7)))
+    stack = Stack.from_image(torch.rand(3, 5, 7))
+    stack.add_layer("m", y, blend="plus" if lo < 0 else "multiply", range=(lo, hi))
+    folder = tmp_path_factory.mktemp("rt")
+    stack.save(folder)
+    assert read_png(folder / "layers/m.png").header.bit_depth == 16
+    back = load_stack(folder).tensors["m"].color.double()
+    assert (back - y).abs().max().item() <= width / 65535 / 2 + 4e-7 * max(abs(lo), abs(hi))
+
+
+def test_save_refuses_out_of_range_and_leaves_folder(tmp_path):
+    stack = Stack.from_image(torch.rand(3, 4, 6))
+    stack.add_layer("m", torch.full((1, 4, 6), 1.5), blend="multiply")  # range [0, 1]
+    with pytest.raises(ImageError, match=r"outside the layer's range \[0, 1\].*clip=True"):
+        stack.save(tmp_path / "s")
+    assert not (tmp_path / "s").exists()
+    stack.save(tmp_path / "s", clip=True)
+    assert load_stack(tmp_path / "s").tensors["m"].color.max().item() == 1.0
+
+
+def test_save_load_round_trip_examples(tmp_path):
+    for name in ("basic", "masked", "linear", "learned"):
+        stack = load_stack(EXAMPLES / name)
+        save_stack(stack, tmp_path / name)
+        again = load_stack(tmp_path / name)
+        assert again.document == stack.document
+        for id, t in stack.tensors.items():
+            u = again.tensors[id]
+            assert torch.equal(t.color, u.color)
+            assert (t.alpha is None) == (u.alpha is None) and (t.alpha is None or torch.equal(t.alpha, u.alpha))
+            assert (t.mask is None) == (u.mask is None) and (t.mask is None or torch.equal(t.mask, u.mask))
+
+
+def test_save_requires_a_folder_and_pixels():
+    stack = Stack.from_image(torch.rand(3, 2, 2))
+    with pytest.raises(PathError, match="save\\(folder\\)"):
+        stack.save()
+
+
+# ---- building from tensors and PIL images ----------------------------------------------------------------
+
+
+def test_build_from_pil_numpy_and_tensors(tmp_path):
+    base = Image.fromarray(np.full((4, 6, 3), 51, dtype=np.uint8))
+    stack = Stack.from_image(base, id="base", background=(0.1, 0.2, 0.3))
+    assert stack.tensors["base"].color.max().item() == pytest.approx(0.2)
+    # uint8 codes are mapped by the range like a PNG; float values are taken as they are.
+    stack.add_layer("m8", np.full((1, 4, 6), 255, dtype=np.uint8), blend="multiply", range=(0, 2))
+    assert stack.tensors["m8"].color.max().item() == pytest.approx(2.0)
+    stack.add_layer("mf", torch.full((4, 6), 1.25), blend="multiply", range=(0, 2))
+    assert stack.tensors["mf"].color.shape == (1, 4, 6) and stack.tensors["mf"].color.max().item() == 1.25
+    rgba = torch.rand(4, 3, 3)
+    stack.add_layer("paint", rgba, offset=(4, -1), opacity=0.5)
+    assert torch.equal(stack.tensors["paint"].alpha, rgba[3:])
+    la = Image.fromarray(np.stack([np.full((4, 6), 255), np.full((4, 6), 128)], -1).astype(np.uint8))
+    stack.add_layer("gray", la, blend="multiply", range=(0, 2))
+    assert stack.tensors["gray"].alpha.max().item() == pytest.approx(128 / 255)  # alpha not mapped
+    stack.add_solid("tint", (1.0, 0.0, 0.0, 0.25), size=(2, 2), offset={"x": 1, "y": 1})
+    stack.add_layer("masked", torch.rand(3, 4, 6), mask=torch.rand(1, 4, 6))
+    assert stack.ids == ("base", "m8", "mf", "paint", "gray", "tint", "masked")
+    stack.save(tmp_path / "s")
+    doc = json.loads((tmp_path / "s/stack.json").read_text())
+    assert doc["layers"][-1]["mask"] == "masks/masked.png" and doc["canvas"]["background"] == [0.1, 0.2, 0.3]
+    # What we save, a reference compositor reads back to the same composite.
+    write_composite(render_stack(stack), tmp_path / "c.png")
+    ours = np.asarray(Image.open(tmp_path / "c.png")).astype(int)
+    assert np.abs(ours - to_uint8(composite_reference(tmp_path / "s"))).max() <= 1
+
+
+@pytest.mark.parametrize("bad,pattern", [
+    (torch.full((3, 2, 2), float("nan")), "NaN"),
+    (torch.rand(5, 2, 2), "expected \\(C, h, w\\)"),
+    (torch.rand(2, 3, 2, 2), "expected \\(C, h, w\\)"),
+    (torch.zeros(3, 2, 2, dtype=torch.bool), "dtype"),
+    ("not an image", "expected a torch tensor"),
+])
+def test_bad_images_are_refused(bad, pattern):
+    stack = Stack.from_image(torch.rand(3, 2, 2))
+    with pytest.raises(ImageError, match=pattern):
+        stack.add_layer("x", bad)
+    assert stack.ids == ("base",)
+
+
+def test_bad_layer_fields_are_refused():
+    stack = Stack.from_image(torch.rand(3, 2, 2))
+    with pytest.raises(DocumentError, match="unknown layer field"):
+        stack.add_layer("x", torch.rand(3, 2, 2), colour="red")
+    with pytest.raises(DocumentError, match="blend"):
+        stack.add_layer("x", torch.rand(3, 2, 2), blend="overlay")
+    with pytest.raises(ImageError, match="mask is 3x2"):
+        stack.add_layer("x", torch.rand(3, 2, 2), mask=torch.rand(1, 2, 3))
+    assert stack.ids == ("base",) and set(stack.tensors) == {"base"}  # nothing half-added
+    stack.document = stack.document.with_layer({"id": "relit", "kind": "learned", "preset": "shading",
+                                                "condition": {"label": "left"}, "conditioned_on": "base"})
+    with pytest.raises(DocumentError, match="set_pixels"):
+        stack.add_layer("relit", torch.rand(3, 2, 2))
+
+
+def test_stack_from_tensors_and_set_pixels(tmp_path):
+    stack = stack_from_tensors(
+        [("base", torch.rand(3, 4, 5)),
+         {"id": "shade", "image": torch.rand(1, 4, 5) * 2, "blend": "multiply", "range": (0, 2)},
+         {"id": "sun", "color": (1.0, 0.9, 0.5, 0.5), "blend": "plus"}],
+        width=6, height=5, blend_space="linear",
+    )
+    assert (stack.width, stack.height) == (6, 5) and stack.document.blend_space == "linear"
+    grad = torch.rand(1, 4, 5, requires_grad=True)
+    stack.set_pixels("shade", grad * 2)
+    render_stack(stack).image.sum().backward()
+    assert grad.grad is not None and grad.grad.abs().sum() > 0
+    with pytest.raises(DocumentError, match="solid"):
+        stack.set_pixels("sun", torch.rand(3, 2, 2))
+
+
+def test_render_stack_dtype_and_solid_range(tmp_path):
+    folder = random_stack(tmp_path / "r", 5)
+    stack = load_stack(folder)
+    r64 = render_stack(stack, dtype=torch.float64)
+    r32 = render_stack(stack)
+    assert r64.image.dtype == torch.float64 and (r64.image - r32.image).abs().max() < 1e-5
+    np.testing.assert_allclose(r64.image.numpy(), composite_reference(folder), atol=1e-6)
+    # A solid multiply colour is mapped by its range, like a PNG's values.
+    write_stack(tmp_path / "solid", _doc([{"id": "s", "kind": "solid", "color": [0.75, 0.75, 0.75],
+                                           "blend": "multiply", "range": [0, 2]}])
+                | {"canvas": {"width": 2, "height": 2, "background": [0.4, 0.4, 0.4]}})
+    image = render_stack(load_stack(tmp_path / "solid"), dtype=torch.float64).image
+    assert image.max().item() == pytest.approx(0.6)
