@@ -271,6 +271,11 @@ COMMANDS: dict[str, Command] = {
     "demo": Command("composite and export the example stack into a folder", _demo_args, cmd_demo),
     "world": Command("write procedural scenes with ground truth as layer-stack folders",
                      _lazy("lasagna.world.cli", "world_arguments"), _lazy("lasagna.world.cli", "run_world")),
+    "train-prior": Command("train a bundled conditional prior on the procedural world (resumable)",
+                           _lazy("lasagna.priors.train", "build_parser"), _lazy("lasagna.priors.train", "run")),
+    "train-corrective": Command("train the LMC-SDS manifold corrective b̂ of a prior (resumable)",
+                                _lazy("lasagna.losses.corrective_train", "build_parser"),
+                                _lazy("lasagna.losses.corrective_train", "run")),
 }
 
 

@@ -203,10 +203,12 @@ def _filters(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"expected comma-separated integers such as 32,64,128; got {text!r}") from None
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="lasagna train-corrective", description="Train the LMC-SDS manifold corrective b̂ for a prior (resumable).")
+def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    p = p or argparse.ArgumentParser(prog="lasagna train-corrective", description="Train the LMC-SDS manifold corrective b̂ for a prior (resumable).")
     p.add_argument("--prior", required=True, help="folder of a UNetPrior (model.safetensors + config.json)")
-    p.add_argument("--source", required=True, help="module:callable, sample_batch(batch, generator) -> (images, label_idx, cond_image)")
+    p.add_argument("--task", choices=("relight", "colorize"), default=None,
+                   help="draw clean images from the procedural world's train split for this prior task")
+    p.add_argument("--source", default=None, help="module:callable, sample_batch(batch, generator) -> (images, label_idx, cond_image); instead of --task")
     p.add_argument("--out", required=True, help="output folder; run again with the same folder to resume")
     p.add_argument("--steps", type=int, default=20_000)
     p.add_argument("--batch-size", type=int, default=32)
@@ -228,12 +230,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    return run(build_parser().parse_args(argv))
+
+
+def run(args: argparse.Namespace) -> int:
     try:
         from lasagna.priors.unet import UNetPrior
 
         prior = UNetPrior.from_pretrained(args.prior, device=args.device)
-        source = _import_callable(args.source)
+        if (args.task is None) == (args.source is None):
+            raise LasagnaError("give exactly one of --task and --source", "train-corrective")
+        if args.task is not None:
+            from lasagna.priors.train import world_source
+
+            source = world_source(args.task, prior.config.resolution)
+        else:
+            source = _import_callable(args.source)
         cond_channels = prior.config.cond_channels
         config = CorrectiveTrainConfig(
             corrective=corrective_config_for(prior, args.filters, args.sees_condition, cond_channels),
