@@ -16,7 +16,7 @@ the mean stays b̂'s. μ and σ are per sample over all of (C, H, W) (the "globa
 the population standard deviation, guarded by ``lasagna.numerics.STD_EPS`` so a constant b̂ (σ = 0)
 gives a finite loss and a finite gradient. ‖·‖² is averaged over elements (a per-pixel MSE), so
 values compare across resolutions. ``rescale_to_target_std(b̂, ẑ_t)`` is the normalisation LMC-SDS
-applies to b̂ in eq. 9 (``lmc_sds.normalize_like(b̂, ẑ_t)`` computes the same b̃).
+applies to b̂ in eq. 9 (``lmc_sds.normalize_like`` calls ``rescale_to_target_std``).
 
 **The network.** The paper's b̂ is a plain U-Net: per encoder level two Conv/ReLU blocks then a
 MaxPool, 32 filters doubling per level, skip connections, a final conv with tanh; t enters as a

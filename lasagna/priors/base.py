@@ -136,6 +136,12 @@ class NoiseSchedule:
         return ab.sqrt() * v + (1 - ab).sqrt() * z_t
 
 
+def cfg(eps_u: torch.Tensor, eps_c: torch.Tensor, omega: float) -> torch.Tensor:
+    """Classifier-free guidance ε_u + ω(ε_c − ε_u) (Ho & Salimans 2022; LMC-SDS eq. 5): the one CFG
+    convention of the package (the "text-first" form ε_c + s(ε_c − ε_u) is ω = s + 1)."""
+    return eps_u + omega * (eps_c - eps_u)
+
+
 def _expand(a: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     return a.reshape(a.shape + (1,) * (like.dim() - a.dim()))
 
@@ -182,7 +188,6 @@ class Prior(nn.Module, abc.ABC):
     def _eps(self, z_t: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor, image: torch.Tensor | None) -> torch.Tensor:
         """The raw network call: ε̂(z_t, t, label, image) for a batch; label_idx may be the null index."""
 
-    @torch.inference_mode()
     def predict(
         self,
         z_t: torch.Tensor,
@@ -191,9 +196,38 @@ class Prior(nn.Module, abc.ABC):
         branches: Sequence[Branch] = ("cond", "uncond"),
     ) -> Prediction:
         """ε̂ for each requested branch in ONE batched network call (concatenated along the batch)."""
-        b = z_t.shape[0]
-        idx = []
-        for br in branches:
+        eps = self.predict_many([(z_t, br) for br in branches], t, cond)
+        return Prediction(eps=dict(zip(branches, eps)))
+
+    def predict_many(
+        self,
+        queries: Sequence[tuple[torch.Tensor, Branch]],
+        t: torch.Tensor,
+        cond: Condition,
+    ) -> list[torch.Tensor]:
+        """ε̂ for several ``(z_t, branch)`` queries in ONE batched network call; one (B, C, h, w) per query.
+
+        Every query shares the per-sample timesteps ``t`` (B,) and the conditioning image; the noisy
+        inputs may differ. Losses that need the denoiser at two noisy images (LMC-SDS with a fixed ε
+        in L_cond and a fresh ε in L_lmc; DDS's target and source) still pay one network pass.
+
+        The network runs under ``torch.inference_mode()`` (no autograd bookkeeping for its
+        activations, and no way for a gradient to reach the prior); the outputs are then cloned
+        outside inference mode, once, so callers get ordinary tensors they may combine with tensors
+        that require grad (inference tensors cannot be saved for backward). The clone copies only the
+        (n·B, C, h, w) output, negligible next to the network pass.
+        """
+        if not queries:
+            raise ValueError("predict_many: expected at least one (z_t, branch) query, got none")
+        b = queries[0][0].shape[0]
+        if t.shape != (b,):
+            raise ValueError(f"predict: t has shape {tuple(t.shape)}; expected ({b},), one timestep per sample")
+        if cond.image is not None and cond.image.shape[0] != b:
+            raise ConditionError(f"image has batch {cond.image.shape[0]}; expected {b} (one per sample)", "condition.image")
+        idx, zs = [], []
+        for z_t, br in queries:
+            if z_t.shape != queries[0][0].shape:
+                raise ValueError(f"predict_many: z_t shapes differ: {tuple(z_t.shape)} vs {tuple(queries[0][0].shape)}")
             if br == "cond":
                 idx.append(self.label_index(cond.label_list(b)))
             elif br == "uncond":
@@ -202,9 +236,12 @@ class Prior(nn.Module, abc.ABC):
                 idx.append(self.label_index(cond.negative_list(b)))
             else:
                 raise ValueError(f"unknown branch {br!r}; expected cond, uncond or negative")
-        n = len(branches)
-        zz = z_t.detach().repeat(n, *([1] * (z_t.dim() - 1)))
-        tt = t.repeat(n)
-        img = None if cond.image is None else cond.image.detach().repeat(n, *([1] * (cond.image.dim() - 1)))
-        eps = self._eps(zz, tt, torch.cat(idx).to(z_t.device), img)
-        return Prediction(eps=dict(zip(branches, eps.chunk(n, dim=0))))
+            zs.append(z_t.detach())
+        n = len(queries)
+        z0 = queries[0][0]
+        with torch.inference_mode():
+            zz = torch.cat(zs, dim=0)
+            tt = t.repeat(n)
+            img = None if cond.image is None else cond.image.detach().repeat(n, *([1] * (cond.image.dim() - 1)))
+            eps = self._eps(zz, tt, torch.cat(idx).to(z0.device), img)
+        return list(eps.clone().chunk(n, dim=0))

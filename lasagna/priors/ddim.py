@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import torch
 
-from lasagna.priors.base import Condition, Prior
+from lasagna.priors.base import Condition, Prior, cfg
 from lasagna.priors.nn import randn
 
 
@@ -70,8 +70,7 @@ def guided_eps(prior: Prior, z_t: torch.Tensor, t: torch.Tensor, cond: Condition
     if omega == 0.0:
         return prior.predict(z_t, t, cond, branches=("uncond",)).eps["uncond"].to(z_t.dtype)
     eps = prior.predict(z_t, t, cond, branches=("cond", "uncond")).eps
-    e_c, e_u = eps["cond"].to(z_t.dtype), eps["uncond"].to(z_t.dtype)
-    return e_u + omega * (e_c - e_u)
+    return cfg(eps["uncond"].to(z_t.dtype), eps["cond"].to(z_t.dtype), omega)
 
 
 @torch.no_grad()
