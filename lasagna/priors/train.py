@@ -114,6 +114,21 @@ def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | tor
     return final
 
 
+def prior_from_checkpoint(path: str | Path, ema: bool = True) -> tuple[UNetPrior, int]:
+    """(prior, step) from a training checkpoint: its EMA weights (or the raw ones), in eval mode.
+
+    Lets a run be measured while it trains, and snapshots of a run be measured afterwards.
+    """
+    tensors, meta = io.load_tensors(path)
+    if meta.get("format") != CHECKPOINT_FORMAT:
+        raise LasagnaError(f"format is {meta.get('format')!r}; expected {CHECKPOINT_FORMAT!r}", str(path))
+    config = PriorTrainConfig.model_validate_json(meta["config"])
+    prefix = "ema." if ema and any(k.startswith("ema.") for k in tensors) else "model."
+    prior = UNetPrior(config.unet)
+    io.load_state_strict(prior, {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}, str(path))
+    return prior.eval(), int(meta["step"])
+
+
 def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     p = p or argparse.ArgumentParser(prog="lasagna train-prior", description=__doc__.splitlines()[0])
     p.add_argument("--task", choices=("relight", "colorize"), default="relight")
