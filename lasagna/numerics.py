@@ -36,3 +36,9 @@ def reduction_dtype(dtype: torch.dtype) -> torch.dtype:
 # the range's width outside it are float32 rounding of values on the boundary (y = lo + (hi - lo)·v
 # computed in float32), not content, and are saved as the boundary. 1e-6 is 1/15 of a 16-bit step.
 RANGE_SAVE_TOLERANCE = 1e-6
+
+# A generator's output squashed by a sigmoid cannot reach a range boundary; when the identity edit
+# lies on one (an alpha of 0, a light of 0) and a sigmoid is asked for anyway, the head starts at
+# logit ∓IDENTITY_LOGIT: sigmoid(−12) = 6.1e-6 of the range's width, below the 1e-5 at which a first
+# composite counts as the input (half a 16-bit step is 7.6e-6) and far from float32's resolution.
+IDENTITY_LOGIT = 12.0

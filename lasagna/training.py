@@ -18,12 +18,14 @@ from __future__ import annotations
 import copy
 import json
 import math
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Literal, TypeVar
 
 import torch
+import torch.distributed as dist
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from tqdm.auto import tqdm
 
@@ -159,6 +161,75 @@ def read_log(out_dir: str | Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
 
 
+# -- distributed data parallel -----------------------------------------------------------------
+@dataclass(frozen=True)
+class DistInfo:
+    """Where this process stands: ``rank`` of ``world_size`` (0 of 1 without a process group)."""
+
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+    initialised_here: bool = False
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def _grouped() -> bool:
+    return dist.is_available() and dist.is_initialized()
+
+
+def dist_info() -> DistInfo:
+    """Rank and world size of the initialised process group (0 of 1 when there is none)."""
+    if not _grouped():
+        return DistInfo()
+    return DistInfo(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", dist.get_rank())))
+
+
+def init_distributed(device: torch.device | str | None = None) -> DistInfo:
+    """Join the process group ``torchrun`` describes (``WORLD_SIZE`` > 1 in the environment).
+
+    The backend is nccl for CUDA devices and gloo otherwise. Without torchrun's variables, or with a
+    group already initialised, nothing is done. ``initialised_here`` says whether the caller should
+    call ``shutdown_distributed`` when done.
+    """
+    if int(os.environ.get("WORLD_SIZE", "1")) <= 1 or not dist.is_available() or _grouped():
+        return dist_info()
+    kind = torch.device(device).type if device is not None else ("cuda" if torch.cuda.is_available() else "cpu")
+    if kind == "cuda":
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+    dist.init_process_group(backend="nccl" if kind == "cuda" else "gloo")
+    info = dist_info()
+    return DistInfo(info.rank, info.world_size, info.local_rank, initialised_here=True)
+
+
+def shutdown_distributed(info: DistInfo) -> None:
+    """Leave the process group if ``init_distributed`` joined it."""
+    if info.initialised_here and _grouped():
+        dist.destroy_process_group()
+
+
+def _all_agree(flag: bool, device: torch.device) -> bool:
+    """True on every process iff ``flag`` is true on every process (a no-op without a group)."""
+    if not _grouped():
+        return flag
+    t = torch.tensor([1 if flag else 0], dtype=torch.int32, device=device)
+    dist.all_reduce(t, op=dist.ReduceOp.MIN)
+    return bool(t.item())
+
+
+def _mean_over_processes(values: dict[str, float], device: torch.device) -> dict[str, float]:
+    """Average logged scalars over the processes (every process logs the same keys)."""
+    if not _grouped() or not values:
+        return values
+    keys = sorted(values)
+    t = torch.tensor([float(values[k]) for k in keys], dtype=torch.float64, device=device)
+    dist.all_reduce(t)
+    t /= dist.get_world_size()
+    return dict(zip(keys, t.tolist()))
+
+
 # -- the loop -----------------------------------------------------------------------------------
 def train_loop(
     model: torch.nn.Module,
@@ -175,16 +246,32 @@ def train_loop(
 
     ``model`` must arrive freshly initialised (seeded by the caller); on resume its weights are replaced
     by the checkpoint's. ``run_config`` is the trainer's whole config: saved beside the checkpoint and
-    compared on resume.
+    compared on resume. Under an initialised process group ``step_fn`` receives the
+    ``DistributedDataParallel`` wrapper (see the module docstring); checkpoints hold the bare module's
+    state, so a run may resume with another number of processes.
     """
     device = torch.device(device)
+    info = dist_info()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    check_same_run(out, run_config)
-    for stale in out.glob(f".{CHECKPOINT}.*"):  # temporaries of a write killed half-way (ours only)
-        stale.unlink()
+    error: LasagnaError | None = None
+    if info.is_main:
+        out.mkdir(parents=True, exist_ok=True)
+        try:
+            check_same_run(out, run_config)
+        except LasagnaError as exc:
+            error = exc
+        else:
+            for stale in out.glob(f".{CHECKPOINT}.*"):  # temporaries of a write killed half-way (ours only)
+                stale.unlink()
+    if not _all_agree(error is None, device):  # every process stops, not only the one that saw the error
+        raise error or LasagnaError("rank 0 refused to resume this run; see its error", str(out))
 
     model.to(device).train()
+    net: torch.nn.Module = model
+    if info.world_size > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        net = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
     opt = torch.optim.Adam(model.parameters(), lr=loop.lr)
     ema = {k: v.detach().clone() for k, v in model.state_dict().items()} if loop.ema_decay is not None else None
     gen = torch.Generator().manual_seed(loop.seed)
@@ -192,21 +279,26 @@ def train_loop(
     step = 0
     if ckpt.is_file():
         step = load_checkpoint(ckpt, checkpoint_format, model, ema, opt, gen, device)
-        trim_log(log_path, step)
-    elif log_path.exists():
+        if info.is_main:
+            trim_log(log_path, step)
+    elif info.is_main and log_path.exists():
         log_path.unlink()
 
     start, saved_at, stopped = time.monotonic(), step, "done"
-    bar = tqdm(total=loop.steps, initial=step, desc=desc, disable=not loop.progress, dynamic_ncols=True)
-    with open(log_path, "a", encoding="utf-8") as log:
+    bar = tqdm(total=loop.steps, initial=step, desc=desc, disable=not (loop.progress and info.is_main), dynamic_ncols=True)
+    log = open(log_path, "a", encoding="utf-8") if info.is_main else None
+    try:
         while step < loop.steps:
-            if loop.max_minutes is not None and time.monotonic() - start > loop.max_minutes * 60:
+            over = loop.max_minutes is not None and time.monotonic() - start > loop.max_minutes * 60
+            if info.world_size > 1:
+                over = not _all_agree(not over, device)  # clocks differ: one process out of time stops all
+            if over:
                 stopped = "time"
                 break
             lr = loop.lr_at(step)
             for group in opt.param_groups:
                 group["lr"] = lr
-            loss, metrics = step_fn(model, gen, step)
+            loss, metrics = step_fn(net, gen, step)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if loop.grad_clip is not None:
@@ -219,17 +311,25 @@ def train_loop(
             step += 1
             bar.update(1)
             if step % loop.log_every == 0:
-                rec = {"step": step, "loss": float(loss.detach()), **metrics, "lr": lr,
+                values = _mean_over_processes({"loss": float(loss.detach()), **metrics}, device)
+                rec = {"step": step, "loss": values.pop("loss"), **values, "lr": lr,
                        "elapsed_s": round(time.monotonic() - start, 3)}
                 bar.set_postfix(loss=f"{rec['loss']:.4f}")
-                log.write(json.dumps(rec) + "\n")
-                log.flush()
+                if log is not None:
+                    log.write(json.dumps(rec) + "\n")
+                    log.flush()
             if step % loop.checkpoint_every == 0:
-                save_checkpoint(ckpt, checkpoint_format, step, run_config, model, ema, opt, gen)
+                if info.is_main:
+                    save_checkpoint(ckpt, checkpoint_format, step, run_config, model, ema, opt, gen)
                 saved_at = step
-    bar.close()
-    if saved_at != step or not ckpt.is_file():
+    finally:
+        bar.close()
+        if log is not None:
+            log.close()
+    if info.is_main and (saved_at != step or not ckpt.is_file()):
         save_checkpoint(ckpt, checkpoint_format, step, run_config, model, ema, opt, gen)
+    if info.world_size > 1:
+        dist.barrier()  # the checkpoint exists for every process once any of them returns
 
     final = copy.deepcopy(model).eval()
     if ema is not None:

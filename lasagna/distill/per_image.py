@@ -1,0 +1,309 @@
+"""Per-image distillation: optimise an edit layer (free per-pixel, or a generator) for B base images.
+
+    result = distill_image(albedo, preset, prior, corrective, condition="left", steps=150, seed=0)
+    result.layer, result.composite, result.history, result.settings, result.stopped_reason
+
+The loop (Adam; optional global-norm gradient clipping) minimises ``objective.ScoreObjective`` — the
+score loss on the composite plus the scheduled L2 to the identity edit — for all B images at once
+(one parameter tensor for B free layers: one batched prior pass per step).
+
+**Images larger than the prior** (LMC-SDS Sec. 5 and supplementary): the first ``whole_fraction``
+of the steps score the whole composite downsampled to the prior's size ("this ensures that the whole
+image is affected by the loss, but the signal may be blurry"); the remaining steps score random crops
+of the prior's size at native resolution ("to prevent the loss from producing fake detail … we lower
+the learning rate during this phase through Cosine decay": ``cosine_lr`` over the run). A free layer
+lives at native resolution; a generator is fully convolutional. Images whose sides are not both at
+least the prior's size use the whole view only; a non-square image is resized to the prior's square.
+
+**Early stopping** (``settings.early_stop``), checked at every step of the last phase once
+``min_steps`` steps have run and that phase has 2·``window`` steps of history: stop when both the
+score's gradient norm (batch mean of ‖g‖) and the layer's change per unit learning rate (RMS of
+y_k − y_{k−1}, over lr_{k−1}, so a decaying rate does not read as convergence) have stopped
+decreasing — the mean over the last ``window`` steps is not below (1 − rtol) × the mean over the
+``window`` steps before. Score gradients never vanish (they are noisy at every t), so a plateau, not a
+zero, is what convergence looks like. The batch stops as a whole.
+
+**Reproducibility.** Every random draw (t, ε, patch positions) comes from one ``torch.Generator``
+seeded with ``settings.seed``; the free layer starts at the identity edit and a given generator is
+copied (the caller's is not modified), so the same inputs and seed give the same result.
+
+**Checkpoints** (``checkpoint_dir``): every ``checkpoint_every`` steps one atomic safetensors file
+(the layer or generator, Adam's state, the generator's RNG state; ``lasagna.training``'s format) and
+``history.json`` (written first); ``train_config.json`` records the settings and a hash of the image
+and condition, and a folder holding another run is refused. Run again with the same folder after a
+kill and the run continues where it was checkpointed, reproducing the uninterrupted run — except
+for LMC-SDS with ``fixed_eps`` and no ``fixed_eps_seed``, whose fixed ε is drawn anew on resume.
+"""
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, Sequence
+
+import torch
+from torch import Tensor, nn
+from tqdm.auto import tqdm
+
+from lasagna.distill.objective import ScoreObjective, build_loss, draw_patches, label_list, prior_image_size
+from lasagna.distill.schedules import cosine_lr
+from lasagna.distill.settings import DistillSettings, EarlyStop, PatchConfig
+from lasagna.errors import LasagnaError
+from lasagna.generators.free import FreeLayer, FreeLayerConfig
+from lasagna.generators.layer import composite
+from lasagna.generators.unet import LayerGenerator
+from lasagna.io.atomic import atomic_write_text
+from lasagna.priors.base import Prior
+from lasagna.priors.io import load_tensors, save_tensors
+from lasagna.training import CHECKPOINT, check_same_run, load_checkpoint, save_checkpoint
+
+CHECKPOINT_FORMAT = "lasagna.distill_checkpoint"
+HISTORY_FILE = "history.json"
+PREVIOUS_FILE = "previous_layer.safetensors"
+StopReason = Literal["steps", "converged"]
+
+
+@dataclass
+class DistillResult:
+    """What a per-image run produced.
+
+    ``layer`` (B, C, H, W): the edit layer's values, in its range. ``composite`` (B, 3, H, W): the
+    base with the layer blended, clamped to [0, 1] once (the document's ``clamp="output"``).
+    ``history``: one record per step: step, phase, lr, total, score, reg, w_score, w_reg, grad_norm
+    (batch mean of ‖g‖), t_mean, layer_change (RMS change per unit lr; None at the first step),
+    time_s (cumulative wall seconds). ``settings``: the resolved settings. ``model``: the optimised
+    free layer or generator (eval mode).
+    """
+
+    layer: Tensor
+    composite: Tensor
+    history: list[dict[str, Any]]
+    settings: DistillSettings
+    stopped_reason: StopReason
+    steps: int
+    seconds: float
+    model: nn.Module
+
+
+class _RunRecord(DistillSettings):
+    """What a checkpoint folder must match to be resumed: the settings, the inputs and the model."""
+
+    base_sha256: str
+    labels: tuple[str, ...]
+    negative: tuple[str, ...] | None = None
+    model_kind: str
+
+
+def resolve_settings(preset_or_settings, **overrides: Any) -> DistillSettings:
+    """``DistillSettings`` from a ``Preset`` (its layer and distill defaults) or from settings, with overrides."""
+    if isinstance(preset_or_settings, DistillSettings):
+        return preset_or_settings.with_overrides(**overrides)
+    if hasattr(preset_or_settings, "distill") and hasattr(preset_or_settings, "blend"):
+        return DistillSettings.from_preset(preset_or_settings, **overrides)
+    raise LasagnaError(f"got {type(preset_or_settings).__name__}; expected a Preset or DistillSettings", "preset_or_settings")
+
+
+def distill_image(
+    base: Tensor,
+    preset_or_settings,
+    prior: Prior,
+    corrective=None,
+    *,
+    condition: str | Sequence[str],
+    negative: str | Sequence[str] | None = None,
+    loss: str | None = None,
+    guidance: float | None = None,
+    steps: int | None = None,
+    lr: float | None = None,
+    seed: int | None = None,
+    generator: Literal["free"] | LayerGenerator | FreeLayer = "free",
+    patches: PatchConfig | None = None,
+    early_stop: EarlyStop | bool | None = None,
+    progress: bool = False,
+    checkpoint_dir: str | Path | None = None,
+    **settings_overrides: Any,
+) -> DistillResult:
+    """Distil the edit layer of ``base`` (B, 3, H, W) or (3, H, W) in [0, 1] (see the module docstring).
+
+    ``preset_or_settings``: a ``Preset`` (layer and distill defaults) or ``DistillSettings``; the
+    keywords loss, guidance, steps, lr, seed, patches, early_stop (``False`` disables it, ``True`` the
+    default rule) and any other ``DistillSettings`` field in ``settings_overrides`` override it
+    (``None`` keeps it). ``condition``: one label, or one per image; ``negative``: the second label
+    DDS (source) and NFSD (negative) need (DDS defaults to ``condition``). ``corrective``: b̂ for
+    LMC-SDS. ``generator``: ``"free"`` (a per-pixel layer per image), or a ``LayerGenerator`` /
+    ``FreeLayer`` to start from (copied, then fine-tuned). Runs on ``base``'s device.
+    """
+    named = dict(loss=loss, guidance=guidance, steps=steps, lr=lr, seed=seed, patches=patches)
+    if isinstance(early_stop, EarlyStop) or early_stop is True:
+        named["early_stop"] = early_stop if isinstance(early_stop, EarlyStop) else EarlyStop()
+    settings = resolve_settings(preset_or_settings, **settings_overrides, **named)
+    if early_stop is False:
+        settings = settings.model_copy(update={"early_stop": None})
+    base = _check_base(base)
+    b, _, h, w = base.shape
+    labels = label_list(condition, b)
+    neg = None if negative is None else label_list(negative, b, "negative")
+    model = _make_model(generator, settings, base)
+
+    spec = settings.layer
+    weights = settings.resolved_weights()
+    objective = ScoreObjective(spec, prior, build_loss(settings.loss, corrective, settings.loss_options, settings.t_min, settings.t_max),
+                               settings.guidance, weights, settings.condition_image)
+    size = prior_image_size(prior)
+    patchable = h >= size[0] and w >= size[1] and (h, w) != tuple(size)
+    whole_steps = round(settings.patches.whole_fraction * settings.steps) if patchable else settings.steps
+    model_in = labels if isinstance(model, LayerGenerator) else None
+    opt = torch.optim.Adam(model.parameters(), lr=settings.lr)
+    gen = torch.Generator().manual_seed(settings.seed)
+
+    step, history, stopped = 0, [], None
+    prev_layer: Tensor | None = None  # the layer of the previous step, for layer_change
+    prev_lr = 0.0
+    ckpt_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
+    if ckpt_dir is not None:
+        record = _RunRecord(**settings.model_dump(), base_sha256=_sha256(base), labels=tuple(labels),
+                            negative=None if neg is None else tuple(neg), model_kind=_model_kind(model))
+        ckpt_dir.mkdir(parents=True, exist_ok=True)
+        check_same_run(ckpt_dir, record)
+        if (ckpt_dir / CHECKPOINT).is_file():
+            step = load_checkpoint(ckpt_dir / CHECKPOINT, CHECKPOINT_FORMAT, model, None, opt, gen, base.device)
+            history, stopped = _read_history(ckpt_dir, step)
+            prev_layer, prev_lr = _read_previous(ckpt_dir, history)
+
+    clock = time.monotonic() - (history[-1]["time_s"] if history else 0.0)
+    bar = tqdm(total=settings.steps, initial=step, desc="distill", disable=not progress, dynamic_ncols=True)
+    model.train()
+    while stopped is None and step < settings.steps:
+        phase = "whole" if step < whole_steps else "patch"
+        lr_k = cosine_lr(settings.lr, step, settings.steps, settings.lr_final)
+        for group in opt.param_groups:
+            group["lr"] = lr_k
+        layer = model(base, model_in)
+        rows = draw_patches(b, (h, w), size, settings.patches.per_step, gen) if phase == "patch" else None
+        out = objective(base, layer, labels, generator=gen, step=step, patches=rows, negative=neg)
+        opt.zero_grad(set_to_none=True)
+        out.total.backward()
+        if settings.grad_clip is not None:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), settings.grad_clip)
+        opt.step()
+
+        now = layer.detach()
+        change = None
+        if prev_layer is not None:
+            change = float((now - prev_layer).pow(2).mean().sqrt()) / prev_lr
+        prev_layer, prev_lr = now, lr_k
+        history.append({"step": step, "phase": phase, "lr": lr_k, **out.summary(), "layer_change": change,
+                        "time_s": round(time.monotonic() - clock, 4)})
+        step += 1
+        bar.update(1)
+        bar.set_postfix(grad_norm=f"{history[-1]['grad_norm']:.3g}")
+        if settings.early_stop is not None and step < settings.steps and converged(history, settings.early_stop, phase):
+            stopped = "converged"
+        if ckpt_dir is not None and (step % settings.checkpoint_every == 0 or stopped or step == settings.steps):
+            _write_history(ckpt_dir, history, stopped, prev_layer)
+            save_checkpoint(ckpt_dir / CHECKPOINT, CHECKPOINT_FORMAT, step, record, model, None, opt, gen)
+    bar.close()
+
+    model.eval()
+    with torch.no_grad():
+        final = model(base, model_in).detach()
+        comp = composite(base, final, spec).clamp(0.0, 1.0)
+    seconds = history[-1]["time_s"] if history else 0.0
+    return DistillResult(layer=final, composite=comp, history=history, settings=settings, stopped_reason=stopped or "steps",
+                         steps=step, seconds=seconds, model=model)
+
+
+def converged(history: list[dict[str, Any]], rule: EarlyStop, phase: str) -> bool:
+    """The early-stopping test of the module docstring on ``history`` (records of ``phase`` only)."""
+    if len(history) < rule.min_steps:
+        return False
+    recs = [r for r in history if r["phase"] == phase and r["layer_change"] is not None]
+    w = rule.window
+    if len(recs) < 2 * w:
+        return False
+    recent, before = recs[-w:], recs[-2 * w:-w]
+    for key in ("grad_norm", "layer_change"):
+        now = sum(r[key] for r in recent) / w
+        then = sum(r[key] for r in before) / w
+        if not (math.isfinite(now) and math.isfinite(then)) or now < (1.0 - rule.rtol) * then:
+            return False  # still decreasing (or not a number: keep going, the caller sees it in history)
+    return True
+
+
+# -- helpers ---------------------------------------------------------------------------------------
+def _check_base(base: Tensor) -> Tensor:
+    if not isinstance(base, Tensor):
+        raise LasagnaError(f"base is a {type(base).__name__}; expected a tensor (B, 3, H, W) in [0, 1]", "base")
+    if base.dim() == 3:
+        base = base.unsqueeze(0)
+    if base.dim() != 4 or base.shape[1] != 3 or not base.is_floating_point():
+        raise LasagnaError(f"base has shape {tuple(base.shape)} and dtype {base.dtype}; expected a float (B, 3, H, W) tensor", "base")
+    if not bool(torch.isfinite(base).all()):
+        raise LasagnaError("base has NaN or infinite values; expected finite values in [0, 1]", "base")
+    lo, hi = float(base.min()), float(base.max())
+    if lo < 0.0 or hi > 1.0:
+        raise LasagnaError(f"base has values in [{lo:.4g}, {hi:.4g}]; expected [0, 1]", "base")
+    return base.detach()
+
+
+def _make_model(generator, settings: DistillSettings, base: Tensor) -> nn.Module:
+    b, _, h, w = base.shape
+    if isinstance(generator, str):
+        if generator != "free":
+            raise LasagnaError(f"generator is {generator!r}; expected 'free', a LayerGenerator or a FreeLayer", "generator")
+        return FreeLayer(FreeLayerConfig(layer=settings.layer, batch=b, height=h, width=w)).to(base.device)
+    if not isinstance(generator, (LayerGenerator, FreeLayer)):
+        raise LasagnaError(f"generator is a {type(generator).__name__}; expected 'free', a LayerGenerator or a FreeLayer", "generator")
+    if generator.spec != settings.layer:
+        raise LasagnaError(f"the generator makes {generator.spec.model_dump()}; expected the settings' layer {settings.layer.model_dump()}", "generator")
+    return copy.deepcopy(generator).to(base.device)
+
+
+def _model_kind(model: nn.Module) -> str:
+    if isinstance(model, FreeLayer):
+        return f"free:{_sha256(model.u)}"
+    digest = hashlib.sha256()
+    for k, v in model.state_dict().items():
+        digest.update(k.encode())
+        digest.update(_sha256(v).encode())
+    return f"generator:{digest.hexdigest()}"
+
+
+def _sha256(t: Tensor) -> str:
+    return hashlib.sha256(t.detach().to("cpu").contiguous().numpy().tobytes()).hexdigest()
+
+
+def _write_history(folder: Path, history: list[dict[str, Any]], stopped: str | None, prev_layer: Tensor | None) -> None:
+    """The history and the last step's layer (for the next step's layer_change), both before the checkpoint."""
+    if prev_layer is not None:
+        save_tensors(folder / PREVIOUS_FILE, {"layer": prev_layer}, {"step": str(len(history))})
+    atomic_write_text(folder / HISTORY_FILE, json.dumps({"stopped": stopped, "history": history}) + "\n")
+
+
+def _read_previous(folder: Path, history: list[dict[str, Any]]) -> tuple[Tensor | None, float]:
+    """The layer of the checkpointed run's last step and its learning rate (None before any step)."""
+    if not history:
+        return None, 0.0
+    tensors, meta = load_tensors(folder / PREVIOUS_FILE)
+    if meta.get("step") is None or int(meta["step"]) < len(history):
+        raise LasagnaError(f"{PREVIOUS_FILE} is older than the checkpoint; expected it written with it", str(folder))
+    # A later file (a kill between it and the checkpoint) holds a later layer: the first change after
+    # the resume is then left unmeasured (None), as at a run's first step.
+    return (tensors["layer"] if int(meta["step"]) == len(history) else None), history[-1]["lr"]
+
+
+def _read_history(folder: Path, step: int) -> tuple[list[dict[str, Any]], str | None]:
+    """The history up to the checkpointed ``step`` (written before the checkpoint, so never shorter)."""
+    path = folder / HISTORY_FILE
+    if not path.is_file():
+        raise LasagnaError(f"{HISTORY_FILE} is missing beside the checkpoint; expected both (delete the folder to start over)", str(folder))
+    doc = json.loads(path.read_text(encoding="utf-8"))
+    history = [r for r in doc["history"] if r["step"] < step]
+    if len(history) != step:
+        raise LasagnaError(f"{HISTORY_FILE} has {len(history)} steps before step {step}; expected {step}", str(path))
+    stopped = doc.get("stopped") if len(doc["history"]) == step else None
+    return history, stopped

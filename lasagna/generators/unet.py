@@ -1,0 +1,182 @@
+"""``LayerGenerator``: the conditioned convolutional U-Net that turns a base layer into an edit layer.
+
+The Lasagna paper's generator G(θ) = y (a "convolutional UNet", Ronneberger et al. 2015) sees the
+base layer x; the LMC-SDS paper's image-to-image network (supplementary, "Image-to-image translation
+network") is a U-Net with two Conv blocks per level and skip connections, whose class id is "a float
+value encoded using 10-dimensional frequency encoding concatenated to each pixel". Here:
+
+* input: the base (B, 3, H, W) in [0, 1], mapped to [−1, 1], concatenated per pixel with the
+  condition — ``condition="frequency"``: label i of V as the float x = (i + ½)/V (the centre of its
+  bin: x = 0 and x = 1 would share every encoding except cos(πx)) encoded as [sin(2^k π x),
+  cos(2^k π x)], k < ``num_freqs`` (LMC-SDS; 5 frequencies = 10 dims; cos(πx) alone is injective), or
+  ``"embedding"``: a learned ``label_dim``-vector per label (the CPU prototype's choice);
+* encoder: per level ``blocks`` × (Conv3×3 → SiLU), then 2×2 average pooling (every input pixel gets
+  a gradient, so a layer varies smoothly); the last level is the bottleneck; decoder: nearest ×2,
+  concatenate the skip, ``blocks`` × (Conv3×3 → SiLU). No normalisation layer: GroupNorm statistics
+  depend on the whole image, and the generator must give the same pixel whether it sees a patch or
+  the whole image (the patch strategy) — with plain convolutions it is local and fully convolutional;
+* head: a 1×1 convolution with **zero weights and the identity pre-activation as bias**, then the
+  layer's squash (``layer.activate``): the untrained generator outputs the identity edit for every
+  input, so its first composite equals the input (``layer.py`` states the exact values).
+
+Any H, W works: sides that are not multiples of 2^(levels − 1) are padded (replicating the border)
+and the output is cropped back. Widths (16, 32, 64, 128) with two blocks per level: ≈ 0.53 M
+parameters, a cheap 32² forward.
+"""
+from __future__ import annotations
+
+import os
+from typing import Literal, Sequence
+
+import torch
+import torch.nn.functional as F
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+from torch import Tensor, nn
+
+from lasagna.errors import ConditionError, LasagnaError
+from lasagna.generators.layer import LayerSpec, activate
+from lasagna.priors import io
+from lasagna.priors.nn import frequency_encoding
+
+FORMAT = "lasagna.layer_generator"
+
+
+class LayerGeneratorConfig(BaseModel):
+    """Everything that rebuilds a ``LayerGenerator`` (saved as config.json beside the weights)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    layer: LayerSpec = Field(description="The edit layer it produces (blend, channels, range, squash).")
+    vocabulary: tuple[str, ...] = Field(min_length=1, description="Condition labels, in index order.")
+    channels: tuple[int, ...] = Field((16, 32, 64, 128), min_length=1, description="Feature widths per level; the last is the bottleneck.")
+    blocks: int = Field(2, ge=1, description="Conv3×3+SiLU blocks per level.")
+    condition: Literal["frequency", "embedding"] = Field("frequency", description="How the label enters each pixel.")
+    num_freqs: int = Field(5, ge=1, description="Frequencies of the label's frequency encoding (2·num_freqs dims).")
+    label_dim: int = Field(8, ge=1, description="Size of the learned label embedding (condition='embedding').")
+    base_channels: int = Field(3, ge=1, description="Channels of the base layer it reads.")
+
+    @field_validator("vocabulary")
+    @classmethod
+    def _labels(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        if len(set(v)) != len(v) or any(not lab for lab in v):
+            raise ValueError(f"labels must be unique and non-empty; got {list(v)}")
+        return v
+
+    @field_validator("channels")
+    @classmethod
+    def _widths(cls, v: tuple[int, ...]) -> tuple[int, ...]:
+        if any(c < 1 for c in v):
+            raise ValueError(f"widths must be positive; got {list(v)}")
+        return v
+
+    @classmethod
+    def for_preset(cls, preset, **overrides) -> "LayerGeneratorConfig":
+        """A config producing ``preset``'s layer, conditioned on its vocabulary."""
+        return cls(layer=LayerSpec.from_preset(preset), vocabulary=tuple(preset.vocabulary), **overrides)
+
+    @property
+    def condition_dim(self) -> int:
+        return 2 * self.num_freqs if self.condition == "frequency" else self.label_dim
+
+
+def _convs(in_ch: int, out_ch: int, blocks: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i in range(blocks):
+        layers += [nn.Conv2d(in_ch if i == 0 else out_ch, out_ch, 3, padding=1), nn.SiLU()]
+    return nn.Sequential(*layers)
+
+
+class LayerGenerator(nn.Module):
+    """G(x, label) → edit layer (B, C, H, W) in the layer's range (see the module docstring)."""
+
+    def __init__(self, config: LayerGeneratorConfig):
+        super().__init__()
+        self.config = config
+        ch = config.channels
+        self.label_emb = nn.Embedding(len(config.vocabulary), config.label_dim) if config.condition == "embedding" else None
+        self.enc = nn.ModuleList()
+        prev = config.base_channels + config.condition_dim
+        for c in ch:
+            self.enc.append(_convs(prev, c, config.blocks))
+            prev = c
+        self.dec = nn.ModuleList(_convs(ch[i + 1] + ch[i], ch[i], config.blocks) for i in reversed(range(len(ch) - 1)))
+        self.head = nn.Conv2d(ch[0], config.layer.channels, 1)
+        with torch.no_grad():  # the identity edit for every input (module docstring)
+            self.head.weight.zero_()
+            self.head.bias.copy_(config.layer.identity_preactivation().to(self.head.bias.dtype))
+
+    @property
+    def spec(self) -> LayerSpec:
+        return self.config.layer
+
+    def label_index(self, labels: Tensor | Sequence[str] | str, batch: int) -> Tensor:
+        """(B,) long indices from label strings (one, or one per sample) or an index tensor."""
+        vocab = self.config.vocabulary
+        if isinstance(labels, Tensor):
+            idx = labels.reshape(-1).long()
+            if idx.numel() == 1:
+                idx = idx.expand(batch)
+            if idx.shape != (batch,) or bool(((idx < 0) | (idx >= len(vocab))).any()):
+                raise ConditionError(f"label indices {idx.tolist()}; expected {batch} indices in [0, {len(vocab) - 1}]", "labels")
+            return idx
+        names = [labels] * batch if isinstance(labels, str) else list(labels)
+        if len(names) == 1:
+            names = names * batch
+        if len(names) != batch:
+            raise ConditionError(f"got {len(names)} labels for a batch of {batch}; expected 1 or {batch}", "labels")
+        out = []
+        for name in names:
+            if name not in vocab:
+                raise ConditionError(f"unknown label {name!r}; expected one of {', '.join(vocab)}", "labels")
+            out.append(vocab.index(name))
+        return torch.tensor(out, dtype=torch.long)
+
+    def encode_condition(self, idx: Tensor, dtype: torch.dtype) -> Tensor:
+        """(B,) label indices → (B, condition_dim) per-sample condition vector."""
+        if self.label_emb is not None:
+            return self.label_emb(idx).to(dtype)
+        x = (idx.to(torch.float32) + 0.5) / len(self.config.vocabulary)  # class id as a float (LMC-SDS suppl.)
+        return frequency_encoding(x, self.config.num_freqs).to(dtype)
+
+    def raw(self, base: Tensor, labels: Tensor | Sequence[str] | str) -> Tensor:
+        """The head's pre-activation u (B, C, H, W), before the squash."""
+        cfg = self.config
+        if not isinstance(base, Tensor) or base.dim() != 4 or base.shape[1] != cfg.base_channels:
+            got = tuple(base.shape) if isinstance(base, Tensor) else type(base).__name__
+            raise LasagnaError(f"base has shape {got}; expected (B, {cfg.base_channels}, H, W) in [0, 1]", "base")
+        dtype = self.head.weight.dtype
+        b, _, h, w = base.shape
+        idx = self.label_index(labels, b).to(self.head.weight.device)
+        factor = 2 ** (len(cfg.channels) - 1)
+        ph, pw = (-h) % factor, (-w) % factor
+        x = base.to(dtype) * 2 - 1
+        if ph or pw:  # fully convolutional at any size: pad to a multiple of 2^(levels−1), crop back
+            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
+        cond = self.encode_condition(idx, dtype)[:, :, None, None].expand(-1, -1, h + ph, w + pw)
+        x = torch.cat([x, cond], dim=1)
+        skips = []
+        for i, block in enumerate(self.enc):
+            x = block(x)
+            if i < len(self.enc) - 1:
+                skips.append(x)
+                x = F.avg_pool2d(x, 2)
+        for block in self.dec:
+            x = F.interpolate(x, scale_factor=2.0, mode="nearest")
+            x = block(torch.cat([x, skips.pop()], dim=1))
+        return self.head(x)[:, :, :h, :w]
+
+    def forward(self, base: Tensor, labels: Tensor | Sequence[str] | str) -> Tensor:
+        """The edit layer (B, C, H, W) for base (B, 3, H, W) in [0, 1] and the labels."""
+        return activate(self.raw(base, labels), self.spec)
+
+    # -- persistence ------------------------------------------------------------------------------
+    def save_pretrained(self, directory: str | os.PathLike) -> None:
+        """Write ``model.safetensors`` + ``config.json`` (atomically) to ``directory``."""
+        io.save_pretrained(directory, self, self.config, FORMAT)
+
+    @classmethod
+    def from_pretrained(cls, directory: str | os.PathLike, device: str | torch.device = "cpu") -> "LayerGenerator":
+        """Rebuild the generator from its config and load its weights; returned in eval mode."""
+        model = cls(io.read_config(directory, FORMAT, LayerGeneratorConfig))
+        io.load_weights(directory, model, FORMAT)
+        return model.to(device).eval()
