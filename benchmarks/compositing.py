@@ -1,0 +1,368 @@
+"""Compositing benchmark: the compose tier against Pillow, a memory copy, culling, the prefix cache,
+autograd, and precision per dtype. Plain script; ends with one JSON line.
+
+    python benchmarks/compositing.py                # 2048² (about 1-2 minutes)
+    python benchmarks/compositing.py --quick        # 512², small precision table (< 30 s)
+
+The 4-layer stack: base RGB → multiply by a 1-channel luminosity layer → normal RGBA → plus RGB,
+every value on the 8-bit grid (k/255) so Pillow composes exactly the same inputs. Layer tensors and
+Pillow images are built before timing. Ratios (smaller is better for us):
+
+composite_vs_pillow   render(plan, out=buffer), float32, vs Pillow's uint8 chain ImageChops.multiply →
+                      Image.alpha_composite → ImageChops.add on RGBA images (alpha 255 where opaque,
+                      the multiplier pre-expanded to RGBA: the fastest form Pillow accepts)
+composite_vs_memcpy   the same render vs ``dst.copy_(src)`` of as many bytes as the render's inputs and
+                      output together (3+1+3+1+3 input channels + 3 output channels, float32)
+culled64_vs_live4     a 64-layer stack (the 4 live layers + 60 hidden / zero-opacity / identity /
+                      occluded ones) vs the 4 live layers alone, both compiled from layers on every call
+top_edit_vs_full      Renderer re-render after an in-place edit of the top layer vs a plain full
+                      render(plan); both allocate their output
+backward_vs_forward   forward + backward with every layer tensor (and the normal layer's opacity)
+                      requiring grad, clamp="output", vs the no-grad forward with a fresh output
+
+The script sets THP_MEM_ALLOC_ENABLE=1 before importing torch (PyTorch's switch to back large CPU
+allocations with transparent huge pages): a fresh 48 MiB output otherwise costs ~20 ms of page faults.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from PIL import Image, ImageChops  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _common import machine_info, median_time, print_json_line  # noqa: E402
+
+from lasagna.compose import LayerTensors, RenderLayerSpec, Renderer, compile_plan, render  # noqa: E402
+
+DTYPES = {"float64": torch.float64, "float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
+
+
+# ---- stacks --------------------------------------------------------------------------------------
+
+def grid(g: torch.Generator, *shape: int, top: int = 255) -> torch.Tensor:
+    """Random values on the 8-bit grid k/255 (k ≤ top), float32."""
+    return torch.randint(0, top + 1, shape, generator=g, dtype=torch.int32).float().div_(255.0)
+
+
+def four_layers(size: int, seed: int = 0) -> list[RenderLayerSpec]:
+    g = torch.Generator().manual_seed(seed)
+    return [
+        RenderLayerSpec(id="base", tensors=LayerTensors(grid(g, 3, size, size))),
+        RenderLayerSpec(id="shade", blend="multiply", tensors=LayerTensors(grid(g, 1, size, size))),
+        RenderLayerSpec(id="tint", tensors=LayerTensors(grid(g, 3, size, size), grid(g, 1, size, size))),
+        RenderLayerSpec(id="light", blend="plus", tensors=LayerTensors(grid(g, 3, size, size, top=64))),
+    ]
+
+
+def random_stack(n: int, size: int, seed: int) -> list[RenderLayerSpec]:
+    """Base + n-1 full-canvas layers cycling through normal RGBA, multiply 1-ch, screen RGB, plus RGB."""
+    g = torch.Generator().manual_seed(seed)
+    layers = [RenderLayerSpec(id="base", tensors=LayerTensors(grid(g, 3, size, size)))]
+    for i in range(1, n):
+        kind = ("normal", "multiply", "screen", "plus")[i % 4]
+        if kind == "normal":
+            t = LayerTensors(grid(g, 3, size, size), grid(g, 1, size, size, top=96))
+        elif kind == "multiply":  # mostly bright factors, so 256 layers do not all go black
+            t = LayerTensors(1.0 - grid(g, 1, size, size, top=12))
+        else:
+            t = LayerTensors(grid(g, 3, size, size, top=10))
+        layers.append(RenderLayerSpec(id=f"l{i}", blend=kind, tensors=t))
+    return layers
+
+
+def cast(layers: list[RenderLayerSpec], dtype: torch.dtype) -> list[RenderLayerSpec]:
+    out = []
+    for s in layers:
+        t = s.tensors
+        conv = [None if x is None else x.to(dtype) for x in (t.color, t.alpha, t.mask)]
+        out.append(RenderLayerSpec(id=s.id, blend=s.blend, opacity=s.opacity, tensors=LayerTensors(*conv)))
+    return out
+
+
+def culled_64(live: list[RenderLayerSpec], size: int) -> list[RenderLayerSpec]:
+    """The 4 live layers plus 15 each of occluded (below the opaque base), hidden, zero-opacity, identity."""
+    g = torch.Generator().manual_seed(1)
+    quarter = size // 4
+    layers = [RenderLayerSpec(id=f"occluded{i}", offset=(i * 7 % size, i * 13 % size),
+                              tensors=LayerTensors(grid(g, 3, quarter, quarter))) for i in range(15)]
+    layers.append(live[0])
+    extra = []
+    for i in range(15):
+        extra.append(RenderLayerSpec(id=f"hidden{i}", visible=False,
+                                     tensors=LayerTensors(grid(g, 3, quarter, quarter))))
+        extra.append(RenderLayerSpec(id=f"zero{i}", opacity=0.0, tensors=LayerTensors(grid(g, 3, quarter, quarter))))
+    ones = torch.ones(1, size, size)
+    zeros = torch.zeros(3, size // 2, size // 2)
+    for i in range(5):
+        extra.append(RenderLayerSpec(id=f"times_one{i}", blend="multiply", tensors=LayerTensors(ones.clone())))
+        extra.append(RenderLayerSpec(id=f"plus_zero{i}", blend="plus", offset=(i * 11, i * 3),
+                                     tensors=LayerTensors(zeros.clone())))
+        extra.append(RenderLayerSpec(id=f"transparent{i}", tensors=LayerTensors(
+            grid(g, 3, quarter, quarter), torch.zeros(1, quarter, quarter))))
+    # Interleave the 45 no-op layers between the 3 live layers above the base.
+    for k, spec in enumerate(live[1:]):
+        layers.extend(extra[k * 15:(k + 1) * 15])
+        layers.append(spec)
+    assert len(layers) == 64
+    return layers
+
+
+# ---- Pillow --------------------------------------------------------------------------------------
+
+def to_rgba(t: LayerTensors) -> Image.Image:
+    """A layer as the RGBA uint8 image Pillow composes (1 channel expanded to RGB, alpha 255 if none)."""
+    c = np.rint(t.color.double().numpy() * 255).astype(np.uint8)
+    c = np.broadcast_to(c, (3, *c.shape[1:]))
+    if t.alpha is None:
+        a = np.full((1, *c.shape[1:]), 255, np.uint8)
+    else:
+        a = np.rint(t.alpha.double().numpy() * 255).astype(np.uint8)
+    return Image.fromarray(np.ascontiguousarray(np.concatenate([c, a]).transpose(1, 2, 0)), "RGBA")
+
+
+def pillow_chain(layers: list[RenderLayerSpec]):
+    images = [(s.blend, to_rgba(s.tensors)) for s in layers]
+    ops = {"normal": Image.alpha_composite, "multiply": ImageChops.multiply, "plus": ImageChops.add,
+           "screen": ImageChops.screen}
+
+    def run() -> Image.Image:
+        img = images[0][1]
+        for blend, im in images[1:]:
+            img = ops[blend](img, im)
+        return img
+    return run
+
+
+def pillow_float(img: Image.Image) -> torch.Tensor:
+    return torch.from_numpy(np.asarray(img)[..., :3].transpose(2, 0, 1) / 255.0)
+
+
+# ---- measurements --------------------------------------------------------------------------------
+
+def precision_rows(n: int, size: int, repeats: int) -> list[dict]:
+    layers = random_stack(n, size, seed=n)
+    ref = render(cast(layers, torch.float64), canvas=(size, size)).image
+    ref_q = torch.round(ref * 255)
+    rows = []
+    for name, dtype in DTYPES.items():
+        plan = compile_plan(cast(layers, dtype), (size, size))
+        out = torch.empty(3, size, size, dtype=dtype)
+        t = median_time(lambda: render(plan, out=out), repeats)  # noqa: B023 (called at once)
+        img = render(plan).image.double()
+        rows.append(dict(layers=n, canvas=size, dtype=name, seconds=t, max_abs_err=(img - ref).abs().max().item(),
+                         max_levels_off=(torch.round(img.clamp(0, 1) * 255) - ref_q).abs().max().item()))
+    run = pillow_chain(layers)
+    t = median_time(run, repeats)
+    img = pillow_float(run())
+    rows.append(dict(layers=n, canvas=size, dtype="pillow-uint8", seconds=t, max_abs_err=(img - ref).abs().max().item(),
+                     max_levels_off=(torch.round(img * 255) - ref_q).abs().max().item()))
+    return rows
+
+
+def plot_precision(rows: list[dict], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from lasagna.io.atomic import atomic_path
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    markers = {"float64": "o", "float32": "s", "bfloat16": "^", "float16": "v", "pillow-uint8": "D"}
+    colours = {4: "tab:blue", 32: "tab:orange", 256: "tab:green"}
+    for r in rows:
+        ax.scatter(r["seconds"] * 1e3, max(r["max_abs_err"], 1e-9), marker=markers[r["dtype"]],
+                   color=colours.get(r["layers"], "k"), s=50)
+    for dt, m in markers.items():
+        ax.scatter([], [], marker=m, color="gray", label=dt)
+    for n, c in colours.items():
+        size = next((r["canvas"] for r in rows if r["layers"] == n), "?")
+        ax.scatter([], [], marker="o", color=c, label=f"{n} layers, {size}²")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("time per composite (ms, median)")
+    ax.set_ylabel("max |error| vs float64 (float64 itself drawn at 1e-9)")
+    threads = torch.get_num_threads()
+    ax.set_title(f"Compositing precision vs time ({threads} CPU thread{'s' if threads > 1 else ''})")
+    ax.legend(fontsize=7, ncol=2)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+
+
+def measure_threads(plan, out, reps: int, res: dict) -> None:
+    """Measure 1 and 2 threads once on the forward composite; keep the faster for everything else."""
+    per = {}
+    for n in (1, 2):
+        torch.set_num_threads(n)
+        per[n] = median_time(lambda: render(plan, out=out), reps)
+    threads = min(per, key=per.get)
+    torch.set_num_threads(threads)
+    res.update(threads=threads, composite_1thread_s=per[1], composite_2threads_s=per[2])
+    log(f"[threads] 1: {per[1]*1e3:.2f} ms, 2: {per[2]*1e3:.2f} ms -> {threads}")
+
+
+def measure_composite(layers, plan, out, size: int, reps: int, res: dict) -> None:
+    t_comp = median_time(lambda: render(plan, out=out), reps)
+    t_fresh = median_time(lambda: render(plan), reps)
+    run_pil = pillow_chain(layers)
+    t_pil = median_time(run_pil, reps)
+    pil_err = (pillow_float(run_pil()) - render(plan).image.double()).abs().max().item()
+    n_floats = size * size * (3 + 1 + 3 + 1 + 3 + 3)  # inputs 3+1+3+1+3 channels, output 3
+    src, dst = torch.rand(n_floats), torch.empty(n_floats)
+    t_copy = median_time(lambda: dst.copy_(src), reps)
+    res.update(composite_s=t_comp, composite_fresh_output_s=t_fresh, pillow_s=t_pil, memcpy_s=t_copy,
+               memcpy_bytes=n_floats * 4, pillow_max_abs_err=pil_err,
+               composite_vs_pillow=t_comp / t_pil, composite_fresh_output_vs_pillow=t_fresh / t_pil,
+               composite_vs_memcpy=t_comp / t_copy)
+    log(f"[composite] out=: {t_comp*1e3:.2f} ms, fresh output: {t_fresh*1e3:.2f} ms, Pillow: {t_pil*1e3:.2f} ms, "
+        f"copy of {n_floats*4/2**20:.0f} MiB: {t_copy*1e3:.2f} ms")
+
+
+def measure_culling(layers, plan, out, size: int, reps: int, res: dict) -> None:
+    """64 layers (60 no-ops) vs the 4 live ones, both compiled from the layer list on every call."""
+    many = culled_64(layers, size)
+    check = render(many, canvas=(size, size))
+    assert len(check.evaluated) == 4 and torch.equal(check.image, render(plan).image)
+    reasons = list(check.skipped.values())
+    res["culled64_skips"] = {r: reasons.count(r) for r in sorted(set(reasons))}
+    t64 = median_time(lambda: render(many, canvas=(size, size), out=out), reps)
+    t4 = median_time(lambda: render(layers, canvas=(size, size), out=out), reps)
+    res.update(culled64_s=t64, live4_s=t4, culled64_vs_live4=t64 / t4)
+    log(f"[culling] 64 layers: {t64*1e3:.2f} ms, 4 live: {t4*1e3:.2f} ms")
+
+
+def measure_prefix_cache(layers, out, size: int, reps: int, res: dict) -> None:
+    """Edit only the top layer (one pixel, in place, outside the timed region) and re-render."""
+    renderer = Renderer((size, size))
+    t_cold = median_time(lambda: (renderer.clear(), renderer.render(layers)), max(3, reps // 2))
+    top = layers[-1].tensors.color
+
+    def edits(use_out: bool) -> float:
+        renderer.render(layers)
+        times = []
+        for i in range(reps + 1):
+            top[0, 0, i % size] = 16 / 255 if i % 2 else 0.0  # bumps the tensor's version
+            times.append(median_time(lambda: renderer.render(layers, out=out if use_out else None), 1, warmup=0))
+            assert renderer.last_recomputed == ["light"]
+        return float(np.median(times[1:]))
+
+    t_top, t_top_out = edits(False), edits(True)
+    assert torch.equal(renderer.render(layers).image, render(layers, canvas=(size, size)).image)
+    t_full = median_time(lambda: render(layers, canvas=(size, size)), reps)
+    t_full_out = median_time(lambda: render(layers, canvas=(size, size), out=out), reps)
+    res.update(top_edit_s=t_top, top_edit_out_s=t_top_out, renderer_cold_s=t_cold, full_render_s=t_full,
+               full_render_out_s=t_full_out, top_edit_vs_full=t_top / t_full,
+               top_edit_vs_full_out=t_top_out / t_full_out, top_edit_vs_cold_renderer=t_top / t_cold)
+    log(f"[prefix cache] top edit: {t_top*1e3:.2f} ms (out=: {t_top_out*1e3:.2f}), full render: {t_full*1e3:.2f} ms "
+        f"(out=: {t_full_out*1e3:.2f}), cold renderer: {t_cold*1e3:.2f} ms")
+
+
+def learned_copy(layers, learn: set[str]) -> list[RenderLayerSpec]:
+    """The stack with fresh leaf copies (requires_grad) of every tensor of the layers in ``learn``."""
+    out = []
+    for s in layers:
+        t = s.tensors
+        if s.id in learn:
+            t = LayerTensors(*[None if x is None else x.clone().requires_grad_() for x in t.tensors()])
+        out.append(RenderLayerSpec(id=s.id, blend=s.blend, tensors=t))
+    return out
+
+
+def measure_autograd(layers, size: int, reps: int, res: dict) -> None:
+    """Forward + backward with every layer learned (and a learned opacity) vs the no-grad forward."""
+    every = {s.id for s in layers}
+    timings = {}
+    for clamp in (None, "output"):
+        grad_layers = learned_copy(layers, every)
+        grad_layers[2] = RenderLayerSpec(id="tint", tensors=grad_layers[2].tensors,
+                                         opacity=torch.tensor(0.9, requires_grad=True))
+        for engine in ("banded", "autograd"):
+            plan = compile_plan(grad_layers, (size, size), clamp=clamp)
+            timings[clamp, engine] = median_time(
+                lambda: render(plan, grad_engine=engine).image.sum().backward(), reps)  # noqa: B023 (called at once)
+        timings[clamp, "forward_grad"] = median_time(lambda: render(plan), reps)  # noqa: B023
+        nograd = compile_plan(layers, (size, size), clamp=clamp)
+        timings[clamp, "forward"] = median_time(lambda: render(nograd), reps)  # noqa: B023
+    if torch.get_num_threads() != 1:  # the backward's many small band ops may prefer one thread
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        grad_none = learned_copy(layers, every)
+        plan_none = compile_plan(grad_none, (size, size), clamp=None)
+        nograd = compile_plan(layers, (size, size), clamp=None)
+        t1_fb = median_time(lambda: render(plan_none).image.sum().backward(), reps)
+        t1_f = median_time(lambda: render(nograd), reps)
+        torch.set_num_threads(threads)
+        res.update(backward_vs_forward_1thread=t1_fb / t1_f, forward_1thread_s=t1_f, forward_backward_1thread_s=t1_fb)
+        log(f"[autograd, 1 thread] clamp=None: forward {t1_f*1e3:.2f} ms, forward+backward {t1_fb*1e3:.2f} ms")
+    top_plan = compile_plan(learned_copy(layers, {"light"}), (size, size), clamp=None)
+    t_top = median_time(lambda: render(top_plan).image.sum().backward(), reps)
+    f = timings[None, "forward"]
+    res.update(forward_s=f, forward_grad_s=timings[None, "forward_grad"], forward_backward_s=timings[None, "banded"],
+               forward_backward_autograd_engine_s=timings[None, "autograd"],
+               backward_vs_forward=timings[None, "banded"] / f,
+               backward_vs_forward_autograd_engine=timings[None, "autograd"] / f,
+               backward_vs_forward_clamp_output=timings["output", "banded"] / timings["output", "forward"],
+               learned_top_fwd_bwd_vs_forward=t_top / f)
+    log(f"[autograd] clamp=None: forward {f*1e3:.2f} ms, with grad {timings[None, 'forward_grad']*1e3:.2f}, "
+        f"forward+backward banded {timings[None, 'banded']*1e3:.2f} / autograd {timings[None, 'autograd']*1e3:.2f}; "
+        f"clamp=output: {timings['output', 'forward']*1e3:.2f} vs {timings['output', 'banded']*1e3:.2f}; "
+        f"learned top only {t_top*1e3:.2f}")
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--size", type=int, default=2048, help="canvas side of the 4-layer stack (default 2048)")
+    ap.add_argument("--repeats", type=int, default=9, help="timed runs per measurement, median reported")
+    ap.add_argument("--quick", action="store_true", help="512² and a small precision table (< 30 s)")
+    ap.add_argument("--precision-size", type=int, default=512, help="canvas side of the 32/256-layer rows")
+    ap.add_argument("--plot", default=None,
+                    help="where to write the precision plot ('' = none; default docs/img/compositing_precision.png, "
+                         "none with --quick)")
+    args = ap.parse_args()
+    if args.quick:
+        args.size, args.repeats, args.precision_size = min(args.size, 512), min(args.repeats, 3), 128
+    if args.plot is None:
+        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        args.plot = "" if args.quick else os.path.join(root, "docs", "img", "compositing_precision.png")
+    size, reps = args.size, args.repeats
+    res: dict = {"size": size, "repeats": reps, "thp_mem_alloc_enable": os.environ.get("THP_MEM_ALLOC_ENABLE")}
+
+    layers = four_layers(size)
+    plan = compile_plan(layers, (size, size))
+    out = torch.empty(3, size, size)
+    measure_threads(plan, out, reps, res)
+    measure_composite(layers, plan, out, size, reps, res)
+    measure_culling(layers, plan, out, size, reps, res)
+    measure_prefix_cache(layers, out, size, reps, res)
+    measure_autograd(layers, size, reps, res)
+
+    prec_reps = max(1, min(reps, 3))
+    rows = precision_rows(4, size, prec_reps) + precision_rows(32, args.precision_size, prec_reps) \
+        + precision_rows(256, args.precision_size, prec_reps)
+    res["precision"] = [{k: (round(v, 9) if isinstance(v, float) else v) for k, v in r.items()} for r in rows]
+    log(f"{'layers':>6} {'canvas':>6} {'dtype':>13} {'ms':>9} {'max|err|':>10} {'levels':>6}")
+    for r in rows:
+        log(f"{r['layers']:>6} {r['canvas']:>6} {r['dtype']:>13} {r['seconds']*1e3:>9.2f} {r['max_abs_err']:>10.2e} "
+            f"{r['max_levels_off']:>6.0f}")
+    if args.plot:
+        plot_precision(rows, args.plot)
+    res["machine"] = machine_info()
+    print_json_line(res)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,84 @@
+"""sRGB transfer functions: IEC 61966-2-1 decode (sRGB → linear light) and encode (linear → sRGB).
+
+Used when a document asks for ``blend_space="linear"``: colour values are decoded, blended in linear
+light, and the composite is encoded back. Multiply factors are ratios of linear light and are never
+passed through these functions (docs/ARCHITECTURE.md).
+
+Both functions use the exact constants of IEC 61966-2-1:1999 (the piecewise curve with the linear
+toe: threshold 0.04045 / 0.0031308, slope 12.92, offset 0.055, exponent 2.4), and extend the curve
+to negative values odd-symmetrically, ``f(x) = sign(x)·f(|x|)``, as CSS Color Module Level 4 does
+for its "extended" sRGB (values outside [0, 1] appear in unclamped intermediates). Values above 1
+follow the power segment.
+
+Autograd: each branch of the ``torch.where`` is evaluated everywhere, and the gradient of the branch
+*not* selected still enters the backward pass multiplied by zero — ``0·inf`` or ``0·nan`` would poison
+it. The power segment therefore reads its argument clamped to the power domain (``|x| ≥ threshold``),
+so its gradient is finite at 0 where the linear segment is selected (gradient 1/12.92 at x = 0 for
+decode, 12.92 for encode). All arithmetic stays in the input's dtype (float64-safe: the constants are
+Python floats, exact to the printed digits in float64).
+
+The standard's two segments do not meet exactly (0.04045 / 12.92 = 0.0031308049…): decode jumps by
+2.3e-9 at its threshold and encode by 2.9e-8 at its own, so a float64 round trip is exact to 3e-8 for
+values between the two thresholds and to ~1e-15 elsewhere (tested).
+"""
+from __future__ import annotations
+
+import torch
+
+from lasagna.errors import LasagnaError
+
+# IEC 61966-2-1:1999, section 5.2 (encoding) and 5.3 (decoding).
+SRGB_DECODE_THRESHOLD = 0.04045  # encoded value where the linear toe ends
+SRGB_ENCODE_THRESHOLD = 0.0031308  # linear value where the linear toe ends
+SRGB_SLOPE = 12.92
+SRGB_OFFSET = 0.055
+SRGB_GAMMA = 2.4
+
+
+def _check(x: torch.Tensor, where: str) -> None:
+    if not isinstance(x, torch.Tensor) or not x.is_floating_point():
+        got = x.dtype if isinstance(x, torch.Tensor) else type(x).__name__
+        raise LasagnaError(f"expected a floating-point tensor, got {got}", where=where)
+
+
+def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
+    """Decode sRGB-encoded values to linear light (IEC 61966-2-1, extended odd-symmetrically).
+
+    ``x/12.92`` for ``|x| ≤ 0.04045``, else ``sign(x)·((|x| + 0.055)/1.055)^2.4``. Differentiable,
+    with a finite gradient everywhere (1/12.92 at 0).
+    """
+    _check(x, "srgb_to_linear")
+    a = x.abs()
+    # Clamp into the power segment's domain so its (unselected) gradient stays finite near 0.
+    power = ((a.clamp_min(SRGB_DECODE_THRESHOLD) + SRGB_OFFSET) / (1.0 + SRGB_OFFSET)).pow(SRGB_GAMMA)
+    return torch.where(a <= SRGB_DECODE_THRESHOLD, x / SRGB_SLOPE, torch.copysign(power, x))
+
+
+def linear_to_srgb(y: torch.Tensor) -> torch.Tensor:
+    """Encode linear-light values to sRGB (IEC 61966-2-1, extended odd-symmetrically).
+
+    ``12.92·y`` for ``|y| ≤ 0.0031308``, else ``sign(y)·(1.055·|y|^(1/2.4) − 0.055)``.
+    Differentiable, with a finite gradient everywhere (12.92 at 0; ``|y|^(1/2.4)`` has an infinite
+    slope at 0, which is why its argument is clamped to the power segment's domain).
+    """
+    _check(y, "linear_to_srgb")
+    a = y.abs()
+    power = (1.0 + SRGB_OFFSET) * a.clamp_min(SRGB_ENCODE_THRESHOLD).pow(1.0 / SRGB_GAMMA) - SRGB_OFFSET
+    return torch.where(a <= SRGB_ENCODE_THRESHOLD, y * SRGB_SLOPE, torch.copysign(power, y))
+
+
+def srgb_to_linear_derivative(x: torch.Tensor) -> torch.Tensor:
+    """d srgb_to_linear / dx: 1/12.92 on the toe, else (2.4/1.055)·((|x| + 0.055)/1.055)^1.4 (even in x)."""
+    _check(x, "srgb_to_linear_derivative")
+    a = x.abs()
+    power = (SRGB_GAMMA / (1.0 + SRGB_OFFSET)) * (
+        (a.clamp_min(SRGB_DECODE_THRESHOLD) + SRGB_OFFSET) / (1.0 + SRGB_OFFSET)).pow(SRGB_GAMMA - 1.0)
+    return torch.where(a <= SRGB_DECODE_THRESHOLD, torch.full_like(x, 1.0 / SRGB_SLOPE), power)
+
+
+def linear_to_srgb_derivative(y: torch.Tensor) -> torch.Tensor:
+    """d linear_to_srgb / dy: 12.92 on the toe, else (1.055/2.4)·|y|^(1/2.4 − 1) (even in y)."""
+    _check(y, "linear_to_srgb_derivative")
+    a = y.abs()
+    power = ((1.0 + SRGB_OFFSET) / SRGB_GAMMA) * a.clamp_min(SRGB_ENCODE_THRESHOLD).pow(1.0 / SRGB_GAMMA - 1.0)
+    return torch.where(a <= SRGB_ENCODE_THRESHOLD, torch.full_like(y, SRGB_SLOPE), power)

@@ -1,0 +1,209 @@
+"""The two forward engines behind ``render`` and ``Renderer``: banded in-place, and functional.
+
+``run_fast``        no autograd. The canvas is composited in horizontal bands of about
+                    ``TILE_PIXELS`` pixels; within a band every layer is applied in place (``lerp_``,
+                    ``mul_`` by a factor computed on the layer's own channels, ``addcmul_``) and
+                    clamped only where ``clamp_needed`` says a clamp can change something, so the band
+                    stays in cache while the whole stack passes over it: each input pixel is read once
+                    and the output written once.
+``run_functional``  pure functions from ``blend.py`` (autograd records every step). A layer covering
+                    only part of the canvas writes its result into a fresh clone of the canvas — the
+                    previous canvas may be saved for backward, so it is never modified in place.
+
+The banded backward (``backward.py``) pairs ``run_fast``'s forward with closed-form derivatives.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from lasagna.compose.blend import KERNELS, KERNELS_INPLACE, Alpha
+from lasagna.compose.color import linear_to_srgb, srgb_to_linear
+from lasagna.compose.plan import PlanStep, RenderPlan
+
+# Canvas pixels (times batch entries) per band of the fast path. 2^18 float32 RGB pixels are 3 MB:
+# the band and the layer rows it reads stay in cache (L2 1 MB, L3 32 MB here) while all layers pass
+# over it, and bands are few enough that Python's ~35 µs per band and 4 layers stays small.
+# Measured on a 2048² 4-layer stack (AMD EPYC, 1 thread, best of 15): 2^15 → 13.5 ms, 2^16 → 11.5,
+# 2^17 → 10.7, 2^18 → 10.5, 2^19 → 10.6; the whole canvas at once (no bands) → 15.3 ms.
+TILE_PIXELS = 1 << 18
+
+def canvas_shape(plan: RenderPlan) -> tuple[int, ...]:
+    return (*plan.batch_shape, 3, *plan.canvas)
+
+
+def background_tensor(plan: RenderPlan, dtype: torch.dtype) -> Tensor:
+    """The background as a ``(3, 1, 1)`` tensor, decoded to linear light in the linear blend space."""
+    bg = torch.tensor(plan.background, dtype=torch.float64).view(3, 1, 1)
+    if plan.blend_space == "linear":
+        bg = srgb_to_linear(bg)
+    return bg.to(dtype=dtype, device=plan.device)
+
+
+def _color(step: PlanStep, sl: tuple, dtype: torch.dtype, grad: bool) -> Tensor:
+    """The layer's colour under ``sl``, decoded to linear light if the step says so, in ``dtype``."""
+    t = step.spec.tensors
+    if step.decode:
+        cs = srgb_to_linear(t.color[sl]) if grad and t.color.requires_grad else t.decoded_color()[sl]
+    else:
+        cs = t.color[sl]
+    return cs if cs.dtype == dtype else cs.to(dtype)
+
+
+def _alpha(step: PlanStep, sl: tuple, dtype: torch.dtype, grad: bool) -> Alpha:
+    """α = alpha × mask × opacity for the slice; a number when it is one, None when opaque."""
+    if step.opaque:
+        return None
+    t, op = step.spec.tensors, step.spec.opacity
+    if isinstance(op, Tensor):
+        if not (grad and op.requires_grad) and op.ndim == 0:
+            op = float(op)
+        if isinstance(op, Tensor) and op.dtype != dtype:
+            op = op.to(dtype)
+    a = None
+    for x in (t.alpha, t.mask):
+        if x is not None:
+            x = x[sl] if x.dtype == dtype else x[sl].to(dtype)
+            a = x if a is None else a * x
+    if a is None:
+        return op
+    if isinstance(op, Tensor) or op != 1.0:
+        a = a * op
+    return a
+
+
+def _clamp_(region: Tensor, step: PlanStep) -> None:
+    if step.clamp_lo and step.clamp_hi:
+        region.clamp_(0.0, 1.0)
+    elif step.clamp_lo:
+        region.clamp_min_(0.0)
+    elif step.clamp_hi:
+        region.clamp_max_(1.0)
+
+
+def _clamp(x: Tensor, step: PlanStep) -> Tensor:
+    if step.clamp_lo and step.clamp_hi:
+        return x.clamp(0.0, 1.0)
+    if step.clamp_lo:
+        return x.clamp_min(0.0)
+    if step.clamp_hi:
+        return x.clamp_max(1.0)
+    return x
+
+
+def rows_per_band(plan: RenderPlan, pixels: int) -> int:
+    """Canvas rows in a band of about ``pixels`` pixels (times batch entries), at least one."""
+    batch = 1
+    for s in plan.batch_shape:
+        batch *= s
+    return max(1, pixels // (plan.canvas[1] * batch))
+
+
+def first_grad_step(plan: RenderPlan, begin: int = 0) -> int:
+    """Index of the first step from ``begin`` that needs autograd (len(steps) if none or grad is off)."""
+    if torch.is_grad_enabled():
+        for j in range(begin, len(plan.steps)):
+            if plan.steps[j].requires_grad:
+                return j
+    return len(plan.steps)
+
+
+# ---- fast path -----------------------------------------------------------------------------------
+
+def run_fast(
+    plan: RenderPlan,
+    begin: int,
+    end: int,
+    dtype: torch.dtype,
+    source: Tensor | None,
+    buffers: Sequence[Tensor],
+    switch_at: Sequence[int] = (),
+    post: bool = True,
+) -> None:
+    """Composite ``plan.steps[begin:end]`` in place, band by band, without autograd.
+
+    ``buffers[0]`` receives the starting canvas: a copy of ``source`` (the canvas before step
+    ``begin``) or, when ``source`` is None, the background. Before step ``switch_at[k]`` the band is
+    copied into ``buffers[k + 1]`` and compositing continues there, so each earlier buffer keeps the
+    canvas as it was before that step (the prefix cache's snapshots). ``post`` applies the output
+    clamp and sRGB encoding to the last buffer.
+    """
+    steps = plan.steps[begin:end]
+    H = plan.canvas[0]
+    bg = background_tensor(plan, dtype) if source is None else None
+    # Skip the background fill when an opaque normal layer covering the canvas comes first.
+    first = steps[0] if steps else None
+    fill = not (source is None and first is not None and first.opaque and first.full
+                and first.blend == "normal" and (not switch_at or switch_at[0] > begin))
+    rows = rows_per_band(plan, TILE_PIXELS)
+    with torch.no_grad():
+        for r0 in range(0, H, rows):
+            r1 = min(H, r0 + rows)
+            k = 0
+            cur = buffers[0][..., r0:r1, :]
+            if source is not None:
+                cur.copy_(source[..., r0:r1, :])
+            elif fill:
+                cur.copy_(bg)
+            for j, step in enumerate(steps, start=begin):
+                while k < len(switch_at) and switch_at[k] == j:
+                    k += 1
+                    cur = buffers[k][..., r0:r1, :].copy_(cur)
+                if step.y0 >= r1 or step.y1 <= r0:
+                    continue
+                a0, a1 = max(step.y0, r0), min(step.y1, r1)
+                region = cur[..., a0 - r0:a1 - r0, step.x0:step.x1]
+                sl = step.layer_slice(a0, a1)
+                KERNELS_INPLACE[step.blend](region, _color(step, sl, dtype, False), _alpha(step, sl, dtype, False))
+                _clamp_(region, step)
+            while k < len(switch_at):
+                k += 1
+                cur = buffers[k][..., r0:r1, :].copy_(cur)
+            if post:
+                if plan.clamp == "output":
+                    cur.clamp_(0.0, 1.0)
+                if plan.blend_space == "linear":
+                    cur.copy_(linear_to_srgb(cur))
+
+
+# ---- functional path -----------------------------------------------------------------------------
+
+def run_functional(
+    plan: RenderPlan,
+    begin: int,
+    dtype: torch.dtype,
+    canvas: Tensor | None,
+    rows: tuple[int, int] | None = None,
+) -> Tensor:
+    """Composite ``plan.steps[begin:]`` with pure functions, from ``canvas`` (None: the background).
+
+    ``rows = (r0, r1)`` restricts the work to those canvas rows (``canvas`` is then that band).
+    """
+    H, W = plan.canvas
+    r0, r1 = rows if rows is not None else (0, H)
+    shape = (*plan.batch_shape, 3, r1 - r0, W)
+    if canvas is None:
+        canvas = background_tensor(plan, dtype).expand(shape)
+    for step in plan.steps[begin:]:
+        if step.y0 >= r1 or step.y1 <= r0:
+            continue
+        a0, a1 = max(step.y0, r0), min(step.y1, r1)
+        sl = step.layer_slice(a0, a1)
+        cs, a = _color(step, sl, dtype, True), _alpha(step, sl, dtype, True)
+        if a0 == r0 and a1 == r1 and step.x0 == 0 and step.x1 == W:
+            canvas = _clamp(KERNELS[step.blend](canvas, cs, a), step)
+        else:
+            rect = (..., slice(a0 - r0, a1 - r0), slice(step.x0, step.x1))
+            new = _clamp(KERNELS[step.blend](canvas[rect], cs, a), step)
+            # A fresh clone: the previous canvas may be saved for backward by the blend above.
+            canvas = canvas.expand(shape).clone()
+            canvas[rect] = new
+    if plan.clamp == "output":
+        canvas = canvas.clamp(0.0, 1.0)
+    if plan.blend_space == "linear":
+        canvas = linear_to_srgb(canvas)
+    if canvas.shape != shape:
+        canvas = canvas.expand(shape)
+    return canvas.contiguous()

@@ -1,0 +1,389 @@
+"""The render plan: which layers a composite needs, the rectangle each one touches, and why others are skipped.
+
+``compile_plan`` turns a bottom-to-top list of ``RenderLayerSpec`` into a ``RenderPlan``. For every
+layer it records either a live ``PlanStep`` — the canvas rectangle ``canvas ∩ layer`` and the matching
+slice of the layer, whether the layer is opaque (blended with α = None), which clamps it needs — or a
+skip reason, checked in this order:
+
+``hidden``          ``visible`` is false (always skipped: a hidden layer is not part of the image);
+``zero-opacity``    opacity is exactly 0 (never for an opacity tensor that requires grad: its
+                    gradient is not zero);
+``outside-canvas``  the layer's rectangle does not meet the canvas (always skipped: nothing to do);
+``occluded``        an opaque ``normal`` layer above it (α = 1 everywhere, opacity 1, mask absent or
+                    all 1) covers its clipped rectangle, so its pixels cannot reach the output. An
+                    opaque normal layer covering the whole canvas hides the background and every
+                    layer below it: rendering starts from it (no background fill);
+``identity``        blending it changes nothing, bit for bit: multiply by 1, plus or screen of 0, or
+                    alpha × mask = 0 everywhere — with finite colour (``LayerTensors.is_identity``);
+                    never for a layer whose tensors require grad.
+
+The last two are *culling* (``cull=True``, the default); with ``cull=False`` those layers are blended
+like any other, which is how the tests prove that culling never changes a result. Occlusion is tested
+before identity because it needs no pixel of the occluded layer. Culled layers receive no gradient
+(``.grad`` stays None) — their true gradient is zero.
+
+The statistics behind ``occluded``/``identity``/opacity and the clamp decisions are cached on each
+``LayerTensors`` (``layer.py``), so compiling a plan again after an edit reads no unchanged pixels.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import reduce
+from typing import TYPE_CHECKING, Any, Literal, Mapping, Sequence, Union
+
+import torch
+from torch import Tensor
+
+from lasagna.compose.blend import BLEND_MODES, broadcast_shape, check_blend_name, clamp_needed
+from lasagna.compose.color import srgb_to_linear
+from lasagna.compose.layer import LayerTensors
+from lasagna.errors import LasagnaError
+
+if TYPE_CHECKING:
+    from lasagna.compose.render import RenderResult
+
+SkipReason = Literal["hidden", "zero-opacity", "outside-canvas", "occluded", "identity"]
+BlendSpace = Literal["srgb", "linear"]
+ClampPolicy = Literal["layer", "output", None]
+Opacity = Union[float, Tensor]
+
+_ID_OK = r"any non-empty string, unique in the stack"
+
+
+def _number(x: object) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RenderLayerSpec:
+    """One layer of a stack as the compositor sees it (document-free).
+
+    ``opacity`` is a number in [0, 1] or a tensor (0-d, or ``(..., 1, 1, 1)`` per batch entry) that
+    may require grad. ``offset`` is ``(x, y)`` of the layer's top-left corner on the canvas (may be
+    negative or put the layer outside). ``range`` is ``(lo, hi)``, the interval the colour values were
+    mapped to; it only matters for clamping a layer that carries gradients (see ``clamp_needed``).
+    ``encoded``: the colour is sRGB-encoded, so it is decoded when blending in linear light —
+    except for ``multiply``, whose values are factors and are never decoded.
+    """
+
+    id: str
+    tensors: LayerTensors
+    blend: str = "normal"
+    opacity: Opacity = 1.0
+    visible: bool = True
+    offset: tuple[int, int] = (0, 0)
+    range: tuple[float, float] = (0.0, 1.0)
+    encoded: bool = True
+
+    def __post_init__(self) -> None:
+        where = f"layer {self.id!r}"
+        if not isinstance(self.id, str) or not self.id:
+            raise LasagnaError(f"id is {self.id!r}; expected {_ID_OK}", where="RenderLayerSpec.id")
+        if not isinstance(self.tensors, LayerTensors):
+            raise LasagnaError(f"tensors is a {type(self.tensors).__name__}; expected LayerTensors", where=where)
+        check_blend_name(self.blend, where=f"{where} blend")
+        op = self.opacity
+        if isinstance(op, Tensor):
+            if not op.is_floating_point() or not (op.ndim == 0 or (op.ndim >= 3 and op.shape[-3:] == (1, 1, 1))):
+                raise LasagnaError(f"opacity tensor has shape {tuple(op.shape)} and dtype {op.dtype}; expected a "
+                                   "floating-point 0-d tensor or (..., 1, 1, 1)", where=where)
+            if not op.requires_grad:
+                lo, hi = torch.aminmax(op.detach())
+                if not (0.0 <= float(lo) and float(hi) <= 1.0):
+                    raise LasagnaError(f"opacity spans [{float(lo)}, {float(hi)}]; expected values in [0, 1]",
+                                       where=where)
+        elif not _number(op) or not 0.0 <= op <= 1.0:
+            raise LasagnaError(f"opacity is {op!r}; expected a number in [0, 1] or a tensor", where=where)
+        if not isinstance(self.visible, bool):
+            raise LasagnaError(f"visible is {self.visible!r}; expected true or false", where=where)
+        if (not isinstance(self.offset, (tuple, list)) or len(self.offset) != 2
+                or not all(isinstance(v, int) and not isinstance(v, bool) for v in self.offset)):
+            raise LasagnaError(f"offset is {self.offset!r}; expected two integers (x, y)", where=where)
+        r = self.range
+        if (not isinstance(r, (tuple, list)) or len(r) != 2 or not all(_number(v) and math.isfinite(v) for v in r)
+                or not r[0] < r[1]):
+            raise LasagnaError(f"range is {r!r}; expected (lo, hi), finite, with lo < hi", where=where)
+        if not isinstance(self.encoded, bool):
+            raise LasagnaError(f"encoded is {self.encoded!r}; expected true or false", where=where)
+
+    @property
+    def requires_grad(self) -> bool:
+        return self.tensors.requires_grad or (isinstance(self.opacity, Tensor) and self.opacity.requires_grad)
+
+    def opacity_value(self) -> float | None:
+        """The opacity as a number when it is one value that carries no gradient, else None."""
+        op = self.opacity
+        if not isinstance(op, Tensor):
+            return float(op)
+        if op.requires_grad:
+            return None
+        lo, hi = torch.aminmax(op.detach())
+        return float(lo) if float(lo) == float(hi) else None
+
+
+@dataclass(frozen=True)
+class PlanStep:
+    """A live layer: canvas rows ``y0:y1``, columns ``x0:x1``; layer slice starts at ``(ly0, lx0)``."""
+
+    index: int
+    spec: RenderLayerSpec
+    y0: int
+    y1: int
+    x0: int
+    x1: int
+    ly0: int
+    lx0: int
+    opaque: bool  # alpha × mask × opacity is exactly 1 and carries no gradient: blend with α = None
+    clamp_lo: bool  # clamp="layer" must clamp below 0 after this blend
+    clamp_hi: bool  # ... and above 1
+    decode: bool  # decode the colour from sRGB (linear blend space, encoded, not multiply)
+    full: bool  # the rectangle is the whole canvas
+
+    @property
+    def blend(self) -> str:
+        return self.spec.blend
+
+    @property
+    def requires_grad(self) -> bool:
+        return self.spec.requires_grad
+
+    def layer_slice(self, y0: int | None = None, y1: int | None = None) -> tuple[Any, ...]:
+        """Index of the layer's pixels under canvas rows ``y0:y1`` (default: the whole rectangle)."""
+        y0 = self.y0 if y0 is None else y0
+        y1 = self.y1 if y1 is None else y1
+        ly = self.ly0 + (y0 - self.y0)
+        return (..., slice(ly, ly + (y1 - y0)), slice(self.lx0, self.lx0 + (self.x1 - self.x0)))
+
+
+@dataclass(frozen=True)
+class RenderPlan:
+    """A compiled stack: live steps bottom to top, and a skip reason for every other layer."""
+
+    layers: tuple[RenderLayerSpec, ...]
+    canvas: tuple[int, int]  # (H, W)
+    background: tuple[float, float, float]
+    blend_space: BlendSpace
+    clamp: ClampPolicy
+    cull: bool
+    steps: tuple[PlanStep, ...]
+    reasons: tuple[SkipReason | None, ...]  # one per layer; None = live
+    batch_shape: torch.Size
+    dtype: torch.dtype
+    device: torch.device
+    skipped: dict[str, SkipReason] = field(default_factory=dict)
+
+    @property
+    def evaluated(self) -> list[str]:
+        return [s.spec.id for s in self.steps]
+
+    def render(self, **kwargs: Any) -> "RenderResult":
+        """``render(self, **kwargs)``; see ``lasagna.compose.render.render``."""
+        from lasagna.compose.render import render
+
+        return render(self, **kwargs)
+
+
+def _contains(outer: tuple[int, int, int, int], inner: tuple[int, int, int, int]) -> bool:
+    return outer[0] <= inner[0] and inner[1] <= outer[1] and outer[2] <= inner[2] and inner[3] <= outer[3]
+
+
+def _decoded_bound(v: float) -> float:
+    return float(srgb_to_linear(torch.tensor(v, dtype=torch.float64)))
+
+
+def _check_config(canvas: object, background: object, blend_space: object, clamp: object) -> None:
+    if (not isinstance(canvas, (tuple, list)) or len(canvas) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in canvas)):
+        raise LasagnaError(f"canvas is {canvas!r}; expected (height, width), positive integers", where="compile_plan")
+    if (not isinstance(background, (tuple, list)) or len(background) != 3
+            or not all(_number(v) and 0.0 <= v <= 1.0 for v in background)):
+        raise LasagnaError(f"background is {background!r}; expected opaque RGB, three numbers in [0, 1]",
+                           where="compile_plan")
+    if blend_space not in ("srgb", "linear"):
+        raise LasagnaError(f"blend_space is {blend_space!r}; expected 'srgb' or 'linear'", where="compile_plan")
+    if clamp not in ("layer", "output", None):
+        raise LasagnaError(f"clamp is {clamp!r}; expected 'layer', 'output' or None", where="compile_plan")
+
+
+def compile_plan(
+    layers: Sequence[RenderLayerSpec],
+    canvas: tuple[int, int],
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    blend_space: BlendSpace = "srgb",
+    clamp: ClampPolicy = "layer",
+    *,
+    cull: bool = True,
+) -> RenderPlan:
+    """Compile bottom-to-top ``layers`` on a ``canvas = (H, W)`` into a ``RenderPlan`` (module docstring)."""
+    _check_config(canvas, background, blend_space, clamp)
+    layers = tuple(layers)
+    seen: dict[str, int] = {}
+    for i, spec in enumerate(layers):
+        if not isinstance(spec, RenderLayerSpec):
+            raise LasagnaError(f"is a {type(spec).__name__}; expected RenderLayerSpec", where=f"layers[{i}]")
+        if spec.id in seen:
+            raise LasagnaError(f"id {spec.id!r} is used by layers[{seen[spec.id]}] too; expected unique ids",
+                               where=f"layers[{i}]")
+        seen[spec.id] = i
+    H, W = canvas
+    n = len(layers)
+    reasons: list[SkipReason | None] = [None] * n
+    rects: list[tuple[int, int, int, int]] = []
+    for i, spec in enumerate(layers):
+        ox, oy = spec.offset
+        t = spec.tensors
+        rect = (max(0, oy), min(H, oy + t.height), max(0, ox), min(W, ox + t.width))
+        rects.append(rect)
+        if not spec.visible:
+            reasons[i] = "hidden"
+        elif cull and spec.opacity_value() == 0.0:
+            reasons[i] = "zero-opacity"
+        elif rect[0] >= rect[1] or rect[2] >= rect[3]:
+            reasons[i] = "outside-canvas"
+
+    def opaque(spec: RenderLayerSpec) -> bool:
+        t = spec.tensors
+        if spec.opacity_value() != 1.0:
+            return False
+        if t.alpha is None and t.mask is None:
+            return True
+        return not any(x is not None and x.requires_grad for x in (t.alpha, t.mask)) and t.is_opaque()
+
+    opaque_flags = [False] * n
+    occluders: list[tuple[int, int, int, int]] = []
+    for i in range(n - 1, -1, -1):  # top down: occluders are the opaque normal layers above
+        if reasons[i] is not None:
+            continue
+        spec = layers[i]
+        if cull and any(_contains(o, rects[i]) for o in occluders):
+            reasons[i] = "occluded"
+            continue
+        if cull and not spec.requires_grad and spec.tensors.is_identity(spec.blend):
+            reasons[i] = "identity"
+            continue
+        opaque_flags[i] = opaque(spec)
+        if opaque_flags[i] and spec.blend == "normal":
+            occluders.append(rects[i])
+
+    steps: list[PlanStep] = []
+    for i, spec in enumerate(layers):
+        if reasons[i] is not None:
+            continue
+        y0, y1, x0, x1 = rects[i]
+        ox, oy = spec.offset
+        decode = blend_space == "linear" and spec.encoded and spec.blend != "multiply"
+        clamp_lo = clamp_hi = False
+        if clamp == "layer":
+            clamp_lo, clamp_hi = _clamps(spec, decode)
+        steps.append(PlanStep(i, spec, y0, y1, x0, x1, y0 - oy, x0 - ox, opaque_flags[i], clamp_lo, clamp_hi,
+                              decode, (y0, y1, x0, x1) == (0, H, 0, W)))
+
+    batch: torch.Size = torch.Size()
+    for s in steps:
+        shapes = [batch, s.spec.tensors.batch_shape]
+        if isinstance(s.spec.opacity, Tensor) and s.spec.opacity.ndim:
+            shapes.append(s.spec.opacity.shape[:-3])
+        try:
+            batch = torch.Size(broadcast_shape(*shapes))
+        except RuntimeError:
+            raise LasagnaError(f"batch dimensions {tuple(shapes[1])} do not broadcast with {tuple(batch)} of the "
+                               "layers below; expected equal sizes or 1", where=f"layer {s.spec.id!r}") from None
+    devices = {s.spec.tensors.color.device for s in steps}
+    if len(devices) > 1:
+        raise LasagnaError(f"live layers are on several devices {sorted(map(str, devices))}; expected one",
+                           where="compile_plan")
+    dtype = (reduce(torch.promote_types, (s.spec.tensors.color.dtype for s in steps)) if steps
+             else torch.get_default_dtype())
+    device = devices.pop() if devices else torch.device("cpu")
+    skipped = {spec.id: r for spec, r in zip(layers, reasons) if r is not None}
+    return RenderPlan(layers, (H, W), tuple(float(v) for v in background), blend_space, clamp, cull,  # type: ignore[arg-type]
+                      tuple(steps), tuple(reasons), batch, dtype, device, skipped)
+
+
+def _clamps(spec: RenderLayerSpec, decode: bool) -> tuple[bool, bool]:
+    """Which clamps ``clamp="layer"`` needs after this layer (``clamp_needed`` on proven bounds)."""
+    t = spec.tensors
+    if any(x is not None and x.requires_grad for x in (t.alpha, t.mask)) or (
+            isinstance(spec.opacity, Tensor) and spec.opacity.requires_grad):
+        return True, True  # α is not proven to lie in [0, 1]
+    a_lo, a_hi = t.alpha_range()
+    if not (0.0 <= a_lo and a_hi <= 1.0):
+        return True, True
+    # A learned colour's parametrisation (lo + (hi - lo)·sigmoid) keeps it in its declared range;
+    # a fixed colour is measured once (cached).
+    if t.color.requires_grad:
+        lo, hi = spec.range
+    elif t.has_color_range():
+        lo, hi = t.color_range()
+    else:
+        # A sampled value that needs a clamp proves a clamp is needed; clamping both sides then costs
+        # the same pass as one side, and the layer's pixels need not be read (an edited layer).
+        s_lo, s_hi = t.sample_color_range()
+        if decode:
+            s_lo, s_hi = _decoded_bound(s_lo), _decoded_bound(s_hi)
+        if any(clamp_needed(spec.blend, s_lo, s_hi)):
+            return True, True
+        lo, hi = t.color_range()
+    if decode:
+        lo, hi = _decoded_bound(lo), _decoded_bound(hi)
+    return clamp_needed(spec.blend, lo, hi)
+
+
+# ---- document adapter -----------------------------------------------------------------------------
+
+def _solid_tensors(layer: Any, lo: float, hi: float, width: int, height: int, where: str) -> LayerTensors:
+    rgba = [float(v) for v in layer.color]
+    if len(rgba) not in (3, 4):
+        raise LasagnaError(f"color has {len(rgba)} components; expected RGB or RGBA", where=f"{where}.color")
+    size = getattr(layer, "size", None)
+    h, w = (size.height, size.width) if size is not None else (height, width)
+    dtype = torch.get_default_dtype()
+    # RGB is range-mapped like a PNG's values (y = lo + (hi - lo)·v); alpha never is. Zero-stride
+    # views: a solid layer costs no memory however large it is.
+    rgb = [lo + (hi - lo) * v for v in rgba[:3]]
+    color = torch.tensor(rgb, dtype=dtype).view(3, 1, 1).expand(3, h, w)
+    alpha = None
+    if len(rgba) == 4 and rgba[3] != 1.0:
+        alpha = torch.tensor([rgba[3]], dtype=dtype).view(1, 1, 1).expand(1, h, w)
+    return LayerTensors(color, alpha)
+
+
+def plan_from_document(doc: Any, tensors: Mapping[str, LayerTensors], *, cull: bool = True) -> RenderPlan:
+    """Compile a ``lasagna.document`` ``Document`` with its loaded pixels into a ``RenderPlan``.
+
+    ``tensors`` maps layer ids to their ``LayerTensors`` (colour already range-mapped, mask loaded
+    when the layer names one). ``solid`` layers may be omitted: they are built from their colour
+    (RGB range-mapped, alpha not) and size. A ``learned`` layer with neither a ``source`` nor tensors
+    has no pixels yet and is left out of the plan (it appears neither in ``evaluated`` nor in
+    ``skipped``). Reads the document through its attributes only (docs/ARCHITECTURE.md), so the
+    compositor does not import the document tier.
+    """
+    width, height = int(doc.canvas.width), int(doc.canvas.height)
+    specs: list[RenderLayerSpec] = []
+    for i, layer in enumerate(doc.layers):
+        where = f"layers[{i}]"
+        rng = layer.range
+        lo, hi = (rng.lo, rng.hi) if hasattr(rng, "lo") else tuple(rng)
+        lt = tensors.get(layer.id)
+        if lt is None:
+            if layer.kind == "solid":
+                lt = _solid_tensors(layer, float(lo), float(hi), width, height, where)
+            elif layer.kind == "learned" and getattr(layer, "source", None) is None:
+                continue
+            else:
+                raise LasagnaError(f"no tensors for {layer.kind} layer {layer.id!r}; expected tensors[{layer.id!r}] "
+                                   "(load its source first)", where=where)
+        if getattr(layer, "mask", None) is not None and lt.mask is None:
+            raise LasagnaError(f"names mask {str(layer.mask)!r} but tensors[{layer.id!r}].mask is None; expected the "
+                               "loaded mask", where=f"{where}.mask")
+        blend = getattr(layer.blend, "value", layer.blend)
+        specs.append(RenderLayerSpec(
+            id=layer.id, tensors=lt, blend=blend, opacity=float(layer.opacity), visible=bool(layer.visible),
+            offset=(int(layer.offset.x), int(layer.offset.y)), range=(float(lo), float(hi)), encoded=True))
+    background = tuple(float(v) for v in doc.canvas.background)
+    return compile_plan(specs, (height, width), background, doc.blend_space, doc.clamp, cull=cull)  # type: ignore[arg-type]
+
+
+__all__ = ["RenderLayerSpec", "PlanStep", "RenderPlan", "SkipReason", "compile_plan", "plan_from_document",
+           "BLEND_MODES"]
