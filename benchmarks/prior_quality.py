@@ -47,6 +47,18 @@ def heldout(task: str, count: int, resolution: int, seed: int):
     return x0, [vocab[i] for i in lab_idx.tolist()], cond
 
 
+def train_seconds(log: list[dict], step: int) -> float:
+    """Training wall time up to ``step``, summed over invocations (each resume restarts elapsed_s)."""
+    total, last = 0.0, 0.0
+    for r in log:
+        if r["elapsed_s"] < last:  # a new invocation began
+            total += last
+        last = r["elapsed_s"]
+        if r["step"] >= step:
+            break
+    return total + last
+
+
 def loss_plot(log: list[dict], path: Path, title: str) -> None:
     import matplotlib
 
@@ -99,15 +111,20 @@ def main(argv=None) -> int:
     growth = []
     if args.snapshots is not None:
         x_s, l_s, c_s = heldout(config.task, args.snapshot_count, res, args.seed)
+        final_step = log[-1]["step"] if log else None
+        seen = set()
         for snap in sorted(args.snapshots.glob("*.safetensors")):
             p, step = prior_from_checkpoint(snap)
-            elapsed = next((r["elapsed_s"] for r in log if r["step"] >= step), None)
+            if step in seen or step == final_step:  # copies taken after training stopped add nothing
+                continue
+            seen.add(step)
+            elapsed = train_seconds(log, step)
             q = sample_quality(p, x_s, l_s, c_s, omegas=(1.0,), steps=args.steps, seed=args.seed)
             growth.append({"step": step, "train_minutes": None if elapsed is None else round(elapsed / 60, 1),
                            "psnr_omega1": round(q[1.0]["all"], 2)})
         final_q = sample_quality(prior, x_s, l_s, c_s, omegas=(1.0,), steps=args.steps, seed=args.seed)
-        growth.append({"step": log[-1]["step"] if log else None,
-                       "train_minutes": round(log[-1]["elapsed_s"] / 60, 1) if log else None,
+        growth.append({"step": final_step,
+                       "train_minutes": round(train_seconds(log, final_step) / 60, 1) if log else None,
                        "psnr_omega1": round(final_q[1.0]["all"], 2), "final_ema": True})
 
     dest = args.out / args.name
@@ -119,7 +136,7 @@ def main(argv=None) -> int:
     metrics = {
         "name": args.name, "task": config.task, "params": n_params, "resolution": res,
         "steps": log[-1]["step"] if log else None,
-        "train_minutes": round(log[-1]["elapsed_s"] / 60, 1) if log else None,
+        "train_minutes": round(train_seconds(log, log[-1]["step"]) / 60, 1) if log else None,
         "heldout_scenes": args.count, "ddim_steps": args.steps,
         "psnr": {str(w): {k: round(v, 2) for k, v in q.items()} for w, q in quality.items()},
         "denoise_mse_per_t": {str(k): round(v, 6) for k, v in denoise.items()},

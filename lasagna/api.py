@@ -10,6 +10,10 @@
     stack.add_solid("tint", (1.0, 0.5, 0.0, 0.25), blend="normal")
     lasagna.export_ora(stack, "out/stack.ora")
 
+    from lasagna.api import edit, render_learned            # learned layers (lasagna.edit)
+    result = edit("photo.png", "shading", "left")          # EditResult: stack, layer, composite, settings
+    result.save("out/relit")                               # the stack folder `lasagna edit` writes
+
 Tensors and float arrays are layer values y (a [0, 2] multiplier is given in [0, 2]); PIL images and
 integer arrays are stored codes, mapped by the layer's range like a PNG in a stack folder. Everything
 here is a thin name for a function of ``lasagna.io`` / ``lasagna.export``; see them for details.
@@ -23,6 +27,7 @@ from typing import Any
 import torch
 
 from lasagna.compose.render import RenderResult
+from lasagna.edit import EditResult, edit, render_learned
 from lasagna.export.ora import export_ora, import_ora
 from lasagna.export.png import export_layer_pngs
 from lasagna.io.render import render_stack, write_composite
@@ -31,6 +36,7 @@ from lasagna.io.stack import Stack, load_stack, save_stack, stack_from_tensors
 __all__ = [
     "Stack", "RenderResult", "load", "render", "save", "from_image", "from_tensors",
     "export_ora", "export_psd", "import_ora", "export_layer_pngs", "write_composite",
+    "EditResult", "edit", "render_learned",
 ]
 
 

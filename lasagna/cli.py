@@ -5,7 +5,11 @@
     lasagna validate STACK                        check the document and every PNG: "ok: N layers"
     lasagna schema [stack|preset] [--out DIR]     print (or write) the JSON Schemas
     lasagna import-ora IN.ora -o FOLDER           an OpenRaster file as a stack folder
-    lasagna demo -o DIR                           composite and export the example stack
+    lasagna edit IMAGE --layer P --condition L -o OUT   add a learned layer; writes a stack folder
+    lasagna render STACK [--all]                  render learned layers from their stored settings
+    lasagna layers                                list the learned-layer catalogue
+    lasagna train-layer --preset P [--out DIR]    train a preset's amortised generator
+    lasagna demo -o DIR                           relight and colourise the bundled examples
     lasagna world -o DIR --split S --count N      procedural scenes as stack folders (lasagna.world)
 
 STACK is a stack folder or its stack.json. Any bad input ends with one line on stderr,
@@ -13,9 +17,9 @@ STACK is a stack folder or its stack.json. Any bad input ends with one line on s
 touched: every output is rendered/encoded in memory and written atomically at the end. Set
 ``LASAGNA_DEBUG=1`` to see the traceback of an unexpected error. Ctrl-C exits with 130.
 
-Adding a subcommand is adding one ``Command`` to ``COMMANDS`` (``render``, ``edit``, ``train-*``
-are planned); ``_lazy`` names a function of another tier without importing it at startup
-(``world`` is wired that way).
+Adding a subcommand is adding one ``Command`` to ``COMMANDS``; ``_lazy`` names a function of another
+module without importing it at startup (``world``, ``train-*`` and the learned-layer commands of
+``lasagna.cli_learned`` are wired that way).
 """
 from __future__ import annotations
 
@@ -204,45 +208,19 @@ def cmd_import_ora(args) -> int:
 
 def _demo_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", default="out/demo", metavar="DIR", help="output folder (default out/demo)")
-
-
-def example_stack(name: str = "basic") -> Path:
-    """The bundled example stack ``examples/stacks/<name>`` (in a checkout, or under the current folder)."""
-    for root in (Path(__file__).resolve().parents[1], Path.cwd()):
-        candidate = root / "examples" / "stacks" / name
-        if (candidate / "stack.json").is_file():
-            return candidate
-    raise PathError(f"example stack {name!r} not found; expected examples/stacks/{name}/stack.json in the checkout",
-                    where="demo")
+    p.add_argument("--steps", type=int, default=None, metavar="N",
+                   help="per-image steps for a preset without an amortised generator (default: the preset's)")
 
 
 def cmd_demo(args) -> int:
-    """Temporary demo (the learned-layer demo replaces it): composite and export the example stack."""
-    from lasagna.export.ora import export_ora
-    from lasagna.export.png import export_layer_pngs
-    from lasagna.io.render import render_stack, write_composite
-    from lasagna.io.stack import load_stack
+    """Relight and colourise the bundled examples (``lasagna.demo``); falls back to the example stack."""
+    from lasagna.demo import run_demo
 
     out = Path(args.output)
     _check_writable(out, folder=True)
-    source = example_stack("basic")
-    stack = load_stack(source)
-    result = render_stack(stack)
-    written = [write_composite(result, out / "composite.png"),
-               export_ora(stack, out / "basic.ora", composite=result.image, warn=_warn)]
-    try:
-        from lasagna.export.psd import export_psd
-
-        written.append(export_psd(stack, out / "basic.psd", composite=result.image, warn=_warn))
-    except LasagnaError as err:  # psd-tools missing: the rest of the demo still stands
-        _warn(str(err))
-    export_layer_pngs(stack, out / "layers")
-    stack.save(out / "stack")
-    print(f"example stack: {source}")
-    print(f"composed {', '.join(result.evaluated)}; skipped {', '.join(f'{k} ({v})' for k, v in result.skipped.items()) or 'none'}")
-    for path in written:
-        print(f"wrote {path}")
-    print(f"wrote {out / 'layers'}/ (raw layer values) and {out / 'stack'}/ (a copy of the stack)")
+    if args.steps is not None and args.steps < 1:
+        raise LasagnaError(f"expected a positive integer, got {args.steps}", where="--steps")
+    run_demo(out, steps=args.steps, warn=_warn)
     return 0
 
 
@@ -268,7 +246,14 @@ COMMANDS: dict[str, Command] = {
     "validate": Command("check a stack's document and every PNG it names", _validate_args, cmd_validate),
     "schema": Command("print or write the JSON Schemas", _schema_args, cmd_schema),
     "import-ora": Command("read an OpenRaster file into a new stack folder", _import_ora_args, cmd_import_ora),
-    "demo": Command("composite and export the example stack into a folder", _demo_args, cmd_demo),
+    "edit": Command("add a learned layer (relight, colourise, …) to an image or stack; writes a stack folder",
+                    _lazy("lasagna.cli_learned", "edit_arguments"), _lazy("lasagna.cli_learned", "run_edit")),
+    "render": Command("render a stack's learned layers from their stored generator and settings",
+                      _lazy("lasagna.cli_learned", "render_arguments"), _lazy("lasagna.cli_learned", "run_render")),
+    "layers": Command("list the learned-layer catalogue: presets, priors, correctives, generators",
+                      _lazy("lasagna.cli_learned", "layers_arguments"), _lazy("lasagna.cli_learned", "run_layers")),
+    "demo": Command("relight and colourise the bundled examples; writes stacks and one sheet to look at",
+                    _demo_args, cmd_demo),
     "world": Command("write procedural scenes with ground truth as layer-stack folders",
                      _lazy("lasagna.world.cli", "world_arguments"), _lazy("lasagna.world.cli", "run_world")),
     "train-prior": Command("train a bundled conditional prior on the procedural world (resumable)",
@@ -276,6 +261,9 @@ COMMANDS: dict[str, Command] = {
     "train-corrective": Command("train the LMC-SDS manifold corrective b̂ of a prior (resumable)",
                                 _lazy("lasagna.losses.corrective_train", "build_parser"),
                                 _lazy("lasagna.losses.corrective_train", "run")),
+    "train-layer": Command("train a preset's amortised layer generator on the world (resumable)",
+                           _lazy("lasagna.cli_learned", "train_layer_arguments"),
+                           _lazy("lasagna.cli_learned", "run_train_layer")),
 }
 
 

@@ -104,14 +104,6 @@ def test_export_needs_an_output(capsys):
     assert code == 2 and "expected at least one of --ora" in err
 
 
-def test_demo(tmp_path, capsys):
-    code, out, err = run(capsys, "demo", "-o", tmp_path / "demo")
-    assert code == 0, err
-    for name in ("composite.png", "basic.ora", "basic.psd", "layers/layers.json", "stack/stack.json"):
-        assert (tmp_path / "demo" / name).is_file(), name
-    assert str(tmp_path / "demo") in out
-
-
 # ---- hostile input --------------------------------------------------------------------------------------
 
 

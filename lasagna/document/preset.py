@@ -142,8 +142,16 @@ def default_catalogues() -> list[Path]:
     """Catalogue folders searched for preset names: ``$LASAGNA_LAYERS`` (os.pathsep-separated),
     then the repository's ``layers/`` when running from a checkout."""
     dirs = [Path(p) for p in os.environ.get("LASAGNA_LAYERS", "").split(os.pathsep) if p]
-    checkout = Path(__file__).resolve().parents[2] / "layers"
-    return dirs + ([checkout] if checkout.is_dir() else [])
+    root = Path(__file__).resolve().parents[2]
+    # A checkout has pyproject.toml beside layers/; an installed package's parents[2] is
+    # site-packages, whose layers/ (if any) belongs to someone else. The installed copy of the
+    # catalogue is lasagna/_layers (see pyproject.toml).
+    checkout = root / "layers" if (root / "pyproject.toml").is_file() else None
+    installed = Path(__file__).resolve().parents[1] / "_layers"
+    # In a checkout lasagna/_layers holds only its PACKAGING.md placeholder: listed only with entries.
+    if not (installed.is_dir() and any(p.is_dir() for p in installed.iterdir())):
+        installed = None
+    return dirs + [d for d in (checkout, installed) if d is not None and d.is_dir()]
 
 
 def resolve_preset(

@@ -1,0 +1,313 @@
+"""The learned-layer catalogue: presets, priors, correctives and amortised generators found by name.
+
+A catalogue is a folder of named entries (``layers/`` in a checkout, ``lasagna/_layers/`` in an
+installed wheel; see layers/README.md)::
+
+    <catalogue>/
+      shading/preset.json      kind "preset": what a learned layer is (lasagna.document.Preset)
+      shading/generator/       kind "generator": the preset's amortised LayerGenerator
+                               (model.safetensors + config.json, format lasagna.layer_generator)
+      relight-32/              kind "prior": a UNetPrior (config.json, format lasagna.unet_prior), or
+                               a diffusers folder (model_index.json or unet/ + scheduler/, optional controlnet/)
+      relight-32-bhat/         kind "corrective": LMC-SDS's b̂ (config.json, format lasagna.corrective)
+
+**Search order** (the first entry of the asked kind wins): ``<stack>/layers/`` (presets only, when a
+stack folder is given: a preset shipped inside a stack), the folders of ``$LASAGNA_LAYERS``
+(``os.pathsep``-separated), the checkout's ``layers/`` — the order of
+``lasagna.document.default_catalogues()`` — then the installed package's copy. A reference
+containing '/' (or a ``Path``) is a path, not a name; a preset's ``prior``/``corrective`` paths are
+relative to the preset's folder (layers/README.md). An unknown name is one ``LasagnaError`` listing
+where it looked and every name of that kind it found.
+
+    from lasagna import catalogue
+    preset = catalogue.load_preset("shading")
+    parts = catalogue.resolve("shading")        # preset, preset_file, prior, corrective, generator (paths)
+    prior = catalogue.load_prior(parts.prior)
+    catalogue.available()                       # {"preset": [...], "prior": [...], ...}
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Sequence
+
+from lasagna.document.preset import Preset, default_catalogues, resolve_preset
+from lasagna.document.preset import load_preset as _load_preset_file
+from lasagna.errors import DocumentError, LasagnaError
+
+Kind = Literal["preset", "prior", "corrective", "generator"]
+KINDS: tuple[str, ...] = ("preset", "prior", "corrective", "generator")
+
+# The ``format`` in an entry's config.json that makes it a prior, a corrective or a generator
+# (the FORMAT constants of lasagna.priors.unet, lasagna.losses.corrective, lasagna.generators.unet,
+# repeated here so that listing a catalogue imports no torch).
+FORMATS: dict[str, str] = {
+    "lasagna.unet_prior": "prior",
+    "lasagna.corrective": "corrective",
+    "lasagna.layer_generator": "generator",
+}
+GENERATOR_DIR = "generator"  # <catalogue>/<preset>/generator/: the preset's amortised generator
+PACKAGED = Path(__file__).resolve().parent / "_layers"  # where a wheel installs the catalogue
+
+def catalogues(extra: Sequence[str | os.PathLike] | None = None) -> list[Path]:
+    """Catalogue folders in search order: ``extra`` first, then ``default_catalogues()``, then the
+    installed package's copy. Folders that do not exist are left out; duplicates (one folder reached
+    twice, e.g. through an editable install) are listed once."""
+    out: list[Path] = []
+    seen: set[Path] = set()
+    # In a checkout lasagna/_layers holds only its PACKAGING.md placeholder: listed only when it has entries.
+    packaged = [PACKAGED] if PACKAGED.is_dir() and any(p.is_dir() for p in PACKAGED.iterdir()) else []
+    for folder in [*(Path(p) for p in (extra or ())), *default_catalogues(), *packaged]:
+        key = folder.resolve()
+        if folder.is_dir() and key not in seen:
+            seen.add(key)
+            out.append(folder)
+    return out
+
+
+def _places(catalogue_dirs: Sequence[str | os.PathLike] | None) -> list[Path]:
+    return catalogues() if catalogue_dirs is None else [Path(p) for p in catalogue_dirs if Path(p).is_dir()]
+
+
+def _format_of(folder: Path) -> str | None:
+    """The ``format`` of ``folder/config.json``, or None (no file, unreadable, not a lasagna config)."""
+    try:
+        doc = json.loads((folder / "config.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return doc.get("format") if isinstance(doc, dict) else None
+
+
+def _is_diffusers(folder: Path) -> bool:
+    return (folder / "model_index.json").is_file() or ((folder / "unet").is_dir() and (folder / "scheduler").is_dir())
+
+
+def entry_kinds(folder: Path) -> set[str]:
+    """The kinds the catalogue entry ``folder`` provides (a preset folder may also hold its generator)."""
+    kinds = set()
+    if (folder / "preset.json").is_file():
+        kinds.add("preset")
+        if _format_of(folder / GENERATOR_DIR) == "lasagna.layer_generator":
+            kinds.add("generator")
+    fmt = FORMATS.get(_format_of(folder) or "")
+    if fmt is not None:
+        kinds.add(fmt)
+    if _is_diffusers(folder):
+        kinds.add("prior")
+    return kinds
+
+
+def _entry_path(folder: Path, kind: str) -> Path:
+    """What ``find`` returns for an entry: preset.json, the generator's folder, or the entry itself."""
+    if kind == "preset":
+        return folder / "preset.json"
+    if kind == "generator" and (folder / GENERATOR_DIR / "config.json").is_file():
+        return folder / GENERATOR_DIR
+    return folder
+
+
+def available(kind: Kind | None = None, catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> dict[str, list[str]]:
+    """Names per kind in the catalogues (all four kinds, or only ``kind``), each list sorted."""
+    kinds = KINDS if kind is None else (_check_kind(kind),)
+    found: dict[str, set[str]] = {k: set() for k in kinds}
+    for place in _places(catalogue_dirs):
+        for folder in sorted(p for p in place.iterdir() if p.is_dir()):
+            for k in entry_kinds(folder) & set(kinds):
+                found[k].add(folder.name)
+    return {k: sorted(v) for k, v in found.items()}
+
+
+def _check_kind(kind: str) -> str:
+    if kind not in KINDS:
+        raise LasagnaError(f"unknown kind {kind!r}; expected one of {', '.join(KINDS)}", "catalogue")
+    return kind
+
+
+def locate(name: str, kind: Kind = "preset", stack_dir: str | os.PathLike | None = None,
+           catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> Path | None:
+    """Like ``find`` for a name, but None when no catalogue has it (a malformed name still raises)."""
+    _check_kind(kind)
+    _check_name(name, kind)
+    places = _places(catalogue_dirs)
+    if kind == "preset" and stack_dir is not None:
+        places = [Path(stack_dir) / "layers", *places]
+    for place in places:
+        folder = place / name
+        if folder.is_dir() and kind in entry_kinds(folder):
+            return _entry_path(folder, kind)
+    return None
+
+
+def find(name: str | os.PathLike, kind: Kind = "preset", stack_dir: str | os.PathLike | None = None,
+         catalogue_dirs: Sequence[str | os.PathLike] | None = None, relative_to: str | os.PathLike | None = None) -> Path:
+    """The path of catalogue entry ``name`` of ``kind``: a preset's preset.json, a generator's folder,
+    a prior's or corrective's folder.
+
+    A ``Path`` or a string containing '/' is taken as a path (relative to ``relative_to`` or, for a
+    preset path, to ``stack_dir``; else to the current folder) and must exist. A name is searched as
+    the module docstring says; ``LasagnaError`` lists the names of that kind if it is not found.
+    """
+    _check_kind(kind)
+    if isinstance(name, os.PathLike) or "/" in name or os.sep in name:
+        base = relative_to if relative_to is not None else (stack_dir if kind == "preset" else None)
+        path = Path(base) / name if base is not None and not Path(name).is_absolute() else Path(name)
+        if kind == "preset" and path.is_dir():
+            path = path / "preset.json"
+        if not path.exists():
+            raise LasagnaError(f"{kind} path {str(name)!r} does not exist (looked for {path}); expected a "
+                               f"{'preset.json' if kind == 'preset' else 'folder written by save_pretrained'}", kind)
+        return path
+    found = locate(name, kind, stack_dir, catalogue_dirs)
+    if found is not None:
+        return found
+    places = _places(catalogue_dirs)
+    if kind == "preset" and stack_dir is not None:
+        places = [Path(stack_dir) / "layers", *places]
+    known = available(kind, catalogue_dirs)[kind]
+    hint = {"prior": " (train one: lasagna train-prior)", "corrective": " (train one: lasagna train-corrective)",
+            "generator": " (train one: lasagna train-layer --preset NAME)"}.get(kind, "")
+    raise LasagnaError(
+        f"no {kind} named {name!r} in {', '.join(map(str, places)) or 'no catalogue folder'}; "
+        f"expected one of {', '.join(known) or '(none found)'}{hint}",
+        kind,
+    )
+
+
+def _check_name(name: str, kind: str) -> None:
+    from lasagna.document.types import check_id
+
+    try:
+        check_id(name)
+    except (DocumentError, ValueError) as exc:
+        raise LasagnaError(f"{exc}; expected a catalogue name (or a path containing '/')", kind) from None
+
+
+# ---- loading -------------------------------------------------------------------------------------
+
+
+def load_preset(name_or_path: str | os.PathLike, stack_dir: str | os.PathLike | None = None,
+                catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> Preset:
+    """The validated ``Preset`` named ``name_or_path`` (or at that path); see ``find``."""
+    return _load_preset_file(preset_path(name_or_path, stack_dir, catalogue_dirs))
+
+
+def preset_path(name_or_path: str | os.PathLike, stack_dir: str | os.PathLike | None = None,
+                catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> Path:
+    """The preset.json of a learned layer's ``preset`` reference (``resolve_preset``'s rule, with this
+    module's catalogues, so an installed wheel's presets resolve too)."""
+    if isinstance(name_or_path, os.PathLike):
+        return find(name_or_path, "preset", stack_dir, catalogue_dirs)
+    if "/" in name_or_path:
+        path = resolve_preset(name_or_path, stack_dir)
+        if not path.is_file():
+            raise LasagnaError(f"preset path {name_or_path!r} does not exist (looked for {path}); expected a preset.json", "preset")
+        return path
+    return find(name_or_path, "preset", stack_dir, catalogue_dirs)
+
+
+def component_path(preset: Preset, kind: Literal["prior", "corrective"], preset_file: str | os.PathLike,
+                   catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> Path | None:
+    """The folder of a preset's prior or corrective (None for a preset without a corrective); a
+    reference with '/' is relative to the preset's folder."""
+    ref = preset.prior if kind == "prior" else preset.corrective
+    if ref is None:
+        return None
+    return find(ref, kind, catalogue_dirs=catalogue_dirs, relative_to=Path(preset_file).parent if "/" in ref else None)
+
+
+@dataclass(frozen=True)
+class Resolved:
+    """A preset and the paths of what it names: prior, corrective (None if it names none or it is not
+    installed) and amortised generator (None until one is trained and installed in the preset's folder)."""
+
+    preset: Preset
+    preset_file: Path
+    prior: Path
+    corrective: Path | None
+    generator: Path | None
+
+
+def resolve(preset: str | os.PathLike, stack_dir: str | os.PathLike | None = None,
+            catalogue_dirs: Sequence[str | os.PathLike] | None = None, *, need_prior: bool = True) -> Resolved:
+    """The preset ``preset`` and the paths of its parts. A missing prior is an error listing the priors
+    found (unless ``need_prior`` is False: then ``prior`` is the unresolved reference as a Path)."""
+    file = preset_path(preset, stack_dir, catalogue_dirs)
+    p = _load_preset_file(file)
+    try:
+        prior = component_path(p, "prior", file, catalogue_dirs)
+    except LasagnaError:
+        if need_prior:
+            raise
+        prior = Path(p.prior)
+    try:  # needed only by LMC-SDS: its absence is the caller's error to raise (component_path says why)
+        corrective = component_path(p, "corrective", file, catalogue_dirs)
+    except LasagnaError:
+        corrective = None
+    generator = file.parent / GENERATOR_DIR
+    if _format_of(generator) != "lasagna.layer_generator":
+        generator = None
+    return Resolved(p, file, prior, corrective, generator)
+
+
+def load_prior(name_or_path: str | os.PathLike, *, preset: Preset | None = None, device="cpu",
+               catalogue_dirs: Sequence[str | os.PathLike] | None = None, relative_to: str | os.PathLike | None = None):
+    """A prior from the catalogue: a ``UNetPrior`` (eval mode), or a ``DiffusersPrior`` for a diffusers
+    folder (its vocabulary and prompt template then come from ``preset``, which is required)."""
+    folder = find(name_or_path, "prior", catalogue_dirs=catalogue_dirs, relative_to=relative_to)
+    if _format_of(folder) == "lasagna.unet_prior":
+        from lasagna.priors.unet import UNetPrior
+
+        return UNetPrior.from_pretrained(folder, device=device)
+    if _is_diffusers(folder):
+        if preset is None:
+            raise LasagnaError("a diffusers prior needs the preset (its vocabulary and prompt); expected preset=", str(folder))
+        import torch
+        from lasagna.priors.diffusers import DiffusersPrior
+
+        controlnet = folder / "controlnet" if (folder / "controlnet").is_dir() else None
+        cuda = str(device).startswith("cuda")
+        return DiffusersPrior.from_local(folder, controlnet=controlnet, vocabulary=preset.vocabulary,
+                                         prompt_template=preset.prompt, device=device,
+                                         dtype=torch.float16 if cuda else torch.float32)
+    raise LasagnaError(f"format is {_format_of(folder)!r}; expected a prior ('lasagna.unet_prior' or a diffusers folder)",
+                       str(folder / "config.json"))
+
+
+def load_corrective(name_or_path: str | os.PathLike, *, device="cpu", catalogue_dirs: Sequence[str | os.PathLike] | None = None,
+                    relative_to: str | os.PathLike | None = None):
+    """The LMC-SDS corrective b̂ (``lasagna.losses.corrective.Corrective``, eval mode)."""
+    from lasagna.losses.corrective import Corrective
+
+    return Corrective.from_pretrained(find(name_or_path, "corrective", catalogue_dirs=catalogue_dirs, relative_to=relative_to),
+                                      device=device)
+
+
+def load_generator(name_or_path: str | os.PathLike, *, preset: Preset | None = None, device="cpu",
+                   catalogue_dirs: Sequence[str | os.PathLike] | None = None, relative_to: str | os.PathLike | None = None):
+    """A preset's amortised ``LayerGenerator`` (eval mode), by preset name or folder; with ``preset``
+    it must produce that preset's layer and know its whole vocabulary."""
+    from lasagna.generators.unet import LayerGenerator
+
+    folder = find(name_or_path, "generator", catalogue_dirs=catalogue_dirs, relative_to=relative_to)
+    generator = LayerGenerator.from_pretrained(folder, device=device)
+    if preset is not None:
+        check_generator(generator, preset, str(folder))
+    return generator
+
+
+def check_generator(generator, preset: Preset, where: str) -> None:
+    """The generator makes ``preset``'s layer (blend, channels, range) and knows its labels."""
+    from lasagna.generators.layer import LayerSpec
+
+    want = LayerSpec.from_preset(preset)
+    got = generator.spec
+    if (got.blend, got.channels, tuple(got.range)) != (want.blend, want.channels, tuple(want.range)):
+        raise LasagnaError(f"the generator makes a {got.blend} layer of {got.channels} channel(s) in {list(got.range)}; "
+                           f"expected the {want.blend} layer of {want.channels} channel(s) in {list(want.range)} "
+                           f"of preset {preset.name!r}", where)
+    missing = [lab for lab in preset.vocabulary if lab not in generator.config.vocabulary]
+    if missing:
+        raise LasagnaError(f"the generator does not know label(s) {', '.join(missing)} of preset {preset.name!r}; "
+                           f"expected its vocabulary to contain {', '.join(preset.vocabulary)}", where)

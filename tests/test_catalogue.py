@@ -1,0 +1,210 @@
+"""lasagna.catalogue: search order, each kind found by name, paths, loading, and errors that list what exists."""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from lasagna import catalogue as cat
+from lasagna.errors import ConditionError, LasagnaError
+from tests.tinylayers import ROOT, tiny_catalogue
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    return tiny_catalogue(tmp_path_factory.mktemp("catalogue") / "layers")
+
+
+def _preset_copy(folder: Path, name: str = "shading", **changes) -> Path:
+    data = json.loads((ROOT / "layers" / "shading" / "preset.json").read_text(encoding="utf-8"))
+    data.update(name=name, **changes)
+    (folder / name).mkdir(parents=True, exist_ok=True)
+    (folder / name / "preset.json").write_text(json.dumps(data), encoding="utf-8")
+    return folder / name / "preset.json"
+
+
+# ---- search order -----------------------------------------------------------------------------------
+
+
+def test_env_folders_come_first_then_checkout(tmp_path, monkeypatch):
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir(), b.mkdir()
+    monkeypatch.setenv("LASAGNA_LAYERS", f"{a}{__import__('os').pathsep}{tmp_path / 'missing'}{__import__('os').pathsep}{b}")
+    found = cat.catalogues()
+    assert found[:2] == [a, b]  # a folder that does not exist is left out
+    assert (ROOT / "layers").resolve() in [p.resolve() for p in found[2:]]
+
+
+def test_a_folder_reached_twice_is_listed_once(tmp_path, monkeypatch):
+    monkeypatch.setenv("LASAGNA_LAYERS", str(ROOT / "layers"))
+    resolved = [p.resolve() for p in cat.catalogues()]
+    assert resolved.count((ROOT / "layers").resolve()) == 1
+
+
+def test_first_catalogue_wins(tmp_path):
+    first = _preset_copy(tmp_path / "one", description="first one")
+    _preset_copy(tmp_path / "two", description="second one")
+    assert cat.find("shading", catalogue_dirs=[tmp_path / "one", tmp_path / "two"]) == first
+    assert cat.load_preset("shading", catalogue_dirs=[tmp_path / "two", tmp_path / "one"]).description == "second one"
+
+
+def test_preset_shipped_in_a_stack_wins(tmp_path, tiny):
+    shipped = _preset_copy(tmp_path / "stack" / "layers", description="shipped with the stack")
+    assert cat.find("shading", stack_dir=tmp_path / "stack", catalogue_dirs=[tiny]) == shipped
+    assert cat.find("shading", catalogue_dirs=[tiny]) == tiny / "shading" / "preset.json"
+
+
+# ---- kinds ------------------------------------------------------------------------------------------
+
+
+def test_available_lists_every_kind(tiny):
+    assert cat.available(catalogue_dirs=[tiny]) == {
+        "preset": ["color", "shading"], "prior": ["recolor-32", "relight-32"],
+        "corrective": ["relight-32-bhat"], "generator": ["shading"],
+    }
+
+
+@pytest.mark.parametrize("name, kind, relative", [
+    ("shading", "preset", "shading/preset.json"), ("relight-32", "prior", "relight-32"),
+    ("relight-32-bhat", "corrective", "relight-32-bhat"), ("shading", "generator", "shading/generator"),
+])
+def test_find_each_kind(tiny, name, kind, relative):
+    assert cat.find(name, kind, catalogue_dirs=[tiny]) == tiny / relative
+
+
+def test_an_entry_of_another_kind_is_not_found(tiny):
+    with pytest.raises(LasagnaError, match="no prior named 'relight-32-bhat'"):
+        cat.find("relight-32-bhat", "prior", catalogue_dirs=[tiny])
+    assert cat.locate("color", "generator", catalogue_dirs=[tiny]) is None  # the colour preset has no generator
+
+
+def test_diffusers_folder_counts_as_a_prior(tmp_path):
+    for sub in ("unet", "scheduler"):
+        (tmp_path / "sd" / sub).mkdir(parents=True)
+    assert cat.entry_kinds(tmp_path / "sd") == {"prior"}
+    with pytest.raises(LasagnaError, match="needs the preset"):
+        cat.load_prior("sd", catalogue_dirs=[tmp_path])
+
+
+def test_unrelated_config_is_no_kind(tmp_path):
+    (tmp_path / "x").mkdir()
+    (tmp_path / "x" / "config.json").write_text('{"format": "something.else"}')
+    (tmp_path / "y").mkdir()
+    (tmp_path / "y" / "config.json").write_text("{not json")
+    assert cat.entry_kinds(tmp_path / "x") == set() and cat.entry_kinds(tmp_path / "y") == set()
+    assert cat.available(catalogue_dirs=[tmp_path]) == {k: [] for k in cat.KINDS}
+
+
+# ---- errors -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind, listed", [
+    ("preset", "color, shading"), ("prior", "recolor-32, relight-32"),
+    ("corrective", "relight-32-bhat"), ("generator", "shading"),
+])
+def test_unknown_name_lists_what_exists(tiny, kind, listed):
+    with pytest.raises(LasagnaError) as err:
+        cat.find("nope", kind, catalogue_dirs=[tiny])
+    msg = str(err.value)
+    assert msg.startswith(f"{kind}: no {kind} named 'nope' in {tiny}") and f"expected one of {listed}" in msg
+    assert "\n" not in msg
+
+
+def test_empty_catalogue_says_none_found(tmp_path):
+    with pytest.raises(LasagnaError, match=r"expected one of \(none found\) \(train one: lasagna train-prior\)"):
+        cat.find("relight-32", "prior", catalogue_dirs=[tmp_path])
+
+
+@pytest.mark.parametrize("name", ["", "bad name", "-x", "con", "a" * 65])
+def test_malformed_name(tiny, name):
+    with pytest.raises(LasagnaError, match="ids match|reserved"):
+        cat.find(name, catalogue_dirs=[tiny])
+
+
+def test_unknown_kind(tiny):
+    with pytest.raises(LasagnaError, match="unknown kind 'model'; expected one of preset, prior"):
+        cat.find("shading", "model", catalogue_dirs=[tiny])  # type: ignore[arg-type]
+
+
+def test_missing_path(tmp_path):
+    with pytest.raises(LasagnaError, match="does not exist"):
+        cat.find(tmp_path / "nowhere", "prior")
+
+
+# ---- paths and resolution ---------------------------------------------------------------------------
+
+
+def test_path_reference(tiny):
+    assert cat.find(Path(tiny / "relight-32"), "prior") == tiny / "relight-32"
+    assert cat.find("./shading", "preset", relative_to=tiny) == tiny / "shading" / "preset.json"
+
+
+def test_resolve_names_every_part(tiny):
+    parts = cat.resolve("shading", catalogue_dirs=[tiny])
+    assert parts.preset.name == "shading" and parts.preset_file == tiny / "shading" / "preset.json"
+    assert (parts.prior, parts.corrective, parts.generator) == (
+        tiny / "relight-32", tiny / "relight-32-bhat", tiny / "shading" / "generator")
+    colour = cat.resolve("color", catalogue_dirs=[tiny])
+    assert colour.prior == tiny / "recolor-32" and colour.corrective is None and colour.generator is None
+
+
+def test_resolve_without_prior(tmp_path):
+    _preset_copy(tmp_path)
+    with pytest.raises(LasagnaError, match="no prior named 'relight-32'"):
+        cat.resolve("shading", catalogue_dirs=[tmp_path])
+    parts = cat.resolve("shading", catalogue_dirs=[tmp_path], need_prior=False)
+    assert parts.prior == Path("relight-32") and parts.corrective is None
+
+
+def test_prior_path_relative_to_the_preset(tmp_path, tiny):
+    _preset_copy(tmp_path, prior="./weights", corrective=None)
+    shutil.copytree(tiny / "relight-32", tmp_path / "shading" / "weights")
+    parts = cat.resolve("shading", catalogue_dirs=[tmp_path])
+    assert parts.prior == tmp_path / "shading" / "weights"
+    prior = cat.load_prior(parts.prior)
+    assert prior.sample_shape == (3, 8, 8)
+
+
+# ---- loading ----------------------------------------------------------------------------------------
+
+
+def test_load_each_kind(tiny):
+    from lasagna.generators.unet import LayerGenerator
+    from lasagna.losses.corrective import Corrective
+    from lasagna.priors.unet import UNetPrior
+
+    prior = cat.load_prior("relight-32", catalogue_dirs=[tiny])
+    corrective = cat.load_corrective("relight-32-bhat", catalogue_dirs=[tiny])
+    preset = cat.load_preset("shading", catalogue_dirs=[tiny])
+    gen = cat.load_generator("shading", preset=preset, catalogue_dirs=[tiny])
+    assert isinstance(prior, UNetPrior) and isinstance(corrective, Corrective) and isinstance(gen, LayerGenerator)
+    assert not (prior.training or corrective.training or gen.training)
+    with torch.no_grad():
+        y = gen(torch.rand(1, 3, 12, 20), ["left"])
+    assert y.shape == (1, 1, 12, 20) and float(y.min()) >= 0.0 and float(y.max()) <= 2.0
+
+
+def test_generator_for_another_preset_is_refused(tiny):
+    colour = cat.load_preset("color", catalogue_dirs=[tiny])
+    with pytest.raises(LasagnaError, match=r"expected the normal layer of 4 channel\(s\) in \[0.0, 1.0\] of preset 'color'"):
+        cat.load_generator("shading", preset=colour, catalogue_dirs=[tiny])
+
+
+def test_generator_missing_labels_is_refused(tiny, tmp_path):
+    from lasagna.generators.unet import LayerGenerator
+
+    gen = LayerGenerator.from_pretrained(tiny / "shading" / "generator")
+    preset = cat.load_preset("shading", catalogue_dirs=[tiny])
+    small = preset.model_copy(update={"vocabulary": (*preset.vocabulary, "sunset")})
+    with pytest.raises(LasagnaError, match="does not know label\\(s\\) sunset"):
+        cat.check_generator(gen, small, "here")
+    with pytest.raises(ConditionError, match="unknown label 'sunset'"):
+        gen(torch.rand(1, 3, 8, 8), ["sunset"])
+
+
+def test_wrong_format_is_not_loaded_as_a_prior(tiny):
+    with pytest.raises(LasagnaError, match="no prior named 'relight-32-bhat'"):
+        cat.load_prior("relight-32-bhat", catalogue_dirs=[tiny])

@@ -1,0 +1,73 @@
+"""A tiny learned-layer catalogue for tests: random networks with the real formats, built in milliseconds.
+
+``tiny_catalogue(folder)`` writes, under ``folder``:
+
+    shading/preset.json + shading/generator/   the real shading preset with a short distill (4 steps)
+                                               and a random amortised LayerGenerator
+    color/preset.json                          the real colour preset, 4 steps, no generator
+    relight-32/                                a random UNetPrior (8×8, conditioned on RGB), the world's labels
+    recolor-32/                                a random UNetPrior (8×8, conditioned on luma), label "natural"
+    relight-32-bhat/                           a random LMC-SDS corrective for relight-32
+
+The names are the bundled ones, so a folder put first in ``LASAGNA_LAYERS`` shadows the real catalogue.
+The weights are random but not the identity (every parameter gets noise), so outputs depend on input.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+PRIOR_RES = 8
+STEPS = 4
+
+
+def _jitter(module: torch.nn.Module, seed: int, scale: float = 0.05) -> torch.nn.Module:
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in module.parameters():
+            p.add_(scale * torch.randn(p.shape, generator=gen))
+    return module
+
+
+def _preset(folder: Path, name: str, **changes) -> dict:
+    data = json.loads((ROOT / "layers" / name / "preset.json").read_text(encoding="utf-8"))
+    data["distill"]["steps"] = STEPS
+    data.update(changes)
+    (folder / name).mkdir(parents=True, exist_ok=True)
+    (folder / name / "preset.json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    return data
+
+
+def tiny_prior(cond_channels: int, vocabulary: tuple[str, ...], seed: int):
+    from lasagna.priors.unet import UNetConfig, UNetPrior
+
+    config = UNetConfig(image_channels=3, cond_channels=cond_channels, resolution=PRIOR_RES, channels=(8, 16),
+                        norm_groups=4, vocabulary=vocabulary)
+    torch.manual_seed(seed)
+    return _jitter(UNetPrior(config), seed).eval()
+
+
+def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool = True) -> Path:
+    from lasagna.generators.layer import LayerSpec
+    from lasagna.generators.unet import LayerGenerator, LayerGeneratorConfig
+    from lasagna.losses.corrective import Corrective, CorrectiveConfig
+    from lasagna.world import VOCABULARY
+
+    folder = Path(folder)
+    shading = _preset(folder, "shading")
+    _preset(folder, "color")
+    if generator:
+        cfg = LayerGeneratorConfig(layer=LayerSpec(blend="multiply", channels=1, range=tuple(shading["range"])),
+                                   vocabulary=tuple(shading["vocabulary"]), channels=(4, 8))
+        torch.manual_seed(1)
+        _jitter(LayerGenerator(cfg), 1, 0.2).save_pretrained(folder / "shading" / "generator")
+    if priors:
+        tiny_prior(3, tuple(VOCABULARY), 2).save_pretrained(folder / "relight-32")
+        tiny_prior(1, ("natural",), 3).save_pretrained(folder / "recolor-32")
+        torch.manual_seed(4)
+        corrective = Corrective(CorrectiveConfig(channels=3, resolution=PRIOR_RES, filters=(4, 8)))
+        _jitter(corrective, 4).save_pretrained(folder / "relight-32-bhat")
+    return folder
