@@ -111,7 +111,7 @@ def main(argv=None) -> int:
     growth = []
     if args.snapshots is not None:
         x_s, l_s, c_s = heldout(config.task, args.snapshot_count, res, args.seed)
-        final_step = log[-1]["step"] if log else None
+        final_step = prior_from_checkpoint(args.run / "checkpoint.safetensors")[1]
         seen = set()
         for snap in sorted(args.snapshots.glob("*.safetensors")):
             p, step = prior_from_checkpoint(snap)
@@ -135,7 +135,7 @@ def main(argv=None) -> int:
     n_params = sum(p.numel() for p in prior.parameters())
     metrics = {
         "name": args.name, "task": config.task, "params": n_params, "resolution": res,
-        "steps": log[-1]["step"] if log else None,
+        "steps": prior_from_checkpoint(args.run / "checkpoint.safetensors")[1],
         "train_minutes": round(train_seconds(log, log[-1]["step"]) / 60, 1) if log else None,
         "heldout_scenes": args.count, "ddim_steps": args.steps,
         "psnr": {str(w): {k: round(v, 2) for k, v in q.items()} for w, q in quality.items()},
@@ -181,7 +181,7 @@ ellipsoid/box/cylinder, textures stripes/checker/noise); `val` and `heldout` are
 gradient clip {config.grad_clip}, EMA {config.ema_decay}, seed {config.seed}). Reproduce:
 
 ```sh
-lasagna train-prior --task {config.task} --out runs/{m['name']} --minutes {m['train_minutes']}
+lasagna train-prior --task {config.task} --out runs/{m['name']} --steps {m['steps']}   # ≈ {m['train_minutes']} min here; resumable
 python benchmarks/prior_quality.py --run runs/{m['name']} --name {m['name']}
 ```
 
