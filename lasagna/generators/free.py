@@ -34,8 +34,11 @@ class FreeLayerConfig(BaseModel):
     width: int = Field(ge=1)
 
 
-class FreeLayer(nn.Module):
+class FreeLayer(io.Pretrained, nn.Module):
     """B per-pixel layers (B, C, H, W) as one parameter tensor (see the module docstring)."""
+
+    FORMAT = FORMAT
+    CONFIG = FreeLayerConfig
 
     def __init__(self, config: FreeLayerConfig):
         super().__init__()
@@ -66,12 +69,3 @@ class FreeLayer(nn.Module):
             raise LasagnaError(f"base has shape {tuple(base.shape)}; expected ({cfg.batch}, C, {cfg.height}, {cfg.width}) like this free layer", "base")
         return activate(self.u, cfg.layer)
 
-    def save_pretrained(self, directory: str | os.PathLike) -> None:
-        """Write ``model.safetensors`` + ``config.json`` (atomically) to ``directory``."""
-        io.save_pretrained(directory, self, self.config, FORMAT)
-
-    @classmethod
-    def from_pretrained(cls, directory: str | os.PathLike, device: str | torch.device = "cpu") -> "FreeLayer":
-        model = cls(io.read_config(directory, FORMAT, FreeLayerConfig))
-        io.load_weights(directory, model, FORMAT)
-        return model.to(device).eval()

@@ -86,8 +86,11 @@ def _convs(in_ch: int, out_ch: int, blocks: int) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-class LayerGenerator(nn.Module):
+class LayerGenerator(io.Pretrained, nn.Module):
     """G(x, label) → edit layer (B, C, H, W) in the layer's range (see the module docstring)."""
+
+    FORMAT = FORMAT
+    CONFIG = LayerGeneratorConfig
 
     def __init__(self, config: LayerGeneratorConfig):
         super().__init__()
@@ -169,14 +172,3 @@ class LayerGenerator(nn.Module):
         """The edit layer (B, C, H, W) for base (B, 3, H, W) in [0, 1] and the labels."""
         return activate(self.raw(base, labels), self.spec)
 
-    # -- persistence ------------------------------------------------------------------------------
-    def save_pretrained(self, directory: str | os.PathLike) -> None:
-        """Write ``model.safetensors`` + ``config.json`` (atomically) to ``directory``."""
-        io.save_pretrained(directory, self, self.config, FORMAT)
-
-    @classmethod
-    def from_pretrained(cls, directory: str | os.PathLike, device: str | torch.device = "cpu") -> "LayerGenerator":
-        """Rebuild the generator from its config and load its weights; returned in eval mode."""
-        model = cls(io.read_config(directory, FORMAT, LayerGeneratorConfig))
-        io.load_weights(directory, model, FORMAT)
-        return model.to(device).eval()

@@ -157,8 +157,11 @@ def _conv_block(in_ch: int, out_ch: int) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(in_ch, out_ch, 3, padding=1), nn.ReLU(), nn.Conv2d(out_ch, out_ch, 3, padding=1), nn.ReLU())
 
 
-class Corrective(nn.Module):
+class Corrective(io.Pretrained, nn.Module):
     """b̂_ψ(z, t[, image, label]) = z + scale·tanh(UNet(…)) (see the module docstring)."""
+
+    FORMAT = FORMAT
+    CONFIG = CorrectiveConfig
 
     def __init__(self, config: CorrectiveConfig):
         super().__init__()
@@ -228,15 +231,6 @@ class Corrective(nn.Module):
             h = block(torch.cat([h, skips.pop()], dim=1))
         return z + cfg.output_scale * torch.tanh(self.head(h))
 
-    def save_pretrained(self, directory: str | os.PathLike) -> None:
-        """Write ``model.safetensors`` + ``config.json`` (atomically) to ``directory``."""
-        io.save_pretrained(directory, self, self.config, FORMAT)
-
-    @classmethod
-    def from_pretrained(cls, directory: str | os.PathLike, device: str | torch.device = "cpu") -> "Corrective":
-        model = cls(io.read_config(directory, FORMAT, CorrectiveConfig))
-        io.load_weights(directory, model, FORMAT)
-        return model.to(device).eval()
 
 
 class TrivialCorrective(nn.Module):

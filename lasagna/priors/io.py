@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Mapping, TypeVar
+from typing import ClassVar, Mapping, TypeVar
 
 import torch
 from pydantic import BaseModel, ValidationError
@@ -119,3 +119,26 @@ def load_state_strict(module: nn.Module, tensors: Mapping[str, torch.Tensor], wh
         if tuple(tensors[name].shape) != tuple(value.shape):
             raise LasagnaError(f"tensor {name} has shape {tuple(tensors[name].shape)}; expected {tuple(value.shape)}", where)
     module.load_state_dict(dict(tensors), strict=True)
+
+
+class Pretrained:
+    """``save_pretrained`` / ``from_pretrained`` for an ``nn.Module`` rebuilt from a pydantic config.
+
+    A subclass sets ``FORMAT`` (the name written into config.json and the weights) and ``CONFIG``
+    (its config model) and keeps its config in ``self.config``.
+    """
+
+    FORMAT: ClassVar[str]
+    CONFIG: ClassVar[type[BaseModel]]
+
+    def save_pretrained(self, directory: str | os.PathLike) -> Path:
+        """Write ``model.safetensors`` + ``config.json`` (atomically) to ``directory``."""
+        return save_pretrained(directory, self, self.config, self.FORMAT)  # type: ignore[arg-type, attr-defined]
+
+    @classmethod
+    def from_pretrained(cls, directory: str | os.PathLike, device: str | torch.device = "cpu", dtype: torch.dtype | None = None):
+        """Rebuild the network from its config and load its weights; returned in eval mode."""
+        model = cls(read_config(directory, cls.FORMAT, cls.CONFIG))  # type: ignore[call-arg]
+        load_weights(directory, model, cls.FORMAT)
+        model = model.to(device=device) if dtype is None else model.to(device=device, dtype=dtype)
+        return model.eval()

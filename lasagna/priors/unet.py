@@ -137,8 +137,11 @@ class _Net(nn.Module):
         return self.out(F.silu(self.out_norm(h)))
 
 
-class UNetPrior(Prior):
+class UNetPrior(io.Pretrained, Prior):
     """A conditional pixel-space diffusion prior (see the module docstring)."""
+
+    FORMAT = FORMAT
+    CONFIG = UNetConfig
 
     def __init__(self, config: UNetConfig):
         super().__init__()
@@ -214,17 +217,6 @@ class UNetPrior(Prior):
         out = self.raw(z_t, t, labels, image)
         return F.mse_loss(out.float(), target.float())
 
-    # -- persistence ----------------------------------------------------------------------------
-    def save_pretrained(self, directory: str | os.PathLike) -> None:
-        """Write ``model.safetensors`` + ``config.json`` (atomically) to ``directory``."""
-        io.save_pretrained(directory, self, self.config, FORMAT)
-
-    @classmethod
-    def from_pretrained(cls, directory: str | os.PathLike, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32) -> "UNetPrior":
-        """Rebuild the prior from its config and load its weights; returned in eval mode."""
-        prior = cls(io.read_config(directory, FORMAT, UNetConfig))
-        io.load_weights(directory, prior, FORMAT)
-        return prior.to(device=device, dtype=dtype).eval()
 
 
 def _gen_device(generator: torch.Generator | None, fallback: torch.device) -> torch.device:
