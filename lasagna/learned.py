@@ -45,24 +45,15 @@ def as_stored(stack: Stack, ids=None) -> Stack:
     """Replace the tensors of raster layers ``ids`` (default all) by what saving and loading them gives
     (PNG codes at their bit depth, mapped to the range as ``load_stack`` maps them), so the edit is
     computed from, and composited with, exactly the values its stack folder will hold."""
-    from lasagna.compose.layer import LayerTensors
     from lasagna.io.png import decode_png
-    from lasagna.io.stack import encode_layer
+    from lasagna.io.stack import encode_layer, layer_tensors
 
     for layer_id in list(stack.tensors) if ids is None else ids:
         layer = stack.document.layer(layer_id)
         data, mask_data = encode_layer(stack, layer_id)
         img = decode_png(data, f"layer {layer_id!r}")
-        lo, hi = layer.range
-        color = torch.from_numpy(img.color)
-        if (lo, hi) != (0.0, 1.0):
-            color = lo + (hi - lo) * color
-        alpha = torch.from_numpy(img.alpha) if img.alpha is not None else None
-        mask = None
-        if mask_data is not None:
-            m = decode_png(mask_data, f"layer {layer_id!r} mask")
-            mask = torch.from_numpy(m.color[:1].copy())
-        stack.tensors[layer_id] = LayerTensors(color, alpha, mask)
+        mask_img = decode_png(mask_data, f"layer {layer_id!r} mask") if mask_data is not None else None
+        stack.tensors[layer_id] = layer_tensors(img, layer.range, mask_img, f"layer {layer_id!r} mask")
         stack.bit_depths[layer_id] = img.header.bit_depth if img.header.bit_depth == 16 else 8
     return stack
 

@@ -477,24 +477,30 @@ def load_stack(
         if fieldname != "source":
             continue
         img = images[(i, "source")]
-        lo, hi = layer.range
-        color = torch.from_numpy(img.color)
-        if (lo, hi) != (0.0, 1.0):
-            color = lo + (hi - lo) * color
-        alpha = torch.from_numpy(img.alpha) if img.alpha is not None else None
-        mask = None
-        if layer.mask is not None:
-            m = images[(i, "mask")]
-            mwhere = f"{file}: layers[{i}].mask ({layer.mask})"
-            if m.color.shape[0] == 3 and not (np.array_equal(m.color[0], m.color[1]) and np.array_equal(m.color[0], m.color[2])):
-                raise ImageError("mask is a colour image; expected a gray PNG (or RGB with equal channels)", where=mwhere)
-            mask_np = m.color[:1]
-            if m.alpha is not None:
-                mask_np = mask_np * m.alpha  # a transparent mask pixel hides the layer
-            mask = torch.from_numpy(np.ascontiguousarray(mask_np))
-        stack.tensors[layer.id] = LayerTensors(color, alpha, mask)
+        mask_img = images[(i, "mask")] if layer.mask is not None else None
+        stack.tensors[layer.id] = layer_tensors(img, layer.range, mask_img, f"{file}: layers[{i}].mask ({layer.mask})")
         stack.bit_depths[layer.id] = img.header.bit_depth if img.header.bit_depth == 16 else 8
     return stack
+
+
+def layer_tensors(img, value_range, mask_img=None, mask_where: str = "mask"):
+    """A decoded PNG (and mask PNG) as a layer's tensors: colour mapped to ``value_range``
+    (y = lo + (hi − lo)·v; alpha never mapped), the mask as one channel times its own alpha."""
+    lo, hi = value_range
+    color = torch.from_numpy(img.color)
+    if (lo, hi) != (0.0, 1.0):
+        color = lo + (hi - lo) * color
+    alpha = torch.from_numpy(img.alpha) if img.alpha is not None else None
+    mask = None
+    if mask_img is not None:
+        m = mask_img
+        if m.color.shape[0] == 3 and not (np.array_equal(m.color[0], m.color[1]) and np.array_equal(m.color[0], m.color[2])):
+            raise ImageError("mask is a colour image; expected a gray PNG (or RGB with equal channels)", where=mask_where)
+        mask_np = m.color[:1]
+        if m.alpha is not None:
+            mask_np = mask_np * m.alpha  # a transparent mask pixel hides the layer
+        mask = torch.from_numpy(np.ascontiguousarray(mask_np))
+    return _layer_tensors_cls()(color, alpha, mask)
 
 
 # ---- saving --------------------------------------------------------------------------------------
