@@ -430,7 +430,6 @@ def load_stack(
     file = stack_file(path)
     doc = load_document(path)
     folder = file.parent
-    LayerTensors = _layer_tensors_cls()
 
     # 1. Resolve every path and read every header (cheap) before decoding anything.
     planned = []
