@@ -33,6 +33,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
+from pydantic import ValidationError
+
 from lasagna import __version__
 from lasagna.errors import LasagnaError, PathError
 
@@ -308,6 +310,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except LasagnaError as err:
         print(f"{PROG}: error: {_one_line(str(err))}", file=sys.stderr)
+        return 2
+    except ValidationError as err:  # a config built from the arguments broke a rule of its model
+        first = err.errors()[0]
+        loc = ".".join(str(x) for x in first["loc"])
+        more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
+        where = f"{args.command}.{loc}" if loc else args.command
+        print(f"{PROG}: error: {where}: {_one_line(first['msg'])}{more}", file=sys.stderr)
         return 2
     except MemoryError:
         print(f"{PROG}: error: out of memory; expected a smaller stack (see --max-pixels)", file=sys.stderr)

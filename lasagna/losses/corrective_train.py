@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Callable, Literal
 
 import torch
-from pydantic import ConfigDict, Field, ValidationError, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
 from lasagna.errors import LasagnaError
 from lasagna.io.atomic import atomic_write_text
@@ -230,37 +230,33 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run(build_parser().parse_args(argv))
+    """``python -m lasagna.losses.corrective_train …`` is ``lasagna train-corrective …``."""
+    from lasagna.cli import main as cli_main
+
+    return cli_main(["train-corrective", *(sys.argv[1:] if argv is None else argv)])
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        from lasagna.priors.unet import UNetPrior
+    """The ``train-corrective`` subcommand; bad input raises (the CLI prints it as one line, exit 2)."""
+    from lasagna.priors.unet import UNetPrior
 
-        prior = UNetPrior.from_pretrained(args.prior, device=args.device)
-        if (args.task is None) == (args.source is None):
-            raise LasagnaError("give exactly one of --task and --source", "train-corrective")
-        if args.task is not None:
-            from lasagna.priors.train import world_source
+    prior = UNetPrior.from_pretrained(args.prior, device=args.device)
+    if (args.task is None) == (args.source is None):
+        raise LasagnaError("give exactly one of --task and --source", "train-corrective")
+    if args.task is not None:
+        from lasagna.priors.train import world_source
 
-            source = world_source(args.task, prior.config.resolution)
-        else:
-            source = _import_callable(args.source)
-        cond_channels = prior.config.cond_channels
-        config = CorrectiveTrainConfig(
-            corrective=corrective_config_for(prior, args.filters, args.sees_condition, cond_channels),
-            steps=args.steps, batch_size=args.batch_size, lr=args.lr, t_min=args.t_min, t_max=args.t_max,
-            branch=args.branch, ema_decay=args.ema, checkpoint_every=args.checkpoint_every, log_every=args.log_every,
-            eval_batches=args.eval_batches, max_minutes=args.max_minutes, seed=args.seed, progress=not args.no_progress,
-        )
-        result = train_corrective(prior, source, config, args.out, device=args.device)
-    except ValidationError as exc:
-        msg, where = io.describe_validation_error(exc, "train-corrective")
-        print(f"error: {where}: {msg}", file=sys.stderr)
-        return 2
-    except LasagnaError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        source = world_source(args.task, prior.config.resolution)
+    else:
+        source = _import_callable(args.source)
+    cond_channels = prior.config.cond_channels
+    config = CorrectiveTrainConfig(
+        corrective=corrective_config_for(prior, args.filters, args.sees_condition, cond_channels),
+        steps=args.steps, batch_size=args.batch_size, lr=args.lr, t_min=args.t_min, t_max=args.t_max,
+        branch=args.branch, ema_decay=args.ema, checkpoint_every=args.checkpoint_every, log_every=args.log_every,
+        eval_batches=args.eval_batches, max_minutes=args.max_minutes, seed=args.seed, progress=not args.no_progress,
+    )
+    result = train_corrective(prior, source, config, args.out, device=args.device)
     print(json.dumps({"step": result.step, "stopped": result.stopped, "lk_trained": result.lk_trained,
                       "lk_trivial": result.lk_trivial, "ratio": result.ratio}))
     return 0

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Literal
 
 import torch
-from pydantic import ConfigDict, Field, ValidationError
+from pydantic import ConfigDict, Field
 
 from lasagna.errors import LasagnaError
 from lasagna.priors import io
@@ -166,15 +166,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    try:
-        return run(build_parser().parse_args(argv))
-    except ValidationError as exc:
-        msg, where = io.describe_validation_error(exc, "train-prior")
-        print(f"lasagna: error: {where}: {msg}", file=sys.stderr)
-        return 2
-    except LasagnaError as exc:
-        print(f"lasagna: error: {exc}", file=sys.stderr)
-        return 2
+    """``python -m lasagna.priors.train …`` is ``lasagna train-prior …``."""
+    from lasagna.cli import main as cli_main
+
+    return cli_main(["train-prior", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":
