@@ -93,6 +93,9 @@ def main(argv=None) -> int:
     ap.add_argument("--snapshots", type=Path, default=None)
     ap.add_argument("--snapshot-count", type=int, default=32)
     ap.add_argument("--out", type=Path, default=ROOT / "layers")
+    ap.add_argument("--previous", type=Path, default=None,
+                    help="metrics.json of the run this one started from (train-prior --init-from): "
+                         "the card then describes both stages and their total time")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
 
@@ -127,6 +130,16 @@ def main(argv=None) -> int:
                        "train_minutes": round(train_seconds(log, final_step) / 60, 1) if log else None,
                        "psnr_omega1": round(final_q[1.0]["all"], 2), "final_ema": True})
 
+    previous = _previous_stage(args.previous)
+    if previous and previous.get("growth"):  # continue the first stage's curve with this stage's final weights
+        x_s, l_s, c_s = heldout(config.task, args.snapshot_count, res, args.seed)
+        final_q = sample_quality(prior, x_s, l_s, c_s, omegas=(1.0,), steps=args.steps, seed=args.seed)
+        final_step = prior_from_checkpoint(args.run / "checkpoint.safetensors")[1]
+        growth = [g for g in previous["growth"] if not g.get("final_ema")] + [
+            {**g, "final_ema": False, "stage": 1} for g in previous["growth"] if g.get("final_ema")] + [
+            {"step": previous["steps"] + final_step, "stage": 2, "final_ema": True, "psnr_omega1": round(final_q[1.0]["all"], 2),
+             "train_minutes": round((previous.get("train_minutes") or 0) + train_seconds(log, final_step) / 60, 1)}]
+
     dest = args.out / args.name
     dest.mkdir(parents=True, exist_ok=True)
     for f in ("model.safetensors", "config.json"):
@@ -141,6 +154,7 @@ def main(argv=None) -> int:
         "psnr": {str(w): {k: round(v, 2) for k, v in q.items()} for w, q in quality.items()},
         "denoise_mse_per_t": {str(k): round(v, 6) for k, v in denoise.items()},
         "growth": growth, "eval_seconds": round(eval_s, 1),
+        "previous": previous and {k: v for k, v in previous.items() if k != "growth"},
         "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} thread(s), torch {torch.__version__}",
         "date": datetime.date.today().isoformat(),
     }
@@ -149,6 +163,37 @@ def main(argv=None) -> int:
     print(json.dumps({"name": args.name, "psnr_omega1": metrics["psnr"].get("1.0", {}).get("all"),
                       "psnr": {w: q["all"] for w, q in metrics["psnr"].items()}}))
     return 0
+
+
+def _previous_stage(path: Path | None) -> dict | None:
+    """The first stage of a two-stage run: its steps, minutes, lr and ω = 1 PSNR (from its metrics.json)."""
+    if path is None:
+        return None
+    prev = json.loads(path.read_text())
+    keep = ("steps", "train_minutes", "lr", "psnr_omega1", "command", "growth")
+    out = {k: prev[k] for k in keep if k in prev}
+    out.setdefault("psnr_omega1", prev.get("psnr", {}).get("1.0", {}).get("all"))
+    return out
+
+
+def _training_section(m: dict, config: PriorTrainConfig) -> str:
+    one = (f"lasagna train-prior --task {config.task} --out runs/{m['name']} --steps {m['steps']}   "
+           f"# ≈ {m['train_minutes']} min here; resumable")
+    stage = (f"{m['steps']} steps in {m['train_minutes']} minutes (Adam, lr {config.lr} ({config.lr_schedule}) with "
+             f"{config.warmup_steps} warm-up steps, gradient clip {config.grad_clip}, EMA {config.ema_decay}, seed {config.seed})")
+    prev = m.get("previous")
+    if not prev:
+        return f"{stage}. Reproduce:\n\n```sh\n{one}\npython benchmarks/prior_quality.py --run runs/{m['name']} --name {m['name']}\n```\n"
+    total = round((prev.get("train_minutes") or 0) + (m["train_minutes"] or 0), 1)
+    first = prev.get("command") or (f"lasagna train-prior --task {config.task} --out runs/{m['name']} --steps {prev['steps']}")
+    anneal = (f"lasagna train-prior --task {config.task} --out runs/{m['name']}-anneal --init-from runs/{m['name']}/prior "
+              f"--lr {config.lr} --lr-schedule {config.lr_schedule} --steps {m['steps']} --warmup {config.warmup_steps} "
+              f"--ema {config.ema_decay} --seed {config.seed}")
+    return (f"Two stages, {prev['steps'] + m['steps']} steps and {total} minutes in all:\n\n"
+            f"1. {prev['steps']} steps in {prev.get('train_minutes')} minutes at a constant lr {prev.get('lr', 2e-3)} "
+            f"(ω = 1 held-out PSNR after it: {prev.get('psnr_omega1')} dB);\n"
+            f"2. an anneal from those EMA weights: {stage}.\n\nReproduce:\n\n```sh\n{first}\n{anneal}\n"
+            f"python benchmarks/prior_quality.py --run runs/{m['name']}-anneal --name {m['name']} --previous runs/{m['name']}/metrics.json\n```\n")
 
 
 def model_card(m: dict, config: PriorTrainConfig, args) -> str:
@@ -177,14 +222,7 @@ ellipsoid/box/cylinder, textures stripes/checker/noise); `val` and `heldout` are
 (torus, capsule, cone; dots, marble, rings; bricks).
 
 ## Training
-{m['steps']} steps in {m['train_minutes']} minutes (Adam, lr {config.lr} with {config.warmup_steps} warm-up steps,
-gradient clip {config.grad_clip}, EMA {config.ema_decay}, seed {config.seed}). Reproduce:
-
-```sh
-lasagna train-prior --task {config.task} --out runs/{m['name']} --steps {m['steps']}   # ≈ {m['train_minutes']} min here; resumable
-python benchmarks/prior_quality.py --run runs/{m['name']} --name {m['name']}
-```
-
+{_training_section(m, config)}
 ![loss](loss.png)
 
 ## Quality (held-out split)

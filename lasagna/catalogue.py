@@ -46,6 +46,7 @@ KINDS: tuple[str, ...] = ("preset", "prior", "corrective", "generator")
 FORMATS: dict[str, str] = {
     "lasagna.unet_prior": "prior",
     "lasagna.corrective": "corrective",
+    "lasagna.spectral_corrective": "corrective",
     "lasagna.layer_generator": "generator",
 }
 GENERATOR_DIR = "generator"  # <catalogue>/<preset>/generator/: the preset's amortised generator
@@ -277,11 +278,14 @@ def load_prior(name_or_path: str | os.PathLike, *, preset: Preset | None = None,
 
 def load_corrective(name_or_path: str | os.PathLike, *, device="cpu", catalogue_dirs: Sequence[str | os.PathLike] | None = None,
                     relative_to: str | os.PathLike | None = None):
-    """The LMC-SDS corrective b̂ (``lasagna.losses.corrective.Corrective``, eval mode)."""
+    """The LMC-SDS corrective b̂, eval mode: a ``lasagna.losses.corrective.Corrective`` network or a
+    ``lasagna.losses.spectral.SpectralCorrective``, by the format in its config.json."""
     from lasagna.losses.corrective import Corrective
+    from lasagna.losses.spectral import SpectralCorrective
 
-    return Corrective.from_pretrained(find(name_or_path, "corrective", catalogue_dirs=catalogue_dirs, relative_to=relative_to),
-                                      device=device)
+    folder = find(name_or_path, "corrective", catalogue_dirs=catalogue_dirs, relative_to=relative_to)
+    cls = SpectralCorrective if _format_of(folder) == SpectralCorrective.FORMAT else Corrective
+    return cls.from_pretrained(folder, device=device)
 
 
 def load_generator(name_or_path: str | os.PathLike, *, preset: Preset | None = None, device="cpu",

@@ -43,7 +43,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Sequence
+from typing import Any, Callable, Literal, Sequence
 
 import torch
 from torch import Tensor, nn
@@ -125,6 +125,7 @@ def distill_image(
     early_stop: EarlyStop | bool | None = None,
     progress: bool = False,
     checkpoint_dir: str | Path | None = None,
+    callback: Callable[[int, Tensor], None] | None = None,
     **settings_overrides: Any,
 ) -> DistillResult:
     """Distil the edit layer of ``base`` (B, 3, H, W) or (3, H, W) in [0, 1] (see the module docstring).
@@ -136,6 +137,8 @@ def distill_image(
     DDS (source) and NFSD (negative) need (DDS defaults to ``condition``). ``corrective``: b̂ for
     LMC-SDS. ``generator``: ``"free"`` (a per-pixel layer per image), or a ``LayerGenerator`` /
     ``FreeLayer`` to start from (copied, then fine-tuned). Runs on ``base``'s device.
+    ``callback(step, layer)``, if given, sees the layer (detached, before that step's update) after
+    every step's record is written — how benchmarks trace error against time without a second run.
     """
     named = dict(loss=loss, guidance=guidance, steps=steps, lr=lr, seed=seed, patches=patches)
     if isinstance(early_stop, EarlyStop) or early_stop is True:
@@ -198,6 +201,8 @@ def distill_image(
         prev_layer, prev_lr = now, lr_k
         history.append({"step": step, "phase": phase, "lr": lr_k, **out.summary(), "layer_change": change,
                         "time_s": round(time.monotonic() - clock, 4)})
+        if callback is not None:
+            callback(step, now)
         step += 1
         bar.update(1)
         bar.set_postfix(grad_norm=f"{history[-1]['grad_norm']:.3g}")

@@ -95,8 +95,12 @@ class Triplet:
     image: torch.Tensor | None  # (B, C_cond, H, W) in [0, 1]
 
 
-def make_triplets(prior: Prior, source: Source, batch: int, generator: torch.Generator, branch: str, t_min: float, t_max: float, device: torch.device) -> Triplet:
-    """Draw clean images, noise them at t ~ U(t_min, t_max), and take the prior's x̂₀ (one network pass)."""
+def make_triplets(prior: Prior, source: Source, batch: int, generator: torch.Generator, branch: str, t_min: float, t_max: float,
+                  device: torch.device, t_range: tuple[int, int] | None = None) -> Triplet:
+    """Draw clean images, noise them at t ~ U(t_min, t_max), and take the prior's x̂₀ (one network pass).
+
+    ``t_range`` (lo, hi) instead draws integer timesteps uniformly from [lo, hi) (a spectral fit's bucket).
+    """
     images, label_idx, cond_image = source(batch, generator)
     if images.dim() != 4 or images.shape[0] != batch:
         raise LasagnaError(f"images have shape {tuple(images.shape)}; expected ({batch}, C, H, W)", "source")
@@ -106,8 +110,11 @@ def make_triplets(prior: Prior, source: Source, batch: int, generator: torch.Gen
     null = len(prior.vocabulary)
     with torch.no_grad():
         z = prior.encode(images).float()
-    u = t_min + (t_max - t_min) * torch.rand((batch,), generator=generator, device=generator.device)
-    t = sched.continuous_to_index(u).to(device)
+    if t_range is None:
+        u = t_min + (t_max - t_min) * torch.rand((batch,), generator=generator, device=generator.device)
+        t = sched.continuous_to_index(u).to(device)
+    else:
+        t = torch.randint(t_range[0], t_range[1], (batch,), generator=generator, device=generator.device).to(device)
     z_t = sched.add_noise(z, randn(tuple(z.shape), generator, device, z.dtype), t)
     if int(label_idx.min()) < 0 or int(label_idx.max()) > null:
         raise LasagnaError(f"label_idx must lie in [0, {null}] (the null index is {null}); got {label_idx.tolist()}", "source")
@@ -182,6 +189,41 @@ def train_corrective(prior: Prior, source: Source, config: CorrectiveTrainConfig
     return result
 
 
+def fit_spectral(prior: Prior, source: Source, out_dir: str | Path, *, batch_size: int = 32, batches: int = 8, buckets: int = 50,
+                 branch: str = "uncond", eval_batches: int = 8, t_min: float = 0.02, t_max: float = 0.98, seed: int = 0,
+                 device: str | torch.device = "cpu") -> TrainResult:
+    """Fit the spectral b̂ (``spectral.py``) in closed form and write ``out_dir/corrective`` + metrics.json.
+
+    ``batches`` batches of ``batch_size`` clean images per timestep bucket; held-out L_k against
+    b̂ = z on ``eval_batches`` batches from the same generator stream as ``train_corrective``'s.
+    """
+    from lasagna.losses.spectral import SpectralCorrectiveConfig, fit_spectral_corrective
+
+    device = torch.device(device)
+    channels, h, w = prior.sample_shape
+    T = prior.schedule.num_steps
+    config = SpectralCorrectiveConfig(channels=channels, height=h, width=w, buckets=buckets, num_timesteps=T)
+    eval_gen = torch.Generator().manual_seed(seed + _EVAL_SEED_OFFSET)
+    held_out = [make_triplets(prior, source, batch_size, eval_gen, branch, t_min, t_max, device) for _ in range(eval_batches)]
+    gen = torch.Generator().manual_seed(seed)
+
+    def draw(k: int):
+        lo, hi = -(-k * T // buckets), -(-(k + 1) * T // buckets)  # ceil: exactly the t with t·buckets // T == k
+        tr = make_triplets(prior, source, batch_size, gen, branch, t_min, t_max, device, t_range=(lo, hi))
+        return tr.z, tr.t, tr.z_hat
+
+    model = fit_spectral_corrective(config, draw, batches)
+    out = Path(out_dir)
+    model.save_pretrained(out / "corrective")
+    result = TrainResult(corrective=model, step=batches * buckets, stopped="done",  # type: ignore[arg-type]
+                         lk_trained=evaluate_lk(model, held_out), lk_trivial=evaluate_lk(TrivialCorrective(), held_out))
+    ratio = result.ratio if math.isfinite(result.ratio) else None
+    metrics = {"kind": "spectral", "buckets": buckets, "fit_images_per_bucket": batches * batch_size, "lk_trained": result.lk_trained,
+               "lk_trivial": result.lk_trivial, "ratio": ratio, "held_out_samples": eval_batches * batch_size}
+    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+    return result
+
+
 # -- command line (wired as `lasagna train-corrective` by the CLI) -------------------------------
 def _import_callable(spec: str) -> Source:
     module, sep, attr = spec.partition(":")
@@ -206,6 +248,11 @@ def _filters(text: str) -> tuple[int, ...]:
 def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     p = p or argparse.ArgumentParser(prog="lasagna train-corrective", description="Train the LMC-SDS manifold corrective b̂ for a prior (resumable).")
     p.add_argument("--prior", required=True, help="folder of a UNetPrior (model.safetensors + config.json)")
+    p.add_argument("--kind", choices=("network", "spectral"), default="network",
+                   help="network: the paper's UNet b̂ trained with L_k; spectral: a per-t linear frequency response "
+                        "fitted in closed form (lasagna.losses.spectral)")
+    p.add_argument("--batches", type=int, default=8, help="spectral: batches of clean images per timestep bucket")
+    p.add_argument("--buckets", type=int, default=50, help="spectral: timestep buckets")
     p.add_argument("--task", choices=("relight", "colorize"), default=None,
                    help="draw clean images from the procedural world's train split for this prior task")
     p.add_argument("--source", default=None, help="module:callable, sample_batch(batch, generator) -> (images, label_idx, cond_image); instead of --task")
@@ -249,6 +296,12 @@ def run(args: argparse.Namespace) -> int:
         source = world_source(args.task, prior.config.resolution)
     else:
         source = _import_callable(args.source)
+    if args.kind == "spectral":
+        result = fit_spectral(prior, source, args.out, batch_size=args.batch_size, batches=args.batches, buckets=args.buckets,
+                              branch=args.branch, eval_batches=args.eval_batches, t_min=args.t_min, t_max=args.t_max,
+                              seed=args.seed, device=args.device)
+        print(json.dumps({"kind": "spectral", "lk_trained": result.lk_trained, "lk_trivial": result.lk_trivial, "ratio": result.ratio}))
+        return 0
     cond_channels = prior.config.cond_channels
     config = CorrectiveTrainConfig(
         corrective=corrective_config_for(prior, args.filters, args.sees_condition, cond_channels),

@@ -50,6 +50,8 @@ class PriorTrainConfig(LoopConfig):
     split: str = Field("train", description="world split the training scenes come from")
     world_seed: int = Field(0, description="seed of the world split (scenes are (split, seed, index))")
     shadows: bool = Field(False, description="render cast shadows in the training scenes")
+    init_from: str | None = Field(None, description="a saved prior (folder) whose weights start this run: "
+                                  "a second training stage, e.g. an lr anneal after a constant-lr run")
 
 
 def task_vocabulary(task: Task) -> tuple[str, ...]:
@@ -101,6 +103,12 @@ def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | tor
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         prior = UNetPrior(config.unet)
+    if config.init_from is not None:
+        start = UNetPrior.from_pretrained(config.init_from)
+        if start.config != config.unet:
+            raise LasagnaError(f"its UNet config differs from this run's ({start.config} vs {config.unet})",
+                               config.init_from)
+        prior.load_state_dict(start.state_dict())
 
     def step_fn(net: UNetPrior, gen: torch.Generator, step: int):
         images, labels, cond = source(config.batch_size, gen)
@@ -142,6 +150,10 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
     p.add_argument("--minutes", type=float, default=None, help="time budget of this invocation")
     p.add_argument("--batch-size", type=int, default=64)
     p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--lr-schedule", choices=("step", "cosine"), default="step",
+                   help="step: constant lr (after warm-up); cosine: anneal to 0 over --steps")
+    p.add_argument("--init-from", default=None,
+                   help="start from this saved prior's weights (its architecture replaces --channels etc.)")
     p.add_argument("--warmup", type=int, default=200)
     p.add_argument("--ema", type=float, default=0.999)
     p.add_argument("--grad-clip", type=float, default=1.0)
@@ -153,9 +165,11 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
 
 def run(args: argparse.Namespace) -> int:
     channels = tuple(int(c) for c in str(args.channels).split(","))
+    unet = unet_config_for(args.task, args.resolution, channels, args.res_blocks, args.attention, args.prediction)
+    if args.init_from is not None:
+        unet = io.read_config(args.init_from, UNetPrior.FORMAT, UNetConfig)
     config = PriorTrainConfig(
-        task=args.task,
-        unet=unet_config_for(args.task, args.resolution, channels, args.res_blocks, args.attention, args.prediction),
+        task=args.task, unet=unet, init_from=args.init_from, lr_schedule=args.lr_schedule,
         steps=args.steps, max_minutes=args.minutes, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,
         ema_decay=args.ema, grad_clip=args.grad_clip, checkpoint_every=args.checkpoint_every, seed=args.seed,
         progress=not args.no_progress,

@@ -30,6 +30,17 @@ class TestConvergence:
         assert torch.allclose(r.composite[0], (base * shading).clamp(0, 1), atol=3e-3)
         assert r.stopped_reason == "steps" and r.steps == 200 and len(r.history) == 200
 
+    def test_callback_sees_every_step_before_its_update(self, shading_problem):
+        base, shading, prior = shading_problem
+        seen = []
+        r = distill_image(base, PLAIN, prior, condition="x", steps=30, lr=0.05, seed=0,
+                          callback=lambda step, layer: seen.append((step, layer.clone())))
+        assert [s for s, _ in seen] == list(range(30))
+        assert torch.equal(seen[0][1], torch.ones_like(seen[0][1]))  # the identity edit, before any update
+        first, last = ((y[0] - shading).abs().mean() for y in (seen[1][1], seen[-1][1]))
+        assert last < first  # it traces the optimisation, which approaches the target
+        assert not torch.equal(seen[-1][1], r.layer)  # the result includes the last update; the trace does not
+
     def test_regulariser_alone_keeps_the_identity(self, shading_problem):
         base, _, prior = shading_problem
         only_l2 = Weights(score=dict(start=0.0, end=0.0), reg=dict(start=1.0, end=1.0))

@@ -78,3 +78,35 @@ class TestEvaluate:
         assert set(q[1.0]) == set(scene.label) | {"all"}
         err = denoising_error(prior, scene.image, scene.label, scene.albedo, t_values=(0.1, 0.9))
         assert all(v >= 0 and v == v for v in err.values())
+
+
+class TestSchedulesAndStages:
+    def test_cosine_lr_closed_form(self):
+        import math
+
+        cfg = tiny(steps=101, lr=2e-3, warmup_steps=0, lr_schedule="cosine", lr_min_ratio=0.1)
+        for step in (0, 25, 50, 100):
+            frac = step / 100
+            want = 2e-3 * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * frac)))
+            assert cfg.lr_at(step) == pytest.approx(want, rel=1e-12)
+        lrs = [cfg.lr_at(s) for s in range(101)]
+        assert all(a >= b for a, b in zip(lrs, lrs[1:]))  # never rises after warm-up
+        warm = tiny(steps=101, lr=2e-3, warmup_steps=10, lr_schedule="cosine")
+        assert warm.lr_at(0) == pytest.approx(2e-4 * (0.5 * (1 + math.cos(0.0))))
+        assert tiny(steps=50, lr=1e-3, warmup_steps=0).lr_at(49) == 1e-3  # the default "step" schedule: constant
+
+    def test_init_from_starts_at_those_weights(self, tmp_path):
+        first = train_prior(tiny(steps=5), tmp_path / "one")
+        # lr so small that one step cannot move the weights visibly: the second stage starts where the first ended.
+        second = train_prior(tiny(steps=1, lr=1e-12, warmup_steps=0, ema_decay=None, init_from=str(tmp_path / "one" / "prior")),
+                             tmp_path / "two")
+        for (k, a), (_, b) in zip(first.state_dict().items(), second.state_dict().items()):
+            torch.testing.assert_close(a, b, atol=1e-8, rtol=0, msg=k)
+        fresh = train_prior(tiny(steps=1, lr=1e-12, warmup_steps=0, ema_decay=None), tmp_path / "three")
+        assert any(not torch.allclose(a, b) for a, b in zip(first.state_dict().values(), fresh.state_dict().values()))
+
+    def test_init_from_another_architecture_is_refused(self, tmp_path):
+        train_prior(tiny(steps=1), tmp_path / "one")
+        other = tiny(steps=1, unet=unet_config_for("relight", resolution=8, channels=(8, 8)), init_from=str(tmp_path / "one" / "prior"))
+        with pytest.raises(Exception, match="UNet config differs"):
+            train_prior(other, tmp_path / "two")

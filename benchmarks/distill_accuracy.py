@@ -1,0 +1,411 @@
+"""Learned layers against the world's ground truth: every score loss × ω, baselines, run time against error.
+
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/distill_accuracy.py --markdown     (~15 min on 2 vCPUs)
+    .venv/bin/python benchmarks/distill_accuracy.py --quick                           (~1 min smoke run)
+
+On ``--count`` scenes of the world's ``heldout`` split (shape and texture families the priors never
+saw; labels cycling through the vocabulary), base = albedo, the bundled shading preset's prior and
+corrective, a free per-pixel shading layer distilled for ``--steps`` steps, all images batched:
+
+* per method (SDS, LMC-SDS, DDS, NFSD, MS-SDS) × ω: shading PSNR against the true shading over all
+  pixels and over object pixels, the scale-invariant error (per image, the shading rescaled by its
+  least-squares factor first), composite PSNR against the true relit image, chromaticity drift and
+  albedo error against the input, wall time — and the shading PSNR after every step with its time
+  (the run-time-against-error curves; one run gives the whole curve);
+* baselines in the same run: the best constant shading (per image, least squares), the prior sampled
+  directly (DDIM-50 with the same condition: the Lasagna paper's "ControlNet alone"), and LMC-SDS
+  with the network corrective b̂ (``relight-32-bhat``) beside the preset's corrective;
+* the amortised generator (one forward pass) and its supervised ceiling (the same generator trained
+  on the true shading), where their run folders or the catalogue hold them;
+* the radially averaged power spectrum of the composite (the LMC-SDS paper's Fig. 6), per method;
+* colourisation: the same methods against the true colours (composite PSNR; baseline: the gray input).
+
+Writes ``docs/img/distill_pareto.png``, ``docs/img/distill_spectrum.png`` and the full results to
+``--json-out``; ends by printing one JSON line of the headline numbers.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _common import machine_info, print_json_line  # noqa: E402
+from lasagna.catalogue import load_corrective, load_preset, load_prior, resolve  # noqa: E402
+from lasagna.distill import distill_image  # noqa: E402
+from lasagna.distill.objective import REC709  # noqa: E402
+from lasagna.priors.base import Condition  # noqa: E402
+from lasagna.priors.ddim import ddim_sample  # noqa: E402
+from lasagna.world import VOCABULARY, colorization, generate  # noqa: E402
+
+METHODS = ("sds", "lmc-sds", "dds", "nfsd", "ms-sds")
+OPPOSITE = {"left": "right", "right": "left", "top": "bottom", "bottom": "top", "top-left": "bottom-right",
+            "bottom-right": "top-left", "top-right": "bottom-left", "bottom-left": "top-right"}
+CHROMA_EPS = 0.05  # pixels darker than this (sum of RGB) have no meaningful chromaticity: left out of the drift
+
+
+# -- metrics ------------------------------------------------------------------------------------
+def psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> float:
+    """PSNR (peak 1) of the mean squared error over all images, or over ``mask`` pixels."""
+    d = (a.double() - b.double()) ** 2
+    mse = d.mean() if mask is None else (d * mask).sum() / (mask.sum() * a.shape[1]).clamp_min(1)
+    return float(-10 * torch.log10(mse.clamp_min(1e-12)))
+
+
+def scale_invariant_mse(y: torch.Tensor, true: torch.Tensor) -> float:
+    """mean over images of min_α mean((α·y − y*)²): the shading's error up to a global brightness."""
+    y, true = y.double().flatten(1), true.double().flatten(1)
+    alpha = (y * true).sum(1, keepdim=True) / (y * y).sum(1, keepdim=True).clamp_min(1e-12)
+    return float(((alpha * y - true) ** 2).mean())
+
+
+def chroma(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    s = x.double().sum(1, keepdim=True)
+    return x.double() / s.clamp_min(1e-6), (s > CHROMA_EPS).double()
+
+
+def chromaticity_drift(out: torch.Tensor, base: torch.Tensor) -> float:
+    """Mean L1 difference of rgb/(r+g+b) between an edit and its input (pixels bright enough in both)."""
+    co, mo = chroma(out)
+    cb, mb = chroma(base)
+    m = mo * mb
+    return float(((co - cb).abs().sum(1, keepdim=True) * m).sum() / m.sum().clamp_min(1))
+
+
+def luma(x: torch.Tensor) -> torch.Tensor:
+    r, g, b = REC709
+    return r * x[:, 0:1] + g * x[:, 1:2] + b * x[:, 2:3]
+
+
+def implied_shading(out: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
+    """The luminosity multiplier that best explains ``out`` as ``base`` × y: luma ratio, in [0, 2]."""
+    return (luma(out) / luma(base).clamp_min(1e-3)).clamp(0.0, 2.0)
+
+
+def albedo_error(out: torch.Tensor, base: torch.Tensor) -> float:
+    """Mean |out / y − base| with y = implied_shading: what the edit changed besides luminosity."""
+    y = implied_shading(out, base).clamp_min(1e-3)
+    return float((out.double() / y.double() - base.double()).abs().mean())
+
+
+def radial_spectrum(x: torch.Tensor) -> torch.Tensor:
+    """Radially averaged power spectrum of the luma, mean over images: (H//2,) from DC outwards."""
+    lum = luma(x.double())[:, 0]
+    lum = lum - lum.mean(dim=(-2, -1), keepdim=True)
+    p = torch.fft.fftshift(torch.fft.fft2(lum).abs() ** 2, dim=(-2, -1)).mean(0)
+    h, w = p.shape
+    yy, xx = torch.meshgrid(torch.arange(h) - h // 2, torch.arange(w) - w // 2, indexing="ij")
+    r = (yy.double() ** 2 + xx.double() ** 2).sqrt().round().long()
+    n = min(h, w) // 2
+    return torch.stack([p[r == k].mean() for k in range(n)])
+
+
+# -- runs ---------------------------------------------------------------------------------------
+def shading_run(method: str, omega: float, scene, preset, prior, corrective, steps: int, seed: int, every: int) -> dict:
+    """One per-image distillation of every scene at once; metrics at the end and the curve on the way."""
+    true, mask = scene.shading, scene.mask
+    curve: list[dict] = []
+    negative = None
+    if method == "dds":
+        negative = ""  # DDS's source condition: the unlit input has no light label, so the null label
+    elif method == "nfsd":
+        negative = [OPPOSITE[lab] for lab in scene.label]  # away from the opposite light
+
+    def trace(step: int, layer: torch.Tensor) -> None:
+        if step % every == 0 or step == steps - 1:
+            curve.append({"step": step + 1, "time_s": time.perf_counter() - t0, "shading_psnr": round(psnr(layer[:, :1], true), 3)})
+
+    t0 = time.perf_counter()
+    res = distill_image(scene.albedo, preset, prior, corrective if method == "lmc-sds" else None, condition=scene.label,
+                        negative=negative, loss=method, guidance=omega, steps=steps, seed=seed, early_stop=False, callback=trace)
+    seconds = time.perf_counter() - t0
+    y = res.layer[:, :1]
+    n = true.shape[0]
+    for c in curve:
+        c["time_s_per_image"] = round(c.pop("time_s") / n, 5)
+    return {"method": method, "omega": omega, "shading_psnr": round(psnr(y, true), 2), "object_psnr": round(psnr(y, true, mask), 2),
+            "si_mse": round(scale_invariant_mse(y, true), 5), "composite_psnr": round(psnr(res.composite, scene.image), 2),
+            "chroma_drift": round(chromaticity_drift(res.composite, scene.albedo), 5),
+            "albedo_error": round(albedo_error(res.composite, scene.albedo), 5),
+            "seconds": round(seconds, 2), "seconds_per_image": round(seconds / n, 4), "curve": curve,
+            "spectrum": radial_spectrum(res.composite).tolist()}
+
+
+def direct_samples(scene, prior, omega: float, seed: int) -> dict:
+    """The prior sampled with the same condition (DDIM-50): the "ControlNet alone" baseline."""
+    t0 = time.perf_counter()
+    out = ddim_sample(prior, Condition(list(scene.label), image=scene.albedo), steps=50, omega=omega,
+                      generator=torch.Generator().manual_seed(seed)).image
+    seconds = time.perf_counter() - t0
+    y = implied_shading(out, scene.albedo)
+    return {"method": "prior-direct", "omega": omega, "shading_psnr": round(psnr(y, scene.shading), 2),
+            "object_psnr": round(psnr(y, scene.shading, scene.mask), 2), "si_mse": round(scale_invariant_mse(y, scene.shading), 5),
+            "composite_psnr": round(psnr(out, scene.image), 2), "chroma_drift": round(chromaticity_drift(out, scene.albedo), 5),
+            "albedo_error": round(albedo_error(out, scene.albedo), 5), "seconds": round(seconds, 2),
+            "seconds_per_image": round(seconds / len(scene.label), 4), "spectrum": radial_spectrum(out).tolist()}
+
+
+def amortised(scene, preset, folder: Path | None, name: str) -> dict | None:
+    """One forward pass of a trained shading generator over every scene (None if there is none)."""
+    if folder is None or not (folder / "config.json").is_file():
+        return None
+    from lasagna.generators.layer import composite
+    from lasagna.generators.unet import LayerGenerator
+
+    gen = LayerGenerator.from_pretrained(folder)
+    with torch.no_grad():
+        gen(scene.albedo[:1], list(scene.label[:1]))  # warm-up: first-call allocations are not the steady cost
+        t0 = time.perf_counter()
+        y = gen(scene.albedo, list(scene.label))
+        seconds = time.perf_counter() - t0
+        comp = composite(scene.albedo, y, gen.spec).clamp(0, 1)
+    y = y[:, :1]
+    return {"method": name, "omega": None, "shading_psnr": round(psnr(y, scene.shading), 2),
+            "object_psnr": round(psnr(y, scene.shading, scene.mask), 2), "si_mse": round(scale_invariant_mse(y, scene.shading), 5),
+            "composite_psnr": round(psnr(comp, scene.image), 2), "chroma_drift": round(chromaticity_drift(comp, scene.albedo), 5),
+            "albedo_error": round(albedo_error(comp, scene.albedo), 5), "seconds": round(seconds, 4),
+            "seconds_per_image": round(seconds / len(scene.label), 5), "spectrum": radial_spectrum(comp).tolist()}
+
+
+def color_run(method: str, omega: float, col, preset, prior, corrective, steps: int, seed: int) -> dict:
+    t0 = time.perf_counter()
+    res = distill_image(col.base, preset, prior, corrective if method == "lmc-sds" else None, condition="natural",
+                        negative="" if method in ("dds", "nfsd") else None, loss=method, guidance=omega, steps=steps,
+                        seed=seed, early_stop=False)
+    seconds = time.perf_counter() - t0
+    return {"method": method, "omega": omega, "composite_psnr": round(psnr(res.composite, col.target), 2),
+            "seconds": round(seconds, 2)}
+
+
+# -- summaries and plots ------------------------------------------------------------------------
+def best_by_method(rows: list[dict]) -> dict[str, dict]:
+    best: dict[str, dict] = {}
+    for r in rows:
+        if r["method"] in METHODS and (r["method"] not in best or r["shading_psnr"] > best[r["method"]]["shading_psnr"]):
+            best[r["method"]] = r
+    return best
+
+
+def time_to_reach(curve: list[dict], target: float) -> float | None:
+    """Seconds per image at the first traced step whose shading PSNR reaches ``target`` (None: never)."""
+    for c in curve:
+        if c["shading_psnr"] >= target:
+            return c["time_s_per_image"]
+    return None
+
+
+def pareto(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """The points no other point beats in both time (lower) and PSNR (higher), by time."""
+    front, best = [], -math.inf
+    for t, p in sorted(points):
+        if p > best:
+            front.append((t, p))
+            best = p
+    return front
+
+
+def plot_pareto(rows: list[dict], extra: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.5), dpi=110)
+    best = best_by_method(rows)
+    points = []
+    for r in rows:
+        points += [(c["time_s_per_image"], c["shading_psnr"]) for c in r.get("curve", [])]
+    for m, r in best.items():
+        ax.plot([c["time_s_per_image"] for c in r["curve"]], [c["shading_psnr"] for c in r["curve"]], lw=1.4,
+                label=f"{m} (best ω = {r['omega']:g})")
+    front = pareto(points)
+    ax.plot([p[0] for p in front], [p[1] for p in front], "k--", lw=1, label="Pareto front (all methods × ω × steps)")
+    for r in extra:
+        if r.get("seconds_per_image") and r["method"] != "best-constant":
+            ax.scatter([r["seconds_per_image"]], [r["shading_psnr"]], marker="*", s=90, zorder=3,
+                       label=f"{r['method']}" + (f" ω = {r['omega']:g}" if r.get("omega") else ""))
+    const = next((r for r in extra if r["method"] == "best-constant"), None)
+    if const:
+        ax.axhline(const["shading_psnr"], color="gray", lw=0.8, ls=":", label="best constant")
+    ax.set_xscale("log")
+    ax.set_xlabel("wall time per image (s, batched, log scale)")
+    ax.set_ylabel("shading PSNR vs truth (dB)")
+    ax.set_title("Learned shading on held-out scenes: error against run time")
+    ax.legend(fontsize=7, loc="lower right")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def plot_spectrum(curves: dict[str, list[float]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4), dpi=110)
+    for name, spec in curves.items():
+        style = {"lw": 2.2, "color": "k"} if name == "truth" else ({"lw": 1.5, "ls": "--", "color": "gray"} if name == "input (albedo)" else {"lw": 1.1})
+        ax.plot(range(1, len(spec)), spec[1:], label=name, **style)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("spatial frequency (cycles per image)")
+    ax.set_ylabel("power of the luma (mean over images)")
+    ax.set_title("Radially averaged power spectrum of the composite")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def markdown(result: dict) -> str:
+    rows = result["shading"]
+    out = ["| method | ω | shading PSNR | object PSNR | si-MSE ×10³ | composite PSNR | chroma drift | s / image |",
+           "|---|---|---|---|---|---|---|---|"]
+    for r in result["baselines"] + rows:
+        w = "—" if r.get("omega") is None else f"{r['omega']:g}"
+        si = "—" if r.get("si_mse") is None else f"{1e3 * r['si_mse']:.2f}"
+        cp = "—" if r.get("composite_psnr") is None else f"{r['composite_psnr']:.2f}"
+        cd = "—" if r.get("chroma_drift") is None else f"{r['chroma_drift']:.4f}"
+        sp = "—" if r.get("seconds_per_image") is None else f"{r['seconds_per_image']:.3g}"
+        out.append(f"| {r['method']} | {w} | {r['shading_psnr']:.2f} | {r['object_psnr']:.2f} | {si} | {cp} | {cd} | {sp} |")
+    if result.get("color"):
+        out += ["", "| colourisation method | ω | composite PSNR vs true colours | s (all images) |", "|---|---|---|---|"]
+        for r in result["color"]:
+            w = "—" if r.get("omega") is None else f"{r['omega']:g}"
+            out.append(f"| {r['method']} | {w} | {r['composite_psnr']:.2f} | {r.get('seconds', '—')} |")
+    return "\n".join(out)
+
+
+# -- main ---------------------------------------------------------------------------------------
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--count", type=int, default=16)
+    ap.add_argument("--seed", type=int, default=7, help="world seed of the held-out scenes")
+    ap.add_argument("--steps", type=int, default=150)
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    ap.add_argument("--omegas", nargs="+", type=float, default=[1.0, 3.0, 7.5, 15.0, 30.0])
+    ap.add_argument("--network-corrective", default="relight-32-bhat", help="the network b̂ compared with the preset's ('' to skip)")
+    ap.add_argument("--generator", type=Path, default=None, help="amortised generator folder (default: the shading preset's)")
+    ap.add_argument("--supervised", type=Path, default=ROOT / "runs" / "shading-supervised" / "generator",
+                    help="the supervised-ceiling generator folder")
+    ap.add_argument("--color-omegas", nargs="*", type=float, default=[1.0, 3.0, 7.5])
+    ap.add_argument("--trace-every", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--quick", action="store_true", help="2 images, 10 steps, SDS and LMC-SDS at ω 1 and 7.5")
+    ap.add_argument("--markdown", action="store_true")
+    ap.add_argument("--json-out", type=Path, default=ROOT / "docs" / "distill_accuracy.json")
+    ap.add_argument("--img", type=Path, default=ROOT / "docs" / "img")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.count, args.steps, args.methods, args.omegas, args.color_omegas = 2, 10, ["sds", "lmc-sds"], [1.0, 7.5], [1.0]
+        args.json_out, args.img = Path("/tmp/distill_accuracy_quick.json"), Path("/tmp/distill_accuracy_quick")
+    torch.set_num_threads(args.threads)
+
+    preset = load_preset("shading")
+    parts = resolve("shading")
+    prior = load_prior(parts.prior)
+    corrective = load_corrective(parts.corrective) if parts.corrective else None
+    labels = [VOCABULARY[i % len(VOCABULARY)] for i in range(args.count)]
+    scene = generate("heldout", args.count, args.seed, prior.sample_shape[-1], labels=labels)
+    t_start = time.perf_counter()
+
+    const = scene.shading.mean(dim=(1, 2, 3), keepdim=True).expand_as(scene.shading)
+    baselines = [{"method": "best-constant", "omega": None, "shading_psnr": round(psnr(const, scene.shading), 2),
+                  "object_psnr": round(psnr(const, scene.shading, scene.mask), 2), "si_mse": round(scale_invariant_mse(const, scene.shading), 5),
+                  "composite_psnr": round(psnr((scene.albedo * const).clamp(0, 1), scene.image), 2)}]
+    print(json.dumps(baselines[-1]), flush=True)
+    for w in sorted({1.0, 3.0, 7.5} & set(args.omegas) or {1.0}):
+        baselines.append(direct_samples(scene, prior, w, args.seed))
+        print(json.dumps({k: v for k, v in baselines[-1].items() if k != "spectrum"}), flush=True)
+    gen_folder = args.generator or parts.generator
+    for folder, name in ((gen_folder, "amortised (distilled)"), (args.supervised, "amortised (supervised ceiling)")):
+        row = amortised(scene, preset, folder, name)
+        if row is not None:
+            baselines.append(row)
+            print(json.dumps({k: v for k, v in row.items() if k != "spectrum"}), flush=True)
+
+    rows = []
+    for method in args.methods:
+        for w in args.omegas:
+            rows.append(shading_run(method, w, scene, preset, prior, corrective, args.steps, 0, args.trace_every))
+            print(json.dumps({k: v for k, v in rows[-1].items() if k not in ("curve", "spectrum")}), flush=True)
+    if args.network_corrective and "lmc-sds" in args.methods:
+        net = load_corrective(args.network_corrective)
+        for w in args.omegas:
+            r = shading_run("lmc-sds", w, scene, preset, prior, net, args.steps, 0, args.trace_every)
+            r["method"] = f"lmc-sds, b̂ = {args.network_corrective}"
+            baselines.append(r)
+            print(json.dumps({k: v for k, v in r.items() if k not in ("curve", "spectrum")}), flush=True)
+
+    color = []
+    if args.color_omegas:
+        cpreset = load_preset("color")
+        cparts = resolve("color")
+        cprior = load_prior(cparts.prior)
+        ccorr = load_corrective(cparts.corrective) if cparts.corrective else None
+        col = colorization(generate("heldout", args.count, args.seed, cprior.sample_shape[-1]))
+        color.append({"method": "gray input (identity edit)", "omega": None, "composite_psnr": round(psnr(col.base, col.target), 2)})
+        for m in [m for m in ("sds", "lmc-sds") if m in args.methods and (m != "lmc-sds" or ccorr is not None)]:
+            for w in args.color_omegas:
+                color.append(color_run(m, w, col, cpreset, cprior, ccorr, args.steps, 0))
+                print(json.dumps(color[-1]), flush=True)
+
+    # Headline numbers against the issue's targets.
+    best = best_by_method(rows)
+    by = {(r["method"], r["omega"]): r for r in rows}
+    sds_best, lmc_best = best.get("sds"), best.get("lmc-sds")
+    direct = [b for b in baselines if b["method"] == "prior-direct"]
+    lmc_default = by.get(("lmc-sds", preset.distill.guidance)) or lmc_best
+    head = {"best_constant": baselines[0]["shading_psnr"], "best_constant_objects": baselines[0]["object_psnr"],
+            "best": {m: {"omega": r["omega"], "shading_psnr": r["shading_psnr"], "object_psnr": r["object_psnr"]} for m, r in best.items()}}
+    if sds_best and lmc_best:
+        t_sds = sds_best["curve"][-1]["time_s_per_image"]
+        t_lmc = time_to_reach(lmc_best["curve"], sds_best["shading_psnr"])
+        head["lmc_time_to_sds_final_vs_sds"] = None if t_lmc is None else round(t_lmc / t_sds, 3)
+        for w in (7.5, 15.0):
+            if ("sds", w) in by and ("lmc-sds", w) in by:
+                head[f"lmc_minus_sds_at_{w:g}"] = round(by[("lmc-sds", w)]["shading_psnr"] - by[("sds", w)]["shading_psnr"], 2)
+    if lmc_default and direct:
+        head["drift_lasagna_vs_direct"] = round(lmc_default["chroma_drift"] / max(min(d["chroma_drift"] for d in direct), 1e-12), 4)
+    ceiling = next((b for b in baselines if b["method"] == "amortised (supervised ceiling)"), None)
+    distilled = next((b for b in baselines if b["method"] == "amortised (distilled)"), None)
+    if ceiling:
+        head["supervised_ceiling"] = ceiling["shading_psnr"]
+    if distilled and lmc_default:
+        head["amortised_minus_per_image"] = round(distilled["shading_psnr"] - lmc_default["shading_psnr"], 2)
+        head["amortised_time_vs_per_image"] = round(distilled["seconds_per_image"] / lmc_default["seconds_per_image"], 5)
+
+    spectra = {"input (albedo)": radial_spectrum(scene.albedo).tolist(), "truth": radial_spectrum(scene.image).tolist()}
+    for m, r in best.items():
+        spectra[f"{m} ω = {r['omega']:g}"] = r["spectrum"]
+    for d in direct[:1]:
+        spectra[f"prior sampled directly ω = {d['omega']:g}"] = d["spectrum"]
+    args.img.mkdir(parents=True, exist_ok=True)
+    plot_pareto(rows, baselines, args.img / "distill_pareto.png")
+    plot_spectrum(spectra, args.img / "distill_spectrum.png")
+
+    result = {"machine": machine_info(), "count": args.count, "steps": args.steps, "seed": args.seed, "prior": str(parts.prior),
+              "corrective": str(parts.corrective), "headline": head, "baselines": baselines, "shading": rows, "color": color,
+              "wall_seconds": round(time.perf_counter() - t_start, 1)}
+    args.json_out.parent.mkdir(parents=True, exist_ok=True)
+    args.json_out.write_text(json.dumps(result, indent=1) + "\n")
+    if args.markdown:
+        print(markdown(result))
+    print_json_line({"benchmark": "distill_accuracy", **head, "wall_seconds": result["wall_seconds"]})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
