@@ -126,6 +126,10 @@ def train_layer_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loss", choices=("sds", "lmc-sds", "dds", "nfsd", "ms-sds"), help="default: the preset's")
     p.add_argument("--guidance", type=float, metavar="W", help="default: the preset's")
     p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--ramp", type=int, default=500, metavar="N",
+                   help="steps of the LMC-SDS recipe's cosine ramps: score weight 0.1 → 1, L2-to-input weight 1 → --reg-final")
+    p.add_argument("--reg-final", type=float, default=0.0, metavar="W",
+                   help="L2-to-input weight after the ramp (default 0; the LMC-SDS paper's image network keeps 0.1)")
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--resolution", type=int, help="world scene size (default: the prior's resolution, else 32)")
     p.add_argument("--channels", default="16,32,64,128", help="generator widths per level (default 16,32,64,128)")
@@ -139,6 +143,7 @@ def train_layer_arguments(p: argparse.ArgumentParser) -> None:
 def run_train_layer(args: argparse.Namespace) -> int:
     from lasagna import catalogue as cat
     from lasagna.distill import AmortisedConfig, train_layer_generator
+    from lasagna.distill.schedules import Weights
     from lasagna.distill.tasks import TASK_FOR_BLEND
     from lasagna.generators.unet import LayerGeneratorConfig
 
@@ -167,6 +172,7 @@ def run_train_layer(args: argparse.Namespace) -> int:
         corrective=str(resolved.corrective) if corrective is not None else None,
         supervised=args.supervised, loss=loss, guidance=args.guidance or preset.distill.guidance,
         t_min=preset.distill.t_min, t_max=preset.distill.t_max, lr=args.lr, batch_size=args.batch_size,
+        weights=Weights.lmc_network(args.ramp, reg_end=args.reg_final),
         resolution=resolution or 32, steps=args.steps, max_minutes=args.minutes, ema_decay=args.ema, seed=args.seed,
         progress=_progress(),
     )

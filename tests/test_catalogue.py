@@ -63,13 +63,14 @@ def test_preset_shipped_in_a_stack_wins(tmp_path, tiny):
 def test_available_lists_every_kind(tiny):
     assert cat.available(catalogue_dirs=[tiny]) == {
         "preset": ["color", "shading"], "prior": ["recolor-32", "relight-32"],
-        "corrective": ["relight-32-bhat"], "generator": ["shading"],
+        "corrective": ["recolor-32-spectral", "relight-32-bhat", "relight-32-spectral"], "generator": ["shading"],
     }
 
 
 @pytest.mark.parametrize("name, kind, relative", [
     ("shading", "preset", "shading/preset.json"), ("relight-32", "prior", "relight-32"),
-    ("relight-32-bhat", "corrective", "relight-32-bhat"), ("shading", "generator", "shading/generator"),
+    ("relight-32-bhat", "corrective", "relight-32-bhat"), ("relight-32-spectral", "corrective", "relight-32-spectral"),
+    ("shading", "generator", "shading/generator"),
 ])
 def test_find_each_kind(tiny, name, kind, relative):
     assert cat.find(name, kind, catalogue_dirs=[tiny]) == tiny / relative
@@ -103,7 +104,7 @@ def test_unrelated_config_is_no_kind(tmp_path):
 
 @pytest.mark.parametrize("kind, listed", [
     ("preset", "color, shading"), ("prior", "recolor-32, relight-32"),
-    ("corrective", "relight-32-bhat"), ("generator", "shading"),
+    ("corrective", "recolor-32-spectral, relight-32-bhat, relight-32-spectral"), ("generator", "shading"),
 ])
 def test_unknown_name_lists_what_exists(tiny, kind, listed):
     with pytest.raises(LasagnaError) as err:
@@ -146,7 +147,7 @@ def test_resolve_names_every_part(tiny):
     parts = cat.resolve("shading", catalogue_dirs=[tiny])
     assert parts.preset.name == "shading" and parts.preset_file == tiny / "shading" / "preset.json"
     assert (parts.prior, parts.corrective, parts.generator) == (
-        tiny / "relight-32", tiny / "relight-32-bhat", tiny / "shading" / "generator")
+        tiny / "relight-32", tiny / "relight-32-spectral", tiny / "shading" / "generator")
     colour = cat.resolve("color", catalogue_dirs=[tiny])
     assert colour.prior == tiny / "recolor-32" and colour.corrective is None and colour.generator is None
 
@@ -160,10 +161,11 @@ def test_resolve_without_prior(tmp_path):
 
 
 def test_prior_path_relative_to_the_preset(tmp_path, tiny):
-    _preset_copy(tmp_path, prior="./weights", corrective=None)
+    _preset_copy(tmp_path, prior="./weights", corrective="./bhat")
     shutil.copytree(tiny / "relight-32", tmp_path / "shading" / "weights")
+    shutil.copytree(tiny / "relight-32-spectral", tmp_path / "shading" / "bhat")
     parts = cat.resolve("shading", catalogue_dirs=[tmp_path])
-    assert parts.prior == tmp_path / "shading" / "weights"
+    assert parts.prior == tmp_path / "shading" / "weights" and parts.corrective == tmp_path / "shading" / "bhat"
     prior = cat.load_prior(parts.prior)
     assert prior.sample_shape == (3, 8, 8)
 
@@ -182,6 +184,10 @@ def test_load_each_kind(tiny):
     gen = cat.load_generator("shading", preset=preset, catalogue_dirs=[tiny])
     assert isinstance(prior, UNetPrior) and isinstance(corrective, Corrective) and isinstance(gen, LayerGenerator)
     assert not (prior.training or corrective.training or gen.training)
+    from lasagna.losses.spectral import SpectralCorrective
+
+    spectral = cat.load_corrective("relight-32-spectral", catalogue_dirs=[tiny])  # dispatched by its config's format
+    assert isinstance(spectral, SpectralCorrective) and not spectral.training
     with torch.no_grad():
         y = gen(torch.rand(1, 3, 12, 20), ["left"])
     assert y.shape == (1, 1, 12, 20) and float(y.min()) >= 0.0 and float(y.max()) <= 2.0

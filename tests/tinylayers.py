@@ -7,7 +7,8 @@
     color/preset.json                          the real colour preset, 4 steps, no generator
     relight-32/                                a random UNetPrior (8×8, conditioned on RGB), the world's labels
     recolor-32/                                a random UNetPrior (8×8, conditioned on luma), label "natural"
-    relight-32-bhat/                           a random LMC-SDS corrective for relight-32
+    relight-32-bhat/                           a random LMC-SDS corrective network for relight-32
+    relight-32-spectral/, recolor-32-spectral/ random spectral correctives (the presets' b̂)
 
 The names are the bundled ones, so a folder put first in ``LASAGNA_LAYERS`` shadows the real catalogue.
 The weights are random but not the identity (every parameter gets noise), so outputs depend on input.
@@ -50,6 +51,17 @@ def tiny_prior(cond_channels: int, vocabulary: tuple[str, ...], seed: int):
     return _jitter(UNetPrior(config), seed).eval()
 
 
+def tiny_spectral(seed: int):
+    """A spectral corrective at the tiny priors' size with random gains near the identity."""
+    from lasagna.losses.spectral import SpectralCorrective, SpectralCorrectiveConfig
+
+    model = SpectralCorrective(SpectralCorrectiveConfig(channels=3, height=PRIOR_RES, width=PRIOR_RES, buckets=4))
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        model.gain_real.mul_(1 - 0.3 * torch.rand(model.gain_real.shape, generator=gen))
+    return model.eval()
+
+
 def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool = True) -> Path:
     from lasagna.generators.layer import LayerSpec
     from lasagna.generators.unet import LayerGenerator, LayerGeneratorConfig
@@ -70,4 +82,6 @@ def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool =
         torch.manual_seed(4)
         corrective = Corrective(CorrectiveConfig(channels=3, resolution=PRIOR_RES, filters=(4, 8)))
         _jitter(corrective, 4).save_pretrained(folder / "relight-32-bhat")
+        for seed, name in ((5, "relight-32-spectral"), (6, "recolor-32-spectral")):
+            tiny_spectral(seed).save_pretrained(folder / name)
     return folder

@@ -220,9 +220,9 @@ def _load_prior(path: str | None, device: torch.device) -> Prior:
 def _load_corrective(path: str | None, device: torch.device):
     if path is None:
         raise LasagnaError("loss 'lmc-sds' needs the corrective b̂: pass corrective= or set config.corrective to its folder", "corrective")
-    from lasagna.losses.corrective import Corrective
+    from lasagna.catalogue import load_corrective  # a network or a spectral b̂, by its config's format
 
-    return Corrective.from_pretrained(path, device=device)
+    return load_corrective(Path(path), device=device)
 
 
 # -- command line (also what torchrun runs: python -m torch.distributed.run ... -m lasagna.distill.amortised) --

@@ -56,9 +56,12 @@ class Weights(BaseModel):
     reg: Ramp = Ramp.constant(0.0)
 
     @classmethod
-    def lmc_network(cls, steps: int) -> "Weights":
-        """LMC-SDS's network recipe: score 0.1 → 1.0 and L2 1.0 → 0.1, cosine, over ``steps`` steps."""
-        return cls(score=Ramp(start=0.1, end=1.0, steps=steps), reg=Ramp(start=1.0, end=0.1, steps=steps))
+    def lmc_network(cls, steps: int, reg_end: float = 0.1) -> "Weights":
+        """LMC-SDS's network recipe: score 0.1 → 1.0 and L2 1.0 → ``reg_end`` (the paper: 0.1), cosine,
+        over ``steps`` steps. ``reg_end=0`` releases the edit fully once the ramp is over (what
+        ``lasagna train-layer`` uses: a layer's blend already keeps the content, and a lasting pull to
+        the identity edit biased the distilled shading towards 1 — docs/BENCHMARKS.md#learned-layers)."""
+        return cls(score=Ramp(start=0.1, end=1.0, steps=steps), reg=Ramp(start=1.0, end=reg_end, steps=steps))
 
     def at(self, step: int) -> tuple[float, float]:
         """(score weight, regulariser weight) at ``step``."""

@@ -42,8 +42,11 @@ Interpretations (the paper leaves these implicit; each is a choice documented he
    space, the integer timesteps t (B,) of the prior's schedule, the condition's image and the label
    indices (the null index for unconditional samples); it runs under ``torch.no_grad()`` (the paper
    omits b̂'s Jacobian) and must return z's shape. Any callable works; ``Corrective``
-   (corrective.py) is the trained network. With no corrective the loss refuses to run: there is no
-   sensible default (b̂ = z, ``identity_corrective``, is a baseline, not LMC-SDS).
+   (corrective.py) is the paper's trained network, ``SpectralCorrective`` (spectral.py) a per-t
+   linear frequency response fitted in closed form — the bundled default, because a b̂ able to
+   predict the scene cancels the manifold pull along with the bias (spectral.py's docstring).
+   With no corrective the loss refuses to run: there is no sensible default (b̂ = z,
+   ``identity_corrective``, is a baseline, not LMC-SDS).
 
 Weighting: w(t) = 1 by default (the paper omits w(t) "in the sequel").
 """
@@ -111,7 +114,7 @@ class LMCSDS(ScoreLoss):
         super().__init__(options, **overrides)
         if corrective is None:
             raise LasagnaError(
-                "no corrective b̂ given; expected a trained lasagna.losses.corrective.Corrective (or any callable "
+                "no corrective b̂ given; expected a Corrective or SpectralCorrective (lasagna.catalogue.load_corrective), or any callable "
                 "b̂(z, t, cond_image=, label_idx=)); identity_corrective is the b̂ = z baseline",
                 "lmc-sds.corrective",
             )
