@@ -11,7 +11,8 @@ scikit-image's CC0 / public-domain samples). For each:
   truth column shows the original colours.
 
 Each edit is ``lasagna.edit.edit`` — the preset's amortised generator when the catalogue has one
-(one forward pass), else a per-image optimisation with the preset's settings — written as a stack folder under
+(one forward pass, then ``DEMO_REFINE`` per-image steps from it), else a per-image optimisation with the
+preset's settings — written as a stack folder under
 ``OUT/stacks/``. ``OUT/sheet.png`` has one labelled row per edit: input | layer | composite | truth.
 The layer is drawn as stored (v = (y − lo)/(hi − lo): a shading of 1 is mid-gray; an RGBA layer over
 a checkerboard). A preset whose prior and generator are both missing is skipped with one line; if
@@ -36,6 +37,9 @@ COLOURISED_PHOTOS = 2
 # Per-image steps when a preset has no amortised generator: None = the preset's own distill.steps
 # (150 for shading: ~1.5 s per 64² edit on this CPU with the 32² relighting prior, early stopping included).
 DEMO_STEPS: int | None = None
+# Per-image steps after an amortised generator's pass (``lasagna edit --optimize``): on held-out world scenes
+# 50 LMC-SDS steps lift the shading from 21.3 to 22.7 dB for ~0.3 s per image (docs/BENCHMARKS.md#learned-layers).
+DEMO_REFINE = 50
 CELL = 128  # pixels per image cell in the sheet (64² scenes and 96² photos, enlarged without smoothing)
 LABEL_WIDTH = 200
 
@@ -160,7 +164,8 @@ def _how(result) -> str:
     return f"{how}; {result.seconds:.2f} s"
 
 
-def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_STEPS, examples: Path | None = None,
+def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_STEPS, refine: int = DEMO_REFINE,
+             examples: Path | None = None,
              say: Callable[[str], None] = print, warn: Callable[[str], None] | None = None) -> Path | None:
     """Run the demo into ``out``; returns the sheet's path (None when it fell back to the example stack)."""
     from lasagna import catalogue as cat
@@ -202,7 +207,7 @@ def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_S
     written: list[Path] = []
 
     def one(image, preset: str, label: str, name: str, title: str, truth: Tensor | None, on: str | None = None) -> None:
-        kw = {} if runnable[preset] == "amortised" else {"steps": steps}
+        kw = {"optimize": refine} if runnable[preset] == "amortised" else {"steps": steps}
         result = edit(image, preset, label, on=on, catalogue_dirs=catalogue_dirs, **kw)
         written.append(result.save(out / "stacks" / name, force=True, warn=warn))  # replaces a previous run's stack
         layer = result.stack.document.layer(result.layer_id)

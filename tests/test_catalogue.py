@@ -149,7 +149,7 @@ def test_resolve_names_every_part(tiny):
     assert (parts.prior, parts.corrective, parts.generator) == (
         tiny / "relight-32", tiny / "relight-32-spectral", tiny / "shading" / "generator")
     colour = cat.resolve("color", catalogue_dirs=[tiny])
-    assert colour.prior == tiny / "recolor-32" and colour.corrective is None and colour.generator is None
+    assert colour.prior == tiny / "recolor-32" and colour.corrective == tiny / "recolor-32-spectral" and colour.generator is None
 
 
 def test_resolve_without_prior(tmp_path):

@@ -350,7 +350,10 @@ def test_train_layer_and_install(tmp_path, capsys, tiny, monkeypatch):
     assert code == 0, err
     line = json.loads(stdout.strip().splitlines()[-1])
     assert line["step"] == 2 and line["installed"] == str(cat_dir / "shading" / "generator")
-    assert (tmp_path / "run" / "train_config.json").is_file()
+    config = json.loads((tmp_path / "run" / "train_config.json").read_text())
+    assert config["loss"] == "lmc-sds" and config["guidance"] == 3.0  # the preset's defaults
+    assert config["weights"]["reg"] == {"start": 1.0, "end": 0.0, "steps": 500, "shape": "cosine"}  # --reg-final 0
+    assert config["corrective"].endswith("relight-32-spectral")
     result = edit(PHOTO, "shading", "left", catalogue_dirs=[cat_dir])
     assert result.settings["method"] == "amortised"
 

@@ -142,6 +142,11 @@ class TestGradient:
         last = obj(base, y, "x", generator=None, step=10)
         assert (first.w_score, first.w_reg) == pytest.approx((0.1, 1.0)) and (last.w_score, last.w_reg) == pytest.approx((1.0, 0.1))
 
+    def test_released_recipe_ends_without_the_l2(self):
+        w = Weights.lmc_network(10, reg_end=0.0)
+        assert w.at(0) == pytest.approx((0.1, 1.0)) and w.at(5) == pytest.approx((0.55, 0.5)) and w.at(10) == (1.0, 0.0)
+        assert w.at(10_000) == (1.0, 0.0)
+
     def test_shape_errors(self):
         obj = ScoreObjective(SHADING, gaussian_for(torch.rand(3, 4, 4)), build_loss("sds"), 1.0, Weights())
         with pytest.raises(LasagnaError, match="layer has shape"):
