@@ -109,9 +109,19 @@ def radial_spectrum(x: torch.Tensor) -> torch.Tensor:
 
 
 # -- runs ---------------------------------------------------------------------------------------
+def shading_row(method: str, omega: float | None, y: torch.Tensor, comp: torch.Tensor, scene, seconds: float) -> dict:
+    """The metrics of one shading result y (B, 1, H, W) with its composite, against the scene's truth."""
+    n = len(scene.label)
+    return {"method": method, "omega": omega, "shading_psnr": round(psnr(y, scene.shading), 2),
+            "object_psnr": round(psnr(y, scene.shading, scene.mask), 2), "si_mse": round(scale_invariant_mse(y, scene.shading), 5),
+            "composite_psnr": round(psnr(comp, scene.image), 2), "chroma_drift": round(chromaticity_drift(comp, scene.albedo), 5),
+            "albedo_error": round(albedo_error(comp, scene.albedo), 5), "seconds": round(seconds, 4),
+            "seconds_per_image": round(seconds / n, 5), "spectrum": radial_spectrum(comp).tolist()}
+
+
 def shading_run(method: str, omega: float, scene, preset, prior, corrective, steps: int, seed: int, every: int) -> dict:
     """One per-image distillation of every scene at once; metrics at the end and the curve on the way."""
-    true, mask = scene.shading, scene.mask
+    true = scene.shading
     curve: list[dict] = []
     negative = None
     if method == "dds":
@@ -127,16 +137,10 @@ def shading_run(method: str, omega: float, scene, preset, prior, corrective, ste
     res = distill_image(scene.albedo, preset, prior, corrective if method == "lmc-sds" else None, condition=scene.label,
                         negative=negative, loss=method, guidance=omega, steps=steps, seed=seed, early_stop=False, callback=trace)
     seconds = time.perf_counter() - t0
-    y = res.layer[:, :1]
     n = true.shape[0]
     for c in curve:
         c["time_s_per_image"] = round(c.pop("time_s") / n, 5)
-    return {"method": method, "omega": omega, "shading_psnr": round(psnr(y, true), 2), "object_psnr": round(psnr(y, true, mask), 2),
-            "si_mse": round(scale_invariant_mse(y, true), 5), "composite_psnr": round(psnr(res.composite, scene.image), 2),
-            "chroma_drift": round(chromaticity_drift(res.composite, scene.albedo), 5),
-            "albedo_error": round(albedo_error(res.composite, scene.albedo), 5),
-            "seconds": round(seconds, 2), "seconds_per_image": round(seconds / n, 4), "curve": curve,
-            "spectrum": radial_spectrum(res.composite).tolist()}
+    return {**shading_row(method, omega, res.layer[:, :1], res.composite, scene, seconds), "curve": curve}
 
 
 def direct_samples(scene, prior, omega: float, seed: int) -> dict:
@@ -145,12 +149,7 @@ def direct_samples(scene, prior, omega: float, seed: int) -> dict:
     out = ddim_sample(prior, Condition(list(scene.label), image=scene.albedo), steps=50, omega=omega,
                       generator=torch.Generator().manual_seed(seed)).image
     seconds = time.perf_counter() - t0
-    y = implied_shading(out, scene.albedo)
-    return {"method": "prior-direct", "omega": omega, "shading_psnr": round(psnr(y, scene.shading), 2),
-            "object_psnr": round(psnr(y, scene.shading, scene.mask), 2), "si_mse": round(scale_invariant_mse(y, scene.shading), 5),
-            "composite_psnr": round(psnr(out, scene.image), 2), "chroma_drift": round(chromaticity_drift(out, scene.albedo), 5),
-            "albedo_error": round(albedo_error(out, scene.albedo), 5), "seconds": round(seconds, 2),
-            "seconds_per_image": round(seconds / len(scene.label), 4), "spectrum": radial_spectrum(out).tolist()}
+    return shading_row("prior-direct", omega, implied_shading(out, scene.albedo), out, scene, seconds)
 
 
 def amortised(scene, preset, folder: Path | None, name: str) -> dict | None:
@@ -167,15 +166,10 @@ def amortised(scene, preset, folder: Path | None, name: str) -> dict | None:
         y = gen(scene.albedo, list(scene.label))
         seconds = time.perf_counter() - t0
         comp = composite(scene.albedo, y, gen.spec).clamp(0, 1)
-    y = y[:, :1]
-    return {"method": name, "omega": None, "shading_psnr": round(psnr(y, scene.shading), 2),
-            "object_psnr": round(psnr(y, scene.shading, scene.mask), 2), "si_mse": round(scale_invariant_mse(y, scene.shading), 5),
-            "composite_psnr": round(psnr(comp, scene.image), 2), "chroma_drift": round(chromaticity_drift(comp, scene.albedo), 5),
-            "albedo_error": round(albedo_error(comp, scene.albedo), 5), "seconds": round(seconds, 4),
-            "seconds_per_image": round(seconds / len(scene.label), 5), "spectrum": radial_spectrum(comp).tolist()}
+    return shading_row(name, None, y[:, :1], comp, scene, seconds)
 
 
-def refined(scene, preset, prior, corrective, folder: Path | None, steps: int, every: int) -> dict | None:
+def refined(scene, preset, prior, corrective, folder: Path | None, steps: int) -> dict | None:
     """The amortised pass, then ``steps`` per-image steps of the preset's loss from it (``lasagna edit --optimize``)."""
     if folder is None or not (folder / "config.json").is_file():
         return None
@@ -191,13 +185,8 @@ def refined(scene, preset, prior, corrective, folder: Path | None, steps: int, e
     res = distill_image(scene.albedo, settings, prior, corrective, condition=scene.label, early_stop=False,
                         generator=FreeLayer.from_layer(settings.layer, start))
     seconds = time.perf_counter() - t0
-    y, n = res.layer[:, :1], len(scene.label)
-    return {"method": f"amortised + {steps} steps ({preset.distill.loss})", "omega": preset.distill.guidance,
-            "shading_psnr": round(psnr(y, scene.shading), 2), "object_psnr": round(psnr(y, scene.shading, scene.mask), 2),
-            "si_mse": round(scale_invariant_mse(y, scene.shading), 5), "composite_psnr": round(psnr(res.composite, scene.image), 2),
-            "chroma_drift": round(chromaticity_drift(res.composite, scene.albedo), 5),
-            "albedo_error": round(albedo_error(res.composite, scene.albedo), 5), "seconds": round(seconds, 2),
-            "seconds_per_image": round(seconds / n, 4), "spectrum": radial_spectrum(res.composite).tolist()}
+    return shading_row(f"amortised + {steps} steps ({preset.distill.loss})", preset.distill.guidance, res.layer[:, :1],
+                       res.composite, scene, seconds)
 
 
 def color_run(method: str, omega: float, col, preset, prior, corrective, steps: int, seed: int) -> dict:
@@ -376,7 +365,7 @@ def main(argv=None) -> int:
             baselines.append(row)
             print(json.dumps({k: v for k, v in row.items() if k != "spectrum"}), flush=True)
 
-    row = refined(scene, preset, prior, corrective, gen_folder, args.refine_steps, args.trace_every) if args.refine_steps else None
+    row = refined(scene, preset, prior, corrective, gen_folder, args.refine_steps) if args.refine_steps else None
     if row is not None:
         baselines.append(row)
         print(json.dumps({k: v for k, v in row.items() if k != "spectrum"}), flush=True)

@@ -22,6 +22,26 @@ def read_log(run: Path) -> list[dict]:
     return [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines() if line.strip()]
 
 
+def train_minutes(log: list[dict]) -> float:
+    """Training wall time summed over invocations (each resume restarts elapsed_s)."""
+    total, last = 0.0, 0.0
+    for r in log:
+        if r["elapsed_s"] < last:
+            total += last
+        last = r["elapsed_s"]
+    return round((total + last) / 60, 1)
+
+
+def cumulative_minutes(log: list[dict]) -> list[float]:
+    out, offset, last = [], 0.0, 0.0
+    for r in log:
+        if r["elapsed_s"] < last:
+            offset += last
+        last = r["elapsed_s"]
+        out.append((offset + last) / 60)
+    return out
+
+
 def plot(distilled: list[dict], ceiling: list[dict], path: Path) -> None:
     import matplotlib
 
@@ -29,7 +49,7 @@ def plot(distilled: list[dict], ceiling: list[dict], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.2), dpi=100)
-    minutes = [r["elapsed_s"] / 60 for r in distilled]
+    minutes = cumulative_minutes(distilled)
     ax[0].plot(minutes, [r["grad_norm"] for r in distilled], lw=0.8)
     ax[0].set_yscale("log")
     ax[0].set_xlabel("minutes")
@@ -38,7 +58,7 @@ def plot(distilled: list[dict], ceiling: list[dict], path: Path) -> None:
     twin = ax[0].twinx()
     twin.plot(minutes, [r["reg"] for r in distilled], color="C1", lw=0.8)
     twin.set_ylabel("mean (f(x, y) − x)²", color="C1")
-    ax[1].plot([r["elapsed_s"] / 60 for r in ceiling], [r["mse"] for r in ceiling], lw=0.8, color="C2")
+    ax[1].plot(cumulative_minutes(ceiling), [r["mse"] for r in ceiling], lw=0.8, color="C2")
     ax[1].set_yscale("log")
     ax[1].set_xlabel("minutes")
     ax[1].set_ylabel("MSE to the true shading")
@@ -68,7 +88,7 @@ def main(argv=None) -> int:
     plot(log, log_c, args.out / "loss.png")
     g = cfg["generator"]
     params_note = f"channels {g['channels']}, {g['blocks']} conv blocks per level, label by {g['condition']} encoding"
-    minutes = round(log[-1]["elapsed_s"] / 60, 1)
+    minutes = train_minutes(log)
     metrics = {"val": {"distilled": m, "supervised_ceiling": mc}, "heldout": {"distilled": distilled, "supervised_ceiling": ceiling,
                "per_image": per_image, "refined": refine, "best_constant": const}, "steps": m["step"], "minutes": minutes,
                "date": datetime.date.today().isoformat()}
@@ -97,11 +117,11 @@ initialised to the identity edit (y = 1) and trained *through the composite* f(x
 Fresh batches of {cfg['batch_size']} world scenes of the `{cfg['split']}` split every step (albedo as the base, a
 uniformly drawn light direction); nothing on disk. {m['step']} steps in {minutes} minutes on one thread of this
 2-vCPU box (Adam lr {cfg['lr']}, EMA {cfg['ema_decay']}, seed {cfg['seed']}). The supervised ceiling is the same generator
-trained for the same {round(log_c[-1]['elapsed_s'] / 60, 1)} minutes on the true shading (MSE), {mc['step']} steps. Reproduce:
+trained for the same {train_minutes(log_c)} minutes on the true shading (MSE), {mc['step']} steps. Reproduce:
 
 ```sh
-lasagna train-layer --preset shading --out runs/shading-generator --minutes 15 --steps 100000 --install
-lasagna train-layer --preset shading --supervised --out runs/shading-supervised --minutes 15 --steps 100000
+lasagna train-layer --preset shading --out runs/shading-generator --steps {m['step']} --install   # ≈ {minutes} min here; resumable
+lasagna train-layer --preset shading --supervised --out runs/shading-supervised --steps {mc['step']}
 python benchmarks/distill_accuracy.py && python benchmarks/generator_card.py
 ```
 

@@ -11,8 +11,8 @@ scikit-image's CC0 / public-domain samples). For each:
   truth column shows the original colours.
 
 Each edit is ``lasagna.edit.edit`` — the preset's amortised generator when the catalogue has one
-(one forward pass, then ``DEMO_REFINE`` per-image steps from it), else a per-image optimisation with the
-preset's settings — written as a stack folder under
+(one forward pass, then ``DEMO_REFINE`` per-image steps from it, none by default), else a per-image
+optimisation with the preset's settings — written as a stack folder under
 ``OUT/stacks/``. ``OUT/sheet.png`` has one labelled row per edit: input | layer | composite | truth.
 The layer is drawn as stored (v = (y − lo)/(hi − lo): a shading of 1 is mid-gray; an RGBA layer over
 a checkerboard). A preset whose prior and generator are both missing is skipped with one line; if
@@ -37,9 +37,10 @@ COLOURISED_PHOTOS = 2
 # Per-image steps when a preset has no amortised generator: None = the preset's own distill.steps
 # (150 for shading: ~1.5 s per 64² edit on this CPU with the 32² relighting prior, early stopping included).
 DEMO_STEPS: int | None = None
-# Per-image steps after an amortised generator's pass (``lasagna edit --optimize``): on held-out world scenes
-# 50 LMC-SDS steps lift the shading from 21.3 to 22.7 dB for ~0.3 s per image (docs/BENCHMARKS.md#learned-layers).
-DEMO_REFINE = 50
+# Per-image steps after an amortised generator's pass (``lasagna edit --optimize``). 0: the demo shows what
+# ``lasagna edit`` does by default. Measured on held-out world scenes (docs/BENCHMARKS.md#learned-layers): after
+# the bundled generator's 22.65 dB, 50 LMC-SDS steps give 22.40 dB — refinement pays only for a weaker generator.
+DEMO_REFINE = 0
 CELL = 128  # pixels per image cell in the sheet (64² scenes and 96² photos, enlarged without smoothing)
 LABEL_WIDTH = 200
 

@@ -43,7 +43,6 @@ from pydantic import ConfigDict, Field, model_validator
 from lasagna.errors import LasagnaError
 from lasagna.io.atomic import atomic_write_text
 from lasagna.losses.corrective import Corrective, CorrectiveConfig, TrivialCorrective, lk_loss
-from lasagna.priors import io
 from lasagna.priors.base import Condition, Prior
 from lasagna.priors.nn import randn
 from lasagna.training import LoopConfig, train_loop
@@ -199,6 +198,9 @@ def fit_spectral(prior: Prior, source: Source, out_dir: str | Path, *, batch_siz
     """
     from lasagna.losses.spectral import SpectralCorrectiveConfig, fit_spectral_corrective
 
+    for name, value in (("batches", batches), ("batch_size", batch_size), ("eval_batches", eval_batches)):
+        if value < 1:  # zero batches would "fit" the identity gains and report it as a corrective
+            raise LasagnaError(f"{name} is {value}; expected at least 1", f"train-corrective.{name}")
     device = torch.device(device)
     channels, h, w = prior.sample_shape
     T = prior.schedule.num_steps

@@ -135,6 +135,13 @@ class TestFit:
         loaded = load_corrective(tmp_path / "run" / "corrective")
         assert isinstance(loaded, SpectralCorrective) and loaded.config.buckets == 5 and loaded.config.fit_images == 64
 
+    def test_zero_batches_is_refused(self, tmp_path):
+        from lasagna.errors import LasagnaError
+
+        with pytest.raises(LasagnaError, match="batches is 0; expected at least 1"):
+            ct.fit_spectral(BlurPrior(), toy_source, tmp_path / "run", batches=0)
+        assert not (tmp_path / "run").exists()
+
     def test_cli(self, tmp_path, capsys):
         UNetPrior(UNetConfig(channels=(4, 8), resolution=8, norm_groups=4, vocabulary=("a", "b"))).save_pretrained(tmp_path / "p")
         code = ct.main(["--kind", "spectral", "--prior", str(tmp_path / "p"), "--source", "tests.losses.test_corrective:toy_source",
