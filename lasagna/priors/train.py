@@ -168,6 +168,11 @@ def run(args: argparse.Namespace) -> int:
     unet = unet_config_for(args.task, args.resolution, channels, args.res_blocks, args.attention, args.prediction)
     if args.init_from is not None:
         unet = io.read_config(args.init_from, UNetPrior.FORMAT, UNetConfig)
+        want = unet_config_for(args.task)
+        if (unet.cond_channels, tuple(unet.vocabulary)) != (want.cond_channels, tuple(want.vocabulary)):
+            raise LasagnaError(f"it is a prior with {unet.cond_channels} conditioning channel(s) and labels "
+                               f"{', '.join(unet.vocabulary) or '(none)'}; expected a {args.task} prior "
+                               f"({want.cond_channels} channel(s), labels {', '.join(want.vocabulary)})", "--init-from")
     config = PriorTrainConfig(
         task=args.task, unet=unet, init_from=args.init_from, lr_schedule=args.lr_schedule,
         steps=args.steps, max_minutes=args.minutes, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,

@@ -110,3 +110,13 @@ class TestSchedulesAndStages:
         other = tiny(steps=1, unet=unet_config_for("relight", resolution=8, channels=(8, 8)), init_from=str(tmp_path / "one" / "prior"))
         with pytest.raises(Exception, match="UNet config differs"):
             train_prior(other, tmp_path / "two")
+
+    def test_cli_refuses_a_prior_of_another_task(self, tmp_path, capsys):
+        from lasagna.cli import main
+
+        train_prior(tiny(task="colorize", steps=1), tmp_path / "colour")
+        code = main(["train-prior", "--task", "relight", "--out", str(tmp_path / "run"), "--init-from",
+                     str(tmp_path / "colour" / "prior"), "--no-progress"])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and err.count("\n") == 0 and "expected a relight prior" in err
+        assert not (tmp_path / "run").exists()
