@@ -163,3 +163,22 @@ class TestInLMCSDS:
         spec = SpectralCorrective(SpectralCorrectiveConfig(channels=3, height=8, width=8, buckets=3, num_timesteps=prior.schedule.num_steps))
         g = lambda c: LMCSDS(c)(z.clone().requires_grad_(), prior, cond, 2.0, generator=torch.Generator().manual_seed(1)).diagnostics.grad  # noqa: E731
         torch.testing.assert_close(g(spec), g(identity_corrective), atol=1e-5, rtol=1e-5)
+
+
+class TestEdges:
+    @pytest.mark.parametrize("u", [0.0, 0.02, 0.5, 0.98, 1.0])
+    @pytest.mark.parametrize("image", ["constant", "zero", "one", "random"])
+    def test_lmc_sds_gradient_is_finite(self, u, image):
+        """The spectral b̂ in LMC-SDS at the ends of t and on flat images (σ = 0 in eq. 10): finite, no NaN."""
+        from tests.losses.conftest import ConvPrior
+        from lasagna.losses.core import TimestepOptions
+
+        prior = ConvPrior(shape=(3, 8, 8))
+        z = {"constant": torch.full((2, 3, 8, 8), 0.3), "zero": torch.full((2, 3, 8, 8), -1.0),
+             "one": torch.ones(2, 3, 8, 8), "random": torch.rand(2, 3, 8, 8) * 2 - 1}[image].requires_grad_()
+        spec = random_gains(7, SpectralCorrectiveConfig(channels=3, height=8, width=8, buckets=4, num_timesteps=prior.schedule.num_steps))
+        loss = LMCSDS(spec, timesteps=TimestepOptions(t_min=u, t_max=u))
+        out = loss(z, prior, Condition(["a", "b"]), 3.0, generator=torch.Generator().manual_seed(0))
+        out.loss.backward()
+        assert torch.isfinite(out.diagnostics.grad).all() and out.diagnostics.non_finite == 0
+        assert torch.isfinite(z.grad).all()
