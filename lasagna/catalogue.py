@@ -252,6 +252,36 @@ def resolve(preset: str | os.PathLike, stack_dir: str | os.PathLike | None = Non
     return Resolved(p, file, prior, corrective, generator)
 
 
+def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> dict[str, object]:
+    """Whether ``preset`` can make layers here, read from configs only (no weights, no torch):
+    ``{"usable": bool, "method": "amortised" | "per-image" | None, "why": str}``.
+
+    Usable means: an amortised generator is installed, or the prior is found and knows every label
+    of the preset's vocabulary (and the corrective is found when the default loss is LMC-SDS).
+    """
+    try:
+        parts = resolve(preset, catalogue_dirs=catalogue_dirs, need_prior=False)
+    except LasagnaError as err:
+        return {"usable": False, "method": None, "why": str(err)}
+    p = parts.preset
+    if parts.generator is not None:
+        return {"usable": True, "method": "amortised", "why": f"generator {parts.generator}"}
+    if not parts.prior.is_dir():
+        return {"usable": False, "method": None, "why": f"its prior {p.prior!r} is not in the catalogue"}
+    try:
+        doc = json.loads((parts.prior / "config.json").read_text(encoding="utf-8"))
+        known = tuple((doc.get("config") or {}).get("vocabulary") or ())
+    except (OSError, ValueError, AttributeError):
+        known = ()
+    missing = [lab for lab in p.vocabulary if known and lab not in known]
+    if missing:
+        return {"usable": False, "method": None,
+                "why": f"its prior {p.prior!r} was not trained on {', '.join(missing)} (it knows {', '.join(known)})"}
+    if p.distill.loss == "lmc-sds" and parts.corrective is None:
+        return {"usable": False, "method": None, "why": f"its corrective {p.corrective!r} is not in the catalogue"}
+    return {"usable": True, "method": "per-image", "why": f"prior {p.prior}, {p.distill.loss} ω = {p.distill.guidance:g}"}
+
+
 def load_prior(name_or_path: str | os.PathLike, *, preset: Preset | None = None, device="cpu",
                catalogue_dirs: Sequence[str | os.PathLike] | None = None, relative_to: str | os.PathLike | None = None):
     """A prior from the catalogue: a ``UNetPrior`` (eval mode), or a ``DiffusersPrior`` for a diffusers

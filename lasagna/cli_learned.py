@@ -206,10 +206,14 @@ def run_layers(args: argparse.Namespace) -> int:
     from lasagna import catalogue as cat
 
     found = cat.available()
+    status = {name: cat.preset_status(name) for name in found["preset"]}
     if args.json:
-        print(json.dumps({"catalogues": [str(c) for c in cat.catalogues()], **found}))
+        print(json.dumps({"catalogues": [str(c) for c in cat.catalogues()], **found, "status": status}))
         return 0
     print(f"catalogues: {', '.join(map(str, cat.catalogues())) or '(none)'}")
     for kind in cat.KINDS:
         print(f"{kind}s: {', '.join(found[kind]) or '(none)'}")
+    for name, st in status.items():
+        how = f"ready ({st['method']}: {st['why']})" if st["usable"] else f"not usable: {st['why']}"
+        print(f"  {name}: {how}")
     return 0

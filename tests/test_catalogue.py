@@ -214,3 +214,24 @@ def test_generator_missing_labels_is_refused(tiny, tmp_path):
 def test_wrong_format_is_not_loaded_as_a_prior(tiny):
     with pytest.raises(LasagnaError, match="no prior named 'relight-32-bhat'"):
         cat.load_prior("relight-32-bhat", catalogue_dirs=[tiny])
+
+
+# ---- readiness --------------------------------------------------------------------------------------
+
+
+def test_preset_status(tmp_path, tiny):
+    assert cat.preset_status("shading", catalogue_dirs=[tiny])["method"] == "amortised"
+    colour = cat.preset_status("color", catalogue_dirs=[tiny])
+    assert colour["usable"] and colour["method"] == "per-image"
+    other = shutil.copytree(tiny, tmp_path / "layers")
+    shutil.rmtree(other / "shading" / "generator")
+    _preset_copy(other, vocabulary=["left", "warm"])  # a label the prior was never trained on
+    st = cat.preset_status("shading", catalogue_dirs=[other])
+    assert not st["usable"] and "was not trained on warm" in st["why"] and "\n" not in st["why"]
+    _preset_copy(other, prior="missing-prior")
+    assert cat.preset_status("shading", catalogue_dirs=[other])["why"] == "its prior 'missing-prior' is not in the catalogue"
+    shutil.rmtree(other / "relight-32-spectral")
+    _preset_copy(other)
+    st = cat.preset_status("shading", catalogue_dirs=[other])
+    assert not st["usable"] and "corrective 'relight-32-spectral' is not in the catalogue" in st["why"]
+    assert cat.preset_status("nope", catalogue_dirs=[other])["usable"] is False

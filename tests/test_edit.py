@@ -369,6 +369,9 @@ def test_layers_lists_the_catalogue(capsys, tiny):
     code, stdout, _ = run(capsys, "layers", "--json")
     found = json.loads(stdout)
     assert code == 0 and found["catalogues"][0] == str(tiny) and "relight-32" in found["prior"]
+    assert found["status"]["shading"]["method"] == "amortised" and found["status"]["color"]["usable"]
+    code, stdout, _ = run(capsys, "layers")
+    assert code == 0 and "  shading: ready (amortised" in stdout and "  color: ready (per-image" in stdout
 
 
 def test_demo_end_to_end(tmp_path, capsys):
