@@ -37,11 +37,11 @@ from lasagna.training import read_log  # noqa: E402
 from lasagna.world import VOCABULARY, generate  # noqa: E402
 
 
-def heldout(task: str, count: int, resolution: int, seed: int):
+def heldout(task: str, count: int, resolution: int, seed: int, split: str = "heldout"):
     labels = None
     if task == "relight":  # an equal number of scenes per label, so per-label means are comparable
         labels = [VOCABULARY[i % len(VOCABULARY)] for i in range(count)]
-    scene = generate("heldout", count, seed, resolution, labels=labels)
+    scene = generate(split, count, seed, resolution, labels=labels)
     x0, lab_idx, cond = task_batch(task, scene)
     vocab = VOCABULARY if task == "relight" else ("natural",)
     return x0, [vocab[i] for i in lab_idx.tolist()], cond
@@ -93,6 +93,8 @@ def main(argv=None) -> int:
     ap.add_argument("--snapshots", type=Path, default=None)
     ap.add_argument("--snapshot-count", type=int, default=32)
     ap.add_argument("--out", type=Path, default=ROOT / "layers")
+    ap.add_argument("--split", default="heldout",
+                    help="world split of the scenes (heldout: the card's; val: seen families — pass another --out)")
     ap.add_argument("--previous", type=Path, default=None,
                     help="metrics.json of the run this one started from (train-prior --init-from): "
                          "the card then describes both stages and their total time")
@@ -102,7 +104,7 @@ def main(argv=None) -> int:
     config = PriorTrainConfig.model_validate_json((args.run / "train_config.json").read_text())
     prior = UNetPrior.from_pretrained(args.run / "prior")
     res = config.unet.resolution
-    x0, labels, cond = heldout(config.task, args.count, res, args.seed)
+    x0, labels, cond = heldout(config.task, args.count, res, args.seed, args.split)
     omegas = [float(w) for w in args.omegas.split(",")]
 
     t0 = time.perf_counter()
