@@ -16,30 +16,13 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
-
-def read_log(run: Path) -> list[dict]:
-    return [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines() if line.strip()]
-
-
-def train_minutes(log: list[dict]) -> float:
-    """Training wall time summed over invocations (each resume restarts elapsed_s)."""
-    total, last = 0.0, 0.0
-    for r in log:
-        if r["elapsed_s"] < last:
-            total += last
-        last = r["elapsed_s"]
-    return round((total + last) / 60, 1)
+from lasagna.training import cumulative_seconds, read_log  # noqa: E402
 
 
 def cumulative_minutes(log: list[dict]) -> list[float]:
-    out, offset, last = [], 0.0, 0.0
-    for r in log:
-        if r["elapsed_s"] < last:
-            offset += last
-        last = r["elapsed_s"]
-        out.append((offset + last) / 60)
-    return out
+    return [sec / 60 for sec in cumulative_seconds(log)]
 
 
 def plot(distilled: list[dict], ceiling: list[dict], path: Path) -> None:
@@ -88,7 +71,7 @@ def main(argv=None) -> int:
     plot(log, log_c, args.out / "loss.png")
     g = cfg["generator"]
     params_note = f"channels {g['channels']}, {g['blocks']} conv blocks per level, label by {g['condition']} encoding"
-    minutes = train_minutes(log)
+    minutes = round(cumulative_minutes(log)[-1], 1)
     metrics = {"val": {"distilled": m, "supervised_ceiling": mc}, "heldout": {"distilled": distilled, "supervised_ceiling": ceiling,
                "per_image": per_image, "refined": refine, "best_constant": const}, "steps": m["step"], "minutes": minutes,
                "date": datetime.date.today().isoformat()}
@@ -117,7 +100,7 @@ initialised to the identity edit (y = 1) and trained *through the composite* f(x
 Fresh batches of {cfg['batch_size']} world scenes of the `{cfg['split']}` split every step (albedo as the base, a
 uniformly drawn light direction); nothing on disk. {m['step']} steps in {minutes} minutes on one thread of this
 2-vCPU box (Adam lr {cfg['lr']}, EMA {cfg['ema_decay']}, seed {cfg['seed']}). The supervised ceiling is the same generator
-trained for the same {train_minutes(log_c)} minutes on the true shading (MSE), {mc['step']} steps. Reproduce:
+trained for the same {round(cumulative_minutes(log_c)[-1], 1)} minutes on the true shading (MSE), {mc['step']} steps. Reproduce:
 
 ```sh
 lasagna train-layer --preset shading --out runs/shading-generator --steps {m['step']} --install   # ≈ {minutes} min here; resumable
@@ -136,7 +119,7 @@ composite PSNR {m['layer_composite_psnr']:.2f} vs {mc['layer_composite_psnr']:.2
 
 | method | shading PSNR (dB) | object pixels (dB) | ms per image |
 |---|---|---|---|
-{line('this generator, one forward pass', distilled)}{line(f"this generator + {refine['method'].split('+')[1].split('(')[0].strip() if refine else '—'} per-image", refine)}{line(f"per-image {cfg['loss']} ω = {cfg['guidance']:g} (free layer, {acc['steps']} steps)", per_image)}{line('supervised ceiling, one forward pass', ceiling)}| best constant per image | {const['shading_psnr']:.2f} | {const['object_psnr']:.2f} | — |
+{line('this generator, one forward pass', distilled)}{line(f"this generator, then {refine['method'].removeprefix('amortised + ')}" if refine else 'this generator + refinement', refine)}{line(f"per-image {cfg['loss']} ω = {cfg['guidance']:g} (free layer, {acc['steps']} steps)", per_image)}{line('supervised ceiling, one forward pass', ceiling)}| best constant per image | {const['shading_psnr']:.2f} | {const['object_psnr']:.2f} | — |
 
 Measured {metrics['date']}; full tables in [docs/BENCHMARKS.md](../../../docs/BENCHMARKS.md#learned-layers).
 """

@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 from lasagna.priors.evaluate import denoising_error, sample_quality  # noqa: E402
 from lasagna.priors.train import PriorTrainConfig, prior_from_checkpoint, task_batch  # noqa: E402
 from lasagna.priors.unet import UNetPrior  # noqa: E402
-from lasagna.training import read_log  # noqa: E402
+from lasagna.training import cumulative_seconds, read_log  # noqa: E402
 from lasagna.world import VOCABULARY, generate  # noqa: E402
 
 
@@ -49,14 +49,8 @@ def heldout(task: str, count: int, resolution: int, seed: int, split: str = "hel
 
 def train_seconds(log: list[dict], step: int) -> float:
     """Training wall time up to ``step``, summed over invocations (each resume restarts elapsed_s)."""
-    total, last = 0.0, 0.0
-    for r in log:
-        if r["elapsed_s"] < last:  # a new invocation began
-            total += last
-        last = r["elapsed_s"]
-        if r["step"] >= step:
-            break
-    return total + last
+    secs = cumulative_seconds(log)
+    return next((s for r, s in zip(log, secs) if r["step"] >= step), secs[-1] if secs else 0.0)
 
 
 def loss_plot(log: list[dict], path: Path, title: str) -> None:

@@ -72,13 +72,18 @@ def _places(catalogue_dirs: Sequence[str | os.PathLike] | None) -> list[Path]:
     return catalogues() if catalogue_dirs is None else [Path(p) for p in catalogue_dirs if Path(p).is_dir()]
 
 
-def _format_of(folder: Path) -> str | None:
-    """The ``format`` of ``folder/config.json``, or None (no file, unreadable, not a lasagna config)."""
+def _config_doc(folder: Path) -> dict:
+    """``folder/config.json`` as a dict; {} when there is none, it is unreadable or not an object."""
     try:
         doc = json.loads((folder / "config.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
-        return None
-    return doc.get("format") if isinstance(doc, dict) else None
+        return {}
+    return doc if isinstance(doc, dict) else {}
+
+
+def _format_of(folder: Path) -> str | None:
+    """The ``format`` of ``folder/config.json``, or None (no file, unreadable, not a lasagna config)."""
+    return _config_doc(folder).get("format")
 
 
 def _is_diffusers(folder: Path) -> bool:
@@ -268,11 +273,8 @@ def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | Non
         return {"usable": True, "method": "amortised", "why": f"generator {parts.generator}"}
     if not parts.prior.is_dir():
         return {"usable": False, "method": None, "why": f"its prior {p.prior!r} is not in the catalogue"}
-    try:
-        doc = json.loads((parts.prior / "config.json").read_text(encoding="utf-8"))
-        known = tuple((doc.get("config") or {}).get("vocabulary") or ())
-    except (OSError, ValueError, AttributeError):
-        known = ()
+    config = _config_doc(parts.prior).get("config")
+    known = tuple(config.get("vocabulary") or ()) if isinstance(config, dict) else ()
     missing = [lab for lab in p.vocabulary if known and lab not in known]
     if missing:
         return {"usable": False, "method": None,

@@ -42,3 +42,8 @@ RANGE_SAVE_TOLERANCE = 1e-6
 # logit ∓IDENTITY_LOGIT: sigmoid(−12) = 6.1e-6 of the range's width, below the 1e-5 at which a first
 # composite counts as the input (half a 16-bit step is 7.6e-6) and far from float32's resolution.
 IDENTITY_LOGIT = 12.0
+
+# The spectral corrective's least-squares gain Σ Ẑ·conj Z / Σ |Z|² (lasagna.losses.spectral): a frequency
+# no fitting image excites (Σ |Z|² below this) keeps the identity gain instead of 0/0. Images in [−1, 1]
+# have |Z|² of order 1e2–1e5 per frequency and image, so only exact zeros fall under it.
+SPECTRAL_POWER_FLOOR = 1e-8

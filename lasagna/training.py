@@ -44,6 +44,12 @@ M = TypeVar("M", bound=BaseModel)
 StepFn = Callable[[torch.nn.Module, torch.Generator, int], "tuple[torch.Tensor, dict[str, float]]"]
 
 
+def cosine_interp(start: float, end: float, frac: float) -> float:
+    """start at frac ≤ 0, end at frac ≥ 1, along half a cosine (slow at both ends)."""
+    f = min(max(frac, 0.0), 1.0)
+    return end + (start - end) * 0.5 * (1.0 + math.cos(math.pi * f))
+
+
 class LoopConfig(BaseModel):
     """The loop's own settings; embedded (flattened) in each trainer's config."""
 
@@ -70,9 +76,7 @@ class LoopConfig(BaseModel):
         if self.lr_schedule == "cosine":
             # Anneal to lr·lr_min_ratio at the last step: a diffusion model still gaining at a constant lr
             # (relight-32 at 65 min) gains most from letting the weights settle (SGDR, Loshchilov & Hutter 2017).
-            frac = min(1.0, step / max(1, self.steps - 1))
-            cos = 0.5 * (1.0 + math.cos(math.pi * frac))
-            return self.lr * warm * (self.lr_min_ratio + (1.0 - self.lr_min_ratio) * cos)
+            return warm * cosine_interp(self.lr, self.lr * self.lr_min_ratio, step / max(1, self.steps - 1))
         return self.lr * warm * self.lr_decay ** (step // self.lr_decay_every)
 
 
@@ -168,6 +172,17 @@ def read_log(out_dir: str | Path) -> list[dict]:
     if not path.is_file():
         return []
     return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
+
+
+def cumulative_seconds(log: list[dict]) -> list[float]:
+    """Training wall time at each record, summed over invocations (each resume restarts ``elapsed_s``)."""
+    out, offset, last = [], 0.0, 0.0
+    for r in log:
+        if r["elapsed_s"] < last:  # a new invocation began
+            offset += last
+        last = r["elapsed_s"]
+        out.append(offset + last)
+    return out
 
 
 # -- distributed data parallel -----------------------------------------------------------------

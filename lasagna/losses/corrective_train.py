@@ -132,7 +132,7 @@ def evaluate_lk(model: torch.nn.Module, triplets: list[Triplet]) -> float:
 
 @dataclass
 class TrainResult:
-    corrective: Corrective  # the final b̂ (EMA weights when enabled), in eval mode
+    corrective: torch.nn.Module  # the final b̂ (a Corrective with EMA weights when enabled, or a SpectralCorrective), eval mode
     step: int
     stopped: Literal["done", "time"]
     lk_trained: float
@@ -217,7 +217,7 @@ def fit_spectral(prior: Prior, source: Source, out_dir: str | Path, *, batch_siz
     model = fit_spectral_corrective(config, draw, batches)
     out = Path(out_dir)
     model.save_pretrained(out / "corrective")
-    result = TrainResult(corrective=model, step=batches * buckets, stopped="done",  # type: ignore[arg-type]
+    result = TrainResult(corrective=model, step=batches * buckets, stopped="done",
                          lk_trained=evaluate_lk(model, held_out), lk_trivial=evaluate_lk(TrivialCorrective(), held_out))
     ratio = result.ratio if math.isfinite(result.ratio) else None
     metrics = {"kind": "spectral", "buckets": buckets, "fit_images_per_bucket": batches * batch_size, "lk_trained": result.lk_trained,

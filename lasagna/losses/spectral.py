@@ -30,12 +30,10 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
+from lasagna.numerics import SPECTRAL_POWER_FLOOR
 from lasagna.priors import io
 
 FORMAT = "lasagna.spectral_corrective"
-# Frequencies that no fitting image excites (|Z|² summed below this) keep the identity gain: a gain
-# fitted from nothing would be 0/0. Images in [−1, 1] have |Z|² ~ 1e2–1e5 per frequency and image.
-_POWER_FLOOR = 1e-8
 
 
 class SpectralCorrectiveConfig(BaseModel):
@@ -105,8 +103,8 @@ def fit_spectral_corrective(config: SpectralCorrectiveConfig, draw: Callable[[in
             den[k] += (zf.abs() ** 2).sum(0)
             if k == 0:
                 count += z.shape[0]
-    fitted = den > _POWER_FLOOR
-    gain = torch.where(fitted, num / den.clamp_min(_POWER_FLOOR), torch.ones_like(num))
+    fitted = den > SPECTRAL_POWER_FLOOR  # unexcited frequencies keep the identity gain (numerics)
+    gain = torch.where(fitted, num / den.clamp_min(SPECTRAL_POWER_FLOOR), torch.ones_like(num))
     model.gain_real.copy_(gain.real.float())
     model.gain_imag.copy_(gain.imag.float())
     model.config = config.model_copy(update={"fit_images": count})
