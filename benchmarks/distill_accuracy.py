@@ -18,7 +18,15 @@ corrective, a free per-pixel shading layer distilled for ``--steps`` steps, all 
 * the amortised generator (one forward pass) and its supervised ceiling (the same generator trained
   on the true shading), where their run folders or the catalogue hold them;
 * the radially averaged power spectrum of the composite (the LMC-SDS paper's Fig. 6), per method;
-* colourisation: the same methods against the true colours (composite PSNR; baseline: the gray input).
+* colourisation: the same methods against the true colours (composite PSNR; baseline: the gray input);
+* light: the same methods against the true glow (the ``plus`` layer) of the world's coloured fill
+  light, labels cycling through warm, cool, white: glow PSNR over all and object pixels, composite
+  PSNR against the lit image, the glow's colour error (angle between its mean RGB and the truth's)
+  and the darkening drift (how much an edit darkened the input: 0 for a ``plus`` layer by
+  construction); baselines: no light, the best constant glow, the prior sampled directly.
+
+``--sections`` runs a subset (shading, color, light); the sections not run are carried over from
+``--json-out``, so one table can be refreshed without re-running the others.
 
 Writes ``docs/img/distill_pareto.png``, ``docs/img/distill_spectrum.png`` and the full results to
 ``--json-out``; ends by printing one JSON line of the headline numbers.
@@ -44,11 +52,12 @@ from lasagna.distill import distill_image  # noqa: E402
 from lasagna.distill.objective import REC709  # noqa: E402
 from lasagna.priors.base import Condition  # noqa: E402
 from lasagna.priors.ddim import ddim_sample  # noqa: E402
-from lasagna.world import VOCABULARY, colorization, generate  # noqa: E402
+from lasagna.world import GLOW_VOCABULARY, VOCABULARY, additive_light, colorization, generate  # noqa: E402
 
 METHODS = ("sds", "lmc-sds", "dds", "nfsd", "ms-sds")
 OPPOSITE = {"left": "right", "right": "left", "top": "bottom", "bottom": "top", "top-left": "bottom-right",
             "bottom-right": "top-left", "top-right": "bottom-left", "bottom-left": "top-right"}
+SECTIONS = ("shading", "color", "light")
 CHROMA_EPS = 0.05  # pixels darker than this (sum of RGB) have no meaningful chromaticity: left out of the drift
 
 
@@ -198,6 +207,59 @@ def color_run(method: str, omega: float, col, preset, prior, corrective, steps: 
             "seconds": round(seconds, 2)}
 
 
+def glow_colour_error(glow: torch.Tensor, true: torch.Tensor) -> float:
+    """Mean over images of the angle (degrees) between the summed RGB of a glow and of the true glow.
+
+    Brightness-free: it asks only whether the light added has the label's colour. A glow with no
+    light at all has no colour; it counts as 90° (orthogonal).
+    """
+    a, b = glow.double().sum(dim=(2, 3)), true.double().sum(dim=(2, 3))
+    cos = (a * b).sum(1) / (a.norm(dim=1) * b.norm(dim=1)).clamp_min(1e-12)
+    return float(torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0))).mean())
+
+
+def darkening(out: torch.Tensor, base: torch.Tensor) -> float:
+    """Mean over pixels and channels of max(0, base − out): what an edit took away from the input.
+
+    Adding light never darkens, so for the light task this is pure content drift.
+    """
+    return float((base.double() - out.double()).clamp_min(0.0).mean())
+
+
+def light_row(method: str, omega: float | None, glow: torch.Tensor, comp: torch.Tensor, add, seconds: float) -> dict:
+    """The metrics of one glow result (B, 3, H, W) with its composite, against the true glow and lit image."""
+    mask = add.scene.mask
+    return {"method": method, "omega": omega, "glow_psnr": round(psnr(glow, add.glow), 2),
+            "object_psnr": round(psnr(glow, add.glow, mask), 2), "composite_psnr": round(psnr(comp, add.lit), 2),
+            "colour_error_deg": round(glow_colour_error(glow, add.glow), 2), "darkening": round(darkening(comp, add.base), 5),
+            "seconds": round(seconds, 3), "seconds_per_image": round(seconds / glow.shape[0], 5)}
+
+
+def light_baselines(add, prior, omegas, seed: int) -> list[dict]:
+    """No light, the best constant glow (per image and channel, least squares) and the prior sampled directly."""
+    zero = torch.zeros_like(add.glow)
+    const = add.glow.mean(dim=(2, 3), keepdim=True).expand_as(add.glow)
+    rows = [light_row("no light (identity edit)", None, zero, add.base, add, 0.0),
+            light_row("best-constant", None, const, (add.base + const).clamp(0, 1), add, 0.0)]
+    for w in omegas:
+        t0 = time.perf_counter()
+        out = ddim_sample(prior, Condition(list(add_labels(add)), image=add.base), steps=50, omega=w,
+                          generator=torch.Generator().manual_seed(seed)).image
+        rows.append(light_row("prior-direct", w, (out - add.base).clamp_min(0.0), out, add, time.perf_counter() - t0))
+    return rows
+
+
+def add_labels(add) -> list[str]:
+    return [GLOW_VOCABULARY[int(k)] for k in add.scene.params.glow_label]
+
+
+def light_run(method: str, omega: float, add, preset, prior, corrective, steps: int, seed: int) -> dict:
+    t0 = time.perf_counter()
+    res = distill_image(add.base, preset, prior, corrective if method == "lmc-sds" else None, condition=add_labels(add),
+                        loss=method, guidance=omega, steps=steps, seed=seed, early_stop=False)
+    return light_row(method, omega, res.layer, res.composite, add, time.perf_counter() - t0)
+
+
 # -- summaries and plots ------------------------------------------------------------------------
 def best_by_method(rows: list[dict]) -> dict[str, dict]:
     best: dict[str, dict] = {}
@@ -288,10 +350,10 @@ def plot_spectrum(curves: dict[str, list[float]], path: Path) -> None:
 
 
 def markdown(result: dict) -> str:
-    rows = result["shading"]
+    rows = result.get("shading", [])
     out = ["| method | ω | shading PSNR | object PSNR | si-MSE ×10³ | composite PSNR | chroma drift | s / image |",
            "|---|---|---|---|---|---|---|---|"]
-    for r in result["baselines"] + rows:
+    for r in result.get("baselines", []) + rows:
         w = "—" if r.get("omega") is None else f"{r['omega']:g}"
         si = "—" if r.get("si_mse") is None else f"{1e3 * r['si_mse']:.2f}"
         cp = "—" if r.get("composite_psnr") is None else f"{r['composite_psnr']:.2f}"
@@ -303,49 +365,24 @@ def markdown(result: dict) -> str:
         for r in result["color"]:
             w = "—" if r.get("omega") is None else f"{r['omega']:g}"
             out.append(f"| {r['method']} | {w} | {r['composite_psnr']:.2f} | {r.get('seconds', '—')} |")
+    if result.get("light"):
+        out += ["", "| light method | ω | glow PSNR | object PSNR | composite PSNR | colour error (°) | darkening ×10³ | s / image |",
+                "|---|---|---|---|---|---|---|---|"]
+        for r in result["light"]:
+            w = "—" if r.get("omega") is None else f"{r['omega']:g}"
+            out.append(f"| {r['method']} | {w} | {r['glow_psnr']:.2f} | {r['object_psnr']:.2f} | {r['composite_psnr']:.2f} | "
+                       f"{r['colour_error_deg']:.1f} | {1e3 * r['darkening']:.2f} | {r['seconds_per_image']:.3g} |")
     return "\n".join(out)
 
 
-# -- main ---------------------------------------------------------------------------------------
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--count", type=int, default=16)
-    ap.add_argument("--seed", type=int, default=7, help="world seed of the held-out scenes")
-    ap.add_argument("--split", default="heldout", help="world split (heldout: families the priors never saw; val: seen families)")
-    ap.add_argument("--steps", type=int, default=150)
-    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
-    ap.add_argument("--omegas", nargs="+", type=float, default=[1.0, 3.0, 7.5, 15.0, 30.0])
-    ap.add_argument("--network-corrective", default="relight-32-bhat", help="the network b̂ compared with the preset's ('' to skip)")
-    ap.add_argument("--generator", type=Path, default=None, help="amortised generator folder (default: the shading preset's)")
-    ap.add_argument("--supervised", type=Path, default=ROOT / "runs" / "shading-supervised" / "generator",
-                    help="the supervised-ceiling generator folder")
-    ap.add_argument("--refine-steps", type=int, default=50, help="per-image steps after the amortised pass (0: skip)")
-    ap.add_argument("--color-omegas", nargs="*", type=float, default=[1.0, 3.0, 7.5])
-    ap.add_argument("--trace-every", type=int, default=5)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--quick", action="store_true", help="2 images, 10 steps, SDS and LMC-SDS at ω 1 and 7.5")
-    ap.add_argument("--markdown", action="store_true")
-    ap.add_argument("--json-out", type=Path, default=ROOT / "docs" / "distill_accuracy.json")
-    ap.add_argument("--img", type=Path, default=ROOT / "docs" / "img")
-    ap.add_argument("--replot", action="store_true", help="redraw the plots from --json-out without running anything")
-    args = ap.parse_args(argv)
-    if args.replot:
-        saved = json.loads(args.json_out.read_text())
-        plot_pareto(saved["shading"], saved["baselines"], args.img / "distill_pareto.png")
-        print(markdown(saved))
-        return 0
-    if args.quick:
-        args.count, args.steps, args.methods, args.omegas, args.color_omegas = 2, 10, ["sds", "lmc-sds"], [1.0, 7.5], [1.0]
-        args.json_out, args.img = Path("/tmp/distill_accuracy_quick.json"), Path("/tmp/distill_accuracy_quick")
-    torch.set_num_threads(args.threads)
-
+def run_shading(args) -> dict:
+    """The shading section: baselines, every method × ω, headline numbers against the targets, plots."""
     preset = load_preset("shading")
     parts = resolve("shading")
     prior = load_prior(parts.prior)
     corrective = load_corrective(parts.corrective) if parts.corrective else None
     labels = [VOCABULARY[i % len(VOCABULARY)] for i in range(args.count)]
     scene = generate(args.split, args.count, args.seed, prior.sample_shape[-1], labels=labels)
-    t_start = time.perf_counter()
     # Warm-up: the first distillation of a process pays one-off allocations that are not the method's cost.
     distill_image(scene.albedo, preset, prior, corrective, condition=scene.label, steps=3, seed=0, early_stop=False)
 
@@ -382,19 +419,6 @@ def main(argv=None) -> int:
             baselines.append(r)
             print(json.dumps({k: v for k, v in r.items() if k not in ("curve", "spectrum")}), flush=True)
 
-    color = []
-    if args.color_omegas:
-        cpreset = load_preset("color")
-        cparts = resolve("color")
-        cprior = load_prior(cparts.prior)
-        ccorr = load_corrective(cparts.corrective) if cparts.corrective else None
-        col = colorization(generate(args.split, args.count, args.seed, cprior.sample_shape[-1]))
-        color.append({"method": "gray input (identity edit)", "omega": None, "composite_psnr": round(psnr(col.base, col.target), 2)})
-        for m in [m for m in ("sds", "lmc-sds") if m in args.methods and (m != "lmc-sds" or ccorr is not None)]:
-            for w in args.color_omegas:
-                color.append(color_run(m, w, col, cpreset, cprior, ccorr, args.steps, 0))
-                print(json.dumps(color[-1]), flush=True)
-
     # Headline numbers against the issue's targets.
     best = best_by_method(rows)
     by = {(r["method"], r["omega"]): r for r in rows}
@@ -429,14 +453,103 @@ def main(argv=None) -> int:
     plot_pareto(rows, baselines, args.img / "distill_pareto.png")
     plot_spectrum(spectra, args.img / "distill_spectrum.png")
 
-    result = {"machine": machine_info(), "split": args.split, "count": args.count, "steps": args.steps, "seed": args.seed, "prior": str(parts.prior),
-              "corrective": str(parts.corrective), "headline": head, "baselines": baselines, "shading": rows, "color": color,
-              "wall_seconds": round(time.perf_counter() - t_start, 1)}
+    return {"prior": str(parts.prior), "corrective": str(parts.corrective), "headline": head, "baselines": baselines,
+            "shading": rows}
+
+
+def run_color(args) -> list[dict]:
+    """The colourisation section: the gray input, SDS and LMC-SDS × ω against the true colours."""
+    color = []
+    cpreset = load_preset("color")
+    cparts = resolve("color")
+    cprior = load_prior(cparts.prior)
+    ccorr = load_corrective(cparts.corrective) if cparts.corrective else None
+    col = colorization(generate(args.split, args.count, args.seed, cprior.sample_shape[-1]))
+    color.append({"method": "gray input (identity edit)", "omega": None, "composite_psnr": round(psnr(col.base, col.target), 2)})
+    for m in [m for m in ("sds", "lmc-sds") if m in args.methods and (m != "lmc-sds" or ccorr is not None)]:
+        for w in args.color_omegas:
+            color.append(color_run(m, w, col, cpreset, cprior, ccorr, args.steps, 0))
+            print(json.dumps(color[-1]), flush=True)
+    return color
+
+
+def run_light(args) -> list[dict]:
+    """The light section: baselines, SDS and LMC-SDS × ω against the true glow (labels warm, cool, white in turn)."""
+    from lasagna.catalogue import preset_status
+
+    status = preset_status("light")
+    if not status["usable"]:
+        print(json.dumps({"light": "skipped", "why": status["why"]}), flush=True)
+        return []
+    lpreset = load_preset("light")
+    lparts = resolve("light")
+    lprior = load_prior(lparts.prior)
+    lcorr = load_corrective(lparts.corrective) if lparts.corrective else None
+    labels = [GLOW_VOCABULARY[i % len(GLOW_VOCABULARY)] for i in range(args.count)]
+    add = additive_light(generate(args.split, args.count, args.seed, lprior.sample_shape[-1]), labels)
+    light = light_baselines(add, lprior, [w for w in args.light_omegas if w in (1.0, 3.0)] or args.light_omegas[:1], args.seed)
+    for r in light:
+        print(json.dumps(r), flush=True)
+    for m in [m for m in ("sds", "lmc-sds") if m in args.methods and (m != "lmc-sds" or lcorr is not None)]:
+        for w in args.light_omegas:
+            light.append(light_run(m, w, add, lpreset, lprior, lcorr, args.steps, 0))
+            print(json.dumps(light[-1]), flush=True)
+    return light
+
+
+# -- main ---------------------------------------------------------------------------------------
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--count", type=int, default=16)
+    ap.add_argument("--seed", type=int, default=7, help="world seed of the held-out scenes")
+    ap.add_argument("--split", default="heldout", help="world split (heldout: families the priors never saw; val: seen families)")
+    ap.add_argument("--steps", type=int, default=150)
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    ap.add_argument("--omegas", nargs="+", type=float, default=[1.0, 3.0, 7.5, 15.0, 30.0])
+    ap.add_argument("--network-corrective", default="relight-32-bhat", help="the network b̂ compared with the preset's ('' to skip)")
+    ap.add_argument("--generator", type=Path, default=None, help="amortised generator folder (default: the shading preset's)")
+    ap.add_argument("--supervised", type=Path, default=ROOT / "runs" / "shading-supervised" / "generator",
+                    help="the supervised-ceiling generator folder")
+    ap.add_argument("--refine-steps", type=int, default=50, help="per-image steps after the amortised pass (0: skip)")
+    ap.add_argument("--color-omegas", nargs="*", type=float, default=[1.0, 3.0, 7.5])
+    ap.add_argument("--light-omegas", nargs="*", type=float, default=[1.0, 3.0, 7.5])
+    ap.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS,
+                    help="which tables to run; the others are carried over from --json-out")
+    ap.add_argument("--trace-every", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--quick", action="store_true", help="2 images, 10 steps, SDS and LMC-SDS at ω 1 and 7.5")
+    ap.add_argument("--markdown", action="store_true")
+    ap.add_argument("--json-out", type=Path, default=ROOT / "docs" / "distill_accuracy.json")
+    ap.add_argument("--img", type=Path, default=ROOT / "docs" / "img")
+    ap.add_argument("--replot", action="store_true", help="redraw the plots from --json-out without running anything")
+    args = ap.parse_args(argv)
+    if args.replot:
+        saved = json.loads(args.json_out.read_text())
+        plot_pareto(saved["shading"], saved["baselines"], args.img / "distill_pareto.png")
+        print(markdown(saved))
+        return 0
+    if args.quick:
+        args.count, args.steps, args.methods, args.omegas, args.color_omegas, args.light_omegas = 2, 10, ["sds", "lmc-sds"], [1.0, 7.5], [1.0], [1.0]
+        args.json_out, args.img = Path("/tmp/distill_accuracy_quick.json"), Path("/tmp/distill_accuracy_quick")
+    torch.set_num_threads(args.threads)
+    t_start = time.perf_counter()
+    result = {}
+    if args.json_out.is_file() and set(args.sections) != set(SECTIONS):
+        result = json.loads(args.json_out.read_text())  # the sections not run are carried over
+    result.update({"machine": machine_info(), "split": args.split, "count": args.count, "steps": args.steps, "seed": args.seed})
+    if "shading" in args.sections:
+        result.update(run_shading(args))
+    if "color" in args.sections:
+        result["color"] = run_color(args) if args.color_omegas else []
+    if "light" in args.sections:
+        result["light"] = run_light(args) if args.light_omegas else []
+    result["wall_seconds"] = round(time.perf_counter() - t_start, 1)
     args.json_out.parent.mkdir(parents=True, exist_ok=True)
     args.json_out.write_text(json.dumps(result, indent=1) + "\n")
     if args.markdown:
         print(markdown(result))
-    print_json_line({"benchmark": "distill_accuracy", **head, "wall_seconds": result["wall_seconds"]})
+    print_json_line({"benchmark": "distill_accuracy", "sections": args.sections, **result.get("headline", {}),
+                     "wall_seconds": result["wall_seconds"]})
     return 0
 
 

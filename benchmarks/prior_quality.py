@@ -23,6 +23,7 @@ import platform
 import shutil
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -31,19 +32,20 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from lasagna.priors.evaluate import denoising_error, sample_quality  # noqa: E402
-from lasagna.priors.train import PriorTrainConfig, prior_from_checkpoint, task_batch  # noqa: E402
+from lasagna.priors.train import PriorTrainConfig, prior_from_checkpoint, task_batch, task_vocabulary  # noqa: E402
 from lasagna.priors.unet import UNetPrior  # noqa: E402
 from lasagna.training import cumulative_seconds, read_log  # noqa: E402
-from lasagna.world import VOCABULARY, generate  # noqa: E402
+from lasagna.world import generate  # noqa: E402
 
 
 def heldout(task: str, count: int, resolution: int, seed: int, split: str = "heldout"):
-    labels = None
-    if task == "relight":  # an equal number of scenes per label, so per-label means are comparable
-        labels = [VOCABULARY[i % len(VOCABULARY)] for i in range(count)]
-    scene = generate(split, count, seed, resolution, labels=labels)
+    vocab = task_vocabulary(task)
+    # An equal number of scenes per label, so per-label means are comparable.
+    labels = [vocab[i % len(vocab)] for i in range(count)]
+    scene = generate(split, count, seed, resolution, labels=labels if task == "relight" else None)
+    if task == "light":
+        scene = replace(scene, params=scene.params.with_glow_labels(labels))
     x0, lab_idx, cond = task_batch(task, scene)
-    vocab = VOCABULARY if task == "relight" else ("natural",)
     return x0, [vocab[i] for i in lab_idx.tolist()], cond
 
 
@@ -194,8 +196,12 @@ def _training_section(m: dict, config: PriorTrainConfig) -> str:
 
 def model_card(m: dict, config: PriorTrainConfig, args) -> str:
     u = config.unet
-    cond = "the albedo (3 channels) and the lighting label" if config.task == "relight" else "the Rec. 709 luma (1 channel) and the label `natural`"
-    target = "the lit image albedo × shading" if config.task == "relight" else "the colour image"
+    cond, target = {
+        "relight": ("the albedo (3 channels) and the lighting label", "the lit image albedo × shading"),
+        "colorize": ("the Rec. 709 luma (1 channel) and the label `natural`", "the colour image"),
+        "light": ("the unlit image (3 channels) and the glow's label (warm, cool, white)",
+                  "the image with the world's coloured fill light added (`lasagna.world.tasks`)"),
+    }[config.task]
     labels = [k for k in next(iter(m["psnr"].values())) if k != "all"]
     head = "| label | " + " | ".join(f"ω = {w}" for w in m["psnr"]) + " |\n|---|" + "---|" * len(m["psnr"]) + "\n"
     rows = "".join(f"| {lab} | " + " | ".join(f"{m['psnr'][w][lab]:.2f}" for w in m["psnr"]) + " |\n" for lab in labels + ["all"])

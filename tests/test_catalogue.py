@@ -62,8 +62,9 @@ def test_preset_shipped_in_a_stack_wins(tmp_path, tiny):
 
 def test_available_lists_every_kind(tiny):
     assert cat.available(catalogue_dirs=[tiny]) == {
-        "preset": ["color", "shading"], "prior": ["recolor-32", "relight-32"],
-        "corrective": ["recolor-32-spectral", "relight-32-bhat", "relight-32-spectral"], "generator": ["shading"],
+        "preset": ["color", "light", "shading"], "prior": ["light-32", "recolor-32", "relight-32"],
+        "corrective": ["light-32-spectral", "recolor-32-spectral", "relight-32-bhat", "relight-32-spectral"],
+        "generator": ["shading"],
     }
 
 
@@ -103,8 +104,8 @@ def test_unrelated_config_is_no_kind(tmp_path):
 
 
 @pytest.mark.parametrize("kind, listed", [
-    ("preset", "color, shading"), ("prior", "recolor-32, relight-32"),
-    ("corrective", "recolor-32-spectral, relight-32-bhat, relight-32-spectral"), ("generator", "shading"),
+    ("preset", "color, light, shading"), ("prior", "light-32, recolor-32, relight-32"),
+    ("corrective", "light-32-spectral, recolor-32-spectral, relight-32-bhat, relight-32-spectral"), ("generator", "shading"),
 ])
 def test_unknown_name_lists_what_exists(tiny, kind, listed):
     with pytest.raises(LasagnaError) as err:

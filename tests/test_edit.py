@@ -126,6 +126,20 @@ def test_colour_layer_is_rgba_in_its_range(tmp_path):
     assert not (folder / "stack.ora").exists()
 
 
+def test_light_layer_is_a_plus_layer_that_only_brightens(tmp_path, capsys):
+    code, _, err = run(capsys, "edit", PHOTO, "--layer", "light", "--condition", "warm", "-o", tmp_path / "lit")
+    assert code == 0, err
+    doc = _stack_json(tmp_path / "lit")
+    layer = doc["layers"][-1]
+    assert (layer["kind"], layer["blend"], layer["preset"], layer["condition"]["label"]) == ("learned", "plus", "light", "warm")
+    glow = _png16(tmp_path / "lit" / layer["source"])
+    assert glow.shape[0] == 3 and glow.min() >= 0.0
+    # plus never darkens: every composite pixel is at least the input's (8-bit, so within one step)
+    assert (_rgb8(tmp_path / "lit" / "composite.png") >= _rgb8(PHOTO) - 1).all()
+    code, _, err = run(capsys, "edit", PHOTO, "--layer", "light", "--condition", "left", "-o", tmp_path / "bad")
+    assert code == 2 and "expected one of warm, cool, white" in err and not (tmp_path / "bad").exists()
+
+
 def test_jpeg_and_tensor_inputs(tmp_path):
     rgb = np.asarray(Image.open(PHOTO).convert("RGB"))
     Image.fromarray(rgb).save(tmp_path / "photo.jpg", quality=95)
@@ -424,4 +438,4 @@ def test_render_uses_the_prior_the_layer_was_made_with(tmp_path, capsys, tiny, m
     doc["layers"][1]["settings"]["prior"] = "gone-prior"  # a prior no catalogue has: the stored name is what counts
     (out / "stack.json").write_text(json.dumps(doc), encoding="utf-8")
     code, _, err = run(capsys, "render", out, "--all")
-    assert code == 2 and "no prior named 'gone-prior'" in err and "expected one of recolor-32, relight-32" in err
+    assert code == 2 and "no prior named 'gone-prior'" in err and "expected one of light-32, recolor-32, relight-32" in err

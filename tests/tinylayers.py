@@ -5,10 +5,13 @@
     shading/preset.json + shading/generator/   the real shading preset with a short distill (4 steps)
                                                and a random amortised LayerGenerator
     color/preset.json                          the real colour preset, 4 steps, no generator
+    light/preset.json                          the real light preset, 4 steps, no generator
     relight-32/                                a random UNetPrior (8×8, conditioned on RGB), the world's labels
     recolor-32/                                a random UNetPrior (8×8, conditioned on luma), label "natural"
+    light-32/                                  a random UNetPrior (8×8, conditioned on RGB), labels warm, cool, white
     relight-32-bhat/                           a random LMC-SDS corrective network for relight-32
-    relight-32-spectral/, recolor-32-spectral/ random spectral correctives (the presets' b̂)
+    relight-32-spectral/, recolor-32-spectral/, light-32-spectral/
+                                               random spectral correctives (the presets' b̂)
 
 The names are the bundled ones, so a folder put first in ``LASAGNA_LAYERS`` shadows the real catalogue.
 The weights are random but not the identity (every parameter gets noise), so outputs depend on input.
@@ -66,11 +69,12 @@ def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool =
     from lasagna.generators.layer import LayerSpec
     from lasagna.generators.unet import LayerGenerator, LayerGeneratorConfig
     from lasagna.losses.corrective import Corrective, CorrectiveConfig
-    from lasagna.world import VOCABULARY
+    from lasagna.world import GLOW_VOCABULARY, VOCABULARY
 
     folder = Path(folder)
     shading = _preset(folder, "shading")
     _preset(folder, "color")
+    _preset(folder, "light")
     if generator:
         cfg = LayerGeneratorConfig(layer=LayerSpec(blend="multiply", channels=1, range=tuple(shading["range"])),
                                    vocabulary=tuple(shading["vocabulary"]), channels=(4, 8))
@@ -79,9 +83,10 @@ def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool =
     if priors:
         tiny_prior(3, tuple(VOCABULARY), 2).save_pretrained(folder / "relight-32")
         tiny_prior(1, ("natural",), 3).save_pretrained(folder / "recolor-32")
+        tiny_prior(3, tuple(GLOW_VOCABULARY), 7).save_pretrained(folder / "light-32")
         torch.manual_seed(4)
         corrective = Corrective(CorrectiveConfig(channels=3, resolution=PRIOR_RES, filters=(4, 8)))
         _jitter(corrective, 4).save_pretrained(folder / "relight-32-bhat")
-        for seed, name in ((5, "relight-32-spectral"), (6, "recolor-32-spectral")):
+        for seed, name in ((5, "relight-32-spectral"), (6, "recolor-32-spectral"), (8, "light-32-spectral")):
             tiny_spectral(seed).save_pretrained(folder / name)
     return folder

@@ -11,8 +11,8 @@ light      the unlit image               the preset's label      the clipped glo
 Scenes come from ``lasagna.world`` (deterministic by split, seed and index); which scenes, and which
 label each gets (uniform over the preset's vocabulary), is drawn from the caller's generator only,
 so a batch is a function of the generator's state. Relighting renders each scene under its drawn
-label (the world's eight light names must contain the preset's labels). The world's glow colour is
-not tied to the light preset's labels (warm, cool, white): its true layer ignores the label.
+label (the world's eight light names must contain the preset's labels); the light task gives each
+scene's glow the drawn label's colour (`lasagna.world.lighting.GLOW_VOCABULARY`: warm, cool, white).
 """
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ class TaskBatch:
 def task_batch(task: Task, vocabulary: Sequence[str], count: int, generator: torch.Generator, *, split: str = "train",
                seed: int = 0, resolution: int = 32, shadows: bool = False) -> TaskBatch:
     """``count`` scenes of ``split`` as a (base, labels, true layer) batch for ``task`` (module docstring)."""
-    from lasagna.world import VOCABULARY, additive_light, colorization, generate
+    from lasagna.world import GLOW_VOCABULARY, VOCABULARY, additive_light, colorization, generate
 
     start = int(torch.randint(0, SCENE_RANGE, (1,), generator=generator))
     idx = torch.randint(0, len(vocabulary), (count,), generator=generator).tolist()
@@ -58,6 +58,9 @@ def task_batch(task: Task, vocabulary: Sequence[str], count: int, generator: tor
         col = colorization(scene)
         return TaskBatch(base=col.base, labels=labels, target=col.layer)
     if task == "light":
-        add = additive_light(scene)
+        unknown = sorted(set(labels) - set(GLOW_VOCABULARY))
+        if unknown:
+            raise LasagnaError(f"labels {unknown} are not glow colours of the world; expected labels from {', '.join(GLOW_VOCABULARY)}", "vocabulary")
+        add = additive_light(scene, labels)
         return TaskBatch(base=add.base, labels=labels, target=add.glow)
     raise LasagnaError(f"unknown task {task!r}; expected relight, colorize or light", "task")

@@ -255,7 +255,7 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
                         "fitted in closed form (lasagna.losses.spectral)")
     p.add_argument("--batches", type=int, default=8, help="spectral: batches of clean images per timestep bucket")
     p.add_argument("--buckets", type=int, default=50, help="spectral: timestep buckets")
-    p.add_argument("--task", choices=("relight", "colorize"), default=None,
+    p.add_argument("--task", choices=("relight", "colorize", "light"), default=None,
                    help="draw clean images from the procedural world's train split for this prior task")
     p.add_argument("--source", default=None, help="module:callable, sample_batch(batch, generator) -> (images, label_idx, cond_image); instead of --task")
     p.add_argument("--out", required=True, help="output folder; run again with the same folder to resume")

@@ -1,12 +1,14 @@
 """Training the bundled conditional priors on the procedural world, on this CPU (resumable).
 
-Two tasks, each a ``UNetPrior`` trained with the simple diffusion objective (v-prediction by default)
+Three tasks, each a ``UNetPrior`` trained with the simple diffusion objective (v-prediction by default)
 and classifier-free label dropout, on fresh world batches generated on the fly (no data set on disk):
 
 * ``relight``: x₀ = the lit image (albedo × shading), conditioned ControlNet-style on the albedo
   (3 channels) and on the lighting label (the world's eight named directions);
 * ``colorize``: x₀ = the colour image, conditioned on its Rec. 709 luma (1 channel) and the single
-  label ``natural``.
+  label ``natural``;
+* ``light``: x₀ = the image with the world's coloured fill light added (``lasagna.world.tasks``),
+  conditioned on the unlit image (3 channels) and the glow's label (warm, cool, white).
 
 The conditioning image is what Lasagna's base layer will be at distillation time. Every random draw
 (which scenes, t, ε, label dropout) comes from the loop's checkpointed generator, so a killed run
@@ -32,7 +34,7 @@ from lasagna.priors.unet import UNetConfig, UNetPrior
 from lasagna.training import LoopConfig, train_loop
 
 CHECKPOINT_FORMAT = "lasagna.prior_checkpoint"
-Task = Literal["relight", "colorize"]
+Task = Literal["relight", "colorize", "light"]
 # The world's scene index range the trainer draws batches from: large enough that no batch repeats
 # in any run this CPU can afford (2**30 scenes), small enough for int32 seeds.
 _SCENE_RANGE = 2**30
@@ -55,13 +57,13 @@ class PriorTrainConfig(LoopConfig):
 
 
 def task_vocabulary(task: Task) -> tuple[str, ...]:
-    from lasagna.world import VOCABULARY
+    from lasagna.world import GLOW_VOCABULARY, VOCABULARY
 
-    return tuple(VOCABULARY) if task == "relight" else ("natural",)
+    return {"relight": tuple(VOCABULARY), "colorize": ("natural",), "light": tuple(GLOW_VOCABULARY)}[task]
 
 
 def task_cond_channels(task: Task) -> int:
-    return 3 if task == "relight" else 1
+    return 1 if task == "colorize" else 3
 
 
 def unet_config_for(task: Task, resolution: int = 32, channels: tuple[int, ...] = (32, 64, 128), res_blocks: int = 1,
@@ -73,10 +75,13 @@ def unet_config_for(task: Task, resolution: int = 32, channels: tuple[int, ...] 
 
 def task_batch(task: Task, scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(x₀ in [0, 1], label index, conditioning image in [0, 1]) of a world ``Scene`` batch for ``task``."""
-    from lasagna.world import colorization
+    from lasagna.world import additive_light, colorization
 
     if task == "relight":
         return scene.image, scene.label_index.long(), scene.albedo
+    if task == "light":
+        add = additive_light(scene)
+        return add.lit, scene.params.glow_label.long(), add.base
     col = colorization(scene)
     return col.target, torch.zeros(scene.image.shape[0], dtype=torch.long), col.base[:, :1]
 
@@ -139,7 +144,7 @@ def prior_from_checkpoint(path: str | Path, ema: bool = True) -> tuple[UNetPrior
 
 def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
     p = p or argparse.ArgumentParser(prog="lasagna train-prior", description=__doc__.splitlines()[0])
-    p.add_argument("--task", choices=("relight", "colorize"), default="relight")
+    p.add_argument("--task", choices=("relight", "colorize", "light"), default="relight")
     p.add_argument("--out", required=True, help="run folder; run again with the same folder to resume")
     p.add_argument("--resolution", type=int, default=32)
     p.add_argument("--channels", default="32,64,128", help="feature channels per level")

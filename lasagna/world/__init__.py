@@ -13,14 +13,15 @@ families), ``splits`` (which split uses which families; per-scene random streams
 (scene parameters and their sampling), ``scene`` (rendering), ``tasks`` (colourisation and
 additive-light data), ``export`` and ``cli`` (stack folders, ``lasagna world``).
 """
-from lasagna.world.lighting import AMBIENT, LIGHTS, VOCABULARY, WALL_SHADING, lambert, light_vectors
+from lasagna.world.lighting import (AMBIENT, GLOW_VOCABULARY, LIGHTS, VOCABULARY, WALL_SHADING, lambert,
+                                    light_vectors)
 from lasagna.world.params import SceneParams, sample_scenes
 from lasagna.world.scene import Scene, batches, generate, relight, render
 from lasagna.world.splits import SPLIT_NAMES, SPLITS
 from lasagna.world.tasks import AdditiveLight, Colorization, additive_light, colorization
 
 __all__ = [
-    "AMBIENT", "LIGHTS", "VOCABULARY", "WALL_SHADING", "lambert", "light_vectors",
+    "AMBIENT", "GLOW_VOCABULARY", "LIGHTS", "VOCABULARY", "WALL_SHADING", "lambert", "light_vectors",
     "SceneParams", "sample_scenes",
     "Scene", "batches", "generate", "relight", "render",
     "SPLIT_NAMES", "SPLITS",

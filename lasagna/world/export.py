@@ -20,7 +20,9 @@ Every layer PNG is 16-bit, so the engine's re-composite equals ``composite.png``
 rendered float image rounded once) to within one 8-bit step. Beside the stack, not in its layer
 list: ``normals.png`` (16-bit RGB, n = 2v − 1, camera frame) and ``mask.png`` (8-bit gray, 255 on
 object pixels). ``metadata["lasagna.world"]`` holds the label, the light vector, the task, the
-files, and the scene's full parameters (``SceneParams.describe``), enough to re-render it.
+``condition`` its learned layer answers to (the light direction for shading, ``natural`` for colour,
+the glow's label — warm, cool, white — for light), the files, and the scene's full parameters
+(``SceneParams.describe``), enough to re-render it.
 """
 from __future__ import annotations
 
@@ -33,7 +35,7 @@ import torch
 
 from lasagna.errors import LasagnaError, PathError
 from lasagna.io.atomic import atomic_write_text
-from lasagna.world.lighting import AMBIENT, LIGHTS, VOCABULARY
+from lasagna.world.lighting import AMBIENT, GLOW_VOCABULARY, LIGHTS, VOCABULARY
 from lasagna.world.scene import Scene, generate
 from lasagna.world.splits import STREAM_VERSION
 from lasagna.world.tasks import additive_light, colorization, luma
@@ -71,6 +73,15 @@ def _layers(task: str, scene: Scene, i: int) -> tuple[list[dict[str, Any]], torc
     ], data.lit[0]
 
 
+def task_condition(task: str, scene: Scene, i: int) -> str:
+    """The label scene ``i``'s learned layer of ``task`` is conditioned on (its preset's vocabulary)."""
+    if task == "shading":
+        return scene.label[i]
+    if task == "color":
+        return "natural"
+    return GLOW_VOCABULARY[int(scene.params.glow_label[i])]
+
+
 def write_scene_stack(folder: str | os.PathLike, scene: Scene, i: int, task: Task = "shading") -> Path:
     """Write scene ``i`` of a rendered batch as a stack folder; returns the folder."""
     from lasagna.io.png import write_png
@@ -90,6 +101,7 @@ def write_scene_stack(folder: str | os.PathLike, scene: Scene, i: int, task: Tas
             "seed": p.seed,
             "index": int(p.index[i]),
             "label": scene.label[i],
+            "condition": task_condition(task, scene, i),
             "light": list(LIGHTS[scene.label[i]]),  # the contract's exact vector, not its float32 copy
             "ambient": scene.ambient,
             "shadows": scene.shadows,
@@ -131,6 +143,7 @@ def write_world_stacks(
         raise PathError("exists and is not a folder; expected a folder to write into", where=str(out))
     folders: list[Path] = []
     labels: list[str] = []
+    conditions: list[str] = []
     bar = None
     if progress:
         from tqdm import tqdm
@@ -143,6 +156,7 @@ def write_world_stacks(
             name = scene_folder_name(split, seed, first + i)
             folders.append(write_scene_stack(out / name, scene, i, task))
             labels.append(scene.label[i])
+            conditions.append(task_condition(task, scene, i))
             if bar is not None:
                 bar.update(1)
     if bar is not None:
@@ -152,7 +166,7 @@ def write_world_stacks(
         "stream_version": STREAM_VERSION,
         "split": split, "seed": seed, "start": start, "count": count, "resolution": resolution, "task": task,
         "shadows": bool(shadows), "ambient": float(ambient), "vocabulary": list(VOCABULARY),
-        "scenes": [{"folder": f.name, "label": lab} for f, lab in zip(folders, labels)],
+        "scenes": [{"folder": f.name, "label": lab, "condition": c} for f, lab, c in zip(folders, labels, conditions)],
     }
     atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
     return folders

@@ -15,6 +15,12 @@ preset, the evaluation of learned layers). The text below is normative:
   shadows (a point is in shadow when the light ray toward l hits an object: then shading = a).
 - image = albedo × shading.
 
+The additive-light task (the `light` preset) has a vocabulary of its own, `GLOW_VOCABULARY`: the
+colour of a point light added to the image. `warm` = HSV hue in [0.03, 0.11] (amber to orange),
+saturation in [0.45, 0.80]; `cool` = hue in [0.53, 0.62] (cyan to blue), saturation in
+[0.35, 0.70]; `white` = any hue, saturation ≤ 0.06; value 1 for all (max component 1). Where the
+light sits is in `lasagna.world.params` (a fill light in front of the scene, near the view axis).
+
 Decisions this module documents (the rest of `lasagna.world` follows them):
 
 - **Shadows are off by default** (`shadows=False` everywhere): the shading is then a pointwise
@@ -68,6 +74,34 @@ AMBIENT = 0.25
 
 WALL_SHADING = AMBIENT + (1.0 - AMBIENT) * _C
 """The unshadowed wall's shading with the default ambient (n = +z, so n·l = cos 60° = 0.5): 0.625."""
+
+
+GLOW_VOCABULARY: tuple[str, ...] = ("warm", "cool", "white")
+GLOW_TONES: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {
+    "warm": ((0.03, 0.11), (0.45, 0.80)),
+    "cool": ((0.53, 0.62), (0.35, 0.70)),
+    "white": ((0.0, 1.0), (0.0, 0.06)),
+}
+"""(HSV hue range, saturation range) of each glow label; value is 1."""
+assert tuple(GLOW_TONES) == GLOW_VOCABULARY
+
+
+def glow_label_index(label: str) -> int:
+    """Position of ``label`` in `GLOW_VOCABULARY`; raises `ConditionError` for an unknown name."""
+    try:
+        return GLOW_VOCABULARY.index(label)
+    except ValueError:
+        raise ConditionError(
+            f"unknown glow label {label!r}; expected one of {', '.join(GLOW_VOCABULARY)}", where="glow"
+        ) from None
+
+
+def glow_rgb(label: str, u_hue: float, u_sat: float) -> list[float]:
+    """The RGB colour (max component 1) of a ``label`` glow at tone (u_hue, u_sat) ∈ [0, 1]²."""
+    import colorsys
+
+    (h0, h1), (s0, s1) = GLOW_TONES[GLOW_VOCABULARY[glow_label_index(label)]]
+    return list(colorsys.hsv_to_rgb(h0 + (h1 - h0) * float(u_hue), s0 + (s1 - s0) * float(u_sat), 1.0))
 
 
 def label_index(label: str) -> int:

@@ -2,7 +2,9 @@
 
 A scene is 1–3 objects (``MAX_OBJECTS`` slots, unused ones marked absent) before a wall at
 z = ``WALL_Z``, a light label, and the parameters of a coloured point light used by the additive-light
-task. Scene ``index`` of a split is drawn from its own random stream (``splits.scene_rng``) with a
+task: a fill light in front of every object near the view axis (``GLOW_XY``, ``GLOW_Z``), so the
+glow's shape follows from the visible geometry, with a colour drawn from its own label
+(`lasagna.world.lighting.GLOW_VOCABULARY`: warm, cool, white). Scene ``index`` of a split is drawn from its own random stream (``splits.scene_rng``) with a
 fixed layout — every slot consumes its draws whether present or not — so a scene's parameters do not
 depend on the scenes around it.
 """
@@ -17,7 +19,7 @@ import numpy as np
 import torch
 
 from lasagna.errors import LasagnaError
-from lasagna.world.lighting import VOCABULARY
+from lasagna.world.lighting import GLOW_VOCABULARY, VOCABULARY, glow_rgb
 from lasagna.world.shapes import MAX_BOUNDING_RADIUS, SHAPE_NAMES, SHAPES
 from lasagna.world.splits import check_seed, get_split, scene_rng
 from lasagna.world.textures import TEXTURE_NAMES, sample_params
@@ -28,10 +30,16 @@ WALL_Z = -0.85
 _CENTRE_XY = 0.6
 _CENTRE_Z = 0.2
 assert -_CENTRE_Z - MAX_BOUNDING_RADIUS > WALL_Z
+GLOW_XY = 0.35
+"""The glow's point light sits at x, y ∈ [−0.35, 0.35]: near the view axis, so where it lights is
+inferable from the image (a light anywhere would make the true layer a matter of luck)."""
+GLOW_Z = (1.0, 1.4)
+"""…and at z ∈ [1.0, 1.4], in front of every object (whose front is at most z = 0.2 + 0.6)."""
+assert GLOW_Z[0] > _CENTRE_Z + MAX_BOUNDING_RADIUS
 
 _SLOT_DRAWS = 24  # family 1, centre 3, rotation 3, size 4, colour 3, texture family 1, texture 8, floor 1
 _WALL_DRAWS = 13  # colour 3, texture family 1, texture 8, floor 1
-_GLOW_DRAWS = 8  # position 3, hue 1, saturation 1, intensity 1, halo intensity 1, halo radius 1
+_GLOW_DRAWS = 8  # position 3, label and hue 1, saturation 1, intensity 1, halo intensity 1, halo radius 1
 _DRAWS = 2 + MAX_OBJECTS * _SLOT_DRAWS + _WALL_DRAWS + _GLOW_DRAWS
 
 
@@ -63,7 +71,9 @@ class SceneParams:
     wall_texture_params: torch.Tensor  # (B, N_PARAMS)
     wall_texture_seed: torch.Tensor  # (B,) int64
     glow_position: torch.Tensor  # (B, 3) the additive point light, in front of the scene
-    glow_color: torch.Tensor  # (B, 3) RGB, max component 1
+    glow_color: torch.Tensor  # (B, 3) RGB, max component 1: glow_rgb(glow_label, *glow_tone)
+    glow_label: torch.Tensor  # (B,) int64 index into GLOW_VOCABULARY
+    glow_tone: torch.Tensor  # (B, 2) where in its label's (hue, saturation) ranges the colour lies
     glow_intensity: torch.Tensor  # (B,)
     halo_intensity: torch.Tensor  # (B,)
     halo_radius: torch.Tensor  # (B,)
@@ -93,6 +103,22 @@ class SceneParams:
         idx = torch.tensor([label_index(n) for n in names], dtype=torch.int64)
         kw = {f.name: getattr(self, f.name) for f in fields(self)}
         kw["label"] = idx
+        return SceneParams(**kw)
+
+    def with_glow_labels(self, labels: str | Sequence[str] | None) -> "SceneParams":
+        """The same scenes with glows of other labels (same tone within the label's ranges)."""
+        if labels is None:
+            return self
+        from lasagna.world.lighting import glow_label_index
+
+        names = [labels] * len(self) if isinstance(labels, str) else list(labels)
+        if len(names) != len(self):
+            raise LasagnaError(f"expected 1 or {len(self)} glow labels, got {len(names)}", where="labels")
+        idx = [glow_label_index(n) for n in names]
+        rgb = [glow_rgb(GLOW_VOCABULARY[k], *self.glow_tone[i].tolist()) for i, k in enumerate(idx)]
+        kw = {f.name: getattr(self, f.name) for f in fields(self)}
+        kw["glow_label"] = torch.tensor(idx, dtype=torch.int64)
+        kw["glow_color"] = torch.tensor(rgb, dtype=self.glow_color.dtype).reshape(len(self), 3)
         return SceneParams(**kw)
 
     def describe(self, i: int) -> dict[str, Any]:
@@ -126,6 +152,7 @@ class SceneParams:
             },
             "glow": {
                 "position": self.glow_position[i].tolist(),
+                "label": GLOW_VOCABULARY[int(self.glow_label[i])],
                 "color": self.glow_color[i].tolist(),
                 "intensity": float(self.glow_intensity[i]),
                 "halo_intensity": float(self.halo_intensity[i]),
@@ -191,11 +218,16 @@ def _sample_one(split: str, seed: int, index: int) -> dict[str, np.ndarray]:
     out["wall_texture_params"] = sample_params(wall_tex, w[4:12], lo=_lerp(w[12], 0.45, 0.75))
     out["wall_texture_seed"] = seeds[MAX_OBJECTS]
     g = u[2 + MAX_OBJECTS * _SLOT_DRAWS + _WALL_DRAWS:]
-    out["glow_position"] = [_lerp(g[0], -0.9, 0.9), _lerp(g[1], -0.9, 0.9), _lerp(g[2], 0.3, 0.8)]
-    out["glow_color"] = _hsv(g[3], _lerp(g[4], 0.3, 1.0), 1.0)
-    out["glow_intensity"] = _lerp(g[5], 0.5, 1.5)
-    out["halo_intensity"] = _lerp(g[6], 0.0, 0.5)
-    out["halo_radius"] = _lerp(g[7], 0.05, 0.2)
+    out["glow_position"] = [_lerp(g[0], -GLOW_XY, GLOW_XY), _lerp(g[1], -GLOW_XY, GLOW_XY), _lerp(g[2], *GLOW_Z)]
+    # One uniform picks the label (thirds of [0, 1)) and, rescaled, the hue within the label's range.
+    tone = g[3] * len(GLOW_VOCABULARY)
+    k = min(int(tone), len(GLOW_VOCABULARY) - 1)
+    out["glow_label"] = k
+    out["glow_tone"] = [tone - k, g[4]]
+    out["glow_color"] = glow_rgb(GLOW_VOCABULARY[k], tone - k, g[4])
+    out["glow_intensity"] = _lerp(g[5], 1.2, 2.0)
+    out["halo_intensity"] = _lerp(g[6], 0.0, 0.2)
+    out["halo_radius"] = _lerp(g[7], 0.1, 0.25)
     return out
 
 
@@ -232,6 +264,8 @@ def sample_scenes(split: str, seed: int, indices: Sequence[int] | range) -> Scen
         wall_texture_seed=stack("wall_texture_seed", torch.int64),
         glow_position=stack("glow_position"),
         glow_color=stack("glow_color"),
+        glow_label=stack("glow_label", torch.int64),
+        glow_tone=stack("glow_tone"),
         glow_intensity=stack("glow_intensity"),
         halo_intensity=stack("halo_intensity"),
         halo_radius=stack("halo_radius"),

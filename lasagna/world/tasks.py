@@ -8,7 +8,8 @@ arithmetic; within one float rounding, 1e-16 in float64, in the engine), so the 
 replaced and base + layer reproduces the target.
 
 Additive light (the `light` preset: blend ``plus``, RGB). A coloured point light at ``glow_position``
-(in front of the scene; it casts no shadows) adds, at a surface point P with normal n and albedo ρ,
+(a fill light in front of the scene near the view axis; it casts no shadows) whose colour comes from
+its label (warm, cool, white: `lasagna.world.lighting.GLOW_VOCABULARY`) adds, at a surface point P with normal n and albedo ρ,
 
     reflected = ρ ⊙ c · I · max(0, n·ω) / (1 + (d / d₀)²),   ω = (q − P)/d,  d = |q − P|,  d₀ = 1,
 
@@ -19,7 +20,8 @@ distance from the light. The glow is clipped to the head-room, glow = min(reflec
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Sequence
 
 import torch
 
@@ -88,7 +90,12 @@ def glow(scene: Scene) -> Tensor:
     return reflected + halo
 
 
-def additive_light(scene: Scene) -> AdditiveLight:
-    """The unlit image, the clipped glow (the ``plus`` layer) and the lit image."""
+def additive_light(scene: Scene, labels: str | Sequence[str] | None = None) -> AdditiveLight:
+    """The unlit image, the clipped glow (the ``plus`` layer) and the lit image.
+
+    ``labels`` (glow labels, one for all or one per scene) replaces the scenes' own glow labels.
+    """
+    if labels is not None:
+        scene = replace(scene, params=scene.params.with_glow_labels(labels))
     g = torch.minimum(glow(scene), 1.0 - scene.image)
     return AdditiveLight(base=scene.image, glow=g, lit=scene.image + g, scene=scene)

@@ -59,6 +59,26 @@ class TestTaskBatch:
         light = task_batch("light", ("warm", "cool"), 2, g, resolution=8)
         assert light.target.min() >= 0 and torch.all(light.base + light.target <= 1.0 + 1e-6)
 
+    def test_light_glow_takes_the_drawn_labels_colour(self):
+        from lasagna.world import additive_light, generate
+
+        g = torch.Generator().manual_seed(1)
+        d = task_batch("light", ("warm", "cool", "white"), 6, g, resolution=8)
+        start = int(torch.randint(0, 2**30, (1,), generator=torch.Generator().manual_seed(1)))
+        ref = additive_light(generate("train", 6, 0, 8, start=start), d.labels)
+        assert torch.equal(d.target, ref.glow) and torch.equal(d.base, ref.base)
+        # warm glows are redder than blue, cool ones bluer than red (on the lit pixels)
+        for b, lab in enumerate(d.labels):
+            r, bl = d.target[b, 0].sum(), d.target[b, 2].sum()
+            if lab == "warm":
+                assert r > bl
+            if lab == "cool":
+                assert bl > r
+
+    def test_light_refuses_labels_that_are_not_glow_colours(self):
+        with pytest.raises(LasagnaError, match="not glow colours"):
+            task_batch("light", ("left",), 1, torch.Generator().manual_seed(0), resolution=8)
+
     def test_relight_refuses_unknown_directions(self):
         with pytest.raises(LasagnaError, match="not light directions"):
             task_batch("relight", ("sideways",), 1, torch.Generator().manual_seed(0), resolution=8)

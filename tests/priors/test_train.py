@@ -35,6 +35,18 @@ class TestTaskData:
         assert torch.allclose(cond[:, 0], 0.2126 * r + 0.7152 * g + 0.0722 * b, atol=1e-6)
         assert cond.shape[1] == 1 and lab.tolist() == [0, 0]
 
+    def test_light_batch_is_lit_image_glow_label_unlit_image(self):
+        from lasagna.world import GLOW_VOCABULARY
+        from lasagna.world.tasks import glow
+
+        scene = generate("train", 6, seed=1, resolution=8, dtype=torch.float64)
+        x0, lab, cond = task_batch("light", scene)
+        assert torch.equal(cond, scene.image)
+        assert torch.equal(x0, scene.image + torch.minimum(glow(scene), 1 - scene.image))
+        assert lab.tolist() == scene.params.glow_label.tolist()
+        assert unet_config_for("light").vocabulary == tuple(GLOW_VOCABULARY) == ("warm", "cool", "white")
+        assert unet_config_for("light").cond_channels == 3
+
     def test_source_depends_only_on_the_generator(self):
         src = world_source("relight", 8)
         a = src(3, torch.Generator().manual_seed(5))

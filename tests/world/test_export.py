@@ -75,6 +75,7 @@ def test_shading_stack_layers_and_ground_truth(written, scene):
         assert np.array_equal(mask[0], scene.mask[i, 0].numpy())
         meta = doc["metadata"]["lasagna.world"]
         assert meta["label"] == scene.label[i] and meta["light"] == list(LIGHTS[scene.label[i]])
+        assert meta["condition"] == scene.label[i]
         assert meta["index"] == 3 + i and meta["scene"]["split"] == "train"
 
 
@@ -91,6 +92,11 @@ def test_manifest(written):
     m = json.loads((written["light"][0].parent / "world.json").read_text())
     assert m["task"] == "light" and m["count"] == COUNT and m["start"] == 3
     assert [s["folder"] for s in m["scenes"]] == ["train-s4-000003", "train-s4-000004"]
+    # the light task's condition is the glow's colour label, the same one its scene parameters record
+    for entry in m["scenes"]:
+        meta = json.loads((written["light"][0].parent / entry["folder"] / "stack.json").read_text())["metadata"]["lasagna.world"]
+        assert entry["condition"] == meta["condition"] == meta["scene"]["glow"]["label"]
+        assert entry["condition"] in ("warm", "cool", "white")
 
 
 def test_bad_task(tmp_path):

@@ -55,3 +55,63 @@ class TestAdditiveLight:
             np.testing.assert_allclose(glow(scene.select(b))[0].numpy(), refl + halo, atol=1e-12, rtol=1e-12)
             clipped = np.minimum(refl + halo, 1 - scene.image[b].numpy())
             np.testing.assert_allclose(additive_light(scene.select(b)).glow[0].numpy(), clipped, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def many():
+    return generate("train", 300, seed=0, resolution=8, dtype=torch.float64)
+
+
+class TestGlowLabels:
+    """The light preset's contract: the glow's colour comes from its label, its light sits near the view axis."""
+
+    def test_colour_lies_in_its_labels_hsv_ranges(self, many):
+        import colorsys
+
+        from lasagna.world.lighting import GLOW_TONES, GLOW_VOCABULARY
+
+        p = many.params
+        for b in range(len(many)):
+            label = GLOW_VOCABULARY[int(p.glow_label[b])]
+            h, s, v = colorsys.rgb_to_hsv(*p.glow_color[b].tolist())
+            (h0, h1), (s0, s1) = GLOW_TONES[label]
+            assert v == pytest.approx(1.0, abs=1e-12)
+            assert s0 - 1e-9 <= s <= s1 + 1e-9, (label, s)
+            if label != "white":  # white's hue is free (and ill-defined at saturation 0)
+                assert h0 - 1e-9 <= h <= h1 + 1e-9, (label, h)
+
+    def test_labels_are_drawn_evenly(self, many):
+        counts = torch.bincount(many.params.glow_label, minlength=3)
+        assert counts.min() > 300 / 3 - 35  # ±3.5σ of a binomial(300, 1/3) (σ ≈ 8.2)
+
+    def test_light_sits_in_front_of_every_object_near_the_axis(self, many):
+        p = many.params
+        front = (p.center[..., 2] + p.radius).max()
+        assert (p.glow_position[:, 2] > front).all()
+        assert p.glow_position[:, :2].abs().max() <= 0.35
+
+    def test_relabelling_keeps_the_tone_and_changes_the_colour(self, scene):
+        import colorsys
+
+        from lasagna.world.lighting import GLOW_TONES
+
+        d = additive_light(scene, "cool")
+        p = scene.params.with_glow_labels("cool")
+        (h0, h1), (s0, s1) = GLOW_TONES["cool"]
+        for b in range(len(scene)):
+            u_hue, u_sat = scene.params.glow_tone[b].tolist()
+            ref = colorsys.hsv_to_rgb(h0 + (h1 - h0) * u_hue, s0 + (s1 - s0) * u_sat, 1.0)
+            np.testing.assert_allclose(p.glow_color[b].numpy(), ref, atol=1e-12)
+        assert (p.glow_label == 1).all()
+        # Only the colour changed: the glow is the unlabelled one rescaled per channel by the colour ratio
+        # wherever the head-room clip is inactive.
+        raw = glow(scene)
+        ratio = (p.glow_color / scene.params.glow_color)[:, :, None, None]
+        free = (d.glow < 1 - scene.image - 1e-9) & (raw * ratio < 1 - scene.image - 1e-9)
+        np.testing.assert_allclose(d.glow[free].numpy(), (raw * ratio)[free].numpy(), rtol=1e-12, atol=1e-14)
+
+    def test_unknown_glow_label_is_one_clear_error(self, scene):
+        from lasagna.errors import ConditionError
+
+        with pytest.raises(ConditionError, match="unknown glow label 'red'; expected one of warm, cool, white"):
+            additive_light(scene, "red")
