@@ -8,7 +8,10 @@ scikit-image's CC0 / public-domain samples). For each:
   gets a learned multiply layer; the world's true shading stays in the stack, hidden, and the truth
   column shows the scene rendered under that direction (``lasagna.world``);
 * **colourise** (preset ``color``): the Rec. 709 gray of the image gets a learned RGBA layer; the
-  truth column shows the original colours.
+  truth column shows the original colours;
+* **add light** (preset ``light``): the image as it is gets a learned ``plus`` layer of a warm or
+  cool fill light; for a world scene the truth column shows the world's own fill light of that
+  label added (``lasagna.world.tasks.additive_light``).
 
 Each edit is ``lasagna.edit.edit`` — the preset's amortised generator when the catalogue has one
 (one forward pass, then ``DEMO_REFINE`` per-image steps from it, none by default), else a per-image
@@ -34,6 +37,8 @@ DIRECTIONS = ("left", "right", "top", "bottom")  # relighting directions shown f
 WORLD_SCENES = 2  # held-out scenes relit and colourised
 PHOTOS = ("coffee", "helmet", "chelsea")  # photographs relit; the first COLOURISED_PHOTOS are also colourised
 COLOURISED_PHOTOS = 2
+GLOWS = ("warm", "cool")  # world scene / photograph k gets a GLOWS[k % 2] light; the first LIT_PHOTOS photos
+LIT_PHOTOS = 2
 # Per-image steps when a preset has no amortised generator: None = the preset's own distill.steps
 # (150 for shading: ~1.5 s per 64² edit on this CPU with the 32² relighting prior, early stopping included).
 DEMO_STEPS: int | None = None
@@ -173,7 +178,7 @@ def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_S
     from lasagna.edit import conditioning_input, edit, read_image
     from lasagna.io.atomic import atomic_write_bytes
     from lasagna.io.stack import Stack, load_stack
-    from lasagna.world import generate
+    from lasagna.world import additive_light, generate
 
     out = Path(out)
     start = time.monotonic()
@@ -184,7 +189,7 @@ def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_S
     runnable: dict[str, str] = {}  # preset -> "amortised" | "per-image"
     missing: list[str] = []  # why a preset cannot run
     places = ", ".join(map(str, cat.catalogues() if catalogue_dirs is None else catalogue_dirs)) or "no catalogue"
-    for preset in ("shading", "color"):
+    for preset in ("shading", "color", "light"):
         try:
             parts = cat.resolve(preset, catalogue_dirs=catalogue_dirs, need_prior=False)
         except LasagnaError as err:
@@ -228,6 +233,11 @@ def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_S
             colour = stack.tensors["albedo"].color * stack.tensors["shading"].color  # the scene as rendered
             one(Stack.from_image(_gray(colour.clamp(0, 1)), name="gray"), "color", "natural", f"{scene.name}-color",
                 f"{scene.name} · colourise", colour.clamp(0, 1))
+        if "light" in runnable:
+            glow = GLOWS[scenes.index(scene) % len(GLOWS)]
+            truth = additive_light(generate(split, 1, seed, stack.width, start=index), glow).lit[0]
+            stack.document = stack.document.replace_layer("shading", visible=True, name="Shading")
+            one(stack, "light", glow, f"{scene.name}-{glow}-light", f"{scene.name} · {glow} light", truth)
     for k, photo in enumerate(photos):
         if "shading" in runnable:
             for label in DIRECTIONS:
@@ -236,6 +246,9 @@ def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_S
             rgb = read_image(photo).tensors["base"].color
             one(Stack.from_image(_gray(rgb), name="gray"), "color", "natural", f"{photo.stem}-color",
                 f"{photo.name} · colourise", rgb)
+        if "light" in runnable and k < LIT_PHOTOS:
+            glow = GLOWS[k % len(GLOWS)]
+            one(photo, "light", glow, f"{photo.stem}-{glow}-light", f"{photo.name} · {glow} light", None)
 
     seconds = time.monotonic() - start
     note = (f"lasagna demo: {len(rows)} edits in {seconds:.0f} s ({', '.join(f'{k}: {v}' for k, v in runnable.items())}). "

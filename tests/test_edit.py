@@ -397,8 +397,13 @@ def test_demo_end_to_end(tmp_path, capsys):
     with Image.open(sheet) as im:
         assert im.mode == "RGB" and im.width > 1000 and im.height > 600
     stacks = sorted(p.name for p in (out / "stacks").iterdir())
-    assert "coffee-left" in stacks and "heldout-s0-000000-color" in stacks and len(stacks) == 24
-    for name in ("heldout-s0-000000-left", "coffee-color"):
+    assert "coffee-left" in stacks and "heldout-s0-000000-color" in stacks and len(stacks) == 28
+    assert {"heldout-s0-000000-warm-light", "heldout-s0-000001-cool-light", "coffee-warm-light", "helmet-cool-light"} <= set(stacks)
+    # the world scene's light is added on top of the scene as rendered (albedo × shading, both visible)
+    lit = _stack_json(out / "stacks" / "heldout-s0-000000-warm-light")
+    assert [(l["id"], l.get("visible", True)) for l in lit["layers"]][:2] == [("albedo", True), ("shading", True)]
+    assert lit["layers"][-1]["blend"] == "plus" and len(lit["layers"]) == 3
+    for name in ("heldout-s0-000000-left", "coffee-color", "coffee-warm-light"):
         code, _, err = run(capsys, "validate", out / "stacks" / name)
         assert code == 0, err
     code, _, err = run(capsys, "demo", "-o", out)  # a second run replaces its own stacks
@@ -407,7 +412,7 @@ def test_demo_end_to_end(tmp_path, capsys):
 
 def test_demo_falls_back_without_priors(tmp_path, capsys, monkeypatch):
     empty = tmp_path / "layers"
-    for name in ("shading", "color"):
+    for name in ("shading", "color", "light"):
         (empty / name).mkdir(parents=True)
         preset = json.loads((ROOT / "layers" / name / "preset.json").read_text())
         preset["prior"] = "missing-prior"
