@@ -54,6 +54,10 @@ class PriorTrainConfig(LoopConfig):
     shadows: bool = Field(False, description="render cast shadows in the training scenes")
     init_from: str | None = Field(None, description="a saved prior (folder) whose weights start this run: "
                                   "a second training stage, e.g. an lr anneal after a constant-lr run")
+    init_labels: Literal["keep", "fresh"] = Field(
+        "keep", description="keep: init_from has this run's vocabulary; fresh: it may have another (a prior of "
+        "another task with the same architecture): every tensor is copied but the label embedding, whose rows "
+        "all start as init_from's null label — the new task starts from the old prior's unconditional model")
 
 
 def task_vocabulary(task: Task) -> tuple[str, ...]:
@@ -110,10 +114,17 @@ def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | tor
         prior = UNetPrior(config.unet)
     if config.init_from is not None:
         start = UNetPrior.from_pretrained(config.init_from)
-        if start.config != config.unet:
+        theirs = start.config
+        if config.init_labels == "fresh":
+            theirs = theirs.model_copy(update={"vocabulary": config.unet.vocabulary})
+        if theirs != config.unet:
             raise LasagnaError(f"its UNet config differs from this run's ({start.config} vs {config.unet})",
                                config.init_from)
-        prior.load_state_dict(start.state_dict())
+        state = start.state_dict()
+        if config.init_labels == "fresh":
+            key = "net.label_emb.weight"
+            state[key] = state[key][-1].expand(len(config.unet.vocabulary) + 1, -1).clone()
+        prior.load_state_dict(state)
 
     def step_fn(net: UNetPrior, gen: torch.Generator, step: int):
         images, labels, cond = source(config.batch_size, gen)
@@ -159,6 +170,9 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
                    help="step: constant lr (after warm-up); cosine: anneal to 0 over --steps")
     p.add_argument("--init-from", default=None,
                    help="start from this saved prior's weights (its architecture replaces --channels etc.)")
+    p.add_argument("--init-labels", choices=("keep", "fresh"), default="keep",
+                   help="fresh: --init-from may be a prior of another task with the same conditioning channels; "
+                        "its label embedding is replaced (every label starts as its null label)")
     p.add_argument("--warmup", type=int, default=200)
     p.add_argument("--ema", type=float, default=0.999)
     p.add_argument("--grad-clip", type=float, default=1.0)
@@ -174,12 +188,18 @@ def run(args: argparse.Namespace) -> int:
     if args.init_from is not None:
         unet = io.read_config(args.init_from, UNetPrior.FORMAT, UNetConfig)
         want = unet_config_for(args.task)
-        if (unet.cond_channels, tuple(unet.vocabulary)) != (want.cond_channels, tuple(want.vocabulary)):
+        if args.init_labels == "fresh":
+            if unet.cond_channels != want.cond_channels:
+                raise LasagnaError(f"it is a prior with {unet.cond_channels} conditioning channel(s); a {args.task} prior "
+                                   f"needs {want.cond_channels}, so its weights cannot start one", "--init-from")
+            unet = unet.model_copy(update={"vocabulary": want.vocabulary})
+        elif (unet.cond_channels, tuple(unet.vocabulary)) != (want.cond_channels, tuple(want.vocabulary)):
             raise LasagnaError(f"it is a prior with {unet.cond_channels} conditioning channel(s) and labels "
                                f"{', '.join(unet.vocabulary) or '(none)'}; expected a {args.task} prior "
-                               f"({want.cond_channels} channel(s), labels {', '.join(want.vocabulary)})", "--init-from")
+                               f"({want.cond_channels} channel(s), labels {', '.join(want.vocabulary)}; "
+                               "--init-labels fresh starts a new vocabulary from it)", "--init-from")
     config = PriorTrainConfig(
-        task=args.task, unet=unet, init_from=args.init_from, lr_schedule=args.lr_schedule,
+        task=args.task, unet=unet, init_from=args.init_from, init_labels=args.init_labels, lr_schedule=args.lr_schedule,
         steps=args.steps, max_minutes=args.minutes, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,
         ema_decay=args.ema, grad_clip=args.grad_clip, checkpoint_every=args.checkpoint_every, seed=args.seed,
         progress=not args.no_progress,

@@ -28,7 +28,8 @@ def world_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resolution", type=int, default=64, metavar="R", help="image side in pixels (default 64)")
     p.add_argument("--task", choices=TASKS, default="shading",
                    help="shading: albedo + multiply shading; color: gray + normal colour layer; "
-                        "light: image + plus glow (default shading)")
+                        "light: image + plus glow of a warm, cool or white fill light, its label in the stack's "
+                        "metadata as condition (default shading)")
     p.add_argument("--shadows", action="store_true", help="cast shadows (off by default)")
     p.add_argument("--ambient", type=float, default=AMBIENT, metavar="A",
                    help=f"ambient term a of a + (1 - a) max(0, n.l) (default {AMBIENT})")

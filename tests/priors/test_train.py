@@ -123,6 +123,33 @@ class TestSchedulesAndStages:
         with pytest.raises(Exception, match="UNet config differs"):
             train_prior(other, tmp_path / "two")
 
+    def test_fresh_labels_start_another_task_from_the_old_unconditional_model(self, tmp_path):
+        first = train_prior(tiny(steps=5), tmp_path / "relight")
+        light = tiny(task="light", steps=1, lr=1e-12, warmup_steps=0, ema_decay=None, init_labels="fresh",
+                     init_from=str(tmp_path / "relight" / "prior"))
+        second = train_prior(light, tmp_path / "light")
+        old, new = first.state_dict(), second.state_dict()
+        assert second.vocabulary == ("warm", "cool", "white") and set(old) == set(new)
+        for k in old:
+            if k != "net.label_emb.weight":
+                torch.testing.assert_close(new[k], old[k], atol=1e-8, rtol=0, msg=k)
+        emb = new["net.label_emb.weight"]
+        assert emb.shape == (4, old["net.label_emb.weight"].shape[1])  # three labels and the null label
+        for row in emb:  # every label starts as relight's null label
+            torch.testing.assert_close(row, old["net.label_emb.weight"][-1], atol=1e-8, rtol=0)
+        with pytest.raises(Exception, match="UNet config differs"):  # without "fresh" the vocabularies must agree
+            train_prior(tiny(task="light", steps=1, init_from=str(tmp_path / "relight" / "prior")), tmp_path / "keep")
+
+    def test_cli_fresh_labels_need_the_same_conditioning_channels(self, tmp_path, capsys):
+        from lasagna.cli import main
+
+        train_prior(tiny(task="colorize", steps=1), tmp_path / "colour")
+        code = main(["train-prior", "--task", "light", "--out", str(tmp_path / "run"), "--init-from",
+                     str(tmp_path / "colour" / "prior"), "--init-labels", "fresh", "--no-progress"])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and err.count("\n") == 0 and "1 conditioning channel(s); a light prior needs 3" in err
+        assert not (tmp_path / "run").exists()
+
     def test_cli_refuses_a_prior_of_another_task(self, tmp_path, capsys):
         from lasagna.cli import main
 
