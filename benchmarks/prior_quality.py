@@ -180,6 +180,14 @@ def _training_section(m: dict, config: PriorTrainConfig) -> str:
     stage = (f"{m['steps']} steps in {m['train_minutes']} minutes (Adam, lr {config.lr} ({config.lr_schedule}) with "
              f"{config.warmup_steps} warm-up steps, gradient clip {config.grad_clip}, EMA {config.ema_decay}, seed {config.seed})")
     prev = m.get("previous")
+    if config.init_from is not None and config.init_labels == "fresh":
+        source = Path(config.init_from).name
+        tune = (f"lasagna train-prior --task {config.task} --out runs/{m['name']} --init-from layers/{source} --init-labels fresh "
+                f"--lr {config.lr} --lr-schedule {config.lr_schedule} --steps {m['steps']} --warmup {config.warmup_steps}")
+        return (f"Fine-tuned from the bundled prior `{source}` (same architecture; [its card](../{source}/MODEL.md)): every "
+                f"weight copied except the label embedding, whose rows all start as `{source}`'s null label, so training "
+                f"begins from its unconditional model. {stage}. Reproduce:\n\n```sh\n{tune}\n"
+                f"python benchmarks/prior_quality.py --run runs/{m['name']} --name {m['name']}\n```\n")
     if not prev:
         return f"{stage}. Reproduce:\n\n```sh\n{one}\npython benchmarks/prior_quality.py --run runs/{m['name']} --name {m['name']}\n```\n"
     total = round((prev.get("train_minutes") or 0) + (m["train_minutes"] or 0), 1)

@@ -65,6 +65,8 @@ class LoopConfig(BaseModel):
     warmup_steps: int = Field(0, ge=0, description="linear lr warm-up from 0 over this many steps")
     grad_clip: float | None = Field(None, gt=0.0, description="clip the global gradient norm to this")
     ema_decay: float | None = Field(None, ge=0.0, lt=1.0)
+    ema_warmup: bool = Field(False, description="decay min(ema_decay, (1 + step)/(10 + step)): the average forgets "
+                             "the initial weights within the run (without it, 0.999^steps of them remain: 22 % after 1 500 steps)")
     checkpoint_every: int = Field(500, ge=1)
     log_every: int = Field(10, ge=1)
     max_minutes: float | None = Field(None, gt=0.0)
@@ -78,6 +80,14 @@ class LoopConfig(BaseModel):
             # (relight-32 at 65 min) gains most from letting the weights settle (SGDR, Loshchilov & Hutter 2017).
             return warm * cosine_interp(self.lr, self.lr * self.lr_min_ratio, step / max(1, self.steps - 1))
         return self.lr * warm * self.lr_decay ** (step // self.lr_decay_every)
+
+    def ema_at(self, step: int) -> float:
+        """The EMA decay after optimiser step ``step`` (0-based); TensorFlow's ExponentialMovingAverage
+        ``num_updates`` ramp when ``ema_warmup``. A short run needs it: a light prior trained 1 500 steps from
+        random weights sampled at 18.5 dB (held-out DDIM-50, ω = 1) with the plain 0.999 average, at 25.2 dB
+        with its raw weights — the average still held 22 % of the random start."""
+        assert self.ema_decay is not None
+        return min(self.ema_decay, (1 + step) / (10 + step)) if self.ema_warmup else self.ema_decay
 
 
 @dataclass
@@ -329,9 +339,10 @@ def train_loop(
                 torch.nn.utils.clip_grad_norm_(model.parameters(), loop.grad_clip)
             opt.step()
             if ema is not None:
+                decay = loop.ema_at(step)
                 with torch.no_grad():
                     for k, v in model.state_dict().items():
-                        ema[k].mul_(loop.ema_decay).add_(v.detach(), alpha=1 - loop.ema_decay)
+                        ema[k].mul_(decay).add_(v.detach(), alpha=1 - decay)
             step += 1
             bar.update(1)
             if step % loop.log_every == 0:

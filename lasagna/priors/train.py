@@ -175,6 +175,9 @@ def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentP
                         "its label embedding is replaced (every label starts as its null label)")
     p.add_argument("--warmup", type=int, default=200)
     p.add_argument("--ema", type=float, default=0.999)
+    p.add_argument("--ema-warmup", action="store_true",
+                   help="ramp the EMA decay as min(ema, (1+step)/(10+step)): for short runs and fine-tunes, whose "
+                        "average would otherwise keep 0.999^steps of the starting weights")
     p.add_argument("--grad-clip", type=float, default=1.0)
     p.add_argument("--checkpoint-every", type=int, default=200)
     p.add_argument("--seed", type=int, default=0)
@@ -201,7 +204,7 @@ def run(args: argparse.Namespace) -> int:
     config = PriorTrainConfig(
         task=args.task, unet=unet, init_from=args.init_from, init_labels=args.init_labels, lr_schedule=args.lr_schedule,
         steps=args.steps, max_minutes=args.minutes, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,
-        ema_decay=args.ema, grad_clip=args.grad_clip, checkpoint_every=args.checkpoint_every, seed=args.seed,
+        ema_decay=args.ema, ema_warmup=args.ema_warmup, grad_clip=args.grad_clip, checkpoint_every=args.checkpoint_every, seed=args.seed,
         progress=not args.no_progress,
     )
     train_prior(config, args.out)
