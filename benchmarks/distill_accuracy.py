@@ -18,12 +18,14 @@ corrective, a free per-pixel shading layer distilled for ``--steps`` steps, all 
 * the amortised generator (one forward pass) and its supervised ceiling (the same generator trained
   on the true shading), where their run folders or the catalogue hold them;
 * the radially averaged power spectrum of the composite (the LMC-SDS paper's Fig. 6), per method;
-* colourisation: the same methods against the true colours (composite PSNR; baseline: the gray input);
+* colourisation: the same methods against the true colours (composite PSNR; baseline: the gray input;
+  DDS's source and NFSD's negative: the null label);
 * light: the same methods against the true glow (the ``plus`` layer) of the world's coloured fill
   light, labels cycling through warm, cool, white: glow PSNR over all and object pixels, composite
   PSNR against the lit image, the glow's colour error (angle between its mean RGB and the truth's)
   and the darkening drift (how much an edit darkened the input: 0 for a ``plus`` layer by
-  construction); baselines: no light, the best constant glow, the prior sampled directly.
+  construction); baselines: no light, the best constant glow, the prior sampled directly. DDS's
+  source is the null label, NFSD's negative the other colour (warm ↔ cool; white: the null label).
 
 ``--sections`` runs a subset (shading, color, light); the sections not run are carried over from
 ``--json-out``, so one table can be refreshed without re-running the others.
@@ -57,6 +59,7 @@ from lasagna.world import GLOW_VOCABULARY, VOCABULARY, additive_light, colorizat
 METHODS = ("sds", "lmc-sds", "dds", "nfsd", "ms-sds")
 OPPOSITE = {"left": "right", "right": "left", "top": "bottom", "bottom": "top", "top-left": "bottom-right",
             "bottom-right": "top-left", "top-right": "bottom-left", "bottom-left": "top-right"}
+OPPOSITE_GLOW = {"warm": "cool", "cool": "warm", "white": ""}  # NFSD's negative for a light (white: the null label)
 SECTIONS = ("shading", "color", "light")
 CHROMA_EPS = 0.05  # pixels darker than this (sum of RGB) have no meaningful chromaticity: left out of the drift
 
@@ -254,9 +257,15 @@ def add_labels(add) -> list[str]:
 
 
 def light_run(method: str, omega: float, add, preset, prior, corrective, steps: int, seed: int) -> dict:
+    labels = add_labels(add)
+    negative = None
+    if method == "dds":
+        negative = ""  # the source: the unlit input under no label
+    elif method == "nfsd":
+        negative = [OPPOSITE_GLOW[lab] for lab in labels]  # away from the other colour
     t0 = time.perf_counter()
-    res = distill_image(add.base, preset, prior, corrective if method == "lmc-sds" else None, condition=add_labels(add),
-                        loss=method, guidance=omega, steps=steps, seed=seed, early_stop=False)
+    res = distill_image(add.base, preset, prior, corrective if method == "lmc-sds" else None, condition=labels,
+                        negative=negative, loss=method, guidance=omega, steps=steps, seed=seed, early_stop=False)
     return light_row(method, omega, res.layer, res.composite, add, time.perf_counter() - t0)
 
 
@@ -466,7 +475,7 @@ def run_color(args) -> list[dict]:
     ccorr = load_corrective(cparts.corrective) if cparts.corrective else None
     col = colorization(generate(args.split, args.count, args.seed, cprior.sample_shape[-1]))
     color.append({"method": "gray input (identity edit)", "omega": None, "composite_psnr": round(psnr(col.base, col.target), 2)})
-    for m in [m for m in ("sds", "lmc-sds") if m in args.methods and (m != "lmc-sds" or ccorr is not None)]:
+    for m in [m for m in args.methods if m != "lmc-sds" or ccorr is not None]:
         for w in args.color_omegas:
             color.append(color_run(m, w, col, cpreset, cprior, ccorr, args.steps, 0))
             print(json.dumps(color[-1]), flush=True)
@@ -490,7 +499,7 @@ def run_light(args) -> list[dict]:
     light = light_baselines(add, lprior, [w for w in args.light_omegas if w in (1.0, 3.0)] or args.light_omegas[:1], args.seed)
     for r in light:
         print(json.dumps(r), flush=True)
-    for m in [m for m in ("sds", "lmc-sds") if m in args.methods and (m != "lmc-sds" or lcorr is not None)]:
+    for m in [m for m in args.methods if m != "lmc-sds" or lcorr is not None]:
         for w in args.light_omegas:
             light.append(light_run(m, w, add, lpreset, lprior, lcorr, args.steps, 0))
             print(json.dumps(light[-1]), flush=True)

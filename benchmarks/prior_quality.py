@@ -175,15 +175,20 @@ def _previous_stage(path: Path | None) -> dict | None:
 
 
 def _training_section(m: dict, config: PriorTrainConfig) -> str:
-    one = (f"lasagna train-prior --task {config.task} --out runs/{m['name']} --steps {m['steps']}   "
+    extra = "".join([f" --lr {config.lr:g}" if config.lr != 2e-3 else "",
+                     f" --lr-schedule {config.lr_schedule}" if config.lr_schedule != "step" else "",
+                     " --ema-warmup" if config.ema_warmup else ""])
+    one = (f"lasagna train-prior --task {config.task} --out runs/{m['name']} --steps {m['steps']}{extra}   "
            f"# ≈ {m['train_minutes']} min here; resumable")
+    ema = f"EMA {config.ema_decay}" + (" with the warm-up ramp min(decay, (1 + step)/(10 + step))" if config.ema_warmup else "")
     stage = (f"{m['steps']} steps in {m['train_minutes']} minutes (Adam, lr {config.lr} ({config.lr_schedule}) with "
-             f"{config.warmup_steps} warm-up steps, gradient clip {config.grad_clip}, EMA {config.ema_decay}, seed {config.seed})")
+             f"{config.warmup_steps} warm-up steps, gradient clip {config.grad_clip}, {ema}, seed {config.seed})")
     prev = m.get("previous")
     if config.init_from is not None and config.init_labels == "fresh":
         source = Path(config.init_from).name
         tune = (f"lasagna train-prior --task {config.task} --out runs/{m['name']} --init-from layers/{source} --init-labels fresh "
-                f"--lr {config.lr} --lr-schedule {config.lr_schedule} --steps {m['steps']} --warmup {config.warmup_steps}")
+                f"--lr {config.lr} --lr-schedule {config.lr_schedule} --steps {m['steps']} --warmup {config.warmup_steps}"
+                + (" --ema-warmup" if config.ema_warmup else ""))
         return (f"Fine-tuned from the bundled prior `{source}` (same architecture; [its card](../{source}/MODEL.md)): every "
                 f"weight copied except the label embedding, whose rows all start as `{source}`'s null label, so training "
                 f"begins from its unconditional model. {stage}. Reproduce:\n\n```sh\n{tune}\n"
