@@ -200,6 +200,17 @@ def refined(scene, preset, prior, corrective, folder: Path | None, steps: int) -
                        res.composite, scene, seconds)
 
 
+def colourfulness(x: torch.Tensor) -> float:
+    """Hasler & Süsstrunk's colourfulness M (2003) on 0–255 values, mean over images: 0 for a gray image,
+    ~15 "slightly", ~33 "moderately", ~45 "averagely colourful". PSNR cannot tell a colourisation from
+    leaving the image gray; this can."""
+    x = 255.0 * x.double()
+    rg, yb = x[:, 0] - x[:, 1], 0.5 * (x[:, 0] + x[:, 1]) - x[:, 2]
+    std = (rg.flatten(1).var(1, unbiased=False) + yb.flatten(1).var(1, unbiased=False)).sqrt()
+    mean = (rg.flatten(1).mean(1) ** 2 + yb.flatten(1).mean(1) ** 2).sqrt()
+    return float((std + 0.3 * mean).mean())
+
+
 def color_run(method: str, omega: float, col, preset, prior, corrective, steps: int, seed: int) -> dict:
     t0 = time.perf_counter()
     res = distill_image(col.base, preset, prior, corrective if method == "lmc-sds" else None, condition="natural",
@@ -207,7 +218,7 @@ def color_run(method: str, omega: float, col, preset, prior, corrective, steps: 
                         seed=seed, early_stop=False)
     seconds = time.perf_counter() - t0
     return {"method": method, "omega": omega, "composite_psnr": round(psnr(res.composite, col.target), 2),
-            "seconds": round(seconds, 2)}
+            "colourfulness": round(colourfulness(res.composite), 2), "seconds": round(seconds, 2)}
 
 
 def glow_colour_error(glow: torch.Tensor, true: torch.Tensor) -> float:
@@ -370,10 +381,12 @@ def markdown(result: dict) -> str:
         sp = "—" if r.get("seconds_per_image") is None else f"{r['seconds_per_image']:.3g}"
         out.append(f"| {r['method']} | {w} | {r['shading_psnr']:.2f} | {r['object_psnr']:.2f} | {si} | {cp} | {cd} | {sp} |")
     if result.get("color"):
-        out += ["", "| colourisation method | ω | composite PSNR vs true colours | s (all images) |", "|---|---|---|---|"]
+        out += ["", "| colourisation method | ω | composite PSNR vs true colours | colourfulness M | s (all images) |",
+                "|---|---|---|---|---|"]
         for r in result["color"]:
             w = "—" if r.get("omega") is None else f"{r['omega']:g}"
-            out.append(f"| {r['method']} | {w} | {r['composite_psnr']:.2f} | {r.get('seconds', '—')} |")
+            cf = "—" if r.get("colourfulness") is None else f"{r['colourfulness']:.1f}"
+            out.append(f"| {r['method']} | {w} | {r['composite_psnr']:.2f} | {cf} | {r.get('seconds', '—')} |")
     if result.get("light"):
         out += ["", "| light method | ω | glow PSNR | object PSNR | composite PSNR | colour error (°) | darkening ×10³ | s / image |",
                 "|---|---|---|---|---|---|---|---|"]
@@ -474,7 +487,14 @@ def run_color(args) -> list[dict]:
     cprior = load_prior(cparts.prior)
     ccorr = load_corrective(cparts.corrective) if cparts.corrective else None
     col = colorization(generate(args.split, args.count, args.seed, cprior.sample_shape[-1]))
-    color.append({"method": "gray input (identity edit)", "omega": None, "composite_psnr": round(psnr(col.base, col.target), 2)})
+    color.append({"method": "gray input (identity edit)", "omega": None, "composite_psnr": round(psnr(col.base, col.target), 2),
+                  "colourfulness": round(colourfulness(col.base), 2)})
+    color.append({"method": "the true colours", "omega": None, "composite_psnr": 100.0, "colourfulness": round(colourfulness(col.target), 2)})
+    t0 = time.perf_counter()
+    out = ddim_sample(cprior, Condition(["natural"] * args.count, image=col.base[:, :1]), steps=50, omega=1.0,
+                      generator=torch.Generator().manual_seed(args.seed)).image
+    color.append({"method": "prior-direct", "omega": 1.0, "composite_psnr": round(psnr(out, col.target), 2),
+                  "colourfulness": round(colourfulness(out), 2), "seconds": round(time.perf_counter() - t0, 2)})
     for m in [m for m in args.methods if m != "lmc-sds" or ccorr is not None]:
         for w in args.color_omegas:
             color.append(color_run(m, w, col, cpreset, cprior, ccorr, args.steps, 0))
