@@ -95,7 +95,8 @@ class DistillSettings(BaseModel):
         """A preset's layer and distillation defaults, with ``overrides`` (None values ignored) applied."""
         d = preset.distill
         data: dict[str, Any] = {"layer": LayerSpec.from_preset(preset), "loss": d.loss, "guidance": d.guidance, "steps": d.steps,
-                                "lr": d.lr, "t_min": d.t_min, "t_max": d.t_max, "seed": d.seed}
+                                "lr": d.lr, "t_min": d.t_min, "t_max": d.t_max, "seed": d.seed,
+                                "patches": PatchConfig(whole_fraction=d.whole_fraction)}
         return cls.parse({**data, **{k: v for k, v in overrides.items() if v is not None}})
 
     def with_overrides(self, **overrides: Any) -> "DistillSettings":

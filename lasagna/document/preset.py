@@ -39,6 +39,11 @@ class DistillDefaults(StrictModel):
     t_min: Unit = Field(0.02, description="Lower end of t ~ U(t_min, t_max), as a fraction of the schedule.")
     t_max: Unit = Field(0.98, description="Upper end of t ~ U(t_min, t_max).")
     seed: int = Field(0, ge=0, strict=True, description="Random seed of noise and timesteps.")
+    whole_fraction: Unit = Field(
+        0.4, description="For an image larger than the prior: the fraction of the steps on the whole image, "
+        "downsampled to the prior's size; the rest on random crops at native resolution (LMC-SDS, Sec. 5). "
+        "1 = whole image only, for layers that should stay smooth.",
+    )
 
     @model_validator(mode="after")
     def _t_interval(self) -> "DistillDefaults":
