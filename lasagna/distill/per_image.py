@@ -260,7 +260,15 @@ def _make_model(generator, settings: DistillSettings, base: Tensor) -> nn.Module
     if isinstance(generator, str):
         if generator != "free":
             raise LasagnaError(f"generator is {generator!r}; expected 'free', a LayerGenerator or a FreeLayer", "generator")
-        return FreeLayer(FreeLayerConfig(layer=settings.layer, batch=b, height=h, width=w)).to(base.device)
+        spec = settings.layer
+        if spec.channels == 4 and base.shape[1] == 3:
+            # An alpha layer starts as the base's own colour, opaque: the composite is the input exactly, as at
+            # α = 0, but the colour gets the whole gradient (at α = 0 it gets α·g = 0, and α only grows where the
+            # mid-gray start colour happens to help: the colour preset's α averaged 0.04 after 150 steps and its
+            # composites were nearly gray; docs/BENCHMARKS.md#learned-layers).
+            start = torch.cat([base, torch.ones_like(base[:, :1])], dim=1)
+            return FreeLayer.from_layer(spec, start).to(base.device)
+        return FreeLayer(FreeLayerConfig(layer=spec, batch=b, height=h, width=w)).to(base.device)
     if not isinstance(generator, (LayerGenerator, FreeLayer)):
         raise LasagnaError(f"generator is a {type(generator).__name__}; expected 'free', a LayerGenerator or a FreeLayer", "generator")
     if generator.spec != settings.layer:

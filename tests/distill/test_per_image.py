@@ -225,3 +225,29 @@ class TestSettings:
         r = distill_image(base, PLAIN, prior, condition="x", steps=60, lr=0.1)
         assert float(r.layer.max()) > 1.0 and float(r.composite.max()) <= 1.0
         assert torch.equal(r.composite, composite(base[None], r.layer, SHADING).clamp(0, 1))
+
+
+class TestFreeStart:
+    """The free layer starts at an identity edit; an alpha layer at the base's own colour, opaque."""
+
+    def test_alpha_layer_starts_opaque_at_the_base_colour(self):
+        from lasagna.distill.per_image import _make_model
+
+        spec = LayerSpec(blend="normal", channels=4)
+        base = torch.rand(2, 3, 6, 5, generator=torch.Generator().manual_seed(0))
+        model = _make_model("free", DistillSettings(layer=spec), base)
+        layer = model()
+        assert torch.all(layer[:, 3] == 1.0)
+        # colour = base up to the sigmoid's end clamp (numerics.LOGIT_EPS) and float32 rounding
+        torch.testing.assert_close(composite(base, layer, spec), base, atol=2e-6, rtol=0)
+        # and, unlike at α = 0, the colour receives the composite's gradient in full
+        g = torch.randn(base.shape, generator=torch.Generator().manual_seed(1))
+        (composite(base, layer, spec) * g).sum().backward()
+        assert float(model.u.grad[:, :3].abs().sum()) > 0
+
+    def test_other_layers_start_at_their_identity_value(self):
+        from lasagna.distill.per_image import _make_model
+
+        base = torch.rand(1, 3, 4, 4, generator=torch.Generator().manual_seed(0))
+        for spec, value in ((SHADING, 1.0), (LayerSpec(blend="plus", channels=3), 0.0)):
+            assert torch.all(_make_model("free", DistillSettings(layer=spec), base)() == value)
