@@ -14,6 +14,8 @@ of the prior's size at native resolution ("to prevent the loss from producing fa
 the learning rate during this phase through Cosine decay": ``cosine_lr`` over the run). A free layer
 lives at native resolution; a generator is fully convolutional. Images whose sides are not both at
 least the prior's size use the whole view only; a non-square image is resized to the prior's square.
+A preset sets ``whole_fraction`` (``distill.whole_fraction``): 1 keeps smooth layers off the crops
+(the light layer lost 2.6 dB to them at 64²; docs/BENCHMARKS.md#learned-layers).
 
 **Early stopping** (``settings.early_stop``), checked at every step of the last phase once
 ``min_steps`` steps have run and that phase has 2·``window`` steps of history: stop when both the
@@ -24,8 +26,10 @@ decreasing — the mean over the last ``window`` steps is not below (1 − rtol)
 zero, is what convergence looks like. The batch stops as a whole.
 
 **Reproducibility.** Every random draw (t, ε, patch positions) comes from one ``torch.Generator``
-seeded with ``settings.seed``; the free layer starts at the identity edit and a given generator is
-copied (the caller's is not modified), so the same inputs and seed give the same result.
+seeded with ``settings.seed``; the free layer starts at the identity edit (an alpha layer at the base's
+own colour with α = 1, whose colour then gets the whole gradient; every other layer at its blend's
+identity value) and a given generator is copied (the caller's is not modified), so the same inputs and
+seed give the same result.
 
 **Checkpoints** (``checkpoint_dir``): every ``checkpoint_every`` steps one atomic safetensors file
 (the layer or generator, Adam's state, the generator's RNG state; ``lasagna.training``'s format) and
