@@ -9,6 +9,7 @@ The same as, on the command line::
     lasagna edit examples/photos/coffee.png --layer shading --condition left -o OUT/coffee-left
     lasagna edit OUT/coffee-left --layer shading --condition top --on base --generator free -o OUT/coffee-top
     lasagna render OUT/coffee-top --all
+    lasagna edit OUT/coffee-top --layer light --condition warm -o OUT/coffee-warm
 """
 from __future__ import annotations
 
@@ -57,6 +58,11 @@ def main(out: Path) -> None:
     for i in rendered:
         print(f"re-rendered {i}: max difference {float((stack.tensors[i].color - before[i]).abs().max()):.2e}")
     print(f"wrote {first} and {folder} (stack.json, layers/, generators/, composite.png, stack.ora)")
+
+    # 5. Another kind of learned layer on top: a warm fill light (a plus layer, so it can only brighten).
+    lit = edit(folder, "light", "warm")
+    assert bool((lit.composite >= lasagna.render(stack).image - 1e-6).all())  # plus never darkens
+    print(f"layer {lit.layer_id!r}: mean light added {float(lit.layer.mean()):.3f}; wrote {lit.save(out / 'coffee-warm', force=True)}")
 
 
 if __name__ == "__main__":

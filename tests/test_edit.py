@@ -444,3 +444,15 @@ def test_render_uses_the_prior_the_layer_was_made_with(tmp_path, capsys, tiny, m
     (out / "stack.json").write_text(json.dumps(doc), encoding="utf-8")
     code, _, err = run(capsys, "render", out, "--all")
     assert code == 2 and "no prior named 'gone-prior'" in err and "expected one of light-32, recolor-32, relight-32" in err
+
+
+def test_edit_api_example_runs(tmp_path, capsys):
+    import runpy
+
+    module = runpy.run_path(str(ROOT / "examples" / "edit_api.py"))
+    module["main"](tmp_path)
+    out = capsys.readouterr().out
+    assert "re-rendered shading-left: max difference 0.00e+00" in out and "layer 'light-warm'" in out
+    for name in ("coffee-left", "coffee-top", "coffee-warm"):
+        code, _, err = run(capsys, "validate", tmp_path / name)
+        assert code == 0, err
