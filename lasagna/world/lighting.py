@@ -86,14 +86,16 @@ GLOW_TONES: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {
 assert tuple(GLOW_TONES) == GLOW_VOCABULARY
 
 
+def _index_in(vocabulary: tuple[str, ...], label: str, kind: str) -> int:
+    try:
+        return vocabulary.index(label)
+    except ValueError:
+        raise ConditionError(f"unknown {kind} label {label!r}; expected one of {', '.join(vocabulary)}", where=kind) from None
+
+
 def glow_label_index(label: str) -> int:
     """Position of ``label`` in `GLOW_VOCABULARY`; raises `ConditionError` for an unknown name."""
-    try:
-        return GLOW_VOCABULARY.index(label)
-    except ValueError:
-        raise ConditionError(
-            f"unknown glow label {label!r}; expected one of {', '.join(GLOW_VOCABULARY)}", where="glow"
-        ) from None
+    return _index_in(GLOW_VOCABULARY, label, "glow")
 
 
 def glow_rgb(label: str, u_hue: float, u_sat: float) -> list[float]:
@@ -106,12 +108,7 @@ def glow_rgb(label: str, u_hue: float, u_sat: float) -> list[float]:
 
 def label_index(label: str) -> int:
     """Position of ``label`` in `VOCABULARY`; raises `ConditionError` for an unknown name."""
-    try:
-        return VOCABULARY.index(label)
-    except ValueError:
-        raise ConditionError(
-            f"unknown light label {label!r}; expected one of {', '.join(VOCABULARY)}", where="light"
-        ) from None
+    return _index_in(VOCABULARY, label, "light")
 
 
 def light_vectors(

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import colorsys
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any, Sequence
 
 import numpy as np
@@ -91,19 +91,21 @@ class SceneParams:
                 kw[name] = v[idx]
         return SceneParams(**kw)
 
+    def _names(self, labels: str | Sequence[str], what: str) -> list[str]:
+        """One label for all scenes, or one per scene."""
+        names = [labels] * len(self) if isinstance(labels, str) else list(labels)
+        if len(names) != len(self):
+            raise LasagnaError(f"expected 1 or {len(self)} {what}, got {len(names)}", where="labels")
+        return names
+
     def with_labels(self, labels: str | Sequence[str] | None) -> "SceneParams":
         """The same scenes under other light labels (one label for all, or one per scene)."""
         if labels is None:
             return self
         from lasagna.world.lighting import label_index
 
-        names = [labels] * len(self) if isinstance(labels, str) else list(labels)
-        if len(names) != len(self):
-            raise LasagnaError(f"expected 1 or {len(self)} labels, got {len(names)}", where="labels")
-        idx = torch.tensor([label_index(n) for n in names], dtype=torch.int64)
-        kw = {f.name: getattr(self, f.name) for f in fields(self)}
-        kw["label"] = idx
-        return SceneParams(**kw)
+        idx = [label_index(n) for n in self._names(labels, "labels")]
+        return replace(self, label=torch.tensor(idx, dtype=torch.int64))
 
     def with_glow_labels(self, labels: str | Sequence[str] | None) -> "SceneParams":
         """The same scenes with glows of other labels (same tone within the label's ranges)."""
@@ -111,15 +113,10 @@ class SceneParams:
             return self
         from lasagna.world.lighting import glow_label_index
 
-        names = [labels] * len(self) if isinstance(labels, str) else list(labels)
-        if len(names) != len(self):
-            raise LasagnaError(f"expected 1 or {len(self)} glow labels, got {len(names)}", where="labels")
-        idx = [glow_label_index(n) for n in names]
+        idx = [glow_label_index(n) for n in self._names(labels, "glow labels")]
         rgb = [glow_rgb(GLOW_VOCABULARY[k], *self.glow_tone[i].tolist()) for i, k in enumerate(idx)]
-        kw = {f.name: getattr(self, f.name) for f in fields(self)}
-        kw["glow_label"] = torch.tensor(idx, dtype=torch.int64)
-        kw["glow_color"] = torch.tensor(rgb, dtype=self.glow_color.dtype).reshape(len(self), 3)
-        return SceneParams(**kw)
+        return replace(self, glow_label=torch.tensor(idx, dtype=torch.int64),
+                       glow_color=torch.tensor(rgb, dtype=self.glow_color.dtype).reshape(len(self), 3))
 
     def describe(self, i: int) -> dict[str, Any]:
         """Scene ``i`` as a JSON-ready dict (family names, plain floats): enough to re-render it."""
