@@ -134,6 +134,8 @@ def train_layer_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resolution", type=int, help="world scene size (default: the prior's resolution, else 32)")
     p.add_argument("--channels", default="16,32,64,128", help="generator widths per level (default 16,32,64,128)")
     p.add_argument("--ema", type=float, default=0.999, help="EMA decay of the weights saved (default 0.999)")
+    p.add_argument("--ema-warmup", action="store_true",
+                   help="ramp the EMA decay as min(ema, (1+step)/(10+step)) so a short run's average forgets its start")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--install", action="store_true",
                    help="copy the trained generator into the preset's catalogue folder (<catalogue>/<preset>/generator/)")
@@ -173,7 +175,7 @@ def run_train_layer(args: argparse.Namespace) -> int:
         supervised=args.supervised, loss=loss, guidance=args.guidance or preset.distill.guidance,
         t_min=preset.distill.t_min, t_max=preset.distill.t_max, lr=args.lr, batch_size=args.batch_size,
         weights=Weights.lmc_network(args.ramp, reg_end=args.reg_final),
-        resolution=resolution or 32, steps=args.steps, max_minutes=args.minutes, ema_decay=args.ema, seed=args.seed,
+        resolution=resolution or 32, steps=args.steps, max_minutes=args.minutes, ema_decay=args.ema, ema_warmup=args.ema_warmup, seed=args.seed,
         progress=_progress(),
     )
     result = train_layer_generator(config, out, prior=prior, corrective=corrective, device=args.device)

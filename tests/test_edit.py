@@ -360,7 +360,7 @@ def test_train_layer_and_install(tmp_path, capsys, tiny, monkeypatch):
     shutil.rmtree(cat_dir / "shading" / "generator")
     monkeypatch.setenv("LASAGNA_LAYERS", str(cat_dir))
     code, stdout, err = run(capsys, "train-layer", "--preset", "shading", "--out", tmp_path / "run", "--steps", "2",
-                            "--batch-size", "2", "--channels", "4,8", "--install")
+                            "--batch-size", "2", "--channels", "4,8", "--ema-warmup", "--install")
     assert code == 0, err
     line = json.loads(stdout.strip().splitlines()[-1])
     assert line["step"] == 2 and line["installed"] == str(cat_dir / "shading" / "generator")
@@ -368,6 +368,7 @@ def test_train_layer_and_install(tmp_path, capsys, tiny, monkeypatch):
     assert config["loss"] == "lmc-sds" and config["guidance"] == 3.0  # the preset's defaults
     assert config["weights"]["reg"] == {"start": 1.0, "end": 0.0, "steps": 500, "shape": "cosine"}  # --reg-final 0
     assert config["corrective"].endswith("relight-32-spectral")
+    assert config["ema_decay"] == 0.999 and config["ema_warmup"] is True
     result = edit(PHOTO, "shading", "left", catalogue_dirs=[cat_dir])
     assert result.settings["method"] == "amortised"
 
