@@ -263,6 +263,24 @@ def light_baselines(add, prior, omegas, seed: int) -> list[dict]:
     return rows
 
 
+def light_amortised(add, folder: Path | None) -> dict | None:
+    """One forward pass of a trained light generator over every scene (None if there is none)."""
+    if folder is None or not (folder / "config.json").is_file():
+        return None
+    from lasagna.generators.layer import composite
+    from lasagna.generators.unet import LayerGenerator
+
+    gen = LayerGenerator.from_pretrained(folder)
+    labels = add_labels(add)
+    with torch.no_grad():
+        gen(add.base[:1], labels[:1])  # warm-up: first-call allocations are not the steady cost
+        t0 = time.perf_counter()
+        glow = gen(add.base, labels)
+        seconds = time.perf_counter() - t0
+        comp = composite(add.base, glow, gen.spec).clamp(0, 1)
+    return light_row("amortised (distilled)", None, glow, comp, add, seconds)
+
+
 def add_labels(add) -> list[str]:
     return [GLOW_VOCABULARY[int(k)] for k in add.scene.params.glow_label]
 
@@ -517,6 +535,9 @@ def run_light(args) -> list[dict]:
     labels = [GLOW_VOCABULARY[i % len(GLOW_VOCABULARY)] for i in range(args.count)]
     add = additive_light(generate(args.split, args.count, args.seed, lprior.sample_shape[-1]), labels)
     light = light_baselines(add, lprior, [w for w in args.light_omegas if w in (1.0, 3.0)] or args.light_omegas[:1], args.seed)
+    row = light_amortised(add, args.light_generator or lparts.generator)
+    if row is not None:
+        light.append(row)
     for r in light:
         print(json.dumps(r), flush=True)
     for m in [m for m in args.methods if m != "lmc-sds" or lcorr is not None]:
@@ -542,6 +563,7 @@ def main(argv=None) -> int:
     ap.add_argument("--refine-steps", type=int, default=50, help="per-image steps after the amortised pass (0: skip)")
     ap.add_argument("--color-omegas", nargs="*", type=float, default=[1.0, 3.0, 7.5])
     ap.add_argument("--light-omegas", nargs="*", type=float, default=[1.0, 3.0, 7.5])
+    ap.add_argument("--light-generator", type=Path, default=None, help="amortised light generator folder (default: the light preset's)")
     ap.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS,
                     help="which tables to run; the others are carried over from --json-out")
     ap.add_argument("--trace-every", type=int, default=5)
