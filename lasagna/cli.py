@@ -9,7 +9,7 @@
     lasagna render STACK [--all]                  render learned layers from their stored settings
     lasagna layers                                list the learned-layer catalogue
     lasagna train-layer --preset P [--out DIR]    train a preset's amortised generator
-    lasagna demo -o DIR                           relight and colourise the bundled examples
+    lasagna demo -o DIR                           relight, colourise and light the bundled examples
     lasagna world -o DIR --split S --count N      procedural scenes as stack folders (lasagna.world)
 
 STACK is a stack folder or its stack.json. Any bad input ends with one line on stderr,
@@ -254,7 +254,7 @@ COMMANDS: dict[str, Command] = {
                       _lazy("lasagna.cli_learned", "render_arguments"), _lazy("lasagna.cli_learned", "run_render")),
     "layers": Command("list the learned-layer catalogue: presets, priors, correctives, generators",
                       _lazy("lasagna.cli_learned", "layers_arguments"), _lazy("lasagna.cli_learned", "run_layers")),
-    "demo": Command("relight and colourise the bundled examples; writes stacks and one sheet to look at",
+    "demo": Command("relight, colourise and light the bundled examples; writes stacks and one sheet to look at",
                     _demo_args, cmd_demo),
     "world": Command("write procedural scenes with ground truth as layer-stack folders",
                      _lazy("lasagna.world.cli", "world_arguments"), _lazy("lasagna.world.cli", "run_world")),

@@ -5,7 +5,7 @@
     lasagna render STACK [--all]
     lasagna train-layer --preset shading [--out DIR] [--minutes M] [--steps N] [--supervised] [--install] …
     lasagna layers                                   list the catalogue: presets, priors, correctives, generators
-    lasagna demo -o DIR                              relight and colourise the bundled examples (lasagna.demo)
+    lasagna demo -o DIR                              relight, colourise and light the bundled examples (lasagna.demo)
 
 IMAGE is a PNG/JPEG or a stack folder; OUT is a new (or empty) folder. Errors are one line and exit 2
 (``lasagna.cli.main``); OUT is written through a temporary sibling folder renamed at the end, so a

@@ -1,4 +1,4 @@
-"""``lasagna demo``: relight and colourise the bundled examples, and draw one sheet a person can look at.
+"""``lasagna demo``: relight, colourise and add light to the bundled examples, and draw one sheet a person can look at.
 
 Inputs (a checkout's ``examples/``): held-out world scenes (``examples/world/``, made by
 ``examples/make_world.py``) and small real photographs (``examples/photos/``, crops of
