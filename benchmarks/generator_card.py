@@ -1,7 +1,8 @@
-"""Write the model card of the amortised shading generator (``layers/shading/generator/``).
+"""Write the model card of an amortised generator (``layers/shading/generator/``, ``layers/light/generator/``).
 
     python benchmarks/generator_card.py --run runs/shading-generator --ceiling runs/shading-supervised \
         --accuracy docs/distill_accuracy.json
+    python benchmarks/generator_card.py --preset light --run runs/light-generator     (no ceiling run)
 
 Reads the two ``lasagna train-layer`` run folders (the distilled generator and its supervised ceiling:
 config, log, metrics on the ``val`` split) and the held-out numbers of ``benchmarks/distill_accuracy.py``;
@@ -25,13 +26,14 @@ def cumulative_minutes(log: list[dict]) -> list[float]:
     return [sec / 60 for sec in cumulative_seconds(log)]
 
 
-def plot(distilled: list[dict], ceiling: list[dict], path: Path) -> None:
+def plot(distilled: list[dict], ceiling: list[dict] | None, path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(1, 2, figsize=(9, 3.2), dpi=100)
+    fig, ax = plt.subplots(1, 2 if ceiling else 1, figsize=(9 if ceiling else 5, 3.2), dpi=100, squeeze=False)
+    ax = ax[0]
     minutes = cumulative_minutes(distilled)
     ax[0].plot(minutes, [r["grad_norm"] for r in distilled], lw=0.8)
     ax[0].set_yscale("log")
@@ -41,6 +43,11 @@ def plot(distilled: list[dict], ceiling: list[dict], path: Path) -> None:
     twin = ax[0].twinx()
     twin.plot(minutes, [r["reg"] for r in distilled], color="C1", lw=0.8)
     twin.set_ylabel("mean (f(x, y) − x)²", color="C1")
+    if not ceiling:
+        fig.tight_layout()
+        fig.savefig(path)
+        plt.close(fig)
+        return
     ax[1].plot(cumulative_minutes(ceiling), [r["mse"] for r in ceiling], lw=0.8, color="C2")
     ax[1].set_yscale("log")
     ax[1].set_xlabel("minutes")
@@ -51,13 +58,80 @@ def plot(distilled: list[dict], ceiling: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def light_card(args) -> int:
+    """The light generator's card: no supervised ceiling run; held-out numbers from the light table."""
+    cfg = json.loads((args.run / "train_config.json").read_text())
+    m = json.loads((args.run / "metrics.json").read_text())
+    log = read_log(args.run)
+    acc = json.loads(args.accuracy.read_text())
+    rows = {(r["method"], r["omega"]): r for r in acc["light"]}
+    distilled = rows.get(("amortised (distilled)", None))
+    per_image = rows.get((cfg["loss"], cfg["guidance"]))
+    const, none, direct = rows[("best-constant", None)], rows[("no light (identity edit)", None)], rows.get(("prior-direct", 1.0))
+    plot(log, None, args.out / "loss.png")
+    g = cfg["generator"]
+    minutes = round(cumulative_minutes(log)[-1], 1)
+    metrics = {"val": m, "heldout": {"distilled": distilled, "per_image": per_image, "best_constant": const,
+               "no_light": none, "prior_direct": direct}, "steps": m["step"], "minutes": minutes,
+               "date": datetime.date.today().isoformat()}
+    (args.out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+
+    def line(name: str, r: dict | None) -> str:
+        if r is None:
+            return f"| {name} | — | — | — | — |\n"
+        ms = "—" if not r.get("seconds_per_image") else f"{r['seconds_per_image'] * 1e3:.1f}"
+        return f"| {name} | {r['glow_psnr']:.2f} | {r['object_psnr']:.2f} | {r['colour_error_deg']:.1f} | {ms} |\n"
+
+    card = f"""# light/generator: the amortised light generator
+
+A conditioned convolutional UNet (`lasagna.generators.LayerGenerator`: channels {g['channels']}, {g['blocks']} conv blocks
+per level, label by {g['condition']} encoding) that maps an image and a light colour (warm, cool, white) to a
+`plus` layer — RGB light in [0, 1], added to the image — in one forward pass, at any image size. It starts
+at the identity edit (no light) and was trained *through the composite* x + y with {cfg['loss'].upper()} at
+ω = {cfg['guidance']:g} from the bundled prior `light-32` (the light preset's defaults): the score weight rises
+0.1 → 1 and the L2 to the input falls 1 → {cfg['weights']['reg']['end']:g} over the first {cfg['weights']['reg']['steps']} steps (cosine).
+
+## Data and training
+Fresh batches of {cfg['batch_size']} world scenes of the `{cfg['split']}` split every step (the rendered image as the base,
+a uniformly drawn light colour); nothing on disk. {m['step']} steps in {minutes} minutes on one thread of this
+2-vCPU box (Adam lr {cfg['lr']}, EMA {cfg['ema_decay']} with the warm-up ramp, seed {cfg['seed']}). Reproduce:
+
+```sh
+lasagna train-layer --preset light --out runs/light-generator --steps {m['step']} --ema-warmup --install   # ≈ {minutes} min here
+OMP_NUM_THREADS=2 python benchmarks/distill_accuracy.py --sections light && python benchmarks/generator_card.py --preset light
+```
+
+![training](loss.png)
+
+## Quality
+`val` split ({cfg['eval_count']} scenes, `metrics.json`): glow PSNR **{m['layer_psnr']:.2f} dB** against the world's true
+light (no light: {m['identity_psnr']:.2f} dB).
+
+`heldout` split (shapes, textures and walls never seen; {acc['count']} scenes; `benchmarks/distill_accuracy.py`):
+
+| method | glow PSNR (dB) | object pixels (dB) | colour error (°) | ms per image |
+|---|---|---|---|---|
+{line('this generator, one forward pass', distilled)}{line(f"per-image {cfg['loss']} ω = {cfg['guidance']:g} (free layer, {acc['steps']} steps)", per_image)}{line('the prior sampled directly (DDIM-50, ω = 1)', direct)}{line('best constant glow per image (oracle)', const)}{line('no light', none)}
+Measured {metrics['date']}; full tables in [docs/BENCHMARKS.md](../../../docs/BENCHMARKS.md#learned-layers).
+"""
+    (args.out / "MODEL.md").write_text(card)
+    print(json.dumps({"val_psnr": m["layer_psnr"], "heldout_psnr": distilled and distilled["glow_psnr"]}))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--preset", choices=("shading", "light"), default="shading")
     ap.add_argument("--run", type=Path, default=ROOT / "runs" / "shading-generator")
     ap.add_argument("--ceiling", type=Path, default=ROOT / "runs" / "shading-supervised")
     ap.add_argument("--accuracy", type=Path, default=ROOT / "docs" / "distill_accuracy.json")
-    ap.add_argument("--out", type=Path, default=ROOT / "layers" / "shading" / "generator")
+    ap.add_argument("--out", type=Path, default=None, help="default: layers/<preset>/generator")
     args = ap.parse_args(argv)
+    args.out = args.out or ROOT / "layers" / args.preset / "generator"
+    if args.preset == "light":
+        if args.run == ROOT / "runs" / "shading-generator":
+            args.run = ROOT / "runs" / "light-generator"
+        return light_card(args)
 
     cfg = json.loads((args.run / "train_config.json").read_text())
     m, mc = (json.loads((r / "metrics.json").read_text()) for r in (args.run, args.ceiling))
