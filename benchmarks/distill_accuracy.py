@@ -387,30 +387,31 @@ def plot_spectrum(curves: dict[str, list[float]], path: Path) -> None:
     plt.close(fig)
 
 
+def _cell(r: dict, key: str, spec: str, scale: float = 1.0) -> str:
+    """One table cell: ``r[key]`` × scale formatted with ``spec``, or a dash when it was not measured."""
+    v = r.get(key)
+    return "—" if v is None else format(scale * v, spec)
+
+
 def markdown(result: dict) -> str:
     rows = result.get("shading", [])
     out = ["| method | ω | shading PSNR | object PSNR | si-MSE ×10³ | composite PSNR | chroma drift | s / image |",
            "|---|---|---|---|---|---|---|---|"]
     for r in result.get("baselines", []) + rows:
-        w = "—" if r.get("omega") is None else f"{r['omega']:g}"
-        si = "—" if r.get("si_mse") is None else f"{1e3 * r['si_mse']:.2f}"
-        cp = "—" if r.get("composite_psnr") is None else f"{r['composite_psnr']:.2f}"
-        cd = "—" if r.get("chroma_drift") is None else f"{r['chroma_drift']:.4f}"
-        sp = "—" if r.get("seconds_per_image") is None else f"{r['seconds_per_image']:.3g}"
-        out.append(f"| {r['method']} | {w} | {r['shading_psnr']:.2f} | {r['object_psnr']:.2f} | {si} | {cp} | {cd} | {sp} |")
+        out.append(f"| {r['method']} | {_cell(r, 'omega', 'g')} | {r['shading_psnr']:.2f} | {r['object_psnr']:.2f} | "
+                   f"{_cell(r, 'si_mse', '.2f', 1e3)} | {_cell(r, 'composite_psnr', '.2f')} | {_cell(r, 'chroma_drift', '.4f')} | "
+                   f"{_cell(r, 'seconds_per_image', '.3g')} |")
     if result.get("color"):
         out += ["", "| colourisation method | ω | composite PSNR vs true colours | colourfulness M | s (all images) |",
                 "|---|---|---|---|---|"]
         for r in result["color"]:
-            w = "—" if r.get("omega") is None else f"{r['omega']:g}"
-            cf = "—" if r.get("colourfulness") is None else f"{r['colourfulness']:.1f}"
-            out.append(f"| {r['method']} | {w} | {r['composite_psnr']:.2f} | {cf} | {r.get('seconds', '—')} |")
+            out.append(f"| {r['method']} | {_cell(r, 'omega', 'g')} | {r['composite_psnr']:.2f} | {_cell(r, 'colourfulness', '.1f')} | "
+                       f"{r.get('seconds', '—')} |")
     if result.get("light"):
         out += ["", "| light method | ω | glow PSNR | object PSNR | composite PSNR | colour error (°) | darkening ×10³ | s / image |",
                 "|---|---|---|---|---|---|---|---|"]
         for r in result["light"]:
-            w = "—" if r.get("omega") is None else f"{r['omega']:g}"
-            out.append(f"| {r['method']} | {w} | {r['glow_psnr']:.2f} | {r['object_psnr']:.2f} | {r['composite_psnr']:.2f} | "
+            out.append(f"| {r['method']} | {_cell(r, 'omega', 'g')} | {r['glow_psnr']:.2f} | {r['object_psnr']:.2f} | {r['composite_psnr']:.2f} | "
                        f"{r['colour_error_deg']:.1f} | {1e3 * r['darkening']:.2f} | {r['seconds_per_image']:.3g} |")
     return "\n".join(out)
 

@@ -223,6 +223,7 @@ def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_S
     for scene in scenes:
         stack = load_stack(scene)
         meta = stack.document.metadata.get("lasagna.world", {})
+        as_rendered = stack.document  # albedo × shading: the light edit's input
         stack.document = stack.document.replace_layer("shading", visible=False, name="True shading (hidden)")
         index, split, seed = meta.get("index", 0), meta.get("split", "heldout"), meta.get("seed", 0)
         if "shading" in runnable:
@@ -236,7 +237,7 @@ def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_S
         if "light" in runnable:
             glow = GLOWS[scenes.index(scene) % len(GLOWS)]
             truth = additive_light(generate(split, 1, seed, stack.width, start=index), glow).lit[0]
-            stack.document = stack.document.replace_layer("shading", visible=True, name="Shading")
+            stack.document = as_rendered
             one(stack, "light", glow, f"{scene.name}-{glow}-light", f"{scene.name} · {glow} light", truth)
     for k, photo in enumerate(photos):
         if "shading" in runnable:

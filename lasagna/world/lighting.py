@@ -102,7 +102,8 @@ def glow_rgb(label: str, u_hue: float, u_sat: float) -> list[float]:
     """The RGB colour (max component 1) of a ``label`` glow at tone (u_hue, u_sat) ∈ [0, 1]²."""
     import colorsys
 
-    (h0, h1), (s0, s1) = GLOW_TONES[GLOW_VOCABULARY[glow_label_index(label)]]
+    glow_label_index(label)  # an unknown label is one clear ConditionError
+    (h0, h1), (s0, s1) = GLOW_TONES[label]
     return list(colorsys.hsv_to_rgb(h0 + (h1 - h0) * float(u_hue), s0 + (s1 - s0) * float(u_sat), 1.0))
 
 

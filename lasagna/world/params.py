@@ -71,12 +71,17 @@ class SceneParams:
     wall_texture_params: torch.Tensor  # (B, N_PARAMS)
     wall_texture_seed: torch.Tensor  # (B,) int64
     glow_position: torch.Tensor  # (B, 3) the additive point light, in front of the scene
-    glow_color: torch.Tensor  # (B, 3) RGB, max component 1: glow_rgb(glow_label, *glow_tone)
     glow_label: torch.Tensor  # (B,) int64 index into GLOW_VOCABULARY
     glow_tone: torch.Tensor  # (B, 2) where in its label's (hue, saturation) ranges the colour lies
     glow_intensity: torch.Tensor  # (B,)
     halo_intensity: torch.Tensor  # (B,)
     halo_radius: torch.Tensor  # (B,)
+
+    @property
+    def glow_color(self) -> torch.Tensor:
+        """(B, 3) float64 RGB of each glow, max component 1: ``glow_rgb(label, *tone)``."""
+        rows = [glow_rgb(GLOW_VOCABULARY[int(k)], *tone) for k, tone in zip(self.glow_label, self.glow_tone.tolist())]
+        return torch.tensor(rows, dtype=torch.float64).reshape(len(self), 3)
 
     def __len__(self) -> int:
         return int(self.index.shape[0])
@@ -108,15 +113,13 @@ class SceneParams:
         return replace(self, label=torch.tensor(idx, dtype=torch.int64))
 
     def with_glow_labels(self, labels: str | Sequence[str] | None) -> "SceneParams":
-        """The same scenes with glows of other labels (same tone within the label's ranges)."""
+        """The same scenes with glows of other labels (same tone within the new label's ranges)."""
         if labels is None:
             return self
         from lasagna.world.lighting import glow_label_index
 
         idx = [glow_label_index(n) for n in self._names(labels, "glow labels")]
-        rgb = [glow_rgb(GLOW_VOCABULARY[k], *self.glow_tone[i].tolist()) for i, k in enumerate(idx)]
-        return replace(self, glow_label=torch.tensor(idx, dtype=torch.int64),
-                       glow_color=torch.tensor(rgb, dtype=self.glow_color.dtype).reshape(len(self), 3))
+        return replace(self, glow_label=torch.tensor(idx, dtype=torch.int64))
 
     def describe(self, i: int) -> dict[str, Any]:
         """Scene ``i`` as a JSON-ready dict (family names, plain floats): enough to re-render it."""
@@ -221,7 +224,6 @@ def _sample_one(split: str, seed: int, index: int) -> dict[str, np.ndarray]:
     k = min(int(tone), len(GLOW_VOCABULARY) - 1)
     out["glow_label"] = k
     out["glow_tone"] = [tone - k, g[4]]
-    out["glow_color"] = glow_rgb(GLOW_VOCABULARY[k], tone - k, g[4])
     out["glow_intensity"] = _lerp(g[5], 1.2, 2.0)
     out["halo_intensity"] = _lerp(g[6], 0.0, 0.2)
     out["halo_radius"] = _lerp(g[7], 0.1, 0.25)
@@ -260,7 +262,6 @@ def sample_scenes(split: str, seed: int, indices: Sequence[int] | range) -> Scen
         wall_texture_params=stack("wall_texture_params"),
         wall_texture_seed=stack("wall_texture_seed", torch.int64),
         glow_position=stack("glow_position"),
-        glow_color=stack("glow_color"),
         glow_label=stack("glow_label", torch.int64),
         glow_tone=stack("glow_tone"),
         glow_intensity=stack("glow_intensity"),
