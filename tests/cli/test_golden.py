@@ -42,6 +42,7 @@ REAL: dict[str, list[str]] = {
     "edit": ["edit", str(PHOTO), "--layer", "shading", "--condition", "left", "-o", "{tmp}/edit"],
     "edit-free": ["edit", str(PHOTO), "--layer", "shading", "--condition", "top", "--generator", "free", "--steps", "2",
                   "--no-ora", "-o", "{tmp}/edit-free"],
+    "edit-twice": ["edit", "{tmp}/edit", "--condition", "top", "--optimize", "1", "--no-ora", "-o", "{tmp}/twice"],
     "render": ["render", "{tmp}/edit"],
     "render-all": ["render", "{tmp}/edit-free", "--all"],
     "train-prior": ["train-prior", "--out", "{tmp}/prior", "--steps", "2", "--batch-size", "2", "--resolution", "16",
@@ -109,13 +110,17 @@ def test_real_invocations(tmp_path, capsys, cli_env):
     """Every case in order in one folder (later cases read what earlier ones wrote)."""
     for name, argv in REAL.items():
         check(name, record(argv, tmp_path, capsys))
-    assert sorted(p.stem for p in GOLDEN.glob("*.txt")) == sorted([*REAL, *HELP, "edit-free-stack-json"])
+    assert sorted(p.stem for p in GOLDEN.glob("*.txt")) == sorted([*REAL, *HELP, "edit-free-stack-json", "edit-twice-stack-json"])
 
 
-def test_learned_outputs_unchanged(tmp_path, capsys, cli_env):
-    """The edit's stack.json (minus its timestamps) is byte-identical to the recorded one."""
-    record(REAL["edit-free"], tmp_path, capsys)
-    text = (tmp_path / "edit-free" / "stack.json").read_text(encoding="utf-8")
+@pytest.mark.parametrize("case", ["edit-free", "edit-twice"])
+def test_learned_outputs_unchanged(case, tmp_path, capsys, cli_env):
+    """The stack.json an edit writes (minus its timestamps) is byte-identical to the recorded one."""
+    if case == "edit-twice":
+        record(REAL["edit"], tmp_path, capsys)
+    record(REAL[case], tmp_path, capsys)
+    out = REAL[case][REAL[case].index("-o") + 1].replace("{tmp}", str(tmp_path))
+    text = (Path(out) / "stack.json").read_text(encoding="utf-8")
     text = re.sub(r'"(created|rendered)": "[^"]*"', r'"\1": "<TIME>"', text)
     text = re.sub(r'"(seconds|generate_seconds|render_seconds)": [0-9.e-]+', r'"\1": 0', text)
-    check("edit-free-stack-json", normalise(text, tmp_path))
+    check(f"{case}-stack-json", normalise(text, tmp_path))
