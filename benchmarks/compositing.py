@@ -171,7 +171,7 @@ def plot_precision(rows: list[dict], path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from lasagna.io.atomic import atomic_path
+    from lasagna.atomic import atomic_path
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     markers = {"float64": "o", "float32": "s", "bfloat16": "^", "float16": "v", "pillow-uint8": "D"}

@@ -159,7 +159,7 @@ def direct_samples(scene, prior, omega: float, seed: int) -> dict:
     """The prior sampled with the same condition (DDIM-50): the "ControlNet alone" baseline."""
     t0 = time.perf_counter()
     out = ddim_sample(prior, Condition(list(scene.label), image=scene.albedo), steps=50, omega=omega,
-                      generator=torch.Generator().manual_seed(seed)).image
+                      rng=torch.Generator().manual_seed(seed)).image
     seconds = time.perf_counter() - t0
     return shading_row("prior-direct", omega, implied_shading(out, scene.albedo), out, scene, seconds)
 
@@ -258,7 +258,7 @@ def light_baselines(add, prior, omegas, seed: int) -> list[dict]:
     for w in omegas:
         t0 = time.perf_counter()
         out = ddim_sample(prior, Condition(list(add_labels(add)), image=add.base), steps=50, omega=w,
-                          generator=torch.Generator().manual_seed(seed)).image
+                          rng=torch.Generator().manual_seed(seed)).image
         rows.append(light_row("prior-direct", w, (out - add.base).clamp_min(0.0), out, add, time.perf_counter() - t0))
     return rows
 
@@ -511,7 +511,7 @@ def run_color(args) -> list[dict]:
     color.append({"method": "the true colours", "omega": None, "composite_psnr": 100.0, "colourfulness": round(colourfulness(col.target), 2)})
     t0 = time.perf_counter()
     out = ddim_sample(cprior, Condition(["natural"] * args.count, image=col.base[:, :1]), steps=50, omega=1.0,
-                      generator=torch.Generator().manual_seed(args.seed)).image
+                      rng=torch.Generator().manual_seed(args.seed)).image
     color.append({"method": "prior-direct", "omega": 1.0, "composite_psnr": round(psnr(out, col.target), 2),
                   "colourfulness": round(colourfulness(out), 2), "seconds": round(time.perf_counter() - t0, 2)})
     for m in [m for m in args.methods if m != "lmc-sds" or ccorr is not None]:

@@ -120,7 +120,7 @@ def measure(name: str, prior: UNetPrior, corr: Corrective, res: int, batch: int,
     loss = make_loss(name, corr)
 
     def step():
-        out = loss(image, prior, cond, 7.5, generator=g)
+        out = loss(image, prior, cond, 7.5, rng=g)
         out.loss.backward()
         image.grad = None
 
@@ -144,7 +144,7 @@ def measure(name: str, prior: UNetPrior, corr: Corrective, res: int, batch: int,
     null_prior, null_loss = NullPrior(res).to(device), make_loss(name, identity_corrective)
 
     def null_step():
-        out = null_loss(image, null_prior, cond, 7.5, generator=g)
+        out = null_loss(image, null_prior, cond, 7.5, rng=g)
         out.loss.backward()
         image.grad = None
 

@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from lasagna.priors.evaluate import denoising_error, sample_quality  # noqa: E402
-from lasagna.priors.train import PriorTrainConfig, prior_from_checkpoint, task_batch, task_vocabulary  # noqa: E402
+from lasagna.training.prior import PriorTrainConfig, prior_batch, prior_from_checkpoint, task_vocabulary  # noqa: E402
 from lasagna.priors.unet import UNetPrior  # noqa: E402
 from lasagna.training import cumulative_seconds, read_log  # noqa: E402
 from lasagna.world import generate  # noqa: E402
@@ -45,7 +45,7 @@ def heldout(task: str, count: int, resolution: int, seed: int, split: str = "hel
     scene = generate(split, count, seed, resolution, labels=labels if task == "relight" else None)
     if task == "light":
         scene = replace(scene, params=scene.params.with_glow_labels(labels))
-    x0, lab_idx, cond = task_batch(task, scene)
+    x0, lab_idx, cond = prior_batch(task, scene)
     return x0, [vocab[i] for i in lab_idx.tolist()], cond
 
 

@@ -20,7 +20,7 @@ import numpy as np
 from PIL import Image
 
 from lasagna.document import Document, save_document
-from lasagna.io.atomic import atomic_path
+from lasagna.atomic import atomic_path
 
 W, H = 64, 48
 HERE = Path(__file__).resolve().parent

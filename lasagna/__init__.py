@@ -8,7 +8,7 @@
 The API names are loaded lazily so that ``import lasagna.document`` (pydantic only) never imports
 torch. See docs/ARCHITECTURE.md for the tiers.
 """
-__version__ = "0.1.0"
+from lasagna.version import __version__
 
 _API = ("load", "render", "save", "Stack", "from_image", "from_tensors", "export_ora", "export_psd",
         "import_ora", "export_layer_pngs", "write_composite", "RenderResult")

@@ -176,7 +176,7 @@ def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_S
     """Run the demo into ``out``; returns the sheet's path (None when it fell back to the example stack)."""
     from lasagna import catalogue as cat
     from lasagna.edit import conditioning_input, edit, read_image
-    from lasagna.io.atomic import atomic_write_bytes
+    from lasagna.atomic import atomic_write_bytes
     from lasagna.io.stack import Stack, load_stack
     from lasagna.world import additive_light, generate
 

@@ -34,8 +34,6 @@ space its prior never scored.
 from __future__ import annotations
 
 import os
-import shutil
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass
@@ -46,10 +44,11 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
-from lasagna import __version__
+from lasagna.version import __version__
 from lasagna import catalogue as cat
 from lasagna.document import LearnedLayer
 from lasagna.errors import DocumentError, ImageError, LasagnaError, PathError
+from lasagna.io.folder import check_output_folder, write_stack_folder
 from lasagna.io.stack import Stack, load_stack, resolve_inside, save_stack
 from lasagna.learned import LayerRun, Method, as_stored, choose_method, conditioning_input, file_sha256, make_layer
 
@@ -77,8 +76,17 @@ class EditResult:
 
     def save(self, out: str | os.PathLike, *, force: bool = False, ora: bool = True,
              warn: Callable[[str], None] | None = None) -> Path:
-        """Write the stack folder ``out`` (see ``write_stack_folder``); returns it."""
-        return write_stack_folder(self.stack, out, files=self.files, force=force, ora=ora, warn=warn)
+        """Write the stack folder ``out``, all or nothing (``lasagna.io.folder.write_stack_folder``): stack.json,
+        layers/, generators/, composite.png and (``ora``) stack.ora; returns it. With ``force`` a stack
+        folder already there is replaced."""
+        from lasagna.export.ora import encode_ora
+
+        check_output_folder(out, force=force)  # before any work
+        result = self.stack.render()
+        files = dict(self.files)
+        if ora:
+            files["stack.ora"] = encode_ora(self.stack, composite=result.image, warn=warn)
+        return write_stack_folder(self.stack, out, files=files, force=force, result=result)
 
 
 # ---- inputs ----------------------------------------------------------------------------------------
@@ -296,7 +304,7 @@ def render_learned(
     and stack.ora if the folder has one — are written back, each atomically, stack.json after the
     layers it names.
     """
-    from lasagna.io.atomic import atomic_write_bytes
+    from lasagna.atomic import atomic_write_bytes
 
     if not isinstance(stack, Stack):
         stack = load_stack(stack)
@@ -375,91 +383,4 @@ def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) 
     return run
 
 
-# ---- writing -----------------------------------------------------------------------------------------
-
-
-def check_output_folder(out: str | os.PathLike, *, force: bool = False) -> Path:
-    """Refuse an output folder that cannot be (re)written, before any work: a file, a non-empty folder
-    (unless ``force`` and it holds a stack.json: then it is replaced as a whole), an unwritable place."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise PathError("exists and is not a folder; expected a folder to write the stack into", str(out))
-    if out.is_dir() and any(out.iterdir()):
-        if not force:
-            raise PathError("is not empty; expected a new or empty folder (or --force to replace a stack folder)", str(out))
-        if not (out / "stack.json").is_file():
-            raise PathError("is not empty and holds no stack.json; --force replaces only a stack folder", str(out))
-    probe = out.parent
-    while not probe.exists():
-        probe = probe.parent
-    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
-        raise PathError(f"{probe} is not a writable folder; expected a writable location", str(out))
-    return out
-
-
-def write_stack_folder(stack: Stack, out: str | os.PathLike, *, files: dict[str, bytes] | None = None,
-                       force: bool = False, ora: bool = True, warn: Callable[[str], None] | None = None) -> Path:
-    """Write ``stack`` as the folder ``out``: stack.json, layers/, masks/, ``files`` (relative path →
-    bytes, e.g. generators/), composite.png and (``ora``) stack.ora.
-
-    Everything is written into a temporary sibling folder which is then renamed to ``out``: a failure
-    leaves no half-written stack and ``out`` as it was. With ``force`` an existing stack folder is
-    replaced (renamed aside, the new one renamed in, the old one removed).
-    """
-    from lasagna.export.ora import export_ora
-    from lasagna.io.atomic import atomic_write_bytes
-    from lasagna.io.render import write_composite
-
-    out = check_output_folder(out, force=force)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    old_folder = stack.folder
-    try:
-        save_stack(stack, tmp)
-        for rel, data in (files or {}).items():
-            atomic_write_bytes(resolve_inside(tmp, rel, rel), data)
-        result = stack.render()
-        write_composite(result, tmp / "composite.png")
-        if ora:
-            export_ora(stack, tmp / "stack.ora", composite=result.image, warn=warn)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700; a folder made by mkdir would not be
-        _swap_in(tmp, out)
-    except BaseException:
-        stack.folder = old_folder
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    stack.folder = out
-    return out
-
-
-def _swap_in(tmp: Path, out: Path) -> None:
-    """Rename ``tmp`` to ``out``; an existing ``out`` (empty, or a stack when forced) is replaced."""
-    if not out.exists():
-        os.rename(tmp, out)
-        return
-    if not any(out.iterdir()):
-        out.rmdir()
-        os.rename(tmp, out)
-        return
-    aside = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
-    aside.rmdir()
-    os.rename(out, aside)
-    try:
-        os.rename(tmp, out)
-    except BaseException:
-        os.rename(aside, out)
-        raise
-    shutil.rmtree(aside, ignore_errors=True)
-
-
-def summary(result: EditResult) -> dict[str, Any]:
-    """A JSON-able one-look summary of an edit (what the CLI prints)."""
-    s = result.settings
-    return {"layer": result.layer_id, "method": s.get("method"), "optimize": s.get("optimize"),
-            "seconds": round(result.seconds, 3), "range": [float(result.layer.min()), float(result.layer.max())]}
-
-
-__all__ = ["DEFAULT_EDIT_MAX_PIXELS", "EditResult", "check_output_folder", "edit", "input_stack", "read_image",
-           "render_learned", "write_stack_folder"]
+__all__ = ["DEFAULT_EDIT_MAX_PIXELS", "EditResult", "edit", "input_stack", "read_image", "render_learned"]

@@ -64,15 +64,15 @@ def resize(image: Tensor, size: tuple[int, int]) -> Tensor:
 
 
 def draw_patches(batch: int, image_size: tuple[int, int], patch_size: tuple[int, int], per_sample: int,
-                 generator: torch.Generator | None) -> Tensor:
+                 rng: torch.Generator | None) -> Tensor:
     """(batch·per_sample, 3) long rows (sample, top, left) of uniformly placed crops, sample-major."""
     (h, w), (ph, pw) = image_size, patch_size
     if ph > h or pw > w:
         raise LasagnaError(f"patches of {ph}x{pw} do not fit an image of {h}x{w}; expected an image at least the prior's size", "patches")
     n = batch * per_sample
     sample = torch.arange(batch).repeat_interleave(per_sample)
-    top = torch.randint(0, h - ph + 1, (n,), generator=generator)
-    left = torch.randint(0, w - pw + 1, (n,), generator=generator)
+    top = torch.randint(0, h - ph + 1, (n,), generator=rng)
+    left = torch.randint(0, w - pw + 1, (n,), generator=rng)
     return torch.stack([sample, top, left], dim=1)
 
 
@@ -153,7 +153,7 @@ class ScoreObjective:
         self.weights, self.condition_image = weights, condition_image
         self.size = prior_image_size(prior)
 
-    def __call__(self, base: Tensor, layer: Tensor, labels: str | Sequence[str], *, generator: torch.Generator | None,
+    def __call__(self, base: Tensor, layer: Tensor, labels: str | Sequence[str], *, rng: torch.Generator | None,
                  step: int, patches: Tensor | None = None, negative: str | Sequence[str] | None = None) -> ObjectiveOutput:
         """The objective at ``step`` for base (B, 3, H, W), layer (B, C, H, W) and one label per sample;
         ``patches`` (rows (sample, top, left), ``draw_patches``) selects the patch view."""
@@ -180,7 +180,7 @@ class ScoreObjective:
             self.loss.source_image = base_view.detach()  # the source is the identity edit's composite
             negative = labels if negative is None else negative
         cond = Condition(labels, image=conditioning_image(self.prior, base_view, self.condition_image), negative=negative)
-        out = self.loss(view, self.prior, cond, self.guidance, generator=generator, step=step)
+        out = self.loss(view, self.prior, cond, self.guidance, rng=rng, step=step)
         score = out.loss / out.diagnostics.grad.numel()
         w_score, w_reg = self.weights.at(step)
         total = w_score * score + w_reg * reg

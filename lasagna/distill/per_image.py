@@ -32,7 +32,7 @@ identity value) and a given generator is copied (the caller's is not modified), 
 seed give the same result.
 
 **Checkpoints** (``checkpoint_dir``): every ``checkpoint_every`` steps one atomic safetensors file
-(the layer or generator, Adam's state, the generator's RNG state; ``lasagna.training``'s format) and
+(the layer or generator, Adam's state, the run's ``rng`` state; ``lasagna.io.checkpoint``'s format) and
 ``history.json`` (written first); ``train_config.json`` records the settings and a hash of the image
 and condition, and a folder holding another run is refused. Run again with the same folder after a
 kill and the run continues where it was checkpointed, reproducing the uninterrupted run — except
@@ -60,10 +60,9 @@ from lasagna.errors import LasagnaError
 from lasagna.generators.free import FreeLayer, FreeLayerConfig
 from lasagna.generators.layer import composite
 from lasagna.generators.unet import LayerGenerator
-from lasagna.io.atomic import atomic_write_text
+from lasagna.atomic import atomic_write_text
 from lasagna.priors.base import Prior
-from lasagna.priors.io import load_tensors, save_tensors
-from lasagna.training import CHECKPOINT, check_same_run, load_checkpoint, save_checkpoint
+from lasagna.io.checkpoint import CHECKPOINT, check_same_run, load_checkpoint, load_tensors, save_checkpoint, save_tensors
 
 CHECKPOINT_FORMAT = "lasagna.distill_checkpoint"
 HISTORY_FILE = "history.json"
@@ -165,7 +164,7 @@ def distill_image(
     whole_steps = round(settings.patches.whole_fraction * settings.steps) if patchable else settings.steps
     model_in = labels if isinstance(model, LayerGenerator) else None
     opt = torch.optim.Adam(model.parameters(), lr=settings.lr)
-    gen = torch.Generator().manual_seed(settings.seed)
+    rng = torch.Generator().manual_seed(settings.seed)
 
     step, history, stopped = 0, [], None
     prev_layer: Tensor | None = None  # the layer of the previous step, for layer_change
@@ -177,7 +176,7 @@ def distill_image(
         ckpt_dir.mkdir(parents=True, exist_ok=True)
         check_same_run(ckpt_dir, record)
         if (ckpt_dir / CHECKPOINT).is_file():
-            step = load_checkpoint(ckpt_dir / CHECKPOINT, CHECKPOINT_FORMAT, model, None, opt, gen, base.device)
+            step = load_checkpoint(ckpt_dir / CHECKPOINT, CHECKPOINT_FORMAT, model, None, opt, rng, base.device)
             history, stopped = _read_history(ckpt_dir, step)
             prev_layer, prev_lr = _read_previous(ckpt_dir, history)
 
@@ -190,8 +189,8 @@ def distill_image(
         for group in opt.param_groups:
             group["lr"] = lr_k
         layer = model(base, model_in)
-        rows = draw_patches(b, (h, w), size, settings.patches.per_step, gen) if phase == "patch" else None
-        out = objective(base, layer, labels, generator=gen, step=step, patches=rows, negative=neg)
+        rows = draw_patches(b, (h, w), size, settings.patches.per_step, rng) if phase == "patch" else None
+        out = objective(base, layer, labels, rng=rng, step=step, patches=rows, negative=neg)
         opt.zero_grad(set_to_none=True)
         out.total.backward()
         if settings.grad_clip is not None:
@@ -214,7 +213,7 @@ def distill_image(
             stopped = "converged"
         if ckpt_dir is not None and (step % settings.checkpoint_every == 0 or stopped or step == settings.steps):
             _write_history(ckpt_dir, history, stopped, prev_layer)
-            save_checkpoint(ckpt_dir / CHECKPOINT, CHECKPOINT_FORMAT, step, record, model, None, opt, gen)
+            save_checkpoint(ckpt_dir / CHECKPOINT, CHECKPOINT_FORMAT, step, record, model, None, opt, rng)
     bar.close()
 
     model.eval()

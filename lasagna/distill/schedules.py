@@ -9,11 +9,17 @@ regularization w.r.t. the original image from 1.0 to 0.1" — ``Ramp`` is one su
 """
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from lasagna.training import cosine_interp  # the one half-cosine, shared with the training loop's lr schedule
+
+def cosine_interp(start: float, end: float, frac: float) -> float:
+    """start at frac ≤ 0, end at frac ≥ 1, along half a cosine (slow at both ends); the one half-cosine,
+    shared by these ramps and the training loop's lr schedule."""
+    f = min(max(frac, 0.0), 1.0)
+    return end + (start - end) * 0.5 * (1.0 + math.cos(math.pi * f))
 
 
 class Ramp(BaseModel):

@@ -29,9 +29,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from lasagna.distill.objective import ConditionImage
 from lasagna.distill.schedules import Ramp, Weights
 from lasagna.document.preset import LossName
-from lasagna.errors import LasagnaError
+from lasagna.errors import describe_validation_error
 from lasagna.generators.layer import LayerSpec
-from lasagna.priors.io import describe_validation_error
 
 
 class PatchConfig(BaseModel):
@@ -109,4 +108,4 @@ class DistillSettings(BaseModel):
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
-            raise LasagnaError(*describe_validation_error(exc, where)) from None
+            raise describe_validation_error(exc, prefix=where) from None

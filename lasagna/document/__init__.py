@@ -4,12 +4,12 @@ presets, blend names, JSON load/save and JSON Schema generation. No torch here (
 from lasagna.document.blend import (
     ACCEPTED_BLEND_NAMES, BLEND_ALIASES, BLEND_MODES, RANGED_BLENDS, BlendMode, canonical_blend,
 )
-from lasagna.document.io import STACK_FILE, load_document, save_document, stack_file
+from lasagna.document.files import STACK_FILE, load_document, save_document, stack_file
 from lasagna.document.models import (
     FORMAT, LAYER_KINDS, VERSION, Canvas, Condition, Document, GeneratorRef, Layer, LearnedLayer, Offset,
     PixelsLayer, Size, SolidLayer,
 )
-from lasagna.document.preset import DistillDefaults, LossName, Preset, default_catalogues, load_preset, resolve_preset
+from lasagna.document.preset import LOSS_NAMES, DistillDefaults, LossName, Preset, default_catalogues, load_preset, resolve_preset
 from lasagna.document.schema import SCHEMA_BASE, schemas, write_schemas
 from lasagna.document.types import check_id, check_relative_path
 from lasagna.document.validation import RuleError, format_validation_error, parse_json
@@ -19,7 +19,7 @@ __all__ = [
     "STACK_FILE", "load_document", "save_document", "stack_file",
     "FORMAT", "LAYER_KINDS", "VERSION", "Canvas", "Condition", "Document", "GeneratorRef", "Layer",
     "LearnedLayer", "Offset", "PixelsLayer", "Size", "SolidLayer",
-    "DistillDefaults", "LossName", "Preset", "default_catalogues", "load_preset", "resolve_preset",
+    "LOSS_NAMES", "DistillDefaults", "LossName", "Preset", "default_catalogues", "load_preset", "resolve_preset",
     "SCHEMA_BASE", "schemas", "write_schemas",
     "check_id", "check_relative_path",
     "RuleError", "format_validation_error", "parse_json",

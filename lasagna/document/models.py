@@ -237,15 +237,6 @@ class Document(StrictModel):
         """The document as plain JSON data: every field, canonical blend names."""
         return self.model_dump(mode="json")
 
-    def save(self, path: "str | os.PathLike") -> "pathlib.Path":
-        """Write this document to ``path`` (a stack folder or its stack.json), atomically.
-
-        Only the JSON document; ``lasagna.save`` writes a stack with its layer PNGs.
-        """
-        from lasagna.document.io import save_document
-
-        return save_document(self, path)
-
     def to_json(self) -> str:
         """The stack.json text: full, stable, 2-space indent, trailing newline (see the module doc)."""
         return dumps(self.to_dict()) + "\n"

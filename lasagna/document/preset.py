@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import string
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -24,7 +24,10 @@ from lasagna.document.types import (
 )
 from lasagna.document.validation import RuleError, document_error, parse_json
 
+# The score-distillation losses a preset (and ``lasagna edit --loss``) may name: declared here, in the
+# tier every other reads; ``lasagna.losses`` registers one implementation under each name.
 LossName = Literal["sds", "lmc-sds", "dds", "nfsd", "ms-sds"]
+LOSS_NAMES: tuple[str, ...] = get_args(LossName)
 
 
 class DistillDefaults(StrictModel):

@@ -49,7 +49,7 @@ def schema_text(schema: dict[str, Any]) -> str:
 
 def write_schemas(out_dir: str | os.PathLike) -> list[Path]:
     """Write every schema into ``out_dir`` atomically; return the files written."""
-    from lasagna.io.atomic import atomic_write_text  # the I/O tier, imported only when writing
+    from lasagna.atomic import atomic_write_text  # the I/O tier, imported only when writing
 
     written = []
     for file, schema in schemas().items():

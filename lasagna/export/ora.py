@@ -34,7 +34,7 @@ from PIL import Image
 
 from lasagna.errors import ExportError, ImageError
 from lasagna.export.rasters import ExportLayer, export_layers
-from lasagna.io.atomic import atomic_write_bytes
+from lasagna.atomic import atomic_write_bytes
 from lasagna.io.png import DEFAULT_MAX_PIXELS, decode_png, encode_png, check_size, parse_header
 
 MIMETYPE = b"image/openraster"

@@ -17,7 +17,7 @@ import numpy as np
 
 from lasagna.document import LearnedLayer, SolidLayer
 from lasagna.errors import ExportError
-from lasagna.io.atomic import atomic_write_bytes, atomic_write_text
+from lasagna.atomic import atomic_write_bytes, atomic_write_text
 from lasagna.io.png import encode_png
 from lasagna.io.stack import NOT_RENDERED, encode_layer
 

@@ -22,12 +22,13 @@ from PIL import Image
 from lasagna.errors import ExportError
 from lasagna.export.ora import composite_uint8
 from lasagna.export.rasters import export_layers
-from lasagna.io.atomic import atomic_write_bytes
+from lasagna.atomic import atomic_write_bytes
 
 INSTALL_HINT = "pip install 'lasagna[psd]'"
 
 
-def _psd_tools():
+def require_psd_tools():
+    """(PSDImage, BlendMode) of psd-tools; an ``ExportError`` saying how to install it when it is missing."""
     try:
         from psd_tools import PSDImage
         from psd_tools.constants import BlendMode
@@ -57,7 +58,7 @@ def _set_merged_image(psd, merged) -> None:
 
 def encode_psd(stack, *, composite: torch.Tensor | None = None, warn: Callable[[str], None] | None = None) -> bytes:
     """The layered 8-bit RGB PSD of ``stack`` as bytes (``composite``: the merged image, rendered if None)."""
-    PSDImage, BlendMode = _psd_tools()
+    PSDImage, BlendMode = require_psd_tools()
     modes = {"normal": BlendMode.NORMAL, "multiply": BlendMode.MULTIPLY, "plus": BlendMode.LINEAR_DODGE,
              "screen": BlendMode.SCREEN, "color-dodge": BlendMode.COLOR_DODGE}
     if composite is None:

@@ -18,7 +18,7 @@ from torch import Tensor, nn
 
 from lasagna.errors import LasagnaError
 from lasagna.generators.layer import LayerSpec, activate, inverse
-from lasagna.priors import io
+from lasagna.io.checkpoint import Pretrained
 
 FORMAT = "lasagna.free_layer"
 
@@ -34,7 +34,7 @@ class FreeLayerConfig(BaseModel):
     width: int = Field(ge=1)
 
 
-class FreeLayer(io.Pretrained, nn.Module):
+class FreeLayer(Pretrained, nn.Module):
     """B per-pixel layers (B, C, H, W) as one parameter tensor (see the module docstring)."""
 
     FORMAT = FORMAT

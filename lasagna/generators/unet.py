@@ -35,7 +35,7 @@ from torch import Tensor, nn
 
 from lasagna.errors import ConditionError, LasagnaError
 from lasagna.generators.layer import LayerSpec, activate
-from lasagna.priors import io
+from lasagna.io.checkpoint import Pretrained
 from lasagna.priors.nn import frequency_encoding
 
 FORMAT = "lasagna.layer_generator"
@@ -86,7 +86,7 @@ def _convs(in_ch: int, out_ch: int, blocks: int) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-class LayerGenerator(io.Pretrained, nn.Module):
+class LayerGenerator(Pretrained, nn.Module):
     """G(x, label) → edit layer (B, C, H, W) in the layer's range (see the module docstring)."""
 
     FORMAT = FORMAT

@@ -5,7 +5,7 @@
     stack.py    Stack, load_stack, save_stack, stack_from_tensors
     render.py   render_stack, write_composite
 
-Names are imported lazily: the document tier writes through ``lasagna.io.atomic`` and must not pull
+Names are imported lazily: the document tier writes through ``lasagna.atomic`` and must not pull
 in torch (which ``stack`` and ``render`` need) by importing this package.
 """
 from __future__ import annotations

@@ -26,7 +26,7 @@ import png as pypng
 from PIL import Image
 
 from lasagna.errors import ImageError
-from lasagna.io.atomic import atomic_write_bytes
+from lasagna.atomic import atomic_write_bytes
 
 # Pixels beyond which a PNG is refused before decoding. 2^28 (16384²) float32 RGBA pixels are 4 GiB:
 # anything larger is not a layer a CPU session can composite, and is what decompression bombs claim.

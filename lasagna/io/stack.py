@@ -28,7 +28,7 @@ from lasagna.errors import DocumentError, ImageError, LasagnaError, PathError
 from lasagna.io.png import (
     DEFAULT_MAX_PIXELS, PngImage, check_size, encode_png, read_png, read_png_header,
 )
-from lasagna.io.atomic import atomic_write_bytes
+from lasagna.atomic import atomic_write_bytes
 from lasagna.numerics import RANGE_SAVE_TOLERANCE
 
 # The document's largest canvas side; a layer PNG may not be larger either.

@@ -1,6 +1,6 @@
 """The ``ScoreLoss`` interface and its registry: every distillation loss is called the same way.
 
-    out = loss(image, prior, cond, guidance, generator=g, step=i)
+    out = loss(image, prior, cond, guidance, rng=g, step=i)
     out.loss.backward()            # d(out.loss)/d(image) = Jᵀ_encode · the method's gradient
     out.diagnostics.grad_norm      # what to watch: the surrogate's value is ½‖g‖², not a quality
 
@@ -10,7 +10,7 @@ its own timestep, noise and label (a batch may mix conditions). The loss encodes
 gradient g in the prior's space with the prior in inference mode (nothing reaches the prior's
 parameters), applies w(t) and the optional 1/ω scale, and injects g with ``core.inject``.
 
-A subclass implements one method, ``terms(z, t, prior, cond, omega, generator)``, returning the
+A subclass implements one method, ``terms(z, t, prior, cond, omega, rng)``, returning the
 method's named terms (unweighted) and the noise it drew; the gradient is their sum, times w(t),
 times 1/ω when ``scale="inv_guidance"``. Subclasses register under a name:
 
@@ -87,7 +87,7 @@ class ScoreLoss(abc.ABC):
 
     @abc.abstractmethod
     def terms(
-        self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, generator: torch.Generator | None
+        self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None
     ) -> Terms:
         """The method's named gradient terms for the detached clean z (B, C, h, w) at timesteps t (B,)."""
 
@@ -98,15 +98,15 @@ class ScoreLoss(abc.ABC):
         cond: Condition,
         guidance: float,
         *,
-        generator: torch.Generator | None,
+        rng: torch.Generator | None,
         step: int | None = None,
     ) -> LossOutput:
         omega = self._check_guidance(guidance)
         z = self._encode(image, prior)
         b = z.shape[0]
         cond.label_list(b)  # a wrong number of labels fails here, naming the field
-        t = self.sampler.sample(b, prior.schedule, generator, device=z.device, step=step)
-        terms = self.terms(z.detach(), t, prior, cond, omega, generator)
+        t = self.sampler.sample(b, prior.schedule, rng, device=z.device, step=step)
+        terms = self.terms(z.detach(), t, prior, cond, omega, rng)
         factor = weight(prior.schedule, t, self.options.weighting, z.dtype)
         if self.options.scale == "inv_guidance":
             factor = factor / omega

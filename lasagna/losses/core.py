@@ -78,14 +78,14 @@ class TimestepSampler:
         self,
         batch: int,
         schedule: NoiseSchedule,
-        generator: torch.Generator | None,
+        rng: torch.Generator | None,
         device: torch.device | str = "cpu",
         step: int | None = None,
     ) -> torch.Tensor:
         """(batch,) long timesteps in [round(t_min·(T−1)), round(t_max·(T−1))]."""
         lo, hi = self.options.t_min, self.t_max_at(step)
-        gen_device = generator.device if generator is not None else torch.device(device)
-        u = lo + (hi - lo) * torch.rand((batch,), generator=generator, device=gen_device, dtype=torch.float64)
+        rng_device = rng.device if rng is not None else torch.device(device)
+        u = lo + (hi - lo) * torch.rand((batch,), generator=rng, device=rng_device, dtype=torch.float64)
         return schedule.continuous_to_index(u).to(device)
 
 

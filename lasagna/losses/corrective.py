@@ -51,7 +51,7 @@ from torch import nn
 
 from lasagna.errors import ConditionError
 from lasagna.numerics import STD_EPS, reduction_dtype
-from lasagna.priors import io
+from lasagna.io.checkpoint import Pretrained
 from lasagna.priors.nn import frequency_encoding
 
 FORMAT = "lasagna.corrective"
@@ -157,7 +157,7 @@ def _conv_block(in_ch: int, out_ch: int) -> nn.Sequential:
     return nn.Sequential(nn.Conv2d(in_ch, out_ch, 3, padding=1), nn.ReLU(), nn.Conv2d(out_ch, out_ch, 3, padding=1), nn.ReLU())
 
 
-class Corrective(io.Pretrained, nn.Module):
+class Corrective(Pretrained, nn.Module):
     """b̂_ψ(z, t[, image, label]) = z + scale·tanh(UNet(…)) (see the module docstring)."""
 
     FORMAT = FORMAT

@@ -55,14 +55,14 @@ class DDS(ScoreLoss):
             raise ConditionError(f"source image encodes to {tuple(s.shape[1:])}; expected the composite's {tuple(z.shape[1:])}", "dds.source_image")
         return s.expand_as(z)
 
-    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, generator: torch.Generator | None) -> Terms:
+    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None) -> Terms:
         if cond.negative is None:
             raise ConditionError(
                 "DDS needs the source condition ŷ in condition.negative (the label describing the source image); got None",
                 "dds.condition.negative",
             )
         src = self._source(z, prior, cond)
-        eps = randn(tuple(z.shape), generator, z.device, z.dtype)
+        eps = randn(tuple(z.shape), rng, z.device, z.dtype)
         z_t = prior.schedule.add_noise(z, eps, t)
         s_t = prior.schedule.add_noise(src, eps, t)
         # The source condition travels as the "negative" branch; the unconditional branches are shared.

@@ -30,7 +30,7 @@ Interpretations (the paper leaves these implicit; each is a choice documented he
    without normalisation E[L_lmc] = 0 exactly for that b̂ (tests/losses/test_lmc_sds.py).
 4. **Fixed ε only in L_cond** ("Increasing sample diversity"): with ``fixed_eps=True`` the ε of
    L_cond is drawn once per loss instance (per batch shape) — from ``fixed_eps_seed`` if given,
-   else from the first call's generator — and reused at every step; the ε of L_lmc is drawn anew
+   else from the first call's rng — and reused at every step; the ε of L_lmc is drawn anew
    each step. Then L_cond and L_lmc see different noisy images z_t^c ≠ z_t^l, and the three
    denoiser evaluations (cond and uncond at z_t^c, uncond at z_t^l) still run in ONE batched pass.
    Without it both terms share one ε and one pass of two branches.
@@ -127,23 +127,23 @@ class LMCSDS(ScoreLoss):
         """Forget the fixed ε of L_cond; the next call draws a new one."""
         self._fixed.clear()
 
-    def fixed_noise(self, shape: tuple[int, ...], generator: torch.Generator | None, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    def fixed_noise(self, shape: tuple[int, ...], rng: torch.Generator | None, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
         """The ε of L_cond reused at every step (drawn once per shape, device and dtype)."""
         key = (shape, str(device), dtype)
         if key not in self._fixed:
             seed = self.options.fixed_eps_seed
-            gen = generator if seed is None else torch.Generator(device="cpu").manual_seed(seed)
-            self._fixed[key] = randn(shape, gen, device, dtype)
+            noise_rng = rng if seed is None else torch.Generator(device="cpu").manual_seed(seed)
+            self._fixed[key] = randn(shape, noise_rng, device, dtype)
         return self._fixed[key]
 
-    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, generator: torch.Generator | None) -> Terms:
+    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None) -> Terms:
         sched, shape = prior.schedule, tuple(z.shape)
         # 1. L_lmc's ε is fresh every step.
-        eps_l = randn(shape, generator, z.device, z.dtype)
+        eps_l = randn(shape, rng, z.device, z.dtype)
         z_t_l = sched.add_noise(z, eps_l, t)
         # 2. One batched prior pass: cond + uncond at z_t^c (L_cond), uncond at z_t^l (ẑ_t for L_lmc).
         if self.options.fixed_eps:
-            eps_c = self.fixed_noise(shape, generator, z.device, z.dtype)
+            eps_c = self.fixed_noise(shape, rng, z.device, z.dtype)
             z_t_c = sched.add_noise(z, eps_c, t)
             e_c, e_u, e_u_l = prior.predict_many([(z_t_c, "cond"), (z_t_c, "uncond"), (z_t_l, "uncond")], t, cond)
         else:

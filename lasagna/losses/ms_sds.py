@@ -58,8 +58,8 @@ class MSSDS(ScoreLoss):
 
     Options = MSSDSOptions
 
-    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, generator: torch.Generator | None) -> Terms:
-        eps = randn(tuple(z.shape), generator, z.device, z.dtype)
+    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None) -> Terms:
+        eps = randn(tuple(z.shape), rng, z.device, z.dtype)
         z_t = prior.schedule.add_noise(z, eps, t)
         x0 = ddim_x0(prior, z_t, t, cond, omega, self.options.steps)
         g = z - x0

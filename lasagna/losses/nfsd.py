@@ -49,14 +49,14 @@ class NFSD(ScoreLoss):
 
     Options = NFSDOptions
 
-    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, generator: torch.Generator | None) -> Terms:
+    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None) -> Terms:
         if cond.negative is None:
             if self.options.negative_label is None:
                 raise ConditionError(
                     "NFSD needs a negative condition: set condition.negative or NFSDOptions.negative_label", "nfsd.negative"
                 )
             cond = dataclasses.replace(cond, negative=self.options.negative_label)
-        eps = randn(tuple(z.shape), generator, z.device, z.dtype)
+        eps = randn(tuple(z.shape), rng, z.device, z.dtype)
         z_t = prior.schedule.add_noise(z, eps, t)
         e_c, e_u, e_n = (e.to(z.dtype) for e in prior.predict_many([(z_t, "cond"), (z_t, "uncond"), (z_t, "negative")], t, cond))
         small = expand(t < self.options.small_t_fraction * prior.schedule.num_steps, z)  # (B, 1, 1, 1) bool

@@ -34,8 +34,8 @@ class SDS(ScoreLoss):
 
     Options = SDSOptions
 
-    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, generator: torch.Generator | None) -> Terms:
-        eps = randn(tuple(z.shape), generator, z.device, z.dtype)
+    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None) -> Terms:
+        eps = randn(tuple(z.shape), rng, z.device, z.dtype)
         z_t = prior.schedule.add_noise(z, eps, t)
         e_c, e_u = (e.to(z.dtype) for e in prior.predict_many([(z_t, "cond"), (z_t, "uncond")], t, cond))
         return Terms(components={"cond": omega * (e_c - e_u), "proj": e_u - eps}, noise={"eps": eps})

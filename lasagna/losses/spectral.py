@@ -19,7 +19,7 @@ manifold pull too — an exact b̂ makes E[L_lmc] vanish everywhere, on the mani
 b̂ = z) made LMC-SDS *worse* than SDS at every ω; a linear filter cannot hallucinate shading, so
 what it removes is the frequency bias only (docs/BENCHMARKS.md#learned-layers).
 
-Stored like the other networks (``io.Pretrained``): config.json (format ``lasagna.spectral_corrective``)
+Stored like the other networks (``lasagna.io.checkpoint.Pretrained``): config.json (format ``lasagna.spectral_corrective``)
 and model.safetensors with the gains' real and imaginary parts (safetensors has no complex dtype).
 """
 from __future__ import annotations
@@ -31,7 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
 from lasagna.numerics import SPECTRAL_POWER_FLOOR
-from lasagna.priors import io
+from lasagna.io.checkpoint import Pretrained
 
 FORMAT = "lasagna.spectral_corrective"
 
@@ -49,7 +49,7 @@ class SpectralCorrectiveConfig(BaseModel):
     fit_images: int = Field(0, ge=0, description="clean images per bucket the gains were fitted on (a record)")
 
 
-class SpectralCorrective(io.Pretrained, nn.Module):
+class SpectralCorrective(Pretrained, nn.Module):
     """b̂(z, t) = irfft2(H[bucket(t)] · rfft2(z)) — see the module docstring. Any z of the fitted size."""
 
     FORMAT = FORMAT

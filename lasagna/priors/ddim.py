@@ -81,7 +81,7 @@ def ddim_sample(
     steps: int = 50,
     omega: float = 1.0,
     eta: float = 0.0,
-    generator: torch.Generator | None = None,
+    rng: torch.Generator | None = None,
     batch: int | None = None,
     clip_x0: bool = False,
     decode: bool = True,
@@ -92,7 +92,7 @@ def ddim_sample(
 
     ``batch`` defaults to the batch of ``z_T`` or of the condition (its image, or its list of
     labels), else 1.
-    ``z_T`` overrides the initial noise (B, C, h, w); otherwise it is drawn from ``generator``,
+    ``z_T`` overrides the initial noise (B, C, h, w); otherwise it is drawn from ``rng``,
     as is the step noise when ``eta > 0`` — the same seed gives the same samples.
     ``clip_x0`` clamps x̂₀ to [−1, 1] and recomputes ε̂ from it, as DDPM/DDIM reference code does for
     pixel-space models: the data lie in [−1, 1], and an x̂₀ outside it (large at high t for an
@@ -111,7 +111,7 @@ def ddim_sample(
             raise ValueError(f"ddim: z_T has shape {tuple(z_T.shape)}; expected {shape}")
         z = z_T.to(device=dev, dtype=dtype)
     else:
-        z = randn(shape, generator, dev, dtype)
+        z = randn(shape, rng, dev, dtype)
     abar = sched.alphas_cumprod  # float64 (T,)
 
     for i, t in enumerate(ts):
@@ -127,7 +127,7 @@ def ddim_sample(
         sigma = eta * math.sqrt((1.0 - a_s) / (1.0 - a_t)) * math.sqrt(max(0.0, 1.0 - a_t / a_s))
         z = math.sqrt(a_s) * x0 + math.sqrt(max(0.0, 1.0 - a_s - sigma**2)) * eps
         if sigma > 0:
-            z = z + sigma * randn(shape, generator, dev, dtype)
+            z = z + sigma * randn(shape, rng, dev, dtype)
 
     image = prior.decode(z).clamp(0.0, 1.0) if decode else None
     return DDIMResult(z=z, image=image)

@@ -6,7 +6,7 @@ lighting") and optionally an ``AutoencoderKL`` (then the denoiser works on VAE l
 
 * ``encode(x)``: x ∈ [0, 1] → the VAE encoder's posterior, WITH gradient (the distillation gradient
   flows through the encoder into the composite), ``latent="mean"`` (deterministic) or ``"sample"``
-  (mean + std·ξ, ξ from ``latent_generator``), then (z − shift) × scaling_factor as diffusers
+  (mean + std·ξ, ξ from ``latent_rng``), then (z − shift) × scaling_factor as diffusers
   pipelines do. Without a VAE the UNet works on pixels and ``encode`` is 2x − 1.
 * ``decode(z)``: the VAE decoder, back to [0, 1] (not clamped).
 * prompts: every vocabulary label is written into ``prompt_template`` and encoded ONCE by the text
@@ -97,7 +97,7 @@ class DiffusersPrior(Prior):
         vae: nn.Module | None = None,
         latent: Literal["sample", "mean"] = "mean",
         conditioning_scale: float = 1.0,
-        latent_generator: torch.Generator | None = None,
+        latent_rng: torch.Generator | None = None,
     ):
         super().__init__()
         if latent not in ("sample", "mean"):
@@ -112,7 +112,7 @@ class DiffusersPrior(Prior):
         self.prompts = tuple(prompt_template.format(label=lab) for lab in self.vocabulary) + ("",)
         self.latent = latent
         self.conditioning_scale = conditioning_scale
-        self.latent_generator = latent_generator
+        self.latent_rng = latent_rng
         size = cfg.sample_size if isinstance(cfg.sample_size, int) else cfg.sample_size[0]
         self.sample_shape = (cfg.in_channels, size, size)
         self.vae_scale_factor = 2 ** (len(vae.config.block_out_channels) - 1) if vae is not None else 1
@@ -148,7 +148,7 @@ class DiffusersPrior(Prior):
         dist = vae.encode((x * 2 - 1).to(vae.dtype)).latent_dist
         z = dist.mean
         if self.latent == "sample":
-            z = z + dist.std * randn(tuple(z.shape), self.latent_generator, z.device, z.dtype)
+            z = z + dist.std * randn(tuple(z.shape), self.latent_rng, z.device, z.dtype)
         shift = getattr(vae.config, "shift_factor", None) or 0.0
         return ((z - shift) * vae.config.scaling_factor).to(x.dtype)
 

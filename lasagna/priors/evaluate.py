@@ -32,12 +32,12 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def denoising_error(prior: Prior, images: torch.Tensor, labels: Sequence[str], cond_image: torch.Tensor | None,
                     t_values: Sequence[float] = (0.02, 0.1, 0.25, 0.5, 0.75, 0.9, 0.98), seed: int = 0) -> dict[float, float]:
     """MSE of the conditional x̂₀ (in [0, 1] units) per continuous t, averaged over ``images``."""
-    gen = torch.Generator().manual_seed(seed)
+    rng = torch.Generator().manual_seed(seed)
     z = prior.encode(images)
     out = {}
     for u in t_values:
         t = prior.schedule.continuous_to_index(torch.full((z.shape[0],), float(u)))
-        z_t = prior.schedule.add_noise(z, randn(tuple(z.shape), gen, z.device, z.dtype), t)
+        z_t = prior.schedule.add_noise(z, randn(tuple(z.shape), rng, z.device, z.dtype), t)
         eps = prior.predict(z_t, t, Condition(list(labels), image=cond_image), branches=("cond",)).eps["cond"]
         x0 = prior.decode(prior.schedule.x0_from_eps(z_t, eps, t))
         out[float(u)] = float((x0 - images).pow(2).mean())
@@ -54,10 +54,10 @@ def sample_quality(prior: Prior, images: torch.Tensor, labels: Sequence[str], co
         scores: dict[str, list[float]] = defaultdict(list)
         for i in range(0, images.shape[0], chunk):
             sl = slice(i, i + chunk)
-            gen = torch.Generator().manual_seed(seed + i)
+            rng = torch.Generator().manual_seed(seed + i)
             img = None if cond_image is None else cond_image[sl]
             labs = list(labels[sl])
-            res = ddim_sample(prior, Condition(labs, image=img), steps=steps, omega=omega, generator=gen, batch=len(labs))
+            res = ddim_sample(prior, Condition(labs, image=img), steps=steps, omega=omega, rng=rng, batch=len(labs))
             for lab, p in zip(labs, psnr(res.image.clamp(0, 1), images[sl]).tolist()):
                 scores[lab].append(p)
         per = {lab: sum(v) / len(v) for lab, v in sorted(scores.items())}

@@ -132,10 +132,10 @@ class _Mixture:
             out = out @ basis[0].T
         return mu[0] + out
 
-    def sample(self, n: int, generator: torch.Generator | None) -> torch.Tensor:
+    def sample(self, n: int, rng: torch.Generator | None) -> torch.Tensor:
         """n draws (n, D) float64 on the CPU."""
-        k = torch.multinomial(self.log_w.exp(), n, replacement=True, generator=generator)
-        xi = torch.randn((n, self.mu.shape[1]), generator=generator, dtype=torch.float64)
+        k = torch.multinomial(self.log_w.exp(), n, replacement=True, generator=rng)
+        xi = torch.randn((n, self.mu.shape[1]), generator=rng, dtype=torch.float64)
         xi = xi * self.lam[k].clamp_min(0).sqrt()
         if self.basis is not None:
             xi = torch.einsum("nde,ne->nd", self.basis[k], xi)  # U ξ
@@ -262,10 +262,10 @@ class GaussianMixturePrior(Prior):
 
         return self._per_label(z, t, label_idx, fn)[0]
 
-    def sample(self, n: int, label: str | None = None, generator: torch.Generator | None = None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    def sample(self, n: int, label: str | None = None, rng: torch.Generator | None = None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """n data samples (n, C, H, W) of ``label`` (None or "" = the unconditional branch), on the CPU."""
         idx = len(self.vocabulary) if not label else int(self.label_index([label])[0])
-        return self.mixture(idx).sample(n, generator).reshape(n, *self.sample_shape).to(dtype)
+        return self.mixture(idx).sample(n, rng).reshape(n, *self.sample_shape).to(dtype)
 
     def mean(self, label: str | None = None) -> torch.Tensor:
         """The data mean (C, H, W) float64 of a label (None = unconditional)."""
@@ -310,14 +310,14 @@ class GaussianPrior(GaussianMixturePrior):
         """A reproducible example: means in [−0.5, 0.5], variances in [0.01, 0.1] (full covariances
         with random eigenvectors when ``full``); ``unconditional`` adds an explicit unconditional
         Gaussian whose variances exceed every label's (so guided SDS has a stable fixed point)."""
-        g = torch.Generator().manual_seed(seed)
+        rng = torch.Generator().manual_seed(seed)
         d = math.prod(sample_shape)
         means, covs = {}, {}
         for lab in vocabulary:
-            means[lab] = torch.rand(d, generator=g, dtype=torch.float64) - 0.5
-            var = 0.01 + 0.09 * torch.rand(d, generator=g, dtype=torch.float64)
+            means[lab] = torch.rand(d, generator=rng, dtype=torch.float64) - 0.5
+            var = 0.01 + 0.09 * torch.rand(d, generator=rng, dtype=torch.float64)
             if full:
-                q, _ = torch.linalg.qr(torch.randn(d, d, generator=g, dtype=torch.float64))
+                q, _ = torch.linalg.qr(torch.randn(d, d, generator=rng, dtype=torch.float64))
                 covs[lab] = q @ torch.diag(var) @ q.T
                 covs[lab] = (covs[lab] + covs[lab].T) / 2
             else:

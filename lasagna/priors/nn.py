@@ -54,10 +54,10 @@ def group_norm(channels: int, groups: int) -> nn.GroupNorm:
     return nn.GroupNorm(groups, channels)
 
 
-def randn(shape: tuple[int, ...], generator: torch.Generator | None, device, dtype: torch.dtype) -> torch.Tensor:
-    """N(0, I) noise drawn on the generator's device (so a CPU generator seeds GPU runs too)."""
-    gen_device = generator.device if generator is not None else device
-    return torch.randn(shape, generator=generator, device=gen_device, dtype=dtype).to(device)
+def randn(shape: tuple[int, ...], rng: torch.Generator | None, device, dtype: torch.dtype) -> torch.Tensor:
+    """N(0, I) noise drawn on the rng's device (so a CPU rng seeds GPU runs too)."""
+    rng_device = rng.device if rng is not None else device
+    return torch.randn(shape, generator=rng, device=rng_device, dtype=dtype).to(device)
 
 
 class ResBlock(nn.Module):

@@ -27,7 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from torch import nn
 
 from lasagna.errors import ConditionError
-from lasagna.priors import io
+from lasagna.io.checkpoint import Pretrained
 from lasagna.priors.base import NoiseSchedule, Prior
 from lasagna.priors.nn import Downsample, ResBlock, SelfAttention, Upsample, group_norm, randn, timestep_embedding
 
@@ -137,7 +137,7 @@ class _Net(nn.Module):
         return self.out(F.silu(self.out_norm(h)))
 
 
-class UNetPrior(io.Pretrained, Prior):
+class UNetPrior(Pretrained, Prior):
     """A conditional pixel-space diffusion prior (see the module docstring)."""
 
     FORMAT = FORMAT
@@ -190,7 +190,7 @@ class UNetPrior(io.Pretrained, Prior):
         x0: torch.Tensor,
         labels_idx: torch.Tensor,
         image: torch.Tensor | None,
-        generator: torch.Generator | None = None,
+        rng: torch.Generator | None = None,
         p_uncond: float = 0.15,
     ) -> torch.Tensor:
         """The simple diffusion objective (Ho et al. 2020, eq. 14) for this prior's prediction type.
@@ -204,9 +204,9 @@ class UNetPrior(io.Pretrained, Prior):
         if not 0.0 <= p_uncond <= 1.0:
             raise ValueError(f"p_uncond must be in [0, 1], got {p_uncond}")
         b, dev = x0.shape[0], x0.device
-        t = torch.randint(0, self.schedule.num_steps, (b,), generator=generator, device=_gen_device(generator, dev)).to(dev)
-        eps = randn(tuple(x0.shape), generator, dev, x0.dtype)
-        drop = torch.rand((b,), generator=generator, device=_gen_device(generator, dev)).to(dev) < p_uncond
+        t = torch.randint(0, self.schedule.num_steps, (b,), generator=rng, device=_rng_device(rng, dev)).to(dev)
+        eps = randn(tuple(x0.shape), rng, dev, x0.dtype)
+        drop = torch.rand((b,), generator=rng, device=_rng_device(rng, dev)).to(dev) < p_uncond
         labels = torch.where(drop, torch.full_like(labels_idx.to(dev), len(self.vocabulary)), labels_idx.to(dev))
         z_t = self.schedule.add_noise(x0, eps, t)
         if self.config.prediction == "v":
@@ -219,5 +219,5 @@ class UNetPrior(io.Pretrained, Prior):
 
 
 
-def _gen_device(generator: torch.Generator | None, fallback: torch.device) -> torch.device:
-    return generator.device if generator is not None else fallback
+def _rng_device(rng: torch.Generator | None, fallback: torch.device) -> torch.device:
+    return rng.device if rng is not None else fallback

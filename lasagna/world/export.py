@@ -34,7 +34,7 @@ from typing import Any, Literal
 import torch
 
 from lasagna.errors import LasagnaError, PathError
-from lasagna.io.atomic import atomic_write_text
+from lasagna.atomic import atomic_write_text
 from lasagna.world.lighting import AMBIENT, GLOW_VOCABULARY, LIGHTS, VOCABULARY
 from lasagna.world.scene import Scene, generate
 from lasagna.world.splits import STREAM_VERSION

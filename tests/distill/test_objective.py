@@ -104,7 +104,7 @@ class TestGradient:
 
     def test_whole_view(self, setup):
         base, y, obj = setup
-        out = obj(base, y, "x", generator=torch.Generator().manual_seed(0), step=0)
+        out = obj(base, y, "x", rng=torch.Generator().manual_seed(0), step=0)
         out.total.backward()
         g = out.diagnostics.grad.numpy()  # (2, 3, 4, 4) the injected gradient in the prior's space
         b, yy = base.numpy(), y.detach().numpy()
@@ -120,7 +120,7 @@ class TestGradient:
     def test_patch_view_touches_only_the_patches(self, setup):
         base, y, obj = setup
         rows = torch.tensor([[0, 0, 0], [1, 4, 2]])
-        out = obj(base, y, "x", generator=torch.Generator().manual_seed(0), step=0, patches=rows)
+        out = obj(base, y, "x", rng=torch.Generator().manual_seed(0), step=0, patches=rows)
         out.total.backward()
         g = out.diagnostics.grad.numpy()
         grad = y.grad.numpy()
@@ -138,8 +138,8 @@ class TestGradient:
         prior = gaussian_for(torch.rand(3, 4, 4))
         obj = ScoreObjective(SHADING, prior, build_loss("sds"), 1.0, Weights.lmc_network(10))
         base, y = torch.rand(1, 3, 4, 4), torch.ones(1, 1, 4, 4)
-        first = obj(base, y, "x", generator=None, step=0)
-        last = obj(base, y, "x", generator=None, step=10)
+        first = obj(base, y, "x", rng=None, step=0)
+        last = obj(base, y, "x", rng=None, step=10)
         assert (first.w_score, first.w_reg) == pytest.approx((0.1, 1.0)) and (last.w_score, last.w_reg) == pytest.approx((1.0, 0.1))
 
     def test_released_recipe_ends_without_the_l2(self):
@@ -150,9 +150,9 @@ class TestGradient:
     def test_shape_errors(self):
         obj = ScoreObjective(SHADING, gaussian_for(torch.rand(3, 4, 4)), build_loss("sds"), 1.0, Weights())
         with pytest.raises(LasagnaError, match="layer has shape"):
-            obj(torch.rand(1, 3, 4, 4), torch.ones(1, 1, 4, 5), "x", generator=None, step=0)
+            obj(torch.rand(1, 3, 4, 4), torch.ones(1, 1, 4, 5), "x", rng=None, step=0)
         with pytest.raises(LasagnaError, match="labels for a batch"):
-            obj(torch.rand(2, 3, 4, 4), torch.ones(2, 1, 4, 4), ["x", "x", "x"], generator=None, step=0)
+            obj(torch.rand(2, 3, 4, 4), torch.ones(2, 1, 4, 4), ["x", "x", "x"], rng=None, step=0)
 
 
 def test_dds_sees_the_identity_edit_as_its_source():
@@ -162,7 +162,7 @@ def test_dds_sees_the_identity_edit_as_its_source():
     obj = ScoreObjective(SHADING, prior, loss, 3.0, Weights())
     base = torch.rand(2, 3, 4, 4)
     y = SHADING.identity_layer(2, 4, 4)
-    out = obj(base, y, "x", generator=torch.Generator().manual_seed(0), step=0)
+    out = obj(base, y, "x", rng=torch.Generator().manual_seed(0), step=0)
     assert isinstance(loss, DDS) and torch.equal(loss.source_image, base)
     assert float(out.grad_norm.max()) < 1e-5
     assert torch.equal(composite(base, y, SHADING), base)

@@ -39,7 +39,7 @@ class TestEveryLoss:
     def test_shapes_and_per_sample_t(self, name, prior_u):
         b = 6
         image = torch.rand(b, *SHAPE, requires_grad=True)
-        out = make(name, prior_u)(image, prior_u, cond_for(b), 2.0, generator=torch.Generator().manual_seed(0))
+        out = make(name, prior_u)(image, prior_u, cond_for(b), 2.0, rng=torch.Generator().manual_seed(0))
         d = out.diagnostics
         assert out.loss.shape == () and torch.isfinite(out.loss)
         assert d.grad.shape == (b, *SHAPE) and d.grad_norm.shape == (b,) and d.t.shape == (b,)
@@ -51,19 +51,19 @@ class TestEveryLoss:
 
     def test_derivative_wrt_composite(self, name, prior_u):
         image = torch.rand(3, *SHAPE, requires_grad=True)
-        out = make(name, prior_u)(image, prior_u, cond_for(3), 2.0, generator=torch.Generator().manual_seed(1))
+        out = make(name, prior_u)(image, prior_u, cond_for(3), 2.0, rng=torch.Generator().manual_seed(1))
         (dimg,) = torch.autograd.grad(out.loss, image)
         assert torch.equal(dimg, 2 * out.diagnostics.grad)  # encode = 2x − 1
 
     def test_seeded_reproducibility(self, name, prior_u):
         image, cond = torch.rand(4, *SHAPE), cond_for(4)
-        g = [make(name, prior_u)(image, prior_u, cond, 2.0, generator=torch.Generator().manual_seed(s)).diagnostics.grad for s in (5, 5, 6)]
+        g = [make(name, prior_u)(image, prior_u, cond, 2.0, rng=torch.Generator().manual_seed(s)).diagnostics.grad for s in (5, 5, 6)]
         assert torch.equal(g[0], g[1]) and not torch.equal(g[0], g[2])
 
     def test_no_gradient_into_prior_parameters(self, name):
         prior = ConvPrior()
         image = torch.rand(4, *SHAPE, requires_grad=True)
-        out = make(name)(image, prior, cond_for(4), 2.0, generator=torch.Generator().manual_seed(2))
+        out = make(name)(image, prior, cond_for(4), 2.0, rng=torch.Generator().manual_seed(2))
         out.loss.backward()
         assert image.grad is not None and torch.count_nonzero(image.grad) > 0
         assert all(p.grad is None for p in prior.parameters())
@@ -72,7 +72,7 @@ class TestEveryLoss:
     def test_float64(self, name, prior_u):
         image = torch.rand(2, *SHAPE, dtype=torch.float64, requires_grad=True)
         cond = cond_for(2, image=torch.rand(2, *SHAPE, dtype=torch.float64))
-        out = make(name, prior_u)(image, prior_u, cond, 2.0, generator=torch.Generator().manual_seed(0))
+        out = make(name, prior_u)(image, prior_u, cond, 2.0, rng=torch.Generator().manual_seed(0))
         assert out.diagnostics.grad.dtype == torch.float64
         out.loss.backward()
         assert image.grad.dtype == torch.float64
@@ -94,7 +94,7 @@ def _stability(name: str, prior, total: int) -> None:
         loss = make(name, prior, timesteps=ts)
         for make_image in images.values():
             image = make_image(per).requires_grad_(True)
-            out = loss(image, prior, cond_for(per), 7.5, generator=gen)
+            out = loss(image, prior, cond_for(per), 7.5, rng=gen)
             d = out.diagnostics
             assert int(d.non_finite) == 0
             assert torch.isfinite(d.grad).all() and torch.isfinite(out.loss)
@@ -120,7 +120,7 @@ def test_stability_network_prior_extreme_t():
     for name in NAMES:
         for u in (0.0, 1.0):
             loss = make(name, timesteps=TimestepOptions(t_min=u, t_max=u))
-            out = loss(torch.ones(4, *SHAPE), prior, cond_for(4), 7.5, generator=torch.Generator().manual_seed(0))
+            out = loss(torch.ones(4, *SHAPE), prior, cond_for(4), 7.5, rng=torch.Generator().manual_seed(0))
             assert int(out.diagnostics.non_finite) == 0 and torch.isfinite(out.loss)
 
 
@@ -128,30 +128,30 @@ class TestInputErrors:
     def test_image_checks(self, prior_u):
         loss = SDS()
         with pytest.raises(ConditionError, match=r"sds.image: expected the composite as a \(B, C, H, W\) tensor, got \(3, 2, 2\)"):
-            loss(torch.rand(*SHAPE), prior_u, Condition("a"), 1.0, generator=None)
+            loss(torch.rand(*SHAPE), prior_u, Condition("a"), 1.0, rng=None)
         with pytest.raises(ConditionError, match=r"encodes to \(3, 4, 4\) but the prior works at \(3, 2, 2\)"):
-            loss(torch.rand(1, 3, 4, 4), prior_u, Condition("a"), 1.0, generator=None)
+            loss(torch.rand(1, 3, 4, 4), prior_u, Condition("a"), 1.0, rng=None)
         with pytest.raises(ConditionError, match="floating-point image"):
-            loss(torch.ones(1, *SHAPE, dtype=torch.uint8), prior_u, Condition("a"), 1.0, generator=None)
+            loss(torch.ones(1, *SHAPE, dtype=torch.uint8), prior_u, Condition("a"), 1.0, rng=None)
 
     def test_labels_and_guidance(self, prior_u):
         loss = SDS()
         with pytest.raises(ConditionError, match="got 3 labels for a batch of 2"):
-            loss(torch.rand(2, *SHAPE), prior_u, Condition(["a", "b", "a"]), 1.0, generator=None)
+            loss(torch.rand(2, *SHAPE), prior_u, Condition(["a", "b", "a"]), 1.0, rng=None)
         with pytest.raises(ConditionError, match="unknown label 'c'; expected one of a, b"):
-            loss(torch.rand(2, *SHAPE), prior_u, Condition("c"), 1.0, generator=None)
+            loss(torch.rand(2, *SHAPE), prior_u, Condition("c"), 1.0, rng=None)
         with pytest.raises(LasagnaError, match="guidance must be finite"):
-            loss(torch.rand(2, *SHAPE), prior_u, Condition("a"), float("nan"), generator=None)
+            loss(torch.rand(2, *SHAPE), prior_u, Condition("a"), float("nan"), rng=None)
         with pytest.raises(LasagnaError, match="guidance must be a number"):
-            loss(torch.rand(2, *SHAPE), prior_u, Condition("a"), "high", generator=None)
+            loss(torch.rand(2, *SHAPE), prior_u, Condition("a"), "high", rng=None)
 
     def test_annealing_needs_step(self, prior_u):
         loss = SDS(timesteps=TimestepOptions(anneal="linear", t_max_final=0.3, anneal_steps=10))
         with pytest.raises(ValueError, match="pass step="):
-            loss(torch.rand(2, *SHAPE), prior_u, Condition("a"), 1.0, generator=None)
-        d = loss(torch.rand(64, *SHAPE), prior_u, Condition("a"), 1.0, generator=torch.Generator().manual_seed(0), step=10).diagnostics
+            loss(torch.rand(2, *SHAPE), prior_u, Condition("a"), 1.0, rng=None)
+        d = loss(torch.rand(64, *SHAPE), prior_u, Condition("a"), 1.0, rng=torch.Generator().manual_seed(0), step=10).diagnostics
         assert int(d.t.max()) <= round(0.3 * 999)
 
     def test_clamp_option(self, prior_u):
-        d = SDS(clamp=1e-3)(torch.rand(2, *SHAPE), prior_u, Condition("a"), 7.5, generator=torch.Generator().manual_seed(0)).diagnostics
+        d = SDS(clamp=1e-3)(torch.rand(2, *SHAPE), prior_u, Condition("a"), 7.5, rng=torch.Generator().manual_seed(0)).diagnostics
         assert d.grad.abs().max() <= torch.tensor(1e-3) and int(d.clamped) > 0

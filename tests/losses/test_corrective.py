@@ -23,7 +23,8 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from lasagna.errors import ConditionError, LasagnaError
-from lasagna.losses import corrective_train as ct
+from lasagna.cli import main as cli_main
+from lasagna.training import corrective as ct
 from lasagna.losses.corrective import (
     Corrective,
     CorrectiveConfig,
@@ -33,7 +34,7 @@ from lasagna.losses.corrective import (
     normalize_by_std,
     rescale_to_target_std,
 )
-from lasagna.priors import io
+from lasagna.io import checkpoint as io
 from lasagna.priors.base import NoiseSchedule, Prior
 from lasagna.priors.unet import UNetConfig, UNetPrior
 
@@ -296,7 +297,7 @@ class TestKillAndResume:
     """The real command in a subprocess: SIGKILL after its first checkpoint, start again, finish."""
 
     def _cmd(self, prior_dir: Path, out: Path, steps: int) -> list[str]:
-        return [sys.executable, "-m", "lasagna.losses.corrective_train", "--prior", str(prior_dir), "--source",
+        return [sys.executable, "-m", "lasagna.cli", "train-corrective", "--prior", str(prior_dir), "--source",
                 "tests.losses.test_corrective:toy_source", "--out", str(out), "--steps", str(steps), "--batch-size", "4",
                 "--filters", "4,8", "--lr", "1e-3", "--checkpoint-every", "20", "--log-every", "5", "--eval-batches", "1",
                 "--no-progress"]
@@ -333,7 +334,7 @@ class TestKillAndResume:
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # as the subprocesses ran (OMP_NUM_THREADS=1)
         try:
-            assert ct.main(self._cmd(prior_dir, tmp_path / "ref", steps)[3:]) == 0  # in-process: same code, no start-up cost
+            assert cli_main(self._cmd(prior_dir, tmp_path / "ref", steps)[3:]) == 0  # in-process: same code, no start-up cost
         finally:
             torch.set_num_threads(threads)
         a, _ = io.load_tensors(out / "corrective" / "model.safetensors")
@@ -342,11 +343,11 @@ class TestKillAndResume:
             torch.testing.assert_close(a[k], b[k], atol=1e-6, rtol=1e-5, msg=k)
 
     def test_main_reports_errors_in_one_line(self, tmp_path, capsys):
-        code = ct.main(["--prior", str(tmp_path / "none"), "--source", "x:y", "--out", str(tmp_path / "o"), "--no-progress"])
+        code = cli_main(["train-corrective", "--prior", str(tmp_path / "none"), "--source", "x:y", "--out", str(tmp_path / "o"), "--no-progress"])
         err = capsys.readouterr().err.strip()
         assert code == 2 and err.count("\n") == 0 and "config.json not found" in err
         UNetPrior(UNetConfig(channels=(4, 8), resolution=8, norm_groups=4)).save_pretrained(tmp_path / "p")
-        code = ct.main(["--prior", str(tmp_path / "p"), "--source", "tests.losses.test_corrective:toy_source", "--out",
+        code = cli_main(["train-corrective", "--prior", str(tmp_path / "p"), "--source", "tests.losses.test_corrective:toy_source", "--out",
                         str(tmp_path / "o"), "--steps", "0", "--no-progress"])
         err = capsys.readouterr().err.strip()
         assert code == 2 and err.count("\n") == 0 and "train-corrective.steps" in err

@@ -19,7 +19,7 @@ def test_zero_when_conditions_agree_and_source_is_image(prior_name, request):
     prior = request.getfixturevalue(prior_name)
     image = torch.rand(5, *SHAPE, generator=torch.Generator().manual_seed(0), requires_grad=True)
     labels = ["a", "b", "a", "b", "a"]
-    out = DDS(source_image=image.detach())(image, prior, Condition(labels, negative=labels), 4.0, generator=torch.Generator().manual_seed(1))
+    out = DDS(source_image=image.detach())(image, prior, Condition(labels, negative=labels), 4.0, rng=torch.Generator().manual_seed(1))
     assert torch.count_nonzero(out.diagnostics.grad) == 0
     assert torch.count_nonzero(out.diagnostics.components["target"]) > 0  # each SDS half is not zero
     out.loss.backward()
@@ -31,7 +31,7 @@ def test_zero_with_a_network_prior():
     prior = ConvPrior()
     image = torch.rand(4, *SHAPE)
     cond = Condition(["a", "b", "b", "a"], image=image, negative=["a", "b", "b", "a"])
-    d = DDS()(image, prior, cond, 2.0, generator=torch.Generator().manual_seed(0)).diagnostics  # source = cond.image
+    d = DDS()(image, prior, cond, 2.0, rng=torch.Generator().manual_seed(0)).diagnostics  # source = cond.image
     torch.testing.assert_close(d.grad, torch.zeros_like(d.grad), rtol=0, atol=1e-6)
 
 
@@ -40,7 +40,7 @@ def test_against_numpy(gauss_params, prior_mix):
     omega, labels, src_labels = 2.5, ["a", "b", "a"], ["b", "b", "a"]
     g = torch.Generator().manual_seed(3)
     image, source = torch.rand(2, 3, *SHAPE, generator=g)
-    d = DDS(source_image=source)(image, prior_mix, Condition(labels, negative=src_labels), omega, generator=g).diagnostics
+    d = DDS(source_image=source)(image, prior_mix, Condition(labels, negative=src_labels), omega, rng=g).diagnostics
     ab = ref.alpha_bar()[d.t.numpy()]
     eps = d.noise["eps"].double().numpy()
     z, s = 2 * image.double().numpy() - 1, 2 * source.double().numpy() - 1
@@ -61,22 +61,22 @@ def test_source_broadcast_and_default(prior_mix):
     image = torch.rand(3, *SHAPE)
     src = torch.rand(1, *SHAPE)
     cond = Condition("a", negative="b")
-    a = DDS(source_image=src)(image, prior_mix, cond, 1.0, generator=torch.Generator().manual_seed(0)).diagnostics
-    b = DDS()(image, prior_mix, Condition("a", image=src.expand(3, *SHAPE), negative="b"), 1.0, generator=torch.Generator().manual_seed(0)).diagnostics
+    a = DDS(source_image=src)(image, prior_mix, cond, 1.0, rng=torch.Generator().manual_seed(0)).diagnostics
+    b = DDS()(image, prior_mix, Condition("a", image=src.expand(3, *SHAPE), negative="b"), 1.0, rng=torch.Generator().manual_seed(0)).diagnostics
     assert torch.equal(a.grad, b.grad)  # a set source_image and the conditioning image agree
     loss = DDS()
     loss.source_image = src  # settable attribute
-    c = loss(image, prior_mix, cond, 1.0, generator=torch.Generator().manual_seed(0)).diagnostics
+    c = loss(image, prior_mix, cond, 1.0, rng=torch.Generator().manual_seed(0)).diagnostics
     assert torch.equal(a.grad, c.grad)
 
 
 def test_errors(prior_mix):
     image = torch.rand(2, *SHAPE)
     with pytest.raises(ConditionError, match="DDS needs the source condition"):
-        DDS(source_image=image)(image, prior_mix, Condition("a"), 1.0, generator=None)
+        DDS(source_image=image)(image, prior_mix, Condition("a"), 1.0, rng=None)
     with pytest.raises(ConditionError, match="DDS needs a source image"):
-        DDS()(image, prior_mix, Condition("a", negative="a"), 1.0, generator=None)
+        DDS()(image, prior_mix, Condition("a", negative="a"), 1.0, rng=None)
     with pytest.raises(ConditionError, match=r"source image has shape \(3, 3, 2, 2\); expected \(1 or 2"):
-        DDS(source_image=torch.rand(3, *SHAPE))(image, prior_mix, Condition("a", negative="a"), 1.0, generator=None)
+        DDS(source_image=torch.rand(3, *SHAPE))(image, prior_mix, Condition("a", negative="a"), 1.0, rng=None)
     with pytest.raises(ConditionError, match="source image encodes to"):
-        DDS(source_image=torch.rand(2, 3, 4, 4))(image, prior_mix, Condition("a", negative="a"), 1.0, generator=None)
+        DDS(source_image=torch.rand(2, 3, 4, 4))(image, prior_mix, Condition("a", negative="a"), 1.0, rng=None)

@@ -30,7 +30,7 @@ def test_terms_against_numpy(fixed_eps, gauss_params, prior_u):
     omega, labels = 3.0, ["a", "b", "a", "b", "b"]
     image = torch.rand(5, *SHAPE, generator=torch.Generator().manual_seed(2))
     loss = LMCSDS(ExpectedX0Corrective(prior_u), fixed_eps=fixed_eps)
-    d = loss(image, prior_u, Condition(labels), omega, generator=torch.Generator().manual_seed(3)).diagnostics
+    d = loss(image, prior_u, Condition(labels), omega, rng=torch.Generator().manual_seed(3)).diagnostics
     t = d.t.numpy()
     ab = ref.alpha_bar()[t]
     sa, s1a = np.sqrt(ab)[B4], np.sqrt(1 - ab)[B4]
@@ -56,7 +56,7 @@ def _mean_lmc(prior, z: np.ndarray, n: int, corrective, normalize: str, u: float
     image = torch.tensor((z.reshape(1, *SHAPE) + 1) / 2, dtype=torch.float32).expand(n, *SHAPE)
     ts = TimestepOptions() if u is None else TimestepOptions(t_min=u, t_max=u)
     loss = LMCSDS(corrective, normalize=normalize, scale="none", timesteps=ts)
-    d = loss(image, prior, Condition("a"), 1.0, generator=torch.Generator().manual_seed(seed)).diagnostics
+    d = loss(image, prior, Condition("a"), 1.0, rng=torch.Generator().manual_seed(seed)).diagnostics
     g = d.components["lmc"].double().reshape(n, -1).numpy()
     return g.mean(0), g.std(0), d
 
@@ -105,8 +105,8 @@ def test_normalised_exact_corrective_leaves_contrast_term(gauss_params, prior_u)
 def test_fixed_eps_fixed_in_cond_resampled_in_lmc(gauss_params, prior_u):
     image = torch.rand(3, *SHAPE)
     loss = LMCSDS(ExpectedX0Corrective(prior_u), fixed_eps=True)
-    d1 = loss(image, prior_u, Condition("a"), 2.0, generator=torch.Generator().manual_seed(1)).diagnostics
-    d2 = loss(image, prior_u, Condition("a"), 2.0, generator=torch.Generator().manual_seed(2)).diagnostics
+    d1 = loss(image, prior_u, Condition("a"), 2.0, rng=torch.Generator().manual_seed(1)).diagnostics
+    d2 = loss(image, prior_u, Condition("a"), 2.0, rng=torch.Generator().manual_seed(2)).diagnostics
     assert torch.equal(d1.noise["cond"], d2.noise["cond"])
     assert not torch.allclose(d1.noise["lmc"], d2.noise["lmc"])
     # ... and the fixed ε is the one L_cond really used (numpy: ε_c − ε_u at √ᾱ z + √(1−ᾱ) ε_fixed)
@@ -116,30 +116,30 @@ def test_fixed_eps_fixed_in_cond_resampled_in_lmc(gauss_params, prior_u):
     want = ref.batch_eps(z_c, ab, [components(gauss_params, "a", True)] * 3) - ref.batch_eps(z_c, ab, [components(gauss_params, "", True)] * 3)
     np.testing.assert_allclose(d2.components["cond"].numpy(), want, rtol=1e-4, atol=1e-5)  # ω·(…)/ω
     loss.reset_fixed_noise()  # the next call draws anew from ITS generator; same seed → same ε (reproducible)
-    d3 = loss(image, prior_u, Condition("a"), 2.0, generator=torch.Generator().manual_seed(3)).diagnostics
+    d3 = loss(image, prior_u, Condition("a"), 2.0, rng=torch.Generator().manual_seed(3)).diagnostics
     assert not torch.equal(d3.noise["cond"], d1.noise["cond"])
-    d4 = loss(image, prior_u, Condition("a"), 2.0, generator=torch.Generator().manual_seed(1)).diagnostics
+    d4 = loss(image, prior_u, Condition("a"), 2.0, rng=torch.Generator().manual_seed(1)).diagnostics
     assert torch.equal(d4.noise["cond"], d3.noise["cond"])
     # a seed makes the fixed ε the same across loss instances
-    e = [LMCSDS(identity_corrective, fixed_eps=True, fixed_eps_seed=7)(image, prior_u, Condition("a"), 2.0, generator=torch.Generator().manual_seed(s)).diagnostics.noise["cond"] for s in (0, 1)]
+    e = [LMCSDS(identity_corrective, fixed_eps=True, fixed_eps_seed=7)(image, prior_u, Condition("a"), 2.0, rng=torch.Generator().manual_seed(s)).diagnostics.noise["cond"] for s in (0, 1)]
     assert torch.equal(e[0], e[1])
 
 
 def test_without_fixed_eps_one_noise(prior_u):
-    d = LMCSDS(identity_corrective)(torch.rand(2, *SHAPE), prior_u, Condition("a"), 2.0, generator=torch.Generator().manual_seed(0)).diagnostics
+    d = LMCSDS(identity_corrective)(torch.rand(2, *SHAPE), prior_u, Condition("a"), 2.0, rng=torch.Generator().manual_seed(0)).diagnostics
     assert torch.equal(d.noise["cond"], d.noise["lmc"])
 
 
 def test_inverse_guidance_scaling(prior_u):
     image, corr = torch.rand(3, *SHAPE), ExpectedX0Corrective(prior_u)
-    a = LMCSDS(corr, scale="none")(image, prior_u, Condition("b"), 5.0, generator=torch.Generator().manual_seed(4)).diagnostics
-    b = LMCSDS(corr)(image, prior_u, Condition("b"), 5.0, generator=torch.Generator().manual_seed(4)).diagnostics
+    a = LMCSDS(corr, scale="none")(image, prior_u, Condition("b"), 5.0, rng=torch.Generator().manual_seed(4)).diagnostics
+    b = LMCSDS(corr)(image, prior_u, Condition("b"), 5.0, rng=torch.Generator().manual_seed(4)).diagnostics
     torch.testing.assert_close(b.grad, a.grad / 5.0)
     with pytest.raises(LasagnaError, match="ω must be > 0; got 0.0 \\(use scale='none'"):
-        LMCSDS(corr)(image, prior_u, Condition("b"), 0.0, generator=None)
+        LMCSDS(corr)(image, prior_u, Condition("b"), 0.0, rng=None)
     with pytest.raises(LasagnaError, match="ω must be > 0; got -1.0"):
-        LMCSDS(corr)(image, prior_u, Condition("b"), -1.0, generator=None)
-    z = LMCSDS(corr, scale="none")(image, prior_u, Condition("b"), 0.0, generator=torch.Generator().manual_seed(4)).diagnostics
+        LMCSDS(corr)(image, prior_u, Condition("b"), -1.0, rng=None)
+    z = LMCSDS(corr, scale="none")(image, prior_u, Condition("b"), 0.0, rng=torch.Generator().manual_seed(4)).diagnostics
     assert torch.count_nonzero(z.components["cond"]) == 0
     assert torch.equal(z.grad, z.components["lmc"])
 
@@ -148,8 +148,8 @@ def test_sqrt_snr_identity_is_sds_projection(prior_mix):
     """With b̂ = z, no normalisation and the √ᾱ/√(1−ᾱ) factor restored, L_lmc = L_proj (eq. 7)."""
     image = torch.rand(4, *SHAPE)
     lmc = LMCSDS(identity_corrective, normalize="none", lmc_weighting="sqrt_snr", scale="none")
-    d_l = lmc(image, prior_mix, Condition("a"), 2.0, generator=torch.Generator().manual_seed(6)).diagnostics
-    d_s = SDS(weighting="uniform")(image, prior_mix, Condition("a"), 2.0, generator=torch.Generator().manual_seed(6)).diagnostics
+    d_l = lmc(image, prior_mix, Condition("a"), 2.0, rng=torch.Generator().manual_seed(6)).diagnostics
+    d_s = SDS(weighting="uniform")(image, prior_mix, Condition("a"), 2.0, rng=torch.Generator().manual_seed(6)).diagnostics
     assert torch.equal(d_l.t, d_s.t)
     torch.testing.assert_close(d_l.components["lmc"], d_s.components["proj"], rtol=1e-3, atol=1e-4)
     torch.testing.assert_close(d_l.components["cond"], d_s.components["cond"])
@@ -162,7 +162,7 @@ def test_corrective_required_and_checked(prior_u):
         LMCSDS(3)
     bad = LMCSDS(lambda z, t, cond_image=None, label_idx=None: z[:, :1])
     with pytest.raises(LasagnaError, match=r"corrective returned \(2, 1, 2, 2\); expected z's shape \(2, 3, 2, 2\)"):
-        bad(torch.rand(2, *SHAPE), prior_u, Condition("a"), 1.0, generator=None)
+        bad(torch.rand(2, *SHAPE), prior_u, Condition("a"), 1.0, rng=None)
 
 
 def test_corrective_receives_documented_inputs(prior_u):
@@ -173,7 +173,7 @@ def test_corrective_receives_documented_inputs(prior_u):
         return z
 
     img, cimg = torch.rand(3, *SHAPE, requires_grad=True), torch.rand(3, *SHAPE)
-    LMCSDS(spy)(img, prior_u, Condition(["a", "b", ""], image=cimg), 1.0, generator=torch.Generator().manual_seed(0))
+    LMCSDS(spy)(img, prior_u, Condition(["a", "b", ""], image=cimg), 1.0, rng=torch.Generator().manual_seed(0))
     assert seen["t"].dtype == torch.long and seen["t"].shape == (3,)
     assert seen["label_idx"].tolist() == [0, 1, 2]  # "" is the null label
     assert seen["cond_image"] is cimg and not seen["grad"] and not seen["z"].requires_grad

@@ -14,8 +14,8 @@ from tests.losses.conftest import SHAPE, components
 def test_one_step_is_sds(prior_mix):
     image = torch.rand(6, *SHAPE)
     cond = Condition(["a", "b", "a", "b", "a", "b"])
-    a = MSSDS(steps=1)(image, prior_mix, cond, 3.0, generator=torch.Generator().manual_seed(2)).diagnostics
-    b = SDS()(image, prior_mix, cond, 3.0, generator=torch.Generator().manual_seed(2)).diagnostics
+    a = MSSDS(steps=1)(image, prior_mix, cond, 3.0, rng=torch.Generator().manual_seed(2)).diagnostics
+    b = SDS()(image, prior_mix, cond, 3.0, rng=torch.Generator().manual_seed(2)).diagnostics
     assert torch.equal(a.t, b.t)
     torch.testing.assert_close(a.grad, b.grad, rtol=1e-3, atol=1e-4)
 
@@ -24,7 +24,7 @@ def test_one_step_is_sds(prior_mix):
 def test_multistep_against_numpy(units, gauss_params, prior_mix):
     omega, steps, labels = 2.0, 3, ["a", "b", "b"]
     image = torch.rand(3, *SHAPE, generator=torch.Generator().manual_seed(1))
-    d = MSSDS(steps=steps, units=units)(image, prior_mix, Condition(labels), omega, generator=torch.Generator().manual_seed(5)).diagnostics
+    d = MSSDS(steps=steps, units=units)(image, prior_mix, Condition(labels), omega, rng=torch.Generator().manual_seed(5)).diagnostics
     abar = ref.alpha_bar()
     z0 = 2 * image.double().numpy() - 1
     eps = d.noise["eps"].double().numpy()
@@ -51,6 +51,6 @@ def test_multistep_against_numpy(units, gauss_params, prior_mix):
 
 def test_more_steps_change_the_gradient(prior_mix):
     image = torch.rand(2, *SHAPE)
-    a = MSSDS(steps=1)(image, prior_mix, Condition("a"), 2.0, generator=torch.Generator().manual_seed(0)).diagnostics
-    b = MSSDS(steps=8)(image, prior_mix, Condition("a"), 2.0, generator=torch.Generator().manual_seed(0)).diagnostics
+    a = MSSDS(steps=1)(image, prior_mix, Condition("a"), 2.0, rng=torch.Generator().manual_seed(0)).diagnostics
+    b = MSSDS(steps=8)(image, prior_mix, Condition("a"), 2.0, rng=torch.Generator().manual_seed(0)).diagnostics
     assert not torch.allclose(a.grad, b.grad, atol=1e-3)

@@ -20,7 +20,7 @@ def test_against_numpy_with_mixed_regimes(gauss_params, prior_mix):
     labels = ["a", "b"] * (n // 2)
     negs = ["b", "a"] * (n // 2)
     image = torch.rand(n, *SHAPE, generator=torch.Generator().manual_seed(0))
-    d = NFSD()(image, prior_mix, Condition(labels, negative=negs), omega, generator=torch.Generator().manual_seed(4)).diagnostics
+    d = NFSD()(image, prior_mix, Condition(labels, negative=negs), omega, rng=torch.Generator().manual_seed(4)).diagnostics
     t = d.t.numpy()
     assert (t < 200).any() and (t >= 200).any()  # both regimes in one batch
     ab = ref.alpha_bar()[t]
@@ -40,7 +40,7 @@ def test_threshold_is_t_200(index, small, prior_mix):
     image = torch.rand(2, *SHAPE)
     u = index / 999
     loss = NFSD(weighting="uniform", timesteps=TimestepOptions(t_min=u, t_max=u))
-    d = loss(image, prior_mix, Condition("a", negative="b"), 1.0, generator=torch.Generator().manual_seed(0)).diagnostics
+    d = loss(image, prior_mix, Condition("a", negative="b"), 1.0, rng=torch.Generator().manual_seed(0)).diagnostics
     assert d.t.tolist() == [index, index]
     e = prior_mix.predict_many(
         [(prior_mix.schedule.add_noise(2 * image - 1, d.noise["eps"], d.t), br) for br in ("uncond", "negative")],
@@ -53,12 +53,12 @@ def test_threshold_is_t_200(index, small, prior_mix):
 
 def test_negative_from_options_and_errors(prior_mix):
     image = torch.rand(2, *SHAPE)
-    a = NFSD(negative_label="b")(image, prior_mix, Condition("a"), 2.0, generator=torch.Generator().manual_seed(0)).diagnostics
-    b = NFSD()(image, prior_mix, Condition("a", negative="b"), 2.0, generator=torch.Generator().manual_seed(0)).diagnostics
+    a = NFSD(negative_label="b")(image, prior_mix, Condition("a"), 2.0, rng=torch.Generator().manual_seed(0)).diagnostics
+    b = NFSD()(image, prior_mix, Condition("a", negative="b"), 2.0, rng=torch.Generator().manual_seed(0)).diagnostics
     assert torch.equal(a.grad, b.grad)
-    c = NFSD(negative_label="a")(image, prior_mix, Condition("a", negative="b"), 2.0, generator=torch.Generator().manual_seed(0)).diagnostics
+    c = NFSD(negative_label="a")(image, prior_mix, Condition("a", negative="b"), 2.0, rng=torch.Generator().manual_seed(0)).diagnostics
     assert torch.equal(c.grad, b.grad)  # condition.negative wins over the option
     with pytest.raises(ConditionError, match="NFSD needs a negative condition"):
-        NFSD()(image, prior_mix, Condition("a"), 2.0, generator=None)
+        NFSD()(image, prior_mix, Condition("a"), 2.0, rng=None)
     with pytest.raises(ConditionError, match="unknown label 'dull'"):
-        NFSD(negative_label="dull")(image, prior_mix, Condition("a"), 2.0, generator=None)
+        NFSD(negative_label="dull")(image, prior_mix, Condition("a"), 2.0, rng=None)

@@ -26,7 +26,7 @@ def test_gradient_is_cond_plus_proj_against_numpy(weighting, explicit_uncond, ga
     omega = 3.0
     labels = ["a", "b", "b", "a", "b", "a"]
     image = torch.rand(6, *SHAPE, generator=torch.Generator().manual_seed(0))
-    out = SDS(weighting=weighting)(image, prior, Condition(labels), omega, generator=torch.Generator().manual_seed(1))
+    out = SDS(weighting=weighting)(image, prior, Condition(labels), omega, rng=torch.Generator().manual_seed(1))
     d = out.diagnostics
     t, eps = d.t.numpy(), d.noise["eps"].double().numpy()
     assert len(set(t.tolist())) == 6  # per-sample timesteps
@@ -46,22 +46,22 @@ def test_gradient_is_cond_plus_proj_against_numpy(weighting, explicit_uncond, ga
 def test_derivative_wrt_composite(prior_u):
     """d(surrogate)/d(image) = Jᵀ_encode g = 2 g for a pixel prior (encode = 2x − 1), exactly."""
     image = torch.rand(4, *SHAPE, requires_grad=True)
-    out = SDS()(image, prior_u, Condition("a"), 2.0, generator=torch.Generator().manual_seed(0))
+    out = SDS()(image, prior_u, Condition("a"), 2.0, rng=torch.Generator().manual_seed(0))
     (dimg,) = torch.autograd.grad(out.loss, image)
     assert torch.equal(dimg, 2 * out.diagnostics.grad)
 
 
 def test_inv_guidance_scale(prior_u):
     image = torch.rand(3, *SHAPE)
-    a = SDS()(image, prior_u, Condition("a"), 4.0, generator=torch.Generator().manual_seed(5))
-    b = SDS(scale="inv_guidance")(image, prior_u, Condition("a"), 4.0, generator=torch.Generator().manual_seed(5))
+    a = SDS()(image, prior_u, Condition("a"), 4.0, rng=torch.Generator().manual_seed(5))
+    b = SDS(scale="inv_guidance")(image, prior_u, Condition("a"), 4.0, rng=torch.Generator().manual_seed(5))
     torch.testing.assert_close(b.diagnostics.grad, a.diagnostics.grad / 4.0)
 
 
 def _mean_gradient(prior, z: np.ndarray, label: str, omega: float, n: int, seed: int, **opts) -> tuple[np.ndarray, np.ndarray]:
     """Sample mean and standard deviation of n per-sample SDS gradients at the clean image z (D,)."""
     image = torch.tensor((z.reshape(1, *SHAPE) + 1) / 2, dtype=torch.float32).expand(n, *SHAPE)
-    g = SDS(**opts)(image, prior, Condition(label), omega, generator=torch.Generator().manual_seed(seed)).diagnostics.grad
+    g = SDS(**opts)(image, prior, Condition(label), omega, rng=torch.Generator().manual_seed(seed)).diagnostics.grad
     g = g.double().reshape(n, -1).numpy()
     return g.mean(0), g.std(0)
 
@@ -95,7 +95,7 @@ def _descend(prior, label: str, omega: float, steps: int, lr: float, n: int = 25
     tail = []
     for s in range(steps):
         opt.zero_grad()
-        loss(x.expand(n, *SHAPE), prior, Condition(label), omega, generator=gen).loss.backward()
+        loss(x.expand(n, *SHAPE), prior, Condition(label), omega, rng=gen).loss.backward()
         opt.step()
         if s >= steps // 3:
             tail.append((2 * x.detach() - 1).double().reshape(-1).numpy())

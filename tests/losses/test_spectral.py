@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 
 from lasagna.catalogue import load_corrective
 from lasagna.losses import LMCSDS
-from lasagna.losses import corrective_train as ct
+from lasagna.cli import main as cli_main
+from lasagna.training import corrective as ct
 from lasagna.losses.lmc_sds import identity_corrective
 from lasagna.losses.spectral import SpectralCorrective, SpectralCorrectiveConfig, fit_spectral_corrective
 from lasagna.priors.base import Condition
@@ -144,7 +145,7 @@ class TestFit:
 
     def test_cli(self, tmp_path, capsys):
         UNetPrior(UNetConfig(channels=(4, 8), resolution=8, norm_groups=4, vocabulary=("a", "b"))).save_pretrained(tmp_path / "p")
-        code = ct.main(["--kind", "spectral", "--prior", str(tmp_path / "p"), "--source", "tests.losses.test_corrective:toy_source",
+        code = cli_main(["train-corrective", "--kind", "spectral", "--prior", str(tmp_path / "p"), "--source", "tests.losses.test_corrective:toy_source",
                         "--out", str(tmp_path / "o"), "--batches", "1", "--buckets", "2", "--batch-size", "4", "--eval-batches", "1"])
         captured = capsys.readouterr()
         assert code == 0, captured.err
@@ -161,7 +162,7 @@ class TestInLMCSDS:
         z = torch.rand(2, 3, 8, 8) * 2 - 1
         cond = Condition(["a", "b"])
         spec = SpectralCorrective(SpectralCorrectiveConfig(channels=3, height=8, width=8, buckets=3, num_timesteps=prior.schedule.num_steps))
-        g = lambda c: LMCSDS(c)(z.clone().requires_grad_(), prior, cond, 2.0, generator=torch.Generator().manual_seed(1)).diagnostics.grad  # noqa: E731
+        g = lambda c: LMCSDS(c)(z.clone().requires_grad_(), prior, cond, 2.0, rng=torch.Generator().manual_seed(1)).diagnostics.grad  # noqa: E731
         torch.testing.assert_close(g(spec), g(identity_corrective), atol=1e-5, rtol=1e-5)
 
 
@@ -178,7 +179,7 @@ class TestEdges:
              "one": torch.ones(2, 3, 8, 8), "random": torch.rand(2, 3, 8, 8) * 2 - 1}[image].requires_grad_()
         spec = random_gains(7, SpectralCorrectiveConfig(channels=3, height=8, width=8, buckets=4, num_timesteps=prior.schedule.num_steps))
         loss = LMCSDS(spec, timesteps=TimestepOptions(t_min=u, t_max=u))
-        out = loss(z, prior, Condition(["a", "b"]), 3.0, generator=torch.Generator().manual_seed(0))
+        out = loss(z, prior, Condition(["a", "b"]), 3.0, rng=torch.Generator().manual_seed(0))
         out.loss.backward()
         assert torch.isfinite(out.diagnostics.grad).all() and out.diagnostics.non_finite == 0
         assert torch.isfinite(z.grad).all()

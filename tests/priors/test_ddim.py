@@ -73,7 +73,7 @@ class TestDDIMClosedForm:
     @pytest.mark.parametrize("steps", [1, 7, 50])
     def test_point_mass_is_reached_exactly(self, eta, steps):
         prior = GaussPrior({"a": 0.3}, null_mean=-0.2, s=0.0)
-        out = ddim_sample(prior, Condition("a"), steps=steps, eta=eta, batch=3, generator=torch.Generator().manual_seed(0))
+        out = ddim_sample(prior, Condition("a"), steps=steps, eta=eta, batch=3, rng=torch.Generator().manual_seed(0))
         assert out.z.shape == (3, *SHAPE)
         # 1e-4: at t = 999, x̂₀ = (z − √(1−ᾱ) ε̂)/√ᾱ divides a float32 cancellation by √ᾱ ≈ 6e-3.
         torch.testing.assert_close(out.z, torch.full_like(out.z, 0.3), atol=1e-4, rtol=0)
@@ -83,7 +83,7 @@ class TestDDIMClosedForm:
     def test_guidance_convention(self, omega, expected):
         """ε_u + ω(ε_c − ε_u) of two point masses is the point mass at m_u + ω(m_c − m_u)."""
         prior = GaussPrior({"a": 0.3}, null_mean=-0.2, s=0.0)
-        out = ddim_sample(prior, Condition("a"), steps=10, omega=omega, batch=2, generator=torch.Generator().manual_seed(0))
+        out = ddim_sample(prior, Condition("a"), steps=10, omega=omega, batch=2, rng=torch.Generator().manual_seed(0))
         torch.testing.assert_close(out.z, torch.full_like(out.z, expected), atol=1e-4, rtol=0)
         # One network call per step; both branches batched together only when they are needed.
         assert prior.calls == [4 if omega not in (0.0, 1.0) else 2] * 10
@@ -101,7 +101,7 @@ class TestDDIMClosedForm:
         plus 0.02 for discretisation)."""
         m, s, n = 0.4, 0.5, 2048
         prior = GaussPrior({"a": m}, null_mean=0.0, s=s)
-        out = ddim_sample(prior, Condition("a"), steps=100, eta=eta, batch=n, generator=torch.Generator().manual_seed(1), decode=False)
+        out = ddim_sample(prior, Condition("a"), steps=100, eta=eta, batch=n, rng=torch.Generator().manual_seed(1), decode=False)
         x = out.z.double().flatten()
         se = s / np.sqrt(x.numel())
         assert abs(x.mean().item() - m) < 4 * se + 0.02
@@ -110,8 +110,8 @@ class TestDDIMClosedForm:
     def test_clip_x0(self):
         """A point mass outside [−1, 1]: unclipped DDIM reaches it, clipped DDIM stops at the bound."""
         prior = GaussPrior({"a": 2.0}, null_mean=0.0, s=0.0)
-        free = ddim_sample(prior, Condition("a"), steps=10, generator=torch.Generator().manual_seed(0), decode=False)
-        clipped = ddim_sample(prior, Condition("a"), steps=10, clip_x0=True, generator=torch.Generator().manual_seed(0))
+        free = ddim_sample(prior, Condition("a"), steps=10, rng=torch.Generator().manual_seed(0), decode=False)
+        clipped = ddim_sample(prior, Condition("a"), steps=10, clip_x0=True, rng=torch.Generator().manual_seed(0))
         torch.testing.assert_close(free.z, torch.full_like(free.z, 2.0), atol=1e-4, rtol=0)
         torch.testing.assert_close(clipped.z, torch.full_like(clipped.z, 1.0), atol=1e-4, rtol=0)
         assert clipped.image.max() <= 1.0
@@ -121,7 +121,7 @@ class TestDDIMBehaviour:
     @pytest.mark.parametrize("eta", [0.0, 0.5])
     def test_seeded_determinism(self, eta):
         prior = GaussPrior({"a": 0.1}, null_mean=0.0, s=0.5)
-        run = lambda seed: ddim_sample(prior, Condition("a"), steps=20, eta=eta, batch=4, generator=torch.Generator().manual_seed(seed)).z
+        run = lambda seed: ddim_sample(prior, Condition("a"), steps=20, eta=eta, batch=4, rng=torch.Generator().manual_seed(seed)).z
         assert torch.equal(run(0), run(0))
         assert not torch.allclose(run(0), run(1))
 
@@ -141,6 +141,6 @@ class TestDDIMBehaviour:
     def test_unet_prior_smoke(self):
         prior = randomize(UNetPrior(tiny_config()), scale=0.05).eval()
         out = ddim_sample(prior, Condition(["left", "right"], image=torch.rand(2, 3, 8, 8)), steps=5, omega=2.0,
-                          generator=torch.Generator().manual_seed(0), clip_x0=True)
+                          rng=torch.Generator().manual_seed(0), clip_x0=True)
         assert out.z.shape == (2, 3, 8, 8) and out.image.shape == (2, 3, 8, 8)
         assert torch.isfinite(out.z).all() and out.image.min() >= 0 and out.image.max() <= 1

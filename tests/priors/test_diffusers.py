@@ -221,7 +221,7 @@ class TestLatents:
     def test_encode_sample_is_seeded(self, parts):
         def make(seed):
             return DiffusersPrior(parts["unet"], SD_SCHED, VOCAB, prompt_embeds=torch.randn(3, 5, 16), vae=parts["vae"],
-                                  latent="sample", latent_generator=torch.Generator().manual_seed(seed))
+                                  latent="sample", latent_rng=torch.Generator().manual_seed(seed))
         x = torch.rand(1, 3, 16, 16)
         a, b, c = make(0).encode(x), make(0).encode(x), make(1).encode(x)
         mean = DiffusersPrior(parts["unet"], SD_SCHED, VOCAB, prompt_embeds=torch.randn(3, 5, 16), vae=parts["vae"]).encode(x)
@@ -234,7 +234,7 @@ class TestLatents:
 
     def test_ddim_end_to_end(self, prior):
         out = ddim_sample(prior, Condition(["left", "right"], image=torch.rand(2, 3, 16, 16)), steps=3, omega=2.0,
-                          generator=torch.Generator().manual_seed(0))
+                          rng=torch.Generator().manual_seed(0))
         assert out.z.shape == (2, 4, 8, 8) and out.image.shape == (2, 3, 16, 16)
         assert torch.isfinite(out.image).all()
 

@@ -106,7 +106,7 @@ def test_bad_task(tmp_path):
 
 class TestCli:
     def parse(self, argv):
-        from lasagna.world.cli import add_world_parser
+        from lasagna.cli.world import add_world_parser
 
         ap = argparse.ArgumentParser()
         add_world_parser(ap.add_subparsers())

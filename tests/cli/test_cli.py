@@ -19,7 +19,7 @@ from tests import pngcraft
 from tests.reference import composite_reference, to_uint8
 from tests.stackcraft import random_stack, write_png8, write_stack
 
-BASIC = Path(__file__).resolve().parents[1] / "examples" / "stacks" / "basic"
+BASIC = Path(__file__).resolve().parents[2] / "examples" / "stacks" / "basic"
 
 
 def run(capsys, *argv) -> tuple[int, str, str]:
@@ -311,12 +311,12 @@ def test_usage_error_is_one_line(capsys):
 
 
 def test_keyboard_interrupt_exits_130(monkeypatch, capsys):
-    import lasagna.cli as cli
+    from lasagna.cli import validate
 
     def boom(args):
         raise KeyboardInterrupt
 
-    monkeypatch.setitem(cli.COMMANDS, "validate", cli.Command("x", cli._validate_args, boom))
+    monkeypatch.setattr(validate, "run", boom)
     code, out, err = run(capsys, "validate", BASIC)
     assert code == 130 and err == ""
 

@@ -9,24 +9,26 @@ light      the unlit image               the preset's label      the clipped glo
 =========  ============================  ======================  ===================================
 
 Scenes come from ``lasagna.world`` (deterministic by split, seed and index); which scenes, and which
-label each gets (uniform over the preset's vocabulary), is drawn from the caller's generator only,
-so a batch is a function of the generator's state. Relighting renders each scene under its drawn
+label each gets (uniform over the preset's vocabulary), is drawn from the caller's ``rng`` only,
+so a batch is a function of its state. Relighting renders each scene under its drawn
 label (the world's eight light names must contain the preset's labels); the light task gives each
 scene's glow the drawn label's colour (`lasagna.world.lighting.GLOW_VOCABULARY`: warm, cool, white).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Sequence
+from typing import Literal, Sequence, get_args
 
 import torch
 from torch import Tensor
 
 from lasagna.errors import LasagnaError
 
-Task = Literal["relight", "colorize", "light"]
+Task = Literal["relight", "colorize", "light"]  # the world tasks priors and generators are trained on
+TASKS: tuple[str, ...] = get_args(Task)
 TASK_FOR_BLEND = {"multiply": "relight", "normal": "colorize", "plus": "light"}
-# The world's scene-index range batches are drawn from (as the prior trainer draws them).
+# The world's scene-index range batches are drawn from (the prior trainer's too): large enough that no batch
+# repeats in any run this CPU can afford (2**30 scenes), small enough for int32 seeds.
 SCENE_RANGE = 2**30
 
 
@@ -39,13 +41,13 @@ class TaskBatch:
     target: Tensor
 
 
-def task_batch(task: Task, vocabulary: Sequence[str], count: int, generator: torch.Generator, *, split: str = "train",
+def task_batch(task: Task, vocabulary: Sequence[str], count: int, rng: torch.Generator, *, split: str = "train",
                seed: int = 0, resolution: int = 32, shadows: bool = False) -> TaskBatch:
     """``count`` scenes of ``split`` as a (base, labels, true layer) batch for ``task`` (module docstring)."""
     from lasagna.world import GLOW_VOCABULARY, VOCABULARY, additive_light, colorization, generate
 
-    start = int(torch.randint(0, SCENE_RANGE, (1,), generator=generator))
-    idx = torch.randint(0, len(vocabulary), (count,), generator=generator).tolist()
+    start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
+    idx = torch.randint(0, len(vocabulary), (count,), generator=rng).tolist()
     labels = [vocabulary[i] for i in idx]
     if task == "relight":
         unknown = sorted(set(labels) - set(VOCABULARY))

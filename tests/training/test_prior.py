@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from lasagna.priors.evaluate import denoising_error, psnr, sample_quality
-from lasagna.priors.train import PriorTrainConfig, task_batch, train_prior, unet_config_for, world_source
+from lasagna.training.prior import PriorTrainConfig, prior_batch, train_prior, unet_config_for, world_source
 from lasagna.priors.unet import UNetPrior
 from lasagna.world import VOCABULARY, generate
 
@@ -23,14 +23,14 @@ def tiny(task="relight", **kw) -> PriorTrainConfig:
 class TestTaskData:
     def test_relight_batch_is_image_label_albedo(self):
         scene = generate("train", 4, seed=1, resolution=8)
-        x0, lab, cond = task_batch("relight", scene)
+        x0, lab, cond = prior_batch("relight", scene)
         assert torch.equal(x0, scene.albedo * scene.shading)
         assert torch.equal(cond, scene.albedo)
         assert [VOCABULARY[i] for i in lab.tolist()] == scene.label
 
     def test_colorize_condition_is_rec709_luma(self):
         scene = generate("train", 2, seed=1, resolution=8)
-        x0, lab, cond = task_batch("colorize", scene)
+        x0, lab, cond = prior_batch("colorize", scene)
         r, g, b = scene.image[:, 0], scene.image[:, 1], scene.image[:, 2]
         assert torch.allclose(cond[:, 0], 0.2126 * r + 0.7152 * g + 0.0722 * b, atol=1e-6)
         assert cond.shape[1] == 1 and lab.tolist() == [0, 0]
@@ -40,7 +40,7 @@ class TestTaskData:
         from lasagna.world.tasks import glow
 
         scene = generate("train", 6, seed=1, resolution=8, dtype=torch.float64)
-        x0, lab, cond = task_batch("light", scene)
+        x0, lab, cond = prior_batch("light", scene)
         assert torch.equal(cond, scene.image)
         assert torch.equal(x0, scene.image + torch.minimum(glow(scene), 1 - scene.image))
         assert lab.tolist() == scene.params.glow_label.tolist()

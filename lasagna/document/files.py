@@ -7,8 +7,9 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from lasagna.errors import DocumentError
+from lasagna.atomic import atomic_write_text
 from lasagna.document.models import Document
+from lasagna.errors import DocumentError
 from lasagna.document.validation import format_validation_error
 
 __all__ = ["STACK_FILE", "stack_file", "load_document", "save_document", "format_validation_error"]
@@ -46,10 +47,6 @@ def save_document(doc: Document, path: str | os.PathLike) -> Path:
 
     Returns the file written. The text is ``doc.to_json()``: full, canonical and stable.
     """
-    # Imported here so that importing lasagna.document never imports the I/O tier (and whatever
-    # it may import, torch included); atomic writes are the I/O tier's single implementation.
-    from lasagna.io.atomic import atomic_write_text
-
     file = stack_file(path)
     atomic_write_text(file, doc.to_json())
     return file

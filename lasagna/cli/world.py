@@ -1,20 +1,21 @@
-"""The ``lasagna world`` subcommand: write scenes of a split as ground-truth stack folders.
+"""``lasagna world``: write scenes of a split as ground-truth stack folders (``lasagna.world``).
 
     lasagna world -o DIR --split NAME --count N --seed S [--resolution R] [--task shading|color|light]
                   [--start I] [--shadows] [--ambient A]
-
-Wired into ``lasagna.cli`` by its owner: either ``add_world_parser(subparsers)`` or, in the
-``COMMANDS`` table, ``Command(WORLD_HELP, world_arguments, run_world)``.
 """
+
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
+import sys
 
-WORLD_HELP = "write procedural scenes with ground truth as layer-stack folders"
+from lasagna.cli.common import add_command
+from lasagna.errors import LasagnaError
+
+HELP = "write procedural scenes with ground truth as layer-stack folders"
 
 
-def world_arguments(p: argparse.ArgumentParser) -> None:
+def add_arguments(p: argparse.ArgumentParser) -> None:
     """Add the ``world`` options to ``p``."""
     from lasagna.world.export import TASKS
     from lasagna.world.lighting import AMBIENT
@@ -36,22 +37,18 @@ def world_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def add_world_parser(subparsers) -> argparse.ArgumentParser:
-    """Register ``world`` on an ``argparse`` subparsers object; ``args.run`` is ``run_world``."""
-    p = subparsers.add_parser("world", help=WORLD_HELP, description=WORLD_HELP)
-    world_arguments(p)
-    p.set_defaults(run=run_world)
-    return p
+    """Register ``world`` on an ``argparse`` subparsers object (``args.run`` is ``run``): how the world's
+    own tests (``tests/world``) build this command without the rest of the CLI."""
+    return add_command(subparsers, "world", sys.modules[__name__])
 
 
-def run_world(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     """Write the stacks; prints one summary line; returns the exit status 0 (errors raise LasagnaError)."""
-    from lasagna.errors import LasagnaError, PathError
+    from lasagna.io.folder import check_writable
     from lasagna.world.export import MANIFEST, write_world_stacks
     from lasagna.world.scene import check_resolution
 
-    out = Path(args.output)
-    if out.exists() and not out.is_dir():
-        raise PathError("exists and is not a folder; expected a folder to write into", where=str(out))
+    out = check_writable(args.output, folder=True)
     if args.count < 1:
         raise LasagnaError(f"expected a positive integer, got {args.count}", where="--count")
     for name in ("seed", "start"):

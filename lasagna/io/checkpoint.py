@@ -1,18 +1,24 @@
-"""Saving and loading networks as ``model.safetensors`` + ``config.json``, atomically.
+"""The checkpoint formats: saved networks and training checkpoints, written atomically.
 
-A saved network is a folder::
+Every tier from the priors up saves and loads its networks here; nothing else reads or writes
+safetensors. A saved network is a folder::
 
     mynet/
       config.json         {"format": "lasagna.unet_prior", "version": 1, "config": {...}}
       model.safetensors   the state dict (tensors only; no pickle, so loading runs no code)
 
 ``config`` is the pydantic model that rebuilds the network exactly (architecture, schedule,
-vocabulary). Each file is written atomically (``lasagna.io.atomic``): a crash leaves the previous
+vocabulary). Each file is written atomically (``lasagna.atomic``): a crash leaves the previous
 file intact. The weights are written before the config, so a folder whose config.json exists was
 complete when that config was written.
 
 ``save_tensors`` / ``load_tensors`` store a flat dict of tensors plus string metadata in ONE
-safetensors file; training checkpoints use them so that a checkpoint is a single atomic write.
+safetensors file. A **training checkpoint** (``save_checkpoint`` / ``load_checkpoint``) is one such
+file: ``model.*`` (the network), ``ema.*`` (its moving average, when kept), ``optim.<i>.<key>`` (Adam's
+tensors) and ``rng.train`` (the run's random generator), with ``format``, ``step``, ``config`` (the run's
+config as JSON) and Adam's scalars in the metadata: a checkpoint is a single atomic write, so a kill
+leaves the previous one intact. A **run folder** records its config in ``train_config.json``
+(``check_same_run``), so that resuming with another config is refused.
 """
 from __future__ import annotations
 
@@ -27,12 +33,17 @@ from safetensors import safe_open
 from safetensors.torch import save as _st_save
 from torch import nn
 
-from lasagna.errors import LasagnaError
-from lasagna.io.atomic import atomic_write_bytes, atomic_write_text
+from lasagna.errors import LasagnaError, describe_validation_error
+from lasagna.atomic import atomic_write_bytes, atomic_write_text
 
 WEIGHTS_NAME = "model.safetensors"
 CONFIG_NAME = "config.json"
 FORMAT_VERSION = 1
+CHECKPOINT = "checkpoint.safetensors"  # a run folder's one training checkpoint
+RUN_CONFIG = "train_config.json"  # a run folder's config, compared on resume
+# Fields that may change between invocations on one run folder: they change neither the random stream
+# nor the model (extending ``steps``, a new time budget, other logging cadences).
+RESUMABLE = frozenset({"steps", "max_minutes", "progress", "checkpoint_every", "log_every", "eval_batches"})
 
 C = TypeVar("C", bound=BaseModel)
 
@@ -84,15 +95,7 @@ def read_config(directory: str | os.PathLike, kind: str, model: type[C]) -> C:
     try:
         return model.model_validate(doc.get("config"))
     except ValidationError as exc:
-        raise LasagnaError(*describe_validation_error(exc, f"{path}: config")) from None
-
-
-def describe_validation_error(exc: ValidationError, where: str) -> tuple[str, str]:
-    """(message, where) of a pydantic error's first problem, for a one-line LasagnaError."""
-    err = exc.errors()[0]
-    loc = ".".join(str(x) for x in err["loc"])
-    more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
-    return err["msg"] + more, f"{where}.{loc}" if loc else where
+        raise describe_validation_error(exc, str(path), prefix="config") from None
 
 
 def load_weights(directory: str | os.PathLike, module: nn.Module, kind: str, device: str | torch.device = "cpu") -> None:
@@ -142,3 +145,74 @@ class Pretrained:
         load_weights(directory, model, cls.FORMAT)
         model = model.to(device=device) if dtype is None else model.to(device=device, dtype=dtype)
         return model.eval()
+
+
+# -- training checkpoints -------------------------------------------------------------------------
+def save_checkpoint(
+    path: Path, fmt: str, step: int, config: BaseModel, model: nn.Module, ema, opt, rng: torch.Generator
+) -> None:
+    """Write a training checkpoint (module docstring) to ``path`` atomically."""
+    tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
+    if ema is not None:
+        tensors.update({f"ema.{k}": v for k, v in ema.items()})
+    osd = opt.state_dict()
+    scalars: dict[str, dict[str, object]] = {}
+    for idx, state in osd["state"].items():
+        for key, val in state.items():
+            if torch.is_tensor(val):
+                tensors[f"optim.{idx}.{key}"] = val
+            else:
+                scalars.setdefault(str(idx), {})[key] = val
+    tensors["rng.train"] = rng.get_state()
+    meta = {
+        "format": fmt,
+        "step": str(step),
+        "config": config.model_dump_json(),
+        "optim.param_groups": json.dumps(osd["param_groups"]),
+        "optim.scalars": json.dumps(scalars),
+    }
+    save_tensors(path, tensors, meta)
+
+
+def load_checkpoint(path: Path, fmt: str, model: nn.Module, ema, opt, rng: torch.Generator, device) -> int:
+    """Restore ``model``, ``ema`` (a state dict updated in place), ``opt`` and ``rng`` from a training
+    checkpoint of format ``fmt``; returns its step."""
+    tensors, meta = load_tensors(path)
+    if meta.get("format") != fmt:
+        raise LasagnaError(f"format is {meta.get('format')!r}; expected {fmt!r}", str(path))
+    load_state_strict(model, {k[6:]: v for k, v in tensors.items() if k.startswith("model.")}, str(path))
+    if ema is not None:
+        for k in ema:
+            if f"ema.{k}" not in tensors:
+                raise LasagnaError(f"checkpoint has no EMA tensor {k}; expected one (ema_decay is set)", str(path))
+            ema[k] = tensors[f"ema.{k}"].to(device)
+    state: dict[int, dict[str, object]] = {}
+    for k, v in tensors.items():
+        if k.startswith("optim."):
+            _, idx, key = k.split(".", 2)
+            state.setdefault(int(idx), {})[key] = v.to(device) if key != "step" else v
+    for idx, vals in json.loads(meta.get("optim.scalars", "{}")).items():
+        state.setdefault(int(idx), {}).update(vals)
+    opt.load_state_dict({"state": state, "param_groups": json.loads(meta["optim.param_groups"])})
+    rng.set_state(tensors["rng.train"])
+    return int(meta["step"])
+
+
+def check_same_run(out: Path, config: C) -> None:
+    """Record ``config`` in ``out``; refuse to resume a folder trained with a different config
+    (fields in ``RESUMABLE`` may differ)."""
+    path = out / RUN_CONFIG
+    if path.is_file():
+        try:
+            old = type(config).model_validate_json(path.read_text(encoding="utf-8"))
+        except ValidationError as exc:
+            raise describe_validation_error(exc, str(path)) from None
+        a, b = old.model_dump(exclude=set(RESUMABLE)), config.model_dump(exclude=set(RESUMABLE))
+        diff = sorted(k for k in a if a[k] != b[k])
+        if diff:
+            raise LasagnaError(
+                f"this folder holds a run with different {', '.join(diff)}; expected the same config to resume "
+                "(or a new folder)",
+                str(out),
+            )
+    atomic_write_text(path, config.model_dump_json(indent=2) + "\n")

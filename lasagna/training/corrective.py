@@ -19,20 +19,17 @@ Output folder::
       metrics.json             held-out L_k of the trained b̂ and of the trivial b̂ = z, and their ratio
 
 Start again with the same ``out_dir`` after a kill and training continues from the last checkpoint
-with the same random stream (every random draw — data, t, ε — comes from one generator whose state
+with the same random stream (every random draw — data, t, ε — comes from one ``rng`` whose state
 is checkpointed), so a resumed run reproduces the uninterrupted one. ``max_minutes`` bounds one
 invocation; the run then checkpoints and stops, and the next invocation continues.
 
-The data source is a callable ``sample_batch(batch, generator) -> (images in [0, 1] (B, 3, H, W),
+The data source is a callable ``sample_batch(batch, rng) -> (images in [0, 1] (B, 3, H, W),
 label_idx (B,) into the prior's vocabulary, cond_image (B, C, H, W) in [0, 1] or None)``.
 """
 from __future__ import annotations
 
-import argparse
-import importlib
 import json
 import math
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Literal
@@ -41,16 +38,16 @@ import torch
 from pydantic import ConfigDict, Field, model_validator
 
 from lasagna.errors import LasagnaError
-from lasagna.io.atomic import atomic_write_text
+from lasagna.atomic import atomic_write_text
 from lasagna.losses.corrective import Corrective, CorrectiveConfig, TrivialCorrective, lk_loss
 from lasagna.priors.base import Condition, Prior
 from lasagna.priors.nn import randn
-from lasagna.training import LoopConfig, train_loop
+from lasagna.training.loop import LoopConfig, train_loop
 
 Source = Callable[[int, torch.Generator], tuple[torch.Tensor, torch.Tensor, "torch.Tensor | None"]]
 
 CHECKPOINT_FORMAT = "lasagna.corrective_checkpoint"
-_EVAL_SEED_OFFSET = 1_000_003  # the held-out batches come from their own generator, never the training one
+_EVAL_SEED_OFFSET = 1_000_003  # the held-out batches come from their own rng, never the training one
 
 
 class CorrectiveTrainConfig(LoopConfig):
@@ -94,13 +91,13 @@ class Triplet:
     image: torch.Tensor | None  # (B, C_cond, H, W) in [0, 1]
 
 
-def make_triplets(prior: Prior, source: Source, batch: int, generator: torch.Generator, branch: str, t_min: float, t_max: float,
+def make_triplets(prior: Prior, source: Source, batch: int, rng: torch.Generator, branch: str, t_min: float, t_max: float,
                   device: torch.device, t_range: tuple[int, int] | None = None) -> Triplet:
     """Draw clean images, noise them at t ~ U(t_min, t_max), and take the prior's x̂₀ (one network pass).
 
     ``t_range`` (lo, hi) instead draws integer timesteps uniformly from [lo, hi) (a spectral fit's bucket).
     """
-    images, label_idx, cond_image = source(batch, generator)
+    images, label_idx, cond_image = source(batch, rng)
     if images.dim() != 4 or images.shape[0] != batch:
         raise LasagnaError(f"images have shape {tuple(images.shape)}; expected ({batch}, C, H, W)", "source")
     images, label_idx = images.to(device), label_idx.to(device=device, dtype=torch.long)
@@ -110,11 +107,11 @@ def make_triplets(prior: Prior, source: Source, batch: int, generator: torch.Gen
     with torch.no_grad():
         z = prior.encode(images).float()
     if t_range is None:
-        u = t_min + (t_max - t_min) * torch.rand((batch,), generator=generator, device=generator.device)
+        u = t_min + (t_max - t_min) * torch.rand((batch,), generator=rng, device=rng.device)
         t = sched.continuous_to_index(u).to(device)
     else:
-        t = torch.randint(t_range[0], t_range[1], (batch,), generator=generator, device=generator.device).to(device)
-    z_t = sched.add_noise(z, randn(tuple(z.shape), generator, device, z.dtype), t)
+        t = torch.randint(t_range[0], t_range[1], (batch,), generator=rng, device=rng.device).to(device)
+    z_t = sched.add_noise(z, randn(tuple(z.shape), rng, device, z.dtype), t)
     if int(label_idx.min()) < 0 or int(label_idx.max()) > null:
         raise LasagnaError(f"label_idx must lie in [0, {null}] (the null index is {null}); got {label_idx.tolist()}", "source")
     labels = [prior.vocabulary[i] if i < null else "" for i in label_idx.tolist()]
@@ -166,12 +163,12 @@ def train_corrective(prior: Prior, source: Source, config: CorrectiveTrainConfig
         torch.manual_seed(cfg.seed)
         model = Corrective(cc)
 
-    # Held-out batches: their own generator, drawn before training, identical across resumes.
-    eval_gen = torch.Generator().manual_seed(cfg.seed + _EVAL_SEED_OFFSET)
-    held_out = [make_triplets(prior, source, cfg.batch_size, eval_gen, cfg.branch, cfg.t_min, cfg.t_max, device) for _ in range(cfg.eval_batches)]
+    # Held-out batches: their own rng, drawn before training, identical across resumes.
+    eval_rng = torch.Generator().manual_seed(cfg.seed + _EVAL_SEED_OFFSET)
+    held_out = [make_triplets(prior, source, cfg.batch_size, eval_rng, cfg.branch, cfg.t_min, cfg.t_max, device) for _ in range(cfg.eval_batches)]
 
-    def step_fn(net: torch.nn.Module, gen: torch.Generator, step: int) -> tuple[torch.Tensor, dict[str, float]]:
-        tr = make_triplets(prior, source, cfg.batch_size, gen, cfg.branch, cfg.t_min, cfg.t_max, device)
+    def step_fn(net: torch.nn.Module, rng: torch.Generator, step: int) -> tuple[torch.Tensor, dict[str, float]]:
+        tr = make_triplets(prior, source, cfg.batch_size, rng, cfg.branch, cfg.t_min, cfg.t_max, device)
         loss = lk_loss(net(tr.z, tr.t, cond_image=tr.image, label_idx=tr.label), tr.z_hat)
         return loss, {"lk": float(loss.detach())}
 
@@ -194,7 +191,7 @@ def fit_spectral(prior: Prior, source: Source, out_dir: str | Path, *, batch_siz
     """Fit the spectral b̂ (``spectral.py``) in closed form and write ``out_dir/corrective`` + metrics.json.
 
     ``batches`` batches of ``batch_size`` clean images per timestep bucket; held-out L_k against
-    b̂ = z on ``eval_batches`` batches from the same generator stream as ``train_corrective``'s.
+    b̂ = z on ``eval_batches`` batches from the same random stream as ``train_corrective``'s.
     """
     from lasagna.losses.spectral import SpectralCorrectiveConfig, fit_spectral_corrective
 
@@ -205,13 +202,13 @@ def fit_spectral(prior: Prior, source: Source, out_dir: str | Path, *, batch_siz
     channels, h, w = prior.sample_shape
     T = prior.schedule.num_steps
     config = SpectralCorrectiveConfig(channels=channels, height=h, width=w, buckets=buckets, num_timesteps=T)
-    eval_gen = torch.Generator().manual_seed(seed + _EVAL_SEED_OFFSET)
-    held_out = [make_triplets(prior, source, batch_size, eval_gen, branch, t_min, t_max, device) for _ in range(eval_batches)]
-    gen = torch.Generator().manual_seed(seed)
+    eval_rng = torch.Generator().manual_seed(seed + _EVAL_SEED_OFFSET)
+    held_out = [make_triplets(prior, source, batch_size, eval_rng, branch, t_min, t_max, device) for _ in range(eval_batches)]
+    rng = torch.Generator().manual_seed(seed)
 
     def draw(k: int):
         lo, hi = -(-k * T // buckets), -(-(k + 1) * T // buckets)  # ceil: exactly the t with t·buckets // T == k
-        tr = make_triplets(prior, source, batch_size, gen, branch, t_min, t_max, device, t_range=(lo, hi))
+        tr = make_triplets(prior, source, batch_size, rng, branch, t_min, t_max, device, t_range=(lo, hi))
         return tr.z, tr.t, tr.z_hat
 
     model = fit_spectral_corrective(config, draw, batches)
@@ -224,98 +221,3 @@ def fit_spectral(prior: Prior, source: Source, out_dir: str | Path, *, batch_siz
                "lk_trivial": result.lk_trivial, "ratio": ratio, "held_out_samples": eval_batches * batch_size}
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
     return result
-
-
-# -- command line (wired as `lasagna train-corrective` by the CLI) -------------------------------
-def _import_callable(spec: str) -> Source:
-    module, sep, attr = spec.partition(":")
-    if not sep or not module or not attr:
-        raise LasagnaError(f"got {spec!r}; expected module:callable, e.g. lasagna.world.source:sample_batch", "--source")
-    try:
-        obj = getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError) as exc:
-        raise LasagnaError(f"cannot import {spec!r} ({exc})", "--source") from None
-    if not callable(obj):
-        raise LasagnaError(f"{spec!r} is not callable; expected sample_batch(batch, generator)", "--source")
-    return obj
-
-
-def _filters(text: str) -> tuple[int, ...]:
-    try:
-        return tuple(int(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers such as 32,64,128; got {text!r}") from None
-
-
-def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
-    p = p or argparse.ArgumentParser(prog="lasagna train-corrective", description="Train the LMC-SDS manifold corrective b̂ for a prior (resumable).")
-    p.add_argument("--prior", required=True, help="folder of a UNetPrior (model.safetensors + config.json)")
-    p.add_argument("--kind", choices=("network", "spectral"), default="network",
-                   help="network: the paper's UNet b̂ trained with L_k; spectral: a per-t linear frequency response "
-                        "fitted in closed form (lasagna.losses.spectral)")
-    p.add_argument("--batches", type=int, default=8, help="spectral: batches of clean images per timestep bucket")
-    p.add_argument("--buckets", type=int, default=50, help="spectral: timestep buckets")
-    p.add_argument("--task", choices=("relight", "colorize", "light"), default=None,
-                   help="draw clean images from the procedural world's train split for this prior task")
-    p.add_argument("--source", default=None, help="module:callable, sample_batch(batch, generator) -> (images, label_idx, cond_image); instead of --task")
-    p.add_argument("--out", required=True, help="output folder; run again with the same folder to resume")
-    p.add_argument("--steps", type=int, default=20_000)
-    p.add_argument("--batch-size", type=int, default=32)
-    p.add_argument("--lr", type=float, default=1e-4)
-    p.add_argument("--filters", type=_filters, default=(32, 64, 128), help="filters per level, e.g. 32,64,128")
-    p.add_argument("--sees-condition", action="store_true", help="b̂ also sees the conditioning image and the label")
-    p.add_argument("--branch", choices=("uncond", "cond"), default="uncond")
-    p.add_argument("--t-min", type=float, default=0.02)
-    p.add_argument("--t-max", type=float, default=0.98)
-    p.add_argument("--ema", type=float, default=None, help="EMA decay, e.g. 0.999 (off by default)")
-    p.add_argument("--checkpoint-every", type=int, default=500)
-    p.add_argument("--log-every", type=int, default=10)
-    p.add_argument("--eval-batches", type=int, default=8)
-    p.add_argument("--max-minutes", type=float, default=None)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--no-progress", action="store_true")
-    return p
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m lasagna.losses.corrective_train …`` is ``lasagna train-corrective …``."""
-    from lasagna.cli import main as cli_main
-
-    return cli_main(["train-corrective", *(sys.argv[1:] if argv is None else argv)])
-
-
-def run(args: argparse.Namespace) -> int:
-    """The ``train-corrective`` subcommand; bad input raises (the CLI prints it as one line, exit 2)."""
-    from lasagna.priors.unet import UNetPrior
-
-    prior = UNetPrior.from_pretrained(args.prior, device=args.device)
-    if (args.task is None) == (args.source is None):
-        raise LasagnaError("give exactly one of --task and --source", "train-corrective")
-    if args.task is not None:
-        from lasagna.priors.train import world_source
-
-        source = world_source(args.task, prior.config.resolution)
-    else:
-        source = _import_callable(args.source)
-    if args.kind == "spectral":
-        result = fit_spectral(prior, source, args.out, batch_size=args.batch_size, batches=args.batches, buckets=args.buckets,
-                              branch=args.branch, eval_batches=args.eval_batches, t_min=args.t_min, t_max=args.t_max,
-                              seed=args.seed, device=args.device)
-        print(json.dumps({"kind": "spectral", "lk_trained": result.lk_trained, "lk_trivial": result.lk_trivial, "ratio": result.ratio}))
-        return 0
-    cond_channels = prior.config.cond_channels
-    config = CorrectiveTrainConfig(
-        corrective=corrective_config_for(prior, args.filters, args.sees_condition, cond_channels),
-        steps=args.steps, batch_size=args.batch_size, lr=args.lr, t_min=args.t_min, t_max=args.t_max,
-        branch=args.branch, ema_decay=args.ema, checkpoint_every=args.checkpoint_every, log_every=args.log_every,
-        eval_batches=args.eval_batches, max_minutes=args.max_minutes, seed=args.seed, progress=not args.no_progress,
-    )
-    result = train_corrective(prior, source, config, args.out, device=args.device)
-    print(json.dumps({"step": result.step, "stopped": result.stopped, "lk_trained": result.lk_trained,
-                      "lk_trivial": result.lk_trivial, "ratio": result.ratio}))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

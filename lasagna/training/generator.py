@@ -4,7 +4,7 @@
                              corrective="runs/relight-32-bhat/corrective", steps=3000, max_minutes=30)
     result = train_layer_generator(config, "runs/shading-gen")      # resumable: run again to continue
 
-Each step draws world scenes (``tasks.task_batch``: the base layer of the preset's task and a label
+Each step draws world scenes (``lasagna.training.tasks.task_batch``: the base layer of the preset's task and a label
 from the vocabulary), runs the generator, and minimises ``objective.ScoreObjective`` — LMC-SDS by
 default, with the LMC-SDS network recipe's cosine schedule: the score weight rises 0.1 → 1 and the
 L2 to the input falls 1 → 0.1 over ``weights``' ramp ("let the network first focus on reconstructing
@@ -15,7 +15,7 @@ forward pass edits an unseen image.
 layer (mean squared error to the true shading, colour+α or glow): the *supervised ceiling* reported
 beside every distilled number. No prior is needed then.
 
-The loop is ``lasagna.training.train_loop``: progress bar, EMA, atomic checkpoints, resume after a
+The loop is ``lasagna.training.loop.train_loop``: progress bar, EMA, atomic checkpoints, resume after a
 kill (the same folder continues bit for bit), time budget, seed; ``train_config.json`` (this config)
 beside the checkpoint. The final generator (EMA weights when enabled) is saved to ``out/generator``
 and its error on ``eval_count`` scenes of ``eval_split`` to ``out/metrics.json``.
@@ -31,33 +31,29 @@ their random draws, not in their statistics). Only rank 0 writes files.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
-import os
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
-from pydantic import ConfigDict, Field, ValidationError, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
 from lasagna.distill.objective import ConditionImage, ScoreObjective, build_loss
 from lasagna.distill.schedules import Weights
 from lasagna.distill.settings import LossName
-from lasagna.distill.tasks import Task, task_batch
 from lasagna.errors import LasagnaError
 from lasagna.generators.layer import composite
 from lasagna.generators.unet import LayerGenerator, LayerGeneratorConfig
-from lasagna.io.atomic import atomic_write_text
-from lasagna.priors import io
+from lasagna.atomic import atomic_write_bytes, atomic_write_text
 from lasagna.priors.base import Prior
-from lasagna.training import LoopConfig, dist_info, init_distributed, shutdown_distributed, train_loop
+from lasagna.training.loop import LoopConfig, dist_info, init_distributed, shutdown_distributed, train_loop
+from lasagna.training.tasks import Task, task_batch
 
 CHECKPOINT_FORMAT = "lasagna.layer_generator_checkpoint"
-_EVAL_SEED_OFFSET = 1_000_003  # the evaluation scenes come from their own generator, never the training one
+_EVAL_SEED_OFFSET = 1_000_003  # the evaluation scenes come from their own rng, never the training one
 
 
 class AmortisedConfig(LoopConfig):
@@ -148,22 +144,22 @@ def _train(cfg: AmortisedConfig, out: Path, prior: Prior | None, corrective, dev
         torch.manual_seed(cfg.seed)
         model = LayerGenerator(cfg.generator)
 
-    def step_fn(net: torch.nn.Module, gen: torch.Generator, step: int) -> tuple[torch.Tensor, dict[str, float]]:
-        seeds = torch.randint(0, 2**62, (chunks,), generator=gen)  # every process draws all: streams stay in step
-        gens = [torch.Generator().manual_seed(int(seeds[k])) for k in mine]
-        data = [task_batch(cfg.task, vocab, micro, g, split=cfg.split, seed=cfg.world_seed, resolution=cfg.resolution,
-                           shadows=cfg.shadows) for g in gens]
+    def step_fn(net: torch.nn.Module, rng: torch.Generator, step: int) -> tuple[torch.Tensor, dict[str, float]]:
+        seeds = torch.randint(0, 2**62, (chunks,), generator=rng)  # every process draws all: streams stay in step
+        rngs = [torch.Generator().manual_seed(int(seeds[k])) for k in mine]
+        data = [task_batch(cfg.task, vocab, micro, r, split=cfg.split, seed=cfg.world_seed, resolution=cfg.resolution,
+                           shadows=cfg.shadows) for r in rngs]
         base = torch.cat([d.base for d in data]).to(device)
         labels = [lab for d in data for lab in d.labels]
         layer = net(base, labels)  # one forward through the (DDP) wrapper
         losses, parts = [], []
-        for j, (g, d) in enumerate(zip(gens, data)):
+        for j, (r, d) in enumerate(zip(rngs, data)):
             sl = slice(j * micro, (j + 1) * micro)
             if objective is None:
                 losses.append(F.mse_loss(layer[sl], d.target.to(device)))
                 parts.append({"mse": float(losses[-1].detach())})
             else:
-                o = objective(base[sl], layer[sl], d.labels, generator=g, step=step)
+                o = objective(base[sl], layer[sl], d.labels, rng=r, step=step)
                 losses.append(o.total)
                 parts.append({k: v for k, v in o.summary().items() if k != "total"})
         metrics = {k: sum(p[k] for p in parts) / len(parts) for k in parts[0]}
@@ -187,8 +183,8 @@ def _train(cfg: AmortisedConfig, out: Path, prior: Prior | None, corrective, dev
 def evaluate(generator: LayerGenerator, cfg: AmortisedConfig, device: torch.device) -> dict[str, float]:
     """Layer and composite error of one forward pass on ``eval_count`` scenes of ``eval_split``, beside
     the identity edit's (PSNR with peak 1, over all pixels)."""
-    g = torch.Generator().manual_seed(cfg.seed + _EVAL_SEED_OFFSET)
-    d = task_batch(cfg.task, cfg.generator.vocabulary, cfg.eval_count, g, split=cfg.eval_split, seed=cfg.world_seed,
+    rng = torch.Generator().manual_seed(cfg.seed + _EVAL_SEED_OFFSET)
+    d = task_batch(cfg.task, cfg.generator.vocabulary, cfg.eval_count, rng, split=cfg.eval_split, seed=cfg.world_seed,
                    resolution=cfg.resolution, shadows=cfg.shadows)
     base, target = d.base.to(device), d.target.to(device)
     spec = generator.spec
@@ -225,27 +221,9 @@ def _load_corrective(path: str | None, device: torch.device):
     return load_corrective(Path(path), device=device)
 
 
-# -- command line (also what torchrun runs: python -m torch.distributed.run ... -m lasagna.distill.amortised) --
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m lasagna.distill.amortised", description="Train a layer generator (resumable; torchrun-ready).")
-    p.add_argument("--config", required=True, help="AmortisedConfig as JSON")
-    p.add_argument("--out", required=True, help="run folder; run again with the same folder to resume")
-    p.add_argument("--device", default=None)
-    args = p.parse_args(argv)
-    try:
-        config = AmortisedConfig.model_validate_json(Path(args.config).read_text(encoding="utf-8"))
-        result = train_layer_generator(config, args.out, device=args.device)
-    except ValidationError as exc:
-        msg, where = io.describe_validation_error(exc, args.config)
-        print(f"error: {where}: {msg}", file=sys.stderr)
-        return 2
-    except (LasagnaError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    if os.environ.get("RANK", "0") == "0":  # the process group is closed by now: torchrun's variable says who
-        print(json.dumps(result.metrics))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+def install_generator(source: Path, preset_dir: Path) -> Path:
+    """Copy a trained generator (model.safetensors + config.json) into ``preset_dir/generator/``, atomically per file."""
+    target = preset_dir / "generator"
+    for name in ("model.safetensors", "config.json"):  # the weights first: a config.json marks a complete folder
+        atomic_write_bytes(target / name, (source / name).read_bytes())
+    return target

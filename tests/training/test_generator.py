@@ -11,17 +11,17 @@ from pathlib import Path
 import pytest
 import torch
 
-from lasagna.distill import AmortisedConfig, Weights, task_batch, train_layer_generator
-from lasagna.distill.amortised import chunking
+from lasagna.distill import Weights
 from lasagna.errors import LasagnaError
 from lasagna.generators import LayerGenerator, LayerGeneratorConfig
 from lasagna.losses.corrective import Corrective, CorrectiveConfig
 from lasagna.priors import GaussianPrior
 from lasagna.priors.unet import UNetConfig, UNetPrior
-from lasagna.training import read_log
+from lasagna.training import AmortisedConfig, read_log, task_batch, train_layer_generator
+from lasagna.training.generator import chunking
 from lasagna.world import VOCABULARY
 
-from .conftest import SHADING
+from tests.distill.conftest import SHADING
 
 ROOT = Path(__file__).resolve().parents[2]
 GEN = LayerGeneratorConfig(layer=SHADING, vocabulary=tuple(VOCABULARY), channels=(8, 16), blocks=1)
@@ -154,7 +154,7 @@ def test_two_processes_equal_one(tmp_path):
 
     one = train_layer_generator(cfg, tmp_path / "one")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--standalone", "-m", "lasagna.distill.amortised",
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--standalone", "-m", "lasagna.cli.torchrun",
            "--config", str(tmp_path / "config.json"), "--out", str(tmp_path / "two")]
     done = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-3000:]

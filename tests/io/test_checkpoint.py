@@ -1,4 +1,4 @@
-"""Saving and loading networks (lasagna.priors.io): round trips, errors that name the file, atomicity."""
+"""Saving and loading networks (lasagna.io.checkpoint): round trips, errors that name the file, atomicity."""
 from __future__ import annotations
 
 import json
@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from lasagna.errors import LasagnaError
-from lasagna.priors import io
+from lasagna.io import checkpoint as io
 from lasagna.priors.unet import ScheduleConfig, UNetPrior
 
 from tests.priors.test_unet import randomize, tiny_config

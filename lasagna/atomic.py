@@ -1,4 +1,5 @@
-"""Atomic file writes: write to a temporary file beside the target, then ``os.replace``.
+"""Atomic file writes (the ground floor every tier may import): write to a temporary file beside the
+target, then ``os.replace``.
 
 A crash, a full disk or an exception half-way leaves the user's existing file untouched and no
 temporary file behind.
@@ -10,6 +11,13 @@ import os
 import tempfile
 from pathlib import Path
 from typing import Iterator
+
+
+def umask_mode(mode: int) -> int:
+    """``mode`` less the process's umask: the permissions ``open``/``mkdir`` would give a new file/folder."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return mode & ~umask
 
 
 @contextlib.contextmanager
@@ -29,10 +37,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     tmp_path = Path(tmp)
     try:
         yield tmp_path
-        # mkstemp creates 0600; give the file the permissions a plain open() would.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp_path, 0o666 & ~umask)
+        os.chmod(tmp_path, umask_mode(0o666))  # mkstemp creates 0600; give what a plain open() would
         os.replace(tmp_path, target)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

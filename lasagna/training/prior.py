@@ -11,17 +11,16 @@ and classifier-free label dropout, on fresh world batches generated on the fly (
   conditioned on the unlit image (3 channels) and the glow's label (warm, cool, white).
 
 The conditioning image is what Lasagna's base layer will be at distillation time. Every random draw
-(which scenes, t, ε, label dropout) comes from the loop's checkpointed generator, so a killed run
+(which scenes, t, ε, label dropout) comes from the loop's checkpointed ``rng``, so a killed run
 resumes bit for bit (``lasagna.training``). Scenes come from the ``train`` split only; ``val`` and
 ``heldout`` stay unseen for evaluation.
+
+The command line is ``lasagna train-prior`` (``lasagna.cli.train_prior``)::
 
     lasagna train-prior --task relight --out runs/relight-32 --minutes 30
 """
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 from pathlib import Path
 from typing import Literal
 
@@ -29,15 +28,12 @@ import torch
 from pydantic import ConfigDict, Field
 
 from lasagna.errors import LasagnaError
-from lasagna.priors import io
+from lasagna.io.checkpoint import load_state_strict, load_tensors, read_config
 from lasagna.priors.unet import UNetConfig, UNetPrior
-from lasagna.training import LoopConfig, train_loop
+from lasagna.training.loop import LoopConfig, train_loop
+from lasagna.training.tasks import SCENE_RANGE, Task
 
 CHECKPOINT_FORMAT = "lasagna.prior_checkpoint"
-Task = Literal["relight", "colorize", "light"]
-# The world's scene index range the trainer draws batches from: large enough that no batch repeats
-# in any run this CPU can afford (2**30 scenes), small enough for int32 seeds.
-_SCENE_RANGE = 2**30
 
 
 class PriorTrainConfig(LoopConfig):
@@ -77,7 +73,7 @@ def unet_config_for(task: Task, resolution: int = 32, channels: tuple[int, ...] 
                       res_blocks=res_blocks, attention=attention, vocabulary=task_vocabulary(task), prediction=prediction)
 
 
-def task_batch(task: Task, scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def prior_batch(task: Task, scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(x₀ in [0, 1], label index, conditioning image in [0, 1]) of a world ``Scene`` batch for ``task``."""
     from lasagna.world import additive_light, colorization
 
@@ -91,17 +87,17 @@ def task_batch(task: Task, scene) -> tuple[torch.Tensor, torch.Tensor, torch.Ten
 
 
 def world_source(task: Task, resolution: int, split: str = "train", seed: int = 0, shadows: bool = False):
-    """``sample_batch(batch, generator) -> (images, label_idx, cond_image)`` drawing world scenes.
+    """``sample_batch(batch, rng) -> (images, label_idx, cond_image)`` drawing world scenes.
 
     The data-source signature shared with the corrective's trainer; the scenes drawn depend only on
-    ``generator``'s stream.
+    ``rng``'s stream.
     """
     from lasagna.world import generate
 
-    def sample_batch(batch: int, generator: torch.Generator):
-        start = int(torch.randint(0, _SCENE_RANGE, (1,), generator=generator))
+    def sample_batch(batch: int, rng: torch.Generator):
+        start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
         scene = generate(split, batch, seed, resolution, start=start, shadows=shadows)
-        return task_batch(task, scene)
+        return prior_batch(task, scene)
 
     return sample_batch
 
@@ -126,9 +122,9 @@ def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | tor
             state[key] = state[key][-1].expand(len(config.unet.vocabulary) + 1, -1).clone()
         prior.load_state_dict(state)
 
-    def step_fn(net: UNetPrior, gen: torch.Generator, step: int):
-        images, labels, cond = source(config.batch_size, gen)
-        loss = net.training_loss(net.encode(images.to(device)), labels.to(device), cond.to(device), gen, config.p_uncond)
+    def step_fn(net: UNetPrior, rng: torch.Generator, step: int):
+        images, labels, cond = source(config.batch_size, rng)
+        loss = net.training_loss(net.encode(images.to(device)), labels.to(device), cond.to(device), rng, config.p_uncond)
         return loss, {}
 
     done = train_loop(prior, step_fn, config, config, out_dir, checkpoint_format=CHECKPOINT_FORMAT,
@@ -143,81 +139,38 @@ def prior_from_checkpoint(path: str | Path, ema: bool = True) -> tuple[UNetPrior
 
     Lets a run be measured while it trains, and snapshots of a run be measured afterwards.
     """
-    tensors, meta = io.load_tensors(path)
+    tensors, meta = load_tensors(path)
     if meta.get("format") != CHECKPOINT_FORMAT:
         raise LasagnaError(f"format is {meta.get('format')!r}; expected {CHECKPOINT_FORMAT!r}", str(path))
     config = PriorTrainConfig.model_validate_json(meta["config"])
     prefix = "ema." if ema and any(k.startswith("ema.") for k in tensors) else "model."
     prior = UNetPrior(config.unet)
-    io.load_state_strict(prior, {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}, str(path))
+    load_state_strict(prior, {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}, str(path))
     return prior.eval(), int(meta["step"])
 
 
-def build_parser(p: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
-    p = p or argparse.ArgumentParser(prog="lasagna train-prior", description=__doc__.splitlines()[0])
-    p.add_argument("--task", choices=("relight", "colorize", "light"), default="relight")
-    p.add_argument("--out", required=True, help="run folder; run again with the same folder to resume")
-    p.add_argument("--resolution", type=int, default=32)
-    p.add_argument("--channels", default="32,64,128", help="feature channels per level")
-    p.add_argument("--res-blocks", type=int, default=1)
-    p.add_argument("--attention", action="store_true")
-    p.add_argument("--prediction", choices=("v", "epsilon"), default="v")
-    p.add_argument("--steps", type=int, default=100_000, help="upper bound; --minutes usually stops first")
-    p.add_argument("--minutes", type=float, default=None, help="time budget of this invocation")
-    p.add_argument("--batch-size", type=int, default=64)
-    p.add_argument("--lr", type=float, default=2e-3)
-    p.add_argument("--lr-schedule", choices=("step", "cosine"), default="step",
-                   help="step: constant lr (after warm-up); cosine: anneal to 0 over --steps")
-    p.add_argument("--init-from", default=None,
-                   help="start from this saved prior's weights (its architecture replaces --channels etc.)")
-    p.add_argument("--init-labels", choices=("keep", "fresh"), default="keep",
-                   help="fresh: --init-from may be a prior of another task with the same conditioning channels; "
-                        "its label embedding is replaced (every label starts as its null label)")
-    p.add_argument("--warmup", type=int, default=200)
-    p.add_argument("--ema", type=float, default=0.999)
-    p.add_argument("--ema-warmup", action="store_true",
-                   help="ramp the EMA decay as min(ema, (1+step)/(10+step)): for short runs and fine-tunes, whose "
-                        "average would otherwise keep 0.999^steps of the starting weights")
-    p.add_argument("--grad-clip", type=float, default=1.0)
-    p.add_argument("--checkpoint-every", type=int, default=200)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--no-progress", action="store_true")
-    return p
-
-
-def run(args: argparse.Namespace) -> int:
-    channels = tuple(int(c) for c in str(args.channels).split(","))
-    unet = unet_config_for(args.task, args.resolution, channels, args.res_blocks, args.attention, args.prediction)
-    if args.init_from is not None:
-        unet = io.read_config(args.init_from, UNetPrior.FORMAT, UNetConfig)
-        want = unet_config_for(args.task)
-        if args.init_labels == "fresh":
-            if unet.cond_channels != want.cond_channels:
-                raise LasagnaError(f"it is a prior with {unet.cond_channels} conditioning channel(s); a {args.task} prior "
-                                   f"needs {want.cond_channels}, so its weights cannot start one", "--init-from")
-            unet = unet.model_copy(update={"vocabulary": want.vocabulary})
-        elif (unet.cond_channels, tuple(unet.vocabulary)) != (want.cond_channels, tuple(want.vocabulary)):
-            raise LasagnaError(f"it is a prior with {unet.cond_channels} conditioning channel(s) and labels "
-                               f"{', '.join(unet.vocabulary) or '(none)'}; expected a {args.task} prior "
-                               f"({want.cond_channels} channel(s), labels {', '.join(want.vocabulary)}; "
-                               "--init-labels fresh starts a new vocabulary from it)", "--init-from")
-    config = PriorTrainConfig(
-        task=args.task, unet=unet, init_from=args.init_from, init_labels=args.init_labels, lr_schedule=args.lr_schedule,
-        steps=args.steps, max_minutes=args.minutes, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,
-        ema_decay=args.ema, ema_warmup=args.ema_warmup, grad_clip=args.grad_clip, checkpoint_every=args.checkpoint_every, seed=args.seed,
-        progress=not args.no_progress,
-    )
-    train_prior(config, args.out)
-    print(json.dumps({"out": str(Path(args.out) / "prior"), "task": args.task}))
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m lasagna.priors.train …`` is ``lasagna train-prior …``."""
-    from lasagna.cli import main as cli_main
-
-    return cli_main(["train-prior", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+def run_unet_config(task: Task, unet: UNetConfig, init_from: str | None, init_labels: Literal["keep", "fresh"]) -> UNetConfig:
+    """The UNet config of a run: ``unet``, or with ``init_from`` that prior's own architecture — checked to
+    be a ``task`` prior (or, with ``init_labels="fresh"``, one with the same conditioning channels, given
+    ``task``'s vocabulary)."""
+    if init_from is None:
+        return unet
+    unet = read_config(init_from, UNetPrior.FORMAT, UNetConfig)
+    want = unet_config_for(task)
+    if init_labels == "fresh":
+        if unet.cond_channels != want.cond_channels:
+            raise LasagnaError(
+                f"it is a prior with {unet.cond_channels} conditioning channel(s); a {task} prior "
+                f"needs {want.cond_channels}, so its weights cannot start one",
+                "--init-from",
+            )
+        return unet.model_copy(update={"vocabulary": want.vocabulary})
+    if (unet.cond_channels, tuple(unet.vocabulary)) != (want.cond_channels, tuple(want.vocabulary)):
+        raise LasagnaError(
+            f"it is a prior with {unet.cond_channels} conditioning channel(s) and labels "
+            f"{', '.join(unet.vocabulary) or '(none)'}; expected a {task} prior "
+            f"({want.cond_channels} channel(s), labels {', '.join(want.vocabulary)}; "
+            "--init-labels fresh starts a new vocabulary from it)",
+            "--init-from",
+        )
+    return unet

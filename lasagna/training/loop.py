@@ -11,7 +11,8 @@ Start again with the same ``out_dir`` after a kill and training continues from t
 with the same random stream: every random draw of a step (data, t, ε, dropout) must come from the one
 ``torch.Generator`` the loop passes to ``step_fn``, whose state is checkpointed, so a resumed run
 reproduces the uninterrupted one bit for bit. ``max_minutes`` bounds one invocation; the run then
-checkpoints and stops, and the next invocation continues.
+checkpoints and stops, and the next invocation continues. The checkpoint's format and the run folder's
+config check are ``lasagna.io.checkpoint``'s.
 """
 from __future__ import annotations
 
@@ -22,32 +23,21 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Literal, TypeVar
+from typing import Callable, Literal
 
 import torch
 import torch.distributed as dist
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 from tqdm.auto import tqdm
 
+from lasagna.atomic import atomic_write_text
+from lasagna.distill.schedules import cosine_interp
 from lasagna.errors import LasagnaError
-from lasagna.io.atomic import atomic_write_text
-from lasagna.priors import io
+from lasagna.io.checkpoint import CHECKPOINT, check_same_run, load_checkpoint, save_checkpoint
 
-CHECKPOINT = "checkpoint.safetensors"
-CONFIG_FILE = "train_config.json"
 LOG_FILE = "log.jsonl"
-# Fields that may change between invocations on one out_dir: they change neither the random stream
-# nor the model (extending ``steps``, a new time budget, other logging cadences).
-RESUMABLE = frozenset({"steps", "max_minutes", "progress", "checkpoint_every", "log_every", "eval_batches"})
 
-M = TypeVar("M", bound=BaseModel)
 StepFn = Callable[[torch.nn.Module, torch.Generator, int], "tuple[torch.Tensor, dict[str, float]]"]
-
-
-def cosine_interp(start: float, end: float, frac: float) -> float:
-    """start at frac ≤ 0, end at frac ≥ 1, along half a cosine (slow at both ends)."""
-    f = min(max(frac, 0.0), 1.0)
-    return end + (start - end) * 0.5 * (1.0 + math.cos(math.pi * f))
 
 
 class LoopConfig(BaseModel):
@@ -95,69 +85,6 @@ class LoopResult:
     model: torch.nn.Module  # the final network (EMA weights when enabled), in eval mode
     step: int
     stopped: Literal["done", "time"]
-
-
-# -- checkpoints --------------------------------------------------------------------------------
-def save_checkpoint(path: Path, fmt: str, step: int, config: BaseModel, model, ema, opt, gen: torch.Generator) -> None:
-    tensors = {f"model.{k}": v for k, v in model.state_dict().items()}
-    if ema is not None:
-        tensors.update({f"ema.{k}": v for k, v in ema.items()})
-    osd = opt.state_dict()
-    scalars: dict[str, dict[str, object]] = {}
-    for idx, state in osd["state"].items():
-        for key, val in state.items():
-            if torch.is_tensor(val):
-                tensors[f"optim.{idx}.{key}"] = val
-            else:
-                scalars.setdefault(str(idx), {})[key] = val
-    tensors["rng.train"] = gen.get_state()
-    meta = {
-        "format": fmt,
-        "step": str(step),
-        "config": config.model_dump_json(),
-        "optim.param_groups": json.dumps(osd["param_groups"]),
-        "optim.scalars": json.dumps(scalars),
-    }
-    io.save_tensors(path, tensors, meta)
-
-
-def load_checkpoint(path: Path, fmt: str, model, ema, opt, gen: torch.Generator, device) -> int:
-    tensors, meta = io.load_tensors(path)
-    if meta.get("format") != fmt:
-        raise LasagnaError(f"format is {meta.get('format')!r}; expected {fmt!r}", str(path))
-    io.load_state_strict(model, {k[6:]: v for k, v in tensors.items() if k.startswith("model.")}, str(path))
-    if ema is not None:
-        for k in ema:
-            if f"ema.{k}" not in tensors:
-                raise LasagnaError(f"checkpoint has no EMA tensor {k}; expected one (ema_decay is set)", str(path))
-            ema[k] = tensors[f"ema.{k}"].to(device)
-    state: dict[int, dict[str, object]] = {}
-    for k, v in tensors.items():
-        if k.startswith("optim."):
-            _, idx, key = k.split(".", 2)
-            state.setdefault(int(idx), {})[key] = v.to(device) if key != "step" else v
-    for idx, vals in json.loads(meta.get("optim.scalars", "{}")).items():
-        state.setdefault(int(idx), {}).update(vals)
-    opt.load_state_dict({"state": state, "param_groups": json.loads(meta["optim.param_groups"])})
-    gen.set_state(tensors["rng.train"])
-    return int(meta["step"])
-
-
-def check_same_run(out: Path, config: M) -> None:
-    """Record ``config`` in ``out``; refuse to resume a folder trained with a different config."""
-    path = out / CONFIG_FILE
-    if path.is_file():
-        try:
-            old = type(config).model_validate_json(path.read_text(encoding="utf-8"))
-        except ValidationError as exc:
-            raise LasagnaError(*io.describe_validation_error(exc, str(path))) from None
-        a, b = old.model_dump(exclude=set(RESUMABLE)), config.model_dump(exclude=set(RESUMABLE))
-        diff = sorted(k for k in a if a[k] != b[k])
-        if diff:
-            raise LasagnaError(
-                f"this folder holds a run with different {', '.join(diff)}; expected the same config to resume (or a new folder)", str(out)
-            )
-    atomic_write_text(path, config.model_dump_json(indent=2) + "\n")
 
 
 def trim_log(path: Path, step: int) -> None:
@@ -276,7 +203,7 @@ def train_loop(
     desc: str = "train",
     device: torch.device | str = "cpu",
 ) -> LoopResult:
-    """Train ``model`` with Adam on ``step_fn(model, generator, step) -> (loss, metrics)`` (or resume).
+    """Train ``model`` with Adam on ``step_fn(model, rng, step) -> (loss, metrics)`` (or resume).
 
     ``model`` must arrive freshly initialised (seeded by the caller); on resume its weights are replaced
     by the checkpoint's. ``run_config`` is the trainer's whole config: saved beside the checkpoint and
@@ -308,11 +235,11 @@ def train_loop(
         net = DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
     opt = torch.optim.Adam(model.parameters(), lr=loop.lr)
     ema = {k: v.detach().clone() for k, v in model.state_dict().items()} if loop.ema_decay is not None else None
-    gen = torch.Generator().manual_seed(loop.seed)
+    rng = torch.Generator().manual_seed(loop.seed)
     ckpt, log_path = out / CHECKPOINT, out / LOG_FILE
     step = 0
     if ckpt.is_file():
-        step = load_checkpoint(ckpt, checkpoint_format, model, ema, opt, gen, device)
+        step = load_checkpoint(ckpt, checkpoint_format, model, ema, opt, rng, device)
         if info.is_main:
             trim_log(log_path, step)
     elif info.is_main and log_path.exists():
@@ -332,7 +259,7 @@ def train_loop(
             lr = loop.lr_at(step)
             for group in opt.param_groups:
                 group["lr"] = lr
-            loss, metrics = step_fn(net, gen, step)
+            loss, metrics = step_fn(net, rng, step)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if loop.grad_clip is not None:
@@ -355,14 +282,14 @@ def train_loop(
                     log.flush()
             if step % loop.checkpoint_every == 0:
                 if info.is_main:
-                    save_checkpoint(ckpt, checkpoint_format, step, run_config, model, ema, opt, gen)
+                    save_checkpoint(ckpt, checkpoint_format, step, run_config, model, ema, opt, rng)
                 saved_at = step
     finally:
         bar.close()
         if log is not None:
             log.close()
     if info.is_main and (saved_at != step or not ckpt.is_file()):
-        save_checkpoint(ckpt, checkpoint_format, step, run_config, model, ema, opt, gen)
+        save_checkpoint(ckpt, checkpoint_format, step, run_config, model, ema, opt, rng)
     if info.world_size > 1:
         dist.barrier()  # the checkpoint exists for every process once any of them returns
 

@@ -1,0 +1,132 @@
+"""The ``lasagna`` console script: the only place that parses arguments or prints.
+
+    lasagna composite STACK [-o out.png] [-v]     render STACK/composite.png (or out.png)
+    lasagna export STACK [--ora F] [--psd F] [--layers DIR]
+    lasagna validate STACK                        check the document and every PNG: "ok: N layers"
+    lasagna schema [stack|preset] [--out DIR]     print (or write) the JSON Schemas
+    lasagna import-ora IN.ora -o FOLDER           an OpenRaster file as a stack folder
+    lasagna edit IMAGE --layer P --condition L -o OUT   add a learned layer; writes a stack folder
+    lasagna render STACK [--all]                  render learned layers from their stored settings
+    lasagna layers                                list the learned-layer catalogue
+    lasagna demo -o DIR                           relight, colourise and light the bundled examples
+    lasagna world -o DIR --split S --count N      procedural scenes as stack folders (lasagna.world)
+    lasagna train-prior --task T --out DIR        train a conditional prior on the world (resumable)
+    lasagna train-corrective --prior P --out DIR  train or fit the LMC-SDS corrective b̂ of a prior
+    lasagna train-layer --preset P [--out DIR]    train a preset's amortised generator
+
+One module per command (``lasagna/cli/<command>.py``, ``-`` spelled ``_``), each with one convention:
+``HELP`` (one line), ``add_arguments(parser)`` and ``run(args) -> exit status``. A command's module
+imports the tiers it drives inside those functions, so ``lasagna --help`` stays light. Library modules
+raise and return; they never print.
+
+STACK is a stack folder or its stack.json. Any bad input ends with one line on stderr,
+``lasagna: error: <where>: <what>; expected <…>``, exit status 2, no traceback, and no output file
+touched: every output is rendered/encoded in memory and written atomically at the end. Set
+``LASAGNA_DEBUG=1`` to see the traceback of an unexpected error. Ctrl-C exits with 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import warnings
+from types import ModuleType
+from typing import Sequence
+
+from pydantic import ValidationError
+
+from lasagna.cli import (
+    composite,
+    demo,
+    edit,
+    export,
+    import_ora,
+    layers,
+    render,
+    schema,
+    train_corrective,
+    train_layer,
+    train_prior,
+    validate,
+    world,
+)
+from lasagna.cli.common import PROG, add_command, one_line, warn
+from lasagna.errors import LasagnaError, describe_validation_error
+from lasagna.version import __version__
+
+# The subcommands in the order ``lasagna --help`` lists them.
+COMMANDS: dict[str, ModuleType] = {
+    "composite": composite,
+    "export": export,
+    "validate": validate,
+    "schema": schema,
+    "import-ora": import_ora,
+    "edit": edit,
+    "render": render,
+    "layers": layers,
+    "demo": demo,
+    "world": world,
+    "train-prior": train_prior,
+    "train-corrective": train_corrective,
+    "train-layer": train_layer,
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one line, exit 2 (argparse prints the whole usage otherwise)
+        self.exit(2, f"{self.prog}: error: {message}; see '{self.prog} --help'\n")
+
+
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The parser; with ``argv``, only the chosen subcommand's arguments are built (they may import
+    their tier), the others are listed by name and help alone."""
+    parser = _Parser(prog=PROG, description="Layered image compositing with learned layers.")
+    parser.add_argument("--version", action="version", version=f"{PROG} {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    chosen = None if argv is None else next((a for a in argv if not a.startswith("-")), None)
+    for name, command in COMMANDS.items():
+        add_command(sub, name, command, arguments=argv is None or name == chosen)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the CLI; returns the exit status (0 ok, 2 bad input, 130 interrupted)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        args = build_parser(argv).parse_args(argv)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")
+            warnings.showwarning = lambda message, *a, **k: warn(one_line(str(message)))  # type: ignore[assignment]
+            return args.run(args)
+    except KeyboardInterrupt:
+        return 130
+    except LasagnaError as err:
+        print(f"{PROG}: error: {one_line(str(err))}", file=sys.stderr)
+        return 2
+    except ValidationError as err:  # a config built from the arguments broke a rule of its model
+        print(f"{PROG}: error: {one_line(str(describe_validation_error(err, prefix=args.command)))}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print(f"{PROG}: error: out of memory; expected a smaller stack (see --max-pixels)", file=sys.stderr)
+        return 2
+    except OSError as err:
+        where = err.filename or "I/O"
+        print(
+            f"{PROG}: error: {where}: {err.strerror or err}; expected a readable input and a writable output",
+            file=sys.stderr,
+        )
+        return 2
+    except Exception as err:  # a bug, not bad input: still one line, the traceback on request
+        if os.environ.get("LASAGNA_DEBUG"):
+            raise
+        print(
+            f"{PROG}: error: internal error ({type(err).__name__}: {one_line(str(err))}); "
+            "expected none: please report it (LASAGNA_DEBUG=1 shows the traceback)",
+            file=sys.stderr,
+        )
+        return 2

@@ -1,0 +1,36 @@
+"""``lasagna composite``: render a stack's composite PNG."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from lasagna.cli.common import max_pixels_argument
+
+HELP = "render a stack's composite PNG"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("stack", help="stack folder or its stack.json")
+    p.add_argument("-o", "--output", help="PNG to write (default: STACK/composite.png)")
+    p.add_argument("-v", "--verbose", action="store_true", help="list evaluated and skipped layers")
+    max_pixels_argument(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    from lasagna.document import stack_file
+    from lasagna.io.folder import check_writable
+    from lasagna.io.render import render_stack, write_composite
+    from lasagna.io.stack import load_stack
+
+    out = Path(args.output) if args.output else stack_file(args.stack).parent / "composite.png"
+    check_writable(out)
+    stack = load_stack(args.stack, max_pixels=args.max_pixels)
+    result = render_stack(stack)
+    write_composite(result, out)
+    print(f"wrote {out} ({stack.width}x{stack.height}, {len(result.evaluated)} of {len(stack.ids)} layers composed)")
+    if args.verbose:
+        print(f"composed: {', '.join(result.evaluated) or '(none)'}")
+        for id, reason in result.skipped.items():
+            print(f"skipped: {id}: {reason}")
+    return 0

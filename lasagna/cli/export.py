@@ -1,0 +1,71 @@
+"""``lasagna export``: a stack as OpenRaster, layered PSD and/or one raw-value PNG per layer."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from lasagna.cli.common import max_pixels_argument, warn
+from lasagna.errors import LasagnaError, PathError
+
+HELP = "export a stack as OpenRaster, PSD and/or per-layer PNGs"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("stack", help="stack folder or its stack.json")
+    p.add_argument("--ora", help="OpenRaster file to write")
+    p.add_argument("--psd", help="layered PSD file to write (needs the psd extra)")
+    p.add_argument("--layers", metavar="DIR", help="folder for one raw-value PNG per layer")
+    max_pixels_argument(p)
+
+
+def run(args: argparse.Namespace) -> int:
+    from lasagna.atomic import atomic_write_bytes, atomic_write_text
+    from lasagna.export.png import layer_pngs
+    from lasagna.io.folder import check_writable
+    from lasagna.io.render import render_stack
+    from lasagna.io.stack import load_stack
+
+    if not (args.ora or args.psd or args.layers):
+        raise LasagnaError("nothing to export; expected at least one of --ora, --psd, --layers", where="export")
+    for path in (args.ora, args.psd):
+        if path:
+            check_writable(path)
+    if args.layers:
+        check_writable(args.layers, folder=True)
+    if args.psd:
+        from lasagna.export.psd import require_psd_tools
+
+        require_psd_tools()  # fail before any work if psd-tools is missing
+    stack = load_stack(args.stack, max_pixels=args.max_pixels)
+    composite = render_stack(stack).image
+    # Encode everything in memory first; write only once every output is ready.
+    outputs: list[tuple[Path, bytes]] = []
+    if args.ora:
+        from lasagna.export.ora import encode_ora
+
+        outputs.append((Path(args.ora), encode_ora(stack, composite=composite, warn=warn)))
+    if args.psd:
+        from lasagna.export.psd import encode_psd
+
+        outputs.append((Path(args.psd), encode_psd(stack, composite=composite, warn=warn)))
+    layer_files: dict[str, bytes] = {}
+    meta = None
+    if args.layers:
+        layer_files, meta = layer_pngs(stack)
+    try:
+        for path, data in outputs:
+            atomic_write_bytes(path, data)
+            print(f"wrote {path}")
+        if args.layers:
+            folder = Path(args.layers)
+            for name, data in layer_files.items():
+                atomic_write_bytes(folder / name, data)
+            atomic_write_text(folder / "layers.json", json.dumps(meta, indent=2) + "\n")
+            print(f"wrote {len(layer_files)} layer PNGs and layers.json to {folder}")
+    except OSError as exc:
+        raise PathError(
+            f"cannot write ({exc.strerror or exc}); expected a writable location", where=str(exc.filename or "output")
+        ) from None
+    return 0

@@ -1,0 +1,38 @@
+"""``lasagna render``: render a stack's learned layers from their stored generator and settings."""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+from lasagna.cli.common import progress, warn
+from lasagna.errors import PathError
+
+HELP = "render a stack's learned layers from their stored generator and settings"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("stack", help="stack folder or its stack.json")
+    p.add_argument("--all", action="store_true", help="re-render every learned layer, not only those without pixels")
+    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+
+
+
+def run(args: argparse.Namespace) -> int:
+    from lasagna.document import stack_file
+    from lasagna.edit import render_learned
+    from lasagna.io.stack import load_stack
+
+    stack = load_stack(args.stack)
+    folder = stack_file(args.stack).parent
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise PathError("is not writable; expected a stack folder render can write into", str(folder))
+    stack, ids = render_learned(stack, all=args.all, device=args.device, progress=progress(), warn=warn)
+    if not ids:
+        from lasagna.io.render import write_composite
+
+        write_composite(stack.render(), folder / "composite.png")
+        print(f"no learned layer to render (use --all to re-render); wrote {folder / 'composite.png'}")
+        return 0
+    print(f"rendered {', '.join(ids)}; wrote their PNGs, {folder / 'stack.json'} and {folder / 'composite.png'}")
+    return 0
