@@ -42,7 +42,7 @@ def main(out: Path) -> None:
 
     # 3. A stack folder is an input too: a second learned layer, conditioned on the base, per image.
     try:
-        second = edit(first, "shading", "top", on="base", generator="free", steps=40)
+        second = edit(first, "shading", "top", on="base", generator="free", optimize=40)
     except LasagnaError as err:  # no prior in the catalogue: per-image optimisation cannot run
         print(f"skipped the per-image edit: {err}")
         return

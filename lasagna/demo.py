@@ -213,8 +213,8 @@ def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_S
     written: list[Path] = []
 
     def one(image, preset: str, label: str, name: str, title: str, truth: Tensor | None, on: str | None = None) -> None:
-        kw = {"optimize": refine} if runnable[preset] == "amortised" else {"steps": steps}
-        result = edit(image, preset, label, on=on, catalogue_dirs=catalogue_dirs, **kw)
+        optimize = refine if runnable[preset] == "amortised" else steps
+        result = edit(image, preset, label, on=on, catalogue_dirs=catalogue_dirs, optimize=optimize)
         written.append(result.save(out / "stacks" / name, force=True, warn=warn))  # replaces a previous run's stack
         layer = result.stack.document.layer(result.layer_id)
         seen = conditioning_input(result.stack, layer.conditioned_on)  # what the generator saw

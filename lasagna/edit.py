@@ -10,7 +10,8 @@ is the composite of the stack from the bottom up to and including that layer (fo
 base layer, the base itself). ``edit`` puts the new layer on top, conditioned on the top layer
 unless ``on`` names another: an image's edit is conditioned on the image, a stack's on its composite.
 
-**How the layer is made** (``settings["method"]``, recorded in the layer with everything it used):
+**How the layer is made** (``settings["method"]``, recorded in the layer with everything it used; the
+settings' typed model is ``lasagna.learned.LayerSettings``):
 
 * ``amortised`` — the preset's amortised generator (``<catalogue>/<preset>/generator/``; the LMC-SDS
   image-to-image network) in one forward pass. Fully convolutional: any image size. Its weights are
@@ -20,8 +21,9 @@ unless ``on`` names another: an image's edit is conditioned on the image, a stac
   distilled for N steps (``distill_image``, the preset's loss, ω, lr and seed). It starts from an
   edit, not from the identity, so the L2 pull toward the input that eases a run out of the identity
   is off (``Weights()``: score only).
-* ``per-image`` — no amortised generator (or ``generator="free"``): a free layer from the identity
-  edit, distilled for the preset's ``distill.steps`` (or ``optimize``/``steps``) with its defaults.
+* ``per-image`` — no amortised generator (or ``generator="per-image"``, also spelled ``"free"`` as on the
+  command line: a free per-pixel layer): a free layer from the identity edit, distilled for the preset's
+  ``distill.steps`` (or ``optimize``) with its defaults.
   Images larger than the prior use the LMC-SDS patch strategy (``lasagna.distill.per_image``).
 
 The layer itself is made by ``lasagna.learned.make_layer``, for ``edit`` and ``render_learned`` alike.
@@ -50,7 +52,9 @@ from lasagna.document import LearnedLayer
 from lasagna.errors import DocumentError, ImageError, LasagnaError, PathError
 from lasagna.io.folder import check_output_folder, write_stack_folder
 from lasagna.io.stack import Stack, load_stack, resolve_inside, save_stack
-from lasagna.learned import LayerRun, Method, as_stored, choose_method, conditioning_input, file_sha256, make_layer
+from lasagna.learned import (
+    LayerRun, LayerSettings, as_stored, choose_method, conditioning_input, file_sha256, make_layer,
+)
 
 # The largest canvas ``edit`` accepts by default. The generator runs at full resolution: at 2048² its
 # first level alone holds 16 channels × 4 bytes × 4.2 M pixels = 268 MB per activation, a few GB in
@@ -176,7 +180,7 @@ def edit(
     *,
     on: str | None = None,
     id: str | None = None,
-    generator: Method | None = None,
+    generator: str | None = None,
     optimize: int | None = None,
     steps: int | None = None,
     loss: str | None = None,
@@ -191,18 +195,23 @@ def edit(
     """Add a learned layer of ``preset`` for ``condition`` on top of ``image`` (module docstring).
 
     ``image``: an image file, a stack folder, a ``Stack``, or a tensor/array/PIL image. ``on``: the
-    layer it is conditioned on (default: the top layer). ``generator``: ``"amortised"`` or ``"free"``
-    (default: amortised if the preset has a generator). ``optimize``/``steps`` (the same number; give
-    one): per-image steps — after the amortised pass (default 0), or of the free layer (default the
-    preset's). ``loss``, ``guidance``, ``seed``, ``lr`` override the preset's ``distill`` defaults.
+    layer it is conditioned on (default: the top layer). ``generator``: the method, ``"amortised"`` or
+    ``"per-image"`` (``"free"``); default amortised if the preset has a generator. ``optimize``: per-image
+    steps — after the amortised pass (default 0), or of the free layer (default the preset's); the layer's
+    settings record it under the same name. ``steps`` is its old second name, deprecated (a
+    ``DeprecationWarning``; give ``optimize``). ``loss``, ``guidance``, ``seed``, ``lr`` override the
+    preset's ``distill`` defaults.
     """
     start = time.monotonic()
     if preset is None or "/" in str(preset) or isinstance(preset, os.PathLike):
         raise LasagnaError(f"preset {str(preset)!r} is not a name; expected a catalogue name (add a catalogue folder "
                            "with LASAGNA_LAYERS)", "preset")
-    if optimize is not None and steps is not None and optimize != steps:
-        raise LasagnaError(f"optimize {optimize} and steps {steps} differ; expected one of them (they are the same number)",
-                           "steps")
+    if steps is not None:
+        warnings.warn("edit(steps=N) is deprecated; use optimize=N (the same number, as the layer's settings "
+                      "record it)", DeprecationWarning, stacklevel=2)
+        if optimize is not None and optimize != steps:
+            raise LasagnaError(f"optimize {optimize} and steps {steps} differ; expected one of them (they are the "
+                               "same number)", "steps")
     n = optimize if optimize is not None else steps
     if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 0):
         raise LasagnaError(f"expected a non-negative integer, got {n!r}", "optimize")
@@ -227,18 +236,20 @@ def edit(
     seconds = time.monotonic() - start
     _record(stack, layer_id, seconds, run, image)
     composite = stack.render().image.detach().clamp(0.0, 1.0)
-    return EditResult(stack=stack, layer_id=layer_id, layer=run.layer, composite=composite, settings=run.settings,
-                      seconds=seconds, history=run.history, files={**carried, **run.files})
+    return EditResult(stack=stack, layer_id=layer_id, layer=run.layer, composite=composite,
+                      settings=run.settings.to_json(), seconds=seconds, history=run.history,
+                      files={**carried, **run.files})
 
 
 def place_layer(stack: Stack, layer_id: str, preset, label: str, on: str, run: LayerRun) -> None:
     """Add (or update) the learned layer ``layer_id`` with ``run``'s pixels, settings and generator."""
+    settings = run.settings.to_json()
     fields = {"id": layer_id, "name": f"{preset.name.capitalize()} ({label})", "kind": "learned", "blend": preset.blend,
               "range": list(preset.range), "preset": preset.name, "condition": {"label": label},
-              "conditioned_on": on, "generator": run.generator_ref, "settings": run.settings}
+              "conditioned_on": on, "generator": run.generator_ref, "settings": settings}
     if layer_id in stack.ids:
         old = stack.document.layer(layer_id).model_dump(mode="json")
-        stack.document = stack.document.with_layer({**old, "generator": run.generator_ref, "settings": run.settings})
+        stack.document = stack.document.with_layer({**old, "generator": run.generator_ref, "settings": settings})
     else:
         stack.document = stack.document.with_layer(fields)
     stack.set_pixels(layer_id, run.layer, bit_depth=16)
@@ -344,18 +355,9 @@ def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) 
     resolved = cat.resolve(layer.preset, stack.folder, catalogue_dirs, need_prior=False)
     preset = resolved.preset
     preset.prompt_for(layer.condition.label)
-    s = dict(layer.settings)
-    method = s.get("method")
-    if method is None:
-        method = choose_method(resolved, None)
-    if method not in ("amortised", "per-image"):
-        raise DocumentError(f"settings.method is {method!r}; expected 'amortised' or 'per-image'", f"{where}.settings.method")
-    optimize = s.get("optimize", 0 if method == "amortised" else preset.distill.steps)
-    if isinstance(optimize, bool) or not isinstance(optimize, int) or optimize < 0:
-        raise DocumentError(f"settings.optimize is {optimize!r}; expected a non-negative integer", f"{where}.settings.optimize")
-    distill = s.get("distill")
-    if distill is not None and not isinstance(distill, dict):
-        raise DocumentError("settings.distill is not an object; expected the distillation settings", f"{where}.settings.distill")
+    s = LayerSettings.parse(layer.settings, where)
+    method = s.method if s.method is not None else choose_method(resolved, None)
+    optimize = s.optimize if s.optimize is not None else (0 if method == "amortised" else preset.distill.steps)
     generator_dir = resolved.generator
     if method == "amortised" and layer.generator is not None:
         if stack.folder is None:
@@ -369,13 +371,13 @@ def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) 
                                "layer was made with", f"{where}.generator.checkpoint")
         generator_dir = ckpt.parent
     base = conditioning_input(stack, layer.conditioned_on)
-    refs = {k: s[k] for k in ("prior", "corrective") if isinstance(s.get(k), str)}
+    refs = {k: getattr(s, k) for k in ("prior", "corrective") if getattr(s, k) is not None}
     run = make_layer(base, resolved, layer.condition.label, layer.id, method=method, optimize=optimize,
-                     generator_dir=generator_dir, distill=distill, refs=refs, catalogue_dirs=catalogue_dirs,
+                     generator_dir=generator_dir, distill=s.distill, refs=refs, catalogue_dirs=catalogue_dirs,
                      device=device, progress=progress)
-    recorded = s.get("prior_sha256")
-    if recorded is not None and run.settings.get("prior_sha256") not in (None, recorded):
-        warnings.warn(f"{where}: the catalogue's prior {run.settings.get('prior')!r} differs from the one the layer was "
+    recorded = s.prior_sha256
+    if recorded is not None and run.settings.prior_sha256 not in (None, recorded):
+        warnings.warn(f"{where}: the catalogue's prior {run.settings.prior!r} differs from the one the layer was "
                       "made with (sha256); the layer is re-rendered with the current one", stacklevel=2)
     if layer.generator is not None and method == "amortised":
         run.generator_ref = layer.generator.model_dump(mode="json")

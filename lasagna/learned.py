@@ -13,27 +13,82 @@ import hashlib
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import torch
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from torch import Tensor
 
 from lasagna import catalogue as cat
+from lasagna.distill import DistillSettings
 from lasagna.document import LearnedLayer
-from lasagna.errors import ConditionError, LasagnaError
+from lasagna.errors import ConditionError, DocumentError, LasagnaError, describe_validation_error
 from lasagna.io.stack import Stack
 
 GENERATORS_DIR = "generators"  # <stack>/generators/<layer id>/: copies of the generators a stack uses
-Method = Literal["amortised", "free"]
+
+# How a learned layer is made (``lasagna.edit`` describes both). ``free`` — the CLI's ``--generator free``,
+# "a free per-pixel layer" — names the per-image method and is accepted wherever a method is read.
+Method = Literal["amortised", "per-image"]
+METHODS: tuple[str, ...] = get_args(Method)
+METHOD_ALIASES: dict[str, str] = {"free": "per-image"}
+
+
+def canonical_method(name: object, where: str = "generator") -> Method:
+    """The method ``name`` names (``free`` is ``per-image``); a ``LasagnaError`` listing them otherwise."""
+    name = METHOD_ALIASES.get(name, name) if isinstance(name, str) else name
+    if name not in METHODS:
+        raise LasagnaError(f"method is {name!r}; expected one of {', '.join(METHODS)} (or 'free' for per-image)", where)
+    return name  # type: ignore[return-value]
+
+
+class LayerSettings(BaseModel):
+    """A learned layer's ``settings`` in its stack (``LearnedLayer.settings`` holds them as JSON): how the
+    layer was made, enough to make it again (``lasagna render``).
+
+    ``method`` and ``optimize`` (the per-image steps: after the amortised pass, or of the free layer) are
+    always written; ``prior``, its weights' ``prior_sha256``, ``corrective`` and ``distill`` (the resolved
+    ``DistillSettings``) only when per-image steps ran. A document may leave any of them out: ``render``
+    then makes the layer as ``edit`` would and fills them in.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    method: Method | None = Field(None, description="amortised (the preset's generator) or per-image.")
+    optimize: int | None = Field(None, ge=0, strict=True, description="Per-image steps.")
+    prior: str | None = Field(None, description="The prior scored against, by catalogue name or path.")
+    prior_sha256: str | None = Field(None, description="SHA-256 of the prior's model.safetensors.")
+    corrective: str | None = Field(None, description="The LMC-SDS corrective, when the loss used one.")
+    distill: DistillSettings | None = Field(None, description="The per-image run's resolved settings.")
+
+    @field_validator("method", mode="before")
+    @classmethod
+    def _alias(cls, value: object) -> object:
+        return METHOD_ALIASES.get(value, value) if isinstance(value, str) else value
+
+    @classmethod
+    def parse(cls, data: Any, where: str) -> "LayerSettings":
+        """Validate stored settings; a bad field is a one-line ``DocumentError`` at ``where: settings.<field>``."""
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            raise describe_validation_error(exc, where, cls, DocumentError, prefix="settings") from None
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON the stack stores: the fields in their order, the per-image ones only with ``distill``."""
+        data = self.model_dump(mode="json")
+        if self.distill is None:
+            data = {k: data[k] for k in ("method", "optimize")}
+        return data
 
 
 @dataclass
 class LayerRun:
     """What generating one learned layer produced: values (C, H, W) in the preset's range, the layer's
-    settings (JSON), the generator files to store in the stack (relative path → bytes), timing."""
+    settings, the generator files to store in the stack (relative path → bytes), timing."""
 
     layer: Tensor
-    settings: dict[str, Any]
+    settings: LayerSettings
     files: dict[str, bytes]
     generator_ref: dict[str, str] | None
     seconds: float
@@ -114,7 +169,6 @@ def _components(resolved: cat.Resolved, label: str, loss: str, catalogue_dirs, d
 
 
 def _distill_settings(preset, *, refine: bool, steps: int | None, loss, guidance, seed, lr):
-    from lasagna.distill import DistillSettings
     from lasagna.distill.schedules import Weights
 
     settings = DistillSettings.from_preset(preset, loss=loss, guidance=guidance, steps=steps, seed=seed, lr=lr)
@@ -123,9 +177,9 @@ def _distill_settings(preset, *, refine: bool, steps: int | None, loss, guidance
 
 def make_layer(
     base: Tensor, resolved: cat.Resolved, label: str, layer_id: str, *,
-    method: Literal["amortised", "per-image"], optimize: int, generator_dir: Path | None,
+    method: Method, optimize: int, generator_dir: Path | None,
     loss: str | None = None, guidance: float | None = None, seed: int | None = None, lr: float | None = None,
-    distill: dict[str, Any] | None = None, refs: dict[str, Any] | None = None, catalogue_dirs=None,
+    distill: DistillSettings | None = None, refs: dict[str, Any] | None = None, catalogue_dirs=None,
     device: str | torch.device = "cpu", progress: bool = False,
 ) -> LayerRun:
     """One learned layer (C, H, W) for ``base`` (3, H, W) in [0, 1] and ``label`` (module docstring).
@@ -134,7 +188,7 @@ def make_layer(
     and ``refs`` (``prior``, ``corrective``) the preset's prior and corrective: how ``render_learned``
     reruns a layer exactly as it was made.
     """
-    from lasagna.distill import DistillSettings, distill_image
+    from lasagna.distill import distill_image
     from lasagna.generators.free import FreeLayer
     from lasagna.generators.unet import LayerGenerator
 
@@ -157,13 +211,13 @@ def make_layer(
         rel = f"{GENERATORS_DIR}/{layer_id}"
         files = {f"{rel}/model.safetensors": weights, f"{rel}/config.json": config}
         gen_ref = {"checkpoint": f"{rel}/model.safetensors", "sha256": _sha256(weights)}
-    settings: dict[str, Any] = {"method": method, "optimize": optimize}
+    settings = LayerSettings(method=method, optimize=optimize)
     history: list[dict[str, Any]] = []
     stopped = None
     layer = initial
     if optimize > 0 or method == "per-image":
         if distill is not None:
-            ds = DistillSettings.parse(distill, "settings.distill")
+            ds = distill
         else:
             ds = _distill_settings(preset, refine=initial is not None, steps=optimize, loss=loss, guidance=guidance,
                                    seed=seed, lr=lr)
@@ -172,20 +226,16 @@ def make_layer(
         model = "free" if initial is None else FreeLayer.from_layer(ds.layer, initial)
         run = distill_image(x, ds, prior, corrective, condition=label, generator=model, progress=progress)
         layer, history, stopped = run.layer.float(), run.history, run.stopped_reason
-        settings.update(optimize=ds.steps, prior=prior_ref, prior_sha256=prior_sha, corrective=corrective_ref,
-                        distill=ds.model_dump(mode="json"))
+        settings = LayerSettings(method=method, optimize=ds.steps, prior=prior_ref, prior_sha256=prior_sha,
+                                 corrective=corrective_ref, distill=ds)
     if layer is None:  # unreachable: an amortised run has its forward pass, a per-image run its optimisation
         raise LasagnaError(f"no layer was made (method {method!r}, optimize {optimize})", "make_layer")
     return LayerRun(layer=layer[0].detach().cpu(), settings=settings, files=files, generator_ref=gen_ref,
                     seconds=time.monotonic() - start, history=history, stopped=stopped)
 
 
-def choose_method(resolved: cat.Resolved, generator: Method | None) -> Literal["amortised", "per-image"]:
-    """``amortised`` when asked for or when the preset has a generator (and ``free`` was not asked)."""
-    if generator not in (None, "amortised", "free"):
-        raise LasagnaError(f"generator is {generator!r}; expected 'amortised' or 'free'", "generator")
-    if generator == "free":
-        return "per-image"
-    if generator == "amortised" or resolved.generator is not None:
-        return "amortised"
-    return "per-image"
+def choose_method(resolved: cat.Resolved, method: str | None) -> Method:
+    """``method`` (``free`` is ``per-image``) when given; else ``amortised`` when the preset has a generator."""
+    if method is not None:
+        return canonical_method(method)
+    return "amortised" if resolved.generator is not None else "per-image"

@@ -13,7 +13,7 @@ import argparse
 from pathlib import Path
 
 from lasagna.cli.common import distill_arguments, progress, warn
-from lasagna.errors import PathError
+from lasagna.errors import LasagnaError, PathError
 
 HELP = "add a learned layer (relight, colourise, …) to an image or stack; writes a stack folder"
 
@@ -48,8 +48,14 @@ def run(args: argparse.Namespace) -> int:
     out = check_output_folder(args.output, force=args.force)
     if Path(args.image).resolve() == out.resolve() and not args.force:
         raise PathError("is the input stack; expected another folder (or --force to replace it)", str(out))
+    if args.optimize is not None and args.steps is not None and args.optimize != args.steps:
+        raise LasagnaError(
+            f"optimize {args.optimize} and steps {args.steps} differ; expected one of them (they are the same number)",
+            "steps",
+        )
+    optimize = args.optimize if args.optimize is not None else args.steps  # --steps: --optimize's other name
     result = edit(args.image, args.layer, args.condition, on=args.on, id=args.id, generator=args.generator,
-                  optimize=args.optimize, steps=args.steps, loss=args.loss, guidance=args.guidance, seed=args.seed,
+                  optimize=optimize, loss=args.loss, guidance=args.guidance, seed=args.seed,
                   lr=args.lr, max_pixels=args.max_pixels, device=args.device, progress=progress())
     result.save(out, force=args.force, ora=not args.no_ora, warn=warn)
     s = result.settings

@@ -9,7 +9,8 @@
 - ``render``    ``render(plan or layers) -> RenderResult(image, skipped, evaluated)``;
 - ``renderer``  ``Renderer``: repeated renders with a prefix cache.
 
-Nothing here imports the document tier; ``plan_from_document`` reads a document by attribute.
+Of the document tier only the blend names are imported (``lasagna.document.blend`` declares them; the kernel
+tables here implement one function per name); ``plan_from_document`` reads a document by attribute.
 """
 from lasagna.compose.blend import (
     BLEND_FUNC, BLEND_INPLACE, BLEND_MODES, clamp_needed, get_blend, multiply, multiply_, normal, normal_, plus, plus_,

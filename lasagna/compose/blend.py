@@ -42,16 +42,15 @@ rounding is monotone and represents 0 and 1 exactly, so the rounded result stays
 """
 from __future__ import annotations
 
-from typing import Callable, Literal, Union
+from typing import Callable, Union
 
 import torch
 from torch import Tensor
 
+from lasagna.document.blend import BLEND_MODES as BLEND_MODES  # the names are declared there, once
 from lasagna.errors import LasagnaError
 
-BlendName = Literal["normal", "multiply", "screen", "plus"]
 Alpha = Union[Tensor, float, None]
-BLEND_MODES: tuple[str, ...] = ("normal", "multiply", "screen", "plus")
 
 
 def broadcast_shape(*shapes: tuple[int, ...]) -> tuple[int, ...]:
@@ -133,9 +132,9 @@ KERNELS_INPLACE: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
 # ---- checks ------------------------------------------------------------------------------------
 
 def check_blend_name(name: object, where: str = "blend") -> str:
-    """Return ``name`` if it is a blend mode; raise ``LasagnaError`` listing the valid ones."""
-    if name not in BLEND_MODES:
-        raise LasagnaError(f"unknown blend {name!r}; expected one of {', '.join(BLEND_MODES)}", where=where)
+    """Return ``name`` if it is a blend mode; raise ``LasagnaError`` listing the modes of the kernel table."""
+    if name not in KERNELS:
+        raise LasagnaError(f"unknown blend {name!r}; expected one of {', '.join(KERNELS)}", where=where)
     return name  # type: ignore[return-value]
 
 

@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from functools import reduce
-from typing import TYPE_CHECKING, Any, Literal, Mapping, Sequence, Union
+from typing import Any, Literal, Mapping, Sequence, Union
 
 import torch
 from torch import Tensor
@@ -39,9 +39,6 @@ from lasagna.compose.blend import BLEND_MODES, broadcast_shape, check_blend_name
 from lasagna.compose.color import srgb_to_linear
 from lasagna.compose.layer import LayerTensors
 from lasagna.errors import LasagnaError
-
-if TYPE_CHECKING:
-    from lasagna.compose.render import RenderResult
 
 SkipReason = Literal["hidden", "zero-opacity", "outside-canvas", "occluded", "identity"]
 BlendSpace = Literal["srgb", "linear"]
@@ -177,11 +174,6 @@ class RenderPlan:
     def evaluated(self) -> list[str]:
         return [s.spec.id for s in self.steps]
 
-    def render(self, **kwargs: Any) -> "RenderResult":
-        """``render(self, **kwargs)``; see ``lasagna.compose.render.render``."""
-        from lasagna.compose.render import render
-
-        return render(self, **kwargs)
 
 
 def _contains(outer: tuple[int, int, int, int], inner: tuple[int, int, int, int]) -> bool:
@@ -332,14 +324,16 @@ def _clamps(spec: RenderLayerSpec, decode: bool) -> tuple[bool, bool]:
 
 # ---- document adapter -----------------------------------------------------------------------------
 
-def _solid_tensors(layer: Any, lo: float, hi: float, width: int, height: int, where: str) -> LayerTensors:
+def _solid_tensors(
+    layer: Any, lo: float, hi: float, width: int, height: int, where: str, dtype: torch.dtype | None = None
+) -> LayerTensors:
     rgba = [float(v) for v in layer.color]
     if len(rgba) not in (3, 4):
         raise LasagnaError(f"color has {len(rgba)} components; expected RGB or RGBA", where=f"{where}.color")
     size = getattr(layer, "size", None)
     h, w = (size.height, size.width) if size is not None else (height, width)
-    dtype = torch.get_default_dtype()
-    # RGB is range-mapped like a PNG's values (y = lo + (hi - lo)·v); alpha never is. Zero-stride
+    dtype = dtype or torch.get_default_dtype()
+    # RGB is range-mapped like a PNG's values (y = lo + (hi - lo)·v, in float64), alpha never is. Zero-stride
     # views: a solid layer costs no memory however large it is.
     rgb = [lo + (hi - lo) * v for v in rgba[:3]]
     color = torch.tensor(rgb, dtype=dtype).view(3, 1, 1).expand(3, h, w)
@@ -349,15 +343,17 @@ def _solid_tensors(layer: Any, lo: float, hi: float, width: int, height: int, wh
     return LayerTensors(color, alpha)
 
 
-def plan_from_document(doc: Any, tensors: Mapping[str, LayerTensors], *, cull: bool = True) -> RenderPlan:
+def plan_from_document(
+    doc: Any, tensors: Mapping[str, LayerTensors], *, cull: bool = True, dtype: torch.dtype | None = None
+) -> RenderPlan:
     """Compile a ``lasagna.document`` ``Document`` with its loaded pixels into a ``RenderPlan``.
 
     ``tensors`` maps layer ids to their ``LayerTensors`` (colour already range-mapped, mask loaded
     when the layer names one). ``solid`` layers may be omitted: they are built from their colour
-    (RGB range-mapped, alpha not) and size. A ``learned`` layer with neither a ``source`` nor tensors
+    (RGB range-mapped, alpha not) and size, in ``dtype`` (default: torch's default dtype). A ``learned`` layer with neither a ``source`` nor tensors
     has no pixels yet and is left out of the plan (it appears neither in ``evaluated`` nor in
-    ``skipped``). Reads the document through its attributes only (docs/ARCHITECTURE.md), so the
-    compositor does not import the document tier.
+    ``skipped``). Reads the document through its attributes only (docs/ARCHITECTURE.md): the compositor
+    imports nothing of the document tier but its blend names.
     """
     width, height = int(doc.canvas.width), int(doc.canvas.height)
     specs: list[RenderLayerSpec] = []
@@ -368,7 +364,7 @@ def plan_from_document(doc: Any, tensors: Mapping[str, LayerTensors], *, cull: b
         lt = tensors.get(layer.id)
         if lt is None:
             if layer.kind == "solid":
-                lt = _solid_tensors(layer, float(lo), float(hi), width, height, where)
+                lt = _solid_tensors(layer, float(lo), float(hi), width, height, where, dtype)
             elif layer.kind == "learned" and getattr(layer, "source", None) is None:
                 continue
             else:

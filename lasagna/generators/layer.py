@@ -41,13 +41,11 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor
 
 from lasagna.compose.blend import BLEND_FUNC
+from lasagna.document.blend import RANGED_BLENDS, BlendMode
 from lasagna.errors import LasagnaError
 from lasagna.numerics import IDENTITY_LOGIT, LOGIT_EPS
 
-BlendName = Literal["normal", "multiply", "screen", "plus"]
 Squash = Literal["auto", "sigmoid", "clamp"]
-# The blends whose value range may differ from [0, 1] (the document's rule, docs/ARCHITECTURE.md).
-RANGED_BLENDS = ("multiply", "plus")
 # The colour value that leaves the backdrop unchanged for an opaque layer of each blend (normal has
 # none: an opaque normal layer replaces the base, so a normal layer needs an alpha channel).
 _IDENTITY_COLOUR = {"multiply": 1.0, "plus": 0.0, "screen": 0.0}
@@ -58,7 +56,7 @@ class LayerSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    blend: BlendName = Field(description="The blend the layer is composed with.")
+    blend: BlendMode = Field(description="The blend the layer is composed with.")
     channels: Literal[1, 3, 4] = Field(description="1 gray (broadcast over RGB), 3 RGB, 4 RGBA (alpha last).")
     range: tuple[float, float] = Field((0.0, 1.0), description="[lo, hi] of the colour values (alpha is always [0, 1]).")
     squash: Squash = Field("auto", description="sigmoid, clamp (inward-gradient clamp) or auto (see the module docstring).")

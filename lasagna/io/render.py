@@ -20,15 +20,10 @@ from lasagna.io.png import write_png
 
 
 def render_stack(stack, dtype: torch.dtype = torch.float32, *, cull: bool = True) -> RenderResult:
-    """Composite ``stack`` (a :class:`~lasagna.io.stack.Stack`) into ``RenderResult(image (3, H, W), skipped, evaluated)``."""
-    from lasagna.io.stack import solid_tensors
+    """Composite ``stack`` (a :class:`~lasagna.io.stack.Stack`) into ``RenderResult(image (3, H, W), skipped, evaluated)``.
 
-    tensors = dict(stack.tensors)
-    for layer in stack.document.layers:
-        if layer.kind == "solid" and layer.id not in tensors:
-            # Built here, range-mapped like a PNG's values (the document's rule for solid colours).
-            tensors[layer.id] = solid_tensors(layer, stack.width, stack.height, dtype)
-    plan = plan_from_document(stack.document, tensors, cull=cull)
+    Solid layers are built by the plan in ``dtype``, range-mapped like a PNG's values (the document's rule)."""
+    plan = plan_from_document(stack.document, stack.tensors, cull=cull, dtype=dtype)
     result = render(plan, dtype=dtype)
     skipped = dict(result.skipped)
     skipped.update(stack.not_rendered)

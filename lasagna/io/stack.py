@@ -21,6 +21,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 import torch
 
+from lasagna.compose.layer import LayerTensors
 from lasagna.document import (
     Document, LearnedLayer, PixelsLayer, SolidLayer, load_document, save_document, stack_file,
 )
@@ -29,6 +30,7 @@ from lasagna.io.png import (
     DEFAULT_MAX_PIXELS, PngImage, check_size, encode_png, read_png, read_png_header,
 )
 from lasagna.atomic import atomic_write_bytes
+from lasagna.io.render import render_stack
 from lasagna.numerics import RANGE_SAVE_TOLERANCE
 
 # The document's largest canvas side; a layer PNG may not be larger either.
@@ -39,13 +41,6 @@ MAX_SIDE = 32768
 DEFAULT_MAX_TOTAL_PIXELS = 4 * DEFAULT_MAX_PIXELS
 
 NOT_RENDERED = "not rendered (run `lasagna render`)"
-
-
-def _layer_tensors_cls():
-    # The compose tier defines LayerTensors; imported lazily so that reading a document stays cheap.
-    from lasagna.compose.layer import LayerTensors
-
-    return LayerTensors
 
 
 def _rewhere(err: LasagnaError, where: str) -> LasagnaError:
@@ -229,8 +224,6 @@ class Stack:
 
     def render(self, dtype: torch.dtype = torch.float32, **kwargs: Any):
         """Composite the stack; see :func:`lasagna.io.render.render_stack`."""
-        from lasagna.io.render import render_stack
-
         return render_stack(self, dtype=dtype, **kwargs)
 
     def save(self, folder: str | os.PathLike | None = None, *, clip: bool = False) -> Path:
@@ -251,7 +244,7 @@ def _make_tensors(id: str, color: torch.Tensor, alpha, mask, bit_depth: int | No
     if bit_depth not in (None, 8, 16):
         raise ImageError(f"bit_depth {bit_depth!r}; expected 8 or 16", where=f"layer {id!r}")
     # A gray (1-channel) colour stays one channel: the compositor broadcasts it over RGB.
-    return _layer_tensors_cls()(color, alpha, m)
+    return LayerTensors(color, alpha, m)
 
 
 def _layer_dict(id: str, kind: str, fields: Mapping[str, Any], *, has_mask: bool, source: str | None = None) -> dict[str, Any]:
@@ -391,19 +384,6 @@ def stack_from_tensors(
     return stack
 
 
-def solid_tensors(layer: SolidLayer, width: int, height: int, dtype: torch.dtype = torch.float32):
-    """``LayerTensors`` of a solid layer: its RGB mapped by ``range`` (as a PNG's values are), its
-    alpha component as alpha; zero-stride views, so a canvas-size rectangle costs no memory."""
-    lo, hi = layer.range
-    rgba = [float(c) for c in layer.color]
-    w, h = (layer.size.width, layer.size.height) if layer.size is not None else (width, height)
-    color = (lo + (hi - lo) * torch.tensor(rgba[:3], dtype=torch.float64)).to(dtype).view(3, 1, 1).expand(3, h, w)
-    alpha = None
-    if len(rgba) == 4 and rgba[3] != 1.0:
-        alpha = torch.tensor([rgba[3]], dtype=dtype).view(1, 1, 1).expand(1, h, w)
-    return _layer_tensors_cls()(color, alpha)
-
-
 # ---- loading -------------------------------------------------------------------------------------
 
 
@@ -499,7 +479,7 @@ def layer_tensors(img, value_range, mask_img=None, mask_where: str = "mask"):
         if m.alpha is not None:
             mask_np = mask_np * m.alpha  # a transparent mask pixel hides the layer
         mask = torch.from_numpy(np.ascontiguousarray(mask_np))
-    return _layer_tensors_cls()(color, alpha, mask)
+    return LayerTensors(color, alpha, mask)
 
 
 # ---- saving --------------------------------------------------------------------------------------

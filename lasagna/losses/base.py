@@ -168,9 +168,8 @@ def register_loss(name: str) -> Callable[[L], L]:
 
 
 def get_loss(name: str) -> type[ScoreLoss]:
-    """The ``ScoreLoss`` class registered under ``name`` (the built-ins: sds, lmc-sds, dds, nfsd, ms-sds)."""
-    import lasagna.losses  # noqa: F401  (importing the package registers the built-ins)
-
+    """The ``ScoreLoss`` class registered under ``name``. The built-ins (``lasagna.document.preset.LOSS_NAMES``)
+    are registered by the package ``lasagna.losses``, which Python imports before this module."""
     if name not in _REGISTRY:
         raise LasagnaError(f"unknown loss {name!r}; expected one of {', '.join(available_losses())}", "losses")
     return _REGISTRY[name]
