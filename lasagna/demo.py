@@ -31,6 +31,8 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from lasagna import catalogue as cat
+from lasagna.atomic import atomic_write_bytes
 from lasagna.errors import LasagnaError, PathError
 
 DIRECTIONS = ("left", "right", "top", "bottom")  # relighting directions shown for every input
@@ -171,24 +173,51 @@ def _how(result) -> str:
 
 
 def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_STEPS, refine: int = DEMO_REFINE,
-             examples: Path | None = None,
-             say: Callable[[str], None] = print, warn: Callable[[str], None] | None = None) -> Path | None:
-    """Run the demo into ``out``; returns the sheet's path (None when it fell back to the example stack)."""
-    from lasagna import catalogue as cat
-    from lasagna.edit import conditioning_input, edit, read_image
-    from lasagna.atomic import atomic_write_bytes
-    from lasagna.io.stack import Stack, load_stack
-    from lasagna.world import additive_light, generate
+             examples: Path | None = None, say: Callable[[str], None] | None = None,
+             warn: Callable[[str], None] | None = None) -> Path | None:
+    """Run the demo into ``out``; returns the sheet's path (None when it fell back to the example stack).
 
+    ``say`` receives the lines a person should read (what ran, what was skipped, where things are); the
+    CLI prints them. ``warn`` receives export warnings.
+    """
+    say = say or (lambda line: None)
     out = Path(out)
     start = time.monotonic()
     ex = examples or examples_root()
-    scenes = sorted(p for p in (ex / "world").iterdir() if (p / "stack.json").is_file())[:WORLD_SCENES]
-    photos = [ex / "photos" / f"{name}.png" for name in PHOTOS if (ex / "photos" / f"{name}.png").is_file()]
-
-    runnable: dict[str, str] = {}  # preset -> "amortised" | "per-image"
-    missing: list[str] = []  # why a preset cannot run
+    runnable, missing = runnable_presets(catalogue_dirs)
     places = ", ".join(map(str, cat.catalogues() if catalogue_dirs is None else catalogue_dirs)) or "no catalogue"
+    if not runnable:
+        say(f"demo: no learned layer can run ({'; '.join(missing)}; looked in {places}); "
+            "compositing and exporting the example stack instead")
+        fallback(ex, out, say, warn)
+        return None
+    for reason in missing:
+        say(f"demo: skipping {reason} (looked in {places})")
+
+    edits = _Edits(out, runnable, catalogue_dirs, steps, refine, warn)
+    scenes = sorted(p for p in (ex / "world").iterdir() if (p / "stack.json").is_file())[:WORLD_SCENES]
+    for k, scene in enumerate(scenes):
+        edits.world_scene(scene, GLOWS[k % len(GLOWS)])
+    photos = [ex / "photos" / f"{name}.png" for name in PHOTOS if (ex / "photos" / f"{name}.png").is_file()]
+    for k, photo in enumerate(photos):
+        edits.photo(photo, colourise=k < COLOURISED_PHOTOS, glow=GLOWS[k % len(GLOWS)] if k < LIT_PHOTOS else None)
+
+    seconds = time.monotonic() - start
+    made = ", ".join(f"{k}: {v}" for k, v in runnable.items())
+    note = (f"lasagna demo: {len(edits.rows)} edits in {seconds:.0f} s ({made}). "
+            "Shading layer: mid-gray = unchanged, lighter = brighter.")
+    sheet = out / "sheet.png"
+    atomic_write_bytes(sheet, draw_sheet(edits.rows, note, blocks=2 if len(edits.rows) > 10 else 1))
+    say(f"demo: {len(edits.rows)} edits in {seconds:.1f} s ({made})")
+    say(f"wrote {len(edits.written)} stack folders under {out / 'stacks'}/ (stack.json, layers/, composite.png, stack.ora)")
+    say(f"wrote the sheet {sheet} (input | layer | composite | truth)")
+    return sheet
+
+
+def runnable_presets(catalogue_dirs=None) -> tuple[dict[str, str], list[str]]:
+    """({preset: "amortised" | "per-image"} of the demo's presets that can run, [why each other cannot])."""
+    runnable: dict[str, str] = {}
+    missing: list[str] = []
     for preset in ("shading", "color", "light"):
         try:
             parts = cat.resolve(preset, catalogue_dirs=catalogue_dirs, need_prior=False)
@@ -201,70 +230,70 @@ def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_S
             runnable[preset] = "per-image"
         else:
             missing.append(f"{preset}: its prior {parts.preset.prior!r} is not in the catalogue and it has no generator")
-    if not runnable:
-        say(f"demo: no learned layer can run ({'; '.join(missing)}; looked in {places}); "
-            "compositing and exporting the example stack instead")
-        fallback(ex, out, say, warn)
-        return None
-    for reason in missing:
-        say(f"demo: skipping {reason} (looked in {places})")
+    return runnable, missing
 
-    rows: list[Row] = []
-    written: list[Path] = []
 
-    def one(image, preset: str, label: str, name: str, title: str, truth: Tensor | None, on: str | None = None) -> None:
-        optimize = refine if runnable[preset] == "amortised" else steps
-        result = edit(image, preset, label, on=on, catalogue_dirs=catalogue_dirs, optimize=optimize)
-        written.append(result.save(out / "stacks" / name, force=True, warn=warn))  # replaces a previous run's stack
+class _Edits:
+    """The demo's edits, each written as a stack folder under ``out/stacks/`` and drawn as one sheet row."""
+
+    def __init__(self, out: Path, runnable: dict[str, str], catalogue_dirs, steps: int | None, refine: int, warn):
+        self.out, self.runnable, self.catalogue_dirs = out, runnable, catalogue_dirs
+        self.steps, self.refine, self.warn = steps, refine, warn
+        self.rows: list[Row] = []
+        self.written: list[Path] = []
+
+    def one(self, image, preset: str, label: str, name: str, title: str, truth: Tensor | None,
+            on: str | None = None) -> None:
+        from lasagna.edit import conditioning_input, edit
+
+        optimize = self.refine if self.runnable[preset] == "amortised" else self.steps
+        result = edit(image, preset, label, on=on, catalogue_dirs=self.catalogue_dirs, optimize=optimize)
+        # force: replaces a previous run's stack
+        self.written.append(result.save(self.out / "stacks" / name, force=True, warn=self.warn))
         layer = result.stack.document.layer(result.layer_id)
         seen = conditioning_input(result.stack, layer.conditioned_on)  # what the generator saw
-        rows.append(Row(title, _how(result), seen, layer_view(result.layer, layer.range), result.composite, truth))
+        self.rows.append(Row(title, _how(result), seen, layer_view(result.layer, layer.range), result.composite, truth))
 
-    for scene in scenes:
+    def world_scene(self, scene: Path, glow: str) -> None:
+        """Relight a held-out scene's albedo in every direction, colourise its gray image, add a ``glow`` light."""
+        from lasagna.io.stack import Stack, load_stack
+        from lasagna.world import additive_light, generate
+
         stack = load_stack(scene)
         meta = stack.document.metadata.get("lasagna.world", {})
         as_rendered = stack.document  # albedo × shading: the light edit's input
         stack.document = stack.document.replace_layer("shading", visible=False, name="True shading (hidden)")
         index, split, seed = meta.get("index", 0), meta.get("split", "heldout"), meta.get("seed", 0)
-        if "shading" in runnable:
+        if "shading" in self.runnable:
             for label in DIRECTIONS:
                 truth = generate(split, 1, seed, stack.width, start=index, labels=[label]).image[0]
-                one(stack, "shading", label, f"{scene.name}-{label}", f"{scene.name} · {label}", truth, on="albedo")
-        if "color" in runnable:
+                self.one(stack, "shading", label, f"{scene.name}-{label}", f"{scene.name} · {label}", truth, on="albedo")
+        if "color" in self.runnable:
             colour = stack.tensors["albedo"].color * stack.tensors["shading"].color  # the scene as rendered
-            one(Stack.from_image(_gray(colour.clamp(0, 1)), name="gray"), "color", "natural", f"{scene.name}-color",
-                f"{scene.name} · colourise", colour.clamp(0, 1))
-        if "light" in runnable:
-            glow = GLOWS[scenes.index(scene) % len(GLOWS)]
+            self.one(Stack.from_image(_gray(colour.clamp(0, 1)), name="gray"), "color", "natural",
+                     f"{scene.name}-color", f"{scene.name} · colourise", colour.clamp(0, 1))
+        if "light" in self.runnable:
             truth = additive_light(generate(split, 1, seed, stack.width, start=index), glow).lit[0]
             stack.document = as_rendered
-            one(stack, "light", glow, f"{scene.name}-{glow}-light", f"{scene.name} · {glow} light", truth)
-    for k, photo in enumerate(photos):
-        if "shading" in runnable:
-            for label in DIRECTIONS:
-                one(photo, "shading", label, f"{photo.stem}-{label}", f"{photo.name} · {label}", None)
-        if "color" in runnable and k < COLOURISED_PHOTOS:
-            rgb = read_image(photo).tensors["base"].color
-            one(Stack.from_image(_gray(rgb), name="gray"), "color", "natural", f"{photo.stem}-color",
-                f"{photo.name} · colourise", rgb)
-        if "light" in runnable and k < LIT_PHOTOS:
-            glow = GLOWS[k % len(GLOWS)]
-            one(photo, "light", glow, f"{photo.stem}-{glow}-light", f"{photo.name} · {glow} light", None)
+            self.one(stack, "light", glow, f"{scene.name}-{glow}-light", f"{scene.name} · {glow} light", truth)
 
-    seconds = time.monotonic() - start
-    note = (f"lasagna demo: {len(rows)} edits in {seconds:.0f} s ({', '.join(f'{k}: {v}' for k, v in runnable.items())}). "
-            "Shading layer: mid-gray = unchanged, lighter = brighter.")
-    sheet = out / "sheet.png"
-    atomic_write_bytes(sheet, draw_sheet(rows, note, blocks=2 if len(rows) > 10 else 1))
-    say(f"demo: {len(rows)} edits in {seconds:.1f} s ({', '.join(f'{k}: {v}' for k, v in runnable.items())})")
-    say(f"wrote {len(written)} stack folders under {out / 'stacks'}/ (stack.json, layers/, composite.png, stack.ora)")
-    say(f"wrote the sheet {sheet} (input | layer | composite | truth)")
-    return sheet
+    def photo(self, photo: Path, *, colourise: bool, glow: str | None) -> None:
+        """Relight a photograph in every direction; colourise its gray image and add a ``glow`` light if asked."""
+        from lasagna.edit import read_image
+        from lasagna.io.stack import Stack
+
+        if "shading" in self.runnable:
+            for label in DIRECTIONS:
+                self.one(photo, "shading", label, f"{photo.stem}-{label}", f"{photo.name} · {label}", None)
+        if "color" in self.runnable and colourise:
+            rgb = read_image(photo).tensors["base"].color
+            self.one(Stack.from_image(_gray(rgb), name="gray"), "color", "natural", f"{photo.stem}-color",
+                     f"{photo.name} · colourise", rgb)
+        if "light" in self.runnable and glow is not None:
+            self.one(photo, "light", glow, f"{photo.stem}-{glow}-light", f"{photo.name} · {glow} light", None)
 
 
 def _has_prior(parts, catalogue_dirs) -> bool:
-    from lasagna import catalogue as cat
-
     try:
         cat.component_path(parts.preset, "prior", parts.preset_file, catalogue_dirs)
     except LasagnaError:

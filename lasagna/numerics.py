@@ -1,4 +1,4 @@
-"""Numerics in one place: named epsilons with their reasons, safe division, upcasts.
+"""Numerics in one place: named epsilons with their reasons, and the reduction dtype (upcasts).
 
 Every tolerance the package uses lives here, so a reader can audit them together.
 """
@@ -21,11 +21,6 @@ DODGE_EPS = 1.0 / 65535.0
 # Logit of a value in [0, 1] (inverting y = lo + (hi - lo) * sigmoid(x)): clamp to
 # [LOGIT_EPS, 1 - LOGIT_EPS] so an exact 0 or 1 maps to a large finite logit (+-13.8).
 LOGIT_EPS = 1e-6
-
-
-def safe_div(num: torch.Tensor, den: torch.Tensor, eps: float = STD_EPS) -> torch.Tensor:
-    """``num / max(den, eps)`` for non-negative ``den``; finite gradient at den = 0."""
-    return num / den.clamp_min(eps)
 
 
 def reduction_dtype(dtype: torch.dtype) -> torch.dtype:

@@ -45,7 +45,7 @@ import hashlib
 import json
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Literal, Sequence
 
@@ -166,28 +166,21 @@ def distill_image(
     opt = torch.optim.Adam(model.parameters(), lr=settings.lr)
     rng = torch.Generator().manual_seed(settings.seed)
 
-    step, history, stopped = 0, [], None
-    prev_layer: Tensor | None = None  # the layer of the previous step, for layer_change
-    prev_lr = 0.0
-    ckpt_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
-    if ckpt_dir is not None:
+    run, save = _Progress(), None
+    if checkpoint_dir is not None:
+        ckpt_dir = Path(checkpoint_dir)
         record = _RunRecord(**settings.model_dump(), base_sha256=_sha256(base), labels=tuple(labels),
                             negative=None if neg is None else tuple(neg), model_kind=_model_kind(model))
-        ckpt_dir.mkdir(parents=True, exist_ok=True)
-        check_same_run(ckpt_dir, record)
-        if (ckpt_dir / CHECKPOINT).is_file():
-            step = load_checkpoint(ckpt_dir / CHECKPOINT, CHECKPOINT_FORMAT, model, None, opt, rng, base.device)
-            history, stopped = _read_history(ckpt_dir, step)
-            prev_layer, prev_lr = _read_previous(ckpt_dir, history)
+        run = _resume(ckpt_dir, record, model, opt, rng, base.device)
 
-    clock = time.monotonic() - (history[-1]["time_s"] if history else 0.0)
-    bar = tqdm(total=settings.steps, initial=step, desc="distill", disable=not progress, dynamic_ncols=True)
-    model.train()
-    while stopped is None and step < settings.steps:
-        phase = "whole" if step < whole_steps else "patch"
-        lr_k = cosine_lr(settings.lr, step, settings.steps, settings.lr_final)
+        def save(run: _Progress) -> None:
+            _write_history(ckpt_dir, run.history, run.stopped, run.prev_layer)
+            save_checkpoint(ckpt_dir / CHECKPOINT, CHECKPOINT_FORMAT, run.step, record, model, None, opt, rng)
+
+    def step_fn(step: int, lr: float, phase: str) -> tuple[Tensor, Any]:
+        """One optimiser step at ``lr``: (the layer before the update, the objective's output)."""
         for group in opt.param_groups:
-            group["lr"] = lr_k
+            group["lr"] = lr
         layer = model(base, model_in)
         rows = draw_patches(b, (h, w), size, settings.patches.per_step, rng) if phase == "patch" else None
         out = objective(base, layer, labels, rng=rng, step=step, patches=rows, negative=neg)
@@ -196,33 +189,83 @@ def distill_image(
         if settings.grad_clip is not None:
             torch.nn.utils.clip_grad_norm_(model.parameters(), settings.grad_clip)
         opt.step()
+        return layer.detach(), out
 
-        now = layer.detach()
-        change = None
-        if prev_layer is not None:
-            change = float((now - prev_layer).pow(2).mean().sqrt()) / prev_lr
-        prev_layer, prev_lr = now, lr_k
-        history.append({"step": step, "phase": phase, "lr": lr_k, **out.summary(), "layer_change": change,
-                        "time_s": round(time.monotonic() - clock, 4)})
-        if callback is not None:
-            callback(step, now)
-        step += 1
-        bar.update(1)
-        bar.set_postfix(grad_norm=f"{history[-1]['grad_norm']:.3g}")
-        if settings.early_stop is not None and step < settings.steps and converged(history, settings.early_stop, phase):
-            stopped = "converged"
-        if ckpt_dir is not None and (step % settings.checkpoint_every == 0 or stopped or step == settings.steps):
-            _write_history(ckpt_dir, history, stopped, prev_layer)
-            save_checkpoint(ckpt_dir / CHECKPOINT, CHECKPOINT_FORMAT, step, record, model, None, opt, rng)
-    bar.close()
+    model.train()
+    _step_loop(run, settings, whole_steps, step_fn, save=save, progress=progress, callback=callback)
 
     model.eval()
     with torch.no_grad():
         final = model(base, model_in).detach()
         comp = composite(base, final, spec).clamp(0.0, 1.0)
-    seconds = history[-1]["time_s"] if history else 0.0
-    return DistillResult(layer=final, composite=comp, history=history, settings=settings, stopped_reason=stopped or "steps",
-                         steps=step, seconds=seconds, model=model)
+    seconds = run.history[-1]["time_s"] if run.history else 0.0
+    return DistillResult(layer=final, composite=comp, history=run.history, settings=settings,
+                         stopped_reason=run.stopped or "steps", steps=run.step, seconds=seconds, model=model)
+
+
+@dataclass
+class _Progress:
+    """Where a run stands: steps taken, their records, why it stopped (None: it has not), and the previous
+    step's layer and lr (for ``layer_change``)."""
+
+    step: int = 0
+    history: list[dict[str, Any]] = field(default_factory=list)
+    stopped: str | None = None
+    prev_layer: Tensor | None = None
+    prev_lr: float = 0.0
+
+
+def _resume(ckpt_dir: Path, record: _RunRecord, model: nn.Module, opt, rng: torch.Generator, device) -> _Progress:
+    """Open a checkpoint folder: refuse one holding another run, restore a killed run's model, Adam state,
+    ``rng``, history and previous layer (a new folder: step 0)."""
+    ckpt_dir.mkdir(parents=True, exist_ok=True)
+    check_same_run(ckpt_dir, record)
+    run = _Progress()
+    if (ckpt_dir / CHECKPOINT).is_file():
+        run.step = load_checkpoint(ckpt_dir / CHECKPOINT, CHECKPOINT_FORMAT, model, None, opt, rng, device)
+        run.history, run.stopped = _read_history(ckpt_dir, run.step)
+        run.prev_layer, run.prev_lr = _read_previous(ckpt_dir, run.history)
+    return run
+
+
+def _step_loop(
+    run: _Progress,
+    settings: DistillSettings,
+    whole_steps: int,
+    step_fn: Callable[[int, float, str], tuple[Tensor, Any]],
+    *,
+    save: Callable[[_Progress], None] | None,
+    progress: bool,
+    callback: Callable[[int, Tensor], None] | None,
+) -> None:
+    """Run ``step_fn(step, lr, phase)`` from ``run.step`` until ``settings.steps`` or early stopping, recording
+    each step in ``run.history`` (cosine lr; the whole image for ``whole_steps`` steps, then patches) and
+    calling ``save`` every ``checkpoint_every`` steps and at the end."""
+    clock = time.monotonic() - (run.history[-1]["time_s"] if run.history else 0.0)
+    bar = tqdm(total=settings.steps, initial=run.step, desc="distill", disable=not progress, dynamic_ncols=True)
+    while run.stopped is None and run.step < settings.steps:
+        step = run.step
+        phase = "whole" if step < whole_steps else "patch"
+        lr_k = cosine_lr(settings.lr, step, settings.steps, settings.lr_final)
+        now, out = step_fn(step, lr_k, phase)
+        change = None
+        if run.prev_layer is not None:
+            change = float((now - run.prev_layer).pow(2).mean().sqrt()) / run.prev_lr
+        run.prev_layer, run.prev_lr = now, lr_k
+        run.history.append({"step": step, "phase": phase, "lr": lr_k, **out.summary(), "layer_change": change,
+                            "time_s": round(time.monotonic() - clock, 4)})
+        if callback is not None:
+            callback(step, now)
+        run.step += 1
+        bar.update(1)
+        bar.set_postfix(grad_norm=f"{run.history[-1]['grad_norm']:.3g}")
+        if settings.early_stop is not None and run.step < settings.steps and converged(
+            run.history, settings.early_stop, phase
+        ):
+            run.stopped = "converged"
+        if save is not None and (run.step % settings.checkpoint_every == 0 or run.stopped or run.step == settings.steps):
+            save(run)
+    bar.close()
 
 
 def converged(history: list[dict[str, Any]], rule: EarlyStop, phase: str) -> bool:

@@ -43,14 +43,6 @@ DEFAULT_MAX_TOTAL_PIXELS = 4 * DEFAULT_MAX_PIXELS
 NOT_RENDERED = "not rendered (run `lasagna render`)"
 
 
-def _rewhere(err: LasagnaError, where: str) -> LasagnaError:
-    """The same error with ``where`` replaced (its message without the old prefix)."""
-    text = str(err)
-    if err.where and text.startswith(f"{err.where}: "):
-        text = text[len(err.where) + 2 :]
-    return type(err)(text, where=where)
-
-
 # ---- safe paths -------------------------------------------------------------------------------------
 
 
@@ -210,6 +202,7 @@ class Stack:
         return self
 
     def remove_layer(self, id: str) -> "Stack":
+        """Remove layer ``id`` with its tensors; a ``DocumentError`` if a learned layer is conditioned on it."""
         self.document = self.document.without_layer(id)
         self.tensors.pop(id, None)
         self.bit_depths.pop(id, None)
@@ -425,7 +418,7 @@ def load_stack(
             header = read_png_header(target)
             check_size(header, str(target), max_pixels, MAX_SIDE)
         except ImageError as err:
-            raise _rewhere(err, f"{where} ({rel})") from None
+            raise err.at(f"{where} ({rel})") from None
         total += header.pixels
         if total > max_total_pixels:
             raise ImageError(
@@ -449,7 +442,7 @@ def load_stack(
         try:
             images[(i, fieldname)] = read_png(target, max_pixels=max_pixels, max_side=MAX_SIDE)
         except ImageError as err:
-            raise _rewhere(err, f"{file}: layers[{i}].{fieldname} ({rel})") from None
+            raise err.at(f"{file}: layers[{i}].{fieldname} ({rel})") from None
 
     stack = Stack(doc, folder)
     for i, layer, fieldname, rel, target in planned:

@@ -229,3 +229,15 @@ def test_render_stack_dtype_and_solid_range(tmp_path):
                 | {"canvas": {"width": 2, "height": 2, "background": [0.4, 0.4, 0.4]}})
     image = render_stack(load_stack(tmp_path / "solid"), dtype=torch.float64).image
     assert image.max().item() == pytest.approx(0.6)
+
+
+def test_remove_layer_drops_the_layer_its_tensors_and_bit_depth():
+    stack = Stack.from_image(torch.rand(3, 4, 6))
+    stack.add_layer("shade", torch.rand(1, 4, 6) * 2, blend="multiply", range=(0, 2))
+    stack.add_solid("tint", (1.0, 0.5, 0.0, 0.25))
+    assert stack.remove_layer("shade") is stack
+    assert stack.ids == ("base", "tint") and "shade" not in stack.tensors and "shade" not in stack.bit_depths
+    torch.testing.assert_close(stack.render().image, stack_from_tensors([("base", stack.tensors["base"].color)])
+                               .render().image * 0.75 + torch.tensor([1.0, 0.5, 0.0]).view(3, 1, 1) * 0.25)
+    with pytest.raises(DocumentError, match="nope"):
+        stack.remove_layer("nope")
