@@ -6,7 +6,7 @@ STAMP   := $(VENV)/.installed
 # torch==2.13.0 is the CPU wheel on this machine's disk; a bare `torch` would pull a CUDA build.
 TORCH   ?= torch==2.13.0
 
-.PHONY: venv demo test test-all bench schemas clean
+.PHONY: venv demo test test-all format bench schemas clean
 
 venv: $(STAMP)
 
@@ -20,10 +20,18 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/lasagna demo -o out/demo
 
+# Lint and format checks first (ruff, configured in pyproject.toml), then the suite.
 # pytest's exit code 5 ("no tests collected") is a failure, not a pass.
 test: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	OMP_NUM_THREADS=1 $(BIN)/python -m pytest; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests"; exit 1; fi; exit $$rc
+
+# Fix what ruff can fix by itself (imports, formatting); `make test` then checks the rest.
+format: $(STAMP)
+	$(BIN)/ruff check --fix .
+	$(BIN)/ruff format .
 
 # Everything, including slow runs and the real-application checks (Krita, GIMP) where installed.
 test-all: $(STAMP)

@@ -3,6 +3,7 @@
 Benchmarks are plain scripts (``python benchmarks/NAME.py``), kept out of the test suite; each ends by
 printing one JSON line. Times are medians of ``repeats`` runs after one warm-up run, in seconds.
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -11,7 +12,8 @@ import os
 import platform
 import statistics
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 
 def median_time(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> float:

@@ -23,6 +23,7 @@ backward_vs_forward   forward + backward with every layer tensor (and the normal
 The script sets THP_MEM_ALLOC_ENABLE=1 before importing torch (PyTorch's switch to back large CPU
 allocations with transparent huge pages): a fresh 48 MiB output otherwise costs ~20 ms of page faults.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,12 +39,13 @@ from PIL import Image, ImageChops  # noqa: E402
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _common import machine_info, median_time, print_json_line  # noqa: E402
 
-from lasagna.compose import LayerTensors, RenderLayerSpec, Renderer, compile_plan, render  # noqa: E402
+from lasagna.compose import LayerTensors, Renderer, RenderLayerSpec, compile_plan, render  # noqa: E402
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
 
 
 # ---- stacks --------------------------------------------------------------------------------------
+
 
 def grid(g: torch.Generator, *shape: int, top: int = 255) -> torch.Tensor:
     """Random values on the 8-bit grid k/255 (k ≤ top), float32."""
@@ -89,31 +91,44 @@ def culled_64(live: list[RenderLayerSpec], size: int) -> list[RenderLayerSpec]:
     """The 4 live layers plus 15 each of occluded (below the opaque base), hidden, zero-opacity, identity."""
     g = torch.Generator().manual_seed(1)
     quarter = size // 4
-    layers = [RenderLayerSpec(id=f"occluded{i}", offset=(i * 7 % size, i * 13 % size),
-                              tensors=LayerTensors(grid(g, 3, quarter, quarter))) for i in range(15)]
+    layers = [
+        RenderLayerSpec(
+            id=f"occluded{i}", offset=(i * 7 % size, i * 13 % size), tensors=LayerTensors(grid(g, 3, quarter, quarter))
+        )
+        for i in range(15)
+    ]
     layers.append(live[0])
     extra = []
     for i in range(15):
-        extra.append(RenderLayerSpec(id=f"hidden{i}", visible=False,
-                                     tensors=LayerTensors(grid(g, 3, quarter, quarter))))
+        extra.append(
+            RenderLayerSpec(id=f"hidden{i}", visible=False, tensors=LayerTensors(grid(g, 3, quarter, quarter)))
+        )
         extra.append(RenderLayerSpec(id=f"zero{i}", opacity=0.0, tensors=LayerTensors(grid(g, 3, quarter, quarter))))
     ones = torch.ones(1, size, size)
     zeros = torch.zeros(3, size // 2, size // 2)
     for i in range(5):
         extra.append(RenderLayerSpec(id=f"times_one{i}", blend="multiply", tensors=LayerTensors(ones.clone())))
-        extra.append(RenderLayerSpec(id=f"plus_zero{i}", blend="plus", offset=(i * 11, i * 3),
-                                     tensors=LayerTensors(zeros.clone())))
-        extra.append(RenderLayerSpec(id=f"transparent{i}", tensors=LayerTensors(
-            grid(g, 3, quarter, quarter), torch.zeros(1, quarter, quarter))))
+        extra.append(
+            RenderLayerSpec(
+                id=f"plus_zero{i}", blend="plus", offset=(i * 11, i * 3), tensors=LayerTensors(zeros.clone())
+            )
+        )
+        extra.append(
+            RenderLayerSpec(
+                id=f"transparent{i}",
+                tensors=LayerTensors(grid(g, 3, quarter, quarter), torch.zeros(1, quarter, quarter)),
+            )
+        )
     # Interleave the 45 no-op layers between the 3 live layers above the base.
     for k, spec in enumerate(live[1:]):
-        layers.extend(extra[k * 15:(k + 1) * 15])
+        layers.extend(extra[k * 15 : (k + 1) * 15])
         layers.append(spec)
     assert len(layers) == 64
     return layers
 
 
 # ---- Pillow --------------------------------------------------------------------------------------
+
 
 def to_rgba(t: LayerTensors) -> Image.Image:
     """A layer as the RGBA uint8 image Pillow composes (1 channel expanded to RGB, alpha 255 if none)."""
@@ -128,14 +143,19 @@ def to_rgba(t: LayerTensors) -> Image.Image:
 
 def pillow_chain(layers: list[RenderLayerSpec]):
     images = [(s.blend, to_rgba(s.tensors)) for s in layers]
-    ops = {"normal": Image.alpha_composite, "multiply": ImageChops.multiply, "plus": ImageChops.add,
-           "screen": ImageChops.screen}
+    ops = {
+        "normal": Image.alpha_composite,
+        "multiply": ImageChops.multiply,
+        "plus": ImageChops.add,
+        "screen": ImageChops.screen,
+    }
 
     def run() -> Image.Image:
         img = images[0][1]
         for blend, im in images[1:]:
             img = ops[blend](img, im)
         return img
+
     return run
 
 
@@ -144,6 +164,7 @@ def pillow_float(img: Image.Image) -> torch.Tensor:
 
 
 # ---- measurements --------------------------------------------------------------------------------
+
 
 def precision_rows(n: int, size: int, repeats: int) -> list[dict]:
     layers = random_stack(n, size, seed=n)
@@ -155,13 +176,29 @@ def precision_rows(n: int, size: int, repeats: int) -> list[dict]:
         out = torch.empty(3, size, size, dtype=dtype)
         t = median_time(lambda: render(plan, out=out), repeats)  # noqa: B023 (called at once)
         img = render(plan).image.double()
-        rows.append(dict(layers=n, canvas=size, dtype=name, seconds=t, max_abs_err=(img - ref).abs().max().item(),
-                         max_levels_off=(torch.round(img.clamp(0, 1) * 255) - ref_q).abs().max().item()))
+        rows.append(
+            dict(
+                layers=n,
+                canvas=size,
+                dtype=name,
+                seconds=t,
+                max_abs_err=(img - ref).abs().max().item(),
+                max_levels_off=(torch.round(img.clamp(0, 1) * 255) - ref_q).abs().max().item(),
+            )
+        )
     run = pillow_chain(layers)
     t = median_time(run, repeats)
     img = pillow_float(run())
-    rows.append(dict(layers=n, canvas=size, dtype="pillow-uint8", seconds=t, max_abs_err=(img - ref).abs().max().item(),
-                     max_levels_off=(torch.round(img * 255) - ref_q).abs().max().item()))
+    rows.append(
+        dict(
+            layers=n,
+            canvas=size,
+            dtype="pillow-uint8",
+            seconds=t,
+            max_abs_err=(img - ref).abs().max().item(),
+            max_levels_off=(torch.round(img * 255) - ref_q).abs().max().item(),
+        )
+    )
     return rows
 
 
@@ -177,8 +214,13 @@ def plot_precision(rows: list[dict], path: str) -> None:
     markers = {"float64": "o", "float32": "s", "bfloat16": "^", "float16": "v", "pillow-uint8": "D"}
     colours = {4: "tab:blue", 32: "tab:orange", 256: "tab:green"}
     for r in rows:
-        ax.scatter(r["seconds"] * 1e3, max(r["max_abs_err"], 1e-9), marker=markers[r["dtype"]],
-                   color=colours.get(r["layers"], "k"), s=50)
+        ax.scatter(
+            r["seconds"] * 1e3,
+            max(r["max_abs_err"], 1e-9),
+            marker=markers[r["dtype"]],
+            color=colours.get(r["layers"], "k"),
+            s=50,
+        )
     for dt, m in markers.items():
         ax.scatter([], [], marker=m, color="gray", label=dt)
     for n, c in colours.items():
@@ -208,7 +250,7 @@ def measure_threads(plan, out, reps: int, res: dict) -> None:
     threads = min(per, key=per.get)
     torch.set_num_threads(threads)
     res.update(threads=threads, composite_1thread_s=per[1], composite_2threads_s=per[2])
-    log(f"[threads] 1: {per[1]*1e3:.2f} ms, 2: {per[2]*1e3:.2f} ms -> {threads}")
+    log(f"[threads] 1: {per[1] * 1e3:.2f} ms, 2: {per[2] * 1e3:.2f} ms -> {threads}")
 
 
 def measure_composite(layers, plan, out, size: int, reps: int, res: dict) -> None:
@@ -220,12 +262,21 @@ def measure_composite(layers, plan, out, size: int, reps: int, res: dict) -> Non
     n_floats = size * size * (3 + 1 + 3 + 1 + 3 + 3)  # inputs 3+1+3+1+3 channels, output 3
     src, dst = torch.rand(n_floats), torch.empty(n_floats)
     t_copy = median_time(lambda: dst.copy_(src), reps)
-    res.update(composite_s=t_comp, composite_fresh_output_s=t_fresh, pillow_s=t_pil, memcpy_s=t_copy,
-               memcpy_bytes=n_floats * 4, pillow_max_abs_err=pil_err,
-               composite_vs_pillow=t_comp / t_pil, composite_fresh_output_vs_pillow=t_fresh / t_pil,
-               composite_vs_memcpy=t_comp / t_copy)
-    log(f"[composite] out=: {t_comp*1e3:.2f} ms, fresh output: {t_fresh*1e3:.2f} ms, Pillow: {t_pil*1e3:.2f} ms, "
-        f"copy of {n_floats*4/2**20:.0f} MiB: {t_copy*1e3:.2f} ms")
+    res.update(
+        composite_s=t_comp,
+        composite_fresh_output_s=t_fresh,
+        pillow_s=t_pil,
+        memcpy_s=t_copy,
+        memcpy_bytes=n_floats * 4,
+        pillow_max_abs_err=pil_err,
+        composite_vs_pillow=t_comp / t_pil,
+        composite_fresh_output_vs_pillow=t_fresh / t_pil,
+        composite_vs_memcpy=t_comp / t_copy,
+    )
+    log(
+        f"[composite] out=: {t_comp * 1e3:.2f} ms, fresh output: {t_fresh * 1e3:.2f} ms, Pillow: {t_pil * 1e3:.2f} ms, "
+        f"copy of {n_floats * 4 / 2**20:.0f} MiB: {t_copy * 1e3:.2f} ms"
+    )
 
 
 def measure_culling(layers, plan, out, size: int, reps: int, res: dict) -> None:
@@ -238,7 +289,7 @@ def measure_culling(layers, plan, out, size: int, reps: int, res: dict) -> None:
     t64 = median_time(lambda: render(many, canvas=(size, size), out=out), reps)
     t4 = median_time(lambda: render(layers, canvas=(size, size), out=out), reps)
     res.update(culled64_s=t64, live4_s=t4, culled64_vs_live4=t64 / t4)
-    log(f"[culling] 64 layers: {t64*1e3:.2f} ms, 4 live: {t4*1e3:.2f} ms")
+    log(f"[culling] 64 layers: {t64 * 1e3:.2f} ms, 4 live: {t4 * 1e3:.2f} ms")
 
 
 def measure_prefix_cache(layers, out, size: int, reps: int, res: dict) -> None:
@@ -260,11 +311,21 @@ def measure_prefix_cache(layers, out, size: int, reps: int, res: dict) -> None:
     assert torch.equal(renderer.render(layers).image, render(layers, canvas=(size, size)).image)
     t_full = median_time(lambda: render(layers, canvas=(size, size)), reps)
     t_full_out = median_time(lambda: render(layers, canvas=(size, size), out=out), reps)
-    res.update(top_edit_s=t_top, top_edit_out_s=t_top_out, renderer_cold_s=t_cold, full_render_s=t_full,
-               full_render_out_s=t_full_out, top_edit_vs_full=t_top / t_full,
-               top_edit_vs_full_out=t_top_out / t_full_out, top_edit_vs_cold_renderer=t_top / t_cold)
-    log(f"[prefix cache] top edit: {t_top*1e3:.2f} ms (out=: {t_top_out*1e3:.2f}), full render: {t_full*1e3:.2f} ms "
-        f"(out=: {t_full_out*1e3:.2f}), cold renderer: {t_cold*1e3:.2f} ms")
+    res.update(
+        top_edit_s=t_top,
+        top_edit_out_s=t_top_out,
+        renderer_cold_s=t_cold,
+        full_render_s=t_full,
+        full_render_out_s=t_full_out,
+        top_edit_vs_full=t_top / t_full,
+        top_edit_vs_full_out=t_top_out / t_full_out,
+        top_edit_vs_cold_renderer=t_top / t_cold,
+    )
+    log(
+        f"[prefix cache] top edit: {t_top * 1e3:.2f} ms (out=: {t_top_out * 1e3:.2f}), full render: "
+        f"{t_full * 1e3:.2f} ms "
+        f"(out=: {t_full_out * 1e3:.2f}), cold renderer: {t_cold * 1e3:.2f} ms"
+    )
 
 
 def learned_copy(layers, learn: set[str]) -> list[RenderLayerSpec]:
@@ -284,12 +345,12 @@ def measure_autograd(layers, size: int, reps: int, res: dict) -> None:
     timings = {}
     for clamp in (None, "output"):
         grad_layers = learned_copy(layers, every)
-        grad_layers[2] = RenderLayerSpec(id="tint", tensors=grad_layers[2].tensors,
-                                         opacity=torch.tensor(0.9, requires_grad=True))
+        grad_layers[2] = RenderLayerSpec(
+            id="tint", tensors=grad_layers[2].tensors, opacity=torch.tensor(0.9, requires_grad=True)
+        )
         for engine in ("banded", "autograd"):
             plan = compile_plan(grad_layers, (size, size), clamp=clamp)
-            timings[clamp, engine] = median_time(
-                lambda: render(plan, grad_engine=engine).image.sum().backward(), reps)  # noqa: B023 (called at once)
+            timings[clamp, engine] = median_time(lambda: render(plan, grad_engine=engine).image.sum().backward(), reps)  # noqa: B023 (called at once)
         timings[clamp, "forward_grad"] = median_time(lambda: render(plan), reps)  # noqa: B023
         nograd = compile_plan(layers, (size, size), clamp=clamp)
         timings[clamp, "forward"] = median_time(lambda: render(nograd), reps)  # noqa: B023
@@ -303,20 +364,27 @@ def measure_autograd(layers, size: int, reps: int, res: dict) -> None:
         t1_f = median_time(lambda: render(nograd), reps)
         torch.set_num_threads(threads)
         res.update(backward_vs_forward_1thread=t1_fb / t1_f, forward_1thread_s=t1_f, forward_backward_1thread_s=t1_fb)
-        log(f"[autograd, 1 thread] clamp=None: forward {t1_f*1e3:.2f} ms, forward+backward {t1_fb*1e3:.2f} ms")
+        log(f"[autograd, 1 thread] clamp=None: forward {t1_f * 1e3:.2f} ms, forward+backward {t1_fb * 1e3:.2f} ms")
     top_plan = compile_plan(learned_copy(layers, {"light"}), (size, size), clamp=None)
     t_top = median_time(lambda: render(top_plan).image.sum().backward(), reps)
     f = timings[None, "forward"]
-    res.update(forward_s=f, forward_grad_s=timings[None, "forward_grad"], forward_backward_s=timings[None, "banded"],
-               forward_backward_autograd_engine_s=timings[None, "autograd"],
-               backward_vs_forward=timings[None, "banded"] / f,
-               backward_vs_forward_autograd_engine=timings[None, "autograd"] / f,
-               backward_vs_forward_clamp_output=timings["output", "banded"] / timings["output", "forward"],
-               learned_top_fwd_bwd_vs_forward=t_top / f)
-    log(f"[autograd] clamp=None: forward {f*1e3:.2f} ms, with grad {timings[None, 'forward_grad']*1e3:.2f}, "
-        f"forward+backward banded {timings[None, 'banded']*1e3:.2f} / autograd {timings[None, 'autograd']*1e3:.2f}; "
-        f"clamp=output: {timings['output', 'forward']*1e3:.2f} vs {timings['output', 'banded']*1e3:.2f}; "
-        f"learned top only {t_top*1e3:.2f}")
+    res.update(
+        forward_s=f,
+        forward_grad_s=timings[None, "forward_grad"],
+        forward_backward_s=timings[None, "banded"],
+        forward_backward_autograd_engine_s=timings[None, "autograd"],
+        backward_vs_forward=timings[None, "banded"] / f,
+        backward_vs_forward_autograd_engine=timings[None, "autograd"] / f,
+        backward_vs_forward_clamp_output=timings["output", "banded"] / timings["output", "forward"],
+        learned_top_fwd_bwd_vs_forward=t_top / f,
+    )
+    log(
+        f"[autograd] clamp=None: forward {f * 1e3:.2f} ms, with grad {timings[None, 'forward_grad'] * 1e3:.2f}, "
+        f"forward+backward banded {timings[None, 'banded'] * 1e3:.2f} / autograd "
+        f"{timings[None, 'autograd'] * 1e3:.2f}; "
+        f"clamp=output: {timings['output', 'forward'] * 1e3:.2f} vs {timings['output', 'banded'] * 1e3:.2f}; "
+        f"learned top only {t_top * 1e3:.2f}"
+    )
 
 
 def log(msg: str) -> None:
@@ -329,9 +397,12 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=9, help="timed runs per measurement, median reported")
     ap.add_argument("--quick", action="store_true", help="512² and a small precision table (< 30 s)")
     ap.add_argument("--precision-size", type=int, default=512, help="canvas side of the 32/256-layer rows")
-    ap.add_argument("--plot", default=None,
-                    help="where to write the precision plot ('' = none; default docs/img/compositing_precision.png, "
-                         "none with --quick)")
+    ap.add_argument(
+        "--plot",
+        default=None,
+        help="where to write the precision plot ('' = none; default docs/img/compositing_precision.png, "
+        "none with --quick)",
+    )
     args = ap.parse_args()
     if args.quick:
         args.size, args.repeats, args.precision_size = min(args.size, 512), min(args.repeats, 3), 128
@@ -351,13 +422,18 @@ def main() -> None:
     measure_autograd(layers, size, reps, res)
 
     prec_reps = max(1, min(reps, 3))
-    rows = precision_rows(4, size, prec_reps) + precision_rows(32, args.precision_size, prec_reps) \
+    rows = (
+        precision_rows(4, size, prec_reps)
+        + precision_rows(32, args.precision_size, prec_reps)
         + precision_rows(256, args.precision_size, prec_reps)
+    )
     res["precision"] = [{k: (round(v, 9) if isinstance(v, float) else v) for k, v in r.items()} for r in rows]
     log(f"{'layers':>6} {'canvas':>6} {'dtype':>13} {'ms':>9} {'max|err|':>10} {'levels':>6}")
     for r in rows:
-        log(f"{r['layers']:>6} {r['canvas']:>6} {r['dtype']:>13} {r['seconds']*1e3:>9.2f} {r['max_abs_err']:>10.2e} "
-            f"{r['max_levels_off']:>6.0f}")
+        log(
+            f"{r['layers']:>6} {r['canvas']:>6} {r['dtype']:>13} {r['seconds'] * 1e3:>9.2f} {r['max_abs_err']:>10.2e} "
+            f"{r['max_levels_off']:>6.0f}"
+        )
     if args.plot:
         plot_precision(rows, args.plot)
     res["machine"] = machine_info()

@@ -33,6 +33,7 @@ corrective, a free per-pixel shading layer distilled for ``--steps`` steps, all 
 Writes ``docs/img/distill_pareto.png``, ``docs/img/distill_spectrum.png`` and the full results to
 ``--json-out``; ends by printing one JSON line of the headline numbers.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -49,6 +50,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _common import machine_info, print_json_line  # noqa: E402
+
 from lasagna.catalogue import load_corrective, load_preset, load_prior, resolve  # noqa: E402
 from lasagna.distill import distill_image  # noqa: E402
 from lasagna.distill.objective import REC709  # noqa: E402
@@ -57,8 +59,16 @@ from lasagna.priors.ddim import ddim_sample  # noqa: E402
 from lasagna.world import GLOW_VOCABULARY, VOCABULARY, additive_light, colorization, generate  # noqa: E402
 
 METHODS = ("sds", "lmc-sds", "dds", "nfsd", "ms-sds")
-OPPOSITE = {"left": "right", "right": "left", "top": "bottom", "bottom": "top", "top-left": "bottom-right",
-            "bottom-right": "top-left", "top-right": "bottom-left", "bottom-left": "top-right"}
+OPPOSITE = {
+    "left": "right",
+    "right": "left",
+    "top": "bottom",
+    "bottom": "top",
+    "top-left": "bottom-right",
+    "bottom-right": "top-left",
+    "top-right": "bottom-left",
+    "bottom-left": "top-right",
+}
 OPPOSITE_GLOW = {"warm": "cool", "cool": "warm", "white": ""}  # NFSD's negative for a light (white: the null label)
 SECTIONS = ("shading", "color", "light")
 CHROMA_EPS = 0.05  # pixels darker than this (sum of RGB) have no meaningful chromaticity: left out of the drift
@@ -124,11 +134,19 @@ def radial_spectrum(x: torch.Tensor) -> torch.Tensor:
 def shading_row(method: str, omega: float | None, y: torch.Tensor, comp: torch.Tensor, scene, seconds: float) -> dict:
     """The metrics of one shading result y (B, 1, H, W) with its composite, against the scene's truth."""
     n = len(scene.label)
-    return {"method": method, "omega": omega, "shading_psnr": round(psnr(y, scene.shading), 2),
-            "object_psnr": round(psnr(y, scene.shading, scene.mask), 2), "si_mse": round(scale_invariant_mse(y, scene.shading), 5),
-            "composite_psnr": round(psnr(comp, scene.image), 2), "chroma_drift": round(chromaticity_drift(comp, scene.albedo), 5),
-            "albedo_error": round(albedo_error(comp, scene.albedo), 5), "seconds": round(seconds, 4),
-            "seconds_per_image": round(seconds / n, 5), "spectrum": radial_spectrum(comp).tolist()}
+    return {
+        "method": method,
+        "omega": omega,
+        "shading_psnr": round(psnr(y, scene.shading), 2),
+        "object_psnr": round(psnr(y, scene.shading, scene.mask), 2),
+        "si_mse": round(scale_invariant_mse(y, scene.shading), 5),
+        "composite_psnr": round(psnr(comp, scene.image), 2),
+        "chroma_drift": round(chromaticity_drift(comp, scene.albedo), 5),
+        "albedo_error": round(albedo_error(comp, scene.albedo), 5),
+        "seconds": round(seconds, 4),
+        "seconds_per_image": round(seconds / n, 5),
+        "spectrum": radial_spectrum(comp).tolist(),
+    }
 
 
 def shading_run(method: str, omega: float, scene, preset, prior, corrective, steps: int, seed: int, every: int) -> dict:
@@ -143,11 +161,29 @@ def shading_run(method: str, omega: float, scene, preset, prior, corrective, ste
 
     def trace(step: int, layer: torch.Tensor) -> None:
         if step % every == 0 or step == steps - 1:
-            curve.append({"step": step + 1, "time_s": time.perf_counter() - t0, "shading_psnr": round(psnr(layer[:, :1], true), 3)})
+            curve.append(
+                {
+                    "step": step + 1,
+                    "time_s": time.perf_counter() - t0,
+                    "shading_psnr": round(psnr(layer[:, :1], true), 3),
+                }
+            )
 
     t0 = time.perf_counter()
-    res = distill_image(scene.albedo, preset, prior, corrective if method == "lmc-sds" else None, condition=scene.label,
-                        negative=negative, loss=method, guidance=omega, steps=steps, seed=seed, early_stop=False, callback=trace)
+    res = distill_image(
+        scene.albedo,
+        preset,
+        prior,
+        corrective if method == "lmc-sds" else None,
+        condition=scene.label,
+        negative=negative,
+        loss=method,
+        guidance=omega,
+        steps=steps,
+        seed=seed,
+        early_stop=False,
+        callback=trace,
+    )
     seconds = time.perf_counter() - t0
     n = true.shape[0]
     for c in curve:
@@ -158,8 +194,13 @@ def shading_run(method: str, omega: float, scene, preset, prior, corrective, ste
 def direct_samples(scene, prior, omega: float, seed: int) -> dict:
     """The prior sampled with the same condition (DDIM-50): the "ControlNet alone" baseline."""
     t0 = time.perf_counter()
-    out = ddim_sample(prior, Condition(list(scene.label), image=scene.albedo), steps=50, omega=omega,
-                      rng=torch.Generator().manual_seed(seed)).image
+    out = ddim_sample(
+        prior,
+        Condition(list(scene.label), image=scene.albedo),
+        steps=50,
+        omega=omega,
+        rng=torch.Generator().manual_seed(seed),
+    ).image
     seconds = time.perf_counter() - t0
     return shading_row("prior-direct", omega, implied_shading(out, scene.albedo), out, scene, seconds)
 
@@ -193,11 +234,24 @@ def refined(scene, preset, prior, corrective, folder: Path | None, steps: int) -
     with torch.no_grad():
         start = LayerGenerator.from_pretrained(folder)(scene.albedo, list(scene.label))
     settings = _distill_settings(preset, refine=True, steps=steps, loss=None, guidance=None, seed=None, lr=None)
-    res = distill_image(scene.albedo, settings, prior, corrective, condition=scene.label, early_stop=False,
-                        generator=FreeLayer.from_layer(settings.layer, start))
+    res = distill_image(
+        scene.albedo,
+        settings,
+        prior,
+        corrective,
+        condition=scene.label,
+        early_stop=False,
+        generator=FreeLayer.from_layer(settings.layer, start),
+    )
     seconds = time.perf_counter() - t0
-    return shading_row(f"amortised + {steps} steps ({preset.distill.loss})", preset.distill.guidance, res.layer[:, :1],
-                       res.composite, scene, seconds)
+    return shading_row(
+        f"amortised + {steps} steps ({preset.distill.loss})",
+        preset.distill.guidance,
+        res.layer[:, :1],
+        res.composite,
+        scene,
+        seconds,
+    )
 
 
 def colourfulness(x: torch.Tensor) -> float:
@@ -213,12 +267,27 @@ def colourfulness(x: torch.Tensor) -> float:
 
 def color_run(method: str, omega: float, col, preset, prior, corrective, steps: int, seed: int) -> dict:
     t0 = time.perf_counter()
-    res = distill_image(col.base, preset, prior, corrective if method == "lmc-sds" else None, condition="natural",
-                        negative="" if method in ("dds", "nfsd") else None, loss=method, guidance=omega, steps=steps,
-                        seed=seed, early_stop=False)
+    res = distill_image(
+        col.base,
+        preset,
+        prior,
+        corrective if method == "lmc-sds" else None,
+        condition="natural",
+        negative="" if method in ("dds", "nfsd") else None,
+        loss=method,
+        guidance=omega,
+        steps=steps,
+        seed=seed,
+        early_stop=False,
+    )
     seconds = time.perf_counter() - t0
-    return {"method": method, "omega": omega, "composite_psnr": round(psnr(res.composite, col.target), 2),
-            "colourfulness": round(colourfulness(res.composite), 2), "seconds": round(seconds, 2)}
+    return {
+        "method": method,
+        "omega": omega,
+        "composite_psnr": round(psnr(res.composite, col.target), 2),
+        "colourfulness": round(colourfulness(res.composite), 2),
+        "seconds": round(seconds, 2),
+    }
 
 
 def glow_colour_error(glow: torch.Tensor, true: torch.Tensor) -> float:
@@ -243,22 +312,36 @@ def darkening(out: torch.Tensor, base: torch.Tensor) -> float:
 def light_row(method: str, omega: float | None, glow: torch.Tensor, comp: torch.Tensor, add, seconds: float) -> dict:
     """The metrics of one glow result (B, 3, H, W) with its composite, against the true glow and lit image."""
     mask = add.scene.mask
-    return {"method": method, "omega": omega, "glow_psnr": round(psnr(glow, add.glow), 2),
-            "object_psnr": round(psnr(glow, add.glow, mask), 2), "composite_psnr": round(psnr(comp, add.lit), 2),
-            "colour_error_deg": round(glow_colour_error(glow, add.glow), 2), "darkening": round(darkening(comp, add.base), 5),
-            "seconds": round(seconds, 3), "seconds_per_image": round(seconds / glow.shape[0], 5)}
+    return {
+        "method": method,
+        "omega": omega,
+        "glow_psnr": round(psnr(glow, add.glow), 2),
+        "object_psnr": round(psnr(glow, add.glow, mask), 2),
+        "composite_psnr": round(psnr(comp, add.lit), 2),
+        "colour_error_deg": round(glow_colour_error(glow, add.glow), 2),
+        "darkening": round(darkening(comp, add.base), 5),
+        "seconds": round(seconds, 3),
+        "seconds_per_image": round(seconds / glow.shape[0], 5),
+    }
 
 
 def light_baselines(add, prior, omegas, seed: int) -> list[dict]:
     """No light, the best constant glow (per image and channel, least squares) and the prior sampled directly."""
     zero = torch.zeros_like(add.glow)
     const = add.glow.mean(dim=(2, 3), keepdim=True).expand_as(add.glow)
-    rows = [light_row("no light (identity edit)", None, zero, add.base, add, 0.0),
-            light_row("best-constant", None, const, (add.base + const).clamp(0, 1), add, 0.0)]
+    rows = [
+        light_row("no light (identity edit)", None, zero, add.base, add, 0.0),
+        light_row("best-constant", None, const, (add.base + const).clamp(0, 1), add, 0.0),
+    ]
     for w in omegas:
         t0 = time.perf_counter()
-        out = ddim_sample(prior, Condition(list(add_labels(add)), image=add.base), steps=50, omega=w,
-                          rng=torch.Generator().manual_seed(seed)).image
+        out = ddim_sample(
+            prior,
+            Condition(list(add_labels(add)), image=add.base),
+            steps=50,
+            omega=w,
+            rng=torch.Generator().manual_seed(seed),
+        ).image
         rows.append(light_row("prior-direct", w, (out - add.base).clamp_min(0.0), out, add, time.perf_counter() - t0))
     return rows
 
@@ -293,8 +376,19 @@ def light_run(method: str, omega: float, add, preset, prior, corrective, steps: 
     elif method == "nfsd":
         negative = [OPPOSITE_GLOW[lab] for lab in labels]  # away from the other colour
     t0 = time.perf_counter()
-    res = distill_image(add.base, preset, prior, corrective if method == "lmc-sds" else None, condition=labels,
-                        negative=negative, loss=method, guidance=omega, steps=steps, seed=seed, early_stop=False)
+    res = distill_image(
+        add.base,
+        preset,
+        prior,
+        corrective if method == "lmc-sds" else None,
+        condition=labels,
+        negative=negative,
+        loss=method,
+        guidance=omega,
+        steps=steps,
+        seed=seed,
+        early_stop=False,
+    )
     return light_row(method, omega, res.layer, res.composite, add, time.perf_counter() - t0)
 
 
@@ -302,7 +396,9 @@ def light_run(method: str, omega: float, add, preset, prior, corrective, steps: 
 def best_by_method(rows: list[dict]) -> dict[str, dict]:
     best: dict[str, dict] = {}
     for r in rows:
-        if r["method"] in METHODS and (r["method"] not in best or r["shading_psnr"] > best[r["method"]]["shading_psnr"]):
+        if r["method"] in METHODS and (
+            r["method"] not in best or r["shading_psnr"] > best[r["method"]]["shading_psnr"]
+        ):
             best[r["method"]] = r
     return best
 
@@ -337,19 +433,35 @@ def plot_pareto(rows: list[dict], extra: list[dict], path: Path) -> None:
     for r in rows:
         points += [(c["time_s_per_image"], c["shading_psnr"]) for c in r.get("curve", [])]
     for m, r in best.items():
-        ax.plot([c["time_s_per_image"] for c in r["curve"]], [c["shading_psnr"] for c in r["curve"]], lw=1.4,
-                label=f"{m} (best ω = {r['omega']:g})")
+        ax.plot(
+            [c["time_s_per_image"] for c in r["curve"]],
+            [c["shading_psnr"] for c in r["curve"]],
+            lw=1.4,
+            label=f"{m} (best ω = {r['omega']:g})",
+        )
     front = pareto(points)
     ax.plot([p[0] for p in front], [p[1] for p in front], "k--", lw=1, label="Pareto front (all methods × ω × steps)")
     curves = [r for r in extra if r.get("curve")]  # e.g. LMC-SDS with the network b̂: its best ω as a dotted curve
     if curves:
         r = max(curves, key=lambda r: r["shading_psnr"])
-        ax.plot([c["time_s_per_image"] for c in r["curve"]], [c["shading_psnr"] for c in r["curve"]], lw=1.2, ls=":",
-                color="gray", label=f"{r['method']} (best ω = {r['omega']:g})")
+        ax.plot(
+            [c["time_s_per_image"] for c in r["curve"]],
+            [c["shading_psnr"] for c in r["curve"]],
+            lw=1.2,
+            ls=":",
+            color="gray",
+            label=f"{r['method']} (best ω = {r['omega']:g})",
+        )
     for r in extra:
         if r.get("seconds_per_image") and r["method"] != "best-constant" and not r.get("curve"):
-            ax.scatter([r["seconds_per_image"]], [r["shading_psnr"]], marker="*", s=90, zorder=3,
-                       label=f"{r['method']}" + (f" ω = {r['omega']:g}" if r.get("omega") else ""))
+            ax.scatter(
+                [r["seconds_per_image"]],
+                [r["shading_psnr"]],
+                marker="*",
+                s=90,
+                zorder=3,
+                label=f"{r['method']}" + (f" ω = {r['omega']:g}" if r.get("omega") else ""),
+            )
     const = next((r for r in extra if r["method"] == "best-constant"), None)
     if const:
         ax.axhline(const["shading_psnr"], color="gray", lw=0.8, ls=":", label="best constant")
@@ -373,7 +485,11 @@ def plot_spectrum(curves: dict[str, list[float]], path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(6.5, 4), dpi=110)
     for name, spec in curves.items():
-        style = {"lw": 2.2, "color": "k"} if name == "truth" else ({"lw": 1.5, "ls": "--", "color": "gray"} if name == "input (albedo)" else {"lw": 1.1})
+        style = (
+            {"lw": 2.2, "color": "k"}
+            if name == "truth"
+            else ({"lw": 1.5, "ls": "--", "color": "gray"} if name == "input (albedo)" else {"lw": 1.1})
+        )
         ax.plot(range(1, len(spec)), spec[1:], label=name, **style)
     ax.set_xscale("log")
     ax.set_yscale("log")
@@ -395,24 +511,42 @@ def _cell(r: dict, key: str, spec: str, scale: float = 1.0) -> str:
 
 def markdown(result: dict) -> str:
     rows = result.get("shading", [])
-    out = ["| method | ω | shading PSNR | object PSNR | si-MSE ×10³ | composite PSNR | chroma drift | s / image |",
-           "|---|---|---|---|---|---|---|---|"]
+    out = [
+        "| method | ω | shading PSNR | object PSNR | si-MSE ×10³ | composite PSNR | chroma drift | s / image |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in result.get("baselines", []) + rows:
-        out.append(f"| {r['method']} | {_cell(r, 'omega', 'g')} | {r['shading_psnr']:.2f} | {r['object_psnr']:.2f} | "
-                   f"{_cell(r, 'si_mse', '.2f', 1e3)} | {_cell(r, 'composite_psnr', '.2f')} | {_cell(r, 'chroma_drift', '.4f')} | "
-                   f"{_cell(r, 'seconds_per_image', '.3g')} |")
+        out.append(
+            f"| {r['method']} | {_cell(r, 'omega', 'g')} | {r['shading_psnr']:.2f} | {r['object_psnr']:.2f} | "
+            f"{_cell(r, 'si_mse', '.2f', 1e3)} | {_cell(r, 'composite_psnr', '.2f')} | "
+            f"{_cell(r, 'chroma_drift', '.4f')} | "
+            f"{_cell(r, 'seconds_per_image', '.3g')} |"
+        )
     if result.get("color"):
-        out += ["", "| colourisation method | ω | composite PSNR vs true colours | colourfulness M | s (all images) |",
-                "|---|---|---|---|---|"]
+        out += [
+            "",
+            "| colourisation method | ω | composite PSNR vs true colours | colourfulness M | s (all images) |",
+            "|---|---|---|---|---|",
+        ]
         for r in result["color"]:
-            out.append(f"| {r['method']} | {_cell(r, 'omega', 'g')} | {r['composite_psnr']:.2f} | {_cell(r, 'colourfulness', '.1f')} | "
-                       f"{r.get('seconds', '—')} |")
+            out.append(
+                f"| {r['method']} | {_cell(r, 'omega', 'g')} | {r['composite_psnr']:.2f} | "
+                f"{_cell(r, 'colourfulness', '.1f')} | "
+                f"{r.get('seconds', '—')} |"
+            )
     if result.get("light"):
-        out += ["", "| light method | ω | glow PSNR | object PSNR | composite PSNR | colour error (°) | darkening ×10³ | s / image |",
-                "|---|---|---|---|---|---|---|---|"]
+        out += [
+            "",
+            "| light method | ω | glow PSNR | object PSNR | composite PSNR | colour error (°) | darkening ×10³ | s "
+            "/ image |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for r in result["light"]:
-            out.append(f"| {r['method']} | {_cell(r, 'omega', 'g')} | {r['glow_psnr']:.2f} | {r['object_psnr']:.2f} | {r['composite_psnr']:.2f} | "
-                       f"{r['colour_error_deg']:.1f} | {1e3 * r['darkening']:.2f} | {r['seconds_per_image']:.3g} |")
+            out.append(
+                f"| {r['method']} | {_cell(r, 'omega', 'g')} | {r['glow_psnr']:.2f} | {r['object_psnr']:.2f} | "
+                f"{r['composite_psnr']:.2f} | "
+                f"{r['colour_error_deg']:.1f} | {1e3 * r['darkening']:.2f} | {r['seconds_per_image']:.3g} |"
+            )
     return "\n".join(out)
 
 
@@ -428,9 +562,16 @@ def run_shading(args) -> dict:
     distill_image(scene.albedo, preset, prior, corrective, condition=scene.label, steps=3, seed=0, early_stop=False)
 
     const = scene.shading.mean(dim=(1, 2, 3), keepdim=True).expand_as(scene.shading)
-    baselines = [{"method": "best-constant", "omega": None, "shading_psnr": round(psnr(const, scene.shading), 2),
-                  "object_psnr": round(psnr(const, scene.shading, scene.mask), 2), "si_mse": round(scale_invariant_mse(const, scene.shading), 5),
-                  "composite_psnr": round(psnr((scene.albedo * const).clamp(0, 1), scene.image), 2)}]
+    baselines = [
+        {
+            "method": "best-constant",
+            "omega": None,
+            "shading_psnr": round(psnr(const, scene.shading), 2),
+            "object_psnr": round(psnr(const, scene.shading, scene.mask), 2),
+            "si_mse": round(scale_invariant_mse(const, scene.shading), 5),
+            "composite_psnr": round(psnr((scene.albedo * const).clamp(0, 1), scene.image), 2),
+        }
+    ]
     print(json.dumps(baselines[-1]), flush=True)
     for w in sorted({1.0, 3.0, 7.5} & set(args.omegas) or {1.0}):
         baselines.append(direct_samples(scene, prior, w, args.seed))
@@ -466,24 +607,36 @@ def run_shading(args) -> dict:
     sds_best, lmc_best = best.get("sds"), best.get("lmc-sds")
     direct = [b for b in baselines if b["method"] == "prior-direct"]
     lmc_default = by.get(("lmc-sds", preset.distill.guidance)) or lmc_best
-    head = {"best_constant": baselines[0]["shading_psnr"], "best_constant_objects": baselines[0]["object_psnr"],
-            "best": {m: {"omega": r["omega"], "shading_psnr": r["shading_psnr"], "object_psnr": r["object_psnr"]} for m, r in best.items()}}
+    head = {
+        "best_constant": baselines[0]["shading_psnr"],
+        "best_constant_objects": baselines[0]["object_psnr"],
+        "best": {
+            m: {"omega": r["omega"], "shading_psnr": r["shading_psnr"], "object_psnr": r["object_psnr"]}
+            for m, r in best.items()
+        },
+    }
     if sds_best and lmc_best:
         t_sds = sds_best["curve"][-1]["time_s_per_image"]
         t_lmc = time_to_reach(lmc_best["curve"], sds_best["shading_psnr"])
         head["lmc_time_to_sds_final_vs_sds"] = None if t_lmc is None else round(t_lmc / t_sds, 3)
         for w in (7.5, 15.0):
             if ("sds", w) in by and ("lmc-sds", w) in by:
-                head[f"lmc_minus_sds_at_{w:g}"] = round(by[("lmc-sds", w)]["shading_psnr"] - by[("sds", w)]["shading_psnr"], 2)
+                head[f"lmc_minus_sds_at_{w:g}"] = round(
+                    by[("lmc-sds", w)]["shading_psnr"] - by[("sds", w)]["shading_psnr"], 2
+                )
     if lmc_default and direct:
-        head["drift_lasagna_vs_direct"] = round(lmc_default["chroma_drift"] / max(min(d["chroma_drift"] for d in direct), 1e-12), 4)
+        head["drift_lasagna_vs_direct"] = round(
+            lmc_default["chroma_drift"] / max(min(d["chroma_drift"] for d in direct), 1e-12), 4
+        )
     ceiling = next((b for b in baselines if b["method"] == "amortised (supervised ceiling)"), None)
     distilled = next((b for b in baselines if b["method"] == "amortised (distilled)"), None)
     if ceiling:
         head["supervised_ceiling"] = ceiling["shading_psnr"]
     if distilled and lmc_default:
         head["amortised_minus_per_image"] = round(distilled["shading_psnr"] - lmc_default["shading_psnr"], 2)
-        head["amortised_time_vs_per_image"] = round(distilled["seconds_per_image"] / lmc_default["seconds_per_image"], 5)
+        head["amortised_time_vs_per_image"] = round(
+            distilled["seconds_per_image"] / lmc_default["seconds_per_image"], 5
+        )
 
     spectra = {"input (albedo)": radial_spectrum(scene.albedo).tolist(), "truth": radial_spectrum(scene.image).tolist()}
     for m, r in best.items():
@@ -494,8 +647,13 @@ def run_shading(args) -> dict:
     plot_pareto(rows, baselines, args.img / "distill_pareto.png")
     plot_spectrum(spectra, args.img / "distill_spectrum.png")
 
-    return {"prior": str(parts.prior), "corrective": str(parts.corrective), "headline": head, "baselines": baselines,
-            "shading": rows}
+    return {
+        "prior": str(parts.prior),
+        "corrective": str(parts.corrective),
+        "headline": head,
+        "baselines": baselines,
+        "shading": rows,
+    }
 
 
 def run_color(args) -> list[dict]:
@@ -506,14 +664,39 @@ def run_color(args) -> list[dict]:
     cprior = load_prior(cparts.prior)
     ccorr = load_corrective(cparts.corrective) if cparts.corrective else None
     col = colorization(generate(args.split, args.count, args.seed, cprior.sample_shape[-1]))
-    color.append({"method": "gray input (identity edit)", "omega": None, "composite_psnr": round(psnr(col.base, col.target), 2),
-                  "colourfulness": round(colourfulness(col.base), 2)})
-    color.append({"method": "the true colours", "omega": None, "composite_psnr": 100.0, "colourfulness": round(colourfulness(col.target), 2)})
+    color.append(
+        {
+            "method": "gray input (identity edit)",
+            "omega": None,
+            "composite_psnr": round(psnr(col.base, col.target), 2),
+            "colourfulness": round(colourfulness(col.base), 2),
+        }
+    )
+    color.append(
+        {
+            "method": "the true colours",
+            "omega": None,
+            "composite_psnr": 100.0,
+            "colourfulness": round(colourfulness(col.target), 2),
+        }
+    )
     t0 = time.perf_counter()
-    out = ddim_sample(cprior, Condition(["natural"] * args.count, image=col.base[:, :1]), steps=50, omega=1.0,
-                      rng=torch.Generator().manual_seed(args.seed)).image
-    color.append({"method": "prior-direct", "omega": 1.0, "composite_psnr": round(psnr(out, col.target), 2),
-                  "colourfulness": round(colourfulness(out), 2), "seconds": round(time.perf_counter() - t0, 2)})
+    out = ddim_sample(
+        cprior,
+        Condition(["natural"] * args.count, image=col.base[:, :1]),
+        steps=50,
+        omega=1.0,
+        rng=torch.Generator().manual_seed(args.seed),
+    ).image
+    color.append(
+        {
+            "method": "prior-direct",
+            "omega": 1.0,
+            "composite_psnr": round(psnr(out, col.target), 2),
+            "colourfulness": round(colourfulness(out), 2),
+            "seconds": round(time.perf_counter() - t0, 2),
+        }
+    )
     for m in [m for m in args.methods if m != "lmc-sds" or ccorr is not None]:
         for w in args.color_omegas:
             color.append(color_run(m, w, col, cpreset, cprior, ccorr, args.steps, 0))
@@ -535,7 +718,9 @@ def run_light(args) -> list[dict]:
     lcorr = load_corrective(lparts.corrective) if lparts.corrective else None
     labels = [GLOW_VOCABULARY[i % len(GLOW_VOCABULARY)] for i in range(args.count)]
     add = additive_light(generate(args.split, args.count, args.seed, lprior.sample_shape[-1]), labels)
-    light = light_baselines(add, lprior, [w for w in args.light_omegas if w in (1.0, 3.0)] or args.light_omegas[:1], args.seed)
+    light = light_baselines(
+        add, lprior, [w for w in args.light_omegas if w in (1.0, 3.0)] or args.light_omegas[:1], args.seed
+    )
     row = light_amortised(add, args.light_generator or lparts.generator)
     if row is not None:
         light.append(row)
@@ -553,20 +738,40 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--count", type=int, default=16)
     ap.add_argument("--seed", type=int, default=7, help="world seed of the held-out scenes")
-    ap.add_argument("--split", default="heldout", help="world split (heldout: families the priors never saw; val: seen families)")
+    ap.add_argument(
+        "--split", default="heldout", help="world split (heldout: families the priors never saw; val: seen families)"
+    )
     ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     ap.add_argument("--omegas", nargs="+", type=float, default=[1.0, 3.0, 7.5, 15.0, 30.0])
-    ap.add_argument("--network-corrective", default="relight-32-bhat", help="the network b̂ compared with the preset's ('' to skip)")
-    ap.add_argument("--generator", type=Path, default=None, help="amortised generator folder (default: the shading preset's)")
-    ap.add_argument("--supervised", type=Path, default=ROOT / "runs" / "shading-supervised" / "generator",
-                    help="the supervised-ceiling generator folder")
+    ap.add_argument(
+        "--network-corrective", default="relight-32-bhat", help="the network b̂ compared with the preset's ('' to skip)"
+    )
+    ap.add_argument(
+        "--generator", type=Path, default=None, help="amortised generator folder (default: the shading preset's)"
+    )
+    ap.add_argument(
+        "--supervised",
+        type=Path,
+        default=ROOT / "runs" / "shading-supervised" / "generator",
+        help="the supervised-ceiling generator folder",
+    )
     ap.add_argument("--refine-steps", type=int, default=50, help="per-image steps after the amortised pass (0: skip)")
     ap.add_argument("--color-omegas", nargs="*", type=float, default=[1.0, 3.0, 7.5])
     ap.add_argument("--light-omegas", nargs="*", type=float, default=[1.0, 3.0, 7.5])
-    ap.add_argument("--light-generator", type=Path, default=None, help="amortised light generator folder (default: the light preset's)")
-    ap.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS,
-                    help="which tables to run; the others are carried over from --json-out")
+    ap.add_argument(
+        "--light-generator",
+        type=Path,
+        default=None,
+        help="amortised light generator folder (default: the light preset's)",
+    )
+    ap.add_argument(
+        "--sections",
+        nargs="+",
+        default=list(SECTIONS),
+        choices=SECTIONS,
+        help="which tables to run; the others are carried over from --json-out",
+    )
     ap.add_argument("--trace-every", type=int, default=5)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--quick", action="store_true", help="2 images, 10 steps, SDS and LMC-SDS at ω 1 and 7.5")
@@ -581,14 +786,23 @@ def main(argv=None) -> int:
         print(markdown(saved))
         return 0
     if args.quick:
-        args.count, args.steps, args.methods, args.omegas, args.color_omegas, args.light_omegas = 2, 10, ["sds", "lmc-sds"], [1.0, 7.5], [1.0], [1.0]
+        args.count, args.steps, args.methods, args.omegas, args.color_omegas, args.light_omegas = (
+            2,
+            10,
+            ["sds", "lmc-sds"],
+            [1.0, 7.5],
+            [1.0],
+            [1.0],
+        )
         args.json_out, args.img = Path("/tmp/distill_accuracy_quick.json"), Path("/tmp/distill_accuracy_quick")
     torch.set_num_threads(args.threads)
     t_start = time.perf_counter()
     result = {}
     if args.json_out.is_file() and set(args.sections) != set(SECTIONS):
         result = json.loads(args.json_out.read_text())  # the sections not run are carried over
-    result.update({"machine": machine_info(), "split": args.split, "count": args.count, "steps": args.steps, "seed": args.seed})
+    result.update(
+        {"machine": machine_info(), "split": args.split, "count": args.count, "steps": args.steps, "seed": args.seed}
+    )
     if "shading" in args.sections:
         result.update(run_shading(args))
     if "color" in args.sections:
@@ -600,8 +814,14 @@ def main(argv=None) -> int:
     args.json_out.write_text(json.dumps(result, indent=1) + "\n")
     if args.markdown:
         print(markdown(result))
-    print_json_line({"benchmark": "distill_accuracy", "sections": args.sections, **result.get("headline", {}),
-                     "wall_seconds": result["wall_seconds"]})
+    print_json_line(
+        {
+            "benchmark": "distill_accuracy",
+            "sections": args.sections,
+            **result.get("headline", {}),
+            "wall_seconds": result["wall_seconds"],
+        }
+    )
     return 0
 
 

@@ -30,6 +30,7 @@ median step time beside them. Ends with one JSON line: {"benchmark": "distill_st
 "overhead_vs_network": worst ratio, "worst": its configuration, "step_ms": {loss: {"32x8": ms}},
 "results": [...]}. ``--quick``: 32² only, batches 1 and 8, short budgets (< 60 s on 2 CPU cores).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -62,9 +63,15 @@ def build(resolution: int, device: str) -> tuple[UNetPrior, Corrective]:
     torch.manual_seed(0)
     prior = UNetPrior(UNetConfig(resolution=resolution, cond_channels=3, vocabulary=VOCAB)).to(device).eval()
     filters = (32, 64, 128) if resolution <= 32 else (32, 64, 128, 256)
-    corr = Corrective(
-        CorrectiveConfig(resolution=resolution, filters=filters, sees_condition=True, cond_channels=3, vocabulary=VOCAB)
-    ).to(device).eval()
+    corr = (
+        Corrective(
+            CorrectiveConfig(
+                resolution=resolution, filters=filters, sees_condition=True, cond_channels=3, vocabulary=VOCAB
+            )
+        )
+        .to(device)
+        .eval()
+    )
     # the zero-initialised output layers would make b̂ = z and ε = 0 regardless of input; perturb them so
     # the timed arithmetic is the arithmetic of a trained network (it is the same either way)
     for p in list(prior.parameters()) + list(corr.parameters()):
@@ -110,7 +117,9 @@ def clock(fn, device: str) -> float:
     return time.perf_counter() - t
 
 
-def measure(name: str, prior: UNetPrior, corr: Corrective, res: int, batch: int, device: str, seconds: float, min_rounds: int) -> dict:
+def measure(
+    name: str, prior: UNetPrior, corr: Corrective, res: int, batch: int, device: str, seconds: float, min_rounds: int
+) -> dict:
     branches, passes, uses_b = PLAN[name]
     g = torch.Generator(device="cpu").manual_seed(0)
     labels = [VOCAB[i % len(VOCAB)] for i in range(batch)]
@@ -207,12 +216,16 @@ def main(argv: list[str] | None = None) -> dict:
                     flush=True,
                 )
     if args.markdown:
-        print("\n| loss | res | batch | step ms | prior ms | b̂ ms | overhead ms | step / network | null-prior ms | ratio_null |")
+        print(
+            "\n| loss | res | batch | step ms | prior ms | b̂ ms | overhead ms | step / network | null-prior ms | "
+            "ratio_null |"
+        )
         print("|---|---|---|---|---|---|---|---|---|---|")
         for r in results:
             print(
                 f"| {r['loss']} | {r['resolution']}² | {r['batch']} | {r['step_ms']:.2f} | {r['prior_ms']:.2f} | "
-                f"{r['bhat_ms']:.2f} | {r['overhead_ms']:.2f} | {r['ratio']:.3f} | {r['null_ms']:.2f} | {r['ratio_null']:.3f} |"
+                f"{r['bhat_ms']:.2f} | {r['overhead_ms']:.2f} | {r['ratio']:.3f} | {r['null_ms']:.2f} | "
+                f"{r['ratio_null']:.3f} |"
             )
     worst = max(results, key=lambda r: r["ratio"])
     summary = {
@@ -223,7 +236,10 @@ def main(argv: list[str] | None = None) -> dict:
         "overhead_vs_network": worst["ratio"],
         "worst": {k: worst[k] for k in ("loss", "resolution", "batch")},
         "overhead_vs_network_null_prior": max(r["ratio_null"] for r in results),
-        "step_ms": {name: {f"{r['resolution']}x{r['batch']}": r["step_ms"] for r in results if r["loss"] == name} for name in args.losses},
+        "step_ms": {
+            name: {f"{r['resolution']}x{r['batch']}": r["step_ms"] for r in results if r["loss"] == name}
+            for name in args.losses
+        },
         "results": results,
     }
     print(json.dumps(summary))

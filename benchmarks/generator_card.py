@@ -8,6 +8,7 @@ Reads the two ``lasagna train-layer`` run folders (the distilled generator and i
 config, log, metrics on the ``val`` split) and the held-out numbers of ``benchmarks/distill_accuracy.py``;
 writes ``loss.png``, ``metrics.json`` and ``MODEL.md`` beside the installed generator. Prints one JSON line.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -67,13 +68,27 @@ def light_card(args) -> int:
     rows = {(r["method"], r["omega"]): r for r in acc["light"]}
     distilled = rows.get(("amortised (distilled)", None))
     per_image = rows.get((cfg["loss"], cfg["guidance"]))
-    const, none, direct = rows[("best-constant", None)], rows[("no light (identity edit)", None)], rows.get(("prior-direct", 1.0))
+    const, none, direct = (
+        rows[("best-constant", None)],
+        rows[("no light (identity edit)", None)],
+        rows.get(("prior-direct", 1.0)),
+    )
     plot(log, None, args.out / "loss.png")
     g = cfg["generator"]
     minutes = round(cumulative_minutes(log)[-1], 1)
-    metrics = {"val": m, "heldout": {"distilled": distilled, "per_image": per_image, "best_constant": const,
-               "no_light": none, "prior_direct": direct}, "steps": m["step"], "minutes": minutes,
-               "date": datetime.date.today().isoformat()}
+    metrics = {
+        "val": m,
+        "heldout": {
+            "distilled": distilled,
+            "per_image": per_image,
+            "best_constant": const,
+            "no_light": none,
+            "prior_direct": direct,
+        },
+        "steps": m["step"],
+        "minutes": minutes,
+        "date": datetime.date.today().isoformat(),
+    }
     (args.out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
 
     def line(name: str, r: dict | None) -> str:
@@ -84,35 +99,35 @@ def light_card(args) -> int:
 
     card = f"""# light/generator: the amortised light generator
 
-A conditioned convolutional UNet (`lasagna.generators.LayerGenerator`: channels {g['channels']}, {g['blocks']} conv blocks
-per level, label by {g['condition']} encoding) that maps an image and a light colour (warm, cool, white) to a
+A conditioned convolutional UNet (`lasagna.generators.LayerGenerator`: channels {g["channels"]}, {g["blocks"]} conv blocks
+per level, label by {g["condition"]} encoding) that maps an image and a light colour (warm, cool, white) to a
 `plus` layer — RGB light in [0, 1], added to the image — in one forward pass, at any image size. It starts
-at the identity edit (no light) and was trained *through the composite* x + y with {cfg['loss'].upper()} at
-ω = {cfg['guidance']:g} from the bundled prior `light-32` (the light preset's defaults): the score weight rises
-0.1 → 1 and the L2 to the input falls 1 → {cfg['weights']['reg']['end']:g} over the first {cfg['weights']['reg']['steps']} steps (cosine).
+at the identity edit (no light) and was trained *through the composite* x + y with {cfg["loss"].upper()} at
+ω = {cfg["guidance"]:g} from the bundled prior `light-32` (the light preset's defaults): the score weight rises
+0.1 → 1 and the L2 to the input falls 1 → {cfg["weights"]["reg"]["end"]:g} over the first {cfg["weights"]["reg"]["steps"]} steps (cosine).
 
 ## Data and training
-Fresh batches of {cfg['batch_size']} world scenes of the `{cfg['split']}` split every step (the rendered image as the base,
-a uniformly drawn light colour); nothing on disk. {m['step']} steps in {minutes} minutes on one thread of this
-2-vCPU box (Adam lr {cfg['lr']}, EMA {cfg['ema_decay']} with the warm-up ramp, seed {cfg['seed']}). Reproduce:
+Fresh batches of {cfg["batch_size"]} world scenes of the `{cfg["split"]}` split every step (the rendered image as the base,
+a uniformly drawn light colour); nothing on disk. {m["step"]} steps in {minutes} minutes on one thread of this
+2-vCPU box (Adam lr {cfg["lr"]}, EMA {cfg["ema_decay"]} with the warm-up ramp, seed {cfg["seed"]}). Reproduce:
 
 ```sh
-lasagna train-layer --preset light --out runs/light-generator --steps {m['step']} --ema-warmup --install   # ≈ {minutes} min here
+lasagna train-layer --preset light --out runs/light-generator --steps {m["step"]} --ema-warmup --install   # ≈ {minutes} min here
 OMP_NUM_THREADS=2 python benchmarks/distill_accuracy.py --sections light && python benchmarks/generator_card.py --preset light
 ```
 
 ![training](loss.png)
 
 ## Quality
-`val` split ({cfg['eval_count']} scenes, `metrics.json`): glow PSNR **{m['layer_psnr']:.2f} dB** against the world's true
-light (no light: {m['identity_psnr']:.2f} dB).
+`val` split ({cfg["eval_count"]} scenes, `metrics.json`): glow PSNR **{m["layer_psnr"]:.2f} dB** against the world's true
+light (no light: {m["identity_psnr"]:.2f} dB).
 
-`heldout` split (shapes, textures and walls never seen; {acc['count']} scenes; `benchmarks/distill_accuracy.py`):
+`heldout` split (shapes, textures and walls never seen; {acc["count"]} scenes; `benchmarks/distill_accuracy.py`):
 
 | method | glow PSNR (dB) | object pixels (dB) | colour error (°) | ms per image |
 |---|---|---|---|---|
-{line('this generator, one forward pass', distilled)}{line(f"per-image {cfg['loss']} ω = {cfg['guidance']:g} (free layer, {acc['steps']} steps)", per_image)}{line('the prior sampled directly (DDIM-50, ω = 1)', direct)}{line('best constant glow per image (oracle)', const)}{line('no light', none)}
-Measured {metrics['date']}; full tables in [docs/BENCHMARKS.md](../../../docs/BENCHMARKS.md#learned-layers).
+{line("this generator, one forward pass", distilled)}{line(f"per-image {cfg['loss']} ω = {cfg['guidance']:g} (free layer, {acc['steps']} steps)", per_image)}{line("the prior sampled directly (DDIM-50, ω = 1)", direct)}{line("best constant glow per image (oracle)", const)}{line("no light", none)}
+Measured {metrics["date"]}; full tables in [docs/BENCHMARKS.md](../../../docs/BENCHMARKS.md#learned-layers).
 """
     (args.out / "MODEL.md").write_text(card)
     print(json.dumps({"val_psnr": m["layer_psnr"], "heldout_psnr": distilled and distilled["glow_psnr"]}))
@@ -146,9 +161,19 @@ def main(argv=None) -> int:
     g = cfg["generator"]
     params_note = f"channels {g['channels']}, {g['blocks']} conv blocks per level, label by {g['condition']} encoding"
     minutes = round(cumulative_minutes(log)[-1], 1)
-    metrics = {"val": {"distilled": m, "supervised_ceiling": mc}, "heldout": {"distilled": distilled, "supervised_ceiling": ceiling,
-               "per_image": per_image, "refined": refine, "best_constant": const}, "steps": m["step"], "minutes": minutes,
-               "date": datetime.date.today().isoformat()}
+    metrics = {
+        "val": {"distilled": m, "supervised_ceiling": mc},
+        "heldout": {
+            "distilled": distilled,
+            "supervised_ceiling": ceiling,
+            "per_image": per_image,
+            "refined": refine,
+            "best_constant": const,
+        },
+        "steps": m["step"],
+        "minutes": minutes,
+        "date": datetime.date.today().isoformat(),
+    }
     for part in metrics["heldout"].values():
         if isinstance(part, dict):
             part.pop("spectrum", None)
@@ -166,40 +191,47 @@ A conditioned convolutional UNet (`lasagna.generators.LayerGenerator`: {params_n
 a base image (the albedo) and a light direction to the shading layer — a 1-channel multiplier
 y = 2·sigmoid(·) in [0, 2] — in one forward pass, at any image size (fully convolutional). It is
 initialised to the identity edit (y = 1) and trained *through the composite* f(x, y) = x·y with
-{cfg['loss'].upper()} at ω = {cfg['guidance']:g} from the bundled prior `relight-32` and its spectral corrective
+{cfg["loss"].upper()} at ω = {cfg["guidance"]:g} from the bundled prior `relight-32` and its spectral corrective
 `relight-32-spectral` — the LMC-SDS paper's image-to-image network (Sec. 5.2): the score weight rises
-0.1 → 1 and the L2 to the input falls 1 → {cfg['weights']['reg']['end']:g} over the first {cfg['weights']['reg']['steps']} steps (cosine).
+0.1 → 1 and the L2 to the input falls 1 → {cfg["weights"]["reg"]["end"]:g} over the first {cfg["weights"]["reg"]["steps"]} steps (cosine).
 
 ## Data and training
-Fresh batches of {cfg['batch_size']} world scenes of the `{cfg['split']}` split every step (albedo as the base, a
-uniformly drawn light direction); nothing on disk. {m['step']} steps in {minutes} minutes on one thread of this
-2-vCPU box (Adam lr {cfg['lr']}, EMA {cfg['ema_decay']}, seed {cfg['seed']}). The supervised ceiling is the same generator
-trained for the same {round(cumulative_minutes(log_c)[-1], 1)} minutes on the true shading (MSE), {mc['step']} steps. Reproduce:
+Fresh batches of {cfg["batch_size"]} world scenes of the `{cfg["split"]}` split every step (albedo as the base, a
+uniformly drawn light direction); nothing on disk. {m["step"]} steps in {minutes} minutes on one thread of this
+2-vCPU box (Adam lr {cfg["lr"]}, EMA {cfg["ema_decay"]}, seed {cfg["seed"]}). The supervised ceiling is the same generator
+trained for the same {round(cumulative_minutes(log_c)[-1], 1)} minutes on the true shading (MSE), {mc["step"]} steps. Reproduce:
 
 ```sh
-lasagna train-layer --preset shading --out runs/shading-generator --steps {m['step']} --install   # ≈ {minutes} min here; resumable
-lasagna train-layer --preset shading --supervised --out runs/shading-supervised --steps {mc['step']}
+lasagna train-layer --preset shading --out runs/shading-generator --steps {m["step"]} --install   # ≈ {minutes} min here; resumable
+lasagna train-layer --preset shading --supervised --out runs/shading-supervised --steps {mc["step"]}
 python benchmarks/distill_accuracy.py && python benchmarks/generator_card.py
 ```
 
 ![training](loss.png)
 
 ## Quality
-`val` split (seen shape families, other seeds; {cfg['eval_count']} scenes, `metrics.json` of the runs): shading PSNR
-**{m['layer_psnr']:.2f} dB** distilled vs {mc['layer_psnr']:.2f} dB supervised ceiling (identity edit {m['identity_psnr']:.2f} dB);
-composite PSNR {m['layer_composite_psnr']:.2f} vs {mc['layer_composite_psnr']:.2f} dB.
+`val` split (seen shape families, other seeds; {cfg["eval_count"]} scenes, `metrics.json` of the runs): shading PSNR
+**{m["layer_psnr"]:.2f} dB** distilled vs {mc["layer_psnr"]:.2f} dB supervised ceiling (identity edit {m["identity_psnr"]:.2f} dB);
+composite PSNR {m["layer_composite_psnr"]:.2f} vs {mc["layer_composite_psnr"]:.2f} dB.
 
-`heldout` split (torus, capsule, cone; textures and walls never seen; {acc['count']} scenes; `benchmarks/distill_accuracy.py`):
+`heldout` split (torus, capsule, cone; textures and walls never seen; {acc["count"]} scenes; `benchmarks/distill_accuracy.py`):
 
 | method | shading PSNR (dB) | object pixels (dB) | ms per image |
 |---|---|---|---|
-{line('this generator, one forward pass', distilled)}{line(f"this generator, then {refine['method'].removeprefix('amortised + ')}" if refine else 'this generator + refinement', refine)}{line(f"per-image {cfg['loss']} ω = {cfg['guidance']:g} (free layer, {acc['steps']} steps)", per_image)}{line('supervised ceiling, one forward pass', ceiling)}| best constant per image | {const['shading_psnr']:.2f} | {const['object_psnr']:.2f} | — |
+{line("this generator, one forward pass", distilled)}{line(f"this generator, then {refine['method'].removeprefix('amortised + ')}" if refine else "this generator + refinement", refine)}{line(f"per-image {cfg['loss']} ω = {cfg['guidance']:g} (free layer, {acc['steps']} steps)", per_image)}{line("supervised ceiling, one forward pass", ceiling)}| best constant per image | {const["shading_psnr"]:.2f} | {const["object_psnr"]:.2f} | — |
 
-Measured {metrics['date']}; full tables in [docs/BENCHMARKS.md](../../../docs/BENCHMARKS.md#learned-layers).
+Measured {metrics["date"]}; full tables in [docs/BENCHMARKS.md](../../../docs/BENCHMARKS.md#learned-layers).
 """
     (args.out / "MODEL.md").write_text(card)
-    print(json.dumps({"val_psnr": m["layer_psnr"], "heldout_psnr": distilled and distilled["shading_psnr"],
-                      "ceiling_heldout": ceiling and ceiling["shading_psnr"]}))
+    print(
+        json.dumps(
+            {
+                "val_psnr": m["layer_psnr"],
+                "heldout_psnr": distilled and distilled["shading_psnr"],
+                "ceiling_heldout": ceiling and ceiling["shading_psnr"],
+            }
+        )
+    )
     return 0
 
 

@@ -14,6 +14,7 @@ config), measures on the ``heldout`` split (shape and texture families the prior
 copies the weights to ``layers/<name>/`` and writes ``MODEL.md``, ``loss.png`` and ``metrics.json``
 there. Ends by printing one JSON line.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,9 +33,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from lasagna.priors.evaluate import denoising_error, sample_quality  # noqa: E402
-from lasagna.training.prior import PriorTrainConfig, prior_batch, prior_from_checkpoint, task_vocabulary  # noqa: E402
 from lasagna.priors.unet import UNetPrior  # noqa: E402
 from lasagna.training import cumulative_seconds, read_log  # noqa: E402
+from lasagna.training.prior import PriorTrainConfig, prior_batch, prior_from_checkpoint, task_vocabulary  # noqa: E402
 from lasagna.world import generate  # noqa: E402
 
 
@@ -64,7 +65,7 @@ def loss_plot(log: list[dict], path: Path, title: str) -> None:
     steps = [r["step"] for r in log]
     loss = [r["loss"] for r in log]
     k = 20
-    smooth = [sum(loss[max(0, i - k + 1): i + 1]) / len(loss[max(0, i - k + 1): i + 1]) for i in range(len(loss))]
+    smooth = [sum(loss[max(0, i - k + 1) : i + 1]) / len(loss[max(0, i - k + 1) : i + 1]) for i in range(len(loss))]
     fig, ax = plt.subplots(figsize=(6, 3.2), dpi=100)
     ax.plot(steps, loss, lw=0.5, alpha=0.4, label="per step")
     ax.plot(steps, smooth, lw=1.5, label=f"mean of {k}")
@@ -89,11 +90,18 @@ def main(argv=None) -> int:
     ap.add_argument("--snapshots", type=Path, default=None)
     ap.add_argument("--snapshot-count", type=int, default=32)
     ap.add_argument("--out", type=Path, default=ROOT / "layers")
-    ap.add_argument("--split", default="heldout",
-                    help="world split of the scenes (heldout: the card's; val: seen families — pass another --out)")
-    ap.add_argument("--previous", type=Path, default=None,
-                    help="metrics.json of the run this one started from (train-prior --init-from): "
-                         "the card then describes both stages and their total time")
+    ap.add_argument(
+        "--split",
+        default="heldout",
+        help="world split of the scenes (heldout: the card's; val: seen families — pass another --out)",
+    )
+    ap.add_argument(
+        "--previous",
+        type=Path,
+        default=None,
+        help="metrics.json of the run this one started from (train-prior --init-from): "
+        "the card then describes both stages and their total time",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
 
@@ -121,22 +129,43 @@ def main(argv=None) -> int:
             seen.add(step)
             elapsed = train_seconds(log, step)
             q = sample_quality(p, x_s, l_s, c_s, omegas=(1.0,), steps=args.steps, seed=args.seed)
-            growth.append({"step": step, "train_minutes": None if elapsed is None else round(elapsed / 60, 1),
-                           "psnr_omega1": round(q[1.0]["all"], 2)})
+            growth.append(
+                {
+                    "step": step,
+                    "train_minutes": None if elapsed is None else round(elapsed / 60, 1),
+                    "psnr_omega1": round(q[1.0]["all"], 2),
+                }
+            )
         final_q = sample_quality(prior, x_s, l_s, c_s, omegas=(1.0,), steps=args.steps, seed=args.seed)
-        growth.append({"step": final_step,
-                       "train_minutes": round(train_seconds(log, final_step) / 60, 1) if log else None,
-                       "psnr_omega1": round(final_q[1.0]["all"], 2), "final_ema": True})
+        growth.append(
+            {
+                "step": final_step,
+                "train_minutes": round(train_seconds(log, final_step) / 60, 1) if log else None,
+                "psnr_omega1": round(final_q[1.0]["all"], 2),
+                "final_ema": True,
+            }
+        )
 
     previous = _previous_stage(args.previous)
     if previous and previous.get("growth"):  # continue the first stage's curve with this stage's final weights
         x_s, l_s, c_s = heldout(config.task, args.snapshot_count, res, args.seed)
         final_q = sample_quality(prior, x_s, l_s, c_s, omegas=(1.0,), steps=args.steps, seed=args.seed)
         final_step = prior_from_checkpoint(args.run / "checkpoint.safetensors")[1]
-        growth = [g for g in previous["growth"] if not g.get("final_ema")] + [
-            {**g, "final_ema": False, "stage": 1} for g in previous["growth"] if g.get("final_ema")] + [
-            {"step": previous["steps"] + final_step, "stage": 2, "final_ema": True, "psnr_omega1": round(final_q[1.0]["all"], 2),
-             "train_minutes": round((previous.get("train_minutes") or 0) + train_seconds(log, final_step) / 60, 1)}]
+        growth = (
+            [g for g in previous["growth"] if not g.get("final_ema")]
+            + [{**g, "final_ema": False, "stage": 1} for g in previous["growth"] if g.get("final_ema")]
+            + [
+                {
+                    "step": previous["steps"] + final_step,
+                    "stage": 2,
+                    "final_ema": True,
+                    "psnr_omega1": round(final_q[1.0]["all"], 2),
+                    "train_minutes": round(
+                        (previous.get("train_minutes") or 0) + train_seconds(log, final_step) / 60, 1
+                    ),
+                }
+            ]
+        )
 
     dest = args.out / args.name
     dest.mkdir(parents=True, exist_ok=True)
@@ -145,21 +174,34 @@ def main(argv=None) -> int:
     loss_plot(log, dest / "loss.png", f"{args.name}: training loss")
     n_params = sum(p.numel() for p in prior.parameters())
     metrics = {
-        "name": args.name, "task": config.task, "params": n_params, "resolution": res,
+        "name": args.name,
+        "task": config.task,
+        "params": n_params,
+        "resolution": res,
         "steps": prior_from_checkpoint(args.run / "checkpoint.safetensors")[1],
         "train_minutes": round(train_seconds(log, log[-1]["step"]) / 60, 1) if log else None,
-        "heldout_scenes": args.count, "ddim_steps": args.steps,
+        "heldout_scenes": args.count,
+        "ddim_steps": args.steps,
         "psnr": {str(w): {k: round(v, 2) for k, v in q.items()} for w, q in quality.items()},
         "denoise_mse_per_t": {str(k): round(v, 6) for k, v in denoise.items()},
-        "growth": growth, "eval_seconds": round(eval_s, 1),
+        "growth": growth,
+        "eval_seconds": round(eval_s, 1),
         "previous": previous and {k: v for k, v in previous.items() if k != "growth"},
-        "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} thread(s), torch {torch.__version__}",
+        "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} thread(s), "
+        f"torch {torch.__version__}",
         "date": datetime.date.today().isoformat(),
     }
     (dest / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     (dest / "MODEL.md").write_text(model_card(metrics, config, args))
-    print(json.dumps({"name": args.name, "psnr_omega1": metrics["psnr"].get("1.0", {}).get("all"),
-                      "psnr": {w: q["all"] for w, q in metrics["psnr"].items()}}))
+    print(
+        json.dumps(
+            {
+                "name": args.name,
+                "psnr_omega1": metrics["psnr"].get("1.0", {}).get("all"),
+                "psnr": {w: q["all"] for w, q in metrics["psnr"].items()},
+            }
+        )
+    )
     return 0
 
 
@@ -175,36 +217,62 @@ def _previous_stage(path: Path | None) -> dict | None:
 
 
 def _training_section(m: dict, config: PriorTrainConfig) -> str:
-    extra = "".join([f" --lr {config.lr:g}" if config.lr != 2e-3 else "",
-                     f" --lr-schedule {config.lr_schedule}" if config.lr_schedule != "step" else "",
-                     " --ema-warmup" if config.ema_warmup else ""])
-    one = (f"lasagna train-prior --task {config.task} --out runs/{m['name']} --steps {m['steps']}{extra}   "
-           f"# ≈ {m['train_minutes']} min here; resumable")
-    ema = f"EMA {config.ema_decay}" + (" with the warm-up ramp min(decay, (1 + step)/(10 + step))" if config.ema_warmup else "")
-    stage = (f"{m['steps']} steps in {m['train_minutes']} minutes (Adam, lr {config.lr} ({config.lr_schedule}) with "
-             f"{config.warmup_steps} warm-up steps, gradient clip {config.grad_clip}, {ema}, seed {config.seed})")
+    extra = "".join(
+        [
+            f" --lr {config.lr:g}" if config.lr != 2e-3 else "",
+            f" --lr-schedule {config.lr_schedule}" if config.lr_schedule != "step" else "",
+            " --ema-warmup" if config.ema_warmup else "",
+        ]
+    )
+    one = (
+        f"lasagna train-prior --task {config.task} --out runs/{m['name']} --steps {m['steps']}{extra}   "
+        f"# ≈ {m['train_minutes']} min here; resumable"
+    )
+    ema = f"EMA {config.ema_decay}" + (
+        " with the warm-up ramp min(decay, (1 + step)/(10 + step))" if config.ema_warmup else ""
+    )
+    stage = (
+        f"{m['steps']} steps in {m['train_minutes']} minutes (Adam, lr {config.lr} ({config.lr_schedule}) with "
+        f"{config.warmup_steps} warm-up steps, gradient clip {config.grad_clip}, {ema}, seed {config.seed})"
+    )
     prev = m.get("previous")
     if config.init_from is not None and config.init_labels == "fresh":
         source = Path(config.init_from).name
-        tune = (f"lasagna train-prior --task {config.task} --out runs/{m['name']} --init-from layers/{source} --init-labels fresh "
-                f"--lr {config.lr} --lr-schedule {config.lr_schedule} --steps {m['steps']} --warmup {config.warmup_steps}"
-                + (" --ema-warmup" if config.ema_warmup else ""))
-        return (f"Fine-tuned from the bundled prior `{source}` (same architecture; [its card](../{source}/MODEL.md)): every "
-                f"weight copied except the label embedding, whose rows all start as `{source}`'s null label, so training "
-                f"begins from its unconditional model. {stage}. Reproduce:\n\n```sh\n{tune}\n"
-                f"python benchmarks/prior_quality.py --run runs/{m['name']} --name {m['name']}\n```\n")
+        tune = (
+            f"lasagna train-prior --task {config.task} --out runs/{m['name']} --init-from layers/{source} "
+            "--init-labels fresh "
+            f"--lr {config.lr} --lr-schedule {config.lr_schedule} --steps {m['steps']} --warmup {config.warmup_steps}"
+            + (" --ema-warmup" if config.ema_warmup else "")
+        )
+        return (
+            f"Fine-tuned from the bundled prior `{source}` (same architecture; [its card](../{source}/MODEL.md)): "
+            "every "
+            f"weight copied except the label embedding, whose rows all start as `{source}`'s null label, so training "
+            f"begins from its unconditional model. {stage}. Reproduce:\n\n```sh\n{tune}\n"
+            f"python benchmarks/prior_quality.py --run runs/{m['name']} --name {m['name']}\n```\n"
+        )
     if not prev:
-        return f"{stage}. Reproduce:\n\n```sh\n{one}\npython benchmarks/prior_quality.py --run runs/{m['name']} --name {m['name']}\n```\n"
+        return (
+            f"{stage}. Reproduce:\n\n```sh\n{one}\n"
+            f"python benchmarks/prior_quality.py --run runs/{m['name']} --name {m['name']}\n```\n"
+        )
     total = round((prev.get("train_minutes") or 0) + (m["train_minutes"] or 0), 1)
-    first = prev.get("command") or (f"lasagna train-prior --task {config.task} --out runs/{m['name']} --steps {prev['steps']}")
-    anneal = (f"lasagna train-prior --task {config.task} --out runs/{m['name']}-anneal --init-from runs/{m['name']}/prior "
-              f"--lr {config.lr} --lr-schedule {config.lr_schedule} --steps {m['steps']} --warmup {config.warmup_steps} "
-              f"--ema {config.ema_decay} --seed {config.seed}")
-    return (f"Two stages, {prev['steps'] + m['steps']} steps and {total} minutes in all:\n\n"
-            f"1. {prev['steps']} steps in {prev.get('train_minutes')} minutes at a constant lr {prev.get('lr', 2e-3)} "
-            f"(ω = 1 held-out PSNR after it: {prev.get('psnr_omega1')} dB);\n"
-            f"2. an anneal from those EMA weights: {stage}.\n\nReproduce:\n\n```sh\n{first}\n{anneal}\n"
-            f"python benchmarks/prior_quality.py --run runs/{m['name']}-anneal --name {m['name']} --previous runs/{m['name']}/metrics.json\n```\n")
+    first = prev.get("command") or (
+        f"lasagna train-prior --task {config.task} --out runs/{m['name']} --steps {prev['steps']}"
+    )
+    anneal = (
+        f"lasagna train-prior --task {config.task} --out runs/{m['name']}-anneal --init-from runs/{m['name']}/prior "
+        f"--lr {config.lr} --lr-schedule {config.lr_schedule} --steps {m['steps']} --warmup {config.warmup_steps} "
+        f"--ema {config.ema_decay} --seed {config.seed}"
+    )
+    return (
+        f"Two stages, {prev['steps'] + m['steps']} steps and {total} minutes in all:\n\n"
+        f"1. {prev['steps']} steps in {prev.get('train_minutes')} minutes at a constant lr {prev.get('lr', 2e-3)} "
+        f"(ω = 1 held-out PSNR after it: {prev.get('psnr_omega1')} dB);\n"
+        f"2. an anneal from those EMA weights: {stage}.\n\nReproduce:\n\n```sh\n{first}\n{anneal}\n"
+        f"python benchmarks/prior_quality.py --run runs/{m['name']}-anneal --name {m['name']} --previous "
+        f"runs/{m['name']}/metrics.json\n```\n"
+    )
 
 
 def model_card(m: dict, config: PriorTrainConfig, args) -> str:
@@ -212,28 +280,44 @@ def model_card(m: dict, config: PriorTrainConfig, args) -> str:
     cond, target = {
         "relight": ("the albedo (3 channels) and the lighting label", "the lit image albedo × shading"),
         "colorize": ("the Rec. 709 luma (1 channel) and the label `natural`", "the colour image"),
-        "light": ("the unlit image (3 channels) and the glow's label (warm, cool, white)",
-                  "the image with the world's coloured fill light added (`lasagna.world.tasks`)"),
+        "light": (
+            "the unlit image (3 channels) and the glow's label (warm, cool, white)",
+            "the image with the world's coloured fill light added (`lasagna.world.tasks`)",
+        ),
     }[config.task]
     labels = [k for k in next(iter(m["psnr"].values())) if k != "all"]
     head = "| label | " + " | ".join(f"ω = {w}" for w in m["psnr"]) + " |\n|---|" + "---|" * len(m["psnr"]) + "\n"
-    rows = "".join(f"| {lab} | " + " | ".join(f"{m['psnr'][w][lab]:.2f}" for w in m["psnr"]) + " |\n" for lab in labels + ["all"])
-    den = "| t | " + " | ".join(m["denoise_mse_per_t"]) + " |\n|---|" + "---|" * len(m["denoise_mse_per_t"]) + "\n| MSE of x̂₀ | " + " | ".join(f"{v:.4f}" for v in m["denoise_mse_per_t"].values()) + " |\n"
+    rows = "".join(
+        f"| {lab} | " + " | ".join(f"{m['psnr'][w][lab]:.2f}" for w in m["psnr"]) + " |\n" for lab in labels + ["all"]
+    )
+    den = (
+        "| t | "
+        + " | ".join(m["denoise_mse_per_t"])
+        + " |\n|---|"
+        + "---|" * len(m["denoise_mse_per_t"])
+        + "\n| MSE of x̂₀ | "
+        + " | ".join(f"{v:.4f}" for v in m["denoise_mse_per_t"].values())
+        + " |\n"
+    )
     grow = ""
     if m["growth"]:
-        grow = "\n## Run time against error\n\nDDIM-50 PSNR at ω = 1 on the first " f"{args.snapshot_count} held-out scenes, for checkpoints copied during training (EMA weights):\n\n| step | minutes | PSNR (dB) |\n|---|---|---|\n" + "".join(
-            f"| {g['step']} | {g['train_minutes']} | {g['psnr_omega1']:.2f} |\n" for g in m["growth"])
-    return f"""# {m['name']}: a conditional pixel-space diffusion prior ({config.task})
+        grow = (
+            "\n## Run time against error\n\nDDIM-50 PSNR at ω = 1 on the first "
+            f"{args.snapshot_count} held-out scenes, for checkpoints copied during training (EMA weights):\n\n| step "
+            "| minutes | PSNR (dB) |\n|---|---|---|\n"
+            + "".join(f"| {g['step']} | {g['train_minutes']} | {g['psnr_omega1']:.2f} |\n" for g in m["growth"])
+        )
+    return f"""# {m["name"]}: a conditional pixel-space diffusion prior ({config.task})
 
-A `UNetPrior` ({m['params'] / 1e6:.2f} M parameters, channels {list(u.channels)}, {u.res_blocks} residual block(s) per level,
-{u.prediction}-prediction, linear β schedule with T = {u.schedule.num_steps}) at {m['resolution']}² pixels, trained on
+A `UNetPrior` ({m["params"] / 1e6:.2f} M parameters, channels {list(u.channels)}, {u.res_blocks} residual block(s) per level,
+{u.prediction}-prediction, linear β schedule with T = {u.schedule.num_steps}) at {m["resolution"]}² pixels, trained on
 this 2-core CPU on the procedural world, conditioned ControlNet-style on {cond}; it generates {target}.
 Label dropout {config.p_uncond} trains the null label for classifier-free guidance (ε̂ = ε_u + ω(ε_c − ε_u)).
 
 ## Data
 Fresh batches of {config.batch_size} scenes from the world's `train` split every step (no data set on disk; shapes
 ellipsoid/box/cylinder, textures stripes/checker/noise); `val` and `heldout` are never seen. Evaluated on
-{m['heldout_scenes']} scenes of the `heldout` split: other seeds and shape/texture families the prior never saw
+{m["heldout_scenes"]} scenes of the `heldout` split: other seeds and shape/texture families the prior never saw
 (torus, capsule, cone; dots, marble, rings; bricks).
 
 ## Training
@@ -241,13 +325,13 @@ ellipsoid/box/cylinder, textures stripes/checker/noise); `val` and `heldout` are
 ![loss](loss.png)
 
 ## Quality (held-out split)
-DDIM-{m['ddim_steps']} samples against the true image, PSNR in dB (higher is better), per label and guidance weight:
+DDIM-{m["ddim_steps"]} samples against the true image, PSNR in dB (higher is better), per label and guidance weight:
 
 {head}{rows}
 Denoising error per t (conditional x̂₀, [0, 1] units):
 
 {den}{grow}
-Measured {m['date']} on {m['machine']}; evaluation took {m['eval_seconds']} s.
+Measured {m["date"]} on {m["machine"]}; evaluation took {m["eval_seconds"]} s.
 """
 
 

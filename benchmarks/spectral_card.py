@@ -8,6 +8,7 @@ the corrective to ``layers/NAME/`` and writes ``gain.png`` (the radially average
 few t: the prior's timestep-dependent frequency bias, LMC-SDS Sec. 4) and ``MODEL.md`` there. Prints
 one JSON line.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -55,8 +56,14 @@ def main(argv=None) -> int:
     dest.mkdir(parents=True, exist_ok=True)
     for f in ("model.safetensors", "config.json"):
         shutil.copyfile(args.run / "corrective" / f, dest / f)
-    metrics = {**metrics, "name": args.name, "prior": args.prior, "task": args.task, "fit_seconds": args.fit_seconds,
-               "date": datetime.date.today().isoformat()}
+    metrics = {
+        **metrics,
+        "name": args.name,
+        "prior": args.prior,
+        "task": args.task,
+        "fit_seconds": args.fit_seconds,
+        "date": datetime.date.today().isoformat(),
+    }
     (dest / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
 
     import matplotlib
@@ -67,7 +74,7 @@ def main(argv=None) -> int:
     fig, ax = plt.subplots(figsize=(6, 3.4), dpi=100)
     for t in T_SHOWN:
         radii, gains = radial_gain(model, t)
-        ax.plot(radii[:len(gains)], gains, label=f"t = {t}")
+        ax.plot(radii[: len(gains)], gains, label=f"t = {t}")
     ax.axhline(1.0, color="gray", lw=0.8, ls=":")
     ax.set_xlabel("spatial frequency (cycles per image)")
     ax.set_ylabel("|H_t(f)|, mean over rings and channels")
@@ -91,28 +98,28 @@ cancels (the reason it replaced the network b̂ `relight-32-bhat` as the shading
 measurements in [docs/BENCHMARKS.md](../../docs/BENCHMARKS.md#learned-layers)).
 
 ## Data and fit
-Clean images from the world's `train` split for the `{args.task}` task, {metrics['fit_images_per_bucket']} per bucket
-({metrics['fit_images_per_bucket'] * c.buckets} in all), noised at t uniform inside each bucket; ẑ_t is the prior's unconditional
+Clean images from the world's `train` split for the `{args.task}` task, {metrics["fit_images_per_bucket"]} per bucket
+({metrics["fit_images_per_bucket"] * c.buckets} in all), noised at t uniform inside each bucket; ẑ_t is the prior's unconditional
 x̂₀ ({cond} kept as the conditioning image, null label). Per bucket, channel and frequency the
 least-squares gain H = Σ Ẑ_t·conj(Z) / Σ |Z|² (float64 sums): closed form, no iterations, {fit} on
 this 2-vCPU box. Reproduce:
 
 ```sh
-lasagna train-corrective --kind spectral --prior layers/{args.prior} --task {args.task} --out runs/{args.name} --batches {metrics['fit_images_per_bucket'] // 64} --batch-size 64
+lasagna train-corrective --kind spectral --prior layers/{args.prior} --task {args.task} --out runs/{args.name} --batches {metrics["fit_images_per_bucket"] // 64} --batch-size 64
 python benchmarks/spectral_card.py --run runs/{args.name} --name {args.name} --prior {args.prior} --task {args.task}
 ```
 
 ![gain](gain.png)
 
 ## Measured
-Held-out L_k (eq. 10) on {metrics['held_out_samples']} fresh triplets: **{metrics['lk_trained']:.5f}** vs {metrics['lk_trivial']:.5f} for the
-trivial b̂ = z (ratio {metrics['ratio']:.3f}). A linear filter removes only the frequency-bias part of
+Held-out L_k (eq. 10) on {metrics["held_out_samples"]} fresh triplets: **{metrics["lk_trained"]:.5f}** vs {metrics["lk_trivial"]:.5f} for the
+trivial b̂ = z (ratio {metrics["ratio"]:.3f}). A linear filter removes only the frequency-bias part of
 L_k; most of L_k here is scene-dependent (ẑ_t at high t is the prior's guess of the scene), which a
 network b̂ can learn (`relight-32-bhat`: ratio 0.19) and which is exactly what LMC-SDS must *not*
 cancel. Its value as a corrective is measured where it is used: distillation accuracy against
 ground truth ([docs/BENCHMARKS.md](../../docs/BENCHMARKS.md#learned-layers)).
 
-Measured {metrics['date']}.
+Measured {metrics["date"]}.
 """
     (dest / "MODEL.md").write_text(card)
     print(json.dumps({"name": args.name, "ratio": metrics["ratio"], "lk_trained": metrics["lk_trained"]}))

@@ -8,6 +8,7 @@ Each cell renders fresh scenes (a new index range every call, so nothing is cach
 JSON line: {"benchmark": "world", "device": ..., "threads": ..., "results": [{split, resolution,
 batch, shadows, scenes_per_s, ms_per_batch}, ...]}.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,8 +45,12 @@ def measure(split: str, resolution: int, batch: int, seconds: float, shadows: bo
         times.append(once())
     per_batch = statistics.median(times)
     return {
-        "split": split, "resolution": resolution, "batch": batch, "shadows": shadows,
-        "scenes_per_s": round(batch / per_batch, 1), "ms_per_batch": round(per_batch * 1e3, 2),
+        "split": split,
+        "resolution": resolution,
+        "batch": batch,
+        "shadows": shadows,
+        "scenes_per_s": round(batch / per_batch, 1),
+        "ms_per_batch": round(per_batch * 1e3, 2),
         "repeats": len(times),
     }
 
@@ -64,10 +69,17 @@ def main() -> None:
                 for batch in BATCHES:
                     results.append(measure(split, res, batch, args.seconds, shadows, args.device))
     device = torch.cuda.get_device_name() if args.device.startswith("cuda") else platform.processor() or "cpu"
-    print(json.dumps({
-        "benchmark": "world", "device": device, "threads": torch.get_num_threads(),
-        "torch": torch.__version__, "results": results,
-    }))
+    print(
+        json.dumps(
+            {
+                "benchmark": "world",
+                "device": device,
+                "threads": torch.get_num_threads(),
+                "torch": torch.__version__,
+                "results": results,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

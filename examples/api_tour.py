@@ -6,6 +6,7 @@ The stack is the Lasagna paper's decomposition of an image: an albedo base, a sh
 *multiplies* it (one channel, range [0, 2]: values above 1 brighten), and a colour layer laid on
 with the alpha-linear ("normal") blend.
 """
+
 from __future__ import annotations
 
 import sys

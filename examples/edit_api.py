@@ -11,6 +11,7 @@ The same as, on the command line::
     lasagna render OUT/coffee-top --all
     lasagna edit OUT/coffee-top --layer light --condition warm -o OUT/coffee-warm
 """
+
 from __future__ import annotations
 
 import sys
@@ -31,13 +32,18 @@ def main(out: Path) -> None:
     print("catalogue:", catalogue.catalogues())
     print("available:", catalogue.available())
     parts = catalogue.resolve("shading", need_prior=False)
-    print(f"preset shading: {parts.preset.blend}, range {parts.preset.range}, labels {parts.preset.vocabulary}; "
-          f"generator {'yes' if parts.generator else 'none (per-image optimisation)'}")
+    print(
+        f"preset shading: {parts.preset.blend}, range {parts.preset.range}, labels {parts.preset.vocabulary}; "
+        f"generator {'yes' if parts.generator else 'none (per-image optimisation)'}"
+    )
 
     # 2. Relight a photograph from the left. Amortised generator if the preset has one, else per-image.
     result = edit(EXAMPLES / "photos" / "coffee.png", "shading", "left")
-    print(f"layer {result.layer_id!r}: {tuple(result.layer.shape)} in [{result.layer.min():.3f}, {result.layer.max():.3f}], "
-          f"{result.settings['method']}, {result.seconds:.2f} s")
+    print(
+        f"layer {result.layer_id!r}: {tuple(result.layer.shape)} in [{result.layer.min():.3f}, "
+        f"{result.layer.max():.3f}], "
+        f"{result.settings['method']}, {result.seconds:.2f} s"
+    )
     first = result.save(out / "coffee-left", force=True)
 
     # 3. A stack folder is an input too: a second learned layer, conditioned on the base, per image.
@@ -46,7 +52,9 @@ def main(out: Path) -> None:
     except LasagnaError as err:  # no prior in the catalogue: per-image optimisation cannot run
         print(f"skipped the per-image edit: {err}")
         return
-    print(f"layer {second.layer_id!r}: {len(second.history)} steps, last grad norm {second.history[-1]['grad_norm']:.3g}")
+    print(
+        f"layer {second.layer_id!r}: {len(second.history)} steps, last grad norm {second.history[-1]['grad_norm']:.3g}"
+    )
     folder = second.save(out / "coffee-top", force=True)
 
     # 4. The document alone reproduces the edit: drop the learned pixels, render them again.
@@ -62,7 +70,10 @@ def main(out: Path) -> None:
     # 5. Another kind of learned layer on top: a warm fill light (a plus layer, so it can only brighten).
     lit = edit(folder, "light", "warm")
     assert bool((lit.composite >= lasagna.render(stack).image - 1e-6).all())  # plus never darkens
-    print(f"layer {lit.layer_id!r}: mean light added {float(lit.layer.mean()):.3f}; wrote {lit.save(out / 'coffee-warm', force=True)}")
+    print(
+        f"layer {lit.layer_id!r}: mean light added {float(lit.layer.mean()):.3f}; wrote "
+        f"{lit.save(out / 'coffee-warm', force=True)}"
+    )
 
 
 if __name__ == "__main__":

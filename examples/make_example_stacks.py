@@ -11,6 +11,7 @@ Each stack is small (64x48) and shows part of the format (docs/ARCHITECTURE.md):
   learned/  a learned shading layer (preset "shading", label "left") with its rendered pixels
 The PNGs are smooth gradients with a little seeded texture, so renders are easy to judge by eye.
 """
+
 from __future__ import annotations
 
 import sys
@@ -19,8 +20,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from lasagna.document import Document, save_document
 from lasagna.atomic import atomic_path
+from lasagna.document import Document, save_document
 
 W, H = 64, 48
 HERE = Path(__file__).resolve().parent
@@ -74,9 +75,15 @@ def radial(cx: float, cy: float, radius: float, w: int = W, h: int = H) -> np.nd
 
 
 def stack(layers: list[dict], **extra: object) -> Document:
-    return Document.from_dict({
-        "format": "lasagna.stack", "version": 1, "canvas": {"width": W, "height": H}, "layers": layers, **extra,
-    })
+    return Document.from_dict(
+        {
+            "format": "lasagna.stack",
+            "version": 1,
+            "canvas": {"width": W, "height": H},
+            "layers": layers,
+            **extra,
+        }
+    )
 
 
 def basic(out: Path) -> None:
@@ -88,16 +95,40 @@ def basic(out: Path) -> None:
     save_png(out / "layers/sticker.png", sticker)
     glow = radial(0.2, 0.2, 0.5)[..., None] * np.array([0.35, 0.22, 0.05])
     save_png(out / "layers/glow.png", glow)
-    save_document(stack([
-        {"id": "base", "name": "Albedo", "kind": "pixels", "source": "layers/base.png"},
-        {"id": "shade", "name": "Shading", "kind": "pixels", "source": "layers/shade.png",
-         "blend": "multiply", "range": [0.0, 2.0]},
-        {"id": "sticker", "name": "Sticker", "kind": "pixels", "source": "layers/sticker.png",
-         "offset": {"x": 44, "y": -6}},
-        {"id": "glow", "name": "Warm glow", "kind": "pixels", "source": "layers/glow.png", "blend": "plus"},
-        {"id": "hidden", "name": "Hidden red box", "kind": "solid", "color": [1.0, 0.0, 0.0],
-         "size": {"width": 16, "height": 16}, "offset": {"x": 4, "y": 4}, "visible": False},
-    ], metadata={"example": "basic"}), out)
+    save_document(
+        stack(
+            [
+                {"id": "base", "name": "Albedo", "kind": "pixels", "source": "layers/base.png"},
+                {
+                    "id": "shade",
+                    "name": "Shading",
+                    "kind": "pixels",
+                    "source": "layers/shade.png",
+                    "blend": "multiply",
+                    "range": [0.0, 2.0],
+                },
+                {
+                    "id": "sticker",
+                    "name": "Sticker",
+                    "kind": "pixels",
+                    "source": "layers/sticker.png",
+                    "offset": {"x": 44, "y": -6},
+                },
+                {"id": "glow", "name": "Warm glow", "kind": "pixels", "source": "layers/glow.png", "blend": "plus"},
+                {
+                    "id": "hidden",
+                    "name": "Hidden red box",
+                    "kind": "solid",
+                    "color": [1.0, 0.0, 0.0],
+                    "size": {"width": 16, "height": 16},
+                    "offset": {"x": 4, "y": 4},
+                    "visible": False,
+                },
+            ],
+            metadata={"example": "basic"},
+        ),
+        out,
+    )
 
 
 def linear(out: Path) -> None:
@@ -105,13 +136,26 @@ def linear(out: Path) -> None:
     save_png(out / "layers/shade.png", lambert((1.0, -1.0, 1.0), lo=0.25, hi=1.0))
     light = radial(0.8, 0.3, 0.6)[..., None] * np.array([0.1, 0.2, 0.35])
     save_png(out / "layers/light.png", light)
-    save_document(stack([
-        {"id": "base", "kind": "pixels", "source": "layers/base.png"},
-        {"id": "shade", "kind": "pixels", "source": "layers/shade.png", "blend": "multiply"},
-        {"id": "tint", "kind": "solid", "color": [0.2, 0.4, 1.0, 0.5], "size": {"width": 32, "height": 24},
-         "offset": {"x": 16, "y": 12}},
-        {"id": "light", "kind": "pixels", "source": "layers/light.png", "blend": "plus"},
-    ], blend_space="linear", clamp="output", metadata={"example": "linear"}), out)
+    save_document(
+        stack(
+            [
+                {"id": "base", "kind": "pixels", "source": "layers/base.png"},
+                {"id": "shade", "kind": "pixels", "source": "layers/shade.png", "blend": "multiply"},
+                {
+                    "id": "tint",
+                    "kind": "solid",
+                    "color": [0.2, 0.4, 1.0, 0.5],
+                    "size": {"width": 32, "height": 24},
+                    "offset": {"x": 16, "y": 12},
+                },
+                {"id": "light", "kind": "pixels", "source": "layers/light.png", "blend": "plus"},
+            ],
+            blend_space="linear",
+            clamp="output",
+            metadata={"example": "linear"},
+        ),
+        out,
+    )
 
 
 def masked(out: Path) -> None:
@@ -120,22 +164,49 @@ def masked(out: Path) -> None:
     paint = np.stack([0.9 - 0.5 * y, 0.3 + 0.6 * x, 0.8 * np.ones_like(x)], axis=-1)
     save_png(out / "layers/paint.png", paint)
     save_png(out / "masks/paint.png", np.clip(1.5 * radial(0.5, 0.5, 0.7, 40, 28), 0, 1))
-    save_document(stack([
-        {"id": "base", "kind": "pixels", "source": "layers/base.png"},
-        {"id": "paint", "kind": "pixels", "source": "layers/paint.png", "blend": "screen",
-         "offset": {"x": 12, "y": 10}, "mask": "masks/paint.png", "opacity": 0.6},
-    ], metadata={"example": "masked"}), out)
+    save_document(
+        stack(
+            [
+                {"id": "base", "kind": "pixels", "source": "layers/base.png"},
+                {
+                    "id": "paint",
+                    "kind": "pixels",
+                    "source": "layers/paint.png",
+                    "blend": "screen",
+                    "offset": {"x": 12, "y": 10},
+                    "mask": "masks/paint.png",
+                    "opacity": 0.6,
+                },
+            ],
+            metadata={"example": "masked"},
+        ),
+        out,
+    )
 
 
 def learned(out: Path) -> None:
     save_png(out / "layers/base.png", albedo(seed=4))
     save_png(out / "layers/relit.png", lambert((-1.0, 0.0, 0.6)) / 2.0, bits=16)
-    save_document(stack([
-        {"id": "base", "name": "Albedo", "kind": "pixels", "source": "layers/base.png"},
-        {"id": "relit", "name": "Relit from the left", "kind": "learned", "preset": "shading",
-         "condition": {"label": "left"}, "conditioned_on": "base", "blend": "multiply", "range": [0.0, 2.0],
-         "source": "layers/relit.png"},
-    ], metadata={"example": "learned"}), out)
+    save_document(
+        stack(
+            [
+                {"id": "base", "name": "Albedo", "kind": "pixels", "source": "layers/base.png"},
+                {
+                    "id": "relit",
+                    "name": "Relit from the left",
+                    "kind": "learned",
+                    "preset": "shading",
+                    "condition": {"label": "left"},
+                    "conditioned_on": "base",
+                    "blend": "multiply",
+                    "range": [0.0, 2.0],
+                    "source": "layers/relit.png",
+                },
+            ],
+            metadata={"example": "learned"},
+        ),
+        out,
+    )
 
 
 def main(root: Path) -> None:

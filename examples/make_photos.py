@@ -6,6 +6,7 @@
 Each crop is a square box of the original image, resized with Pillow's Lanczos filter. The images
 are in the public domain or CC0 (see examples/photos/README.md, which credits each one).
 """
+
 from __future__ import annotations
 
 import sys
@@ -16,8 +17,8 @@ from PIL import Image
 SIZE = 96
 # name -> (scikit-image loader, (left, top, side) of the square box in the original's pixels)
 CROPS = {
-    "coffee": ("coffee", (80, 0, 400)),        # the cup on its saucer, from above
-    "chelsea": ("chelsea", (70, 0, 300)),      # the cat's face
+    "coffee": ("coffee", (80, 0, 400)),  # the cup on its saucer, from above
+    "chelsea": ("chelsea", (70, 0, 300)),  # the cat's face
     "astronaut": ("astronaut", (140, 10, 240)),  # Eileen Collins' head and collar
     "helmet": ("astronaut", (318, 318, 194)),  # the black helmet in the corner: a shiny sphere
 }

@@ -7,6 +7,7 @@ The ``heldout`` split uses shape and texture families the bundled priors never s
 shading as a multiply layer in [0, 2], ``composite.png`` = albedo × shading, plus normals.png and
 mask.png. The same as ``lasagna world -o examples/world --split heldout --count 4 --resolution 64``.
 """
+
 from __future__ import annotations
 
 import sys

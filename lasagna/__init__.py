@@ -8,10 +8,23 @@
 The API names are loaded lazily so that ``import lasagna.document`` (pydantic only) never imports
 torch. See docs/ARCHITECTURE.md for the tiers.
 """
+
 from lasagna.version import __version__
 
-_API = ("load", "render", "save", "Stack", "from_image", "from_tensors", "export_ora", "export_psd",
-        "import_ora", "export_layer_pngs", "write_composite", "RenderResult")
+_API = (
+    "load",
+    "render",
+    "save",
+    "Stack",
+    "from_image",
+    "from_tensors",
+    "export_ora",
+    "export_psd",
+    "import_ora",
+    "export_layer_pngs",
+    "write_composite",
+    "RenderResult",
+)
 __all__ = ["__version__", *_API]
 
 

@@ -18,6 +18,7 @@ Tensors and float arrays are layer values y (a [0, 2] multiplier is given in [0,
 integer arrays are stored codes, mapped by the layer's range like a PNG in a stack folder. Everything
 here is a thin name for a function of ``lasagna.io`` / ``lasagna.export``; see them for details.
 """
+
 from __future__ import annotations
 
 import os
@@ -34,9 +35,21 @@ from lasagna.io.render import render_stack, write_composite
 from lasagna.io.stack import Stack, load_stack, save_stack, stack_from_tensors
 
 __all__ = [
-    "Stack", "RenderResult", "load", "render", "save", "from_image", "from_tensors",
-    "export_ora", "export_psd", "import_ora", "export_layer_pngs", "write_composite",
-    "EditResult", "edit", "render_learned",
+    "Stack",
+    "RenderResult",
+    "load",
+    "render",
+    "save",
+    "from_image",
+    "from_tensors",
+    "export_ora",
+    "export_psd",
+    "import_ora",
+    "export_layer_pngs",
+    "write_composite",
+    "EditResult",
+    "edit",
+    "render_learned",
 ]
 
 

@@ -4,13 +4,14 @@ target, then ``os.replace``.
 A crash, a full disk or an exception half-way leaves the user's existing file untouched and no
 temporary file behind.
 """
+
 from __future__ import annotations
 
 import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 
 def umask_mode(mode: int) -> int:

@@ -25,13 +25,15 @@ where it looked and every name of that kind it found.
     prior = catalogue.load_prior(parts.prior)
     catalogue.available()                       # {"preset": [...], "prior": [...], ...}
 """
+
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Sequence
+from typing import Literal
 
 from lasagna.document.preset import Preset, default_catalogues, resolve_preset
 from lasagna.document.preset import load_preset as _load_preset_file
@@ -51,6 +53,7 @@ FORMATS: dict[str, str] = {
 }
 GENERATOR_DIR = "generator"  # <catalogue>/<preset>/generator/: the preset's amortised generator
 PACKAGED = Path(__file__).resolve().parent / "_layers"  # where a wheel installs the catalogue
+
 
 def catalogues(extra: Sequence[str | os.PathLike] | None = None) -> list[Path]:
     """Catalogue folders in search order: ``extra`` first, then ``default_catalogues()``, then the
@@ -114,7 +117,9 @@ def _entry_path(folder: Path, kind: str) -> Path:
     return folder
 
 
-def available(kind: Kind | None = None, catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> dict[str, list[str]]:
+def available(
+    kind: Kind | None = None, catalogue_dirs: Sequence[str | os.PathLike] | None = None
+) -> dict[str, list[str]]:
     """Names per kind in the catalogues (all four kinds, or only ``kind``), each list sorted."""
     kinds = KINDS if kind is None else (_check_kind(kind),)
     found: dict[str, set[str]] = {k: set() for k in kinds}
@@ -131,8 +136,12 @@ def _check_kind(kind: str) -> str:
     return kind
 
 
-def locate(name: str, kind: Kind = "preset", stack_dir: str | os.PathLike | None = None,
-           catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> Path | None:
+def locate(
+    name: str,
+    kind: Kind = "preset",
+    stack_dir: str | os.PathLike | None = None,
+    catalogue_dirs: Sequence[str | os.PathLike] | None = None,
+) -> Path | None:
     """Like ``find`` for a name, but None when no catalogue has it (a malformed name still raises)."""
     _check_kind(kind)
     _check_name(name, kind)
@@ -146,8 +155,13 @@ def locate(name: str, kind: Kind = "preset", stack_dir: str | os.PathLike | None
     return None
 
 
-def find(name: str | os.PathLike, kind: Kind = "preset", stack_dir: str | os.PathLike | None = None,
-         catalogue_dirs: Sequence[str | os.PathLike] | None = None, relative_to: str | os.PathLike | None = None) -> Path:
+def find(
+    name: str | os.PathLike,
+    kind: Kind = "preset",
+    stack_dir: str | os.PathLike | None = None,
+    catalogue_dirs: Sequence[str | os.PathLike] | None = None,
+    relative_to: str | os.PathLike | None = None,
+) -> Path:
     """The path of catalogue entry ``name`` of ``kind``: a preset's preset.json, a generator's folder,
     a prior's or corrective's folder.
 
@@ -162,8 +176,11 @@ def find(name: str | os.PathLike, kind: Kind = "preset", stack_dir: str | os.Pat
         if kind == "preset" and path.is_dir():
             path = path / "preset.json"
         if not path.exists():
-            raise LasagnaError(f"{kind} path {str(name)!r} does not exist (looked for {path}); expected a "
-                               f"{'preset.json' if kind == 'preset' else 'folder written by save_pretrained'}", kind)
+            raise LasagnaError(
+                f"{kind} path {str(name)!r} does not exist (looked for {path}); expected a "
+                f"{'preset.json' if kind == 'preset' else 'folder written by save_pretrained'}",
+                kind,
+            )
         return path
     found = locate(name, kind, stack_dir, catalogue_dirs)
     if found is not None:
@@ -172,8 +189,11 @@ def find(name: str | os.PathLike, kind: Kind = "preset", stack_dir: str | os.Pat
     if kind == "preset" and stack_dir is not None:
         places = [Path(stack_dir) / "layers", *places]
     known = available(kind, catalogue_dirs)[kind]
-    hint = {"prior": " (train one: lasagna train-prior)", "corrective": " (train one: lasagna train-corrective)",
-            "generator": " (train one: lasagna train-layer --preset NAME)"}.get(kind, "")
+    hint = {
+        "prior": " (train one: lasagna train-prior)",
+        "corrective": " (train one: lasagna train-corrective)",
+        "generator": " (train one: lasagna train-layer --preset NAME)",
+    }.get(kind, "")
     raise LasagnaError(
         f"no {kind} named {name!r} in {', '.join(map(str, places)) or 'no catalogue folder'}; "
         f"expected one of {', '.join(known) or '(none found)'}{hint}",
@@ -193,14 +213,20 @@ def _check_name(name: str, kind: str) -> None:
 # ---- loading -------------------------------------------------------------------------------------
 
 
-def load_preset(name_or_path: str | os.PathLike, stack_dir: str | os.PathLike | None = None,
-                catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> Preset:
+def load_preset(
+    name_or_path: str | os.PathLike,
+    stack_dir: str | os.PathLike | None = None,
+    catalogue_dirs: Sequence[str | os.PathLike] | None = None,
+) -> Preset:
     """The validated ``Preset`` named ``name_or_path`` (or at that path); see ``find``."""
     return _load_preset_file(preset_path(name_or_path, stack_dir, catalogue_dirs))
 
 
-def preset_path(name_or_path: str | os.PathLike, stack_dir: str | os.PathLike | None = None,
-                catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> Path:
+def preset_path(
+    name_or_path: str | os.PathLike,
+    stack_dir: str | os.PathLike | None = None,
+    catalogue_dirs: Sequence[str | os.PathLike] | None = None,
+) -> Path:
     """The preset.json of a learned layer's ``preset`` reference (``resolve_preset``'s rule, with this
     module's catalogues, so an installed wheel's presets resolve too)."""
     if isinstance(name_or_path, os.PathLike):
@@ -208,13 +234,19 @@ def preset_path(name_or_path: str | os.PathLike, stack_dir: str | os.PathLike | 
     if "/" in name_or_path:
         path = resolve_preset(name_or_path, stack_dir)
         if not path.is_file():
-            raise LasagnaError(f"preset path {name_or_path!r} does not exist (looked for {path}); expected a preset.json", "preset")
+            raise LasagnaError(
+                f"preset path {name_or_path!r} does not exist (looked for {path}); expected a preset.json", "preset"
+            )
         return path
     return find(name_or_path, "preset", stack_dir, catalogue_dirs)
 
 
-def component_path(preset: Preset, kind: Literal["prior", "corrective"], preset_file: str | os.PathLike,
-                   catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> Path | None:
+def component_path(
+    preset: Preset,
+    kind: Literal["prior", "corrective"],
+    preset_file: str | os.PathLike,
+    catalogue_dirs: Sequence[str | os.PathLike] | None = None,
+) -> Path | None:
     """The folder of a preset's prior or corrective (None for a preset without a corrective); a
     reference with '/' is relative to the preset's folder."""
     ref = preset.prior if kind == "prior" else preset.corrective
@@ -235,8 +267,13 @@ class Resolved:
     generator: Path | None
 
 
-def resolve(preset: str | os.PathLike, stack_dir: str | os.PathLike | None = None,
-            catalogue_dirs: Sequence[str | os.PathLike] | None = None, *, need_prior: bool = True) -> Resolved:
+def resolve(
+    preset: str | os.PathLike,
+    stack_dir: str | os.PathLike | None = None,
+    catalogue_dirs: Sequence[str | os.PathLike] | None = None,
+    *,
+    need_prior: bool = True,
+) -> Resolved:
     """The preset ``preset`` and the paths of its parts. A missing prior is an error listing the priors
     found (unless ``need_prior`` is False: then ``prior`` is the unresolved reference as a Path)."""
     file = preset_path(preset, stack_dir, catalogue_dirs)
@@ -277,15 +314,28 @@ def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | Non
     known = tuple(config.get("vocabulary") or ()) if isinstance(config, dict) else ()
     missing = [lab for lab in p.vocabulary if known and lab not in known]
     if missing:
-        return {"usable": False, "method": None,
-                "why": f"its prior {p.prior!r} was not trained on {', '.join(missing)} (it knows {', '.join(known)})"}
+        return {
+            "usable": False,
+            "method": None,
+            "why": f"its prior {p.prior!r} was not trained on {', '.join(missing)} (it knows {', '.join(known)})",
+        }
     if p.distill.loss == "lmc-sds" and parts.corrective is None:
         return {"usable": False, "method": None, "why": f"its corrective {p.corrective!r} is not in the catalogue"}
-    return {"usable": True, "method": "per-image", "why": f"prior {p.prior}, {p.distill.loss} ω = {p.distill.guidance:g}"}
+    return {
+        "usable": True,
+        "method": "per-image",
+        "why": f"prior {p.prior}, {p.distill.loss} ω = {p.distill.guidance:g}",
+    }
 
 
-def load_prior(name_or_path: str | os.PathLike, *, preset: Preset | None = None, device="cpu",
-               catalogue_dirs: Sequence[str | os.PathLike] | None = None, relative_to: str | os.PathLike | None = None):
+def load_prior(
+    name_or_path: str | os.PathLike,
+    *,
+    preset: Preset | None = None,
+    device="cpu",
+    catalogue_dirs: Sequence[str | os.PathLike] | None = None,
+    relative_to: str | os.PathLike | None = None,
+):
     """A prior from the catalogue: a ``UNetPrior`` (eval mode), or a ``DiffusersPrior`` for a diffusers
     folder (its vocabulary and prompt template then come from ``preset``, which is required)."""
     folder = find(name_or_path, "prior", catalogue_dirs=catalogue_dirs, relative_to=relative_to)
@@ -295,21 +345,36 @@ def load_prior(name_or_path: str | os.PathLike, *, preset: Preset | None = None,
         return UNetPrior.from_pretrained(folder, device=device)
     if _is_diffusers(folder):
         if preset is None:
-            raise LasagnaError("a diffusers prior needs the preset (its vocabulary and prompt); expected preset=", str(folder))
+            raise LasagnaError(
+                "a diffusers prior needs the preset (its vocabulary and prompt); expected preset=", str(folder)
+            )
         import torch
+
         from lasagna.priors.diffusers import DiffusersPrior
 
         controlnet = folder / "controlnet" if (folder / "controlnet").is_dir() else None
         cuda = str(device).startswith("cuda")
-        return DiffusersPrior.from_local(folder, controlnet=controlnet, vocabulary=preset.vocabulary,
-                                         prompt_template=preset.prompt, device=device,
-                                         dtype=torch.float16 if cuda else torch.float32)
-    raise LasagnaError(f"format is {_format_of(folder)!r}; expected a prior ('lasagna.unet_prior' or a diffusers folder)",
-                       str(folder / "config.json"))
+        return DiffusersPrior.from_local(
+            folder,
+            controlnet=controlnet,
+            vocabulary=preset.vocabulary,
+            prompt_template=preset.prompt,
+            device=device,
+            dtype=torch.float16 if cuda else torch.float32,
+        )
+    raise LasagnaError(
+        f"format is {_format_of(folder)!r}; expected a prior ('lasagna.unet_prior' or a diffusers folder)",
+        str(folder / "config.json"),
+    )
 
 
-def load_corrective(name_or_path: str | os.PathLike, *, device="cpu", catalogue_dirs: Sequence[str | os.PathLike] | None = None,
-                    relative_to: str | os.PathLike | None = None):
+def load_corrective(
+    name_or_path: str | os.PathLike,
+    *,
+    device="cpu",
+    catalogue_dirs: Sequence[str | os.PathLike] | None = None,
+    relative_to: str | os.PathLike | None = None,
+):
     """The LMC-SDS corrective b̂, eval mode: a ``lasagna.losses.corrective.Corrective`` network or a
     ``lasagna.losses.spectral.SpectralCorrective``, by the format in its config.json."""
     from lasagna.losses.corrective import Corrective
@@ -320,8 +385,14 @@ def load_corrective(name_or_path: str | os.PathLike, *, device="cpu", catalogue_
     return cls.from_pretrained(folder, device=device)
 
 
-def load_generator(name_or_path: str | os.PathLike, *, preset: Preset | None = None, device="cpu",
-                   catalogue_dirs: Sequence[str | os.PathLike] | None = None, relative_to: str | os.PathLike | None = None):
+def load_generator(
+    name_or_path: str | os.PathLike,
+    *,
+    preset: Preset | None = None,
+    device="cpu",
+    catalogue_dirs: Sequence[str | os.PathLike] | None = None,
+    relative_to: str | os.PathLike | None = None,
+):
     """A preset's amortised ``LayerGenerator`` (eval mode), by preset name or folder; with ``preset``
     it must produce that preset's layer and know its whole vocabulary."""
     from lasagna.generators.unet import LayerGenerator
@@ -340,10 +411,16 @@ def check_generator(generator, preset: Preset, where: str) -> None:
     want = LayerSpec.from_preset(preset)
     got = generator.spec
     if (got.blend, got.channels, tuple(got.range)) != (want.blend, want.channels, tuple(want.range)):
-        raise LasagnaError(f"the generator makes a {got.blend} layer of {got.channels} channel(s) in {list(got.range)}; "
-                           f"expected the {want.blend} layer of {want.channels} channel(s) in {list(want.range)} "
-                           f"of preset {preset.name!r}", where)
+        raise LasagnaError(
+            f"the generator makes a {got.blend} layer of {got.channels} channel(s) in {list(got.range)}; "
+            f"expected the {want.blend} layer of {want.channels} channel(s) in {list(want.range)} "
+            f"of preset {preset.name!r}",
+            where,
+        )
     missing = [lab for lab in preset.vocabulary if lab not in generator.config.vocabulary]
     if missing:
-        raise LasagnaError(f"the generator does not know label(s) {', '.join(missing)} of preset {preset.name!r}; "
-                           f"expected its vocabulary to contain {', '.join(preset.vocabulary)}", where)
+        raise LasagnaError(
+            f"the generator does not know label(s) {', '.join(missing)} of preset {preset.name!r}; "
+            f"expected its vocabulary to contain {', '.join(preset.vocabulary)}",
+            where,
+        )

@@ -21,12 +21,13 @@ The layer is drawn as stored (v = (y − lo)/(hi − lo): a shading of 1 is mid-
 a checkerboard). A preset whose prior and generator are both missing is skipped with one line; if
 nothing can run, the demo composites and exports the example stack instead (``fallback``).
 """
+
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import torch
 from torch import Tensor
@@ -67,8 +68,11 @@ def examples_root() -> Path:
     for root in (Path(__file__).resolve().parents[1], Path.cwd()):
         if (root / "examples" / "photos").is_dir() and (root / "examples" / "world").is_dir():
             return root / "examples"
-    raise PathError("examples/photos and examples/world not found; expected to run in a checkout of lasagna "
-                    "(the demo's images are not in the wheel)", "demo")
+    raise PathError(
+        "examples/photos and examples/world not found; expected to run in a checkout of lasagna "
+        "(the demo's images are not in the wheel)",
+        "demo",
+    )
 
 
 # ---- drawing -----------------------------------------------------------------------------------------
@@ -172,9 +176,16 @@ def _how(result) -> str:
     return f"{how}; {result.seconds:.2f} s"
 
 
-def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_STEPS, refine: int = DEMO_REFINE,
-             examples: Path | None = None, say: Callable[[str], None] | None = None,
-             warn: Callable[[str], None] | None = None) -> Path | None:
+def run_demo(
+    out: str | Path,
+    *,
+    catalogue_dirs=None,
+    steps: int | None = DEMO_STEPS,
+    refine: int = DEMO_REFINE,
+    examples: Path | None = None,
+    say: Callable[[str], None] | None = None,
+    warn: Callable[[str], None] | None = None,
+) -> Path | None:
     """Run the demo into ``out``; returns the sheet's path (None when it fell back to the example stack).
 
     ``say`` receives the lines a person should read (what ran, what was skipped, where things are); the
@@ -187,8 +198,10 @@ def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_S
     runnable, missing = runnable_presets(catalogue_dirs)
     places = ", ".join(map(str, cat.catalogues() if catalogue_dirs is None else catalogue_dirs)) or "no catalogue"
     if not runnable:
-        say(f"demo: no learned layer can run ({'; '.join(missing)}; looked in {places}); "
-            "compositing and exporting the example stack instead")
+        say(
+            f"demo: no learned layer can run ({'; '.join(missing)}; looked in {places}); "
+            "compositing and exporting the example stack instead"
+        )
         fallback(ex, out, say, warn)
         return None
     for reason in missing:
@@ -204,12 +217,17 @@ def run_demo(out: str | Path, *, catalogue_dirs=None, steps: int | None = DEMO_S
 
     seconds = time.monotonic() - start
     made = ", ".join(f"{k}: {v}" for k, v in runnable.items())
-    note = (f"lasagna demo: {len(edits.rows)} edits in {seconds:.0f} s ({made}). "
-            "Shading layer: mid-gray = unchanged, lighter = brighter.")
+    note = (
+        f"lasagna demo: {len(edits.rows)} edits in {seconds:.0f} s ({made}). "
+        "Shading layer: mid-gray = unchanged, lighter = brighter."
+    )
     sheet = out / "sheet.png"
     atomic_write_bytes(sheet, draw_sheet(edits.rows, note, blocks=2 if len(edits.rows) > 10 else 1))
     say(f"demo: {len(edits.rows)} edits in {seconds:.1f} s ({made})")
-    say(f"wrote {len(edits.written)} stack folders under {out / 'stacks'}/ (stack.json, layers/, composite.png, stack.ora)")
+    say(
+        f"wrote {len(edits.written)} stack folders under {out / 'stacks'}/ (stack.json, layers/, composite.png, "
+        "stack.ora)"
+    )
     say(f"wrote the sheet {sheet} (input | layer | composite | truth)")
     return sheet
 
@@ -229,7 +247,9 @@ def runnable_presets(catalogue_dirs=None) -> tuple[dict[str, str], list[str]]:
         elif _has_prior(parts, catalogue_dirs):
             runnable[preset] = "per-image"
         else:
-            missing.append(f"{preset}: its prior {parts.preset.prior!r} is not in the catalogue and it has no generator")
+            missing.append(
+                f"{preset}: its prior {parts.preset.prior!r} is not in the catalogue and it has no generator"
+            )
     return runnable, missing
 
 
@@ -242,8 +262,9 @@ class _Edits:
         self.rows: list[Row] = []
         self.written: list[Path] = []
 
-    def one(self, image, preset: str, label: str, name: str, title: str, truth: Tensor | None,
-            on: str | None = None) -> None:
+    def one(
+        self, image, preset: str, label: str, name: str, title: str, truth: Tensor | None, on: str | None = None
+    ) -> None:
         from lasagna.edit import conditioning_input, edit
 
         optimize = self.refine if self.runnable[preset] == "amortised" else self.steps
@@ -267,11 +288,19 @@ class _Edits:
         if "shading" in self.runnable:
             for label in DIRECTIONS:
                 truth = generate(split, 1, seed, stack.width, start=index, labels=[label]).image[0]
-                self.one(stack, "shading", label, f"{scene.name}-{label}", f"{scene.name} · {label}", truth, on="albedo")
+                self.one(
+                    stack, "shading", label, f"{scene.name}-{label}", f"{scene.name} · {label}", truth, on="albedo"
+                )
         if "color" in self.runnable:
             colour = stack.tensors["albedo"].color * stack.tensors["shading"].color  # the scene as rendered
-            self.one(Stack.from_image(_gray(colour.clamp(0, 1)), name="gray"), "color", "natural",
-                     f"{scene.name}-color", f"{scene.name} · colourise", colour.clamp(0, 1))
+            self.one(
+                Stack.from_image(_gray(colour.clamp(0, 1)), name="gray"),
+                "color",
+                "natural",
+                f"{scene.name}-color",
+                f"{scene.name} · colourise",
+                colour.clamp(0, 1),
+            )
         if "light" in self.runnable:
             truth = additive_light(generate(split, 1, seed, stack.width, start=index), glow).lit[0]
             stack.document = as_rendered
@@ -287,8 +316,14 @@ class _Edits:
                 self.one(photo, "shading", label, f"{photo.stem}-{label}", f"{photo.name} · {label}", None)
         if "color" in self.runnable and colourise:
             rgb = read_image(photo).tensors["base"].color
-            self.one(Stack.from_image(_gray(rgb), name="gray"), "color", "natural", f"{photo.stem}-color",
-                     f"{photo.name} · colourise", rgb)
+            self.one(
+                Stack.from_image(_gray(rgb), name="gray"),
+                "color",
+                "natural",
+                f"{photo.stem}-color",
+                f"{photo.name} · colourise",
+                rgb,
+            )
         if "light" in self.runnable and glow is not None:
             self.one(photo, "light", glow, f"{photo.stem}-{glow}-light", f"{photo.name} · {glow} light", None)
 
@@ -311,8 +346,10 @@ def fallback(examples: Path, out: Path, say: Callable[[str], None], warn) -> Non
     source = examples / "stacks" / "basic"
     stack = load_stack(source)
     result = render_stack(stack)
-    written = [write_composite(result, out / "composite.png"),
-               export_ora(stack, out / "basic.ora", composite=result.image, warn=warn)]
+    written = [
+        write_composite(result, out / "composite.png"),
+        export_ora(stack, out / "basic.ora", composite=result.image, warn=warn),
+    ]
     try:
         from lasagna.export.psd import export_psd
 

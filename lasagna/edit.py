@@ -1,9 +1,9 @@
 """Learned layers for users: fill a learned layer of an image or stack, re-render one from its stack.
 
     from lasagna.edit import edit, render_learned
-    result = edit("photo.png", "shading", "left")              # EditResult: stack, layer, composite, …
-    result.save("out/relit")                                   # stack.json, layers/, generators/, composite.png, stack.ora
-    render_learned("out/relit", all=True)                      # the stack document alone reproduces the layer
+    result = edit("photo.png", "shading", "left")   # EditResult: stack, layer, composite, …
+    result.save("out/relit")                        # stack.json, layers/, generators/, composite.png, stack.ora
+    render_learned("out/relit", all=True)           # the stack document alone reproduces the layer
 
 **What the generator sees.** A learned layer is conditioned on the layer ``conditioned_on``: its input
 is the composite of the stack from the bottom up to and including that layer (for a single opaque
@@ -33,28 +33,36 @@ Learned layers are distilled on stored (sRGB-encoded) values, as the composite o
 ``blend_space: "srgb"`` stack blends them; a ``linear`` stack is refused rather than edited in a
 space its prior never scored.
 """
+
 from __future__ import annotations
 
 import os
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from lasagna.version import __version__
 from lasagna import catalogue as cat
 from lasagna.document import LearnedLayer
 from lasagna.errors import DocumentError, ImageError, LasagnaError, PathError
 from lasagna.io.folder import check_output_folder, write_stack_folder
 from lasagna.io.stack import Stack, load_stack, resolve_inside, save_stack
 from lasagna.learned import (
-    LayerRun, LayerSettings, as_stored, choose_method, conditioning_input, file_sha256, make_layer,
+    LayerRun,
+    LayerSettings,
+    as_stored,
+    choose_method,
+    conditioning_input,
+    file_sha256,
+    make_layer,
 )
+from lasagna.version import __version__
 
 # The largest canvas ``edit`` accepts by default. The generator runs at full resolution: at 2048² its
 # first level alone holds 16 channels × 4 bytes × 4.2 M pixels = 268 MB per activation, a few GB in
@@ -78,8 +86,14 @@ class EditResult:
     history: list[dict[str, Any]]
     files: dict[str, bytes]
 
-    def save(self, out: str | os.PathLike, *, force: bool = False, ora: bool = True,
-             warn: Callable[[str], None] | None = None) -> Path:
+    def save(
+        self,
+        out: str | os.PathLike,
+        *,
+        force: bool = False,
+        ora: bool = True,
+        warn: Callable[[str], None] | None = None,
+    ) -> Path:
         """Write the stack folder ``out``, all or nothing (``lasagna.io.folder.write_stack_folder``): stack.json,
         layers/, generators/, composite.png and (``ora``) stack.ora; returns it. With ``force`` a stack
         folder already there is replaced."""
@@ -110,7 +124,9 @@ def read_image(path: str | os.PathLike, max_pixels: int = DEFAULT_EDIT_MAX_PIXEL
         with open(p, "rb") as fh:
             magic = fh.read(8)
     except OSError as exc:
-        raise ImageError(f"cannot read ({exc.strerror or exc}); expected an image file or a stack folder", where) from None
+        raise ImageError(
+            f"cannot read ({exc.strerror or exc}); expected an image file or a stack folder", where
+        ) from None
     if magic == PNG_SIGNATURE:
         png = read_png(p, max_pixels=max_pixels)
         depth = 16 if png.header.bit_depth == 16 else 8
@@ -121,16 +137,20 @@ def read_image(path: str | os.PathLike, max_pixels: int = DEFAULT_EDIT_MAX_PIXEL
         with Image.open(p) as im:
             w, h = im.size
             if w * h > max_pixels:
-                raise ImageError(f"image is {w}x{h} = {w * h} pixels, over the limit of {max_pixels}; expected at most "
-                                 f"{max_pixels} pixels (raise --max-pixels if this is intended)", where)
+                raise ImageError(
+                    f"image is {w}x{h} = {w * h} pixels, over the limit of {max_pixels}; expected at most "
+                    f"{max_pixels} pixels (raise --max-pixels if this is intended)",
+                    where,
+                )
             im = ImageOps.exif_transpose(im)
             im = im.convert("RGBA" if im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info else "RGB")
             im.load()
     except ImageError:
         raise
     except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as exc:
-        raise ImageError(f"cannot decode ({type(exc).__name__}: {exc}); expected a PNG, JPEG or another image Pillow reads",
-                         where) from None
+        raise ImageError(
+            f"cannot decode ({type(exc).__name__}: {exc}); expected a PNG, JPEG or another image Pillow reads", where
+        ) from None
     return Stack.from_image(im, name=p.stem)
 
 
@@ -152,11 +172,17 @@ def input_stack(image, max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> Stack:
     if isinstance(image, Stack):
         stack = as_stored(stack)
     if stack.width * stack.height > max_pixels:
-        raise ImageError(f"canvas is {stack.width}x{stack.height} = {stack.width * stack.height} pixels, over the limit "
-                         f"of {max_pixels}; expected at most {max_pixels} pixels (raise --max-pixels if intended)", "image")
+        raise ImageError(
+            f"canvas is {stack.width}x{stack.height} = {stack.width * stack.height} pixels, over the limit "
+            f"of {max_pixels}; expected at most {max_pixels} pixels (raise --max-pixels if intended)",
+            "image",
+        )
     if stack.document.blend_space != "srgb":
-        raise DocumentError(f"blend_space is {stack.document.blend_space!r}; learned layers are distilled on stored "
-                            "(sRGB-encoded) values, expected blend_space 'srgb'", "blend_space")
+        raise DocumentError(
+            f"blend_space is {stack.document.blend_space!r}; learned layers are distilled on stored "
+            "(sRGB-encoded) values, expected blend_space 'srgb'",
+            "blend_space",
+        )
     return stack
 
 
@@ -204,14 +230,22 @@ def edit(
     """
     start = time.monotonic()
     if preset is None or "/" in str(preset) or isinstance(preset, os.PathLike):
-        raise LasagnaError(f"preset {str(preset)!r} is not a name; expected a catalogue name (add a catalogue folder "
-                           "with LASAGNA_LAYERS)", "preset")
+        raise LasagnaError(
+            f"preset {str(preset)!r} is not a name; expected a catalogue name (add a catalogue folder "
+            "with LASAGNA_LAYERS)",
+            "preset",
+        )
     if steps is not None:
-        warnings.warn("edit(steps=N) is deprecated; use optimize=N (the same number, as the layer's settings "
-                      "record it)", DeprecationWarning, stacklevel=2)
+        warnings.warn(
+            "edit(steps=N) is deprecated; use optimize=N (the same number, as the layer's settings record it)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
         if optimize is not None and optimize != steps:
-            raise LasagnaError(f"optimize {optimize} and steps {steps} differ; expected one of them (they are the "
-                               "same number)", "steps")
+            raise LasagnaError(
+                f"optimize {optimize} and steps {steps} differ; expected one of them (they are the same number)",
+                "steps",
+            )
     n = optimize if optimize is not None else steps
     if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 0):
         raise LasagnaError(f"expected a non-negative integer, got {n!r}", "optimize")
@@ -223,30 +257,60 @@ def edit(
     stack.document.index(on)  # DocumentError listing the ids
     method = choose_method(resolved, generator)
     if method == "per-image" and n == 0:
-        raise LasagnaError("per-image optimisation with 0 steps would leave the identity edit; expected --optimize N > 0",
-                           "optimize")
+        raise LasagnaError(
+            "per-image optimisation with 0 steps would leave the identity edit; expected --optimize N > 0", "optimize"
+        )
     optimize_n = (0 if method == "amortised" else p.distill.steps) if n is None else n
     layer_id = _unique_id(stack, id or f"{p.name}-{condition}")
     base = conditioning_input(stack, on)
     carried = carried_files(stack)  # before the new layer: its generator is not in the input folder
-    run = make_layer(base, resolved, condition, layer_id, method=method, optimize=optimize_n,
-                     generator_dir=resolved.generator, loss=loss, guidance=guidance, seed=seed, lr=lr,
-                     catalogue_dirs=catalogue_dirs, device=device, progress=progress)
+    run = make_layer(
+        base,
+        resolved,
+        condition,
+        layer_id,
+        method=method,
+        optimize=optimize_n,
+        generator_dir=resolved.generator,
+        loss=loss,
+        guidance=guidance,
+        seed=seed,
+        lr=lr,
+        catalogue_dirs=catalogue_dirs,
+        device=device,
+        progress=progress,
+    )
     place_layer(stack, layer_id, p, condition, on, run)
     seconds = time.monotonic() - start
     _record(stack, layer_id, seconds, run, image)
     composite = stack.render().image.detach().clamp(0.0, 1.0)
-    return EditResult(stack=stack, layer_id=layer_id, layer=run.layer, composite=composite,
-                      settings=run.settings.to_json(), seconds=seconds, history=run.history,
-                      files={**carried, **run.files})
+    return EditResult(
+        stack=stack,
+        layer_id=layer_id,
+        layer=run.layer,
+        composite=composite,
+        settings=run.settings.to_json(),
+        seconds=seconds,
+        history=run.history,
+        files={**carried, **run.files},
+    )
 
 
 def place_layer(stack: Stack, layer_id: str, preset, label: str, on: str, run: LayerRun) -> None:
     """Add (or update) the learned layer ``layer_id`` with ``run``'s pixels, settings and generator."""
     settings = run.settings.to_json()
-    fields = {"id": layer_id, "name": f"{preset.name.capitalize()} ({label})", "kind": "learned", "blend": preset.blend,
-              "range": list(preset.range), "preset": preset.name, "condition": {"label": label},
-              "conditioned_on": on, "generator": run.generator_ref, "settings": settings}
+    fields = {
+        "id": layer_id,
+        "name": f"{preset.name.capitalize()} ({label})",
+        "kind": "learned",
+        "blend": preset.blend,
+        "range": list(preset.range),
+        "preset": preset.name,
+        "condition": {"label": label},
+        "conditioned_on": on,
+        "generator": run.generator_ref,
+        "settings": settings,
+    }
     if layer_id in stack.ids:
         old = stack.document.layer(layer_id).model_dump(mode="json")
         stack.document = stack.document.with_layer({**old, "generator": run.generator_ref, "settings": settings})
@@ -266,8 +330,14 @@ def _record(stack: Stack, layer_id: str, seconds: float, run: LayerRun, source=N
     if rendered:
         entry = {**old, "tool": f"lasagna {__version__}", "rendered": now, "render_seconds": round(seconds, 3)}
     else:
-        entry = {"tool": f"lasagna {__version__}", "created": now, "seconds": round(seconds, 3),
-                 "generate_seconds": round(run.seconds, 3), "steps_run": len(run.history), "stopped": run.stopped}
+        entry = {
+            "tool": f"lasagna {__version__}",
+            "created": now,
+            "seconds": round(seconds, 3),
+            "generate_seconds": round(run.seconds, 3),
+            "steps_run": len(run.history),
+            "stopped": run.stopped,
+        }
         if isinstance(source, (str, os.PathLike)):
             entry["input"] = Path(source).name
     entries[layer_id] = entry
@@ -292,8 +362,10 @@ def carried_files(stack: Stack) -> dict[str, bytes]:
                 if src.is_file():
                     out[name.as_posix()] = src.read_bytes()
             if not ckpt.is_file():
-                raise PathError(f"{layer.generator.checkpoint!r} does not exist; expected the generator's weights",
-                                f"layers[{i}].generator.checkpoint")
+                raise PathError(
+                    f"{layer.generator.checkpoint!r} does not exist; expected the generator's weights",
+                    f"layers[{i}].generator.checkpoint",
+                )
         shipped = stack.folder / "layers" / layer.preset / "preset.json"
         if "/" not in layer.preset and shipped.is_file():
             out[f"layers/{layer.preset}/preset.json"] = shipped.read_bytes()
@@ -304,8 +376,14 @@ def carried_files(stack: Stack) -> dict[str, bytes]:
 
 
 def render_learned(
-    stack, *, all: bool = False, catalogue_dirs=None, device: str | torch.device = "cpu", progress: bool = False,
-    write: bool = True, warn: Callable[[str], None] | None = None,
+    stack,
+    *,
+    all: bool = False,
+    catalogue_dirs=None,
+    device: str | torch.device = "cpu",
+    progress: bool = False,
+    write: bool = True,
+    warn: Callable[[str], None] | None = None,
 ) -> tuple[Stack, list[str]]:
     """Render the learned layers of ``stack`` (a folder or a ``Stack``) that have no pixels (every one
     with ``all``), bottom to top, from their stored generator and settings; returns (stack, ids rendered).
@@ -320,8 +398,9 @@ def render_learned(
     if not isinstance(stack, Stack):
         stack = load_stack(stack)
     if stack.document.blend_space != "srgb":
-        raise DocumentError(f"blend_space is {stack.document.blend_space!r}; expected 'srgb' for learned layers",
-                            "blend_space")
+        raise DocumentError(
+            f"blend_space is {stack.document.blend_space!r}; expected 'srgb' for learned layers", "blend_space"
+        )
     rendered: list[str] = []
     files: dict[str, bytes] = {}
     for layer in list(stack.document.layers):
@@ -329,8 +408,14 @@ def render_learned(
             continue
         start = time.monotonic()
         run = _rerun(stack, layer, catalogue_dirs, device, progress)
-        place_layer(stack, layer.id, cat.load_preset(layer.preset, stack.folder, catalogue_dirs), layer.condition.label,
-                    layer.conditioned_on, run)
+        place_layer(
+            stack,
+            layer.id,
+            cat.load_preset(layer.preset, stack.folder, catalogue_dirs),
+            layer.condition.label,
+            layer.conditioned_on,
+            run,
+        )
         files.update(run.files)
         _record(stack, layer.id, time.monotonic() - start, run, rendered=True)
         rendered.append(layer.id)
@@ -361,24 +446,44 @@ def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) 
     generator_dir = resolved.generator
     if method == "amortised" and layer.generator is not None:
         if stack.folder is None:
-            raise PathError("the stack has no folder to find its generator in; expected a stack loaded from a folder", where)
+            raise PathError(
+                "the stack has no folder to find its generator in; expected a stack loaded from a folder", where
+            )
         ckpt = resolve_inside(stack.folder, layer.generator.checkpoint, f"{where}.generator.checkpoint")
         if not ckpt.is_file():
-            raise PathError(f"{layer.generator.checkpoint!r} does not exist; expected the generator's weights",
-                            f"{where}.generator.checkpoint")
+            raise PathError(
+                f"{layer.generator.checkpoint!r} does not exist; expected the generator's weights",
+                f"{where}.generator.checkpoint",
+            )
         if layer.generator.sha256 is not None and file_sha256(ckpt) != layer.generator.sha256:
-            raise LasagnaError("the generator's weights do not match the recorded sha256; expected the file the "
-                               "layer was made with", f"{where}.generator.checkpoint")
+            raise LasagnaError(
+                "the generator's weights do not match the recorded sha256; expected the file the layer was made with",
+                f"{where}.generator.checkpoint",
+            )
         generator_dir = ckpt.parent
     base = conditioning_input(stack, layer.conditioned_on)
     refs = {k: getattr(s, k) for k in ("prior", "corrective") if getattr(s, k) is not None}
-    run = make_layer(base, resolved, layer.condition.label, layer.id, method=method, optimize=optimize,
-                     generator_dir=generator_dir, distill=s.distill, refs=refs, catalogue_dirs=catalogue_dirs,
-                     device=device, progress=progress)
+    run = make_layer(
+        base,
+        resolved,
+        layer.condition.label,
+        layer.id,
+        method=method,
+        optimize=optimize,
+        generator_dir=generator_dir,
+        distill=s.distill,
+        refs=refs,
+        catalogue_dirs=catalogue_dirs,
+        device=device,
+        progress=progress,
+    )
     recorded = s.prior_sha256
     if recorded is not None and run.settings.prior_sha256 not in (None, recorded):
-        warnings.warn(f"{where}: the catalogue's prior {run.settings.prior!r} differs from the one the layer was "
-                      "made with (sha256); the layer is re-rendered with the current one", stacklevel=2)
+        warnings.warn(
+            f"{where}: the catalogue's prior {run.settings.prior!r} differs from the one the layer was "
+            "made with (sha256); the layer is re-rendered with the current one",
+            stacklevel=2,
+        )
     if layer.generator is not None and method == "amortised":
         run.generator_ref = layer.generator.model_dump(mode="json")
         run.files = {}  # already in the stack folder

@@ -7,6 +7,7 @@ of the stack up to and including the layer it is conditioned on. ``as_stored`` r
 what their PNGs will hold, so an edit is computed from, and composited with, exactly the values its
 stack folder keeps — which is what lets a re-render reproduce it bit for bit.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -67,7 +68,7 @@ class LayerSettings(BaseModel):
         return METHOD_ALIASES.get(value, value) if isinstance(value, str) else value
 
     @classmethod
-    def parse(cls, data: Any, where: str) -> "LayerSettings":
+    def parse(cls, data: Any, where: str) -> LayerSettings:
         """Validate stored settings; a bad field is a one-line ``DocumentError`` at ``where: settings.<field>``."""
         try:
             return cls.model_validate(data)
@@ -119,12 +120,19 @@ def conditioning_input(stack: Stack, upto: str) -> Tensor:
 
     doc = stack.document
     k = doc.index(upto) + 1
-    pending = [l.id for l in doc.layers[:k] if isinstance(l, LearnedLayer) and l.id not in stack.tensors]
+    pending = [
+        layer.id for layer in doc.layers[:k] if isinstance(layer, LearnedLayer) and layer.id not in stack.tensors
+    ]
     if pending:
-        raise LasagnaError(f"learned layer(s) {', '.join(pending)} at or below {upto!r} have no pixels; "
-                           "expected them rendered first (lasagna render STACK)", "conditioned_on")
+        raise LasagnaError(
+            f"learned layer(s) {', '.join(pending)} at or below {upto!r} have no pixels; "
+            "expected them rendered first (lasagna render STACK)",
+            "conditioned_on",
+        )
     prefix = doc.with_layers(list(doc.layers[:k]))
-    sub = Stack(prefix, stack.folder, {i: t for i, t in stack.tensors.items() if i in prefix.ids}, dict(stack.bit_depths))
+    sub = Stack(
+        prefix, stack.folder, {i: t for i, t in stack.tensors.items() if i in prefix.ids}, dict(stack.bit_depths)
+    )
     return render_stack(sub).image.detach().float().clamp(0.0, 1.0)
 
 
@@ -140,7 +148,9 @@ def file_sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def _components(resolved: cat.Resolved, label: str, loss: str, catalogue_dirs, device, refs: dict[str, Any] | None = None):
+def _components(
+    resolved: cat.Resolved, label: str, loss: str, catalogue_dirs, device, refs: dict[str, Any] | None = None
+):
     """(prior, prior ref, its weights' sha256, corrective, corrective ref) for a per-image run: those the
     preset names, or those named in ``refs`` (a layer's stored settings: a re-render uses what the
     layer was made with, not what the preset names today)."""
@@ -149,22 +159,36 @@ def _components(resolved: cat.Resolved, label: str, loss: str, catalogue_dirs, d
     here = resolved.preset_file.parent
     prior_ref = refs.get("prior") or preset.prior
     corrective_ref = refs.get("corrective") or preset.corrective
-    prior_dir = cat.find(prior_ref, "prior", catalogue_dirs=catalogue_dirs,  # raises, listing the priors there are
-                         relative_to=here if "/" in prior_ref else None)
+    prior_dir = cat.find(
+        prior_ref,
+        "prior",
+        catalogue_dirs=catalogue_dirs,  # raises, listing the priors there are
+        relative_to=here if "/" in prior_ref else None,
+    )
     prior = cat.load_prior(prior_dir, preset=preset, device=device)
     known = tuple(getattr(prior, "vocabulary", ()) or ())
     if known and label not in known:
-        raise ConditionError(f"label {label!r} of preset {preset.name!r} is not one prior {prior_ref!r} was trained on; "
-                             f"expected one of {', '.join(known)}", "condition.label")
+        raise ConditionError(
+            f"label {label!r} of preset {preset.name!r} is not one prior {prior_ref!r} was trained on; "
+            f"expected one of {', '.join(known)}",
+            "condition.label",
+        )
     weights = prior_dir / "model.safetensors"
     prior_sha = file_sha256(weights) if weights.is_file() else None
     corrective = None
     if loss == "lmc-sds":
         if corrective_ref is None:
-            raise LasagnaError(f"loss 'lmc-sds' needs a corrective and preset {preset.name!r} names none; expected "
-                               "another --loss or a preset with a corrective", "loss")
-        corrective = cat.load_corrective(corrective_ref, catalogue_dirs=catalogue_dirs,
-                                         relative_to=here if "/" in corrective_ref else None, device=device)
+            raise LasagnaError(
+                f"loss 'lmc-sds' needs a corrective and preset {preset.name!r} names none; expected "
+                "another --loss or a preset with a corrective",
+                "loss",
+            )
+        corrective = cat.load_corrective(
+            corrective_ref,
+            catalogue_dirs=catalogue_dirs,
+            relative_to=here if "/" in corrective_ref else None,
+            device=device,
+        )
     return prior, prior_ref, prior_sha, corrective, corrective_ref if loss == "lmc-sds" else None
 
 
@@ -176,11 +200,23 @@ def _distill_settings(preset, *, refine: bool, steps: int | None, loss, guidance
 
 
 def make_layer(
-    base: Tensor, resolved: cat.Resolved, label: str, layer_id: str, *,
-    method: Method, optimize: int, generator_dir: Path | None,
-    loss: str | None = None, guidance: float | None = None, seed: int | None = None, lr: float | None = None,
-    distill: DistillSettings | None = None, refs: dict[str, Any] | None = None, catalogue_dirs=None,
-    device: str | torch.device = "cpu", progress: bool = False,
+    base: Tensor,
+    resolved: cat.Resolved,
+    label: str,
+    layer_id: str,
+    *,
+    method: Method,
+    optimize: int,
+    generator_dir: Path | None,
+    loss: str | None = None,
+    guidance: float | None = None,
+    seed: int | None = None,
+    lr: float | None = None,
+    distill: DistillSettings | None = None,
+    refs: dict[str, Any] | None = None,
+    catalogue_dirs=None,
+    device: str | torch.device = "cpu",
+    progress: bool = False,
 ) -> LayerRun:
     """One learned layer (C, H, W) for ``base`` (3, H, W) in [0, 1] and ``label`` (module docstring).
 
@@ -200,8 +236,11 @@ def make_layer(
     initial = None
     if method == "amortised":
         if generator_dir is None:
-            raise LasagnaError(f"preset {preset.name!r} has no amortised generator yet (train one: lasagna train-layer "
-                               f"--preset {preset.name}); expected --generator free", "generator")
+            raise LasagnaError(
+                f"preset {preset.name!r} has no amortised generator yet (train one: lasagna train-layer "
+                f"--preset {preset.name}); expected --generator free",
+                "generator",
+            )
         weights = (generator_dir / "model.safetensors").read_bytes()
         config = (generator_dir / "config.json").read_bytes()
         net = LayerGenerator.from_pretrained(generator_dir, device=device)
@@ -219,19 +258,34 @@ def make_layer(
         if distill is not None:
             ds = distill
         else:
-            ds = _distill_settings(preset, refine=initial is not None, steps=optimize, loss=loss, guidance=guidance,
-                                   seed=seed, lr=lr)
-        prior, prior_ref, prior_sha, corrective, corrective_ref = _components(resolved, label, ds.loss, catalogue_dirs,
-                                                                             device, refs)
+            ds = _distill_settings(
+                preset, refine=initial is not None, steps=optimize, loss=loss, guidance=guidance, seed=seed, lr=lr
+            )
+        prior, prior_ref, prior_sha, corrective, corrective_ref = _components(
+            resolved, label, ds.loss, catalogue_dirs, device, refs
+        )
         model = "free" if initial is None else FreeLayer.from_layer(ds.layer, initial)
         run = distill_image(x, ds, prior, corrective, condition=label, generator=model, progress=progress)
         layer, history, stopped = run.layer.float(), run.history, run.stopped_reason
-        settings = LayerSettings(method=method, optimize=ds.steps, prior=prior_ref, prior_sha256=prior_sha,
-                                 corrective=corrective_ref, distill=ds)
+        settings = LayerSettings(
+            method=method,
+            optimize=ds.steps,
+            prior=prior_ref,
+            prior_sha256=prior_sha,
+            corrective=corrective_ref,
+            distill=ds,
+        )
     if layer is None:  # unreachable: an amortised run has its forward pass, a per-image run its optimisation
         raise LasagnaError(f"no layer was made (method {method!r}, optimize {optimize})", "make_layer")
-    return LayerRun(layer=layer[0].detach().cpu(), settings=settings, files=files, generator_ref=gen_ref,
-                    seconds=time.monotonic() - start, history=history, stopped=stopped)
+    return LayerRun(
+        layer=layer[0].detach().cpu(),
+        settings=settings,
+        files=files,
+        generator_ref=gen_ref,
+        seconds=time.monotonic() - start,
+        history=history,
+        stopped=stopped,
+    )
 
 
 def choose_method(resolved: cat.Resolved, method: str | None) -> Method:

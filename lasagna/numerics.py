@@ -2,6 +2,7 @@
 
 Every tolerance the package uses lives here, so a reader can audit them together.
 """
+
 from __future__ import annotations
 
 import torch
@@ -26,6 +27,7 @@ LOGIT_EPS = 1e-6
 def reduction_dtype(dtype: torch.dtype) -> torch.dtype:
     """Reductions (means, norms, std) of half-precision tensors run in float32."""
     return torch.float32 if dtype in (torch.float16, torch.bfloat16) else dtype
+
 
 # Saving a layer checks that its values lie in its range [lo, hi]. Values within this fraction of
 # the range's width outside it are float32 rounding of values on the boundary (y = lo + (hi - lo)·v

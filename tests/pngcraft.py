@@ -2,6 +2,7 @@
 
 Independent of ``lasagna.io.png``: chunks are assembled with ``struct`` and ``zlib`` only.
 """
+
 from __future__ import annotations
 
 import struct
@@ -13,8 +14,9 @@ def chunk(kind: bytes, body: bytes, *, bad_crc: bool = False) -> bytes:
     return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", crc)
 
 
-def png_bytes(width: int, height: int, idat: bytes, *, depth: int = 8, color_type: int = 0,
-              interlace: int = 0, extra: bytes = b"") -> bytes:
+def png_bytes(
+    width: int, height: int, idat: bytes, *, depth: int = 8, color_type: int = 0, interlace: int = 0, extra: bytes = b""
+) -> bytes:
     ihdr = struct.pack(">IIBBBBB", width, height, depth, color_type, 0, 0, interlace)
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + extra + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
 

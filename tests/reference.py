@@ -13,6 +13,7 @@ Stored PNG values v map to y = lo + (hi − lo)·v (alpha never). ``blend_space=
 values (background, solid colours, normal/plus/screen sources) from sRGB, never multiply factors, and
 encodes the result back. ``clamp="layer"`` clamps to [0, 1] after every blend, ``"output"`` once.
 """
+
 from __future__ import annotations
 
 import json

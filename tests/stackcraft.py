@@ -1,5 +1,6 @@
 """Random stack folders for tests, written without ``lasagna``: JSON by ``json``, PNGs by Pillow
 (8-bit) and pypng (16-bit), as an artist's tools or a judge's script would write them."""
+
 from __future__ import annotations
 
 import json
@@ -24,7 +25,9 @@ def write_png16(path: Path, codes: np.ndarray) -> None:
     c = codes if codes.ndim == 3 else codes[:, :, None]
     h, w, n = c.shape
     with open(path, "wb") as fh:
-        pypng.Writer(w, h, greyscale=n in (1, 2), alpha=n in (2, 4), bitdepth=16).write(fh, c.reshape(h, w * n).tolist())
+        pypng.Writer(w, h, greyscale=n in (1, 2), alpha=n in (2, 4), bitdepth=16).write(
+            fh, c.reshape(h, w * n).tolist()
+        )
 
 
 def write_stack(folder: Path, doc: dict) -> Path:
@@ -33,8 +36,15 @@ def write_stack(folder: Path, doc: dict) -> Path:
     return folder
 
 
-def random_stack(folder: Path, seed: int, *, blend_space: str = "srgb", clamp: str = "layer", n_layers: int = 5,
-                 unit_only: bool = False) -> Path:
+def random_stack(
+    folder: Path,
+    seed: int,
+    *,
+    blend_space: str = "srgb",
+    clamp: str = "layer",
+    n_layers: int = 5,
+    unit_only: bool = False,
+) -> Path:
     """A random stack: 8-bit and 16-bit PNGs, gray/GA/RGB/RGBA, [0, 2] multipliers, offsets partly
     outside the canvas, masks, opacities, solid, hidden and learned layers. ``unit_only``: every
     range is [0, 1] (no 16-bit ranged layers)."""
@@ -79,8 +89,15 @@ def random_stack(folder: Path, seed: int, *, blend_space: str = "srgb", clamp: s
                 layer["range"] = [0.0, 2.0]
         else:  # learned, rendered: stored exactly as a 16-bit pixels layer
             write_png16(folder / src, rng.integers(0, 65536, (h, w)))
-            layer.update(kind="learned", preset="shading", condition={"label": "left"}, conditioned_on="base",
-                         source=src, blend="multiply", range=[0.0, 2.0])
+            layer.update(
+                kind="learned",
+                preset="shading",
+                condition={"label": "left"},
+                conditioned_on="base",
+                source=src,
+                blend="multiply",
+                range=[0.0, 2.0],
+            )
         if layer["kind"] != "solid" and rng.random() < 0.35:
             write_png8(folder / f"masks/{lid}.png", rng.integers(0, 256, (h, w)))
             layer["mask"] = f"masks/{lid}.png"
@@ -88,8 +105,11 @@ def random_stack(folder: Path, seed: int, *, blend_space: str = "srgb", clamp: s
             layer["visible"] = False
         layers.append(layer)
     doc = {
-        "format": "lasagna.stack", "version": 1,
+        "format": "lasagna.stack",
+        "version": 1,
         "canvas": {"width": W, "height": H, "background": [float(v) for v in rng.random(3)]},
-        "blend_space": blend_space, "clamp": clamp, "layers": layers,
+        "blend_space": blend_space,
+        "clamp": clamp,
+        "layers": layers,
     }
     return write_stack(folder, doc)

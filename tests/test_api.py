@@ -1,4 +1,5 @@
 """The small Python API (``lasagna.api``) and the runnable tour in examples/api_tour.py."""
+
 from __future__ import annotations
 
 import runpy
@@ -30,8 +31,12 @@ def test_load_render_save(tmp_path):
 
 def test_build_from_tensors_and_pil(tmp_path):
     albedo = Image.fromarray((np.random.default_rng(0).random((8, 10, 3)) * 255).astype(np.uint8))
-    stack = api.from_tensors([("albedo", albedo),
-                              {"id": "shade", "image": torch.full((1, 8, 10), 1.5), "blend": "multiply", "range": (0, 2)}])
+    stack = api.from_tensors(
+        [
+            ("albedo", albedo),
+            {"id": "shade", "image": torch.full((1, 8, 10), 1.5), "blend": "multiply", "range": (0, 2)},
+        ]
+    )
     api.save(stack, tmp_path / "s")
     ref = composite_reference(tmp_path / "s")
     # In memory the multiplier is exactly 1.5; saved it is the nearest 16-bit step of [0, 2] (±1.5e-5).
@@ -56,7 +61,9 @@ def test_api_tour_example_runs(tmp_path, capsys):
     module = runpy.run_path(str(ROOT / "examples" / "api_tour.py"))
     module["main"](tmp_path)
     out = capsys.readouterr().out
-    assert "gradients flow" in out and (tmp_path / "tour.ora").is_file() and (tmp_path / "stack/composite.png").is_file()
+    assert (
+        "gradients flow" in out and (tmp_path / "tour.ora").is_file() and (tmp_path / "stack/composite.png").is_file()
+    )
 
 
 def test_render_refuses_batches_for_png(tmp_path):

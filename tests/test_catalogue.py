@@ -1,4 +1,5 @@
 """lasagna.catalogue: search order, each kind found by name, paths, loading, and errors that list what exists."""
+
 from __future__ import annotations
 
 import json
@@ -32,7 +33,9 @@ def _preset_copy(folder: Path, name: str = "shading", **changes) -> Path:
 def test_env_folders_come_first_then_checkout(tmp_path, monkeypatch):
     a, b = tmp_path / "a", tmp_path / "b"
     a.mkdir(), b.mkdir()
-    monkeypatch.setenv("LASAGNA_LAYERS", f"{a}{__import__('os').pathsep}{tmp_path / 'missing'}{__import__('os').pathsep}{b}")
+    monkeypatch.setenv(
+        "LASAGNA_LAYERS", f"{a}{__import__('os').pathsep}{tmp_path / 'missing'}{__import__('os').pathsep}{b}"
+    )
     found = cat.catalogues()
     assert found[:2] == [a, b]  # a folder that does not exist is left out
     assert (ROOT / "layers").resolve() in [p.resolve() for p in found[2:]]
@@ -62,17 +65,23 @@ def test_preset_shipped_in_a_stack_wins(tmp_path, tiny):
 
 def test_available_lists_every_kind(tiny):
     assert cat.available(catalogue_dirs=[tiny]) == {
-        "preset": ["color", "light", "shading"], "prior": ["light-32", "recolor-32", "relight-32"],
+        "preset": ["color", "light", "shading"],
+        "prior": ["light-32", "recolor-32", "relight-32"],
         "corrective": ["light-32-spectral", "recolor-32-spectral", "relight-32-bhat", "relight-32-spectral"],
         "generator": ["shading"],
     }
 
 
-@pytest.mark.parametrize("name, kind, relative", [
-    ("shading", "preset", "shading/preset.json"), ("relight-32", "prior", "relight-32"),
-    ("relight-32-bhat", "corrective", "relight-32-bhat"), ("relight-32-spectral", "corrective", "relight-32-spectral"),
-    ("shading", "generator", "shading/generator"),
-])
+@pytest.mark.parametrize(
+    "name, kind, relative",
+    [
+        ("shading", "preset", "shading/preset.json"),
+        ("relight-32", "prior", "relight-32"),
+        ("relight-32-bhat", "corrective", "relight-32-bhat"),
+        ("relight-32-spectral", "corrective", "relight-32-spectral"),
+        ("shading", "generator", "shading/generator"),
+    ],
+)
 def test_find_each_kind(tiny, name, kind, relative):
     assert cat.find(name, kind, catalogue_dirs=[tiny]) == tiny / relative
 
@@ -103,10 +112,15 @@ def test_unrelated_config_is_no_kind(tmp_path):
 # ---- errors -----------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("kind, listed", [
-    ("preset", "color, light, shading"), ("prior", "light-32, recolor-32, relight-32"),
-    ("corrective", "light-32-spectral, recolor-32-spectral, relight-32-bhat, relight-32-spectral"), ("generator", "shading"),
-])
+@pytest.mark.parametrize(
+    "kind, listed",
+    [
+        ("preset", "color, light, shading"),
+        ("prior", "light-32, recolor-32, relight-32"),
+        ("corrective", "light-32-spectral, recolor-32-spectral, relight-32-bhat, relight-32-spectral"),
+        ("generator", "shading"),
+    ],
+)
 def test_unknown_name_lists_what_exists(tiny, kind, listed):
     with pytest.raises(LasagnaError) as err:
         cat.find("nope", kind, catalogue_dirs=[tiny])
@@ -148,9 +162,16 @@ def test_resolve_names_every_part(tiny):
     parts = cat.resolve("shading", catalogue_dirs=[tiny])
     assert parts.preset.name == "shading" and parts.preset_file == tiny / "shading" / "preset.json"
     assert (parts.prior, parts.corrective, parts.generator) == (
-        tiny / "relight-32", tiny / "relight-32-spectral", tiny / "shading" / "generator")
+        tiny / "relight-32",
+        tiny / "relight-32-spectral",
+        tiny / "shading" / "generator",
+    )
     colour = cat.resolve("color", catalogue_dirs=[tiny])
-    assert colour.prior == tiny / "recolor-32" and colour.corrective == tiny / "recolor-32-spectral" and colour.generator is None
+    assert (
+        colour.prior == tiny / "recolor-32"
+        and colour.corrective == tiny / "recolor-32-spectral"
+        and colour.generator is None
+    )
 
 
 def test_resolve_without_prior(tmp_path):
@@ -196,7 +217,9 @@ def test_load_each_kind(tiny):
 
 def test_generator_for_another_preset_is_refused(tiny):
     colour = cat.load_preset("color", catalogue_dirs=[tiny])
-    with pytest.raises(LasagnaError, match=r"expected the normal layer of 4 channel\(s\) in \[0.0, 1.0\] of preset 'color'"):
+    with pytest.raises(
+        LasagnaError, match=r"expected the normal layer of 4 channel\(s\) in \[0.0, 1.0\] of preset 'color'"
+    ):
         cat.load_generator("shading", preset=colour, catalogue_dirs=[tiny])
 
 
@@ -230,7 +253,10 @@ def test_preset_status(tmp_path, tiny):
     st = cat.preset_status("shading", catalogue_dirs=[other])
     assert not st["usable"] and "was not trained on warm" in st["why"] and "\n" not in st["why"]
     _preset_copy(other, prior="missing-prior")
-    assert cat.preset_status("shading", catalogue_dirs=[other])["why"] == "its prior 'missing-prior' is not in the catalogue"
+    assert (
+        cat.preset_status("shading", catalogue_dirs=[other])["why"]
+        == "its prior 'missing-prior' is not in the catalogue"
+    )
     shutil.rmtree(other / "relight-32-spectral")
     _preset_copy(other)
     st = cat.preset_status("shading", catalogue_dirs=[other])

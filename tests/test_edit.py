@@ -4,6 +4,7 @@ tiny random catalogue (tests/tinylayers.py) put first in LASAGNA_LAYERS.
 Checked against independent decoders (pypng, Pillow) and a float64 numpy composite, not against the
 code's own output: the stored layer PNG, the composite PNG, re-rendering from the document alone.
 """
+
 from __future__ import annotations
 
 import json
@@ -60,7 +61,11 @@ def _stack_json(folder: Path) -> dict:
 
 
 def _no_leftovers(parent: Path) -> list[str]:
-    return [p.name for p in parent.iterdir() if p.name.startswith(".") and (p.name.endswith(".tmp") or p.name.endswith(".old"))]
+    return [
+        p.name
+        for p in parent.iterdir()
+        if p.name.startswith(".") and (p.name.endswith(".tmp") or p.name.endswith(".old"))
+    ]
 
 
 # ---- edit an image ------------------------------------------------------------------------------------
@@ -131,7 +136,12 @@ def test_light_layer_is_a_plus_layer_that_only_brightens(tmp_path, capsys):
     assert code == 0, err
     doc = _stack_json(tmp_path / "lit")
     layer = doc["layers"][-1]
-    assert (layer["kind"], layer["blend"], layer["preset"], layer["condition"]["label"]) == ("learned", "plus", "light", "warm")
+    assert (layer["kind"], layer["blend"], layer["preset"], layer["condition"]["label"]) == (
+        "learned",
+        "plus",
+        "light",
+        "warm",
+    )
     glow = _png16(tmp_path / "lit" / layer["source"])
     assert glow.shape[0] == 3 and glow.min() >= 0.0
     # plus never darkens: every composite pixel is at least the input's (8-bit, so within one step)
@@ -171,7 +181,7 @@ def test_edit_a_stack_folder_on_a_named_layer(tmp_path, capsys):
     code, _, err = run(capsys, "edit", scene, "--condition", "right", "--on", "albedo", "-o", out, "--optimize", "2")
     assert code == 0, err
     doc = _stack_json(out)
-    assert [l["id"] for l in doc["layers"]] == ["albedo", "shading", "shading-right"]
+    assert [layer["id"] for layer in doc["layers"]] == ["albedo", "shading", "shading-right"]
     learned = doc["layers"][-1]
     assert learned["conditioned_on"] == "albedo" and learned["settings"]["method"] == "amortised"
     assert learned["settings"]["optimize"] == 2 and learned["settings"]["distill"]["weights"]["reg"]["end"] == 0.0
@@ -185,7 +195,7 @@ def test_edit_a_stack_conditions_on_its_composite_and_carries_generators(tmp_pat
     assert run(capsys, "edit", PHOTO, "--condition", "left", "-o", first)[0] == 0
     assert run(capsys, "edit", first, "--condition", "top", "-o", second)[0] == 0
     doc = _stack_json(second)
-    assert [l["conditioned_on"] for l in doc["layers"][1:]] == ["base", "shading-left"]
+    assert [layer["conditioned_on"] for layer in doc["layers"][1:]] == ["base", "shading-left"]
     for layer in doc["layers"][1:]:
         assert (second / layer["generator"]["checkpoint"]).is_file()  # the first edit's generator came along
     code, _, err = run(capsys, "validate", second)
@@ -216,8 +226,15 @@ def _strip_learned_pixels(folder: Path) -> dict[str, bytes]:
     return kept
 
 
-@pytest.mark.parametrize("args", [(), ("--generator", "free", "--loss", "lmc-sds"), ("--optimize", "3"),
-                                  ("--generator", "free", "--guidance", "3", "--seed", "7")])
+@pytest.mark.parametrize(
+    "args",
+    [
+        (),
+        ("--generator", "free", "--loss", "lmc-sds"),
+        ("--optimize", "3"),
+        ("--generator", "free", "--guidance", "3", "--seed", "7"),
+    ],
+)
 def test_render_reproduces_the_edit(tmp_path, capsys, args):
     out = tmp_path / "out"
     assert run(capsys, "edit", PHOTO, "--condition", "bottom-right", "-o", out, *args)[0] == 0
@@ -272,18 +289,24 @@ def test_render_refuses_a_tampered_generator(tmp_path, capsys):
 # ---- bad input ----------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--layer", "nope", "--condition", "left"], "no preset named 'nope'"),
-    (["--condition", "sideways"], "expected one of left, right, top, bottom, top-left, top-right, bottom-left, bottom-right"),
-    (["--condition", "left", "--max-pixels", "100"], "over the limit of 100"),
-    (["--condition", "left", "--on", "ghost"], "no layer with id 'ghost'; expected one of base"),
-    (["--condition", "left", "--optimize", "2", "--steps", "3"], "optimize 2 and steps 3 differ"),
-    (["--condition", "left", "--generator", "free", "--optimize", "0"], "0 steps would leave the identity edit"),
-    (["--condition", "left", "--optimize", "-1"], "expected a non-negative integer"),
-    (["--layer", "../shading", "--condition", "left"], "is not a name"),
-    (["--layer", "color", "--condition", "natural", "--generator", "amortised"], "has no amortised generator yet"),
-    (["--condition", "left", "--guidance", "-1", "--generator", "free"], "guidance"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--layer", "nope", "--condition", "left"], "no preset named 'nope'"),
+        (
+            ["--condition", "sideways"],
+            "expected one of left, right, top, bottom, top-left, top-right, bottom-left, bottom-right",
+        ),
+        (["--condition", "left", "--max-pixels", "100"], "over the limit of 100"),
+        (["--condition", "left", "--on", "ghost"], "no layer with id 'ghost'; expected one of base"),
+        (["--condition", "left", "--optimize", "2", "--steps", "3"], "optimize 2 and steps 3 differ"),
+        (["--condition", "left", "--generator", "free", "--optimize", "0"], "0 steps would leave the identity edit"),
+        (["--condition", "left", "--optimize", "-1"], "expected a non-negative integer"),
+        (["--layer", "../shading", "--condition", "left"], "is not a name"),
+        (["--layer", "color", "--condition", "natural", "--generator", "amortised"], "has no amortised generator yet"),
+        (["--condition", "left", "--guidance", "-1", "--generator", "free"], "guidance"),
+    ],
+)
 def test_bad_edit_input_is_one_line_and_writes_nothing(tmp_path, capsys, argv, message):
     out = tmp_path / "out"
     code, _, err = run(capsys, "edit", PHOTO, "-o", out, *argv)
@@ -327,8 +350,11 @@ def test_prior_without_the_label_is_refused(tmp_path, tiny):
     preset = json.loads((cat_dir / "shading" / "preset.json").read_text())
     preset["vocabulary"] = ["left", "sunset"]
     (cat_dir / "shading" / "preset.json").write_text(json.dumps(preset))
-    with pytest.raises(LasagnaError, match="label 'sunset' of preset 'shading' is not one prior 'relight-32' was "
-                                           "trained on; expected one of left, right, top"):
+    with pytest.raises(
+        LasagnaError,
+        match="label 'sunset' of preset 'shading' is not one prior 'relight-32' was "
+        "trained on; expected one of left, right, top",
+    ):
         edit(PHOTO, "shading", "sunset", generator="free", catalogue_dirs=[cat_dir])
 
 
@@ -348,7 +374,10 @@ def test_force_replaces_a_stack_folder_as_a_whole(tmp_path, capsys):
     (out / "stale.txt").write_text("old")
     code, _, err = run(capsys, "edit", PHOTO, "--condition", "right", "-o", out, "--force")
     assert code == 0, err
-    assert not (out / "stale.txt").exists() and [l["id"] for l in _stack_json(out)["layers"]] == ["base", "shading-right"]
+    assert not (out / "stale.txt").exists() and [layer["id"] for layer in _stack_json(out)["layers"]] == [
+        "base",
+        "shading-right",
+    ]
     assert _no_leftovers(tmp_path) == []
 
 
@@ -359,8 +388,22 @@ def test_train_layer_and_install(tmp_path, capsys, tiny, monkeypatch):
     cat_dir = shutil.copytree(tiny, tmp_path / "layers")
     shutil.rmtree(cat_dir / "shading" / "generator")
     monkeypatch.setenv("LASAGNA_LAYERS", str(cat_dir))
-    code, stdout, err = run(capsys, "train-layer", "--preset", "shading", "--out", tmp_path / "run", "--steps", "2",
-                            "--batch-size", "2", "--channels", "4,8", "--ema-warmup", "--install")
+    code, stdout, err = run(
+        capsys,
+        "train-layer",
+        "--preset",
+        "shading",
+        "--out",
+        tmp_path / "run",
+        "--steps",
+        "2",
+        "--batch-size",
+        "2",
+        "--channels",
+        "4,8",
+        "--ema-warmup",
+        "--install",
+    )
     assert code == 0, err
     line = json.loads(stdout.strip().splitlines()[-1])
     assert line["step"] == 2 and line["installed"] == str(cat_dir / "shading" / "generator")
@@ -399,10 +442,18 @@ def test_demo_end_to_end(tmp_path, capsys):
         assert im.mode == "RGB" and im.width > 1000 and im.height > 600
     stacks = sorted(p.name for p in (out / "stacks").iterdir())
     assert "coffee-left" in stacks and "heldout-s0-000000-color" in stacks and len(stacks) == 28
-    assert {"heldout-s0-000000-warm-light", "heldout-s0-000001-cool-light", "coffee-warm-light", "helmet-cool-light"} <= set(stacks)
+    assert {
+        "heldout-s0-000000-warm-light",
+        "heldout-s0-000001-cool-light",
+        "coffee-warm-light",
+        "helmet-cool-light",
+    } <= set(stacks)
     # the world scene's light is added on top of the scene as rendered (albedo × shading, both visible)
     lit = _stack_json(out / "stacks" / "heldout-s0-000000-warm-light")
-    assert [(l["id"], l.get("visible", True)) for l in lit["layers"]][:2] == [("albedo", True), ("shading", True)]
+    assert [(layer["id"], layer.get("visible", True)) for layer in lit["layers"]][:2] == [
+        ("albedo", True),
+        ("shading", True),
+    ]
     assert lit["layers"][-1]["blend"] == "plus" and len(lit["layers"]) == 3
     for name in ("heldout-s0-000000-left", "coffee-color", "coffee-warm-light"):
         code, _, err = run(capsys, "validate", out / "stacks" / name)
@@ -422,7 +473,9 @@ def test_demo_falls_back_without_priors(tmp_path, capsys, monkeypatch):
     code, stdout, err = run(capsys, "demo", "-o", tmp_path / "demo")
     assert code == 0, err
     first = stdout.splitlines()[0]
-    assert first.startswith("demo: no learned layer can run (shading: its prior 'missing-prior' is not in the catalogue")
+    assert first.startswith(
+        "demo: no learned layer can run (shading: its prior 'missing-prior' is not in the catalogue"
+    )
     assert "compositing and exporting the example stack instead" in first and "Traceback" not in stdout + err
     for name in ("composite.png", "basic.ora", "layers/layers.json", "stack/stack.json"):
         assert (tmp_path / "demo" / name).is_file(), name
@@ -444,7 +497,9 @@ def test_render_uses_the_prior_the_layer_was_made_with(tmp_path, capsys, tiny, m
     doc["layers"][1]["settings"]["prior"] = "gone-prior"  # a prior no catalogue has: the stored name is what counts
     (out / "stack.json").write_text(json.dumps(doc), encoding="utf-8")
     code, _, err = run(capsys, "render", out, "--all")
-    assert code == 2 and "no prior named 'gone-prior'" in err and "expected one of light-32, recolor-32, relight-32" in err
+    assert (
+        code == 2 and "no prior named 'gone-prior'" in err and "expected one of light-32, recolor-32, relight-32" in err
+    )
 
 
 def test_edit_api_example_runs(tmp_path, capsys):

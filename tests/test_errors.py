@@ -29,12 +29,20 @@ class _Config(BaseModel):
     steps: int = Field(1, ge=1)
 
 
-@pytest.mark.parametrize("data,where,prefix,expected", [
-    ({"lr": 0}, None, "", "lr: got 0; expected greater than 0"),
-    ({"lr": 0}, "run.json", "", "run.json: lr: got 0; expected greater than 0"),
-    ({"lr": 0, "steps": 0}, None, "train-layer", "train-layer.lr: got 0; expected greater than 0 (+1 more)"),
-    ({"step": 1}, "c.json", "config", "c.json: config.step: unknown field; expected one of lr, steps; did you mean 'steps'?"),
-])
+@pytest.mark.parametrize(
+    "data,where,prefix,expected",
+    [
+        ({"lr": 0}, None, "", "lr: got 0; expected greater than 0"),
+        ({"lr": 0}, "run.json", "", "run.json: lr: got 0; expected greater than 0"),
+        ({"lr": 0, "steps": 0}, None, "train-layer", "train-layer.lr: got 0; expected greater than 0 (+1 more)"),
+        (
+            {"step": 1},
+            "c.json",
+            "config",
+            "c.json: config.step: unknown field; expected one of lr, steps; did you mean 'steps'?",
+        ),
+    ],
+)
 def test_one_formatter_for_validation_errors(data, where, prefix, expected):
     with pytest.raises(ValidationError) as exc:
         _Config.model_validate(data)

@@ -39,7 +39,13 @@ def test_one_method_vocabulary_with_free_as_an_alias():
 def test_settings_model_round_trips_the_stored_json(tmp_path):
     a = edit(PHOTO, "shading", "left", generator="per-image", optimize=2, seed=1)
     assert a.settings["method"] == "per-image" and list(a.settings) == [
-        "method", "optimize", "prior", "prior_sha256", "corrective", "distill"]
+        "method",
+        "optimize",
+        "prior",
+        "prior_sha256",
+        "corrective",
+        "distill",
+    ]
     assert LayerSettings.parse(a.settings, "here").to_json() == a.settings
     b = edit(PHOTO, "shading", "left")
     assert b.settings == {"method": "amortised", "optimize": 0}
@@ -47,14 +53,17 @@ def test_settings_model_round_trips_the_stored_json(tmp_path):
     assert LayerSettings.parse({}, "here").to_json() == {"method": None, "optimize": None}
 
 
-@pytest.mark.parametrize("settings,where", [
-    ({"method": "quick"}, "layer 'x': settings.method"),
-    ({"optimize": -1}, "layer 'x': settings.optimize"),
-    ({"optimize": True}, "layer 'x': settings.optimize"),
-    ({"distill": 3}, "layer 'x': settings.distill"),
-    ({"distill": {"guidance": 0}}, "layer 'x': settings.distill.layer"),  # the first of two errors
-    ({"colour": "red"}, "layer 'x': settings.colour"),
-])
+@pytest.mark.parametrize(
+    "settings,where",
+    [
+        ({"method": "quick"}, "layer 'x': settings.method"),
+        ({"optimize": -1}, "layer 'x': settings.optimize"),
+        ({"optimize": True}, "layer 'x': settings.optimize"),
+        ({"distill": 3}, "layer 'x': settings.distill"),
+        ({"distill": {"guidance": 0}}, "layer 'x': settings.distill.layer"),  # the first of two errors
+        ({"colour": "red"}, "layer 'x': settings.colour"),
+    ],
+)
 def test_bad_settings_are_one_document_error_naming_the_field(settings, where):
     with pytest.raises(DocumentError) as err:
         LayerSettings.parse(settings, "layer 'x'")
@@ -71,7 +80,9 @@ def test_optimize_is_the_steps_argument_and_steps_is_deprecated():
 
 
 def test_train_layer_guidance_zero_is_refused_in_one_line(tmp_path, capsys):
-    code = main(["train-layer", "--preset", "shading", "--guidance", "0", "--steps", "1", "--out", str(tmp_path / "run")])
+    code = main(
+        ["train-layer", "--preset", "shading", "--guidance", "0", "--steps", "1", "--out", str(tmp_path / "run")]
+    )
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1
     assert err.startswith("lasagna: error: train-layer.guidance: got 0.0; expected greater than 0")
@@ -80,7 +91,24 @@ def test_train_layer_guidance_zero_is_refused_in_one_line(tmp_path, capsys):
 
 def test_train_layer_guidance_given_is_the_runs_omega(tmp_path, capsys):
     out = tmp_path / "run"
-    code = main(["train-layer", "--preset", "shading", "--guidance", "2.5", "--steps", "1", "--batch-size", "2",
-                 "--resolution", "8", "--channels", "4,8", "--out", str(out)])
+    code = main(
+        [
+            "train-layer",
+            "--preset",
+            "shading",
+            "--guidance",
+            "2.5",
+            "--steps",
+            "1",
+            "--batch-size",
+            "2",
+            "--resolution",
+            "8",
+            "--channels",
+            "4,8",
+            "--out",
+            str(out),
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     assert json.loads((out / "train_config.json").read_text())["guidance"] == 2.5

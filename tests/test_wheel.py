@@ -5,6 +5,7 @@ checkout gets no build/ or egg-info; it is installed with ``pip install --no-dep
 imported from a temporary folder in a fresh interpreter, with ``LASAGNA_LAYERS`` unset — the checkout
 is not importable there, so the presets can only come from the installed package (``lasagna/_layers``).
 """
+
 from __future__ import annotations
 
 import json
@@ -27,7 +28,8 @@ from lasagna.document import default_catalogues
 preset = catalogue.load_preset("shading")
 print(json.dumps({"lasagna": lasagna.__file__, "preset": str(catalogue.find("shading")), "name": preset.name,
                   "blend": preset.blend, "available": catalogue.available()["preset"],
-                  "catalogues": [str(c) for c in catalogue.catalogues()], "default": [str(c) for c in default_catalogues()]}))
+                  "catalogues": [str(c) for c in catalogue.catalogues()],
+                  "default": [str(c) for c in default_catalogues()]}))
 """
 
 
@@ -46,13 +48,23 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
         shutil.copytree(ROOT / name, src / name, ignore=ignore)
     env = {**os.environ, "PIP_NO_INDEX": "1", "PIP_DISABLE_PIP_VERSION_CHECK": "1"}
     pip = [sys.executable, "-m", "pip"]
-    build = subprocess.run([*pip, "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp / "dist"), str(src)],
-                           capture_output=True, text=True, timeout=240, env=env)
+    build = subprocess.run(
+        [*pip, "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp / "dist"), str(src)],
+        capture_output=True,
+        text=True,
+        timeout=240,
+        env=env,
+    )
     assert build.returncode == 0, build.stderr[-2000:]
     (wheel,) = (tmp / "dist").glob("lasagna-*.whl")
     target = tmp / "site"
-    inst = subprocess.run([*pip, "install", "--no-deps", "-q", "--target", str(target), str(wheel)],
-                          capture_output=True, text=True, timeout=240, env=env)
+    inst = subprocess.run(
+        [*pip, "install", "--no-deps", "-q", "--target", str(target), str(wheel)],
+        capture_output=True,
+        text=True,
+        timeout=240,
+        env=env,
+    )
     assert inst.returncode == 0, inst.stderr[-2000:]
     return wheel, target
 
@@ -60,8 +72,11 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
 def test_wheel_holds_every_catalogue_file(installed):
     wheel, _ = installed
     names = set(zipfile.ZipFile(wheel).namelist())
-    expected = {f"lasagna/_layers/{p.relative_to(ROOT / 'layers').as_posix()}" for p in (ROOT / "layers").rglob("*")
-                if p.is_file() and "__pycache__" not in p.parts}
+    expected = {
+        f"lasagna/_layers/{p.relative_to(ROOT / 'layers').as_posix()}"
+        for p in (ROOT / "layers").rglob("*")
+        if p.is_file() and "__pycache__" not in p.parts
+    }
     assert expected and expected <= names
     assert "lasagna/catalogue.py" in names and "lasagna/_layers/PACKAGING.md" in names
 
@@ -70,12 +85,17 @@ def test_presets_resolve_from_the_installed_package(installed, tmp_path):
     _, target = installed
     env = {k: v for k, v in os.environ.items() if k not in ("LASAGNA_LAYERS", "PYTHONPATH")}
     env["PYTHONPATH"] = str(target)
-    proc = subprocess.run([sys.executable, "-c", CHECK], cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env)
+    proc = subprocess.run(
+        [sys.executable, "-c", CHECK], cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     got = json.loads(proc.stdout)
     packaged = target / "lasagna" / "_layers"
     assert Path(got["lasagna"]).resolve().is_relative_to(target.resolve())  # not the checkout
     assert got["default"] == [str(packaged)]  # the installed copy, no checkout layers/
     assert got["catalogues"] == [str(packaged)]
-    assert got["preset"] == str(packaged / "shading" / "preset.json") and (got["name"], got["blend"]) == ("shading", "multiply")
+    assert got["preset"] == str(packaged / "shading" / "preset.json") and (got["name"], got["blend"]) == (
+        "shading",
+        "multiply",
+    )
     assert set(got["available"]) >= {"shading", "color", "light"}

@@ -16,6 +16,7 @@
 The names are the bundled ones, so a folder put first in ``LASAGNA_LAYERS`` shadows the real catalogue.
 The weights are random but not the identity (every parameter gets noise), so outputs depend on input.
 """
+
 from __future__ import annotations
 
 import json
@@ -48,8 +49,14 @@ def _preset(folder: Path, name: str, **changes) -> dict:
 def tiny_prior(cond_channels: int, vocabulary: tuple[str, ...], seed: int):
     from lasagna.priors.unet import UNetConfig, UNetPrior
 
-    config = UNetConfig(image_channels=3, cond_channels=cond_channels, resolution=PRIOR_RES, channels=(8, 16),
-                        norm_groups=4, vocabulary=vocabulary)
+    config = UNetConfig(
+        image_channels=3,
+        cond_channels=cond_channels,
+        resolution=PRIOR_RES,
+        channels=(8, 16),
+        norm_groups=4,
+        vocabulary=vocabulary,
+    )
     torch.manual_seed(seed)
     return _jitter(UNetPrior(config), seed).eval()
 
@@ -76,8 +83,11 @@ def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool =
     _preset(folder, "color")
     _preset(folder, "light")
     if generator:
-        cfg = LayerGeneratorConfig(layer=LayerSpec(blend="multiply", channels=1, range=tuple(shading["range"])),
-                                   vocabulary=tuple(shading["vocabulary"]), channels=(4, 8))
+        cfg = LayerGeneratorConfig(
+            layer=LayerSpec(blend="multiply", channels=1, range=tuple(shading["range"])),
+            vocabulary=tuple(shading["vocabulary"]),
+            channels=(4, 8),
+        )
         torch.manual_seed(1)
         _jitter(LayerGenerator(cfg), 1, 0.2).save_pretrained(folder / "shading" / "generator")
     if priors:

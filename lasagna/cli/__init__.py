@@ -31,8 +31,8 @@ import argparse
 import os
 import sys
 import warnings
+from collections.abc import Sequence
 from types import ModuleType
-from typing import Sequence
 
 from pydantic import ValidationError
 

@@ -22,23 +22,40 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from lasagna.edit import DEFAULT_EDIT_MAX_PIXELS
 
     p.add_argument("image", help="a PNG/JPEG image, or a stack folder (the layer goes on top of it)")
-    p.add_argument("--layer", default="shading", metavar="PRESET", help="learned-layer preset (default shading; see 'lasagna layers')")
+    p.add_argument(
+        "--layer",
+        default="shading",
+        metavar="PRESET",
+        help="learned-layer preset (default shading; see 'lasagna layers')",
+    )
     p.add_argument("--condition", required=True, metavar="LABEL", help="a label of the preset's vocabulary, e.g. left")
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="stack folder to write (new or empty)")
     p.add_argument("--on", metavar="ID", help="condition on the composite up to this layer (default: the top layer)")
     p.add_argument("--id", help="id of the new layer (default PRESET-LABEL)")
-    p.add_argument("--generator", choices=("amortised", "free"),
-                   help="amortised: the preset's trained generator, one forward pass; free: a per-pixel layer "
-                        "optimised for this image (default: amortised when the preset has one)")
-    p.add_argument("--optimize", type=int, metavar="N", help="per-image optimisation steps (after the amortised pass; "
-                   "default 0, or the preset's steps for a free layer)")
+    p.add_argument(
+        "--generator",
+        choices=("amortised", "free"),
+        help="amortised: the preset's trained generator, one forward pass; free: a per-pixel layer "
+        "optimised for this image (default: amortised when the preset has one)",
+    )
+    p.add_argument(
+        "--optimize",
+        type=int,
+        metavar="N",
+        help="per-image optimisation steps (after the amortised pass; "
+        "default 0, or the preset's steps for a free layer)",
+    )
     p.add_argument("--steps", type=int, metavar="N", help="the same number as --optimize, named as in the preset")
     distill_arguments(p)
     p.add_argument("--no-ora", action="store_true", help="do not write stack.ora")
     p.add_argument("--force", action="store_true", help="replace OUT if it already holds a stack")
-    p.add_argument("--max-pixels", type=int, default=DEFAULT_EDIT_MAX_PIXELS, metavar="N",
-                   help=f"refuse images with more than N pixels (default {DEFAULT_EDIT_MAX_PIXELS})")
-
+    p.add_argument(
+        "--max-pixels",
+        type=int,
+        default=DEFAULT_EDIT_MAX_PIXELS,
+        metavar="N",
+        help=f"refuse images with more than N pixels (default {DEFAULT_EDIT_MAX_PIXELS})",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,16 +71,38 @@ def run(args: argparse.Namespace) -> int:
             "steps",
         )
     optimize = args.optimize if args.optimize is not None else args.steps  # --steps: --optimize's other name
-    result = edit(args.image, args.layer, args.condition, on=args.on, id=args.id, generator=args.generator,
-                  optimize=optimize, loss=args.loss, guidance=args.guidance, seed=args.seed,
-                  lr=args.lr, max_pixels=args.max_pixels, device=args.device, progress=progress())
+    result = edit(
+        args.image,
+        args.layer,
+        args.condition,
+        on=args.on,
+        id=args.id,
+        generator=args.generator,
+        optimize=optimize,
+        loss=args.loss,
+        guidance=args.guidance,
+        seed=args.seed,
+        lr=args.lr,
+        max_pixels=args.max_pixels,
+        device=args.device,
+        progress=progress(),
+    )
     result.save(out, force=args.force, ora=not args.no_ora, warn=warn)
     s = result.settings
-    how = "amortised generator, one forward pass" if s["method"] == "amortised" and not s["optimize"] else (
-        f"amortised generator + {s['optimize']} per-image steps" if s["method"] == "amortised"
-        else f"per-image optimisation, {len(result.history)} of {s['optimize']} steps "
-             f"({s['distill']['loss']}, ω = {s['distill']['guidance']:g})")
+    how = (
+        "amortised generator, one forward pass"
+        if s["method"] == "amortised" and not s["optimize"]
+        else (
+            f"amortised generator + {s['optimize']} per-image steps"
+            if s["method"] == "amortised"
+            else f"per-image optimisation, {len(result.history)} of {s['optimize']} steps "
+            f"({s['distill']['loss']}, ω = {s['distill']['guidance']:g})"
+        )
+    )
     lo, hi = float(result.layer.min()), float(result.layer.max())
     print(f"wrote {out}/ (layer {result.layer_id!r}: {how}; values in [{lo:.3g}, {hi:.3g}]; {result.seconds:.1f} s)")
-    print(f"  {out / 'composite.png'}, {out / 'stack.json'}, {out / 'layers'}/" + ("" if args.no_ora else f", {out / 'stack.ora'}"))
+    print(
+        f"  {out / 'composite.png'}, {out / 'stack.json'}, {out / 'layers'}/"
+        + ("" if args.no_ora else f", {out / 'stack.ora'}")
+    )
     return 0

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from lasagna.cli.common import max_pixels_argument
 from lasagna.errors import PathError

@@ -13,7 +13,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the listing as JSON")
 
 
-
 def run(args: argparse.Namespace) -> int:
     from lasagna import catalogue as cat
 

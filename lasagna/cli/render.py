@@ -17,7 +17,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
 
 
-
 def run(args: argparse.Namespace) -> int:
     from lasagna.document import stack_file
     from lasagna.edit import render_learned

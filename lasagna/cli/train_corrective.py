@@ -15,7 +15,9 @@ HELP = "train the LMC-SDS manifold corrective b̂ of a prior (resumable)"
 def _import_callable(spec: str):
     module, sep, attr = spec.partition(":")
     if not sep or not module or not attr:
-        raise LasagnaError(f"got {spec!r}; expected module:callable, e.g. lasagna.world.source:sample_batch", "--source")
+        raise LasagnaError(
+            f"got {spec!r}; expected module:callable, e.g. lasagna.world.source:sample_batch", "--source"
+        )
     try:
         obj = getattr(importlib.import_module(module), attr)
     except (ImportError, AttributeError) as exc:
@@ -36,14 +38,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from lasagna.training.tasks import TASKS
 
     p.add_argument("--prior", required=True, help="folder of a UNetPrior (model.safetensors + config.json)")
-    p.add_argument("--kind", choices=("network", "spectral"), default="network",
-                   help="network: the paper's UNet b̂ trained with L_k; spectral: a per-t linear frequency response "
-                        "fitted in closed form (lasagna.losses.spectral)")
+    p.add_argument(
+        "--kind",
+        choices=("network", "spectral"),
+        default="network",
+        help="network: the paper's UNet b̂ trained with L_k; spectral: a per-t linear frequency response "
+        "fitted in closed form (lasagna.losses.spectral)",
+    )
     p.add_argument("--batches", type=int, default=8, help="spectral: batches of clean images per timestep bucket")
     p.add_argument("--buckets", type=int, default=50, help="spectral: timestep buckets")
-    p.add_argument("--task", choices=TASKS, default=None,
-                   help="draw clean images from the procedural world's train split for this prior task")
-    p.add_argument("--source", default=None, help="module:callable, sample_batch(batch, generator) -> (images, label_idx, cond_image); instead of --task")
+    p.add_argument(
+        "--task",
+        choices=TASKS,
+        default=None,
+        help="draw clean images from the procedural world's train split for this prior task",
+    )
+    p.add_argument(
+        "--source",
+        default=None,
+        help="module:callable, sample_batch(batch, generator) -> (images, label_idx, cond_image); instead of --task",
+    )
     p.add_argument("--out", required=True, help="output folder; run again with the same folder to resume")
     p.add_argument("--steps", type=int, default=20_000)
     p.add_argument("--batch-size", type=int, default=32)
@@ -77,19 +91,58 @@ def run(args: argparse.Namespace) -> int:
     else:
         source = _import_callable(args.source)
     if args.kind == "spectral":
-        result = fit_spectral(prior, source, args.out, batch_size=args.batch_size, batches=args.batches, buckets=args.buckets,
-                              branch=args.branch, eval_batches=args.eval_batches, t_min=args.t_min, t_max=args.t_max,
-                              seed=args.seed, device=args.device)
-        print(json.dumps({"kind": "spectral", "lk_trained": result.lk_trained, "lk_trivial": result.lk_trivial, "ratio": result.ratio}))
+        result = fit_spectral(
+            prior,
+            source,
+            args.out,
+            batch_size=args.batch_size,
+            batches=args.batches,
+            buckets=args.buckets,
+            branch=args.branch,
+            eval_batches=args.eval_batches,
+            t_min=args.t_min,
+            t_max=args.t_max,
+            seed=args.seed,
+            device=args.device,
+        )
+        print(
+            json.dumps(
+                {
+                    "kind": "spectral",
+                    "lk_trained": result.lk_trained,
+                    "lk_trivial": result.lk_trivial,
+                    "ratio": result.ratio,
+                }
+            )
+        )
         return 0
     cond_channels = prior.config.cond_channels
     config = CorrectiveTrainConfig(
         corrective=corrective_config_for(prior, args.filters, args.sees_condition, cond_channels),
-        steps=args.steps, batch_size=args.batch_size, lr=args.lr, t_min=args.t_min, t_max=args.t_max,
-        branch=args.branch, ema_decay=args.ema, checkpoint_every=args.checkpoint_every, log_every=args.log_every,
-        eval_batches=args.eval_batches, max_minutes=args.max_minutes, seed=args.seed, progress=not args.no_progress,
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        t_min=args.t_min,
+        t_max=args.t_max,
+        branch=args.branch,
+        ema_decay=args.ema,
+        checkpoint_every=args.checkpoint_every,
+        log_every=args.log_every,
+        eval_batches=args.eval_batches,
+        max_minutes=args.max_minutes,
+        seed=args.seed,
+        progress=not args.no_progress,
     )
     result = train_corrective(prior, source, config, args.out, device=args.device)
-    print(json.dumps({"step": result.step, "stopped": result.stopped, "lk_trained": result.lk_trained,
-                      "lk_trivial": result.lk_trivial, "ratio": result.ratio}))
+    print(
+        json.dumps(
+            {
+                "step": result.step,
+                "stopped": result.stopped,
+                "lk_trained": result.lk_trained,
+                "lk_trivial": result.lk_trivial,
+                "ratio": result.ratio,
+            }
+        )
+    )
     return 0

@@ -15,29 +15,49 @@ HELP = "train a preset's amortised layer generator on the world (resumable)"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", required=True, help="learned-layer preset whose generator to train (e.g. shading)")
-    p.add_argument("--out", metavar="DIR", help="run folder; run again with the same folder to resume "
-                   "(default runs/<preset>-generator)")
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        help="run folder; run again with the same folder to resume (default runs/<preset>-generator)",
+    )
     p.add_argument("--minutes", type=float, help="time budget of this invocation")
-    p.add_argument("--steps", type=int, default=3000, help="training steps (an upper bound with --minutes; default 3000)")
+    p.add_argument(
+        "--steps", type=int, default=3000, help="training steps (an upper bound with --minutes; default 3000)"
+    )
     p.add_argument("--supervised", action="store_true", help="train on the world's true layer (the supervised ceiling)")
     loss_argument(p, "default: the preset's")
     p.add_argument("--guidance", type=float, metavar="W", help="default: the preset's")
     p.add_argument("--lr", type=float, default=1e-3)
-    p.add_argument("--ramp", type=int, default=500, metavar="N",
-                   help="steps of the LMC-SDS recipe's cosine ramps: score weight 0.1 → 1, L2-to-input weight 1 → --reg-final")
-    p.add_argument("--reg-final", type=float, default=0.0, metavar="W",
-                   help="L2-to-input weight after the ramp (default 0; the LMC-SDS paper's image network keeps 0.1)")
+    p.add_argument(
+        "--ramp",
+        type=int,
+        default=500,
+        metavar="N",
+        help="steps of the LMC-SDS recipe's cosine ramps: score weight 0.1 → 1, L2-to-input weight 1 → --reg-final",
+    )
+    p.add_argument(
+        "--reg-final",
+        type=float,
+        default=0.0,
+        metavar="W",
+        help="L2-to-input weight after the ramp (default 0; the LMC-SDS paper's image network keeps 0.1)",
+    )
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--resolution", type=int, help="world scene size (default: the prior's resolution, else 32)")
     p.add_argument("--channels", default="16,32,64,128", help="generator widths per level (default 16,32,64,128)")
     p.add_argument("--ema", type=float, default=0.999, help="EMA decay of the weights saved (default 0.999)")
-    p.add_argument("--ema-warmup", action="store_true",
-                   help="ramp the EMA decay as min(ema, (1+step)/(10+step)) so a short run's average forgets its start")
+    p.add_argument(
+        "--ema-warmup",
+        action="store_true",
+        help="ramp the EMA decay as min(ema, (1+step)/(10+step)) so a short run's average forgets its start",
+    )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--install", action="store_true",
-                   help="copy the trained generator into the preset's catalogue folder (<catalogue>/<preset>/generator/)")
+    p.add_argument(
+        "--install",
+        action="store_true",
+        help="copy the trained generator into the preset's catalogue folder (<catalogue>/<preset>/generator/)",
+    )
     p.add_argument("--device", default=None, help="torch device (default cuda if available, else cpu)")
-
 
 
 def run(args: argparse.Namespace) -> int:
@@ -51,8 +71,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         widths = tuple(int(c) for c in str(args.channels).split(","))
     except ValueError:
-        raise LasagnaError(f"{args.channels!r} is not a comma-separated list of integers; expected e.g. 16,32,64,128",
-                           "--channels") from None
+        raise LasagnaError(
+            f"{args.channels!r} is not a comma-separated list of integers; expected e.g. 16,32,64,128", "--channels"
+        ) from None
     loss = args.loss or preset.distill.loss
     prior = corrective = None
     resolution = args.resolution
@@ -66,18 +87,34 @@ def run(args: argparse.Namespace) -> int:
     # An explicit --guidance (0 included) is the run's ω: the config refuses one that is not positive.
     guidance = args.guidance if args.guidance is not None else preset.distill.guidance
     config = AmortisedConfig(
-        generator=LayerGeneratorConfig.for_preset(preset, channels=widths), task=TASK_FOR_BLEND[preset.blend],
+        generator=LayerGeneratorConfig.for_preset(preset, channels=widths),
+        task=TASK_FOR_BLEND[preset.blend],
         prior=None if args.supervised else str(resolved.prior),
         corrective=str(resolved.corrective) if corrective is not None else None,
-        supervised=args.supervised, loss=loss, guidance=guidance,
-        t_min=preset.distill.t_min, t_max=preset.distill.t_max, lr=args.lr, batch_size=args.batch_size,
+        supervised=args.supervised,
+        loss=loss,
+        guidance=guidance,
+        t_min=preset.distill.t_min,
+        t_max=preset.distill.t_max,
+        lr=args.lr,
+        batch_size=args.batch_size,
         weights=Weights.lmc_network(args.ramp, reg_end=args.reg_final),
-        resolution=resolution or 32, steps=args.steps, max_minutes=args.minutes, ema_decay=args.ema, ema_warmup=args.ema_warmup, seed=args.seed,
+        resolution=resolution or 32,
+        steps=args.steps,
+        max_minutes=args.minutes,
+        ema_decay=args.ema,
+        ema_warmup=args.ema_warmup,
+        seed=args.seed,
         progress=progress(),
     )
     result = train_layer_generator(config, out, prior=prior, corrective=corrective, device=args.device)
-    line = {"out": str(out / "generator"), "preset": preset.name, "step": result.step, "stopped": result.stopped,
-            **{k: v for k, v in result.metrics.items() if k.endswith("psnr")}}
+    line = {
+        "out": str(out / "generator"),
+        "preset": preset.name,
+        "step": result.step,
+        "stopped": result.stopped,
+        **{k: v for k, v in result.metrics.items() if k.endswith("psnr")},
+    }
     if args.install:
         line["installed"] = str(install_generator(out / "generator", resolved.preset_file.parent))
     print(json.dumps(line))

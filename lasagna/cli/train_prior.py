@@ -24,18 +24,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--minutes", type=float, default=None, help="time budget of this invocation")
     p.add_argument("--batch-size", type=int, default=64)
     p.add_argument("--lr", type=float, default=2e-3)
-    p.add_argument("--lr-schedule", choices=("step", "cosine"), default="step",
-                   help="step: constant lr (after warm-up); cosine: anneal to 0 over --steps")
-    p.add_argument("--init-from", default=None,
-                   help="start from this saved prior's weights (its architecture replaces --channels etc.)")
-    p.add_argument("--init-labels", choices=("keep", "fresh"), default="keep",
-                   help="fresh: --init-from may be a prior of another task with the same conditioning channels; "
-                        "its label embedding is replaced (every label starts as its null label)")
+    p.add_argument(
+        "--lr-schedule",
+        choices=("step", "cosine"),
+        default="step",
+        help="step: constant lr (after warm-up); cosine: anneal to 0 over --steps",
+    )
+    p.add_argument(
+        "--init-from",
+        default=None,
+        help="start from this saved prior's weights (its architecture replaces --channels etc.)",
+    )
+    p.add_argument(
+        "--init-labels",
+        choices=("keep", "fresh"),
+        default="keep",
+        help="fresh: --init-from may be a prior of another task with the same conditioning channels; "
+        "its label embedding is replaced (every label starts as its null label)",
+    )
     p.add_argument("--warmup", type=int, default=200)
     p.add_argument("--ema", type=float, default=0.999)
-    p.add_argument("--ema-warmup", action="store_true",
-                   help="ramp the EMA decay as min(ema, (1+step)/(10+step)): for short runs and fine-tunes, whose "
-                        "average would otherwise keep 0.999^steps of the starting weights")
+    p.add_argument(
+        "--ema-warmup",
+        action="store_true",
+        help="ramp the EMA decay as min(ema, (1+step)/(10+step)): for short runs and fine-tunes, whose "
+        "average would otherwise keep 0.999^steps of the starting weights",
+    )
     p.add_argument("--grad-clip", type=float, default=1.0)
     p.add_argument("--checkpoint-every", type=int, default=200)
     p.add_argument("--seed", type=int, default=0)
@@ -49,13 +63,23 @@ def run(args: argparse.Namespace) -> int:
     unet = unet_config_for(args.task, args.resolution, channels, args.res_blocks, args.attention, args.prediction)
     unet = run_unet_config(args.task, unet, args.init_from, args.init_labels)
     config = PriorTrainConfig(
-        task=args.task, unet=unet, init_from=args.init_from, init_labels=args.init_labels, lr_schedule=args.lr_schedule,
-        steps=args.steps, max_minutes=args.minutes, batch_size=args.batch_size, lr=args.lr, warmup_steps=args.warmup,
-        ema_decay=args.ema, ema_warmup=args.ema_warmup, grad_clip=args.grad_clip, checkpoint_every=args.checkpoint_every, seed=args.seed,
+        task=args.task,
+        unet=unet,
+        init_from=args.init_from,
+        init_labels=args.init_labels,
+        lr_schedule=args.lr_schedule,
+        steps=args.steps,
+        max_minutes=args.minutes,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        warmup_steps=args.warmup,
+        ema_decay=args.ema,
+        ema_warmup=args.ema_warmup,
+        grad_clip=args.grad_clip,
+        checkpoint_every=args.checkpoint_every,
+        seed=args.seed,
         progress=not args.no_progress,
     )
     train_prior(config, args.out)
     print(json.dumps({"out": str(Path(args.out) / "prior"), "task": args.task}))
     return 0
-
-

@@ -20,5 +20,7 @@ def run(args: argparse.Namespace) -> int:
     stack = load_stack(args.stack, max_pixels=args.max_pixels)
     doc = stack.document
     extra = f"; {len(stack.not_rendered)} learned layer(s) not rendered" if stack.not_rendered else ""
-    print(f"ok: {len(doc.layers)} layers ({doc.canvas.width}x{doc.canvas.height}, blend_space={doc.blend_space}){extra}")
+    print(
+        f"ok: {len(doc.layers)} layers ({doc.canvas.width}x{doc.canvas.height}, blend_space={doc.blend_space}){extra}"
+    )
     return 0

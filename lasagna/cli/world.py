@@ -1,7 +1,7 @@
 """``lasagna world``: write scenes of a split as ground-truth stack folders (``lasagna.world``).
 
-    lasagna world -o DIR --split NAME --count N --seed S [--resolution R] [--task shading|color|light]
-                  [--start I] [--shadows] [--ambient A]
+lasagna world -o DIR --split NAME --count N --seed S [--resolution R] [--task shading|color|light]
+              [--start I] [--shadows] [--ambient A]
 """
 
 from __future__ import annotations
@@ -27,13 +27,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the split's scenes (default 0)")
     p.add_argument("--start", type=int, default=0, metavar="I", help="index of the first scene (default 0)")
     p.add_argument("--resolution", type=int, default=64, metavar="R", help="image side in pixels (default 64)")
-    p.add_argument("--task", choices=TASKS, default="shading",
-                   help="shading: albedo + multiply shading; color: gray + normal colour layer; "
-                        "light: image + plus glow of a warm, cool or white fill light, its label in the stack's "
-                        "metadata as condition (default shading)")
+    p.add_argument(
+        "--task",
+        choices=TASKS,
+        default="shading",
+        help="shading: albedo + multiply shading; color: gray + normal colour layer; "
+        "light: image + plus glow of a warm, cool or white fill light, its label in the stack's "
+        "metadata as condition (default shading)",
+    )
     p.add_argument("--shadows", action="store_true", help="cast shadows (off by default)")
-    p.add_argument("--ambient", type=float, default=AMBIENT, metavar="A",
-                   help=f"ambient term a of a + (1 - a) max(0, n.l) (default {AMBIENT})")
+    p.add_argument(
+        "--ambient",
+        type=float,
+        default=AMBIENT,
+        metavar="A",
+        help=f"ambient term a of a + (1 - a) max(0, n.l) (default {AMBIENT})",
+    )
 
 
 def add_world_parser(subparsers) -> argparse.ArgumentParser:
@@ -56,9 +65,19 @@ def run(args: argparse.Namespace) -> int:
             raise LasagnaError(f"expected a non-negative integer, got {getattr(args, name)}", where=f"--{name}")
     check_resolution(args.resolution)
     folders = write_world_stacks(
-        out, args.split, args.count, args.seed, args.resolution, args.task,
-        start=args.start, shadows=args.shadows, ambient=args.ambient, progress=args.count >= 64,
+        out,
+        args.split,
+        args.count,
+        args.seed,
+        args.resolution,
+        args.task,
+        start=args.start,
+        shadows=args.shadows,
+        ambient=args.ambient,
+        progress=args.count >= 64,
     )
-    print(f"wrote {len(folders)} {args.task} stacks ({args.split}, seed {args.seed}, "
-          f"{args.resolution}x{args.resolution}) and {out / MANIFEST}")
+    print(
+        f"wrote {len(folders)} {args.task} stacks ({args.split}, seed {args.seed}, "
+        f"{args.resolution}x{args.resolution}) and {out / MANIFEST}"
+    )
     return 0

@@ -12,9 +12,21 @@
 Of the document tier only the blend names are imported (``lasagna.document.blend`` declares them; the kernel
 tables here implement one function per name); ``plan_from_document`` reads a document by attribute.
 """
+
 from lasagna.compose.blend import (
-    BLEND_FUNC, BLEND_INPLACE, BLEND_MODES, clamp_needed, get_blend, multiply, multiply_, normal, normal_, plus, plus_,
-    screen, screen_,
+    BLEND_FUNC,
+    BLEND_INPLACE,
+    BLEND_MODES,
+    clamp_needed,
+    get_blend,
+    multiply,
+    multiply_,
+    normal,
+    normal_,
+    plus,
+    plus_,
+    screen,
+    screen_,
 )
 from lasagna.compose.color import linear_to_srgb, srgb_to_linear
 from lasagna.compose.layer import LayerTensors
@@ -23,10 +35,31 @@ from lasagna.compose.render import HALF_PRECISION_ERROR, RenderResult, half_prec
 from lasagna.compose.renderer import DEFAULT_CACHE_BYTES, Renderer
 
 __all__ = [
-    "BLEND_FUNC", "BLEND_INPLACE", "BLEND_MODES", "clamp_needed", "get_blend",
-    "normal", "multiply", "screen", "plus", "normal_", "multiply_", "screen_", "plus_",
-    "srgb_to_linear", "linear_to_srgb", "LayerTensors",
-    "RenderLayerSpec", "PlanStep", "RenderPlan", "compile_plan", "plan_from_document",
-    "RenderResult", "render", "HALF_PRECISION_ERROR", "half_precision_bound",
-    "Renderer", "DEFAULT_CACHE_BYTES",
+    "BLEND_FUNC",
+    "BLEND_INPLACE",
+    "BLEND_MODES",
+    "clamp_needed",
+    "get_blend",
+    "normal",
+    "multiply",
+    "screen",
+    "plus",
+    "normal_",
+    "multiply_",
+    "screen_",
+    "plus_",
+    "srgb_to_linear",
+    "linear_to_srgb",
+    "LayerTensors",
+    "RenderLayerSpec",
+    "PlanStep",
+    "RenderPlan",
+    "compile_plan",
+    "plan_from_document",
+    "RenderResult",
+    "render",
+    "HALF_PRECISION_ERROR",
+    "half_precision_bound",
+    "Renderer",
+    "DEFAULT_CACHE_BYTES",
 ]

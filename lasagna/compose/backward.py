@@ -7,9 +7,11 @@ derivatives (``banded_backward``). It needs a few band-sized buffers instead of 
 intermediates a recorded graph keeps, and computes channel sums as fused multiply-adds. Same
 gradients as ``grad_engine="autograd"`` (tested, and with ``gradcheck``); not twice differentiable.
 """
+
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -18,7 +20,13 @@ from torch.autograd.function import once_differentiable
 from lasagna.compose.blend import KERNELS_INPLACE, Alpha, broadcast_shape
 from lasagna.compose.color import linear_to_srgb_derivative, srgb_to_linear_derivative
 from lasagna.compose.engine import (
-    _alpha, _clamp_, _color, background_tensor, canvas_shape, rows_per_band, run_fast,
+    _alpha,
+    _clamp_,
+    _color,
+    background_tensor,
+    canvas_shape,
+    rows_per_band,
+    run_fast,
 )
 from lasagna.compose.plan import PlanStep, RenderPlan
 
@@ -27,6 +35,7 @@ from lasagna.compose.plan import PlanStep, RenderPlan
 # backward, best of 9: 2^16 → 59.9 ms, 2^17 → 52.6, 2^18 → 50.1, 2^19 → 49.8, 2^20 → 52.6, one band
 # for the whole canvas → 59.5 (recording autograd, grad_engine="autograd": 53.4 ms).
 BACKWARD_TILE_PIXELS = 1 << 19
+
 
 def grad_inputs(plan: RenderPlan, begin: int) -> list[Tensor]:
     """Every tensor of ``plan.steps[begin:]`` (colour, alpha, mask, opacity), once each."""
@@ -47,8 +56,9 @@ class BandedGrad(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx: Any, plan: RenderPlan, begin: int, dtype: torch.dtype, source: Tensor | None,
-                *tensors: Tensor) -> Tensor:
+    def forward(
+        ctx: Any, plan: RenderPlan, begin: int, dtype: torch.dtype, source: Tensor | None, *tensors: Tensor
+    ) -> Tensor:
         ctx.plan, ctx.begin, ctx.dtype = plan, begin, dtype
         ctx.has_source = source is not None
         # Saved so that autograd refuses the backward if one of them was modified in place since.
@@ -63,8 +73,7 @@ class BandedGrad(torch.autograd.Function):
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:
         saved = ctx.saved_tensors  # unpacking checks the version counters
         source = saved[0] if ctx.has_source else None
-        grads = banded_backward(ctx.plan, ctx.begin, ctx.dtype, source, grad, ctx.originals,
-                                ctx.needs_input_grad[4:])
+        grads = banded_backward(ctx.plan, ctx.begin, ctx.dtype, source, grad, ctx.originals, ctx.needs_input_grad[4:])
         return (None, None, None, None, *grads)
 
 
@@ -137,10 +146,16 @@ class _Workspace:
         dtype = dtype or self.dtype
         shape = tuple(shape)
         buf = self.bufs.get(key)
-        if (buf is None or buf.dtype != dtype or buf.ndim != len(shape) or buf.shape[:-2] != shape[:-2]
-                or buf.shape[-1] != shape[-1] or buf.shape[-2] < shape[-2]):
+        if (
+            buf is None
+            or buf.dtype != dtype
+            or buf.ndim != len(shape)
+            or buf.shape[:-2] != shape[:-2]
+            or buf.shape[-1] != shape[-1]
+            or buf.shape[-2] < shape[-2]
+        ):
             buf = self.bufs[key] = torch.empty(shape, dtype=dtype, device=self.device)
-        return buf[..., :shape[-2], :]
+        return buf[..., : shape[-2], :]
 
 
 def _blend_into(blend: str, cb: Tensor, cs: Tensor, a: Alpha, out: Tensor) -> Tensor:
@@ -163,8 +178,15 @@ def _needs_cb(step: PlanStep) -> bool:
     return step.blend in ("multiply", "screen") or (step.blend == "normal" and not step.opaque)
 
 
-def banded_backward(plan: RenderPlan, begin: int, dtype: torch.dtype, source: Tensor | None, grad: Tensor,
-                    tensors: Sequence[Tensor], needs: Sequence[bool]) -> list[Tensor | None]:
+def banded_backward(
+    plan: RenderPlan,
+    begin: int,
+    dtype: torch.dtype,
+    source: Tensor | None,
+    grad: Tensor,
+    tensors: Sequence[Tensor],
+    needs: Sequence[bool],
+) -> list[Tensor | None]:
     """Gradients of ``plan.steps[begin:]``'s composite w.r.t. ``tensors`` (where ``needs``), given ``grad``.
 
     Band by band: the band is composited again, out of place, keeping each layer's backdrop ``Cb``
@@ -192,8 +214,13 @@ def banded_backward(plan: RenderPlan, begin: int, dtype: torch.dtype, source: Te
     lowest = min(j for j, s in enumerate(steps) if wants(s))
     # The forward is needed up to the last layer whose backdrop or clamp the derivatives read (all of
     # them when the output is clamped or encoded).
-    upto = len(steps) - 1 if plan.clamp == "output" or plan.blend_space == "linear" else max(
-        [j for j, s in enumerate(steps) if j >= lowest and (_needs_cb(s) or s.clamp_lo or s.clamp_hi)], default=-1)
+    upto = (
+        len(steps) - 1
+        if plan.clamp == "output" or plan.blend_space == "linear"
+        else max(
+            [j for j, s in enumerate(steps) if j >= lowest and (_needs_cb(s) or s.clamp_lo or s.clamp_hi)], default=-1
+        )
+    )
     H, W = plan.canvas
     shape = canvas_shape(plan)
     # Every layer keeps a band-sized backdrop: share the band budget among them.
@@ -231,7 +258,7 @@ def banded_backward(plan: RenderPlan, begin: int, dtype: torch.dtype, source: Te
                 else:
                     if not owned:
                         cur, owned = ws(("own", j), band).copy_(cur), True
-                    region = cur[..., a0 - r0:a1 - r0, step.x0:step.x1]
+                    region = cur[..., a0 - r0 : a1 - r0, step.x0 : step.x1]
                     cb = ws(("cb", j), region.shape).copy_(region) if j >= lowest and _needs_cb(step) else None
                     KERNELS_INPLACE[step.blend](region, cs, a)
                     if step.clamp_lo or step.clamp_hi:
@@ -249,7 +276,7 @@ def banded_backward(plan: RenderPlan, begin: int, dtype: torch.dtype, source: Te
             for j, step, a0, a1, sl, cs, a, cb, clamped, full in reversed(kept):
                 if j < lowest:
                     break
-                gr = g if full else g[..., a0 - r0:a1 - r0, step.x0:step.x1]
+                gr = g if full else g[..., a0 - r0 : a1 - r0, step.x0 : step.x1]
                 if clamped is not None:  # the values before this layer's clamp
                     _clamp_grad_(gr, clamped, step.clamp_lo, step.clamp_hi)
                 _step_backward(step, sl, dtype, gr, cs, a, cb, grads, j > lowest, ws)
@@ -261,8 +288,9 @@ def _clamp_grad_(g: Tensor, pre: Tensor, lo: bool, hi: bool) -> None:
     derivative), else 0 — one fused pass: ``hardtanh_backward`` zeroes ``pre ≤ min`` and ``pre ≥ max``,
     so the bounds are the neighbours of 0 and 1 in the dtype (x ≤ −tiny ⇔ x < 0, x ≥ 1⁺ ⇔ x > 1)."""
     lo_v, hi_v = _clamp_grad_bounds(pre.dtype)
-    torch.ops.aten.hardtanh_backward.grad_input(g, pre, lo_v if lo else -float("inf"), hi_v if hi else float("inf"),
-                                                grad_input=g)
+    torch.ops.aten.hardtanh_backward.grad_input(
+        g, pre, lo_v if lo else -float("inf"), hi_v if hi else float("inf"), grad_input=g
+    )
 
 
 _BOUNDS: dict[torch.dtype, tuple[float, float]] = {}
@@ -290,10 +318,18 @@ def _channel_dot(x: Tensor, y: Tensor | float, shape: tuple[int, ...], out: Tens
     if not isinstance(y, Tensor):
         x, y = x * y, None
     full = tuple(x.shape) if y is None else broadcast_shape(x.shape, y.shape)
-    if len(shape) == len(full) and len(full) >= 3 and shape[-3] == 1 and full[-3] == 3 \
-            and tuple(shape[:-3]) == full[:-3] and tuple(shape[-2:]) == full[-2:]:
+    if (
+        len(shape) == len(full)
+        and len(full) >= 3
+        and shape[-3] == 1
+        and full[-3] == 3
+        and tuple(shape[:-3]) == full[:-3]
+        and tuple(shape[-2:]) == full[-2:]
+    ):
+
         def plane(t: Tensor, c: int) -> Tensor:
             return t[..., c if t.shape[-3] == 3 else 0, :, :]
+
         o = None if out is None else out[..., 0, :, :]
         if y is None:
             o = torch.add(plane(x, 0), plane(x, 1), out=o)
@@ -307,8 +343,18 @@ def _channel_dot(x: Tensor, y: Tensor | float, shape: tuple[int, ...], out: Tens
     return prod if tuple(prod.shape) == tuple(shape) else prod.sum_to_size(shape)
 
 
-def _step_backward(step: PlanStep, sl: Any, dtype: torch.dtype, gr: Tensor, cs: Tensor, a: Alpha,
-                   cb: Tensor | None, grads: _Grads, need_cb: bool, ws: _Workspace) -> None:
+def _step_backward(
+    step: PlanStep,
+    sl: Any,
+    dtype: torch.dtype,
+    gr: Tensor,
+    cs: Tensor,
+    a: Alpha,
+    cb: Tensor | None,
+    grads: _Grads,
+    need_cb: bool,
+    ws: _Workspace,
+) -> None:
     """Accumulate one layer's gradients from ``gr`` (∂L/∂output on its region, a buffer of ours) and
     turn ``gr`` into ∂L/∂Cb in place (when ``need_cb``: a layer below needs it)."""
     t, op = step.spec.tensors, step.spec.opacity

@@ -40,9 +40,10 @@ side can leave [0, 1]. The result is a convex combination of in-range values for
 Cs), multiply (of 0 and Cb, when 0 ≤ lo and hi ≤ 1) and screen (of Cb and 1), and floating-point
 rounding is monotone and represents 0 and 1 exactly, so the rounded result stays in [0, 1] as well.
 """
+
 from __future__ import annotations
 
-from typing import Callable, Union
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -50,7 +51,7 @@ from torch import Tensor
 from lasagna.document.blend import BLEND_MODES as BLEND_MODES  # the names are declared there, once
 from lasagna.errors import LasagnaError
 
-Alpha = Union[Tensor, float, None]
+Alpha = Tensor | float | None
 
 
 def broadcast_shape(*shapes: tuple[int, ...]) -> tuple[int, ...]:
@@ -70,6 +71,7 @@ def broadcast_shape(*shapes: tuple[int, ...]) -> tuple[int, ...]:
 
 
 # ---- kernels: no checks; the renderer calls these in its inner loop --------------------------
+
 
 def _normal(Cb: Tensor, Cs: Tensor, a: Alpha) -> Tensor:
     if a is None:  # α = 1: the result is Cs exactly (lerp would give NaN for an infinite Cb).
@@ -122,14 +124,21 @@ def _plus_(out: Tensor, Cs: Tensor, a: Alpha) -> Tensor:
 
 
 KERNELS: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
-    "normal": _normal, "multiply": _multiply, "screen": _screen, "plus": _plus,
+    "normal": _normal,
+    "multiply": _multiply,
+    "screen": _screen,
+    "plus": _plus,
 }
 KERNELS_INPLACE: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
-    "normal": _normal_, "multiply": _multiply_, "screen": _screen_, "plus": _plus_,
+    "normal": _normal_,
+    "multiply": _multiply_,
+    "screen": _screen_,
+    "plus": _plus_,
 }
 
 
 # ---- checks ------------------------------------------------------------------------------------
+
 
 def check_blend_name(name: object, where: str = "blend") -> str:
     """Return ``name`` if it is a blend mode; raise ``LasagnaError`` listing the modes of the kernel table."""
@@ -156,11 +165,15 @@ def _check(op: str, Cb: Tensor, Cs: Tensor, a: Alpha, inplace: bool) -> None:
     if Cs.shape[-3] not in (1, c):
         raise LasagnaError(
             f"Cs has {Cs.shape[-3]} channels (shape {_shape(Cs)}); expected 1 (broadcast over the "
-            f"backdrop's channels) or {c}", where=op)
+            f"backdrop's channels) or {c}",
+            where=op,
+        )
     if Cs.shape[-2:] != Cb.shape[-2:]:
         raise LasagnaError(
             f"Cs is {Cs.shape[-2]}x{Cs.shape[-1]} but Cb is {Cb.shape[-2]}x{Cb.shape[-1]}; expected the "
-            "same height and width (crop the layer to the backdrop's rectangle first)", where=op)
+            "same height and width (crop the layer to the backdrop's rectangle first)",
+            where=op,
+        )
     if Cs.dtype != Cb.dtype:
         raise LasagnaError(f"Cs has dtype {Cs.dtype} but Cb has {Cb.dtype}; expected one dtype", where=op)
     batch = [Cb.shape[:-3], Cs.shape[:-3]]
@@ -173,7 +186,9 @@ def _check(op: str, Cb: Tensor, Cs: Tensor, a: Alpha, inplace: bool) -> None:
             if a.ndim < 3 or a.shape[-3] != 1 or a.shape[-2:] not in (Cb.shape[-2:], (1, 1)):
                 raise LasagnaError(
                     f"a has shape {_shape(a)}; expected (..., 1, {Cb.shape[-2]}, {Cb.shape[-1]}), "
-                    "(..., 1, 1, 1) or a 0-d tensor", where=op)
+                    "(..., 1, 1, 1) or a 0-d tensor",
+                    where=op,
+                )
             batch.append(a.shape[:-3])
     elif a is not None:
         if isinstance(a, bool) or not isinstance(a, (int, float)):
@@ -184,15 +199,21 @@ def _check(op: str, Cb: Tensor, Cs: Tensor, a: Alpha, inplace: bool) -> None:
         out_batch = broadcast_shape(*batch)
     except RuntimeError:
         raise LasagnaError(
-            "leading batch dimensions " + ", ".join(str(tuple(b)) for b in batch)
-            + " do not broadcast; expected equal sizes or 1", where=op) from None
+            "leading batch dimensions "
+            + ", ".join(str(tuple(b)) for b in batch)
+            + " do not broadcast; expected equal sizes or 1",
+            where=op,
+        ) from None
     if inplace and tuple(out_batch) != tuple(Cb.shape[:-3]):
         raise LasagnaError(
             f"the inputs broadcast to batch {tuple(out_batch)} but Cb has batch {tuple(Cb.shape[:-3])}; "
-            "an in-place blend cannot grow its output (use the pure function)", where=op)
+            "an in-place blend cannot grow its output (use the pure function)",
+            where=op,
+        )
 
 
 # ---- the public functions ----------------------------------------------------------------------
+
 
 def normal(Cb: Tensor, Cs: Tensor, a: Alpha = None) -> Tensor:
     """Normal (source-over): ``Cb + α(Cs − Cb)``, computed as ``lerp(Cb, Cs, α)``; ``Cs`` if α is None."""
@@ -243,10 +264,16 @@ def plus_(Cb: Tensor, Cs: Tensor, a: Alpha = None) -> Tensor:
 
 
 BLEND_FUNC: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
-    "normal": normal, "multiply": multiply, "screen": screen, "plus": plus,
+    "normal": normal,
+    "multiply": multiply,
+    "screen": screen,
+    "plus": plus,
 }
 BLEND_INPLACE: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
-    "normal": normal_, "multiply": multiply_, "screen": screen_, "plus": plus_,
+    "normal": normal_,
+    "multiply": multiply_,
+    "screen": screen_,
+    "plus": plus_,
 }
 
 

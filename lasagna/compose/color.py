@@ -21,6 +21,7 @@ The standard's two segments do not meet exactly (0.04045 / 12.92 = 0.0031308049â
 2.3e-9 at its threshold and encode by 2.9e-8 at its own, so a float64 round trip is exact to 3e-8 for
 values between the two thresholds and to ~1e-15 elsewhere (tested).
 """
+
 from __future__ import annotations
 
 import torch
@@ -72,7 +73,8 @@ def srgb_to_linear_derivative(x: torch.Tensor) -> torch.Tensor:
     _check(x, "srgb_to_linear_derivative")
     a = x.abs()
     power = (SRGB_GAMMA / (1.0 + SRGB_OFFSET)) * (
-        (a.clamp_min(SRGB_DECODE_THRESHOLD) + SRGB_OFFSET) / (1.0 + SRGB_OFFSET)).pow(SRGB_GAMMA - 1.0)
+        (a.clamp_min(SRGB_DECODE_THRESHOLD) + SRGB_OFFSET) / (1.0 + SRGB_OFFSET)
+    ).pow(SRGB_GAMMA - 1.0)
     return torch.where(a <= SRGB_DECODE_THRESHOLD, torch.full_like(x, 1.0 / SRGB_SLOPE), power)
 
 

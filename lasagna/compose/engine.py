@@ -12,9 +12,10 @@
 
 The banded backward (``backward.py``) pairs ``run_fast``'s forward with closed-form derivatives.
 """
+
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -29,6 +30,7 @@ from lasagna.compose.plan import PlanStep, RenderPlan
 # Measured on a 2048² 4-layer stack (AMD EPYC, 1 thread, best of 15): 2^15 → 13.5 ms, 2^16 → 11.5,
 # 2^17 → 10.7, 2^18 → 10.5, 2^19 → 10.6; the whole canvas at once (no bands) → 15.3 ms.
 TILE_PIXELS = 1 << 18
+
 
 def canvas_shape(plan: RenderPlan) -> tuple[int, ...]:
     return (*plan.batch_shape, 3, *plan.canvas)
@@ -112,6 +114,7 @@ def first_grad_step(plan: RenderPlan, begin: int = 0) -> int:
 
 # ---- fast path -----------------------------------------------------------------------------------
 
+
 def run_fast(
     plan: RenderPlan,
     begin: int,
@@ -135,8 +138,14 @@ def run_fast(
     bg = background_tensor(plan, dtype) if source is None else None
     # Skip the background fill when an opaque normal layer covering the canvas comes first.
     first = steps[0] if steps else None
-    fill = not (source is None and first is not None and first.opaque and first.full
-                and first.blend == "normal" and (not switch_at or switch_at[0] > begin))
+    fill = not (
+        source is None
+        and first is not None
+        and first.opaque
+        and first.full
+        and first.blend == "normal"
+        and (not switch_at or switch_at[0] > begin)
+    )
     rows = rows_per_band(plan, TILE_PIXELS)
     with torch.no_grad():
         for r0 in range(0, H, rows):
@@ -154,7 +163,7 @@ def run_fast(
                 if step.y0 >= r1 or step.y1 <= r0:
                     continue
                 a0, a1 = max(step.y0, r0), min(step.y1, r1)
-                region = cur[..., a0 - r0:a1 - r0, step.x0:step.x1]
+                region = cur[..., a0 - r0 : a1 - r0, step.x0 : step.x1]
                 sl = step.layer_slice(a0, a1)
                 KERNELS_INPLACE[step.blend](region, _color(step, sl, dtype, False), _alpha(step, sl, dtype, False))
                 _clamp_(region, step)
@@ -169,6 +178,7 @@ def run_fast(
 
 
 # ---- functional path -----------------------------------------------------------------------------
+
 
 def run_functional(
     plan: RenderPlan,

@@ -11,11 +11,13 @@ views share with their base). A render plan can therefore cull unchanged layers 
 without reading their pixels again. Statistics of tensors that require grad are still correct for
 their current values, but the plan never culls such a layer by value: its gradient is not zero.
 """
+
 from __future__ import annotations
 
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -69,30 +71,39 @@ class LayerTensors:
         c = self.color
         if not isinstance(c, Tensor) or not c.is_floating_point() or c.ndim < 3 or c.shape[-3] not in (1, 3):
             got = _shape(c) + f" {c.dtype}" if isinstance(c, Tensor) else type(c).__name__
-            raise LasagnaError(f"got {got}; expected a floating-point tensor (..., C, h, w) with C in {{1, 3}}",
-                               where="LayerTensors.color")
+            raise LasagnaError(
+                f"got {got}; expected a floating-point tensor (..., C, h, w) with C in {{1, 3}}",
+                where="LayerTensors.color",
+            )
         for name in ("alpha", "mask"):
             t = getattr(self, name)
             if t is None:
                 continue
             if not isinstance(t, Tensor) or not t.is_floating_point() or t.ndim < 3 or t.shape[-3] != 1:
                 got = _shape(t) + f" {t.dtype}" if isinstance(t, Tensor) else type(t).__name__
-                raise LasagnaError(f"got {got}; expected a floating-point tensor (..., 1, h, w) or None",
-                                   where=f"LayerTensors.{name}")
+                raise LasagnaError(
+                    f"got {got}; expected a floating-point tensor (..., 1, h, w) or None", where=f"LayerTensors.{name}"
+                )
             if t.shape[-2:] != c.shape[-2:]:
                 raise LasagnaError(
                     f"is {t.shape[-2]}x{t.shape[-1]} but the colour is {c.shape[-2]}x{c.shape[-1]}; "
-                    "expected the layer's size", where=f"LayerTensors.{name}")
+                    "expected the layer's size",
+                    where=f"LayerTensors.{name}",
+                )
             if t.device != c.device:
-                raise LasagnaError(f"is on {t.device} but the colour is on {c.device}; expected one device",
-                                   where=f"LayerTensors.{name}")
+                raise LasagnaError(
+                    f"is on {t.device} but the colour is on {c.device}; expected one device",
+                    where=f"LayerTensors.{name}",
+                )
         try:
             _ = self.batch_shape
         except RuntimeError:
             raise LasagnaError(
                 "batch dimensions of colour, alpha and mask "
                 + ", ".join(_shape(t) for t in self.tensors() if t is not None)
-                + " do not broadcast; expected equal sizes or 1", where="LayerTensors") from None
+                + " do not broadcast; expected equal sizes or 1",
+                where="LayerTensors",
+            ) from None
 
     def tensors(self) -> tuple[Tensor, Tensor | None, Tensor | None]:
         return self.color, self.alpha, self.mask
@@ -126,8 +137,10 @@ class LayerTensors:
     def _peek(self, name: str, tensors: tuple[Tensor | None, ...]) -> Any:
         """The cached value of ``name`` if it is still valid for ``tensors``, else None."""
         hit = self._cache.get(name)
-        if hit is not None and hit[0] == tuple(_key(t) for t in tensors) and all(
-            (r is None and t is None) or (r is not None and r() is t) for r, t in zip(hit[1], tensors)
+        if (
+            hit is not None
+            and hit[0] == tuple(_key(t) for t in tensors)
+            and all((r is None and t is None) or (r is not None and r() is t) for r, t in zip(hit[1], tensors))
         ):
             return hit[2]
         return None
@@ -156,13 +169,16 @@ class LayerTensors:
         def compute() -> tuple[float, float]:
             lo, hi = torch.aminmax(_grid(self.color))
             return float(lo), float(hi)
+
         return self._cached("color_sample", (self.color,), compute)
 
     def color_range(self) -> tuple[float, float]:
         """``(min, max)`` of the colour over every pixel and batch entry (NaN if any value is NaN)."""
+
         def compute() -> tuple[float, float]:
             lo, hi = torch.aminmax(self.color)
             return float(lo), float(hi)
+
         return self._cached("color_range", (self.color,), compute)
 
     def alpha_range(self) -> tuple[float, float]:
@@ -176,6 +192,7 @@ class LayerTensors:
             else:
                 lo, hi = torch.aminmax(self.alpha if self.alpha is not None else self.mask)
             return float(lo), float(hi)
+
         return self._cached("alpha_range", (self.alpha, self.mask), compute)
 
     def _sample_alpha_range(self) -> tuple[float, float]:
@@ -192,6 +209,7 @@ class LayerTensors:
                     a = _grid(x) if a is None else a * _grid(x)
             lo, hi = torch.aminmax(a)
             return float(lo), float(hi)
+
         return self._cached("alpha_sample", (self.alpha, self.mask), compute)
 
     def is_opaque(self) -> bool:
@@ -227,7 +245,7 @@ class LayerTensors:
         return self._cached("decoded", (self.color,), lambda: srgb_to_linear(self.color))
 
     @classmethod
-    def from_rgba(cls, rgba: Tensor, mask: Tensor | None = None) -> "LayerTensors":
+    def from_rgba(cls, rgba: Tensor, mask: Tensor | None = None) -> LayerTensors:
         """Split a ``(..., 2 | 4, h, w)`` gray+alpha or RGBA tensor into colour and alpha (views)."""
         if not isinstance(rgba, Tensor) or rgba.ndim < 3 or rgba.shape[-3] not in (2, 4):
             got = _shape(rgba) if isinstance(rgba, Tensor) else type(rgba).__name__

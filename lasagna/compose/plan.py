@@ -25,12 +25,14 @@ before identity because it needs no pixel of the occluded layer. Culled layers r
 The statistics behind ``occluded``/``identity``/opacity and the clamp decisions are cached on each
 ``LayerTensors`` (``layer.py``), so compiling a plan again after an edit reads no unchanged pixels.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import reduce
-from typing import Any, Literal, Mapping, Sequence, Union
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
@@ -43,7 +45,7 @@ from lasagna.errors import LasagnaError
 SkipReason = Literal["hidden", "zero-opacity", "outside-canvas", "occluded", "identity"]
 BlendSpace = Literal["srgb", "linear"]
 ClampPolicy = Literal["layer", "output", None]
-Opacity = Union[float, Tensor]
+Opacity = float | Tensor
 
 _ID_OK = r"any non-empty string, unique in the stack"
 
@@ -83,23 +85,34 @@ class RenderLayerSpec:
         op = self.opacity
         if isinstance(op, Tensor):
             if not op.is_floating_point() or not (op.ndim == 0 or (op.ndim >= 3 and op.shape[-3:] == (1, 1, 1))):
-                raise LasagnaError(f"opacity tensor has shape {tuple(op.shape)} and dtype {op.dtype}; expected a "
-                                   "floating-point 0-d tensor or (..., 1, 1, 1)", where=where)
+                raise LasagnaError(
+                    f"opacity tensor has shape {tuple(op.shape)} and dtype {op.dtype}; expected a "
+                    "floating-point 0-d tensor or (..., 1, 1, 1)",
+                    where=where,
+                )
             if not op.requires_grad:
                 lo, hi = torch.aminmax(op.detach())
                 if not (0.0 <= float(lo) and float(hi) <= 1.0):
-                    raise LasagnaError(f"opacity spans [{float(lo)}, {float(hi)}]; expected values in [0, 1]",
-                                       where=where)
+                    raise LasagnaError(
+                        f"opacity spans [{float(lo)}, {float(hi)}]; expected values in [0, 1]", where=where
+                    )
         elif not _number(op) or not 0.0 <= op <= 1.0:
             raise LasagnaError(f"opacity is {op!r}; expected a number in [0, 1] or a tensor", where=where)
         if not isinstance(self.visible, bool):
             raise LasagnaError(f"visible is {self.visible!r}; expected true or false", where=where)
-        if (not isinstance(self.offset, (tuple, list)) or len(self.offset) != 2
-                or not all(isinstance(v, int) and not isinstance(v, bool) for v in self.offset)):
+        if (
+            not isinstance(self.offset, (tuple, list))
+            or len(self.offset) != 2
+            or not all(isinstance(v, int) and not isinstance(v, bool) for v in self.offset)
+        ):
             raise LasagnaError(f"offset is {self.offset!r}; expected two integers (x, y)", where=where)
         r = self.range
-        if (not isinstance(r, (tuple, list)) or len(r) != 2 or not all(_number(v) and math.isfinite(v) for v in r)
-                or not r[0] < r[1]):
+        if (
+            not isinstance(r, (tuple, list))
+            or len(r) != 2
+            or not all(_number(v) and math.isfinite(v) for v in r)
+            or not r[0] < r[1]
+        ):
             raise LasagnaError(f"range is {r!r}; expected (lo, hi), finite, with lo < hi", where=where)
         if not isinstance(self.encoded, bool):
             raise LasagnaError(f"encoded is {self.encoded!r}; expected true or false", where=where)
@@ -175,7 +188,6 @@ class RenderPlan:
         return [s.spec.id for s in self.steps]
 
 
-
 def _contains(outer: tuple[int, int, int, int], inner: tuple[int, int, int, int]) -> bool:
     return outer[0] <= inner[0] and inner[1] <= outer[1] and outer[2] <= inner[2] and inner[3] <= outer[3]
 
@@ -185,13 +197,20 @@ def _decoded_bound(v: float) -> float:
 
 
 def _check_config(canvas: object, background: object, blend_space: object, clamp: object) -> None:
-    if (not isinstance(canvas, (tuple, list)) or len(canvas) != 2
-            or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in canvas)):
+    if (
+        not isinstance(canvas, (tuple, list))
+        or len(canvas) != 2
+        or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in canvas)
+    ):
         raise LasagnaError(f"canvas is {canvas!r}; expected (height, width), positive integers", where="compile_plan")
-    if (not isinstance(background, (tuple, list)) or len(background) != 3
-            or not all(_number(v) and 0.0 <= v <= 1.0 for v in background)):
-        raise LasagnaError(f"background is {background!r}; expected opaque RGB, three numbers in [0, 1]",
-                           where="compile_plan")
+    if (
+        not isinstance(background, (tuple, list))
+        or len(background) != 3
+        or not all(_number(v) and 0.0 <= v <= 1.0 for v in background)
+    ):
+        raise LasagnaError(
+            f"background is {background!r}; expected opaque RGB, three numbers in [0, 1]", where="compile_plan"
+        )
     if blend_space not in ("srgb", "linear"):
         raise LasagnaError(f"blend_space is {blend_space!r}; expected 'srgb' or 'linear'", where="compile_plan")
     if clamp not in ("layer", "output", None):
@@ -215,8 +234,9 @@ def compile_plan(
         if not isinstance(spec, RenderLayerSpec):
             raise LasagnaError(f"is a {type(spec).__name__}; expected RenderLayerSpec", where=f"layers[{i}]")
         if spec.id in seen:
-            raise LasagnaError(f"id {spec.id!r} is used by layers[{seen[spec.id]}] too; expected unique ids",
-                               where=f"layers[{i}]")
+            raise LasagnaError(
+                f"id {spec.id!r} is used by layers[{seen[spec.id]}] too; expected unique ids", where=f"layers[{i}]"
+            )
         seen[spec.id] = i
     H, W = canvas
     n = len(layers)
@@ -268,8 +288,23 @@ def compile_plan(
         clamp_lo = clamp_hi = False
         if clamp == "layer":
             clamp_lo, clamp_hi = _clamps(spec, decode)
-        steps.append(PlanStep(i, spec, y0, y1, x0, x1, y0 - oy, x0 - ox, opaque_flags[i], clamp_lo, clamp_hi,
-                              decode, (y0, y1, x0, x1) == (0, H, 0, W)))
+        steps.append(
+            PlanStep(
+                i,
+                spec,
+                y0,
+                y1,
+                x0,
+                x1,
+                y0 - oy,
+                x0 - ox,
+                opaque_flags[i],
+                clamp_lo,
+                clamp_hi,
+                decode,
+                (y0, y1, x0, x1) == (0, H, 0, W),
+            )
+        )
 
     batch: torch.Size = torch.Size()
     for s in steps:
@@ -279,25 +314,43 @@ def compile_plan(
         try:
             batch = torch.Size(broadcast_shape(*shapes))
         except RuntimeError:
-            raise LasagnaError(f"batch dimensions {tuple(shapes[1])} do not broadcast with {tuple(batch)} of the "
-                               "layers below; expected equal sizes or 1", where=f"layer {s.spec.id!r}") from None
+            raise LasagnaError(
+                f"batch dimensions {tuple(shapes[1])} do not broadcast with {tuple(batch)} of the "
+                "layers below; expected equal sizes or 1",
+                where=f"layer {s.spec.id!r}",
+            ) from None
     devices = {s.spec.tensors.color.device for s in steps}
     if len(devices) > 1:
-        raise LasagnaError(f"live layers are on several devices {sorted(map(str, devices))}; expected one",
-                           where="compile_plan")
-    dtype = (reduce(torch.promote_types, (s.spec.tensors.color.dtype for s in steps)) if steps
-             else torch.get_default_dtype())
+        raise LasagnaError(
+            f"live layers are on several devices {sorted(map(str, devices))}; expected one", where="compile_plan"
+        )
+    dtype = (
+        reduce(torch.promote_types, (s.spec.tensors.color.dtype for s in steps)) if steps else torch.get_default_dtype()
+    )
     device = devices.pop() if devices else torch.device("cpu")
     skipped = {spec.id: r for spec, r in zip(layers, reasons) if r is not None}
-    return RenderPlan(layers, (H, W), tuple(float(v) for v in background), blend_space, clamp, cull,  # type: ignore[arg-type]
-                      tuple(steps), tuple(reasons), batch, dtype, device, skipped)
+    return RenderPlan(
+        layers,
+        (H, W),
+        tuple(float(v) for v in background),
+        blend_space,
+        clamp,
+        cull,  # type: ignore[arg-type]
+        tuple(steps),
+        tuple(reasons),
+        batch,
+        dtype,
+        device,
+        skipped,
+    )
 
 
 def _clamps(spec: RenderLayerSpec, decode: bool) -> tuple[bool, bool]:
     """Which clamps ``clamp="layer"`` needs after this layer (``clamp_needed`` on proven bounds)."""
     t = spec.tensors
     if any(x is not None and x.requires_grad for x in (t.alpha, t.mask)) or (
-            isinstance(spec.opacity, Tensor) and spec.opacity.requires_grad):
+        isinstance(spec.opacity, Tensor) and spec.opacity.requires_grad
+    ):
         return True, True  # α is not proven to lie in [0, 1]
     a_lo, a_hi = t.alpha_range()
     if not (0.0 <= a_lo and a_hi <= 1.0):
@@ -323,6 +376,7 @@ def _clamps(spec: RenderLayerSpec, decode: bool) -> tuple[bool, bool]:
 
 
 # ---- document adapter -----------------------------------------------------------------------------
+
 
 def _solid_tensors(
     layer: Any, lo: float, hi: float, width: int, height: int, where: str, dtype: torch.dtype | None = None
@@ -350,10 +404,10 @@ def plan_from_document(
 
     ``tensors`` maps layer ids to their ``LayerTensors`` (colour already range-mapped, mask loaded
     when the layer names one). ``solid`` layers may be omitted: they are built from their colour
-    (RGB range-mapped, alpha not) and size, in ``dtype`` (default: torch's default dtype). A ``learned`` layer with neither a ``source`` nor tensors
-    has no pixels yet and is left out of the plan (it appears neither in ``evaluated`` nor in
-    ``skipped``). Reads the document through its attributes only (docs/ARCHITECTURE.md): the compositor
-    imports nothing of the document tier but its blend names.
+    (RGB range-mapped, alpha not) and size, in ``dtype`` (default: torch's default dtype). A ``learned``
+    layer with neither a ``source`` nor tensors has no pixels yet and is left out of the plan (it appears
+    neither in ``evaluated`` nor in ``skipped``). Reads the document through its attributes only
+    (docs/ARCHITECTURE.md): the compositor imports nothing of the document tier but its blend names.
     """
     width, height = int(doc.canvas.width), int(doc.canvas.height)
     specs: list[RenderLayerSpec] = []
@@ -368,18 +422,39 @@ def plan_from_document(
             elif layer.kind == "learned" and getattr(layer, "source", None) is None:
                 continue
             else:
-                raise LasagnaError(f"no tensors for {layer.kind} layer {layer.id!r}; expected tensors[{layer.id!r}] "
-                                   "(load its source first)", where=where)
+                raise LasagnaError(
+                    f"no tensors for {layer.kind} layer {layer.id!r}; expected tensors[{layer.id!r}] "
+                    "(load its source first)",
+                    where=where,
+                )
         if getattr(layer, "mask", None) is not None and lt.mask is None:
-            raise LasagnaError(f"names mask {str(layer.mask)!r} but tensors[{layer.id!r}].mask is None; expected the "
-                               "loaded mask", where=f"{where}.mask")
+            raise LasagnaError(
+                f"names mask {str(layer.mask)!r} but tensors[{layer.id!r}].mask is None; expected the loaded mask",
+                where=f"{where}.mask",
+            )
         blend = getattr(layer.blend, "value", layer.blend)
-        specs.append(RenderLayerSpec(
-            id=layer.id, tensors=lt, blend=blend, opacity=float(layer.opacity), visible=bool(layer.visible),
-            offset=(int(layer.offset.x), int(layer.offset.y)), range=(float(lo), float(hi)), encoded=True))
+        specs.append(
+            RenderLayerSpec(
+                id=layer.id,
+                tensors=lt,
+                blend=blend,
+                opacity=float(layer.opacity),
+                visible=bool(layer.visible),
+                offset=(int(layer.offset.x), int(layer.offset.y)),
+                range=(float(lo), float(hi)),
+                encoded=True,
+            )
+        )
     background = tuple(float(v) for v in doc.canvas.background)
     return compile_plan(specs, (height, width), background, doc.blend_space, doc.clamp, cull=cull)  # type: ignore[arg-type]
 
 
-__all__ = ["RenderLayerSpec", "PlanStep", "RenderPlan", "SkipReason", "compile_plan", "plan_from_document",
-           "BLEND_MODES"]
+__all__ = [
+    "RenderLayerSpec",
+    "PlanStep",
+    "RenderPlan",
+    "SkipReason",
+    "compile_plan",
+    "plan_from_document",
+    "BLEND_MODES",
+]

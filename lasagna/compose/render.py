@@ -20,10 +20,12 @@ at most a few roundings (≈ 8 unit roundoffs, inputs cast included) to the erro
 amplify earlier errors by up to the factor, and the sRGB encode of ``blend_space="linear"`` by up to
 12.92 in the dark toe. Measured maxima grow far slower (like √layers; docs/BENCHMARKS.md).
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, Sequence, Union
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -37,7 +39,7 @@ GradEngine = Literal["banded", "autograd"]
 
 # Per live layer, plus one for the background and the inputs' cast: 8 unit roundoffs of the dtype
 # (bfloat16 u = 2^-8, float16 u = 2^-11); see the module docstring for when it holds.
-HALF_PRECISION_ERROR = {torch.bfloat16: 8 * 2.0 ** -8, torch.float16: 8 * 2.0 ** -11}
+HALF_PRECISION_ERROR = {torch.bfloat16: 8 * 2.0**-8, torch.float16: 8 * 2.0**-11}
 
 
 def half_precision_bound(dtype: torch.dtype, live_layers: int) -> float:
@@ -54,7 +56,7 @@ class RenderResult:
     evaluated: list[str]
 
 
-LayersOrPlan = Union[RenderPlan, Sequence[RenderLayerSpec]]
+LayersOrPlan = RenderPlan | Sequence[RenderLayerSpec]
 
 
 def as_plan(
@@ -72,8 +74,9 @@ def as_plan(
             return p
         return compile_plan(p.layers, p.canvas, p.background, p.blend_space, p.clamp, cull=cull)
     if canvas is None:
-        raise LasagnaError("canvas is missing; expected (height, width) when rendering a list of layers",
-                           where="render")
+        raise LasagnaError(
+            "canvas is missing; expected (height, width) when rendering a list of layers", where="render"
+        )
     return compile_plan(plan_or_layers, canvas, background, blend_space, clamp, cull=cull)
 
 
@@ -132,8 +135,9 @@ def render(
     return RenderResult(image, dict(plan.skipped), plan.evaluated)
 
 
-def differentiable_tail(plan: RenderPlan, begin: int, dtype: torch.dtype, prefix: Tensor | None,
-                        grad_engine: GradEngine) -> Tensor:
+def differentiable_tail(
+    plan: RenderPlan, begin: int, dtype: torch.dtype, prefix: Tensor | None, grad_engine: GradEngine
+) -> Tensor:
     """Composite ``plan.steps[begin:]`` over ``prefix`` (None: the background) with autograd."""
     if grad_engine == "autograd":
         return run_functional(plan, begin, dtype, prefix)

@@ -23,17 +23,19 @@ the first such layer are cached (the training case: a learned layer on top of fi
 differentiable blend per step). If nothing changed and the previous image was not modified in place,
 the previous image is returned again — clone it before writing into it.
 """
+
 from __future__ import annotations
 
 import bisect
 import weakref
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from lasagna.compose.plan import BlendSpace, ClampPolicy, RenderLayerSpec, RenderPlan, _check_config, compile_plan
 from lasagna.compose.engine import canvas_shape, first_grad_step, run_fast
+from lasagna.compose.plan import BlendSpace, ClampPolicy, RenderLayerSpec, RenderPlan, _check_config, compile_plan
 from lasagna.compose.render import GradEngine, RenderResult, check_out, differentiable_tail, resolve_dtype
 from lasagna.errors import LasagnaError
 
@@ -50,8 +52,19 @@ def _signature(plan: RenderPlan, i: int, step: Any) -> tuple[Any, ...]:
     op = spec.opacity
     op_fp = (id(op), op._version) if isinstance(op, Tensor) else float(op)
     live = None if step is None else (step.opaque, step.clamp_lo, step.clamp_hi, step.decode, step.y0, step.x0)
-    return (spec.id, spec.blend, spec.visible, tuple(spec.offset), tuple(spec.range), spec.encoded, op_fp,
-            spec.tensors.fingerprint(), spec.requires_grad, plan.reasons[i], live)
+    return (
+        spec.id,
+        spec.blend,
+        spec.visible,
+        tuple(spec.offset),
+        tuple(spec.range),
+        spec.encoded,
+        op_fp,
+        spec.tensors.fingerprint(),
+        spec.requires_grad,
+        plan.reasons[i],
+        live,
+    )
 
 
 class Renderer:
@@ -102,8 +115,10 @@ class Renderer:
     def _changed_from(self, sigs: list[tuple[Any, ...]], refs: list[tuple[Any, ...]]) -> int:
         """Index of the lowest layer whose fingerprint differs from the last call's (len if none)."""
         for i in range(min(len(sigs), len(self._sigs))):
-            same_tensors = all((r is None and n is None) or (r is not None and n is not None and r() is n())
-                               for r, n in zip(self._refs[i], refs[i]))
+            same_tensors = all(
+                (r is None and n is None) or (r is not None and n is not None and r() is n())
+                for r, n in zip(self._refs[i], refs[i])
+            )
             if sigs[i] != self._sigs[i] or not same_tensors:
                 return i
         return min(len(sigs), len(self._sigs))
@@ -113,8 +128,14 @@ class Renderer:
 
         ``out`` receives the image when no gradient is needed (as in ``render``).
         """
-        plan = compile_plan(layers, self.canvas, self.background, self.blend_space, self.clamp,  # type: ignore[arg-type]
-                            cull=self.cull)
+        plan = compile_plan(
+            layers,
+            self.canvas,
+            self.background,
+            self.blend_space,
+            self.clamp,  # type: ignore[arg-type]
+            cull=self.cull,
+        )
         dtype = resolve_dtype(plan, self.dtype)
         shape = canvas_shape(plan)
         if out is not None:
@@ -163,8 +184,7 @@ class Renderer:
         budget = self.cache_bytes // nbytes
         top = entries[-1] if n else -1
         candidates = {e for e in (*self._edits, top) if e > start and b < bisect.bisect_left(entries, e) <= g}
-        ranked = sorted(set(self._snaps) | candidates, reverse=True,
-                        key=lambda e: (self._edits.get(e, 0), e == top, e))
+        ranked = sorted(set(self._snaps) | candidates, reverse=True, key=lambda e: (self._edits.get(e, 0), e == top, e))
         keep: list[int] = []
         buffers_used: set[Any] = set()
         for e in ranked:

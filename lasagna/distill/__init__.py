@@ -8,16 +8,39 @@
 
 Amortised distillation (one generator for every image) is a trainer: ``lasagna.training.generator``.
 """
+
 from lasagna.distill.objective import (
-    ObjectiveOutput, ScoreObjective, build_loss, conditioning_image, crop, draw_patches, prior_image_size, resize,
+    ObjectiveOutput,
+    ScoreObjective,
+    build_loss,
+    conditioning_image,
+    crop,
+    draw_patches,
+    prior_image_size,
+    resize,
 )
 from lasagna.distill.per_image import DistillResult, converged, distill_image, resolve_settings
 from lasagna.distill.schedules import Ramp, Weights, cosine_lr
 from lasagna.distill.settings import DistillSettings, EarlyStop, PatchConfig, per_image_weights
 
 __all__ = [
-    "ObjectiveOutput", "ScoreObjective", "build_loss", "conditioning_image", "crop", "draw_patches", "prior_image_size", "resize",
-    "DistillResult", "converged", "distill_image", "resolve_settings",
-    "Ramp", "Weights", "cosine_lr",
-    "DistillSettings", "EarlyStop", "PatchConfig", "per_image_weights",
+    "ObjectiveOutput",
+    "ScoreObjective",
+    "build_loss",
+    "conditioning_image",
+    "crop",
+    "draw_patches",
+    "prior_image_size",
+    "resize",
+    "DistillResult",
+    "converged",
+    "distill_image",
+    "resolve_settings",
+    "Ramp",
+    "Weights",
+    "cosine_lr",
+    "DistillSettings",
+    "EarlyStop",
+    "PatchConfig",
+    "per_image_weights",
 ]

@@ -27,10 +27,12 @@ L2 term keeps the composite near the input:
   ``grad_norm``.
 * **Weights** follow ``schedules.Weights`` (the LMC-SDS network recipe: score 0.1 → 1, L2 1 → 0.1).
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Literal, Sequence
+from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
@@ -63,12 +65,16 @@ def resize(image: Tensor, size: tuple[int, int]) -> Tensor:
     return F.interpolate(image, size=size, mode="bilinear", align_corners=False, antialias=True)
 
 
-def draw_patches(batch: int, image_size: tuple[int, int], patch_size: tuple[int, int], per_sample: int,
-                 rng: torch.Generator | None) -> Tensor:
+def draw_patches(
+    batch: int, image_size: tuple[int, int], patch_size: tuple[int, int], per_sample: int, rng: torch.Generator | None
+) -> Tensor:
     """(batch·per_sample, 3) long rows (sample, top, left) of uniformly placed crops, sample-major."""
     (h, w), (ph, pw) = image_size, patch_size
     if ph > h or pw > w:
-        raise LasagnaError(f"patches of {ph}x{pw} do not fit an image of {h}x{w}; expected an image at least the prior's size", "patches")
+        raise LasagnaError(
+            f"patches of {ph}x{pw} do not fit an image of {h}x{w}; expected an image at least the prior's size",
+            "patches",
+        )
     n = batch * per_sample
     sample = torch.arange(batch).repeat_interleave(per_sample)
     top = torch.randint(0, h - ph + 1, (n,), generator=rng)
@@ -79,7 +85,7 @@ def draw_patches(batch: int, image_size: tuple[int, int], patch_size: tuple[int,
 def crop(x: Tensor, patches: Tensor, size: tuple[int, int]) -> Tensor:
     """The crops (N, C, *size) of x (B, C, H, W) at ``patches`` rows (sample, top, left)."""
     ph, pw = size
-    return torch.stack([x[s, :, t:t + ph, l:l + pw] for s, t, l in patches.tolist()])
+    return torch.stack([x[s, :, t : t + ph, left : left + pw] for s, t, left in patches.tolist()])
 
 
 def conditioning_image(prior: Prior, base_view: Tensor, mode: ConditionImage = "auto") -> Tensor | None:
@@ -105,7 +111,9 @@ def label_list(labels: str | Sequence[str], batch: int, where: str = "condition"
     return names
 
 
-def build_loss(name: str, corrective=None, options: dict[str, Any] | None = None, t_min: float = 0.02, t_max: float = 0.98) -> ScoreLoss:
+def build_loss(
+    name: str, corrective=None, options: dict[str, Any] | None = None, t_min: float = 0.02, t_max: float = 0.98
+) -> ScoreLoss:
     """The score loss ``name`` with t ~ U(t_min, t_max) and extra ``options`` of its Options model.
 
     ``corrective`` (b̂) is required by ``lmc-sds`` and unused by the other losses. The timestep
@@ -114,7 +122,9 @@ def build_loss(name: str, corrective=None, options: dict[str, Any] | None = None
     opts = dict(options or {})
     ts = dict(opts.pop("timesteps", {}) or {})
     if {"t_min", "t_max"} & set(ts):
-        raise LasagnaError("set the timestep interval with t_min/t_max, not inside loss_options.timesteps", "loss_options.timesteps")
+        raise LasagnaError(
+            "set the timestep interval with t_min/t_max, not inside loss_options.timesteps", "loss_options.timesteps"
+        )
     opts["timesteps"] = {"t_min": t_min, "t_max": t_max, **ts}
     cls = get_loss(name)
     if cls is LMCSDS:
@@ -137,8 +147,14 @@ class ObjectiveOutput:
     diagnostics: Diagnostics
 
     def summary(self) -> dict[str, float]:
-        out = {"total": float(self.total.detach()), "score": self.score, "reg": self.reg, "w_score": self.w_score,
-               "w_reg": self.w_reg, "grad_norm": float(self.grad_norm.mean())}
+        out = {
+            "total": float(self.total.detach()),
+            "score": self.score,
+            "reg": self.reg,
+            "w_score": self.w_score,
+            "w_reg": self.w_reg,
+            "grad_norm": float(self.grad_norm.mean()),
+        }
         if self.t is not None:
             out["t_mean"] = float(self.t.double().mean())
         return out
@@ -147,21 +163,41 @@ class ObjectiveOutput:
 class ScoreObjective:
     """L = w_score·S(view(f(x, y))) + w_reg·L2 (see the module docstring)."""
 
-    def __init__(self, spec: LayerSpec, prior: Prior, loss: ScoreLoss, guidance: float, weights: Weights,
-                 condition_image: ConditionImage = "auto"):
+    def __init__(
+        self,
+        spec: LayerSpec,
+        prior: Prior,
+        loss: ScoreLoss,
+        guidance: float,
+        weights: Weights,
+        condition_image: ConditionImage = "auto",
+    ):
         self.spec, self.prior, self.loss, self.guidance = spec, prior, loss, float(guidance)
         self.weights, self.condition_image = weights, condition_image
         self.size = prior_image_size(prior)
 
-    def __call__(self, base: Tensor, layer: Tensor, labels: str | Sequence[str], *, rng: torch.Generator | None,
-                 step: int, patches: Tensor | None = None, negative: str | Sequence[str] | None = None) -> ObjectiveOutput:
+    def __call__(
+        self,
+        base: Tensor,
+        layer: Tensor,
+        labels: str | Sequence[str],
+        *,
+        rng: torch.Generator | None,
+        step: int,
+        patches: Tensor | None = None,
+        negative: str | Sequence[str] | None = None,
+    ) -> ObjectiveOutput:
         """The objective at ``step`` for base (B, 3, H, W), layer (B, C, H, W) and one label per sample;
         ``patches`` (rows (sample, top, left), ``draw_patches``) selects the patch view."""
         b = base.shape[0]
         if base.dim() != 4 or base.shape[1] != 3:
             raise LasagnaError(f"base has shape {tuple(base.shape)}; expected (B, 3, H, W)", "base")
         if layer.shape[0] != b or tuple(layer.shape[-2:]) != tuple(base.shape[-2:]):
-            raise LasagnaError(f"layer has shape {tuple(layer.shape)}; expected ({b}, {self.spec.channels}, {base.shape[-2]}, {base.shape[-1]})", "layer")
+            raise LasagnaError(
+                f"layer has shape {tuple(layer.shape)}; expected ({b}, {self.spec.channels}, {base.shape[-2]}, "
+                f"{base.shape[-1]})",
+                "layer",
+            )
         labels = label_list(labels, b)
         negative = None if negative is None else label_list(negative, b, "negative")
         if patches is None:
@@ -179,10 +215,20 @@ class ScoreObjective:
         if isinstance(self.loss, DDS):
             self.loss.source_image = base_view.detach()  # the source is the identity edit's composite
             negative = labels if negative is None else negative
-        cond = Condition(labels, image=conditioning_image(self.prior, base_view, self.condition_image), negative=negative)
+        cond = Condition(
+            labels, image=conditioning_image(self.prior, base_view, self.condition_image), negative=negative
+        )
         out = self.loss(view, self.prior, cond, self.guidance, rng=rng, step=step)
         score = out.loss / out.diagnostics.grad.numel()
         w_score, w_reg = self.weights.at(step)
         total = w_score * score + w_reg * reg
-        return ObjectiveOutput(total=total, score=float(score.detach()), reg=float(reg.detach()), w_score=w_score, w_reg=w_reg,
-                               grad_norm=out.diagnostics.grad_norm, t=out.diagnostics.t, diagnostics=out.diagnostics)
+        return ObjectiveOutput(
+            total=total,
+            score=float(score.detach()),
+            reg=float(reg.detach()),
+            w_score=w_score,
+            w_reg=w_reg,
+            grad_norm=out.diagnostics.grad_norm,
+            t=out.diagnostics.t,
+            diagnostics=out.diagnostics,
+        )

@@ -38,6 +38,7 @@ and condition, and a folder holding another run is refused. Run again with the s
 kill and the run continues where it was checkpointed, reproducing the uninterrupted run — except
 for LMC-SDS with ``fixed_eps`` and no ``fixed_eps_seed``, whose fixed ε is drawn anew on resume.
 """
+
 from __future__ import annotations
 
 import copy
@@ -45,14 +46,16 @@ import hashlib
 import json
 import math
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal, Sequence
+from typing import Any, Literal
 
 import torch
 from torch import Tensor, nn
 from tqdm.auto import tqdm
 
+from lasagna.atomic import atomic_write_text
 from lasagna.distill.objective import ScoreObjective, build_loss, draw_patches, label_list, prior_image_size
 from lasagna.distill.schedules import cosine_lr
 from lasagna.distill.settings import DistillSettings, EarlyStop, PatchConfig
@@ -60,9 +63,15 @@ from lasagna.errors import LasagnaError
 from lasagna.generators.free import FreeLayer, FreeLayerConfig
 from lasagna.generators.layer import composite
 from lasagna.generators.unet import LayerGenerator
-from lasagna.atomic import atomic_write_text
+from lasagna.io.checkpoint import (
+    CHECKPOINT,
+    check_same_run,
+    load_checkpoint,
+    load_tensors,
+    save_checkpoint,
+    save_tensors,
+)
 from lasagna.priors.base import Prior
-from lasagna.io.checkpoint import CHECKPOINT, check_same_run, load_checkpoint, load_tensors, save_checkpoint, save_tensors
 
 CHECKPOINT_FORMAT = "lasagna.distill_checkpoint"
 HISTORY_FILE = "history.json"
@@ -107,7 +116,9 @@ def resolve_settings(preset_or_settings, **overrides: Any) -> DistillSettings:
         return preset_or_settings.with_overrides(**overrides)
     if hasattr(preset_or_settings, "distill") and hasattr(preset_or_settings, "blend"):
         return DistillSettings.from_preset(preset_or_settings, **overrides)
-    raise LasagnaError(f"got {type(preset_or_settings).__name__}; expected a Preset or DistillSettings", "preset_or_settings")
+    raise LasagnaError(
+        f"got {type(preset_or_settings).__name__}; expected a Preset or DistillSettings", "preset_or_settings"
+    )
 
 
 def distill_image(
@@ -157,8 +168,14 @@ def distill_image(
 
     spec = settings.layer
     weights = settings.resolved_weights()
-    objective = ScoreObjective(spec, prior, build_loss(settings.loss, corrective, settings.loss_options, settings.t_min, settings.t_max),
-                               settings.guidance, weights, settings.condition_image)
+    objective = ScoreObjective(
+        spec,
+        prior,
+        build_loss(settings.loss, corrective, settings.loss_options, settings.t_min, settings.t_max),
+        settings.guidance,
+        weights,
+        settings.condition_image,
+    )
     size = prior_image_size(prior)
     patchable = h >= size[0] and w >= size[1] and (h, w) != tuple(size)
     whole_steps = round(settings.patches.whole_fraction * settings.steps) if patchable else settings.steps
@@ -169,8 +186,13 @@ def distill_image(
     run, save = _Progress(), None
     if checkpoint_dir is not None:
         ckpt_dir = Path(checkpoint_dir)
-        record = _RunRecord(**settings.model_dump(), base_sha256=_sha256(base), labels=tuple(labels),
-                            negative=None if neg is None else tuple(neg), model_kind=_model_kind(model))
+        record = _RunRecord(
+            **settings.model_dump(),
+            base_sha256=_sha256(base),
+            labels=tuple(labels),
+            negative=None if neg is None else tuple(neg),
+            model_kind=_model_kind(model),
+        )
         run = _resume(ckpt_dir, record, model, opt, rng, base.device)
 
         def save(run: _Progress) -> None:
@@ -199,8 +221,16 @@ def distill_image(
         final = model(base, model_in).detach()
         comp = composite(base, final, spec).clamp(0.0, 1.0)
     seconds = run.history[-1]["time_s"] if run.history else 0.0
-    return DistillResult(layer=final, composite=comp, history=run.history, settings=settings,
-                         stopped_reason=run.stopped or "steps", steps=run.step, seconds=seconds, model=model)
+    return DistillResult(
+        layer=final,
+        composite=comp,
+        history=run.history,
+        settings=settings,
+        stopped_reason=run.stopped or "steps",
+        steps=run.step,
+        seconds=seconds,
+        model=model,
+    )
 
 
 @dataclass
@@ -252,18 +282,30 @@ def _step_loop(
         if run.prev_layer is not None:
             change = float((now - run.prev_layer).pow(2).mean().sqrt()) / run.prev_lr
         run.prev_layer, run.prev_lr = now, lr_k
-        run.history.append({"step": step, "phase": phase, "lr": lr_k, **out.summary(), "layer_change": change,
-                            "time_s": round(time.monotonic() - clock, 4)})
+        run.history.append(
+            {
+                "step": step,
+                "phase": phase,
+                "lr": lr_k,
+                **out.summary(),
+                "layer_change": change,
+                "time_s": round(time.monotonic() - clock, 4),
+            }
+        )
         if callback is not None:
             callback(step, now)
         run.step += 1
         bar.update(1)
         bar.set_postfix(grad_norm=f"{run.history[-1]['grad_norm']:.3g}")
-        if settings.early_stop is not None and run.step < settings.steps and converged(
-            run.history, settings.early_stop, phase
+        if (
+            settings.early_stop is not None
+            and run.step < settings.steps
+            and converged(run.history, settings.early_stop, phase)
         ):
             run.stopped = "converged"
-        if save is not None and (run.step % settings.checkpoint_every == 0 or run.stopped or run.step == settings.steps):
+        if save is not None and (
+            run.step % settings.checkpoint_every == 0 or run.stopped or run.step == settings.steps
+        ):
             save(run)
     bar.close()
 
@@ -276,7 +318,7 @@ def converged(history: list[dict[str, Any]], rule: EarlyStop, phase: str) -> boo
     w = rule.window
     if len(recs) < 2 * w:
         return False
-    recent, before = recs[-w:], recs[-2 * w:-w]
+    recent, before = recs[-w:], recs[-2 * w : -w]
     for key in ("grad_norm", "layer_change"):
         now = sum(r[key] for r in recent) / w
         then = sum(r[key] for r in before) / w
@@ -292,7 +334,9 @@ def _check_base(base: Tensor) -> Tensor:
     if base.dim() == 3:
         base = base.unsqueeze(0)
     if base.dim() != 4 or base.shape[1] != 3 or not base.is_floating_point():
-        raise LasagnaError(f"base has shape {tuple(base.shape)} and dtype {base.dtype}; expected a float (B, 3, H, W) tensor", "base")
+        raise LasagnaError(
+            f"base has shape {tuple(base.shape)} and dtype {base.dtype}; expected a float (B, 3, H, W) tensor", "base"
+        )
     if not bool(torch.isfinite(base).all()):
         raise LasagnaError("base has NaN or infinite values; expected finite values in [0, 1]", "base")
     lo, hi = float(base.min()), float(base.max())
@@ -305,7 +349,9 @@ def _make_model(generator, settings: DistillSettings, base: Tensor) -> nn.Module
     b, _, h, w = base.shape
     if isinstance(generator, str):
         if generator != "free":
-            raise LasagnaError(f"generator is {generator!r}; expected 'free', a LayerGenerator or a FreeLayer", "generator")
+            raise LasagnaError(
+                f"generator is {generator!r}; expected 'free', a LayerGenerator or a FreeLayer", "generator"
+            )
         spec = settings.layer
         if spec.channels == 4 and base.shape[1] == 3:
             # An alpha layer starts as the base's own colour, opaque: the composite is the input exactly, as at
@@ -316,9 +362,15 @@ def _make_model(generator, settings: DistillSettings, base: Tensor) -> nn.Module
             return FreeLayer.from_layer(spec, start).to(base.device)
         return FreeLayer(FreeLayerConfig(layer=spec, batch=b, height=h, width=w)).to(base.device)
     if not isinstance(generator, (LayerGenerator, FreeLayer)):
-        raise LasagnaError(f"generator is a {type(generator).__name__}; expected 'free', a LayerGenerator or a FreeLayer", "generator")
+        raise LasagnaError(
+            f"generator is a {type(generator).__name__}; expected 'free', a LayerGenerator or a FreeLayer", "generator"
+        )
     if generator.spec != settings.layer:
-        raise LasagnaError(f"the generator makes {generator.spec.model_dump()}; expected the settings' layer {settings.layer.model_dump()}", "generator")
+        raise LasagnaError(
+            f"the generator makes {generator.spec.model_dump()}; expected the settings' layer "
+            f"{settings.layer.model_dump()}",
+            "generator",
+        )
     return copy.deepcopy(generator).to(base.device)
 
 
@@ -359,7 +411,10 @@ def _read_history(folder: Path, step: int) -> tuple[list[dict[str, Any]], str | 
     """The history up to the checkpointed ``step`` (written before the checkpoint, so never shorter)."""
     path = folder / HISTORY_FILE
     if not path.is_file():
-        raise LasagnaError(f"{HISTORY_FILE} is missing beside the checkpoint; expected both (delete the folder to start over)", str(folder))
+        raise LasagnaError(
+            f"{HISTORY_FILE} is missing beside the checkpoint; expected both (delete the folder to start over)",
+            str(folder),
+        )
     doc = json.loads(path.read_text(encoding="utf-8"))
     history = [r for r in doc["history"] if r["step"] < step]
     if len(history) != step:

@@ -7,6 +7,7 @@ regularization w.r.t. the original image from 1.0 to 0.1" — ``Ramp`` is one su
 ("learning rate of 0.02 with Cosine decay of 0.8 over all steps") is ``cosine_lr`` with
 ``final=0.8``: the rate falls from lr to 0.8·lr along half a cosine (optax's ``alpha``).
 """
+
 from __future__ import annotations
 
 import math
@@ -33,7 +34,7 @@ class Ramp(BaseModel):
     shape: Literal["cosine", "linear"] = "cosine"
 
     @classmethod
-    def constant(cls, value: float) -> "Ramp":
+    def constant(cls, value: float) -> Ramp:
         return cls(start=value, end=value, steps=0)
 
     def at(self, step: int) -> float:
@@ -56,7 +57,7 @@ class Weights(BaseModel):
     reg: Ramp = Ramp.constant(0.0)
 
     @classmethod
-    def lmc_network(cls, steps: int, reg_end: float = 0.1) -> "Weights":
+    def lmc_network(cls, steps: int, reg_end: float = 0.1) -> Weights:
         """LMC-SDS's network recipe: score 0.1 → 1.0 and L2 1.0 → ``reg_end`` (the paper: 0.1), cosine,
         over ``steps`` steps. ``reg_end=0`` releases the edit fully once the ramp is over (what
         ``lasagna train-layer`` uses: a layer's blend already keeps the content, and a lasting pull to

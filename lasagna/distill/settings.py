@@ -20,6 +20,7 @@ Defaults and their sources:
   prior's size per image per step;
 * early stopping (``EarlyStop``, see ``per_image.py``): on, checked in the last phase only.
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -38,8 +39,12 @@ class PatchConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    whole_fraction: float = Field(0.4, ge=0.0, le=1.0, description="Fraction of the steps on the whole image, downsampled.")
-    per_step: int = Field(1, ge=1, description="Random crops of the prior's size per image per step (LMC-SDS synthesis: 2).")
+    whole_fraction: float = Field(
+        0.4, ge=0.0, le=1.0, description="Fraction of the steps on the whole image, downsampled."
+    )
+    per_step: int = Field(
+        1, ge=1, description="Random crops of the prior's size per image per step (LMC-SDS synthesis: 2)."
+    )
 
 
 class EarlyStop(BaseModel):
@@ -81,7 +86,7 @@ class DistillSettings(BaseModel):
     checkpoint_every: int = Field(50, ge=1, description="Steps between checkpoints when a checkpoint folder is given.")
 
     @model_validator(mode="after")
-    def _check(self) -> "DistillSettings":
+    def _check(self) -> DistillSettings:
         if self.t_min > self.t_max:
             raise ValueError(f"t_min {self.t_min} > t_max {self.t_max}; expected t_min <= t_max")
         return self
@@ -90,20 +95,28 @@ class DistillSettings(BaseModel):
         return self.weights if self.weights is not None else per_image_weights(self.steps)
 
     @classmethod
-    def from_preset(cls, preset, **overrides: Any) -> "DistillSettings":
+    def from_preset(cls, preset, **overrides: Any) -> DistillSettings:
         """A preset's layer and distillation defaults, with ``overrides`` (None values ignored) applied."""
         d = preset.distill
-        data: dict[str, Any] = {"layer": LayerSpec.from_preset(preset), "loss": d.loss, "guidance": d.guidance, "steps": d.steps,
-                                "lr": d.lr, "t_min": d.t_min, "t_max": d.t_max, "seed": d.seed,
-                                "patches": PatchConfig(whole_fraction=d.whole_fraction)}
+        data: dict[str, Any] = {
+            "layer": LayerSpec.from_preset(preset),
+            "loss": d.loss,
+            "guidance": d.guidance,
+            "steps": d.steps,
+            "lr": d.lr,
+            "t_min": d.t_min,
+            "t_max": d.t_max,
+            "seed": d.seed,
+            "patches": PatchConfig(whole_fraction=d.whole_fraction),
+        }
         return cls.parse({**data, **{k: v for k, v in overrides.items() if v is not None}})
 
-    def with_overrides(self, **overrides: Any) -> "DistillSettings":
+    def with_overrides(self, **overrides: Any) -> DistillSettings:
         """A copy with ``overrides`` (None values ignored), re-validated."""
         return self.parse({**self.model_dump(), **{k: v for k, v in overrides.items() if v is not None}})
 
     @classmethod
-    def parse(cls, data: dict[str, Any], where: str = "settings") -> "DistillSettings":
+    def parse(cls, data: dict[str, Any], where: str = "settings") -> DistillSettings:
         """Validate ``data``; a bad field is a one-line ``LasagnaError`` naming it."""
         try:
             return cls.model_validate(data)

@@ -5,6 +5,7 @@ module only names them. Aliases are the names the Lasagna paper uses ("alpha-lin
 "multiply-luminosity" shading, "additive" light); a document may use them, but it is always written
 back with the canonical name, so two documents that mean the same thing read the same.
 """
+
 from __future__ import annotations
 
 import difflib

@@ -2,6 +2,7 @@
 
 Only the document is read here; the PNGs a document names are the I/O tier's (``lasagna.io``).
 """
+
 from __future__ import annotations
 
 import os
@@ -9,8 +10,8 @@ from pathlib import Path
 
 from lasagna.atomic import atomic_write_text
 from lasagna.document.models import Document
-from lasagna.errors import DocumentError
 from lasagna.document.validation import format_validation_error
+from lasagna.errors import DocumentError
 
 __all__ = ["STACK_FILE", "stack_file", "load_document", "save_document", "format_validation_error"]
 
@@ -34,7 +35,9 @@ def load_document(path: str | os.PathLike) -> Document:
         # utf-8-sig: editors on Windows may prepend a byte-order mark; it is not content.
         text = file.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
-        raise DocumentError(f"not found; expected a stack folder containing {STACK_FILE}, or the file itself", str(file)) from None
+        raise DocumentError(
+            f"not found; expected a stack folder containing {STACK_FILE}, or the file itself", str(file)
+        ) from None
     except UnicodeDecodeError as exc:
         raise DocumentError(f"not UTF-8 text (byte {exc.start}); expected a UTF-8 JSON file", str(file)) from None
     except OSError as exc:

@@ -10,21 +10,33 @@ included, in declaration order, 2-space indent, short number arrays on one line)
 a stack.json sees every setting that affects the render without knowing the defaults, and the
 output of a canonical document is byte-for-byte stable.
 """
+
 from __future__ import annotations
 
 import json
-import os
-import pathlib
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError, model_validator
 
-from lasagna.errors import DocumentError
 from lasagna.document.types import (
-    RANGE_FOR_BLEND_SCHEMA, UNIT_RANGE, Blend, Colour, Coordinate, LayerId, NameOrPath, OpaqueColour, Pixels,
-    Range, RelativePath, Sha256, StrictModel, Unit, check_range_for_blend,
+    RANGE_FOR_BLEND_SCHEMA,
+    UNIT_RANGE,
+    Blend,
+    Colour,
+    Coordinate,
+    LayerId,
+    NameOrPath,
+    OpaqueColour,
+    Pixels,
+    Range,
+    RelativePath,
+    Sha256,
+    StrictModel,
+    Unit,
+    check_range_for_blend,
 )
 from lasagna.document.validation import RuleError, document_error, parse_json
+from lasagna.errors import DocumentError
 
 FORMAT = "lasagna.stack"
 VERSION = 1
@@ -81,7 +93,9 @@ class _LayerBase(StrictModel):
     model_config = ConfigDict(json_schema_extra=_layer_schema)
 
     id: LayerId = Field(description="Unique (case-insensitively) id, safe as a file name: layers/<id>.png.")
-    name: str = Field(default_factory=lambda data: data["id"], min_length=1, description="Display name; defaults to the id.")
+    name: str = Field(
+        default_factory=lambda data: data["id"], min_length=1, description="Display name; defaults to the id."
+    )
     kind: str  # each kind redeclares it as a Literal tag; declared here so it is written third
     blend: Blend = Field("normal", description="How the layer composes onto what lies below it.")
     opacity: Unit = Field(1.0, description="Opacity in [0, 1]; alpha_effective = alpha * mask * opacity.")
@@ -95,7 +109,7 @@ class _LayerBase(StrictModel):
     mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
 
     @model_validator(mode="after")
-    def _range_allowed_for_blend(self) -> "_LayerBase":
+    def _range_allowed_for_blend(self) -> _LayerBase:
         check_range_for_blend(self.range, self.blend)
         return self
 
@@ -127,10 +141,12 @@ class LearnedLayer(_LayerBase):
     conditioned_on: LayerId = Field(description="Id of a layer below this one, the generator's input.")
     source: RelativePath | None = Field(None, description="Rendered pixels, stored exactly as a pixels layer's.")
     generator: GeneratorRef | None = Field(None, description="The generator's checkpoint, if trained.")
-    settings: dict[str, JsonValue] = Field(default_factory=dict, description="Free-form generator/distillation settings.")
+    settings: dict[str, JsonValue] = Field(
+        default_factory=dict, description="Free-form generator/distillation settings."
+    )
 
 
-Layer = Annotated[Union[PixelsLayer, SolidLayer, LearnedLayer], Field(discriminator="kind")]
+Layer = Annotated[PixelsLayer | SolidLayer | LearnedLayer, Field(discriminator="kind")]
 LAYER_KINDS: tuple[str, ...] = tuple(m.model_fields["kind"].default for m in (PixelsLayer, SolidLayer, LearnedLayer))
 
 
@@ -150,7 +166,7 @@ class Document(StrictModel):
     metadata: dict[str, JsonValue] = Field(default_factory=dict, description="Free-form metadata.")
 
     @model_validator(mode="after")
-    def _ids_and_references(self) -> "Document":
+    def _ids_and_references(self) -> Document:
         seen: dict[str, int] = {}  # casefolded id -> index, for uniqueness
         below: set[str] = set()  # exact ids of the layers below the current one
         for i, layer in enumerate(self.layers):
@@ -191,16 +207,16 @@ class Document(StrictModel):
 
     # ---- changing (each returns a new, validated document) ------------------------------------
 
-    def replace(self, **changes: Any) -> "Document":
+    def replace(self, **changes: Any) -> Document:
         """A copy with top-level fields changed, e.g. ``doc.replace(blend_space="linear")``."""
         return self._validated({**self.model_dump(), **changes})
 
-    def with_layers(self, layers: list[Layer | dict[str, Any]]) -> "Document":
+    def with_layers(self, layers: list[Layer | dict[str, Any]]) -> Document:
         """A copy whose layer list is ``layers`` (models or plain dicts)."""
-        dumped = [l.model_dump() if isinstance(l, BaseModel) else l for l in layers]
+        dumped = [layer.model_dump() if isinstance(layer, BaseModel) else layer for layer in layers]
         return self._validated({**self.model_dump(), "layers": dumped})
 
-    def with_layer(self, layer: Layer | dict[str, Any], index: int | None = None) -> "Document":
+    def with_layer(self, layer: Layer | dict[str, Any], index: int | None = None) -> Document:
         """Replace the layer with ``layer``'s id in place, or insert it at ``index`` (default: on top)."""
         id = layer.get("id") if isinstance(layer, dict) else layer.id
         layers: list[Layer | dict[str, Any]] = list(self.layers)
@@ -212,20 +228,20 @@ class Document(StrictModel):
             layers.insert(len(layers) if index is None else index, layer)
         return self.with_layers(layers)  # validates a dict layer with the rest, so errors name layers[i]
 
-    def replace_layer(self, id: str, **changes: Any) -> "Document":
+    def replace_layer(self, id: str, **changes: Any) -> Document:
         """A copy where layer ``id`` has ``changes`` applied, e.g. ``replace_layer("shade", opacity=0.5)``."""
         layers: list[Layer | dict[str, Any]] = list(self.layers)
         layers[self.index(id)] = {**self.layer(id).model_dump(), **changes}
         return self.with_layers(layers)
 
-    def without_layer(self, id: str) -> "Document":
+    def without_layer(self, id: str) -> Document:
         """A copy without layer ``id`` (a learned layer conditioned on it makes this an error)."""
         layers = list(self.layers)
         del layers[self.index(id)]
         return self.with_layers(layers)
 
     @classmethod
-    def _validated(cls, data: dict[str, Any], where: str | None = None) -> "Document":
+    def _validated(cls, data: dict[str, Any], where: str | None = None) -> Document:
         try:
             return cls.model_validate(data)
         except ValidationError as err:
@@ -242,12 +258,12 @@ class Document(StrictModel):
         return dumps(self.to_dict()) + "\n"
 
     @classmethod
-    def from_dict(cls, data: Any, where: str | None = None) -> "Document":
+    def from_dict(cls, data: Any, where: str | None = None) -> Document:
         """Validate parsed JSON data; errors become one-line ``DocumentError``s naming the JSON path."""
         return cls._validated(data, where)
 
     @classmethod
-    def from_json(cls, text: str, where: str = "stack.json") -> "Document":
+    def from_json(cls, text: str, where: str = "stack.json") -> Document:
         """Parse and validate stack.json text; ``where`` names the file in error messages."""
         return cls.from_dict(parse_json(text, where), where)
 

@@ -7,6 +7,7 @@ lists the condition vocabulary with the prompt template ("A photo of an object w
 Lasagna Sec. 3), and gives default distillation settings. Weights are referenced by name and
 resolved by the priors tier; this module only reads JSON. See layers/README.md.
 """
+
 from __future__ import annotations
 
 import os
@@ -16,13 +17,22 @@ from typing import Any, Literal, get_args
 
 from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from lasagna.errors import ConditionError, DocumentError
 from lasagna.document.models import dumps
 from lasagna.document.types import (
-    RANGE_FOR_BLEND_SCHEMA, UNIT_RANGE, Blend, FiniteFloat, LayerId, NameOrPath, Range, StrictModel, Unit, check_id,
+    RANGE_FOR_BLEND_SCHEMA,
+    UNIT_RANGE,
+    Blend,
+    FiniteFloat,
+    LayerId,
+    NameOrPath,
+    Range,
+    StrictModel,
+    Unit,
+    check_id,
     check_range_for_blend,
 )
 from lasagna.document.validation import RuleError, document_error, parse_json
+from lasagna.errors import ConditionError, DocumentError
 
 # The score-distillation losses a preset (and ``lasagna edit --loss``) may name: declared here, in the
 # tier every other reads; ``lasagna.losses`` registers one implementation under each name.
@@ -35,7 +45,9 @@ class DistillDefaults(StrictModel):
 
     loss: LossName = Field("sds", description="Score-distillation loss: sds, lmc-sds, dds, nfsd or ms-sds.")
     guidance: FiniteFloat = Field(
-        1.0, gt=0, description="Classifier-free guidance weight omega in eps_u + omega * (eps_c - eps_u).",
+        1.0,
+        gt=0,
+        description="Classifier-free guidance weight omega in eps_u + omega * (eps_c - eps_u).",
     )
     steps: int = Field(150, ge=1, strict=True, description="Optimisation steps.")
     lr: FiniteFloat = Field(0.03, gt=0, description="Adam learning rate.")
@@ -43,13 +55,14 @@ class DistillDefaults(StrictModel):
     t_max: Unit = Field(0.98, description="Upper end of t ~ U(t_min, t_max).")
     seed: int = Field(0, ge=0, strict=True, description="Random seed of noise and timesteps.")
     whole_fraction: Unit = Field(
-        0.4, description="For an image larger than the prior: the fraction of the steps on the whole image, "
+        0.4,
+        description="For an image larger than the prior: the fraction of the steps on the whole image, "
         "downsampled to the prior's size; the rest on random crops at native resolution (LMC-SDS, Sec. 5). "
         "1 = whole image only, for layers that should stay smooth.",
     )
 
     @model_validator(mode="after")
-    def _t_interval(self) -> "DistillDefaults":
+    def _t_interval(self) -> DistillDefaults:
         if not self.t_min < self.t_max:
             raise RuleError(f"t_min {self.t_min} >= t_max {self.t_max}; the rule is t_min < t_max", loc=("t_min",))
         return self
@@ -67,8 +80,9 @@ class Preset(StrictModel):
     blend: Blend = Field(description="The blend the layer is composed with.")
     channels: Literal[1, 3, 4] = Field(description="1: gray (a multiplier broadcast over RGB), 3: RGB, 4: RGBA.")
     range: Range = Field(UNIT_RANGE, description="[lo, hi] of the layer's values; not [0, 1] only for multiply/plus.")
-    prior: NameOrPath = Field(description="The conditional prior: a registered name, or a path (with '/') "
-                              "relative to this preset's folder.")
+    prior: NameOrPath = Field(
+        description="The conditional prior: a registered name, or a path (with '/') relative to this preset's folder."
+    )
     corrective: NameOrPath | None = Field(None, description="LMC-SDS corrective b-hat, named like the prior.")
     vocabulary: tuple[str, ...] = Field(
         min_length=1, json_schema_extra={"uniqueItems": True}, description="Condition labels the prior was trained on."
@@ -81,7 +95,9 @@ class Preset(StrictModel):
     def _labels(cls, labels: tuple[str, ...]) -> tuple[str, ...]:
         for i, label in enumerate(labels):
             if not label or label != label.strip():
-                raise RuleError(f"label {label!r} is empty or has outer spaces; labels are trimmed, non-empty", loc=(i,))
+                raise RuleError(
+                    f"label {label!r} is empty or has outer spaces; labels are trimmed, non-empty", loc=(i,)
+                )
             if label in labels[:i]:
                 raise RuleError(f"label {label!r} repeats; vocabulary labels are unique", loc=(i,))
         return labels
@@ -98,17 +114,20 @@ class Preset(StrictModel):
         return prompt
 
     @model_validator(mode="after")
-    def _rules(self) -> "Preset":
+    def _rules(self) -> Preset:
         check_range_for_blend(self.range, self.blend)
         if self.distill.loss == "lmc-sds" and self.corrective is None:
-            raise RuleError("loss 'lmc-sds' needs a corrective (b-hat of LMC-SDS eq. 10); name one", loc=("corrective",))
+            raise RuleError(
+                "loss 'lmc-sds' needs a corrective (b-hat of LMC-SDS eq. 10); name one", loc=("corrective",)
+            )
         return self
 
     def prompt_for(self, label: str) -> str:
         """The prompt for ``label``; ``ConditionError`` if it is not in the vocabulary."""
         if label not in self.vocabulary:
             raise ConditionError(
-                f"label {label!r} is not in preset {self.name!r}'s vocabulary; expected one of {', '.join(self.vocabulary)}",
+                f"label {label!r} is not in preset {self.name!r}'s vocabulary; expected one of "
+                f"{', '.join(self.vocabulary)}",
                 "condition.label",
             )
         return self.prompt.format(label=label)
@@ -118,14 +137,14 @@ class Preset(StrictModel):
         return dumps(self.model_dump(mode="json")) + "\n"
 
     @classmethod
-    def from_dict(cls, data: Any, where: str | None = None) -> "Preset":
+    def from_dict(cls, data: Any, where: str | None = None) -> Preset:
         try:
             return cls.model_validate(data)
         except ValidationError as err:
             raise document_error(err, where, cls) from None
 
     @classmethod
-    def from_json(cls, text: str, where: str = "preset.json") -> "Preset":
+    def from_json(cls, text: str, where: str = "preset.json") -> Preset:
         return cls.from_dict(parse_json(text, where), where)
 
 
@@ -162,9 +181,7 @@ def default_catalogues() -> list[Path]:
     return dirs + [d for d in (checkout, installed) if d is not None and d.is_dir()]
 
 
-def resolve_preset(
-    ref: str, stack_dir: str | os.PathLike | None = None, catalogues: list[Path] | None = None
-) -> Path:
+def resolve_preset(ref: str, stack_dir: str | os.PathLike | None = None, catalogues: list[Path] | None = None) -> Path:
     """The preset.json a learned layer's ``preset`` names.
 
     A reference containing '/' is a path relative to the stack folder. A name is looked up as

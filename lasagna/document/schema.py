@@ -6,6 +6,7 @@ they accept blend aliases, and express every rule JSON Schema can (types, bounds
 range-only-for-multiply/plus rule); cross-field rules such as unique ids or ``lo < hi`` are the
 models' alone.
 """
+
 from __future__ import annotations
 
 import json
@@ -23,10 +24,14 @@ SCHEMA_BASE = "https://lasagna.dev/schemas/"
 
 _SCHEMAS: dict[str, tuple[type[BaseModel], str, str]] = {
     "stack.schema.json": (
-        Document, "Lasagna layer stack", "A stack folder's stack.json (format lasagna.stack, version 1)."
+        Document,
+        "Lasagna layer stack",
+        "A stack folder's stack.json (format lasagna.stack, version 1).",
     ),
     "preset.schema.json": (
-        Preset, "Lasagna learned-layer preset", "A learned-layer preset, layers/<name>/preset.json (version 1)."
+        Preset,
+        "Lasagna learned-layer preset",
+        "A learned-layer preset, layers/<name>/preset.json (version 1).",
     ),
 }
 

@@ -5,6 +5,7 @@ quotes it when it fails, and its JSON Schema states as much of the rule as JSON 
 Numbers are strict (``"0.5"`` and ``true`` are not numbers) and finite: bad input is refused, never
 silently coerced.
 """
+
 from __future__ import annotations
 
 import re
@@ -12,7 +13,7 @@ from typing import Annotated
 
 from pydantic import AfterValidator, AllowInfNan, BaseModel, BeforeValidator, ConfigDict, Field, Strict, WithJsonSchema
 
-from lasagna.document.blend import ACCEPTED_BLEND_NAMES, BLEND_MODES, BlendMode, RANGED_BLENDS, canonical_blend
+from lasagna.document.blend import ACCEPTED_BLEND_NAMES, BLEND_MODES, RANGED_BLENDS, BlendMode, canonical_blend
 from lasagna.document.validation import RuleError
 
 
@@ -40,8 +41,10 @@ def _any_case(word: str) -> str:
 
 # The same names as a JSON Schema pattern (ECMA-262 regexes have no case-insensitive flag).
 _RESERVED_PATTERN = (
-    "^(" + "|".join(_any_case(w) for w in ("con", "prn", "aux", "nul"))
-    + f"|({_any_case('com')}|{_any_case('lpt')})[1-9]" + r")(\.|$)"
+    "^("
+    + "|".join(_any_case(w) for w in ("con", "prn", "aux", "nul"))
+    + f"|({_any_case('com')}|{_any_case('lpt')})[1-9]"
+    + r")(\.|$)"
 )
 
 
@@ -108,6 +111,7 @@ RelativePath = Annotated[
     WithJsonSchema({"type": "string", "pattern": PATH_PATTERN}),
 ]
 
+
 def check_name_or_path(value: str) -> str:
     """Rule: a reference is a name (the id rule) or, if it contains '/', a safe relative path."""
     return check_relative_path(value) if "/" in value else check_id(value)
@@ -117,10 +121,14 @@ NameOrPath = Annotated[
     str,
     Strict(),
     AfterValidator(check_name_or_path),
-    WithJsonSchema({"anyOf": [
-        {"type": "string", "pattern": ID_PATTERN, "not": {"pattern": _RESERVED_PATTERN}},
-        {"type": "string", "pattern": "/", "allOf": [{"pattern": PATH_PATTERN}]},
-    ]}),
+    WithJsonSchema(
+        {
+            "anyOf": [
+                {"type": "string", "pattern": ID_PATTERN, "not": {"pattern": _RESERVED_PATTERN}},
+                {"type": "string", "pattern": "/", "allOf": [{"pattern": PATH_PATTERN}]},
+            ]
+        }
+    ),
 ]
 
 _SHA256_RE = re.compile(r"[0-9a-f]{64}")
@@ -175,7 +183,9 @@ def check_range_for_blend(range_: tuple[float, float], blend: str) -> None:
 
 # JSON Schema form of check_range_for_blend, for objects with "blend" and "range" (default normal).
 RANGE_FOR_BLEND_SCHEMA = {
-    "if": {"properties": {"blend": {"enum": [b for b in ACCEPTED_BLEND_NAMES if canonical_blend(b) not in RANGED_BLENDS]}}},
+    "if": {
+        "properties": {"blend": {"enum": [b for b in ACCEPTED_BLEND_NAMES if canonical_blend(b) not in RANGED_BLENDS]}}
+    },
     "then": {"properties": {"range": {"const": list(UNIT_RANGE)}}},
 }
 
@@ -184,10 +194,12 @@ RANGE_FOR_BLEND_SCHEMA = {
 Blend = Annotated[
     BlendMode,
     BeforeValidator(canonical_blend),
-    WithJsonSchema({
-        "type": "string",
-        "enum": list(ACCEPTED_BLEND_NAMES),
-        "description": f"Blend mode, one of {', '.join(BLEND_MODES)}; the aliases alpha-linear, "
-        "multiply-luminosity and additive are accepted and written canonical.",
-    }),
+    WithJsonSchema(
+        {
+            "type": "string",
+            "enum": list(ACCEPTED_BLEND_NAMES),
+            "description": f"Blend mode, one of {', '.join(BLEND_MODES)}; the aliases alpha-linear, "
+            "multiply-luminosity and additive are accepted and written canonical.",
+        }
+    ),
 ]

@@ -4,6 +4,7 @@
 ``where: layers[2].blend: unknown blend 'mutiply'; expected one of … (+1 more)`` with the package's one
 formatter (``lasagna.errors.describe_validation_error``), as a ``DocumentError``.
 """
+
 from __future__ import annotations
 
 import json
@@ -28,6 +29,7 @@ class RuleError(DocumentError):
 
 # ---- JSON --------------------------------------------------------------------------------------
 
+
 def _no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     # json.loads keeps the last of two equal keys; a file saying "blend" twice is ambiguous.
     out: dict[str, Any] = {}
@@ -48,7 +50,9 @@ def parse_json(text: str, where: str) -> Any:
         return json.loads(text, object_pairs_hook=_no_duplicate_keys, parse_constant=_no_constants)
     except json.JSONDecodeError as exc:
         raise DocumentError(
-            f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}; expected a JSON object (see schemas/stack.schema.json)", where
+            f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}; expected a JSON object (see "
+            "schemas/stack.schema.json)",
+            where,
         ) from None
     except DocumentError as exc:
         raise DocumentError(str(exc), where) from None
@@ -63,6 +67,8 @@ def document_error(err: ValidationError, where: str | None, model: type[BaseMode
     return describe_validation_error(err, where, model, DocumentError)
 
 
-def format_validation_error(err: ValidationError, where: str | None = None, model: type[BaseModel] | None = None) -> str:
+def format_validation_error(
+    err: ValidationError, where: str | None = None, model: type[BaseModel] | None = None
+) -> str:
     """One line for a pydantic error: ``where: json.path: what; expected … (+N more)``."""
     return str(document_error(err, where, model))

@@ -15,6 +15,7 @@ absolute or contain ``..`` (zip-slip), archives whose declared or actual uncompr
 a limit, PNGs over the pixel limit (checked from the header before decoding), DTDs/entities in
 stack.xml, nested stacks (groups) and unknown composite-ops.
 """
+
 from __future__ import annotations
 
 import io
@@ -23,8 +24,8 @@ import os
 import re
 import zipfile
 import zlib
+from collections.abc import Callable
 from pathlib import Path, PurePosixPath
-from typing import Callable
 from xml.etree import ElementTree as ET
 from xml.sax.saxutils import quoteattr
 
@@ -32,10 +33,10 @@ import numpy as np
 import torch
 from PIL import Image
 
+from lasagna.atomic import atomic_write_bytes
 from lasagna.errors import ExportError, ImageError
 from lasagna.export.rasters import ExportLayer, export_layers
-from lasagna.atomic import atomic_write_bytes
-from lasagna.io.png import DEFAULT_MAX_PIXELS, decode_png, encode_png, check_size, parse_header
+from lasagna.io.png import DEFAULT_MAX_PIXELS, check_size, decode_png, encode_png, parse_header
 
 MIMETYPE = b"image/openraster"
 THUMBNAIL_MAX = 256
@@ -67,8 +68,7 @@ def _thumbnail(composite_hwc: np.ndarray) -> bytes:
 
 
 def _stack_xml(width: int, height: int, layers: list[ExportLayer]) -> str:
-    lines = ["<?xml version='1.0' encoding='UTF-8'?>",
-             f'<image version="0.0.5" w="{width}" h="{height}">', "  <stack>"]
+    lines = ["<?xml version='1.0' encoding='UTF-8'?>", f'<image version="0.0.5" w="{width}" h="{height}">', "  <stack>"]
     for layer in reversed(layers):  # topmost first
         attrs = {
             "name": layer.name,
@@ -122,14 +122,17 @@ def encode_ora(stack, *, composite: torch.Tensor | None = None, warn: Callable[[
     return out.getvalue()
 
 
-def export_ora(stack, path: str | os.PathLike, *, composite: torch.Tensor | None = None,
-               warn: Callable[[str], None] | None = None) -> Path:
+def export_ora(
+    stack, path: str | os.PathLike, *, composite: torch.Tensor | None = None, warn: Callable[[str], None] | None = None
+) -> Path:
     """Write ``stack`` as an OpenRaster file at ``path`` (atomically); returns the path."""
     data = encode_ora(stack, composite=composite, warn=warn)
     try:
         atomic_write_bytes(path, data)
     except OSError as exc:
-        raise ExportError(f"cannot write ({exc.strerror or exc}); expected a writable location", where=str(path)) from None
+        raise ExportError(
+            f"cannot write ({exc.strerror or exc}); expected a writable location", where=str(path)
+        ) from None
     return Path(path)
 
 
@@ -140,10 +143,10 @@ _SAFE_ENTRY = re.compile(r"^[^\\\x00-\x1f]+$")
 
 def _check_entry_name(name: str, where: str) -> None:
     p = PurePosixPath(name)
-    if (not _SAFE_ENTRY.match(name) or name.startswith("/") or re.match(r"^[A-Za-z]:", name)
-            or ".." in p.parts):
+    if not _SAFE_ENTRY.match(name) or name.startswith("/") or re.match(r"^[A-Za-z]:", name) or ".." in p.parts:
         raise ImageError(
-            f"archive entry {name!r} is absolute or escapes the archive (zip-slip); expected relative names without '..'",
+            f"archive entry {name!r} is absolute or escapes the archive (zip-slip); expected relative names without "
+            "'..'",
             where=where,
         )
 
@@ -185,8 +188,9 @@ def _int_attr(el, name: str, where: str) -> int:
         return int(f)
 
 
-def read_ora(path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS,
-             max_uncompressed: int = DEFAULT_MAX_UNCOMPRESSED) -> tuple[int, int, list[dict]]:
+def read_ora(
+    path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS, max_uncompressed: int = DEFAULT_MAX_UNCOMPRESSED
+) -> tuple[int, int, list[dict]]:
     """Read and check an OpenRaster file: canvas size and its layers bottom to top (decoded).
 
     Each layer is a dict with ``name``, ``src``, ``x``, ``y``, ``opacity``, ``visible``,
@@ -205,8 +209,11 @@ def read_ora(path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS,
             _check_entry_name(info.filename, where)
         declared = sum(i.file_size for i in infos)
         if declared > max_uncompressed:
-            raise ImageError(f"entries inflate to {declared} bytes, over the limit of {max_uncompressed}; "
-                             "expected a smaller archive (zip-bomb guard)", where=where)
+            raise ImageError(
+                f"entries inflate to {declared} bytes, over the limit of {max_uncompressed}; "
+                "expected a smaller archive (zip-bomb guard)",
+                where=where,
+            )
         names = {i.filename: i for i in infos}
         budget = [max_uncompressed]
 
@@ -219,9 +226,13 @@ def read_ora(path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS,
                 with zf.open(info) as fh:
                     data = fh.read(cap + 1)
             except (zipfile.BadZipFile, OSError, EOFError, zlib.error) as exc:
-                raise ImageError(f"entry {name!r} is corrupt ({exc}); expected a valid zip entry", where=where) from None
+                raise ImageError(
+                    f"entry {name!r} is corrupt ({exc}); expected a valid zip entry", where=where
+                ) from None
             if len(data) > cap:
-                raise ImageError(f"entry {name!r} inflates past {cap} bytes (zip-bomb guard); expected a smaller entry", where=where)
+                raise ImageError(
+                    f"entry {name!r} inflates past {cap} bytes (zip-bomb guard); expected a smaller entry", where=where
+                )
             budget[0] -= len(data)
             return data
 
@@ -229,11 +240,15 @@ def read_ora(path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS,
             raise ImageError("no 'mimetype' entry reading 'image/openraster'; expected an OpenRaster file", where=where)
         xml_text = read("stack.xml", 16 * 2**20)
         if b"<!DOCTYPE" in xml_text or b"<!ENTITY" in xml_text:
-            raise ImageError("stack.xml declares a DTD or entities; expected plain OpenRaster XML", where=f"{where}: stack.xml")
+            raise ImageError(
+                "stack.xml declares a DTD or entities; expected plain OpenRaster XML", where=f"{where}: stack.xml"
+            )
         try:
             root = ET.fromstring(xml_text)
         except ET.ParseError as exc:
-            raise ImageError(f"stack.xml is not well-formed XML ({exc}); expected OpenRaster XML", where=f"{where}: stack.xml") from None
+            raise ImageError(
+                f"stack.xml is not well-formed XML ({exc}); expected OpenRaster XML", where=f"{where}: stack.xml"
+            ) from None
         xwhere = f"{where}: stack.xml"
         if root.tag != "image":
             raise ImageError(f"root element is <{root.tag}>; expected <image>", where=xwhere)
@@ -247,15 +262,20 @@ def read_ora(path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS,
         for n, el in enumerate(stacks[0]):
             lwhere = f"{xwhere}: stack[{n}]"
             if el.tag == "stack":
-                raise ImageError("nested <stack> (a layer group) is not supported; expected a flat stack "
-                                 "(merge or ungroup groups in your editor before exporting)", where=lwhere)
+                raise ImageError(
+                    "nested <stack> (a layer group) is not supported; expected a flat stack "
+                    "(merge or ungroup groups in your editor before exporting)",
+                    where=lwhere,
+                )
             if el.tag != "layer":
                 raise ImageError(f"<{el.tag}> element is not supported; expected <layer>", where=lwhere)
             op = el.get("composite-op", "svg:src-over")
             if op not in SVG_TO_BLEND and op != "svg:color-dodge":
-                raise ImageError(f"composite-op {op!r} is not supported; expected one of "
-                                 f"{', '.join(SVG_TO_BLEND)} (or svg:color-dodge directly above an svg:multiply layer)",
-                                 where=lwhere)
+                raise ImageError(
+                    f"composite-op {op!r} is not supported; expected one of "
+                    f"{', '.join(SVG_TO_BLEND)} (or svg:color-dodge directly above an svg:multiply layer)",
+                    where=lwhere,
+                )
             src = el.get("src")
             if not src:
                 raise ImageError("layer has no src; expected src naming a PNG in the archive", where=lwhere)
@@ -275,11 +295,19 @@ def read_ora(path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS,
                 head = fh.read(33)
             check_size(parse_header(head, pwhere), pwhere, max_pixels, 32768)
             image = decode_png(read(src), pwhere, max_pixels=max_pixels, max_side=32768)
-            layers.append(dict(
-                name=el.get("name") or PurePosixPath(src).stem, src=src,
-                x=_int_attr(el, "x", lwhere), y=_int_attr(el, "y", lwhere), opacity=opacity,
-                visible=visibility == "visible", blend=SVG_TO_BLEND.get(op, "color-dodge"), image=image, where=lwhere,
-            ))
+            layers.append(
+                dict(
+                    name=el.get("name") or PurePosixPath(src).stem,
+                    src=src,
+                    x=_int_attr(el, "x", lwhere),
+                    y=_int_attr(el, "y", lwhere),
+                    opacity=opacity,
+                    visible=visibility == "visible",
+                    blend=SVG_TO_BLEND.get(op, "color-dodge"),
+                    image=image,
+                    where=lwhere,
+                )
+            )
     layers.reverse()  # stack.xml is topmost first; documents are bottom first
     return width, height, layers
 
@@ -287,13 +315,25 @@ def read_ora(path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS,
 def _same_geometry(a: dict, b: dict) -> bool:
     ia, ib = a["image"], b["image"]
     return (a["x"], a["y"], a["opacity"], a["visible"], ia.width, ia.height) == (
-        b["x"], b["y"], b["opacity"], b["visible"], ib.width, ib.height
-    ) and ((ia.alpha is None and ib.alpha is None) or (
-        ia.alpha is not None and ib.alpha is not None and np.array_equal(ia.alpha, ib.alpha)))
+        b["x"],
+        b["y"],
+        b["opacity"],
+        b["visible"],
+        ib.width,
+        ib.height,
+    ) and (
+        (ia.alpha is None and ib.alpha is None)
+        or (ia.alpha is not None and ib.alpha is not None and np.array_equal(ia.alpha, ib.alpha))
+    )
 
 
-def import_ora(path: str | os.PathLike, out_folder: str | os.PathLike | None = None, *,
-               max_pixels: int = DEFAULT_MAX_PIXELS, max_uncompressed: int = DEFAULT_MAX_UNCOMPRESSED):
+def import_ora(
+    path: str | os.PathLike,
+    out_folder: str | os.PathLike | None = None,
+    *,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    max_uncompressed: int = DEFAULT_MAX_UNCOMPRESSED,
+):
     """Read an OpenRaster file as a :class:`~lasagna.io.stack.Stack` (saved to ``out_folder`` if given).
 
     Ids come from the layers' PNG names. A ``svg:color-dodge`` layer directly above an ``svg:multiply``
@@ -312,8 +352,14 @@ def import_ora(path: str | os.PathLike, out_folder: str | os.PathLike | None = N
         bg = layers[0]["image"]
         c = bg.color if bg.color.shape[0] == 3 else np.repeat(bg.color, 3, axis=0)
         opaque = bg.alpha is None or bool((bg.alpha == 1.0).all())
-        if (opaque and (bg.width, bg.height) == (width, height) and layers[0]["x"] == layers[0]["y"] == 0
-                and layers[0]["opacity"] == 1.0 and layers[0]["visible"] and (c == c[:, :1, :1]).all()):
+        if (
+            opaque
+            and (bg.width, bg.height) == (width, height)
+            and layers[0]["x"] == layers[0]["y"] == 0
+            and layers[0]["opacity"] == 1.0
+            and layers[0]["visible"]
+            and (c == c[:, :1, :1]).all()
+        ):
             background = tuple(float(v) for v in c[:, 0, 0])
             layers = layers[1:]
     # Merge multiply + colour-dodge pairs; refuse lone colour-dodge layers.
@@ -322,9 +368,12 @@ def import_ora(path: str | os.PathLike, out_folder: str | os.PathLike | None = N
         if layer["blend"] == "color-dodge":
             below = merged[-1] if merged else None
             if below is None or below["blend"] != "multiply" or below.get("dodged") or not _same_geometry(below, layer):
-                raise ImageError("svg:color-dodge is supported only directly above an svg:multiply layer of the same "
-                                 "position, size, opacity and alpha (a multiplier above 1); expected one of "
-                                 + ", ".join(SVG_TO_BLEND), where=layer["where"])
+                raise ImageError(
+                    "svg:color-dodge is supported only directly above an svg:multiply layer of the same "
+                    "position, size, opacity and alpha (a multiplier above 1); expected one of "
+                    + ", ".join(SVG_TO_BLEND),
+                    where=layer["where"],
+                )
             m, d = below["image"].color, layer["image"].color
             below["values"] = m / np.maximum(1.0 - d, 1.0 / 255.0)
             below["dodged"] = True
@@ -339,15 +388,21 @@ def import_ora(path: str | os.PathLike, out_folder: str | os.PathLike | None = N
         values = layer.get("values", img.color)
         hi = max(1.0, float(np.ceil(values.max()))) if layer.get("dodged") else 1.0
         lid = _id_from(layer["src"], layer["name"], taken)
-        specs.append(dict(
-            id=lid, image=torch.from_numpy(np.ascontiguousarray(values, dtype=np.float32)),
-            alpha=torch.from_numpy(img.alpha) if img.alpha is not None else None,
-            name=layer["name"], blend=layer["blend"], opacity=layer["opacity"], visible=layer["visible"],
-            offset=(layer["x"], layer["y"]), range=(0.0, hi),
-            bit_depth=16 if layer.get("dodged") or img.header.bit_depth == 16 else 8,
-        ))
+        specs.append(
+            dict(
+                id=lid,
+                image=torch.from_numpy(np.ascontiguousarray(values, dtype=np.float32)),
+                alpha=torch.from_numpy(img.alpha) if img.alpha is not None else None,
+                name=layer["name"],
+                blend=layer["blend"],
+                opacity=layer["opacity"],
+                visible=layer["visible"],
+                offset=(layer["x"], layer["y"]),
+                range=(0.0, hi),
+                bit_depth=16 if layer.get("dodged") or img.header.bit_depth == 16 else 8,
+            )
+        )
     stack = stack_from_tensors(specs, width=width, height=height, background=background)
     if out_folder is not None:
         stack.save(out_folder)
     return stack
-

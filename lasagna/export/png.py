@@ -7,6 +7,7 @@ per mask, and ``DIR/layers.json`` listing, bottom to top, each file with what is
 values back: blend, range, offset, bit depth. Solid layers are written as rectangles of their colour;
 learned layers not rendered yet are listed without a file.
 """
+
 from __future__ import annotations
 
 import json
@@ -15,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+from lasagna.atomic import atomic_write_bytes, atomic_write_text
 from lasagna.document import LearnedLayer, SolidLayer
 from lasagna.errors import ExportError
-from lasagna.atomic import atomic_write_bytes, atomic_write_text
 from lasagna.io.png import encode_png
 from lasagna.io.stack import NOT_RENDERED, encode_layer
 
@@ -27,9 +28,16 @@ def layer_pngs(stack, *, clip: bool = False) -> tuple[dict[str, bytes], dict]:
     files: dict[str, bytes] = {}
     index = []
     for layer in stack.document.layers:
-        entry = {"id": layer.id, "name": layer.name, "kind": layer.kind, "blend": layer.blend,
-                 "range": list(layer.range), "offset": {"x": layer.offset.x, "y": layer.offset.y},
-                 "opacity": layer.opacity, "visible": layer.visible}
+        entry = {
+            "id": layer.id,
+            "name": layer.name,
+            "kind": layer.kind,
+            "blend": layer.blend,
+            "range": list(layer.range),
+            "offset": {"x": layer.offset.x, "y": layer.offset.y},
+            "opacity": layer.opacity,
+            "visible": layer.visible,
+        }
         lo, hi = layer.range
         if isinstance(layer, SolidLayer):
             w, h = (layer.size.width, layer.size.height) if layer.size else (stack.width, stack.height)
@@ -50,10 +58,13 @@ def layer_pngs(stack, *, clip: bool = False) -> tuple[dict[str, bytes], dict]:
             entry["file"] = None
             entry["note"] = NOT_RENDERED
         index.append(entry)
-    meta = {"format": "lasagna.layers", "version": 1,
-            "canvas": {"width": stack.width, "height": stack.height},
-            "values": "each PNG stores v = (y - lo) / (hi - lo) for range [lo, hi]; alpha is not mapped",
-            "layers": index}
+    meta = {
+        "format": "lasagna.layers",
+        "version": 1,
+        "canvas": {"width": stack.width, "height": stack.height},
+        "values": "each PNG stores v = (y - lo) / (hi - lo) for range [lo, hi]; alpha is not mapped",
+        "layers": index,
+    }
     return files, meta
 
 
@@ -68,6 +79,8 @@ def export_layer_pngs(stack, folder: str | os.PathLike, *, clip: bool = False) -
             written.append(folder / name)
         atomic_write_text(folder / "layers.json", json.dumps(meta, indent=2) + "\n")
     except OSError as exc:
-        raise ExportError(f"cannot write ({exc.strerror or exc}); expected a writable folder", where=str(folder)) from None
+        raise ExportError(
+            f"cannot write ({exc.strerror or exc}); expected a writable folder", where=str(folder)
+        ) from None
     written.append(folder / "layers.json")
     return written

@@ -9,20 +9,21 @@ and each dodge pair comes an opaque white DARKEN layer, min(Cb, 1): the identity
 and the clamp GIMP 2.10's float compositing otherwise skips (it keeps Cb·y > 1 for the next layer).
 The file's merged image is our exact composite, not psd-tools' own flattening.
 """
+
 from __future__ import annotations
 
 import io
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import torch
 from PIL import Image
 
+from lasagna.atomic import atomic_write_bytes
 from lasagna.errors import ExportError
 from lasagna.export.ora import composite_uint8
 from lasagna.export.rasters import export_layers
-from lasagna.atomic import atomic_write_bytes
 
 INSTALL_HINT = "pip install 'lasagna[psd]'"
 
@@ -33,8 +34,9 @@ def require_psd_tools():
         from psd_tools import PSDImage
         from psd_tools.constants import BlendMode
     except ImportError:
-        raise ExportError(f"PSD export needs psd-tools, which is not installed; expected it: {INSTALL_HINT}",
-                          where="psd") from None
+        raise ExportError(
+            f"PSD export needs psd-tools, which is not installed; expected it: {INSTALL_HINT}", where="psd"
+        ) from None
     return PSDImage, BlendMode
 
 
@@ -59,8 +61,13 @@ def _set_merged_image(psd, merged) -> None:
 def encode_psd(stack, *, composite: torch.Tensor | None = None, warn: Callable[[str], None] | None = None) -> bytes:
     """The layered 8-bit RGB PSD of ``stack`` as bytes (``composite``: the merged image, rendered if None)."""
     PSDImage, BlendMode = require_psd_tools()
-    modes = {"normal": BlendMode.NORMAL, "multiply": BlendMode.MULTIPLY, "plus": BlendMode.LINEAR_DODGE,
-             "screen": BlendMode.SCREEN, "color-dodge": BlendMode.COLOR_DODGE}
+    modes = {
+        "normal": BlendMode.NORMAL,
+        "multiply": BlendMode.MULTIPLY,
+        "plus": BlendMode.LINEAR_DODGE,
+        "screen": BlendMode.SCREEN,
+        "color-dodge": BlendMode.COLOR_DODGE,
+    }
     if composite is None:
         from lasagna.io.render import render_stack
 
@@ -74,7 +81,11 @@ def encode_psd(stack, *, composite: torch.Tensor | None = None, warn: Callable[[
     for i, layer in enumerate(layers):
         pil = Image.fromarray(layer.rgba_uint8())
         created = psd.create_pixel_layer(
-            pil, name=layer.name, top=layer.y, left=layer.x, opacity=int(round(255 * layer.opacity)),
+            pil,
+            name=layer.name,
+            top=layer.y,
+            left=layer.x,
+            opacity=int(round(255 * layer.opacity)),
             blend_mode=modes[layer.op],
         )
         created.visible = layer.visible
@@ -84,8 +95,13 @@ def encode_psd(stack, *, composite: torch.Tensor | None = None, warn: Callable[[
             # unclamped, so a layer with alpha above it would blend with that value. An opaque
             # white "darken" layer, min(Cb, 1), clamps it there and is the identity in 8/16-bit tools.
             white = Image.new("RGBA", pil.size, (255, 255, 255, 255))
-            clamp = psd.create_pixel_layer(white, name=f"{stack.layer(layer.source).name} (clamp to 1)", top=layer.y, left=layer.x,
-                                           blend_mode=BlendMode.DARKEN)
+            clamp = psd.create_pixel_layer(
+                white,
+                name=f"{stack.layer(layer.source).name} (clamp to 1)",
+                top=layer.y,
+                left=layer.x,
+                blend_mode=BlendMode.DARKEN,
+            )
             clamp.visible = layer.visible
     _set_merged_image(psd, merged)
     buf = io.BytesIO()
@@ -93,12 +109,15 @@ def encode_psd(stack, *, composite: torch.Tensor | None = None, warn: Callable[[
     return buf.getvalue()
 
 
-def export_psd(stack, path: str | os.PathLike, *, composite: torch.Tensor | None = None,
-               warn: Callable[[str], None] | None = None) -> Path:
+def export_psd(
+    stack, path: str | os.PathLike, *, composite: torch.Tensor | None = None, warn: Callable[[str], None] | None = None
+) -> Path:
     """Write ``stack`` as a layered PSD at ``path`` (atomically); returns the path."""
     data = encode_psd(stack, composite=composite, warn=warn)
     try:
         atomic_write_bytes(path, data)
     except OSError as exc:
-        raise ExportError(f"cannot write ({exc.strerror or exc}); expected a writable location", where=str(path)) from None
+        raise ExportError(
+            f"cannot write ({exc.strerror or exc}); expected a writable location", where=str(path)
+        ) from None
     return Path(path)

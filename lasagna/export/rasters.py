@@ -26,11 +26,12 @@ target cannot express exactly:
 
 Every raster is cropped to the canvas (layers may lie partly outside), with its offset adjusted.
 """
+
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch
@@ -86,7 +87,10 @@ def _layer_raster(stack, layer) -> tuple[np.ndarray, np.ndarray] | None:
         return None
     color = t.color.detach().cpu().double().numpy()
     if color.ndim != 3:
-        raise ExportError(f"colour has shape {tuple(color.shape)}; expected (C, h, w) (no batch) to export", where=f"layer {layer.id!r}")
+        raise ExportError(
+            f"colour has shape {tuple(color.shape)}; expected (C, h, w) (no batch) to export",
+            where=f"layer {layer.id!r}",
+        )
     h, w = color.shape[1:]
     alpha = np.ones((1, h, w)) if t.alpha is None else t.alpha.detach().cpu().double().numpy().reshape(1, h, w)
     if t.mask is not None:
@@ -137,8 +141,11 @@ def export_layers(stack, composite, *, target: str, warn: Callable[[str], None] 
     if stack.document.clamp == "output" and _clamp_matters(stack, composite):
         inexact.append("clamp='output' (intermediate values outside [0, 1]; paint programs clamp after every layer)")
     if inexact:
-        _warn(warn, f"{target} cannot express {'; '.join(inexact)}: the layers are written as they are, and a top layer "
-              f"{COMPOSITE_NAME!r} holds the exact composite so the file flattens to it (hide it to edit the layers)")
+        _warn(
+            warn,
+            f"{target} cannot express {'; '.join(inexact)}: the layers are written as they are, and a top layer "
+            f"{COMPOSITE_NAME!r} holds the exact composite so the file flattens to it (hide it to edit the layers)",
+        )
         layers.append(composite_layer(np.asarray(composite, dtype=np.float64)))
     return layers
 
@@ -169,7 +176,9 @@ def _layers(stack, target: str, warn) -> tuple[list[ExportLayer], list[str]]:
         color, alpha = raster
         bad = int((~np.isfinite(color)).sum() + (~np.isfinite(alpha)).sum())
         if bad:
-            raise ExportError(f"{bad} values are NaN or infinite; expected finite values to export", where=f"layer {layer.id!r}")
+            raise ExportError(
+                f"{bad} values are NaN or infinite; expected finite values to export", where=f"layer {layer.id!r}"
+            )
         if color.shape[0] == 1:
             color = np.repeat(color, 3, axis=0)  # a 1-channel multiplier is written as gray in RGB
         cropped = _crop(color, alpha, layer.offset.x, layer.offset.y, W, H)
@@ -190,8 +199,15 @@ def _layers(stack, target: str, warn) -> tuple[list[ExportLayer], list[str]]:
                 common.update(alpha=np.ones_like(alpha), opacity=1.0)
             out.append(ExportLayer(layer.name, layer.id, "multiply", color=np.minimum(color, 1.0), **common))
             if float(color.max(initial=0.0)) > 1.0:
-                out.append(ExportLayer(f"{layer.name} (colour dodge: values above 1)", f"_dodge/{layer.id}", "color-dodge",
-                                       color=dodge_codes(color), **common))
+                out.append(
+                    ExportLayer(
+                        f"{layer.name} (colour dodge: values above 1)",
+                        f"_dodge/{layer.id}",
+                        "color-dodge",
+                        color=dodge_codes(color),
+                        **common,
+                    )
+                )
         elif layer.blend == "plus":
             if fractional:
                 # Paint programs clamp inside the blend, Cb + α(min(1, Cb + Cs) − Cb), where the
@@ -205,6 +221,8 @@ def _layers(stack, target: str, warn) -> tuple[list[ExportLayer], list[str]]:
                 out.append(ExportLayer(name, key, "plus", color=np.clip(color - k, 0.0, 1.0), **common))
         else:
             if float(color.max(initial=0.0)) > 1.0:
-                inexact.append(f"the values above 1 of {layer.blend} layer {layer.id!r} (max {color.max():.4g}; written as 1)")
+                inexact.append(
+                    f"the values above 1 of {layer.blend} layer {layer.id!r} (max {color.max():.4g}; written as 1)"
+                )
             out.append(ExportLayer(layer.name, layer.id, layer.blend, color=np.minimum(color, 1.0), **common))
     return out, inexact

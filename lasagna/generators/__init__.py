@@ -7,11 +7,20 @@
 
 Both are called ``model(base, labels) -> layer`` and saved as ``model.safetensors`` + ``config.json``.
 """
+
 from lasagna.generators.free import FreeLayer, FreeLayerConfig
 from lasagna.generators.layer import LayerSpec, activate, clamp_inward, composite, inverse, split
 from lasagna.generators.unet import LayerGenerator, LayerGeneratorConfig
 
 __all__ = [
-    "FreeLayer", "FreeLayerConfig", "LayerGenerator", "LayerGeneratorConfig", "LayerSpec",
-    "activate", "clamp_inward", "composite", "inverse", "split",
+    "FreeLayer",
+    "FreeLayerConfig",
+    "LayerGenerator",
+    "LayerGeneratorConfig",
+    "LayerSpec",
+    "activate",
+    "clamp_inward",
+    "composite",
+    "inverse",
+    "split",
 ]

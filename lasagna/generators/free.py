@@ -7,10 +7,10 @@ the distillation loop (both are called ``model(base, labels)``; the free layer i
 ``FreeLayer.from_layer`` starts from given layer values instead (e.g. an amortised generator's
 output, refined per image).
 """
+
 from __future__ import annotations
 
-import os
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
@@ -51,7 +51,7 @@ class FreeLayer(Pretrained, nn.Module):
         return self.config.layer
 
     @classmethod
-    def from_layer(cls, spec: LayerSpec, layer: Tensor) -> "FreeLayer":
+    def from_layer(cls, spec: LayerSpec, layer: Tensor) -> FreeLayer:
         """A free layer whose values start at ``layer`` (B, C, H, W) (``layer.inverse``; sigmoid channels
         are exact up to ``numerics.LOGIT_EPS`` at the range's ends)."""
         if layer.dim() != 4:
@@ -65,7 +65,12 @@ class FreeLayer(Pretrained, nn.Module):
     def forward(self, base: Tensor | None = None, labels: Tensor | Sequence[str] | str | None = None) -> Tensor:
         """The layer (B, C, H, W). ``base``, if given, must have this layer's batch and size."""
         cfg = self.config
-        if base is not None and (base.dim() != 4 or base.shape[0] != cfg.batch or tuple(base.shape[-2:]) != (cfg.height, cfg.width)):
-            raise LasagnaError(f"base has shape {tuple(base.shape)}; expected ({cfg.batch}, C, {cfg.height}, {cfg.width}) like this free layer", "base")
+        if base is not None and (
+            base.dim() != 4 or base.shape[0] != cfg.batch or tuple(base.shape[-2:]) != (cfg.height, cfg.width)
+        ):
+            raise LasagnaError(
+                f"base has shape {tuple(base.shape)}; expected ({cfg.batch}, C, {cfg.height}, {cfg.width}) like this "
+                "free layer",
+                "base",
+            )
         return activate(self.u, cfg.layer)
-

@@ -31,6 +31,7 @@ the blend's own identity (a per-pixel dead lock; it remains only where the base 
 clamp would zero the gradient of every saturated pixel, so a multiplier that overshoots could never
 be pulled back by the prior). The caller clamps once for output (the document's ``clamp="output"``).
 """
+
 from __future__ import annotations
 
 import math
@@ -58,26 +59,39 @@ class LayerSpec(BaseModel):
 
     blend: BlendMode = Field(description="The blend the layer is composed with.")
     channels: Literal[1, 3, 4] = Field(description="1 gray (broadcast over RGB), 3 RGB, 4 RGBA (alpha last).")
-    range: tuple[float, float] = Field((0.0, 1.0), description="[lo, hi] of the colour values (alpha is always [0, 1]).")
-    squash: Squash = Field("auto", description="sigmoid, clamp (inward-gradient clamp) or auto (see the module docstring).")
+    range: tuple[float, float] = Field(
+        (0.0, 1.0), description="[lo, hi] of the colour values (alpha is always [0, 1])."
+    )
+    squash: Squash = Field(
+        "auto", description="sigmoid, clamp (inward-gradient clamp) or auto (see the module docstring)."
+    )
 
     @model_validator(mode="after")
-    def _rules(self) -> "LayerSpec":
+    def _rules(self) -> LayerSpec:
         lo, hi = self.range
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise ValueError(f"range [{lo}, {hi}]: expected finite lo < hi")
         if (lo, hi) != (0.0, 1.0) and self.blend not in RANGED_BLENDS:
-            raise ValueError(f"range [{lo}, {hi}] with blend {self.blend!r}: a range other than [0, 1] is allowed only for multiply and plus")
+            raise ValueError(
+                f"range [{lo}, {hi}] with blend {self.blend!r}: a range other than [0, 1] is allowed only for "
+                "multiply and plus"
+            )
         if self.channels != 4:
             if self.blend == "normal":
-                raise ValueError("blend 'normal' without alpha replaces the base, so no layer value is the identity edit; expected channels 4 (RGBA)")
+                raise ValueError(
+                    "blend 'normal' without alpha replaces the base, so no layer value is the identity edit; "
+                    "expected channels 4 (RGBA)"
+                )
             ident = _IDENTITY_COLOUR[self.blend]
             if not lo <= ident <= hi:
-                raise ValueError(f"range [{lo}, {hi}] does not contain {ident}, the identity value of blend {self.blend!r}; expected a range that does")
+                raise ValueError(
+                    f"range [{lo}, {hi}] does not contain {ident}, the identity value of blend {self.blend!r}; "
+                    "expected a range that does"
+                )
         return self
 
     @classmethod
-    def from_preset(cls, preset, squash: Squash = "auto") -> "LayerSpec":
+    def from_preset(cls, preset, squash: Squash = "auto") -> LayerSpec:
         """The spec of a ``lasagna.document.Preset`` (blend, channels, range)."""
         return cls(blend=preset.blend, channels=preset.channels, range=tuple(preset.range), squash=squash)
 
@@ -119,7 +133,9 @@ class LayerSpec(BaseModel):
                 out.append(IDENTITY_LOGIT if v >= 1.0 else -IDENTITY_LOGIT)
         return torch.tensor(out, dtype=torch.float64)
 
-    def identity_layer(self, batch: int, height: int, width: int, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
+    def identity_layer(
+        self, batch: int, height: int, width: int, dtype: torch.dtype = torch.float32, device=None
+    ) -> Tensor:
         """The identity edit's layer values (B, C, H, W) (the exact y₀, not the squashed u₀)."""
         y0 = torch.tensor([p[3] for p in self.channel_plan()], dtype=dtype, device=device)
         return y0.view(1, -1, 1, 1).expand(batch, -1, height, width).clone()
@@ -156,7 +172,7 @@ def activate(u: Tensor, spec: LayerSpec) -> Tensor:
     parts = []
     start = 0
     for squash, lo, hi, count in _groups(spec):
-        x = u[:, start:start + count]
+        x = u[:, start : start + count]
         s = torch.sigmoid(x) if squash == "sigmoid" else clamp_inward(x, 0.0, 1.0)
         parts.append(s if (lo, hi) == (0.0, 1.0) else lo + (hi - lo) * s)
         start += count
@@ -171,11 +187,15 @@ def inverse(y: Tensor, spec: LayerSpec) -> Tensor:
         raise LasagnaError(f"layer has shape {tuple(y.shape)}; expected (B, {spec.channels}, H, W)", "layer")
     parts, start = [], 0
     for squash, lo, hi, count in _groups(spec):
-        x = y[:, start:start + count]
+        x = y[:, start : start + count]
         v = (x - lo) / (hi - lo)
         bad = ~((v >= -1e-6) & (v <= 1 + 1e-6))
         if bool(bad.any()):
-            raise LasagnaError(f"layer values outside [{lo}, {hi}] (e.g. {float(x[bad][0]):.4g}); expected values in the layer's range", "layer")
+            raise LasagnaError(
+                f"layer values outside [{lo}, {hi}] (e.g. {float(x[bad][0]):.4g}); expected values in the layer's "
+                "range",
+                "layer",
+            )
         v = v.clamp(0.0, 1.0)
         parts.append(torch.logit(v, eps=LOGIT_EPS) if squash == "sigmoid" else v)
         start += count

@@ -23,10 +23,11 @@ Any H, W works: sides that are not multiples of 2^(levels − 1) are padded (rep
 and the output is cropped back. Widths (16, 32, 64, 128) with two blocks per level: ≈ 0.53 M
 parameters, a cheap 32² forward.
 """
+
 from __future__ import annotations
 
-import os
-from typing import Literal, Sequence
+from collections.abc import Sequence
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -48,7 +49,9 @@ class LayerGeneratorConfig(BaseModel):
 
     layer: LayerSpec = Field(description="The edit layer it produces (blend, channels, range, squash).")
     vocabulary: tuple[str, ...] = Field(min_length=1, description="Condition labels, in index order.")
-    channels: tuple[int, ...] = Field((16, 32, 64, 128), min_length=1, description="Feature widths per level; the last is the bottleneck.")
+    channels: tuple[int, ...] = Field(
+        (16, 32, 64, 128), min_length=1, description="Feature widths per level; the last is the bottleneck."
+    )
     blocks: int = Field(2, ge=1, description="Conv3×3+SiLU blocks per level.")
     condition: Literal["frequency", "embedding"] = Field("frequency", description="How the label enters each pixel.")
     num_freqs: int = Field(5, ge=1, description="Frequencies of the label's frequency encoding (2·num_freqs dims).")
@@ -70,7 +73,7 @@ class LayerGeneratorConfig(BaseModel):
         return v
 
     @classmethod
-    def for_preset(cls, preset, **overrides) -> "LayerGeneratorConfig":
+    def for_preset(cls, preset, **overrides) -> LayerGeneratorConfig:
         """A config producing ``preset``'s layer, conditioned on its vocabulary."""
         return cls(layer=LayerSpec.from_preset(preset), vocabulary=tuple(preset.vocabulary), **overrides)
 
@@ -96,7 +99,9 @@ class LayerGenerator(Pretrained, nn.Module):
         super().__init__()
         self.config = config
         ch = config.channels
-        self.label_emb = nn.Embedding(len(config.vocabulary), config.label_dim) if config.condition == "embedding" else None
+        self.label_emb = (
+            nn.Embedding(len(config.vocabulary), config.label_dim) if config.condition == "embedding" else None
+        )
         self.enc = nn.ModuleList()
         prev = config.base_channels + config.condition_dim
         for c in ch:
@@ -120,7 +125,9 @@ class LayerGenerator(Pretrained, nn.Module):
             if idx.numel() == 1:
                 idx = idx.expand(batch)
             if idx.shape != (batch,) or bool(((idx < 0) | (idx >= len(vocab))).any()):
-                raise ConditionError(f"label indices {idx.tolist()}; expected {batch} indices in [0, {len(vocab) - 1}]", "labels")
+                raise ConditionError(
+                    f"label indices {idx.tolist()}; expected {batch} indices in [0, {len(vocab) - 1}]", "labels"
+                )
             return idx
         names = [labels] * batch if isinstance(labels, str) else list(labels)
         if len(names) == 1:
@@ -171,4 +178,3 @@ class LayerGenerator(Pretrained, nn.Module):
     def forward(self, base: Tensor, labels: Tensor | Sequence[str] | str) -> Tensor:
         """The edit layer (B, C, H, W) for base (B, 3, H, W) in [0, 1] and the labels."""
         return activate(self.raw(base, labels), self.spec)
-

@@ -8,17 +8,30 @@
 Names are imported lazily: the document tier writes through ``lasagna.atomic`` and must not pull
 in torch (which ``stack`` and ``render`` need) by importing this package.
 """
+
 from __future__ import annotations
 
 import importlib
 from typing import Any
 
 _EXPORTS = {
-    "atomic_path": "atomic", "atomic_write_bytes": "atomic", "atomic_write_text": "atomic",
-    "DEFAULT_MAX_PIXELS": "png", "PngHeader": "png", "PngImage": "png", "read_png": "png", "decode_png": "png",
-    "write_png": "png", "encode_png": "png", "read_png_header": "png",
-    "Stack": "stack", "load_stack": "stack", "save_stack": "stack", "stack_from_tensors": "stack",
-    "render_stack": "render", "write_composite": "render",
+    "atomic_path": "atomic",
+    "atomic_write_bytes": "atomic",
+    "atomic_write_text": "atomic",
+    "DEFAULT_MAX_PIXELS": "png",
+    "PngHeader": "png",
+    "PngImage": "png",
+    "read_png": "png",
+    "decode_png": "png",
+    "write_png": "png",
+    "encode_png": "png",
+    "read_png_header": "png",
+    "Stack": "stack",
+    "load_stack": "stack",
+    "save_stack": "stack",
+    "stack_from_tensors": "stack",
+    "render_stack": "render",
+    "write_composite": "render",
 }
 
 __all__ = sorted(_EXPORTS)

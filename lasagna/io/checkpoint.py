@@ -20,12 +20,14 @@ config as JSON) and Adam's scalars in the metadata: a checkpoint is a single ato
 leaves the previous one intact. A **run folder** records its config in ``train_config.json``
 (``check_same_run``), so that resuming with another config is refused.
 """
+
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping
 from pathlib import Path
-from typing import ClassVar, Mapping, TypeVar
+from typing import ClassVar, TypeVar
 
 import torch
 from pydantic import BaseModel, ValidationError
@@ -33,8 +35,8 @@ from safetensors import safe_open
 from safetensors.torch import save as _st_save
 from torch import nn
 
-from lasagna.errors import LasagnaError, describe_validation_error
 from lasagna.atomic import atomic_write_bytes, atomic_write_text
+from lasagna.errors import LasagnaError, describe_validation_error
 
 WEIGHTS_NAME = "model.safetensors"
 CONFIG_NAME = "config.json"
@@ -48,13 +50,17 @@ RESUMABLE = frozenset({"steps", "max_minutes", "progress", "checkpoint_every", "
 C = TypeVar("C", bound=BaseModel)
 
 
-def save_tensors(path: str | os.PathLike, tensors: Mapping[str, torch.Tensor], metadata: Mapping[str, str] | None = None) -> None:
+def save_tensors(
+    path: str | os.PathLike, tensors: Mapping[str, torch.Tensor], metadata: Mapping[str, str] | None = None
+) -> None:
     """Write tensors (moved to CPU, made contiguous) and string metadata to one safetensors file, atomically."""
     flat = {k: v.detach().to("cpu").contiguous() for k, v in tensors.items()}
     atomic_write_bytes(path, _st_save(flat, metadata=dict(metadata or {})))
 
 
-def load_tensors(path: str | os.PathLike, device: str | torch.device = "cpu") -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+def load_tensors(
+    path: str | os.PathLike, device: str | torch.device = "cpu"
+) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
     """Read a safetensors file: (tensors, metadata). A missing or corrupt file is a LasagnaError naming it."""
     p = Path(path)
     if not p.is_file():
@@ -64,7 +70,9 @@ def load_tensors(path: str | os.PathLike, device: str | torch.device = "cpu") ->
             meta = dict(fh.metadata() or {})
             tensors = {k: fh.get_tensor(k) for k in fh.keys()}
     except Exception as exc:  # safetensors raises its own error types for truncated/corrupt headers
-        raise LasagnaError(f"cannot read safetensors ({type(exc).__name__}: {exc}); expected an intact file", str(p)) from None
+        raise LasagnaError(
+            f"cannot read safetensors ({type(exc).__name__}: {exc}); expected an intact file", str(p)
+        ) from None
     return tensors, meta
 
 
@@ -82,7 +90,9 @@ def read_config(directory: str | os.PathLike, kind: str, model: type[C]) -> C:
     """Parse ``directory/config.json`` into ``model``, checking the format name and version."""
     path = Path(directory) / CONFIG_NAME
     if not path.is_file():
-        raise LasagnaError(f"{CONFIG_NAME} not found; expected a folder written by save_pretrained", str(Path(directory)))
+        raise LasagnaError(
+            f"{CONFIG_NAME} not found; expected a folder written by save_pretrained", str(Path(directory))
+        )
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -98,7 +108,9 @@ def read_config(directory: str | os.PathLike, kind: str, model: type[C]) -> C:
         raise describe_validation_error(exc, str(path), prefix="config") from None
 
 
-def load_weights(directory: str | os.PathLike, module: nn.Module, kind: str, device: str | torch.device = "cpu") -> None:
+def load_weights(
+    directory: str | os.PathLike, module: nn.Module, kind: str, device: str | torch.device = "cpu"
+) -> None:
     """Load ``directory/model.safetensors`` into ``module`` strictly (names and shapes must match)."""
     path = Path(directory) / WEIGHTS_NAME
     tensors, meta = load_tensors(path, device)
@@ -115,12 +127,15 @@ def load_state_strict(module: nn.Module, tensors: Mapping[str, torch.Tensor], wh
     if missing or unexpected:
         raise LasagnaError(
             f"weights do not match the config: missing {missing[:4]}{'…' if len(missing) > 4 else ''}, "
-            f"unexpected {unexpected[:4]}{'…' if len(unexpected) > 4 else ''}; expected exactly the model's {len(own)} tensors",
+            f"unexpected {unexpected[:4]}{'…' if len(unexpected) > 4 else ''}; expected exactly the model's "
+            f"{len(own)} tensors",
             where,
         )
     for name, value in own.items():
         if tuple(tensors[name].shape) != tuple(value.shape):
-            raise LasagnaError(f"tensor {name} has shape {tuple(tensors[name].shape)}; expected {tuple(value.shape)}", where)
+            raise LasagnaError(
+                f"tensor {name} has shape {tuple(tensors[name].shape)}; expected {tuple(value.shape)}", where
+            )
     module.load_state_dict(dict(tensors), strict=True)
 
 
@@ -139,7 +154,9 @@ class Pretrained:
         return save_pretrained(directory, self, self.config, self.FORMAT)  # type: ignore[arg-type, attr-defined]
 
     @classmethod
-    def from_pretrained(cls, directory: str | os.PathLike, device: str | torch.device = "cpu", dtype: torch.dtype | None = None):
+    def from_pretrained(
+        cls, directory: str | os.PathLike, device: str | torch.device = "cpu", dtype: torch.dtype | None = None
+    ):
         """Rebuild the network from its config and load its weights; returned in eval mode."""
         model = cls(read_config(directory, cls.FORMAT, cls.CONFIG))  # type: ignore[call-arg]
         load_weights(directory, model, cls.FORMAT)

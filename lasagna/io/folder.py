@@ -51,7 +51,9 @@ def check_output_folder(out: str | os.PathLike, *, force: bool = False) -> Path:
         raise PathError("exists and is not a folder; expected a folder to write the stack into", str(out))
     if out.is_dir() and any(out.iterdir()):
         if not force:
-            raise PathError("is not empty; expected a new or empty folder (or --force to replace a stack folder)", str(out))
+            raise PathError(
+                "is not empty; expected a new or empty folder (or --force to replace a stack folder)", str(out)
+            )
         if not (out / "stack.json").is_file():
             raise PathError("is not empty and holds no stack.json; --force replaces only a stack folder", str(out))
     _check_place(out.parent, str(out))

@@ -12,6 +12,7 @@ Values are channels first: ``color`` (C, h, w) with C = 1 (gray) or 3 (RGB), ``a
 None. A PNG stores unsigned integers q in [0, 2^d − 1]; the value is q / (2^d − 1). Writing rounds
 v · (2^d − 1) to nearest; values outside [0, 1] or NaN are an error unless the caller asks to clip.
 """
+
 from __future__ import annotations
 
 import io
@@ -25,8 +26,8 @@ import numpy as np
 import png as pypng
 from PIL import Image
 
-from lasagna.errors import ImageError
 from lasagna.atomic import atomic_write_bytes
+from lasagna.errors import ImageError
 
 # Pixels beyond which a PNG is refused before decoding. 2^28 (16384²) float32 RGBA pixels are 4 GiB:
 # anything larger is not a layer a CPU session can composite, and is what decompression bombs claim.
@@ -149,12 +150,15 @@ def read_png_header(path: str | os.PathLike) -> PngHeader:
     return parse_header(head, where)
 
 
-def check_size(header: PngHeader, where: str, max_pixels: int = DEFAULT_MAX_PIXELS, max_side: int | None = None) -> None:
+def check_size(
+    header: PngHeader, where: str, max_pixels: int = DEFAULT_MAX_PIXELS, max_side: int | None = None
+) -> None:
     """Refuse an image larger than ``max_pixels`` (or wider/taller than ``max_side``) before decoding."""
     if header.pixels > max_pixels:
         raise ImageError(
             f"image is {header.width}x{header.height} = {header.pixels} pixels, over the limit of {max_pixels} "
-            f"(decompression-bomb guard); expected at most {max_pixels} pixels (raise max_pixels, or --max-pixels, if this is intended)",
+            f"(decompression-bomb guard); expected at most {max_pixels} pixels (raise max_pixels, or --max-pixels, "
+            "if this is intended)",
             where=where,
         )
     if max_side is not None and max(header.width, header.height) > max_side:
@@ -249,7 +253,9 @@ def decode_png(
     except ImageError:
         raise
     except (OSError, ValueError, SyntaxError, pypng.Error, zlib.error) as exc:
-        raise _fail(where, f"cannot decode PNG ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+        raise _fail(
+            where, f"cannot decode PNG ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+        ) from None
 
 
 def read_png(path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS, max_side: int | None = None) -> PngImage:
@@ -332,7 +338,9 @@ def quantize(values, bit_depth: BitDepth, where: str, *, clip: bool = False) -> 
     """Round values in [0, 1] to unsigned integer codes; out-of-range or NaN values are an error."""
     v = _as_numpy(values)
     if not np.isfinite(v).all():
-        raise ImageError(f"{int((~np.isfinite(v)).sum())} values are NaN or infinite; expected finite values in [0, 1]", where=where)
+        raise ImageError(
+            f"{int((~np.isfinite(v)).sum())} values are NaN or infinite; expected finite values in [0, 1]", where=where
+        )
     if clip:
         v = np.clip(v, 0.0, 1.0)
     elif v.size and (v.min() < 0.0 or v.max() > 1.0):
@@ -381,4 +389,6 @@ def write_png(path: str | os.PathLike, color, alpha=None, *, bit_depth: BitDepth
     try:
         atomic_write_bytes(path, data)
     except OSError as exc:
-        raise ImageError(f"cannot write file ({exc.strerror or type(exc).__name__}); expected a writable location", where=str(path)) from None
+        raise ImageError(
+            f"cannot write file ({exc.strerror or type(exc).__name__}); expected a writable location", where=str(path)
+        ) from None

@@ -6,6 +6,7 @@ renders it; learned layers that have no pixels yet are reported in ``skipped`` a
 8-bit sRGB PNG: values clamped to [0, 1] (whatever the document's clamp policy, quantising needs
 it) and rounded to nearest, written atomically.
 """
+
 from __future__ import annotations
 
 import os
@@ -20,7 +21,7 @@ from lasagna.io.png import write_png
 
 
 def render_stack(stack, dtype: torch.dtype = torch.float32, *, cull: bool = True) -> RenderResult:
-    """Composite ``stack`` (a :class:`~lasagna.io.stack.Stack`) into ``RenderResult(image (3, H, W), skipped, evaluated)``.
+    """Composite ``stack`` (a ``lasagna.io.stack.Stack``) into ``RenderResult(image (3, H, W), skipped, evaluated)``.
 
     Solid layers are built by the plan in ``dtype``, range-mapped like a PNG's values (the document's rule)."""
     plan = plan_from_document(stack.document, stack.tensors, cull=cull, dtype=dtype)
@@ -41,8 +42,10 @@ def write_composite(result: RenderResult | torch.Tensor, path: str | os.PathLike
     """Write a composite (a ``RenderResult`` or an image (3, H, W)) as an 8-bit sRGB PNG, atomically."""
     image = result.image if isinstance(result, RenderResult) else result
     if image.ndim != 3 or image.shape[0] != 3:
-        raise ImageError(f"composite has shape {tuple(image.shape)}; expected (3, H, W) (render one stack, not a batch)",
-                         where=str(path))
+        raise ImageError(
+            f"composite has shape {tuple(image.shape)}; expected (3, H, W) (render one stack, not a batch)",
+            where=str(path),
+        )
     codes = composite_codes(image)
     if bool(torch.isnan(image.detach()).any()):
         raise ImageError("composite contains NaN; expected finite layer values", where=str(path))

@@ -11,25 +11,38 @@ are values y* (a shading tensor in [0, 2] is given as is), channels first (C, h,
 *PIL images and integer arrays are stored codes v*, exactly as a PNG in the folder would be.
 C = 1 gray, 2 gray+alpha, 3 RGB, 4 RGBA.
 """
+
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 
+from lasagna.atomic import atomic_write_bytes
 from lasagna.compose.layer import LayerTensors
 from lasagna.document import (
-    Document, LearnedLayer, PixelsLayer, SolidLayer, load_document, save_document, stack_file,
+    Document,
+    LearnedLayer,
+    PixelsLayer,
+    SolidLayer,
+    load_document,
+    save_document,
+    stack_file,
 )
-from lasagna.errors import DocumentError, ImageError, LasagnaError, PathError
+from lasagna.errors import DocumentError, ImageError, PathError
 from lasagna.io.png import (
-    DEFAULT_MAX_PIXELS, PngImage, check_size, encode_png, read_png, read_png_header,
+    DEFAULT_MAX_PIXELS,
+    PngImage,
+    check_size,
+    encode_png,
+    read_png,
+    read_png_header,
 )
-from lasagna.atomic import atomic_write_bytes
 from lasagna.io.render import render_stack
 from lasagna.numerics import RANGE_SAVE_TOLERANCE
 
@@ -94,13 +107,17 @@ class Stack:
     @property
     def not_rendered(self) -> dict[str, str]:
         """Learned layers without pixels yet: id → reason (composite skips them)."""
-        return {l.id: NOT_RENDERED for l in self.document.layers if l.id not in self.tensors and isinstance(l, LearnedLayer)}
+        return {
+            layer.id: NOT_RENDERED
+            for layer in self.document.layers
+            if layer.id not in self.tensors and isinstance(layer, LearnedLayer)
+        }
 
     def layer(self, id: str):
         return self.document.layer(id)
 
     def __repr__(self) -> str:
-        layers = ", ".join(f"{l.id}:{l.kind}/{l.blend}" for l in self.document.layers)
+        layers = ", ".join(f"{layer.id}:{layer.kind}/{layer.blend}" for layer in self.document.layers)
         return f"Stack({self.width}x{self.height}, {self.document.blend_space}, [{layers}], folder={self.folder})"
 
     # ---- building ---------------------------------------------------------------------------------
@@ -119,7 +136,7 @@ class Stack:
         clamp: str = "layer",
         metadata: Mapping[str, Any] | None = None,
         **fields: Any,
-    ) -> "Stack":
+    ) -> Stack:
         """A stack whose canvas is ``image``'s size, with ``image`` as its bottom pixels layer ``id``.
 
         ``fields`` are the layer's document fields, as for :meth:`add_layer`.
@@ -127,13 +144,18 @@ class Stack:
         range_ = tuple(fields.get("range", (0.0, 1.0)))
         color, a = image_to_tensors(image, range_, where=f"layer {id!r}", alpha=alpha)
         h, w = color.shape[-2:]
-        doc = Document.from_dict({
-            "format": "lasagna.stack", "version": 1,
-            "canvas": {"width": int(w), "height": int(h), "background": [float(c) for c in background]},
-            "blend_space": blend_space, "clamp": clamp,
-            "layers": [_layer_dict(id, "pixels", fields, has_mask=mask is not None)],
-            "metadata": dict(metadata or {}),
-        }, where="Stack.from_image")
+        doc = Document.from_dict(
+            {
+                "format": "lasagna.stack",
+                "version": 1,
+                "canvas": {"width": int(w), "height": int(h), "background": [float(c) for c in background]},
+                "blend_space": blend_space,
+                "clamp": clamp,
+                "layers": [_layer_dict(id, "pixels", fields, has_mask=mask is not None)],
+                "metadata": dict(metadata or {}),
+            },
+            where="Stack.from_image",
+        )
         tensors = _make_tensors(id, color, a, mask, bit_depth)
         stack = cls(doc)
         stack._store(id, tensors, bit_depth)
@@ -149,7 +171,7 @@ class Stack:
         index: int | None = None,
         bit_depth: int | None = None,
         **fields: Any,
-    ) -> "Stack":
+    ) -> Stack:
         """Add (on top, or at ``index``) or replace the pixels layer ``id``; returns ``self``.
 
         ``fields`` are document fields: ``blend``, ``opacity``, ``visible``, ``offset`` ({x, y} or
@@ -162,8 +184,9 @@ class Stack:
         tensors = _make_tensors(id, color, a, mask, bit_depth)
         existing = self.document.layer(id) if id in self.ids else None
         if existing is not None and not isinstance(existing, PixelsLayer):
-            raise DocumentError(f"layer {id!r} is a {existing.kind} layer; expected set_pixels for it, or a new id",
-                                where="add_layer")
+            raise DocumentError(
+                f"layer {id!r} is a {existing.kind} layer; expected set_pixels for it, or a new id", where="add_layer"
+            )
         source = existing.source if existing is not None else None
         layer = _layer_dict(id, "pixels", fields, has_mask=mask is not None, source=source)
         self.document = (
@@ -172,7 +195,7 @@ class Stack:
         self._store(id, tensors, bit_depth)
         return self
 
-    def add_solid(self, id: str, color: Sequence[float], *, index: int | None = None, **fields: Any) -> "Stack":
+    def add_solid(self, id: str, color: Sequence[float], *, index: int | None = None, **fields: Any) -> Stack:
         """Add a solid layer (RGB or RGBA ``color`` in [0, 1]; optional ``size`` {width, height})."""
         layer = _layer_dict(id, "solid", fields, has_mask=False)
         layer["color"] = [float(c) for c in color]
@@ -183,7 +206,7 @@ class Stack:
         self.tensors.pop(id, None)
         return self
 
-    def set_pixels(self, id: str, image, *, alpha=None, mask=None, bit_depth: int | None = None) -> "Stack":
+    def set_pixels(self, id: str, image, *, alpha=None, mask=None, bit_depth: int | None = None) -> Stack:
         """Give the existing pixels or learned layer ``id`` new pixels (a learned layer gets a ``source``)."""
         layer = self.document.layer(id)
         if isinstance(layer, SolidLayer):
@@ -201,7 +224,7 @@ class Stack:
         self._store(id, tensors, bit_depth)
         return self
 
-    def remove_layer(self, id: str) -> "Stack":
+    def remove_layer(self, id: str) -> Stack:
         """Remove layer ``id`` with its tensors; a ``DocumentError`` if a learned layer is conditioned on it."""
         self.document = self.document.without_layer(id)
         self.tensors.pop(id, None)
@@ -240,7 +263,9 @@ def _make_tensors(id: str, color: torch.Tensor, alpha, mask, bit_depth: int | No
     return LayerTensors(color, alpha, m)
 
 
-def _layer_dict(id: str, kind: str, fields: Mapping[str, Any], *, has_mask: bool, source: str | None = None) -> dict[str, Any]:
+def _layer_dict(
+    id: str, kind: str, fields: Mapping[str, Any], *, has_mask: bool, source: str | None = None
+) -> dict[str, Any]:
     allowed = {"name", "blend", "opacity", "visible", "offset", "range"} | ({"size"} if kind == "solid" else set())
     unknown = set(fields) - allowed
     if unknown:
@@ -300,11 +325,15 @@ def _channels_first(image, where: str) -> tuple[torch.Tensor, bool]:
     if t.ndim == 2:
         t = t[None]
     if t.ndim != 3 or t.shape[0] not in (1, 2, 3, 4) or t.shape[1] < 1 or t.shape[2] < 1:
-        raise ImageError(f"shape {tuple(t.shape)}; expected (C, h, w) or (h, w) with C in 1..4, channels first", where=where)
+        raise ImageError(
+            f"shape {tuple(t.shape)}; expected (C, h, w) or (h, w) with C in 1..4, channels first", where=where
+        )
     return t, codes
 
 
-def image_to_tensors(image, range_: tuple[float, float], *, where: str, alpha=None) -> tuple[torch.Tensor, torch.Tensor | None]:
+def image_to_tensors(
+    image, range_: tuple[float, float], *, where: str, alpha=None
+) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Colour (C, h, w), C ∈ {1, 3}, of values y and alpha (1, h, w) or None, from a caller's image.
 
     C = 2 or 4 means gray+alpha or RGBA; alpha is never range-mapped. Codes (PIL images, integer
@@ -320,10 +349,14 @@ def image_to_tensors(image, range_: tuple[float, float], *, where: str, alpha=No
         a = a.float() if a is not None else None
     if alpha is not None:
         if a is not None:
-            raise ImageError("image already has an alpha channel and alpha= was given; expected one of them", where=where)
+            raise ImageError(
+                "image already has an alpha channel and alpha= was given; expected one of them", where=where
+            )
         a = mask_to_tensor(alpha, where=f"{where} alpha")
         if a.shape[-2:] != color.shape[-2:]:
-            raise ImageError(f"alpha is {a.shape[-1]}x{a.shape[-2]}; expected {color.shape[-1]}x{color.shape[-2]}", where=where)
+            raise ImageError(
+                f"alpha is {a.shape[-1]}x{a.shape[-2]}; expected {color.shape[-1]}x{color.shape[-2]}", where=where
+            )
     return color, a
 
 
@@ -357,7 +390,7 @@ def stack_from_tensors(
     """
     if not layers:
         raise DocumentError("no layers given; expected at least one", where="stack_from_tensors")
-    specs = [dict(id=l[0], image=l[1]) if isinstance(l, tuple) else dict(l) for l in layers]
+    specs = [dict(id=layer[0], image=layer[1]) if isinstance(layer, tuple) else dict(layer) for layer in layers]
     first = specs[0]
     if "image" not in first:
         raise DocumentError("the bottom layer needs an image (it sets the canvas)", where="stack_from_tensors")
@@ -466,8 +499,12 @@ def layer_tensors(img, value_range, mask_img=None, mask_where: str = "mask"):
     mask = None
     if mask_img is not None:
         m = mask_img
-        if m.color.shape[0] == 3 and not (np.array_equal(m.color[0], m.color[1]) and np.array_equal(m.color[0], m.color[2])):
-            raise ImageError("mask is a colour image; expected a gray PNG (or RGB with equal channels)", where=mask_where)
+        if m.color.shape[0] == 3 and not (
+            np.array_equal(m.color[0], m.color[1]) and np.array_equal(m.color[0], m.color[2])
+        ):
+            raise ImageError(
+                "mask is a colour image; expected a gray PNG (or RGB with equal channels)", where=mask_where
+            )
         mask_np = m.color[:1]
         if m.alpha is not None:
             mask_np = mask_np * m.alpha  # a transparent mask pixel hides the layer
@@ -482,7 +519,9 @@ def _stored_codes(values: torch.Tensor, lo: float, hi: float, where: str, clip: 
     """v = (y − lo)/(hi − lo) as float64; values outside [lo, hi] are an error unless ``clip``."""
     y = values.detach().cpu().double().numpy()
     if not np.isfinite(y).all():
-        raise ImageError(f"{int((~np.isfinite(y)).sum())} values are NaN or infinite; expected finite values", where=where)
+        raise ImageError(
+            f"{int((~np.isfinite(y)).sum())} values are NaN or infinite; expected finite values", where=where
+        )
     v = (y - lo) / (hi - lo)
     if not clip and v.size:
         vmin, vmax = float(v.min()), float(v.max())
@@ -532,9 +571,12 @@ def save_stack(stack: Stack, folder: str | os.PathLike | None = None, *, clip: b
     if folder.suffix.lower() == ".json":
         raise PathError(f"{folder} is a file name; expected a stack folder", where="save_stack")
     doc = stack.document
-    missing = [l.id for l in doc.layers if isinstance(l, PixelsLayer) and l.id not in stack.tensors]
+    missing = [layer.id for layer in doc.layers if isinstance(layer, PixelsLayer) and layer.id not in stack.tensors]
     if missing:
-        raise ImageError(f"pixels layer(s) {', '.join(missing)} have no tensors; expected add_layer/set_pixels first", where="save_stack")
+        raise ImageError(
+            f"pixels layer(s) {', '.join(missing)} have no tensors; expected add_layer/set_pixels first",
+            where="save_stack",
+        )
     writes: list[tuple[Path, bytes]] = []
     for i, layer in enumerate(doc.layers):
         if layer.id not in stack.tensors or isinstance(layer, SolidLayer):
@@ -543,7 +585,9 @@ def save_stack(stack: Stack, folder: str | os.PathLike | None = None, *, clip: b
         writes.append((resolve_inside(folder, layer.source, f"layers[{i}].source"), data))
         if mask_data is not None:
             if layer.mask is None:
-                raise DocumentError(f"layer {layer.id!r} has a mask tensor but no `mask` path", where=f"layers[{i}].mask")
+                raise DocumentError(
+                    f"layer {layer.id!r} has a mask tensor but no `mask` path", where=f"layers[{i}].mask"
+                )
             writes.append((resolve_inside(folder, layer.mask, f"layers[{i}].mask"), mask_data))
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -551,6 +595,8 @@ def save_stack(stack: Stack, folder: str | os.PathLike | None = None, *, clip: b
             atomic_write_bytes(target, data)
         written = save_document(doc, folder)
     except OSError as exc:
-        raise PathError(f"cannot write ({exc.strerror or exc}); expected a writable folder", where=str(folder)) from None
+        raise PathError(
+            f"cannot write ({exc.strerror or exc}); expected a writable folder", where=str(folder)
+        ) from None
     stack.folder = folder
     return written

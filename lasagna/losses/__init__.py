@@ -12,6 +12,7 @@ ms-sds     ``MSSDS`` (ms_sds.py)                       √ᾱ/√(1−ᾱ)·(z �
 
 The manifold corrective b̂ and its training live beside lmc_sds (corrective.py, corrective_train.py).
 """
+
 from lasagna.losses.base import LossOptions, LossOutput, ScoreLoss, Terms, available_losses, get_loss, register_loss
 from lasagna.losses.core import Diagnostics, TimestepOptions, TimestepSampler, cfg, inject, weight
 from lasagna.losses.dds import DDS

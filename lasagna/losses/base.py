@@ -18,12 +18,14 @@ times 1/ω when ``scale="inv_guidance"``. Subclasses register under a name:
     class Mine(ScoreLoss): ...
     get_loss("sds")(weighting="uniform")      # the class; options as keywords or an Options model
 """
+
 from __future__ import annotations
 
 import abc
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, ClassVar, Literal, TypeVar
+from typing import ClassVar, Literal, TypeVar
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
@@ -159,7 +161,10 @@ def register_loss(name: str) -> Callable[[L], L]:
         if not (isinstance(cls, type) and issubclass(cls, ScoreLoss)):
             raise LasagnaError(f"register_loss({name!r}): expected a ScoreLoss subclass, got {cls!r}", "losses")
         if name in _REGISTRY:
-            raise LasagnaError(f"loss name {name!r} is already registered ({_REGISTRY[name].__qualname__}); expected a new name", "losses")
+            raise LasagnaError(
+                f"loss name {name!r} is already registered ({_REGISTRY[name].__qualname__}); expected a new name",
+                "losses",
+            )
         cls.name = name
         _REGISTRY[name] = cls
         return cls

@@ -16,6 +16,7 @@ gradient they compute:
 * ``inject``: turns a gradient g into a surrogate whose autograd derivative in z is exactly g,
   without backpropagating through the prior.
 """
+
 from __future__ import annotations
 
 import math
@@ -44,14 +45,16 @@ class TimestepOptions(BaseModel):
     anneal_steps: int = Field(0, ge=0)
 
     @model_validator(mode="after")
-    def _order(self) -> "TimestepOptions":
+    def _order(self) -> TimestepOptions:
         if self.t_min > self.t_max:
             raise ValueError(f"t_min ({self.t_min}) must be <= t_max ({self.t_max})")
         if self.anneal != "none":
             if self.t_max_final is None or self.anneal_steps < 1:
                 raise ValueError(f"anneal={self.anneal!r} needs t_max_final and anneal_steps >= 1")
             if not self.t_min <= self.t_max_final <= self.t_max:
-                raise ValueError(f"t_max_final ({self.t_max_final}) must lie in [t_min, t_max] = [{self.t_min}, {self.t_max}]")
+                raise ValueError(
+                    f"t_max_final ({self.t_max_final}) must lie in [t_min, t_max] = [{self.t_min}, {self.t_max}]"
+                )
         return self
 
 
@@ -90,7 +93,9 @@ class TimestepSampler:
 
 
 # -- weighting and guidance -------------------------------------------------------------------
-def weight(schedule: NoiseSchedule, t: torch.Tensor, kind: Weighting, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+def weight(
+    schedule: NoiseSchedule, t: torch.Tensor, kind: Weighting, dtype: torch.dtype = torch.float32
+) -> torch.Tensor:
     """w(t) per sample (B,), computed from the float64 ᾱ table and cast once."""
     ab = schedule.alpha_bar(t, torch.float64)
     if kind == "uniform":

@@ -39,9 +39,9 @@ sample's label (a learned embedding per pixel). The CPU prototype's corrective s
 leaked albedo texture into shading layers; ẑ_t of a ControlNet-style prior depends on the
 conditioning image, which a (z, t)-only b̂ cannot know (../shared/DESIGN.md).
 """
+
 from __future__ import annotations
 
-import os
 from typing import Literal
 
 import torch
@@ -50,8 +50,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from torch import nn
 
 from lasagna.errors import ConditionError
-from lasagna.numerics import STD_EPS, reduction_dtype
 from lasagna.io.checkpoint import Pretrained
+from lasagna.numerics import STD_EPS, reduction_dtype
 from lasagna.priors.nn import frequency_encoding
 
 FORMAT = "lasagna.corrective"
@@ -82,7 +82,10 @@ def normalize_by_std(x: torch.Tensor, eps: float = STD_EPS) -> torch.Tensor:
 def rescale_to_target_std(b_hat: torch.Tensor, target: torch.Tensor, eps: float = STD_EPS) -> torch.Tensor:
     """b̃ = σ(target)/σ(b̂) · (b̂ − μ(b̂)) + μ(b̂): eq. 10's normalisation (b̂ keeps its mean, takes the target's σ)."""
     if b_hat.shape != target.shape:
-        raise ValueError(f"rescale_to_target_std: b_hat has shape {tuple(b_hat.shape)}, target {tuple(target.shape)}; expected equal shapes")
+        raise ValueError(
+            f"rescale_to_target_std: b_hat has shape {tuple(b_hat.shape)}, target {tuple(target.shape)}; expected "
+            "equal shapes"
+        )
     return _rescale(b_hat, target, eps).to(b_hat.dtype)
 
 
@@ -93,7 +96,9 @@ def _rescale(b_hat: torch.Tensor, target: torch.Tensor, eps: float) -> torch.Ten
     return sigma_t / sigma_b * (b_hat.to(mu_b.dtype) - mu_b) + mu_b
 
 
-def lk_loss(b_hat: torch.Tensor, z_hat_t: torch.Tensor, reduction: Literal["mean", "none"] = "mean", eps: float = STD_EPS) -> torch.Tensor:
+def lk_loss(
+    b_hat: torch.Tensor, z_hat_t: torch.Tensor, reduction: Literal["mean", "none"] = "mean", eps: float = STD_EPS
+) -> torch.Tensor:
     """L_k (eq. 10): mean over elements of (ẑ_t − b̃)², b̃ = ``rescale_to_target_std(b̂, ẑ_t)``.
 
     ``reduction="none"`` returns one value per sample (B,); "mean" averages them. The target ẑ_t is
@@ -102,7 +107,9 @@ def lk_loss(b_hat: torch.Tensor, z_hat_t: torch.Tensor, reduction: Literal["mean
     in float32/bfloat16, but it can overflow float16 (the residual b̂ = z + … keeps σ(b̂) away from 0).
     """
     if b_hat.shape != z_hat_t.shape:
-        raise ValueError(f"lk_loss: b_hat has shape {tuple(b_hat.shape)}, z_hat_t {tuple(z_hat_t.shape)}; expected equal shapes")
+        raise ValueError(
+            f"lk_loss: b_hat has shape {tuple(b_hat.shape)}, z_hat_t {tuple(z_hat_t.shape)}; expected equal shapes"
+        )
     b_tilde = _rescale(b_hat, z_hat_t, eps)
     diff = z_hat_t.to(b_tilde.dtype) - b_tilde
     per_sample = (diff**2).flatten(1).mean(dim=1)
@@ -126,7 +133,9 @@ class CorrectiveConfig(BaseModel):
 
     channels: int = Field(3, ge=1, description="channels of z (the prior's space)")
     resolution: int = Field(32, ge=1, description="the resolution trained at (any multiple of 2^(levels-1) runs)")
-    filters: tuple[int, ...] = Field((32, 64, 128), min_length=1, description="filters per encoder level (paper: 32 doubling)")
+    filters: tuple[int, ...] = Field(
+        (32, 64, 128), min_length=1, description="filters per encoder level (paper: 32 doubling)"
+    )
     num_freqs: int = Field(5, ge=1, description="frequencies of the t encoding (2·num_freqs dims; paper: 10 dims)")
     num_timesteps: int = Field(1000, ge=2, description="T of the prior's schedule; t is encoded as t/(T−1)")
     output_scale: float = Field(2.0, gt=0.0, description="b̂ = z + output_scale·tanh(net)")
@@ -143,7 +152,7 @@ class CorrectiveConfig(BaseModel):
         return v
 
     @model_validator(mode="after")
-    def _check(self) -> "CorrectiveConfig":
+    def _check(self) -> CorrectiveConfig:
         if any(f < 1 for f in self.filters):
             raise ValueError(f"filters must be positive; got {list(self.filters)}")
         factor = 2 ** (len(self.filters) - 1)
@@ -154,7 +163,9 @@ class CorrectiveConfig(BaseModel):
 
 def _conv_block(in_ch: int, out_ch: int) -> nn.Sequential:
     """Two Conv3×3/ReLU blocks (the paper's per-level unit; the MaxPool follows in the encoder)."""
-    return nn.Sequential(nn.Conv2d(in_ch, out_ch, 3, padding=1), nn.ReLU(), nn.Conv2d(out_ch, out_ch, 3, padding=1), nn.ReLU())
+    return nn.Sequential(
+        nn.Conv2d(in_ch, out_ch, 3, padding=1), nn.ReLU(), nn.Conv2d(out_ch, out_ch, 3, padding=1), nn.ReLU()
+    )
 
 
 class Corrective(Pretrained, nn.Module):
@@ -183,7 +194,9 @@ class Corrective(Pretrained, nn.Module):
         nn.init.zeros_(self.head.weight)  # b̂ = z at initialisation
         nn.init.zeros_(self.head.bias)
 
-    def _features(self, z: torch.Tensor, t: torch.Tensor, image: torch.Tensor | None, label_idx: torch.Tensor | None) -> torch.Tensor:
+    def _features(
+        self, z: torch.Tensor, t: torch.Tensor, image: torch.Tensor | None, label_idx: torch.Tensor | None
+    ) -> torch.Tensor:
         cfg = self.config
         b, _, h, w = z.shape
         tt = t.to(z.device).to(torch.float32) / (cfg.num_timesteps - 1)
@@ -191,19 +204,29 @@ class Corrective(Pretrained, nn.Module):
         if cfg.sees_condition:
             if image is None or image.shape[0] != b or image.shape[1] != cfg.cond_channels:
                 got = None if image is None else tuple(image.shape)
-                raise ConditionError(f"this corrective sees the condition and needs an image (B={b}, C={cfg.cond_channels}, H, W); got {got}", "image")
+                raise ConditionError(
+                    f"this corrective sees the condition and needs an image (B={b}, C={cfg.cond_channels}, H, W); "
+                    f"got {got}",
+                    "image",
+                )
             if image.shape[-2:] != (h, w):
                 # Latent priors: the image is at pixel resolution, z at latent resolution.
                 image = F.interpolate(image, size=(h, w), mode="area")
             if label_idx is None or label_idx.shape != (b,):
                 got = None if label_idx is None else tuple(label_idx.shape)
-                raise ConditionError(f"this corrective sees the condition and needs label_idx of shape ({b},); got {got}", "label_idx")
+                raise ConditionError(
+                    f"this corrective sees the condition and needs label_idx of shape ({b},); got {got}", "label_idx"
+                )
             lab = self.label_emb(label_idx.to(z.device)).to(z.dtype)  # (B, D)
             parts += [image.to(z.dtype) * 2 - 1, lab[:, :, None, None].expand(b, -1, h, w)]
         return torch.cat(parts, dim=1)
 
     def forward(
-        self, z: torch.Tensor, t: torch.Tensor, cond_image: torch.Tensor | None = None, label_idx: torch.Tensor | None = None
+        self,
+        z: torch.Tensor,
+        t: torch.Tensor,
+        cond_image: torch.Tensor | None = None,
+        label_idx: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """b̂(z, t) for z (B, C, H, W) in the prior's space and integer timesteps t (B,).
 
@@ -232,10 +255,15 @@ class Corrective(Pretrained, nn.Module):
         return z + cfg.output_scale * torch.tanh(self.head(h))
 
 
-
 class TrivialCorrective(nn.Module):
     """b̂(z, t) = z: no correction (L_lmc then equals z − ẑ_t, the SDS projection term without its
     √ᾱ/√(1−ᾱ) weight, eq. 7). The baseline a trained corrective is measured against."""
 
-    def forward(self, z: torch.Tensor, t: torch.Tensor, cond_image: torch.Tensor | None = None, label_idx: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self,
+        z: torch.Tensor,
+        t: torch.Tensor,
+        cond_image: torch.Tensor | None = None,
+        label_idx: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         return z

@@ -20,6 +20,7 @@ How the source is supplied (our choice, documented):
 All four denoiser evaluations (target cond/uncond, source cond/uncond) run in ONE batched pass.
 Weighting: w(t) = 1 by default (the DDS paper has none).
 """
+
 from __future__ import annotations
 
 import torch
@@ -37,7 +38,9 @@ class DDS(ScoreLoss):
 
     Options = LossOptions
 
-    def __init__(self, options: LossOptions | dict | None = None, source_image: torch.Tensor | None = None, **overrides):
+    def __init__(
+        self, options: LossOptions | dict | None = None, source_image: torch.Tensor | None = None, **overrides
+    ):
         super().__init__(options, **overrides)
         self.source_image = source_image
 
@@ -48,17 +51,25 @@ class DDS(ScoreLoss):
                 "DDS needs a source image; set DDS(source_image=...) or give the condition an image", "dds.source_image"
             )
         if src.dim() != 4 or src.shape[0] not in (1, z.shape[0]):
-            raise ConditionError(f"source image has shape {tuple(src.shape)}; expected (1 or {z.shape[0]}, C, H, W)", "dds.source_image")
+            raise ConditionError(
+                f"source image has shape {tuple(src.shape)}; expected (1 or {z.shape[0]}, C, H, W)", "dds.source_image"
+            )
         with torch.no_grad():
             s = prior.encode(src.detach().to(device=z.device, dtype=z.dtype))
         if tuple(s.shape[1:]) != tuple(z.shape[1:]):
-            raise ConditionError(f"source image encodes to {tuple(s.shape[1:])}; expected the composite's {tuple(z.shape[1:])}", "dds.source_image")
+            raise ConditionError(
+                f"source image encodes to {tuple(s.shape[1:])}; expected the composite's {tuple(z.shape[1:])}",
+                "dds.source_image",
+            )
         return s.expand_as(z)
 
-    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None) -> Terms:
+    def terms(
+        self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None
+    ) -> Terms:
         if cond.negative is None:
             raise ConditionError(
-                "DDS needs the source condition ŷ in condition.negative (the label describing the source image); got None",
+                "DDS needs the source condition ŷ in condition.negative (the label describing the source image); "
+                "got None",
                 "dds.condition.negative",
             )
         src = self._source(z, prior, cond)
@@ -73,4 +84,3 @@ class DDS(ScoreLoss):
         target = cfg(e_u, e_c, omega) - eps
         source = cfg(s_u, s_c, omega) - eps
         return Terms(components={"target": target, "source": -source}, noise={"eps": eps})
-

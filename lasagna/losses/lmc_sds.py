@@ -50,6 +50,7 @@ Interpretations (the paper leaves these implicit; each is a choice documented he
 
 Weighting: w(t) = 1 by default (the paper omits w(t) "in the sequel").
 """
+
 from __future__ import annotations
 
 from typing import Literal, Protocol
@@ -59,10 +60,9 @@ import torch
 from lasagna.errors import LasagnaError
 from lasagna.losses.base import LossOptions, ScoreLoss, Terms, register_loss
 from lasagna.losses.core import Weighting, expand
-
+from lasagna.losses.corrective import rescale_to_target_std
 from lasagna.priors.base import Condition, Prior
 from lasagna.priors.nn import randn
-from lasagna.losses.corrective import rescale_to_target_std
 
 Normalize = Literal["image", "none"]
 
@@ -71,11 +71,17 @@ class CorrectiveFn(Protocol):
     """b̂(z, t): the clean image's expected denoised version, in the prior's space (eq. 9)."""
 
     def __call__(
-        self, z: torch.Tensor, t: torch.Tensor, cond_image: torch.Tensor | None = None, label_idx: torch.Tensor | None = None
+        self,
+        z: torch.Tensor,
+        t: torch.Tensor,
+        cond_image: torch.Tensor | None = None,
+        label_idx: torch.Tensor | None = None,
     ) -> torch.Tensor: ...
 
 
-def identity_corrective(z: torch.Tensor, t: torch.Tensor, cond_image: torch.Tensor | None = None, label_idx: torch.Tensor | None = None) -> torch.Tensor:
+def identity_corrective(
+    z: torch.Tensor, t: torch.Tensor, cond_image: torch.Tensor | None = None, label_idx: torch.Tensor | None = None
+) -> torch.Tensor:
     """The trivial b̂ = z (a baseline: L_lmc is then L_proj without its √ᾱ/√(1−ᾱ) factor, up to eq. 10)."""
     return z
 
@@ -110,11 +116,14 @@ class LMCSDS(ScoreLoss):
 
     Options = LMCSDSOptions
 
-    def __init__(self, corrective: CorrectiveFn | None = None, options: LMCSDSOptions | dict | None = None, **overrides):
+    def __init__(
+        self, corrective: CorrectiveFn | None = None, options: LMCSDSOptions | dict | None = None, **overrides
+    ):
         super().__init__(options, **overrides)
         if corrective is None:
             raise LasagnaError(
-                "no corrective b̂ given; expected a Corrective or SpectralCorrective (lasagna.catalogue.load_corrective), or any callable "
+                "no corrective b̂ given; expected a Corrective or SpectralCorrective "
+                "(lasagna.catalogue.load_corrective), or any callable "
                 "b̂(z, t, cond_image=, label_idx=)); identity_corrective is the b̂ = z baseline",
                 "lmc-sds.corrective",
             )
@@ -127,7 +136,9 @@ class LMCSDS(ScoreLoss):
         """Forget the fixed ε of L_cond; the next call draws a new one."""
         self._fixed.clear()
 
-    def fixed_noise(self, shape: tuple[int, ...], rng: torch.Generator | None, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    def fixed_noise(
+        self, shape: tuple[int, ...], rng: torch.Generator | None, device: torch.device, dtype: torch.dtype
+    ) -> torch.Tensor:
         """The ε of L_cond reused at every step (drawn once per shape, device and dtype)."""
         key = (shape, str(device), dtype)
         if key not in self._fixed:
@@ -136,7 +147,9 @@ class LMCSDS(ScoreLoss):
             self._fixed[key] = randn(shape, noise_rng, device, dtype)
         return self._fixed[key]
 
-    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None) -> Terms:
+    def terms(
+        self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None
+    ) -> Terms:
         sched, shape = prior.schedule, tuple(z.shape)
         # 1. L_lmc's ε is fresh every step.
         eps_l = randn(shape, rng, z.device, z.dtype)

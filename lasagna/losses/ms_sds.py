@@ -17,6 +17,7 @@ k = 0 … K − 1; after the K-th evaluation the x̂₀ of that evaluation is th
 the whole batch; distillation needs per-sample t, hence this short loop.)
 Weighting: w(t) = 1 − ᾱ_t by default (SDS's).
 """
+
 from __future__ import annotations
 
 from typing import Literal
@@ -36,7 +37,9 @@ class MSSDSOptions(LossOptions):
     units: Literal["eps", "x0"] = "eps"
 
 
-def ddim_x0(prior: Prior, z_t: torch.Tensor, t: torch.Tensor, cond: Condition, omega: float, steps: int) -> torch.Tensor:
+def ddim_x0(
+    prior: Prior, z_t: torch.Tensor, t: torch.Tensor, cond: Condition, omega: float, steps: int
+) -> torch.Tensor:
     """x̂₀ after ``steps`` guided DDIM (η = 0) steps from per-sample timesteps t (B,)."""
     sched, z = prior.schedule, z_t
     tf = t.to(torch.float64)
@@ -58,7 +61,9 @@ class MSSDS(ScoreLoss):
 
     Options = MSSDSOptions
 
-    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None) -> Terms:
+    def terms(
+        self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None
+    ) -> Terms:
         eps = randn(tuple(z.shape), rng, z.device, z.dtype)
         z_t = prior.schedule.add_noise(z, eps, t)
         x0 = ddim_x0(prior, z_t, t, cond, omega, self.options.steps)

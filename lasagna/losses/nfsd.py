@@ -23,6 +23,7 @@ The negative branch is evaluated for every sample (in the one batched pass with 
 masked afterwards; skipping it for small-t samples would cost a data-dependent batch size.
 Weighting: w(t) = 1 − ᾱ_t by default (NFSD keeps DreamFusion's w(t)).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -40,7 +41,9 @@ from lasagna.priors.nn import randn
 class NFSDOptions(LossOptions):
     weighting: Weighting = "1-alpha_bar"
     negative_label: str | None = None
-    small_t_fraction: float = Field(0.2, ge=0.0, le=1.0, description="δ_D = ε_u below this fraction of T (0.2 → t < 200 of 1000)")
+    small_t_fraction: float = Field(
+        0.2, ge=0.0, le=1.0, description="δ_D = ε_u below this fraction of T (0.2 → t < 200 of 1000)"
+    )
 
 
 @register_loss("nfsd")
@@ -49,16 +52,21 @@ class NFSD(ScoreLoss):
 
     Options = NFSDOptions
 
-    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None) -> Terms:
+    def terms(
+        self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None
+    ) -> Terms:
         if cond.negative is None:
             if self.options.negative_label is None:
                 raise ConditionError(
-                    "NFSD needs a negative condition: set condition.negative or NFSDOptions.negative_label", "nfsd.negative"
+                    "NFSD needs a negative condition: set condition.negative or NFSDOptions.negative_label",
+                    "nfsd.negative",
                 )
             cond = dataclasses.replace(cond, negative=self.options.negative_label)
         eps = randn(tuple(z.shape), rng, z.device, z.dtype)
         z_t = prior.schedule.add_noise(z, eps, t)
-        e_c, e_u, e_n = (e.to(z.dtype) for e in prior.predict_many([(z_t, "cond"), (z_t, "uncond"), (z_t, "negative")], t, cond))
+        e_c, e_u, e_n = (
+            e.to(z.dtype) for e in prior.predict_many([(z_t, "cond"), (z_t, "uncond"), (z_t, "negative")], t, cond)
+        )
         small = expand(t < self.options.small_t_fraction * prior.schedule.num_steps, z)  # (B, 1, 1, 1) bool
         delta_d = torch.where(small, e_u, e_u - e_n)
         return Terms(components={"cond": omega * (e_c - e_u), "domain": delta_d}, noise={"eps": eps})

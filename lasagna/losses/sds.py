@@ -14,6 +14,7 @@ so ``grad = components["cond"] + components["proj"]``.
 Default weighting: w(t) = 1 − ᾱ_t (DreamFusion's σ_t²); "uniform" and √ᾱ_t(1 − ᾱ_t) are options.
 One batched prior pass per step (cond and uncond branches together).
 """
+
 from __future__ import annotations
 
 import torch
@@ -34,7 +35,9 @@ class SDS(ScoreLoss):
 
     Options = SDSOptions
 
-    def terms(self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None) -> Terms:
+    def terms(
+        self, z: torch.Tensor, t: torch.Tensor, prior: Prior, cond: Condition, omega: float, rng: torch.Generator | None
+    ) -> Terms:
         eps = randn(tuple(z.shape), rng, z.device, z.dtype)
         z_t = prior.schedule.add_noise(z, eps, t)
         e_c, e_u = (e.to(z.dtype) for e in prior.predict_many([(z_t, "cond"), (z_t, "uncond")], t, cond))

@@ -19,19 +19,21 @@ manifold pull too — an exact b̂ makes E[L_lmc] vanish everywhere, on the mani
 b̂ = z) made LMC-SDS *worse* than SDS at every ω; a linear filter cannot hallucinate shading, so
 what it removes is the frequency bias only (docs/BENCHMARKS.md#learned-layers).
 
-Stored like the other networks (``lasagna.io.checkpoint.Pretrained``): config.json (format ``lasagna.spectral_corrective``)
-and model.safetensors with the gains' real and imaginary parts (safetensors has no complex dtype).
+Stored like the other networks (``lasagna.io.checkpoint.Pretrained``): config.json (format
+``lasagna.spectral_corrective``) and model.safetensors with the gains' real and imaginary parts
+(safetensors has no complex dtype).
 """
+
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
-from lasagna.numerics import SPECTRAL_POWER_FLOOR
 from lasagna.io.checkpoint import Pretrained
+from lasagna.numerics import SPECTRAL_POWER_FLOOR
 
 FORMAT = "lasagna.spectral_corrective"
 
@@ -67,12 +69,19 @@ class SpectralCorrective(Pretrained, nn.Module):
         k = (t.long() * self.config.buckets) // self.config.num_timesteps
         return k.clamp(0, self.config.buckets - 1)
 
-    def forward(self, z: torch.Tensor, t: torch.Tensor, cond_image: torch.Tensor | None = None,
-                label_idx: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self,
+        z: torch.Tensor,
+        t: torch.Tensor,
+        cond_image: torch.Tensor | None = None,
+        label_idx: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """b̂ for z (B, C, H, W) at integer timesteps t (B,); the condition is ignored by design."""
         c = self.config
         if z.dim() != 4 or tuple(z.shape[1:]) != (c.channels, c.height, c.width):
-            raise ValueError(f"spectral corrective: z has shape {tuple(z.shape)}; expected (B, {c.channels}, {c.height}, {c.width})")
+            raise ValueError(
+                f"spectral corrective: z has shape {tuple(z.shape)}; expected (B, {c.channels}, {c.height}, {c.width})"
+            )
         k = self.bucket(t.to(self.gain_real.device))
         gain = torch.complex(self.gain_real[k], self.gain_imag[k])  # (B, C, H, W//2+1)
         spec = torch.fft.rfft2(z.float())
@@ -80,8 +89,11 @@ class SpectralCorrective(Pretrained, nn.Module):
 
 
 @torch.no_grad()
-def fit_spectral_corrective(config: SpectralCorrectiveConfig, draw: Callable[[int], "tuple[torch.Tensor, torch.Tensor, torch.Tensor]"],
-                            batches: int) -> SpectralCorrective:
+def fit_spectral_corrective(
+    config: SpectralCorrectiveConfig,
+    draw: Callable[[int], tuple[torch.Tensor, torch.Tensor, torch.Tensor]],
+    batches: int,
+) -> SpectralCorrective:
     """Least-squares gains from ``batches`` calls of ``draw(bucket) -> (z, t, ẑ_t)`` per bucket.
 
     ``draw`` returns clean z (B, C, H, W), their timesteps t (B,) inside the bucket, and the prior's

@@ -8,10 +8,12 @@
     register_prior("mine")(MyPrior)      # or as a class decorator; a taken name raises
     get_prior("gaussian")                # -> the class
 """
+
 from __future__ import annotations
 
 import importlib
-from typing import Callable, TypeVar
+from collections.abc import Callable
+from typing import TypeVar
 
 from lasagna.errors import LasagnaError
 from lasagna.priors.base import Branch, Condition, NoiseSchedule, Prediction, Prior

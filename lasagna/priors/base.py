@@ -17,12 +17,14 @@ Conventions (see docs/ARCHITECTURE.md and ../shared/DESIGN.md):
 * One CFG convention: ε̂ = ε_u + ω(ε_c − ε_u). (The "text-first" form ε_c + s(ε_c − ε_u) is ω = s + 1.)
 * Unconditional = the null label with the conditioning image kept (as ControlNet guidance does).
 """
+
 from __future__ import annotations
 
 import abc
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Literal, Sequence
+from typing import Literal
 
 import torch
 from torch import nn
@@ -103,7 +105,12 @@ class NoiseSchedule:
         self._cast: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}
 
     def config(self) -> dict:
-        return {"num_steps": self.num_steps, "kind": self.kind, "beta_start": self.beta_start, "beta_end": self.beta_end}
+        return {
+            "num_steps": self.num_steps,
+            "kind": self.kind,
+            "beta_start": self.beta_start,
+            "beta_end": self.beta_end,
+        }
 
     def alpha_bar(self, t: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """ᾱ_t for integer timesteps t (B,), cast once per dtype/device and cached."""
@@ -185,7 +192,9 @@ class Prior(nn.Module, abc.ABC):
         return (z + 1) / 2
 
     @abc.abstractmethod
-    def _eps(self, z_t: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor, image: torch.Tensor | None) -> torch.Tensor:
+    def _eps(
+        self, z_t: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor, image: torch.Tensor | None
+    ) -> torch.Tensor:
         """The raw network call: ε̂(z_t, t, label, image) for a batch; label_idx may be the null index."""
 
     def predict(
@@ -223,7 +232,9 @@ class Prior(nn.Module, abc.ABC):
         if t.shape != (b,):
             raise ValueError(f"predict: t has shape {tuple(t.shape)}; expected ({b},), one timestep per sample")
         if cond.image is not None and cond.image.shape[0] != b:
-            raise ConditionError(f"image has batch {cond.image.shape[0]}; expected {b} (one per sample)", "condition.image")
+            raise ConditionError(
+                f"image has batch {cond.image.shape[0]}; expected {b} (one per sample)", "condition.image"
+            )
         idx, zs = [], []
         for z_t, br in queries:
             if z_t.shape != queries[0][0].shape:

@@ -10,6 +10,7 @@ One step from t to the previous sampled timestep s (ᾱ_s = 1 after the last ste
 Used for baselines and checks (the distillation losses never sample). Step coefficients are computed
 from the schedule's float64 ᾱ table as Python floats, so only the tensor arithmetic is float32.
 """
+
 from __future__ import annotations
 
 import math
@@ -51,7 +52,9 @@ def _batch_size(cond: Condition, batch: int | None, z_T: torch.Tensor | None) ->
     if batch is not None:
         sizes.add(batch)
     if len(sizes) > 1:
-        raise ValueError(f"ddim: conflicting batch sizes {sorted(sizes)} from batch=, z_T, condition.labels and condition.image")
+        raise ValueError(
+            f"ddim: conflicting batch sizes {sorted(sizes)} from batch=, z_T, condition.labels and condition.image"
+        )
     return sizes.pop() if sizes else 1
 
 

@@ -33,12 +33,14 @@ Using real weights on a GPU machine (nothing is downloaded: point it at folders 
 produces such folders.) All parameters are frozen (requires_grad=False) and the modules are in eval
 mode: the prior is never trained through this adapter.
 """
+
 from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Literal, Mapping, Sequence
+from typing import Any, Literal
 
 import torch
 from torch import nn
@@ -62,15 +64,22 @@ def schedule_from_diffusers(config: Mapping[str, Any]) -> tuple[NoiseSchedule, s
     rather than silently ignored.
     """
     if config.get("trained_betas") is not None:
-        raise LasagnaError("trained_betas are not supported; expected beta_schedule linear, scaled_linear or squaredcos_cap_v2", "scheduler_config")
+        raise LasagnaError(
+            "trained_betas are not supported; expected beta_schedule linear, scaled_linear or squaredcos_cap_v2",
+            "scheduler_config",
+        )
     if config.get("rescale_betas_zero_snr"):
         raise LasagnaError("rescale_betas_zero_snr is not supported; expected it false", "scheduler_config")
     name = config.get("beta_schedule", "linear")
     if name not in _BETA_SCHEDULES:
-        raise LasagnaError(f"beta_schedule is {name!r}; expected one of {', '.join(_BETA_SCHEDULES)}", "scheduler_config")
+        raise LasagnaError(
+            f"beta_schedule is {name!r}; expected one of {', '.join(_BETA_SCHEDULES)}", "scheduler_config"
+        )
     pred = config.get("prediction_type", "epsilon")
     if pred not in _PREDICTION_TYPES:
-        raise LasagnaError(f"prediction_type is {pred!r}; expected one of {', '.join(_PREDICTION_TYPES)}", "scheduler_config")
+        raise LasagnaError(
+            f"prediction_type is {pred!r}; expected one of {', '.join(_PREDICTION_TYPES)}", "scheduler_config"
+        )
     sched = NoiseSchedule(
         num_steps=int(config.get("num_train_timesteps", 1000)),
         kind=_BETA_SCHEDULES[name],
@@ -104,7 +113,11 @@ class DiffusersPrior(Prior):
             raise ValueError(f"latent must be 'sample' or 'mean', got {latent!r}")
         cfg = unet.config
         if cfg.out_channels != cfg.in_channels:
-            raise LasagnaError(f"unet.out_channels is {cfg.out_channels}; expected in_channels = {cfg.in_channels} (learned-variance UNets are not supported)", "unet")
+            raise LasagnaError(
+                f"unet.out_channels is {cfg.out_channels}; expected in_channels = {cfg.in_channels} "
+                "(learned-variance UNets are not supported)",
+                "unet",
+            )
         self.unet, self.controlnet, self.vae = unet, controlnet, vae
         self.schedule, self.prediction_type = schedule_from_diffusers(scheduler_config)
         self.vocabulary = tuple(vocabulary)
@@ -120,7 +133,8 @@ class DiffusersPrior(Prior):
         n = len(self.vocabulary) + 1
         if embeds.dim() != 3 or embeds.shape[0] != n or embeds.shape[2] != cfg.cross_attention_dim:
             raise LasagnaError(
-                f"prompt_embeds has shape {tuple(embeds.shape)}; expected ({n}, L, {cfg.cross_attention_dim}) — one row per label, the null (empty) prompt last",
+                f"prompt_embeds has shape {tuple(embeds.shape)}; expected ({n}, L, {cfg.cross_attention_dim}) — one "
+                "row per label, the null (empty) prompt last",
                 "prompt_embeds",
             )
         # A buffer so .to(device, dtype) moves it with the networks; not saved (it is derived data).
@@ -134,7 +148,11 @@ class DiffusersPrior(Prior):
         if text_encoder is None or tokenizer is None:
             raise LasagnaError("give either prompt_embeds or both text_encoder and tokenizer", "DiffusersPrior")
         ids = tokenizer(
-            list(self.prompts), padding="max_length", max_length=tokenizer.model_max_length, truncation=True, return_tensors="pt"
+            list(self.prompts),
+            padding="max_length",
+            max_length=tokenizer.model_max_length,
+            truncation=True,
+            return_tensors="pt",
         ).input_ids
         device = next(text_encoder.parameters()).device
         return text_encoder(ids.to(device))[0]  # last_hidden_state, as SD pipelines use it
@@ -162,7 +180,9 @@ class DiffusersPrior(Prior):
         return ((x + 1) / 2).to(z.dtype)
 
     # -- the raw network ------------------------------------------------------------------------
-    def _eps(self, z_t: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor, image: torch.Tensor | None) -> torch.Tensor:
+    def _eps(
+        self, z_t: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor, image: torch.Tensor | None
+    ) -> torch.Tensor:
         dtype, dev = self.unet.dtype, z_t.device
         z = z_t.to(dtype)
         t = t.to(dev)
@@ -173,11 +193,19 @@ class DiffusersPrior(Prior):
             c = self.controlnet.config.conditioning_channels
             expected = (z.shape[0], c, z.shape[2] * f, z.shape[3] * f)
             if image is None:
-                raise ConditionError(f"this prior has a ControlNet and needs a conditioning image of shape {expected}; got None", "condition.image")
+                raise ConditionError(
+                    f"this prior has a ControlNet and needs a conditioning image of shape {expected}; got None",
+                    "condition.image",
+                )
             if tuple(image.shape) != expected:
                 raise ConditionError(f"image has shape {tuple(image.shape)}; expected {expected}", "condition.image")
             down, mid = self.controlnet(
-                z, t, encoder_hidden_states=enc, controlnet_cond=image.to(dtype), conditioning_scale=self.conditioning_scale, return_dict=False
+                z,
+                t,
+                encoder_hidden_states=enc,
+                controlnet_cond=image.to(dtype),
+                conditioning_scale=self.conditioning_scale,
+                return_dict=False,
             )
             extra = {"down_block_additional_residuals": down, "mid_block_additional_residual": mid}
         elif image is not None:
@@ -202,7 +230,7 @@ class DiffusersPrior(Prior):
         dtype: torch.dtype = torch.float16,
         latent: Literal["sample", "mean"] = "mean",
         conditioning_scale: float = 1.0,
-    ) -> "DiffusersPrior":
+    ) -> DiffusersPrior:
         """Load a Stable-Diffusion folder (diffusers layout) and an optional ControlNet folder from disk.
 
         Never touches the network (``local_files_only=True``). ``path`` must hold ``unet/``,
@@ -215,15 +243,25 @@ class DiffusersPrior(Prior):
         root = Path(path)
         for sub in ("unet", "scheduler", "text_encoder", "tokenizer"):
             if not (root / sub).is_dir():
-                raise LasagnaError(f"missing folder {sub}/; expected a diffusers Stable-Diffusion folder (unet/ scheduler/ text_encoder/ tokenizer/ [vae/])", str(root))
+                raise LasagnaError(
+                    f"missing folder {sub}/; expected a diffusers Stable-Diffusion folder (unet/ scheduler/ "
+                    "text_encoder/ tokenizer/ [vae/])",
+                    str(root),
+                )
         sched_path = root / "scheduler" / "scheduler_config.json"
         try:
             sched_cfg = json.loads(sched_path.read_text(encoding="utf-8"))
         except (OSError, json.JSONDecodeError) as exc:
             raise LasagnaError(f"cannot read the scheduler config ({exc})", str(sched_path)) from None
         unet = UNet2DConditionModel.from_pretrained(root, subfolder="unet", local_files_only=True)
-        vae = AutoencoderKL.from_pretrained(root, subfolder="vae", local_files_only=True) if (root / "vae").is_dir() else None
-        cn = ControlNetModel.from_pretrained(Path(controlnet), local_files_only=True) if controlnet is not None else None
+        vae = (
+            AutoencoderKL.from_pretrained(root, subfolder="vae", local_files_only=True)
+            if (root / "vae").is_dir()
+            else None
+        )
+        cn = (
+            ControlNetModel.from_pretrained(Path(controlnet), local_files_only=True) if controlnet is not None else None
+        )
         tokenizer = CLIPTokenizer.from_pretrained(root, subfolder="tokenizer", local_files_only=True)
         text_encoder = CLIPTextModel.from_pretrained(root, subfolder="text_encoder", local_files_only=True)
         text_encoder = text_encoder.to(device=device, dtype=dtype).eval()

@@ -7,11 +7,12 @@
 
 PSNR is over [0, 1] images: 10·log10(1 / MSE), averaged per image then over images.
 """
+
 from __future__ import annotations
 
 import math
 from collections import defaultdict
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 
@@ -29,8 +30,14 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 @torch.no_grad()
-def denoising_error(prior: Prior, images: torch.Tensor, labels: Sequence[str], cond_image: torch.Tensor | None,
-                    t_values: Sequence[float] = (0.02, 0.1, 0.25, 0.5, 0.75, 0.9, 0.98), seed: int = 0) -> dict[float, float]:
+def denoising_error(
+    prior: Prior,
+    images: torch.Tensor,
+    labels: Sequence[str],
+    cond_image: torch.Tensor | None,
+    t_values: Sequence[float] = (0.02, 0.1, 0.25, 0.5, 0.75, 0.9, 0.98),
+    seed: int = 0,
+) -> dict[float, float]:
     """MSE of the conditional x̂₀ (in [0, 1] units) per continuous t, averaged over ``images``."""
     rng = torch.Generator().manual_seed(seed)
     z = prior.encode(images)
@@ -45,9 +52,16 @@ def denoising_error(prior: Prior, images: torch.Tensor, labels: Sequence[str], c
 
 
 @torch.no_grad()
-def sample_quality(prior: Prior, images: torch.Tensor, labels: Sequence[str], cond_image: torch.Tensor | None,
-                   omegas: Sequence[float] = (1.0, 3.0, 7.5), steps: int = 50, seed: int = 0,
-                   chunk: int = 64) -> dict[float, dict[str, float]]:
+def sample_quality(
+    prior: Prior,
+    images: torch.Tensor,
+    labels: Sequence[str],
+    cond_image: torch.Tensor | None,
+    omegas: Sequence[float] = (1.0, 3.0, 7.5),
+    steps: int = 50,
+    seed: int = 0,
+    chunk: int = 64,
+) -> dict[float, dict[str, float]]:
     """{ω: {label: mean PSNR, "all": mean PSNR}} of DDIM-``steps`` samples against ``images``."""
     result: dict[float, dict[str, float]] = {}
     for omega in omegas:

@@ -25,10 +25,11 @@ eigendecomposed once, Σ_k = U diag(λ) Uᵀ, so C_k⁻¹ is a division in the e
 to the input's dtype. ``.to(dtype)`` on the module does not lower that precision. The conditioning
 image of a ``Condition`` is accepted and ignored: these priors depend on the label only.
 """
+
 from __future__ import annotations
 
 import math
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 
@@ -65,8 +66,10 @@ class _Mixture:
         self.mu = torch.stack(means)  # (K, D)
         self.lam = torch.stack(lams)  # (K, D) eigenvalues of Σ_k (the variances when diagonal)
         # (K, D, D) orthonormal eigenvectors as columns, or None when every Σ_k is diagonal
-        self.basis = None if all(b is None for b in bases) else torch.stack(
-            [torch.eye(dim, dtype=torch.float64) if b is None else b for b in bases]
+        self.basis = (
+            None
+            if all(b is None for b in bases)
+            else torch.stack([torch.eye(dim, dtype=torch.float64) if b is None else b for b in bases])
         )
         self._cache: dict[torch.device, tuple] = {}
 
@@ -81,7 +84,7 @@ class _Mixture:
         return self._cache[device]
 
     @staticmethod
-    def merge(others: Sequence[tuple[float, "_Mixture"]]) -> "_Mixture":
+    def merge(others: Sequence[tuple[float, _Mixture]]) -> _Mixture:
         """The mixture Σ_j π_j · mixture_j (used for the label marginal)."""
         out = object.__new__(_Mixture)
         pis = torch.tensor([p for p, _ in others], dtype=torch.float64)
@@ -159,7 +162,9 @@ def _eig(cov: torch.Tensor, dim: int, where: str) -> tuple[torch.Tensor, torch.T
             f"{where}: covariance has shape {tuple(cov.shape)}; expected a scalar, ({dim},) variances or ({dim}, {dim})"
         )
     if not torch.isfinite(lam).all() or (lam < 0).any():
-        raise ValueError(f"{where}: covariance must be finite and positive semi-definite; smallest eigenvalue {float(lam.min()):.3g}")
+        raise ValueError(
+            f"{where}: covariance must be finite and positive semi-definite; smallest eigenvalue {float(lam.min()):.3g}"
+        )
     return lam, basis
 
 
@@ -186,7 +191,9 @@ class GaussianMixturePrior(Prior):
             raise ValueError("components: expected at least one label, got none")
         for lab in components:
             if not isinstance(lab, str) or not lab:
-                raise ValueError(f"components: labels must be non-empty strings (the null label is implicit), got {lab!r}")
+                raise ValueError(
+                    f"components: labels must be non-empty strings (the null label is implicit), got {lab!r}"
+                )
         self.sample_shape = tuple(int(s) for s in sample_shape)
         self.dim = math.prod(self.sample_shape)
         self.vocabulary = tuple(components)
@@ -204,7 +211,9 @@ class GaussianMixturePrior(Prior):
             self._uncond = _Mixture(unconditional, self.dim, "unconditional")
 
     # -- the Prior interface ------------------------------------------------------------------
-    def _eps(self, z_t: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor, image: torch.Tensor | None) -> torch.Tensor:
+    def _eps(
+        self, z_t: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor, image: torch.Tensor | None
+    ) -> torch.Tensor:
         return self.posterior(z_t, t, label_idx)[0]
 
     # -- closed forms -------------------------------------------------------------------------
@@ -216,10 +225,14 @@ class GaussianMixturePrior(Prior):
             raise ConditionError(f"label index {label_idx} is outside [0, {len(self.vocabulary)}]", "label_idx")
         return self._labels[label_idx]
 
-    def _per_label(self, x: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor | int | None, fn) -> list[torch.Tensor]:
+    def _per_label(
+        self, x: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor | int | None, fn
+    ) -> list[torch.Tensor]:
         b = x.shape[0]
         if tuple(x.shape[1:]) != self.sample_shape:
-            raise ConditionError(f"input has shape {tuple(x.shape)}; expected (B, {', '.join(map(str, self.sample_shape))})", "z")
+            raise ConditionError(
+                f"input has shape {tuple(x.shape)}; expected (B, {', '.join(map(str, self.sample_shape))})", "z"
+            )
         if label_idx is None:
             label_idx = len(self.vocabulary)
         idx = torch.as_tensor(label_idx, dtype=torch.long).reshape(-1)
@@ -241,11 +254,15 @@ class GaussianMixturePrior(Prior):
                 o[rows] = r
         return [o.reshape(x.shape).to(x.dtype) for o in outs]
 
-    def posterior(self, z_t: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor | int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def posterior(
+        self, z_t: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor | int | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """(E[ε | z_t], E[x | z_t]) per sample; ``label_idx`` None = the unconditional branch."""
         return tuple(self._per_label(z_t, t, label_idx, lambda m, z, ab: m.posterior(z, ab)))
 
-    def expected_x0(self, z: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor | int | None = None) -> torch.Tensor:
+    def expected_x0(
+        self, z: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor | int | None = None
+    ) -> torch.Tensor:
         """E_ε[x̂₀(√ᾱ z + √(1 − ᾱ) ε)] for a clean z: the mean denoised image a corrective b̂ learns.
 
         Exact for a branch with one component (x̂₀ is affine in ε there): μ + ᾱ Σ C⁻¹ (z − μ). A
@@ -262,7 +279,9 @@ class GaussianMixturePrior(Prior):
 
         return self._per_label(z, t, label_idx, fn)[0]
 
-    def sample(self, n: int, label: str | None = None, rng: torch.Generator | None = None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    def sample(
+        self, n: int, label: str | None = None, rng: torch.Generator | None = None, dtype: torch.dtype = torch.float32
+    ) -> torch.Tensor:
         """n data samples (n, C, H, W) of ``label`` (None or "" = the unconditional branch), on the CPU."""
         idx = len(self.vocabulary) if not label else int(self.label_index([label])[0])
         return self.mixture(idx).sample(n, rng).reshape(n, *self.sample_shape).to(dtype)
@@ -288,7 +307,9 @@ class GaussianPrior(GaussianMixturePrior):
         schedule: NoiseSchedule | None = None,
     ):
         if set(means) != set(covariances):
-            raise ValueError(f"means and covariances must have the same labels; got {sorted(means)} vs {sorted(covariances)}")
+            raise ValueError(
+                f"means and covariances must have the same labels; got {sorted(means)} vs {sorted(covariances)}"
+            )
         super().__init__(
             sample_shape,
             {lab: [(1.0, means[lab], covariances[lab])] for lab in means},
@@ -306,7 +327,7 @@ class GaussianPrior(GaussianMixturePrior):
         full: bool = False,
         unconditional: bool = False,
         schedule: NoiseSchedule | None = None,
-    ) -> "GaussianPrior":
+    ) -> GaussianPrior:
         """A reproducible example: means in [−0.5, 0.5], variances in [0.01, 0.1] (full covariances
         with random eigenvectors when ``full``); ``unconditional`` adds an explicit unconditional
         Gaussian whose variances exceed every label's (so guided SDS has a stable fixed point)."""
@@ -349,7 +370,13 @@ class ExpectedX0Corrective:
         self.prior = prior
         self.branch = branch
 
-    def __call__(self, z: torch.Tensor, t: torch.Tensor, cond_image: torch.Tensor | None = None, label_idx: torch.Tensor | None = None) -> torch.Tensor:
+    def __call__(
+        self,
+        z: torch.Tensor,
+        t: torch.Tensor,
+        cond_image: torch.Tensor | None = None,
+        label_idx: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         if self.branch == "cond" and label_idx is None:
             raise ConditionError("branch='cond' needs the label_idx the loss passes; got None", "label_idx")
         return self.prior.expected_x0(z, t, None if self.branch == "uncond" else label_idx)

@@ -11,6 +11,7 @@
 Everything here is a plain function or a small ``nn.Module`` with shape comments; no block reads
 configuration of its own.
 """
+
 from __future__ import annotations
 
 import math

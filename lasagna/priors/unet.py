@@ -16,9 +16,9 @@ Architecture (ADM-style, Dhariwal & Nichol 2021, scaled down):
 
 Channels (32, 64, 128) with one residual block per level give ≈1.6 M parameters at 32² (≈2.0 M with attention).
 """
+
 from __future__ import annotations
 
-import os
 from typing import Literal
 
 import torch
@@ -74,10 +74,13 @@ class UNetConfig(BaseModel):
         return v
 
     @model_validator(mode="after")
-    def _shapes(self) -> "UNetConfig":
+    def _shapes(self) -> UNetConfig:
         bad = [c for c in self.channels if c < 1 or c % self.norm_groups]
         if bad:
-            raise ValueError(f"every entry of channels must be a positive multiple of norm_groups={self.norm_groups}; got {list(self.channels)}")
+            raise ValueError(
+                f"every entry of channels must be a positive multiple of norm_groups={self.norm_groups}; got "
+                f"{list(self.channels)}"
+            )
         factor = 2 ** (len(self.channels) - 1)
         if self.resolution % factor:
             raise ValueError(f"resolution {self.resolution} must be divisible by 2^(levels-1) = {factor}")
@@ -101,7 +104,9 @@ class _Net(nn.Module):
         prev = ch[0]
         for i, c in enumerate(ch):
             blocks = nn.ModuleList(ResBlock(prev if j == 0 else c, c, e, g) for j in range(cfg.res_blocks))
-            self.down.append(nn.ModuleDict({"blocks": blocks, "down": Downsample(c) if i < len(ch) - 1 else nn.Identity()}))
+            self.down.append(
+                nn.ModuleDict({"blocks": blocks, "down": Downsample(c) if i < len(ch) - 1 else nn.Identity()})
+            )
             prev = c
         self.mid1 = ResBlock(ch[-1], ch[-1], e, g)
         self.mid_attn = SelfAttention(ch[-1], g) if cfg.attention else None
@@ -109,7 +114,9 @@ class _Net(nn.Module):
         self.up = nn.ModuleList()
         for i in reversed(range(len(ch))):
             below = ch[i + 1] if i < len(ch) - 1 else ch[-1]  # channels arriving from the level below
-            blocks = nn.ModuleList(ResBlock(below + ch[i] if j == 0 else ch[i], ch[i], e, g) for j in range(cfg.res_blocks))
+            blocks = nn.ModuleList(
+                ResBlock(below + ch[i] if j == 0 else ch[i], ch[i], e, g) for j in range(cfg.res_blocks)
+            )
             self.up.append(nn.ModuleDict({"blocks": blocks, "up": Upsample(ch[i]) if i > 0 else nn.Identity()}))
         self.out_norm = group_norm(ch[0], g)
         self.out = nn.Conv2d(ch[0], cfg.image_channels, 3, padding=1)
@@ -155,30 +162,42 @@ class UNetPrior(Pretrained, Prior):
     def _inputs(self, z_t: torch.Tensor, image: torch.Tensor | None) -> torch.Tensor:
         cfg = self.config
         if z_t.dim() != 4 or tuple(z_t.shape[1:]) != self.sample_shape:
-            raise ConditionError(f"z_t has shape {tuple(z_t.shape)}; expected (B, {', '.join(map(str, self.sample_shape))})", "z_t")
+            raise ConditionError(
+                f"z_t has shape {tuple(z_t.shape)}; expected (B, {', '.join(map(str, self.sample_shape))})", "z_t"
+            )
         if cfg.cond_channels == 0:
             if image is not None:
-                raise ConditionError("this prior takes no conditioning image (cond_channels = 0); expected image=None", "condition.image")
+                raise ConditionError(
+                    "this prior takes no conditioning image (cond_channels = 0); expected image=None", "condition.image"
+                )
             return z_t
         expected = f"(B, {cfg.cond_channels}, {cfg.resolution}, {cfg.resolution})"
         if image is None:
-            raise ConditionError(f"this prior needs a conditioning image of shape {expected}; got None", "condition.image")
+            raise ConditionError(
+                f"this prior needs a conditioning image of shape {expected}; got None", "condition.image"
+            )
         if image.dim() != 4 or tuple(image.shape[1:]) != (cfg.cond_channels, cfg.resolution, cfg.resolution):
             raise ConditionError(f"image has shape {tuple(image.shape)}; expected {expected}", "condition.image")
         if image.shape[0] != z_t.shape[0]:
-            raise ConditionError(f"image has batch {image.shape[0]}; expected the batch of z_t, {z_t.shape[0]}", "condition.image")
+            raise ConditionError(
+                f"image has batch {image.shape[0]}; expected the batch of z_t, {z_t.shape[0]}", "condition.image"
+            )
         # The conditioning image arrives in [0, 1] (Condition's convention); the network sees it in
         # the same [−1, 1] range as z.
         return torch.cat([z_t, image.to(z_t.dtype) * 2 - 1], dim=1)
 
-    def raw(self, z_t: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor, image: torch.Tensor | None) -> torch.Tensor:
+    def raw(
+        self, z_t: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor, image: torch.Tensor | None
+    ) -> torch.Tensor:
         """The network's own output (ε or v, per ``config.prediction``), in the parameters' dtype."""
         dtype = self.net.inp.weight.dtype
         z_t = z_t.to(dtype)
         x = self._inputs(z_t, image)
         return self.net(x, t.to(z_t.device), label_idx.to(z_t.device))
 
-    def _eps(self, z_t: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor, image: torch.Tensor | None) -> torch.Tensor:
+    def _eps(
+        self, z_t: torch.Tensor, t: torch.Tensor, label_idx: torch.Tensor, image: torch.Tensor | None
+    ) -> torch.Tensor:
         out = self.raw(z_t, t, label_idx, image)
         if self.config.prediction == "v":
             return self.schedule.eps_from_v(z_t.to(out.dtype), out, t)
@@ -216,7 +235,6 @@ class UNetPrior(Pretrained, Prior):
             target = eps
         out = self.raw(z_t, t, labels, image)
         return F.mse_loss(out.float(), target.float())
-
 
 
 def _rng_device(rng: torch.Generator | None, fallback: torch.device) -> torch.device:

@@ -26,19 +26,21 @@ invocation; the run then checkpoints and stops, and the next invocation continue
 The data source is a callable ``sample_batch(batch, rng) -> (images in [0, 1] (B, 3, H, W),
 label_idx (B,) into the prior's vocabulary, cond_image (B, C, H, W) in [0, 1] or None)``.
 """
+
 from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Literal
 
 import torch
 from pydantic import ConfigDict, Field, model_validator
 
-from lasagna.errors import LasagnaError
 from lasagna.atomic import atomic_write_text
+from lasagna.errors import LasagnaError
 from lasagna.losses.corrective import Corrective, CorrectiveConfig, TrivialCorrective, lk_loss
 from lasagna.priors.base import Condition, Prior
 from lasagna.priors.nn import randn
@@ -64,18 +66,25 @@ class CorrectiveTrainConfig(LoopConfig):
     eval_batches: int = Field(8, ge=1)
 
     @model_validator(mode="after")
-    def _t_range(self) -> "CorrectiveTrainConfig":
+    def _t_range(self) -> CorrectiveTrainConfig:
         if self.t_min > self.t_max:
             raise ValueError(f"t_min {self.t_min} must be <= t_max {self.t_max}")
         return self
 
 
-def corrective_config_for(prior: Prior, filters: tuple[int, ...] = (32, 64, 128), sees_condition: bool = False, cond_channels: int = 0) -> CorrectiveConfig:
+def corrective_config_for(
+    prior: Prior, filters: tuple[int, ...] = (32, 64, 128), sees_condition: bool = False, cond_channels: int = 0
+) -> CorrectiveConfig:
     """A ``CorrectiveConfig`` matching ``prior`` (channels, resolution, T, vocabulary)."""
     c, h, _ = prior.sample_shape
     return CorrectiveConfig(
-        channels=c, resolution=h, filters=filters, num_timesteps=prior.schedule.num_steps,
-        sees_condition=sees_condition, cond_channels=cond_channels if sees_condition else 0, vocabulary=tuple(prior.vocabulary),
+        channels=c,
+        resolution=h,
+        filters=filters,
+        num_timesteps=prior.schedule.num_steps,
+        sees_condition=sees_condition,
+        cond_channels=cond_channels if sees_condition else 0,
+        vocabulary=tuple(prior.vocabulary),
     )
 
 
@@ -91,8 +100,17 @@ class Triplet:
     image: torch.Tensor | None  # (B, C_cond, H, W) in [0, 1]
 
 
-def make_triplets(prior: Prior, source: Source, batch: int, rng: torch.Generator, branch: str, t_min: float, t_max: float,
-                  device: torch.device, t_range: tuple[int, int] | None = None) -> Triplet:
+def make_triplets(
+    prior: Prior,
+    source: Source,
+    batch: int,
+    rng: torch.Generator,
+    branch: str,
+    t_min: float,
+    t_max: float,
+    device: torch.device,
+    t_range: tuple[int, int] | None = None,
+) -> Triplet:
     """Draw clean images, noise them at t ~ U(t_min, t_max), and take the prior's x̂₀ (one network pass).
 
     ``t_range`` (lo, hi) instead draws integer timesteps uniformly from [lo, hi) (a spectral fit's bucket).
@@ -113,7 +131,9 @@ def make_triplets(prior: Prior, source: Source, batch: int, rng: torch.Generator
         t = torch.randint(t_range[0], t_range[1], (batch,), generator=rng, device=rng.device).to(device)
     z_t = sched.add_noise(z, randn(tuple(z.shape), rng, device, z.dtype), t)
     if int(label_idx.min()) < 0 or int(label_idx.max()) > null:
-        raise LasagnaError(f"label_idx must lie in [0, {null}] (the null index is {null}); got {label_idx.tolist()}", "source")
+        raise LasagnaError(
+            f"label_idx must lie in [0, {null}] (the null index is {null}); got {label_idx.tolist()}", "source"
+        )
     labels = [prior.vocabulary[i] if i < null else "" for i in label_idx.tolist()]
     eps = prior.predict(z_t, t, Condition(labels, image=cond_image), branches=(branch,)).eps[branch]
     z_hat = sched.x0_from_eps(z_t, eps.float(), t)
@@ -129,7 +149,9 @@ def evaluate_lk(model: torch.nn.Module, triplets: list[Triplet]) -> float:
 
 @dataclass
 class TrainResult:
-    corrective: torch.nn.Module  # the final b̂ (a Corrective with EMA weights when enabled, or a SpectralCorrective), eval mode
+    corrective: (
+        torch.nn.Module
+    )  # the final b̂ (a Corrective with EMA weights when enabled, or a SpectralCorrective), eval mode
     step: int
     stopped: Literal["done", "time"]
     lk_trained: float
@@ -142,17 +164,27 @@ class TrainResult:
 
 
 # -- the loop -----------------------------------------------------------------------------------
-def train_corrective(prior: Prior, source: Source, config: CorrectiveTrainConfig, out_dir: str | Path, device: str | torch.device | None = None) -> TrainResult:
+def train_corrective(
+    prior: Prior,
+    source: Source,
+    config: CorrectiveTrainConfig,
+    out_dir: str | Path,
+    device: str | torch.device | None = None,
+) -> TrainResult:
     """Train b̂_ψ (or resume training it) in ``out_dir``; see the module docstring."""
     cfg = config
     cc = cfg.corrective
     if cc.channels != prior.sample_shape[0] or cc.num_timesteps != prior.schedule.num_steps:
         raise LasagnaError(
-            f"corrective has channels={cc.channels}, num_timesteps={cc.num_timesteps}; expected the prior's {prior.sample_shape[0]} and {prior.schedule.num_steps}",
+            f"corrective has channels={cc.channels}, num_timesteps={cc.num_timesteps}; expected the prior's "
+            f"{prior.sample_shape[0]} and {prior.schedule.num_steps}",
             "config.corrective",
         )
     if cc.sees_condition and tuple(cc.vocabulary) != tuple(prior.vocabulary):
-        raise LasagnaError(f"corrective vocabulary {list(cc.vocabulary)}; expected the prior's {list(prior.vocabulary)}", "config.corrective.vocabulary")
+        raise LasagnaError(
+            f"corrective vocabulary {list(cc.vocabulary)}; expected the prior's {list(prior.vocabulary)}",
+            "config.corrective.vocabulary",
+        )
     if device is None:
         p = next(iter(prior.parameters()), None)
         device = p.device if p is not None else torch.device("cpu")
@@ -165,29 +197,52 @@ def train_corrective(prior: Prior, source: Source, config: CorrectiveTrainConfig
 
     # Held-out batches: their own rng, drawn before training, identical across resumes.
     eval_rng = torch.Generator().manual_seed(cfg.seed + _EVAL_SEED_OFFSET)
-    held_out = [make_triplets(prior, source, cfg.batch_size, eval_rng, cfg.branch, cfg.t_min, cfg.t_max, device) for _ in range(cfg.eval_batches)]
+    held_out = [
+        make_triplets(prior, source, cfg.batch_size, eval_rng, cfg.branch, cfg.t_min, cfg.t_max, device)
+        for _ in range(cfg.eval_batches)
+    ]
 
     def step_fn(net: torch.nn.Module, rng: torch.Generator, step: int) -> tuple[torch.Tensor, dict[str, float]]:
         tr = make_triplets(prior, source, cfg.batch_size, rng, cfg.branch, cfg.t_min, cfg.t_max, device)
         loss = lk_loss(net(tr.z, tr.t, cond_image=tr.image, label_idx=tr.label), tr.z_hat)
         return loss, {"lk": float(loss.detach())}
 
-    done = train_loop(model, step_fn, cfg, cfg, out, checkpoint_format=CHECKPOINT_FORMAT, desc="corrective", device=device)
+    done = train_loop(
+        model, step_fn, cfg, cfg, out, checkpoint_format=CHECKPOINT_FORMAT, desc="corrective", device=device
+    )
     final, step, stopped = done.model, done.step, done.stopped
     final.save_pretrained(out / "corrective")
     lk_trained = evaluate_lk(final, held_out)
     lk_trivial = evaluate_lk(TrivialCorrective(), held_out)
     result = TrainResult(corrective=final, step=step, stopped=stopped, lk_trained=lk_trained, lk_trivial=lk_trivial)
     ratio = result.ratio if math.isfinite(result.ratio) else None  # strict JSON has no NaN
-    metrics = {"step": step, "stopped": stopped, "lk_trained": lk_trained, "lk_trivial": lk_trivial, "ratio": ratio,
-               "held_out_samples": cfg.eval_batches * cfg.batch_size}
+    metrics = {
+        "step": step,
+        "stopped": stopped,
+        "lk_trained": lk_trained,
+        "lk_trivial": lk_trivial,
+        "ratio": ratio,
+        "held_out_samples": cfg.eval_batches * cfg.batch_size,
+    }
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
     return result
 
 
-def fit_spectral(prior: Prior, source: Source, out_dir: str | Path, *, batch_size: int = 32, batches: int = 8, buckets: int = 50,
-                 branch: str = "uncond", eval_batches: int = 8, t_min: float = 0.02, t_max: float = 0.98, seed: int = 0,
-                 device: str | torch.device = "cpu") -> TrainResult:
+def fit_spectral(
+    prior: Prior,
+    source: Source,
+    out_dir: str | Path,
+    *,
+    batch_size: int = 32,
+    batches: int = 8,
+    buckets: int = 50,
+    branch: str = "uncond",
+    eval_batches: int = 8,
+    t_min: float = 0.02,
+    t_max: float = 0.98,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+) -> TrainResult:
     """Fit the spectral b̂ (``spectral.py``) in closed form and write ``out_dir/corrective`` + metrics.json.
 
     ``batches`` batches of ``batch_size`` clean images per timestep bucket; held-out L_k against
@@ -203,7 +258,9 @@ def fit_spectral(prior: Prior, source: Source, out_dir: str | Path, *, batch_siz
     T = prior.schedule.num_steps
     config = SpectralCorrectiveConfig(channels=channels, height=h, width=w, buckets=buckets, num_timesteps=T)
     eval_rng = torch.Generator().manual_seed(seed + _EVAL_SEED_OFFSET)
-    held_out = [make_triplets(prior, source, batch_size, eval_rng, branch, t_min, t_max, device) for _ in range(eval_batches)]
+    held_out = [
+        make_triplets(prior, source, batch_size, eval_rng, branch, t_min, t_max, device) for _ in range(eval_batches)
+    ]
     rng = torch.Generator().manual_seed(seed)
 
     def draw(k: int):
@@ -214,10 +271,22 @@ def fit_spectral(prior: Prior, source: Source, out_dir: str | Path, *, batch_siz
     model = fit_spectral_corrective(config, draw, batches)
     out = Path(out_dir)
     model.save_pretrained(out / "corrective")
-    result = TrainResult(corrective=model, step=batches * buckets, stopped="done",
-                         lk_trained=evaluate_lk(model, held_out), lk_trivial=evaluate_lk(TrivialCorrective(), held_out))
+    result = TrainResult(
+        corrective=model,
+        step=batches * buckets,
+        stopped="done",
+        lk_trained=evaluate_lk(model, held_out),
+        lk_trivial=evaluate_lk(TrivialCorrective(), held_out),
+    )
     ratio = result.ratio if math.isfinite(result.ratio) else None
-    metrics = {"kind": "spectral", "buckets": buckets, "fit_images_per_bucket": batches * batch_size, "lk_trained": result.lk_trained,
-               "lk_trivial": result.lk_trivial, "ratio": ratio, "held_out_samples": eval_batches * batch_size}
+    metrics = {
+        "kind": "spectral",
+        "buckets": buckets,
+        "fit_images_per_bucket": batches * batch_size,
+        "lk_trained": result.lk_trained,
+        "lk_trivial": result.lk_trivial,
+        "ratio": ratio,
+        "held_out_samples": eval_batches * batch_size,
+    }
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
     return result

@@ -29,6 +29,7 @@ runs with the same ``micro_batch`` and seed agree across process counts (within 
 ``micro_batch=None`` means ``batch_size`` / processes (runs then differ across process counts in
 their random draws, not in their statistics). Only rank 0 writes files.
 """
+
 from __future__ import annotations
 
 import json
@@ -41,13 +42,13 @@ import torch
 import torch.nn.functional as F
 from pydantic import ConfigDict, Field, model_validator
 
+from lasagna.atomic import atomic_write_bytes, atomic_write_text
 from lasagna.distill.objective import ConditionImage, ScoreObjective, build_loss
 from lasagna.distill.schedules import Weights
 from lasagna.distill.settings import LossName
 from lasagna.errors import LasagnaError
 from lasagna.generators.layer import composite
 from lasagna.generators.unet import LayerGenerator, LayerGeneratorConfig
-from lasagna.atomic import atomic_write_bytes, atomic_write_text
 from lasagna.priors.base import Prior
 from lasagna.training.loop import LoopConfig, dist_info, init_distributed, shutdown_distributed, train_loop
 from lasagna.training.tasks import Task, task_batch
@@ -76,7 +77,9 @@ class AmortisedConfig(LoopConfig):
     condition_image: ConditionImage = "auto"
     lr: float = Field(1e-3, gt=0.0)
     batch_size: int = Field(32, ge=1, description="The global batch (over all processes).")
-    micro_batch: int | None = Field(None, ge=1, description="Chunk size with its own random stream; None = batch/processes.")
+    micro_batch: int | None = Field(
+        None, ge=1, description="Chunk size with its own random stream; None = batch/processes."
+    )
     resolution: int = Field(32, ge=1, description="World scenes are rendered at this size.")
     split: str = "train"
     world_seed: int = 0
@@ -85,7 +88,7 @@ class AmortisedConfig(LoopConfig):
     eval_count: int = Field(64, ge=0, description="Scenes for metrics.json (0: none).")
 
     @model_validator(mode="after")
-    def _check(self) -> "AmortisedConfig":
+    def _check(self) -> AmortisedConfig:
         if self.t_min > self.t_max:
             raise ValueError(f"t_min {self.t_min} > t_max {self.t_max}; expected t_min <= t_max")
         if self.micro_batch is not None and self.batch_size % self.micro_batch:
@@ -105,17 +108,29 @@ def chunking(config: AmortisedConfig, world_size: int) -> tuple[int, int]:
     """(micro batch, number of chunks) of the global batch; the chunks must split evenly over processes."""
     micro = config.micro_batch if config.micro_batch is not None else config.batch_size // world_size
     if micro < 1 or config.batch_size % micro:
-        raise LasagnaError(f"batch_size {config.batch_size} cannot be cut into chunks for {world_size} processes; "
-                           "expected batch_size divisible by the number of processes", "batch_size")
+        raise LasagnaError(
+            f"batch_size {config.batch_size} cannot be cut into chunks for {world_size} processes; "
+            "expected batch_size divisible by the number of processes",
+            "batch_size",
+        )
     chunks = config.batch_size // micro
     if chunks % world_size:
-        raise LasagnaError(f"{chunks} chunks of {micro} do not split over {world_size} processes; expected micro_batch "
-                           f"dividing batch_size / processes (e.g. {config.batch_size // world_size})", "micro_batch")
+        raise LasagnaError(
+            f"{chunks} chunks of {micro} do not split over {world_size} processes; expected micro_batch "
+            f"dividing batch_size / processes (e.g. {config.batch_size // world_size})",
+            "micro_batch",
+        )
     return micro, chunks
 
 
-def train_layer_generator(config: AmortisedConfig, out_dir: str | Path, *, prior: Prior | None = None, corrective=None,
-                          device: str | torch.device | None = None) -> AmortisedResult:
+def train_layer_generator(
+    config: AmortisedConfig,
+    out_dir: str | Path,
+    *,
+    prior: Prior | None = None,
+    corrective=None,
+    device: str | torch.device | None = None,
+) -> AmortisedResult:
     """Train (or resume training) the generator in ``out_dir``; see the module docstring."""
     info = init_distributed(device)
     try:
@@ -147,8 +162,19 @@ def _train(cfg: AmortisedConfig, out: Path, prior: Prior | None, corrective, dev
     def step_fn(net: torch.nn.Module, rng: torch.Generator, step: int) -> tuple[torch.Tensor, dict[str, float]]:
         seeds = torch.randint(0, 2**62, (chunks,), generator=rng)  # every process draws all: streams stay in step
         rngs = [torch.Generator().manual_seed(int(seeds[k])) for k in mine]
-        data = [task_batch(cfg.task, vocab, micro, r, split=cfg.split, seed=cfg.world_seed, resolution=cfg.resolution,
-                           shadows=cfg.shadows) for r in rngs]
+        data = [
+            task_batch(
+                cfg.task,
+                vocab,
+                micro,
+                r,
+                split=cfg.split,
+                seed=cfg.world_seed,
+                resolution=cfg.resolution,
+                shadows=cfg.shadows,
+            )
+            for r in rngs
+        ]
         base = torch.cat([d.base for d in data]).to(device)
         labels = [lab for d in data for lab in d.labels]
         layer = net(base, labels)  # one forward through the (DDP) wrapper
@@ -165,10 +191,23 @@ def _train(cfg: AmortisedConfig, out: Path, prior: Prior | None, corrective, dev
         metrics = {k: sum(p[k] for p in parts) / len(parts) for k in parts[0]}
         return torch.stack(losses).mean(), metrics
 
-    done = train_loop(model, step_fn, cfg, cfg, out, checkpoint_format=CHECKPOINT_FORMAT,
-                      desc="generator:supervised" if cfg.supervised else f"generator:{cfg.loss}", device=device)
+    done = train_loop(
+        model,
+        step_fn,
+        cfg,
+        cfg,
+        out,
+        checkpoint_format=CHECKPOINT_FORMAT,
+        desc="generator:supervised" if cfg.supervised else f"generator:{cfg.loss}",
+        device=device,
+    )
     final: LayerGenerator = done.model  # type: ignore[assignment]
-    metrics: dict[str, Any] = {"step": done.step, "stopped": done.stopped, "supervised": cfg.supervised, "processes": info.world_size}
+    metrics: dict[str, Any] = {
+        "step": done.step,
+        "stopped": done.stopped,
+        "supervised": cfg.supervised,
+        "processes": info.world_size,
+    }
     if info.is_main:
         final.save_pretrained(out / "generator")
         if cfg.eval_count:
@@ -184,8 +223,16 @@ def evaluate(generator: LayerGenerator, cfg: AmortisedConfig, device: torch.devi
     """Layer and composite error of one forward pass on ``eval_count`` scenes of ``eval_split``, beside
     the identity edit's (PSNR with peak 1, over all pixels)."""
     rng = torch.Generator().manual_seed(cfg.seed + _EVAL_SEED_OFFSET)
-    d = task_batch(cfg.task, cfg.generator.vocabulary, cfg.eval_count, rng, split=cfg.eval_split, seed=cfg.world_seed,
-                   resolution=cfg.resolution, shadows=cfg.shadows)
+    d = task_batch(
+        cfg.task,
+        cfg.generator.vocabulary,
+        cfg.eval_count,
+        rng,
+        split=cfg.eval_split,
+        seed=cfg.world_seed,
+        resolution=cfg.resolution,
+        shadows=cfg.shadows,
+    )
     base, target = d.base.to(device), d.target.to(device)
     spec = generator.spec
     layer = generator.to(device)(base, d.labels)
@@ -207,7 +254,9 @@ def _psnr(mse: float) -> float | None:
 
 def _load_prior(path: str | None, device: torch.device) -> Prior:
     if path is None:
-        raise LasagnaError("no prior: pass prior= or set config.prior to a UNetPrior folder (or set supervised=true)", "prior")
+        raise LasagnaError(
+            "no prior: pass prior= or set config.prior to a UNetPrior folder (or set supervised=true)", "prior"
+        )
     from lasagna.priors.unet import UNetPrior
 
     return UNetPrior.from_pretrained(path, device=device)
@@ -215,14 +264,18 @@ def _load_prior(path: str | None, device: torch.device) -> Prior:
 
 def _load_corrective(path: str | None, device: torch.device):
     if path is None:
-        raise LasagnaError("loss 'lmc-sds' needs the corrective b̂: pass corrective= or set config.corrective to its folder", "corrective")
+        raise LasagnaError(
+            "loss 'lmc-sds' needs the corrective b̂: pass corrective= or set config.corrective to its folder",
+            "corrective",
+        )
     from lasagna.catalogue import load_corrective  # a network or a spectral b̂, by its config's format
 
     return load_corrective(Path(path), device=device)
 
 
 def install_generator(source: Path, preset_dir: Path) -> Path:
-    """Copy a trained generator (model.safetensors + config.json) into ``preset_dir/generator/``, atomically per file."""
+    """Copy a trained generator (model.safetensors + config.json) into ``preset_dir/generator/``, each file
+    atomically."""
     target = preset_dir / "generator"
     for name in ("model.safetensors", "config.json"):  # the weights first: a config.json marks a complete folder
         atomic_write_bytes(target / name, (source / name).read_bytes())

@@ -14,6 +14,7 @@ reproduces the uninterrupted one bit for bit. ``max_minutes`` bounds one invocat
 checkpoints and stops, and the next invocation continues. The checkpoint's format and the run folder's
 config check are ``lasagna.io.checkpoint``'s.
 """
+
 from __future__ import annotations
 
 import copy
@@ -21,9 +22,10 @@ import json
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Literal
 
 import torch
 import torch.distributed as dist
@@ -50,13 +52,18 @@ class LoopConfig(BaseModel):
     lr_decay: float = Field(1.0, gt=0.0, le=1.0, description="lr multiplied by this every lr_decay_every steps")
     lr_decay_every: int = Field(100_000, ge=1)
     lr_schedule: Literal["step", "cosine"] = Field(
-        "step", description="step: × lr_decay every lr_decay_every steps; cosine: from lr to lr·lr_min_ratio over `steps`")
+        "step",
+        description="step: × lr_decay every lr_decay_every steps; cosine: from lr to lr·lr_min_ratio over `steps`",
+    )
     lr_min_ratio: float = Field(0.0, ge=0.0, le=1.0, description="the cosine schedule's final lr as a fraction of lr")
     warmup_steps: int = Field(0, ge=0, description="linear lr warm-up from 0 over this many steps")
     grad_clip: float | None = Field(None, gt=0.0, description="clip the global gradient norm to this")
     ema_decay: float | None = Field(None, ge=0.0, lt=1.0)
-    ema_warmup: bool = Field(False, description="decay min(ema_decay, (1 + step)/(10 + step)): the average forgets "
-                             "the initial weights within the run (without it, 0.999^steps of them remain: 22 % after 1 500 steps)")
+    ema_warmup: bool = Field(
+        False,
+        description="decay min(ema_decay, (1 + step)/(10 + step)): the average forgets "
+        "the initial weights within the run (without it, 0.999^steps of them remain: 22 % after 1 500 steps)",
+    )
     checkpoint_every: int = Field(500, ge=1)
     log_every: int = Field(10, ge=1)
     max_minutes: float | None = Field(None, gt=0.0)
@@ -246,7 +253,9 @@ def train_loop(
         log_path.unlink()
 
     start, saved_at, stopped = time.monotonic(), step, "done"
-    bar = tqdm(total=loop.steps, initial=step, desc=desc, disable=not (loop.progress and info.is_main), dynamic_ncols=True)
+    bar = tqdm(
+        total=loop.steps, initial=step, desc=desc, disable=not (loop.progress and info.is_main), dynamic_ncols=True
+    )
     log = open(log_path, "a", encoding="utf-8") if info.is_main else None
     try:
         while step < loop.steps:
@@ -274,8 +283,13 @@ def train_loop(
             bar.update(1)
             if step % loop.log_every == 0:
                 values = _mean_over_processes({"loss": float(loss.detach()), **metrics}, device)
-                rec = {"step": step, "loss": values.pop("loss"), **values, "lr": lr,
-                       "elapsed_s": round(time.monotonic() - start, 3)}
+                rec = {
+                    "step": step,
+                    "loss": values.pop("loss"),
+                    **values,
+                    "lr": lr,
+                    "elapsed_s": round(time.monotonic() - start, 3),
+                }
                 bar.set_postfix(loss=f"{rec['loss']:.4f}")
                 if log is not None:
                     log.write(json.dumps(rec) + "\n")

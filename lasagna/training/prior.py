@@ -19,6 +19,7 @@ The command line is ``lasagna train-prior`` (``lasagna.cli.train_prior``)::
 
     lasagna train-prior --task relight --out runs/relight-32 --minutes 30
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -48,12 +49,17 @@ class PriorTrainConfig(LoopConfig):
     split: str = Field("train", description="world split the training scenes come from")
     world_seed: int = Field(0, description="seed of the world split (scenes are (split, seed, index))")
     shadows: bool = Field(False, description="render cast shadows in the training scenes")
-    init_from: str | None = Field(None, description="a saved prior (folder) whose weights start this run: "
-                                  "a second training stage, e.g. an lr anneal after a constant-lr run")
+    init_from: str | None = Field(
+        None,
+        description="a saved prior (folder) whose weights start this run: "
+        "a second training stage, e.g. an lr anneal after a constant-lr run",
+    )
     init_labels: Literal["keep", "fresh"] = Field(
-        "keep", description="keep: init_from has this run's vocabulary; fresh: it may have another (a prior of "
+        "keep",
+        description="keep: init_from has this run's vocabulary; fresh: it may have another (a prior of "
         "another task with the same architecture): every tensor is copied but the label embedding, whose rows "
-        "all start as init_from's null label — the new task starts from the old prior's unconditional model")
+        "all start as init_from's null label — the new task starts from the old prior's unconditional model",
+    )
 
 
 def task_vocabulary(task: Task) -> tuple[str, ...]:
@@ -66,11 +72,25 @@ def task_cond_channels(task: Task) -> int:
     return 1 if task == "colorize" else 3
 
 
-def unet_config_for(task: Task, resolution: int = 32, channels: tuple[int, ...] = (32, 64, 128), res_blocks: int = 1,
-                    attention: bool = False, prediction: Literal["epsilon", "v"] = "v") -> UNetConfig:
+def unet_config_for(
+    task: Task,
+    resolution: int = 32,
+    channels: tuple[int, ...] = (32, 64, 128),
+    res_blocks: int = 1,
+    attention: bool = False,
+    prediction: Literal["epsilon", "v"] = "v",
+) -> UNetConfig:
     """The UNetConfig of a task's prior: image 3 channels, its conditioning channels and vocabulary."""
-    return UNetConfig(image_channels=3, cond_channels=task_cond_channels(task), resolution=resolution, channels=channels,
-                      res_blocks=res_blocks, attention=attention, vocabulary=task_vocabulary(task), prediction=prediction)
+    return UNetConfig(
+        image_channels=3,
+        cond_channels=task_cond_channels(task),
+        resolution=resolution,
+        channels=channels,
+        res_blocks=res_blocks,
+        attention=attention,
+        vocabulary=task_vocabulary(task),
+        prediction=prediction,
+    )
 
 
 def prior_batch(task: Task, scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -114,8 +134,9 @@ def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | tor
         if config.init_labels == "fresh":
             theirs = theirs.model_copy(update={"vocabulary": config.unet.vocabulary})
         if theirs != config.unet:
-            raise LasagnaError(f"its UNet config differs from this run's ({start.config} vs {config.unet})",
-                               config.init_from)
+            raise LasagnaError(
+                f"its UNet config differs from this run's ({start.config} vs {config.unet})", config.init_from
+            )
         state = start.state_dict()
         if config.init_labels == "fresh":
             key = "net.label_emb.weight"
@@ -124,11 +145,21 @@ def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | tor
 
     def step_fn(net: UNetPrior, rng: torch.Generator, step: int):
         images, labels, cond = source(config.batch_size, rng)
-        loss = net.training_loss(net.encode(images.to(device)), labels.to(device), cond.to(device), rng, config.p_uncond)
+        loss = net.training_loss(
+            net.encode(images.to(device)), labels.to(device), cond.to(device), rng, config.p_uncond
+        )
         return loss, {}
 
-    done = train_loop(prior, step_fn, config, config, out_dir, checkpoint_format=CHECKPOINT_FORMAT,
-                      desc=f"prior:{config.task}", device=device)
+    done = train_loop(
+        prior,
+        step_fn,
+        config,
+        config,
+        out_dir,
+        checkpoint_format=CHECKPOINT_FORMAT,
+        desc=f"prior:{config.task}",
+        device=device,
+    )
     final: UNetPrior = done.model  # type: ignore[assignment]
     final.save_pretrained(Path(out_dir) / "prior")
     return final
@@ -145,11 +176,13 @@ def prior_from_checkpoint(path: str | Path, ema: bool = True) -> tuple[UNetPrior
     config = PriorTrainConfig.model_validate_json(meta["config"])
     prefix = "ema." if ema and any(k.startswith("ema.") for k in tensors) else "model."
     prior = UNetPrior(config.unet)
-    load_state_strict(prior, {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}, str(path))
+    load_state_strict(prior, {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}, str(path))
     return prior.eval(), int(meta["step"])
 
 
-def run_unet_config(task: Task, unet: UNetConfig, init_from: str | None, init_labels: Literal["keep", "fresh"]) -> UNetConfig:
+def run_unet_config(
+    task: Task, unet: UNetConfig, init_from: str | None, init_labels: Literal["keep", "fresh"]
+) -> UNetConfig:
     """The UNet config of a run: ``unet``, or with ``init_from`` that prior's own architecture — checked to
     be a ``task`` prior (or, with ``init_labels="fresh"``, one with the same conditioning channels, given
     ``task``'s vocabulary)."""

@@ -14,10 +14,12 @@ so a batch is a function of its state. Relighting renders each scene under its d
 label (the world's eight light names must contain the preset's labels); the light task gives each
 scene's glow the drawn label's colour (`lasagna.world.lighting.GLOW_VOCABULARY`: warm, cool, white).
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, Sequence, get_args
+from typing import Literal, get_args
 
 import torch
 from torch import Tensor
@@ -41,8 +43,17 @@ class TaskBatch:
     target: Tensor
 
 
-def task_batch(task: Task, vocabulary: Sequence[str], count: int, rng: torch.Generator, *, split: str = "train",
-               seed: int = 0, resolution: int = 32, shadows: bool = False) -> TaskBatch:
+def task_batch(
+    task: Task,
+    vocabulary: Sequence[str],
+    count: int,
+    rng: torch.Generator,
+    *,
+    split: str = "train",
+    seed: int = 0,
+    resolution: int = 32,
+    shadows: bool = False,
+) -> TaskBatch:
     """``count`` scenes of ``split`` as a (base, labels, true layer) batch for ``task`` (module docstring)."""
     from lasagna.world import GLOW_VOCABULARY, VOCABULARY, additive_light, colorization, generate
 
@@ -52,7 +63,10 @@ def task_batch(task: Task, vocabulary: Sequence[str], count: int, rng: torch.Gen
     if task == "relight":
         unknown = sorted(set(labels) - set(VOCABULARY))
         if unknown:
-            raise LasagnaError(f"labels {unknown} are not light directions of the world; expected labels from {', '.join(VOCABULARY)}", "vocabulary")
+            raise LasagnaError(
+                f"labels {unknown} are not light directions of the world; expected labels from {', '.join(VOCABULARY)}",
+                "vocabulary",
+            )
         scene = generate(split, count, seed, resolution, start=start, labels=labels, shadows=shadows)
         return TaskBatch(base=scene.albedo, labels=labels, target=scene.shading)
     scene = generate(split, count, seed, resolution, start=start, shadows=shadows)
@@ -62,7 +76,11 @@ def task_batch(task: Task, vocabulary: Sequence[str], count: int, rng: torch.Gen
     if task == "light":
         unknown = sorted(set(labels) - set(GLOW_VOCABULARY))
         if unknown:
-            raise LasagnaError(f"labels {unknown} are not glow colours of the world; expected labels from {', '.join(GLOW_VOCABULARY)}", "vocabulary")
+            raise LasagnaError(
+                f"labels {unknown} are not glow colours of the world; expected labels from "
+                f"{', '.join(GLOW_VOCABULARY)}",
+                "vocabulary",
+            )
         add = additive_light(scene, labels)
         return TaskBatch(base=add.base, labels=labels, target=add.glow)
     raise LasagnaError(f"unknown task {task!r}; expected relight, colorize or light", "task")

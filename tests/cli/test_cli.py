@@ -1,5 +1,6 @@
 """The ``lasagna`` CLI: composites of random stacks against the independent float64 reference, every
 subcommand's happy path, and hostile input (one line on stderr, exit 2, no traceback, outputs untouched)."""
+
 from __future__ import annotations
 
 import json
@@ -61,10 +62,23 @@ def test_composite_default_output_and_verbose(tmp_path, capsys):
 
 def test_learned_layer_without_source_is_reported(tmp_path, capsys):
     write_png8(tmp_path / "s/layers/base.png", np.full((4, 5, 3), 100))
-    doc = {"format": "lasagna.stack", "version": 1, "canvas": {"width": 5, "height": 4},
-           "layers": [{"id": "base", "kind": "pixels", "source": "layers/base.png"},
-                      {"id": "relit", "kind": "learned", "preset": "shading", "condition": {"label": "left"},
-                       "conditioned_on": "base", "blend": "multiply", "range": [0, 2]}]}
+    doc = {
+        "format": "lasagna.stack",
+        "version": 1,
+        "canvas": {"width": 5, "height": 4},
+        "layers": [
+            {"id": "base", "kind": "pixels", "source": "layers/base.png"},
+            {
+                "id": "relit",
+                "kind": "learned",
+                "preset": "shading",
+                "condition": {"label": "left"},
+                "conditioned_on": "base",
+                "blend": "multiply",
+                "range": [0, 2],
+            },
+        ],
+    }
     write_stack(tmp_path / "s", doc)
     code, out, _ = run(capsys, "composite", tmp_path / "s", "-v")
     assert code == 0 and "skipped: relit: not rendered (run `lasagna render`)" in out
@@ -81,14 +95,26 @@ def test_validate_schema_export_import(tmp_path, capsys):
     code, out, _ = run(capsys, "schema")
     assert code == 0 and json.loads(out)["$id"].endswith("stack.schema.json")
     code, out, _ = run(capsys, "schema", "--out", tmp_path / "schemas")
-    assert code == 0 and sorted(p.name for p in (tmp_path / "schemas").iterdir()) == ["preset.schema.json", "stack.schema.json"]
-    code, out, err = run(capsys, "export", BASIC, "--ora", tmp_path / "b.ora", "--psd", tmp_path / "b.psd",
-                         "--layers", tmp_path / "layers")
+    assert code == 0 and sorted(p.name for p in (tmp_path / "schemas").iterdir()) == [
+        "preset.schema.json",
+        "stack.schema.json",
+    ]
+    code, out, err = run(
+        capsys,
+        "export",
+        BASIC,
+        "--ora",
+        tmp_path / "b.ora",
+        "--psd",
+        tmp_path / "b.psd",
+        "--layers",
+        tmp_path / "layers",
+    )
     assert code == 0, err
     assert zipfile.ZipFile(tmp_path / "b.ora").namelist()[0] == "mimetype"
     assert (tmp_path / "b.psd").read_bytes()[:4] == b"8BPS"
     meta = json.loads((tmp_path / "layers/layers.json").read_text())
-    assert [l["id"] for l in meta["layers"]] == ["base", "shade", "sticker", "glow", "hidden"]
+    assert [layer["id"] for layer in meta["layers"]] == ["base", "shade", "sticker", "glow", "hidden"]
     code, out, err = run(capsys, "import-ora", tmp_path / "b.ora", "-o", tmp_path / "back")
     assert code == 0, err
     code, _, _ = run(capsys, "composite", tmp_path / "back")
@@ -111,8 +137,12 @@ def _good_stack(folder: Path, **layer_changes) -> Path:
     write_png8(folder / "layers/base.png", np.full((6, 8, 3), 120))
     write_png8(folder / "layers/top.png", np.full((6, 8, 4), 200))
     top = {"id": "top", "kind": "pixels", "source": "layers/top.png", **layer_changes}
-    doc = {"format": "lasagna.stack", "version": 1, "canvas": {"width": 8, "height": 6},
-           "layers": [{"id": "base", "kind": "pixels", "source": "layers/base.png"}, top]}
+    doc = {
+        "format": "lasagna.stack",
+        "version": 1,
+        "canvas": {"width": 8, "height": 6},
+        "layers": [{"id": "base", "kind": "pixels", "source": "layers/base.png"}, top],
+    }
     return write_stack(folder, doc)
 
 
@@ -142,7 +172,9 @@ def _hostile(tmp_path: Path, case: str) -> Path:
         write_png8(s / "masks/top.png", np.zeros((5, 8)))
     elif case == "nan":
         _good_stack(s)
-        (s / "stack.json").write_text((s / "stack.json").read_text().replace('"id": "top"', '"opacity": NaN, "id": "top"'))
+        (s / "stack.json").write_text(
+            (s / "stack.json").read_text().replace('"id": "top"', '"opacity": NaN, "id": "top"')
+        )
     elif case == "nan-colour":
         _good_stack(s)
         doc = json.loads((s / "stack.json").read_text())
@@ -190,10 +222,29 @@ def _hostile(tmp_path: Path, case: str) -> Path:
     return s
 
 
-HOSTILE = ["malformed-json", "unknown-blend", "missing-png", "corrupt-png", "truncated-png", "not-png",
-           "size-mismatch", "nan", "nan-colour", "dotdot-source", "absolute-source", "symlink-escape",
-           "symlink-dir-escape", "header-bomb", "side-bomb", "idat-bomb", "source-is-folder", "duplicate-id",
-           "not-utf8", "unreadable", "range-for-normal"]
+HOSTILE = [
+    "malformed-json",
+    "unknown-blend",
+    "missing-png",
+    "corrupt-png",
+    "truncated-png",
+    "not-png",
+    "size-mismatch",
+    "nan",
+    "nan-colour",
+    "dotdot-source",
+    "absolute-source",
+    "symlink-escape",
+    "symlink-dir-escape",
+    "header-bomb",
+    "side-bomb",
+    "idat-bomb",
+    "source-is-folder",
+    "duplicate-id",
+    "not-utf8",
+    "unreadable",
+    "range-for-normal",
+]
 
 
 @pytest.mark.parametrize("case", HOSTILE)
@@ -242,8 +293,22 @@ def _xml(*layers: str, w: int = 4, h: int = 3) -> bytes:
     return (f'<?xml version="1.0"?><image w="{w}" h="{h}"><stack>' + "".join(layers) + "</stack></image>").encode()
 
 
-@pytest.mark.parametrize("case", ["zip-slip-entry", "zip-slip-src", "absolute-src", "nested-stack", "unknown-op",
-                                  "bomb-layer", "not-zip", "no-mimetype", "dtd", "lone-dodge", "missing-src"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "zip-slip-entry",
+        "zip-slip-src",
+        "absolute-src",
+        "nested-stack",
+        "unknown-op",
+        "bomb-layer",
+        "not-zip",
+        "no-mimetype",
+        "dtd",
+        "lone-dodge",
+        "missing-src",
+    ],
+)
 def test_hostile_ora(tmp_path, capsys, case):
     png = pngcraft.gray8(4, 3)
     layer = '<layer name="a" src="data/a.png" composite-op="{op}"/>'
@@ -293,8 +358,11 @@ def test_unwritable_output_leaves_nothing(tmp_path, capsys):
 
 def test_output_under_a_file_is_refused(tmp_path, capsys):
     (tmp_path / "file").write_bytes(b"x")
-    for argv in (["composite", BASIC, "-o", tmp_path / "file/x.png"], ["export", BASIC, "--layers", tmp_path / "file/d"],
-                 ["demo", "-o", tmp_path / "file/demo"]):
+    for argv in (
+        ["composite", BASIC, "-o", tmp_path / "file/x.png"],
+        ["export", BASIC, "--layers", tmp_path / "file/d"],
+        ["demo", "-o", tmp_path / "file/demo"],
+    ):
         code, _, err = run(capsys, *argv)
         assert code == 2 and "not a writable folder" in err and len(err.splitlines()) == 1
     assert (tmp_path / "file").read_bytes() == b"x"

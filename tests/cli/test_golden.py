@@ -6,11 +6,11 @@ this test is the proof that commands, flags, outputs and exit codes did not chan
 legitimately between runs is normalised: the temporary folder, the checkout's path and wall-clock
 seconds. ``LASAGNA_GOLDEN=update pytest tests/cli/test_golden.py`` rewrites the files (review the diff).
 """
+
 from __future__ import annotations
 
 import os
 import re
-import shutil
 from pathlib import Path
 
 import pytest
@@ -23,8 +23,21 @@ BASIC = REPO / "examples" / "stacks" / "basic"
 PHOTO = REPO / "examples" / "photos" / "coffee.png"
 UPDATE = os.environ.get("LASAGNA_GOLDEN") == "update"
 
-COMMANDS = ("composite", "export", "validate", "schema", "import-ora", "edit", "render", "layers", "demo", "world",
-            "train-prior", "train-corrective", "train-layer")
+COMMANDS = (
+    "composite",
+    "export",
+    "validate",
+    "schema",
+    "import-ora",
+    "edit",
+    "render",
+    "layers",
+    "demo",
+    "world",
+    "train-prior",
+    "train-corrective",
+    "train-layer",
+)
 
 # name -> argv; "{tmp}" is the test's temporary folder. Cases run in order within one folder, so a later
 # case may read what an earlier one wrote (import-ora reads the export's ORA, render the edit's stack).
@@ -40,18 +53,74 @@ REAL: dict[str, list[str]] = {
     "layers-json": ["layers", "--json"],
     "world": ["world", "-o", "{tmp}/world", "--split", "heldout", "--count", "2", "--resolution", "16"],
     "edit": ["edit", str(PHOTO), "--layer", "shading", "--condition", "left", "-o", "{tmp}/edit"],
-    "edit-free": ["edit", str(PHOTO), "--layer", "shading", "--condition", "top", "--generator", "free", "--steps", "2",
-                  "--no-ora", "-o", "{tmp}/edit-free"],
+    "edit-free": [
+        "edit",
+        str(PHOTO),
+        "--layer",
+        "shading",
+        "--condition",
+        "top",
+        "--generator",
+        "free",
+        "--steps",
+        "2",
+        "--no-ora",
+        "-o",
+        "{tmp}/edit-free",
+    ],
     "edit-twice": ["edit", "{tmp}/edit", "--condition", "top", "--optimize", "1", "--no-ora", "-o", "{tmp}/twice"],
     "render": ["render", "{tmp}/edit"],
     "render-all": ["render", "{tmp}/edit-free", "--all"],
-    "train-prior": ["train-prior", "--out", "{tmp}/prior", "--steps", "2", "--batch-size", "2", "--resolution", "16",
-                    "--channels", "8,16", "--no-progress"],
-    "train-corrective": ["train-corrective", "--kind", "spectral", "--prior", "{tmp}/prior/prior", "--task", "relight",
-                         "--out", "{tmp}/spectral", "--batches", "1", "--buckets", "2", "--batch-size", "2",
-                         "--eval-batches", "1", "--no-progress"],
-    "train-layer": ["train-layer", "--preset", "shading", "--supervised", "--steps", "2", "--batch-size", "2",
-                    "--resolution", "16", "--channels", "8,16", "--out", "{tmp}/gen"],
+    "train-prior": [
+        "train-prior",
+        "--out",
+        "{tmp}/prior",
+        "--steps",
+        "2",
+        "--batch-size",
+        "2",
+        "--resolution",
+        "16",
+        "--channels",
+        "8,16",
+        "--no-progress",
+    ],
+    "train-corrective": [
+        "train-corrective",
+        "--kind",
+        "spectral",
+        "--prior",
+        "{tmp}/prior/prior",
+        "--task",
+        "relight",
+        "--out",
+        "{tmp}/spectral",
+        "--batches",
+        "1",
+        "--buckets",
+        "2",
+        "--batch-size",
+        "2",
+        "--eval-batches",
+        "1",
+        "--no-progress",
+    ],
+    "train-layer": [
+        "train-layer",
+        "--preset",
+        "shading",
+        "--supervised",
+        "--steps",
+        "2",
+        "--batch-size",
+        "2",
+        "--resolution",
+        "16",
+        "--channels",
+        "8,16",
+        "--out",
+        "{tmp}/gen",
+    ],
     # bad input: one line on stderr, exit 2
     "no-command": [],
     "unknown-command": ["frobnicate"],
@@ -110,7 +179,9 @@ def test_real_invocations(tmp_path, capsys, cli_env):
     """Every case in order in one folder (later cases read what earlier ones wrote)."""
     for name, argv in REAL.items():
         check(name, record(argv, tmp_path, capsys))
-    assert sorted(p.stem for p in GOLDEN.glob("*.txt")) == sorted([*REAL, *HELP, "edit-free-stack-json", "edit-twice-stack-json"])
+    assert sorted(p.stem for p in GOLDEN.glob("*.txt")) == sorted(
+        [*REAL, *HELP, "edit-free-stack-json", "edit-twice-stack-json"]
+    )
 
 
 @pytest.mark.parametrize("case", ["edit-free", "edit-twice"])

@@ -9,6 +9,7 @@ asked. W3C Compositing Level 1 for an opaque backdrop Cb, source Cs, α = alpha 
     screen    Cb + α(Cs − Cb·Cs)
     plus      Cb + α·Cs
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -63,8 +64,8 @@ def composite(layers, canvas, background=(0.0, 0.0, 0.0), blend_space="srgb", cl
         if x0 >= x1 or y0 >= y1:
             continue
         cb = out[:, y0:y1, x0:x1]
-        cs = color[:, y0 - y:y1 - y, x0 - x:x1 - x]
-        al = a[:, y0 - y:y1 - y, x0 - x:x1 - x]
+        cs = color[:, y0 - y : y1 - y, x0 - x : x1 - x]
+        al = a[:, y0 - y : y1 - y, x0 - x : x1 - x]
         res = FORMULAS[spec.blend](cb, cs, al)
         out[:, y0:y1, x0:x1] = np.clip(res, 0.0, 1.0) if clamp == "layer" else res
     if clamp == "output":

@@ -1,5 +1,6 @@
 """Blend modes, kornia-style: one class per op — smoke, shapes, exceptions, references (numpy float64
 from the W3C formulas, and Pillow on uint8), NaN behaviour, float64 gradcheck, in-place == pure."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -10,7 +11,13 @@ from hypothesis import strategies as st
 from PIL import Image, ImageChops
 
 from lasagna.compose.blend import (
-    BLEND_FUNC, BLEND_INPLACE, BLEND_MODES, clamp_needed, get_blend, multiply, normal,
+    BLEND_FUNC,
+    BLEND_INPLACE,
+    BLEND_MODES,
+    clamp_needed,
+    get_blend,
+    multiply,
+    normal,
 )
 from lasagna.errors import LasagnaError
 from tests.compose.numpy_ref import FORMULAS
@@ -60,12 +67,20 @@ class _BlendTests:
     @pytest.mark.parametrize("alpha", ["tensor", "float", "none", "0-d", "batch-opacity"])
     def test_cardinality_and_broadcast(self, c_src, alpha):
         cb, cs, a = inputs(c_src=c_src, batch=(2,))
-        a = {"tensor": a, "float": 0.25, "none": None, "0-d": torch.tensor(0.5, dtype=torch.float64),
-             "batch-opacity": torch.rand(2, 1, 1, 1, dtype=torch.float64)}[alpha]
+        a = {
+            "tensor": a,
+            "float": 0.25,
+            "none": None,
+            "0-d": torch.tensor(0.5, dtype=torch.float64),
+            "batch-opacity": torch.rand(2, 1, 1, 1, dtype=torch.float64),
+        }[alpha]
         out = self.fn(cb, cs[0], a)  # source without batch dim broadcasts over the backdrop's batch
         assert out.shape == (2, 3, 4, 5)
-        expect = FORMULAS[self.name](cb.numpy(), np.broadcast_to(cs[0].numpy(), (2, 3, 4, 5)),
-                                     1.0 if a is None else (a.numpy() if isinstance(a, torch.Tensor) else a))
+        expect = FORMULAS[self.name](
+            cb.numpy(),
+            np.broadcast_to(cs[0].numpy(), (2, 3, 4, 5)),
+            1.0 if a is None else (a.numpy() if isinstance(a, torch.Tensor) else a),
+        )
         np.testing.assert_allclose(out.numpy(), expect, atol=1e-12)
 
     def test_batch_of_sources_grows_output(self):
@@ -75,23 +90,31 @@ class _BlendTests:
         with pytest.raises(LasagnaError, match="cannot grow its output"):
             self.fn_(cb[0].clone(), cs, a)
 
-    @pytest.mark.parametrize("bad, match", [
-        ("cs_channels", "Cs has 2 channels"),
-        ("cs_size", "expected the same height and width"),
-        ("cb_ndim", "expected \\(..., C, h, w\\)"),
-        ("cb_channels", "Cb has 4 channels"),
-        ("a_channels", "a has shape"),
-        ("a_range", "expected a number in \\[0, 1\\]"),
-        ("dtype", "expected one dtype"),
-        ("int", "expected a floating-point tensor"),
-        ("batch", "do not broadcast"),
-    ])
+    @pytest.mark.parametrize(
+        "bad, match",
+        [
+            ("cs_channels", "Cs has 2 channels"),
+            ("cs_size", "expected the same height and width"),
+            ("cb_ndim", "expected \\(..., C, h, w\\)"),
+            ("cb_channels", "Cb has 4 channels"),
+            ("a_channels", "a has shape"),
+            ("a_range", "expected a number in \\[0, 1\\]"),
+            ("dtype", "expected one dtype"),
+            ("int", "expected a floating-point tensor"),
+            ("batch", "do not broadcast"),
+        ],
+    )
     def test_exception(self, bad, match):
         cb, cs, a = inputs()
         args = {
-            "cs_channels": (cb, cs[:2], a), "cs_size": (cb, cs[..., :3], a), "cb_ndim": (cb[0], cs, a),
-            "cb_channels": (torch.rand(4, 4, 5, dtype=torch.float64), cs, a), "a_channels": (cb, cs, cs),
-            "a_range": (cb, cs, 1.5), "dtype": (cb, cs.float(), a), "int": (cb, (cs * 9).long(), a),
+            "cs_channels": (cb, cs[:2], a),
+            "cs_size": (cb, cs[..., :3], a),
+            "cb_ndim": (cb[0], cs, a),
+            "cb_channels": (torch.rand(4, 4, 5, dtype=torch.float64), cs, a),
+            "a_channels": (cb, cs, cs),
+            "a_range": (cb, cs, 1.5),
+            "dtype": (cb, cs.float(), a),
+            "int": (cb, (cs * 9).long(), a),
             "batch": (cb.expand(2, 3, 4, 5), cs.expand(3, 3, 4, 5), a),
         }[bad]
         with pytest.raises(LasagnaError, match=match) as info:
@@ -179,8 +202,9 @@ class TestNormal(_BlendTests):
         rgba = rng.integers(0, 256, (4, 16, 16), dtype=np.uint8)
         backdrop = Image.fromarray(np.concatenate([cb, np.full((1, 16, 16), 255, np.uint8)]).transpose(1, 2, 0), "RGBA")
         pil = np.asarray(Image.alpha_composite(backdrop, Image.fromarray(rgba.transpose(1, 2, 0), "RGBA")))
-        ours = normal(torch.from_numpy(cb / 255.0), torch.from_numpy(rgba[:3] / 255.0),
-                      torch.from_numpy(rgba[3:] / 255.0))
+        ours = normal(
+            torch.from_numpy(cb / 255.0), torch.from_numpy(rgba[:3] / 255.0), torch.from_numpy(rgba[3:] / 255.0)
+        )
         assert np.abs(u8(ours) - pil[..., :3].transpose(2, 0, 1).astype(np.int64)).max() <= 1
 
 
@@ -246,12 +270,19 @@ def test_unknown_blend_lists_valid_ones():
         get_blend("overlay")
 
 
-@pytest.mark.parametrize("blend, lo, hi, expect", [
-    ("normal", 0.0, 1.0, (False, False)), ("screen", 0.0, 1.0, (False, False)),
-    ("multiply", 0.0, 1.0, (False, False)), ("multiply", 0.0, 2.0, (False, True)),
-    ("multiply", -0.5, 1.0, (True, False)), ("plus", 0.0, 1.0, (False, True)),
-    ("plus", -1.0, 0.0, (True, False)), ("normal", float("nan"), 1.0, (True, True)),
-])
+@pytest.mark.parametrize(
+    "blend, lo, hi, expect",
+    [
+        ("normal", 0.0, 1.0, (False, False)),
+        ("screen", 0.0, 1.0, (False, False)),
+        ("multiply", 0.0, 1.0, (False, False)),
+        ("multiply", 0.0, 2.0, (False, True)),
+        ("multiply", -0.5, 1.0, (True, False)),
+        ("plus", 0.0, 1.0, (False, True)),
+        ("plus", -1.0, 0.0, (True, False)),
+        ("normal", float("nan"), 1.0, (True, True)),
+    ],
+)
 def test_clamp_needed(blend, lo, hi, expect):
     assert clamp_needed(blend, lo, hi) == expect
 

@@ -1,4 +1,5 @@
 """sRGB transfer functions: reference values, round trip, gradients at 0, dtypes, NaN, errors."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -12,8 +13,14 @@ from lasagna.errors import LasagnaError
 
 # Closed forms of IEC 61966-2-1 evaluated by hand in float64:
 # decode(0.5) = (0.555/1.055)^2.4, decode(0.04045) = 0.04045/12.92, decode(1) = 1.
-REFERENCE = [(0.0, 0.0), (0.02, 0.02 / 12.92), (0.04045, 0.04045 / 12.92), (0.5, (0.555 / 1.055) ** 2.4),
-             (0.73, (0.785 / 1.055) ** 2.4), (1.0, 1.0)]
+REFERENCE = [
+    (0.0, 0.0),
+    (0.02, 0.02 / 12.92),
+    (0.04045, 0.04045 / 12.92),
+    (0.5, (0.555 / 1.055) ** 2.4),
+    (0.73, (0.785 / 1.055) ** 2.4),
+    (1.0, 1.0),
+]
 
 
 @pytest.mark.parametrize("encoded, linear", REFERENCE)
@@ -81,8 +88,11 @@ def test_rejects_integer_tensors():
 def test_derivatives_match_autograd():
     from lasagna.compose.color import linear_to_srgb_derivative, srgb_to_linear_derivative
 
-    x = torch.tensor([-1.2, -0.3, -0.04, -0.001, 0.0, 0.002, 0.0031, 0.01, 0.04045, 0.05, 0.5, 1.0, 1.7],
-                     dtype=torch.float64, requires_grad=True)
+    x = torch.tensor(
+        [-1.2, -0.3, -0.04, -0.001, 0.0, 0.002, 0.0031, 0.01, 0.04045, 0.05, 0.5, 1.0, 1.7],
+        dtype=torch.float64,
+        requires_grad=True,
+    )
     for f, df in ((srgb_to_linear, srgb_to_linear_derivative), (linear_to_srgb, linear_to_srgb_derivative)):
         (g,) = torch.autograd.grad(f(x).sum(), x)
         assert torch.allclose(df(x.detach()), g, rtol=1e-12, atol=0)

@@ -1,4 +1,5 @@
 """LayerTensors: validation, statistics, and their cache (computed once, invalidated by edits)."""
+
 from __future__ import annotations
 
 import pytest
@@ -31,14 +32,21 @@ def test_shapes_and_properties():
     assert LayerTensors(torch.rand(1, 2, 2, requires_grad=True)).requires_grad
 
 
-@pytest.mark.parametrize("kwargs, where, match", [
-    ({"color": torch.rand(4, 5, 5)}, "LayerTensors.color", "C in \\{1, 3\\}"),
-    ({"color": torch.rand(5, 5)}, "LayerTensors.color", "got \\(5, 5\\)"),
-    ({"color": torch.zeros(3, 5, 5, dtype=torch.uint8)}, "LayerTensors.color", "floating-point"),
-    ({"color": torch.rand(3, 5, 5), "alpha": torch.rand(3, 5, 5)}, "LayerTensors.alpha", "\\(..., 1, h, w\\)"),
-    ({"color": torch.rand(3, 5, 5), "mask": torch.rand(1, 4, 5)}, "LayerTensors.mask", "is 4x5 but the colour is 5x5"),
-    ({"color": torch.rand(2, 3, 5, 5), "alpha": torch.rand(3, 1, 5, 5)}, "LayerTensors", "do not broadcast"),
-])
+@pytest.mark.parametrize(
+    "kwargs, where, match",
+    [
+        ({"color": torch.rand(4, 5, 5)}, "LayerTensors.color", "C in \\{1, 3\\}"),
+        ({"color": torch.rand(5, 5)}, "LayerTensors.color", "got \\(5, 5\\)"),
+        ({"color": torch.zeros(3, 5, 5, dtype=torch.uint8)}, "LayerTensors.color", "floating-point"),
+        ({"color": torch.rand(3, 5, 5), "alpha": torch.rand(3, 5, 5)}, "LayerTensors.alpha", "\\(..., 1, h, w\\)"),
+        (
+            {"color": torch.rand(3, 5, 5), "mask": torch.rand(1, 4, 5)},
+            "LayerTensors.mask",
+            "is 4x5 but the colour is 5x5",
+        ),
+        ({"color": torch.rand(2, 3, 5, 5), "alpha": torch.rand(3, 1, 5, 5)}, "LayerTensors", "do not broadcast"),
+    ],
+)
 def test_exceptions(kwargs, where, match):
     with pytest.raises(LasagnaError, match=match) as info:
         LayerTensors(**kwargs)
@@ -59,10 +67,17 @@ def test_from_rgba():
         LayerTensors.from_rgba(torch.rand(3, 3, 3))
 
 
-@pytest.mark.parametrize("blend, value, identity", [
-    ("multiply", 1.0, True), ("plus", 0.0, True), ("screen", 0.0, True), ("normal", 0.0, False),
-    ("multiply", 0.5, False), ("plus", 0.25, False),
-])
+@pytest.mark.parametrize(
+    "blend, value, identity",
+    [
+        ("multiply", 1.0, True),
+        ("plus", 0.0, True),
+        ("screen", 0.0, True),
+        ("normal", 0.0, False),
+        ("multiply", 0.5, False),
+        ("plus", 0.25, False),
+    ],
+)
 def test_identity_by_neutral_colour(blend, value, identity):
     assert LayerTensors(torch.full((1, 4, 4), value)).is_identity(blend) is identity
 

@@ -1,5 +1,6 @@
 """Property tests over random stacks (up to 256 layers on canvases up to 8x8, offsets in and out of the
 canvas, random opacities, visibility, blends, ranges, alphas, masks and no-op layers)."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -17,11 +18,16 @@ from lasagna.compose.renderer import Renderer
 from tests.compose import numpy_ref
 
 # Deterministic examples: a property failure is reproducible in CI, never a flaky run.
-SETTINGS = dict(deadline=None, derandomize=True,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+SETTINGS = dict(
+    deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large]
+)
 
-RANGES = {"normal": [(0.0, 1.0)], "screen": [(0.0, 1.0)], "multiply": [(0.0, 1.0), (0.0, 2.0)],
-          "plus": [(0.0, 1.0), (-1.0, 1.0)]}
+RANGES = {
+    "normal": [(0.0, 1.0)],
+    "screen": [(0.0, 1.0)],
+    "multiply": [(0.0, 1.0), (0.0, 2.0)],
+    "plus": [(0.0, 1.0), (-1.0, 1.0)],
+}
 
 
 @st.composite
@@ -29,8 +35,12 @@ def layer_recipe(draw, factors_above_one: bool = True):
     blend = draw(st.sampled_from(BLEND_MODES))
     ranges = RANGES[blend] if factors_above_one or blend != "multiply" else [(0.0, 1.0)]
     return dict(
-        blend=blend, c=draw(st.sampled_from([1, 3])), h=draw(st.integers(1, 10)), w=draw(st.integers(1, 10)),
-        x=draw(st.integers(-10, 9)), y=draw(st.integers(-10, 9)),
+        blend=blend,
+        c=draw(st.sampled_from([1, 3])),
+        h=draw(st.integers(1, 10)),
+        w=draw(st.integers(1, 10)),
+        x=draw(st.integers(-10, 9)),
+        y=draw(st.integers(-10, 9)),
         opacity=draw(st.sampled_from([0.0, 1.0, 0.5]) | st.floats(0.0, 1.0)),
         visible=draw(st.sampled_from([True, True, True, False])),
         alpha=draw(st.sampled_from(["none", "none", "random", "zeros", "ones"])),
@@ -44,7 +54,9 @@ def stacks(max_small: int = 8, factors_above_one: bool = True):
     recipe = layer_recipe(factors_above_one)
     return st.tuples(
         st.one_of(st.lists(recipe, max_size=max_small), st.lists(recipe, min_size=200, max_size=256)),
-        st.integers(1, 8), st.integers(1, 8), st.integers(0, 2**31 - 1),
+        st.integers(1, 8),
+        st.integers(1, 8),
+        st.integers(0, 2**31 - 1),
         st.tuples(*[st.sampled_from([0.0, 0.3, 1.0])] * 3),
     )
 
@@ -72,8 +84,17 @@ def build(recipes, seed, dtype=torch.float64):
             else:
                 extra[name] = torch.full(size, 0.0 if kind == "zeros" else 1.0, dtype=torch.float64)
         tensors = LayerTensors(color.to(dtype), *(None if t is None else t.to(dtype) for t in extra.values()))
-        layers.append(RenderLayerSpec(id=f"l{i}", tensors=tensors, blend=r["blend"], opacity=r["opacity"],
-                                      visible=r["visible"], offset=(r["x"], r["y"]), range=(lo, hi)))
+        layers.append(
+            RenderLayerSpec(
+                id=f"l{i}",
+                tensors=tensors,
+                blend=r["blend"],
+                opacity=r["opacity"],
+                visible=r["visible"],
+                offset=(r["x"], r["y"]),
+                range=(lo, hi),
+            )
+        )
     return layers
 
 
@@ -160,16 +181,22 @@ def test_prefix_cache_equals_a_fresh_render_after_random_edits(stack, edits, bud
 
 
 @settings(max_examples=20, **SETTINGS)
-@given(stacks(), st.sampled_from(["layer", "output", None]), st.sampled_from(["srgb", "linear"]),
-       st.sampled_from([0.0, 1.0]))
+@given(
+    stacks(),
+    st.sampled_from(["layer", "output", None]),
+    st.sampled_from(["srgb", "linear"]),
+    st.sampled_from([0.0, 1.0]),
+)
 def test_gradients_finite_at_alpha_edges_and_zero_multipliers(stack, clamp, blend_space, edge):
     recipes, h, w, seed, bg = stack
     layers = build(recipes, seed)
     learned = torch.zeros(1, h, w, dtype=torch.float64, requires_grad=True)  # a multiplier of 0
     alpha = torch.full((1, h, w), edge, dtype=torch.float64, requires_grad=True)
     op = torch.tensor(edge, dtype=torch.float64, requires_grad=True)
-    layers.insert(len(layers) // 2, RenderLayerSpec(id="learned", blend="multiply", opacity=op,
-                                                    tensors=LayerTensors(learned, alpha)))
+    layers.insert(
+        len(layers) // 2,
+        RenderLayerSpec(id="learned", blend="multiply", opacity=op, tensors=LayerTensors(learned, alpha)),
+    )
     result = render(layers, canvas=(h, w), background=bg, clamp=clamp, blend_space=blend_space)
     if "learned" in result.skipped:  # under an opaque layer: its true gradient is zero, none is computed
         assert result.skipped["learned"] == "occluded" and not result.image.requires_grad

@@ -1,4 +1,5 @@
 """render(): against the numpy float64 reference and Pillow, batches, gradients, dtypes, out=, errors."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,11 +28,22 @@ def stack(seed=0, dtype=torch.float64, requires_grad=False):
 
     return [
         RenderLayerSpec(id="base", tensors=LayerTensors(r(3, 6, 8))),
-        RenderLayerSpec(id="shade", blend="multiply", range=(0.0, 2.0), offset=(-1, 2),
-                        tensors=LayerTensors(r(1, 5, 6, scale=2.0), None, r(1, 5, 6))),
+        RenderLayerSpec(
+            id="shade",
+            blend="multiply",
+            range=(0.0, 2.0),
+            offset=(-1, 2),
+            tensors=LayerTensors(r(1, 5, 6, scale=2.0), None, r(1, 5, 6)),
+        ),
         RenderLayerSpec(id="tint", offset=(5, -1), opacity=0.7, tensors=LayerTensors(r(3, 4, 4), r(1, 4, 4))),
-        RenderLayerSpec(id="light", blend="plus", range=(-1.0, 1.0), offset=(2, 2), opacity=0.5,
-                        tensors=LayerTensors(r(3, 3, 3, scale=2.0, shift=-1.0))),
+        RenderLayerSpec(
+            id="light",
+            blend="plus",
+            range=(-1.0, 1.0),
+            offset=(2, 2),
+            opacity=0.5,
+            tensors=LayerTensors(r(3, 3, 3, scale=2.0, shift=-1.0)),
+        ),
         RenderLayerSpec(id="glow", blend="screen", opacity=0.3, tensors=LayerTensors(r(1, 6, 8))),
         RenderLayerSpec(id="gone", offset=(9, 0), tensors=LayerTensors(r(3, 2, 2))),
     ]
@@ -86,10 +98,12 @@ def test_reference_pillow_stack():
     def t(x):
         return torch.from_numpy(x / 255.0).float()
 
-    layers = [RenderLayerSpec(id="base", tensors=LayerTensors(t(base))),
-              RenderLayerSpec(id="shade", blend="multiply", tensors=LayerTensors(t(shade))),
-              RenderLayerSpec(id="tint", tensors=LayerTensors(t(tint), t(alpha))),
-              RenderLayerSpec(id="light", blend="plus", tensors=LayerTensors(t(light)))]
+    layers = [
+        RenderLayerSpec(id="base", tensors=LayerTensors(t(base))),
+        RenderLayerSpec(id="shade", blend="multiply", tensors=LayerTensors(t(shade))),
+        RenderLayerSpec(id="tint", tensors=LayerTensors(t(tint), t(alpha))),
+        RenderLayerSpec(id="light", blend="plus", tensors=LayerTensors(t(light))),
+    ]
     ours = np.rint(render(layers, canvas=(8, 8)).image.double().numpy() * 255).astype(np.int64)
     assert np.abs(ours - pil).max() <= 2  # Pillow rounds after each of its three steps
 
@@ -103,10 +117,16 @@ def test_batch_broadcasts_like_separate_renders():
 
     def layers(b=None):
         pick = (lambda t: t) if b is None else (lambda t: t[b] if t is not None and t.ndim == 4 else t)
-        return [RenderLayerSpec(id="base", tensors=base),
-                RenderLayerSpec(id="shade", blend="multiply", tensors=LayerTensors(pick(shade.color))),
-                RenderLayerSpec(id="tint", offset=(1, 1), opacity=op if b is None else float(op[b]),
-                                tensors=LayerTensors(tint.color, pick(tint.alpha)))]
+        return [
+            RenderLayerSpec(id="base", tensors=base),
+            RenderLayerSpec(id="shade", blend="multiply", tensors=LayerTensors(pick(shade.color))),
+            RenderLayerSpec(
+                id="tint",
+                offset=(1, 1),
+                opacity=op if b is None else float(op[b]),
+                tensors=LayerTensors(tint.color, pick(tint.alpha)),
+            ),
+        ]
 
     batched = render(layers(), canvas=(4, 5)).image
     assert batched.shape == (2, 3, 4, 5)
@@ -130,8 +150,16 @@ def test_gradients_reach_every_input_and_module():
     result = render(layers, canvas=CANVAS, clamp="output")
     assert result.image.requires_grad
     result.image.square().sum().backward()
-    leaves = [layers[0].tensors.color, layers[2].tensors.color, layers[2].tensors.alpha, layers[3].tensors.color,
-              layers[4].tensors.color, op, conv.weight, conv.bias]
+    leaves = [
+        layers[0].tensors.color,
+        layers[2].tensors.color,
+        layers[2].tensors.alpha,
+        layers[3].tensors.color,
+        layers[4].tensors.color,
+        op,
+        conv.weight,
+        conv.bias,
+    ]
     for leaf in leaves:
         assert leaf.grad is not None and torch.isfinite(leaf.grad).all() and leaf.grad.abs().sum() > 0
     assert layers[5].tensors.color.grad is None  # outside the canvas: culled, true gradient zero
@@ -148,12 +176,19 @@ def test_gradcheck_whole_render(blend_space, grad_engine, monkeypatch):
     def f(base, shade, tint_alpha, op):
         ls = list(layers)
         ls[0] = RenderLayerSpec(id="base", tensors=LayerTensors(base))
-        ls[1] = RenderLayerSpec(id="shade", blend="multiply", range=(0.0, 2.0), offset=(-1, 2),
-                                tensors=LayerTensors(shade, None, layers[1].tensors.mask))
-        ls[2] = RenderLayerSpec(id="tint", offset=(5, -1), opacity=op,
-                                tensors=LayerTensors(layers[2].tensors.color, tint_alpha))
-        return render(ls, canvas=CANVAS, background=BG, blend_space=blend_space, clamp=None,
-                      grad_engine=grad_engine).image
+        ls[1] = RenderLayerSpec(
+            id="shade",
+            blend="multiply",
+            range=(0.0, 2.0),
+            offset=(-1, 2),
+            tensors=LayerTensors(shade, None, layers[1].tensors.mask),
+        )
+        ls[2] = RenderLayerSpec(
+            id="tint", offset=(5, -1), opacity=op, tensors=LayerTensors(layers[2].tensors.color, tint_alpha)
+        )
+        return render(
+            ls, canvas=CANVAS, background=BG, blend_space=blend_space, clamp=None, grad_engine=grad_engine
+        ).image
 
     inputs = tuple(t.detach().clone().requires_grad_() for t in (base, shade, tint, op))
     assert torch.autograd.gradcheck(f, inputs)
@@ -165,8 +200,10 @@ def test_gradients_finite_at_alpha_edges_and_zero_multiplier(edge):
     mult = torch.zeros(1, 4, 4, requires_grad=True)
     alpha = torch.full((1, 4, 4), edge, requires_grad=True)
     op = torch.tensor(edge, requires_grad=True)
-    layers = [RenderLayerSpec(id="b", tensors=LayerTensors(base)),
-              RenderLayerSpec(id="m", blend="multiply", opacity=op, tensors=LayerTensors(mult, alpha))]
+    layers = [
+        RenderLayerSpec(id="b", tensors=LayerTensors(base)),
+        RenderLayerSpec(id="m", blend="multiply", opacity=op, tensors=LayerTensors(mult, alpha)),
+    ]
     for clamp in ("layer", "output", None):
         for t in (base, mult, alpha, op):
             t.grad = None
@@ -236,8 +273,10 @@ def test_only_the_clipped_rectangle_is_read():
 def test_nan_layer_is_not_hidden_by_culling():
     color = torch.rand(3, 6, 8)
     color[0, 2, 2] = float("nan")
-    layers = [RenderLayerSpec(id="base", tensors=LayerTensors(torch.rand(3, 6, 8))),
-              RenderLayerSpec(id="ghost", tensors=LayerTensors(color, torch.zeros(1, 6, 8)))]
+    layers = [
+        RenderLayerSpec(id="base", tensors=LayerTensors(torch.rand(3, 6, 8))),
+        RenderLayerSpec(id="ghost", tensors=LayerTensors(color, torch.zeros(1, 6, 8))),
+    ]
     for cull in (True, False):
         image = render(layers, canvas=CANVAS, cull=cull).image
         assert torch.isnan(image[0, 2, 2]) and torch.isfinite(image[1:]).all() and torch.isfinite(image[:, 3:]).all()
@@ -249,14 +288,16 @@ def test_banded_backward_equals_autograd(clamp, blend_space, monkeypatch):
     monkeypatch.setattr(backward, "BACKWARD_TILE_PIXELS", 24)  # bands of 3 rows
     layers = stack(seed=12, dtype=torch.float32, requires_grad=True)
     op = torch.tensor(0.8, requires_grad=True)
-    layers[3] = RenderLayerSpec(id="light", blend="plus", range=(-1.0, 1.0), offset=(2, 2), opacity=op,
-                                tensors=layers[3].tensors)
+    layers[3] = RenderLayerSpec(
+        id="light", blend="plus", range=(-1.0, 1.0), offset=(2, 2), opacity=op, tensors=layers[3].tensors
+    )
     leaves = [t for s in layers for t in s.tensors.tensors() if t is not None] + [op]
     weights = torch.rand(3, *CANVAS)
     grads = {}
     for engine_name in ("banded", "autograd"):
-        image = render(layers, canvas=CANVAS, background=BG, clamp=clamp, blend_space=blend_space,
-                       grad_engine=engine_name).image
+        image = render(
+            layers, canvas=CANVAS, background=BG, clamp=clamp, blend_space=blend_space, grad_engine=engine_name
+        ).image
         grads[engine_name] = torch.autograd.grad((image * weights).sum(), leaves, allow_unused=True)
     for a, b in zip(grads["banded"], grads["autograd"]):
         assert (a is None) == (b is None)
@@ -284,9 +325,11 @@ def test_banded_clamp_derivative_is_inclusive_at_the_bounds(clamp):
     base = torch.full((3, 2, 2), 0.5, requires_grad=True)
     light = torch.tensor([0.5, 0.25, 0.75]).view(3, 1, 1).expand(3, 2, 2).clone().requires_grad_()
     shade = torch.tensor([[[0.0, 1.0], [2.0, 0.5]]]).requires_grad_()
-    layers = [RenderLayerSpec(id="b", tensors=LayerTensors(base)),
-              RenderLayerSpec(id="s", blend="multiply", range=(0.0, 2.0), tensors=LayerTensors(shade)),
-              RenderLayerSpec(id="l", blend="plus", tensors=LayerTensors(light))]
+    layers = [
+        RenderLayerSpec(id="b", tensors=LayerTensors(base)),
+        RenderLayerSpec(id="s", blend="multiply", range=(0.0, 2.0), tensors=LayerTensors(shade)),
+        RenderLayerSpec(id="l", blend="plus", tensors=LayerTensors(light)),
+    ]
     got = {}
     for name in ("banded", "autograd"):
         image = render(layers, canvas=(2, 2), clamp=clamp, grad_engine=name).image

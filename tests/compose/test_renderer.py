@@ -1,4 +1,5 @@
 """Renderer: the prefix cache recomputes only from the lowest changed layer and always equals a fresh render."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -78,8 +79,9 @@ def test_unchanged_stack_returns_the_same_image_unless_it_was_modified():
     assert third is not first and torch.equal(third, expect) and r.last_recomputed == ["top"]
 
 
-@pytest.mark.parametrize("edit", ["replace tensor", "opacity", "visible", "offset", "blend", "range", "remove",
-                                  "append"])
+@pytest.mark.parametrize(
+    "edit", ["replace tensor", "opacity", "visible", "offset", "blend", "range", "remove", "append"]
+)
 def test_every_kind_of_edit_is_detected(edit):
     ls = layers()
     r = Renderer(CANVAS)

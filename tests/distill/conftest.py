@@ -5,6 +5,7 @@ prior whose every branch has mean μ = 2·(b·s) − 1 (the prior's [−1, 1] sp
 so the SDS fixed point is the composite b·y = b·s, i.e. the multiplier y = s exactly (the blend is
 multiply, so Σ_c b_c²(y − s) = 0 at the fixed point).
 """
+
 from __future__ import annotations
 
 import pytest
@@ -21,7 +22,9 @@ def gaussian_for(images: torch.Tensor, labels=("x",), variance: float = VARIANCE
     """A Gaussian prior at ``images``' size whose labels (and unconditional branch) all have mean ``images``."""
     mu = (images * 2 - 1).to(torch.float64).reshape(-1)
     shape = tuple(images.shape)
-    return GaussianPrior(shape, {lab: mu for lab in labels}, {lab: variance for lab in labels}, unconditional=(mu, variance))
+    return GaussianPrior(
+        shape, {lab: mu for lab in labels}, {lab: variance for lab in labels}, unconditional=(mu, variance)
+    )
 
 
 @pytest.fixture(scope="session")

@@ -1,12 +1,22 @@
 """The shared objective: views (area resize, crops), the conditioning image, loss construction, and
 the gradient it sends into the layer — checked against the chain rule written out in numpy float64."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
 
-from lasagna.distill import ScoreObjective, Weights, build_loss, conditioning_image, crop, draw_patches, prior_image_size, resize
+from lasagna.distill import (
+    ScoreObjective,
+    Weights,
+    build_loss,
+    conditioning_image,
+    crop,
+    draw_patches,
+    prior_image_size,
+    resize,
+)
 from lasagna.distill.schedules import Ramp
 from lasagna.errors import LasagnaError
 from lasagna.generators import composite
@@ -41,8 +51,8 @@ class TestViews:
         assert int(rows[:, 1].max()) <= 6 and int(rows[:, 2].max()) <= 3 and int(rows[:, 1:].min()) >= 0
         x = torch.arange(3 * 2 * 10 * 7, dtype=torch.float32).reshape(3, 2, 10, 7)
         out = crop(x, rows, (4, 4))
-        for k, (s, t, l) in enumerate(rows.tolist()):
-            assert torch.equal(out[k], x[s, :, t:t + 4, l:l + 4])
+        for k, (s, t, left) in enumerate(rows.tolist()):
+            assert torch.equal(out[k], x[s, :, t : t + 4, left : left + 4])
         assert torch.equal(draw_patches(3, (10, 7), (4, 4), 2, torch.Generator().manual_seed(1)), rows)
 
     def test_patch_larger_than_image(self):
@@ -63,7 +73,9 @@ class TestConditioningImage:
         assert conditioning_image(unet_prior(0), base) is None
         luma = conditioning_image(unet_prior(1), base)
         b = base.numpy()
-        np.testing.assert_allclose(luma.numpy()[:, 0], 0.2126 * b[:, 0] + 0.7152 * b[:, 1] + 0.0722 * b[:, 2], rtol=1e-12)
+        np.testing.assert_allclose(
+            luma.numpy()[:, 0], 0.2126 * b[:, 0] + 0.7152 * b[:, 1] + 0.0722 * b[:, 2], rtol=1e-12
+        )
         assert torch.equal(conditioning_image(gaussian_for(torch.rand(3, 4, 4)), base), base)  # no config: the RGB base
 
     def test_is_detached(self):
@@ -140,7 +152,10 @@ class TestGradient:
         base, y = torch.rand(1, 3, 4, 4), torch.ones(1, 1, 4, 4)
         first = obj(base, y, "x", rng=None, step=0)
         last = obj(base, y, "x", rng=None, step=10)
-        assert (first.w_score, first.w_reg) == pytest.approx((0.1, 1.0)) and (last.w_score, last.w_reg) == pytest.approx((1.0, 0.1))
+        assert (first.w_score, first.w_reg) == pytest.approx((0.1, 1.0)) and (
+            last.w_score,
+            last.w_reg,
+        ) == pytest.approx((1.0, 0.1))
 
     def test_released_recipe_ends_without_the_l2(self):
         w = Weights.lmc_network(10, reg_end=0.0)

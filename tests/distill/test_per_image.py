@@ -1,5 +1,6 @@
 """Per-image distillation on closed-form Gaussian priors: convergence to the known optimum, early
 stopping, seeded reproducibility, the patch strategy, batching, checkpoints and resume, settings."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -33,8 +34,16 @@ class TestConvergence:
     def test_callback_sees_every_step_before_its_update(self, shading_problem):
         base, shading, prior = shading_problem
         seen = []
-        r = distill_image(base, PLAIN, prior, condition="x", steps=30, lr=0.05, seed=0,
-                          callback=lambda step, layer: seen.append((step, layer.clone())))
+        r = distill_image(
+            base,
+            PLAIN,
+            prior,
+            condition="x",
+            steps=30,
+            lr=0.05,
+            seed=0,
+            callback=lambda step, layer: seen.append((step, layer.clone())),
+        )
         assert [s for s, _ in seen] == list(range(30))
         assert torch.equal(seen[0][1], torch.ones_like(seen[0][1]))  # the identity edit, before any update
         first, last = ((y[0] - shading).abs().mean() for y in (seen[1][1], seen[-1][1]))
@@ -60,8 +69,9 @@ class TestConvergence:
     @pytest.mark.parametrize("loss", ["sds", "lmc-sds", "dds", "nfsd", "ms-sds"])
     def test_every_loss_runs(self, shading_problem, loss):
         base, _, prior = shading_problem
-        r = distill_image(base, PLAIN, prior, identity_corrective, condition="x", negative="x", loss=loss, steps=3,
-                          guidance=2.0)
+        r = distill_image(
+            base, PLAIN, prior, identity_corrective, condition="x", negative="x", loss=loss, steps=3, guidance=2.0
+        )
         assert r.layer.shape == (1, 1, 4, 4) and torch.isfinite(r.layer).all() and len(r.history) == 3
 
 
@@ -80,7 +90,11 @@ class TestEarlyStopping:
         falling = [rec(10 - i, 10 - i) for i in range(6)]
         flat = [rec(1.0, 1.0)] * 6
         half = [rec(1.0, 10 - i) for i in range(6)]  # gradient flat, layer still moving
-        assert not converged(falling, rule, "whole") and converged(flat, rule, "whole") and not converged(half, rule, "whole")
+        assert (
+            not converged(falling, rule, "whole")
+            and converged(flat, rule, "whole")
+            and not converged(half, rule, "whole")
+        )
         assert not converged(flat[:5], rule, "whole")  # needs 2 windows
         assert not converged(flat, EarlyStop(window=3, min_steps=7), "whole")
         assert not converged(flat, rule, "patch")  # only the given phase counts
@@ -116,8 +130,16 @@ class TestPatches:
         a uniform target (every view has the same optimum) is reached at every pixel."""
         base = torch.tensor([0.5, 0.7, 0.3]).view(3, 1, 1).expand(3, 8, 8).contiguous()
         prior = gaussian_for(base[:, :4, :4] * 0.6)
-        r = distill_image(base, PLAIN, prior, condition="x", steps=200, lr=0.05, lr_final=0.05,
-                          patches=PatchConfig(whole_fraction=0.3, per_step=2))
+        r = distill_image(
+            base,
+            PLAIN,
+            prior,
+            condition="x",
+            steps=200,
+            lr=0.05,
+            lr_final=0.05,
+            patches=PatchConfig(whole_fraction=0.3, per_step=2),
+        )
         phases = [h["phase"] for h in r.history]
         assert phases == ["whole"] * 60 + ["patch"] * 140
         assert r.layer.shape == (1, 1, 8, 8) and float((r.layer - 0.6).abs().max()) < 5e-3
@@ -153,8 +175,13 @@ class TestCheckpoints:
 
     def test_resume_after_kill_equals_uninterrupted(self, shading_problem, tmp_path):
         base, _, prior = shading_problem
-        kw = dict(condition="x", steps=30, seed=3, checkpoint_every=8,
-                  early_stop=EarlyStop(window=4, min_steps=10_000, rtol=0.0))
+        kw = dict(
+            condition="x",
+            steps=30,
+            seed=3,
+            checkpoint_every=8,
+            early_stop=EarlyStop(window=4, min_steps=10_000, rtol=0.0),
+        )
         full = distill_image(base, PLAIN, prior, **kw)
         with pytest.raises(KeyboardInterrupt):
             distill_image(base, PLAIN, self.Killer(prior, 21), checkpoint_dir=tmp_path, **kw)
@@ -192,7 +219,9 @@ class TestSettings:
         base, _, prior = shading_problem
         big = torch.nn.functional.interpolate(base, scale_factor=2)  # larger than the prior: patches possible
         whole = load_preset(LAYERS / "shading").model_copy(deep=True)
-        whole = type(whole).model_validate({**whole.model_dump(), "distill": {**whole.distill.model_dump(), "whole_fraction": 1.0}})
+        whole = type(whole).model_validate(
+            {**whole.model_dump(), "distill": {**whole.distill.model_dump(), "whole_fraction": 1.0}}
+        )
         r = distill_image(big, resolve_settings(whole, steps=4, loss="sds"), prior, condition="x", early_stop=False)
         assert [h["phase"] for h in r.history] == ["whole"] * 4
 
@@ -215,7 +244,9 @@ class TestSettings:
             distill_image(base, PLAIN, prior, condition=["x", "x"], steps=1)
         with pytest.raises(LasagnaError, match="corrective"):
             distill_image(base, PLAIN, prior, condition="x", loss="lmc-sds", steps=1)
-        other = LayerGenerator(LayerGeneratorConfig(layer=LayerSpec(blend="plus", channels=3), vocabulary=("x",), channels=(8,)))
+        other = LayerGenerator(
+            LayerGeneratorConfig(layer=LayerSpec(blend="plus", channels=3), vocabulary=("x",), channels=(8,))
+        )
         with pytest.raises(LasagnaError, match="settings' layer"):
             distill_image(base, PLAIN, prior, condition="x", generator=other, steps=1)
 

@@ -1,4 +1,5 @@
 """Shared documents for the document-tier tests: one valid stack and helpers to break it."""
+
 from __future__ import annotations
 
 import copy
@@ -20,15 +21,38 @@ def valid_stack() -> dict[str, Any]:
         "clamp": "layer",
         "layers": [
             {"id": "base", "name": "Albedo", "kind": "pixels", "source": "layers/base.png"},
-            {"id": "shade", "name": "Shading", "kind": "pixels", "source": "layers/shade.png",
-             "blend": "multiply", "range": [0.0, 2.0], "opacity": 1.0, "visible": True,
-             "offset": {"x": 0, "y": 0}, "mask": None},
-            {"id": "tint", "kind": "solid", "color": [1.0, 0.5, 0.0, 0.25], "blend": "normal",
-             "size": {"width": 16, "height": 16}, "offset": {"x": 8, "y": 8}},
-            {"id": "relit", "kind": "learned", "preset": "shading", "condition": {"label": "left"},
-             "conditioned_on": "base", "blend": "multiply", "range": [0.0, 2.0],
-             "source": "layers/relit.png", "generator": {"checkpoint": "layers/shading/generator.safetensors"},
-             "settings": {}},
+            {
+                "id": "shade",
+                "name": "Shading",
+                "kind": "pixels",
+                "source": "layers/shade.png",
+                "blend": "multiply",
+                "range": [0.0, 2.0],
+                "opacity": 1.0,
+                "visible": True,
+                "offset": {"x": 0, "y": 0},
+                "mask": None,
+            },
+            {
+                "id": "tint",
+                "kind": "solid",
+                "color": [1.0, 0.5, 0.0, 0.25],
+                "blend": "normal",
+                "size": {"width": 16, "height": 16},
+                "offset": {"x": 8, "y": 8},
+            },
+            {
+                "id": "relit",
+                "kind": "learned",
+                "preset": "shading",
+                "condition": {"label": "left"},
+                "conditioned_on": "base",
+                "blend": "multiply",
+                "range": [0.0, 2.0],
+                "source": "layers/relit.png",
+                "generator": {"checkpoint": "layers/shading/generator.safetensors"},
+                "settings": {},
+            },
         ],
         "metadata": {},
     }

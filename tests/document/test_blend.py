@@ -1,4 +1,5 @@
 """Blend names: canonical modes, aliases, and the error that lists both."""
+
 from __future__ import annotations
 
 import pytest
@@ -12,13 +13,17 @@ def test_canonical_names_map_to_themselves():
     assert [canonical_blend(m) for m in BLEND_MODES] == list(BLEND_MODES)
 
 
-@pytest.mark.parametrize(("alias", "mode"), [("alpha-linear", "normal"), ("multiply-luminosity", "multiply"), ("additive", "plus")])
+@pytest.mark.parametrize(
+    ("alias", "mode"), [("alpha-linear", "normal"), ("multiply-luminosity", "multiply"), ("additive", "plus")]
+)
 def test_aliases(alias, mode):
     assert BLEND_ALIASES[alias] == mode
     assert canonical_blend(alias) == mode
 
 
-@pytest.mark.parametrize(("name", "hint"), [("mutiply", "multiply"), ("Screen", "screen"), ("alpha_linear", "alpha-linear")])
+@pytest.mark.parametrize(
+    ("name", "hint"), [("mutiply", "multiply"), ("Screen", "screen"), ("alpha_linear", "alpha-linear")]
+)
 def test_unknown_names_list_valid_ones_and_suggest(name, hint):
     with pytest.raises(DocumentError) as info:
         canonical_blend(name)

@@ -1,4 +1,5 @@
 """Loading and saving stack.json: folder or file, atomic writes, one-line errors with positions."""
+
 from __future__ import annotations
 
 import json
@@ -36,28 +37,41 @@ def test_save_to_a_json_file_replaces_it(tmp_path):
 
 
 def test_malformed_json_names_file_line_and_column(tmp_path):
-    (tmp_path / "stack.json").write_text('{\n  "format": "lasagna.stack",\n  "version": 1,,\n}', encoding="utf-8")  # 2nd comma: column 16
+    (tmp_path / "stack.json").write_text(
+        '{\n  "format": "lasagna.stack",\n  "version": 1,,\n}', encoding="utf-8"
+    )  # 2nd comma: column 16
     with pytest.raises(DocumentError) as info:
         load_document(tmp_path)
-    assert str(info.value) == f"{tmp_path / 'stack.json'}: invalid JSON at line 3, column 16: Expecting property name enclosed in double quotes; expected a JSON object (see schemas/stack.schema.json)"
+    assert (
+        str(info.value)
+        == f"{tmp_path / 'stack.json'}: invalid JSON at line 3, column 16: Expecting property name enclosed in "
+        "double quotes; expected a JSON object (see schemas/stack.schema.json)"
+    )
 
 
-@pytest.mark.parametrize(("text", "fragment"), [
-    ('{"a": 1, "a": 2}', "duplicate key 'a' in one JSON object"),
-    ('{"a": NaN}', "NaN is not valid JSON"),
-    ('{"a": -Infinity}', "-Infinity is not valid JSON"),
-    ("", "invalid JSON at line 1, column 1"),
-])
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [
+        ('{"a": 1, "a": 2}', "duplicate key 'a' in one JSON object"),
+        ('{"a": NaN}', "NaN is not valid JSON"),
+        ('{"a": -Infinity}', "-Infinity is not valid JSON"),
+        ("", "invalid JSON at line 1, column 1"),
+    ],
+)
 def test_json_that_python_would_accept_is_refused(text, fragment):
     with pytest.raises(DocumentError, match=f"^mine.json: {fragment}"):
         Document.from_json(text, "mine.json")
 
 
 def test_validation_error_names_file_and_json_path(tmp_path):
-    (tmp_path / "stack.json").write_text(json.dumps(patched(valid_stack(), "layers.2.blend", "mutiply")), encoding="utf-8")
+    (tmp_path / "stack.json").write_text(
+        json.dumps(patched(valid_stack(), "layers.2.blend", "mutiply")), encoding="utf-8"
+    )
     with pytest.raises(DocumentError) as info:
         load_document(tmp_path)
-    assert str(info.value).startswith(f"{tmp_path / 'stack.json'}: layers[2].blend: unknown blend 'mutiply'; expected one of")
+    assert str(info.value).startswith(
+        f"{tmp_path / 'stack.json'}: layers[2].blend: unknown blend 'mutiply'; expected one of"
+    )
     assert info.value.where == f"{tmp_path / 'stack.json'}: layers[2].blend"
 
 
@@ -78,7 +92,10 @@ def test_format_validation_error_without_model_keeps_raw_path():
     try:
         Document.model_validate(patched(valid_stack(), "layers.0.opacity", 2))
     except ValidationError as err:
-        assert format_validation_error(err, "x.json", Document) == "x.json: layers[0].opacity: got 2; expected less than or equal to 1"
+        assert (
+            format_validation_error(err, "x.json", Document)
+            == "x.json: layers[0].opacity: got 2; expected less than or equal to 1"
+        )
         # Without the model the discriminator tag ("pixels") stays in the path.
         assert format_validation_error(err).startswith("layers[0].pixels.opacity: got 2")
     else:  # pragma: no cover

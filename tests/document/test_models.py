@@ -1,4 +1,5 @@
 """The stack document models: valid and invalid documents side by side, helpers, round trips."""
+
 from __future__ import annotations
 
 import json
@@ -7,7 +8,13 @@ import pytest
 from pydantic import ValidationError
 
 from lasagna.document import (
-    Canvas, Document, LearnedLayer, Offset, PixelsLayer, SolidLayer, canonical_blend,
+    Canvas,
+    Document,
+    LearnedLayer,
+    Offset,
+    PixelsLayer,
+    SolidLayer,
+    canonical_blend,
 )
 from lasagna.errors import DocumentError
 from tests.document.cases import DELETE, patched, valid_stack
@@ -19,8 +26,11 @@ VALID = [
     ("clamp once at the output", "clamp", "output"),
     ("offscreen negative offset", "layers.2.offset", {"x": -1000, "y": 70000}),
     ("plus with a range [0, 2]", "layers.1.blend", "plus"),
-    ("plus with a negative range", "layers.1", {"id": "dark", "kind": "pixels", "source": "d.png",
-                                               "blend": "plus", "range": [-1.0, 0.5]}),
+    (
+        "plus with a negative range",
+        "layers.1",
+        {"id": "dark", "kind": "pixels", "source": "d.png", "blend": "plus", "range": [-1.0, 0.5]},
+    ),
     ("range [0, 1] allowed for screen", "layers.2.blend", "screen"),
     ("RGB solid colour", "layers.2.color", [0.0, 1.0, 0.5]),
     ("solid without size (canvas)", "layers.2.size", DELETE),
@@ -33,9 +43,17 @@ VALID = [
     ("id with dots and dashes", "layers.3.id", "relit-2.v_1"),
     ("id that only starts like a device name", "layers.3.id", "console"),
     ("preset given as a path", "layers.3.preset", "./presets/mine.json"),
-    ("learned layer without source or generator", "layers.3", {
-        "id": "relit", "kind": "learned", "preset": "shading", "condition": {"label": "left", "prompt": "p"},
-        "conditioned_on": "shade"}),
+    (
+        "learned layer without source or generator",
+        "layers.3",
+        {
+            "id": "relit",
+            "kind": "learned",
+            "preset": "shading",
+            "condition": {"label": "left", "prompt": "p"},
+            "conditioned_on": "shade",
+        },
+    ),
     ("sha256 digest", "layers.3.generator.sha256", "ab" * 32),
     ("canvas at the size limit", "canvas", {"width": 32768, "height": 1}),
     ("free-form metadata", "metadata", {"author": "me", "tags": ["a", 1, None, {"k": 2.5}]}),
@@ -51,7 +69,14 @@ def test_valid_documents(what, path, value):
 # (what is wrong, patch path, value, JSON path named in the message, fragment quoting the rule,
 #  whether the JSON Schema can express the rule too — used by test_schema.py)
 INVALID = [
-    ("unknown blend", "layers.1.blend", "mutiply", "layers[1].blend", "unknown blend 'mutiply'; expected one of normal, multiply, plus, screen", True),
+    (
+        "unknown blend",
+        "layers.1.blend",
+        "mutiply",
+        "layers[1].blend",
+        "unknown blend 'mutiply'; expected one of normal, multiply, plus, screen",
+        True,
+    ),
     ("blend in capitals", "layers.1.blend", "Multiply", "layers[1].blend", "did you mean 'multiply'", True),
     ("unknown field", "layers.0.sorce", "x", "layers[0].sorce", "unknown field; expected one of id, name, kind", True),
     ("unknown top-level field", "colour", 1, "colour", "unknown field; expected one of format, version", True),
@@ -70,9 +95,23 @@ INVALID = [
     ("opacity NaN", "layers.1.opacity", float("nan"), "layers[1].opacity", "finite number", False),
     ("visible as 1", "layers.1.visible", 1, "layers[1].visible", "valid boolean", True),
     ("offset not integer", "layers.2.offset", {"x": 1.5, "y": 0}, "layers[2].offset.x", "valid integer", True),
-    ("offset beyond int32", "layers.2.offset", {"x": 2**31, "y": 0}, "layers[2].offset.x", "less than or equal to", True),
+    (
+        "offset beyond int32",
+        "layers.2.offset",
+        {"x": 2**31, "y": 0},
+        "layers[2].offset.x",
+        "less than or equal to",
+        True,
+    ),
     ("source escapes with ..", "layers.0.source", "../x.png", "layers[0].source", "escapes the stack folder", True),
-    ("source escapes deeper", "layers.0.source", "a/../../x.png", "layers[0].source", "escapes the stack folder", False),
+    (
+        "source escapes deeper",
+        "layers.0.source",
+        "a/../../x.png",
+        "layers[0].source",
+        "escapes the stack folder",
+        False,
+    ),
     ("source absolute", "layers.0.source", "/etc/passwd", "layers[0].source", "is absolute", True),
     ("source with drive letter", "layers.0.source", "C:/x.png", "layers[0].source", "drive letter", True),
     ("source with backslash", "layers.0.source", "layers\\base.png", "layers[0].source", "backslash", True),
@@ -90,20 +129,83 @@ INVALID = [
     ("id a Windows device name", "layers.1.id", "Aux", "layers[1].id", "reserved device name", True),
     ("id a device name with a dot", "layers.1.id", "com1.x", "layers[1].id", "reserved device name", True),
     ("id not a string", "layers.1.id", 7, "layers[1].id", "valid string", True),
-    ("conditioned_on above", "layers.3.conditioned_on", "nothing", "layers[3].conditioned_on", "names a layer below", False),
-    ("conditioned_on itself", "layers.3.conditioned_on", "relit", "layers[3].conditioned_on", "names a layer below", False),
-    ("conditioned_on in other case", "layers.3.conditioned_on", "BASE", "layers[3].conditioned_on", "names a layer below", False),
+    (
+        "conditioned_on above",
+        "layers.3.conditioned_on",
+        "nothing",
+        "layers[3].conditioned_on",
+        "names a layer below",
+        False,
+    ),
+    (
+        "conditioned_on itself",
+        "layers.3.conditioned_on",
+        "relit",
+        "layers[3].conditioned_on",
+        "names a layer below",
+        False,
+    ),
+    (
+        "conditioned_on in other case",
+        "layers.3.conditioned_on",
+        "BASE",
+        "layers[3].conditioned_on",
+        "names a layer below",
+        False,
+    ),
     ("preset path escapes", "layers.3.preset", "../p.json", "layers[3].preset", "escapes the stack folder", True),
     ("preset name invalid", "layers.3.preset", "my preset", "layers[3].preset", "ids match", True),
-    ("condition label empty", "layers.3.condition.label", "", "layers[3].condition.label", "at least 1 character", True),
-    ("condition without label", "layers.3.condition", {}, "layers[3].condition.label", "required field is missing", True),
-    ("sha256 in capitals", "layers.3.generator.sha256", "AB" * 32, "layers[3].generator.sha256", "64 lower-case hex", True),
-    ("generator path absolute", "layers.3.generator.checkpoint", "/w.safetensors", "layers[3].generator.checkpoint", "is absolute", True),
+    (
+        "condition label empty",
+        "layers.3.condition.label",
+        "",
+        "layers[3].condition.label",
+        "at least 1 character",
+        True,
+    ),
+    (
+        "condition without label",
+        "layers.3.condition",
+        {},
+        "layers[3].condition.label",
+        "required field is missing",
+        True,
+    ),
+    (
+        "sha256 in capitals",
+        "layers.3.generator.sha256",
+        "AB" * 32,
+        "layers[3].generator.sha256",
+        "64 lower-case hex",
+        True,
+    ),
+    (
+        "generator path absolute",
+        "layers.3.generator.checkpoint",
+        "/w.safetensors",
+        "layers[3].generator.checkpoint",
+        "is absolute",
+        True,
+    ),
     ("settings not an object", "layers.3.settings", [], "layers[3].settings", "valid dictionary", True),
-    ("colour component above 1", "layers.2.color", [1.0, 2.0, 0.0], "layers[2].color[1]", "less than or equal to 1", True),
+    (
+        "colour component above 1",
+        "layers.2.color",
+        [1.0, 2.0, 0.0],
+        "layers[2].color[1]",
+        "less than or equal to 1",
+        True,
+    ),
     ("colour of two components", "layers.2.color", [1.0, 0.0], "layers[2].color", "expected at least 3", True),
     ("colour of five components", "layers.2.color", [0, 0, 0, 0, 0], "layers[2].color", "expected at most 4", True),
-    ("solid size zero", "layers.2.size", {"width": 0, "height": 4}, "layers[2].size.width", "greater than or equal to 1", True),
+    (
+        "solid size zero",
+        "layers.2.size",
+        {"width": 0, "height": 4},
+        "layers[2].size.width",
+        "greater than or equal to 1",
+        True,
+    ),
     ("canvas too wide", "canvas.width", 32769, "canvas.width", "less than or equal to 32768", True),
     ("canvas width zero", "canvas.width", 0, "canvas.width", "greater than or equal to 1", True),
     ("canvas width a float", "canvas.width", 64.5, "canvas.width", "valid integer", True),
@@ -186,14 +288,18 @@ def test_models_are_frozen():
 
 def test_built_from_python_objects():
     doc = Document(
-        format="lasagna.stack", version=1, canvas=Canvas(width=8, height=8),
+        format="lasagna.stack",
+        version=1,
+        canvas=Canvas(width=8, height=8),
         layers=[PixelsLayer(id="a", kind="pixels", source="a.png", offset=Offset(x=-2, y=3), range=(0, 1))],
     )
     assert doc.layers[0].offset == Offset(x=-2, y=3) and doc.layers[0].range == (0.0, 1.0)
     assert doc.canvas.background == (0.0, 0.0, 0.0)
     # In Python the kind defaults to the class's tag; a file must state it (see INVALID "missing kind").
-    assert SolidLayer(id="s", color=(1, 0, 0)).kind == "solid" and LearnedLayer(
-        id="l", preset="shading", condition={"label": "left"}, conditioned_on="a").kind == "learned"
+    assert (
+        SolidLayer(id="s", color=(1, 0, 0)).kind == "solid"
+        and LearnedLayer(id="l", preset="shading", condition={"label": "left"}, conditioned_on="a").kind == "learned"
+    )
 
 
 class TestHelpers:

@@ -1,4 +1,5 @@
 """The document tier never imports torch (docs/ARCHITECTURE.md: pydantic models only)."""
+
 from __future__ import annotations
 
 import subprocess

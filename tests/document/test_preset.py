@@ -1,4 +1,5 @@
 """Learned-layer presets: the catalogue's files, the rules, prompts and how references resolve."""
+
 from __future__ import annotations
 
 import json
@@ -18,9 +19,21 @@ def shading() -> dict:
 
 def test_catalogue_presets_load():
     presets = {name: load_preset(CATALOGUE / name) for name in ("shading", "color", "light")}
-    assert (presets["shading"].blend, presets["shading"].channels, presets["shading"].range) == ("multiply", 1, (0.0, 2.0))
+    assert (presets["shading"].blend, presets["shading"].channels, presets["shading"].range) == (
+        "multiply",
+        1,
+        (0.0, 2.0),
+    )
     assert presets["shading"].vocabulary == (
-        "left", "right", "top", "bottom", "top-left", "top-right", "bottom-left", "bottom-right")
+        "left",
+        "right",
+        "top",
+        "bottom",
+        "top-left",
+        "top-right",
+        "bottom-left",
+        "bottom-right",
+    )
     assert (presets["color"].blend, presets["color"].channels) == ("normal", 4)
     assert (presets["light"].blend, presets["light"].channels, presets["light"].range) == ("plus", 3, (0.0, 1.0))
     for name, preset in presets.items():

@@ -1,11 +1,13 @@
 """Property tests: random valid documents round-trip exactly and satisfy the JSON Schema; random
 ids and paths are either refused or genuinely safe."""
+
 from __future__ import annotations
 
 import posixpath
 import re
 
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from jsonschema import Draft202012Validator
 
 from lasagna.document import Document, check_id, check_relative_path, schemas
@@ -16,7 +18,8 @@ STACK_SCHEMA = Draft202012Validator(schemas()["stack.schema.json"])
 RESERVED = re.compile(schemas()["stack.schema.json"]["$defs"]["PixelsLayer"]["properties"]["id"]["not"]["pattern"])
 
 ids = st.from_regex(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,15}", fullmatch=True).filter(
-    lambda s: s.split(".")[0].upper() not in WINDOWS_RESERVED)
+    lambda s: s.split(".")[0].upper() not in WINDOWS_RESERVED
+)
 segments = st.from_regex(r"[A-Za-z0-9_-][A-Za-z0-9_. -]{0,8}", fullmatch=True)
 paths = st.lists(segments, min_size=1, max_size=3).map("/".join)
 unit = st.floats(0.0, 1.0)
@@ -36,9 +39,13 @@ def layers(draw, id_: str, below: list[str]) -> dict:
     if layer.get("blend") in RANGED and draw(st.booleans()):
         lo, hi = sorted(draw(st.tuples(finite, finite).filter(lambda t: t[0] != t[1])))
         layer["range"] = [lo, hi]
-    for key, strategy in [("opacity", unit), ("visible", st.booleans()), ("name", st.text(min_size=1, max_size=8)),
-                          ("offset", st.fixed_dictionaries({"x": st.integers(-5000, 5000), "y": st.integers(-5000, 5000)})),
-                          ("mask", st.none() | paths)]:
+    for key, strategy in [
+        ("opacity", unit),
+        ("visible", st.booleans()),
+        ("name", st.text(min_size=1, max_size=8)),
+        ("offset", st.fixed_dictionaries({"x": st.integers(-5000, 5000), "y": st.integers(-5000, 5000)})),
+        ("mask", st.none() | paths),
+    ]:
         if draw(st.booleans()):
             layer[key] = draw(strategy)
     if kind == "pixels":
@@ -48,10 +55,16 @@ def layers(draw, id_: str, below: list[str]) -> dict:
         if draw(st.booleans()):
             layer["size"] = {"width": draw(st.integers(1, 32768)), "height": draw(st.integers(1, 32768))}
     else:
-        layer.update(preset=draw(ids), condition={"label": draw(st.text(min_size=1, max_size=6))},
-                     conditioned_on=draw(st.sampled_from(below)))
+        layer.update(
+            preset=draw(ids),
+            condition={"label": draw(st.text(min_size=1, max_size=6))},
+            conditioned_on=draw(st.sampled_from(below)),
+        )
         if draw(st.booleans()):
-            layer["generator"] = {"checkpoint": draw(paths), "sha256": draw(st.none() | st.from_regex(r"[0-9a-f]{64}", fullmatch=True))}
+            layer["generator"] = {
+                "checkpoint": draw(paths),
+                "sha256": draw(st.none() | st.from_regex(r"[0-9a-f]{64}", fullmatch=True)),
+            }
         if draw(st.booleans()):
             layer["settings"] = {"steps": draw(st.integers(1, 500)), "note": draw(st.text(max_size=5))}
     return layer
@@ -61,8 +74,12 @@ def layers(draw, id_: str, below: list[str]) -> dict:
 def documents(draw) -> dict:
     names = draw(st.lists(ids, min_size=1, max_size=5, unique_by=str.casefold))
     stack = [draw(layers(id_, names[:i])) for i, id_ in enumerate(names)]
-    doc = {"format": "lasagna.stack", "version": 1, "layers": stack,
-           "canvas": {"width": draw(st.integers(1, 32768)), "height": draw(st.integers(1, 32768))}}
+    doc = {
+        "format": "lasagna.stack",
+        "version": 1,
+        "layers": stack,
+        "canvas": {"width": draw(st.integers(1, 32768)), "height": draw(st.integers(1, 32768))},
+    }
     if draw(st.booleans()):
         doc["canvas"]["background"] = draw(st.lists(unit, min_size=3, max_size=3))
     if draw(st.booleans()):

@@ -1,6 +1,7 @@
 """JSON Schemas: committed files match the models, and examples, presets and the invalid table are
 judged the same way by jsonschema (Draft 2020-12) as by the pydantic models, where JSON Schema can
 express the rule."""
+
 from __future__ import annotations
 
 import json
@@ -32,7 +33,8 @@ def preset_validator() -> Draft202012Validator:
 def test_committed_schemas_match_the_models(name):
     generated = schemas()[name]
     assert (SCHEMA_DIR / name).read_text(encoding="utf-8") == schema_text(generated), (
-        f"schemas/{name} is stale; regenerate with lasagna.document.write_schemas('schemas')")
+        f"schemas/{name} is stale; regenerate with lasagna.document.write_schemas('schemas')"
+    )
     Draft202012Validator.check_schema(generated)
     assert generated["$schema"] == "https://json-schema.org/draft/2020-12/schema"
     assert generated["$id"] == SCHEMA_BASE + name
@@ -80,10 +82,19 @@ def test_schema_rejects_invalid_documents_where_it_can(what, path, value, json_p
     assert bool(errors) == in_schema, [e.message for e in errors]
 
 
-@pytest.mark.parametrize(("path", "value"), [
-    ("distill.loss", "vsd"), ("distill.guidance", 0), ("distill.steps", 0), ("channels", 2),
-    ("blend", "screen"), ("vocabulary", ["left", "left"]), ("prior", "/abs"), ("version", 2),
-])
+@pytest.mark.parametrize(
+    ("path", "value"),
+    [
+        ("distill.loss", "vsd"),
+        ("distill.guidance", 0),
+        ("distill.steps", 0),
+        ("channels", 2),
+        ("blend", "screen"),
+        ("vocabulary", ["left", "left"]),
+        ("prior", "/abs"),
+        ("version", 2),
+    ],
+)
 def test_preset_schema_rejects(path, value, preset_validator):
     data = load_json(ROOT / "layers" / "shading" / "preset.json")
     assert list(preset_validator.iter_errors(data)) == []

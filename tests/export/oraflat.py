@@ -5,6 +5,7 @@ must be opaque (our exports add an opaque background), so every blend is the opa
 Co = Cb + α(B(Cb, Cs) − Cb), clamped to [0, 1] after each layer like 8/16-bit paint programs;
 ``quantize=True`` also rounds to 8 bits after each layer, as Krita's 8-bit images do.
 """
+
 from __future__ import annotations
 
 import io

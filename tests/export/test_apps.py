@@ -7,6 +7,7 @@ fractional opacity, an 8-bit RGB multiply with alpha, a second [0, 2] multiplier
 solid colour, a hidden layer, and a layer partly outside the canvas. Each application runs once
 (Krita ≈ 10 s, GIMP ≈ 6 s). The measured errors are printed (``pytest -s``) for docs and reports.
 """
+
 from __future__ import annotations
 
 import shutil
@@ -37,8 +38,9 @@ def _app_stack(folder: Path) -> Path:
     stack.add_layer("haze", codes(3, 30, 40) * 0.6, blend="screen", offset=(50, 30))
     stack.add_layer("light", codes(3, 25, 30) * 0.8, blend="plus", opacity=0.6, offset=(60, 20))
     stack.add_layer("tint", torch.cat([codes(3, 16, 16), codes(1, 16, 16)]), blend="multiply", offset=(70, 40))
-    stack.add_layer("relight", (1.0 + xx[:20, :24])[None] * 0.9 + 0.1, blend="multiply", range=(0, 2),
-                    opacity=0.5, offset=(66, 2))
+    stack.add_layer(
+        "relight", (1.0 + xx[:20, :24])[None] * 0.9 + 0.1, blend="multiply", range=(0, 2), opacity=0.5, offset=(66, 2)
+    )
     stack.add_solid("glass", (0.9, 0.8, 0.1, 0.4), size=(12, 10), offset=(80, 50))
     stack.add_layer("ghost", codes(3, 10, 10), visible=False, offset=(55, 10))
     stack.add_layer("edge", codes(4, 20, 20), offset=(86, -8))
@@ -57,12 +59,27 @@ def _compare(flat_png: Path, folder: Path, label: str) -> tuple[float, float, fl
 
 
 @pytest.mark.krita
-@pytest.mark.skipif(not (KRITA and XVFB), reason="krita and xvfb-run are not installed (apt-get install krita xvfb xauth)")
+@pytest.mark.skipif(
+    not (KRITA and XVFB), reason="krita and xvfb-run are not installed (apt-get install krita xvfb xauth)"
+)
 def test_krita_flattens_our_ora(tmp_path):
     folder = _app_stack(tmp_path / "stack")
     assert main(["export", str(folder), "--ora", str(tmp_path / "in.ora")]) == 0
-    proc = subprocess.run([XVFB, "-a", KRITA, "--nosplash", "--export", "--export-filename", str(tmp_path / "flat.png"),
-                           str(tmp_path / "in.ora")], capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [
+            XVFB,
+            "-a",
+            KRITA,
+            "--nosplash",
+            "--export",
+            "--export-filename",
+            str(tmp_path / "flat.png"),
+            str(tmp_path / "in.ora"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
     worst, mean, pair = _compare(tmp_path / "flat.png", folder, "Krita vs reference")
     assert worst <= 3 and mean <= 0.5 and pair <= 1
@@ -73,11 +90,14 @@ def test_krita_flattens_our_ora(tmp_path):
 def test_gimp_flattens_our_psd(tmp_path):
     folder = _app_stack(tmp_path / "stack")
     assert main(["export", str(folder), "--psd", str(tmp_path / "in.psd")]) == 0
-    script = (f'(let* ((image (car (gimp-file-load RUN-NONINTERACTIVE "{tmp_path / "in.psd"}" "in.psd")))'
-              f' (layer (car (gimp-image-flatten image))))'
-              f' (file-png-save-defaults RUN-NONINTERACTIVE image layer "{tmp_path / "flat.png"}" "flat.png"))')
-    proc = subprocess.run([GIMP, "-i", "-d", "-f", "-b", script, "-b", "(gimp-quit 0)"],
-                          capture_output=True, text=True, timeout=300)
+    script = (
+        f'(let* ((image (car (gimp-file-load RUN-NONINTERACTIVE "{tmp_path / "in.psd"}" "in.psd")))'
+        f" (layer (car (gimp-image-flatten image))))"
+        f' (file-png-save-defaults RUN-NONINTERACTIVE image layer "{tmp_path / "flat.png"}" "flat.png"))'
+    )
+    proc = subprocess.run(
+        [GIMP, "-i", "-d", "-f", "-b", script, "-b", "(gimp-quit 0)"], capture_output=True, text=True, timeout=300
+    )
     assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
     worst, mean, pair = _compare(tmp_path / "flat.png", folder, "GIMP vs reference")
     assert worst <= 3 and mean <= 0.5 and pair <= 1

@@ -1,5 +1,6 @@
 """OpenRaster export and import: the file layout the spec requires, the dodge pair for multipliers
 above 1, what an independent W3C flattener makes of the layers, warnings, and the import round trip."""
+
 from __future__ import annotations
 
 import warnings
@@ -50,14 +51,27 @@ def test_stack_xml_order_ops_and_attributes(tmp_path):
     assert (root.tag, root.get("w"), root.get("h")) == ("image", "64", "48")
     layers = list(root.find("stack"))
     # Topmost first; the shading multiplier (values up to 1.6) is a multiply + colour-dodge pair.
-    assert [l.get("src") for l in layers] == [
-        "data/hidden.png", "data/glow.png", "data/sticker.png", "data/_dodge/shade.png", "data/shade.png",
-        "data/base.png", "data/_background.png"]
-    assert [l.get("composite-op") for l in layers] == [
-        "svg:src-over", "svg:plus", "svg:src-over", "svg:color-dodge", "svg:multiply", "svg:src-over", "svg:src-over"]
-    assert [l.get("visibility") for l in layers] == ["hidden"] + ["visible"] * 6
+    assert [layer.get("src") for layer in layers] == [
+        "data/hidden.png",
+        "data/glow.png",
+        "data/sticker.png",
+        "data/_dodge/shade.png",
+        "data/shade.png",
+        "data/base.png",
+        "data/_background.png",
+    ]
+    assert [layer.get("composite-op") for layer in layers] == [
+        "svg:src-over",
+        "svg:plus",
+        "svg:src-over",
+        "svg:color-dodge",
+        "svg:multiply",
+        "svg:src-over",
+        "svg:src-over",
+    ]
+    assert [layer.get("visibility") for layer in layers] == ["hidden"] + ["visible"] * 6
     assert layers[2].get("x") == "44" and layers[2].get("y") == "0"  # offset y = -6 is cropped to the canvas
-    assert all(float(l.get("opacity")) == 1.0 for l in layers)
+    assert all(float(layer.get("opacity")) == 1.0 for layer in layers)
 
 
 def test_merged_image_and_thumbnail(tmp_path):
@@ -76,7 +90,7 @@ def test_flattened_layers_match_our_composite(tmp_path, seed):
     """Layers as an 8-bit W3C paint program flattens them ≈ our composite (sRGB, per-layer clamp)."""
     folder = random_stack(tmp_path / "s", 100 + seed, unit_only=seed % 2 == 0)
     stack = load_stack(folder)
-    negative = [l.id for l in stack.document.layers if l.range[0] < 0]
+    negative = [layer.id for layer in stack.document.layers if layer.range[0] < 0]
     seen: list[str] = []
     path = _ora(tmp_path, stack, warn=seen.append)
     with zipfile.ZipFile(path) as zf:
@@ -115,7 +129,7 @@ def test_plus_above_one_is_split_exactly(tmp_path):
     stack.add_layer("light", torch.full((3, 4, 4), 1.6), blend="plus", range=(0, 2))
     path = _ora(tmp_path, stack)
     with zipfile.ZipFile(path) as zf:
-        ops = [l.get("composite-op") for l in ET.fromstring(zf.read("stack.xml")).find("stack")]
+        ops = [layer.get("composite-op") for layer in ET.fromstring(zf.read("stack.xml")).find("stack")]
     assert ops == ["svg:plus", "svg:plus", "svg:src-over", "svg:src-over"]
     assert np.abs(flatten(path) - 1.0).max() == 0  # 0.1 + 1.6, clamped
     stack.document = stack.document.replace_layer("light", opacity=0.5)  # α baked in: 0.8, one layer
@@ -186,7 +200,7 @@ def test_import_restores_ids_blends_and_the_multiplier(tmp_path):
     stack = load_stack(BASIC)
     back = import_ora(_ora(tmp_path, stack))
     assert back.ids == stack.ids
-    assert [l.blend for l in back.document.layers] == [l.blend for l in stack.document.layers]
+    assert [layer.blend for layer in back.document.layers] == [layer.blend for layer in stack.document.layers]
     assert back.layer("shade").range == (0.0, 2.0)
     assert back.layer("hidden").visible is False and back.layer("sticker").offset.x == 44
     err = (back.tensors["shade"].color - stack.tensors["shade"].color.expand(3, -1, -1)).abs().max().item()

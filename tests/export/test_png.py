@@ -1,5 +1,6 @@
 """Per-layer PNG export: raw stored values (never min–max normalised), 16-bit for ranged layers,
 masks, solid and unrendered learned layers, and the layers.json index."""
+
 from __future__ import annotations
 
 import json
@@ -17,9 +18,16 @@ def test_raw_values_depths_and_index(tmp_path):
     shade = 0.5 + torch.rand(1, 6, 8)  # [0.5, 1.5] in a [0, 2] range
     stack.add_layer("shade", shade, blend="multiply", range=(0, 2), mask=torch.full((1, 6, 8), 0.5))
     stack.add_solid("sun", (1.0, 0.5, 0.25), blend="plus", range=(0, 2), size=(3, 2), offset=(1, 1))
-    stack.document = stack.document.with_layer({
-        "id": "relit", "kind": "learned", "preset": "shading", "condition": {"label": "left"},
-        "conditioned_on": "base", "blend": "multiply"})
+    stack.document = stack.document.with_layer(
+        {
+            "id": "relit",
+            "kind": "learned",
+            "preset": "shading",
+            "condition": {"label": "left"},
+            "conditioned_on": "base",
+            "blend": "multiply",
+        }
+    )
     files = export_layer_pngs(stack, tmp_path / "out")
     names = sorted(str(p.relative_to(tmp_path / "out")) for p in files)
     assert names == ["base.png", "layers.json", "masks/shade.png", "shade.png", "sun.png"]
@@ -34,8 +42,8 @@ def test_raw_values_depths_and_index(tmp_path):
     assert sun.shape == (3, 2, 3) and np.allclose(sun[:, 0, 0], [1.0, 0.5, 0.25], atol=1e-4)
 
     meta = json.loads((tmp_path / "out/layers.json").read_text())
-    by_id = {l["id"]: l for l in meta["layers"]}
-    assert [l["id"] for l in meta["layers"]] == ["base", "shade", "sun", "relit"]
+    by_id = {layer["id"]: layer for layer in meta["layers"]}
+    assert [layer["id"] for layer in meta["layers"]] == ["base", "shade", "sun", "relit"]
     assert by_id["shade"]["bit_depth"] == 16 and by_id["base"]["bit_depth"] == 8
     assert by_id["shade"]["range"] == [0.0, 2.0] and by_id["shade"]["mask"] == "masks/shade.png"
     assert by_id["relit"]["file"] is None and by_id["relit"]["note"] == NOT_RENDERED

@@ -1,5 +1,6 @@
 """PSD export read back with psd-tools: layers, blend modes, opacity, visibility, pixels, the merged
 image, and psd-tools' own flattening compared to our composite."""
+
 from __future__ import annotations
 
 import sys
@@ -25,20 +26,39 @@ BASIC = Path(__file__).resolve().parents[2] / "examples" / "stacks" / "basic"
 
 def test_layers_modes_opacity_visibility_pixels(tmp_path):
     stack = Stack.from_image(torch.randint(0, 256, (3, 12, 16)) / 255.0)
-    stack.add_layer("shade", torch.linspace(0.2, 1.8, 16).expand(1, 12, 16).contiguous(), blend="multiply", range=(0, 2))
+    stack.add_layer(
+        "shade", torch.linspace(0.2, 1.8, 16).expand(1, 12, 16).contiguous(), blend="multiply", range=(0, 2)
+    )
     paint = torch.randint(0, 256, (4, 5, 6)) / 255.0
     stack.add_layer("paint", paint, opacity=0.4, offset=(3, 2), name="Paint")
     stack.add_layer("glow", torch.full((3, 12, 16), 0.2), blend="plus", visible=False)
     stack.add_layer("haze", torch.full((3, 12, 16), 0.1), blend="screen")
     psd = PSDImage.open(export_psd(stack, tmp_path / "x.psd"))
     layers = list(psd)
-    assert [l.name for l in layers] == ["Background", "base", "shade", "shade (colour dodge: values above 1)",
-                                        "shade (clamp to 1)", "Paint", "glow", "glow (clamp to 1)", "haze"]
-    assert [l.blend_mode for l in layers] == [BlendMode.NORMAL, BlendMode.NORMAL, BlendMode.MULTIPLY,
-                                              BlendMode.COLOR_DODGE, BlendMode.DARKEN, BlendMode.NORMAL,
-                                              BlendMode.LINEAR_DODGE, BlendMode.DARKEN, BlendMode.SCREEN]
+    assert [layer.name for layer in layers] == [
+        "Background",
+        "base",
+        "shade",
+        "shade (colour dodge: values above 1)",
+        "shade (clamp to 1)",
+        "Paint",
+        "glow",
+        "glow (clamp to 1)",
+        "haze",
+    ]
+    assert [layer.blend_mode for layer in layers] == [
+        BlendMode.NORMAL,
+        BlendMode.NORMAL,
+        BlendMode.MULTIPLY,
+        BlendMode.COLOR_DODGE,
+        BlendMode.DARKEN,
+        BlendMode.NORMAL,
+        BlendMode.LINEAR_DODGE,
+        BlendMode.DARKEN,
+        BlendMode.SCREEN,
+    ]
     assert layers[5].opacity == round(0.4 * 255) and layers[1].opacity == 255
-    assert [l.visible for l in layers] == [True] * 6 + [False, False, True]
+    assert [layer.visible for layer in layers] == [True] * 6 + [False, False, True]
     assert layers[5].bbox == (3, 2, 9, 7)
     got = np.asarray(layers[5].topil().convert("RGBA")).astype(int)
     want = np.rint(paint.numpy().transpose(1, 2, 0) * 255).astype(int)

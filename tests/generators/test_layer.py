@@ -1,5 +1,6 @@
 """The layer parametrisation: spec rules, the squash and its inverse, the inward clamp, the composite
 against the W3C formulas in numpy float64, and the identity edit of every bundled preset."""
+
 from __future__ import annotations
 
 import math
@@ -39,15 +40,18 @@ class TestSpec:
         specs = {name: LayerSpec.from_preset(load_preset(LAYERS / name)) for name in PRESETS}
         assert specs["shading"] == SHADING and specs["color"] == COLOR and specs["light"] == LIGHT
 
-    @pytest.mark.parametrize("kwargs, match", [
-        (dict(blend="normal", channels=3), "alpha"),
-        (dict(blend="multiply", channels=1, range=(0.0, 0.5)), "does not contain 1.0"),
-        (dict(blend="plus", channels=3, range=(0.1, 1.0)), "does not contain 0.0"),
-        (dict(blend="normal", channels=4, range=(0.0, 2.0)), "only for multiply and plus"),
-        (dict(blend="multiply", channels=1, range=(1.0, 1.0)), "lo < hi"),
-        (dict(blend="multiply", channels=2), "channels"),
-        (dict(blend="multiply", channels=1, extra=1), "extra"),
-    ])
+    @pytest.mark.parametrize(
+        "kwargs, match",
+        [
+            (dict(blend="normal", channels=3), "alpha"),
+            (dict(blend="multiply", channels=1, range=(0.0, 0.5)), "does not contain 1.0"),
+            (dict(blend="plus", channels=3, range=(0.1, 1.0)), "does not contain 0.0"),
+            (dict(blend="normal", channels=4, range=(0.0, 2.0)), "only for multiply and plus"),
+            (dict(blend="multiply", channels=1, range=(1.0, 1.0)), "lo < hi"),
+            (dict(blend="multiply", channels=2), "channels"),
+            (dict(blend="multiply", channels=1, extra=1), "extra"),
+        ],
+    )
     def test_invalid(self, kwargs, match):
         with pytest.raises(ValueError, match=match):
             LayerSpec(**kwargs)
@@ -142,14 +146,24 @@ class TestClampInward:
 
 
 class TestComposite:
-    @pytest.mark.parametrize("spec", [SHADING, COLOR, LIGHT, LayerSpec(blend="screen", channels=3),
-                                      LayerSpec(blend="multiply", channels=3, range=(0.0, 2.0))],
-                             ids=["shading", "color", "light", "screen", "rgb-multiply"])
+    @pytest.mark.parametrize(
+        "spec",
+        [
+            SHADING,
+            COLOR,
+            LIGHT,
+            LayerSpec(blend="screen", channels=3),
+            LayerSpec(blend="multiply", channels=3, range=(0.0, 2.0)),
+        ],
+        ids=["shading", "color", "light", "screen", "rgb-multiply"],
+    )
     def test_reference_float64(self, spec):
         g = torch.Generator().manual_seed(3)
         base = torch.rand(2, 3, 4, 5, generator=g, dtype=torch.float64)
         layer = torch.rand(2, spec.channels, 4, 5, generator=g, dtype=torch.float64)
-        layer[:, :spec.colour_channels] = spec.range[0] + (spec.range[1] - spec.range[0]) * layer[:, :spec.colour_channels]
+        layer[:, : spec.colour_channels] = (
+            spec.range[0] + (spec.range[1] - spec.range[0]) * layer[:, : spec.colour_channels]
+        )
         ref = np_composite(base.numpy(), layer.numpy(), spec.blend)  # a 1-channel layer broadcasts over RGB
         np.testing.assert_allclose(composite(base, layer, spec).numpy(), ref, rtol=1e-12, atol=1e-15)
 

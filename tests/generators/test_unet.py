@@ -1,5 +1,6 @@
 """LayerGenerator and FreeLayer: identity start for every preset, shapes at any size, ranges, the
 gradient path through the composite, condition handling, and save/load."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -57,7 +58,7 @@ class TestLayerGenerator:
         spec = gen.spec
         y = gen(torch.rand(4, 3, 16, 16), load_preset(LAYERS / preset).vocabulary[0])
         lo, hi = spec.range
-        colour = y[:, :spec.colour_channels]
+        colour = y[:, : spec.colour_channels]
         assert colour.min() >= lo and colour.max() <= hi
         if spec.has_alpha:
             assert y[:, 3:].min() >= 0 and y[:, 3:].max() <= 1

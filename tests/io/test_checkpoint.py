@@ -1,4 +1,5 @@
 """Saving and loading networks (lasagna.io.checkpoint): round trips, errors that name the file, atomicity."""
+
 from __future__ import annotations
 
 import json
@@ -9,13 +10,14 @@ import torch
 from lasagna.errors import LasagnaError
 from lasagna.io import checkpoint as io
 from lasagna.priors.unet import ScheduleConfig, UNetPrior
-
 from tests.priors.test_unet import randomize, tiny_config
 
 
 @pytest.fixture()
 def saved(tmp_path):
-    prior = randomize(UNetPrior(tiny_config(schedule=ScheduleConfig(kind="cosine", num_steps=500), prediction="epsilon")))
+    prior = randomize(
+        UNetPrior(tiny_config(schedule=ScheduleConfig(kind="cosine", num_steps=500), prediction="epsilon"))
+    )
     prior.save_pretrained(tmp_path / "p")
     return prior, tmp_path / "p"
 

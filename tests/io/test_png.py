@@ -1,5 +1,6 @@
 """PNG reading and writing: every mode and depth against files written independently by Pillow and
 pypng, hostile files (bombs, truncation, corruption, non-PNG), and atomic writes."""
+
 from __future__ import annotations
 
 import io

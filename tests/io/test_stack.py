@@ -1,5 +1,6 @@
 """Stack folders: loading (range mapping, channel rules, masks, safe paths, limits), saving (16-bit
 ranged layers, range errors, atomicity), building stacks from tensors and PIL images, rendering."""
+
 from __future__ import annotations
 
 import json
@@ -46,8 +47,15 @@ def test_gray_alpha_multiply_is_one_channel_with_alpha(tmp_path):
     codes[0, 0, 1] = 0
     write_png16(tmp_path / "layers/m.png", codes)
     write_png8(tmp_path / "layers/base.png", np.full((4, 6, 3), 200))
-    write_stack(tmp_path, _doc([{"id": "base", "kind": "pixels", "source": "layers/base.png"},
-                                {"id": "m", "kind": "pixels", "source": "layers/m.png", "blend": "multiply", "range": [0, 2]}]))
+    write_stack(
+        tmp_path,
+        _doc(
+            [
+                {"id": "base", "kind": "pixels", "source": "layers/base.png"},
+                {"id": "m", "kind": "pixels", "source": "layers/m.png", "blend": "multiply", "range": [0, 2]},
+            ]
+        ),
+    )
     t = load_stack(tmp_path).tensors["m"]
     assert t.color.shape == (1, 4, 6) and t.alpha.shape == (1, 4, 6)
     assert t.color[0, 1, 1].item() == pytest.approx(2 * 30000 / 65535, abs=1e-6)
@@ -56,9 +64,22 @@ def test_gray_alpha_multiply_is_one_channel_with_alpha(tmp_path):
 
 def test_learned_layer_without_source_is_skipped_with_reason(tmp_path):
     write_png8(tmp_path / "layers/base.png", np.full((4, 6, 3), 100))
-    write_stack(tmp_path, _doc([{"id": "base", "kind": "pixels", "source": "layers/base.png"},
-                                {"id": "relit", "kind": "learned", "preset": "shading", "condition": {"label": "left"},
-                                 "conditioned_on": "base", "blend": "multiply"}]))
+    write_stack(
+        tmp_path,
+        _doc(
+            [
+                {"id": "base", "kind": "pixels", "source": "layers/base.png"},
+                {
+                    "id": "relit",
+                    "kind": "learned",
+                    "preset": "shading",
+                    "condition": {"label": "left"},
+                    "conditioned_on": "base",
+                    "blend": "multiply",
+                },
+            ]
+        ),
+    )
     stack = load_stack(tmp_path)
     assert stack.not_rendered == {"relit": NOT_RENDERED}
     result = render_stack(stack)
@@ -171,13 +192,16 @@ def test_build_from_pil_numpy_and_tensors(tmp_path):
     assert np.abs(ours - to_uint8(composite_reference(tmp_path / "s"))).max() <= 1
 
 
-@pytest.mark.parametrize("bad,pattern", [
-    (torch.full((3, 2, 2), float("nan")), "NaN"),
-    (torch.rand(5, 2, 2), "expected \\(C, h, w\\)"),
-    (torch.rand(2, 3, 2, 2), "expected \\(C, h, w\\)"),
-    (torch.zeros(3, 2, 2, dtype=torch.bool), "dtype"),
-    ("not an image", "expected a torch tensor"),
-])
+@pytest.mark.parametrize(
+    "bad,pattern",
+    [
+        (torch.full((3, 2, 2), float("nan")), "NaN"),
+        (torch.rand(5, 2, 2), "expected \\(C, h, w\\)"),
+        (torch.rand(2, 3, 2, 2), "expected \\(C, h, w\\)"),
+        (torch.zeros(3, 2, 2, dtype=torch.bool), "dtype"),
+        ("not an image", "expected a torch tensor"),
+    ],
+)
 def test_bad_images_are_refused(bad, pattern):
     stack = Stack.from_image(torch.rand(3, 2, 2))
     with pytest.raises(ImageError, match=pattern):
@@ -194,18 +218,29 @@ def test_bad_layer_fields_are_refused():
     with pytest.raises(ImageError, match="mask is 3x2"):
         stack.add_layer("x", torch.rand(3, 2, 2), mask=torch.rand(1, 2, 3))
     assert stack.ids == ("base",) and set(stack.tensors) == {"base"}  # nothing half-added
-    stack.document = stack.document.with_layer({"id": "relit", "kind": "learned", "preset": "shading",
-                                                "condition": {"label": "left"}, "conditioned_on": "base"})
+    stack.document = stack.document.with_layer(
+        {
+            "id": "relit",
+            "kind": "learned",
+            "preset": "shading",
+            "condition": {"label": "left"},
+            "conditioned_on": "base",
+        }
+    )
     with pytest.raises(DocumentError, match="set_pixels"):
         stack.add_layer("relit", torch.rand(3, 2, 2))
 
 
 def test_stack_from_tensors_and_set_pixels(tmp_path):
     stack = stack_from_tensors(
-        [("base", torch.rand(3, 4, 5)),
-         {"id": "shade", "image": torch.rand(1, 4, 5) * 2, "blend": "multiply", "range": (0, 2)},
-         {"id": "sun", "color": (1.0, 0.9, 0.5, 0.5), "blend": "plus"}],
-        width=6, height=5, blend_space="linear",
+        [
+            ("base", torch.rand(3, 4, 5)),
+            {"id": "shade", "image": torch.rand(1, 4, 5) * 2, "blend": "multiply", "range": (0, 2)},
+            {"id": "sun", "color": (1.0, 0.9, 0.5, 0.5), "blend": "plus"},
+        ],
+        width=6,
+        height=5,
+        blend_space="linear",
     )
     assert (stack.width, stack.height) == (6, 5) and stack.document.blend_space == "linear"
     grad = torch.rand(1, 4, 5, requires_grad=True)
@@ -224,9 +259,11 @@ def test_render_stack_dtype_and_solid_range(tmp_path):
     assert r64.image.dtype == torch.float64 and (r64.image - r32.image).abs().max() < 1e-5
     np.testing.assert_allclose(r64.image.numpy(), composite_reference(folder), atol=1e-6)
     # A solid multiply colour is mapped by its range, like a PNG's values.
-    write_stack(tmp_path / "solid", _doc([{"id": "s", "kind": "solid", "color": [0.75, 0.75, 0.75],
-                                           "blend": "multiply", "range": [0, 2]}])
-                | {"canvas": {"width": 2, "height": 2, "background": [0.4, 0.4, 0.4]}})
+    write_stack(
+        tmp_path / "solid",
+        _doc([{"id": "s", "kind": "solid", "color": [0.75, 0.75, 0.75], "blend": "multiply", "range": [0, 2]}])
+        | {"canvas": {"width": 2, "height": 2, "background": [0.4, 0.4, 0.4]}},
+    )
     image = render_stack(load_stack(tmp_path / "solid"), dtype=torch.float64).image
     assert image.max().item() == pytest.approx(0.6)
 
@@ -237,7 +274,10 @@ def test_remove_layer_drops_the_layer_its_tensors_and_bit_depth():
     stack.add_solid("tint", (1.0, 0.5, 0.0, 0.25))
     assert stack.remove_layer("shade") is stack
     assert stack.ids == ("base", "tint") and "shade" not in stack.tensors and "shade" not in stack.bit_depths
-    torch.testing.assert_close(stack.render().image, stack_from_tensors([("base", stack.tensors["base"].color)])
-                               .render().image * 0.75 + torch.tensor([1.0, 0.5, 0.0]).view(3, 1, 1) * 0.25)
+    torch.testing.assert_close(
+        stack.render().image,
+        stack_from_tensors([("base", stack.tensors["base"].color)]).render().image * 0.75
+        + torch.tensor([1.0, 0.5, 0.0]).view(3, 1, 1) * 0.25,
+    )
     with pytest.raises(DocumentError, match="nope"):
         stack.remove_layer("nope")

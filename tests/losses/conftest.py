@@ -1,4 +1,5 @@
 """Shared fixtures for the loss tests: small closed-form priors and a tiny prior with parameters."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -8,6 +8,7 @@ Written from the formulas, not from the package's code:
 * the distribution of integer timesteps produced by t ~ U(t_min, t_max), index = round(t (T − 1));
 * the guided-SDS fixed point (derivation in ``sds_fixed_point``).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,7 +28,9 @@ def as_matrix(cov, dim: int) -> np.ndarray:
     return np.diag(np.broadcast_to(cov.reshape(-1), (dim,)))
 
 
-def mixture_eps_x0(z_t: np.ndarray, ab: float, comps: list[tuple[float, np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+def mixture_eps_x0(
+    z_t: np.ndarray, ab: float, comps: list[tuple[float, np.ndarray, np.ndarray]]
+) -> tuple[np.ndarray, np.ndarray]:
     """E[ε | z_t] and E[x | z_t] for one flat z_t (D,) under Σ_k w_k N(μ_k, Σ_k)."""
     d = z_t.shape[0]
     logs, eps, x0 = [], [], []
@@ -98,7 +101,9 @@ def sds_fixed_point(
     """
     ab = alpha_bar()
     p = timestep_probabilities(t_min, t_max)
-    w = {"uniform": np.ones_like(ab), "1-alpha_bar": 1 - ab, "sqrt_alpha_bar(1-alpha_bar)": np.sqrt(ab) * (1 - ab)}[weighting]
+    w = {"uniform": np.ones_like(ab), "1-alpha_bar": 1 - ab, "sqrt_alpha_bar(1-alpha_bar)": np.sqrt(ab) * (1 - ab)}[
+        weighting
+    ]
     k = p * w * np.sqrt(ab * (1 - ab))  # (T,)
     c_c = ab[:, None] * var_c[None] + (1 - ab[:, None])
     c_u = ab[:, None] * var_u[None] + (1 - ab[:, None])

@@ -1,5 +1,6 @@
 """Properties every loss must have: shapes, mixed-condition batches, per-sample t, seeded
 reproducibility, the surrogate's derivative, no gradient into the prior, and numerical stability."""
+
 from __future__ import annotations
 
 import math
@@ -16,7 +17,11 @@ NAMES = ["sds", "lmc-sds", "lmc-sds-fixed", "dds", "nfsd", "ms-sds"]
 
 
 def make(name: str, prior=None, **opts):
-    exact = prior is not None and getattr(prior, "_uncond", None) is not None and prior.mixture(len(prior.vocabulary)).num_components == 1
+    exact = (
+        prior is not None
+        and getattr(prior, "_uncond", None) is not None
+        and prior.mixture(len(prior.vocabulary)).num_components == 1
+    )
     corr = ExpectedX0Corrective(prior) if exact else identity_corrective
     return {
         "sds": lambda: SDS(**opts),
@@ -57,7 +62,10 @@ class TestEveryLoss:
 
     def test_seeded_reproducibility(self, name, prior_u):
         image, cond = torch.rand(4, *SHAPE), cond_for(4)
-        g = [make(name, prior_u)(image, prior_u, cond, 2.0, rng=torch.Generator().manual_seed(s)).diagnostics.grad for s in (5, 5, 6)]
+        g = [
+            make(name, prior_u)(image, prior_u, cond, 2.0, rng=torch.Generator().manual_seed(s)).diagnostics.grad
+            for s in (5, 5, 6)
+        ]
         assert torch.equal(g[0], g[1]) and not torch.equal(g[0], g[2])
 
     def test_no_gradient_into_prior_parameters(self, name):
@@ -127,7 +135,9 @@ def test_stability_network_prior_extreme_t():
 class TestInputErrors:
     def test_image_checks(self, prior_u):
         loss = SDS()
-        with pytest.raises(ConditionError, match=r"sds.image: expected the composite as a \(B, C, H, W\) tensor, got \(3, 2, 2\)"):
+        with pytest.raises(
+            ConditionError, match=r"sds.image: expected the composite as a \(B, C, H, W\) tensor, got \(3, 2, 2\)"
+        ):
             loss(torch.rand(*SHAPE), prior_u, Condition("a"), 1.0, rng=None)
         with pytest.raises(ConditionError, match=r"encodes to \(3, 4, 4\) but the prior works at \(3, 2, 2\)"):
             loss(torch.rand(1, 3, 4, 4), prior_u, Condition("a"), 1.0, rng=None)
@@ -149,9 +159,13 @@ class TestInputErrors:
         loss = SDS(timesteps=TimestepOptions(anneal="linear", t_max_final=0.3, anneal_steps=10))
         with pytest.raises(ValueError, match="pass step="):
             loss(torch.rand(2, *SHAPE), prior_u, Condition("a"), 1.0, rng=None)
-        d = loss(torch.rand(64, *SHAPE), prior_u, Condition("a"), 1.0, rng=torch.Generator().manual_seed(0), step=10).diagnostics
+        d = loss(
+            torch.rand(64, *SHAPE), prior_u, Condition("a"), 1.0, rng=torch.Generator().manual_seed(0), step=10
+        ).diagnostics
         assert int(d.t.max()) <= round(0.3 * 999)
 
     def test_clamp_option(self, prior_u):
-        d = SDS(clamp=1e-3)(torch.rand(2, *SHAPE), prior_u, Condition("a"), 7.5, rng=torch.Generator().manual_seed(0)).diagnostics
+        d = SDS(clamp=1e-3)(
+            torch.rand(2, *SHAPE), prior_u, Condition("a"), 7.5, rng=torch.Generator().manual_seed(0)
+        ).diagnostics
         assert d.grad.abs().max() <= torch.tensor(1e-3) and int(d.clamped) > 0

@@ -1,4 +1,5 @@
 """The shared core: timestep sampling and annealing, w(t), CFG, gradient injection, the loss registry."""
+
 from __future__ import annotations
 
 import math
@@ -156,7 +157,9 @@ class TestInject:
         trick = 0.5 * ((z - (z - grad).detach()) ** 2).sum()
         ours = inject(z, grad)[0]
         torch.testing.assert_close(ours, trick, rtol=1e-12, atol=0)
-        torch.testing.assert_close(torch.autograd.grad(ours, z)[0], torch.autograd.grad(trick, z)[0], rtol=1e-12, atol=1e-15)
+        torch.testing.assert_close(
+            torch.autograd.grad(ours, z)[0], torch.autograd.grad(trick, z)[0], rtol=1e-12, atol=1e-15
+        )
 
     @settings(max_examples=40, deadline=None)
     @given(

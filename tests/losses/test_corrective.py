@@ -4,6 +4,7 @@ L_k is checked against a numpy float64 transcription of eq. 10; training on a cl
 prior" (x̂₀ = √ᾱ · box-blur(z_t), a t-dependent frequency bias like the one the paper describes); the
 kill-and-resume test runs the real command in a subprocess and SIGKILLs it.
 """
+
 from __future__ import annotations
 
 import json
@@ -22,9 +23,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from lasagna.errors import ConditionError, LasagnaError
 from lasagna.cli import main as cli_main
-from lasagna.training import corrective as ct
+from lasagna.errors import ConditionError, LasagnaError
+from lasagna.io import checkpoint as io
 from lasagna.losses.corrective import (
     Corrective,
     CorrectiveConfig,
@@ -34,9 +35,9 @@ from lasagna.losses.corrective import (
     normalize_by_std,
     rescale_to_target_std,
 )
-from lasagna.io import checkpoint as io
 from lasagna.priors.base import NoiseSchedule, Prior
 from lasagna.priors.unet import UNetConfig, UNetPrior
+from lasagna.training import corrective as ct
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -76,8 +77,16 @@ class BlurPrior(Prior):
 
 
 def tiny_train_config(**kw) -> ct.CorrectiveTrainConfig:
-    base = dict(corrective=CorrectiveConfig(channels=3, resolution=8, filters=(8, 16)), steps=150, batch_size=16, lr=3e-3,
-                checkpoint_every=50, log_every=10, eval_batches=2, progress=False)
+    base = dict(
+        corrective=CorrectiveConfig(channels=3, resolution=8, filters=(8, 16)),
+        steps=150,
+        batch_size=16,
+        lr=3e-3,
+        checkpoint_every=50,
+        log_every=10,
+        eval_batches=2,
+        progress=False,
+    )
     base.update(kw)
     return ct.CorrectiveTrainConfig(**base)
 
@@ -96,9 +105,13 @@ class TestLk:
         b, z = torch.randn(2, 3, 4, 4, generator=g) + 3.0, torch.randn(2, 3, 4, 4, generator=g) * 0.1
         bt = rescale_to_target_std(b, z).double()
         torch.testing.assert_close(bt.mean(dim=(1, 2, 3)), b.double().mean(dim=(1, 2, 3)), atol=1e-5, rtol=0)
-        torch.testing.assert_close(bt.std(dim=(1, 2, 3), unbiased=False), z.double().std(dim=(1, 2, 3), unbiased=False), atol=1e-6, rtol=1e-5)
+        torch.testing.assert_close(
+            bt.std(dim=(1, 2, 3), unbiased=False), z.double().std(dim=(1, 2, 3), unbiased=False), atol=1e-6, rtol=1e-5
+        )
         n = normalize_by_std(z).double()
-        torch.testing.assert_close(n.std(dim=(1, 2, 3), unbiased=False), torch.ones(2, dtype=torch.float64), atol=1e-5, rtol=0)
+        torch.testing.assert_close(
+            n.std(dim=(1, 2, 3), unbiased=False), torch.ones(2, dtype=torch.float64), atol=1e-5, rtol=0
+        )
 
     @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16, torch.float16])
     def test_constant_images_are_finite(self, dtype):
@@ -137,7 +150,10 @@ class TestLk:
     def test_invariances(self, seed, a, shift):
         """L_k ignores b̂'s contrast about its own mean, and any contrast of the target itself scores 0."""
         g = torch.Generator().manual_seed(seed)
-        b, z = torch.randn(2, 3, 4, 4, generator=g, dtype=torch.float64), torch.randn(2, 3, 4, 4, generator=g, dtype=torch.float64)
+        b, z = (
+            torch.randn(2, 3, 4, 4, generator=g, dtype=torch.float64),
+            torch.randn(2, 3, 4, 4, generator=g, dtype=torch.float64),
+        )
         mu = b.mean(dim=(1, 2, 3), keepdim=True)
         torch.testing.assert_close(lk_loss(mu + a * (b - mu), z), lk_loss(b, z), atol=1e-10, rtol=1e-9)
         zm = z.mean(dim=(1, 2, 3), keepdim=True)
@@ -154,7 +170,9 @@ class TestCorrective:
 
     @pytest.mark.parametrize("filters, size", [((8,), 5), ((8, 16), 8), ((8, 16, 32), 16), ((8, 16, 32, 64), 32)])
     def test_shapes_and_tanh_bound(self, filters, size):
-        model = Corrective(CorrectiveConfig(channels=4, resolution=size if len(filters) > 1 else 8, filters=filters, output_scale=0.5))
+        model = Corrective(
+            CorrectiveConfig(channels=4, resolution=size if len(filters) > 1 else 8, filters=filters, output_scale=0.5)
+        )
         with torch.no_grad():
             for p in model.parameters():
                 p.normal_(0, 1.0)
@@ -164,11 +182,16 @@ class TestCorrective:
         assert (out - z).abs().max() <= 0.5 + 1e-6  # b̂ − z = scale · tanh(·)
 
     def test_t_and_condition_are_inputs(self):
-        cfg = CorrectiveConfig(channels=3, resolution=8, filters=(8, 16), sees_condition=True, cond_channels=3, vocabulary=("a", "b"))
+        cfg = CorrectiveConfig(
+            channels=3, resolution=8, filters=(8, 16), sees_condition=True, cond_channels=3, vocabulary=("a", "b")
+        )
         model = Corrective(cfg)
         torch.nn.init.normal_(model.head.weight, std=0.5)
         z, img = torch.randn(1, 3, 8, 8), torch.rand(1, 3, 8, 8)
-        run = lambda t, lab, im: model(z, torch.tensor([t]), cond_image=im, label_idx=torch.tensor([lab]))
+
+        def run(t, lab, im):
+            return model(z, torch.tensor([t]), cond_image=im, label_idx=torch.tensor([lab]))
+
         base = run(100, 0, img)
         assert not torch.allclose(base, run(800, 0, img))
         assert not torch.allclose(base, run(100, 1, img))
@@ -179,10 +202,14 @@ class TestCorrective:
         # Without sees_condition the condition is not an input.
         plain = Corrective(CorrectiveConfig(channels=3, resolution=8, filters=(8, 16)))
         torch.nn.init.normal_(plain.head.weight, std=0.5)
-        torch.testing.assert_close(plain(z, torch.tensor([9])), plain(z, torch.tensor([9]), cond_image=img, label_idx=torch.tensor([1])))
+        torch.testing.assert_close(
+            plain(z, torch.tensor([9])), plain(z, torch.tensor([9]), cond_image=img, label_idx=torch.tensor([1]))
+        )
 
     def test_exceptions(self):
-        model = Corrective(CorrectiveConfig(channels=3, resolution=8, filters=(8, 16), sees_condition=True, cond_channels=3))
+        model = Corrective(
+            CorrectiveConfig(channels=3, resolution=8, filters=(8, 16), sees_condition=True, cond_channels=3)
+        )
         lab = torch.tensor([0])
         with pytest.raises(ConditionError, match="needs an image"):
             model(torch.randn(1, 3, 8, 8), torch.tensor([1]), label_idx=lab)
@@ -198,12 +225,17 @@ class TestCorrective:
             CorrectiveConfig(levels=3)
 
     def test_save_load_round_trip(self, tmp_path):
-        cfg = CorrectiveConfig(channels=3, resolution=8, filters=(8, 16), sees_condition=True, cond_channels=3, vocabulary=("a", "b"))
+        cfg = CorrectiveConfig(
+            channels=3, resolution=8, filters=(8, 16), sees_condition=True, cond_channels=3, vocabulary=("a", "b")
+        )
         model = Corrective(cfg)
         torch.nn.init.normal_(model.head.weight, std=0.3)
         model.save_pretrained(tmp_path / "c")
         loaded = Corrective.from_pretrained(tmp_path / "c")
-        assert loaded.config == cfg and json.loads((tmp_path / "c" / "config.json").read_text())["format"] == "lasagna.corrective"
+        assert (
+            loaded.config == cfg
+            and json.loads((tmp_path / "c" / "config.json").read_text())["format"] == "lasagna.corrective"
+        )
         z, img = torch.randn(2, 3, 8, 8), torch.rand(2, 3, 8, 8)
         args = (z, torch.tensor([3, 700]), img, torch.tensor([0, 1]))
         torch.testing.assert_close(loaded(*args), model(*args), atol=0, rtol=0)
@@ -228,8 +260,13 @@ class TestTraining:
         """ẑ_t is the prior's x̂₀ of the null-label branch; b̂ is told the sample's own label."""
         prior, calls = BlurPrior(), []
         real = prior._eps
-        prior._eps = lambda z_t, t, label_idx, image: (calls.append(label_idx.tolist()), real(z_t, t, label_idx, image))[1]
-        tr = ct.make_triplets(prior, toy_source, 4, torch.Generator().manual_seed(0), "uncond", 0.02, 0.98, torch.device("cpu"))
+        prior._eps = lambda z_t, t, label_idx, image: (
+            calls.append(label_idx.tolist()),
+            real(z_t, t, label_idx, image),
+        )[1]
+        tr = ct.make_triplets(
+            prior, toy_source, 4, torch.Generator().manual_seed(0), "uncond", 0.02, 0.98, torch.device("cpu")
+        )
         assert calls == [[2] * 4]  # the denoiser ran once, on the null label
         assert tr.t.min() >= 20 and tr.t.max() <= 979
         # Re-derive ẑ_t from the same draws, independently of make_triplets.
@@ -247,7 +284,9 @@ class TestTraining:
         torch.testing.assert_close(tr.z_hat, expected, atol=2e-4, rtol=0)
 
     def test_time_budget_then_resume(self, tmp_path):
-        first = ct.train_corrective(BlurPrior(), toy_source, tiny_train_config(steps=40, max_minutes=1e-9), tmp_path / "run")
+        first = ct.train_corrective(
+            BlurPrior(), toy_source, tiny_train_config(steps=40, max_minutes=1e-9), tmp_path / "run"
+        )
         assert first.stopped == "time" and first.step < 40
         _, meta = io.load_tensors(tmp_path / "run" / "checkpoint.safetensors")
         assert int(meta["step"]) == first.step
@@ -268,7 +307,9 @@ class TestTraining:
     def test_refuses_a_different_run_in_the_same_folder(self, tmp_path):
         ct.train_corrective(BlurPrior(), toy_source, tiny_train_config(steps=5), tmp_path / "run")
         with pytest.raises(LasagnaError, match="different batch_size, lr"):
-            ct.train_corrective(BlurPrior(), toy_source, tiny_train_config(steps=5, lr=1e-2, batch_size=8), tmp_path / "run")
+            ct.train_corrective(
+                BlurPrior(), toy_source, tiny_train_config(steps=5, lr=1e-2, batch_size=8), tmp_path / "run"
+            )
 
     def test_failed_checkpoint_write_keeps_the_previous_one(self, tmp_path, monkeypatch):
         calls = {"n": 0}
@@ -282,10 +323,16 @@ class TestTraining:
 
         monkeypatch.setattr(io, "_st_save", flaky)
         with pytest.raises(OSError, match="disk full"):
-            ct.train_corrective(BlurPrior(), toy_source, tiny_train_config(steps=30, checkpoint_every=10), tmp_path / "run")
+            ct.train_corrective(
+                BlurPrior(), toy_source, tiny_train_config(steps=30, checkpoint_every=10), tmp_path / "run"
+            )
         _, meta = io.load_tensors(tmp_path / "run" / "checkpoint.safetensors")
         assert meta["step"] == "10"
-        assert sorted(p.name for p in (tmp_path / "run").iterdir()) == ["checkpoint.safetensors", "log.jsonl", "train_config.json"]
+        assert sorted(p.name for p in (tmp_path / "run").iterdir()) == [
+            "checkpoint.safetensors",
+            "log.jsonl",
+            "train_config.json",
+        ]
 
     def test_mismatched_prior(self, tmp_path):
         cfg = tiny_train_config(corrective=CorrectiveConfig(channels=4, resolution=8, filters=(8, 16)))
@@ -297,17 +344,44 @@ class TestKillAndResume:
     """The real command in a subprocess: SIGKILL after its first checkpoint, start again, finish."""
 
     def _cmd(self, prior_dir: Path, out: Path, steps: int) -> list[str]:
-        return [sys.executable, "-m", "lasagna.cli", "train-corrective", "--prior", str(prior_dir), "--source",
-                "tests.losses.test_corrective:toy_source", "--out", str(out), "--steps", str(steps), "--batch-size", "4",
-                "--filters", "4,8", "--lr", "1e-3", "--checkpoint-every", "20", "--log-every", "5", "--eval-batches", "1",
-                "--no-progress"]
+        return [
+            sys.executable,
+            "-m",
+            "lasagna.cli",
+            "train-corrective",
+            "--prior",
+            str(prior_dir),
+            "--source",
+            "tests.losses.test_corrective:toy_source",
+            "--out",
+            str(out),
+            "--steps",
+            str(steps),
+            "--batch-size",
+            "4",
+            "--filters",
+            "4,8",
+            "--lr",
+            "1e-3",
+            "--checkpoint-every",
+            "20",
+            "--log-every",
+            "5",
+            "--eval-batches",
+            "1",
+            "--no-progress",
+        ]
 
     def test_sigkill_then_resume(self, tmp_path):
         prior_dir = tmp_path / "prior"
-        UNetPrior(UNetConfig(channels=(4, 8), resolution=8, norm_groups=4, vocabulary=("a", "b"))).save_pretrained(prior_dir)
+        UNetPrior(UNetConfig(channels=(4, 8), resolution=8, norm_groups=4, vocabulary=("a", "b"))).save_pretrained(
+            prior_dir
+        )
         env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
         steps, out = 80, tmp_path / "run"
-        proc = subprocess.Popen(self._cmd(prior_dir, out, steps), cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        proc = subprocess.Popen(
+            self._cmd(prior_dir, out, steps), cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+        )
         ckpt = out / "checkpoint.safetensors"
         deadline = time.monotonic() + 60
         while not ckpt.exists() and proc.poll() is None and time.monotonic() < deadline:
@@ -334,7 +408,9 @@ class TestKillAndResume:
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # as the subprocesses ran (OMP_NUM_THREADS=1)
         try:
-            assert cli_main(self._cmd(prior_dir, tmp_path / "ref", steps)[3:]) == 0  # in-process: same code, no start-up cost
+            assert (
+                cli_main(self._cmd(prior_dir, tmp_path / "ref", steps)[3:]) == 0
+            )  # in-process: same code, no start-up cost
         finally:
             torch.set_num_threads(threads)
         a, _ = io.load_tensors(out / "corrective" / "model.safetensors")
@@ -343,11 +419,34 @@ class TestKillAndResume:
             torch.testing.assert_close(a[k], b[k], atol=1e-6, rtol=1e-5, msg=k)
 
     def test_main_reports_errors_in_one_line(self, tmp_path, capsys):
-        code = cli_main(["train-corrective", "--prior", str(tmp_path / "none"), "--source", "x:y", "--out", str(tmp_path / "o"), "--no-progress"])
+        code = cli_main(
+            [
+                "train-corrective",
+                "--prior",
+                str(tmp_path / "none"),
+                "--source",
+                "x:y",
+                "--out",
+                str(tmp_path / "o"),
+                "--no-progress",
+            ]
+        )
         err = capsys.readouterr().err.strip()
         assert code == 2 and err.count("\n") == 0 and "config.json not found" in err
         UNetPrior(UNetConfig(channels=(4, 8), resolution=8, norm_groups=4)).save_pretrained(tmp_path / "p")
-        code = cli_main(["train-corrective", "--prior", str(tmp_path / "p"), "--source", "tests.losses.test_corrective:toy_source", "--out",
-                        str(tmp_path / "o"), "--steps", "0", "--no-progress"])
+        code = cli_main(
+            [
+                "train-corrective",
+                "--prior",
+                str(tmp_path / "p"),
+                "--source",
+                "tests.losses.test_corrective:toy_source",
+                "--out",
+                str(tmp_path / "o"),
+                "--steps",
+                "0",
+                "--no-progress",
+            ]
+        )
         err = capsys.readouterr().err.strip()
         assert code == 2 and err.count("\n") == 0 and "train-corrective.steps" in err

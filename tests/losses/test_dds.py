@@ -1,4 +1,5 @@
 """Delta Denoising Score (Hertz et al. 2023) against numpy, and its zero when nothing is to be edited."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -19,7 +20,9 @@ def test_zero_when_conditions_agree_and_source_is_image(prior_name, request):
     prior = request.getfixturevalue(prior_name)
     image = torch.rand(5, *SHAPE, generator=torch.Generator().manual_seed(0), requires_grad=True)
     labels = ["a", "b", "a", "b", "a"]
-    out = DDS(source_image=image.detach())(image, prior, Condition(labels, negative=labels), 4.0, rng=torch.Generator().manual_seed(1))
+    out = DDS(source_image=image.detach())(
+        image, prior, Condition(labels, negative=labels), 4.0, rng=torch.Generator().manual_seed(1)
+    )
     assert torch.count_nonzero(out.diagnostics.grad) == 0
     assert torch.count_nonzero(out.diagnostics.components["target"]) > 0  # each SDS half is not zero
     out.loss.backward()
@@ -62,7 +65,13 @@ def test_source_broadcast_and_default(prior_mix):
     src = torch.rand(1, *SHAPE)
     cond = Condition("a", negative="b")
     a = DDS(source_image=src)(image, prior_mix, cond, 1.0, rng=torch.Generator().manual_seed(0)).diagnostics
-    b = DDS()(image, prior_mix, Condition("a", image=src.expand(3, *SHAPE), negative="b"), 1.0, rng=torch.Generator().manual_seed(0)).diagnostics
+    b = DDS()(
+        image,
+        prior_mix,
+        Condition("a", image=src.expand(3, *SHAPE), negative="b"),
+        1.0,
+        rng=torch.Generator().manual_seed(0),
+    ).diagnostics
     assert torch.equal(a.grad, b.grad)  # a set source_image and the conditioning image agree
     loss = DDS()
     loss.source_image = src  # settable attribute

@@ -1,4 +1,5 @@
 """LMC-SDS (Alldieck et al. 2024, eq. 6b, 9, 10) against numpy float64 re-derivations on Gaussian priors."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -113,7 +114,9 @@ def test_fixed_eps_fixed_in_cond_resampled_in_lmc(gauss_params, prior_u):
     ab = ref.alpha_bar()[d2.t.numpy()]
     z = 2 * image.double().numpy() - 1
     z_c = np.sqrt(ab)[B4] * z + np.sqrt(1 - ab)[B4] * d1.noise["cond"].double().numpy()
-    want = ref.batch_eps(z_c, ab, [components(gauss_params, "a", True)] * 3) - ref.batch_eps(z_c, ab, [components(gauss_params, "", True)] * 3)
+    want = ref.batch_eps(z_c, ab, [components(gauss_params, "a", True)] * 3) - ref.batch_eps(
+        z_c, ab, [components(gauss_params, "", True)] * 3
+    )
     np.testing.assert_allclose(d2.components["cond"].numpy(), want, rtol=1e-4, atol=1e-5)  # ω·(…)/ω
     loss.reset_fixed_noise()  # the next call draws anew from ITS generator; same seed → same ε (reproducible)
     d3 = loss(image, prior_u, Condition("a"), 2.0, rng=torch.Generator().manual_seed(3)).diagnostics
@@ -121,25 +124,36 @@ def test_fixed_eps_fixed_in_cond_resampled_in_lmc(gauss_params, prior_u):
     d4 = loss(image, prior_u, Condition("a"), 2.0, rng=torch.Generator().manual_seed(1)).diagnostics
     assert torch.equal(d4.noise["cond"], d3.noise["cond"])
     # a seed makes the fixed ε the same across loss instances
-    e = [LMCSDS(identity_corrective, fixed_eps=True, fixed_eps_seed=7)(image, prior_u, Condition("a"), 2.0, rng=torch.Generator().manual_seed(s)).diagnostics.noise["cond"] for s in (0, 1)]
+    e = [
+        LMCSDS(identity_corrective, fixed_eps=True, fixed_eps_seed=7)(
+            image, prior_u, Condition("a"), 2.0, rng=torch.Generator().manual_seed(s)
+        ).diagnostics.noise["cond"]
+        for s in (0, 1)
+    ]
     assert torch.equal(e[0], e[1])
 
 
 def test_without_fixed_eps_one_noise(prior_u):
-    d = LMCSDS(identity_corrective)(torch.rand(2, *SHAPE), prior_u, Condition("a"), 2.0, rng=torch.Generator().manual_seed(0)).diagnostics
+    d = LMCSDS(identity_corrective)(
+        torch.rand(2, *SHAPE), prior_u, Condition("a"), 2.0, rng=torch.Generator().manual_seed(0)
+    ).diagnostics
     assert torch.equal(d.noise["cond"], d.noise["lmc"])
 
 
 def test_inverse_guidance_scaling(prior_u):
     image, corr = torch.rand(3, *SHAPE), ExpectedX0Corrective(prior_u)
-    a = LMCSDS(corr, scale="none")(image, prior_u, Condition("b"), 5.0, rng=torch.Generator().manual_seed(4)).diagnostics
+    a = LMCSDS(corr, scale="none")(
+        image, prior_u, Condition("b"), 5.0, rng=torch.Generator().manual_seed(4)
+    ).diagnostics
     b = LMCSDS(corr)(image, prior_u, Condition("b"), 5.0, rng=torch.Generator().manual_seed(4)).diagnostics
     torch.testing.assert_close(b.grad, a.grad / 5.0)
     with pytest.raises(LasagnaError, match="ω must be > 0; got 0.0 \\(use scale='none'"):
         LMCSDS(corr)(image, prior_u, Condition("b"), 0.0, rng=None)
     with pytest.raises(LasagnaError, match="ω must be > 0; got -1.0"):
         LMCSDS(corr)(image, prior_u, Condition("b"), -1.0, rng=None)
-    z = LMCSDS(corr, scale="none")(image, prior_u, Condition("b"), 0.0, rng=torch.Generator().manual_seed(4)).diagnostics
+    z = LMCSDS(corr, scale="none")(
+        image, prior_u, Condition("b"), 0.0, rng=torch.Generator().manual_seed(4)
+    ).diagnostics
     assert torch.count_nonzero(z.components["cond"]) == 0
     assert torch.equal(z.grad, z.components["lmc"])
 
@@ -149,7 +163,9 @@ def test_sqrt_snr_identity_is_sds_projection(prior_mix):
     image = torch.rand(4, *SHAPE)
     lmc = LMCSDS(identity_corrective, normalize="none", lmc_weighting="sqrt_snr", scale="none")
     d_l = lmc(image, prior_mix, Condition("a"), 2.0, rng=torch.Generator().manual_seed(6)).diagnostics
-    d_s = SDS(weighting="uniform")(image, prior_mix, Condition("a"), 2.0, rng=torch.Generator().manual_seed(6)).diagnostics
+    d_s = SDS(weighting="uniform")(
+        image, prior_mix, Condition("a"), 2.0, rng=torch.Generator().manual_seed(6)
+    ).diagnostics
     assert torch.equal(d_l.t, d_s.t)
     torch.testing.assert_close(d_l.components["lmc"], d_s.components["proj"], rtol=1e-3, atol=1e-4)
     torch.testing.assert_close(d_l.components["cond"], d_s.components["cond"])

@@ -1,4 +1,5 @@
 """Multi-step SDS (SparseFusion): K guided DDIM steps re-implemented in numpy; K = 1 is SDS."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -24,7 +25,9 @@ def test_one_step_is_sds(prior_mix):
 def test_multistep_against_numpy(units, gauss_params, prior_mix):
     omega, steps, labels = 2.0, 3, ["a", "b", "b"]
     image = torch.rand(3, *SHAPE, generator=torch.Generator().manual_seed(1))
-    d = MSSDS(steps=steps, units=units)(image, prior_mix, Condition(labels), omega, rng=torch.Generator().manual_seed(5)).diagnostics
+    d = MSSDS(steps=steps, units=units)(
+        image, prior_mix, Condition(labels), omega, rng=torch.Generator().manual_seed(5)
+    ).diagnostics
     abar = ref.alpha_bar()
     z0 = 2 * image.double().numpy() - 1
     eps = d.noise["eps"].double().numpy()

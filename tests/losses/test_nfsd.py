@@ -1,4 +1,5 @@
 """Noise-Free Score Distillation (Katzir et al. 2024, eq. 11) against numpy, with its per-sample t < 200 mask."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -20,7 +21,9 @@ def test_against_numpy_with_mixed_regimes(gauss_params, prior_mix):
     labels = ["a", "b"] * (n // 2)
     negs = ["b", "a"] * (n // 2)
     image = torch.rand(n, *SHAPE, generator=torch.Generator().manual_seed(0))
-    d = NFSD()(image, prior_mix, Condition(labels, negative=negs), omega, rng=torch.Generator().manual_seed(4)).diagnostics
+    d = NFSD()(
+        image, prior_mix, Condition(labels, negative=negs), omega, rng=torch.Generator().manual_seed(4)
+    ).diagnostics
     t = d.t.numpy()
     assert (t < 200).any() and (t >= 200).any()  # both regimes in one batch
     ab = ref.alpha_bar()[t]
@@ -53,10 +56,14 @@ def test_threshold_is_t_200(index, small, prior_mix):
 
 def test_negative_from_options_and_errors(prior_mix):
     image = torch.rand(2, *SHAPE)
-    a = NFSD(negative_label="b")(image, prior_mix, Condition("a"), 2.0, rng=torch.Generator().manual_seed(0)).diagnostics
+    a = NFSD(negative_label="b")(
+        image, prior_mix, Condition("a"), 2.0, rng=torch.Generator().manual_seed(0)
+    ).diagnostics
     b = NFSD()(image, prior_mix, Condition("a", negative="b"), 2.0, rng=torch.Generator().manual_seed(0)).diagnostics
     assert torch.equal(a.grad, b.grad)
-    c = NFSD(negative_label="a")(image, prior_mix, Condition("a", negative="b"), 2.0, rng=torch.Generator().manual_seed(0)).diagnostics
+    c = NFSD(negative_label="a")(
+        image, prior_mix, Condition("a", negative="b"), 2.0, rng=torch.Generator().manual_seed(0)
+    ).diagnostics
     assert torch.equal(c.grad, b.grad)  # condition.negative wins over the option
     with pytest.raises(ConditionError, match="NFSD needs a negative condition"):
         NFSD()(image, prior_mix, Condition("a"), 2.0, rng=None)

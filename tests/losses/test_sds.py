@@ -1,4 +1,5 @@
 """SDS against closed forms on Gaussian priors (LMC-SDS eq. 3–6; DreamFusion eq. 3)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -58,7 +59,9 @@ def test_inv_guidance_scale(prior_u):
     torch.testing.assert_close(b.diagnostics.grad, a.diagnostics.grad / 4.0)
 
 
-def _mean_gradient(prior, z: np.ndarray, label: str, omega: float, n: int, seed: int, **opts) -> tuple[np.ndarray, np.ndarray]:
+def _mean_gradient(
+    prior, z: np.ndarray, label: str, omega: float, n: int, seed: int, **opts
+) -> tuple[np.ndarray, np.ndarray]:
     """Sample mean and standard deviation of n per-sample SDS gradients at the clean image z (D,)."""
     image = torch.tensor((z.reshape(1, *SHAPE) + 1) / 2, dtype=torch.float32).expand(n, *SHAPE)
     g = SDS(**opts)(image, prior, Condition(label), omega, rng=torch.Generator().manual_seed(seed)).diagnostics.grad

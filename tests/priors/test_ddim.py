@@ -5,6 +5,7 @@
 x̂₀ equals m, so DDIM lands exactly on m; with guidance ω it lands on m_u + ω(m_c − m_u).
 The deterministic DDIM map is re-implemented in numpy float64 as the reference.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -14,7 +15,6 @@ import torch
 from lasagna.priors.base import Condition, NoiseSchedule, Prior
 from lasagna.priors.ddim import ddim_sample, ddim_timesteps
 from lasagna.priors.unet import UNetPrior
-
 from tests.priors.test_unet import randomize, tiny_config
 
 SHAPE = (1, 2, 2)
@@ -101,7 +101,9 @@ class TestDDIMClosedForm:
         plus 0.02 for discretisation)."""
         m, s, n = 0.4, 0.5, 2048
         prior = GaussPrior({"a": m}, null_mean=0.0, s=s)
-        out = ddim_sample(prior, Condition("a"), steps=100, eta=eta, batch=n, rng=torch.Generator().manual_seed(1), decode=False)
+        out = ddim_sample(
+            prior, Condition("a"), steps=100, eta=eta, batch=n, rng=torch.Generator().manual_seed(1), decode=False
+        )
         x = out.z.double().flatten()
         se = s / np.sqrt(x.numel())
         assert abs(x.mean().item() - m) < 4 * se + 0.02
@@ -121,7 +123,12 @@ class TestDDIMBehaviour:
     @pytest.mark.parametrize("eta", [0.0, 0.5])
     def test_seeded_determinism(self, eta):
         prior = GaussPrior({"a": 0.1}, null_mean=0.0, s=0.5)
-        run = lambda seed: ddim_sample(prior, Condition("a"), steps=20, eta=eta, batch=4, rng=torch.Generator().manual_seed(seed)).z
+
+        def run(seed):
+            return ddim_sample(
+                prior, Condition("a"), steps=20, eta=eta, batch=4, rng=torch.Generator().manual_seed(seed)
+            ).z
+
         assert torch.equal(run(0), run(0))
         assert not torch.allclose(run(0), run(1))
 
@@ -140,7 +147,13 @@ class TestDDIMBehaviour:
 
     def test_unet_prior_smoke(self):
         prior = randomize(UNetPrior(tiny_config()), scale=0.05).eval()
-        out = ddim_sample(prior, Condition(["left", "right"], image=torch.rand(2, 3, 8, 8)), steps=5, omega=2.0,
-                          rng=torch.Generator().manual_seed(0), clip_x0=True)
+        out = ddim_sample(
+            prior,
+            Condition(["left", "right"], image=torch.rand(2, 3, 8, 8)),
+            steps=5,
+            omega=2.0,
+            rng=torch.Generator().manual_seed(0),
+            clip_x0=True,
+        )
         assert out.z.shape == (2, 3, 8, 8) and out.image.shape == (2, 3, 8, 8)
         assert torch.isfinite(out.z).all() and out.image.min() >= 0 and out.image.max() <= 1

@@ -3,6 +3,7 @@ downloaded): a UNet2DConditionModel, a ControlNetModel, an AutoencoderKL, a CLIP
 byte-level CLIP tokenizer written to a temporary folder. References are diffusers/transformers
 called by hand and numpy float64 schedules.
 """
+
 from __future__ import annotations
 
 import json
@@ -14,7 +15,9 @@ import torch
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 diffusers = pytest.importorskip("diffusers", reason="diffusers is not installed (optional extra lasagna[diffusers])")
-transformers = pytest.importorskip("transformers", reason="transformers is not installed (optional extra lasagna[diffusers])")
+transformers = pytest.importorskip(
+    "transformers", reason="transformers is not installed (optional extra lasagna[diffusers])"
+)
 
 from diffusers import AutoencoderKL, ControlNetModel, DDPMScheduler, UNet2DConditionModel  # noqa: E402
 from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer  # noqa: E402
@@ -25,7 +28,13 @@ from lasagna.priors.ddim import ddim_sample  # noqa: E402
 from lasagna.priors.diffusers import DEFAULT_TEMPLATE, DiffusersPrior, schedule_from_diffusers  # noqa: E402
 
 VOCAB = ("left", "right")
-SD_SCHED = {"num_train_timesteps": 1000, "beta_schedule": "scaled_linear", "beta_start": 0.00085, "beta_end": 0.012, "prediction_type": "epsilon"}
+SD_SCHED = {
+    "num_train_timesteps": 1000,
+    "beta_schedule": "scaled_linear",
+    "beta_start": 0.00085,
+    "beta_end": 0.012,
+    "prediction_type": "epsilon",
+}
 
 
 def _byte_level_vocab() -> dict[str, int]:
@@ -61,9 +70,16 @@ def parts(tmp_path_factory):
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(0)
         unet = UNet2DConditionModel(
-            sample_size=8, in_channels=4, out_channels=4, layers_per_block=1, block_out_channels=(8, 16),
-            down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"), up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
-            cross_attention_dim=16, norm_num_groups=4, attention_head_dim=2,
+            sample_size=8,
+            in_channels=4,
+            out_channels=4,
+            layers_per_block=1,
+            block_out_channels=(8, 16),
+            down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
+            up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
+            cross_attention_dim=16,
+            norm_num_groups=4,
+            attention_head_dim=2,
         )
         controlnet = ControlNetModel.from_unet(unet, conditioning_embedding_out_channels=(4, 8))
         # ControlNet's zero convolutions would make the image irrelevant; give them weights.
@@ -71,25 +87,50 @@ def parts(tmp_path_factory):
         for m in list(controlnet.controlnet_down_blocks) + zero_init:
             _randomize(m, 1)
         vae = AutoencoderKL(
-            in_channels=3, out_channels=3, down_block_types=("DownEncoderBlock2D", "DownEncoderBlock2D"),
-            up_block_types=("UpDecoderBlock2D", "UpDecoderBlock2D"), block_out_channels=(4, 8), latent_channels=4,
-            norm_num_groups=4, sample_size=16,
+            in_channels=3,
+            out_channels=3,
+            down_block_types=("DownEncoderBlock2D", "DownEncoderBlock2D"),
+            up_block_types=("UpDecoderBlock2D", "UpDecoderBlock2D"),
+            block_out_channels=(4, 8),
+            latent_channels=4,
+            norm_num_groups=4,
+            sample_size=16,
         )
-        text_encoder = CLIPTextModel(CLIPTextConfig(
-            vocab_size=len(tokenizer), hidden_size=16, intermediate_size=32, num_hidden_layers=1, num_attention_heads=2,
-            max_position_embeddings=64, bos_token_id=0, eos_token_id=1, pad_token_id=1,
-        )).eval()
-    return dict(unet=unet.eval(), controlnet=controlnet.eval(), vae=vae.eval(), text_encoder=text_encoder, tokenizer=tokenizer)
+        text_encoder = CLIPTextModel(
+            CLIPTextConfig(
+                vocab_size=len(tokenizer),
+                hidden_size=16,
+                intermediate_size=32,
+                num_hidden_layers=1,
+                num_attention_heads=2,
+                max_position_embeddings=64,
+                bos_token_id=0,
+                eos_token_id=1,
+                pad_token_id=1,
+            )
+        ).eval()
+    return dict(
+        unet=unet.eval(), controlnet=controlnet.eval(), vae=vae.eval(), text_encoder=text_encoder, tokenizer=tokenizer
+    )
 
 
 @pytest.fixture(scope="module")
 def prior(parts):
-    return DiffusersPrior(parts["unet"], SD_SCHED, VOCAB, text_encoder=parts["text_encoder"], tokenizer=parts["tokenizer"],
-                          controlnet=parts["controlnet"], vae=parts["vae"])
+    return DiffusersPrior(
+        parts["unet"],
+        SD_SCHED,
+        VOCAB,
+        text_encoder=parts["text_encoder"],
+        tokenizer=parts["tokenizer"],
+        controlnet=parts["controlnet"],
+        vae=parts["vae"],
+    )
 
 
 def manual_embedding(parts, text: str) -> torch.Tensor:
-    ids = parts["tokenizer"]([text], padding="max_length", max_length=64, truncation=True, return_tensors="pt").input_ids
+    ids = parts["tokenizer"](
+        [text], padding="max_length", max_length=64, truncation=True, return_tensors="pt"
+    ).input_ids
     with torch.no_grad():
         return parts["text_encoder"](ids).last_hidden_state[0]
 
@@ -130,7 +171,9 @@ class TestPrompts:
         calls = []
         handle = parts["text_encoder"].register_forward_hook(lambda *a: calls.append(1))
         try:
-            p = DiffusersPrior(parts["unet"], SD_SCHED, VOCAB, text_encoder=parts["text_encoder"], tokenizer=parts["tokenizer"])
+            p = DiffusersPrior(
+                parts["unet"], SD_SCHED, VOCAB, text_encoder=parts["text_encoder"], tokenizer=parts["tokenizer"]
+            )
             z = torch.randn(2, 4, 8, 8)
             for _ in range(3):
                 p.predict(z, torch.tensor([10, 20]), Condition(["left", "right"]))
@@ -166,12 +209,20 @@ class TestEps:
         z, t = torch.randn(2, 4, 8, 8), torch.tensor([5, 800])
         img = torch.rand(2, 3, 16, 16)
         eps = prior.predict(z, t, Condition(["left", "right"], image=img)).eps
-        enc_c = torch.stack([manual_embedding(parts, DEFAULT_TEMPLATE.format(label=l)) for l in ("left", "right")])
+        enc_c = torch.stack(
+            [manual_embedding(parts, DEFAULT_TEMPLATE.format(label=label)) for label in ("left", "right")]
+        )
         enc_u = torch.stack([manual_embedding(parts, "")] * 2)
         with torch.no_grad():
             for key, enc in (("cond", enc_c), ("uncond", enc_u)):
                 down, mid = parts["controlnet"](z, t, encoder_hidden_states=enc, controlnet_cond=img, return_dict=False)
-                ref = parts["unet"](z, t, encoder_hidden_states=enc, down_block_additional_residuals=down, mid_block_additional_residual=mid).sample
+                ref = parts["unet"](
+                    z,
+                    t,
+                    encoder_hidden_states=enc,
+                    down_block_additional_residuals=down,
+                    mid_block_additional_residual=mid,
+                ).sample
                 torch.testing.assert_close(eps[key], ref, atol=1e-5, rtol=1e-5)
 
     def test_image_and_label_matter(self, prior):
@@ -182,7 +233,9 @@ class TestEps:
         assert (a - b).abs().max() > 1e-6 and (a - c).abs().max() > 1e-6
 
     def test_v_prediction_converted(self, parts):
-        p = DiffusersPrior(parts["unet"], {**SD_SCHED, "prediction_type": "v_prediction"}, VOCAB, prompt_embeds=torch.randn(3, 5, 16))
+        p = DiffusersPrior(
+            parts["unet"], {**SD_SCHED, "prediction_type": "v_prediction"}, VOCAB, prompt_embeds=torch.randn(3, 5, 16)
+        )
         z, t = torch.randn(2, 4, 8, 8), torch.tensor([0, 999])
         with torch.no_grad():
             v = parts["unet"](z, t, encoder_hidden_states=p.prompt_embeds[[0, 0]]).sample.double().numpy()
@@ -220,11 +273,21 @@ class TestLatents:
 
     def test_encode_sample_is_seeded(self, parts):
         def make(seed):
-            return DiffusersPrior(parts["unet"], SD_SCHED, VOCAB, prompt_embeds=torch.randn(3, 5, 16), vae=parts["vae"],
-                                  latent="sample", latent_rng=torch.Generator().manual_seed(seed))
+            return DiffusersPrior(
+                parts["unet"],
+                SD_SCHED,
+                VOCAB,
+                prompt_embeds=torch.randn(3, 5, 16),
+                vae=parts["vae"],
+                latent="sample",
+                latent_rng=torch.Generator().manual_seed(seed),
+            )
+
         x = torch.rand(1, 3, 16, 16)
         a, b, c = make(0).encode(x), make(0).encode(x), make(1).encode(x)
-        mean = DiffusersPrior(parts["unet"], SD_SCHED, VOCAB, prompt_embeds=torch.randn(3, 5, 16), vae=parts["vae"]).encode(x)
+        mean = DiffusersPrior(
+            parts["unet"], SD_SCHED, VOCAB, prompt_embeds=torch.randn(3, 5, 16), vae=parts["vae"]
+        ).encode(x)
         assert torch.equal(a, b) and not torch.equal(a, c) and not torch.allclose(a, mean)
 
     def test_decode_and_pixel_mode(self, prior, parts):
@@ -233,8 +296,13 @@ class TestLatents:
             DiffusersPrior(parts["unet"], SD_SCHED, VOCAB, prompt_embeds=torch.randn(3, 5, 16), latent="mode")
 
     def test_ddim_end_to_end(self, prior):
-        out = ddim_sample(prior, Condition(["left", "right"], image=torch.rand(2, 3, 16, 16)), steps=3, omega=2.0,
-                          rng=torch.Generator().manual_seed(0))
+        out = ddim_sample(
+            prior,
+            Condition(["left", "right"], image=torch.rand(2, 3, 16, 16)),
+            steps=3,
+            omega=2.0,
+            rng=torch.Generator().manual_seed(0),
+        )
         assert out.z.shape == (2, 4, 8, 8) and out.image.shape == (2, 3, 16, 16)
         assert torch.isfinite(out.image).all()
 
@@ -248,7 +316,9 @@ class TestFromLocal:
         parts["tokenizer"].save_pretrained(root / "tokenizer")
         DDPMScheduler(**SD_SCHED).save_pretrained(root / "scheduler")
         parts["controlnet"].save_pretrained(tmp_path / "cn")
-        loaded = DiffusersPrior.from_local(root, controlnet=tmp_path / "cn", vocabulary=VOCAB, device="cpu", dtype=torch.float32)
+        loaded = DiffusersPrior.from_local(
+            root, controlnet=tmp_path / "cn", vocabulary=VOCAB, device="cpu", dtype=torch.float32
+        )
         z, t, img = torch.randn(1, 4, 8, 8), torch.tensor([400]), torch.rand(1, 3, 16, 16)
         a = loaded.predict(z, t, Condition("right", image=img)).eps
         b = prior.predict(z, t, Condition("right", image=img)).eps

@@ -1,5 +1,6 @@
 """GaussianPrior / GaussianMixturePrior: the closed-form reference priors, checked against numpy
 linear algebra (tests/losses/reference.py) and Tweedie's formula via torch.distributions."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -35,8 +36,14 @@ def mixture_setup():
     """Two labels, two components each (one full covariance, one diagonal), non-uniform label weights."""
     rng = np.random.default_rng(3)
     comps = {
-        "left": [(0.3, rng.uniform(-0.6, 0.6, D), _spd(rng)), (0.7, rng.uniform(-0.6, 0.6, D), rng.uniform(0.02, 0.3, D))],
-        "right": [(1.0, rng.uniform(-0.6, 0.6, D), _spd(rng)), (2.0, rng.uniform(-0.6, 0.6, D), rng.uniform(0.02, 0.3, D))],
+        "left": [
+            (0.3, rng.uniform(-0.6, 0.6, D), _spd(rng)),
+            (0.7, rng.uniform(-0.6, 0.6, D), rng.uniform(0.02, 0.3, D)),
+        ],
+        "right": [
+            (1.0, rng.uniform(-0.6, 0.6, D), _spd(rng)),
+            (2.0, rng.uniform(-0.6, 0.6, D), rng.uniform(0.02, 0.3, D)),
+        ],
     }
     pis = {"left": 0.25, "right": 0.75}
     prior = GaussianMixturePrior(
@@ -93,7 +100,9 @@ class TestGaussianMixturePrior:
         p_t = torch.distributions.MixtureSameFamily(mix, comp)
         z = torch.randn(4, D, generator=torch.Generator().manual_seed(2), dtype=torch.float64, requires_grad=True)
         (score,) = torch.autograd.grad(p_t.log_prob(z).sum(), z)
-        eps = prior.predict(z.detach().reshape(4, *SHAPE), torch.full((4,), t), Condition("right"), ("cond",)).eps["cond"]
+        eps = prior.predict(z.detach().reshape(4, *SHAPE), torch.full((4,), t), Condition("right"), ("cond",)).eps[
+            "cond"
+        ]
         torch.testing.assert_close(eps.reshape(4, D), -((1 - ab) ** 0.5) * score, rtol=1e-9, atol=1e-11)
 
     def test_means(self, mixture_setup):
@@ -147,7 +156,9 @@ class TestGaussianMixturePrior:
         with pytest.raises(ValueError, match="one timestep per sample"):
             prior.predict(torch.zeros(2, *SHAPE), torch.tensor([3]), Condition("left"))
         with pytest.raises(ConditionError, match="image has batch 3; expected 2"):
-            prior.predict(torch.zeros(2, *SHAPE), torch.tensor([3, 4]), Condition("left", image=torch.zeros(3, 3, 2, 2)))
+            prior.predict(
+                torch.zeros(2, *SHAPE), torch.tensor([3, 4]), Condition("left", image=torch.zeros(3, 3, 2, 2))
+            )
 
     @pytest.mark.parametrize(
         "components, match",
@@ -180,7 +191,9 @@ class TestGaussianPrior:
         t = np.array([0, 500, 999])
         ab = ref.alpha_bar()[t][:, None]
         want = np.sqrt(1 - ab) * (z_t - np.sqrt(ab) * mu) / (ab * var + 1 - ab)
-        got = prior.predict(torch.tensor(z_t).reshape(3, *SHAPE), torch.tensor(t), Condition("a"), ("cond",)).eps["cond"]
+        got = prior.predict(torch.tensor(z_t).reshape(3, *SHAPE), torch.tensor(t), Condition("a"), ("cond",)).eps[
+            "cond"
+        ]
         np.testing.assert_allclose(got.reshape(3, D).numpy(), want, rtol=1e-12, atol=1e-14)
 
     def test_expected_x0_closed_form_and_monte_carlo(self):
@@ -192,7 +205,9 @@ class TestGaussianPrior:
         m = prior.mixture(0)
         mu, cov = m.mu[0].numpy(), (m.basis[0] @ torch.diag(m.lam[0]) @ m.basis[0].T).numpy()
         ab = float(ref.alpha_bar()[t])
-        np.testing.assert_allclose(got, ref.expected_x0_single(z.reshape(D).numpy(), ab, mu, cov), rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(
+            got, ref.expected_x0_single(z.reshape(D).numpy(), ab, mu, cov), rtol=1e-10, atol=1e-12
+        )
         # Monte Carlo over the forward noise, tolerance from the CLT
         n = 4000
         eps = torch.randn(n, *SHAPE, generator=torch.Generator().manual_seed(5), dtype=torch.float64)

@@ -3,6 +3,7 @@
 References are independent: numpy float64 for the embeddings and the schedule, and the closed form
 of the untrained (zero-output) v-prior, x̂₀ = √ᾱ z_t.
 """
+
 from __future__ import annotations
 
 import math
@@ -147,7 +148,9 @@ class TestUNetPrior:
 
     def test_untrained_v_prior_closed_form(self):
         """The zero-initialised output predicts v = 0, so x̂₀ = √ᾱ z_t exactly (numpy float64 ᾱ)."""
-        prior = UNetPrior(tiny_config(schedule=ScheduleConfig(kind="scaled_linear", beta_start=0.00085, beta_end=0.012)))
+        prior = UNetPrior(
+            tiny_config(schedule=ScheduleConfig(kind="scaled_linear", beta_start=0.00085, beta_end=0.012))
+        )
         z, t = torch.randn(2, 3, 8, 8), torch.tensor([5, 900])
         with torch.no_grad():
             eps = prior._eps(z, t, torch.tensor([0, 3]), torch.rand(2, 3, 8, 8))
@@ -181,7 +184,9 @@ class TestUNetPrior:
     def test_dtypes(self):
         prior = UNetPrior(tiny_config(prediction="epsilon"))
         randomize(prior)
-        out32 = prior._eps(torch.randn(1, 3, 8, 8, dtype=torch.float64), torch.tensor([3]), torch.tensor([0]), torch.rand(1, 3, 8, 8))
+        out32 = prior._eps(
+            torch.randn(1, 3, 8, 8, dtype=torch.float64), torch.tensor([3]), torch.tensor([0]), torch.rand(1, 3, 8, 8)
+        )
         assert out32.dtype == torch.float32  # computed in the prior's dtype
         prior.double()
         out64 = prior._eps(torch.randn(1, 3, 8, 8), torch.tensor([3]), torch.tensor([0]), torch.rand(1, 3, 8, 8))
@@ -192,7 +197,9 @@ class TestUNetPrior:
         prior = randomize(UNetPrior(tiny_config(resolution=4, attention=attention)), scale=0.3).double()
         z = torch.randn(1, 3, 4, 4, dtype=torch.float64, requires_grad=True)
         img = torch.rand(1, 3, 4, 4, dtype=torch.float64)
-        assert torch.autograd.gradcheck(lambda x: prior._eps(x, torch.tensor([250]), torch.tensor([1]), img), (z,), eps=1e-6, atol=1e-5)
+        assert torch.autograd.gradcheck(
+            lambda x: prior._eps(x, torch.tensor([250]), torch.tensor([1]), img), (z,), eps=1e-6, atol=1e-5
+        )
 
     @settings(max_examples=8, deadline=None)
     @given(b=st.integers(1, 4), seed=st.integers(0, 2**16), t=st.integers(0, 999))

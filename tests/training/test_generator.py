@@ -1,5 +1,6 @@
 """Amortised training on tiny world batches: the score falls, a killed run resumes to the same weights,
 the supervised ceiling learns the true layer, and a 2-process torchrun equals the 1-process run."""
+
 from __future__ import annotations
 
 import json
@@ -20,7 +21,6 @@ from lasagna.priors.unet import UNetConfig, UNetPrior
 from lasagna.training import AmortisedConfig, read_log, task_batch, train_layer_generator
 from lasagna.training.generator import chunking
 from lasagna.world import VOCABULARY
-
 from tests.distill.conftest import SHADING
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -28,8 +28,20 @@ GEN = LayerGeneratorConfig(layer=SHADING, vocabulary=tuple(VOCABULARY), channels
 
 
 def tiny(**kw) -> AmortisedConfig:
-    base = dict(generator=GEN, loss="sds", resolution=8, batch_size=8, steps=30, lr=3e-3, weights=Weights(),
-                checkpoint_every=10, log_every=1, progress=False, eval_count=8, seed=1)
+    base = dict(
+        generator=GEN,
+        loss="sds",
+        resolution=8,
+        batch_size=8,
+        steps=30,
+        lr=3e-3,
+        weights=Weights(),
+        checkpoint_every=10,
+        log_every=1,
+        progress=False,
+        eval_count=8,
+        seed=1,
+    )
     base.update(kw)
     return AmortisedConfig(**base)
 
@@ -47,7 +59,11 @@ class TestTaskBatch:
         d = task_batch("relight", VOCABULARY, 3, g, resolution=8)
         from lasagna.world import generate
 
-        assert d.base.shape == (3, 3, 8, 8) and d.target.shape == (3, 1, 8, 8) and all(lab in VOCABULARY for lab in d.labels)
+        assert (
+            d.base.shape == (3, 3, 8, 8)
+            and d.target.shape == (3, 1, 8, 8)
+            and all(lab in VOCABULARY for lab in d.labels)
+        )
         start = int(torch.randint(0, 2**30, (1,), generator=torch.Generator().manual_seed(0)))
         ref = generate("train", 3, 0, 8, start=start, labels=d.labels)
         assert torch.equal(d.base, ref.albedo) and torch.equal(d.target, ref.shading)
@@ -55,7 +71,11 @@ class TestTaskBatch:
     def test_colorize_and_light(self):
         g = torch.Generator().manual_seed(0)
         col = task_batch("colorize", ("natural",), 2, g, resolution=8)
-        assert col.target.shape == (2, 4, 8, 8) and torch.equal(col.base[:, 0], col.base[:, 1]) and col.labels == ["natural"] * 2
+        assert (
+            col.target.shape == (2, 4, 8, 8)
+            and torch.equal(col.base[:, 0], col.base[:, 1])
+            and col.labels == ["natural"] * 2
+        )
         light = task_batch("light", ("warm", "cool"), 2, g, resolution=8)
         assert light.target.min() >= 0 and torch.all(light.base + light.target <= 1.0 + 1e-6)
 
@@ -147,15 +167,37 @@ def test_two_processes_equal_one(tmp_path):
     with torch.no_grad():  # an untrained prior predicts 0 (zero-initialised head): give it an opinion
         prior.net.out.weight.normal_(0, 0.05)
     prior.save_pretrained(tmp_path / "prior")
-    Corrective(CorrectiveConfig(channels=3, resolution=8, filters=(8, 16), num_timesteps=1000)).save_pretrained(tmp_path / "bhat")
-    cfg = tiny(loss="lmc-sds", prior=str(tmp_path / "prior"), corrective=str(tmp_path / "bhat"), steps=4, batch_size=4,
-               micro_batch=2, checkpoint_every=2, eval_count=4, weights=Weights.lmc_network(4))
+    Corrective(CorrectiveConfig(channels=3, resolution=8, filters=(8, 16), num_timesteps=1000)).save_pretrained(
+        tmp_path / "bhat"
+    )
+    cfg = tiny(
+        loss="lmc-sds",
+        prior=str(tmp_path / "prior"),
+        corrective=str(tmp_path / "bhat"),
+        steps=4,
+        batch_size=4,
+        micro_batch=2,
+        checkpoint_every=2,
+        eval_count=4,
+        weights=Weights.lmc_network(4),
+    )
     (tmp_path / "config.json").write_text(cfg.model_dump_json())
 
     one = train_layer_generator(cfg, tmp_path / "one")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--standalone", "-m", "lasagna.cli.torchrun",
-           "--config", str(tmp_path / "config.json"), "--out", str(tmp_path / "two")]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc_per_node=2",
+        "--standalone",
+        "-m",
+        "lasagna.cli.torchrun",
+        "--config",
+        str(tmp_path / "config.json"),
+        "--out",
+        str(tmp_path / "two"),
+    ]
     done = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-3000:]
     assert json.loads(done.stdout.strip().splitlines()[-1])["processes"] == 2

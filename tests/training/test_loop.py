@@ -1,4 +1,5 @@
 """The shared training loop's EMA: the plain average and the warm-up ramp, against a float64 re-computation."""
+
 from __future__ import annotations
 
 import pytest

@@ -1,5 +1,6 @@
 """The prior trainer on a tiny config: the loss falls, a resumed run equals an uninterrupted one,
 and the evaluation helpers measure what they claim (against closed forms)."""
+
 from __future__ import annotations
 
 import json
@@ -8,14 +9,25 @@ import pytest
 import torch
 
 from lasagna.priors.evaluate import denoising_error, psnr, sample_quality
-from lasagna.training.prior import PriorTrainConfig, prior_batch, train_prior, unet_config_for, world_source
 from lasagna.priors.unet import UNetPrior
+from lasagna.training.prior import PriorTrainConfig, prior_batch, train_prior, unet_config_for, world_source
 from lasagna.world import VOCABULARY, generate
 
 
 def tiny(task="relight", **kw) -> PriorTrainConfig:
-    base = dict(task=task, unet=unet_config_for(task, resolution=8, channels=(8, 16)), batch_size=8, steps=40,
-                lr=3e-3, warmup_steps=5, ema_decay=0.9, checkpoint_every=10, log_every=1, progress=False, seed=3)
+    base = dict(
+        task=task,
+        unet=unet_config_for(task, resolution=8, channels=(8, 16)),
+        batch_size=8,
+        steps=40,
+        lr=3e-3,
+        warmup_steps=5,
+        ema_decay=0.9,
+        checkpoint_every=10,
+        log_every=1,
+        progress=False,
+        seed=3,
+    )
     base.update(kw)
     return PriorTrainConfig(**base)
 
@@ -110,8 +122,10 @@ class TestSchedulesAndStages:
     def test_init_from_starts_at_those_weights(self, tmp_path):
         first = train_prior(tiny(steps=5), tmp_path / "one")
         # lr so small that one step cannot move the weights visibly: the second stage starts where the first ended.
-        second = train_prior(tiny(steps=1, lr=1e-12, warmup_steps=0, ema_decay=None, init_from=str(tmp_path / "one" / "prior")),
-                             tmp_path / "two")
+        second = train_prior(
+            tiny(steps=1, lr=1e-12, warmup_steps=0, ema_decay=None, init_from=str(tmp_path / "one" / "prior")),
+            tmp_path / "two",
+        )
         for (k, a), (_, b) in zip(first.state_dict().items(), second.state_dict().items()):
             torch.testing.assert_close(a, b, atol=1e-8, rtol=0, msg=k)
         fresh = train_prior(tiny(steps=1, lr=1e-12, warmup_steps=0, ema_decay=None), tmp_path / "three")
@@ -119,14 +133,25 @@ class TestSchedulesAndStages:
 
     def test_init_from_another_architecture_is_refused(self, tmp_path):
         train_prior(tiny(steps=1), tmp_path / "one")
-        other = tiny(steps=1, unet=unet_config_for("relight", resolution=8, channels=(8, 8)), init_from=str(tmp_path / "one" / "prior"))
+        other = tiny(
+            steps=1,
+            unet=unet_config_for("relight", resolution=8, channels=(8, 8)),
+            init_from=str(tmp_path / "one" / "prior"),
+        )
         with pytest.raises(Exception, match="UNet config differs"):
             train_prior(other, tmp_path / "two")
 
     def test_fresh_labels_start_another_task_from_the_old_unconditional_model(self, tmp_path):
         first = train_prior(tiny(steps=5), tmp_path / "relight")
-        light = tiny(task="light", steps=1, lr=1e-12, warmup_steps=0, ema_decay=None, init_labels="fresh",
-                     init_from=str(tmp_path / "relight" / "prior"))
+        light = tiny(
+            task="light",
+            steps=1,
+            lr=1e-12,
+            warmup_steps=0,
+            ema_decay=None,
+            init_labels="fresh",
+            init_from=str(tmp_path / "relight" / "prior"),
+        )
         second = train_prior(light, tmp_path / "light")
         old, new = first.state_dict(), second.state_dict()
         assert second.vocabulary == ("warm", "cool", "white") and set(old) == set(new)
@@ -144,8 +169,20 @@ class TestSchedulesAndStages:
         from lasagna.cli import main
 
         train_prior(tiny(task="colorize", steps=1), tmp_path / "colour")
-        code = main(["train-prior", "--task", "light", "--out", str(tmp_path / "run"), "--init-from",
-                     str(tmp_path / "colour" / "prior"), "--init-labels", "fresh", "--no-progress"])
+        code = main(
+            [
+                "train-prior",
+                "--task",
+                "light",
+                "--out",
+                str(tmp_path / "run"),
+                "--init-from",
+                str(tmp_path / "colour" / "prior"),
+                "--init-labels",
+                "fresh",
+                "--no-progress",
+            ]
+        )
         err = capsys.readouterr().err.strip()
         assert code == 2 and err.count("\n") == 0 and "1 conditioning channel(s); a light prior needs 3" in err
         assert not (tmp_path / "run").exists()
@@ -154,8 +191,18 @@ class TestSchedulesAndStages:
         from lasagna.cli import main
 
         train_prior(tiny(task="colorize", steps=1), tmp_path / "colour")
-        code = main(["train-prior", "--task", "relight", "--out", str(tmp_path / "run"), "--init-from",
-                     str(tmp_path / "colour" / "prior"), "--no-progress"])
+        code = main(
+            [
+                "train-prior",
+                "--task",
+                "relight",
+                "--out",
+                str(tmp_path / "run"),
+                "--init-from",
+                str(tmp_path / "colour" / "prior"),
+                "--no-progress",
+            ]
+        )
         err = capsys.readouterr().err.strip()
         assert code == 2 and err.count("\n") == 0 and "expected a relight prior" in err
         assert not (tmp_path / "run").exists()
