@@ -1,12 +1,14 @@
-"""The I/O tier: PNG read/write (8/16-bit, size limits), atomic files, stack folders, rendering glue.
+"""The I/O tier: files on disk — PNGs, stack folders and their all-or-nothing writes, network checkpoints.
 
-    atomic.py   atomic_path, atomic_write_bytes, atomic_write_text
-    png.py      read_png, decode_png, write_png, encode_png, read_png_header (bomb-safe)
-    stack.py    Stack, load_stack, save_stack, stack_from_tensors
-    render.py   render_stack, write_composite
+    png.py         read_png, decode_png, write_png, encode_png, read_png_header (bomb-safe)
+    stack.py       Stack, load_stack, save_stack, stack_from_tensors
+    render.py      render_stack, write_composite (the glue to the compositor)
+    folder.py      check_writable (the one writability check), check_output_folder, write_stack_folder
+    checkpoint.py  networks (model.safetensors + config.json, ``Pretrained``) and training checkpoints
 
-Names are imported lazily: the document tier writes through ``lasagna.atomic`` and must not pull
-in torch (which ``stack`` and ``render`` need) by importing this package.
+Single-file atomic writes are the ground floor's (``lasagna.atomic``), so that the document tier uses
+them too. The tier keeps the name ``io``; the document's JSON files are ``lasagna.document.files``.
+Names are imported lazily: ``import lasagna.io`` alone loads nothing.
 """
 
 from __future__ import annotations
@@ -15,9 +17,6 @@ import importlib
 from typing import Any
 
 _EXPORTS = {
-    "atomic_path": "atomic",
-    "atomic_write_bytes": "atomic",
-    "atomic_write_text": "atomic",
     "DEFAULT_MAX_PIXELS": "png",
     "PngHeader": "png",
     "PngImage": "png",
@@ -32,6 +31,12 @@ _EXPORTS = {
     "stack_from_tensors": "stack",
     "render_stack": "render",
     "write_composite": "render",
+    "check_writable": "folder",
+    "check_output_folder": "folder",
+    "write_stack_folder": "folder",
+    "Pretrained": "checkpoint",
+    "save_tensors": "checkpoint",
+    "load_tensors": "checkpoint",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -10,7 +10,8 @@ nfsd       ``NFSD`` (nfsd.py)                          ω δ_C + δ_D
 ms-sds     ``MSSDS`` (ms_sds.py)                       √ᾱ/√(1−ᾱ)·(z − x̂₀ after K DDIM steps)
 =========  ==========================================  =========================================
 
-The manifold corrective b̂ and its training live beside lmc_sds (corrective.py, corrective_train.py).
+The manifold corrective b̂ lives beside lmc_sds (corrective.py, spectral.py); its trainers are
+``lasagna.training.corrective``.
 """
 
 from lasagna.losses.base import LossOptions, LossOutput, ScoreLoss, Terms, available_losses, get_loss, register_loss

@@ -8,7 +8,7 @@ models exactly that bias and nothing else: for each timestep bucket k and channe
     b̂(z, t) = F⁻¹[ H_k(c, f) · F[z](c, f) ]        (k = bucket of t, F = 2-D real FFT)
 
 a linear, shift-invariant filter per t (periodic boundary). Fitted by least squares on triplets
-(z, ẑ_t, t) of clean world images (``corrective_train.make_triplets``' recipe, unconditional branch),
+(z, ẑ_t, t) of clean world images (``lasagna.training.corrective.make_triplets``' recipe, unconditional branch),
 per frequency: H_k(c, f) = Σ Ẑ_t(c, f) · conj Z(c, f) / Σ |Z(c, f)|² — the Wiener estimate of the
 denoiser's response, exact for the mean-square fit of a linear filter, no iterations.
 
