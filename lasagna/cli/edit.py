@@ -34,7 +34,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--id", help="id of the new layer (default PRESET-LABEL)")
     p.add_argument(
         "--generator",
-        choices=("amortised", "free"),
+        choices=("amortised", "free"),  # the methods of lasagna.learned, "per-image" spelled as its alias "free"
         help="amortised: the preset's trained generator, one forward pass; free: a per-pixel layer "
         "optimised for this image (default: amortised when the preset has one)",
     )
