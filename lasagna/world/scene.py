@@ -2,7 +2,8 @@
 
 The camera is orthographic, looking down −z at the square x, y ∈ [−1, 1]; pixel (i, j) of an R×R
 image looks along the ray through x = −1 + (j + ½)·2/R, y = 1 − (i + ½)·2/R (row 0 is the top). Each
-pixel takes the nearest surface its ray meets: an object or the wall at z = ``WALL_Z`` (normal +z). Albedo is
+pixel takes the nearest surface its ray meets: an object or the wall at z = ``WALL_Z`` (normal +z, or
+its relief's normal). Albedo is
 colour × (lo + (1 − lo)·pattern) of that surface's texture, shading follows `lasagna.world.lighting`,
 and image = albedo × shading exactly (the same float operation on the returned tensors).
 
@@ -20,8 +21,10 @@ import torch
 
 from lasagna.errors import LasagnaError
 from lasagna.world.lighting import AMBIENT, VOCABULARY, check_ambient, lambert, light_vectors
-from lasagna.world.params import MAX_OBJECTS, WALL_Z, SceneParams, sample_scenes
+from lasagna.world.params import WALL_Z, SceneParams, sample_scenes
+from lasagna.world.relief import relief_normals
 from lasagna.world.shapes import SHAPE_NAMES, SHAPES, Vec
+from lasagna.world.splits import MAX_OBJECTS
 from lasagna.world.textures import evaluate
 
 Tensor = torch.Tensor
@@ -151,8 +154,7 @@ def _render_chunk(p: SceneParams, h: int, w: int, ambient: float, shadows: bool,
     won = torch.isfinite(t) & (vis_slot[bi, ii, jj] == ki)
     vb, vi, vj = bi[won], ii[won], jj[won]
 
-    normals = torch.zeros((b, 3, h, w), **to)
-    normals[:, 2] = 1.0
+    normals = _wall_normals(p, xs, ys)
     local = [xs.view(1, 1, w).expand(b, h, w).clone(), ys.view(1, h, 1).expand(b, h, w).clone(),
              torch.zeros((b, h, w), **to)]
     for j in range(3):
@@ -170,6 +172,9 @@ def _render_chunk(p: SceneParams, h: int, w: int, ambient: float, shadows: bool,
     pattern = evaluate(surf, tex, tuple(v.reshape(-1) for v in local), prm, seed)
     lo = prm[:, 8][surf]
     albedo = color[surf] * (lo + (1.0 - lo) * pattern)[:, None]  # (B·H·W, 3)
+    delta = torch.cat([p.color_delta, p.wall_color_delta[:, None]], 1).reshape(b * (k + 1), 3)
+    if delta.any():  # two-colour paint: c₁·(lo + (1 − lo)·pattern) + Δ·(1 − pattern) = lerp(c₂, c₁, pattern)
+        albedo = albedo + delta.to(**to)[surf] * (1.0 - pattern)[:, None]
     albedo = albedo.reshape(b, h, w, 3).permute(0, 3, 1, 2).contiguous()
 
     # 4. Shading, then cast shadows: a lit point is shadowed when its ray toward l meets any object.
@@ -182,6 +187,23 @@ def _render_chunk(p: SceneParams, h: int, w: int, ambient: float, shadows: bool,
         "albedo": albedo, "normals": normals, "shading": shading, "light": light,
         "depth": depth[:, None], "object_index": vis_slot[:, None],
     }
+
+
+def _wall_normals(p: SceneParams, xs: Tensor, ys: Tensor) -> Tensor:
+    """(B, 3, H, W): +z, or the relief's normal (`lasagna.world.relief`) on walls that carry relief."""
+    b, h, w = len(p), ys.shape[0], xs.shape[0]
+    normals = torch.zeros((b, 3, h, w), dtype=xs.dtype, device=xs.device)
+    normals[:, 2] = 1.0
+    rough = (p.relief >= 0).nonzero().squeeze(1)
+    if rough.numel():
+        n = rough.numel()
+        x = xs.view(1, 1, w).expand(n, h, w).reshape(-1)
+        y = ys.view(1, h, 1).expand(n, h, w).reshape(-1)
+        kind = p.relief[rough].to(xs.device).repeat_interleave(h * w)
+        prm = p.relief_params[rough].to(dtype=xs.dtype, device=xs.device).repeat_interleave(h * w, dim=0)
+        nx, ny, nz = relief_normals(kind, prm, x, y)
+        normals[rough.to(xs.device)] = torch.stack([nx, ny, nz]).reshape(3, n, h, w).transpose(0, 1)
+    return normals
 
 
 def _shadowed(obj: dict[str, Tensor], present: Tensor, radius: Tensor, normals: Tensor, depth: Tensor,

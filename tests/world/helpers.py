@@ -25,10 +25,11 @@ def single_object(
     rotation: np.ndarray | None = None,
     label: str = "left",
 ) -> SceneParams:
-    """Scene 0 of train/seed 0 with its first slot replaced by the given object and the others removed."""
-    p = sample_scenes("train", 0, [0])
+    """Scene 0 of train/seed 0 with its first slot replaced by the given object, the others removed, a flat wall."""
+    p = sample_scenes("train", 0, [0]).walls_only()  # no other object, a flat wall
     f64 = torch.float64
-    present = torch.tensor([[True, False, False]])
+    present = torch.zeros_like(p.present)
+    present[0, 0] = True
     shp = p.shape.clone()
     shp[0, 0] = SHAPE_NAMES.index(shape)
     sz = p.size.clone()
