@@ -362,9 +362,13 @@ def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) 
         generator_dir = ckpt.parent
     base = conditioning_input(stack, layer.conditioned_on)
     refs = {k: s[k] for k in ("prior", "corrective") if isinstance(s.get(k), str)}
+    working = s.get("working_size", "full")  # a layer recorded without one was made at the base's size
+    if working != "full" and (isinstance(working, bool) or not isinstance(working, int) or not 8 <= working <= 4096):
+        raise DocumentError(f"settings.working_size is {working!r}; expected an integer in [8, 4096]",
+                            f"{where}.settings.working_size")
     run = make_layer(base, resolved, layer.condition.label, layer.id, method=method, optimize=optimize,
                      generator_dir=generator_dir, distill=distill, refs=refs, catalogue_dirs=catalogue_dirs,
-                     device=device, progress=progress)
+                     device=device, progress=progress, working=working)
     recorded = s.get("prior_sha256")
     if recorded is not None and run.settings.get("prior_sha256") not in (None, recorded):
         warnings.warn(f"{where}: the catalogue's prior {run.settings.get('prior')!r} differs from the one the layer was "

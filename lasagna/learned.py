@@ -126,21 +126,27 @@ def make_layer(
     method: Literal["amortised", "per-image"], optimize: int, generator_dir: Path | None,
     loss: str | None = None, guidance: float | None = None, seed: int | None = None, lr: float | None = None,
     distill: dict[str, Any] | None = None, refs: dict[str, Any] | None = None, catalogue_dirs=None,
-    device: str | torch.device = "cpu", progress: bool = False,
+    device: str | torch.device = "cpu", progress: bool = False, working: int | Literal["preset", "full"] = "preset",
 ) -> LayerRun:
     """One learned layer (C, H, W) for ``base`` (3, H, W) in [0, 1] and ``label`` (module docstring).
 
     ``distill`` (stored settings) replaces the preset defaults and the loss/guidance/seed/lr overrides,
     and ``refs`` (``prior``, ``corrective``) the preset's prior and corrective: how ``render_learned``
-    reruns a layer exactly as it was made.
+    reruns a layer exactly as it was made. The layer is made at the preset's ``working_size`` (``working``:
+    a stored side, or ``"full"`` for a layer made at the base's size) and enlarged to the base's size
+    (`lasagna.compose.resample`).
     """
+    from lasagna.compose.resample import downsample, upsample, working_size
     from lasagna.distill import DistillSettings, distill_image
     from lasagna.generators.free import FreeLayer
     from lasagna.generators.unet import LayerGenerator
 
     preset = resolved.preset
     start = time.monotonic()
-    x = base.to(device)[None]  # (1, 3, H, W)
+    full = tuple(base.shape[-2:])
+    side = {"preset": preset.working_size, "full": None}.get(working, working)
+    size = working_size(*full, side) if side else full
+    x = downsample(base.to(device)[None], size)  # (1, 3, h, w)
     files: dict[str, bytes] = {}
     gen_ref = None
     initial = None
@@ -158,6 +164,8 @@ def make_layer(
         files = {f"{rel}/model.safetensors": weights, f"{rel}/config.json": config}
         gen_ref = {"checkpoint": f"{rel}/model.safetensors", "sha256": _sha256(weights)}
     settings: dict[str, Any] = {"method": method, "optimize": optimize}
+    if side:
+        settings["working_size"] = side
     history: list[dict[str, Any]] = []
     stopped = None
     layer = initial
@@ -176,7 +184,8 @@ def make_layer(
                         distill=ds.model_dump(mode="json"))
     if layer is None:  # unreachable: an amortised run has its forward pass, a per-image run its optimisation
         raise LasagnaError(f"no layer was made (method {method!r}, optimize {optimize})", "make_layer")
-    return LayerRun(layer=layer[0].detach().cpu(), settings=settings, files=files, generator_ref=gen_ref,
+    layer = upsample(layer.detach(), full)  # a convex combination of in-range values: still in range
+    return LayerRun(layer=layer[0].cpu(), settings=settings, files=files, generator_ref=gen_ref,
                     seconds=time.monotonic() - start, history=history, stopped=stopped)
 
 
