@@ -2,6 +2,7 @@
 
     OMP_NUM_THREADS=1 python benchmarks/world.py [--seconds S] [--splits train heldout] [--shadows]
                                                 [--device cpu|cuda]
+    python benchmarks/world.py --sheet docs/img/world_splits.png      (a picture of every split; no timing)
 
 Each cell renders fresh scenes (a new index range every call, so nothing is cached) for at least
 ``--seconds`` after one warm-up call, and reports the median over repeats of scenes/s. Prints one
@@ -55,13 +56,35 @@ def measure(split: str, resolution: int, batch: int, seconds: float, shadows: bo
     }
 
 
+def sheet(path: str, count: int = 6, resolution: int = 96) -> None:
+    """Albedo, true shading and image of ``count`` scenes of every split, one band of three rows per split."""
+    import numpy as np
+    from PIL import Image
+
+    from lasagna.world.splits import SPLIT_NAMES
+
+    rows = []
+    for split in SPLIT_NAMES:
+        s = generate(split, count, seed=0, resolution=resolution)
+        for x in (s.albedo, s.shading.expand(-1, 3, -1, -1), s.image):
+            rows.append(torch.cat(list(x), 2))
+        rows.append(torch.ones(3, 4, count * resolution))
+    img = torch.cat(rows[:-1], 1).clamp(0, 1).permute(1, 2, 0).numpy()
+    Image.fromarray((img * 255 + 0.5).astype(np.uint8)).save(path)
+    print(json.dumps({"sheet": path, "splits": list(SPLIT_NAMES), "rows": ["albedo", "shading", "image"]}))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=2.0, help="minimum time per cell (default 2)")
     ap.add_argument("--splits", nargs="+", default=["train"], help="splits to measure (default train)")
     ap.add_argument("--shadows", action="store_true", help="also measure with cast shadows")
     ap.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    ap.add_argument("--sheet", metavar="PNG", help="write a sheet of every split's scenes instead of timing")
     args = ap.parse_args()
+    if args.sheet:
+        sheet(args.sheet)
+        return
     results = []
     for split in args.splits:
         for shadows in (False, True) if args.shadows else (False,):

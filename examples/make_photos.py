@@ -2,6 +2,7 @@
 
     pip install scikit-image          # only to run this script once; not a dependency of lasagna
     python examples/make_photos.py    # writes examples/photos/<name>.png (96x96 RGB, 8-bit)
+                                      # and examples/photos/large/<name>.jpg (512x512, the benchmarks' sheet)
 
 Each crop is a square box of the original image, resized with Pillow's Lanczos filter. The images
 are in the public domain or CC0 (see examples/photos/README.md, which credits each one).
@@ -24,6 +25,16 @@ CROPS = {
 }
 
 
+LARGE = 512
+# name -> (scikit-image loader, (left, top, side)): the largest square of each photograph, at LARGE².
+LARGE_CROPS = {
+    "astronaut": ("astronaut", (0, 0, 512)),  # native 512²
+    "coffee": ("coffee", (100, 0, 400)),  # enlarged 1.28× by Lanczos
+    "rocket": ("rocket", (110, 0, 427)),  # enlarged 1.2×
+    "chelsea": ("chelsea", (80, 0, 300)),  # enlarged 1.7×: the softest of the four
+}
+
+
 def main(out: Path) -> None:
     import skimage.data
 
@@ -36,6 +47,12 @@ def main(out: Path) -> None:
         crop = image.crop(box).resize((SIZE, SIZE), Image.Resampling.LANCZOS)
         crop.save(out / f"{name}.png", optimize=True)
         print(f"wrote {out / f'{name}.png'} ({loader}, box {box})")
+    (out / "large").mkdir(exist_ok=True)
+    for name, (loader, (left, top, side)) in LARGE_CROPS.items():
+        image = Image.fromarray(getattr(skimage.data, loader)()).convert("RGB")
+        crop = image.crop((left, top, left + side, top + side)).resize((LARGE, LARGE), Image.Resampling.LANCZOS)
+        crop.save(out / "large" / f"{name}.jpg", quality=92)
+        print(f"wrote {out / 'large' / f'{name}.jpg'} ({loader}, box {(left, top, side)})")
 
 
 if __name__ == "__main__":

@@ -478,6 +478,7 @@ def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) 
         catalogue_dirs=catalogue_dirs,
         device=device,
         progress=progress,
+        working=s.working_size if s.working_size is not None else "full",  # recorded without one: the base's size
     )
     recorded = s.prior_sha256
     if recorded is not None and run.settings.prior_sha256 not in (None, recorded):

@@ -48,7 +48,8 @@ class LayerSettings(BaseModel):
     layer was made, enough to make it again (``lasagna render``).
 
     ``method`` and ``optimize`` (the per-image steps: after the amortised pass, or of the free layer) are
-    always written; ``prior``, its weights' ``prior_sha256``, ``corrective`` and ``distill`` (the resolved
+    always written, ``working_size`` when the layer was made at a working size (`lasagna.compose.resample`);
+    ``prior``, its weights' ``prior_sha256``, ``corrective`` and ``distill`` (the resolved
     ``DistillSettings``) only when per-image steps ran. A document may leave any of them out: ``render``
     then makes the layer as ``edit`` would and fills them in.
     """
@@ -61,6 +62,9 @@ class LayerSettings(BaseModel):
     prior_sha256: str | None = Field(None, description="SHA-256 of the prior's model.safetensors.")
     corrective: str | None = Field(None, description="The LMC-SDS corrective, when the loss used one.")
     distill: DistillSettings | None = Field(None, description="The per-image run's resolved settings.")
+    working_size: int | None = Field(
+        None, ge=8, le=4096, strict=True, description="The long side the layer was made at (absent: the base's size)."
+    )
 
     @field_validator("method", mode="before")
     @classmethod
@@ -79,7 +83,9 @@ class LayerSettings(BaseModel):
         """The JSON the stack stores: the fields in their order, the per-image ones only with ``distill``."""
         data = self.model_dump(mode="json")
         if self.distill is None:
-            data = {k: data[k] for k in ("method", "optimize")}
+            data = {k: data[k] for k in ("method", "optimize", "working_size")}
+        if self.working_size is None:
+            del data["working_size"]  # a layer made at the base's size: the document as before working sizes
         return data
 
 
@@ -217,20 +223,27 @@ def make_layer(
     catalogue_dirs=None,
     device: str | torch.device = "cpu",
     progress: bool = False,
+    working: int | Literal["preset", "full"] = "preset",
 ) -> LayerRun:
     """One learned layer (C, H, W) for ``base`` (3, H, W) in [0, 1] and ``label`` (module docstring).
 
     ``distill`` (stored settings) replaces the preset defaults and the loss/guidance/seed/lr overrides,
     and ``refs`` (``prior``, ``corrective``) the preset's prior and corrective: how ``render_learned``
-    reruns a layer exactly as it was made.
+    reruns a layer exactly as it was made. The layer is made at the preset's ``working_size`` (``working``:
+    a stored side, or ``"full"`` for a layer made at the base's size) and enlarged to the base's size
+    (`lasagna.compose.resample`).
     """
+    from lasagna.compose.resample import downsample, upsample, working_size
     from lasagna.distill import distill_image
     from lasagna.generators.free import FreeLayer
     from lasagna.generators.unet import LayerGenerator
 
     preset = resolved.preset
     start = time.monotonic()
-    x = base.to(device)[None]  # (1, 3, H, W)
+    full = tuple(base.shape[-2:])
+    side = {"preset": preset.working_size, "full": None}.get(working, working)
+    size = working_size(*full, side) if side else full
+    x = downsample(base.to(device)[None], size)  # (1, 3, h, w)
     files: dict[str, bytes] = {}
     gen_ref = None
     initial = None
@@ -250,7 +263,7 @@ def make_layer(
         rel = f"{GENERATORS_DIR}/{layer_id}"
         files = {f"{rel}/model.safetensors": weights, f"{rel}/config.json": config}
         gen_ref = {"checkpoint": f"{rel}/model.safetensors", "sha256": _sha256(weights)}
-    settings = LayerSettings(method=method, optimize=optimize)
+    settings = LayerSettings(method=method, optimize=optimize, working_size=side)
     history: list[dict[str, Any]] = []
     stopped = None
     layer = initial
@@ -274,11 +287,13 @@ def make_layer(
             prior_sha256=prior_sha,
             corrective=corrective_ref,
             distill=ds,
+            working_size=side,
         )
     if layer is None:  # unreachable: an amortised run has its forward pass, a per-image run its optimisation
         raise LasagnaError(f"no layer was made (method {method!r}, optimize {optimize})", "make_layer")
+    layer = upsample(layer.detach(), full)  # a convex combination of in-range values: still in range
     return LayerRun(
-        layer=layer[0].detach().cpu(),
+        layer=layer[0].cpu(),
         settings=settings,
         files=files,
         generator_ref=gen_ref,

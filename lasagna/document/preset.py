@@ -89,6 +89,15 @@ class Preset(StrictModel):
     )
     prompt: str = Field(description="Prompt template with one '{label}' placeholder.")
     distill: DistillDefaults = Field(DistillDefaults(), description="Default distillation settings.")
+    working_size: int | None = Field(
+        None,
+        ge=8,
+        le=4096,
+        strict=True,
+        description="The layer is made with its long side at this size (the base reduced by an antialiasing filter) "
+        "and enlarged bilinearly to the image's: the size the generator was trained at, so quality does not depend on "
+        "the image's resolution. None: made at the image's own size.",
+    )
 
     @field_validator("vocabulary")
     @classmethod

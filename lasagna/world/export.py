@@ -24,6 +24,7 @@ object pixels). ``metadata["lasagna.world"]`` holds the label, the light vector,
 the glow's label — warm, cool, white — for light), the files, and the scene's full parameters
 (``SceneParams.describe``), enough to re-render it.
 """
+
 from __future__ import annotations
 
 import json
@@ -33,8 +34,8 @@ from typing import Any, Literal
 
 import torch
 
-from lasagna.errors import LasagnaError, PathError
 from lasagna.atomic import atomic_write_text
+from lasagna.errors import LasagnaError, PathError
 from lasagna.world.lighting import AMBIENT, GLOW_VOCABULARY, LIGHTS, VOCABULARY
 from lasagna.world.scene import Scene, generate
 from lasagna.world.splits import STREAM_VERSION
@@ -57,13 +58,14 @@ def _layers(task: str, scene: Scene, i: int) -> tuple[list[dict[str, Any]], torc
     if task == "shading":
         return [
             dict(id="albedo", name="Albedo", image=scene.albedo[i], bit_depth=16),
-            dict(id="shading", name="Shading", image=scene.shading[i], blend="multiply", range=(0.0, 2.0),
-                 bit_depth=16),
+            dict(
+                id="shading", name="Shading", image=scene.shading[i], blend="multiply", range=(0.0, 2.0), bit_depth=16
+            ),
         ], scene.image[i]
     if task == "color":
         data = colorization(scene.select(i))
         return [
-            dict(id="gray", name="Grayscale", image=luma(scene.image[i: i + 1])[0], bit_depth=16),
+            dict(id="gray", name="Grayscale", image=luma(scene.image[i : i + 1])[0], bit_depth=16),
             dict(id="color", name="Colour", image=data.layer[0], blend="normal", bit_depth=16),
         ], data.target[0]
     data = additive_light(scene.select(i))
@@ -106,8 +108,11 @@ def write_scene_stack(folder: str | os.PathLike, scene: Scene, i: int, task: Tas
             "ambient": scene.ambient,
             "shadows": scene.shadows,
             "blend_space_note": "image = albedo × shading on stored (sRGB-encoded) values",
-            "files": {"normals": "normals.png", "normals_encoding": "n = 2*v - 1, 16-bit RGB, camera frame "
-                      "(x right, y up, z toward the viewer)", "mask": "mask.png"},
+            "files": {
+                "normals": "normals.png",
+                "normals_encoding": "n = 2*v - 1, 16-bit RGB, camera frame (x right, y up, z toward the viewer)",
+                "mask": "mask.png",
+            },
             "scene": p.describe(i),
         }
     }
@@ -164,8 +169,15 @@ def write_world_stacks(
     manifest = {
         "format": "lasagna.world",
         "stream_version": STREAM_VERSION,
-        "split": split, "seed": seed, "start": start, "count": count, "resolution": resolution, "task": task,
-        "shadows": bool(shadows), "ambient": float(ambient), "vocabulary": list(VOCABULARY),
+        "split": split,
+        "seed": seed,
+        "start": start,
+        "count": count,
+        "resolution": resolution,
+        "task": task,
+        "shadows": bool(shadows),
+        "ambient": float(ambient),
+        "vocabulary": list(VOCABULARY),
         "scenes": [{"folder": f.name, "label": lab, "condition": c} for f, lab, c in zip(folders, labels, conditions)],
     }
     atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")

@@ -33,6 +33,7 @@ Decisions this module documents (the rest of `lasagna.world` follows them):
   engine multiplies the stored values directly, and `composite.png` equals the rendered image to
   within 8-bit quantisation.
 """
+
 from __future__ import annotations
 
 import math
@@ -90,7 +91,9 @@ def _index_in(vocabulary: tuple[str, ...], label: str, kind: str) -> int:
     try:
         return vocabulary.index(label)
     except ValueError:
-        raise ConditionError(f"unknown {kind} label {label!r}; expected one of {', '.join(vocabulary)}", where=kind) from None
+        raise ConditionError(
+            f"unknown {kind} label {label!r}; expected one of {', '.join(vocabulary)}", where=kind
+        ) from None
 
 
 def glow_label_index(label: str) -> int:

@@ -2,7 +2,8 @@
 
 The camera is orthographic, looking down −z at the square x, y ∈ [−1, 1]; pixel (i, j) of an R×R
 image looks along the ray through x = −1 + (j + ½)·2/R, y = 1 − (i + ½)·2/R (row 0 is the top). Each
-pixel takes the nearest surface its ray meets: an object or the wall at z = ``WALL_Z`` (normal +z). Albedo is
+pixel takes the nearest surface its ray meets: an object or the wall at z = ``WALL_Z`` (normal +z, or
+its relief's normal). Albedo is
 colour × (lo + (1 − lo)·pattern) of that surface's texture, shading follows `lasagna.world.lighting`,
 and image = albedo × shading exactly (the same float operation on the returned tensors).
 
@@ -11,17 +12,20 @@ projected bounding circle (and, for shadows, the light rays that pass within its
 all as flat tensors. Every pixel is computed independently with elementwise operations, so a scene
 renders to the same bits alone or in any batch (on the same device and dtype).
 """
+
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
-from typing import Iterator, Sequence
 
 import torch
 
 from lasagna.errors import LasagnaError
 from lasagna.world.lighting import AMBIENT, VOCABULARY, check_ambient, lambert, light_vectors
-from lasagna.world.params import MAX_OBJECTS, WALL_Z, SceneParams, sample_scenes
+from lasagna.world.params import WALL_Z, SceneParams, sample_scenes
+from lasagna.world.relief import relief_normals
 from lasagna.world.shapes import SHAPE_NAMES, SHAPES, Vec
+from lasagna.world.splits import MAX_OBJECTS
 from lasagna.world.textures import evaluate
 
 Tensor = torch.Tensor
@@ -65,15 +69,27 @@ class Scene:
     def __len__(self) -> int:
         return int(self.image.shape[0])
 
-    def select(self, idx: int | slice | Sequence[int]) -> "Scene":
+    def select(self, idx: int | slice | Sequence[int]) -> Scene:
         """The scenes at ``idx`` (an index, a slice or an index list) as a new batch."""
         if isinstance(idx, int):
             idx = [idx]
         rows = list(range(len(self)))[idx] if isinstance(idx, slice) else [int(i) for i in idx]
         sel = torch.tensor(rows, dtype=torch.int64)
         dev = sel.to(self.image.device)
-        pick = {name: getattr(self, name)[dev] for name in
-                ("albedo", "normals", "shading", "image", "mask", "depth", "object_index", "light", "label_index")}
+        pick = {
+            name: getattr(self, name)[dev]
+            for name in (
+                "albedo",
+                "normals",
+                "shading",
+                "image",
+                "mask",
+                "depth",
+                "object_index",
+                "light",
+                "label_index",
+            )
+        }
         return replace(self, **pick, label=[self.label[i] for i in rows], params=self.params.select(sel))
 
 
@@ -83,9 +99,7 @@ def pixel_grid(h: int, w: int, dtype: torch.dtype, device: torch.device) -> tupl
     return xs.to(dtype=dtype, device=device), ys.to(dtype=dtype, device=device)
 
 
-def _cast(
-    obj: dict[str, Tensor], slot: Tensor, o: Vec, d: Vec, t_min: float
-) -> tuple[Tensor, Vec, Vec]:
+def _cast(obj: dict[str, Tensor], slot: Tensor, o: Vec, d: Vec, t_min: float) -> tuple[Tensor, Vec, Vec]:
     """Intersect ray m (camera-frame origin o[m], direction d[m]) with object slot[m] (flat b·K index).
 
     Returns t (M,), the camera-frame unit normal and the object-local hit point.
@@ -117,8 +131,9 @@ def _cast(
     return t, n, p_local
 
 
-def _render_chunk(p: SceneParams, h: int, w: int, ambient: float, shadows: bool,
-                  dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
+def _render_chunk(
+    p: SceneParams, h: int, w: int, ambient: float, shadows: bool, dtype: torch.dtype, device: torch.device
+) -> dict[str, Tensor]:
     b, k = len(p), MAX_OBJECTS
     to = dict(dtype=dtype, device=device)
     obj = {
@@ -133,14 +148,21 @@ def _render_chunk(p: SceneParams, h: int, w: int, ambient: float, shadows: bool,
     cx, cy = obj["center"][:, 0].reshape(b, k), obj["center"][:, 1].reshape(b, k)
 
     # 1. Primary rays, culled to each object's projected bounding circle.
-    inside = ((xs.view(1, 1, 1, w) - cx[..., None, None]) ** 2 + (ys.view(1, 1, h, 1) - cy[..., None, None]) ** 2
-              <= (radius * (1 + 1e-6))[..., None, None] ** 2) & present[..., None, None]
+    inside = (
+        (xs.view(1, 1, 1, w) - cx[..., None, None]) ** 2 + (ys.view(1, 1, h, 1) - cy[..., None, None]) ** 2
+        <= (radius * (1 + 1e-6))[..., None, None] ** 2
+    ) & present[..., None, None]
     bi, ki, ii, jj = inside.nonzero(as_tuple=True)
     slot = bi * k + ki
     ox, oy = xs[jj], ys[ii]
     m = slot.shape[0]
-    t, n, pl = _cast(obj, slot, (ox, oy, torch.full((m,), _RAY_Z, **to)),
-                     (torch.zeros((m,), **to), torch.zeros((m,), **to), torch.full((m,), -1.0, **to)), 0.0)
+    t, n, pl = _cast(
+        obj,
+        slot,
+        (ox, oy, torch.full((m,), _RAY_Z, **to)),
+        (torch.zeros((m,), **to), torch.zeros((m,), **to), torch.full((m,), -1.0, **to)),
+        0.0,
+    )
 
     # 2. Depth test: the nearest object per pixel; the wall where no object is hit.
     tbuf = torch.full((b, k, h, w), float("inf"), **to)
@@ -151,17 +173,21 @@ def _render_chunk(p: SceneParams, h: int, w: int, ambient: float, shadows: bool,
     won = torch.isfinite(t) & (vis_slot[bi, ii, jj] == ki)
     vb, vi, vj = bi[won], ii[won], jj[won]
 
-    normals = torch.zeros((b, 3, h, w), **to)
-    normals[:, 2] = 1.0
-    local = [xs.view(1, 1, w).expand(b, h, w).clone(), ys.view(1, h, 1).expand(b, h, w).clone(),
-             torch.zeros((b, h, w), **to)]
+    normals = _wall_normals(p, xs, ys)
+    local = [
+        xs.view(1, 1, w).expand(b, h, w).clone(),
+        ys.view(1, h, 1).expand(b, h, w).clone(),
+        torch.zeros((b, h, w), **to),
+    ]
     for j in range(3):
         normals[vb, j, vi, vj] = n[j][won]
         local[j][vb, vi, vj] = pl[j][won]
     depth = torch.where(hit, _RAY_Z - tmin, torch.full_like(tmin, WALL_Z))
 
     # 3. Albedo: each pixel's surface (object slot, or slot K = the wall) picks colour and texture.
-    surf = torch.where(hit, vis_slot, torch.full_like(vis_slot, k)) + torch.arange(b, device=device).view(b, 1, 1) * (k + 1)
+    surf = torch.where(hit, vis_slot, torch.full_like(vis_slot, k)) + torch.arange(b, device=device).view(b, 1, 1) * (
+        k + 1
+    )
     surf = surf.reshape(-1)
     tex = torch.cat([p.texture, p.wall_texture[:, None]], 1).reshape(-1).to(device)
     prm = torch.cat([p.texture_params, p.wall_texture_params[:, None]], 1).reshape(b * (k + 1), -1).to(**to)
@@ -170,22 +196,55 @@ def _render_chunk(p: SceneParams, h: int, w: int, ambient: float, shadows: bool,
     pattern = evaluate(surf, tex, tuple(v.reshape(-1) for v in local), prm, seed)
     lo = prm[:, 8][surf]
     albedo = color[surf] * (lo + (1.0 - lo) * pattern)[:, None]  # (B·H·W, 3)
+    delta = torch.cat([p.color_delta, p.wall_color_delta[:, None]], 1).reshape(b * (k + 1), 3)
+    if delta.any():  # two-colour paint: c₁·(lo + (1 − lo)·pattern) + Δ·(1 − pattern) = lerp(c₂, c₁, pattern)
+        albedo = albedo + delta.to(**to)[surf] * (1.0 - pattern)[:, None]
     albedo = albedo.reshape(b, h, w, 3).permute(0, 3, 1, 2).contiguous()
 
     # 4. Shading, then cast shadows: a lit point is shadowed when its ray toward l meets any object.
     light = light_vectors([VOCABULARY[i] for i in p.label.tolist()], dtype=dtype, device=device)
     shading = lambert(normals, light, ambient)
     if shadows:
-        shading = torch.where(_shadowed(obj, present, radius, normals, depth, xs, ys, light),
-                              torch.full_like(shading, ambient), shading)
+        shading = torch.where(
+            _shadowed(obj, present, radius, normals, depth, xs, ys, light), torch.full_like(shading, ambient), shading
+        )
     return {
-        "albedo": albedo, "normals": normals, "shading": shading, "light": light,
-        "depth": depth[:, None], "object_index": vis_slot[:, None],
+        "albedo": albedo,
+        "normals": normals,
+        "shading": shading,
+        "light": light,
+        "depth": depth[:, None],
+        "object_index": vis_slot[:, None],
     }
 
 
-def _shadowed(obj: dict[str, Tensor], present: Tensor, radius: Tensor, normals: Tensor, depth: Tensor,
-              xs: Tensor, ys: Tensor, light: Tensor) -> Tensor:
+def _wall_normals(p: SceneParams, xs: Tensor, ys: Tensor) -> Tensor:
+    """(B, 3, H, W): +z, or the relief's normal (`lasagna.world.relief`) on walls that carry relief."""
+    b, h, w = len(p), ys.shape[0], xs.shape[0]
+    normals = torch.zeros((b, 3, h, w), dtype=xs.dtype, device=xs.device)
+    normals[:, 2] = 1.0
+    rough = (p.relief >= 0).nonzero().squeeze(1)
+    if rough.numel():
+        n = rough.numel()
+        x = xs.view(1, 1, w).expand(n, h, w).reshape(-1)
+        y = ys.view(1, h, 1).expand(n, h, w).reshape(-1)
+        kind = p.relief[rough].to(xs.device).repeat_interleave(h * w)
+        prm = p.relief_params[rough].to(dtype=xs.dtype, device=xs.device).repeat_interleave(h * w, dim=0)
+        nx, ny, nz = relief_normals(kind, prm, x, y)
+        normals[rough.to(xs.device)] = torch.stack([nx, ny, nz]).reshape(3, n, h, w).transpose(0, 1)
+    return normals
+
+
+def _shadowed(
+    obj: dict[str, Tensor],
+    present: Tensor,
+    radius: Tensor,
+    normals: Tensor,
+    depth: Tensor,
+    xs: Tensor,
+    ys: Tensor,
+    light: Tensor,
+) -> Tensor:
     """(B, 1, H, W) bool: the ray from the visible point toward the light meets an object."""
     b, k = present.shape
     _, _, h, w = normals.shape
@@ -205,8 +264,13 @@ def _shadowed(obj: dict[str, Tensor], present: Tensor, radius: Tensor, normals: 
     shadow = torch.zeros((b, 1, h, w), dtype=torch.bool, device=normals.device)
     if bi.numel() == 0:
         return shadow
-    t, _, _ = _cast(obj, bi * k + ki, (px.expand(b, h, w)[bi, ii, jj], py.expand(b, h, w)[bi, ii, jj], pz[bi, ii, jj]),
-                    (light[bi, 0], light[bi, 1], light[bi, 2]), _SHADOW_T_MIN)
+    t, _, _ = _cast(
+        obj,
+        bi * k + ki,
+        (px.expand(b, h, w)[bi, ii, jj], py.expand(b, h, w)[bi, ii, jj], pz[bi, ii, jj]),
+        (light[bi, 0], light[bi, 1], light[bi, 2]),
+        _SHADOW_T_MIN,
+    )
     blocked = torch.isfinite(t)
     shadow[bi[blocked], 0, ii[blocked], jj[blocked]] = True
     return shadow
@@ -221,8 +285,9 @@ def check_resolution(resolution: int | tuple[int, int]) -> tuple[int, int]:
     else:
         hw = ()
     if len(hw) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_RESOLUTION for v in hw):
-        raise LasagnaError(f"expected an integer or (height, width) in [1, {MAX_RESOLUTION}], got {resolution!r}",
-                           where="resolution")
+        raise LasagnaError(
+            f"expected an integer or (height, width) in [1, {MAX_RESOLUTION}], got {resolution!r}", where="resolution"
+        )
     return hw[0], hw[1]
 
 
@@ -244,8 +309,10 @@ def render(
     params = params.with_labels(labels)
     device = torch.device(device) if device is not None else torch.device("cpu")
     step = max(1, _CHUNK_PIXELS // (h * w))
-    parts = [_render_chunk(params.select(slice(i, i + step)), h, w, ambient, bool(shadows), dtype, device)
-             for i in range(0, len(params), step)]
+    parts = [
+        _render_chunk(params.select(slice(i, i + step)), h, w, ambient, bool(shadows), dtype, device)
+        for i in range(0, len(params), step)
+    ]
     out = {key: torch.cat([q[key] for q in parts]) for key in parts[0]}
     albedo, shading = out["albedo"], out["shading"]
     return Scene(
@@ -272,15 +339,29 @@ def relight(scene: Scene, labels: str | Sequence[str]) -> Scene:
     recomputed; with shadows the scenes are rendered again (shadows depend on the geometry).
     """
     if scene.shadows:
-        return render(scene.params, tuple(scene.image.shape[-2:]), labels=labels, ambient=scene.ambient,
-                      shadows=True, dtype=scene.image.dtype, device=scene.image.device)
+        return render(
+            scene.params,
+            tuple(scene.image.shape[-2:]),
+            labels=labels,
+            ambient=scene.ambient,
+            shadows=True,
+            dtype=scene.image.dtype,
+            device=scene.image.device,
+        )
     params = scene.params.with_labels(labels)
-    light = light_vectors([VOCABULARY[i] for i in params.label.tolist()], dtype=scene.image.dtype,
-                          device=scene.image.device)
+    light = light_vectors(
+        [VOCABULARY[i] for i in params.label.tolist()], dtype=scene.image.dtype, device=scene.image.device
+    )
     shading = lambert(scene.normals, light, scene.ambient)
-    return replace(scene, shading=shading, image=scene.albedo * shading, light=light,
-                   label=[VOCABULARY[i] for i in params.label.tolist()],
-                   label_index=params.label.to(scene.image.device), params=params)
+    return replace(
+        scene,
+        shading=shading,
+        image=scene.albedo * shading,
+        light=light,
+        label=[VOCABULARY[i] for i in params.label.tolist()],
+        label_index=params.label.to(scene.image.device),
+        params=params,
+    )
 
 
 def generate(

@@ -1,5 +1,8 @@
 """Analytic shape families and their exact ray intersections, on flat lists of rays.
 
+Shapes without a closed-form intersection are sphere-traced (`_trace`) to within 1e-5 of their size;
+their normals are closed forms where simple and central differences of the distance otherwise.
+
 Every family is defined in its own local frame (centred at the origin; the scene places it with a
 rotation R and a centre c: p_camera = R·p_local + c) by three size parameters. Its ``intersect``
 takes M rays in that local frame — origins ``o`` and directions ``d``, each a tuple of three (M,)
@@ -26,13 +29,23 @@ capsule       radius s0, half-length s1 of the       cylinder side + two spheres
               axis segment (axis y)
 cone          base radius s0, half-height s1: apex   quadratic (side) + base cap plane
               at y = +s1, base disc at y = −s1
+roundbox      half-extents x, y, z; edges rounded    sphere tracing of the exact distance
+              by r = min(s)/3
+panel         a thin box (s2 ≤ 0.04), turned toward  slab method, as box
+              the camera: a flat textured card
+octahedron    vertex distance s0 (|x|+|y|+|z| = s0)  sphere tracing of a distance bound
+hexprism      apothem s0 (flat edges at y = ±s0), half-      sphere tracing of the exact distance
+              length s1 along z
+triprism      inradius s0/2 (triangle in xy),        sphere tracing of a distance bound
+              half-length s1 along z
 ============  =====================================  ===========================================
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch
@@ -125,7 +138,7 @@ def ellipsoid(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
 
 
 def box(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
-    lo, hi, near_axis_t = [], [], []
+    lo, hi = [], []
     for i in range(3):
         di = torch.where(d[i] == 0, torch.full_like(d[i], _DIR_EPS), d[i])
         ta, tb = (-s[i] - o[i]) / di, (s[i] - o[i]) / di
@@ -200,13 +213,44 @@ def cone(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
     c = o[0] * o[0] + o[2] * o[2] - k2 * u * u
     t1, t2 = _roots(a, b, c)
     y1, y2 = o[1] + t1 * d[1], o[1] + t2 * d[1]
-    t, which = _first(
-        t_min, (t1, y1.abs() <= h), (t2, y2.abs() <= h), _cap(o, d, -h, r)
-    )
+    t, which = _first(t_min, (t1, y1.abs() <= h), (t2, y2.abs() <= h), _cap(o, d, -h, r))
     p = _at(o, d, t)
     zero, one = torch.zeros_like(t), torch.ones_like(t)
     side = (p[0], k2 * (h - p[1]), p[2])  # half the gradient of x² + z² − k²(h − y)²
     return t, normalize(_select(which, side, side, (zero, -one, zero)))
+
+
+def _trace(o: Vec, d: Vec, sdf: Callable[[Vec], Tensor], bound: Tensor, t_min: float) -> tuple[Tensor, Vec]:
+    """Sphere tracing (Hart 1996, "Sphere tracing", eq. 1) of ``sdf`` inside the bounding sphere of
+    radius ``bound``; returns t (inf on a miss) and the hit point.
+
+    ``sdf`` must be a signed distance or a lower bound of one (then steps are shorter, never past
+    the surface). Directions are unit in the camera frame and R is a rotation, so |d| = 1 here,
+    which stepping by the distance needs.
+    """
+    t1, t2 = _sphere(o, d, 0.0, bound)
+    inside = t2 > t_min  # False also where the bounding sphere is missed (t2 is NaN)
+    zero = torch.zeros_like(t1)
+    t = torch.where(inside, torch.clamp_min(t1, t_min), zero)
+    t_end = torch.where(inside, t2, zero)
+    tol = _TRACE_TOL * bound
+    for _ in range(_TRACE_STEPS):
+        dist = sdf(_at(o, d, t))
+        t = t + torch.where(dist > tol, dist, torch.zeros_like(dist))
+    dist = sdf(_at(o, d, t))
+    hit = inside & (dist <= tol * 4) & (t <= t_end)
+    t = torch.where(hit, t, torch.full_like(t, math.inf))
+    return t, _at(o, d, t)
+
+
+def _sdf_normal(sdf: Callable[[Vec], Tensor], p: Vec, h: Tensor) -> Vec:
+    """The normalised gradient of ``sdf`` at p by central differences of step h (where no closed form)."""
+    g = []
+    for i in range(3):
+        hi = [c + h if j == i else c for j, c in enumerate(p)]
+        lo = [c - h if j == i else c for j, c in enumerate(p)]
+        g.append(sdf((hi[0], hi[1], hi[2])) - sdf((lo[0], lo[1], lo[2])))
+    return normalize((g[0], g[1], g[2]))
 
 
 def _torus_sdf(p: Vec, big_r: Tensor, small_r: Tensor) -> Tensor:
@@ -216,24 +260,69 @@ def _torus_sdf(p: Vec, big_r: Tensor, small_r: Tensor) -> Tensor:
 
 def torus(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
     big_r, small_r = s[0], s[1]
-    # Directions are unit in the camera frame and R is a rotation, so |d| = 1 here: sphere tracing
-    # steps by the signed distance (Hart 1996, "Sphere tracing", eq. 1), which needs unit speed.
-    t1, t2 = _sphere(o, d, 0.0, big_r + small_r)
-    inside = t2 > t_min  # False also where the bounding sphere is missed (t2 is NaN)
-    zero = torch.zeros_like(t1)
-    t = torch.where(inside, torch.clamp_min(t1, t_min), zero)
-    t_end = torch.where(inside, t2, zero)
-    tol = _TRACE_TOL * (big_r + small_r)
-    for _ in range(_TRACE_STEPS):
-        dist = _torus_sdf(_at(o, d, t), big_r, small_r)
-        t = t + torch.where(dist > tol, dist, torch.zeros_like(dist))
-    dist = _torus_sdf(_at(o, d, t), big_r, small_r)
-    hit = inside & (dist <= tol * 4) & (t <= t_end)
-    t = torch.where(hit, t, torch.full_like(t, math.inf))
-    p = _at(o, d, t)
+    t, p = _trace(o, d, lambda q: _torus_sdf(q, big_r, small_r), big_r + small_r, t_min)
     ring = torch.sqrt(p[0] * p[0] + p[2] * p[2]).clamp_min(1e-30)
     scale = 1.0 - big_r / ring
     return t, normalize((p[0] * scale, p[1], p[2] * scale))
+
+
+def _roundbox_sdf(p: Vec, s: Vec) -> Tensor:
+    # Quilez, "Distance functions": a box of half-extents s − r with its edges rounded by r = ⅓·min(s).
+    r = torch.minimum(torch.minimum(s[0], s[1]), s[2]) / 3.0
+    q = [p[i].abs() - (s[i] - r) for i in range(3)]
+    outside = torch.sqrt(sum(c.clamp_min(0.0) ** 2 for c in q))
+    inside = torch.maximum(torch.maximum(q[0], q[1]), q[2]).clamp_max(0.0)
+    return outside + inside - r
+
+
+def roundbox(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    bound = torch.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
+    t, p = _trace(o, d, lambda q: _roundbox_sdf(q, s), bound, t_min)
+    return t, _sdf_normal(lambda q: _roundbox_sdf(q, s), p, 1e-4 * bound)
+
+
+def _octahedron_sdf(p: Vec, s: Vec) -> Tensor:
+    # A lower bound of the distance (Quilez): exact on the faces' normal lines, which suffices to trace.
+    return (p[0].abs() + p[1].abs() + p[2].abs() - s[0]) * (1.0 / math.sqrt(3.0))
+
+
+def octahedron(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    t, p = _trace(o, d, lambda q: _octahedron_sdf(q, s), s[0], t_min)
+    # Each face's normal is (±1, ±1, ±1)/√3 with the signs of the point's coordinates.
+    return t, normalize((torch.sign(p[0]), torch.sign(p[1]), torch.sign(p[2])))
+
+
+_HEX_K = (-math.sqrt(3.0) / 2.0, 0.5, 1.0 / math.sqrt(3.0))
+
+
+def _hexprism_sdf(p: Vec, s: Vec) -> Tensor:
+    # Quilez's exact hexagonal prism: apothem s0 in the xy plane, half-length s1 along z.
+    x, y, z = p[0].abs(), p[1].abs(), p[2].abs()
+    k = 2.0 * torch.clamp_max(_HEX_K[0] * x + _HEX_K[1] * y, 0.0)
+    x, y = x - k * _HEX_K[0], y - k * _HEX_K[1]
+    cx = torch.maximum(torch.minimum(x, _HEX_K[2] * s[0]), -_HEX_K[2] * s[0])
+    dx = torch.sqrt((x - cx) ** 2 + (y - s[0]) ** 2) * torch.sign(y - s[0])
+    dz = z - s[1]
+    return torch.clamp_max(torch.maximum(dx, dz), 0.0) + torch.sqrt(dx.clamp_min(0) ** 2 + dz.clamp_min(0) ** 2)
+
+
+def hexprism(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    bound = torch.sqrt((s[0] * (2.0 / math.sqrt(3.0))) ** 2 + s[1] * s[1])
+    t, p = _trace(o, d, lambda q: _hexprism_sdf(q, s), bound, t_min)
+    return t, _sdf_normal(lambda q: _hexprism_sdf(q, s), p, 1e-4 * bound)
+
+
+def _triprism_sdf(p: Vec, s: Vec) -> Tensor:
+    # Quilez's triangular prism (a bound): an equilateral triangle of inradius s0/2 in xy, half-length s1 along z.
+    return torch.maximum(
+        p[2].abs() - s[1], torch.maximum(p[0].abs() * (math.sqrt(3.0) / 2.0) + p[1] * 0.5, -p[1]) - s[0] * 0.5
+    )
+
+
+def triprism(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    bound = torch.sqrt(s[0] * s[0] + s[1] * s[1])
+    t, p = _trace(o, d, lambda q: _triprism_sdf(q, s), bound, t_min)
+    return t, _sdf_normal(lambda q: _triprism_sdf(q, s), p, 1e-4 * bound)
 
 
 @dataclass(frozen=True)
@@ -244,6 +333,9 @@ class ShapeFamily:
     intersect: Callable[[Vec, Vec, Vec, float], tuple[Tensor, Vec]]
     bounding_radius: Callable[[np.ndarray], float]
     sample_size: Callable[[np.ndarray], tuple[float, float, float]]
+    facing: bool = False
+    """Turned toward the camera (tilted at most ``FACING_TILT``) instead of uniformly: a panel seen edge-on
+    is a line."""
 
 
 def _lerp(u: float, lo: float, hi: float) -> float:
@@ -264,27 +356,66 @@ SHAPES: dict[str, ShapeFamily] = {
     for f in (
         ShapeFamily("ellipsoid", ellipsoid, lambda s: float(max(s)), _ellipsoid_size),
         ShapeFamily(
-            "box", box, lambda s: float(np.linalg.norm(s)),
+            "box",
+            box,
+            lambda s: float(np.linalg.norm(s)),
             lambda u: (_lerp(u[0], 0.14, 0.34), _lerp(u[1], 0.14, 0.34), _lerp(u[2], 0.14, 0.34)),
         ),
         ShapeFamily(
-            "cylinder", cylinder, lambda s: float(math.hypot(s[0], s[1])),
+            "cylinder",
+            cylinder,
+            lambda s: float(math.hypot(s[0], s[1])),
             lambda u: (_lerp(u[0], 0.14, 0.33), _lerp(u[1], 0.14, 0.4), 0.0),
         ),
         ShapeFamily(
-            "torus", torus, lambda s: float(s[0] + s[1]),
+            "torus",
+            torus,
+            lambda s: float(s[0] + s[1]),
             lambda u: (_lerp(u[0], 0.24, 0.4), _lerp(u[1], 0.07, 0.16), 0.0),
         ),
         ShapeFamily(
-            "capsule", capsule, lambda s: float(s[0] + s[1]),
+            "capsule",
+            capsule,
+            lambda s: float(s[0] + s[1]),
             lambda u: (_lerp(u[0], 0.12, 0.25), _lerp(u[1], 0.1, 0.3), 0.0),
         ),
         ShapeFamily(
-            "cone", cone, lambda s: float(math.hypot(s[0], s[1])),
+            "cone",
+            cone,
+            lambda s: float(math.hypot(s[0], s[1])),
             lambda u: (_lerp(u[0], 0.2, 0.36), _lerp(u[1], 0.2, 0.4), 0.0),
+        ),
+        ShapeFamily(
+            "roundbox",
+            roundbox,
+            lambda s: float(np.linalg.norm(s)),
+            lambda u: (_lerp(u[0], 0.14, 0.34), _lerp(u[1], 0.14, 0.34), _lerp(u[2], 0.14, 0.34)),
+        ),
+        ShapeFamily(
+            "panel",
+            box,
+            lambda s: float(np.linalg.norm(s)),
+            lambda u: (_lerp(u[0], 0.2, 0.4), _lerp(u[1], 0.2, 0.4), _lerp(u[2], 0.015, 0.04)),
+            facing=True,
+        ),
+        ShapeFamily("octahedron", octahedron, lambda s: float(s[0]), lambda u: (_lerp(u[0], 0.25, 0.5), 0.0, 0.0)),
+        ShapeFamily(
+            "hexprism",
+            hexprism,
+            lambda s: float(math.hypot(s[0] * 2.0 / math.sqrt(3.0), s[1])),
+            lambda u: (_lerp(u[0], 0.15, 0.3), _lerp(u[1], 0.12, 0.35), 0.0),
+        ),
+        ShapeFamily(
+            "triprism",
+            triprism,
+            lambda s: float(math.hypot(s[0], s[1])),
+            lambda u: (_lerp(u[0], 0.25, 0.45), _lerp(u[1], 0.12, 0.35), 0.0),
         ),
     )
 }
 SHAPE_NAMES: tuple[str, ...] = tuple(SHAPES)
 MAX_BOUNDING_RADIUS = 0.6
-"""Largest bounding radius any family samples (box: √3·0.34 = 0.589); the scene keeps objects in front of the wall with it."""
+FACING_TILT = math.radians(45.0)
+"""How far from facing the camera a ``facing`` family (the panel) may turn."""
+"""Largest bounding radius any family samples (box: √3·0.34 = 0.589); the scene keeps objects in front of
+the wall with it."""

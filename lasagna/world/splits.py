@@ -1,22 +1,34 @@
 """The named splits of the world and the random stream of every scene.
 
-Each split names the shape and texture families its scenes draw from. ``val`` shares ``train``'s
-families (other scenes); ``heldout`` uses only families ``train`` never uses, checked at import:
+Each split names the families its scenes draw from. ``train`` is broad on purpose — many painted
+texture families laid on walls and objects independently of their geometry, flat textured panels,
+relief that is not in the paint, up to five objects that occlude each other — so that a model
+trained on it learns that texture is not geometry. ``val`` shares ``train``'s families (other
+scenes). ``heldout`` (unchanged since the first world, bit for bit) and ``far`` use only families
+``train`` never uses, checked at import. The rule for learned layers: every default, hyper-parameter
+and stopping rule is chosen on ``heldout``; ``far`` is touched only by the final measurement.
 
-=========  ==========================  =========================  ====================
-split      shapes                      object textures            wall textures
-=========  ==========================  =========================  ====================
-train      ellipsoid, box, cylinder    stripes, checker, noise    tiles, noise
-val        ellipsoid, box, cylinder    stripes, checker, noise    tiles, noise
-heldout    torus, capsule, cone        dots, marble, rings        bricks, dots
-=========  ==========================  =========================  ====================
+=========  ===========================  ==================================  ===================  ==============
+split      shapes (objects per scene)   object textures                     wall textures        wall relief
+=========  ===========================  ==================================  ===================  ==============
+train/val  ellipsoid, box, cylinder,    stripes, checker, noise, tiles,     the same 9           bumps,
+           roundbox, panel (1–5)        deadleaves, cells, gradient,                             grooves
+                                        glyphs, photo                                            (p = 0.25)
+heldout    torus, capsule, cone (1–3)   dots, marble, rings                 bricks, dots         none
+far        octahedron, hexprism,        hexagons, zigzag, naturephoto       hexagons, zigzag,    bevels
+           triprism (1–5)                                                   naturephoto          (p = 0.25)
+=========  ===========================  ==================================  ===================  ==============
+
+In train/val and far half of the surfaces are painted between two free colours (``two_tone``), the
+rest in one colour and its shade, as every surface of heldout.
 
 Scene ``index`` of split ``split`` under ``seed`` is drawn from its own counter-based generator
 (NumPy's Philox, whose output is specified bit for bit across platforms) keyed by a BLAKE2b hash of
 ``(split, seed, index)``. So any scene can be regenerated alone, a batch is the same scenes whatever
 its size, and two splits (or two seeds) never share a random stream: their scenes are distinct with
-probability 1 (the parameters are continuous), and ``heldout`` differs in families besides.
+probability 1 (the parameters are continuous), and ``heldout`` and ``far`` differ in families besides.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -25,28 +37,51 @@ from dataclasses import dataclass
 import numpy as np
 
 from lasagna.errors import LasagnaError
+from lasagna.world.relief import RELIEFS
 from lasagna.world.shapes import SHAPES
 from lasagna.world.textures import TEXTURES
+
+MAX_OBJECTS = 5
+"""Object slots per scene (the first world had 3; ``heldout`` still draws 1–3)."""
+WORLD_VERSION = 2
+"""The families and layout: 1 was the first world (train: 3 shapes, 3 + 2 textures); 2 broadened train/val
+and added ``far``. ``heldout``'s scenes are bit-identical in both (new draws are appended to its stream)."""
 
 
 @dataclass(frozen=True)
 class Split:
-    """The families one split draws from (each a non-empty tuple of registered names)."""
+    """The families one split draws from (each a non-empty tuple of registered names), and how.
+
+    ``objects`` is the (min, max) object count; ``object_floor`` and ``wall_floor`` the ranges of the
+    texture's contrast floor lo; ``two_tone`` the probability that a surface's paint runs between
+    two free colours instead of one colour and its shade; ``relief_probability`` that the wall
+    carries relief of one of ``reliefs``.
+    """
 
     name: str
     shapes: tuple[str, ...]
     object_textures: tuple[str, ...]
     wall_textures: tuple[str, ...]
+    objects: tuple[int, int] = (1, 3)
+    object_floor: tuple[float, float] = (0.2, 0.55)
+    wall_floor: tuple[float, float] = (0.45, 0.75)
+    two_tone: float = 0.0
+    reliefs: tuple[str, ...] = ()
+    relief_probability: float = 0.0
 
     @property
     def textures(self) -> frozenset[str]:
         return frozenset(self.object_textures) | frozenset(self.wall_textures)
 
 
+_PAINT = ("stripes", "checker", "noise", "tiles", "deadleaves", "cells", "gradient", "glyphs", "photo")
+_BROAD = dict(objects=(1, 5), object_floor=(0.0, 0.7), wall_floor=(0.1, 0.85), two_tone=0.5, relief_probability=0.25)
 _TRAIN_FAMILIES = dict(
-    shapes=("ellipsoid", "box", "cylinder"),
-    object_textures=("stripes", "checker", "noise"),
-    wall_textures=("tiles", "noise"),
+    shapes=("ellipsoid", "box", "cylinder", "roundbox", "panel"),
+    object_textures=_PAINT,
+    wall_textures=_PAINT,
+    reliefs=("bumps", "grooves"),
+    **_BROAD,
 )
 
 SPLITS: dict[str, Split] = {
@@ -58,16 +93,28 @@ SPLITS: dict[str, Split] = {
         object_textures=("dots", "marble", "rings"),
         wall_textures=("bricks", "dots"),
     ),
+    "far": Split(
+        "far",
+        shapes=("octahedron", "hexprism", "triprism"),
+        object_textures=("hexagons", "zigzag", "naturephoto"),
+        wall_textures=("hexagons", "zigzag", "naturephoto"),
+        reliefs=("bevels",),
+        **_BROAD,
+    ),
 }
 SPLIT_NAMES: tuple[str, ...] = tuple(SPLITS)
 
 for _s in SPLITS.values():
-    assert set(_s.shapes) <= set(SHAPES) and _s.textures <= set(TEXTURES), _s
-assert not set(SPLITS["heldout"].shapes) & set(SPLITS["train"].shapes)
-assert not SPLITS["heldout"].textures & SPLITS["train"].textures
+    assert set(_s.shapes) <= set(SHAPES) and _s.textures <= set(TEXTURES) and set(_s.reliefs) <= set(RELIEFS), _s
+    assert 1 <= _s.objects[0] <= _s.objects[1] <= MAX_OBJECTS, _s
+for _a, _b in (("heldout", "train"), ("far", "train"), ("far", "heldout")):
+    assert not set(SPLITS[_a].shapes) & set(SPLITS[_b].shapes)
+    assert not SPLITS[_a].textures & SPLITS[_b].textures
+    assert not set(SPLITS[_a].reliefs) & set(SPLITS[_b].reliefs)
 
-# Bump when the mapping from a scene's random stream to its parameters changes, so old and new
-# scenes of the "same" (split, seed, index) never pass for each other.
+# Bump when the mapping from a scene's random stream to its parameters changes for every split, so
+# old and new scenes of the "same" (split, seed, index) never pass for each other (WORLD_VERSION says
+# which families a split had).
 STREAM_VERSION = 1
 
 

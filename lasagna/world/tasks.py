@@ -9,7 +9,8 @@ replaced and base + layer reproduces the target.
 
 Additive light (the `light` preset: blend ``plus``, RGB). A coloured point light at ``glow_position``
 (a fill light in front of the scene near the view axis; it casts no shadows) whose colour comes from
-its label (warm, cool, white: `lasagna.world.lighting.GLOW_VOCABULARY`) adds, at a surface point P with normal n and albedo ρ,
+its label (warm, cool, white: `lasagna.world.lighting.GLOW_VOCABULARY`) adds, at a surface point P with
+normal n and albedo ρ,
 
     reflected = ρ ⊙ c · I · max(0, n·ω) / (1 + (d / d₀)²),   ω = (q − P)/d,  d = |q − P|,  d₀ = 1,
 
@@ -18,10 +19,11 @@ distance from the light. The glow is clipped to the head-room, glow = min(reflec
 1 − image), so that lit = image + glow ≤ 1 holds exactly: the ``plus`` layer's ground truth is
 ``glow`` (≥ 0) and composing it onto the image gives ``lit`` with no clamp involved.
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Sequence
 
 import torch
 

@@ -1,93 +1,41 @@
-"""Procedural texture families: solid (3D) patterns in [0, 1], evaluated on flat lists of points.
+"""Procedural texture families: solid (3D) and painted (2D) patterns in [0, 1], on flat lists of points.
 
 A texture is a function ``pattern(p, prm, seed) -> (N,)`` of points ``p`` (a tuple of three (N,)
 tensors: object-local coordinates for objects, so the pattern sticks to the surface as the object
 turns; (x, y, 0) for the wall), per-point parameters ``prm`` (N, N_PARAMS) and an integer seed (N,).
-The scene turns a pattern into albedo as colour × (lo + (1 − lo)·pattern).
+The scene turns a pattern into albedo as c₁·(lo + (1 − lo)·pattern) + Δ·(1 − pattern): colour c₁
+where the pattern is 1 and c₁·lo + Δ where it is 0 (Δ = 0 gives one tinted pattern; the broadened
+splits also draw a second colour, see `lasagna.world.params`).
 
 Parameter layout (``prm`` columns): 0 frequency f (cycles per world unit; the canvas is 2 units
 wide), 1–3 a unit direction u, 4–6 an offset o, 7 a duty/width fraction, 8 contrast floor lo
 (used by the scene, not here), 9 an extra family-specific value.
 
-Random values come from an integer hash of lattice coordinates and the seed (coordinates spread by
-large primes, then a murmur3-style 32-bit finaliser, computed in int64), not from a random-number generator, so a pattern is a pure
-function of its inputs: vectorised, deterministic, identical in any batch.
+Randomness comes from the lattice hash of `lasagna.world.noise`, so a pattern is a pure function of
+its inputs: vectorised, deterministic, identical in any batch.
 
-Families (``TEXTURES``; which split uses which is in ``lasagna.world.splits``):
-stripes, checker, noise (fBm value noise), tiles (grout grid with per-tile tone), dots, marble
-(sine warped by fBm), rings (wood-like rings about an axis), bricks (running bond with mortar).
+Families (``TEXTURES``; which split uses which is in ``lasagna.world.splits``). Solid: stripes,
+checker, noise (fBm value noise), tiles (grout grid with per-tile tone), dots, marble (sine warped by
+fBm), rings (wood-like rings about an axis), bricks (running bond with mortar). Painted
+(`lasagna.world.paint`): deadleaves, cells, gradient, glyphs, photo, hexagons, zigzag, naturephoto.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch
+
+from lasagna.world import paint
+from lasagna.world.noise import fbm, hash01, value_noise  # noqa: F401  (value_noise: part of this module's API)
 
 Tensor = torch.Tensor
 Vec = tuple[Tensor, Tensor, Tensor]
 
 N_PARAMS = 10
-_M32 = 0xFFFFFFFF
-_MIX = 0x45D9F3B  # < 2**31, so a 32-bit value times it fits in int64 without overflow
-# Large odd multipliers (< 2**31) spreading lattice coordinates before the finaliser (Teschner et
-# al. 2003, "Optimized spatial hashing", use the same idea with these primes).
-_PX, _PY, _PZ = 73856093, 19349663, 83492791
-
-
-def _mix(h: Tensor) -> Tensor:
-    """A 32-bit integer finaliser (two xor-shift-multiply rounds) on int64 tensors."""
-    h = h & _M32  # a new tensor; the rest works in place on it (this is the hot loop of fBm)
-    for _ in range(2):
-        h.bitwise_xor_(h >> 16).mul_(_MIX).bitwise_and_(_M32)
-    return h.bitwise_xor_(h >> 16)
-
-
-def _lattice_key(ix: Tensor, iy: Tensor, iz: Tensor, seed: Tensor) -> Tensor:
-    # Linear in the coordinates, so neighbouring lattice points are one integer add away.
-    return _mix(seed) + ix * _PX + iy * _PY + iz * _PZ
-
-
-def _unit(h: Tensor, dtype: torch.dtype) -> Tensor:
-    # The top 24 bits are exact in float32, so the value is in [0, 1) in every float dtype.
-    return (h >> 8).to(dtype) * (1.0 / 16777216.0)
-
-
-def hash01(ix: Tensor, iy: Tensor, iz: Tensor, seed: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:
-    """A uniform-looking value in [0, 1) for each integer lattice point and seed."""
-    return _unit(_mix(_lattice_key(ix, iy, iz, seed)), dtype)
-
-
-def value_noise(p: Vec, seed: Tensor) -> Tensor:
-    """3D value noise: trilinear interpolation of hashed lattice values with smoothstep weights."""
-    cells = [torch.floor(c) for c in p]
-    frac = [c - f for c, f in zip(p, cells)]
-    w = [f * f * (3.0 - 2.0 * f) for f in frac]
-    key = _lattice_key(cells[0].to(torch.int64), cells[1].to(torch.int64), cells[2].to(torch.int64), seed)
-
-    def corner(dx: int, dy: int, dz: int) -> Tensor:
-        return _unit(_mix(key + (dx * _PX + dy * _PY + dz * _PZ)), p[0].dtype)
-
-    # Trilinear interpolation as seven lerps: along z, then y, then x.
-    yz = [[torch.lerp(corner(dx, dy, 0), corner(dx, dy, 1), w[2]) for dy in (0, 1)] for dx in (0, 1)]
-    x0 = torch.lerp(yz[0][0], yz[0][1], w[1])
-    x1 = torch.lerp(yz[1][0], yz[1][1], w[1])
-    return torch.lerp(x0, x1, w[0])
-
-
-def fbm(p: Vec, seed: Tensor, octaves: int = 4) -> Tensor:
-    """Fractal Brownian motion: octaves of value noise at doubling frequency, halving amplitude; in [0, 1]."""
-    total, amp, norm = torch.zeros_like(p[0]), 1.0, 0.0
-    for k in range(octaves):
-        scale = 2.0**k
-        # A fixed per-octave shift decorrelates the lattices (all octaves share the origin otherwise).
-        q = (p[0] * scale + 17.3 * k, p[1] * scale + 5.1 * k, p[2] * scale + 11.7 * k)
-        total = total + amp * value_noise(q, seed + k)
-        norm += amp
-        amp *= 0.5
-    return total / norm
 
 
 def _scaled(p: Vec, prm: Tensor) -> Vec:
@@ -183,14 +131,23 @@ class TextureFamily:
 TEXTURES: dict[str, TextureFamily] = {
     t.name: t
     for t in (
-        TextureFamily("stripes", stripes, (2.0, 7.0), (0.3, 0.7)),
-        TextureFamily("checker", checker, (2.0, 6.0), (0.0, 0.0)),
-        TextureFamily("noise", noise, (2.0, 5.0), (0.0, 0.0)),
-        TextureFamily("tiles", tiles, (2.0, 5.0), (0.08, 0.2)),
+        # The training families span many scales (1–12 cycles per unit: 2.7 to 32 pixels a cycle at 64²).
+        TextureFamily("stripes", stripes, (1.0, 12.0), (0.15, 0.85)),
+        TextureFamily("checker", checker, (1.0, 10.0), (0.0, 0.0)),
+        TextureFamily("noise", noise, (1.0, 8.0), (0.0, 0.0)),
+        TextureFamily("tiles", tiles, (1.5, 8.0), (0.06, 0.25)),
         TextureFamily("dots", dots, (3.0, 7.0), (0.35, 0.7)),
         TextureFamily("marble", marble, (1.0, 3.0), (0.0, 0.0)),
         TextureFamily("rings", rings, (3.0, 8.0), (0.3, 0.6)),
         TextureFamily("bricks", bricks, (2.0, 4.0), (0.08, 0.16)),
+        TextureFamily("deadleaves", paint.deadleaves, (1.0, 6.0), (0.0, 0.0)),
+        TextureFamily("cells", paint.cells, (1.5, 8.0), (0.05, 0.4)),
+        TextureFamily("gradient", paint.gradient, (0.4, 1.5), (0.0, 0.0)),
+        TextureFamily("glyphs", paint.glyphs, (2.0, 7.0), (0.0, 0.4)),
+        TextureFamily("photo", paint.photo, (0.3, 1.5), (0.0, 0.0)),
+        TextureFamily("hexagons", paint.hexagons, (1.5, 7.0), (0.08, 0.3)),
+        TextureFamily("zigzag", paint.zigzag, (1.5, 7.0), (0.3, 0.7)),
+        TextureFamily("naturephoto", paint.naturephoto, (0.3, 1.5), (0.0, 0.0)),
     )
 }
 TEXTURE_NAMES: tuple[str, ...] = tuple(TEXTURES)

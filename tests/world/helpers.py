@@ -1,4 +1,5 @@
 """Hand-built scenes for the world tests: one object at a known place, so closed forms apply."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -25,10 +26,11 @@ def single_object(
     rotation: np.ndarray | None = None,
     label: str = "left",
 ) -> SceneParams:
-    """Scene 0 of train/seed 0 with its first slot replaced by the given object and the others removed."""
-    p = sample_scenes("train", 0, [0])
+    """Scene 0 of train/seed 0 with its first slot replaced by the given object, the others removed, a flat wall."""
+    p = sample_scenes("train", 0, [0]).walls_only()  # no other object, a flat wall
     f64 = torch.float64
-    present = torch.tensor([[True, False, False]])
+    present = torch.zeros_like(p.present)
+    present[0, 0] = True
     shp = p.shape.clone()
     shp[0, 0] = SHAPE_NAMES.index(shape)
     sz = p.size.clone()
@@ -39,4 +41,6 @@ def single_object(
     r[0, 0] = torch.eye(3, dtype=f64) if rotation is None else torch.as_tensor(rotation, dtype=f64)
     rad = p.radius.clone()
     rad[0, 0] = SHAPES[shape].bounding_radius(np.asarray(size))
-    return dataclasses.replace(p, present=present, shape=shp, size=sz, center=c, rotation=r, radius=rad).with_labels(label)
+    return dataclasses.replace(p, present=present, shape=shp, size=sz, center=c, rotation=r, radius=rad).with_labels(
+        label
+    )

@@ -1,4 +1,5 @@
 """World stacks on disk: re-composited by the engine and by an independent reference, they give composite.png."""
+
 from __future__ import annotations
 
 import argparse
@@ -34,7 +35,9 @@ def codes(values: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("task", TASKS)
 def test_engine_recomposite_equals_composite_png(written, task):
-    render = pytest.importorskip("lasagna.io.render", reason="the document engine (lasagna.io.render) is not importable")
+    render = pytest.importorskip(
+        "lasagna.io.render", reason="the document engine (lasagna.io.render) is not importable"
+    )
     from lasagna.io.stack import load_stack
 
     for folder in written[task]:
@@ -61,8 +64,8 @@ def test_shading_stack_layers_and_ground_truth(written, scene):
     for i, folder in enumerate(written["shading"]):
         doc = json.loads((folder / "stack.json").read_text())
         assert doc["blend_space"] == "srgb"
-        layers = {l["id"]: l for l in doc["layers"]}
-        assert [l["id"] for l in doc["layers"]] == ["albedo", "shading"]
+        layers = {layer["id"]: layer for layer in doc["layers"]}
+        assert [layer["id"] for layer in doc["layers"]] == ["albedo", "shading"]
         assert layers["shading"]["blend"] == "multiply" and layers["shading"]["range"] == [0.0, 2.0]
         shade, _ = read_png64(folder / layers["shading"]["source"])
         assert shade.shape == (1, RES, RES)
@@ -83,7 +86,7 @@ def test_task_layers(written):
     blends = {"color": ["normal", "normal"], "light": ["normal", "plus"]}
     for task, expected in blends.items():
         doc = json.loads((written[task][0] / "stack.json").read_text())
-        assert [l["blend"] for l in doc["layers"]] == expected
+        assert [layer["blend"] for layer in doc["layers"]] == expected
     _, alpha = read_png64(written["color"][0] / "layers" / "color.png")
     assert alpha is not None and (alpha == 1).all()
 
@@ -94,7 +97,9 @@ def test_manifest(written):
     assert [s["folder"] for s in m["scenes"]] == ["train-s4-000003", "train-s4-000004"]
     # the light task's condition is the glow's colour label, the same one its scene parameters record
     for entry in m["scenes"]:
-        meta = json.loads((written["light"][0].parent / entry["folder"] / "stack.json").read_text())["metadata"]["lasagna.world"]
+        meta = json.loads((written["light"][0].parent / entry["folder"] / "stack.json").read_text())["metadata"][
+            "lasagna.world"
+        ]
         assert entry["condition"] == meta["condition"] == meta["scene"]["glow"]["label"]
         assert entry["condition"] in ("warm", "cool", "white")
 
@@ -113,15 +118,35 @@ class TestCli:
         return ap.parse_args(argv)
 
     def test_writes_stacks(self, tmp_path, capsys):
-        args = self.parse(["world", "-o", str(tmp_path), "--split", "heldout", "--count", "1", "--seed", "2",
-                           "--resolution", "8", "--task", "color"])
+        args = self.parse(
+            [
+                "world",
+                "-o",
+                str(tmp_path),
+                "--split",
+                "heldout",
+                "--count",
+                "1",
+                "--seed",
+                "2",
+                "--resolution",
+                "8",
+                "--task",
+                "color",
+            ]
+        )
         assert args.run(args) == 0
         assert (tmp_path / "heldout-s2-000000" / "composite.png").is_file()
         assert "wrote 1 color stacks (heldout, seed 2, 8x8)" in capsys.readouterr().out
 
-    @pytest.mark.parametrize("flag,value,message", [("--count", "0", "--count: expected a positive integer"),
-                                                    ("--resolution", "0", "resolution: expected an integer"),
-                                                    ("--seed", "-3", "--seed: expected a non-negative integer")])
+    @pytest.mark.parametrize(
+        "flag,value,message",
+        [
+            ("--count", "0", "--count: expected a positive integer"),
+            ("--resolution", "0", "resolution: expected an integer"),
+            ("--seed", "-3", "--seed: expected a non-negative integer"),
+        ],
+    )
     def test_bad_numbers(self, tmp_path, flag, value, message):
         argv = ["world", "-o", str(tmp_path), "--split", "train", "--count", "1", flag, value]
         args = self.parse(argv)

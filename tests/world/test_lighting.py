@@ -1,4 +1,5 @@
 """The lighting vocabulary contract and the Lambertian shading formula."""
+
 from __future__ import annotations
 
 import math
@@ -20,8 +21,16 @@ class TestVocabulary:
     def test_vectors_match_the_contract(self):
         # Independent closed form in float64: elevation 30° (60° from +z), azimuth per name.
         s, c = np.sin(np.pi / 3), np.cos(np.pi / 3)
-        inplane = {"left": (-1, 0), "right": (1, 0), "top": (0, 1), "bottom": (0, -1),
-                   "top-left": (-1, 1), "top-right": (1, 1), "bottom-left": (-1, -1), "bottom-right": (1, -1)}
+        inplane = {
+            "left": (-1, 0),
+            "right": (1, 0),
+            "top": (0, 1),
+            "bottom": (0, -1),
+            "top-left": (-1, 1),
+            "top-right": (1, 1),
+            "bottom-left": (-1, -1),
+            "bottom-right": (1, -1),
+        }
         for name, (ux, uy) in inplane.items():
             norm = math.hypot(ux, uy)
             expected = (s * ux / norm, s * uy / norm, c)
@@ -30,9 +39,13 @@ class TestVocabulary:
 
     def test_contract_text_is_in_the_docstring(self):
         doc = lighting.__doc__
-        for phrase in ("camera frame x right, y up, z toward the viewer", "image row 0\n  is the TOP",
-                       "`left` = (−sin 60°, 0, cos 60°)", "shading = a + (1 − a)·max(0, n·l)",
-                       "wall's shading is a + (1−a)·cos 60° = 0.625"):
+        for phrase in (
+            "camera frame x right, y up, z toward the viewer",
+            "image row 0\n  is the TOP",
+            "`left` = (−sin 60°, 0, cos 60°)",
+            "shading = a + (1 − a)·max(0, n·l)",
+            "wall's shading is a + (1−a)·cos 60° = 0.625",
+        ):
             assert phrase in doc, phrase
 
     def test_wall_shading_constant(self):
@@ -53,9 +66,9 @@ class TestLambert:
         rng = np.random.default_rng(0)
         n = rng.normal(size=(2, 3, 4, 5))
         n /= np.linalg.norm(n, axis=1, keepdims=True)
-        l = np.array([LIGHTS["left"], LIGHTS["top-right"]])
-        expected = AMBIENT + (1 - AMBIENT) * np.maximum(0.0, np.einsum("bchw,bc->bhw", n, l))[:, None]
-        got = lambert(torch.from_numpy(n), torch.from_numpy(l))
+        light = np.array([LIGHTS["left"], LIGHTS["top-right"]])
+        expected = AMBIENT + (1 - AMBIENT) * np.maximum(0.0, np.einsum("bchw,bc->bhw", n, light))[:, None]
+        got = lambert(torch.from_numpy(n), torch.from_numpy(light))
         assert got.shape == (2, 1, 4, 5)
         np.testing.assert_allclose(got.numpy(), expected, rtol=0, atol=1e-14)
 
@@ -87,5 +100,5 @@ class TestLambert:
         n = torch.nn.functional.normalize(torch.randn(1, 3, 3, 3, dtype=torch.float64, generator=g), dim=1)
         n[:, 2] = n[:, 2].abs() + 0.2  # facing the light's side: no n·l at the kink max(0, ·)
         n.requires_grad_()
-        l = light_vectors(["top"], dtype=torch.float64)
-        assert torch.autograd.gradcheck(lambda x: lambert(x, l), (n,))
+        light = light_vectors(["top"], dtype=torch.float64)
+        assert torch.autograd.gradcheck(lambda x: lambert(x, light), (n,))

@@ -1,4 +1,5 @@
 """Exact ray intersections of every shape family, against closed forms in float64."""
+
 from __future__ import annotations
 
 import math
@@ -6,9 +7,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from lasagna.world.shapes import SHAPES, MAX_BOUNDING_RADIUS
+from lasagna.world.shapes import MAX_BOUNDING_RADIUS, SHAPES
 
 F64 = torch.float64
 
@@ -44,14 +46,19 @@ class TestClosedForms:
             np.testing.assert_allclose(ni, np.array([x, y, z]) / 0.5, atol=1e-12)
 
     def test_ellipsoid_axes(self):
-        t, n = cast("ellipsoid", [(3.0, 0, 0), (0, 3.0, 0), (0, 0, 3.0)], [(-1, 0, 0), (0, -1, 0), (0, 0, -1)],
-                    (0.2, 0.3, 0.4))
+        t, n = cast(
+            "ellipsoid", [(3.0, 0, 0), (0, 3.0, 0), (0, 0, 3.0)], [(-1, 0, 0), (0, -1, 0), (0, 0, -1)], (0.2, 0.3, 0.4)
+        )
         np.testing.assert_allclose(t, [2.8, 2.7, 2.6], atol=1e-12)
         np.testing.assert_allclose(n, np.eye(3), atol=1e-12)
 
     def test_box_faces(self):
-        t, n = cast("box", [(0.05, -0.1, 2.0), (2.0, 0.1, 0.0), (0.0, -2.0, 0.1)],
-                    [DOWN, (-1, 0, 0), (0, 1, 0)], (0.2, 0.3, 0.4))
+        t, n = cast(
+            "box",
+            [(0.05, -0.1, 2.0), (2.0, 0.1, 0.0), (0.0, -2.0, 0.1)],
+            [DOWN, (-1, 0, 0), (0, 1, 0)],
+            (0.2, 0.3, 0.4),
+        )
         np.testing.assert_allclose(t, [1.6, 1.8, 1.7], atol=1e-12)
         np.testing.assert_allclose(n, [[0, 0, 1], [1, 0, 0], [0, -1, 0]], atol=0)
 
@@ -64,8 +71,9 @@ class TestClosedForms:
 
     def test_torus_ring_and_hole(self):
         # Ring in the xz plane (around y), R = 0.3, r = 0.1: down −y at x = R meets y = r; at x = 0 the hole.
-        t, n = cast("torus", [(0.3, 2.0, 0.0), (0.0, 2.0, 0.0), (0.0, 0.0, 2.0)], [(0, -1, 0)] * 2 + [DOWN],
-                    (0.3, 0.1, 0.0))
+        t, n = cast(
+            "torus", [(0.3, 2.0, 0.0), (0.0, 2.0, 0.0), (0.0, 0.0, 2.0)], [(0, -1, 0)] * 2 + [DOWN], (0.3, 0.1, 0.0)
+        )
         assert t[0] == pytest.approx(1.9, abs=1e-5)
         np.testing.assert_allclose(n[0], [0, 1, 0], atol=1e-4)
         assert np.isinf(t[1])
@@ -122,3 +130,65 @@ def test_hits_lie_on_the_surface_with_unit_normals(family, seed):
     assert (np.linalg.norm(p[hit], axis=1) <= radius * (1 + 1e-6) + 1e-5).all()
     np.testing.assert_allclose(np.linalg.norm(n[hit], axis=1), 1.0, atol=1e-9)
     assert ((n[hit] * d[hit]).sum(1) <= 1e-9).all()
+
+
+class TestTracedFamilies:
+    """The sphere-traced families against their closed forms (rays down −z, identity rotation)."""
+
+    def test_octahedron_faces(self):
+        # |x| + |y| + |z| = s: a ray down −z at (x, y) meets z = s − |x| − |y|, normal (sgn x, sgn y, 1)/√3.
+        pts = [(0.1, 0.05), (-0.2, 0.1), (0.05, -0.3)]
+        t, n = cast("octahedron", [(x, y, 2.0) for x, y in pts], [DOWN] * 3, (0.5, 0.0, 0.0))
+        for (x, y), ti, ni in zip(pts, t, n):
+            assert ti == pytest.approx(2.0 - (0.5 - abs(x) - abs(y)), abs=1e-5)
+            np.testing.assert_allclose(ni, np.array([np.sign(x), np.sign(y), 1.0]) / math.sqrt(3.0), atol=1e-12)
+
+    def test_hexprism_cap_and_silhouette(self):
+        # Axis z: seen down −z, the cap z = s1 over the hexagon of apothem s0 (flat edges at y = ±s0, vertices on ±x).
+        s0, s1 = 0.25, 0.2
+        rng = np.random.default_rng(0)
+        xy = rng.uniform(-0.35, 0.35, size=(400, 2))
+        t, n = cast("hexprism", [(x, y, 2.0) for x, y in xy], [DOWN] * 400, (s0, s1, 0.0))
+        ax, ay = np.abs(xy[:, 0]), np.abs(xy[:, 1])
+        inside = (ay <= s0) & (0.5 * ay + (math.sqrt(3.0) / 2.0) * ax <= s0)
+        margin = np.minimum(s0 - ay, s0 - (0.5 * ay + (math.sqrt(3.0) / 2.0) * ax))
+        clear = np.abs(margin) > 1e-3  # leave rays that graze the rim to the tracer's tolerance
+        assert np.array_equal(np.isfinite(t)[clear], inside[clear])
+        hit = np.isfinite(t) & (margin > 1e-3)
+        np.testing.assert_allclose(t[hit], 2.0 - s1, atol=1e-5)
+        np.testing.assert_allclose(n[hit], np.tile([0.0, 0.0, 1.0], (int(hit.sum()), 1)), atol=1e-4)
+
+    def test_triprism_cap_and_silhouette(self):
+        # Axis z: the cap z = s1 over the triangle max(|x|·√3/2 + y/2, −y) ≤ s0/2.
+        s0, s1 = 0.4, 0.2
+        rng = np.random.default_rng(1)
+        xy = rng.uniform(-0.45, 0.45, size=(400, 2))
+        t, n = cast("triprism", [(x, y, 2.0) for x, y in xy], [DOWN] * 400, (s0, s1, 0.0))
+        level = np.maximum(np.abs(xy[:, 0]) * math.sqrt(3.0) / 2.0 + xy[:, 1] / 2.0, -xy[:, 1]) - s0 / 2.0
+        clear = np.abs(level) > 1e-3
+        assert np.array_equal(np.isfinite(t)[clear], (level <= 0)[clear])
+        hit = np.isfinite(t) & (level < -1e-3)
+        np.testing.assert_allclose(t[hit], 2.0 - s1, atol=1e-5)
+        np.testing.assert_allclose(n[hit], np.tile([0.0, 0.0, 1.0], (int(hit.sum()), 1)), atol=1e-4)
+
+    def test_roundbox_face_corner_and_silhouette(self):
+        # Half-extents s, rounding r = min(s)/3: flat face z = s2 in the middle; the silhouette is the
+        # rectangle of half-extents (s0, s1) with corners rounded by r; a corner ray meets the sphere
+        # of radius r about the inner box's corner.
+        s = (0.3, 0.24, 0.18)
+        r = min(s) / 3.0
+        t, n = cast("roundbox", [(0.0, 0.0, 2.0), (0.0, 0.0, 2.0)], [DOWN, (0, 0, -1)], s)
+        assert t[0] == pytest.approx(2.0 - s[2], abs=1e-5)
+        np.testing.assert_allclose(n[0], [0, 0, 1], atol=1e-4)
+        c = np.array(s) - r  # inner corner; along the diagonal direction from it, the surface is at distance r
+        u = np.array([1.0, 1.0, 1.0]) / math.sqrt(3.0)
+        target = c + r * u
+        t, n = cast("roundbox", [tuple(target + 2.0 * u)], [tuple(-u)], s)
+        assert t[0] == pytest.approx(2.0, abs=1e-5)
+        np.testing.assert_allclose(n[0], u, atol=1e-3)
+        xy = np.random.default_rng(2).uniform(-0.35, 0.35, size=(400, 2))
+        q = np.abs(xy) - (np.array(s[:2]) - r)
+        level = np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(1), 0) - r
+        t, _ = cast("roundbox", [(x, y, 2.0) for x, y in xy], [DOWN] * 400, s)
+        clear = np.abs(level) > 1e-3
+        assert np.array_equal(np.isfinite(t)[clear], (level <= 0)[clear])

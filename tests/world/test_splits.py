@@ -1,4 +1,5 @@
 """The split table, the per-scene random streams, and the sampled parameters' ranges."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -7,6 +8,7 @@ import torch
 
 from lasagna.errors import LasagnaError
 from lasagna.world.params import MAX_OBJECTS, WALL_Z, sample_scenes
+from lasagna.world.relief import RELIEF_NAMES
 from lasagna.world.shapes import MAX_BOUNDING_RADIUS, SHAPE_NAMES, SHAPES
 from lasagna.world.splits import SPLIT_NAMES, SPLITS, get_split, scene_rng
 from lasagna.world.textures import TEXTURE_NAMES
@@ -25,16 +27,23 @@ def _fingerprints(p) -> set[bytes]:
 
 class TestTable:
     def test_names(self):
-        assert SPLIT_NAMES == ("train", "val", "heldout")
+        assert SPLIT_NAMES == ("train", "val", "heldout", "far")
 
     def test_val_shares_train_families(self):
         t, v = SPLITS["train"], SPLITS["val"]
         assert (t.shapes, t.object_textures, t.wall_textures) == (v.shapes, v.object_textures, v.wall_textures)
 
-    def test_heldout_families_are_new(self):
-        t, h = SPLITS["train"], SPLITS["heldout"]
+    @pytest.mark.parametrize("held", ["heldout", "far"])
+    def test_held_families_are_new(self, held):
+        t, h = SPLITS["train"], SPLITS[held]
         assert not set(h.shapes) & set(t.shapes) and not h.textures & t.textures
-        assert len(t.shapes) >= 3 and len(h.shapes) >= 2 and len(h.textures) >= 2
+        assert not set(h.reliefs) & set(t.reliefs)
+        assert len(t.shapes) >= 5 and len(t.textures) >= 9 and len(h.shapes) >= 2 and len(h.textures) >= 2
+
+    def test_far_shares_nothing_with_heldout(self):
+        # heldout chooses defaults; far must be new to them too.
+        f, h = SPLITS["far"], SPLITS["heldout"]
+        assert not set(f.shapes) & set(h.shapes) and not f.textures & h.textures
 
     def test_every_family_is_registered(self):
         for s in SPLITS.values():
@@ -55,9 +64,14 @@ class TestSampledScenes:
         # Every family of the split is used in 150 scenes, and nothing else is.
         assert shapes == set(spec.shapes)
         assert obj_tex == set(spec.object_textures) and wall_tex == set(spec.wall_textures)
+        reliefs = {RELIEF_NAMES[i] for i in p.relief.tolist() if i >= 0}
+        assert reliefs == set(spec.reliefs)
+        if spec.reliefs:  # relief on a quarter of the walls: 150 draws, 4σ bounds
+            assert abs(float((p.relief >= 0).double().mean()) - spec.relief_probability) < 4 * (0.25 * 0.75 / N) ** 0.5
 
-    def test_heldout_families_never_in_train(self, params):
-        held = SPLITS["heldout"]
+    @pytest.mark.parametrize("held", ["heldout", "far"])
+    def test_held_families_never_in_train(self, params, held):
+        held = SPLITS[held]
         for name in ("train", "val"):
             p = params[name]
             assert not {SHAPE_NAMES[i] for i in p.shape[p.present].tolist()} & set(held.shapes)
@@ -68,15 +82,30 @@ class TestSampledScenes:
         prints = {name: _fingerprints(p) for name, p in params.items()}
         assert all(len(v) == N for v in prints.values())  # no repeats inside a split either
         assert not prints["train"] & prints["val"]
-        assert not prints["train"] & prints["heldout"] and not prints["val"] & prints["heldout"]
+        for a in SPLIT_NAMES:
+            for b in SPLIT_NAMES:
+                assert a == b or not prints[a] & prints[b]
 
     def test_seeds_share_no_scene(self, params):
         assert not _fingerprints(params["train"]) & _fingerprints(sample_scenes("train", 1, range(N)))
 
     def test_ranges(self, params):
-        for p in params.values():
+        for name, p in params.items():
             n = p.present.sum(1)
-            assert n.min() == 1 and n.max() == MAX_OBJECTS and set(n.tolist()) == {1, 2, 3}
+            lo, hi = SPLITS[name].objects
+            assert set(n.tolist()) == set(range(lo, hi + 1)) and hi <= MAX_OBJECTS
+            assert not p.present[:, hi:].any()
+            # Two-colour paint: about half of the surfaces of broadened splits, none elsewhere.
+            deltas = torch.cat([p.color_delta.reshape(-1, 3), p.wall_color_delta]).abs().sum(1) > 0
+            share = float(deltas.double().mean())
+            assert abs(share - SPLITS[name].two_tone) < 0.1
+            albedo_lo = [
+                c * lo + d
+                for c, d, lo in zip(
+                    p.color.reshape(-1, 3), p.color_delta.reshape(-1, 3), p.texture_params[..., 8].reshape(-1)
+                )
+            ]
+            assert all(float(a.min()) >= -1e-12 and float(a.max()) <= 1 + 1e-12 for a in albedo_lo)
             assert (p.radius[p.present] <= MAX_BOUNDING_RADIUS).all()
             # Every object stays in front of the wall.
             assert ((p.center[..., 2] - p.radius)[p.present] > WALL_Z).all()
@@ -98,7 +127,7 @@ class TestStreams:
 
     def test_distinct(self):
         draws = {tuple(scene_rng(s, seed, i).random(2)) for s in SPLIT_NAMES for seed in (0, 1) for i in (0, 1)}
-        assert len(draws) == 12
+        assert len(draws) == 4 * len(SPLIT_NAMES)
 
     @pytest.mark.parametrize("seed", [-1, 1.0, "0", True, 2**63])
     def test_bad_seed(self, seed):

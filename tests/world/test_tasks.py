@@ -1,4 +1,5 @@
 """Colourisation and additive-light data: exact layer identities and a numpy reference for the glow."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -51,7 +52,11 @@ class TestAdditiveLight:
             cos = np.maximum(0, (n * v).sum(0) / dist)
             refl = rho * c[:, None, None] * float(p.glow_intensity[b]) * cos / (1 + dist**2)  # d₀ = 1
             sigma = float(p.halo_radius[b])
-            halo = c[:, None, None] * float(p.halo_intensity[b]) * np.exp(-((x - q[0]) ** 2 + (y - q[1]) ** 2) / (2 * sigma**2))
+            halo = (
+                c[:, None, None]
+                * float(p.halo_intensity[b])
+                * np.exp(-((x - q[0]) ** 2 + (y - q[1]) ** 2) / (2 * sigma**2))
+            )
             np.testing.assert_allclose(glow(scene.select(b))[0].numpy(), refl + halo, atol=1e-12, rtol=1e-12)
             clipped = np.minimum(refl + halo, 1 - scene.image[b].numpy())
             np.testing.assert_allclose(additive_light(scene.select(b)).glow[0].numpy(), clipped, atol=1e-12)

@@ -1,13 +1,22 @@
 """Procedural textures: ranges, closed forms in numpy, the lattice hash."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from lasagna.world.paint import PHOTOS
 from lasagna.world.textures import (
-    N_PARAMS, TEXTURE_NAMES, TEXTURES, evaluate, hash01, sample_params, value_noise,
+    N_PARAMS,
+    TEXTURE_NAMES,
+    TEXTURES,
+    evaluate,
+    hash01,
+    sample_params,
+    value_noise,
 )
 
 
@@ -31,7 +40,8 @@ def test_every_family_is_in_unit_range_and_varies(family, seed):
     v = TEXTURES[family].pattern(p, prm, torch.full((4096,), seed, dtype=torch.int64))
     assert v.shape == (4096,) and v.dtype == torch.float32
     assert v.min() >= 0 and v.max() <= 1 and torch.isfinite(v).all()
-    assert v.max() - v.min() > 0.3  # a pattern, not a constant
+    # A pattern, not a constant; a photograph may show a calm region (sky, a page's margin) at any scale.
+    assert v.max() - v.min() > (0.1 if family in PHOTOS else 0.3)
 
 
 class TestClosedForms:
@@ -93,6 +103,7 @@ def test_evaluate_groups_by_family():
     got = evaluate(surface, fams, p, prm, seeds)
     for s, name in enumerate(("checker", "dots")):
         sel = surface == s
-        ref = TEXTURES[name].pattern(tuple(c[sel] for c in p), prm[s].expand(int(sel.sum()), -1),
-                                     seeds[s].expand(int(sel.sum())))
+        ref = TEXTURES[name].pattern(
+            tuple(c[sel] for c in p), prm[s].expand(int(sel.sum()), -1), seeds[s].expand(int(sel.sum()))
+        )
         assert torch.equal(got[sel], ref)
