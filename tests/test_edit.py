@@ -87,7 +87,8 @@ def test_edit_png_writes_a_complete_stack(tmp_path, capsys):
 
     assert hashlib.sha256(ckpt.read_bytes()).hexdigest() == learned["generator"]["sha256"]
     assert (ckpt.parent / "config.json").is_file()
-    assert learned["settings"] == {"method": "amortised", "optimize": 0}
+    side = json.loads((ROOT / "layers" / "shading" / "preset.json").read_text(encoding="utf-8"))["working_size"]
+    assert learned["settings"] == {"method": "amortised", "optimize": 0, "working_size": side}
     meta = doc["metadata"]["lasagna.edit"][learned["id"]]
     assert meta["tool"].startswith("lasagna ") and meta["seconds"] >= 0 and meta["input"] == "coffee.png"
     with zipfile.ZipFile(out / "stack.ora") as zf:
