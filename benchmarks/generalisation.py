@@ -273,6 +273,65 @@ def photo_sheet(args, path: Path) -> list[dict]:
     return stats
 
 
+# -- markdown -----------------------------------------------------------------------------------
+def _fmt(v, spec=".2f") -> str:
+    return "—" if v is None else format(v, spec)
+
+
+def markdown(result: dict) -> str:
+    """The tables of docs/BENCHMARKS.md#generalisation from a result dict."""
+    out = []
+    keys = list(result["shading"])
+    methods: list[str] = []
+    for k in keys:
+        for r in result["shading"][k]:
+            name = r["method"] + (f" ω = {r['omega']:g}" if "omega" in r else "")
+            if name not in methods:
+                methods.append(name)
+    out.append("| shading layer | " + " | ".join(f"{k.replace('@', ' ')}²" for k in keys) + " |")
+    out.append("|---|" + "---|" * len(keys))
+    for m in methods:
+        cells = []
+        for k in keys:
+            r = next(
+                (
+                    r
+                    for r in result["shading"][k]
+                    if r["method"] + (f" ω = {r['omega']:g}" if "omega" in r else "") == m
+                ),
+                None,
+            )
+            cells.append("" if r is None else f"{r['shading_psnr']:.2f} / {r['object_psnr']:.2f} ({r['gain_db']:+.2f})")
+        out.append(f"| {m} | " + " | ".join(cells) + " |")
+    out.append("")
+    out.append(
+        "| texture leak (bare walls) | " + " | ".join(f"{x['split']} {x['size']}²" for x in result["leak"]) + " |"
+    )
+    out.append("|---|" + "---|" * len(result["leak"]))
+    out.append(
+        "| default edit: PSNR of the layer against its mean (σ) | "
+        + " | ".join(f"{x['leak_db']:.2f} ({x['sigma']:.3f})" for x in result["leak"])
+        + " |"
+    )
+    light = [r for r in result.get("light", []) if "method" in r]
+    if light:
+        out.append("")
+        out.append("| light | split | size | glow PSNR | objects | colour error (°) | darkening |")
+        out.append("|---|---|---|---|---|---|---|")
+        for r in light:
+            out.append(
+                f"| {r['method']} | {r['split']} | {r['size']}² | {r['glow_psnr']:.2f} | {r['object_psnr']:.2f} | "
+                f"{_fmt(r['colour_error_deg'])} | {r['darkening']:.5f} |"
+            )
+    if result.get("photos"):
+        out.append("")
+        out.append("| photograph (512²) | light | layer σ | seconds |")
+        out.append("|---|---|---|---|")
+        for r in result["photos"]:
+            out.append(f"| {r['photo']} | {r['light']} | {r['layer_sigma']:.3f} | {r['seconds']:.2f} |")
+    return "\n".join(out)
+
+
 # -- main ---------------------------------------------------------------------------------------
 def headline(shading: dict, leaks: list[dict]) -> dict:
     def gain(split, size, key="gain_db"):
@@ -314,9 +373,14 @@ def main(argv=None) -> int:
     ap.add_argument("--sheet", type=int, default=8, help="scenes in the far sheet")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--quick", action="store_true", help="4 scenes, 64² only, 5 per-image steps, no photos")
+    ap.add_argument("--markdown", action="store_true", help="print the tables of docs/BENCHMARKS.md")
+    ap.add_argument("--replot", action="store_true", help="print the tables from --json-out without running anything")
     ap.add_argument("--json-out", type=Path, default=ROOT / "docs" / "generalisation.json")
     ap.add_argument("--img", type=Path, default=ROOT / "docs" / "img")
     args = ap.parse_args(argv)
+    if args.replot:
+        print(markdown(json.loads(args.json_out.read_text())))
+        return 0
     if args.quick:
         args.count, args.sizes, args.steps, args.omegas, args.sheet = 4, [64], 5, [1.0], 4
         args.json_out, args.img, args.photos = (
@@ -370,6 +434,8 @@ def main(argv=None) -> int:
     result["wall_seconds"] = round(time.perf_counter() - t_start, 1)
     args.json_out.parent.mkdir(parents=True, exist_ok=True)
     args.json_out.write_text(json.dumps(result, indent=1) + "\n")
+    if args.markdown:
+        print(markdown(result))
     print_json_line({"benchmark": "generalisation", **result["headline"], "wall_seconds": result["wall_seconds"]})
     return 0
 
