@@ -255,7 +255,10 @@ def photo_sheet(args, path: Path) -> list[dict]:
             res = edit(file, "shading", light, catalogue_dirs=args.catalogue)
             seconds = time.perf_counter() - t0
             if k == 0:
-                cols[0].append(res.stack.tensors[res.stack.ids[0]][:3])
+                with Image.open(file) as im:
+                    cols[0].append(
+                        torch.from_numpy(np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0).permute(2, 0, 1)
+                    )
             cols[1 + 2 * k].append(res.layer[:1])
             cols[2 + 2 * k].append(res.composite)
             y = res.layer[:1].double()
@@ -374,12 +377,19 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--quick", action="store_true", help="4 scenes, 64² only, 5 per-image steps, no photos")
     ap.add_argument("--markdown", action="store_true", help="print the tables of docs/BENCHMARKS.md")
+    ap.add_argument("--photos-only", action="store_true", help="add the photograph sheet to the run in --json-out")
     ap.add_argument("--replot", action="store_true", help="print the tables from --json-out without running anything")
     ap.add_argument("--json-out", type=Path, default=ROOT / "docs" / "generalisation.json")
     ap.add_argument("--img", type=Path, default=ROOT / "docs" / "img")
     args = ap.parse_args(argv)
     if args.replot:
         print(markdown(json.loads(args.json_out.read_text())))
+        return 0
+    if args.photos_only:  # redo the photograph sheet of a saved run
+        result = json.loads(args.json_out.read_text())
+        result["photos"] = photo_sheet(args, args.img / "generalisation_photos.png")
+        args.json_out.write_text(json.dumps(result, indent=1) + "\n")
+        print(markdown(result))
         return 0
     if args.quick:
         args.count, args.sizes, args.steps, args.omegas, args.sheet = 4, [64], 5, [1.0], 4

@@ -258,7 +258,14 @@ def test_preset_status(tmp_path, tiny):
         == "its prior 'missing-prior' is not in the catalogue"
     )
     shutil.rmtree(other / "relight-32-spectral")
-    _preset_copy(other)
+    lmc = {
+        **json.loads((ROOT / "layers" / "shading" / "preset.json").read_text(encoding="utf-8"))["distill"],
+        "loss": "lmc-sds",
+        "guidance": 3.0,
+    }
+    _preset_copy(other, distill=lmc)  # LMC-SDS needs its corrective
     st = cat.preset_status("shading", catalogue_dirs=[other])
     assert not st["usable"] and "corrective 'relight-32-spectral' is not in the catalogue" in st["why"]
+    _preset_copy(other, distill={**lmc, "loss": "sds", "guidance": 1.0})  # SDS does not
+    assert cat.preset_status("shading", catalogue_dirs=[other])["usable"]
     assert cat.preset_status("nope", catalogue_dirs=[other])["usable"] is False

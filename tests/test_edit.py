@@ -409,9 +409,13 @@ def test_train_layer_and_install(tmp_path, capsys, tiny, monkeypatch):
     line = json.loads(stdout.strip().splitlines()[-1])
     assert line["step"] == 2 and line["installed"] == str(cat_dir / "shading" / "generator")
     config = json.loads((tmp_path / "run" / "train_config.json").read_text())
-    assert config["loss"] == "lmc-sds" and config["guidance"] == 3.0  # the preset's defaults
+    defaults = json.loads((ROOT / "layers" / "shading" / "preset.json").read_text(encoding="utf-8"))["distill"]
+    assert (config["loss"], config["guidance"]) == (defaults["loss"], defaults["guidance"])  # the preset's defaults
     assert config["weights"]["reg"] == {"start": 1.0, "end": 0.0, "steps": 500, "shape": "cosine"}  # --reg-final 0
-    assert config["corrective"].endswith("relight-32-spectral")
+    if config["loss"] == "lmc-sds":
+        assert config["corrective"].endswith("relight-32-spectral")
+    else:
+        assert config["corrective"] is None  # only LMC-SDS uses the corrective
     assert config["ema_decay"] == 0.999 and config["ema_warmup"] is True
     result = edit(PHOTO, "shading", "left", catalogue_dirs=[cat_dir])
     assert result.settings["method"] == "amortised"

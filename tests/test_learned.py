@@ -45,10 +45,12 @@ def test_settings_model_round_trips_the_stored_json(tmp_path):
         "prior_sha256",
         "corrective",
         "distill",
+        "working_size",
     ]
     assert LayerSettings.parse(a.settings, "here").to_json() == a.settings
     b = edit(PHOTO, "shading", "left")
-    assert b.settings == {"method": "amortised", "optimize": 0}
+    side = json.loads((ROOT / "layers" / "shading" / "preset.json").read_text(encoding="utf-8"))["working_size"]
+    assert b.settings == {"method": "amortised", "optimize": 0, "working_size": side}
     assert LayerSettings.parse(b.settings, "here").to_json() == b.settings
     assert LayerSettings.parse({}, "here").to_json() == {"method": None, "optimize": None}
 
