@@ -192,3 +192,16 @@ class TestTracedFamilies:
         t, _ = cast("roundbox", [(x, y, 2.0) for x, y in xy], [DOWN] * 400, s)
         clear = np.abs(level) > 1e-3
         assert np.array_equal(np.isfinite(t)[clear], (level <= 0)[clear])
+
+
+def test_hexprism_normal_faces_the_ray_at_an_edge():
+    # Hypothesis found this ray grazing a hexprism's edge: the normal once pointed along the ray
+    # (central differences straddled the edge into the inside, where the nearest face is a back face).
+    rng = np.random.default_rng(811375)
+    size = tuple(rng.uniform(0.1, 0.3, 3))
+    d = rng.normal(size=(64, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = rng.uniform(-0.3, 0.3, size=(64, 3)) - 2.0 * d
+    t, n = cast("hexprism", o.tolist(), d.tolist(), size)
+    hit = np.isfinite(t)
+    assert hit.any() and ((n[hit] * d[hit]).sum(1) <= 1e-9).all()
