@@ -85,16 +85,15 @@ def default_edit(images: torch.Tensor, labels: list[str], preset: str, dirs) -> 
 def at_working_size(fn, images: torch.Tensor, side: int | None) -> torch.Tensor:
     """fn(images reduced to the working size) enlarged back, as ``lasagna edit`` makes a layer."""
     full = tuple(images.shape[-2:])
-    size = working_size(*full, side) if side else full
-    return upsample(fn(downsample(images, size)), full)
+    return upsample(fn(downsample(images, working_size(*full, side))), full)
 
 
-def supervised_layers(scene, labels, folder: Path, side: int | None) -> torch.Tensor:
+def supervised_layers(albedo: torch.Tensor, labels, folder: Path, side: int | None) -> torch.Tensor:
     from lasagna.generators.unet import LayerGenerator
 
     gen = LayerGenerator.from_pretrained(folder)
     with torch.no_grad():
-        return at_working_size(lambda x: gen(x, labels)[:, :1], scene.albedo, side)
+        return at_working_size(lambda x: gen(x, labels)[:, :1], albedo, side)
 
 
 def per_image(scene, labels, preset, prior, corrective, loss: str, omega: float, steps: int) -> torch.Tensor:
@@ -143,16 +142,10 @@ def shading_table(args, split: str, size: int, parts, prior, corrective) -> tupl
     )
     layers, seconds = default_edit(scene.albedo, labels, "shading", args.catalogue)
     rows.append(row("default edit", layers[:, :1], scene, cdb, seconds))
+    sup = None
     if args.supervised and (args.supervised / "config.json").is_file():
-        rows.append(
-            row(
-                "supervised ceiling",
-                supervised_layers(scene, labels, args.supervised, preset.working_size),
-                scene,
-                cdb,
-                None,
-            )
-        )
+        sup = supervised_layers(scene.albedo, labels, args.supervised, preset.working_size)
+        rows.append(row("supervised ceiling", sup, scene, cdb, None))
     for loss in args.losses:
         if loss == "lmc-sds" and corrective is None:
             continue
@@ -167,6 +160,8 @@ def shading_table(args, split: str, size: int, parts, prior, corrective) -> tupl
         "truth": scene.shading[: args.sheet],
         "default": layers[: args.sheet, :1],
     }
+    if sup is not None:
+        sheet["supervised"] = sup[: args.sheet]
     return rows, sheet
 
 
@@ -425,19 +420,7 @@ def main(argv=None) -> int:
                 result["light"] += light_table(args, split, size)
     for (split, size), sheet in sheets.items():
         if size == min(args.sizes):
-            cols = [list(sheet["albedo"]), list(sheet["truth"]), list(sheet["default"])]
-            if args.supervised and (args.supervised / "config.json").is_file():
-                labels = [VOCABULARY[i % len(VOCABULARY)] for i in range(sheet["albedo"].shape[0])]
-                cols.append(
-                    list(
-                        supervised_layers(
-                            type("S", (), {"albedo": sheet["albedo"]}),
-                            labels,
-                            args.supervised,
-                            parts.preset.working_size,
-                        )
-                    )
-                )
+            cols = [list(sheet[key]) for key in ("albedo", "truth", "default", "supervised") if key in sheet]
             save_sheet(cols, args.img / f"generalisation_{split}.png")
     result["photos"] = photo_sheet(args, args.img / "generalisation_photos.png")
     result["headline"] = headline(result["shading"], result["leak"])

@@ -242,7 +242,7 @@ def make_layer(
     start = time.monotonic()
     full = tuple(base.shape[-2:])
     side = {"preset": preset.working_size, "full": None}.get(working, working)
-    size = working_size(*full, side) if side else full
+    size = working_size(*full, side)
     x = downsample(base.to(device)[None], size)  # (1, 3, h, w)
     files: dict[str, bytes] = {}
     gen_ref = None

@@ -7,7 +7,7 @@ import pytest
 import torch
 from PIL import Image
 
-from lasagna.compose.resample import downsample, guided_upsample, upsample, working_size
+from lasagna.compose.resample import downsample, upsample, working_size
 
 
 @pytest.mark.parametrize(
@@ -59,40 +59,3 @@ def test_upsample_is_half_pixel_bilinear():
 def test_same_size_is_identity():
     x = torch.rand(2, 3, 16, 16)
     assert downsample(x, (16, 16)) is x and upsample(x, (16, 16)) is x
-
-
-def _box_ref(x: np.ndarray, r: int) -> np.ndarray:
-    h, w = x.shape
-    out = np.empty_like(x)
-    for i in range(h):
-        for j in range(w):
-            out[i, j] = x[max(0, i - r) : i + r + 1, max(0, j - r) : j + r + 1].mean()
-    return out
-
-
-def test_guided_upsample_matches_the_papers_algorithm():
-    rng = np.random.default_rng(2)
-    guide = rng.random((32, 32))
-    y = rng.random((8, 8))
-    r, eps = 1, 1e-2
-    # He & Sun 2015, Alg. 2, with Pillow-equivalent reduction and half-pixel bilinear enlargement.
-    g = downsample(torch.from_numpy(guide)[None, None], (8, 8))[0, 0].numpy()
-    mi, my = _box_ref(g, r), _box_ref(y, r)
-    a = (_box_ref(g * y, r) - mi * my) / (_box_ref(g * g, r) - mi * mi + eps)
-    b = my - a * mi
-    a, b = _box_ref(a, r), _box_ref(b, r)
-    ref = _bilinear_ref(a, 32, 32) * guide + _bilinear_ref(b, 32, 32)
-    got = guided_upsample(torch.from_numpy(y)[None, None], torch.from_numpy(guide)[None, None], r, eps)[0, 0].numpy()
-    np.testing.assert_allclose(got, ref, atol=1e-12)
-
-
-def test_guided_upsample_keeps_a_constant_and_follows_an_edge():
-    guide = torch.zeros(1, 1, 32, 32, dtype=torch.float64)
-    guide[..., 16:] = 1.0
-    const = torch.full((1, 1, 8, 8), 0.7, dtype=torch.float64)
-    torch.testing.assert_close(guided_upsample(const, guide), torch.full_like(guide, 0.7), atol=1e-12, rtol=0)
-    step = downsample(guide * 0.5 + 0.25, (8, 8))  # a layer whose edge is the guide's, blurred by the reduction
-    out = guided_upsample(step, guide, radius=1, eps=1e-4)
-    blurry = upsample(step, (32, 32))
-    truth = guide * 0.5 + 0.25
-    assert (out - truth).abs().mean() < 0.5 * (blurry - truth).abs().mean()
