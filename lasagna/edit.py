@@ -111,47 +111,13 @@ class EditResult:
 
 
 def read_image(path: str | os.PathLike, max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> Stack:
-    """An image file as a one-layer stack (layer ``base``): PNG through ``lasagna.io.png`` (8/16-bit,
-    bomb guards), anything else Pillow opens (JPEG, …) with its size checked before decoding and its
-    EXIF orientation applied (as viewers show it)."""
-    from PIL import Image, ImageOps, UnidentifiedImageError
+    """An image file as a one-layer stack (layer ``base``), read under the input policy of
+    ``lasagna.io.image`` (PNG, JPEG, WebP, BMP, TIFF 8/16-bit; nothing else is opened)."""
+    from lasagna.io.image import read_image_file
 
-    from lasagna.io.png import PNG_SIGNATURE, read_png
-
-    p = Path(path)
-    where = str(p)
-    try:
-        with open(p, "rb") as fh:
-            magic = fh.read(8)
-    except OSError as exc:
-        raise ImageError(
-            f"cannot read ({exc.strerror or exc}); expected an image file or a stack folder", where
-        ) from None
-    if magic == PNG_SIGNATURE:
-        png = read_png(p, max_pixels=max_pixels)
-        depth = 16 if png.header.bit_depth == 16 else 8
-        color = torch.from_numpy(png.color)
-        alpha = torch.from_numpy(png.alpha) if png.alpha is not None else None
-        return Stack.from_image(color, alpha=alpha, bit_depth=depth, name=p.stem)
-    try:
-        with Image.open(p) as im:
-            w, h = im.size
-            if w * h > max_pixels:
-                raise ImageError(
-                    f"image is {w}x{h} = {w * h} pixels, over the limit of {max_pixels}; expected at most "
-                    f"{max_pixels} pixels (raise --max-pixels if this is intended)",
-                    where,
-                )
-            im = ImageOps.exif_transpose(im)
-            im = im.convert("RGBA" if im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info else "RGB")
-            im.load()
-    except ImageError:
-        raise
-    except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError) as exc:
-        raise ImageError(
-            f"cannot decode ({type(exc).__name__}: {exc}); expected a PNG, JPEG or another image Pillow reads", where
-        ) from None
-    return Stack.from_image(im, name=p.stem)
+    img = read_image_file(path, max_pixels=max_pixels)
+    alpha = torch.from_numpy(img.alpha) if img.alpha is not None else None
+    return Stack.from_image(torch.from_numpy(img.color), alpha=alpha, bit_depth=img.bit_depth, name=Path(path).stem)
 
 
 def input_stack(image, max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> Stack:

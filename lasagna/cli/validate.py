@@ -15,11 +15,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lasagna.io.stack import load_stack
+    from lasagna.document.models import LearnedLayer
+    from lasagna.io.stack import verify_stack
 
-    stack = load_stack(args.stack, max_pixels=args.max_pixels)
-    doc = stack.document
-    extra = f"; {len(stack.not_rendered)} learned layer(s) not rendered" if stack.not_rendered else ""
+    doc = verify_stack(args.stack, max_pixels=args.max_pixels)  # every PNG checked, none decoded
+    waiting = sum(1 for layer in doc.layers if isinstance(layer, LearnedLayer) and layer.source is None)
+    extra = f"; {waiting} learned layer(s) not rendered" if waiting else ""
     print(
         f"ok: {len(doc.layers)} layers ({doc.canvas.width}x{doc.canvas.height}, blend_space={doc.blend_space}){extra}"
     )

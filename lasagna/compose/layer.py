@@ -42,6 +42,13 @@ def _key(t: Tensor | None) -> tuple[Any, ...] | None:
 SAMPLE_GRID = 16
 
 
+def _distinct(t: Tensor) -> Tensor:
+    """``t`` with every zero-stride (expanded) dimension read once: the same values, so the same min and
+    max, without materialising a solid layer's canvas-size view (``torch.aminmax`` copies a view first)."""
+    index = tuple(slice(0, 1) if st == 0 and n > 1 else slice(None) for st, n in zip(t.stride(), t.shape))
+    return t.detach()[index]
+
+
 def _grid(t: Tensor) -> Tensor:
     sy, sx = max(1, t.shape[-2] // SAMPLE_GRID), max(1, t.shape[-1] // SAMPLE_GRID)
     return t.detach()[..., ::sy, ::sx]
@@ -176,7 +183,7 @@ class LayerTensors:
         """``(min, max)`` of the colour over every pixel and batch entry (NaN if any value is NaN)."""
 
         def compute() -> tuple[float, float]:
-            lo, hi = torch.aminmax(self.color)
+            lo, hi = torch.aminmax(_distinct(self.color))
             return float(lo), float(hi)
 
         return self._cached("color_range", (self.color,), compute)
@@ -188,9 +195,9 @@ class LayerTensors:
 
         def compute() -> tuple[float, float]:
             if self.alpha is not None and self.mask is not None:
-                lo, hi = torch.aminmax(self.alpha * self.mask)
+                lo, hi = torch.aminmax(_distinct(self.alpha) * _distinct(self.mask))  # broadcasts back
             else:
-                lo, hi = torch.aminmax(self.alpha if self.alpha is not None else self.mask)
+                lo, hi = torch.aminmax(_distinct(self.alpha if self.alpha is not None else self.mask))
             return float(lo), float(hi)
 
         return self._cached("alpha_range", (self.alpha, self.mask), compute)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from lasagna.atomic import atomic_write_text
 from lasagna.document.models import Document
-from lasagna.document.validation import format_validation_error
+from lasagna.document.validation import format_validation_error, read_json_text
 from lasagna.errors import DocumentError
 
 __all__ = ["STACK_FILE", "stack_file", "load_document", "save_document", "format_validation_error"]
@@ -31,17 +31,11 @@ def load_document(path: str | os.PathLike) -> Document:
     path of the first error (``…/stack.json: layers[2].blend: unknown blend 'mutiply'; …``).
     """
     file = stack_file(path)
-    try:
-        # utf-8-sig: editors on Windows may prepend a byte-order mark; it is not content.
-        text = file.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
+    if not file.exists():
         raise DocumentError(
             f"not found; expected a stack folder containing {STACK_FILE}, or the file itself", str(file)
-        ) from None
-    except UnicodeDecodeError as exc:
-        raise DocumentError(f"not UTF-8 text (byte {exc.start}); expected a UTF-8 JSON file", str(file)) from None
-    except OSError as exc:
-        raise DocumentError(f"cannot read ({exc.strerror}); expected a readable {STACK_FILE}", str(file)) from None
+        )
+    text = read_json_text(file, f"a {STACK_FILE}")
     return Document.from_json(text, str(file))
 
 

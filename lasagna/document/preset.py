@@ -31,7 +31,7 @@ from lasagna.document.types import (
     check_id,
     check_range_for_blend,
 )
-from lasagna.document.validation import RuleError, document_error, parse_json
+from lasagna.document.validation import RuleError, document_error, parse_json, read_json_text
 from lasagna.errors import ConditionError, DocumentError
 
 # The score-distillation losses a preset (and ``lasagna edit --loss``) may name: declared here, in the
@@ -161,10 +161,7 @@ def load_preset(path: str | os.PathLike) -> Preset:
     """Read a preset from ``preset.json`` or from the folder holding it; its name must match the folder."""
     file = Path(path)
     file = file / "preset.json" if file.is_dir() else file
-    try:
-        text = file.read_text(encoding="utf-8-sig")
-    except OSError as exc:
-        raise DocumentError(f"cannot read preset ({exc.strerror}); expected a preset.json file", str(file)) from None
+    text = read_json_text(file, "a preset.json file")
     preset = Preset.from_json(text, str(file))
     if file.name == "preset.json" and file.parent.name != preset.name:
         raise DocumentError(

@@ -36,7 +36,16 @@ from PIL import Image
 from lasagna.atomic import atomic_write_bytes
 from lasagna.errors import ExportError, ImageError
 from lasagna.export.rasters import ExportLayer, export_layers
-from lasagna.io.png import DEFAULT_MAX_PIXELS, check_size, decode_png, encode_png, parse_header
+from lasagna.io.png import (
+    DEFAULT_MAX_PIXELS,
+    check_size,
+    decode_bytes,
+    decode_png,
+    encode_png,
+    parse_header,
+    png_file_limit,
+)
+from lasagna.limits import check_memory
 
 MIMETYPE = b"image/openraster"
 THUMBNAIL_MAX = 256
@@ -188,10 +197,31 @@ def _int_attr(el, name: str, where: str) -> int:
         return int(f)
 
 
+def _utf8_xml(data: bytes, where: str) -> str:
+    """stack.xml as text: UTF-8 only (any declared encoding must say so). Other encodings are refused, not
+    decoded, so the DTD/entity check below sees the text the parser will see (UTF-16 hid it before)."""
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ImageError(f"not UTF-8 (byte {exc.start}); expected OpenRaster XML in UTF-8", where=where) from None
+    declared = re.match(r"""\s*<\?xml[^>]*encoding\s*=\s*["']([^"']+)["']""", text)
+    if declared and declared.group(1).strip().lower().replace("_", "-") not in ("utf-8", "utf8"):
+        raise ImageError(f"declares encoding {declared.group(1)!r}; expected OpenRaster XML in UTF-8", where=where)
+    return text
+
+
 def read_ora(
-    path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS, max_uncompressed: int = DEFAULT_MAX_UNCOMPRESSED
+    path: str | os.PathLike,
+    *,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    max_uncompressed: int = DEFAULT_MAX_UNCOMPRESSED,
+    reserve: int = 1,
 ) -> tuple[int, int, list[dict]]:
     """Read and check an OpenRaster file: canvas size and its layers bottom to top (decoded).
+
+    Every layer's PNG header is read first; the decoded layers (plus ``reserve`` more copies of them, what
+    the caller makes of them: ``import_ora`` one) must fit the memory budget (``lasagna.limits``) before
+    any is decoded, and each entry is read only up to what a PNG of its header can hold.
 
     Each layer is a dict with ``name``, ``src``, ``x``, ``y``, ``opacity``, ``visible``,
     ``blend`` (ours, or ``"color-dodge"``) and ``image`` (a decoded :class:`PngImage`).
@@ -238,8 +268,9 @@ def read_ora(
 
         if "mimetype" not in names or read("mimetype", 64).strip() != MIMETYPE:
             raise ImageError("no 'mimetype' entry reading 'image/openraster'; expected an OpenRaster file", where=where)
-        xml_text = read("stack.xml", 16 * 2**20)
-        if b"<!DOCTYPE" in xml_text or b"<!ENTITY" in xml_text:
+        xml_bytes = read("stack.xml", 16 * 2**20)
+        xml_text = _utf8_xml(xml_bytes, f"{where}: stack.xml")
+        if "<!DOCTYPE" in xml_text or "<!ENTITY" in xml_text:
             raise ImageError(
                 "stack.xml declares a DTD or entities; expected plain OpenRaster XML", where=f"{where}: stack.xml"
             )
@@ -258,7 +289,8 @@ def read_ora(
         stacks = [c for c in root if c.tag == "stack"]
         if len(stacks) != 1:
             raise ImageError(f"<image> holds {len(stacks)} <stack> elements; expected exactly one", where=xwhere)
-        layers = []
+        planned = []
+        users: dict[str, int] = {}
         for n, el in enumerate(stacks[0]):
             lwhere = f"{xwhere}: stack[{n}]"
             if el.tag == "stack":
@@ -290,12 +322,23 @@ def read_ora(
             entry = names.get(src)
             if entry is None:
                 raise ImageError(f"src {src!r} is not in the archive; expected a PNG entry", where=lwhere)
+            if src in users:
+                # Writers give every layer its own PNG; one entry named by many layers is a way to make a
+                # tiny file decode to many full-size layers (counted, it would still cost their memory).
+                raise ImageError(
+                    f"src {src!r} is also the src of stack[{users[src]}]; expected each layer its own PNG entry",
+                    where=lwhere,
+                )
+            users[src] = n
             pwhere = f"{where}: {src}"
-            with zf.open(entry) as fh:
-                head = fh.read(33)
-            check_size(parse_header(head, pwhere), pwhere, max_pixels, 32768)
-            image = decode_png(read(src), pwhere, max_pixels=max_pixels, max_side=32768)
-            layers.append(
+            try:
+                with zf.open(entry) as fh:
+                    head = fh.read(33)
+            except (zipfile.BadZipFile, OSError, EOFError, zlib.error) as exc:
+                raise ImageError(f"entry {src!r} is corrupt ({exc}); expected a valid zip entry", where=where) from None
+            header = parse_header(head, pwhere)
+            check_size(header, pwhere, max_pixels, 32768)
+            planned.append(
                 dict(
                     name=el.get("name") or PurePosixPath(src).stem,
                     src=src,
@@ -304,10 +347,20 @@ def read_ora(
                     opacity=opacity,
                     visible=visibility == "visible",
                     blend=SVG_TO_BLEND.get(op, "color-dodge"),
-                    image=image,
+                    header=header,
                     where=lwhere,
                 )
             )
+        # Every layer's header is known: refuse over the memory budget before decoding any of them.
+        kept = sum(decode_bytes(layer["header"])[0] for layer in planned)
+        transient = max((sum(decode_bytes(layer["header"])) for layer in planned), default=0)
+        check_memory(kept * (1 + reserve) + transient, f"decoding the {len(planned)} layers", where)
+        layers = []
+        for layer in planned:
+            pwhere = f"{where}: {layer['src']}"
+            data = read(layer["src"], png_file_limit(layer.pop("header")))
+            layer["image"] = decode_png(data, pwhere, max_pixels=max_pixels, max_side=32768)
+            layers.append(layer)
     layers.reverse()  # stack.xml is topmost first; documents are bottom first
     return width, height, layers
 

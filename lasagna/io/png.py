@@ -207,6 +207,18 @@ def _check_chunks(data: bytes, header: PngHeader, where: str) -> None:
             f"IDAT holds {idat_total} compressed bytes, which cannot expand to the {need} bytes a "
             f"{header.width}x{header.height} image needs (corrupt or decompression bomb)",
         )
+    stride = 0 if header.interlaced else header.raw_bytes() // header.height  # filter byte + one row
+
+    def check_filters(out: bytes, start: int) -> None:
+        # Each row of a non-interlaced image starts with its filter type, 0..4 (PNG spec, 9.2).
+        if not stride or not out:
+            return
+        first = (-start) % stride
+        types = np.frombuffer(out, dtype=np.uint8)[first::stride]
+        if types.size and int(types.max()) > 4:
+            row = (start + first) // stride + int(np.argmax(types > 4))
+            raise _fail(where, f"row {row} has filter type {int(types.max())}; expected 0 to 4 (corrupt image data)")
+
     pos = 33
     piece = 1 << 20
     while True:
@@ -217,9 +229,11 @@ def _check_chunks(data: bytes, header: PngHeader, where: str) -> None:
             chunk = data[pos + 8 : pos + 8 + length]
             try:
                 out = inflater.decompress(chunk, piece)
+                check_filters(out, produced)
                 produced += len(out)
                 while inflater.unconsumed_tail and produced <= need:
                     out = inflater.decompress(inflater.unconsumed_tail, piece)
+                    check_filters(out, produced)
                     produced += len(out)
             except zlib.error as exc:
                 raise _fail(where, f"corrupt image data (zlib: {exc})") from None
@@ -258,22 +272,34 @@ def decode_png(
         ) from None
 
 
-def read_png(path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS, max_side: int | None = None) -> PngImage:
-    """Read the PNG at ``path`` as float32 channels-first values; refuse bombs before decoding."""
-    where = str(path)
+def png_file_limit(header: PngHeader) -> int:
+    """The most bytes a PNG of ``header`` can sensibly hold: twice its raw image data (deflate's worst
+    expansion is far less) plus room for ICC profiles, EXIF and text chunks."""
+    return 2 * header.raw_bytes() + _ANCILLARY_SLACK
+
+
+def _read_bounded(path: str | os.PathLike, where: str, max_pixels: int, max_side: int | None) -> bytes:
+    """The bytes of the PNG at ``path``, read only after its header passed the size limits and its file
+    size is plausible for that header."""
     try:
         with open(path, "rb") as fh:
             head = fh.read(33)
             header = parse_header(head, where)
             check_size(header, where, max_pixels, max_side)
             size = os.fstat(fh.fileno()).st_size
-            if size > 2 * header.raw_bytes() + _ANCILLARY_SLACK:
+            if size > png_file_limit(header):
                 raise _fail(where, f"file is {size} bytes, far more than a {header.width}x{header.height} PNG holds")
-            data = head + fh.read()
+            return head + fh.read(size)  # never past the size checked, if the file grows meanwhile
     except IsADirectoryError:
         raise ImageError(f"is a folder; {_EXPECTED_PNG}", where=where) from None
     except OSError as exc:
         raise _open_error(where, exc) from None
+
+
+def read_png(path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS, max_side: int | None = None) -> PngImage:
+    """Read the PNG at ``path`` as float32 channels-first values; refuse bombs before decoding."""
+    where = str(path)
+    data = _read_bounded(path, where, max_pixels, max_side)
     return decode_png(data, where, max_pixels=max_pixels, max_side=max_side)
 
 
@@ -282,14 +308,6 @@ def _pillow_pixel_limit() -> float:
     # admitted by our own limit) go through pypng, which has no such global switch.
     limit = Image.MAX_IMAGE_PIXELS
     return float("inf") if limit is None else limit
-
-
-def _split(values: np.ndarray, planes: int) -> tuple[np.ndarray, np.ndarray | None]:
-    """(h, w, planes) float32 -> color (C, h, w), alpha (1, h, w) | None."""
-    chw = np.ascontiguousarray(values.transpose(2, 0, 1))
-    if planes in (2, 4):
-        return chw[:-1], chw[-1:]
-    return chw, None
 
 
 def _decode_pillow(data: bytes, header: PngHeader, where: str) -> PngImage:
@@ -306,23 +324,61 @@ def _decode_pillow(data: bytes, header: PngHeader, where: str) -> PngImage:
             mode = "RGB"
         im.load()
         converted = im.convert(mode) if im.mode != mode else im
-        values = np.asarray(converted, dtype=np.float32).reshape(header.height, header.width, len(mode)) / 255.0
-    color, alpha = _split(values, len(mode))
-    return PngImage(color, alpha, header, where)
+        codes = np.asarray(converted).reshape(header.height, header.width, len(mode))  # (h, w, planes) uint8
+        del converted
+    # One float32 plane at a time into a channels-first array: the peak is the codes plus the result
+    # (decode_bytes), not three float copies. float32 division by 255 as before (bit-identical values).
+    planes = np.empty((len(mode), header.height, header.width), dtype=np.float32)
+    for c in range(len(mode)):
+        np.divide(codes[:, :, c], np.float32(255.0), out=planes[c], dtype=np.float32)
+    del codes
+    return PngImage(*_split_planes(planes), header=header, where=where)
 
 
 def _decode_pypng(data: bytes, header: PngHeader, where: str) -> PngImage:
     # asDirect expands palettes and tRNS into RGB(A)/alpha and honours sBIT (the reported bitdepth
     # is then the significant bits), so the maximum code is 2**bitdepth - 1.
     width, height, rows, info = pypng.Reader(bytes=data).asDirect()
-    planes = info["planes"]
-    maxval = float(2 ** info["bitdepth"] - 1)
+    n = info["planes"]
+    maxval = np.float32(2 ** info["bitdepth"] - 1)
     dtype = np.uint16 if info["bitdepth"] > 8 else np.uint8
-    out = np.empty((height, width * planes), dtype=np.float32)
-    for i, row in enumerate(rows):
-        out[i] = np.asarray(row, dtype=dtype)
-    values = (out / maxval).reshape(height, width, planes)
-    return PngImage(*_split(values, planes), header=header, where=where)
+    planes = np.empty((n, height, width), dtype=np.float32)
+    for i, row in enumerate(rows):  # rows are decoded lazily: one row of codes at a time
+        planes[:, i, :] = np.asarray(row, dtype=dtype).reshape(width, n).T
+    planes /= maxval
+    return PngImage(*_split_planes(planes), header=header, where=where)
+
+
+def _split_planes(planes: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """(planes, h, w) -> color (C, h, w), alpha (1, h, w) | None, as views (no copy)."""
+    if planes.shape[0] in (2, 4):
+        return planes[:-1], planes[-1:]
+    return planes, None
+
+
+def decode_bytes(header: PngHeader) -> tuple[int, int]:
+    """``(kept, transient)`` bytes of decoding a PNG of ``header``: the float32 planes it yields, and the
+    codes that live beside them while decoding (Pillow's image holds up to 4 bytes a pixel, then the
+    (h, w, planes) uint8 array; pypng's 16-bit rows come one at a time)."""
+    planes = _COLOR_TYPES[header.color_type][1]
+    if header.color_type in (0, 2, 3):
+        planes += 1  # tRNS or a palette may add an alpha plane
+    kept = header.pixels * min(planes, 4) * 4
+    pillow = not (header.bit_depth == 16 or header.pixels > _pillow_pixel_limit())
+    return kept, (header.pixels * 8 if pillow else 0)
+
+
+def verify_png(
+    path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS, max_side: int | None = None
+) -> PngHeader:
+    """Check a PNG completely *without decoding its pixels*: header, size limits, every chunk's CRC, the
+    IDAT stream inflating (in bounded pieces) to exactly the bytes the header needs, and every row's
+    filter type. Memory: the file's bytes and 1 MiB pieces; what ``lasagna validate`` runs."""
+    where = str(path)
+    data = _read_bounded(path, where, max_pixels, max_side)
+    header = parse_header(data[:33], where)
+    _check_chunks(data, header, where)
+    return header
 
 
 # --- writing ---------------------------------------------------------------------------------------
@@ -381,6 +437,59 @@ def encode_png(color, alpha=None, *, bit_depth: BitDepth = 8, clip: bool = False
         writer = pypng.Writer(w, h, greyscale=n in (1, 2), alpha=n in (2, 4), bitdepth=16, compression=6)
         writer.write_array(buf, hwc.reshape(-1))
     return buf.getvalue()
+
+
+def _chunk(ctype: bytes, body: bytes) -> bytes:
+    return struct.pack(">I", len(body)) + ctype + body + struct.pack(">I", zlib.crc32(ctype + body))
+
+
+def _filter_rows(rows: np.ndarray, above: np.ndarray) -> np.ndarray:
+    """PNG-filter a band of raw rows (n, stride) uint8, ``above`` the row before it (zeros at the top):
+    each row takes the filter of least sum of absolute signed values (PNG spec 12.8's heuristic, as
+    libpng and Pillow do). Returns (n, 1 + stride) with the filter byte first."""
+    n, stride = rows.shape
+    bpp = 3  # bytes a pixel: 8-bit RGB, the only kind streamed
+    x = rows.astype(np.int16)
+    b = np.concatenate([above[None].astype(np.int16), x[:-1]], axis=0)  # the row above each row
+    a = np.zeros_like(x)
+    a[:, bpp:] = x[:, :-bpp]  # the pixel to the left
+    c = np.zeros_like(x)
+    c[:, bpp:] = b[:, :-bpp]  # above-left
+    p = a + b - c
+    pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - c)
+    paeth = np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
+    candidates = np.stack([x, x - a, x - b, x - ((a + b) >> 1), x - paeth]).astype(np.uint8)  # (5, n, stride)
+    cost = np.abs(candidates.view(np.int8).astype(np.int32)).sum(axis=2)  # (5, n)
+    best = np.argmin(cost, axis=0)
+    out = np.empty((n, 1 + stride), dtype=np.uint8)
+    out[:, 0] = best
+    out[:, 1:] = candidates[best, np.arange(n)]
+    return out
+
+
+def encode_rgb8_bands(bands, width: int, height: int) -> bytes:
+    """An 8-bit RGB PNG from ``bands``, an iterable of (rows, width, 3) uint8 arrays from the top, encoded
+    as they come: the memory is the compressed output and one band, never a copy of the whole image
+    (what ``write_composite`` uses for canvases of any size)."""
+    deflate = zlib.compressobj(6)
+    parts = [PNG_SIGNATURE, _chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))]
+    above = np.zeros(width * 3, dtype=np.uint8)
+    rows_seen = 0
+    pending: list[bytes] = []
+    for band in bands:
+        raw = np.ascontiguousarray(band, dtype=np.uint8).reshape(band.shape[0], width * 3)
+        pending.append(deflate.compress(_filter_rows(raw, above).tobytes()))
+        above = raw[-1].copy()
+        rows_seen += raw.shape[0]
+        if sum(map(len, pending)) >= 1 << 20:  # IDAT chunks of about 1 MiB
+            parts.append(_chunk(b"IDAT", b"".join(pending)))
+            pending = []
+    if rows_seen != height:
+        raise ImageError(f"got {rows_seen} rows; expected {height}", where="png")
+    pending.append(deflate.flush())
+    parts.append(_chunk(b"IDAT", b"".join(pending)))
+    parts.append(_chunk(b"IEND", b""))
+    return b"".join(parts)
 
 
 def write_png(path: str | os.PathLike, color, alpha=None, *, bit_depth: BitDepth = 8, clip: bool = False) -> None:

@@ -14,16 +14,49 @@ from pathlib import Path
 
 import torch
 
+from lasagna.atomic import atomic_write_bytes
 from lasagna.compose.plan import plan_from_document
 from lasagna.compose.render import RenderResult, render
 from lasagna.errors import ImageError
-from lasagna.io.png import write_png
+from lasagna.io.png import encode_rgb8_bands
+from lasagna.limits import check_memory
+
+# Bytes a canvas pixel costs a render: the RGB output in the compute dtype; the no-grad engine works in bands
+# and solid layers are zero-stride views, so nothing else of canvas size is allocated.
+RENDER_CHANNELS = 3
+# ... and writing it as composite.png: one band of codes and the compressed bytes (at most ~3 a pixel).
+ENCODE_BYTES_PER_PIXEL = 3
+
+
+def render_bytes(width: int, height: int, dtype: torch.dtype = torch.float32) -> int:
+    """Bytes a no-grad render of a ``width`` × ``height`` canvas allocates (its output)."""
+    return width * height * RENDER_CHANNELS * (torch.finfo(dtype).bits // 8)
+
+
+def composite_bytes(width: int, height: int) -> int:
+    """Bytes of rendering a canvas and writing it as composite.png (``write_composite``)."""
+    return render_bytes(width, height) + width * height * ENCODE_BYTES_PER_PIXEL
+
+
+def tensor_bytes(tensors) -> int:
+    """Bytes held by the storages behind ``tensors`` (each storage once; expanded views cost nothing)."""
+    seen: dict[int, int] = {}
+    for t in tensors:
+        if t is not None:
+            storage = t.untyped_storage()
+            seen[storage.data_ptr()] = storage.nbytes()
+    return sum(seen.values())
 
 
 def render_stack(stack, dtype: torch.dtype = torch.float32, *, cull: bool = True) -> RenderResult:
     """Composite ``stack`` (a ``lasagna.io.stack.Stack``) into ``RenderResult(image (3, H, W), skipped, evaluated)``.
 
-    Solid layers are built by the plan in ``dtype``, range-mapped like a PNG's values (the document's rule)."""
+    Solid layers are built by the plan in ``dtype``, range-mapped like a PNG's values (the document's rule).
+    The stack's tensors and the output canvas together must fit the memory budget (``lasagna.limits``)."""
+    held = tensor_bytes(t for lt in stack.tensors.values() for t in lt.tensors())
+    check_memory(
+        held + render_bytes(stack.width, stack.height, dtype), f"rendering {stack.width}x{stack.height}", "render"
+    )
     plan = plan_from_document(stack.document, stack.tensors, cull=cull, dtype=dtype)
     result = render(plan, dtype=dtype)
     skipped = dict(result.skipped)
@@ -33,21 +66,41 @@ def render_stack(stack, dtype: torch.dtype = torch.float32, *, cull: bool = True
     return RenderResult(result.image, skipped, list(result.evaluated))
 
 
+# Rows of the canvas turned into codes at a time: 64 rows of an 8192-wide canvas are 12 MiB of float64.
+BAND_ROWS = 64
+
+
 def composite_codes(image: torch.Tensor) -> torch.Tensor:
     """(3, H, W) float → (3, H, W) uint8: clamp to [0, 1], then round half to even at 255·v."""
     return (image.detach().to("cpu", torch.float64).clamp(0.0, 1.0) * 255.0).round().to(torch.uint8)
 
 
+def _code_bands(image: torch.Tensor, where: str):
+    """(rows, W, 3) uint8 bands of ``image`` (3, H, W), top to bottom (``composite_codes`` a band at a
+    time, in float64 so the rounding is exact); a NaN anywhere is an error."""
+    for y in range(0, image.shape[1], BAND_ROWS):
+        band = image[:, y : y + BAND_ROWS].detach().to("cpu", torch.float64)
+        if bool(torch.isnan(band).any()):
+            raise ImageError("composite contains NaN; expected finite layer values", where=where)
+        yield composite_codes(band).permute(1, 2, 0).numpy()
+
+
 def write_composite(result: RenderResult | torch.Tensor, path: str | os.PathLike) -> Path:
-    """Write a composite (a ``RenderResult`` or an image (3, H, W)) as an 8-bit sRGB PNG, atomically."""
+    """Write a composite (a ``RenderResult`` or an image (3, H, W)) as an 8-bit sRGB PNG, atomically.
+
+    The PNG is encoded band by band (``encode_rgb8_bands``): beside the image only its compressed
+    bytes are held, so a canvas of any size costs its float buffer and not three more copies."""
     image = result.image if isinstance(result, RenderResult) else result
     if image.ndim != 3 or image.shape[0] != 3:
         raise ImageError(
             f"composite has shape {tuple(image.shape)}; expected (3, H, W) (render one stack, not a batch)",
             where=str(path),
         )
-    codes = composite_codes(image)
-    if bool(torch.isnan(image.detach()).any()):
-        raise ImageError("composite contains NaN; expected finite layer values", where=str(path))
-    write_png(path, codes.double() / 255.0)
+    data = encode_rgb8_bands(_code_bands(image, str(path)), image.shape[2], image.shape[1])
+    try:
+        atomic_write_bytes(path, data)
+    except OSError as exc:
+        raise ImageError(
+            f"cannot write file ({exc.strerror or type(exc).__name__}); expected a writable location", where=str(path)
+        ) from None
     return Path(path)

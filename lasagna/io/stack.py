@@ -15,7 +15,7 @@ C = 1 gray, 2 gray+alpha, 3 RGB, 4 RGBA.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,11 +39,14 @@ from lasagna.io.png import (
     DEFAULT_MAX_PIXELS,
     PngImage,
     check_size,
+    decode_bytes,
     encode_png,
     read_png,
     read_png_header,
+    verify_png,
 )
 from lasagna.io.render import render_stack
+from lasagna.limits import check_memory
 from lasagna.numerics import RANGE_SAVE_TOLERANCE
 
 # The document's largest canvas side; a layer PNG may not be larger either.
@@ -422,24 +425,28 @@ def _rasters(doc: Document) -> Iterable[tuple[int, Any, str, str]]:
                 yield i, layer, "mask", layer.mask
 
 
-def load_stack(
-    path: str | os.PathLike,
-    *,
-    max_pixels: int = DEFAULT_MAX_PIXELS,
-    max_total_pixels: int = DEFAULT_MAX_TOTAL_PIXELS,
-) -> Stack:
-    """Load a stack folder (or its stack.json): the validated document and every layer's tensors.
+@dataclass(frozen=True)
+class _Raster:
+    """One PNG a document names, resolved and with its header read (nothing decoded yet)."""
 
-    All paths are resolved and all PNG headers checked (size limits, per image and in total) before
-    any pixel is decoded. Errors are one-line ``LasagnaError``s naming the file and the layer.
-    """
-    file = stack_file(path)
-    doc = load_document(path)
+    index: int
+    layer: Any
+    field: str  # "source" or "mask"
+    rel: str
+    target: Path
+    header: Any  # lasagna.io.png.PngHeader
+
+    @property
+    def where(self) -> str:
+        return f"layers[{self.index}].{self.field} ({self.rel})"
+
+
+def _plan_rasters(file: Path, doc: Document, max_pixels: int, max_total_pixels: int) -> list[_Raster]:
+    """Resolve every path a document names and read every PNG header (cheap) before decoding anything:
+    sizes per image and in total, masks the size of their source."""
     folder = file.parent
-
-    # 1. Resolve every path and read every header (cheap) before decoding anything.
-    planned = []
-    headers = {}
+    planned: list[_Raster] = []
+    sources: dict[int, Any] = {}
     total = 0
     for i, layer, fieldname, rel in _rasters(doc):
         where = f"{file}: layers[{i}].{fieldname}"
@@ -458,31 +465,86 @@ def load_stack(
                 f"the stack's PNGs hold more than {max_total_pixels} pixels in total; expected at most that many",
                 where=where,
             )
-        planned.append((i, layer, fieldname, rel, target))
-        headers[(i, fieldname)] = header
-        if fieldname == "mask":
-            src = headers[(i, "source")]
+        if fieldname == "source":
+            sources[i] = header
+        else:
+            src = sources[i]
             if (header.width, header.height) != (src.width, src.height):
                 raise ImageError(
                     f"mask is {header.width}x{header.height}; expected the size of its layer's source, "
                     f"{src.width}x{src.height}",
                     where=f"{where} ({rel})",
                 )
+        planned.append(_Raster(i, layer, fieldname, rel, target, header))
+    return planned
 
-    # 2. Decode.
-    images: dict[tuple[int, str], PngImage] = {}
-    for i, layer, fieldname, rel, target in planned:
+
+def load_bytes(rasters: Iterable[Any]) -> int:
+    """Peak bytes of decoding PNGs with these headers and keeping them all (float32 tensors): what they
+    keep, plus the largest one's transient buffers and range mapping (``lasagna.io.png.decode_bytes``)."""
+    kept, transient = 0, 0
+    for header in rasters:
+        k, t = decode_bytes(header)
+        kept += k
+        transient = max(transient, t + k)  # + k: range mapping makes one new colour tensor
+    return kept + transient
+
+
+def verify_stack(
+    path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS, max_total_pixels: int = DEFAULT_MAX_TOTAL_PIXELS
+) -> Document:
+    """Check a stack folder completely without decoding a pixel: the document, every path, and every PNG
+    (``lasagna.io.png.verify_png``: structure, CRCs, the image data's size and filters). Memory: one file at
+    a time; time: inflating each PNG once. What ``lasagna validate`` runs."""
+    file = stack_file(path)
+    doc = load_document(path)
+    for r in _plan_rasters(file, doc, max_pixels, max_total_pixels):
         try:
-            images[(i, fieldname)] = read_png(target, max_pixels=max_pixels, max_side=MAX_SIDE)
+            verify_png(r.target, max_pixels=max_pixels, max_side=MAX_SIDE)
         except ImageError as err:
-            raise err.at(f"{file}: layers[{i}].{fieldname} ({rel})") from None
+            raise err.at(f"{file}: {r.where}") from None
+    return doc
 
-    stack = Stack(doc, folder)
-    for i, layer, fieldname, rel, target in planned:
-        if fieldname != "source":
+
+def load_stack(
+    path: str | os.PathLike,
+    *,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    max_total_pixels: int = DEFAULT_MAX_TOTAL_PIXELS,
+    reserve: Callable[[Document], int] | None = None,
+) -> Stack:
+    """Load a stack folder (or its stack.json): the validated document and every layer's tensors.
+
+    ``reserve(document)``: the bytes the caller will need beside the decoded layers (e.g. a canvas to
+    render, ``lasagna.io.render.composite_bytes``), counted in the budget check before decoding.
+
+    All paths are resolved and all PNG headers checked (size limits, per image and in total, and the
+    memory budget of ``lasagna.limits`` for decoding them all) before any pixel is decoded. Errors are
+    one-line ``LasagnaError``s naming the file and the layer.
+    """
+    file = stack_file(path)
+    doc = load_document(path)
+    planned = _plan_rasters(file, doc, max_pixels, max_total_pixels)
+    extra = reserve(doc) if reserve is not None else 0
+    what = f"decoding the stack's {len(planned)} PNGs" + (
+        f" and its {doc.canvas.width}x{doc.canvas.height} canvas" if extra else ""
+    )
+    check_memory(load_bytes(r.header for r in planned) + extra, what, str(file))
+
+    images: dict[tuple[int, str], PngImage] = {}
+    for r in planned:
+        try:
+            images[(r.index, r.field)] = read_png(r.target, max_pixels=max_pixels, max_side=MAX_SIDE)
+        except ImageError as err:
+            raise err.at(f"{file}: {r.where}") from None
+
+    stack = Stack(doc, file.parent)
+    for r in planned:
+        if r.field != "source":
             continue
-        img = images[(i, "source")]
-        mask_img = images[(i, "mask")] if layer.mask is not None else None
+        i, layer = r.index, r.layer
+        img = images.pop((i, "source"))
+        mask_img = images.pop((i, "mask")) if layer.mask is not None else None
         stack.tensors[layer.id] = layer_tensors(img, layer.range, mask_img, f"{file}: layers[{i}].mask ({layer.mask})")
         stack.bit_depths[layer.id] = img.header.bit_depth if img.header.bit_depth == 16 else 8
     return stack

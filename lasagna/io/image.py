@@ -1,0 +1,180 @@
+"""The input policy for image files (``lasagna edit IMAGE``, ``Stack`` from a path): which formats are read,
+and how, in one place.
+
+Read: PNG (``lasagna.io.png``: 8/16-bit, bomb guards before decoding), JPEG (and MPO, the JPEG that
+phones write), WebP, BMP and TIFF. TIFF is read at its depth: 8-bit by Pillow, 16-bit gray by Pillow
+(exact), 16-bit RGB(A) and float by ``tifffile`` (Pillow keeps only the high byte of 16-bit RGB and
+reads float colour not at all); float values must lie in [0, 1] (a linear HDR TIFF is refused, not
+clipped). Every other format is refused unopened: Pillow is only ever asked for these plugins, so an
+EPS or PDF never reaches Ghostscript, whatever its file name says.
+
+Before any pixel is decoded the size is checked against ``max_pixels`` and the memory budget
+(``lasagna.limits``). Values are float32 channels first, ``color`` (3, h, w) and ``alpha`` (1, h, w) or
+None, with the bit depth they were stored at (8 or 16) so a stack made from them saves them losslessly.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lasagna.errors import ImageError
+from lasagna.io.png import PNG_SIGNATURE, read_png, read_png_header
+from lasagna.limits import check_memory, raster_bytes
+
+# Pillow's names of the formats read through Pillow (PNG has its own reader).
+PILLOW_FORMATS: tuple[str, ...] = ("JPEG", "WEBP", "BMP", "TIFF")  # JPEG also opens MPO, what phones write
+READABLE = "PNG, JPEG, WebP, BMP or TIFF (8/16-bit)"
+
+# Bytes a pixel costs while Pillow decodes it (its image: up to 4 a pixel; the converted copy: 4 more).
+_PILLOW_BYTES_PER_PIXEL = 8
+
+
+@dataclass
+class RasterImage:
+    """A decoded image file: ``color`` (3, h, w) (a gray PNG's (1, h, w)) float32 in [0, 1], ``alpha``
+    (1, h, w) or None, and the bit depth it was stored at."""
+
+    color: np.ndarray
+    alpha: np.ndarray | None
+    bit_depth: int
+
+
+def _refuse(where: str, what: str) -> ImageError:
+    return ImageError(f"{what}; expected a {READABLE} image", where)
+
+
+def _check_pixels(w: int, h: int, max_pixels: int, where: str) -> None:
+    if w * h > max_pixels:
+        raise ImageError(
+            f"image is {w}x{h} = {w * h} pixels, over the limit of {max_pixels}; expected at most "
+            f"{max_pixels} pixels (raise --max-pixels if this is intended)",
+            where,
+        )
+    check_memory(raster_bytes(w, h, 4) + w * h * _PILLOW_BYTES_PER_PIXEL, f"decoding a {w}x{h} image", where)
+
+
+def _as_rgb(values: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """(h, w[, c]) float32 → color (3, h, w) and alpha (1, h, w) | None: gray is repeated, c = 2 or 4 has alpha."""
+    if values.ndim == 2:
+        values = values[:, :, None]
+    c = values.shape[2]
+    if c not in (1, 2, 3, 4):
+        raise _refuse(where, f"image has {c} channels")
+    chw = np.ascontiguousarray(values.transpose(2, 0, 1), dtype=np.float32)
+    color, alpha = (chw[:-1], chw[-1:]) if c in (2, 4) else (chw, None)
+    if color.shape[0] == 1:
+        color = np.repeat(color, 3, axis=0)
+    return color, alpha
+
+
+def _unit(values: np.ndarray, where: str) -> np.ndarray:
+    """Integer codes / their maximum, or float values checked to lie in [0, 1]."""
+    if values.dtype == np.uint8:
+        return values.astype(np.float32) / np.float32(255.0)
+    if values.dtype == np.uint16:
+        return values.astype(np.float32) / np.float32(65535.0)
+    if values.dtype.kind == "f":
+        v = values.astype(np.float32)
+        if not np.isfinite(v).all() or (v.size and (v.min() < 0.0 or v.max() > 1.0)):
+            lo, hi = (float(np.nanmin(v)), float(np.nanmax(v))) if np.isfinite(v).any() else (np.nan, np.nan)
+            raise ImageError(
+                f"float image values span [{lo:.4g}, {hi:.4g}] (or are not finite); expected values in [0, 1] "
+                "(a linear HDR image needs tone mapping first)",
+                where,
+            )
+        return v
+    raise _refuse(where, f"{values.dtype} samples")
+
+
+def _read_tiff_wide(path: Path, where: str, max_pixels: int) -> RasterImage:
+    """A 16-bit RGB(A) or float TIFF through tifffile (first page)."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            page = tif.pages.first
+            shape = dict(zip(page.axes, page.shape))
+            _check_pixels(shape.get("X", 1), shape.get("Y", 1), max_pixels, where)
+            values = page.asarray()
+            axes = page.axes
+    except ImageError:
+        raise
+    except Exception as exc:  # tifffile raises ValueError, TiffFileError, KeyError, … on files it cannot decode
+        raise _refuse(where, f"cannot decode this TIFF ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})")
+    if axes.startswith("S"):  # planar configuration: samples first
+        values = np.moveaxis(values, 0, -1)
+    bit_depth = 16 if values.dtype in (np.uint16, np.float32, np.float64) else 8
+    return RasterImage(*_as_rgb(_unit(values, where), where), bit_depth=bit_depth)
+
+
+def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
+    from PIL import (  # noqa: F401
+        BmpImagePlugin,
+        Image,
+        ImageOps,
+        JpegImagePlugin,
+        MpoImagePlugin,
+        TiffImagePlugin,
+        UnidentifiedImageError,
+        WebPImagePlugin,
+    )
+
+    # Importing exactly these plugins registers them; Image.open(formats=…) then tries only them.
+
+    try:
+        with Image.open(path, formats=PILLOW_FORMATS) as im:
+            w, h = im.size
+            _check_pixels(w, h, max_pixels, where)
+            if im.format == "TIFF":
+                bits = tuple(im.tag_v2.get(258, (8,)))
+                sample_format = tuple(im.tag_v2.get(339, (1,)))
+                if max(bits) > 8 and (len(bits) > 1 or 3 in sample_format):
+                    return _read_tiff_wide(path, where, max_pixels)  # Pillow would drop the low byte
+                if im.mode.startswith("I;16"):
+                    return RasterImage(*_as_rgb(_unit(np.asarray(im).astype(np.uint16), where), where), bit_depth=16)
+                if im.mode == "F":
+                    return RasterImage(*_as_rgb(_unit(np.asarray(im), where), where), bit_depth=16)
+                if im.mode == "I":
+                    raise _refuse(where, "a 32-bit integer TIFF")
+            im = ImageOps.exif_transpose(im)
+            has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
+            im = im.convert("RGBA" if has_alpha else "RGB")
+            codes = np.asarray(im)
+    except ImageError:
+        raise
+    except UnidentifiedImageError:
+        raise _refuse(where, "cannot decode: not an image of a format lasagna reads") from None
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
+        raise _refuse(where, f"cannot decode ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})") from None
+    return RasterImage(*_as_rgb(_unit(codes, where), where), bit_depth=8)
+
+
+def read_image_file(path: str | os.PathLike, *, max_pixels: int) -> RasterImage:
+    """Read an image file under the input policy (module docstring); every refusal is one line."""
+    p = Path(path)
+    where = str(p)
+    try:
+        with open(p, "rb") as fh:
+            magic = fh.read(8)
+    except IsADirectoryError:
+        raise _refuse(where, "is a folder without a stack.json") from None
+    except OSError as exc:
+        raise ImageError(
+            f"cannot read ({exc.strerror or exc}); expected an image file or a stack folder", where
+        ) from None
+    if magic == PNG_SIGNATURE:
+        header = read_png_header(p)
+        if header.pixels <= max_pixels:
+            check_memory(
+                raster_bytes(header.width, header.height, 4), f"decoding a {header.width}x{header.height} PNG", where
+            )
+        png = read_png(p, max_pixels=max_pixels)  # gray stays one channel, as stored
+        return RasterImage(png.color, png.alpha, 16 if png.header.bit_depth == 16 else 8)
+    return _read_pillow(p, where, max_pixels)
+
+
+__all__ = ["PILLOW_FORMATS", "READABLE", "RasterImage", "read_image_file"]
