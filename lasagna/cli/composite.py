@@ -19,13 +19,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lasagna.document import stack_file
-    from lasagna.io.folder import check_writable
+    from lasagna.io.folder import check_not_input, check_writable
     from lasagna.io.render import render_stack, write_composite
     from lasagna.io.stack import load_stack
 
     out = Path(args.output) if args.output else stack_file(args.stack).parent / "composite.png"
     check_writable(out)
     stack = load_stack(args.stack, max_pixels=args.max_pixels)
+    check_not_input([out], stack)
     result = render_stack(stack)
     write_composite(result, out)
     print(f"wrote {out} ({stack.width}x{stack.height}, {len(result.evaluated)} of {len(stack.ids)} layers composed)")
