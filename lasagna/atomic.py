@@ -1,17 +1,38 @@
-"""Atomic file writes (the ground floor every tier may import): write to a temporary file beside the
-target, then ``os.replace``.
+"""Atomic writes (the ground floor every tier may import): write temporaries beside the targets, then rename.
 
-A crash, a full disk or an exception half-way leaves the user's existing file untouched and no
-temporary file behind.
+One file (``atomic_path``, ``atomic_write_bytes``) or several at once (``atomic_write_all``: every
+destination checked, every temporary written, then all renamed; a failure leaves every existing output
+as it was). A crash, a full disk or an exception half-way leaves the user's existing files untouched.
+
+Every temporary (file or folder) is named here, by ``temp_path``:
+``.{name}.lasagna-{pid}-{random}.{kind}{suffix}`` — hidden, recognisable, carrying its owner's process id,
+and at most ``NAME_MAX`` bytes (the kept part of ``name`` is shortened; the suffix stays, so libraries
+that choose a format by extension still do). A process killed with SIGKILL cannot clean up after itself;
+``sweep_stale`` removes the temporaries of owners that no longer run, and every writer calls it before
+writing into a folder, so litter lasts only until the next write there.
+
+``folder_lock`` serialises check-then-rename sequences between processes (``lasagna.io.folder``'s swap).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
-from collections.abc import Iterator
+import re
+import shutil
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+
+from lasagna.errors import PathError
+
+# The longest file name most file systems take (ext4, APFS, NTFS: 255 bytes). A temporary longer than its
+# target would make a legal output name fail, so temporaries are cut to this.
+NAME_MAX = 255
+# A suffix longer than this is no file-format extension ("a.<200 characters>"); it is not kept whole.
+_MAX_SUFFIX = 16
+_TEMP = re.compile(
+    r"^\.(?P<kept>.*)\.lasagna-(?P<pid>[0-9]+)-(?P<random>[0-9a-f]{8})\.(?P<kind>tmp|old)(?P<suffix>\.[^.]*)?$", re.S
+)
 
 
 def umask_mode(mode: int) -> int:
@@ -21,40 +42,237 @@ def umask_mode(mode: int) -> int:
     return mode & ~umask
 
 
+def _cut(text: str, limit: int) -> str:
+    """The longest prefix of ``text`` whose UTF-8 encoding has at most ``limit`` bytes."""
+    data = text.encode("utf-8", "surrogateescape")[: max(0, limit)]
+    return data.decode("utf-8", "ignore")
+
+
+def temp_path(target: str | os.PathLike, kind: str = "tmp", suffix: str | None = None) -> Path:
+    """A fresh temporary name beside ``target``: ``.{name}.lasagna-{pid}-{random}.{kind}{suffix}``.
+
+    ``kind`` is ``tmp`` (being written) or ``old`` (an existing output moved aside, see ``sweep_stale``);
+    ``suffix`` defaults to the target's for a ``tmp`` file. Nothing is created."""
+    target = Path(target)
+    if suffix is None:
+        suffix = target.suffix if kind == "tmp" else ""
+    if len(suffix.encode("utf-8", "surrogateescape")) > _MAX_SUFFIX:
+        suffix = ""
+    tail = f".lasagna-{os.getpid()}-{os.urandom(4).hex()}.{kind}{suffix}"
+    room = NAME_MAX - 1 - len(tail.encode("utf-8", "surrogateescape"))
+    return target.parent / f".{_cut(target.name, room)}{tail}"
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (one we may not signal runs too: someone else's live writer)."""
+    if pid == os.getpid() or os.name != "posix":  # on Windows os.kill(pid, 0) would end the process
+        return True
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, OverflowError):  # no such process (or no such pid at all)
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        with contextlib.suppress(FileNotFoundError, IsADirectoryError, PermissionError):
+            path.unlink()
+
+
+def sweep_stale(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporaries in ``folder`` whose owner process is gone (killed, crashed); returns them.
+
+    A ``tmp`` is half-written: removed. An ``old`` is an output moved aside by a swap (``lasagna.io.folder``):
+    when its target exists the swap completed and it is removed; when the target is missing the owner died
+    between the two renames, so it is renamed back — the user's previous output is never deleted. (A name
+    cut to ``NAME_MAX`` does not say its target, so such an ``old`` whose target is missing is left alone.)
+    Temporaries of live processes, this one included, are never touched; a pid reused since is taken as
+    alive (the litter stays, nothing is lost).
+    """
+    folder = Path(folder)
+    removed: list[Path] = []
+    try:
+        entries = list(os.scandir(folder))
+    except (FileNotFoundError, NotADirectoryError, PermissionError):
+        return removed
+    for entry in entries:
+        m = _TEMP.match(entry.name)
+        if m is None or _alive(int(m["pid"])):
+            continue
+        path = folder / entry.name
+        if m["kind"] == "old":
+            target = folder / m["kept"]
+            if not target.exists() and not target.is_symlink():
+                if len(entry.name.encode("utf-8", "surrogateescape")) < NAME_MAX:
+                    with contextlib.suppress(OSError):
+                        os.rename(path, target)
+                continue
+        _remove(path)
+        removed.append(path)
+    return removed
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path in ``path``'s folder; on success it replaces ``path`` atomically.
 
-    The temporary name keeps the target's suffix (``.png``, ``.ora``) so libraries that choose a
-    format by extension still do. On an exception the temporary file is removed and ``path`` is
-    left as it was.
+    The temporary keeps the target's suffix (``.png``, ``.ora``; or ``suffix``) so libraries that choose
+    a format by extension still do. On an exception (Ctrl-C and SIGTERM included) the temporary file is
+    removed and ``path`` is left as it was.
     """
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(
-        dir=target.parent, prefix=f".{target.name}.", suffix=suffix if suffix is not None else target.suffix
-    )
-    os.close(fd)
-    tmp_path = Path(tmp)
+    sweep_stale(target.parent)
+    tmp = _create(target, suffix)
     try:
-        yield tmp_path
-        os.chmod(tmp_path, umask_mode(0o666))  # mkstemp creates 0600; give what a plain open() would
-        os.replace(tmp_path, target)
+        yield tmp
+        os.chmod(tmp, umask_mode(0o666))  # created 0600 (as mkstemp does); give what a plain open() would
+        os.replace(tmp, target)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
-            tmp_path.unlink()
+            tmp.unlink()
         raise
+
+
+def _create(target: Path, suffix: str | None = None) -> Path:
+    """Create an empty temporary file for ``target`` (exclusively, mode 0600) and return its path."""
+    while True:
+        tmp = temp_path(target, "tmp", suffix)
+        try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+        except FileExistsError:
+            continue
+        return tmp
+
+
+def make_temp_folder(target: str | os.PathLike, kind: str = "tmp") -> Path:
+    """Create an empty temporary folder beside ``target`` (mode 0700, as ``mkdtemp``) and return it."""
+    target = Path(target)
+    while True:
+        tmp = temp_path(target, kind, suffix="")
+        try:
+            os.mkdir(tmp, 0o700)
+        except FileExistsError:
+            continue
+        return tmp
+
+
+def _write(path: Path, data: bytes) -> None:
+    with open(path, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (fsync before the rename, so a power cut is safe too)."""
     with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
+        _write(tmp, data)
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     """Write UTF-8 ``text`` to ``path`` atomically."""
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def _cannot_write(exc: OSError, target: Path) -> PathError:
+    return PathError(f"cannot write ({exc.strerror or exc}); expected a writable location", str(target))
+
+
+def atomic_write_all(files: Sequence[tuple[str | os.PathLike, bytes]]) -> list[Path]:
+    """Write several files all or nothing; returns their paths.
+
+    Every destination is checked first (not a folder, no two the same), then every temporary is written,
+    then all are renamed into place. A failure before the renames removes every temporary (and the
+    folders this call made) and leaves every existing output untouched; a rename failing half-way puts
+    back the outputs already replaced (each existing output is hard-linked aside before it is replaced).
+    Errors are ``PathError``s naming the user's path, never a temporary's.
+    """
+    targets = [Path(p) for p, _ in files]
+    seen: set[str] = set()
+    for t in targets:
+        key = os.path.abspath(t)
+        if key in seen:
+            raise PathError("is written twice; expected each output once", str(t))
+        seen.add(key)
+        if t.is_dir():
+            raise PathError("is a folder; expected a file path to write", str(t))
+    made: list[Path] = []  # folders this call created, deepest last
+    temps: list[Path] = []
+    asides: list[tuple[Path, Path]] = []  # (backup, target) of outputs already replaced
+    try:
+        for t in targets:
+            missing = [p for p in [t.parent, *t.parent.parents] if not p.exists()]
+            for folder in reversed(missing):
+                try:
+                    folder.mkdir()
+                except OSError as exc:
+                    raise _cannot_write(exc, t) from None
+                made.append(folder)
+        for folder in {t.parent for t in targets}:
+            sweep_stale(folder)
+        for t, (_, data) in zip(targets, files):
+            try:
+                tmp = _create(t)
+                temps.append(tmp)
+                _write(tmp, data)
+                os.chmod(tmp, umask_mode(0o666))
+            except OSError as exc:
+                raise _cannot_write(exc, t) from None
+        for t, tmp in zip(targets, temps):
+            try:
+                backup = None
+                if t.is_file():
+                    backup = temp_path(t, "old")
+                    try:
+                        os.link(t, backup)
+                    except OSError:  # no hard links here (FAT, some network shares): copy instead
+                        shutil.copy2(t, backup)
+                os.replace(tmp, t)
+            except OSError as exc:
+                if backup is not None:
+                    with contextlib.suppress(FileNotFoundError):
+                        backup.unlink()
+                raise _cannot_write(exc, t) from None
+            if backup is not None:
+                asides.append((backup, t))
+    except BaseException:
+        for backup, t in reversed(asides):
+            with contextlib.suppress(OSError):
+                os.replace(backup, t)
+        for tmp in temps:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+        for folder in reversed(made):
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
+    for backup, _ in asides:
+        with contextlib.suppress(FileNotFoundError):
+            backup.unlink()
+    return targets
+
+
+@contextlib.contextmanager
+def folder_lock(folder: str | os.PathLike) -> Iterator[None]:
+    """Hold an exclusive advisory lock (``flock``) on ``folder`` itself: no lock file to leave behind.
+
+    Only Lasagna's own writers take it; it makes a check-then-rename atomic between them. Without
+    ``fcntl`` (Windows) nothing is locked.
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock

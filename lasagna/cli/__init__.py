@@ -22,14 +22,17 @@ raise and return; they never print.
 STACK is a stack folder or its stack.json. Any bad input ends with one line on stderr,
 ``lasagna: error: <where>: <what>; expected <…>``, exit status 2, no traceback, and no output file
 touched: every output is rendered/encoded in memory and written atomically at the end. Set
-``LASAGNA_DEBUG=1`` to see the traceback of an unexpected error. Ctrl-C exits with 130.
+``LASAGNA_DEBUG=1`` to see the traceback of an unexpected error. Ctrl-C exits with 130; SIGTERM is
+handled like Ctrl-C (every temporary removed, every output as it was) and exits with 143.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
 import warnings
 from collections.abc import Sequence
 from types import ModuleType
@@ -92,12 +95,33 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the CLI; returns the exit status (0 ok, 2 bad input, 130 interrupted)."""
+    """Run the CLI; returns the exit status (0 ok, 2 bad input, 130 Ctrl-C, 143 SIGTERM)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         args = build_parser(argv).parse_args(argv)
     except SystemExit as exc:
         return int(exc.code or 0)
+    # SIGTERM is raised as Ctrl-C's KeyboardInterrupt, so every ``except BaseException`` clean-up runs
+    # (temporaries removed, outputs left as they were) before the process ends; the status says which.
+    terminated: list[int] = []
+
+    def on_sigterm(signum, frame):
+        terminated.append(signum)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not cut the clean-up short
+        raise KeyboardInterrupt
+
+    in_main_thread = threading.current_thread() is threading.main_thread()  # signal() works only there
+    previous = signal.signal(signal.SIGTERM, on_sigterm) if in_main_thread else None
+    try:
+        status = _run(args)
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+    return 128 + signal.SIGTERM if terminated else status
+
+
+def _run(args: argparse.Namespace) -> int:
+    """Run the parsed command; every failure becomes one line on stderr and its exit status."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("default")

@@ -19,7 +19,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lasagna.document import stack_file
-    from lasagna.io.folder import check_writable
+    from lasagna.io.folder import check_not_input, check_writable
     from lasagna.io.render import composite_bytes, render_stack, write_composite
     from lasagna.io.stack import load_stack
 
@@ -27,6 +27,7 @@ def run(args: argparse.Namespace) -> int:
     check_writable(out)
     reserve = lambda doc: composite_bytes(doc.canvas.width, doc.canvas.height)  # noqa: E731
     stack = load_stack(args.stack, max_pixels=args.max_pixels, reserve=reserve)
+    check_not_input([out], stack)
     result = render_stack(stack)
     write_composite(result, out)
     print(f"wrote {out} ({stack.width}x{stack.height}, {len(result.evaluated)} of {len(stack.ids)} layers composed)")

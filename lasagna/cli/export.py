@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from lasagna.cli.common import max_pixels_argument, warn
-from lasagna.errors import LasagnaError, PathError
+from lasagna.errors import LasagnaError
 
 HELP = "export a stack as OpenRaster, PSD and/or per-layer PNGs"
 
@@ -21,9 +21,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lasagna.atomic import atomic_write_bytes, atomic_write_text
+    from lasagna.atomic import atomic_write_all
     from lasagna.export.png import layer_pngs
-    from lasagna.io.folder import check_writable
+    from lasagna.io.folder import check_not_input, check_writable
     from lasagna.io.render import render_stack
     from lasagna.io.stack import load_stack
 
@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
         require_psd_tools()  # fail before any work if psd-tools is missing
     stack = load_stack(args.stack, max_pixels=args.max_pixels)
     composite = render_stack(stack).image
-    # Encode everything in memory first; write only once every output is ready.
+    # Encode everything in memory first, then write all outputs or none (lasagna.atomic.atomic_write_all).
     outputs: list[tuple[Path, bytes]] = []
     if args.ora:
         from lasagna.export.ora import encode_ora
@@ -50,22 +50,16 @@ def run(args: argparse.Namespace) -> int:
         from lasagna.export.psd import encode_psd
 
         outputs.append((Path(args.psd), encode_psd(stack, composite=composite, warn=warn)))
-    layer_files: dict[str, bytes] = {}
-    meta = None
     if args.layers:
+        folder = Path(args.layers)
         layer_files, meta = layer_pngs(stack)
-    try:
-        for path, data in outputs:
-            atomic_write_bytes(path, data)
+        outputs += [(folder / name, data) for name, data in layer_files.items()]
+        outputs.append((folder / "layers.json", (json.dumps(meta, indent=2) + "\n").encode("utf-8")))
+    check_not_input([path for path, _ in outputs], stack)
+    atomic_write_all(outputs)
+    for path in (args.ora, args.psd):
+        if path:
             print(f"wrote {path}")
-        if args.layers:
-            folder = Path(args.layers)
-            for name, data in layer_files.items():
-                atomic_write_bytes(folder / name, data)
-            atomic_write_text(folder / "layers.json", json.dumps(meta, indent=2) + "\n")
-            print(f"wrote {len(layer_files)} layer PNGs and layers.json to {folder}")
-    except OSError as exc:
-        raise PathError(
-            f"cannot write ({exc.strerror or exc}); expected a writable location", where=str(exc.filename or "output")
-        ) from None
+    if args.layers:
+        print(f"wrote {len(layer_files)} layer PNGs and layers.json to {folder}")
     return 0

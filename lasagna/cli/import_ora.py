@@ -1,11 +1,14 @@
-"""``lasagna import-ora``: read an OpenRaster file into a new stack folder."""
+"""``lasagna import-ora``: read an OpenRaster file into a new stack folder.
+
+The folder follows ``edit``'s rule (new or empty, or a stack folder replaced as a whole with ``--force``)
+and is written the same way, all or nothing (``lasagna.io.folder.write_stack_folder``).
+"""
 
 from __future__ import annotations
 
 import argparse
 
 from lasagna.cli.common import max_pixels_argument
-from lasagna.errors import PathError
 
 HELP = "read an OpenRaster file into a new stack folder"
 
@@ -19,12 +22,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lasagna.export.ora import import_ora
-    from lasagna.io.folder import check_writable
+    from lasagna.io.folder import check_output_folder, write_stack_folder
 
-    out = check_writable(args.output, folder=True)
-    if (out / "stack.json").exists() and not args.force:
-        raise PathError("already holds a stack.json; expected a new folder (or --force to overwrite)", where=str(out))
+    out = check_output_folder(args.output, force=args.force)
     stack = import_ora(args.ora, max_pixels=args.max_pixels)
-    stack.save(out)
+    write_stack_folder(stack, out, force=args.force)
     print(f"wrote {out / 'stack.json'} ({len(stack.ids)} layers, {stack.width}x{stack.height})")
     return 0

@@ -16,9 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lasagna.atomic import atomic_write_bytes, atomic_write_text
+from lasagna.atomic import atomic_write_all
 from lasagna.document import LearnedLayer, SolidLayer
-from lasagna.errors import ExportError
 from lasagna.io.png import encode_png
 from lasagna.io.stack import NOT_RENDERED, encode_layer
 
@@ -69,18 +68,10 @@ def layer_pngs(stack, *, clip: bool = False) -> tuple[dict[str, bytes], dict]:
 
 
 def export_layer_pngs(stack, folder: str | os.PathLike, *, clip: bool = False) -> list[Path]:
-    """Write every layer's raw values into ``folder`` (see the module docstring); returns the files."""
+    """Write every layer's raw values into ``folder`` (see the module docstring), all files or none
+    (``lasagna.atomic.atomic_write_all``); returns the files."""
     files, meta = layer_pngs(stack, clip=clip)
     folder = Path(folder)
-    written = []
-    try:
-        for name, data in files.items():
-            atomic_write_bytes(folder / name, data)
-            written.append(folder / name)
-        atomic_write_text(folder / "layers.json", json.dumps(meta, indent=2) + "\n")
-    except OSError as exc:
-        raise ExportError(
-            f"cannot write ({exc.strerror or exc}); expected a writable folder", where=str(folder)
-        ) from None
-    written.append(folder / "layers.json")
-    return written
+    outputs = [(folder / name, data) for name, data in files.items()]
+    outputs.append((folder / "layers.json", (json.dumps(meta, indent=2) + "\n").encode("utf-8")))
+    return atomic_write_all(outputs)

@@ -8,6 +8,10 @@ COLOR_DODGE. Opacity is stored as round(255·opacity); hidden layers are hidden.
 and each dodge pair comes an opaque white DARKEN layer, min(Cb, 1): the identity in 8/16-bit tools,
 and the clamp GIMP 2.10's float compositing otherwise skips (it keeps Cb·y > 1 for the next layer).
 The file's merged image is our exact composite, not psd-tools' own flattening.
+
+Layer names: the layer record's Pascal string is MacRoman and at most 255 bytes, so, as Photoshop does,
+it holds a lossy stand-in (``pascal_name``) and the full name goes in the Unicode layer-name block
+(``luni``), which Photoshop, GIMP, Krita and psd-tools read in its place.
 """
 
 from __future__ import annotations
@@ -58,6 +62,23 @@ def _set_merged_image(psd, merged) -> None:
         pass
 
 
+def pascal_name(name: str) -> str:
+    """The stand-in for ``name`` in a layer record's Pascal string: each character MacRoman cannot encode
+    becomes ``?`` (what psd-tools' own ``name`` setter falls back to, here per character), cut to the 255
+    bytes its length byte can count (MacRoman is one byte a character)."""
+    return "".join(c if c.encode("mac_roman", "ignore") else "?" for c in name)[:255]
+
+
+def _create_layer(psd, image, name: str, **kwargs):
+    """``psd.create_pixel_layer`` with any ``name``: the Pascal string gets ``pascal_name(name)``, the
+    Unicode layer-name block the name itself."""
+    from psd_tools.constants import Tag
+
+    layer = psd.create_pixel_layer(image, name=pascal_name(name), **kwargs)
+    layer._record.tagged_blocks.set_data(Tag.UNICODE_LAYER_NAME, name)  # the ``name`` setter refuses > 255
+    return layer
+
+
 def encode_psd(stack, *, composite: torch.Tensor | None = None, warn: Callable[[str], None] | None = None) -> bytes:
     """The layered 8-bit RGB PSD of ``stack`` as bytes (``composite``: the merged image, rendered if None)."""
     PSDImage, BlendMode = require_psd_tools()
@@ -80,9 +101,10 @@ def encode_psd(stack, *, composite: torch.Tensor | None = None, warn: Callable[[
     layers = export_layers(stack, composite.detach().cpu().double().numpy(), target="PSD", warn=warn)
     for i, layer in enumerate(layers):
         pil = Image.fromarray(layer.rgba_uint8())
-        created = psd.create_pixel_layer(
+        created = _create_layer(
+            psd,
             pil,
-            name=layer.name,
+            layer.name,
             top=layer.y,
             left=layer.x,
             opacity=int(round(255 * layer.opacity)),
@@ -95,9 +117,10 @@ def encode_psd(stack, *, composite: torch.Tensor | None = None, warn: Callable[[
             # unclamped, so a layer with alpha above it would blend with that value. An opaque
             # white "darken" layer, min(Cb, 1), clamps it there and is the identity in 8/16-bit tools.
             white = Image.new("RGBA", pil.size, (255, 255, 255, 255))
-            clamp = psd.create_pixel_layer(
+            clamp = _create_layer(
+                psd,
                 white,
-                name=f"{stack.layer(layer.source).name} (clamp to 1)",
+                f"{stack.layer(layer.source).name} (clamp to 1)",
                 top=layer.y,
                 left=layer.x,
                 blend_mode=BlendMode.DARKEN,

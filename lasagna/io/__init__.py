@@ -3,12 +3,14 @@
     png.py         read_png, decode_png, write_png, encode_png, read_png_header (bomb-safe)
     stack.py       Stack, load_stack, save_stack, stack_from_tensors
     render.py      render_stack, write_composite (the glue to the compositor)
-    folder.py      check_writable (the one writability check), check_output_folder, write_stack_folder
+    folder.py      check_writable (the one writability check), check_output_folder, write_stack_folder,
+                   check_not_input (no output onto the input stack's own files)
     checkpoint.py  networks (model.safetensors + config.json, ``Pretrained``) and training checkpoints
 
-Single-file atomic writes are the ground floor's (``lasagna.atomic``), so that the document tier uses
-them too. The tier keeps the name ``io``; the document's JSON files are ``lasagna.document.files``.
-Names are imported lazily: ``import lasagna.io`` alone loads nothing.
+Atomic writes, temporary names and the sweep of a killed writer's temporaries are the ground floor's
+(``lasagna.atomic``), so that the document tier uses them too. The tier keeps the name ``io``; the
+document's JSON files are ``lasagna.document.files``. Names are imported lazily: ``import lasagna.io``
+alone loads nothing.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ _EXPORTS = {
     "check_writable": "folder",
     "check_output_folder": "folder",
     "write_stack_folder": "folder",
+    "check_not_input": "folder",
     "Pretrained": "checkpoint",
     "save_tensors": "checkpoint",
     "load_tensors": "checkpoint",

@@ -45,7 +45,9 @@ CHECKPOINT = "checkpoint.safetensors"  # a run folder's one training checkpoint
 RUN_CONFIG = "train_config.json"  # a run folder's config, compared on resume
 # Fields that may change between invocations on one run folder: they change neither the random stream
 # nor the model (extending ``steps``, a new time budget, other logging cadences).
-RESUMABLE = frozenset({"steps", "max_minutes", "progress", "checkpoint_every", "log_every", "eval_batches"})
+RESUMABLE = frozenset(
+    {"steps", "max_minutes", "progress", "checkpoint_every", "checkpoint_minutes", "log_every", "eval_batches"}
+)
 
 C = TypeVar("C", bound=BaseModel)
 
@@ -217,9 +219,10 @@ def load_checkpoint(path: Path, fmt: str, model: nn.Module, ema, opt, rng: torch
 
 def check_same_run(out: Path, config: C) -> None:
     """Record ``config`` in ``out``; refuse to resume a folder trained with a different config
-    (fields in ``RESUMABLE`` may differ)."""
+    (fields in ``RESUMABLE`` may differ). Without a checkpoint nothing was trained (a run killed before its
+    first one): there is nothing to protect, so any config is accepted and replaces the recorded one."""
     path = out / RUN_CONFIG
-    if path.is_file():
+    if path.is_file() and (out / CHECKPOINT).is_file():
         try:
             old = type(config).model_validate_json(path.read_text(encoding="utf-8"))
         except ValidationError as exc:

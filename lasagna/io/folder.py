@@ -4,17 +4,20 @@ stack folder all or nothing.
 ``check_writable`` is the one writability check (a file to write, or a folder to write into);
 ``check_output_folder`` adds a stack folder's rules (new or empty, or replaced as a whole with
 ``force``). ``write_stack_folder`` writes everything into a temporary sibling folder and renames it
-into place (``swap_in``): a failure leaves no half-written stack and the target as it was.
+into place (``swap_in``, which checks the rule again under a lock, so two writers racing for one folder
+cannot both win): a failure leaves no half-written stack and the target as it was. ``check_not_input``
+refuses an output that is one of the input stack's own files.
 """
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
-import tempfile
 from pathlib import Path
 
-from lasagna.atomic import atomic_write_bytes, umask_mode
+from lasagna.atomic import atomic_write_bytes, folder_lock, make_temp_folder, sweep_stale, temp_path, umask_mode
+from lasagna.document import STACK_FILE
 from lasagna.errors import PathError
 from lasagna.io.render import write_composite
 from lasagna.io.stack import Stack, resolve_inside, save_stack
@@ -42,11 +45,51 @@ def check_writable(path: str | os.PathLike, *, folder: bool = False) -> Path:
     return path
 
 
+def input_files(stack: Stack) -> dict[Path, str]:
+    """The files ``stack`` was read from (resolved path → what it is): its stack.json and every file the
+    document names (layer sources, masks, generator checkpoints). Empty for a stack not from a folder."""
+    if stack.folder is None:
+        return {}
+    folder = Path(stack.folder)
+    found = {(folder / STACK_FILE).resolve(): "the input document"}
+    for i, layer in enumerate(stack.document.layers):
+        generator = getattr(layer, "generator", None)
+        refs = [
+            ("source", getattr(layer, "source", None)),
+            ("mask", getattr(layer, "mask", None)),
+            ("generator.checkpoint", generator.checkpoint if generator is not None else None),
+        ]
+        for field, rel in refs:
+            if rel:
+                found[(folder / rel).resolve()] = f"layers[{i}].{field} of the input"
+    return found
+
+
+def check_not_input(outputs, stack: Stack) -> None:
+    """Refuse writing any of ``outputs`` onto ``stack``'s own files (``input_files``): the input would be
+    overwritten by what was rendered from it. The stack's composite.png is no input and may be rewritten."""
+    inputs = input_files(stack)
+    for out in outputs:
+        out = Path(out)
+        what = inputs.get(out.resolve())
+        if what is None and out.exists():
+            what = next((w for p, w in inputs.items() if p.exists() and os.path.samefile(p, out)), None)
+        if what is not None:
+            raise PathError(f"is {what}; expected an output path that is not one of the stack's files", str(out))
+
+
 def check_output_folder(out: str | os.PathLike, *, force: bool = False) -> Path:
-    """Refuse an output stack folder that cannot be (re)written, before any work: a file, a non-empty folder
-    (unless ``force`` and it holds a stack.json: then it is replaced as a whole), an unwritable place (the
-    folder is renamed into its parent, so the parent must be writable)."""
+    """Refuse an output stack folder that cannot be (re)written, before any work: a file, a symbolic link (the
+    new folder is renamed into place, which would replace the link rather than fill the folder it points to),
+    a non-empty folder (unless ``force`` and it holds a stack.json: then it is replaced as a whole), an
+    unwritable place (the folder is renamed into its parent, so the parent must be writable)."""
     out = Path(out)
+    if out.is_symlink():
+        raise PathError(
+            f"is a symbolic link (to {os.readlink(out)}); expected a real folder or a new name "
+            "(give the link's target instead)",
+            str(out),
+        )
     if out.exists() and not out.is_dir():
         raise PathError("exists and is not a folder; expected a folder to write the stack into", str(out))
     if out.is_dir() and any(out.iterdir()):
@@ -72,15 +115,16 @@ def write_stack_folder(
     """
     out = check_output_folder(out, force=force)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    sweep_stale(out.parent)
+    tmp = make_temp_folder(out)
     old_folder = stack.folder
     try:
         save_stack(stack, tmp)
         for rel, data in (files or {}).items():
             atomic_write_bytes(resolve_inside(tmp, rel, rel), data)
         write_composite(result if result is not None else stack.render(), tmp / "composite.png")
-        os.chmod(tmp, umask_mode(0o777))  # mkdtemp makes 0700; a folder made by mkdir would not be
-        swap_in(tmp, out)
+        os.chmod(tmp, umask_mode(0o777))  # made 0700 (as mkdtemp does); a folder made by mkdir would not be
+        swap_in(tmp, out, force=force)
     except BaseException:
         stack.folder = old_folder
         shutil.rmtree(tmp, ignore_errors=True)
@@ -89,21 +133,31 @@ def write_stack_folder(
     return out
 
 
-def swap_in(tmp: Path, out: Path) -> None:
-    """Rename ``tmp`` to ``out``; an existing ``out`` (empty, or a stack when forced) is replaced."""
-    if not out.exists():
-        os.rename(tmp, out)
-        return
-    if not any(out.iterdir()):
-        out.rmdir()
-        os.rename(tmp, out)
-        return
-    aside = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
-    aside.rmdir()
-    os.rename(out, aside)
-    try:
-        os.rename(tmp, out)
-    except BaseException:
-        os.rename(aside, out)
-        raise
+def swap_in(tmp: Path, out: Path, *, force: bool = False) -> None:
+    """Rename the finished folder ``tmp`` to ``out``, race-free between Lasagna processes.
+
+    ``check_output_folder``'s rule is checked again under ``folder_lock`` on the parent, held until the
+    rename: two writers aiming at one new folder both pass the early check, and without the lock the second
+    would replace the first's stack as if forced. The loser gets the rule's ``PathError`` and its own
+    folder is removed by the caller; nothing of the winner's is touched. An empty ``out`` is replaced by
+    the rename itself (POSIX renames onto an empty folder); a forced stack is renamed aside first, and put
+    back if the second rename fails.
+    """
+    with folder_lock(out.parent):
+        check_output_folder(out, force=force)
+        if not out.exists() or not any(out.iterdir()):
+            try:
+                os.rename(tmp, out)
+            except OSError as exc:
+                if exc.errno in (errno.ENOTEMPTY, errno.EEXIST):  # filled by a writer that took no lock
+                    raise PathError("is not empty; expected a new or empty folder", str(out)) from None
+                raise
+            return
+        aside = temp_path(out, "old")
+        os.rename(out, aside)
+        try:
+            os.rename(tmp, out)
+        except BaseException:
+            os.rename(aside, out)
+            raise
     shutil.rmtree(aside, ignore_errors=True)

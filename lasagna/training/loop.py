@@ -11,8 +11,9 @@ Start again with the same ``out_dir`` after a kill and training continues from t
 with the same random stream: every random draw of a step (data, t, ε, dropout) must come from the one
 ``torch.Generator`` the loop passes to ``step_fn``, whose state is checkpointed, so a resumed run
 reproduces the uninterrupted one bit for bit. ``max_minutes`` bounds one invocation; the run then
-checkpoints and stops, and the next invocation continues. The checkpoint's format and the run folder's
-config check are ``lasagna.io.checkpoint``'s.
+checkpoints and stops, and the next invocation continues. A checkpoint is written every
+``checkpoint_every`` steps or ``checkpoint_minutes`` minutes, whichever comes first. The checkpoint's
+format and the run folder's config check are ``lasagna.io.checkpoint``'s.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import torch.distributed as dist
 from pydantic import BaseModel, ConfigDict, Field
 from tqdm.auto import tqdm
 
-from lasagna.atomic import atomic_write_text
+from lasagna.atomic import atomic_write_text, sweep_stale
 from lasagna.distill.schedules import cosine_interp
 from lasagna.errors import LasagnaError
 from lasagna.io.checkpoint import CHECKPOINT, check_same_run, load_checkpoint, save_checkpoint
@@ -65,6 +66,12 @@ class LoopConfig(BaseModel):
         "the initial weights within the run (without it, 0.999^steps of them remain: 22 % after 1 500 steps)",
     )
     checkpoint_every: int = Field(500, ge=1)
+    checkpoint_minutes: float | None = Field(
+        5.0,
+        gt=0.0,
+        description="also checkpoint when this many minutes passed since the last one (whichever of this and "
+        "checkpoint_every comes first): a kill loses at most this much work however slow the steps",
+    )
     log_every: int = Field(10, ge=1)
     max_minutes: float | None = Field(None, gt=0.0)
     seed: int = 0
@@ -229,8 +236,7 @@ def train_loop(
         except LasagnaError as exc:
             error = exc
         else:
-            for stale in out.glob(f".{CHECKPOINT}.*"):  # temporaries of a write killed half-way (ours only)
-                stale.unlink()
+            sweep_stale(out)  # temporaries of a write killed half-way
     if not _all_agree(error is None, device):  # every process stops, not only the one that saw the error
         raise error or LasagnaError("rank 0 refused to resume this run; see its error", str(out))
 
@@ -253,6 +259,7 @@ def train_loop(
         log_path.unlink()
 
     start, saved_at, stopped = time.monotonic(), step, "done"
+    saved_time = start
     bar = tqdm(
         total=loop.steps, initial=step, desc=desc, disable=not (loop.progress and info.is_main), dynamic_ncols=True
     )
@@ -294,10 +301,11 @@ def train_loop(
                 if log is not None:
                     log.write(json.dumps(rec) + "\n")
                     log.flush()
-            if step % loop.checkpoint_every == 0:
+            due = loop.checkpoint_minutes is not None and time.monotonic() - saved_time > loop.checkpoint_minutes * 60
+            if step % loop.checkpoint_every == 0 or due:  # only rank 0 writes: the clocks need not agree
                 if info.is_main:
                     save_checkpoint(ckpt, checkpoint_format, step, run_config, model, ema, opt, rng)
-                saved_at = step
+                saved_at, saved_time = step, time.monotonic()
     finally:
         bar.close()
         if log is not None:

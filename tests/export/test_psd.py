@@ -91,3 +91,32 @@ def test_missing_psd_tools_says_how_to_install(tmp_path, monkeypatch):
     with pytest.raises(ExportError, match=r"pip install 'lasagna\[psd\]'"):
         export_psd(Stack.from_image(torch.rand(3, 2, 2)), tmp_path / "x.psd")
     assert not (tmp_path / "x.psd").exists()
+
+
+@pytest.mark.parametrize("name", ["名前", "😀", "Ünïcode ✓", "n" * 300, "名" * 200])
+def test_any_layer_name_survives(tmp_path, name):
+    """The Pascal-string name is MacRoman and at most 255 bytes: it gets a lossy stand-in, and the full name
+    goes in the Unicode layer-name block (luni), which psd-tools (like Photoshop) reads in its place."""
+    from psd_tools.constants import Tag
+
+    from lasagna.export.psd import pascal_name
+
+    stack = Stack.from_image(torch.rand(3, 4, 5))
+    stack.add_layer("glow", torch.full((3, 4, 5), 0.2), blend="plus", name=name)
+    psd = PSDImage.open(export_psd(stack, tmp_path / "x.psd"))
+    names = [layer.name for layer in psd]
+    assert names == ["Background", "base", name, f"{name} (clamp to 1)"]
+    record = list(psd)[2]._record
+    assert record.tagged_blocks.get_data(Tag.UNICODE_LAYER_NAME) == name
+    assert record.name == pascal_name(name) and len(record.name.encode("mac_roman")) <= 255
+    assert pascal_name("名前 ü") == "?? ü" and pascal_name("é" * 300) == "é" * 255
+
+
+def test_japanese_names_from_an_ora_reach_the_psd(tmp_path):
+    from lasagna.export.ora import export_ora, import_ora
+
+    stack = Stack.from_image(torch.rand(3, 4, 5))
+    stack.add_layer("kage", torch.full((1, 4, 5), 0.5), blend="multiply", name="影の層")
+    back = import_ora(export_ora(stack, tmp_path / "k.ora"))
+    psd = PSDImage.open(export_psd(back, tmp_path / "k.psd"))
+    assert "影の層" in [layer.name for layer in psd]

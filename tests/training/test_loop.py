@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from lasagna.training import LoopConfig, train_loop
+from lasagna.training.loop import read_log
 
 
 def _run(tmp_path, **kw) -> tuple[list[float], float]:
@@ -53,3 +54,60 @@ def test_ema_at():
     loop = LoopConfig(ema_decay=0.999, ema_warmup=True)
     assert loop.ema_at(0) == pytest.approx(0.1) and loop.ema_at(90) == pytest.approx(91 / 100)
     assert loop.ema_at(10**6) == 0.999 and LoopConfig(ema_decay=0.999).ema_at(0) == 0.999
+
+
+# ---- checkpoints: by time as well as by steps; a run killed before its first one -------------------------
+class _Killed(Exception):
+    pass
+
+
+def _train(out, *, kill_at: int | None = None, steps: int = 12, **kw) -> torch.nn.Module:
+    """Adam on a two-weight model with random draws from the loop's generator; ``kill_at``: raise there."""
+    torch.manual_seed(0)
+    model = torch.nn.Linear(2, 1, bias=False)
+
+    def step_fn(net, gen, step):
+        if step == kill_at:
+            raise _Killed
+        x = torch.randn(4, 2, generator=gen)
+        return (net(x) - 1).pow(2).mean(), {}
+
+    kw.setdefault("checkpoint_every", 1000)
+    loop = LoopConfig(steps=steps, lr=0.05, progress=False, **kw)
+    return train_loop(model, step_fn, loop, loop, out, checkpoint_format="test").model
+
+
+def _checkpoint_step(out) -> int:
+    from lasagna.io.checkpoint import load_tensors
+
+    return int(load_tensors(out / "checkpoint.safetensors")[1]["step"])
+
+
+def test_checkpoints_by_time_and_resumes_bit_for_bit(tmp_path):
+    full = _train(tmp_path / "full", checkpoint_minutes=None)
+    with pytest.raises(_Killed):  # every 1000 steps or ~every step by the clock: by the clock comes first
+        _train(tmp_path / "split", kill_at=7, checkpoint_minutes=1e-9)
+    assert _checkpoint_step(tmp_path / "split") == 7
+    resumed = _train(tmp_path / "split", checkpoint_minutes=None)  # checkpoint_minutes may change on resume
+    assert torch.equal(full.weight, resumed.weight)
+
+
+def test_no_time_checkpoint_when_disabled(tmp_path):
+    with pytest.raises(_Killed):
+        _train(tmp_path, kill_at=7, checkpoint_minutes=None)
+    assert not (tmp_path / "checkpoint.safetensors").exists()
+    assert LoopConfig().checkpoint_minutes == 5.0
+
+
+def test_a_run_killed_before_its_first_checkpoint_takes_another_config(tmp_path):
+    import json
+
+    with pytest.raises(_Killed):
+        _train(tmp_path, kill_at=5, checkpoint_minutes=None, seed=1, log_every=2)
+    assert [r["step"] for r in read_log(tmp_path)] == [2, 4]
+    assert (tmp_path / "train_config.json").is_file() and not (tmp_path / "checkpoint.safetensors").exists()
+    _train(tmp_path, checkpoint_minutes=None, seed=2)  # nothing was trained: a new config is accepted
+    assert json.loads((tmp_path / "train_config.json").read_text())["seed"] == 2
+    assert [r["step"] for r in read_log(tmp_path)] == [10]  # the killed run's log (steps 2, 4) is gone
+    with pytest.raises(Exception, match="different seed"):  # once trained, the folder is that run's
+        _train(tmp_path, checkpoint_minutes=None, seed=3)

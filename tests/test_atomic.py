@@ -1,0 +1,157 @@
+"""Atomic writes: temporary names (recognisable, owner's pid, within NAME_MAX, suffix kept), the sweep of a
+dead owner's temporaries (a ``tmp`` removed, an ``old`` put back or removed), and ``atomic_write_all``
+(every output or none, errors naming the user's path)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from lasagna import atomic
+from lasagna.atomic import NAME_MAX, atomic_write_all, atomic_write_bytes, make_temp_folder, sweep_stale, temp_path
+from lasagna.errors import PathError
+
+
+@pytest.fixture(scope="module")
+def dead_pid() -> int:
+    """The pid of a process that has exited (and been reaped)."""
+    child = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    return int(child.stdout)
+
+
+def stale(folder, name: str, pid: int, kind: str = "tmp", suffix: str = "", *, is_folder: bool = False):
+    """A temporary as ``temp_path`` names it, but owned by ``pid``."""
+    path = folder / f".{name}.lasagna-{pid}-0123abcd.{kind}{suffix}"
+    if is_folder:
+        path.mkdir()
+        (path / "inside.png").write_bytes(b"x" * 10)
+    else:
+        path.write_bytes(b"half-written")
+    return path
+
+
+def temporaries(folder) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if ".lasagna-" in p.name)
+
+
+class TestTempPath:
+    def test_names_the_owner_and_keeps_the_suffix(self, tmp_path):
+        tmp = temp_path(tmp_path / "out.png")
+        assert tmp.parent == tmp_path and tmp.name.startswith(".out.png.lasagna-")
+        assert f"-{os.getpid()}-" in tmp.name and tmp.name.endswith(".tmp.png")
+        assert atomic._TEMP.match(tmp.name)["kept"] == "out.png"
+        assert temp_path(tmp_path / "out.png") != tmp  # random part
+
+    @pytest.mark.parametrize("name", ["a" * 244 + ".png", "名" * 83 + ".png", "😀" * 62 + ".psd", "a" * 255])
+    def test_stays_within_name_max(self, tmp_path, name):
+        assert len(name.encode()) <= NAME_MAX
+        tmp = temp_path(tmp_path / name)
+        assert len(tmp.name.encode()) <= NAME_MAX
+        assert tmp.name.endswith(".tmp" + (os.path.splitext(name)[1]))
+        tmp.name.encode("utf-8")  # cut on a character boundary, never inside one
+
+    def test_a_legal_long_name_can_be_written(self, tmp_path):
+        target = tmp_path / ("b" * 248 + ".png")
+        atomic_write_bytes(target, b"data")
+        assert target.read_bytes() == b"data" and temporaries(tmp_path) == []
+
+    def test_temp_folder(self, tmp_path):
+        folder = make_temp_folder(tmp_path / "out")
+        assert folder.is_dir() and folder.name.endswith(".tmp") and (folder.stat().st_mode & 0o777) == 0o700
+
+
+class TestSweepStale:
+    def test_removes_a_dead_owners_temporaries(self, tmp_path, dead_pid):
+        a = stale(tmp_path, "x.ora", dead_pid, suffix=".ora")
+        b = stale(tmp_path, "out", dead_pid, is_folder=True)
+        assert sorted(sweep_stale(tmp_path)) == sorted([a, b])
+        assert temporaries(tmp_path) == []
+
+    def test_keeps_live_owners_temporaries(self, tmp_path):
+        mine = stale(tmp_path, "x.png", os.getpid(), suffix=".png")
+        parent = stale(tmp_path, "y.png", os.getppid(), suffix=".png")  # alive (our parent)
+        init = stale(tmp_path, "z.png", 1, suffix=".png")  # alive; signalling it is not permitted unless root
+        assert sweep_stale(tmp_path) == []
+        assert mine.exists() and parent.exists() and init.exists()
+
+    def test_ignores_other_files(self, tmp_path, dead_pid):
+        names = [".x.png.12345.png", "x.lasagna-1-0123abcd.tmp", f".x.lasagna-{dead_pid}-0123abcd.bak", "plain.png"]
+        for name in names:
+            (tmp_path / name).write_bytes(b"keep")
+        sweep_stale(tmp_path)
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(names)
+
+    def test_an_old_folder_whose_target_is_missing_is_put_back(self, tmp_path, dead_pid):
+        # The owner died between renaming the user's stack aside and renaming the new one in.
+        aside = stale(tmp_path, "out", dead_pid, kind="old", is_folder=True)
+        new = stale(tmp_path, "out", dead_pid, is_folder=True)
+        sweep_stale(tmp_path)
+        assert (tmp_path / "out" / "inside.png").is_file() and not aside.exists() and not new.exists()
+
+    def test_an_old_whose_target_exists_is_removed(self, tmp_path, dead_pid):
+        (tmp_path / "out").mkdir()
+        aside = stale(tmp_path, "out", dead_pid, kind="old", is_folder=True)
+        sweep_stale(tmp_path)
+        assert not aside.exists() and (tmp_path / "out").is_dir() and not any((tmp_path / "out").iterdir())
+
+    def test_atomic_write_sweeps_first(self, tmp_path, dead_pid):
+        stale(tmp_path, "x.png", dead_pid, suffix=".png")
+        atomic_write_bytes(tmp_path / "x.png", b"new")
+        assert temporaries(tmp_path) == [] and (tmp_path / "x.png").read_bytes() == b"new"
+
+
+class TestAtomicWriteAll:
+    def test_writes_every_file_and_makes_folders(self, tmp_path):
+        files = [(tmp_path / "a.ora", b"A"), (tmp_path / "L" / "masks" / "m.png", b"M"), (tmp_path / "L" / "j", b"J")]
+        assert atomic_write_all(files) == [p for p, _ in files]
+        assert [p.read_bytes() for p, _ in files] == [b"A", b"M", b"J"]
+        assert temporaries(tmp_path) == temporaries(tmp_path / "L") == []
+
+    def test_a_folder_in_the_way_writes_nothing(self, tmp_path):
+        (tmp_path / "keep.ora").write_bytes(b"old")
+        (tmp_path / "L" / "shade.png").mkdir(parents=True)
+        with pytest.raises(PathError, match=r"L/shade\.png: is a folder"):
+            atomic_write_all([(tmp_path / "keep.ora", b"new"), (tmp_path / "L" / "shade.png", b"x")])
+        assert (tmp_path / "keep.ora").read_bytes() == b"old" and temporaries(tmp_path) == []
+
+    def test_the_same_output_twice_is_refused(self, tmp_path):
+        with pytest.raises(PathError, match="written twice"):
+            atomic_write_all([(tmp_path / "a", b"1"), (tmp_path / "." / "a", b"2")])
+        assert not (tmp_path / "a").exists()
+
+    def test_a_failed_write_removes_every_temporary_and_made_folder(self, tmp_path, monkeypatch):
+        (tmp_path / "keep.ora").write_bytes(b"old")
+        real = atomic._write
+
+        def full_disk(path, data):
+            if data == b"second":
+                raise OSError(28, "No space left on device", str(path))
+            real(path, data)
+
+        monkeypatch.setattr(atomic, "_write", full_disk)
+        with pytest.raises(PathError) as info:
+            atomic_write_all([(tmp_path / "keep.ora", b"first"), (tmp_path / "new" / "x.png", b"second")])
+        assert str(info.value).startswith(f"{tmp_path / 'new' / 'x.png'}: cannot write (No space left on device)")
+        assert (tmp_path / "keep.ora").read_bytes() == b"old"
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.ora"]
+
+    def test_a_failed_rename_puts_back_what_was_replaced(self, tmp_path, monkeypatch):
+        a, b = tmp_path / "a.ora", tmp_path / "b.psd"
+        a.write_bytes(b"old a")
+        b.write_bytes(b"old b")
+        real = os.replace
+
+        def failing(src, dst):
+            if str(dst) == str(b):
+                raise OSError(5, "Input/output error", str(src))
+            real(src, dst)
+
+        monkeypatch.setattr(atomic.os, "replace", failing)
+        with pytest.raises(PathError, match=r"b\.psd: cannot write"):
+            atomic_write_all([(a, b"new a"), (b, b"new b")])
+        monkeypatch.undo()
+        assert a.read_bytes() == b"old a" and b.read_bytes() == b"old b"
+        assert temporaries(tmp_path) == []
