@@ -402,6 +402,24 @@ def render_learned(
     return stack, rendered
 
 
+def _confined_ref(stack: Stack, ref: str | None, where: str) -> str | None:
+    """A stored prior/corrective reference as ``render`` may follow it: a catalogue name, or a relative
+    path inside the stack folder. Anything else is refused before the filesystem is asked about it, so
+    the message says nothing about what exists outside the folder."""
+    if ref is None or ("/" not in ref and "\\" not in ref):
+        return ref
+    parts = ref.replace("\\", "/").split("/")
+    if ref.startswith(("/", "\\")) or ":" in parts[0] or ".." in parts or stack.folder is None:
+        raise PathError(
+            f"{ref!r} is not a catalogue name or a relative path inside the stack folder; expected one of those",
+            where,
+        )
+    try:
+        return str(resolve_inside(stack.folder, ref, where))
+    except PathError:
+        raise PathError(f"{ref!r} leaves the stack folder (through a link); expected a path inside it", where) from None
+
+
 def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) -> LayerRun:
     """A learned layer made again from what the stack stores (see ``render_learned``)."""
     where = f"layer {layer.id!r}"
@@ -428,9 +446,24 @@ def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) 
                 "the generator's weights do not match the recorded sha256; expected the file the layer was made with",
                 f"{where}.generator.checkpoint",
             )
+        config = ckpt.parent / "config.json"
+        if layer.generator.config_sha256 is not None:
+            if not config.is_file() or file_sha256(config) != layer.generator.config_sha256:
+                raise LasagnaError(
+                    "the generator's config.json does not match the recorded config_sha256; expected the config "
+                    "the layer was made with",
+                    f"{where}.generator.config_sha256",
+                )
+        elif layer.generator.sha256 is not None:
+            warnings.warn(
+                f"{where}: the generator's config.json is under no checksum (a stack written before config_sha256); "
+                "its vocabulary is trusted as found",
+                stacklevel=2,
+            )
         generator_dir = ckpt.parent
     base = conditioning_input(stack, layer.conditioned_on)
-    refs = {k: getattr(s, k) for k in ("prior", "corrective") if getattr(s, k) is not None}
+    refs = {k: _confined_ref(stack, getattr(s, k), f"{where}.settings.{k}") for k in ("prior", "corrective")}
+    refs = {k: v for k, v in refs.items() if v is not None}
     run = make_layer(
         base,
         resolved,

@@ -25,6 +25,7 @@ from lasagna.distill import DistillSettings
 from lasagna.document import LearnedLayer
 from lasagna.errors import ConditionError, DocumentError, LasagnaError, describe_validation_error
 from lasagna.io.stack import Stack
+from lasagna.limits import MAX_DISTILL_STEPS
 
 GENERATORS_DIR = "generators"  # <stack>/generators/<layer id>/: copies of the generators a stack uses
 
@@ -57,7 +58,7 @@ class LayerSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     method: Method | None = Field(None, description="amortised (the preset's generator) or per-image.")
-    optimize: int | None = Field(None, ge=0, strict=True, description="Per-image steps.")
+    optimize: int | None = Field(None, ge=0, le=MAX_DISTILL_STEPS, strict=True, description="Per-image steps.")
     prior: str | None = Field(None, description="The prior scored against, by catalogue name or path.")
     prior_sha256: str | None = Field(None, description="SHA-256 of the prior's model.safetensors.")
     corrective: str | None = Field(None, description="The LMC-SDS corrective, when the loss used one.")
@@ -262,7 +263,12 @@ def make_layer(
             initial = net(x, [label]).float()
         rel = f"{GENERATORS_DIR}/{layer_id}"
         files = {f"{rel}/model.safetensors": weights, f"{rel}/config.json": config}
-        gen_ref = {"checkpoint": f"{rel}/model.safetensors", "sha256": _sha256(weights)}
+        # Weights and config under checksums both: the config's vocabulary says which label is which.
+        gen_ref = {
+            "checkpoint": f"{rel}/model.safetensors",
+            "sha256": _sha256(weights),
+            "config_sha256": _sha256(config),
+        }
     settings = LayerSettings(method=method, optimize=optimize, working_size=side)
     history: list[dict[str, Any]] = []
     stopped = None

@@ -42,6 +42,17 @@ MAX_JSON_DEPTH = 64
 # No field of a document needs an integer of more than 12 digits (sides ≤ 32768, seeds < 2⁶³ fit in 19).
 MAX_INT_DIGITS = 20
 
+# Compute a document may ask ``lasagna render`` for: per-image steps (every measured run of docs/BENCHMARKS.md
+# stops before 600; 10 000 is ~2 minutes at 64² on this CPU) and random crops per step.
+MAX_DISTILL_STEPS = 10_000
+MAX_CROPS_PER_STEP = 16
+# A layer generator's shape as its config.json may state it: the catalogue's are 4 levels of at most 192
+# channels; these bounds keep a hostile config's weights under ~1 GB before anything is allocated.
+MAX_GENERATOR_WIDTH = 1024
+MAX_GENERATOR_LEVELS = 6
+MAX_GENERATOR_BLOCKS = 8
+MAX_VOCABULARY = 1024
+
 _UNITS = {"": 1, "B": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 _SIZE = re.compile(r"^\s*([0-9]+(?:\.[0-9]+)?)\s*([KMGT]?)(?:I?B)?\s*$", re.IGNORECASE)
 
@@ -122,16 +133,35 @@ def out_of_memory(exc: BaseException, where: str) -> BudgetError:
     )
 
 
+# What torch's CPU and CUDA allocators say when an allocation fails (a RuntimeError, or its subclass
+# torch.OutOfMemoryError), matched here so this module needs no torch.
+_OOM_MESSAGES = ("can't allocate memory", "out of memory", "not enough memory")
+
+
+def is_out_of_memory(exc: BaseException) -> bool:
+    """Whether ``exc`` is a failed allocation (``MemoryError``, or torch's allocator's RuntimeError)."""
+    if isinstance(exc, MemoryError):
+        return True
+    return type(exc).__name__ == "OutOfMemoryError" or any(m in str(exc).lower() for m in _OOM_MESSAGES)
+
+
 __all__ = [
     "DEFAULT_MEMORY_BUDGET",
     "FLOAT_BYTES",
+    "MAX_CROPS_PER_STEP",
+    "MAX_DISTILL_STEPS",
     "MAX_DOCUMENT_BYTES",
+    "MAX_GENERATOR_BLOCKS",
+    "MAX_GENERATOR_LEVELS",
+    "MAX_GENERATOR_WIDTH",
+    "MAX_VOCABULARY",
     "MAX_INT_DIGITS",
     "MAX_JSON_DEPTH",
     "MEMORY_BUDGET_ENV",
     "BudgetError",
     "check_memory",
     "format_size",
+    "is_out_of_memory",
     "memory_budget",
     "memory_budget_scope",
     "out_of_memory",

@@ -56,6 +56,7 @@ from lasagna.cli import (
 )
 from lasagna.cli.common import PROG, add_command, one_line, warn
 from lasagna.errors import LasagnaError, describe_validation_error
+from lasagna.limits import is_out_of_memory, memory_budget_scope, out_of_memory
 from lasagna.version import __version__
 
 # The subcommands in the order ``lasagna --help`` lists them.
@@ -123,7 +124,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     """Run the parsed command; every failure becomes one line on stderr and its exit status."""
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), memory_budget_scope(getattr(args, "memory_budget", None)):
             warnings.simplefilter("default")
             warnings.showwarning = lambda message, *a, **k: warn(one_line(str(message)))  # type: ignore[assignment]
             return args.run(args)
@@ -135,8 +136,16 @@ def _run(args: argparse.Namespace) -> int:
     except ValidationError as err:  # a config built from the arguments broke a rule of its model
         print(f"{PROG}: error: {one_line(str(describe_validation_error(err, prefix=args.command)))}", file=sys.stderr)
         return 2
-    except MemoryError:
-        print(f"{PROG}: error: out of memory; expected a smaller stack (see --max-pixels)", file=sys.stderr)
+    except MemoryError as err:  # an allocation the budget's estimate did not foresee
+        print(f"{PROG}: error: {one_line(str(out_of_memory(err, args.command)))}", file=sys.stderr)
+        return 2
+    except RecursionError:  # a structure nested past Python's stack (the JSON readers refuse this first)
+        print(f"{PROG}: error: {args.command}: input nested too deeply; expected a flatter input", file=sys.stderr)
+        return 2
+    except RuntimeError as err:
+        if not is_out_of_memory(err):
+            return _internal_error(err)
+        print(f"{PROG}: error: {one_line(str(out_of_memory(err, args.command)))}", file=sys.stderr)
         return 2
     except OSError as err:
         where = err.filename or "I/O"
@@ -146,11 +155,15 @@ def _run(args: argparse.Namespace) -> int:
         )
         return 2
     except Exception as err:  # a bug, not bad input: still one line, the traceback on request
-        if os.environ.get("LASAGNA_DEBUG"):
-            raise
-        print(
-            f"{PROG}: error: internal error ({type(err).__name__}: {one_line(str(err))}); "
-            "expected none: please report it (LASAGNA_DEBUG=1 shows the traceback)",
-            file=sys.stderr,
-        )
-        return 2
+        return _internal_error(err)
+
+
+def _internal_error(err: Exception) -> int:
+    if os.environ.get("LASAGNA_DEBUG"):
+        raise err
+    print(
+        f"{PROG}: error: internal error ({type(err).__name__}: {one_line(str(err))}); "
+        "expected none: please report it (LASAGNA_DEBUG=1 shows the traceback)",
+        file=sys.stderr,
+    )
+    return 2

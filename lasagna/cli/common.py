@@ -50,7 +50,44 @@ def distill_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--seed", type=int, metavar="S", help="seed of the per-image run (default: the preset's)")
     p.add_argument("--lr", type=float, help="Adam learning rate of the per-image run (default: the preset's)")
-    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    device_argument(p)
+
+
+def torch_device(text: str) -> str:
+    """``--device``'s type: a device torch can name *and* this machine has (checked at parse time, so a
+    bogus name or CUDA on a CPU-only machine is one line, not a failure after loading everything)."""
+    import torch
+
+    try:
+        device = torch.device(text)
+    except (RuntimeError, ValueError):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a torch device; expected cpu, cuda, cuda:N or mps") from None
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise argparse.ArgumentTypeError(f"{text!r}: this machine has no CUDA device; expected cpu")
+        if device.index is not None and device.index >= count:
+            raise argparse.ArgumentTypeError(f"{text!r}: this machine has {count} CUDA device(s); expected cuda:0..")
+    elif device.type == "mps":
+        if not torch.backends.mps.is_available():
+            raise argparse.ArgumentTypeError(f"{text!r}: MPS is not available here; expected cpu")
+    elif device.type != "cpu":
+        raise argparse.ArgumentTypeError(f"{text!r} is not supported; expected cpu, cuda, cuda:N or mps")
+    return text
+
+
+def device_argument(p: argparse.ArgumentParser, default: str | None = "cpu", help: str = "torch device (default cpu)"):
+    """``--device``, checked against this machine (``torch_device``)."""
+    p.add_argument("--device", type=torch_device, default=default, help=help)
+
+
+def memory_budget_argument(p: argparse.ArgumentParser) -> None:
+    """``--memory-budget``: every command's ceiling on what it may allocate (``lasagna.limits``)."""
+    p.add_argument(
+        "--memory-budget",
+        metavar="SIZE",
+        help="refuse work estimated to need more memory than SIZE, e.g. 12G (default $LASAGNA_MEMORY_BUDGET, else 8G)",
+    )
 
 
 def add_command(subparsers, name: str, command, *, arguments: bool = True) -> argparse.ArgumentParser:
@@ -59,5 +96,6 @@ def add_command(subparsers, name: str, command, *, arguments: bool = True) -> ar
     p = subparsers.add_parser(name, help=command.HELP, description=command.HELP)
     if arguments:
         command.add_arguments(p)
+        memory_budget_argument(p)
     p.set_defaults(run=command.run)
     return p

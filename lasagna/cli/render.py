@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from lasagna.cli.common import progress, warn
+from lasagna.cli.common import device_argument, progress, warn
 from lasagna.errors import PathError
 
 HELP = "render a stack's learned layers from their stored generator and settings"
@@ -14,7 +14,7 @@ HELP = "render a stack's learned layers from their stored generator and settings
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("stack", help="stack folder or its stack.json")
     p.add_argument("--all", action="store_true", help="re-render every learned layer, not only those without pixels")
-    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    device_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:

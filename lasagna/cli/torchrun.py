@@ -17,6 +17,7 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
+from lasagna.cli.common import device_argument
 from lasagna.errors import LasagnaError, describe_validation_error
 
 
@@ -28,7 +29,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--config", required=True, help="AmortisedConfig as JSON")
     p.add_argument("--out", required=True, help="run folder; run again with the same folder to resume")
-    p.add_argument("--device", default=None)
+    device_argument(p, default=None, help="torch device (default cuda if available, else cpu)")
     args = p.parse_args(argv)
     try:
         config = AmortisedConfig.model_validate_json(Path(args.config).read_text(encoding="utf-8"))

@@ -7,6 +7,7 @@ import argparse
 import importlib
 import json
 
+from lasagna.cli.common import device_argument
 from lasagna.errors import LasagnaError
 
 HELP = "train the LMC-SDS manifold corrective b̂ of a prior (resumable)"
@@ -73,7 +74,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--eval-batches", type=int, default=8)
     p.add_argument("--max-minutes", type=float, default=None)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cpu")
+    device_argument(p)
     p.add_argument("--no-progress", action="store_true")
 
 

@@ -7,7 +7,7 @@ import argparse
 import json
 from pathlib import Path
 
-from lasagna.cli.common import loss_argument, progress
+from lasagna.cli.common import device_argument, loss_argument, progress
 from lasagna.errors import LasagnaError
 
 HELP = "train a preset's amortised layer generator on the world (resumable)"
@@ -57,7 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="copy the trained generator into the preset's catalogue folder (<catalogue>/<preset>/generator/)",
     )
-    p.add_argument("--device", default=None, help="torch device (default cuda if available, else cpu)")
+    device_argument(p, default=None, help="torch device (default cuda if available, else cpu)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -32,6 +32,7 @@ from lasagna.distill.schedules import Ramp, Weights
 from lasagna.document.preset import LossName
 from lasagna.errors import describe_validation_error
 from lasagna.generators.layer import LayerSpec
+from lasagna.limits import MAX_CROPS_PER_STEP, MAX_DISTILL_STEPS
 
 
 class PatchConfig(BaseModel):
@@ -43,7 +44,10 @@ class PatchConfig(BaseModel):
         0.4, ge=0.0, le=1.0, description="Fraction of the steps on the whole image, downsampled."
     )
     per_step: int = Field(
-        1, ge=1, description="Random crops of the prior's size per image per step (LMC-SDS synthesis: 2)."
+        1,
+        ge=1,
+        le=MAX_CROPS_PER_STEP,
+        description="Random crops of the prior's size per image per step (LMC-SDS synthesis: 2).",
     )
 
 
@@ -53,8 +57,8 @@ class EarlyStop(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    window: int = Field(20, ge=2)
-    min_steps: int = Field(60, ge=0, description="No stop before this many steps of the run.")
+    window: int = Field(20, ge=2, le=MAX_DISTILL_STEPS)
+    min_steps: int = Field(60, ge=0, le=MAX_DISTILL_STEPS, description="No stop before this many steps of the run.")
     rtol: float = Field(0.02, ge=0.0, lt=1.0)
 
 
@@ -72,7 +76,7 @@ class DistillSettings(BaseModel):
     loss: LossName = "lmc-sds"
     loss_options: dict[str, Any] = Field(default_factory=dict, description="Extra options of the loss's Options model.")
     guidance: float = Field(1.0, gt=0.0, description="ω in ε_u + ω(ε_c − ε_u).")
-    steps: int = Field(150, ge=1)
+    steps: int = Field(150, ge=1, le=MAX_DISTILL_STEPS, description="Steps (a document cannot ask for more).")
     lr: float = Field(0.03, gt=0.0, description="Adam learning rate at the first step.")
     lr_final: float = Field(0.8, gt=0.0, le=1.0, description="lr multiplier reached at the last step (cosine).")
     grad_clip: float | None = Field(None, gt=0.0, description="Clip the parameters' global gradient norm to this.")
@@ -83,7 +87,9 @@ class DistillSettings(BaseModel):
     patches: PatchConfig = PatchConfig()
     early_stop: EarlyStop | None = EarlyStop()
     condition_image: ConditionImage = "auto"
-    checkpoint_every: int = Field(50, ge=1, description="Steps between checkpoints when a checkpoint folder is given.")
+    checkpoint_every: int = Field(
+        50, ge=1, le=MAX_DISTILL_STEPS, description="Steps between checkpoints when a checkpoint folder is given."
+    )
 
     @model_validator(mode="after")
     def _check(self) -> DistillSettings:

@@ -78,6 +78,11 @@ class GeneratorRef(StrictModel):
 
     checkpoint: RelativePath = Field(description="Relative POSIX path of the generator's safetensors file.")
     sha256: Sha256 | None = Field(None, description="Lower-case hex SHA-256 of the checkpoint, checked on load.")
+    config_sha256: Sha256 | None = Field(
+        None,
+        description="Lower-case hex SHA-256 of the config.json beside the checkpoint (its vocabulary maps labels "
+        "to the weights' inputs), checked on load.",
+    )
 
 
 def _layer_schema(schema: dict[str, Any]) -> None:

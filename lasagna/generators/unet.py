@@ -37,6 +37,7 @@ from torch import Tensor, nn
 from lasagna.errors import ConditionError, LasagnaError
 from lasagna.generators.layer import LayerSpec, activate
 from lasagna.io.checkpoint import Pretrained
+from lasagna.limits import MAX_GENERATOR_BLOCKS, MAX_GENERATOR_LEVELS, MAX_GENERATOR_WIDTH, MAX_VOCABULARY
 from lasagna.priors.nn import frequency_encoding
 
 FORMAT = "lasagna.layer_generator"
@@ -48,15 +49,25 @@ class LayerGeneratorConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     layer: LayerSpec = Field(description="The edit layer it produces (blend, channels, range, squash).")
-    vocabulary: tuple[str, ...] = Field(min_length=1, description="Condition labels, in index order.")
-    channels: tuple[int, ...] = Field(
-        (16, 32, 64, 128), min_length=1, description="Feature widths per level; the last is the bottleneck."
+    # The bounds (lasagna.limits) keep a hostile config.json from asking for gigabytes of weights.
+    vocabulary: tuple[str, ...] = Field(
+        min_length=1, max_length=MAX_VOCABULARY, description="Condition labels, in index order."
     )
-    blocks: int = Field(2, ge=1, description="Conv3×3+SiLU blocks per level.")
+    channels: tuple[int, ...] = Field(
+        (16, 32, 64, 128),
+        min_length=1,
+        max_length=MAX_GENERATOR_LEVELS,
+        description="Feature widths per level; the last is the bottleneck.",
+    )
+    blocks: int = Field(2, ge=1, le=MAX_GENERATOR_BLOCKS, description="Conv3×3+SiLU blocks per level.")
     condition: Literal["frequency", "embedding"] = Field("frequency", description="How the label enters each pixel.")
-    num_freqs: int = Field(5, ge=1, description="Frequencies of the label's frequency encoding (2·num_freqs dims).")
-    label_dim: int = Field(8, ge=1, description="Size of the learned label embedding (condition='embedding').")
-    base_channels: int = Field(3, ge=1, description="Channels of the base layer it reads.")
+    num_freqs: int = Field(
+        5, ge=1, le=32, description="Frequencies of the label's frequency encoding (2·num_freqs dims)."
+    )
+    label_dim: int = Field(
+        8, ge=1, le=MAX_GENERATOR_WIDTH, description="Size of the learned label embedding (condition='embedding')."
+    )
+    base_channels: int = Field(3, ge=1, le=4, description="Channels of the base layer it reads.")
 
     @field_validator("vocabulary")
     @classmethod
@@ -68,8 +79,8 @@ class LayerGeneratorConfig(BaseModel):
     @field_validator("channels")
     @classmethod
     def _widths(cls, v: tuple[int, ...]) -> tuple[int, ...]:
-        if any(c < 1 for c in v):
-            raise ValueError(f"widths must be positive; got {list(v)}")
+        if any(c < 1 or c > MAX_GENERATOR_WIDTH for c in v):
+            raise ValueError(f"widths must lie in [1, {MAX_GENERATOR_WIDTH}]; got {list(v)}")
         return v
 
     @classmethod

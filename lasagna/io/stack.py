@@ -526,9 +526,9 @@ def load_stack(
     doc = load_document(path)
     planned = _plan_rasters(file, doc, max_pixels, max_total_pixels)
     extra = reserve(doc) if reserve is not None else 0
-    what = f"decoding the stack's {len(planned)} PNGs" + (
-        f" and its {doc.canvas.width}x{doc.canvas.height} canvas" if extra else ""
-    )
+    parts = [f"decoding the stack's {len(planned)} PNGs"] if planned else []
+    parts += [f"rendering its {doc.canvas.width}x{doc.canvas.height} canvas"] if extra else []
+    what = " and ".join(parts) or "loading the stack"
     check_memory(load_bytes(r.header for r in planned) + extra, what, str(file))
 
     images: dict[tuple[int, str], PngImage] = {}
