@@ -52,6 +52,7 @@ from lasagna import catalogue as cat
 from lasagna.document import LearnedLayer
 from lasagna.errors import DocumentError, ImageError, LasagnaError, PathError
 from lasagna.io.folder import check_output_folder, write_stack_folder
+from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 from lasagna.io.stack import Stack, load_stack, resolve_inside, save_stack
 from lasagna.learned import (
     LayerRun,
@@ -64,10 +65,6 @@ from lasagna.learned import (
 )
 from lasagna.version import __version__
 
-# The largest canvas ``edit`` accepts by default. The generator runs at full resolution: at 2048² its
-# first level alone holds 16 channels × 4 bytes × 4.2 M pixels = 268 MB per activation, a few GB in
-# all — what a CPU session can still afford. Larger images need max_pixels raised on purpose.
-DEFAULT_EDIT_MAX_PIXELS = 2048 * 2048
 META_KEY = "lasagna.edit"  # document metadata: per learned layer, the tool version, time, timing
 
 

@@ -56,6 +56,8 @@ def distill_arguments(p: argparse.ArgumentParser) -> None:
 def torch_device(text: str) -> str:
     """``--device``'s type: a device torch can name *and* this machine has (checked at parse time, so a
     bogus name or CUDA on a CPU-only machine is one line, not a failure after loading everything)."""
+    if text == "cpu":
+        return text  # always there; and parsing the default must not import torch
     import torch
 
     try:

@@ -17,16 +17,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     max_pixels_argument(p)
 
 
+def _reserve(doc) -> int:
+    from lasagna.io.survey import composite_bytes
+
+    return composite_bytes(doc.canvas.width, doc.canvas.height)
+
+
 def run(args: argparse.Namespace) -> int:
     from lasagna.document import stack_file
-    from lasagna.io.folder import check_not_input, check_writable
-    from lasagna.io.render import composite_bytes, render_stack, write_composite
-    from lasagna.io.stack import load_stack
+    from lasagna.io.folder import check_writable
+    from lasagna.io.survey import survey_stack
 
     out = Path(args.output) if args.output else stack_file(args.stack).parent / "composite.png"
     check_writable(out)
-    reserve = lambda doc: composite_bytes(doc.canvas.width, doc.canvas.height)  # noqa: E731
-    stack = load_stack(args.stack, max_pixels=args.max_pixels, reserve=reserve)
+    survey_stack(args.stack, max_pixels=args.max_pixels, reserve=_reserve)  # a refusal needs no torch
+
+    from lasagna.io.folder import check_not_input
+    from lasagna.io.render import render_stack, write_composite
+    from lasagna.io.stack import load_stack
+
+    stack = load_stack(args.stack, max_pixels=args.max_pixels, reserve=_reserve)
     check_not_input([out], stack)
     result = render_stack(stack)
     write_composite(result, out)

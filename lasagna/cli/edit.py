@@ -19,7 +19,7 @@ HELP = "add a learned layer (relight, colourise, …) to an image or stack; writ
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from lasagna.edit import DEFAULT_EDIT_MAX_PIXELS
+    from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 
     p.add_argument("image", help="a PNG/JPEG image, or a stack folder (the layer goes on top of it)")
     p.add_argument(
@@ -59,10 +59,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lasagna.edit import edit
     from lasagna.io.folder import check_output_folder
+    from lasagna.io.image import probe_image_file
+    from lasagna.io.survey import survey_stack
 
     out = check_output_folder(args.output, force=args.force)
+    # The input's format, size and memory checked before torch and the priors are loaded.
+    image = Path(args.image)
+    if image.is_dir() or image.suffix.lower() == ".json":
+        survey_stack(image, max_pixels=args.max_pixels)
+    elif image.exists():
+        probe_image_file(image, max_pixels=args.max_pixels)
+
+    from lasagna.edit import edit
+
     if Path(args.image).resolve() == out.resolve() and not args.force:
         raise PathError("is the input stack; expected another folder (or --force to replace it)", str(out))
     if args.optimize is not None and args.steps is not None and args.optimize != args.steps:

@@ -16,7 +16,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lasagna.document.models import LearnedLayer
-    from lasagna.io.stack import verify_stack
+    from lasagna.io.survey import verify_stack
 
     doc = verify_stack(args.stack, max_pixels=args.max_pixels)  # every PNG checked, none decoded
     waiting = sum(1 for layer in doc.layers if isinstance(layer, LearnedLayer) and layer.source is None)

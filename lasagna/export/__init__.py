@@ -4,10 +4,30 @@ png.py      export_layer_pngs: each layer's stored values, never normalised, 16-
 ora.py      export_ora / encode_ora, import_ora / read_ora (zip-slip and bomb safe)
 psd.py      export_psd / encode_psd (optional extra: pip install 'lasagna[psd]')
 rasters.py  the layers as paint programs see them (dodge pairs, baked alpha, exact-composite layer)
+
+Names are imported lazily: ``import lasagna.export.ora`` to read an OpenRaster file loads no torch.
 """
 
-from lasagna.export.ora import encode_ora, export_ora, import_ora, read_ora
-from lasagna.export.png import export_layer_pngs
-from lasagna.export.psd import encode_psd, export_psd
+from __future__ import annotations
 
-__all__ = ["encode_ora", "export_ora", "import_ora", "read_ora", "export_layer_pngs", "encode_psd", "export_psd"]
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "encode_ora": "ora",
+    "export_ora": "ora",
+    "import_ora": "ora",
+    "read_ora": "ora",
+    "export_layer_pngs": "png",
+    "encode_psd": "psd",
+    "export_psd": "psd",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'lasagna.export' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"lasagna.export.{module}"), name)

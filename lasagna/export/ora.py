@@ -26,16 +26,15 @@ import zipfile
 import zlib
 from collections.abc import Callable
 from pathlib import Path, PurePosixPath
+from typing import TYPE_CHECKING
 from xml.etree import ElementTree as ET
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
-import torch
 from PIL import Image
 
 from lasagna.atomic import atomic_write_bytes
 from lasagna.errors import ExportError, ImageError
-from lasagna.export.rasters import ExportLayer, export_layers
 from lasagna.io.png import (
     DEFAULT_MAX_PIXELS,
     check_size,
@@ -46,6 +45,11 @@ from lasagna.io.png import (
     png_file_limit,
 )
 from lasagna.limits import check_memory
+
+if TYPE_CHECKING:  # torch and the rasters (which import it) are loaded by the functions that write
+    import torch
+
+    from lasagna.export.rasters import ExportLayer
 
 MIMETYPE = b"image/openraster"
 THUMBNAIL_MAX = 256
@@ -95,6 +99,8 @@ def _stack_xml(width: int, height: int, layers: list[ExportLayer]) -> str:
 
 def composite_uint8(image: torch.Tensor) -> np.ndarray:
     """(3, H, W) composite → (H, W, 3) uint8: clamped to [0, 1], rounded to nearest."""
+    import torch
+
     if not bool(torch.isfinite(image.detach()).all()):
         raise ExportError("composite has NaN or infinite values; expected finite layer values", where="composite")
     return (image.detach().cpu().double().clamp(0.0, 1.0) * 255.0).round().to(torch.uint8).permute(1, 2, 0).numpy()
@@ -110,6 +116,8 @@ def encode_ora(stack, *, composite: torch.Tensor | None = None, warn: Callable[[
 
         composite = render_stack(stack).image
     merged = composite_uint8(composite)
+    from lasagna.export.rasters import export_layers
+
     layers = export_layers(stack, composite.detach().cpu().double().numpy(), target="OpenRaster", warn=warn)
     entries: list[tuple[str, bytes]] = [("stack.xml", _stack_xml(stack.width, stack.height, layers).encode("utf-8"))]
     for layer in layers:
@@ -395,8 +403,6 @@ def import_ora(
     layer is refused. The background layer :func:`export_ora` adds becomes the canvas background, and
     its "Composite (exact)" top layer, if any, is dropped (the stack is re-composed from its layers).
     """
-    from lasagna.io.stack import stack_from_tensors
-
     width, height, layers = read_ora(path, max_pixels=max_pixels, max_uncompressed=max_uncompressed)
     background = (0.0, 0.0, 0.0)
     if layers and layers[-1]["src"] == "data/_composite.png":
@@ -434,6 +440,10 @@ def import_ora(
         merged.append(dict(layer))
     if not merged:
         raise ImageError("the file has no layers besides the background; expected at least one layer", where=str(path))
+    import torch  # only now: a refused file never loads it
+
+    from lasagna.io.stack import stack_from_tensors
+
     taken: set[str] = set()
     specs = []
     for layer in merged:

@@ -15,12 +15,15 @@ import errno
 import os
 import shutil
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from lasagna.atomic import atomic_write_bytes, folder_lock, make_temp_folder, sweep_stale, temp_path, umask_mode
 from lasagna.document import STACK_FILE
 from lasagna.errors import PathError
-from lasagna.io.render import write_composite
-from lasagna.io.stack import Stack, resolve_inside, save_stack
+from lasagna.io.survey import resolve_inside
+
+if TYPE_CHECKING:
+    from lasagna.io.stack import Stack
 
 
 def _check_place(path: Path, where: str) -> None:
@@ -119,6 +122,9 @@ def write_stack_folder(
     tmp = make_temp_folder(out)
     old_folder = stack.folder
     try:
+        from lasagna.io.render import write_composite  # torch: imported only when a stack is written
+        from lasagna.io.stack import save_stack
+
         save_stack(stack, tmp)
         for rel, data in (files or {}).items():
             atomic_write_bytes(resolve_inside(tmp, rel, rel), data)

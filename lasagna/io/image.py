@@ -21,13 +21,19 @@ from pathlib import Path
 
 import numpy as np
 
-from lasagna.errors import ImageError
-from lasagna.io.png import PNG_SIGNATURE, read_png, read_png_header
+from lasagna.errors import ImageError, LasagnaError
+from lasagna.io.png import PNG_SIGNATURE, check_size, read_png, read_png_header
 from lasagna.limits import check_memory, raster_bytes
 
 # Pillow's names of the formats read through Pillow (PNG has its own reader).
 PILLOW_FORMATS: tuple[str, ...] = ("JPEG", "WEBP", "BMP", "TIFF")  # JPEG also opens MPO, what phones write
 READABLE = "PNG, JPEG, WebP, BMP or TIFF (8/16-bit)"
+
+# The largest image ``lasagna edit`` accepts by default. A generator at full resolution holds 16 channels ×
+# 4 bytes × 4.2 M pixels = 268 MB per activation at 2048², a few GB in all: what a CPU session can still
+# afford (layers are made at a working size now, but a per-image run at full size is still possible).
+# Larger images need max_pixels raised on purpose.
+DEFAULT_EDIT_MAX_PIXELS = 2048 * 2048
 
 # Bytes a pixel costs while Pillow decodes it (its image: up to 4 a pixel; the converted copy: 4 more).
 _PILLOW_BYTES_PER_PIXEL = 8
@@ -101,7 +107,7 @@ def _read_tiff_wide(path: Path, where: str, max_pixels: int) -> RasterImage:
             _check_pixels(shape.get("X", 1), shape.get("Y", 1), max_pixels, where)
             values = page.asarray()
             axes = page.axes
-    except ImageError:
+    except LasagnaError:
         raise
     except Exception as exc:  # tifffile raises ValueError, TiffFileError, KeyError, … on files it cannot decode
         raise _refuse(where, f"cannot decode this TIFF ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})")
@@ -111,20 +117,31 @@ def _read_tiff_wide(path: Path, where: str, max_pixels: int) -> RasterImage:
     return RasterImage(*_as_rgb(_unit(values, where), where), bit_depth=bit_depth)
 
 
+def _pillow():
+    """Pillow's Image module with exactly the readable formats' plugins registered: importing a plugin
+    registers it, and ``Image.open(formats=PILLOW_FORMATS)`` then tries only those (never EPS, PDF, …)."""
+    from PIL import BmpImagePlugin, Image, JpegImagePlugin, TiffImagePlugin, WebPImagePlugin  # noqa: F401
+
+    return Image
+
+
+def _pillow_error(exc: Exception, where: str) -> ImageError:
+    from PIL import UnidentifiedImageError
+
+    if isinstance(exc, UnidentifiedImageError):
+        return _refuse(where, "cannot decode: not an image of a format lasagna reads")
+    return _refuse(where, f"cannot decode ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})")
+
+
+def _pillow_errors(Image) -> tuple[type[Exception], ...]:
+    """What Pillow raises on a file it cannot read (UnidentifiedImageError is an OSError)."""
+    return (OSError, ValueError, SyntaxError, Image.DecompressionBombError)
+
+
 def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
-    from PIL import (  # noqa: F401
-        BmpImagePlugin,
-        Image,
-        ImageOps,
-        JpegImagePlugin,
-        MpoImagePlugin,
-        TiffImagePlugin,
-        UnidentifiedImageError,
-        WebPImagePlugin,
-    )
+    from PIL import ImageOps
 
-    # Importing exactly these plugins registers them; Image.open(formats=…) then tries only them.
-
+    Image = _pillow()
     try:
         with Image.open(path, formats=PILLOW_FORMATS) as im:
             w, h = im.size
@@ -144,28 +161,52 @@ def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
             has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
             im = im.convert("RGBA" if has_alpha else "RGB")
             codes = np.asarray(im)
-    except ImageError:
+    except LasagnaError:  # ours (a ValueError too): already one line
         raise
-    except UnidentifiedImageError:
-        raise _refuse(where, "cannot decode: not an image of a format lasagna reads") from None
-    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
-        raise _refuse(where, f"cannot decode ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})") from None
+    except _pillow_errors(Image) as exc:
+        raise _pillow_error(exc, where) from None
     return RasterImage(*_as_rgb(_unit(codes, where), where), bit_depth=8)
 
 
-def read_image_file(path: str | os.PathLike, *, max_pixels: int) -> RasterImage:
-    """Read an image file under the input policy (module docstring); every refusal is one line."""
-    p = Path(path)
-    where = str(p)
+def _magic(p: Path, where: str) -> bytes:
     try:
         with open(p, "rb") as fh:
-            magic = fh.read(8)
+            return fh.read(8)
     except IsADirectoryError:
         raise _refuse(where, "is a folder without a stack.json") from None
     except OSError as exc:
         raise ImageError(
             f"cannot read ({exc.strerror or exc}); expected an image file or a stack folder", where
         ) from None
+
+
+def probe_image_file(path: str | os.PathLike, *, max_pixels: int) -> tuple[int, int]:
+    """(width, height) of an image file, its format, size and decoding memory checked from its header alone
+    (nothing decoded, no torch): what ``lasagna edit`` runs before it loads anything heavy."""
+    p = Path(path)
+    where = str(p)
+    if _magic(p, where) == PNG_SIGNATURE:
+        header = read_png_header(p)
+        check_size(header, where, max_pixels)
+        check_memory(
+            raster_bytes(header.width, header.height, 4), f"decoding a {header.width}x{header.height} PNG", where
+        )
+        return header.width, header.height
+    Image = _pillow()
+    try:
+        with Image.open(p, formats=PILLOW_FORMATS) as im:
+            w, h = im.size
+    except _pillow_errors(Image) as exc:
+        raise _pillow_error(exc, where) from None
+    _check_pixels(w, h, max_pixels, where)
+    return w, h
+
+
+def read_image_file(path: str | os.PathLike, *, max_pixels: int) -> RasterImage:
+    """Read an image file under the input policy (module docstring); every refusal is one line."""
+    p = Path(path)
+    where = str(p)
+    magic = _magic(p, where)
     if magic == PNG_SIGNATURE:
         header = read_png_header(p)
         if header.pixels <= max_pixels:
@@ -177,4 +218,11 @@ def read_image_file(path: str | os.PathLike, *, max_pixels: int) -> RasterImage:
     return _read_pillow(p, where, max_pixels)
 
 
-__all__ = ["PILLOW_FORMATS", "READABLE", "RasterImage", "read_image_file"]
+__all__ = [
+    "DEFAULT_EDIT_MAX_PIXELS",
+    "PILLOW_FORMATS",
+    "READABLE",
+    "RasterImage",
+    "probe_image_file",
+    "read_image_file",
+]

@@ -19,23 +19,13 @@ from lasagna.compose.plan import plan_from_document
 from lasagna.compose.render import RenderResult, render
 from lasagna.errors import ImageError
 from lasagna.io.png import encode_rgb8_bands
+from lasagna.io.survey import RENDER_CHANNELS, composite_bytes  # noqa: F401  (composite_bytes: re-exported)
 from lasagna.limits import check_memory
-
-# Bytes a canvas pixel costs a render: the RGB output in the compute dtype; the no-grad engine works in bands
-# and solid layers are zero-stride views, so nothing else of canvas size is allocated.
-RENDER_CHANNELS = 3
-# ... and writing it as composite.png: one band of codes and the compressed bytes (at most ~3 a pixel).
-ENCODE_BYTES_PER_PIXEL = 3
 
 
 def render_bytes(width: int, height: int, dtype: torch.dtype = torch.float32) -> int:
     """Bytes a no-grad render of a ``width`` × ``height`` canvas allocates (its output)."""
     return width * height * RENDER_CHANNELS * (torch.finfo(dtype).bits // 8)
-
-
-def composite_bytes(width: int, height: int) -> int:
-    """Bytes of rendering a canvas and writing it as composite.png (``write_composite``)."""
-    return render_bytes(width, height) + width * height * ENCODE_BYTES_PER_PIXEL
 
 
 def tensor_bytes(tensors) -> int:

@@ -15,7 +15,7 @@ C = 1 gray, 2 gray+alpha, 3 RGB, 4 RGBA.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,49 +30,26 @@ from lasagna.document import (
     LearnedLayer,
     PixelsLayer,
     SolidLayer,
-    load_document,
     save_document,
-    stack_file,
 )
 from lasagna.errors import DocumentError, ImageError, PathError
 from lasagna.io.png import (
     DEFAULT_MAX_PIXELS,
     PngImage,
-    check_size,
-    decode_bytes,
     encode_png,
     read_png,
-    read_png_header,
-    verify_png,
 )
 from lasagna.io.render import render_stack
-from lasagna.limits import check_memory
+from lasagna.io.survey import (  # noqa: F401  (MAX_SIDE, DEFAULT_MAX_TOTAL_PIXELS, resolve_inside: their old home)
+    DEFAULT_MAX_TOTAL_PIXELS,
+    MAX_SIDE,
+    resolve_inside,
+    survey_stack,
+    verify_stack,
+)
 from lasagna.numerics import RANGE_SAVE_TOLERANCE
 
-# The document's largest canvas side; a layer PNG may not be larger either.
-MAX_SIDE = 32768
-
-# Decoded pixels summed over all layers and masks of one stack, checked from the PNG headers
-# before any is decoded: 4 layers at the per-image limit (16 GiB of float32 RGBA) is the ceiling.
-DEFAULT_MAX_TOTAL_PIXELS = 4 * DEFAULT_MAX_PIXELS
-
 NOT_RENDERED = "not rendered (run `lasagna render`)"
-
-
-# ---- safe paths -------------------------------------------------------------------------------------
-
-
-def resolve_inside(folder: Path, relative: str, where: str) -> Path:
-    """``folder/relative`` resolved (symlinks followed); ``PathError`` if it leaves ``folder``."""
-    root = folder.resolve()
-    target = (folder / relative).resolve()
-    if target != root and root not in target.parents:
-        raise PathError(
-            f"{relative!r} resolves to {target}, outside the stack folder {root}; "
-            "expected a path inside the stack folder (symlinks included)",
-            where=where,
-        )
-    return target
 
 
 # ---- the stack ------------------------------------------------------------------------------------
@@ -416,96 +393,6 @@ def stack_from_tensors(
 # ---- loading -------------------------------------------------------------------------------------
 
 
-def _rasters(doc: Document) -> Iterable[tuple[int, Any, str, str]]:
-    """(index, layer, field, relative path) for every PNG the document names."""
-    for i, layer in enumerate(doc.layers):
-        if isinstance(layer, (PixelsLayer, LearnedLayer)) and layer.source is not None:
-            yield i, layer, "source", layer.source
-            if layer.mask is not None:
-                yield i, layer, "mask", layer.mask
-
-
-@dataclass(frozen=True)
-class _Raster:
-    """One PNG a document names, resolved and with its header read (nothing decoded yet)."""
-
-    index: int
-    layer: Any
-    field: str  # "source" or "mask"
-    rel: str
-    target: Path
-    header: Any  # lasagna.io.png.PngHeader
-
-    @property
-    def where(self) -> str:
-        return f"layers[{self.index}].{self.field} ({self.rel})"
-
-
-def _plan_rasters(file: Path, doc: Document, max_pixels: int, max_total_pixels: int) -> list[_Raster]:
-    """Resolve every path a document names and read every PNG header (cheap) before decoding anything:
-    sizes per image and in total, masks the size of their source."""
-    folder = file.parent
-    planned: list[_Raster] = []
-    sources: dict[int, Any] = {}
-    total = 0
-    for i, layer, fieldname, rel in _rasters(doc):
-        where = f"{file}: layers[{i}].{fieldname}"
-        target = resolve_inside(folder, rel, where)
-        if not target.is_file():
-            what = "is not a file" if target.exists() else "does not exist"
-            raise ImageError(f"{rel!r} {what} (looked for {target}); expected a PNG file", where=where)
-        try:
-            header = read_png_header(target)
-            check_size(header, str(target), max_pixels, MAX_SIDE)
-        except ImageError as err:
-            raise err.at(f"{where} ({rel})") from None
-        total += header.pixels
-        if total > max_total_pixels:
-            raise ImageError(
-                f"the stack's PNGs hold more than {max_total_pixels} pixels in total; expected at most that many",
-                where=where,
-            )
-        if fieldname == "source":
-            sources[i] = header
-        else:
-            src = sources[i]
-            if (header.width, header.height) != (src.width, src.height):
-                raise ImageError(
-                    f"mask is {header.width}x{header.height}; expected the size of its layer's source, "
-                    f"{src.width}x{src.height}",
-                    where=f"{where} ({rel})",
-                )
-        planned.append(_Raster(i, layer, fieldname, rel, target, header))
-    return planned
-
-
-def load_bytes(rasters: Iterable[Any]) -> int:
-    """Peak bytes of decoding PNGs with these headers and keeping them all (float32 tensors): what they
-    keep, plus the largest one's transient buffers and range mapping (``lasagna.io.png.decode_bytes``)."""
-    kept, transient = 0, 0
-    for header in rasters:
-        k, t = decode_bytes(header)
-        kept += k
-        transient = max(transient, t + k)  # + k: range mapping makes one new colour tensor
-    return kept + transient
-
-
-def verify_stack(
-    path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS, max_total_pixels: int = DEFAULT_MAX_TOTAL_PIXELS
-) -> Document:
-    """Check a stack folder completely without decoding a pixel: the document, every path, and every PNG
-    (``lasagna.io.png.verify_png``: structure, CRCs, the image data's size and filters). Memory: one file at
-    a time; time: inflating each PNG once. What ``lasagna validate`` runs."""
-    file = stack_file(path)
-    doc = load_document(path)
-    for r in _plan_rasters(file, doc, max_pixels, max_total_pixels):
-        try:
-            verify_png(r.target, max_pixels=max_pixels, max_side=MAX_SIDE)
-        except ImageError as err:
-            raise err.at(f"{file}: {r.where}") from None
-    return doc
-
-
 def load_stack(
     path: str | os.PathLike,
     *,
@@ -522,14 +409,8 @@ def load_stack(
     memory budget of ``lasagna.limits`` for decoding them all) before any pixel is decoded. Errors are
     one-line ``LasagnaError``s naming the file and the layer.
     """
-    file = stack_file(path)
-    doc = load_document(path)
-    planned = _plan_rasters(file, doc, max_pixels, max_total_pixels)
-    extra = reserve(doc) if reserve is not None else 0
-    parts = [f"decoding the stack's {len(planned)} PNGs"] if planned else []
-    parts += [f"rendering its {doc.canvas.width}x{doc.canvas.height} canvas"] if extra else []
-    what = " and ".join(parts) or "loading the stack"
-    check_memory(load_bytes(r.header for r in planned) + extra, what, str(file))
+    survey = survey_stack(path, max_pixels=max_pixels, max_total_pixels=max_total_pixels, reserve=reserve)
+    file, doc, planned = survey.file, survey.document, survey.rasters
 
     images: dict[tuple[int, str], PngImage] = {}
     for r in planned:
