@@ -75,10 +75,11 @@ def row(method: str, y: torch.Tensor, scene, const_db: tuple[float, float], seco
     return {**out, **extra}
 
 
-def default_edit(images: torch.Tensor, labels: list[str], preset: str, dirs) -> tuple[torch.Tensor, float]:
-    """``lasagna edit``'s default for every image (B, 3, H, W) → layers (B, C, H, W), seconds in all."""
+def default_edit(images: torch.Tensor, labels: list[str], preset: str, dirs, **options) -> tuple[torch.Tensor, float]:
+    """``lasagna edit``'s default (or with ``options``: ``generator``, ``optimize``) for every image (B, 3, H, W)
+    → layers (B, C, H, W), seconds in all."""
     t0 = time.perf_counter()
-    layers = [edit(images[i], preset, labels[i], catalogue_dirs=dirs).layer for i in range(images.shape[0])]
+    layers = [edit(images[i], preset, labels[i], catalogue_dirs=dirs, **options).layer for i in range(images.shape[0])]
     return torch.stack(layers), time.perf_counter() - t0
 
 
@@ -142,6 +143,18 @@ def shading_table(args, split: str, size: int, parts, prior, corrective) -> tupl
     )
     layers, seconds = default_edit(scene.albedo, labels, "shading", args.catalogue)
     rows.append(row("default edit", layers[:, :1], scene, cdb, seconds))
+    for n in args.methods:  # the candidates for the preset's method / refine_steps, each through `lasagna edit`
+        generator, optimize = ("free", None) if n == "per-image" else ("amortised", int(n))
+        y, secs = default_edit(scene.albedo, labels, "shading", args.catalogue, generator=generator, optimize=optimize)
+        rows.append(
+            row(
+                f"edit --generator {generator}" + (f" --optimize {n}" if optimize is not None else ""),
+                y[:, :1],
+                scene,
+                cdb,
+                secs,
+            )
+        )
     sup = None
     if args.supervised and (args.supervised / "config.json").is_file():
         sup = supervised_layers(scene.albedo, labels, args.supervised, preset.working_size)
@@ -362,6 +375,12 @@ def main(argv=None) -> int:
     ap.add_argument("--count", type=int, default=16)
     ap.add_argument("--seed", type=int, default=0, help="world seed of the scenes")
     ap.add_argument("--steps", type=int, default=150, help="per-image steps")
+    ap.add_argument(
+        "--methods",
+        nargs="*",
+        default=[],
+        help="edit variants to add: 'per-image' (the preset's per-image run) and/or N (amortised + N refine steps)",
+    )
     ap.add_argument("--losses", nargs="*", default=["sds", "lmc-sds"])
     ap.add_argument("--omegas", nargs="*", type=float, default=[1.0, 3.0])
     ap.add_argument("--supervised", type=Path, default=ROOT / "runs" / "shading-supervised" / "generator")

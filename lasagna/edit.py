@@ -53,13 +53,14 @@ from lasagna.document import LearnedLayer
 from lasagna.errors import DocumentError, ImageError, LasagnaError, PathError
 from lasagna.io.folder import check_output_folder, write_stack_folder
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
-from lasagna.io.stack import Stack, load_stack, resolve_inside, save_stack
+from lasagna.io.stack import Stack, load_stack, resolve_inside
 from lasagna.learned import (
     LayerRun,
     LayerSettings,
     as_stored,
     choose_method,
     conditioning_input,
+    default_steps,
     file_sha256,
     make_layer,
 )
@@ -225,7 +226,7 @@ def edit(
         raise LasagnaError(
             "per-image optimisation with 0 steps would leave the identity edit; expected --optimize N > 0", "optimize"
         )
-    optimize_n = (0 if method == "amortised" else p.distill.steps) if n is None else n
+    optimize_n = default_steps(resolved, method) if n is None else n
     layer_id = _unique_id(stack, id or f"{p.name}-{condition}")
     base = conditioning_input(stack, on)
     carried = carried_files(stack)  # before the new layer: its generator is not in the input folder
@@ -358,7 +359,6 @@ def render_learned(
     and stack.ora if the folder has one — are written back, each atomically, stack.json after the
     layers it names.
     """
-    from lasagna.atomic import atomic_write_bytes
 
     if not isinstance(stack, Stack):
         stack = load_stack(stack)
@@ -385,17 +385,23 @@ def render_learned(
         _record(stack, layer.id, time.monotonic() - start, run, rendered=True)
         rendered.append(layer.id)
     if write and stack.folder is not None and rendered:
-        from lasagna.export.ora import export_ora
-        from lasagna.io.render import write_composite
+        from lasagna.atomic import atomic_write_all, folder_lock
+        from lasagna.export.ora import encode_ora
+        from lasagna.io.render import encode_composite
+        from lasagna.io.stack import stack_files
 
         folder = stack.folder
-        for rel, data in files.items():
-            atomic_write_bytes(resolve_inside(folder, rel, rel), data)
-        save_stack(stack, folder)
+        # Everything encoded first, then written all or nothing under the folder's lock: a kill, a full disk
+        # or a second `lasagna render` of the same stack never leaves stack.json, the PNGs and the
+        # composite out of step.
+        writes = [(resolve_inside(folder, rel, rel), data) for rel, data in files.items()]
+        writes += stack_files(stack, folder)
         result = stack.render()
-        write_composite(result, folder / "composite.png")
+        writes.append((folder / "composite.png", encode_composite(result, str(folder / "composite.png"))))
         if (folder / "stack.ora").is_file():
-            export_ora(stack, folder / "stack.ora", composite=result.image, warn=warn)
+            writes.append((folder / "stack.ora", encode_ora(stack, composite=result.image, warn=warn)))
+        with folder_lock(folder):
+            atomic_write_all(writes)
     return stack, rendered
 
 
@@ -425,7 +431,7 @@ def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) 
     preset.prompt_for(layer.condition.label)
     s = LayerSettings.parse(layer.settings, where)
     method = s.method if s.method is not None else choose_method(resolved, None)
-    optimize = s.optimize if s.optimize is not None else (0 if method == "amortised" else preset.distill.steps)
+    optimize = s.optimize if s.optimize is not None else default_steps(resolved, method)
     generator_dir = resolved.generator
     if method == "amortised" and layer.generator is not None:
         if stack.folder is None:

@@ -14,7 +14,7 @@ import hashlib
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, get_args
+from typing import Any, Literal
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
@@ -23,16 +23,16 @@ from torch import Tensor
 from lasagna import catalogue as cat
 from lasagna.distill import DistillSettings
 from lasagna.document import LearnedLayer
+from lasagna.document.preset import METHODS, Method
 from lasagna.errors import ConditionError, DocumentError, LasagnaError, describe_validation_error
 from lasagna.io.stack import Stack
 from lasagna.limits import MAX_DISTILL_STEPS
 
 GENERATORS_DIR = "generators"  # <stack>/generators/<layer id>/: copies of the generators a stack uses
 
-# How a learned layer is made (``lasagna.edit`` describes both). ``free`` — the CLI's ``--generator free``,
-# "a free per-pixel layer" — names the per-image method and is accepted wherever a method is read.
-Method = Literal["amortised", "per-image"]
-METHODS: tuple[str, ...] = get_args(Method)
+# How a learned layer is made (``lasagna.edit`` describes both; the names are the document tier's,
+# ``lasagna.document.preset.Method``). ``free`` — the CLI's ``--generator free``, "a free per-pixel
+# layer" — names the per-image method and is accepted wherever a method is read.
 METHOD_ALIASES: dict[str, str] = {"free": "per-image"}
 
 
@@ -310,7 +310,17 @@ def make_layer(
 
 
 def choose_method(resolved: cat.Resolved, method: str | None) -> Method:
-    """``method`` (``free`` is ``per-image``) when given; else ``amortised`` when the preset has a generator."""
+    """``method`` (``free`` is ``per-image``) when given; else the preset's ``method``; else ``amortised`` when
+    the preset has a generator. A preset asking for ``amortised`` without a generator falls back to per-image."""
     if method is not None:
         return canonical_method(method)
-    return "amortised" if resolved.generator is not None else "per-image"
+    if resolved.preset.method == "per-image" or resolved.generator is None:
+        return "per-image"
+    return "amortised"
+
+
+def default_steps(resolved: cat.Resolved, method: Method) -> int:
+    """Per-image steps when none are given: the preset's ``refine_steps`` after an amortised pass, its
+    ``distill.steps`` for a per-image layer."""
+    preset = resolved.preset
+    return preset.refine_steps if method == "amortised" else preset.distill.steps

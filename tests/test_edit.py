@@ -274,6 +274,63 @@ def test_render_all_and_nothing_to_render(tmp_path, capsys):
     assert "rendered" in _stack_json(out)["metadata"]["lasagna.edit"]["shading-left"]
 
 
+@pytest.mark.parametrize(
+    "fields, method, steps",
+    [
+        ({"method": "per-image"}, "per-image", STEPS),  # the preset's distill.steps
+        ({"method": None, "refine_steps": 2}, "amortised", 2),  # the generator's layer, then 2 steps
+        ({"method": "amortised", "refine_steps": 0}, "amortised", 0),
+    ],
+)
+def test_the_presets_method_and_refine_steps_are_the_default(tmp_path, tiny, monkeypatch, fields, method, steps):
+    from tests.tinylayers import _preset
+
+    folder = tmp_path / "layers"
+    shutil.copytree(tiny, folder)
+    _preset(folder, "shading", **fields)
+    monkeypatch.setenv("LASAGNA_LAYERS", str(folder))
+    result = edit(PHOTO, "shading", "left")
+    settings = result.stack.document.layer("shading-left").settings
+    assert (settings["method"], settings["optimize"]) == (method, steps)
+    assert result.stack.document.layer("shading-left").generator is None if method == "per-image" else True
+    # an explicit choice still wins over the preset's
+    other = edit(PHOTO, "shading", "left", generator="free" if method == "amortised" else "amortised", optimize=1)
+    assert other.stack.document.layer("shading-left").settings["method"] != method
+
+
+def test_a_preset_asking_for_amortised_without_a_generator_runs_per_image(tmp_path, tiny, monkeypatch):
+    from tests.tinylayers import _preset
+
+    folder = tmp_path / "layers"
+    shutil.copytree(tiny, folder)
+    shutil.rmtree(folder / "shading" / "generator")
+    _preset(folder, "shading", method="amortised", refine_steps=3)
+    monkeypatch.setenv("LASAGNA_LAYERS", str(folder))
+    settings = edit(PHOTO, "shading", "left").stack.document.layer("shading-left").settings
+    assert (settings["method"], settings["optimize"]) == ("per-image", STEPS)
+
+
+def test_render_writes_all_or_nothing(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "out"
+    assert run(capsys, "edit", PHOTO, "--condition", "left", "-o", out)[0] == 0
+    _strip_learned_pixels(out)  # render now writes the layer's PNG, stack.json and the composite
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    import lasagna.atomic
+
+    real = lasagna.atomic._write
+
+    def fail_on_composite(path, data):  # the disk fills up while the composite is written
+        if "composite.png" in path.name:
+            raise OSError(28, "No space left on device")
+        return real(path, data)
+
+    monkeypatch.setattr(lasagna.atomic, "_write", fail_on_composite)
+    code, _, err = run(capsys, "render", out, "--all")
+    assert code == 2 and len(err.splitlines()) == 1 and "composite.png" in err
+    assert {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()} == before  # nothing changed
+    assert not [p for p in out.iterdir() if "lasagna-" in p.name]  # and no temporaries
+
+
 def test_render_refuses_a_tampered_generator(tmp_path, capsys):
     out = tmp_path / "out"
     assert run(capsys, "edit", PHOTO, "--condition", "left", "-o", out)[0] == 0

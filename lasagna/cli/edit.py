@@ -42,8 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--optimize",
         type=int,
         metavar="N",
-        help="per-image optimisation steps (after the amortised pass; "
-        "default 0, or the preset's steps for a free layer)",
+        help="per-image optimisation steps (after the amortised pass; default: the preset's refine_steps, "
+        "or its distill.steps for a free layer)",
     )
     p.add_argument("--steps", type=int, metavar="N", help="the same number as --optimize, named as in the preset")
     distill_arguments(p)

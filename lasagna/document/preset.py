@@ -40,6 +40,13 @@ LossName = Literal["sds", "lmc-sds", "dds", "nfsd", "ms-sds"]
 LOSS_NAMES: tuple[str, ...] = get_args(LossName)
 
 
+# How a learned layer is made: ``amortised`` (the preset's trained generator, one forward pass, then
+# ``refine_steps`` per-image steps from it) or ``per-image`` (a free layer optimised for this image,
+# ``distill.steps`` steps). Declared here, in the tier every other reads; ``lasagna.learned`` runs them.
+Method = Literal["amortised", "per-image"]
+METHODS: tuple[str, ...] = get_args(Method)
+
+
 class DistillDefaults(StrictModel):
     """Default settings of a per-image distillation run (overridable per layer via ``settings``)."""
 
@@ -89,6 +96,19 @@ class Preset(StrictModel):
     )
     prompt: str = Field(description="Prompt template with one '{label}' placeholder.")
     distill: DistillDefaults = Field(DistillDefaults(), description="Default distillation settings.")
+    method: Method | None = Field(
+        None,
+        description="How `lasagna edit` makes the layer when not told: 'amortised' (the preset's generator, then "
+        "refine_steps per-image steps) or 'per-image' (distill.steps steps from the identity). None: amortised when "
+        "the preset has a generator, else per-image.",
+    )
+    refine_steps: int = Field(
+        0,
+        ge=0,
+        le=10_000,
+        strict=True,
+        description="Per-image steps after the amortised pass, by default (0: the generator's layer as it is).",
+    )
     working_size: int | None = Field(
         None,
         ge=8,

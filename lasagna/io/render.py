@@ -75,18 +75,22 @@ def _code_bands(image: torch.Tensor, where: str):
         yield composite_codes(band).permute(1, 2, 0).numpy()
 
 
-def write_composite(result: RenderResult | torch.Tensor, path: str | os.PathLike) -> Path:
-    """Write a composite (a ``RenderResult`` or an image (3, H, W)) as an 8-bit sRGB PNG, atomically.
-
-    The PNG is encoded band by band (``encode_rgb8_bands``): beside the image only its compressed
-    bytes are held, so a canvas of any size costs its float buffer and not three more copies."""
+def encode_composite(result: RenderResult | torch.Tensor, where: str = "composite.png") -> bytes:
+    """A composite (a ``RenderResult`` or an image (3, H, W)) as 8-bit sRGB PNG bytes, encoded band by band
+    (``encode_rgb8_bands``): beside the image only its compressed bytes are held, so a canvas of any size
+    costs its float buffer and not three more copies."""
     image = result.image if isinstance(result, RenderResult) else result
     if image.ndim != 3 or image.shape[0] != 3:
         raise ImageError(
             f"composite has shape {tuple(image.shape)}; expected (3, H, W) (render one stack, not a batch)",
-            where=str(path),
+            where=where,
         )
-    data = encode_rgb8_bands(_code_bands(image, str(path)), image.shape[2], image.shape[1])
+    return encode_rgb8_bands(_code_bands(image, where), image.shape[2], image.shape[1])
+
+
+def write_composite(result: RenderResult | torch.Tensor, path: str | os.PathLike) -> Path:
+    """Write a composite (a ``RenderResult`` or an image (3, H, W)) as an 8-bit sRGB PNG, atomically."""
+    data = encode_composite(result, str(path))
     try:
         atomic_write_bytes(path, data)
     except OSError as exc:

@@ -23,14 +23,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from lasagna.atomic import atomic_write_bytes
+from lasagna.atomic import atomic_write_all
 from lasagna.compose.layer import LayerTensors
 from lasagna.document import (
     Document,
     LearnedLayer,
     PixelsLayer,
     SolidLayer,
-    save_document,
+    stack_file,
 )
 from lasagna.errors import DocumentError, ImageError, PathError
 from lasagna.io.png import (
@@ -500,16 +500,9 @@ def encode_layer(stack: Stack, id: str, *, clip: bool = False) -> tuple[bytes, b
     return data, mask_data
 
 
-def save_stack(stack: Stack, folder: str | os.PathLike | None = None, *, clip: bool = False) -> Path:
-    """Write ``stack`` into ``folder``: every layer PNG, then stack.json (each file atomically).
-
-    Everything is encoded and every path checked before the first file is written, so a bad value
-    or path leaves the folder as it was. Returns the stack.json written.
-    """
-    if folder is None:
-        if stack.folder is None:
-            raise PathError("the stack was not loaded from a folder; expected save(folder)", where="save_stack")
-        folder = stack.folder
+def stack_files(stack: Stack, folder: str | os.PathLike, *, clip: bool = False) -> list[tuple[Path, bytes]]:
+    """Every file of ``stack`` saved in ``folder``, encoded in memory and with its path checked inside the
+    folder: each layer's (and mask's) PNG, then stack.json. Nothing is written."""
     folder = Path(folder)
     if folder.suffix.lower() == ".json":
         raise PathError(f"{folder} is a file name; expected a stack folder", where="save_stack")
@@ -532,14 +525,29 @@ def save_stack(stack: Stack, folder: str | os.PathLike | None = None, *, clip: b
                     f"layer {layer.id!r} has a mask tensor but no `mask` path", where=f"layers[{i}].mask"
                 )
             writes.append((resolve_inside(folder, layer.mask, f"layers[{i}].mask"), mask_data))
+    writes.append((stack_file(folder), doc.to_json().encode("utf-8")))
+    return writes
+
+
+def save_stack(stack: Stack, folder: str | os.PathLike | None = None, *, clip: bool = False) -> Path:
+    """Write ``stack`` into ``folder``: every layer PNG and stack.json, all or nothing
+    (``lasagna.atomic.atomic_write_all``). Returns the stack.json written.
+
+    Everything is encoded and every path checked before the first file is written, so a bad value, a bad
+    path or a failed write leaves the folder as it was.
+    """
+    if folder is None:
+        if stack.folder is None:
+            raise PathError("the stack was not loaded from a folder; expected save(folder)", where="save_stack")
+        folder = stack.folder
+    folder = Path(folder)
+    writes = stack_files(stack, folder, clip=clip)
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        for target, data in writes:
-            atomic_write_bytes(target, data)
-        written = save_document(doc, folder)
     except OSError as exc:
         raise PathError(
             f"cannot write ({exc.strerror or exc}); expected a writable folder", where=str(folder)
         ) from None
+    atomic_write_all(writes)
     stack.folder = folder
-    return written
+    return writes[-1][0]
