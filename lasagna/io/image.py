@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lasagna.errors import ImageError
+from lasagna.errors import ImageError, LasagnaError
 from lasagna.io.png import PNG_SIGNATURE, read_png, read_png_header
 from lasagna.limits import check_memory, raster_bytes
 
@@ -101,7 +101,7 @@ def _read_tiff_wide(path: Path, where: str, max_pixels: int) -> RasterImage:
             _check_pixels(shape.get("X", 1), shape.get("Y", 1), max_pixels, where)
             values = page.asarray()
             axes = page.axes
-    except ImageError:
+    except LasagnaError:  # the size and budget refusals, as they are
         raise
     except Exception as exc:  # tifffile raises ValueError, TiffFileError, KeyError, … on files it cannot decode
         raise _refuse(where, f"cannot decode this TIFF ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})")
@@ -109,6 +109,14 @@ def _read_tiff_wide(path: Path, where: str, max_pixels: int) -> RasterImage:
         values = np.moveaxis(values, 0, -1)
     bit_depth = 16 if values.dtype in (np.uint16, np.float32, np.float64) else 8
     return RasterImage(*_as_rgb(_unit(values, where), where), bit_depth=bit_depth)
+
+
+_TIFF_MAGIC = (b"II*\x00", b"MM\x00*")
+
+
+def _is_tiff(path: Path) -> bool:
+    with open(path, "rb") as fh:
+        return fh.read(4) in _TIFF_MAGIC
 
 
 def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
@@ -144,9 +152,11 @@ def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
             has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
             im = im.convert("RGBA" if has_alpha else "RGB")
             codes = np.asarray(im)
-    except ImageError:
+    except LasagnaError:  # the size and budget refusals, as they are (a LasagnaError is a ValueError)
         raise
     except UnidentifiedImageError:
+        if _is_tiff(path):  # a float or other wide TIFF Pillow cannot open: tifffile reads it
+            return _read_tiff_wide(path, where, max_pixels)
         raise _refuse(where, "cannot decode: not an image of a format lasagna reads") from None
     except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
         raise _refuse(where, f"cannot decode ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})") from None
