@@ -4,8 +4,9 @@ worker that runs the real CLI on each under a memory ceiling and a wall-clock li
 
 A case is ``(files, commands)``: ``files`` maps a relative path to bytes (written to a fresh folder),
 ``commands`` are argv lists for ``lasagna.cli.main`` in which ``{d}`` stands for that folder. The
-contract checked for every command (``check``): exit status 0 or 2, stderr at most one line, never
-"internal error" or "Traceback", and an answer within ``CASE_SECONDS``.
+contract checked for every command (``check``): exit status 0 or 2, at most one error line, never
+"internal error" or "Traceback", and an answer within ``CASE_SECONDS``. (Warnings, one line each,
+may precede the error line.)
 """
 
 from __future__ import annotations
@@ -99,14 +100,16 @@ def run_case(files: dict[str, bytes], commands: list[list[str]], env: dict[str, 
 
 
 def check(results: list) -> None:
-    """The contract for every command's result (module docstring)."""
+    """The contract for every command's result (module docstring). Warnings (``lasagna: warning: …``, one
+    line each: e.g. a layer OpenRaster cannot express) are allowed beside the one error line."""
     for argv, code, out, err in results:
         where = f"lasagna {' '.join(argv)}"
         assert code in (0, 2), f"{where}: exit {code!r}; stderr: {err}"
         assert "internal error" not in err and "Traceback" not in err, f"{where}: {err}"
-        assert len(err.splitlines()) <= 1, f"{where}: stderr has {len(err.splitlines())} lines:\n{err}"
+        errors = [line for line in err.splitlines() if not line.startswith("lasagna: warning: ")]
+        assert len(errors) <= 1, f"{where}: stderr has {len(errors)} lines that are not warnings:\n{err}"
         if code == 2:
-            assert err.startswith("lasagna"), f"{where}: exit 2 without a message; stderr: {err!r}"
+            assert errors and errors[0].startswith("lasagna"), f"{where}: exit 2 without a message; stderr: {err!r}"
 
 
 # ---- hostile values -------------------------------------------------------------------------------------
@@ -130,7 +133,23 @@ HOSTILE_PATHS = [
     "stack.json",
 ]
 
-HUGE_NUMBERS = [-1, 0, 1, 2**31 - 1, 2**31, 2**53 + 1, 2**63, -(2**63), 10**19, 65536, 32768, 32769, 1e308, -1e308, 5e-324]
+HUGE_NUMBERS = [
+    -1,
+    0,
+    1,
+    2**31 - 1,
+    2**31,
+    2**53 + 1,
+    2**63,
+    -(2**63),
+    10**19,
+    65536,
+    32768,
+    32769,
+    1e308,
+    -1e308,
+    5e-324,
+]
 
 leaf_values = st.one_of(
     st.none(),
@@ -283,7 +302,9 @@ def png_files(draw) -> bytes:
     """A valid PNG, then 0..3 of: byte flips, truncation, a chunk's length field rewritten, IHDR's size
     rewritten (up to 2³¹−1, CRC fixed or not), an extra chunk, bytes appended."""
     data = bytearray(
-        png_of(draw(st.sampled_from(PNG_MODES)), draw(st.integers(1, 9)), draw(st.integers(1, 9)), draw(st.integers(0, 9)))
+        png_of(
+            draw(st.sampled_from(PNG_MODES)), draw(st.integers(1, 9)), draw(st.integers(1, 9)), draw(st.integers(0, 9))
+        )
     )
     for _ in range(draw(st.integers(0, 3))):
         kind = draw(st.sampled_from(["flip", "cut", "length", "ihdr", "ihdr", "chunk", "append"]))
@@ -472,7 +493,11 @@ def ora_files(draw, bases: list[dict[str, bytes]]) -> bytes:
             entries.pop(draw(st.sampled_from(names)), None)
         elif kind == "rename" and names:
             old = draw(st.sampled_from(names))
-            new = draw(st.sampled_from(["../evil.png", "/abs.png", "data/" + "n" * 300 + ".png", "data\\x.png", "data/./x.png"]))
+            new = draw(
+                st.sampled_from(
+                    ["../evil.png", "/abs.png", "data/" + "n" * 300 + ".png", "data\\x.png", "data/./x.png"]
+                )
+            )
             if old in entries:
                 entries[new] = entries.pop(old)
         elif kind == "png" and names:
