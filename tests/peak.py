@@ -1,5 +1,5 @@
 """Run ``lasagna`` in a fresh Python process and report its peak resident memory, for tests that bound
-what hostile input may cost (``ru_maxrss`` of the child; in-process numbers would include pytest's)."""
+what hostile input may cost (the child's VmHWM; in-process numbers would include pytest's)."""
 
 from __future__ import annotations
 
@@ -11,21 +11,31 @@ from pathlib import Path
 
 from tests import pngcraft
 
-_CHILD = """
-import resource, sys
-{prelude}
+# The peak is the child's VmHWM, not ru_maxrss: Linux keeps ru_maxrss across exec, so a child of a large
+# pytest process would report at least the parent's resident size; VmHWM belongs to the new image.
+_PEAK = """
+def _peak_kb():
+    with open("/proc/self/status") as fh:
+        return next(int(line.split()[1]) for line in fh if line.startswith("VmHWM:"))
+"""
+
+_CHILD = (
+    _PEAK
+    + """
+import sys
 from lasagna.cli import main
 code = main(sys.argv[1:])
 sys.stdout.flush()
-print("PEAK_KB", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+print("PEAK_KB", _peak_kb())
 sys.exit(code)
 """
+)
 
 
-def run_cli(*argv, prelude: str = "", timeout: float = 300) -> tuple[int, str, str, float]:
+def run_cli(*argv, timeout: float = 300) -> tuple[int, str, str, float]:
     """``lasagna ARGV`` in a child process: (exit status, stdout without the peak line, stderr, peak MB)."""
     proc = subprocess.run(
-        [sys.executable, "-c", _CHILD.format(prelude=prelude), *map(str, argv)],
+        [sys.executable, "-c", _CHILD, *map(str, argv)],
         capture_output=True,
         text=True,
         timeout=timeout,
@@ -37,7 +47,7 @@ def run_cli(*argv, prelude: str = "", timeout: float = 300) -> tuple[int, str, s
 
 def run_python(code: str, timeout: float = 300) -> tuple[int, str, str, float]:
     """``python -c CODE``: (exit status, stdout, stderr, peak MB of the child)."""
-    wrapped = code + "\nimport resource\nprint('PEAK_KB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n"
+    wrapped = _PEAK + code + "\nprint('PEAK_KB', _peak_kb())\n"
     proc = subprocess.run([sys.executable, "-c", wrapped], capture_output=True, text=True, timeout=timeout)
     lines = proc.stdout.splitlines()
     assert lines and lines[-1].startswith("PEAK_KB "), (proc.stdout, proc.stderr)
