@@ -165,6 +165,17 @@ def test_jpeg_and_tensor_inputs(tmp_path):
     assert torch.equal(again.tensors["shading-top-left"].color, t.stack.tensors["shading-top-left"].color)
 
 
+def test_16bit_gray_tiff_input_is_kept_at_16_bits(tmp_path, capsys):
+    # Pillow reads "I;16" as mode I (32-bit codes); converting that to RGB saturated to all 1.0 before #16.
+    Image.new("I;16", (16, 12), 30000).save(tmp_path / "i16.tif")
+    out = tmp_path / "out"
+    code, _, err = run(capsys, "edit", tmp_path / "i16.tif", "--condition", "left", "-o", out, "--no-ora")
+    assert code == 0, err
+    base = _stack_json(out)["layers"][0]
+    values = _png16(out / base["source"])
+    assert values.shape[1:] == (12, 16) and np.all(values == 30000 / 65535)
+
+
 def test_per_image_is_seeded(tmp_path):
     a = edit(PHOTO, "shading", "left", generator="free", seed=3)
     b = edit(PHOTO, "shading", "left", generator="free", seed=3)

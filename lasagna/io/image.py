@@ -107,7 +107,7 @@ def _read_tiff_wide(path: Path, where: str, max_pixels: int) -> RasterImage:
             _check_pixels(shape.get("X", 1), shape.get("Y", 1), max_pixels, where)
             values = page.asarray()
             axes = page.axes
-    except LasagnaError:
+    except LasagnaError:  # the size and budget refusals, as they are
         raise
     except Exception as exc:  # tifffile raises ValueError, TiffFileError, KeyError, … on files it cannot decode
         raise _refuse(where, f"cannot decode this TIFF ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})")
@@ -138,8 +138,29 @@ def _pillow_errors(Image) -> tuple[type[Exception], ...]:
     return (OSError, ValueError, SyntaxError, Image.DecompressionBombError)
 
 
+_TIFF_MAGIC = (b"II*\x00", b"MM\x00*")
+
+
+def _is_tiff(path: Path) -> bool:
+    with open(path, "rb") as fh:
+        return fh.read(4) in _TIFF_MAGIC
+
+
+def _tiff_size(path: Path, where: str) -> tuple[int, int]:
+    """(width, height) of a TIFF's first page from its header (tifffile; nothing decoded)."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            page = tif.pages.first
+            shape = dict(zip(page.axes, page.shape))
+    except Exception as exc:  # tifffile raises ValueError, TiffFileError, KeyError, … on files it cannot parse
+        raise _refuse(where, f"cannot decode this TIFF ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})")
+    return shape.get("X", 1), shape.get("Y", 1)
+
+
 def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
-    from PIL import ImageOps
+    from PIL import ImageOps, UnidentifiedImageError
 
     Image = _pillow()
     try:
@@ -161,9 +182,11 @@ def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
             has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
             im = im.convert("RGBA" if has_alpha else "RGB")
             codes = np.asarray(im)
-    except LasagnaError:  # ours (a ValueError too): already one line
+    except LasagnaError:  # the size and budget refusals, as they are (a LasagnaError is a ValueError)
         raise
     except _pillow_errors(Image) as exc:
+        if isinstance(exc, UnidentifiedImageError) and _is_tiff(path):
+            return _read_tiff_wide(path, where, max_pixels)  # a float or other wide TIFF Pillow cannot open
         raise _pillow_error(exc, where) from None
     return RasterImage(*_as_rgb(_unit(codes, where), where), bit_depth=8)
 
@@ -192,12 +215,16 @@ def probe_image_file(path: str | os.PathLike, *, max_pixels: int) -> tuple[int, 
             raster_bytes(header.width, header.height, 4), f"decoding a {header.width}x{header.height} PNG", where
         )
         return header.width, header.height
+    from PIL import UnidentifiedImageError
+
     Image = _pillow()
     try:
         with Image.open(p, formats=PILLOW_FORMATS) as im:
             w, h = im.size
     except _pillow_errors(Image) as exc:
-        raise _pillow_error(exc, where) from None
+        if not (isinstance(exc, UnidentifiedImageError) and _is_tiff(p)):
+            raise _pillow_error(exc, where) from None
+        w, h = _tiff_size(p, where)  # a float or other wide TIFF Pillow cannot open: tifffile's header
     _check_pixels(w, h, max_pixels, where)
     return w, h
 

@@ -213,3 +213,126 @@ def test_read_ora_limits(tmp_path):
         read_ora(path, max_uncompressed=1000)
     with pytest.raises(ImageError, match="over the limit of 100"):
         read_ora(path, max_pixels=100)
+
+
+# ---- hostile archives (#16) ---------------------------------------------------------------------------
+
+
+def _write_ora(path: Path, entries: dict[str, bytes]) -> Path:
+    """An .ora from ``entries`` (mimetype first, stored; the rest deflated), as an attacker would zip it."""
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("mimetype", b"image/openraster", compress_type=zipfile.ZIP_STORED)
+        for name, data in entries.items():
+            zf.writestr(name, data, compress_type=zipfile.ZIP_DEFLATED)
+    return path
+
+
+def _xml(layers: str, w: int = 8, h: int = 8, head: str = "<?xml version='1.0' encoding='UTF-8'?>\n") -> str:
+    return f'{head}<image version="0.0.5" w="{w}" h="{h}"><stack>{layers}</stack></image>'
+
+
+def _layer(src: str, name: str = "a") -> str:
+    return f'<layer name="{name}" src="{src}" x="0" y="0" opacity="1" visibility="visible" />'
+
+
+def _png8(w: int = 8, h: int = 8) -> bytes:
+    from tests import pngcraft
+
+    return pngcraft.gray8(w, h, 90)
+
+
+def _refused_ora(path: Path, **kw) -> str:
+    with pytest.raises(ImageError) as info:
+        read_ora(path, **kw)
+    message = str(info.value)
+    assert "\n" not in message and str(path) in message
+    return message
+
+
+def test_one_entry_named_by_many_layers_is_refused(tmp_path, monkeypatch):
+    import time
+
+    import lasagna.export.ora as ora_module
+
+    xml = _xml("".join(_layer("data/a.png", f"l{i}") for i in range(40)), 4096, 4096)
+    path = _write_ora(tmp_path / "x.ora", {"stack.xml": xml.encode(), "data/a.png": _png8(4096, 4096)})
+    monkeypatch.setattr(ora_module, "decode_png", lambda *a, **k: pytest.fail("decoded"))
+    start = time.perf_counter()
+    assert "src 'data/a.png' is also the src of stack[0]" in _refused_ora(path)
+    assert time.perf_counter() - start < 2
+
+
+def _padded_entry_ora(path: Path, tail: int) -> Path:
+    """An .ora whose layer entry is an 8×8 PNG followed by ``tail`` zero bytes (deflated to ~tail/1000)."""
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("mimetype", b"image/openraster", compress_type=zipfile.ZIP_STORED)
+        zf.writestr("stack.xml", _xml(_layer("data/a.png")).encode(), compress_type=zipfile.ZIP_DEFLATED)
+        info = zipfile.ZipInfo("data/a.png")
+        info.compress_type = zipfile.ZIP_DEFLATED
+        with zf.open(info, "w", force_zip64=True) as fh:
+            fh.write(_png8())
+            zero = bytes(2**20)
+            for _ in range(tail // len(zero)):
+                fh.write(zero)
+    return path
+
+
+def test_an_entry_padded_past_its_png_is_refused_unread(tmp_path):
+    from lasagna.io.png import PngHeader, png_file_limit
+
+    cap = png_file_limit(PngHeader(8, 8, 8, 0, False))  # 64 MiB of slack for ancillary chunks
+    path = _padded_entry_ora(tmp_path / "x.ora", cap + 2**20)
+    assert path.stat().st_size < 2**20
+    assert f"entry 'data/a.png' inflates past {cap} bytes" in _refused_ora(path)
+
+
+@pytest.mark.slow
+def test_an_entry_padded_with_1gib_is_refused_in_bounded_memory(tmp_path):
+    from tests.peak import run_cli
+
+    path = _padded_entry_ora(tmp_path / "x.ora", 2**30)
+    assert path.stat().st_size < 4 * 2**20
+    code, out, err, peak = run_cli("import-ora", path, "-o", tmp_path / "out")
+    assert code == 2 and "inflates past" in err and len(err.splitlines()) == 1, err
+    assert peak < 500 and not (tmp_path / "out").exists()
+
+
+def test_utf16_stack_xml_with_an_entity_is_refused(tmp_path):
+    xml = _xml(
+        _layer("data/a.png", "&boom;"),
+        head='<?xml version="1.0" encoding="UTF-16"?>\n<!DOCTYPE image [<!ENTITY boom "x">]>\n',
+    )
+    path = _write_ora(tmp_path / "x.ora", {"stack.xml": xml.encode("utf-16"), "data/a.png": _png8()})
+    assert "stack.xml: not UTF-8" in _refused_ora(path)
+
+
+def test_a_declared_non_utf8_encoding_is_refused(tmp_path):
+    xml = _xml(_layer("data/a.png"), head="<?xml version='1.0' encoding='ISO-8859-1'?>\n")
+    path = _write_ora(tmp_path / "x.ora", {"stack.xml": xml.encode("latin-1"), "data/a.png": _png8()})
+    assert "declares encoding 'ISO-8859-1'; expected OpenRaster XML in UTF-8" in _refused_ora(path)
+
+
+def test_a_utf8_dtd_is_refused(tmp_path):
+    xml = _xml(_layer("data/a.png"), head='<?xml version="1.0"?>\n<!DOCTYPE image [<!ENTITY e "x">]>\n')
+    path = _write_ora(tmp_path / "x.ora", {"stack.xml": xml.encode(), "data/a.png": _png8()})
+    assert "declares a DTD or entities" in _refused_ora(path)
+
+
+def test_a_plain_utf8_archive_is_read(tmp_path):
+    for head in ("", "<?xml version='1.0' encoding='utf8'?>\n", "\ufeff<?xml version='1.0' encoding='UTF-8'?>\n"):
+        path = _write_ora(tmp_path / "x.ora", {"stack.xml": _xml(_layer("data/a.png", "é"), head=head).encode()})
+        with zipfile.ZipFile(path, "a") as zf:
+            zf.writestr("data/a.png", _png8())
+        width, height, layers = read_ora(path)
+        assert (width, height, layers[0]["name"]) == (8, 8, "é")
+
+
+def test_import_is_refused_over_the_budget_before_decoding(tmp_path, monkeypatch):
+    import lasagna.export.ora as ora_module
+    from lasagna.limits import BudgetError, memory_budget_scope
+
+    path = _ora(tmp_path, load_stack(BASIC))
+    monkeypatch.setattr(ora_module, "decode_png", lambda *a, **k: pytest.fail("decoded"))
+    with memory_budget_scope(100_000), pytest.raises(BudgetError) as info:
+        import_ora(path)
+    assert "decoding the 7 layers needs" in str(info.value) and "over the memory budget of 97.7 KB" in str(info.value)

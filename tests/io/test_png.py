@@ -274,3 +274,168 @@ def _chunks(data: bytes, kind: bytes):
         if data[pos + 4 : pos + 8] == kind:
             yield data[pos + 8 : pos + 8 + n]
         pos += 12 + n
+
+
+# ---- hostile input (#16): verify without decoding, decode cost, lean decoders, banded encoding --------
+
+
+def _filtered_png(filter_byte: int, width: int = 6, height: int = 4) -> bytes:
+    """An 8-bit gray PNG, rows all filter 0 except the first, whose filter type byte is ``filter_byte``."""
+    raw = b"".join(bytes([filter_byte if y == 0 else 0]) + bytes(range(width)) for y in range(height))
+    return pngcraft.png_bytes(width, height, zlib.compress(raw))
+
+
+def test_verify_png_passes_a_good_file_and_refuses_a_bad_filter_type(tmp_path):
+    from lasagna.io.png import verify_png
+
+    good = tmp_path / "good.png"
+    good.write_bytes(_filtered_png(0))
+    header = verify_png(good)
+    assert (header.width, header.height, header.bit_depth, header.kind) == (6, 4, 8, "gray")
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(_filtered_png(7))
+    with pytest.raises(ImageError) as info:
+        verify_png(bad)
+    assert "row 0 has filter type 7; expected 0 to 4" in _one_line(info.value, bad)
+    # a later row: the scan follows rows across inflated pieces
+    raw = b"".join(bytes([9 if y == 3 else 2]) + bytes(6) for y in range(4))
+    bad.write_bytes(pngcraft.png_bytes(6, 4, zlib.compress(raw)))
+    with pytest.raises(ImageError, match="row 3 has filter type 9"):
+        verify_png(bad)
+
+
+def test_verify_png_checks_what_decoding_checks(tmp_path):
+    from lasagna.io.png import verify_png
+
+    bomb = tmp_path / "bomb.png"
+    bomb.write_bytes(pngcraft.header_bomb())
+    with pytest.raises(ImageError, match="over the limit"):
+        verify_png(bomb)
+    with pytest.raises(ImageError, match="over the limit of 10"):
+        verify_png(tmp_path / "bomb.png", max_pixels=10)
+    truncated = tmp_path / "t.png"
+    truncated.write_bytes(pngcraft.gray8(8, 8)[:-20])
+    with pytest.raises(ImageError):
+        verify_png(truncated)
+
+
+def test_verify_png_does_not_decode(tmp_path, monkeypatch):
+    import lasagna.io.png as png_module
+
+    path = tmp_path / "x.png"
+    Image.fromarray(_codes((H, W, 3), 255).astype(np.uint8)).save(path)
+
+    def no_decode(*args, **kwargs):
+        raise AssertionError("decoded")
+
+    monkeypatch.setattr(png_module, "_decode_pillow", no_decode)
+    monkeypatch.setattr(png_module, "_decode_pypng", no_decode)
+    assert png_module.verify_png(path).pixels == H * W
+
+
+def test_decode_bytes_and_file_limit():
+    from lasagna.io.png import PngHeader, decode_bytes, png_file_limit
+
+    rgb8 = PngHeader(100, 50, 8, 2, False)
+    assert decode_bytes(rgb8) == (100 * 50 * 4 * 4, 100 * 50 * 8)  # RGB(+tRNS alpha) float32; Pillow codes
+    gray16 = PngHeader(100, 50, 16, 0, False)
+    assert decode_bytes(gray16) == (100 * 50 * 2 * 4, 0)  # pypng: rows one at a time
+    rgba16 = PngHeader(10, 10, 16, 6, False)
+    assert decode_bytes(rgba16)[0] == 10 * 10 * 4 * 4
+    assert png_file_limit(rgb8) >= 2 * rgb8.raw_bytes()
+    assert png_file_limit(rgb8) < png_file_limit(PngHeader(200, 50, 8, 2, False))
+
+
+def test_a_file_far_larger_than_its_header_is_refused(tmp_path):
+    from lasagna.io.png import PngHeader, png_file_limit
+
+    data = pngcraft.gray8(4, 4)
+    path = tmp_path / "padded.png"
+    limit = png_file_limit(PngHeader(4, 4, 8, 0, False))
+    path.write_bytes(data + b"\0" * limit)
+    with pytest.raises(ImageError, match="far more than a 4x4 PNG holds"):
+        read_png(path)
+
+
+@pytest.mark.parametrize("mode", ["L", "LA", "RGB", "RGBA", "P"])
+def test_pillow_decoder_is_bit_identical_to_the_old_formula(tmp_path, mode):
+    path = tmp_path / f"{mode}.png"
+    planes = {"L": 1, "LA": 2, "RGB": 3, "RGBA": 4, "P": 1}[mode]
+    codes = _codes((H, W, planes), 255).astype(np.uint8)
+    im = Image.fromarray(codes[:, :, 0] if planes == 1 else codes, mode="L" if mode == "P" else mode)
+    if mode == "P":
+        im = Image.fromarray(codes[:, :, 0], mode="P")
+        im.putpalette(list(RNG.integers(0, 256, 768)))
+        im.save(path, transparency=bytes(RNG.integers(0, 256, 256).astype(np.uint8)))
+    else:
+        im.save(path)
+    ours = _stacked(read_png(path))
+    with Image.open(path) as ref:
+        target = {"P": "RGBA"}.get(mode, mode)
+        old = np.asarray(ref.convert(target), dtype=np.float32) / 255.0
+    old = old.reshape(H, W, -1)
+    assert ours.dtype == np.float32 and ours.shape == old.shape
+    assert np.array_equal(ours, old)
+
+
+@pytest.mark.parametrize("greyscale, alpha", [(True, False), (True, True), (False, False), (False, True)])
+def test_16bit_decoder_is_bit_identical_to_codes_over_65535(tmp_path, greyscale, alpha):
+    planes = (1 if greyscale else 3) + alpha
+    codes = _codes((H, W * planes), 65535)
+    path = tmp_path / "x.png"
+    with open(path, "wb") as fh:
+        pypng.Writer(W, H, greyscale=greyscale, alpha=alpha, bitdepth=16).write(fh, codes.tolist())
+    ours = _stacked(read_png(path))
+    w, h, rows, _ = pypng.Reader(filename=str(path)).asDirect()
+    ref = np.vstack([np.asarray(r, dtype=np.uint16) for r in rows]).reshape(H, W, planes)
+    assert np.array_equal(ours, ref.astype(np.float32) / np.float32(65535.0))
+
+
+def _bands(codes: np.ndarray, sizes):
+    y = 0
+    for n in sizes:
+        if y >= codes.shape[0]:
+            return
+        yield codes[y : y + n]
+        y += n
+
+
+@pytest.mark.parametrize(
+    "h, w, sizes",
+    [(1, 1, [1]), (5, 7, [2, 2, 1]), (5, 7, [64]), (67, 130, [64, 3]), (67, 130, [10] * 7), (67, 130, [1] * 67)],
+)
+def test_encode_rgb8_bands_decodes_to_its_input(h, w, sizes):
+    from lasagna.io.png import encode_rgb8_bands
+
+    codes = RNG.integers(0, 256, (h, w, 3)).astype(np.uint8)
+    codes[: h // 2, : w // 2] = 200  # flat areas too, where the filters differ from noise
+    data = encode_rgb8_bands(_bands(codes, sizes), w, h)
+    with Image.open(io.BytesIO(data)) as im:
+        assert im.mode == "RGB" and im.size == (w, h)
+        assert np.array_equal(np.asarray(im), codes)
+    assert np.array_equal(_stacked(decode_png(data, "x")), codes.astype(np.float32) / np.float32(255.0))
+
+
+def test_encode_rgb8_bands_refuses_a_short_image():
+    from lasagna.io.png import encode_rgb8_bands
+
+    with pytest.raises(ImageError, match="got 4 rows; expected 5"):
+        encode_rgb8_bands([np.zeros((4, 3, 3), np.uint8)], 3, 5)
+
+
+def test_write_composite_rounds_like_composite_codes(tmp_path):
+    import torch
+
+    from lasagna.io.render import composite_codes, write_composite
+
+    k = np.arange(256, dtype=np.float64)
+    halves = (k[:255] + 0.5) / 255.0  # exactly between two codes, up to float64's rounding
+    values = np.concatenate([halves, k / 255.0, [-0.5, 1.5, 1.0 + 1e-12]])
+    n = values.size
+    image = torch.from_numpy(np.stack([values, values[::-1], np.roll(values, 7)])).reshape(3, 1, n)
+    image = image.expand(3, 3, n).contiguous()
+    write_composite(image, tmp_path / "c.png")
+    with Image.open(tmp_path / "c.png") as im:
+        written = np.asarray(im).transpose(2, 0, 1)
+    assert np.array_equal(written, composite_codes(image).numpy())
+    assert np.array_equal(written, np.round(np.clip(image.numpy(), 0.0, 1.0) * 255.0).astype(np.uint8))

@@ -281,3 +281,142 @@ def test_remove_layer_drops_the_layer_its_tensors_and_bit_depth():
     )
     with pytest.raises(DocumentError, match="nope"):
         stack.remove_layer("nope")
+
+
+# ---- hostile input (#16): huge layers and canvases are checked or refused before decoding -------------
+
+
+def _big_layer_stack(folder: Path, side: int) -> Path:
+    from tests.peak import zero_rgb_png
+
+    zero_rgb_png(folder / "layers" / "big.png", side)
+    return write_stack(folder, _doc([{"id": "big", "kind": "pixels", "source": "layers/big.png"}], w=8, h=8))
+
+
+@pytest.fixture(scope="module")
+def big8k(tmp_path_factory) -> Path:
+    """An 8×8 canvas whose one layer is an 8192² RGB PNG of zeros (196 KB; 1 GiB as float32 RGBA)."""
+    return _big_layer_stack(tmp_path_factory.mktemp("big8k"), 8192)
+
+
+@pytest.fixture(scope="module")
+def big16k(tmp_path_factory) -> Path:
+    """The same with a 16384² layer (~780 KB; 4 GiB as float32 RGBA)."""
+    return _big_layer_stack(tmp_path_factory.mktemp("big16k"), 16384)
+
+
+def _validate_without_decoding(folder: Path, side: int) -> None:
+    from tests.peak import run_cli
+
+    code, out, err, peak = run_cli("validate", folder)
+    assert code == 0 and err == "", err
+    assert out == "ok: 1 layers (8x8, blend_space=srgb)"
+    assert peak < 600, f"validate of a {side}² layer peaked at {peak:.0f} MB"  # decoding would be ≥ 1 GiB
+
+
+def test_validate_checks_an_8192_layer_without_decoding(big8k):
+    _validate_without_decoding(big8k, 8192)
+
+
+@pytest.mark.slow
+def test_validate_checks_a_16384_layer_without_decoding(big16k):
+    _validate_without_decoding(big16k, 16384)
+
+
+@pytest.mark.parametrize("size", ["big8k", pytest.param("big16k", marks=pytest.mark.slow)])
+def test_composite_of_a_big_layer_is_refused_under_the_budget(request, capsys, monkeypatch, size):
+    import lasagna.io.stack as stack_module
+    from lasagna.cli import main
+
+    folder = request.getfixturevalue(size)
+    monkeypatch.setattr(stack_module, "read_png", lambda *a, **k: pytest.fail("decoded"))
+    code = main(["composite", str(folder), "-o", str(folder.parent / "out.png"), "--memory-budget", "1G"])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert "over the memory budget of 1.0 GB" in err and "decoding the stack's 1 PNGs" in err
+    assert not (folder.parent / "out.png").exists()
+
+
+def test_load_stack_under_a_scope_refuses_before_decoding(big8k, monkeypatch):
+    import lasagna.io.stack as stack_module
+    from lasagna.limits import BudgetError, memory_budget_scope
+
+    monkeypatch.setattr(stack_module, "read_png", lambda *a, **k: pytest.fail("decoded"))
+    with memory_budget_scope("512M"), pytest.raises(BudgetError, match="over the memory budget of 512.0 MB"):
+        load_stack(big8k)
+
+
+def test_load_stack_budget_counts_every_layer(tmp_path):
+    from lasagna.limits import BudgetError, memory_budget_scope
+
+    write_png8(tmp_path / "a.png", np.zeros((64, 64, 3)))
+    folder = write_stack(tmp_path, _doc([{"id": f"l{i}", "kind": "pixels", "source": "a.png"} for i in range(4)]))
+    with memory_budget_scope(4 * 64 * 64 * 16):  # each layer fits; four of them plus decoding do not
+        with pytest.raises(BudgetError, match="decoding the stack's 4 PNGs"):
+            load_stack(folder)
+    with memory_budget_scope("64M"):
+        assert len(load_stack(folder).ids) == 4
+
+
+def _solid_stack(folder: Path, side: int, color=(0.2, 0.4, 0.6)) -> Path:
+    layer = {"id": "fill", "kind": "solid", "color": list(color)}
+    return write_stack(folder, _doc([layer], w=side, h=side))
+
+
+def test_composite_of_a_32768_solid_canvas_is_refused_in_bounded_memory(tmp_path):
+    from tests.peak import run_cli
+
+    folder = _solid_stack(tmp_path / "s", 32768)
+    code, out, err, peak = run_cli("composite", folder, "-o", tmp_path / "out.png")
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert "rendering its 32768x32768 canvas" in err and "over the memory budget of 8.0 GB" in err
+    assert peak < 500 and not (tmp_path / "out.png").exists()
+
+
+def test_a_2048_solid_canvas_renders_in_bounded_memory(tmp_path):
+    from tests.peak import baseline_mb, run_cli
+
+    folder = _solid_stack(tmp_path / "s", 2048)
+    code, out, err, peak = run_cli("composite", folder, "-o", tmp_path / "out.png")
+    assert code == 0, err
+    with Image.open(tmp_path / "out.png") as im:
+        codes = np.asarray(im)
+    assert codes.shape == (2048, 2048, 3) and np.all(codes == np.array([51, 102, 153], np.uint8))
+    # The canvas is 48 MB of float32 RGB and ~12 MB of codes and deflate; materialising the solid layer
+    # (RGBA, float32) and the old whole-image float64 encode would add ~64 + 100 MB each. 400 MB is far
+    # below the several copies of a canvas the old path made, and well above this one's ~60 MB.
+    assert peak - baseline_mb() < 400, f"peak {peak:.0f} MB over a baseline of {baseline_mb():.0f} MB"
+
+
+def test_ranges_of_expanded_solid_views_match_a_materialised_copy():
+    from lasagna.compose.layer import LayerTensors
+
+    color = torch.tensor([0.25, -0.5, 1.5]).reshape(3, 1, 1).expand(3, 5, 7)
+    alpha = torch.full((1, 1, 1), 0.75).expand(1, 5, 7)
+    mask = torch.rand(1, 5, 7, generator=torch.Generator().manual_seed(0))
+    lt = LayerTensors(color, alpha, mask)
+    ref = LayerTensors(color.contiguous(), alpha.contiguous(), mask)
+    assert lt.color_range() == ref.color_range() == (-0.5, 1.5)
+    assert lt.alpha_range() == ref.alpha_range()
+    assert lt.alpha_range() == pytest.approx((0.75 * float(mask.min()), 0.75 * float(mask.max())))
+    # expanded along one axis only: rows differ, columns are repeated
+    rows = torch.linspace(0, 1, 5).reshape(1, 5, 1).expand(3, 5, 7)
+    assert LayerTensors(rows).color_range() == LayerTensors(rows.contiguous()).color_range() == (0.0, 1.0)
+    nan = torch.tensor([0.0, float("nan"), 1.0]).reshape(3, 1, 1).expand(3, 4, 4)
+    lo, hi = LayerTensors(nan).color_range()
+    assert np.isnan(lo) and np.isnan(hi)
+
+
+def test_ranges_of_a_32768_expanded_view_do_not_materialise_it():
+    import time
+
+    from lasagna.compose.layer import LayerTensors
+
+    side = 2**15
+    color = torch.tensor([0.1, 0.2, 0.3]).reshape(3, 1, 1).expand(3, side, side)  # 12 GiB if materialised
+    alpha = torch.full((1, 1, 1), 0.5).expand(1, side, side)
+    start = time.perf_counter()
+    lt = LayerTensors(color, alpha)
+    assert lt.color_range() == pytest.approx((0.1, 0.3))
+    assert lt.alpha_range() == (0.5, 0.5)
+    assert time.perf_counter() - start < 2
