@@ -13,9 +13,9 @@ scikit-image's CC0 / public-domain samples). For each:
   cool fill light; for a world scene the truth column shows the world's own fill light of that
   label added (``lasagna.world.tasks.additive_light``).
 
-Each edit is ``lasagna.edit.edit`` — the preset's amortised generator when the catalogue has one
-(one forward pass, then ``DEMO_REFINE`` per-image steps from it, none by default), else a per-image
-optimisation with the preset's settings — written as a stack folder under
+Each edit is ``lasagna.edit.edit`` with the preset's default method (``lasagna edit``'s: the preset's
+``method``, else its amortised generator when the catalogue has one, else a per-image optimisation with
+the preset's settings) — written as a stack folder under
 ``OUT/stacks/``. ``OUT/sheet.png`` has one labelled row per edit: input | layer | composite | truth.
 The layer is drawn as stored (v = (y − lo)/(hi − lo): a shading of 1 is mid-gray; an RGBA layer over
 a checkerboard). A preset whose prior and generator are both missing is skipped with one line; if
@@ -35,6 +35,7 @@ from torch import Tensor
 from lasagna import catalogue as cat
 from lasagna.atomic import atomic_write_bytes
 from lasagna.errors import LasagnaError, PathError
+from lasagna.learned import choose_method
 
 DIRECTIONS = ("left", "right", "top", "bottom")  # relighting directions shown for every input
 WORLD_SCENES = 2  # held-out scenes relit and colourised
@@ -45,10 +46,9 @@ LIT_PHOTOS = 2
 # Per-image steps when a preset has no amortised generator: None = the preset's own distill.steps
 # (150 for shading: ~1.5 s per 64² edit on this CPU with the 32² relighting prior, early stopping included).
 DEMO_STEPS: int | None = None
-# Per-image steps after an amortised generator's pass (``lasagna edit --optimize``). 0: the demo shows what
-# ``lasagna edit`` does by default. Measured on held-out world scenes (docs/BENCHMARKS.md#learned-layers): after
-# the bundled generator's 22.65 dB, 50 LMC-SDS steps give 22.40 dB — refinement pays only for a weaker generator.
-DEMO_REFINE = 0
+# Per-image steps after an amortised generator's pass (``lasagna edit --optimize``). None: the preset's
+# refine_steps — the demo shows what ``lasagna edit`` does by default.
+DEMO_REFINE: int | None = None
 CELL = 128  # pixels per image cell in the sheet (64² scenes and 96² photos, enlarged without smoothing)
 LABEL_WIDTH = 200
 
@@ -181,7 +181,7 @@ def run_demo(
     *,
     catalogue_dirs=None,
     steps: int | None = DEMO_STEPS,
-    refine: int = DEMO_REFINE,
+    refine: int | None = DEMO_REFINE,
     examples: Path | None = None,
     say: Callable[[str], None] | None = None,
     warn: Callable[[str], None] | None = None,
@@ -242,10 +242,13 @@ def runnable_presets(catalogue_dirs=None) -> tuple[dict[str, str], list[str]]:
         except LasagnaError as err:
             missing.append(f"{preset}: {err}")
             continue
-        if parts.generator is not None:
+        method = choose_method(parts, None)  # lasagna edit's default for the preset
+        if method == "amortised":
             runnable[preset] = "amortised"
         elif _has_prior(parts, catalogue_dirs):
             runnable[preset] = "per-image"
+        elif parts.generator is not None:
+            runnable[preset] = "amortised"  # the preset prefers per-image, but only its generator is here
         else:
             missing.append(
                 f"{preset}: its prior {parts.preset.prior!r} is not in the catalogue and it has no generator"
@@ -256,7 +259,9 @@ def runnable_presets(catalogue_dirs=None) -> tuple[dict[str, str], list[str]]:
 class _Edits:
     """The demo's edits, each written as a stack folder under ``out/stacks/`` and drawn as one sheet row."""
 
-    def __init__(self, out: Path, runnable: dict[str, str], catalogue_dirs, steps: int | None, refine: int, warn):
+    def __init__(
+        self, out: Path, runnable: dict[str, str], catalogue_dirs, steps: int | None, refine: int | None, warn
+    ):
         self.out, self.runnable, self.catalogue_dirs = out, runnable, catalogue_dirs
         self.steps, self.refine, self.warn = steps, refine, warn
         self.rows: list[Row] = []
@@ -267,8 +272,12 @@ class _Edits:
     ) -> None:
         from lasagna.edit import conditioning_input, edit
 
-        optimize = self.refine if self.runnable[preset] == "amortised" else self.steps
-        result = edit(image, preset, label, on=on, catalogue_dirs=self.catalogue_dirs, optimize=optimize)
+        method = self.runnable[preset]
+        optimize = self.refine if method == "amortised" else self.steps
+        generator = "free" if method == "per-image" else "amortised"
+        result = edit(
+            image, preset, label, on=on, catalogue_dirs=self.catalogue_dirs, generator=generator, optimize=optimize
+        )
         # force: replaces a previous run's stack
         self.written.append(result.save(self.out / "stacks" / name, force=True, warn=self.warn))
         layer = result.stack.document.layer(result.layer_id)
