@@ -15,9 +15,11 @@ PIL images, ``Stack``) keep their order and come after them.
 **Outputs**: ``out_dir/<name>/`` per input, ``<name>`` the file's stem (a stack folder's name), made unique
 in input order without regard to case (``a.png``, ``a.jpg`` → ``a``, ``a-2``); in-memory images are
 ``image-1``, ``image-2``, … Each stack folder is written all or nothing (``lasagna.io.folder``), so a
-folder that exists with its stack.json is **complete**: it is skipped (``force`` rewrites it). A killed run
+folder that exists with its stack.json is **complete**: it is skipped (``force`` rewrites it). Finished
+folders are staged (written into temporary siblings without fsync, ``lasagna.atomic.unsynced``) and
+committed together: one file-system sync, then each renamed into place (``COMMIT_EVERY``). A killed run
 leaves only hidden temporaries, swept when the next run starts (``lasagna.atomic.sweep_stale``): running
-again finishes the rest, losing nothing and redoing nothing. Each input's failure is caught and reported
+again finishes the rest, losing nothing complete and redoing nothing complete. Each input's failure is caught and reported
 (``Outcome.error``, one line) and the others go on.
 
 **Batches and shards.** The sorted inputs are cut into consecutive chunks of ``batch_size``; chunk k belongs
@@ -45,6 +47,7 @@ from __future__ import annotations
 
 import glob
 import os
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -54,11 +57,11 @@ from typing import Any, Literal
 import torch
 
 from lasagna import catalogue as cat
-from lasagna.atomic import sweep_stale
+from lasagna.atomic import sweep_stale, sync_filesystem, unsynced
 from lasagna.document import STACK_FILE
 from lasagna.edit import EditPlan, check_edit_options, plan_edit
 from lasagna.errors import LasagnaError, PathError
-from lasagna.io.folder import check_writable
+from lasagna.io.folder import check_writable, swap_in
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 from lasagna.learned import LoadedGenerator, choose_method, load_generator
 
@@ -66,6 +69,13 @@ from lasagna.learned import LoadedGenerator, choose_method, load_generator
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff")
 
 Status = Literal["done", "skipped", "failed"]
+
+# Finished stack folders wait, written but not renamed into place, until this many are staged or this many
+# seconds have passed; then one file-system sync makes them all durable and each is renamed in. The sync
+# replaces seven fsyncs per stack folder (24 ms of a 64² edit's ~45 ms here); a kill loses at most the
+# staged ones' work, never a complete output.
+COMMIT_EVERY = 32
+COMMIT_SECONDS = 2.0
 
 
 @dataclass
@@ -303,6 +313,8 @@ def edit_many(
 
         bar = tqdm(total=sum(map(len, mine)), desc=f"edit {preset}-{condition}", unit="image", leave=False)
     outcomes: list[Outcome] = []
+    staged: list[tuple[int, Path, float]] = []  # (index, temporary folder, start): written, not yet renamed
+    since = [time.monotonic()]
 
     def report(outcome: Outcome) -> None:
         outcomes.append(outcome)
@@ -310,6 +322,20 @@ def edit_many(
             bar.update(1)
         elif callable(progress):
             progress(outcome)
+
+    def commit() -> None:
+        """One flush for every staged folder, then each renamed into place: complete, or not there at all."""
+        if staged:
+            sync_filesystem(out_dir)
+        while staged:
+            i, tmp, t0 = staged.pop(0)
+            try:
+                swap_in(tmp, outputs[i], force=force)
+                report(Outcome(i, labels[i], str(outputs[i]), "done", None, time.monotonic() - t0))
+            except Exception as exc:  # noqa: BLE001 - e.g. another writer filled the folder meanwhile
+                shutil.rmtree(tmp, ignore_errors=True)
+                report(Outcome(i, labels[i], str(outputs[i]), "failed", _describe(exc, labels[i]), 0.0))
+        since[0] = time.monotonic()
 
     try:
         for chunk in mine:
@@ -346,12 +372,18 @@ def edit_many(
                     if isinstance(y, Exception):
                         raise y
                     run = plan.make(**options, progress=False, loaded=gen, initial=y)
-                    result = plan.finish(run, time.monotonic() - t0)
-                    result.save(out, force=force, ora=ora, warn=warn)
-                    report(Outcome(i, label, str(out), "done", None, time.monotonic() - t0))
+                    with unsynced():  # made durable together by commit()
+                        staged.append(
+                            (i, plan.finish(run, time.monotonic() - t0).stage(out, force=force, ora=ora, warn=warn), t0)
+                        )
                 except Exception as exc:  # noqa: BLE001
                     report(Outcome(i, label, str(out), "failed", _describe(exc, label), time.monotonic() - t0))
+                if len(staged) >= COMMIT_EVERY or time.monotonic() - since[0] >= COMMIT_SECONDS:
+                    commit()
+        commit()
     finally:
+        for _, tmp, _ in staged:  # interrupted: finished work not yet renamed in is dropped, nothing half-written
+            shutil.rmtree(tmp, ignore_errors=True)
         if bar is not None:
             bar.close()
     return BatchReport(_gather(outcomes), time.monotonic() - start)

@@ -51,7 +51,7 @@ from torch import Tensor
 from lasagna import catalogue as cat
 from lasagna.document import LearnedLayer
 from lasagna.errors import DocumentError, ImageError, LasagnaError, PathError
-from lasagna.io.folder import check_output_folder, write_stack_folder
+from lasagna.io.folder import check_output_folder, stage_stack_folder, write_stack_folder
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 from lasagna.io.stack import Stack, load_stack, resolve_inside
 from lasagna.learned import (
@@ -95,14 +95,29 @@ class EditResult:
         """Write the stack folder ``out``, all or nothing (``lasagna.io.folder.write_stack_folder``): stack.json,
         layers/, generators/, composite.png and (``ora``) stack.ora; returns it. With ``force`` a stack
         folder already there is replaced."""
+        check_output_folder(out, force=force)  # before any work
+        return write_stack_folder(self.stack, out, **self._contents(ora, warn), force=force)
+
+    def stage(
+        self,
+        out: str | os.PathLike,
+        *,
+        force: bool = False,
+        ora: bool = True,
+        warn: Callable[[str], None] | None = None,
+    ) -> Path:
+        """``save`` up to the rename: the stack folder written into a temporary sibling of ``out``, returned
+        (``lasagna.io.folder.stage_stack_folder``; ``swap_in`` renames it into place)."""
+        return stage_stack_folder(self.stack, out, **self._contents(ora, warn), force=force)
+
+    def _contents(self, ora: bool, warn) -> dict[str, Any]:
         from lasagna.export.ora import encode_ora
 
-        check_output_folder(out, force=force)  # before any work
         result = self.stack.render()
         files = dict(self.files)
         if ora:
             files["stack.ora"] = encode_ora(self.stack, composite=result.image, warn=warn)
-        return write_stack_folder(self.stack, out, files=files, force=force, result=result)
+        return {"files": files, "result": result}
 
 
 # ---- inputs ----------------------------------------------------------------------------------------

@@ -146,6 +146,25 @@ def test_rerun_after_a_kill_finishes_the_rest_and_redoes_nothing(tmp_path, capsy
     assert run(capsys, "edit", tmp_path / "in", "--condition", "left", "-o", out, "--force")[1].count("edited 4")
 
 
+def test_an_interrupted_run_leaves_complete_outputs_only(tmp_path, monkeypatch):
+    """Ctrl-C (or SIGTERM, which the CLI raises as Ctrl-C) while staged folders wait for their commit: the one
+    renamed in is complete, the rest are removed, and the next run finishes them."""
+    import lasagna.batch
+
+    monkeypatch.setattr(lasagna.batch, "COMMIT_EVERY", 100)
+    monkeypatch.setattr(lasagna.batch, "COMMIT_SECONDS", 100.0)
+    images = _images(tmp_path / "in", 4)
+
+    def interrupt(outcome):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        edit_many(images, "shading", "left", tmp_path / "out", progress=interrupt)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["img-0"] and is_complete(tmp_path / "out" / "img-0")
+    report = edit_many(images, "shading", "left", tmp_path / "out")
+    assert report.summary() == "edited 3, skipped 1 (complete), failed 0"
+
+
 def test_one_corrupt_input_fails_alone(tmp_path, capsys):
     _images(tmp_path / "in", 3)
     bad = tmp_path / "in" / "img-1.png"
@@ -213,9 +232,14 @@ def test_the_api_takes_tensors_and_paths(tmp_path):
 # ---- processes ------------------------------------------------------------------------------------------
 
 
-def test_two_processes_equal_one(tmp_path, tiny, capsys):
+@pytest.mark.parametrize(
+    "how", [["--generator", "free", "--optimize", "2"], ["--generator", "amortised", "--batch-size", "2"]]
+)
+def test_two_processes_equal_one(tmp_path, tiny, capsys, how):
+    """torchrun --nproc_per_node=2 (gloo) against one process: per-image runs, and batches of 2 (chunks of the
+    whole sorted list, so the same batches whichever process runs them)."""
     images = _images(tmp_path / "in", 5)
-    argv = ["edit", str(tmp_path / "in"), "--condition", "right", "--generator", "free", "--optimize", "2"]
+    argv = ["edit", str(tmp_path / "in"), "--condition", "right", *how]
     code, _, err = run(capsys, *argv, "-o", tmp_path / "one")
     assert code == 0, err
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT), "LASAGNA_LAYERS": str(tiny)}
