@@ -19,8 +19,8 @@ folder that exists with its stack.json is **complete**: it is skipped (``force``
 folders are staged (written into temporary siblings without fsync, ``lasagna.atomic.unsynced``) and
 committed together: one file-system sync, then each renamed into place (``COMMIT_EVERY``). A killed run
 leaves only hidden temporaries, swept when the next run starts (``lasagna.atomic.sweep_stale``): running
-again finishes the rest, losing nothing complete and redoing nothing complete. Each input's failure is caught and reported
-(``Outcome.error``, one line) and the others go on.
+again finishes the rest, losing nothing complete and redoing nothing complete. Each input's failure is
+caught and reported (``Outcome.error``, one line) and the others go on.
 
 **Batches and shards.** The sorted inputs are cut into consecutive chunks of ``batch_size``; chunk k belongs
 to rank ``k mod world`` (with ``batch_size`` 1: ``inputs[rank::world]``). Within a chunk the amortised
@@ -30,9 +30,9 @@ from one generator and stops it as a whole, so a batched run would depend on its
 
 **Determinism.** With ``batch_size`` 1 (the default) every layer is computed exactly as ``edit`` computes it,
 so outputs equal ``edit``'s — and a sharded run's equal a single process's — bit for bit. A batched forward
-pass is not batch-invariant on CPU (oneDNN picks its convolution by batch size): it differs from the
-one-at-a-time pass by at most a few float32 ulps before the layer is stored as 16-bit codes (measured
-2.4e-7 for the shipped shading generator; docs in ``tests/test_batch.py``), and batches are chunks of the
+pass is not batch-invariant on CPU (the convolutions' float order depends on the batch size): it differs
+from the one-at-a-time pass by a few float32 ulps before the layer is stored as 16-bit codes (measured:
+2.4e-7 for the shipped shading generator at 64², ``tests/test_batch.py``), and batches are chunks of the
 whole sorted input list, so a sharded run still equals the single-process run with the same ``batch_size``
 bit for bit — a re-run that skips complete inputs computes the rest in smaller batches, within that
 tolerance. Batching gains nothing on a CPU (7 ms per 64² image at any batch size, one thread): it is for
