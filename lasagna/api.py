@@ -13,6 +13,8 @@
     from lasagna.api import edit, render_learned            # learned layers (lasagna.edit)
     result = edit("photo.png", "shading", "left")          # EditResult: stack, layer, composite, settings
     result.save("out/relit")                               # the stack folder `lasagna edit` writes
+    from lasagna.api import edit_many                       # many images (lasagna.batch)
+    report = edit_many(["photos/", "more/*.jpg"], "shading", "left", "out/")   # out/<stem>/ each; resumable
 
 Tensors and float arrays are layer values y (a [0, 2] multiplier is given in [0, 2]); PIL images and
 integer arrays are stored codes, mapped by the layer's range like a PNG in a stack folder. Everything
@@ -27,6 +29,7 @@ from typing import Any
 
 import torch
 
+from lasagna.batch import BatchReport, edit_many
 from lasagna.compose.render import RenderResult
 from lasagna.edit import EditResult, edit, render_learned
 from lasagna.export.ora import export_ora, import_ora
@@ -50,6 +53,8 @@ __all__ = [
     "EditResult",
     "edit",
     "render_learned",
+    "BatchReport",
+    "edit_many",
 ]
 
 

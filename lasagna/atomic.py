@@ -12,11 +12,16 @@ that choose a format by extension still do). A process killed with SIGKILL canno
 writing into a folder, so litter lasts only until the next write there.
 
 ``folder_lock`` serialises check-then-rename sequences between processes (``lasagna.io.folder``'s swap).
+
+Every temporary file is fsync'd before it is renamed, except inside ``unsynced()``: a writer of many
+outputs (``lasagna.batch``) stages them there and makes them durable together with one ``sync_filesystem``
+before renaming any into place — one flush instead of one per file (seven per stack folder).
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import os
 import re
 import shutil
@@ -162,11 +167,44 @@ def make_temp_folder(target: str | os.PathLike, kind: str = "tmp") -> Path:
         return tmp
 
 
+# False inside ``unsynced()``: temporaries are written without fsync; the caller syncs before renaming.
+_FSYNC: contextvars.ContextVar[bool] = contextvars.ContextVar("lasagna_atomic_fsync", default=True)
+
+
+@contextlib.contextmanager
+def unsynced() -> Iterator[None]:
+    """Write temporaries without fsync within: only for outputs that stay inside a temporary folder until the
+    caller has called ``sync_filesystem`` on it (a power cut must not find a renamed output half on disk)."""
+    token = _FSYNC.set(False)
+    try:
+        yield
+    finally:
+        _FSYNC.reset(token)
+
+
+def sync_filesystem(folder: str | os.PathLike) -> None:
+    """Flush everything written to the file system holding ``folder`` (``syncfs``; ``sync`` where there is none)."""
+    try:
+        import ctypes
+
+        syncfs = ctypes.CDLL(None, use_errno=True).syncfs
+    except (OSError, AttributeError):  # not Linux
+        os.sync()
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        if syncfs(fd) != 0:
+            os.sync()
+    finally:
+        os.close(fd)
+
+
 def _write(path: Path, data: bytes) -> None:
     with open(path, "wb") as fh:
         fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
+        if _FSYNC.get():
+            fh.flush()
+            os.fsync(fh.fileno())
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:

@@ -51,7 +51,7 @@ from torch import Tensor
 from lasagna import catalogue as cat
 from lasagna.document import LearnedLayer
 from lasagna.errors import DocumentError, ImageError, LasagnaError, PathError
-from lasagna.io.folder import check_output_folder, write_stack_folder
+from lasagna.io.folder import check_output_folder, stage_stack_folder, write_stack_folder
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 from lasagna.io.stack import Stack, load_stack, resolve_inside
 from lasagna.learned import (
@@ -95,14 +95,29 @@ class EditResult:
         """Write the stack folder ``out``, all or nothing (``lasagna.io.folder.write_stack_folder``): stack.json,
         layers/, generators/, composite.png and (``ora``) stack.ora; returns it. With ``force`` a stack
         folder already there is replaced."""
+        check_output_folder(out, force=force)  # before any work
+        return write_stack_folder(self.stack, out, **self._contents(ora, warn), force=force)
+
+    def stage(
+        self,
+        out: str | os.PathLike,
+        *,
+        force: bool = False,
+        ora: bool = True,
+        warn: Callable[[str], None] | None = None,
+    ) -> Path:
+        """``save`` up to the rename: the stack folder written into a temporary sibling of ``out``, returned
+        (``lasagna.io.folder.stage_stack_folder``; ``swap_in`` renames it into place)."""
+        return stage_stack_folder(self.stack, out, **self._contents(ora, warn), force=force)
+
+    def _contents(self, ora: bool, warn) -> dict[str, Any]:
         from lasagna.export.ora import encode_ora
 
-        check_output_folder(out, force=force)  # before any work
         result = self.stack.render()
         files = dict(self.files)
         if ora:
             files["stack.ora"] = encode_ora(self.stack, composite=result.image, warn=warn)
-        return write_stack_folder(self.stack, out, files=files, force=force, result=result)
+        return {"files": files, "result": result}
 
 
 # ---- inputs ----------------------------------------------------------------------------------------
@@ -195,6 +210,27 @@ def edit(
     preset's ``distill`` defaults.
     """
     start = time.monotonic()
+    n = check_edit_options(preset, optimize, steps)
+    plan = plan_edit(
+        image,
+        preset,
+        condition,
+        on=on,
+        id=id,
+        generator=generator,
+        optimize=n,
+        max_pixels=max_pixels,
+        catalogue_dirs=catalogue_dirs,
+    )
+    run = plan.make(
+        loss=loss, guidance=guidance, seed=seed, lr=lr, catalogue_dirs=catalogue_dirs, device=device, progress=progress
+    )
+    return plan.finish(run, time.monotonic() - start)
+
+
+def check_edit_options(preset, optimize: int | None, steps: int | None = None) -> int | None:
+    """``edit``'s checks of its options that need no image: the preset is a name, ``optimize`` (or its
+    deprecated second name ``steps``) a non-negative integer; returns the steps asked for (None: default)."""
     if preset is None or "/" in str(preset) or isinstance(preset, os.PathLike):
         raise LasagnaError(
             f"preset {str(preset)!r} is not a name; expected a catalogue name (add a catalogue folder "
@@ -205,7 +241,7 @@ def edit(
         warnings.warn(
             "edit(steps=N) is deprecated; use optimize=N (the same number, as the layer's settings record it)",
             DeprecationWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
         if optimize is not None and optimize != steps:
             raise LasagnaError(
@@ -215,50 +251,99 @@ def edit(
     n = optimize if optimize is not None else steps
     if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 0):
         raise LasagnaError(f"expected a non-negative integer, got {n!r}", "optimize")
+    return n
+
+
+@dataclass
+class EditPlan:
+    """One edit with everything decided but its layer: the input ``stack``, the resolved preset, the method
+    and per-image steps, the new layer's id, what it is conditioned on and the conditioning input ``base``
+    (3, H, W). ``make`` computes the layer (``lasagna.learned.make_layer``), ``finish`` places it."""
+
+    stack: Stack
+    source: Any  # what was given (a path is recorded by name in the edit's metadata)
+    resolved: cat.Resolved
+    condition: str
+    on: str
+    layer_id: str
+    method: str
+    optimize: int
+    base: Tensor
+    carried: dict[str, bytes]
+
+    def make(self, **options) -> LayerRun:
+        """The layer: ``make_layer`` with this plan's choices and ``options`` (loss, guidance, seed, lr,
+        catalogue_dirs, device, progress, and ``loaded``/``initial`` for a generator run in a batch)."""
+        return make_layer(
+            self.base,
+            self.resolved,
+            self.condition,
+            self.layer_id,
+            method=self.method,
+            optimize=self.optimize,
+            generator_dir=self.resolved.generator,
+            **options,
+        )
+
+    def finish(self, run: LayerRun, seconds: float) -> EditResult:
+        """Put ``run``'s layer on top of the stack, record the edit and render the composite."""
+        stack = self.stack
+        place_layer(stack, self.layer_id, self.resolved.preset, self.condition, self.on, run)
+        _record(stack, self.layer_id, seconds, run, self.source)
+        composite = stack.render().image.detach().clamp(0.0, 1.0)
+        return EditResult(
+            stack=stack,
+            layer_id=self.layer_id,
+            layer=run.layer,
+            composite=composite,
+            settings=run.settings.to_json(),
+            seconds=seconds,
+            history=run.history,
+            files={**self.carried, **run.files},
+        )
+
+
+def plan_edit(
+    image,
+    preset: str,
+    condition: str,
+    *,
+    on: str | None = None,
+    id: str | None = None,
+    generator: str | None = None,
+    optimize: int | None = None,
+    max_pixels: int = DEFAULT_EDIT_MAX_PIXELS,
+    catalogue_dirs=None,
+    resolve: Callable[[Stack], cat.Resolved] | None = None,
+) -> EditPlan:
+    """Read ``image`` and decide its edit (``edit``'s arguments; ``optimize`` checked by
+    ``check_edit_options``). ``resolve`` finds the preset for a stack (default ``lasagna.catalogue.resolve``;
+    a batch passes a cached one)."""
     stack = input_stack(image, max_pixels)
-    resolved = cat.resolve(preset, stack.folder, catalogue_dirs, need_prior=False)
+    if resolve is None:
+        resolved = cat.resolve(preset, stack.folder, catalogue_dirs, need_prior=False)
+    else:
+        resolved = resolve(stack)
     p = resolved.preset
     p.prompt_for(condition)  # ConditionError listing the vocabulary
     on = on if on is not None else stack.ids[-1]
     stack.document.index(on)  # DocumentError listing the ids
     method = choose_method(resolved, generator)
-    if method == "per-image" and n == 0:
+    if method == "per-image" and optimize == 0:
         raise LasagnaError(
             "per-image optimisation with 0 steps would leave the identity edit; expected --optimize N > 0", "optimize"
         )
-    optimize_n = default_steps(resolved, method) if n is None else n
-    layer_id = _unique_id(stack, id or f"{p.name}-{condition}")
-    base = conditioning_input(stack, on)
-    carried = carried_files(stack)  # before the new layer: its generator is not in the input folder
-    run = make_layer(
-        base,
-        resolved,
-        condition,
-        layer_id,
-        method=method,
-        optimize=optimize_n,
-        generator_dir=resolved.generator,
-        loss=loss,
-        guidance=guidance,
-        seed=seed,
-        lr=lr,
-        catalogue_dirs=catalogue_dirs,
-        device=device,
-        progress=progress,
-    )
-    place_layer(stack, layer_id, p, condition, on, run)
-    seconds = time.monotonic() - start
-    _record(stack, layer_id, seconds, run, image)
-    composite = stack.render().image.detach().clamp(0.0, 1.0)
-    return EditResult(
+    return EditPlan(
         stack=stack,
-        layer_id=layer_id,
-        layer=run.layer,
-        composite=composite,
-        settings=run.settings.to_json(),
-        seconds=seconds,
-        history=run.history,
-        files={**carried, **run.files},
+        source=image,
+        resolved=resolved,
+        condition=condition,
+        on=on,
+        layer_id=_unique_id(stack, id or f"{p.name}-{condition}"),
+        method=method,
+        optimize=default_steps(resolved, method) if optimize is None else optimize,
+        base=conditioning_input(stack, on),
+        carried=carried_files(stack),  # before the new layer: its generator is not in the input folder
     )
 
 
@@ -495,4 +580,14 @@ def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) 
     return run
 
 
-__all__ = ["DEFAULT_EDIT_MAX_PIXELS", "EditResult", "edit", "input_stack", "read_image", "render_learned"]
+__all__ = [
+    "DEFAULT_EDIT_MAX_PIXELS",
+    "EditPlan",
+    "EditResult",
+    "check_edit_options",
+    "edit",
+    "input_stack",
+    "plan_edit",
+    "read_image",
+    "render_learned",
+]

@@ -206,6 +206,48 @@ def _distill_settings(preset, *, refine: bool, steps: int | None, loss, guidance
     return settings.model_copy(update={"weights": Weights()}) if refine else settings
 
 
+@dataclass
+class LoadedGenerator:
+    """A preset's amortised generator, loaded and checked once: the network, its files' bytes (copied into
+    every stack made with it) and their SHA-256."""
+
+    net: Any  # lasagna.generators.unet.LayerGenerator, in eval mode on its device
+    weights: bytes
+    config: bytes
+    sha256: str
+    config_sha256: str
+
+
+def load_generator(resolved: cat.Resolved, generator_dir: Path | None, device: str | torch.device = "cpu"):
+    """The amortised generator in ``generator_dir`` (the preset's), checked against the preset's layer."""
+    from lasagna.generators.unet import LayerGenerator
+
+    preset = resolved.preset
+    if generator_dir is None:
+        raise LasagnaError(
+            f"preset {preset.name!r} has no amortised generator yet (train one: lasagna train-layer "
+            f"--preset {preset.name}); expected --generator free",
+            "generator",
+        )
+    weights = (generator_dir / "model.safetensors").read_bytes()
+    config = (generator_dir / "config.json").read_bytes()
+    net = LayerGenerator.from_pretrained(generator_dir, device=device)
+    cat.check_generator(net, preset, str(generator_dir))
+    return LoadedGenerator(net, weights, config, _sha256(weights), _sha256(config))
+
+
+def working_side(preset, working: int | Literal["preset", "full"] = "preset") -> int | None:
+    """The long side a layer is made at: the preset's ``working_size``, a stored side, or None (full size)."""
+    return {"preset": preset.working_size, "full": None}.get(working, working)  # type: ignore[arg-type]
+
+
+def working_input(base: Tensor, side: int | None, device: str | torch.device = "cpu") -> Tensor:
+    """(1, 3, h, w): ``base`` (3, H, W) on ``device`` at the working size for long side ``side``."""
+    from lasagna.compose.resample import downsample, working_size
+
+    return downsample(base.to(device)[None], working_size(*base.shape[-2:], side))
+
+
 def make_layer(
     base: Tensor,
     resolved: cat.Resolved,
@@ -225,6 +267,8 @@ def make_layer(
     device: str | torch.device = "cpu",
     progress: bool = False,
     working: int | Literal["preset", "full"] = "preset",
+    loaded: LoadedGenerator | None = None,
+    initial: Tensor | None = None,
 ) -> LayerRun:
     """One learned layer (C, H, W) for ``base`` (3, H, W) in [0, 1] and ``label`` (module docstring).
 
@@ -233,41 +277,37 @@ def make_layer(
     reruns a layer exactly as it was made. The layer is made at the preset's ``working_size`` (``working``:
     a stored side, or ``"full"`` for a layer made at the base's size) and enlarged to the base's size
     (`lasagna.compose.resample`).
+
+    ``loaded`` is the generator already loaded from ``generator_dir`` (``load_generator``), and ``initial``
+    its output (1, C, h, w) for this base at the working size (``working_input``), computed by the caller
+    in a batch (``lasagna.batch``); without them the generator is loaded and run here.
     """
-    from lasagna.compose.resample import downsample, upsample, working_size
+    from lasagna.compose.resample import upsample
     from lasagna.distill import distill_image
     from lasagna.generators.free import FreeLayer
-    from lasagna.generators.unet import LayerGenerator
 
     preset = resolved.preset
     start = time.monotonic()
     full = tuple(base.shape[-2:])
-    side = {"preset": preset.working_size, "full": None}.get(working, working)
-    size = working_size(*full, side)
-    x = downsample(base.to(device)[None], size)  # (1, 3, h, w)
+    side = working_side(preset, working)
+    x = working_input(base, side, device)  # (1, 3, h, w)
     files: dict[str, bytes] = {}
     gen_ref = None
-    initial = None
-    if method == "amortised":
-        if generator_dir is None:
-            raise LasagnaError(
-                f"preset {preset.name!r} has no amortised generator yet (train one: lasagna train-layer "
-                f"--preset {preset.name}); expected --generator free",
-                "generator",
-            )
-        weights = (generator_dir / "model.safetensors").read_bytes()
-        config = (generator_dir / "config.json").read_bytes()
-        net = LayerGenerator.from_pretrained(generator_dir, device=device)
-        cat.check_generator(net, preset, str(generator_dir))
-        with torch.no_grad():
-            initial = net(x, [label]).float()
+    if method != "amortised":
+        initial = None
+    else:
+        if loaded is None:
+            loaded = load_generator(resolved, generator_dir, device)
+        if initial is None:
+            with torch.no_grad():
+                initial = loaded.net(x, [label]).float()
         rel = f"{GENERATORS_DIR}/{layer_id}"
-        files = {f"{rel}/model.safetensors": weights, f"{rel}/config.json": config}
+        files = {f"{rel}/model.safetensors": loaded.weights, f"{rel}/config.json": loaded.config}
         # Weights and config under checksums both: the config's vocabulary says which label is which.
         gen_ref = {
             "checkpoint": f"{rel}/model.safetensors",
-            "sha256": _sha256(weights),
-            "config_sha256": _sha256(config),
+            "sha256": loaded.sha256,
+            "config_sha256": loaded.config_sha256,
         }
     settings = LayerSettings(method=method, optimize=optimize, working_size=side)
     history: list[dict[str, Any]] = []

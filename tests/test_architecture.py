@@ -30,7 +30,7 @@ TIERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("world", ("lasagna.world",)),
     ("catalogue", ("lasagna.catalogue",)),
     ("training", ("lasagna.training",)),
-    ("user API", ("lasagna.learned", "lasagna.edit", "lasagna.demo", "lasagna.api")),
+    ("user API", ("lasagna.learned", "lasagna.edit", "lasagna.batch", "lasagna.demo", "lasagna.api")),
     ("cli", ("lasagna.cli",)),
     ("package root", ("lasagna",)),  # lasagna/__init__.py: lazy names of lasagna.api
 )

@@ -155,3 +155,14 @@ class TestAtomicWriteAll:
         monkeypatch.undo()
         assert a.read_bytes() == b"old a" and b.read_bytes() == b"old b"
         assert temporaries(tmp_path) == []
+
+
+def test_unsynced_skips_fsync_only_within(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(atomic.os, "fsync", lambda fd: calls.append(fd))
+    with atomic.unsynced():
+        atomic_write_bytes(tmp_path / "a", b"1")
+    assert calls == [] and (tmp_path / "a").read_bytes() == b"1"
+    atomic_write_bytes(tmp_path / "b", b"2")
+    assert len(calls) == 1
+    atomic.sync_filesystem(tmp_path)  # syncfs (or sync): returns once flushed

@@ -2,17 +2,30 @@
 
     lasagna edit IMAGE --layer shading --condition left -o OUT [--on ID] [--optimize N] [--loss NAME]
                  [--guidance W] [--steps N] [--seed S] [--lr LR] [--generator amortised|free] [--force]
+    lasagna edit IMAGE… | FOLDER | 'GLOB' --condition left -o OUTDIR [--batch-size N] [--force]
+    torchrun --nproc_per_node=N -m lasagna.cli edit 'photos/**/*.png' --condition left -o OUTDIR
 
 IMAGE is a PNG/JPEG or a stack folder; OUT is a new (or empty) folder, written through a temporary
 sibling folder renamed at the end (``lasagna.io.folder``), so a failure leaves nothing half-written.
+
+**Many inputs** — more than one, a folder that is not a stack folder, or a glob pattern (expanded here, so
+quote it: ``**`` crosses folders) — and OUTDIR holds one stack folder per input, ``OUTDIR/<stem>/``
+(``lasagna.batch``: names, resumption, shards). A stack folder among them is edited on top, as alone.
+Complete outputs are skipped (``--force`` rewrites them), so running again after a kill finishes the rest.
+Each failure is one line on stderr, ``lasagna: error: <input>: <what>``, and the others are still written;
+the last line on stdout is ``edited N, skipped K (complete), failed F``; exit status 2 if any failed. Under
+``torchrun`` (``WORLD_SIZE`` > 1) every process takes its shard and rank 0 reports for all.
 """
 
 from __future__ import annotations
 
 import argparse
+import glob
+import os
+import sys
 from pathlib import Path
 
-from lasagna.cli.common import distill_arguments, progress, warn
+from lasagna.cli.common import PROG, distill_arguments, progress, warn
 from lasagna.errors import LasagnaError, PathError
 
 HELP = "add a learned layer (relight, colourise, …) to an image or stack; writes a stack folder"
@@ -21,7 +34,12 @@ HELP = "add a learned layer (relight, colourise, …) to an image or stack; writ
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 
-    p.add_argument("image", help="a PNG/JPEG image, or a stack folder (the layer goes on top of it)")
+    p.add_argument(
+        "image",
+        nargs="+",
+        help="a PNG/JPEG image, or a stack folder (the layer goes on top of it); several, a folder of images "
+        "or a quoted glob: one stack folder each under OUT",
+    )
     p.add_argument(
         "--layer",
         default="shading",
@@ -29,7 +47,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="learned-layer preset (default shading; see 'lasagna layers')",
     )
     p.add_argument("--condition", required=True, metavar="LABEL", help="a label of the preset's vocabulary, e.g. left")
-    p.add_argument("-o", "--output", required=True, metavar="OUT", help="stack folder to write (new or empty)")
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        metavar="OUT",
+        help="stack folder to write (new or empty); with many inputs, the folder to hold one per input",
+    )
     p.add_argument("--on", metavar="ID", help="condition on the composite up to this layer (default: the top layer)")
     p.add_argument("--id", help="id of the new layer (default PRESET-LABEL)")
     p.add_argument(
@@ -48,7 +72,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, metavar="N", help="the same number as --optimize, named as in the preset")
     distill_arguments(p)
     p.add_argument("--no-ora", action="store_true", help="do not write stack.ora")
-    p.add_argument("--force", action="store_true", help="replace OUT if it already holds a stack")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace OUT if it already holds a stack (many inputs: redo the complete ones too)",
+    )
+    p.add_argument(
+        "--batch-size",
+        type=int,
+        default=1,
+        metavar="N",
+        help="many inputs: run the amortised generator on N images at once (default 1: each exactly as alone; "
+        "raise it on a GPU)",
+    )
     p.add_argument(
         "--max-pixels",
         type=int,
@@ -58,7 +94,72 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def many_inputs(images: list[str]) -> bool:
+    """Whether ``images`` asks for a batch: several, a folder without stack.json, or a glob matching no file."""
+    if len(images) != 1:
+        return True
+    p = Path(images[0])
+    if p.is_dir():
+        return not (p / "stack.json").is_file()
+    return not os.path.lexists(p) and glob.has_magic(images[0])
+
+
+def _optimize(args: argparse.Namespace) -> int | None:
+    if args.optimize is not None and args.steps is not None and args.optimize != args.steps:
+        raise LasagnaError(
+            f"optimize {args.optimize} and steps {args.steps} differ; expected one of them (they are the same number)",
+            "steps",
+        )
+    return args.optimize if args.optimize is not None else args.steps  # --steps: --optimize's other name
+
+
 def run(args: argparse.Namespace) -> int:
+    if many_inputs(args.image):
+        return run_many(args)
+    args.image = args.image[0]
+    return run_one(args)
+
+
+def run_many(args: argparse.Namespace) -> int:
+    """Many inputs, one stack folder each under OUTDIR (``lasagna.batch.edit_many``), sharded under torchrun."""
+    from lasagna.batch import edit_many
+    from lasagna.training.loop import init_distributed, shutdown_distributed
+
+    optimize = _optimize(args)
+    info = init_distributed(args.device)  # nothing without torchrun's WORLD_SIZE > 1; gloo on CPU
+    try:
+        report = edit_many(
+            args.image,
+            args.layer,
+            args.condition,
+            args.output,
+            batch_size=args.batch_size,
+            force=args.force,
+            ora=not args.no_ora,
+            progress=progress(),
+            on=args.on,
+            id=args.id,
+            generator=args.generator,
+            optimize=optimize,
+            loss=args.loss,
+            guidance=args.guidance,
+            seed=args.seed,
+            lr=args.lr,
+            max_pixels=args.max_pixels,
+            device=args.device,
+            warn=warn,
+        )
+    finally:
+        shutdown_distributed(info)
+    if info.is_main:
+        for o in report.failed:
+            print(f"{PROG}: error: {o.input}: {o.error}", file=sys.stderr)
+        where = f"{Path(args.output)}/" + (f" ({info.world_size} processes)" if info.world_size > 1 else "")
+        print(f"{where}: {report.summary()} ({report.seconds:.1f} s)")
+    return 0 if report.ok else 2
+
+
+def run_one(args: argparse.Namespace) -> int:
     from lasagna.io.folder import check_output_folder
     from lasagna.io.image import probe_image_file
     from lasagna.io.survey import survey_stack
@@ -75,12 +176,7 @@ def run(args: argparse.Namespace) -> int:
 
     if Path(args.image).resolve() == out.resolve() and not args.force:
         raise PathError("is the input stack; expected another folder (or --force to replace it)", str(out))
-    if args.optimize is not None and args.steps is not None and args.optimize != args.steps:
-        raise LasagnaError(
-            f"optimize {args.optimize} and steps {args.steps} differ; expected one of them (they are the same number)",
-            "steps",
-        )
-    optimize = args.optimize if args.optimize is not None else args.steps  # --steps: --optimize's other name
+    optimize = _optimize(args)
     result = edit(
         args.image,
         args.layer,

@@ -5,8 +5,9 @@ stack folder all or nothing.
 ``check_output_folder`` adds a stack folder's rules (new or empty, or replaced as a whole with
 ``force``). ``write_stack_folder`` writes everything into a temporary sibling folder and renames it
 into place (``swap_in``, which checks the rule again under a lock, so two writers racing for one folder
-cannot both win): a failure leaves no half-written stack and the target as it was. ``check_not_input``
-refuses an output that is one of the input stack's own files.
+cannot both win): a failure leaves no half-written stack and the target as it was. ``stage_stack_folder``
+is its first half, for a writer of many folders that makes them durable together before renaming them
+(``lasagna.batch``). ``check_not_input`` refuses an output that is one of the input stack's own files.
 """
 
 from __future__ import annotations
@@ -116,6 +117,25 @@ def write_stack_folder(
     ``force`` an existing stack folder is replaced (renamed aside, the new one renamed in, the old one
     removed). ``stack.folder`` becomes ``out``.
     """
+    out = Path(out)
+    old_folder = stack.folder
+    tmp = stage_stack_folder(stack, out, files=files, force=force, result=result)
+    try:
+        swap_in(tmp, out, force=force)
+    except BaseException:
+        stack.folder = old_folder
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    stack.folder = out
+    return out
+
+
+def stage_stack_folder(
+    stack: Stack, out: str | os.PathLike, *, files: dict[str, bytes] | None = None, force: bool = False, result=None
+) -> Path:
+    """``write_stack_folder`` up to the rename: the whole stack folder written into a fresh temporary sibling
+    of ``out``, which is returned (``swap_in`` renames it into place; on failure nothing is left).
+    ``stack.folder`` is left as it was."""
     out = check_output_folder(out, force=force)
     out.parent.mkdir(parents=True, exist_ok=True)
     sweep_stale(out.parent)
@@ -130,13 +150,12 @@ def write_stack_folder(
             atomic_write_bytes(resolve_inside(tmp, rel, rel), data)
         write_composite(result if result is not None else stack.render(), tmp / "composite.png")
         os.chmod(tmp, umask_mode(0o777))  # made 0700 (as mkdtemp does); a folder made by mkdir would not be
-        swap_in(tmp, out, force=force)
     except BaseException:
-        stack.folder = old_folder
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    stack.folder = out
-    return out
+    finally:
+        stack.folder = old_folder
+    return tmp
 
 
 def swap_in(tmp: Path, out: Path, *, force: bool = False) -> None:

@@ -1,0 +1,253 @@
+"""Edits at scale (``lasagna.batch``, ``lasagna edit`` with many inputs) on the tiny catalogue
+(tests/tinylayers.py): inputs and names, skipping complete outputs and finishing after a kill, failures
+per input, equality with one-at-a-time ``edit``, and two processes against one.
+
+Batched forward passes and float order, measured here (``test_batched_forward_within_tolerance``): a
+batch of 4 differs from four single passes by at most a few float32 ulps of the generator's output
+(2.4e-7 for the shipped shading generator at 64²), i.e. at most one 16-bit code of the stored layer.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from lasagna.batch import collect_inputs, edit_many, is_complete, output_names, shard
+from lasagna.cli import main
+from lasagna.edit import edit
+from lasagna.errors import LasagnaError, PathError
+from tests.tinylayers import ROOT, tiny_catalogue
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    return tiny_catalogue(tmp_path_factory.mktemp("batch") / "layers")
+
+
+@pytest.fixture(autouse=True)
+def _catalogue(tiny, monkeypatch):
+    monkeypatch.setenv("LASAGNA_LAYERS", str(tiny))
+
+
+def _images(folder: Path, count: int, size: tuple[int, int] = (12, 16), suffix: str = ".png") -> list[Path]:
+    """``count`` small random RGB images ``img-<k>`` in ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(count)
+    paths = []
+    for k in range(count):
+        path = folder / f"img-{k}{suffix}"
+        Image.fromarray(rng.integers(0, 256, (*size, 3), dtype=np.uint8)).save(path)
+        paths.append(path)
+    return paths
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    """A stack folder's files by relative path; stack.json without its metadata (times), stack.ora left out."""
+    found = {}
+    for p in sorted(folder.rglob("*")):
+        rel = p.relative_to(folder).as_posix()
+        if p.is_file() and rel != "stack.ora":
+            data = p.read_bytes()
+            if rel == "stack.json":
+                doc = json.loads(data)
+                doc.pop("metadata", None)
+                data = json.dumps(doc, sort_keys=True).encode()
+            found[rel] = data
+    return found
+
+
+def run(capsys, *argv) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+# ---- inputs and names -------------------------------------------------------------------------------
+
+
+class TestInputs:
+    def test_folder_glob_and_files_sorted_and_deduplicated(self, tmp_path):
+        a = _images(tmp_path / "a", 3)
+        b = _images(tmp_path / "b" / "deep", 2, suffix=".jpg")
+        (tmp_path / "a" / "notes.txt").write_text("not an image")
+        found = collect_inputs([tmp_path / "a", str(tmp_path / "b" / "**" / "*.jpg"), a[1]])
+        assert found == sorted(a + b, key=lambda p: os.path.abspath(p))
+
+    def test_a_stack_folder_is_one_input_and_a_folder_of_stacks_lists_them(self, tmp_path, capsys):
+        _images(tmp_path / "in", 1)
+        assert run(capsys, "edit", tmp_path / "in" / "img-0.png", "--condition", "left", "-o", tmp_path / "s")[0] == 0
+        assert collect_inputs([tmp_path / "s"]) == [tmp_path / "s"]
+        shutil.copytree(tmp_path / "s", tmp_path / "stacks" / "one")
+        assert collect_inputs(tmp_path / "stacks") == [tmp_path / "stacks" / "one"]
+        assert output_names([tmp_path / "s", tmp_path / "s" / "stack.json"]) == ["s", "s-2"]
+
+    def test_unique_stems_in_sorted_order(self, tmp_path):
+        for name in ("a.png", "a.jpg", "A.webp", "b.png"):
+            (tmp_path / name).touch()
+        found = collect_inputs(str(tmp_path / "*"))
+        assert [p.name for p in found] == ["A.webp", "a.jpg", "a.png", "b.png"]
+        assert output_names(found) == ["A", "a-2", "a-3", "b"]  # case-insensitive: A and a are one folder on macOS
+        assert output_names([torch.zeros(3, 4, 4)] * 12)[:2] == ["image-01", "image-02"]
+
+    def test_a_pattern_or_folder_finding_nothing_is_refused(self, tmp_path):
+        (tmp_path / "empty").mkdir()
+        with pytest.raises(PathError, match="matches no image file or stack folder"):
+            collect_inputs(str(tmp_path / "*.png"))
+        with pytest.raises(PathError, match="holds no image file or stack folder"):
+            collect_inputs(tmp_path / "empty")
+
+    def test_shards_are_chunks_dealt_round_robin(self):
+        assert shard(5, 1, 1, 2) == [[1], [3]]  # inputs[rank::world]
+        assert shard(7, 2, 0, 2) == [[0, 1], [4, 5]] and shard(7, 2, 1, 2) == [[2, 3], [6]]
+        every = sorted(i for r in range(3) for c in shard(10, 3, r, 3) for i in c)
+        assert every == list(range(10))
+
+
+# ---- resumption and failures ---------------------------------------------------------------------------
+
+
+def _dead_pid() -> int:
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    return child.pid
+
+
+def test_rerun_after_a_kill_finishes_the_rest_and_redoes_nothing(tmp_path, capsys):
+    images = _images(tmp_path / "in", 4)
+    out = tmp_path / "out"
+    code, stdout, err = run(capsys, "edit", tmp_path / "in", "--condition", "left", "-o", out)
+    assert code == 0, err
+    assert stdout.strip().splitlines()[-1].startswith(f"{out}/: edited 4, skipped 0 (complete), failed 0")
+    assert all(is_complete(out / p.stem) for p in images)
+    # A kill: two outputs never renamed into place, one of them left as its dead writer's temporary folder.
+    shutil.rmtree(out / "img-1")
+    shutil.rmtree(out / "img-3")
+    litter = out / f".img-3.lasagna-{_dead_pid()}-0badf00d.tmp"
+    (litter / "layers").mkdir(parents=True)
+    (litter / "stack.json").write_text("{")
+    kept = {n: ((out / n / "stack.json").stat().st_ino, (out / n).stat().st_mtime_ns) for n in ("img-0", "img-2")}
+    code, stdout, err = run(capsys, "edit", str(tmp_path / "in" / "*.png"), "--condition", "left", "-o", out)
+    assert code == 0, err
+    assert stdout.strip().splitlines()[-1].startswith(f"{out}/: edited 2, skipped 2 (complete), failed 0")
+    for name in ("img-0", "img-2"):  # not rewritten: the same files
+        assert ((out / name / "stack.json").stat().st_ino, (out / name).stat().st_mtime_ns) == kept[name]
+    assert all(is_complete(out / p.stem) for p in images)
+    assert sorted(p.name for p in out.iterdir()) == [p.stem for p in images]  # the litter swept
+    # --force redoes them all
+    assert run(capsys, "edit", tmp_path / "in", "--condition", "left", "-o", out, "--force")[1].count("edited 4")
+
+
+def test_an_interrupted_run_leaves_complete_outputs_only(tmp_path, monkeypatch):
+    """Ctrl-C (or SIGTERM, which the CLI raises as Ctrl-C) while staged folders wait for their commit: the one
+    renamed in is complete, the rest are removed, and the next run finishes them."""
+    import lasagna.batch
+
+    monkeypatch.setattr(lasagna.batch, "COMMIT_EVERY", 100)
+    monkeypatch.setattr(lasagna.batch, "COMMIT_SECONDS", 100.0)
+    images = _images(tmp_path / "in", 4)
+
+    def interrupt(outcome):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        edit_many(images, "shading", "left", tmp_path / "out", progress=interrupt)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["img-0"] and is_complete(tmp_path / "out" / "img-0")
+    report = edit_many(images, "shading", "left", tmp_path / "out")
+    assert report.summary() == "edited 3, skipped 1 (complete), failed 0"
+
+
+def test_one_corrupt_input_fails_alone(tmp_path, capsys):
+    _images(tmp_path / "in", 3)
+    bad = tmp_path / "in" / "img-1.png"
+    bad.write_bytes(bad.read_bytes()[:60])  # truncated
+    out = tmp_path / "out"
+    code, stdout, err = run(capsys, "edit", tmp_path / "in", "--condition", "left", "-o", out)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"lasagna: error: {bad}: ") and "expected" in lines[0]
+    assert "edited 2, skipped 0 (complete), failed 1" in stdout
+    assert is_complete(out / "img-0") and is_complete(out / "img-2") and not (out / "img-1").exists()
+    assert [p.name for p in out.iterdir() if p.name.startswith(".")] == []
+
+
+def test_refusals_before_any_work(tmp_path):
+    images = _images(tmp_path / "in", 2)
+    with pytest.raises(LasagnaError, match="label 'nowhere'|nowhere"):
+        edit_many(images, "shading", "nowhere", tmp_path / "out")
+    with pytest.raises(LasagnaError, match="positive integer"):
+        edit_many(images, "shading", "left", tmp_path / "out", batch_size=0)
+    (tmp_path / "file").touch()
+    with pytest.raises(PathError, match="not a folder"):
+        edit_many(images, "shading", "left", tmp_path / "file")
+    assert not (tmp_path / "out").exists()
+
+
+# ---- equal to one at a time -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("options", [dict(generator="amortised"), dict(generator="free", optimize=2)])
+def test_equals_edit_one_at_a_time(tmp_path, options):
+    images = _images(tmp_path / "in", 3) + _images(tmp_path / "other", 1, size=(20, 9))
+    report = edit_many(images, "shading", "top", tmp_path / "many", **options)
+    assert report.ok and len(report.done) == 4
+    for p, name in zip(images, output_names(images)):
+        alone = edit(p, "shading", "top", **options).save(tmp_path / "alone" / name)
+        assert _files(tmp_path / "many" / name) == _files(alone)
+
+
+def test_batched_forward_within_tolerance(tmp_path):
+    images = _images(tmp_path / "in", 4)
+    edit_many(images, "shading", "left", tmp_path / "one", generator="amortised")
+    report = edit_many(images, "shading", "left", tmp_path / "four", generator="amortised", batch_size=4)
+    assert report.ok
+    worst = 0
+    for p in images:
+        a, b = (np.asarray(Image.open(tmp_path / d / p.stem / "layers" / "shading-left.png")) for d in ("one", "four"))
+        worst = max(worst, int(np.abs(a.astype(np.int64) - b.astype(np.int64)).max()))
+    assert worst <= 1  # 16-bit codes: float order within a batch moves a value by a few ulps at most
+
+
+def test_the_api_takes_tensors_and_paths(tmp_path):
+    (path,) = _images(tmp_path / "in", 1)
+    picture = torch.rand(3, 10, 10)
+    seen = []
+    report = edit_many([picture, path, picture.numpy()], "shading", "left", tmp_path / "out", progress=seen.append)
+    assert [o.status for o in report.outcomes] == ["done"] * 3 and len(seen) == 3
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["image-2", "image-3", "img-0"]
+    assert (
+        _files(tmp_path / "out" / "image-2")["layers/base.png"]
+        == _files(tmp_path / "out" / "image-3")["layers/base.png"]
+    )
+
+
+# ---- processes ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "how", [["--generator", "free", "--optimize", "2"], ["--generator", "amortised", "--batch-size", "2"]]
+)
+def test_two_processes_equal_one(tmp_path, tiny, capsys, how):
+    """torchrun --nproc_per_node=2 (gloo) against one process: per-image runs, and batches of 2 (chunks of the
+    whole sorted list, so the same batches whichever process runs them)."""
+    images = _images(tmp_path / "in", 5)
+    argv = ["edit", str(tmp_path / "in"), "--condition", "right", *how]
+    code, _, err = run(capsys, *argv, "-o", tmp_path / "one")
+    assert code == 0, err
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT), "LASAGNA_LAYERS": str(tiny)}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--standalone", "-m", "lasagna.cli"]
+    done = subprocess.run(
+        [*cmd, *argv, "-o", str(tmp_path / "two")], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=180
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.strip().splitlines()[-1].startswith(f"{tmp_path / 'two'}/ (2 processes): edited 5, skipped 0")
+    for p in images:
+        assert _files(tmp_path / "two" / p.stem) == _files(tmp_path / "one" / p.stem), p.stem
