@@ -53,6 +53,23 @@ def _refuse(where: str, what: str) -> ImageError:
     return ImageError(f"{what}; expected a {READABLE} image", where)
 
 
+# Scans a JPEG may hold. Decoding costs a pass over the image per scan; a progressive JPEG has ~10 (libjpeg's
+# default script) and no encoder writes more than a few dozen, while a crafted file of thousands of tiny
+# scans makes a small image take minutes (the "progressive JPEG" DoS; libjpeg-turbo's djpeg -maxscans).
+MAX_JPEG_SCANS = 100
+
+
+def _check_jpeg_scans(path: Path, where: str) -> None:
+    """Refuse a JPEG with more than ``MAX_JPEG_SCANS`` start-of-scan markers, counted in its bytes (entropy-
+    coded data never holds 0xFF 0xDA: a data byte 0xFF is stuffed with 0x00)."""
+    with open(path, "rb") as fh:
+        scans = fh.read().count(b"\xff\xda")
+    if scans > MAX_JPEG_SCANS:
+        raise ImageError(
+            f"JPEG has {scans} scans; expected at most {MAX_JPEG_SCANS} (a progressive JPEG has ~10)", where
+        )
+
+
 def _check_pixels(w: int, h: int, max_pixels: int, where: str) -> None:
     if w * h > max_pixels:
         raise ImageError(
@@ -167,6 +184,8 @@ def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
         with Image.open(path, formats=PILLOW_FORMATS) as im:
             w, h = im.size
             _check_pixels(w, h, max_pixels, where)
+            if im.format == "JPEG":
+                _check_jpeg_scans(path, where)
             if im.format == "TIFF":
                 bits = tuple(im.tag_v2.get(258, (8,)))
                 sample_format = tuple(im.tag_v2.get(339, (1,)))
@@ -221,11 +240,15 @@ def probe_image_file(path: str | os.PathLike, *, max_pixels: int) -> tuple[int, 
     try:
         with Image.open(p, formats=PILLOW_FORMATS) as im:
             w, h = im.size
+            jpeg = im.format == "JPEG"
     except _pillow_errors(Image) as exc:
         if not (isinstance(exc, UnidentifiedImageError) and _is_tiff(p)):
             raise _pillow_error(exc, where) from None
         w, h = _tiff_size(p, where)  # a float or other wide TIFF Pillow cannot open: tifffile's header
+        jpeg = False
     _check_pixels(w, h, max_pixels, where)
+    if jpeg:
+        _check_jpeg_scans(p, where)
     return w, h
 
 

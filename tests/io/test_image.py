@@ -162,3 +162,29 @@ def test_missing_and_folder(tmp_path):
     with pytest.raises(LasagnaError, match="cannot read"):
         read_image_file(tmp_path / "nope.png", max_pixels=BIG)
     assert "is a folder" in _refused(tmp_path)
+
+
+def test_a_jpeg_of_thousands_of_scans_is_refused_before_decoding(tmp_path, monkeypatch):
+    """The progressive-JPEG DoS: decoding costs a pass per scan, so a file of 1000 scans is refused from its
+    bytes; Pillow's load is never reached. A real progressive JPEG (10 scans) still reads."""
+    import io
+
+    from PIL import Image, ImageFile
+
+    from lasagna.io.image import MAX_JPEG_SCANS, probe_image_file, read_image_file
+
+    buf = io.BytesIO()
+    Image.fromarray((np.random.default_rng(0).random((32, 32, 3)) * 255).astype(np.uint8)).save(
+        buf, "JPEG", progressive=True
+    )
+    good = tmp_path / "good.jpg"
+    good.write_bytes(buf.getvalue())
+    assert read_image_file(good, max_pixels=10**6).color.shape == (3, 32, 32)
+    data = buf.getvalue()
+    last = data.rindex(b"\xff\xda")  # repeat the last scan segment until there are far too many
+    bomb = tmp_path / "scans.jpg"
+    bomb.write_bytes(data[:last] + data[last:-2] * 1000 + data[-2:])
+    monkeypatch.setattr(ImageFile.ImageFile, "load", lambda self: pytest.fail("decoded"))
+    for fn in (probe_image_file, read_image_file):
+        with pytest.raises(ImageError, match=f"scans; expected at most {MAX_JPEG_SCANS}"):
+            fn(bomb, max_pixels=10**6)
