@@ -1,6 +1,6 @@
 """``lasagna world``: write scenes of a split as ground-truth stack folders (``lasagna.world``).
 
-lasagna world -o DIR --split NAME --count N --seed S [--resolution R] [--task shading|color|light]
+lasagna world -o DIR --split NAME --count N --seed S [--resolution R] [--task shading|color|light|relight]
               [--start I] [--shadows] [--ambient A]
 """
 
@@ -33,7 +33,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="shading",
         help="shading: albedo + multiply shading; color: gray + normal colour layer; "
         "light: image + plus glow of a warm, cool or white fill light, its label in the stack's "
-        "metadata as condition (default shading)",
+        "metadata as condition; relight: the image lit from a random direction A + multiply ratio "
+        "S_B/S_A in [0, 4] to the scene's named light B, the condition (default shading)",
     )
     p.add_argument("--shadows", action="store_true", help="cast shadows (off by default)")
     p.add_argument(

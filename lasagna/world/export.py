@@ -14,14 +14,22 @@ color      ``gray`` pixels (Rec. 709 luma, 1 channel);   the colour image
            ``color`` normal (alpha-linear), RGBA, α = 1
 light      ``image`` pixels (the unlit image);           lit = image + glow
            ``light`` plus, RGB (the glow)
+relight    ``image`` pixels (the scene lit by A);        the scene lit by B (= the shading
+           ``relight`` multiply, 1 channel, range        task's composite)
+           [0, 4] (the ratio S_B / S_A)
 =========  ===========================================  =====================================
+
+The relight task (`lasagna.world.tasks`, "Relighting"): B is the scene's own named light and A a
+continuous direction from the scene's ``"relight"`` stream; its condition is B, and the metadata
+adds ``source_condition`` (A as ``az=…,el=…``) and ``source_light`` (A's vector). It needs
+ambient ≥ 0.25 so that the ratio's range [a, 1/a] fits [0, 4].
 
 Every layer PNG is 16-bit, so the engine's re-composite equals ``composite.png`` (8-bit, the
 rendered float image rounded once) to within one 8-bit step. Beside the stack, not in its layer
 list: ``normals.png`` (16-bit RGB, n = 2v − 1, camera frame) and ``mask.png`` (8-bit gray, 255 on
 object pixels). ``metadata["lasagna.world"]`` holds the label, the light vector, the task, the
 ``condition`` its learned layer answers to (the light direction for shading, ``natural`` for colour,
-the glow's label — warm, cool, white — for light), the files, and the scene's full parameters
+the glow's label — warm, cool, white — for light, B's light for relight), the files, and the scene's full parameters
 (``SceneParams.describe``), enough to re-render it.
 """
 
@@ -39,10 +47,10 @@ from lasagna.errors import LasagnaError, PathError
 from lasagna.world.lighting import AMBIENT, GLOW_VOCABULARY, LIGHTS, VOCABULARY
 from lasagna.world.scene import Scene, generate
 from lasagna.world.splits import STREAM_VERSION
-from lasagna.world.tasks import additive_light, colorization, luma
+from lasagna.world.tasks import RELIGHT_RANGE, additive_light, colorization, luma, relight_sources, relighting
 
-Task = Literal["shading", "color", "light"]
-TASKS: tuple[str, ...] = ("shading", "color", "light")
+Task = Literal["shading", "color", "light", "relight"]
+TASKS: tuple[str, ...] = ("shading", "color", "light", "relight")
 MANIFEST = "world.json"
 # Scenes rendered per batch while writing: large enough to amortise the renderer's per-call cost,
 # small enough to keep memory flat at 256² and above.
@@ -68,6 +76,16 @@ def _layers(task: str, scene: Scene, i: int) -> tuple[list[dict[str, Any]], torc
             dict(id="gray", name="Grayscale", image=luma(scene.image[i : i + 1])[0], bit_depth=16),
             dict(id="color", name="Colour", image=data.layer[0], blend="normal", bit_depth=16),
         ], data.target[0]
+    if task == "relight":
+        one = scene.select(i)
+        data = relighting(one, relight_sources(one.params))
+        # S_B ≤ 1 in real arithmetic, so the ratio ≤ 1/a ≤ 4; float32 rounding of n·l can lift it by ~1e-7,
+        # which the clamp removes (the 16-bit code step is 6e-5).
+        ratio = data.layer[0].clamp(*RELIGHT_RANGE)
+        return [
+            dict(id="image", name="Image (light A)", image=data.base[0], bit_depth=16),
+            dict(id="relight", name="Relight", image=ratio, blend="multiply", range=RELIGHT_RANGE, bit_depth=16),
+        ], data.target[0]
     data = additive_light(scene.select(i))
     return [
         dict(id="image", name="Image", image=data.base[0], bit_depth=16),
@@ -77,11 +95,22 @@ def _layers(task: str, scene: Scene, i: int) -> tuple[list[dict[str, Any]], torc
 
 def task_condition(task: str, scene: Scene, i: int) -> str:
     """The label scene ``i``'s learned layer of ``task`` is conditioned on (its preset's vocabulary)."""
-    if task == "shading":
+    if task in ("shading", "relight"):
         return scene.label[i]
     if task == "color":
         return "natural"
     return GLOW_VOCABULARY[int(scene.params.glow_label[i])]
+
+
+def _check_task(task: str, ambient: float) -> None:
+    if task not in TASKS:
+        raise LasagnaError(f"unknown task {task!r}; expected one of {', '.join(TASKS)}", where="task")
+    if task == "relight" and not ambient >= 1.0 / RELIGHT_RANGE[1]:
+        raise LasagnaError(
+            f"the relight ratio lies in [a, 1/a], which fits its range [0, {RELIGHT_RANGE[1]:g}] only for "
+            f"ambient ≥ {1.0 / RELIGHT_RANGE[1]:g}; got {ambient}",
+            where="ambient",
+        )
 
 
 def write_scene_stack(folder: str | os.PathLike, scene: Scene, i: int, task: Task = "shading") -> Path:
@@ -90,8 +119,7 @@ def write_scene_stack(folder: str | os.PathLike, scene: Scene, i: int, task: Tas
     from lasagna.io.render import write_composite
     from lasagna.io.stack import save_stack, stack_from_tensors
 
-    if task not in TASKS:
-        raise LasagnaError(f"unknown task {task!r}; expected one of {', '.join(TASKS)}", where="task")
+    _check_task(task, scene.ambient)
     folder = Path(folder)
     layers, composite = _layers(task, scene, i)
     p = scene.params
@@ -116,6 +144,12 @@ def write_scene_stack(folder: str | os.PathLike, scene: Scene, i: int, task: Tas
             "scene": p.describe(i),
         }
     }
+    if task == "relight":
+        from lasagna.world.lighting import condition_direction
+
+        (source,) = relight_sources(p.select([i]))
+        meta["lasagna.world"]["source_condition"] = source
+        meta["lasagna.world"]["source_light"] = list(condition_direction(source))
     stack = stack_from_tensors(layers, blend_space="srgb", clamp="layer", metadata=meta)
     save_stack(stack, folder)
     # Normals are unit vectors, so (n + 1)/2 is in [0, 1] up to float rounding of the last bit.
@@ -139,10 +173,9 @@ def write_world_stacks(
     progress: bool = False,
 ) -> list[Path]:
     """Write ``count`` scenes of ``split`` as stack folders under ``out_dir``, and ``world.json``."""
-    if task not in TASKS:
-        raise LasagnaError(f"unknown task {task!r}; expected one of {', '.join(TASKS)}", where="task")
     if isinstance(count, bool) or not isinstance(count, int) or count < 1:
         raise LasagnaError(f"expected a positive integer, got {count!r}", where="count")
+    _check_task(task, ambient)
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise PathError("exists and is not a folder; expected a folder to write into", where=str(out))

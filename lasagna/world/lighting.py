@@ -14,6 +14,16 @@ preset, the evaluation of learned layers). The text below is normative:
   (n = +z), so the wall's shading is a + (1−a)·cos 60° = 0.625 with no shadows; optional cast
   shadows (a point is in shadow when the light ray toward l hits an object: then shading = a).
 - image = albedo × shading.
+- **any direction** (az, el) in degrees: azimuth in the image plane measured from +x (right)
+  counter-clockwise toward +y (up), so right = 0°, top = 90°, left = 180°, bottom = 270°, wrapped to
+  [0, 360); elevation = the angle from the view axis +z, in [0, 90). Its unit vector is
+  l = (sin el·cos az, sin el·sin az, cos el). The named lights are the directions el = 60° and
+  az = 0 (right), 45 (top-right), 90 (top), 135 (top-left), 180 (left), 225 (bottom-left),
+  270 (bottom), 315 (bottom-right) — ``named_direction``; their vectors are exactly `LIGHTS` (the
+  closed form agrees to 1e-15, and ``direction_vector`` returns the `LIGHTS` entry itself for a named
+  direction, so a label and its angles render the same bits). A condition is a named label or the
+  text ``az=A,el=E`` (or ``el=E,az=A``), parsed torch-free by `lasagna.document.condition`; the
+  wall's shading under any direction is a + (1−a)·cos el.
 
 The additive-light task (the `light` preset) has a vocabulary of its own, `GLOW_VOCABULARY`: the
 colour of a point light added to the image. `warm` = HSV hue in [0.03, 0.11] (amber to orange),
@@ -40,6 +50,17 @@ import math
 
 import torch
 
+from lasagna.document.condition import (
+    NAMED_DIRECTIONS,
+    canonical_condition,
+    direction_label,
+    format_direction,
+    parse_direction,
+    wrap_azimuth,
+)
+from lasagna.document.condition import (
+    named_direction as named_direction,  # re-exported: (az, el) of a label, beside its vector
+)
 from lasagna.errors import ConditionError, LasagnaError
 
 # The elevation of every light: 30° above the image plane, i.e. 60° from the viewing axis +z.
@@ -68,7 +89,7 @@ LIGHTS: dict[str, tuple[float, float, float]] = {
     "bottom-left": (-_D, -_D, _C),
     "bottom-right": (_D, -_D, _C),
 }
-assert tuple(LIGHTS) == VOCABULARY
+assert tuple(LIGHTS) == VOCABULARY == tuple(NAMED_DIRECTIONS)
 
 AMBIENT = 0.25
 """Default ambient term a of shading = a + (1 − a)·max(0, n·l)."""
@@ -141,3 +162,71 @@ def lambert(normals: torch.Tensor, light: torch.Tensor, ambient: float = AMBIENT
     lx, ly, lz = (light[:, i, None, None, None] for i in range(3))
     ndotl = normals[:, 0:1] * lx + normals[:, 1:2] * ly + normals[:, 2:3] * lz
     return ambient + (1.0 - ambient) * ndotl.clamp_min(0.0)
+
+
+# ---- any direction ----------------------------------------------------------------------------------
+# A light vector given as a tensor must be unit length to this tolerance (float32 rounding of a unit
+# vector is ~1e-7; anything further off is a mistake to report, not to renormalise silently).
+_UNIT_TOL = 1e-5
+# Angles recovered from a vector (atan2/acos) are rounded to this many decimals of a degree for the
+# scene's label only: the vector itself is what lights the scene.
+_LABEL_DECIMALS = 6
+
+
+def direction_vector(az: float, el: float) -> tuple[float, float, float]:
+    """The unit light vector (sin el·cos az, sin el·sin az, cos el) of (az, el) in degrees (float64).
+
+    A named direction returns its `LIGHTS` vector itself (equal to the closed form to 1e-15).
+    """
+    label = direction_label(az, el)  # also checks el ∈ [0, 90) and finiteness
+    if label is not None:
+        return LIGHTS[label]
+    a, e = math.radians(wrap_azimuth(az)), math.radians(float(el))
+    return (math.sin(e) * math.cos(a), math.sin(e) * math.sin(a), math.cos(e))
+
+
+def condition_direction(condition: str) -> tuple[float, float, float]:
+    """The unit light vector of a condition: a named label (its `LIGHTS` vector) or ``az=…,el=…``."""
+    return direction_vector(*parse_direction(condition))
+
+
+def vector_condition(light: tuple[float, float, float] | list[float]) -> str:
+    """The condition text of a unit light vector: its label if it is exactly a `LIGHTS` vector, else
+    ``az=…,el=…`` with the angles rounded to 1e-6° (a display label: the vector is the truth)."""
+    x, y, z = (float(v) for v in light)
+    for name, vec in LIGHTS.items():
+        if (x, y, z) == vec:
+            return name
+    az = round(math.degrees(math.atan2(y, x)), _LABEL_DECIMALS)
+    el = round(math.degrees(math.acos(max(-1.0, min(1.0, z)))), _LABEL_DECIMALS)
+    return canonical_condition(format_direction(az, el))
+
+
+def resolve_lights(
+    light: str | list[str] | tuple[str, ...] | torch.Tensor, count: int
+) -> tuple[torch.Tensor, list[str]]:
+    """``count`` float64 unit light vectors (count, 3) and their canonical conditions, from one condition,
+    one per scene, or a tensor of unit vectors (3,) or (count, 3) with z > 0 (a light in front of the wall)."""
+    if isinstance(light, torch.Tensor):
+        vec = light.detach().to(device="cpu", dtype=torch.float64)
+        if vec.dim() == 1:
+            vec = vec.expand(count, -1) if vec.shape == (3,) else vec
+        if vec.shape != (count, 3):
+            raise ConditionError(
+                f"expected light vectors of shape (3,) or ({count}, 3), got {tuple(light.shape)}", "light"
+            )
+        norm = vec.norm(dim=1)
+        if not bool(((norm - 1.0).abs() <= _UNIT_TOL).all()) or not bool((vec[:, 2] > 0).all()):
+            raise ConditionError(
+                f"expected unit light vectors with z > 0 (|l| within {_UNIT_TOL} of 1), got norms "
+                f"{norm.tolist()} and z {vec[:, 2].tolist()}",
+                "light",
+            )
+        vec = vec.contiguous()
+        return vec, [vector_condition(v) for v in vec.tolist()]
+    names = [light] * count if isinstance(light, str) else list(light)
+    if len(names) != count:
+        raise ConditionError(f"expected 1 or {count} light conditions, got {len(names)}", "light")
+    conditions = [canonical_condition(n) for n in names]
+    vec = torch.tensor([condition_direction(c) for c in conditions], dtype=torch.float64).reshape(count, 3)
+    return vec, conditions

@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from lasagna.errors import LasagnaError
-from lasagna.world.lighting import AMBIENT, VOCABULARY, check_ambient, lambert, light_vectors
+from lasagna.world.lighting import AMBIENT, VOCABULARY, check_ambient, lambert, light_vectors, resolve_lights
 from lasagna.world.params import WALL_Z, SceneParams, sample_scenes
 from lasagna.world.relief import relief_normals
 from lasagna.world.shapes import SHAPE_NAMES, SHAPES, Vec
@@ -49,7 +49,8 @@ class Scene:
     albedo (3), normals (3, unit, camera frame; the wall is +z), shading (1, in [ambient, 1]),
     image (3) = albedo × shading, mask (1, 1.0 on object pixels, 0.0 on the wall), depth (1, camera z
     of the visible surface; the wall is ``WALL_Z``), object_index (1, int64 slot of the visible object, −1 for
-    the wall); light (B, 3) unit vectors, label (the light's names), label_index (B,) into VOCABULARY.
+    the wall); light (B, 3) unit vectors, label (the light's names, or the ``az=…,el=…`` condition of
+    a light between them), label_index (B,) into VOCABULARY (−1 for a light between the named ones).
     """
 
     albedo: Tensor
@@ -132,7 +133,14 @@ def _cast(obj: dict[str, Tensor], slot: Tensor, o: Vec, d: Vec, t_min: float) ->
 
 
 def _render_chunk(
-    p: SceneParams, h: int, w: int, ambient: float, shadows: bool, dtype: torch.dtype, device: torch.device
+    p: SceneParams,
+    h: int,
+    w: int,
+    ambient: float,
+    shadows: bool,
+    dtype: torch.dtype,
+    device: torch.device,
+    light: Tensor | None = None,
 ) -> dict[str, Tensor]:
     b, k = len(p), MAX_OBJECTS
     to = dict(dtype=dtype, device=device)
@@ -202,7 +210,10 @@ def _render_chunk(
     albedo = albedo.reshape(b, h, w, 3).permute(0, 3, 1, 2).contiguous()
 
     # 4. Shading, then cast shadows: a lit point is shadowed when its ray toward l meets any object.
-    light = light_vectors([VOCABULARY[i] for i in p.label.tolist()], dtype=dtype, device=device)
+    if light is None:
+        light = light_vectors([VOCABULARY[i] for i in p.label.tolist()], dtype=dtype, device=device)
+    else:  # float64 (b, 3) → dtype: the same rounding as light_vectors' of the same values
+        light = light.to(dtype=dtype, device=device)
     shading = lambert(normals, light, ambient)
     if shadows:
         shading = torch.where(
@@ -296,21 +307,41 @@ def render(
     resolution: int | tuple[int, int] = 32,
     *,
     labels: str | Sequence[str] | None = None,
+    light: str | Sequence[str] | Tensor | None = None,
     ambient: float = AMBIENT,
     shadows: bool = False,
     dtype: torch.dtype = torch.float32,
     device: torch.device | str | None = None,
 ) -> Scene:
-    """Render ``params`` (optionally under other light ``labels``) at ``resolution``."""
+    """Render ``params`` (optionally under other light ``labels``) at ``resolution``.
+
+    ``light`` lights the scenes from any direction instead (not with ``labels``): one condition or one
+    per scene (a named label or ``az=…,el=…``, `lasagna.world.lighting`), or unit vectors (3,) or
+    (B, 3). The scenes' ``label`` is then each light's canonical condition and ``label_index`` its
+    index in VOCABULARY, −1 for a direction between the named ones; ``params`` (and its ``label``)
+    still describe the scenes as sampled. A named label as ``light`` renders the same bits as ``labels``.
+    """
     h, w = check_resolution(resolution)
     check_ambient(ambient)
     if dtype not in (torch.float32, torch.float64):
         raise LasagnaError(f"expected torch.float32 or torch.float64, got {dtype}", where="dtype")
+    if light is not None and labels is not None:
+        raise LasagnaError("expected labels or light, got both", where="light")
     params = params.with_labels(labels)
+    vectors, conditions = (None, None) if light is None else resolve_lights(light, len(params))
     device = torch.device(device) if device is not None else torch.device("cpu")
     step = max(1, _CHUNK_PIXELS // (h * w))
     parts = [
-        _render_chunk(params.select(slice(i, i + step)), h, w, ambient, bool(shadows), dtype, device)
+        _render_chunk(
+            params.select(slice(i, i + step)),
+            h,
+            w,
+            ambient,
+            bool(shadows),
+            dtype,
+            device,
+            None if vectors is None else vectors[i : i + step],
+        )
         for i in range(0, len(params), step)
     ]
     out = {key: torch.cat([q[key] for q in parts]) for key in parts[0]}
@@ -324,11 +355,47 @@ def render(
         depth=out["depth"],
         object_index=out["object_index"],
         light=out["light"],
-        label=[VOCABULARY[i] for i in params.label.tolist()],
-        label_index=params.label.to(device),
+        label=[VOCABULARY[i] for i in params.label.tolist()] if conditions is None else conditions,
+        label_index=params.label.to(device) if conditions is None else _label_index(conditions, device),
         params=params,
         ambient=float(ambient),
         shadows=bool(shadows),
+    )
+
+
+def _label_index(conditions: list[str], device: torch.device | str) -> Tensor:
+    """(B,) int64: each condition's index in VOCABULARY, −1 for a direction between the named ones."""
+    rows = [VOCABULARY.index(c) if c in VOCABULARY else -1 for c in conditions]
+    return torch.tensor(rows, dtype=torch.int64, device=device)
+
+
+def with_light(scene: Scene, light: str | Sequence[str] | Tensor) -> Scene:
+    """The same scenes lit from any direction: conditions (named or ``az=…,el=…``) or unit vectors.
+
+    As `relight`: without shadows only the shading and the image are recomputed (the shading is a
+    pointwise function of the normals); with shadows the scenes are rendered again. ``label`` and
+    ``label_index`` follow `render`'s ``light``; ``params`` is unchanged.
+    """
+    if scene.shadows:
+        return render(
+            scene.params,
+            tuple(scene.image.shape[-2:]),
+            light=light,
+            ambient=scene.ambient,
+            shadows=True,
+            dtype=scene.image.dtype,
+            device=scene.image.device,
+        )
+    vectors, conditions = resolve_lights(light, len(scene))
+    vectors = vectors.to(dtype=scene.image.dtype, device=scene.image.device)
+    shading = lambert(scene.normals, vectors, scene.ambient)
+    return replace(
+        scene,
+        shading=shading,
+        image=scene.albedo * shading,
+        light=vectors,
+        label=conditions,
+        label_index=_label_index(conditions, scene.image.device),
     )
 
 

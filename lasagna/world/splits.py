@@ -132,11 +132,17 @@ def check_seed(seed: int, where: str = "seed") -> int:
     return int(seed)
 
 
-def scene_rng(split: str, seed: int, index: int) -> np.random.Generator:
-    """The random stream of scene ``index`` of ``split`` under ``seed``."""
+def scene_rng(split: str, seed: int, index: int, stream: str = "") -> np.random.Generator:
+    """The random stream of scene ``index`` of ``split`` under ``seed``.
+
+    ``stream`` names a further stream of the same scene for draws added after its parameters were
+    fixed (e.g. ``"relight"``, the relight task's source light), so that they leave every draw of
+    the scene's own stream — and so every existing scene — bit-identical.
+    """
     get_split(split)
     check_seed(seed)
     check_seed(index, where="index")
-    tag = f"lasagna.world/v{STREAM_VERSION}/{split}/{int(seed)}/{int(index)}".encode()
+    tag = f"lasagna.world/v{STREAM_VERSION}/{split}/{int(seed)}/{int(index)}"
+    tag = (tag + f"/{stream}" if stream else tag).encode()
     key = int.from_bytes(hashlib.blake2b(tag, digest_size=16).digest(), "little")
     return np.random.Generator(np.random.Philox(key=key))

@@ -18,6 +18,25 @@ plus a halo of the light itself seen through the lens, c · I_h · exp(−r²/(2
 distance from the light. The glow is clipped to the head-room, glow = min(reflected + halo,
 1 − image), so that lit = image + glow ≤ 1 holds exactly: the ``plus`` layer's ground truth is
 ``glow`` (≥ 0) and composing it onto the image gives ``lit`` with no clamp involved.
+
+Relighting a lit image (the relight setting of issue #11: blend ``multiply``, 1 channel). The base is
+the scene lit by a light A, the target the same scene lit by B, and the ground-truth layer is the
+luminosity ratio S_B / S_A of their shadings (S = a + (1 − a)·max(0, n·l), a > 0 so S_A ≥ a > 0):
+base × ratio = albedo·S_A·S_B/S_A = target, exactly in real arithmetic and to a few float roundings
+in the engine. The ratio lies in [a, 1/a] — [0.25, 4] with the default a = 0.25, hence the stacks'
+range [0, 4] (``RELIGHT_RANGE``). With shadows off the ratio is a pointwise function of the normal;
+with shadows on each of S_A, S_B is a where its light is blocked, so the identity base × ratio =
+target still holds pixel by pixel and the range is the same, but the ratio is no longer a function of
+the normal alone: it also removes A's cast shadows (ratio up to 1/a) and casts B's (ratio down to
+a), which a per-pixel layer can still represent but only knowledge of the geometry can predict.
+
+How the world draws A and B for a scene (``relight_sources``; ``lasagna world --task relight``): B is
+the scene's own named light (its ``label``, uniform over the eight), so the target is the scene as
+every other task renders it; A is continuous, azimuth uniform in [0, 360) and elevation uniform in
+``RELIGHT_ELEVATION`` = [30°, 75°], both rounded to 0.01° so that the recorded condition text
+``az=…,el=…`` is exactly the direction rendered. A comes from the scene's own further random stream
+``"relight"`` (`lasagna.world.splits.scene_rng`), so every split's scenes and their other tasks stay
+bit-identical.
 """
 
 from __future__ import annotations
@@ -27,7 +46,11 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from lasagna.world.scene import Scene, pixel_grid
+from lasagna.errors import LasagnaError
+from lasagna.world.lighting import format_direction
+from lasagna.world.params import SceneParams
+from lasagna.world.scene import Scene, pixel_grid, with_light
+from lasagna.world.splits import scene_rng
 
 Tensor = torch.Tensor
 
@@ -35,6 +58,13 @@ REC709 = (0.2126, 0.7152, 0.0722)
 """Rec. ITU-R BT.709 luma weights, applied to stored (sRGB-encoded) values as image editors do."""
 GLOW_FALLOFF = 1.0
 """d₀ of the point light's 1/(1 + (d/d₀)²) fall-off, in world units (the canvas is 2 units wide)."""
+
+
+RELIGHT_RANGE = (0.0, 4.0)
+"""The relight layer's value range: the ratio S_B / S_A lies in [a, 1/a] = [0.25, 4] for a = 0.25."""
+RELIGHT_ELEVATION = (30.0, 75.0)
+"""Elevations (degrees from the view axis) of the relight task's source light A; the named lights have 60."""
+_RELIGHT_DECIMALS = 2  # A's angles are rounded to 0.01° so its condition text is exactly what is rendered
 
 
 @dataclass(frozen=True)
@@ -55,6 +85,21 @@ class AdditiveLight:
     glow: Tensor
     lit: Tensor
     scene: Scene
+
+
+@dataclass(frozen=True)
+class Relighting:
+    """base (B, 3, H, W) lit by A, target (B, 3, H, W) lit by B, layer (B, 1, H, W) = S_B / S_A (multiply).
+
+    ``source`` is the scenes lit by A, ``scene`` the scenes lit by B (their ``light`` and ``label``
+    say which direction each is).
+    """
+
+    base: Tensor
+    target: Tensor
+    layer: Tensor
+    scene: Scene
+    source: Scene
 
 
 def luma(image: Tensor) -> Tensor:
@@ -101,3 +146,33 @@ def additive_light(scene: Scene, labels: str | Sequence[str] | None = None) -> A
         scene = replace(scene, params=scene.params.with_glow_labels(labels))
     g = torch.minimum(glow(scene), 1.0 - scene.image)
     return AdditiveLight(base=scene.image, glow=g, lit=scene.image + g, scene=scene)
+
+
+def relighting(
+    scene: Scene, light_a: str | Sequence[str] | Tensor, light_b: str | Sequence[str] | Tensor | None = None
+) -> Relighting:
+    """The scenes lit by ``light_a`` (the base), by ``light_b`` (the target; default: the scenes' own
+    light) and the ratio S_B / S_A that maps one onto the other (see the module docstring).
+
+    Each light is one condition, one per scene (a named label or ``az=…,el=…``) or unit vectors.
+    """
+    if scene.ambient <= 0.0:
+        raise LasagnaError(
+            f"the relight ratio S_B / S_A needs ambient > 0 (S_A is 0 where A does not reach), got {scene.ambient}",
+            where="ambient",
+        )
+    source = with_light(scene, light_a)
+    lit = scene if light_b is None else with_light(scene, light_b)
+    return Relighting(base=source.image, target=lit.image, layer=lit.shading / source.shading, scene=lit, source=source)
+
+
+def relight_sources(params: SceneParams) -> list[str]:
+    """The relight task's source light A of each scene, as ``az=…,el=…`` text (see the module docstring)."""
+    lo, hi = RELIGHT_ELEVATION
+    out = []
+    for index in params.index.tolist():
+        u = scene_rng(params.split, params.seed, index, stream="relight").random(2)
+        az = round(360.0 * float(u[0]), _RELIGHT_DECIMALS)  # 360.0 wraps to 0
+        el = round(lo + (hi - lo) * float(u[1]), _RELIGHT_DECIMALS)
+        out.append(format_direction(az, el))
+    return out

@@ -1,0 +1,123 @@
+"""Light-direction conditions as text: the eight named lights and ``az=…,el=…`` (no torch, no vectors).
+
+A condition names a directional light either by one of the eight labels of
+`lasagna.world.lighting` or by its angles in degrees, ``az=135,el=40`` (or ``el=40,az=135``):
+
+- azimuth ``az``: the angle of the light's in-image-plane part, measured from +x (right)
+  counter-clockwise toward +y (up): right = 0°, top = 90°, left = 180°, bottom = 270°. Any real
+  number is accepted and wrapped to [0, 360).
+- elevation ``el``: the angle between the light and the view axis +z (toward the viewer), in
+  [0, 90): 0 is a light straight from the camera, 90 (grazing, excluded) would light the wall not at all.
+  The eight named lights all have el = 60.
+
+The unit vector of (az, el) is (sin el·cos az, sin el·sin az, cos el) in the camera frame (x right,
+y up, z toward the viewer); it lives in `lasagna.world.lighting` (``direction_vector``), which holds
+the normative text. This module only parses and formats, so the CLI and ``lasagna edit`` can read a
+condition without importing torch.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+
+from lasagna.errors import ConditionError
+
+NAMED_ELEVATION = 60.0
+"""Elevation (degrees from +z) of every named light."""
+
+NAMED_DIRECTIONS: dict[str, tuple[float, float]] = {
+    "left": (180.0, NAMED_ELEVATION),
+    "right": (0.0, NAMED_ELEVATION),
+    "top": (90.0, NAMED_ELEVATION),
+    "bottom": (270.0, NAMED_ELEVATION),
+    "top-left": (135.0, NAMED_ELEVATION),
+    "top-right": (45.0, NAMED_ELEVATION),
+    "bottom-left": (225.0, NAMED_ELEVATION),
+    "bottom-right": (315.0, NAMED_ELEVATION),
+}
+"""(az, el) in degrees of each named light, in the order of `lasagna.world.lighting.VOCABULARY`."""
+
+MAX_ELEVATION = 90.0
+"""Elevations lie in [0, MAX_ELEVATION): at 90° the light grazes the image plane."""
+
+_NUMBER = r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?"
+_PAIR = re.compile(rf"\s*(az|el)\s*=\s*({_NUMBER})\s*")
+_EXPECTED = (
+    f"expected one of {', '.join(NAMED_DIRECTIONS)} or 'az=A,el=E' in degrees "
+    f"(azimuth from +x toward +y, elevation from the view axis in [0, {MAX_ELEVATION:g}))"
+)
+
+
+def _bad(text: object, why: str = "") -> ConditionError:
+    return ConditionError(f"{_EXPECTED}, got {text!r}{why}", where="condition")
+
+
+def wrap_azimuth(az: float) -> float:
+    """``az`` wrapped to [0, 360) (fmod is exact; a tiny negative that rounds up to 360 becomes 0)."""
+    a = math.fmod(float(az), 360.0)
+    if a < 0.0:
+        a += 360.0
+    if a >= 360.0:
+        a = 0.0
+    return a + 0.0  # −0.0 → 0.0
+
+
+def check_direction(az: float, el: float, text: object = None) -> tuple[float, float]:
+    """(az wrapped to [0, 360), el) after checking both are finite and el ∈ [0, 90)."""
+    az, el = float(az), float(el)
+    shown = text if text is not None else f"az={az!r},el={el!r}"
+    if not (math.isfinite(az) and math.isfinite(el)):
+        raise _bad(shown, " (angles must be finite)")
+    if not 0.0 <= el < MAX_ELEVATION:
+        raise _bad(shown, f" (el = {el:g} is outside [0, {MAX_ELEVATION:g}))")
+    return wrap_azimuth(az), el + 0.0
+
+
+def named_direction(label: str) -> tuple[float, float]:
+    """(az, el) in degrees of a named light; `ConditionError` for any other name."""
+    try:
+        return NAMED_DIRECTIONS[label]
+    except (KeyError, TypeError):
+        raise ConditionError(
+            f"unknown light label {label!r}; expected one of {', '.join(NAMED_DIRECTIONS)}", where="light"
+        ) from None
+
+
+def parse_direction(text: str) -> tuple[float, float]:
+    """(az, el) in degrees from a named label or ``az=…,el=…`` / ``el=…,az=…`` (see the module docstring)."""
+    if not isinstance(text, str):
+        raise _bad(text)
+    if text in NAMED_DIRECTIONS:
+        return NAMED_DIRECTIONS[text]
+    parts = text.split(",")
+    matches = [_PAIR.fullmatch(p) for p in parts]
+    if len(parts) != 2 or not all(matches):
+        raise _bad(text)
+    values = {m.group(1): float(m.group(2)) for m in matches if m}
+    if set(values) != {"az", "el"}:
+        raise _bad(text, " (give az and el once each)")
+    return check_direction(values["az"], values["el"], text)
+
+
+def _number(v: float) -> str:
+    """The shortest text that parses back to ``v`` exactly (integers without a decimal point)."""
+    return str(int(v)) if v.is_integer() else repr(v)
+
+
+def format_direction(az: float, el: float) -> str:
+    """``az=…,el=…`` text that `parse_direction` reads back to exactly the (wrapped) (az, el)."""
+    az, el = check_direction(az, el)
+    return f"az={_number(az)},el={_number(el)}"
+
+
+def direction_label(az: float, el: float) -> str | None:
+    """The named light at exactly (az, el) (az wrapped), or None."""
+    key = check_direction(az, el)
+    return next((name for name, d in NAMED_DIRECTIONS.items() if d == key), None)
+
+
+def canonical_condition(text: str) -> str:
+    """A condition as one canonical text: the label of a named direction, else ``az=…,el=…``."""
+    az, el = parse_direction(text)
+    return direction_label(az, el) or format_direction(az, el)
