@@ -322,7 +322,7 @@ def test_hostile_ora(tmp_path, capsys, case):
     elif case == "nested-stack":
         entries["stack.xml"] = _xml('<stack><layer name="a" src="data/a.png"/></stack>')
     elif case == "unknown-op":
-        entries["stack.xml"] = _xml(layer.format(op="svg:hard-light"))
+        entries["stack.xml"] = _xml(layer.format(op="svg:vivid-light"))
     elif case == "bomb-layer":
         entries["data/a.png"] = pngcraft.header_bomb()
     elif case == "dtd":
