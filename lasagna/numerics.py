@@ -19,6 +19,13 @@ SCHEDULE_EPS = 1e-8
 # written layer is finite even for y = +inf-like outliers (clamped earlier to the layer's range).
 DODGE_EPS = 1.0 / 65535.0
 
+# ClipColor of W3C Compositing Level 1 (the non-separable blends) divides by L − min(C) and max(C) − L,
+# which vanish for a gray (all channels equal). The spec leaves 0/0 there; the denominators are kept
+# >= CLIP_COLOR_EPS instead. 1e-6 is above the float32 rounding of Lum(C) = 0.3R + 0.59G + 0.11B (a few
+# ulp of 1, ~2e-7), so a gray is never divided by rounding noise, and far below one 16-bit step: a
+# guarded division only pulls an almost-gray colour (|C − L| of the same order) towards its luminosity.
+CLIP_COLOR_EPS = 1e-6
+
 # Logit of a value in [0, 1] (inverting y = lo + (hi - lo) * sigmoid(x)): clamp to
 # [LOGIT_EPS, 1 - LOGIT_EPS] so an exact 0 or 1 maps to a large finite logit (+-13.8).
 LOGIT_EPS = 1e-6

@@ -9,6 +9,7 @@ W3C Compositing Level 1 for an opaque backdrop Cb, source Cs, α = alpha × mask
     multiply  Cb + α(Cb·Cs − Cb)      (a 1-channel multiplier broadcasts over RGB)
     screen    Cb + α(Cs − Cb·Cs)
     plus      Cb + α·Cs
+    others    Cb + α(B(Cb, Cs) − Cb), B of W3C section 10 (``tests/compose/numpy_ref.py``'s ``W3C_B``)
 Stored PNG values v map to y = lo + (hi − lo)·v (alpha never). ``blend_space="linear"`` decodes colour
 values (background, solid colours, normal/plus/screen sources) from sRGB, never multiply factors, and
 encodes the result back. ``clamp="layer"`` clamps to [0, 1] after every blend, ``"output"`` once.
@@ -21,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 import png
+
+from tests.compose.numpy_ref import W3C_B
 
 ALIASES = {"alpha-linear": "normal", "multiply-luminosity": "multiply", "additive": "plus"}
 
@@ -111,6 +114,8 @@ def composite_reference(folder: str | Path) -> np.ndarray:
             res = cb + al * (cs - cb * cs)
         elif blend == "plus":
             res = cb + al * cs
+        elif blend in W3C_B:
+            res = cb + al * (W3C_B[blend](cb, np.broadcast_to(cs, cb.shape)) - cb)
         else:
             raise ValueError(f"unknown blend {blend!r}")
         out[:, y0:y1, x0:x1] = np.clip(res, 0.0, 1.0) if clamp_each else res

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from lasagna.compose.blend import KERNELS_INPLACE, Alpha, broadcast_shape
+from lasagna.compose.blend import KERNELS, KERNELS_INPLACE, Alpha, broadcast_shape
 from lasagna.compose.color import linear_to_srgb_derivative, srgb_to_linear_derivative
 from lasagna.compose.engine import (
     _alpha,
@@ -167,6 +167,8 @@ def _blend_into(blend: str, cb: Tensor, cs: Tensor, a: Alpha, out: Tensor) -> Te
     if blend == "screen":
         s = cs if a is None else cs * a
         return torch.mul(cb, 1.0 - s, out=out).add_(s)
+    if blend != "plus":  # the W3C modes: B out of place, then the same lerp as the kernel
+        return out.copy_(KERNELS[blend](cb, cs, a))
     if a is None:
         return torch.add(cb, cs, out=out)
     if isinstance(a, Tensor):
@@ -175,7 +177,7 @@ def _blend_into(blend: str, cb: Tensor, cs: Tensor, a: Alpha, out: Tensor) -> Te
 
 
 def _needs_cb(step: PlanStep) -> bool:
-    return step.blend in ("multiply", "screen") or (step.blend == "normal" and not step.opaque)
+    return step.blend != "plus" and not (step.blend == "normal" and step.opaque)
 
 
 def banded_backward(
@@ -197,6 +199,9 @@ def banded_backward(
     multiply  f = 1 + α(Cs − 1): ∂f = Σ g Cb,  ∂Cs = α ∂f,  ∂α = (Cs − 1) ∂f,   ∂Cb = f g
     screen    s = αCs:           ∂s = g (1 − Cb),  ∂Cs = α ∂s,  ∂α = Σ Cs ∂s,   ∂Cb = (1 − s) g
     plus      ∂Cs = α g,                 ∂α = Σ g Cs,             ∂Cb = g
+    others    (the W3C modes computed as lerp(Cb, B(Cb, Cs), α)): the vector–Jacobian product of
+              that very kernel, by autograd on the band's tensors (``_local_vjp``) — the same
+              function as ``grad_engine="autograd"`` differentiates, so the same subgradients
 
     then ∂alpha = ∂α·mask·opacity, ∂mask = ∂α·alpha·opacity, ∂opacity = Σ ∂α·alpha·mask; a decoded
     colour multiplies by the sRGB decode's derivative; a clamp passes ``g`` where it changed nothing
@@ -419,6 +424,8 @@ def _step_backward(
                 g_a = _channel_dot(g_s, cs, alpha_shape(g_s), out=temp("g_a", alpha_shape(g_s)))
         if need_cb:
             gr.mul_(1.0 - s)
+    elif blend != "plus":
+        g_a = _local_vjp(blend, gr, cs, a, cb, cs_grad if need_cs else None, need_a, need_cb, alpha_shape(gr))
     else:  # plus: ∂Cb = g unchanged
         if need_cs:
             cs_grad(gr) if a is None else cs_grad(gr, a)
@@ -435,6 +442,42 @@ def _step_backward(
         if isinstance(op, Tensor):
             am = alpha if mask is None else (mask if alpha is None else alpha * mask)
             grads.add(op, None, g_a if am is None else g_a * am)
+
+
+def _local_vjp(
+    blend: str,
+    gr: Tensor,
+    cs: Tensor,
+    a: Alpha,
+    cb: Tensor,
+    cs_grad: Any,
+    need_a: bool,
+    need_cb: bool,
+    a_shape: tuple[int, ...],
+) -> Tensor | None:
+    """One W3C-mode layer's derivatives on a band by autograd through its kernel: ∂Cs goes to
+    ``cs_grad``, ``gr`` becomes ∂Cb in place (when ``need_cb``), and ∂α (per pixel, ``a_shape``) is
+    returned when ``need_a``. The graph spans this one blend of one band, never the stack."""
+    leaves: list[Tensor] = []
+    with torch.enable_grad():
+        cs_l = cs.detach().requires_grad_(cs_grad is not None)
+        cb_l = cb.detach().requires_grad_(need_cb)
+        a_l: Alpha = a
+        if need_a and a is not None:
+            a_t = a if isinstance(a, Tensor) else torch.tensor(a, dtype=gr.dtype, device=gr.device)
+            a_l = a_t.detach().expand(a_shape).clone().requires_grad_()
+        elif isinstance(a, Tensor):
+            a_l = a.detach()
+        leaves = [x for x in (cs_l, cb_l, a_l) if isinstance(x, Tensor) and x.requires_grad]
+        if not leaves:
+            return None
+        out = KERNELS[blend](cb_l, cs_l, a_l)
+        grads = dict(zip(map(id, leaves), torch.autograd.grad(out, leaves, gr)))
+    if cs_grad is not None:
+        cs_grad(grads[id(cs_l)])
+    if need_cb:
+        gr.copy_(grads[id(cb_l)])
+    return grads.get(id(a_l)) if need_a and a is not None else None
 
 
 def _alpha_shape(g: Tensor, a: Alpha) -> tuple[int, ...]:

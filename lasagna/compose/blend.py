@@ -14,6 +14,42 @@ screen      Cb + Cs − Cb·Cs     Cb + α(Cs − Cb·Cs)        ``Cb·(1 − α
 plus        (Porter–Duff plus)  Cb + α·Cs                 ``addcmul(Cb, Cs, α)``
 ==========  ==================  =========================================================
 
+The other modes of W3C Compositing Level 1 (section 10) compute ``B(Cb, Cs)`` by the spec's formula
+and return ``lerp(Cb, B, α)`` (``B`` itself for an opaque source), the form ``normal`` uses:
+
+===========  ==============================================================================
+overlay      hard-light(Cs, Cb)
+darken       min(Cb, Cs)                       lighten  max(Cb, Cs)
+color-dodge  0 if Cb = 0, else 1 if Cs ≥ 1, else min(1, Cb / (1 − Cs))
+color-burn   1 if Cb = 1, else 0 if Cs ≤ 0, else 1 − min(1, (1 − Cb) / Cs)
+hard-light   Cb·2Cs if Cs ≤ ½, else screen(Cb, 2Cs − 1)
+soft-light   Cb − (1 − 2Cs)·Cb(1 − Cb) if Cs ≤ ½, else Cb + (2Cs − 1)(D(Cb) − Cb),
+             D(Cb) = ((16Cb − 12)Cb + 4)Cb if Cb ≤ ¼, else √Cb
+difference   |Cb − Cs|                         exclusion  Cb + Cs − 2·Cb·Cs
+hue          SetLum(SetSat(Cs, Sat(Cb)), Lum(Cb))
+saturation   SetLum(SetSat(Cb, Sat(Cs)), Lum(Cb))
+color        SetLum(Cs, Lum(Cb))
+luminosity   SetLum(Cb, Lum(Cs))
+===========  ==============================================================================
+
+The non-separable four follow the spec's pseudo-code (section 10.3: Lum with weights 0.3, 0.59,
+0.11, ClipColor, SetLum, Sat, SetSat), vectorised: SetSat maps each channel to (C − Cmin)·s /
+(Cmax − Cmin), which sets the max to s, the min to 0 and scales the mid, as the spec's sorted form
+does (ties included). A 1-channel source or backdrop is gray in RGB for them (expanded to three
+channels; a gray backdrop gets channel 0 of the result, all three being equal).
+
+Gradients at the kinks (subgradients, chosen so every gradient is finite — tested at the kinks):
+color-dodge at Cs = 1 and color-burn at Cs = 0 are constant there (1 and 0: the derivative of the
+saturated branch, 0), and their quotients are only evaluated with a denominator of 1 where they
+are not selected (no epsilon needed: a denominator in (0, 1] near the kink makes the quotient large
+but finite and the min saturates it, so its derivative is not selected either). hard-light, overlay
+and soft-light at ½ take the ≤ branch. soft-light's √Cb is only selected for Cb > ¼ and reads
+max(Cb, ¼) (√'s infinite slope at 0 never enters; D is C¹ at ¼ anyway). darken/lighten at Cb = Cs
+split the gradient equally (``torch.minimum``/``maximum``), difference at Cb = Cs gives 0
+(``abs``). SetSat of a gray (Cmax = Cmin) divides 0 by 1; ClipColor's denominators are kept ≥
+``CLIP_COLOR_EPS`` (``lasagna.numerics``); its branches are strict (n < 0, x > 1), so at n = 0 or x = 1
+the colour passes unchanged with derivative 1.
+
 Shapes: ``Cb`` is ``(..., C, h, w)`` with C ∈ {1, 3}; ``Cs`` is ``(..., 1 | C, h, w)`` — one
 channel broadcasts over the backdrop's channels (the Lasagna paper's "multiply luminosity" shading
 layer, f(x, y) = x·y); ``a`` is ``(..., 1, h, w)``, a 0-d tensor, a Python number in [0, 1], or
@@ -21,9 +57,11 @@ layer, f(x, y) = x·y); ``a`` is ``(..., 1, h, w)``, a 0-d tensor, a Python numb
 Leading batch dimensions broadcast. The multiply factor ``1 + α(Cs − 1)`` is computed on ``Cs``'s
 channels (one for a luminosity layer) before it broadcasts over RGB: a third of the work.
 
-In-place fast paths (``normal_``, ``multiply_``, ``screen_``, ``plus_``, in ``BLEND_INPLACE``)
-overwrite ``Cb`` and return it. They run the same kernels in the same order as the pure functions,
-so their results are bitwise equal (tested); the renderer uses them when no gradient is needed.
+In-place fast paths (``normal_``, ``multiply_``, ``screen_``, ``plus_``, and ``overlay_`` … for
+every other mode, in ``BLEND_INPLACE``) overwrite ``Cb`` and return it (the W3C modes compute ``B``
+out of place and then ``Cb.lerp_(B, α)``: one allocation fewer). They run the same kernels in the
+same order as the pure functions, so their results are bitwise equal (tested); the renderer uses
+them when no gradient is needed.
 
 NaN policy: IEEE arithmetic, no masking. A NaN in ``Cb``, ``Cs`` or ``α`` at a pixel makes that
 pixel NaN even where α = 0 (``0·NaN = NaN``): hiding it would hide corrupt input, and a select per
@@ -39,6 +77,9 @@ for a source whose values lie in ``[lo, hi]`` over a backdrop in [0, 1] with α 
 side can leave [0, 1]. The result is a convex combination of in-range values for normal (of Cb and
 Cs), multiply (of 0 and Cb, when 0 ≤ lo and hi ≤ 1) and screen (of Cb and 1), and floating-point
 rounding is monotone and represents 0 and 1 exactly, so the rounded result stays in [0, 1] as well.
+The same holds for darken, lighten and difference (``B`` is a min, a max or |Cb − Cs| of in-range
+values, then a lerp). The other W3C modes are in [0, 1] in exact arithmetic only; their rounded ``B``
+is not proven to be (a soft-light or a SetLum can land an ulp outside), so they always clamp.
 """
 
 from __future__ import annotations
@@ -50,6 +91,7 @@ from torch import Tensor
 
 from lasagna.document.blend import BLEND_MODES as BLEND_MODES  # the names are declared there, once
 from lasagna.errors import LasagnaError
+from lasagna.numerics import CLIP_COLOR_EPS
 
 Alpha = Tensor | float | None
 
@@ -123,17 +165,171 @@ def _plus_(out: Tensor, Cs: Tensor, a: Alpha) -> Tensor:
     return out.add_(Cs, alpha=a)
 
 
+# ---- the other W3C modes: B(Cb, Cs) by the spec's formula, then lerp(Cb, B, α) ----------------------
+
+
+def _hard_light_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    # Cs ≤ ½: multiply(Cb, 2Cs); else screen(Cb, 2Cs − 1) = Cb + (2Cs − 1)(1 − Cb).
+    s2 = Cs * 2.0
+    return torch.where(Cs <= 0.5, Cb * s2, Cb + (s2 - 1.0) * (1.0 - Cb))
+
+
+def _overlay_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return _hard_light_B(Cs, Cb)
+
+
+def _darken_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return torch.minimum(Cb, Cs)
+
+
+def _lighten_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return torch.maximum(Cb, Cs)
+
+
+def _color_dodge_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    # The quotient is only selected where Cs < 1; elsewhere it divides by 1 (finite, and its derivative
+    # is multiplied by 0). At Cs ≥ 1 (> 1 is not a colour: dodged fully) B is the constant 1, or 0 where
+    # Cb = 0 — the spec's first case — so its derivative there is 0.
+    pole = Cs >= 1.0
+    q = torch.div(Cb, torch.where(pole, 1.0, 1.0 - Cs)).clamp_max(1.0)
+    return torch.where(pole, (Cb != 0.0).to(q.dtype), q)
+
+
+def _color_burn_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    # The mirror image: at Cs ≤ 0 B is the constant 0, or 1 where Cb = 1 (the spec's first case).
+    pole = Cs <= 0.0
+    q = torch.div(1.0 - Cb, torch.where(pole, 1.0, Cs)).clamp_max(1.0)
+    return torch.where(pole, (Cb == 1.0).to(q.dtype), 1.0 - q)
+
+
+def _soft_light_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    # D(Cb): the polynomial on Cb ≤ ¼, √Cb above; √ reads max(Cb, ¼) so its slope stays finite.
+    D = torch.where(Cb <= 0.25, ((16.0 * Cb - 12.0) * Cb + 4.0) * Cb, Cb.clamp_min(0.25).sqrt())
+    s2 = Cs * 2.0
+    return torch.where(Cs <= 0.5, Cb - (1.0 - s2) * Cb * (1.0 - Cb), Cb + (s2 - 1.0) * (D - Cb))
+
+
+def _difference_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return (Cb - Cs).abs()
+
+
+def _exclusion_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return Cb + Cs - 2.0 * Cb * Cs
+
+
+# Non-separable helpers, section 10.3 of the spec. C is (..., 3, h, w); results keep a channel dim of 1.
+def _lum(C: Tensor) -> Tensor:
+    return 0.3 * C[..., 0:1, :, :] + 0.59 * C[..., 1:2, :, :] + 0.11 * C[..., 2:3, :, :]
+
+
+def _clip_color(C: Tensor) -> Tensor:
+    L = _lum(C)
+    n = C.amin(dim=-3, keepdim=True)
+    x = C.amax(dim=-3, keepdim=True)  # the spec takes x before the first correction
+    C = torch.where(n < 0.0, L + (C - L) * L / (L - n).clamp_min(CLIP_COLOR_EPS), C)
+    return torch.where(x > 1.0, L + (C - L) * (1.0 - L) / (x - L).clamp_min(CLIP_COLOR_EPS), C)
+
+
+def _set_lum(C: Tensor, l: Tensor) -> Tensor:  # noqa: E741 (the spec's name)
+    return _clip_color(C + (l - _lum(C)))
+
+
+def _sat(C: Tensor) -> Tensor:
+    return C.amax(dim=-3, keepdim=True) - C.amin(dim=-3, keepdim=True)
+
+
+def _set_sat(C: Tensor, s: Tensor) -> Tensor:
+    # Max → s, min → 0, mid → (Cmid − Cmin)·s/(Cmax − Cmin); a gray (Cmax = Cmin) gives 0·s/1 = 0.
+    lo = C.amin(dim=-3, keepdim=True)
+    d = C.amax(dim=-3, keepdim=True) - lo
+    return (C - lo) * s / torch.where(d > 0.0, d, 1.0)
+
+
+def _rgb(C: Tensor) -> Tensor:
+    return C if C.shape[-3] == 3 else C.expand(*C.shape[:-3], 3, *C.shape[-2:])
+
+
+def _non_separable(f: Callable[[Tensor, Tensor], Tensor]) -> Callable[[Tensor, Tensor], Tensor]:
+    def B(Cb: Tensor, Cs: Tensor) -> Tensor:
+        out = f(_rgb(Cb), _rgb(Cs))
+        return out if Cb.shape[-3] == 3 else out[..., :1, :, :]  # a gray backdrop gives a gray result
+
+    B.__name__ = f.__name__
+    return B
+
+
+@_non_separable
+def _hue_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return _set_lum(_set_sat(Cs, _sat(Cb)), _lum(Cb))
+
+
+@_non_separable
+def _saturation_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return _set_lum(_set_sat(Cb, _sat(Cs)), _lum(Cb))
+
+
+@_non_separable
+def _color_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return _set_lum(Cs, _lum(Cb))
+
+
+@_non_separable
+def _luminosity_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return _set_lum(Cb, _lum(Cs))
+
+
+# B(Cb, Cs) of the modes computed as lerp(Cb, B, α).
+W3C_B: dict[str, Callable[[Tensor, Tensor], Tensor]] = {
+    "overlay": _overlay_B,
+    "darken": _darken_B,
+    "lighten": _lighten_B,
+    "color-dodge": _color_dodge_B,
+    "color-burn": _color_burn_B,
+    "hard-light": _hard_light_B,
+    "soft-light": _soft_light_B,
+    "difference": _difference_B,
+    "exclusion": _exclusion_B,
+    "hue": _hue_B,
+    "saturation": _saturation_B,
+    "color": _color_B,
+    "luminosity": _luminosity_B,
+}
+
+
+def _lerp_kernels(
+    B: Callable[[Tensor, Tensor], Tensor],
+) -> tuple[Callable[[Tensor, Tensor, Alpha], Tensor], Callable[[Tensor, Tensor, Alpha], Tensor]]:
+    """The pure and in-place kernels ``lerp(Cb, B(Cb, Cs), α)`` (``B`` where α is None): same ops, same bits."""
+
+    def kernel(Cb: Tensor, Cs: Tensor, a: Alpha) -> Tensor:
+        b = B(Cb, Cs)
+        if a is None:
+            shape = broadcast_shape(Cb.shape, Cs.shape)
+            return b if tuple(b.shape) == shape else b.expand(shape).clone(memory_format=torch.contiguous_format)
+        return torch.lerp(Cb, b, a)
+
+    def kernel_(out: Tensor, Cs: Tensor, a: Alpha) -> Tensor:
+        b = B(out, Cs)
+        return out.copy_(b) if a is None else out.lerp_(b, a)
+
+    return kernel, kernel_
+
+
+_W3C_KERNELS = {name: _lerp_kernels(B) for name, B in W3C_B.items()}
+
 KERNELS: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
     "normal": _normal,
     "multiply": _multiply,
     "screen": _screen,
     "plus": _plus,
+    **{name: k for name, (k, _) in _W3C_KERNELS.items()},
 }
 KERNELS_INPLACE: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
     "normal": _normal_,
     "multiply": _multiply_,
     "screen": _screen_,
     "plus": _plus_,
+    **{name: k_ for name, (_, k_) in _W3C_KERNELS.items()},
 }
 
 
@@ -263,17 +459,76 @@ def plus_(Cb: Tensor, Cs: Tensor, a: Alpha = None) -> Tensor:
     return _plus_(Cb, Cs, a)
 
 
+def _public(name: str, inplace: bool) -> Callable[[Tensor, Tensor, Alpha], Tensor]:
+    """The checked public function of a W3C mode (``overlay``, ``color_dodge_``, …)."""
+    op = name.replace("-", "_") + ("_" if inplace else "")
+    kernel = (KERNELS_INPLACE if inplace else KERNELS)[name]
+
+    def fn(Cb: Tensor, Cs: Tensor, a: Alpha = None) -> Tensor:
+        _check(op, Cb, Cs, a, inplace=inplace)
+        return kernel(Cb, Cs, a)
+
+    fn.__name__ = fn.__qualname__ = op
+    fn.__doc__ = (
+        f"In-place ``{name}``: ``Cb.lerp_(B(Cb, Cs), α)`` (``Cb.copy_(B)`` if α is None); returns ``Cb``."
+        if inplace
+        else f"{name.capitalize()} (W3C Compositing Level 1): ``lerp(Cb, B(Cb, Cs), α)``, B in the module "
+        "docstring; ``B`` if α is None."
+    )
+    return fn
+
+
+overlay, overlay_ = _public("overlay", False), _public("overlay", True)
+darken, darken_ = _public("darken", False), _public("darken", True)
+lighten, lighten_ = _public("lighten", False), _public("lighten", True)
+color_dodge, color_dodge_ = _public("color-dodge", False), _public("color-dodge", True)
+color_burn, color_burn_ = _public("color-burn", False), _public("color-burn", True)
+hard_light, hard_light_ = _public("hard-light", False), _public("hard-light", True)
+soft_light, soft_light_ = _public("soft-light", False), _public("soft-light", True)
+difference, difference_ = _public("difference", False), _public("difference", True)
+exclusion, exclusion_ = _public("exclusion", False), _public("exclusion", True)
+hue, hue_ = _public("hue", False), _public("hue", True)
+saturation, saturation_ = _public("saturation", False), _public("saturation", True)
+color, color_ = _public("color", False), _public("color", True)
+luminosity, luminosity_ = _public("luminosity", False), _public("luminosity", True)
+
 BLEND_FUNC: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
     "normal": normal,
     "multiply": multiply,
     "screen": screen,
     "plus": plus,
+    "overlay": overlay,
+    "darken": darken,
+    "lighten": lighten,
+    "color-dodge": color_dodge,
+    "color-burn": color_burn,
+    "hard-light": hard_light,
+    "soft-light": soft_light,
+    "difference": difference,
+    "exclusion": exclusion,
+    "hue": hue,
+    "saturation": saturation,
+    "color": color,
+    "luminosity": luminosity,
 }
 BLEND_INPLACE: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
     "normal": normal_,
     "multiply": multiply_,
     "screen": screen_,
     "plus": plus_,
+    "overlay": overlay_,
+    "darken": darken_,
+    "lighten": lighten_,
+    "color-dodge": color_dodge_,
+    "color-burn": color_burn_,
+    "hard-light": hard_light_,
+    "soft-light": soft_light_,
+    "difference": difference_,
+    "exclusion": exclusion_,
+    "hue": hue_,
+    "saturation": saturation_,
+    "color": color_,
+    "luminosity": luminosity_,
 }
 
 
@@ -288,12 +543,19 @@ def clamp_needed(blend: str, lo: float, hi: float) -> tuple[bool, bool]:
 
     ``[lo, hi]`` bounds the source values (the layer's measured min/max, or its declared range for a
     layer that carries gradients); the backdrop is in [0, 1] and α in [0, 1]. See the module docstring
-    for why normal, multiply and screen of in-range values need no clamp. Plus adds ``α·Cs`` to a
-    backdrop that may already be 1, so any positive source can overflow. Unknown bounds (NaN) clamp.
+    for why normal, multiply, screen, darken, lighten and difference of in-range values need no clamp;
+    the other W3C modes always clamp both sides. Plus adds ``α·Cs`` to a backdrop that may already be 1,
+    so any positive source can overflow. Unknown bounds (NaN) clamp.
     """
     check_blend_name(blend)
     if not (lo == lo and hi == hi):  # NaN: nothing is proven
         return True, True
     if blend == "plus":
         return lo < 0.0, hi > 0.0
+    if blend in W3C_B and blend not in _PROVEN_IN_RANGE:
+        return True, True
     return lo < 0.0, hi > 1.0
+
+
+# W3C modes whose rounded B of in-range values is proven to lie in [0, 1] (module docstring).
+_PROVEN_IN_RANGE = frozenset({"darken", "lighten", "difference"})

@@ -15,7 +15,9 @@ Precision: ``dtype`` defaults to the promoted dtype of the live layers' colours 
 layers); float64 is the reference. float16 and bfloat16 are computed in that dtype (inputs cast band
 by band). Their documented error bound, ``half_precision_bound(dtype, live_layers)`` =
 ``HALF_PRECISION_ERROR[dtype] × (1 + live_layers)``, holds for ``clamp="layer"``, ``blend_space="srgb"``
-and multiply factors ≤ 1: every blend is then 1-Lipschitz in the backdrop, so each live layer adds
+multiply factors ≤ 1 and the blends that are 1-Lipschitz in the backdrop (all but overlay,
+soft-light, color-dodge, color-burn and the non-separable four, whose divisions and slopes up to 2
+amplify rounding): every blend is then 1-Lipschitz in the backdrop, so each live layer adds
 at most a few roundings (≈ 8 unit roundoffs, inputs cast included) to the error. Factors above 1
 amplify earlier errors by up to the factor, and the sRGB encode of ``blend_space="linear"`` by up to
 12.92 in the dark toe. Measured maxima grow far slower (like √layers; docs/BENCHMARKS.md).

@@ -1,9 +1,11 @@
-"""Blend-mode names: the four canonical modes of a stack document and the aliases accepted on input.
+"""Blend-mode names: the canonical modes of a stack document and the aliases accepted on input.
 
-The formulas themselves live in the compose tier (W3C Compositing Level 1, opaque backdrop); this
-module only names them. Aliases are the names the Lasagna paper uses ("alpha-linear" colour,
-"multiply-luminosity" shading, "additive" light); a document may use them, but it is always written
-back with the canonical name, so two documents that mean the same thing read the same.
+The canonical names are CSS ``mix-blend-mode``'s: every mode of W3C Compositing and Blending Level 1
+(the twelve separable and four non-separable ones) plus Porter–Duff ``plus``. The formulas themselves
+live in the compose tier (opaque backdrop); this module only names them. Aliases are the names the
+Lasagna paper uses ("alpha-linear" colour, "multiply-luminosity" shading, "additive" light); a
+document may use them, but it is always written back with the canonical name, so two documents that
+mean the same thing read the same.
 """
 
 from __future__ import annotations
@@ -13,7 +15,47 @@ from typing import Literal, get_args
 
 from lasagna.errors import DocumentError
 
-BlendMode = Literal["normal", "multiply", "plus", "screen"]
+BlendMode = Literal[
+    # the four modes of the first release (their order is kept: it is the JSON Schema's enum order)
+    "normal",
+    "multiply",
+    "plus",
+    "screen",
+    # W3C Compositing Level 1, separable
+    "overlay",
+    "darken",
+    "lighten",
+    "color-dodge",
+    "color-burn",
+    "hard-light",
+    "soft-light",
+    "difference",
+    "exclusion",
+    # W3C Compositing Level 1, non-separable (Lum / Sat of the spec's section 10.3)
+    "hue",
+    "saturation",
+    "color",
+    "luminosity",
+]
+
+# The separable modes: B(Cb, Cs) acts on each channel on its own (a 1-channel source broadcasts).
+SEPARABLE_BLENDS: frozenset[str] = frozenset(
+    {
+        "normal",
+        "multiply",
+        "plus",
+        "screen",
+        "overlay",
+        "darken",
+        "lighten",
+        "color-dodge",
+        "color-burn",
+        "hard-light",
+        "soft-light",
+        "difference",
+        "exclusion",
+    }
+)
 
 BLEND_MODES: tuple[str, ...] = get_args(BlendMode)
 
@@ -24,7 +66,7 @@ BLEND_ALIASES: dict[str, str] = {
 }
 
 # Blends whose stored values may be range-mapped away from [0, 1]: a multiply factor above 1
-# brightens, a negative plus darkens. For normal and screen a value outside [0, 1] is not a colour.
+# brightens, a negative plus darkens. For every other mode a value outside [0, 1] is not a colour.
 RANGED_BLENDS: frozenset[str] = frozenset({"multiply", "plus"})
 
 # Every name a document may contain, canonical names first (used by the JSON Schema's enum).

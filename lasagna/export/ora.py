@@ -4,11 +4,12 @@ The file (OpenRaster spec, https://www.openraster.org/baseline/file-layout-spec.
 *first* entry is ``mimetype``, stored uncompressed, reading exactly ``image/openraster``; then
 ``stack.xml`` (``<image w h><stack>`` with layers **topmost first**, each ``<layer name src x y
 opacity visibility composite-op>``), ``data/*.png`` (8-bit RGBA, what every reader supports),
-``mergedimage.png`` (our exact composite) and ``Thumbnails/thumbnail.png`` (at most 256×256).
-Blends map to ``svg:src-over``, ``svg:multiply``, ``svg:plus`` and ``svg:screen``; values a
-reader cannot blend directly are expressed as in :mod:`lasagna.export.rasters` (multiplier y > 1 as
-a multiply + ``svg:color-dodge`` pair). A bottom background layer makes the file flatten to our
-opaque composite. Alpha × mask is baked into each PNG's alpha, opacity into ``opacity``.
+``mergedimage.png`` (our exact composite) and ``Thumbnails/thumbnail.png`` (at most 256×256). Blends
+map to ``svg:src-over`` (normal), ``svg:plus``, and ``svg:<name>`` for every W3C mode
+(``svg:multiply``, ``svg:overlay``, …, ``svg:luminosity``); values a reader cannot blend directly
+are expressed as in :mod:`lasagna.export.rasters` (multiplier y > 1 as a multiply +
+``svg:color-dodge`` pair). A bottom background layer makes the file flatten to our opaque composite.
+Alpha × mask is baked into each PNG's alpha, opacity into ``opacity``.
 
 Import is the inverse for flat stacks and refuses what it cannot read safely: entry names that are
 absolute or contain ``..`` (zip-slip), archives whose declared or actual uncompressed size exceeds
@@ -34,6 +35,7 @@ import numpy as np
 from PIL import Image
 
 from lasagna.atomic import atomic_write_bytes
+from lasagna.document.blend import BLEND_MODES
 from lasagna.errors import ExportError, ImageError
 from lasagna.io.png import (
     DEFAULT_MAX_PIXELS,
@@ -55,14 +57,11 @@ MIMETYPE = b"image/openraster"
 THUMBNAIL_MAX = 256
 _EPOCH = (1980, 1, 1, 0, 0, 0)  # fixed entry dates: the same stack gives the same bytes
 
-OPS_TO_SVG = {
-    "normal": "svg:src-over",
-    "multiply": "svg:multiply",
-    "plus": "svg:plus",
-    "screen": "svg:screen",
-    "color-dodge": "svg:color-dodge",
-}
-SVG_TO_BLEND = {"svg:src-over": "normal", "svg:multiply": "multiply", "svg:plus": "plus", "svg:screen": "screen"}
+# OpenRaster's composite-op for every blend: svg:src-over for normal, else "svg:" + the CSS name (the
+# OpenRaster spec names the W3C modes and svg:plus exactly so).
+OPS_TO_SVG = {mode: "svg:src-over" if mode == "normal" else f"svg:{mode}" for mode in BLEND_MODES}
+SVG_TO_BLEND = {svg: mode for mode, svg in OPS_TO_SVG.items()}
+DODGE_PREFIX = "data/_dodge/"  # the src of the colour-dodge half of a multiplier above 1 (rasters.py's key)
 
 # An archive whose entries inflate to more than this is refused (zip bombs); 4 GiB holds 2^28
 # RGBA pixels, the per-image limit, with room to spare.
@@ -232,7 +231,7 @@ def read_ora(
     any is decoded, and each entry is read only up to what a PNG of its header can hold.
 
     Each layer is a dict with ``name``, ``src``, ``x``, ``y``, ``opacity``, ``visible``,
-    ``blend`` (ours, or ``"color-dodge"``) and ``image`` (a decoded :class:`PngImage`).
+    ``blend`` (ours) and ``image`` (a decoded :class:`PngImage`).
     """
     where = str(path)
     try:
@@ -310,10 +309,9 @@ def read_ora(
             if el.tag != "layer":
                 raise ImageError(f"<{el.tag}> element is not supported; expected <layer>", where=lwhere)
             op = el.get("composite-op", "svg:src-over")
-            if op not in SVG_TO_BLEND and op != "svg:color-dodge":
+            if op not in SVG_TO_BLEND:
                 raise ImageError(
-                    f"composite-op {op!r} is not supported; expected one of "
-                    f"{', '.join(SVG_TO_BLEND)} (or svg:color-dodge directly above an svg:multiply layer)",
+                    f"composite-op {op!r} is not supported; expected one of {', '.join(SVG_TO_BLEND)}",
                     where=lwhere,
                 )
             src = el.get("src")
@@ -354,7 +352,7 @@ def read_ora(
                     y=_int_attr(el, "y", lwhere),
                     opacity=opacity,
                     visible=visibility == "visible",
-                    blend=SVG_TO_BLEND.get(op, "color-dodge"),
+                    blend=SVG_TO_BLEND[op],
                     header=header,
                     where=lwhere,
                 )
@@ -397,11 +395,13 @@ def import_ora(
 ):
     """Read an OpenRaster file as a :class:`~lasagna.io.stack.Stack` (saved to ``out_folder`` if given).
 
-    Ids come from the layers' PNG names. A ``svg:color-dodge`` layer directly above an ``svg:multiply``
-    layer of the same geometry, opacity and alpha (what :func:`export_ora` writes for a multiplier
-    above 1) becomes one multiply layer y = m/(1 − d) with range [0, ⌈max y⌉]; any other colour-dodge
-    layer is refused. The background layer :func:`export_ora` adds becomes the canvas background, and
-    its "Composite (exact)" top layer, if any, is dropped (the stack is re-composed from its layers).
+    Ids come from the layers' PNG names. Every ``svg:*`` composite-op of :data:`SVG_TO_BLEND` is
+    read as that blend. The colour-dodge half of a multiplier above 1 (what :func:`export_ora`
+    writes: src ``data/_dodge/…``, directly above an ``svg:multiply`` layer of the same geometry,
+    opacity and alpha) is merged back into one multiply layer y = m/(1 − d) with range [0, ⌈max y⌉];
+    any other ``svg:color-dodge`` layer is a colour-dodge layer. The background layer
+    :func:`export_ora` adds becomes the canvas background, and its "Composite (exact)" top layer, if
+    any, is dropped (the stack is re-composed from its layers).
     """
     width, height, layers = read_ora(path, max_pixels=max_pixels, max_uncompressed=max_uncompressed)
     background = (0.0, 0.0, 0.0)
@@ -421,16 +421,16 @@ def import_ora(
         ):
             background = tuple(float(v) for v in c[:, 0, 0])
             layers = layers[1:]
-    # Merge multiply + colour-dodge pairs; refuse lone colour-dodge layers.
+    # Merge the multiply + colour-dodge pairs export_ora writes for multipliers above 1.
     merged: list[dict] = []
     for layer in layers:
-        if layer["blend"] == "color-dodge":
+        if layer["blend"] == "color-dodge" and layer["src"].startswith(DODGE_PREFIX):
             below = merged[-1] if merged else None
             if below is None or below["blend"] != "multiply" or below.get("dodged") or not _same_geometry(below, layer):
                 raise ImageError(
-                    "svg:color-dodge is supported only directly above an svg:multiply layer of the same "
-                    "position, size, opacity and alpha (a multiplier above 1); expected one of "
-                    + ", ".join(SVG_TO_BLEND),
+                    f"colour-dodge helper {layer['src']!r} is not directly above an svg:multiply layer of the "
+                    "same position, size, opacity and alpha; expected the pair export_ora writes for a "
+                    "multiplier above 1 (rename the PNG to import it as a colour-dodge layer)",
                     where=layer["where"],
                 )
             m, d = below["image"].color, layer["image"].color

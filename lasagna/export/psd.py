@@ -2,12 +2,13 @@
 
 Each layer of :func:`lasagna.export.rasters.export_layers` becomes an 8-bit RGBA pixel layer made
 with ``create_pixel_layer(..., blend_mode=...)`` (``PixelLayer.frompil`` ignores blend mode and
-opacity, so it is not used): normal → NORMAL, multiply → MULTIPLY, plus → LINEAR_DODGE (Photoshop's
-"Linear Dodge (Add)"), screen → SCREEN, and the colour-dodge half of a multiplier above 1 →
-COLOR_DODGE. Opacity is stored as round(255·opacity); hidden layers are hidden. After each plus layer
-and each dodge pair comes an opaque white DARKEN layer, min(Cb, 1): the identity in 8/16-bit tools,
-and the clamp GIMP 2.10's float compositing otherwise skips (it keeps Cb·y > 1 for the next layer).
-The file's merged image is our exact composite, not psd-tools' own flattening.
+opacity, so it is not used): plus → LINEAR_DODGE (Photoshop's "Linear Dodge (Add)") and every other
+mode to its psd-tools name (normal → NORMAL, color-dodge → COLOR_DODGE, …, luminosity → LUMINOSITY;
+``psd_blend_modes``), the colour-dodge half of a multiplier above 1 included. Opacity is stored as
+round(255·opacity); hidden layers are hidden. After each plus layer and each dodge pair comes an
+opaque white DARKEN layer, min(Cb, 1): the identity in 8/16-bit tools, and the clamp GIMP 2.10's
+float compositing otherwise skips (it keeps Cb·y > 1 for the next layer). The file's merged image is
+our exact composite, not psd-tools' own flattening.
 
 Layer names: the layer record's Pascal string is MacRoman and at most 255 bytes, so, as Photoshop does,
 it holds a lossy stand-in (``pascal_name``) and the full name goes in the Unicode layer-name block
@@ -25,6 +26,7 @@ import torch
 from PIL import Image
 
 from lasagna.atomic import atomic_write_bytes
+from lasagna.document.blend import BLEND_MODES
 from lasagna.errors import ExportError
 from lasagna.export.ora import composite_uint8
 from lasagna.export.rasters import export_layers
@@ -79,16 +81,16 @@ def _create_layer(psd, image, name: str, **kwargs):
     return layer
 
 
+def psd_blend_modes(BlendMode) -> dict[str, object]:
+    """psd-tools' ``BlendMode`` of every blend: plus is Photoshop's LINEAR_DODGE ("Linear Dodge (Add)"),
+    every W3C mode its own name in upper case (``color-dodge`` → ``COLOR_DODGE``)."""
+    return {m: BlendMode.LINEAR_DODGE if m == "plus" else BlendMode[m.upper().replace("-", "_")] for m in BLEND_MODES}
+
+
 def encode_psd(stack, *, composite: torch.Tensor | None = None, warn: Callable[[str], None] | None = None) -> bytes:
     """The layered 8-bit RGB PSD of ``stack`` as bytes (``composite``: the merged image, rendered if None)."""
     PSDImage, BlendMode = require_psd_tools()
-    modes = {
-        "normal": BlendMode.NORMAL,
-        "multiply": BlendMode.MULTIPLY,
-        "plus": BlendMode.LINEAR_DODGE,
-        "screen": BlendMode.SCREEN,
-        "color-dodge": BlendMode.COLOR_DODGE,
-    }
+    modes = psd_blend_modes(BlendMode)
     if composite is None:
         from lasagna.io.render import render_stack
 

@@ -322,13 +322,14 @@ def test_hostile_ora(tmp_path, capsys, case):
     elif case == "nested-stack":
         entries["stack.xml"] = _xml('<stack><layer name="a" src="data/a.png"/></stack>')
     elif case == "unknown-op":
-        entries["stack.xml"] = _xml(layer.format(op="svg:hard-light"))
+        entries["stack.xml"] = _xml(layer.format(op="svg:vivid-light"))
     elif case == "bomb-layer":
         entries["data/a.png"] = pngcraft.header_bomb()
     elif case == "dtd":
         entries["stack.xml"] = b'<?xml version="1.0"?><!DOCTYPE a [<!ENTITY x "y">]><image w="4" h="3"><stack/></image>'
-    elif case == "lone-dodge":
-        entries["stack.xml"] = _xml(layer.format(op="svg:color-dodge"))
+    elif case == "lone-dodge":  # the helper half of a multiplier above 1, with no multiply below it
+        entries["data/_dodge/a.png"] = entries.pop("data/a.png")
+        entries["stack.xml"] = _xml('<layer name="a" src="data/_dodge/a.png" composite-op="svg:color-dodge"/>')
     elif case == "missing-src":
         entries["stack.xml"] = _xml('<layer name="a" src="data/zzz.png"/>')
     path = tmp_path / "in.ora"

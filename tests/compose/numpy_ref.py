@@ -8,6 +8,8 @@ asked. W3C Compositing Level 1 for an opaque backdrop Cb, source Cs, α = alpha 
     multiply  Cb + α(Cb·Cs − Cb)
     screen    Cb + α(Cs − Cb·Cs)
     plus      Cb + α·Cs
+    others    Cb + α(B(Cb, Cs) − Cb), B of W3C section 10 (``W3C_B`` below, written from the spec's
+              pseudo-code: branches with ``if``-like selects, SetSat by sorting the channels)
 """
 
 from __future__ import annotations
@@ -15,11 +17,102 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+
+def _hard_light(cb, cs):
+    return np.where(cs <= 0.5, cb * 2 * cs, cb + (2 * cs - 1) - cb * (2 * cs - 1))
+
+
+def _color_dodge(cb, cs):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = np.minimum(1.0, cb / (1.0 - cs))
+    return np.where(cb == 0, 0.0, np.where(cs >= 1, 1.0, q))
+
+
+def _color_burn(cb, cs):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = 1.0 - np.minimum(1.0, (1.0 - cb) / cs)
+    return np.where(cb == 1, 1.0, np.where(cs <= 0, 0.0, q))
+
+
+def _soft_light(cb, cs):
+    with np.errstate(invalid="ignore"):
+        d = np.where(cb <= 0.25, ((16 * cb - 12) * cb + 4) * cb, np.sqrt(cb))
+    return np.where(cs <= 0.5, cb - (1 - 2 * cs) * cb * (1 - cb), cb + (2 * cs - 1) * (d - cb))
+
+
+# Non-separable (W3C section 10.3); colours are (..., 3, h, w), channel axis -3.
+def lum(c):
+    return 0.3 * c[..., 0:1, :, :] + 0.59 * c[..., 1:2, :, :] + 0.11 * c[..., 2:3, :, :]
+
+
+def clip_color(c):
+    L, n, x = lum(c), c.min(axis=-3, keepdims=True), c.max(axis=-3, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.where(n < 0, L + (c - L) * L / (L - n), c)
+        return np.where(x > 1, L + (c - L) * (1 - L) / (x - L), c)
+
+
+def set_lum(c, l):  # noqa: E741
+    return clip_color(c + (l - lum(c)))
+
+
+def sat(c):
+    return c.max(axis=-3, keepdims=True) - c.min(axis=-3, keepdims=True)
+
+
+def set_sat(c, s):
+    """The spec's sorted form: Cmax = s, Cmid scaled, Cmin = 0 (or all 0 when Cmax = Cmin)."""
+    order = np.argsort(c, axis=-3, kind="stable")
+    srt = np.take_along_axis(c, order, axis=-3)
+    cmin, cmid, cmax = srt[..., 0:1, :, :], srt[..., 1:2, :, :], srt[..., 2:3, :, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mid = np.where(cmax > cmin, (cmid - cmin) * s / (cmax - cmin), 0.0)
+    new = np.concatenate([np.zeros_like(mid), mid, np.where(cmax > cmin, s, 0.0) + 0 * mid], axis=-3)
+    out = np.empty_like(new)
+    np.put_along_axis(out, order, new, axis=-3)
+    return out
+
+
+W3C_B = {
+    "normal": lambda cb, cs: cs,
+    "multiply": lambda cb, cs: cb * cs,
+    "screen": lambda cb, cs: cb + cs - cb * cs,
+    "overlay": lambda cb, cs: _hard_light(cs, cb),
+    "darken": np.minimum,
+    "lighten": np.maximum,
+    "color-dodge": _color_dodge,
+    "color-burn": _color_burn,
+    "hard-light": _hard_light,
+    "soft-light": _soft_light,
+    "difference": lambda cb, cs: np.abs(cb - cs),
+    "exclusion": lambda cb, cs: cb + cs - 2 * cb * cs,
+    "hue": lambda cb, cs: set_lum(set_sat(cs, sat(cb)), lum(cb)),
+    "saturation": lambda cb, cs: set_lum(set_sat(cb, sat(cs)), lum(cb)),
+    "color": lambda cb, cs: set_lum(cs, lum(cb)),
+    "luminosity": lambda cb, cs: set_lum(cb, lum(cs)),
+}
+NON_SEPARABLE = ("hue", "saturation", "color", "luminosity")
+
+
+def _w3c(name):
+    def formula(cb, cs, a):
+        cb3, cs3 = (np.broadcast_to(x, (*x.shape[:-3], 3, *x.shape[-2:])) for x in (cb, cs))
+        if name in NON_SEPARABLE:
+            b = W3C_B[name](*np.broadcast_arrays(cb3, cs3))
+            b = b if cb.shape[-3] == 3 else b[..., :1, :, :]
+        else:
+            b = W3C_B[name](cb, cs)
+        return cb + a * (b - cb)
+
+    return formula
+
+
 FORMULAS = {
     "normal": lambda cb, cs, a: cb + a * (cs - cb),
     "multiply": lambda cb, cs, a: cb + a * (cb * cs - cb),
     "screen": lambda cb, cs, a: cb + a * (cs - cb * cs),
     "plus": lambda cb, cs, a: cb + a * cs,
+    **{name: _w3c(name) for name in W3C_B if name not in ("normal", "multiply", "screen")},
 }
 
 

@@ -28,11 +28,17 @@ RANGES = {
     "multiply": [(0.0, 1.0), (0.0, 2.0)],
     "plus": [(0.0, 1.0), (-1.0, 1.0)],
 }
+RANGES.update({b: [(0.0, 1.0)] for b in BLEND_MODES if b not in RANGES})  # the other W3C modes: colours
+# Precision properties (float32 and half vs float64, the half-precision bound) use the modes that are
+# 1-Lipschitz in the backdrop, as that bound assumes (render.py), and do not amplify the rounding of
+# their source: overlay and soft-light have slope up to 2 in Cb; color-dodge and color-burn divide by
+# 1 − Cs and Cs (a gain up to 1/ulp near the pole), ClipColor by L − min and max − L.
+ROUNDING_STABLE = ("normal", "multiply", "plus", "screen", "darken", "lighten", "hard-light", "difference", "exclusion")
 
 
 @st.composite
-def layer_recipe(draw, factors_above_one: bool = True):
-    blend = draw(st.sampled_from(BLEND_MODES))
+def layer_recipe(draw, factors_above_one: bool = True, blends: tuple[str, ...] = BLEND_MODES):
+    blend = draw(st.sampled_from(blends))
     ranges = RANGES[blend] if factors_above_one or blend != "multiply" else [(0.0, 1.0)]
     return dict(
         blend=blend,
@@ -50,8 +56,8 @@ def layer_recipe(draw, factors_above_one: bool = True):
     )
 
 
-def stacks(max_small: int = 8, factors_above_one: bool = True):
-    recipe = layer_recipe(factors_above_one)
+def stacks(max_small: int = 8, factors_above_one: bool = True, blends: tuple[str, ...] = BLEND_MODES):
+    recipe = layer_recipe(factors_above_one, blends)
     return st.tuples(
         st.one_of(st.lists(recipe, max_size=max_small), st.lists(recipe, min_size=200, max_size=256)),
         st.integers(1, 8),
@@ -131,7 +137,7 @@ def test_culling_never_changes_the_result(stack, clamp):
 
 
 @settings(max_examples=25, **SETTINGS)
-@given(stacks(), st.sampled_from(["srgb", "linear"]))
+@given(stacks(blends=ROUNDING_STABLE), st.sampled_from(["srgb", "linear"]))
 def test_float32_agrees_with_float64(stack, blend_space):
     recipes, h, w, seed, bg = stack
     plan = compile_plan(build(recipes, seed), (h, w), bg, blend_space)
@@ -140,7 +146,7 @@ def test_float32_agrees_with_float64(stack, blend_space):
 
 
 @settings(max_examples=25, **SETTINGS)
-@given(stacks(factors_above_one=False))
+@given(stacks(factors_above_one=False, blends=ROUNDING_STABLE))
 def test_half_precision_within_documented_bound(stack):
     recipes, h, w, seed, bg = stack
     plan = compile_plan(build(recipes, seed), (h, w), bg)

@@ -336,3 +336,47 @@ def test_import_is_refused_over_the_budget_before_decoding(tmp_path, monkeypatch
     with memory_budget_scope(100_000), pytest.raises(BudgetError) as info:
         import_ora(path)
     assert "decoding the 7 layers needs" in str(info.value) and "over the memory budget of 97.7 KB" in str(info.value)
+
+
+def _every_mode_stack(folder: Path) -> Stack:
+    from lasagna.document.blend import BLEND_MODES
+
+    g = torch.Generator().manual_seed(3)
+    stack = Stack.from_image(torch.rand(3, 8, 8 * len(BLEND_MODES), generator=g), id="base")
+    for i, mode in enumerate(BLEND_MODES):
+        stack.add_layer(f"m-{mode}", torch.rand(4, 8, 8, generator=g), blend=mode, offset=(8 * i, 0))
+    stack.save(folder)
+    return load_stack(folder)
+
+
+def test_every_mode_is_an_svg_composite_op_and_imports_back(tmp_path):
+    from lasagna.document.blend import BLEND_MODES
+
+    stack = _every_mode_stack(tmp_path / "s")
+    path = _ora(tmp_path, stack)
+    with zipfile.ZipFile(path) as zf:
+        ops = {el.get("name"): el.get("composite-op") for el in ET.fromstring(zf.read("stack.xml")).find("stack")}
+    for mode in BLEND_MODES:
+        assert ops[f"m-{mode}"] == ("svg:src-over" if mode == "normal" else f"svg:{mode}")
+    back = import_ora(path, tmp_path / "back")
+    assert [layer.blend for layer in back.document.layers] == ["normal", *BLEND_MODES]  # a lone dodge included
+    ours = to_uint8(composite_reference(tmp_path / "s")).astype(int)
+    again = to_uint8(composite_reference(tmp_path / "back")).astype(int)
+    assert np.abs(ours - again).max() <= 1
+
+
+def test_an_unknown_composite_op_lists_the_supported_ones(tmp_path):
+    stack = _every_mode_stack(tmp_path / "s")
+    path = _ora(tmp_path, stack)
+    with zipfile.ZipFile(path) as zf:
+        entries = {n: zf.read(n) for n in zf.namelist()}
+    entries["stack.xml"] = entries["stack.xml"].replace(b"svg:hue", b"svg:vivid-light")
+    bad = tmp_path / "bad.ora"
+    with zipfile.ZipFile(bad, "w") as zf:
+        zf.writestr(zipfile.ZipInfo("mimetype"), entries.pop("mimetype"))
+        for n, data in entries.items():
+            zf.writestr(n, data)
+    with pytest.raises(
+        ImageError, match="composite-op 'svg:vivid-light' is not supported; expected one of svg:src-over"
+    ):
+        import_ora(bad)

@@ -120,3 +120,19 @@ def test_japanese_names_from_an_ora_reach_the_psd(tmp_path):
     back = import_ora(export_ora(stack, tmp_path / "k.ora"))
     psd = PSDImage.open(export_psd(back, tmp_path / "k.psd"))
     assert "影の層" in [layer.name for layer in psd]
+
+
+def test_every_mode_has_its_psd_blend_mode(tmp_path):
+    from psd_tools.constants import BlendMode
+
+    from lasagna.document.blend import BLEND_MODES
+    from lasagna.export.psd import psd_blend_modes
+    from tests.export.test_ora import _every_mode_stack
+
+    stack = _every_mode_stack(tmp_path / "s")
+    psd = PSDImage.open(export_psd(stack, tmp_path / "x.psd"))
+    got = {layer.name: layer.blend_mode for layer in psd}
+    expect = {m: BlendMode.LINEAR_DODGE if m == "plus" else BlendMode[m.upper().replace("-", "_")] for m in BLEND_MODES}
+    assert psd_blend_modes(BlendMode) == expect
+    for mode in BLEND_MODES:
+        assert got[f"m-{mode}"] == expect[mode]
