@@ -246,6 +246,8 @@ class _Dup:
 
 
 def _undup(value: Any) -> Any:
+    if isinstance(value, _Dup):  # a duplicated key's value that a later mutation moved out of its object
+        return _undup(value.first)
     if isinstance(value, dict):
         pairs = Pairs()
         for k, v in value.items():
@@ -509,8 +511,8 @@ def ora_files(draw, bases: list[dict[str, bytes]]) -> bytes:
             entries[draw(st.sampled_from(names))] = draw(png_files())
         elif kind == "repeat":
             match = xml.find("<layer ")
-            if match >= 0:
-                end = xml.index("/>", match) + 2
+            end = xml.find("/>", match) + 2 if match >= 0 else 1
+            if match >= 0 and end > 1:  # an earlier mutation may have cut the element
                 entries["stack.xml"] = (xml[:end] + xml[match:end] * draw(st.integers(1, 40)) + xml[end:]).encode()
         elif kind == "mimetype":
             entries["mimetype"] = draw(st.sampled_from([b"", b"image/png", b"image/openraster" * 10]))
