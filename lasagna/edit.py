@@ -202,9 +202,10 @@ def edit(
     ``image``: an image file, a stack folder, a ``Stack``, or a tensor/array/PIL image. ``on``: the
     layer it is conditioned on (default: the top layer). ``generator``: what makes the layer —
     ``"amortised"`` (the preset's trained network) or ``"free"`` (a free per-pixel layer optimised for this
-    image: the ``"per-image"`` method, accepted by that name too); default amortised if the preset has a
-    generator (``lasagna.learned.Method``). ``optimize``: per-image
-    steps — after the amortised pass (default 0), or of the free layer (default the preset's); the layer's
+    image: the ``"per-image"`` method, accepted by that name too); default the preset's ``method``, else
+    amortised if the preset has a generator (``lasagna.learned.choose_method``). ``optimize``: per-image
+    steps — after the amortised pass (default the preset's ``refine_steps``), or of the free layer (default
+    its ``distill.steps``); the layer's
     settings record it under the same name. ``steps`` is its old second name, deprecated (a
     ``DeprecationWarning``; give ``optimize``). ``loss``, ``guidance``, ``seed``, ``lr`` override the
     preset's ``distill`` defaults.

@@ -18,7 +18,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=None,
         metavar="N",
-        help="per-image steps for a preset without an amortised generator (default: the preset's)",
+        help="per-image steps for a preset whose default is a per-image layer (default: the preset's)",
     )
 
 

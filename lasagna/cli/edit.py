@@ -60,7 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--generator",
         choices=("amortised", "free"),  # the methods of lasagna.learned, "per-image" spelled as its alias "free"
         help="amortised: the preset's trained generator, one forward pass; free: a per-pixel layer "
-        "optimised for this image (default: amortised when the preset has one)",
+        "optimised for this image (default: the preset's method; shading: free)",
     )
     p.add_argument(
         "--optimize",
