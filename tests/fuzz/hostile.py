@@ -479,9 +479,10 @@ def ora_files(draw, bases: list[dict[str, bytes]]) -> bytes:
             attr = draw(st.sampled_from(_ORA_ATTRS))
             value = draw(st.one_of(st.sampled_from(_ORA_VALUES), st.text(max_size=6).map(lambda s: s.replace('"', ""))))
             marker = f' {attr}="'
-            if marker in xml:
-                start = xml.index(marker) + len(marker)
-                xml = xml[:start] + value + xml[xml.index('"', start) :]
+            start = xml.find(marker) + len(marker) if marker in xml else -1
+            close = xml.find('"', start) if start >= 0 else -1
+            if close >= 0:  # an earlier mutation may have cut the attribute
+                xml = xml[:start] + value + xml[close:]
             entries["stack.xml"] = xml.encode()
         elif kind == "xml":
             how = draw(st.sampled_from(["cut", "dtd", "utf16", "latin1", "nest"]))
