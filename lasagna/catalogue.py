@@ -276,6 +276,13 @@ def resolve(
 ) -> Resolved:
     """The preset ``preset`` and the paths of its parts. A missing prior is an error listing the priors
     found (unless ``need_prior`` is False: then ``prior`` is the unresolved reference as a Path)."""
+    if not isinstance(preset, (str, os.PathLike)):
+        # A Preset object has no folder to resolve its relative prior, corrective and generator against.
+        raise LasagnaError(
+            f"got {type(preset).__name__}; expected a catalogue name or the path of a preset.json "
+            "(write a Preset with preset.to_json() into <folder>/<name>/preset.json)",
+            "preset",
+        )
     file = preset_path(preset, stack_dir, catalogue_dirs)
     p = _load_preset_file(file)
     try:

@@ -269,3 +269,22 @@ def test_preset_status(tmp_path, tiny):
     _preset_copy(other, distill={**lmc, "loss": "sds", "guidance": 1.0})  # SDS does not
     assert cat.preset_status("shading", catalogue_dirs=[other])["usable"]
     assert cat.preset_status("nope", catalogue_dirs=[other])["usable"] is False
+
+
+@pytest.mark.parametrize("preset", [None, 3, ["shading"]])
+def test_a_preset_that_is_not_a_name_or_path_is_one_line(preset):
+    with pytest.raises(LasagnaError, match=r"^preset: got \w+; expected a catalogue name or the path of a preset"):
+        cat.resolve(preset)
+
+
+def test_a_preset_object_is_refused_with_how_to_use_it(tmp_path):
+    """api.edit(preset=Preset) raised a raw TypeError; it is one line saying what to pass instead, and the
+    way it names works."""
+    from lasagna.document.preset import load_preset
+
+    p = load_preset(ROOT / "layers" / "shading")
+    with pytest.raises(LasagnaError, match="got Preset; expected a catalogue name"):
+        cat.resolve(p)
+    (tmp_path / "shading").mkdir()
+    (tmp_path / "shading" / "preset.json").write_text(p.to_json(), encoding="utf-8")
+    assert cat.resolve(tmp_path / "shading" / "preset.json", need_prior=False).preset == p
