@@ -17,12 +17,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     max_pixels_argument(p)
 
 
-def _reserve(doc) -> int:
-    from lasagna.io.survey import composite_bytes
-
-    return composite_bytes(doc.canvas.width, doc.canvas.height)
-
-
 def run(args: argparse.Namespace) -> int:
     from lasagna.document import stack_file
     from lasagna.io.folder import check_writable
@@ -30,13 +24,13 @@ def run(args: argparse.Namespace) -> int:
 
     out = Path(args.output) if args.output else stack_file(args.stack).parent / "composite.png"
     check_writable(out)
-    survey_stack(args.stack, max_pixels=args.max_pixels, reserve=_reserve)  # a refusal needs no torch
+    survey = survey_stack(args.stack, max_pixels=args.max_pixels, composite=True)  # a refusal needs no torch
 
     from lasagna.io.folder import check_not_input
     from lasagna.io.render import render_stack, write_composite
-    from lasagna.io.stack import load_stack
+    from lasagna.io.stack import load_surveyed
 
-    stack = load_stack(args.stack, max_pixels=args.max_pixels, reserve=_reserve)
+    stack = load_surveyed(survey)
     check_not_input([out], stack)
     result = render_stack(stack)
     write_composite(result, out)

@@ -113,6 +113,22 @@ def _optimize(args: argparse.Namespace) -> int | None:
     return args.optimize if args.optimize is not None else args.steps  # --steps: --optimize's other name
 
 
+def _edit_options(args: argparse.Namespace) -> dict:
+    """The keywords ``edit`` and ``edit_many`` share, from the arguments."""
+    return dict(
+        on=args.on,
+        id=args.id,
+        generator=args.generator,
+        optimize=_optimize(args),
+        loss=args.loss,
+        guidance=args.guidance,
+        seed=args.seed,
+        lr=args.lr,
+        max_pixels=args.max_pixels,
+        device=args.device,
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     if many_inputs(args.image):
         return run_many(args)
@@ -125,7 +141,7 @@ def run_many(args: argparse.Namespace) -> int:
     from lasagna.batch import edit_many
     from lasagna.training.loop import init_distributed, shutdown_distributed
 
-    optimize = _optimize(args)
+    options = _edit_options(args)  # refused before the process group is joined
     info = init_distributed(args.device)  # nothing without torchrun's WORLD_SIZE > 1; gloo on CPU
     try:
         report = edit_many(
@@ -137,17 +153,8 @@ def run_many(args: argparse.Namespace) -> int:
             force=args.force,
             ora=not args.no_ora,
             progress=progress(),
-            on=args.on,
-            id=args.id,
-            generator=args.generator,
-            optimize=optimize,
-            loss=args.loss,
-            guidance=args.guidance,
-            seed=args.seed,
-            lr=args.lr,
-            max_pixels=args.max_pixels,
-            device=args.device,
             warn=warn,
+            **options,
         )
     finally:
         shutdown_distributed(info)
@@ -176,23 +183,7 @@ def run_one(args: argparse.Namespace) -> int:
 
     if Path(args.image).resolve() == out.resolve() and not args.force:
         raise PathError("is the input stack; expected another folder (or --force to replace it)", str(out))
-    optimize = _optimize(args)
-    result = edit(
-        args.image,
-        args.layer,
-        args.condition,
-        on=args.on,
-        id=args.id,
-        generator=args.generator,
-        optimize=optimize,
-        loss=args.loss,
-        guidance=args.guidance,
-        seed=args.seed,
-        lr=args.lr,
-        max_pixels=args.max_pixels,
-        device=args.device,
-        progress=progress(),
-    )
+    result = edit(args.image, args.layer, args.condition, progress=progress(), **_edit_options(args))
     result.save(out, force=args.force, ora=not args.no_ora, warn=warn)
     s = result.settings
     how = (

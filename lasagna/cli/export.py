@@ -23,8 +23,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from lasagna.atomic import atomic_write_all
     from lasagna.io.folder import check_not_input, check_writable
-    from lasagna.io.png import decode_bytes
-    from lasagna.io.survey import composite_bytes, survey_stack
+    from lasagna.io.survey import survey_stack
 
     if not (args.ora or args.psd or args.layers):
         raise LasagnaError("nothing to export; expected at least one of --ora, --psd, --layers", where="export")
@@ -39,16 +38,13 @@ def run(args: argparse.Namespace) -> int:
         require_psd_tools()  # fail before any work if psd-tools is missing
     # Decoded layers, the canvas, and the encoders' copies of the layers (about one more set): refused
     # here, before torch is loaded, when that is over the memory budget.
-    survey = survey_stack(args.stack, max_pixels=args.max_pixels, reserve=lambda doc: 0)
-    kept = sum(decode_bytes(r.header)[0] for r in survey.rasters)
-    reserve = lambda doc: composite_bytes(doc.canvas.width, doc.canvas.height) + kept  # noqa: E731
-    survey_stack(args.stack, max_pixels=args.max_pixels, reserve=reserve)
+    survey = survey_stack(args.stack, max_pixels=args.max_pixels, composite=True, copies=1)
 
     from lasagna.export.png import layer_pngs
     from lasagna.io.render import render_stack
-    from lasagna.io.stack import load_stack
+    from lasagna.io.stack import load_surveyed
 
-    stack = load_stack(args.stack, max_pixels=args.max_pixels, reserve=reserve)
+    stack = load_surveyed(survey)
     composite = render_stack(stack).image
     # Encode everything in memory first, then write all outputs or none (lasagna.atomic.atomic_write_all).
     outputs: list[tuple[Path, bytes]] = []

@@ -19,15 +19,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from lasagna.document import stack_file
-    from lasagna.io.survey import composite_bytes, survey_stack
+    from lasagna.io.survey import survey_stack
 
-    reserve = lambda doc: composite_bytes(doc.canvas.width, doc.canvas.height)  # noqa: E731
-    survey_stack(args.stack, reserve=reserve)  # refused here without loading torch
+    survey = survey_stack(args.stack, composite=True)  # refused here without loading torch
 
     from lasagna.edit import render_learned
-    from lasagna.io.stack import load_stack
+    from lasagna.io.stack import load_surveyed
 
-    stack = load_stack(args.stack, reserve=reserve)
+    stack = load_surveyed(survey)
     folder = stack_file(args.stack).parent
     if not os.access(folder, os.W_OK | os.X_OK):
         raise PathError("is not writable; expected a stack folder render can write into", str(folder))

@@ -38,25 +38,6 @@ BlendMode = Literal[
     "luminosity",
 ]
 
-# The separable modes: B(Cb, Cs) acts on each channel on its own (a 1-channel source broadcasts).
-SEPARABLE_BLENDS: frozenset[str] = frozenset(
-    {
-        "normal",
-        "multiply",
-        "plus",
-        "screen",
-        "overlay",
-        "darken",
-        "lighten",
-        "color-dodge",
-        "color-burn",
-        "hard-light",
-        "soft-light",
-        "difference",
-        "exclusion",
-    }
-)
-
 BLEND_MODES: tuple[str, ...] = get_args(BlendMode)
 
 BLEND_ALIASES: dict[str, str] = {

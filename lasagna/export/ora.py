@@ -40,12 +40,12 @@ from lasagna.errors import ExportError, ImageError
 from lasagna.io.png import (
     DEFAULT_MAX_PIXELS,
     check_size,
-    decode_bytes,
     decode_png,
     encode_png,
     parse_header,
     png_file_limit,
 )
+from lasagna.io.survey import load_bytes
 from lasagna.limits import check_memory
 
 if TYPE_CHECKING:  # torch and the rasters (which import it) are loaded by the functions that write
@@ -222,11 +222,11 @@ def read_ora(
     *,
     max_pixels: int = DEFAULT_MAX_PIXELS,
     max_uncompressed: int = DEFAULT_MAX_UNCOMPRESSED,
-    reserve: int = 1,
+    copies: int = 1,
 ) -> tuple[int, int, list[dict]]:
     """Read and check an OpenRaster file: canvas size and its layers bottom to top (decoded).
 
-    Every layer's PNG header is read first; the decoded layers (plus ``reserve`` more copies of them, what
+    Every layer's PNG header is read first; the decoded layers (plus ``copies`` more of them, what
     the caller makes of them: ``import_ora`` one) must fit the memory budget (``lasagna.limits``) before
     any is decoded, and each entry is read only up to what a PNG of its header can hold.
 
@@ -358,9 +358,8 @@ def read_ora(
                 )
             )
         # Every layer's header is known: refuse over the memory budget before decoding any of them.
-        kept = sum(decode_bytes(layer["header"])[0] for layer in planned)
-        transient = max((sum(decode_bytes(layer["header"])) for layer in planned), default=0)
-        check_memory(kept * (1 + reserve) + transient, f"decoding the {len(planned)} layers", where)
+        needed = load_bytes((layer["header"] for layer in planned), copies)
+        check_memory(needed, f"decoding the {len(planned)} layers", where)
         layers = []
         for layer in planned:
             pwhere = f"{where}: {layer['src']}"

@@ -113,6 +113,10 @@ def _unit(values: np.ndarray, where: str) -> np.ndarray:
     raise _refuse(where, f"{values.dtype} samples")
 
 
+def _tiff_error(exc: Exception, where: str) -> ImageError:
+    return _refuse(where, f"cannot decode this TIFF ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})")
+
+
 def _read_tiff_wide(path: Path, where: str, max_pixels: int) -> RasterImage:
     """A 16-bit RGB(A) or float TIFF through tifffile (first page)."""
     import tifffile
@@ -127,7 +131,7 @@ def _read_tiff_wide(path: Path, where: str, max_pixels: int) -> RasterImage:
     except LasagnaError:  # the size and budget refusals, as they are
         raise
     except Exception as exc:  # tifffile raises ValueError, TiffFileError, KeyError, … on files it cannot decode
-        raise _refuse(where, f"cannot decode this TIFF ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})")
+        raise _tiff_error(exc, where) from None
     if axes.startswith("S"):  # planar configuration: samples first
         values = np.moveaxis(values, 0, -1)
     bit_depth = 16 if values.dtype in (np.uint16, np.float32, np.float64) else 8
@@ -171,8 +175,8 @@ def _tiff_size(path: Path, where: str) -> tuple[int, int]:
         with tifffile.TiffFile(path) as tif:
             page = tif.pages.first
             shape = dict(zip(page.axes, page.shape))
-    except Exception as exc:  # tifffile raises ValueError, TiffFileError, KeyError, … on files it cannot parse
-        raise _refuse(where, f"cannot decode this TIFF ({type(exc).__name__}: {' '.join(str(exc).split())[:120]})")
+    except Exception as exc:  # as above
+        raise _tiff_error(exc, where) from None
     return shape.get("X", 1), shape.get("Y", 1)
 
 

@@ -15,7 +15,7 @@ C = 1 gray, 2 gray+alpha, 3 RGB, 4 RGBA.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,6 +43,7 @@ from lasagna.io.render import render_stack
 from lasagna.io.survey import (  # noqa: F401  (MAX_SIDE, DEFAULT_MAX_TOTAL_PIXELS, resolve_inside: their old home)
     DEFAULT_MAX_TOTAL_PIXELS,
     MAX_SIDE,
+    Survey,
     resolve_inside,
     survey_stack,
     verify_stack,
@@ -398,24 +399,30 @@ def load_stack(
     *,
     max_pixels: int = DEFAULT_MAX_PIXELS,
     max_total_pixels: int = DEFAULT_MAX_TOTAL_PIXELS,
-    reserve: Callable[[Document], int] | None = None,
+    composite: bool = False,
+    copies: int = 0,
 ) -> Stack:
     """Load a stack folder (or its stack.json): the validated document and every layer's tensors.
 
-    ``reserve(document)``: the bytes the caller will need beside the decoded layers (e.g. a canvas to
-    render, ``lasagna.io.render.composite_bytes``), counted in the budget check before decoding.
-
     All paths are resolved and all PNG headers checked (size limits, per image and in total, and the
-    memory budget of ``lasagna.limits`` for decoding them all) before any pixel is decoded. Errors are
-    one-line ``LasagnaError``s naming the file and the layer.
+    memory budget of ``lasagna.limits`` for decoding them all, with room for the canvas when ``composite``
+    and ``copies`` more of the layers: ``lasagna.io.survey.survey_stack``) before any pixel is decoded.
+    Errors are one-line ``LasagnaError``s naming the file and the layer.
     """
-    survey = survey_stack(path, max_pixels=max_pixels, max_total_pixels=max_total_pixels, reserve=reserve)
-    file, doc, planned = survey.file, survey.document, survey.rasters
+    survey = survey_stack(
+        path, max_pixels=max_pixels, max_total_pixels=max_total_pixels, composite=composite, copies=copies
+    )
+    return load_surveyed(survey)
 
+
+def load_surveyed(survey: Survey) -> Stack:
+    """Decode the stack a ``survey_stack`` passed (the CLI surveys before it imports torch, then decodes
+    what it surveyed: the document is read and the headers are checked once)."""
+    file, doc, planned = survey.file, survey.document, survey.rasters
     images: dict[tuple[int, str], PngImage] = {}
     for r in planned:
         try:
-            images[(r.index, r.field)] = read_png(r.target, max_pixels=max_pixels, max_side=MAX_SIDE)
+            images[(r.index, r.field)] = read_png(r.target, max_pixels=survey.max_pixels, max_side=MAX_SIDE)
         except ImageError as err:
             raise err.at(f"{file}: {r.where}") from None
 

@@ -8,7 +8,7 @@ second. ``verify_stack`` adds a full structural check of every PNG (``lasagna va
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -104,15 +104,16 @@ def _plan_rasters(file: Path, doc: Document, max_pixels: int, max_total_pixels: 
     return planned
 
 
-def load_bytes(rasters: Iterable[Any]) -> int:
+def load_bytes(rasters: Iterable[Any], copies: int = 0) -> int:
     """Peak bytes of decoding PNGs with these headers and keeping them all (float32 tensors): what they
-    keep, plus the largest one's transient buffers and range mapping (``lasagna.io.png.decode_bytes``)."""
+    keep (and ``copies`` more of it, what the caller makes of them, e.g. an exporter's), plus the largest
+    one's transient buffers and range mapping (``lasagna.io.png.decode_bytes``)."""
     kept, transient = 0, 0
     for header in rasters:
         k, t = decode_bytes(header)
         kept += k
         transient = max(transient, t + k)  # + k: range mapping makes one new colour tensor
-    return kept + transient
+    return kept * (1 + copies) + transient
 
 
 def verify_stack(
@@ -150,6 +151,7 @@ class Survey:
     file: Path
     document: Document
     rasters: list[_Raster]
+    max_pixels: int  # the per-image limit the headers were checked against; decoding keeps it
 
 
 def survey_stack(
@@ -157,16 +159,18 @@ def survey_stack(
     *,
     max_pixels: int = DEFAULT_MAX_PIXELS,
     max_total_pixels: int = DEFAULT_MAX_TOTAL_PIXELS,
-    reserve: Callable[[Document], int] | None = None,
+    composite: bool = False,
+    copies: int = 0,
 ) -> Survey:
     """Survey a stack folder (or its stack.json) and check that decoding it fits the memory budget, with
-    ``reserve(document)`` bytes more for what the caller will do (e.g. ``lasagna.io.render.composite_bytes``)."""
+    room for rendering and writing its canvas (``composite``, ``composite_bytes``) and for ``copies`` more
+    of the decoded layers (what an exporter makes of them). ``lasagna.io.stack.load_surveyed`` decodes it."""
     file = stack_file(path)
     doc = load_document(path)
     planned = _plan_rasters(file, doc, max_pixels, max_total_pixels)
-    extra = reserve(doc) if reserve is not None else 0
     parts = [f"decoding the stack's {len(planned)} PNGs"] if planned else []
-    parts += [f"rendering its {doc.canvas.width}x{doc.canvas.height} canvas"] if extra else []
+    parts += [f"rendering its {doc.canvas.width}x{doc.canvas.height} canvas"] if composite else []
     what = " and ".join(parts) or "loading the stack"
-    check_memory(load_bytes(r.header for r in planned) + extra, what, str(file))
-    return Survey(file, doc, planned)
+    extra = composite_bytes(doc.canvas.width, doc.canvas.height) if composite else 0
+    check_memory(load_bytes((r.header for r in planned), copies) + extra, what, str(file))
+    return Survey(file, doc, planned, max_pixels)
