@@ -1,12 +1,10 @@
 """DiffusersPrior on TINY Stable-Diffusion-style models built here from small configs (nothing is
-downloaded): a UNet2DConditionModel, a ControlNetModel, an AutoencoderKL, a CLIP text encoder and a
-byte-level CLIP tokenizer written to a temporary folder. References are diffusers/transformers
-called by hand and numpy float64 schedules.
+downloaded; ``tests.tinydiffusers``). References are diffusers/transformers called by hand and numpy
+float64 schedules.
 """
 
 from __future__ import annotations
 
-import json
 import os
 
 import numpy as np
@@ -19,99 +17,20 @@ transformers = pytest.importorskip(
     "transformers", reason="transformers is not installed (optional extra lasagna[diffusers])"
 )
 
-from diffusers import AutoencoderKL, ControlNetModel, DDPMScheduler, UNet2DConditionModel  # noqa: E402
-from transformers import CLIPTextConfig, CLIPTextModel, CLIPTokenizer  # noqa: E402
+from diffusers import DDPMScheduler  # noqa: E402
 
 from lasagna.errors import ConditionError, LasagnaError  # noqa: E402
 from lasagna.priors.base import Condition  # noqa: E402
 from lasagna.priors.ddim import ddim_sample  # noqa: E402
 from lasagna.priors.diffusers import DEFAULT_TEMPLATE, DiffusersPrior, schedule_from_diffusers  # noqa: E402
+from tests.tinydiffusers import SD_SCHED, controlnet_for, save_controlnet, save_pipeline, sd_parts, sdxl_parts  # noqa: E402
 
 VOCAB = ("left", "right")
-SD_SCHED = {
-    "num_train_timesteps": 1000,
-    "beta_schedule": "scaled_linear",
-    "beta_start": 0.00085,
-    "beta_end": 0.012,
-    "prediction_type": "epsilon",
-}
-
-
-def _byte_level_vocab() -> dict[str, int]:
-    """GPT-2's byte→unicode table (written out here) as single-character tokens, plus CLIP's specials."""
-    bs = list(range(ord("!"), ord("~") + 1)) + list(range(ord("¡"), ord("¬") + 1)) + list(range(ord("®"), ord("ÿ") + 1))
-    cs, n = bs[:], 0
-    for b in range(256):
-        if b not in bs:
-            bs.append(b)
-            cs.append(256 + n)
-            n += 1
-    vocab = {"<|startoftext|>": 0, "<|endoftext|>": 1}
-    for suffix in ("", "</w>"):
-        for c in cs:
-            vocab.setdefault(chr(c) + suffix, len(vocab))
-    return vocab
-
-
-def _randomize(module, seed, scale=0.05):
-    g = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in module.parameters():
-            p.copy_(torch.randn(p.shape, generator=g) * scale)
 
 
 @pytest.fixture(scope="module")
-def parts(tmp_path_factory):
-    tok_dir = tmp_path_factory.mktemp("tokenizer")
-    (tok_dir / "vocab.json").write_text(json.dumps(_byte_level_vocab()))
-    (tok_dir / "merges.txt").write_text("#version: 0.2\n")
-    # One token per byte, so 64 positions: long enough that the label survives truncation.
-    tokenizer = CLIPTokenizer.from_pretrained(tok_dir, local_files_only=True, model_max_length=64)
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(0)
-        unet = UNet2DConditionModel(
-            sample_size=8,
-            in_channels=4,
-            out_channels=4,
-            layers_per_block=1,
-            block_out_channels=(8, 16),
-            down_block_types=("CrossAttnDownBlock2D", "DownBlock2D"),
-            up_block_types=("UpBlock2D", "CrossAttnUpBlock2D"),
-            cross_attention_dim=16,
-            norm_num_groups=4,
-            attention_head_dim=2,
-        )
-        controlnet = ControlNetModel.from_unet(unet, conditioning_embedding_out_channels=(4, 8))
-        # ControlNet's zero convolutions would make the image irrelevant; give them weights.
-        zero_init = [controlnet.controlnet_cond_embedding.conv_out, controlnet.controlnet_mid_block]
-        for m in list(controlnet.controlnet_down_blocks) + zero_init:
-            _randomize(m, 1)
-        vae = AutoencoderKL(
-            in_channels=3,
-            out_channels=3,
-            down_block_types=("DownEncoderBlock2D", "DownEncoderBlock2D"),
-            up_block_types=("UpDecoderBlock2D", "UpDecoderBlock2D"),
-            block_out_channels=(4, 8),
-            latent_channels=4,
-            norm_num_groups=4,
-            sample_size=16,
-        )
-        text_encoder = CLIPTextModel(
-            CLIPTextConfig(
-                vocab_size=len(tokenizer),
-                hidden_size=16,
-                intermediate_size=32,
-                num_hidden_layers=1,
-                num_attention_heads=2,
-                max_position_embeddings=64,
-                bos_token_id=0,
-                eos_token_id=1,
-                pad_token_id=1,
-            )
-        ).eval()
-    return dict(
-        unet=unet.eval(), controlnet=controlnet.eval(), vae=vae.eval(), text_encoder=text_encoder, tokenizer=tokenizer
-    )
+def parts():
+    return sd_parts()
 
 
 @pytest.fixture(scope="module")
@@ -329,3 +248,211 @@ class TestFromLocal:
         (tmp_path / "unet").mkdir()
         with pytest.raises(LasagnaError, match="missing folder scheduler/"):
             DiffusersPrior.from_local(tmp_path, vocabulary=VOCAB, device="cpu", dtype=torch.float32)
+
+
+class TestFreeTextAndNegativePrompts:
+    def test_free_text_replaces_the_template(self, parts):
+        p = DiffusersPrior(
+            parts["unet"],
+            SD_SCHED,
+            ("prompt",),
+            prompts={"prompt": "dramatic rim light"},
+            text_encoder=parts["text_encoder"],
+            tokenizer=parts["tokenizer"],
+        )
+        assert p.prompts == ("dramatic rim light", "")
+        torch.testing.assert_close(p.prompt_embeds[0], manual_embedding(parts, "dramatic rim light"))
+        torch.testing.assert_close(p.prompt_embeds[1], manual_embedding(parts, ""))  # the null prompt: uncond
+        other = DiffusersPrior(
+            parts["unet"],
+            SD_SCHED,
+            ("prompt",),
+            prompts={"prompt": "soft window light"},
+            text_encoder=parts["text_encoder"],
+            tokenizer=parts["tokenizer"],
+        )
+        assert not torch.allclose(p.prompt_embeds[0], other.prompt_embeds[0])  # the embedding follows the text
+
+    def test_negative_prompt_replaces_the_unconditional_branch(self, parts):
+        kw = dict(text_encoder=parts["text_encoder"], tokenizer=parts["tokenizer"])
+        plain = DiffusersPrior(parts["unet"], SD_SCHED, VOCAB, **kw)
+        neg = DiffusersPrior(parts["unet"], SD_SCHED, VOCAB, negative_prompt="blurry, flat", **kw)
+        torch.testing.assert_close(neg.prompt_embeds[-1], manual_embedding(parts, "blurry, flat"))
+        torch.testing.assert_close(neg.prompt_embeds[:-1], plain.prompt_embeds[:-1])
+        z, t = torch.randn(1, 4, 8, 8), torch.tensor([500])
+        a = plain.predict(z, t, Condition("left"))
+        b = neg.predict(z, t, Condition("left"))
+        torch.testing.assert_close(a.eps["cond"], b.eps["cond"])
+        assert (a.eps["uncond"] - b.eps["uncond"]).abs().max() > 1e-6
+
+    def test_prompt_for_an_unknown_label(self, parts):
+        with pytest.raises(LasagnaError, match="not in the vocabulary"):
+            DiffusersPrior(parts["unet"], SD_SCHED, VOCAB, prompts={"top": "x"}, prompt_embeds=torch.randn(3, 5, 16))
+
+
+class TestMultiControlNet:
+    def test_two_nets_sum_their_residuals_with_their_scales(self, parts):
+        second = controlnet_for(parts["unet"], seed=7)
+        embeds = torch.randn(3, 5, 16, generator=torch.Generator().manual_seed(0))
+        p = DiffusersPrior(
+            parts["unet"],
+            SD_SCHED,
+            VOCAB,
+            prompt_embeds=embeds,
+            controlnet=[parts["controlnet"], second],
+            conditioning_scale=[0.5, 2.0],
+            vae=parts["vae"],
+        )
+        z, t = torch.randn(1, 4, 8, 8), torch.tensor([300])
+        a, b = torch.rand(1, 3, 16, 16), torch.rand(1, 3, 16, 16)
+        eps = p._eps(z, t, torch.tensor([0]), torch.cat([a, b], dim=1))
+        with torch.no_grad():
+            enc = embeds[[0]]
+            d1, m1 = parts["controlnet"](z, t, enc, controlnet_cond=a, conditioning_scale=0.5, return_dict=False)
+            d2, m2 = second(z, t, enc, controlnet_cond=b, conditioning_scale=2.0, return_dict=False)
+            ref = parts["unet"](
+                z,
+                t,
+                encoder_hidden_states=enc,
+                down_block_additional_residuals=[x + y for x, y in zip(d1, d2)],
+                mid_block_additional_residual=m1 + m2,
+            ).sample
+        torch.testing.assert_close(eps, ref, atol=1e-5, rtol=1e-5)
+        shared = p._eps(z, t, torch.tensor([0]), a)  # one 3-channel image is shared by both nets
+        concat = p._eps(z, t, torch.tensor([0]), torch.cat([a, a], dim=1))
+        torch.testing.assert_close(shared, concat)
+        with pytest.raises(ConditionError, match=r"expected \(1, 6, 16, 16\)"):
+            p._eps(z, t, torch.tensor([0]), torch.rand(1, 4, 16, 16))
+
+    def test_scales_must_match_the_nets(self, parts):
+        with pytest.raises(LasagnaError, match="2 conditioning scale"):
+            DiffusersPrior(
+                parts["unet"],
+                SD_SCHED,
+                VOCAB,
+                prompt_embeds=torch.randn(3, 5, 16),
+                controlnet=[parts["controlnet"]] * 3,
+                conditioning_scale=[1.0, 2.0],
+            )
+
+
+@pytest.fixture(scope="module")
+def xl():
+    return sdxl_parts()
+
+
+class TestSDXL:
+    def test_added_cond_kwargs_match_the_pipeline_recipe(self, xl):
+        p = DiffusersPrior(
+            xl["unet"],
+            SD_SCHED,
+            VOCAB,
+            text_encoder=xl["text_encoder"],
+            tokenizer=xl["tokenizer"],
+            text_encoder_2=xl["text_encoder_2"],
+            tokenizer_2=xl["tokenizer_2"],
+            force_zeros_for_empty_prompt=True,
+            controlnet=xl["controlnet"],
+            vae=xl["vae"],
+        )
+        text = DEFAULT_TEMPLATE.format(label="right")
+        ids = xl["tokenizer"]([text], padding="max_length", max_length=64, truncation=True, return_tensors="pt")
+        with torch.no_grad():
+            h1 = xl["text_encoder"](ids.input_ids, output_hidden_states=True).hidden_states[-2]
+            out2 = xl["text_encoder_2"](ids.input_ids, output_hidden_states=True)
+        enc = torch.cat([h1, out2.hidden_states[-2]], dim=-1)
+        torch.testing.assert_close(p.prompt_embeds[1:2], enc)
+        torch.testing.assert_close(p.pooled_embeds[1:2], out2.text_embeds)
+        assert p.prompt_embeds[-1].abs().max() == 0 and p.pooled_embeds[-1].abs().max() == 0  # zeros for ""
+        z, t, img = torch.randn(1, 4, 8, 8), torch.tensor([250]), torch.rand(1, 3, 16, 16)
+        eps = p._eps(z, t, torch.tensor([1]), img)
+        added = {"text_embeds": out2.text_embeds, "time_ids": torch.tensor([[16.0, 16.0, 0.0, 0.0, 16.0, 16.0]])}
+        with torch.no_grad():
+            down, mid = xl["controlnet"](z, t, enc, controlnet_cond=img, added_cond_kwargs=added, return_dict=False)
+            ref = xl["unet"](
+                z,
+                t,
+                encoder_hidden_states=enc,
+                added_cond_kwargs=added,
+                down_block_additional_residuals=down,
+                mid_block_additional_residual=mid,
+            ).sample
+        torch.testing.assert_close(eps, ref, atol=1e-5, rtol=1e-5)
+
+    def test_loads_an_sdxl_folder(self, xl, tmp_path):
+        root = save_pipeline(tmp_path / "xl", xl)
+        p = DiffusersPrior.from_local(root, vocabulary=VOCAB, device="cpu")
+        assert p.sdxl and p.pooled_embeds.shape == (3, 16) and p.prompt_embeds.shape == (3, 64, 32)
+        assert p.prompt_embeds[-1].abs().max() == 0  # force_zeros_for_empty_prompt: SDXL's default
+        out = p.predict(torch.randn(1, 4, 8, 8), torch.tensor([10]), Condition("left"))
+        assert torch.isfinite(out.eps["cond"]).all()
+
+
+class TestLoadOptions:
+    def test_dtype_variant_slicing_channels_last(self, parts, tmp_path):
+        root = save_pipeline(tmp_path / "sd", parts, variant="fp16")
+        save_controlnet(tmp_path / "cn", parts["controlnet"])
+        p = DiffusersPrior.from_local(
+            root,
+            controlnets=[tmp_path / "cn", tmp_path / "cn"],
+            conditioning_scale=[1.0, 0.5],
+            vocabulary=VOCAB,
+            device="cpu",
+            dtype="bfloat16",
+            variant="fp16",
+            attention_slicing=True,
+            channels_last=True,
+        )
+        assert p.unet.dtype == torch.bfloat16 and p.controlnets[1].dtype == torch.bfloat16
+        assert len(p.controlnets) == 2 and p.conditioning_scales == (1.0, 0.5)
+        out = p.predict(torch.randn(1, 4, 8, 8), torch.tensor([10]), Condition("left", image=torch.rand(1, 3, 16, 16)))
+        assert out.eps["cond"].dtype == torch.bfloat16 and torch.isfinite(out.eps["cond"].float()).all()
+
+    def test_missing_variant_is_one_line(self, parts, tmp_path):
+        root = save_pipeline(tmp_path / "sd", parts)
+        with pytest.raises(LasagnaError, match="cannot load the unet") as err:
+            DiffusersPrior.from_local(root, vocabulary=VOCAB, device="cpu", variant="fp16")
+        assert "\n" not in str(err.value)
+
+    def test_offload_needs_an_accelerator(self, parts, tmp_path):
+        root = save_pipeline(tmp_path / "sd", parts)
+        with pytest.raises(LasagnaError, match="cpu_offload: model CPU offload"):
+            DiffusersPrior.from_local(root, vocabulary=VOCAB, device="cpu", cpu_offload=True)
+
+    def test_offload_moves_one_network_at_a_time(self, parts):
+        p = DiffusersPrior(
+            parts["unet"],
+            SD_SCHED,
+            VOCAB,
+            prompt_embeds=torch.randn(3, 5, 16),
+            controlnet=parts["controlnet"],
+            vae=parts["vae"],
+            offload_device="cpu",
+        )
+        seen = []
+        p._offload["device"] = torch.device("cpu")
+        original = p._use
+        p._use = lambda m: (seen.append(type(m).__name__), original(m))[1]
+        p.predict(torch.randn(1, 4, 8, 8), torch.tensor([10]), Condition("left", image=torch.rand(1, 3, 16, 16)))
+        assert seen == ["ControlNetModel", "UNet2DConditionModel"] and p._offload["active"] is p.unet
+
+    def test_bad_dtype(self):
+        from lasagna.priors.diffusers import resolve_dtype
+
+        assert resolve_dtype("auto", "cpu") == torch.float32 and resolve_dtype("auto", "cuda") == torch.float16
+        with pytest.raises(LasagnaError, match="torch_dtype: got 'half'"):
+            resolve_dtype("half", "cpu")
+
+
+class TestUsedFiles:
+    def test_weights_of_the_variant_and_every_config(self, parts, tmp_path):
+        from lasagna.priors.diffusers import used_files
+
+        root = save_pipeline(tmp_path / "sd", parts)
+        parts["unet"].save_pretrained(root / "unet", variant="fp16")
+        plain = {f.relative_to(root).as_posix() for f in used_files(root)}
+        half = {f.relative_to(root).as_posix() for f in used_files(root, "fp16")}
+        assert "unet/diffusion_pytorch_model.safetensors" in plain and "unet/config.json" in plain
+        assert "unet/diffusion_pytorch_model.fp16.safetensors" not in plain
+        assert "unet/diffusion_pytorch_model.fp16.safetensors" in half
+        assert "scheduler/scheduler_config.json" in plain and "tokenizer/tokenizer.json" in plain
