@@ -8,7 +8,9 @@ installed wheel; see layers/README.md)::
       shading/generator/       kind "generator": the preset's amortised LayerGenerator
                                (model.safetensors + config.json, format lasagna.layer_generator)
       relight-32/              kind "prior": a UNetPrior (config.json, format lasagna.unet_prior), or
-                               a diffusers folder (model_index.json or unet/ + scheduler/, optional controlnet/)
+                               a diffusers folder (model_index.json or unet/ + scheduler/, optional controlnet/),
+                               or a link to one elsewhere (config.json, format lasagna.prior_link: its path
+                               and ControlNets; ``add_prior`` writes it with a preset beside it)
       relight-32-bhat/         kind "corrective": LMC-SDS's b̂ (config.json, format lasagna.corrective)
 
 **Search order** (the first entry of the asked kind wins): ``<stack>/layers/`` (presets only, when a
@@ -35,7 +37,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from lasagna.document.preset import Preset, default_catalogues, resolve_preset
+from lasagna.document.preset import (
+    ControlNetRef,
+    DiffusersOptions,
+    Preset,
+    PriorLink,
+    default_catalogues,
+    resolve_preset,
+)
 from lasagna.document.preset import load_preset as _load_preset_file
 from lasagna.errors import DocumentError, LasagnaError
 
@@ -50,6 +59,7 @@ FORMATS: dict[str, str] = {
     "lasagna.corrective": "corrective",
     "lasagna.spectral_corrective": "corrective",
     "lasagna.layer_generator": "generator",
+    "lasagna.prior_link": "prior",
 }
 GENERATOR_DIR = "generator"  # <catalogue>/<preset>/generator/: the preset's amortised generator
 PACKAGED = Path(__file__).resolve().parent / "_layers"  # where a wheel installs the catalogue
@@ -335,43 +345,142 @@ def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | Non
     }
 
 
-def load_prior(
+@dataclass(frozen=True)
+class PriorSource:
+    """Where a prior's weights are: a ``UNetPrior`` folder (``kind="unet"``), or a diffusers pipeline folder
+    and its ControlNets (``kind="diffusers"``; a link entry already followed)."""
+
+    kind: Literal["unet", "diffusers"]
+    folder: Path
+    controlnets: tuple[ControlNetRef, ...] = ()
+
+    def files(self, variant: str | None = None) -> dict[str, Path]:
+        """Every file a load reads, by a stable name (``prior/…``, ``controlnet<i>/…``): what provenance hashes."""
+        if self.kind == "unet":
+            return {f"prior/{n}": self.folder / n for n in ("model.safetensors", "config.json")}
+        from lasagna.priors.diffusers import used_files
+
+        out = {f"prior/{f.relative_to(self.folder).as_posix()}": f for f in used_files(self.folder, variant)}
+        for i, net in enumerate(self.controlnets):
+            root = Path(net.path)
+            out.update({f"controlnet{i}/{f.name}": f for f in used_files(root, variant, pipeline=False)})
+        return out
+
+
+def prior_source(
     name_or_path: str | os.PathLike,
+    *,
+    controlnets: Sequence[ControlNetRef] = (),
+    catalogue_dirs: Sequence[str | os.PathLike] | None = None,
+    relative_to: str | os.PathLike | None = None,
+) -> PriorSource:
+    """What prior ``name_or_path`` (a catalogue name or a folder) is: a UNetPrior, a diffusers folder (its
+    ControlNets: ``controlnets``, else a nested ``controlnet/``), or a link entry (its path and ControlNets)."""
+    folder = find(name_or_path, "prior", catalogue_dirs=catalogue_dirs, relative_to=relative_to)
+    fmt = _format_of(folder)
+    if fmt == "lasagna.unet_prior":
+        if controlnets:
+            raise LasagnaError("a UNetPrior takes no ControlNet; expected a diffusers prior", str(folder))
+        return PriorSource("unet", folder)
+    if fmt == "lasagna.prior_link":
+        link = read_link(folder)
+        if controlnets:
+            raise LasagnaError(
+                "this catalogue prior names its own ControlNets; expected no --controlnet (or a prior folder)",
+                str(folder),
+            )
+        return PriorSource("diffusers", Path(link.path), link.controlnets)
+    if _is_diffusers(folder):
+        for net in controlnets:
+            if not (Path(net.path) / "config.json").is_file():
+                raise LasagnaError(
+                    "is not a ControlNet folder (no config.json); expected a folder written by save_pretrained",
+                    net.path,
+                )
+        if not controlnets and (folder / "controlnet").is_dir():
+            controlnets = (ControlNetRef(path=str(folder / "controlnet")),)
+        return PriorSource("diffusers", folder, tuple(controlnets))
+    raise LasagnaError(
+        f"format is {fmt!r}; expected a prior: a diffusers folder (model_index.json, or unet/ and scheduler/), "
+        "a lasagna UNetPrior or a lasagna.prior_link",
+        str(folder if fmt is None else folder / "config.json"),
+    )
+
+
+def read_link(folder: Path) -> PriorLink:
+    """A link entry's ``PriorLink`` (``folder/config.json``), its diffusers folder checked to exist."""
+    from pydantic import ValidationError
+
+    from lasagna.errors import describe_validation_error
+
+    try:
+        link = PriorLink.model_validate(_config_doc(folder))
+    except ValidationError as err:
+        raise describe_validation_error(err, str(folder / "config.json"), PriorLink) from None
+    if not _is_diffusers(Path(link.path)):
+        raise LasagnaError(
+            f"links to {link.path}, which is not a diffusers folder (moved or deleted?); expected model_index.json "
+            "or unet/ and scheduler/ there",
+            str(folder / "config.json"),
+        )
+    return link
+
+
+def load_prior(
+    name_or_path: str | os.PathLike | PriorSource,
     *,
     preset: Preset | None = None,
     device="cpu",
     catalogue_dirs: Sequence[str | os.PathLike] | None = None,
     relative_to: str | os.PathLike | None = None,
+    options: DiffusersOptions | None = None,
+    prompts: dict[str, str] | None = None,
+    negative_prompt: str | None = None,
 ):
-    """A prior from the catalogue: a ``UNetPrior`` (eval mode), or a ``DiffusersPrior`` for a diffusers
-    folder (its vocabulary and prompt template then come from ``preset``, which is required)."""
-    folder = find(name_or_path, "prior", catalogue_dirs=catalogue_dirs, relative_to=relative_to)
-    if _format_of(folder) == "lasagna.unet_prior":
+    """A prior from the catalogue (or a ``PriorSource``): a ``UNetPrior`` (eval mode), or a ``DiffusersPrior``
+    for a diffusers folder — its vocabulary and prompt template from ``preset`` (required), run as
+    ``options`` say (default the preset's ``diffusers``), ``prompts`` (label → free text) replacing the
+    template and ``negative_prompt`` the unconditional prompt."""
+    source = (
+        name_or_path
+        if isinstance(name_or_path, PriorSource)
+        else prior_source(name_or_path, catalogue_dirs=catalogue_dirs, relative_to=relative_to)
+    )
+    if source.kind == "unet":
+        if prompts or negative_prompt:
+            raise LasagnaError(
+                "this prior is conditioned on its vocabulary's labels (a UNetPrior); expected no --prompt or "
+                "--negative-prompt (free text needs a text-conditioned diffusers prior)",
+                str(source.folder),
+            )
         from lasagna.priors.unet import UNetPrior
 
-        return UNetPrior.from_pretrained(folder, device=device)
-    if _is_diffusers(folder):
-        if preset is None:
-            raise LasagnaError(
-                "a diffusers prior needs the preset (its vocabulary and prompt); expected preset=", str(folder)
-            )
-        import torch
-
-        from lasagna.priors.diffusers import DiffusersPrior
-
-        controlnet = folder / "controlnet" if (folder / "controlnet").is_dir() else None
-        cuda = str(device).startswith("cuda")
-        return DiffusersPrior.from_local(
-            folder,
-            controlnet=controlnet,
-            vocabulary=preset.vocabulary,
-            prompt_template=preset.prompt,
-            device=device,
-            dtype=torch.float16 if cuda else torch.float32,
+        return UNetPrior.from_pretrained(source.folder, device=device)
+    if preset is None:
+        raise LasagnaError(
+            "a diffusers prior needs the preset (its vocabulary and prompt); expected preset=", str(source.folder)
         )
-    raise LasagnaError(
-        f"format is {_format_of(folder)!r}; expected a prior ('lasagna.unet_prior' or a diffusers folder)",
-        str(folder / "config.json"),
+    from lasagna.priors.diffusers import DiffusersPrior
+
+    opts = options or preset.diffusers or DiffusersOptions()
+    vocabulary = tuple(prompts) if prompts else preset.vocabulary
+    return DiffusersPrior.from_local(
+        source.folder,
+        controlnets=[net.path for net in source.controlnets],
+        conditioning_scale=[
+            net.scale if net.scale is not None else opts.conditioning_scale for net in source.controlnets
+        ],
+        vocabulary=vocabulary,
+        prompt_template=preset.prompt,
+        prompts=prompts,
+        negative_prompt=negative_prompt or "",
+        device=device,
+        dtype=opts.torch_dtype,
+        variant=opts.variant,
+        latent=opts.latent,
+        cpu_offload=opts.cpu_offload,
+        attention_slicing=opts.attention_slicing,
+        channels_last=opts.channels_last,
     )
 
 
@@ -431,3 +540,109 @@ def check_generator(generator, preset: Preset, where: str) -> None:
             f"expected its vocabulary to contain {', '.join(preset.vocabulary)}",
             where,
         )
+
+
+# ---- adding a prior of one's own -----------------------------------------------------------------
+
+
+def writable_catalogue() -> Path:
+    """Where new entries go: the first folder of ``$LASAGNA_LAYERS``, else the user's catalogue
+    (``lasagna.document.preset.user_catalogue``: ``$XDG_DATA_HOME/lasagna/layers``)."""
+    from lasagna.document.preset import user_catalogue
+
+    first = next((p for p in os.environ.get("LASAGNA_LAYERS", "").split(os.pathsep) if p), None)
+    return Path(first) if first else user_catalogue()
+
+
+def add_prior(
+    path: str | os.PathLike,
+    name: str,
+    *,
+    like: str = "shading",
+    controlnets: Sequence[ControlNetRef] = (),
+    corrective: str | os.PathLike | None = None,
+    vocabulary: Sequence[str] | None = None,
+    prompt: str | None = None,
+    options: DiffusersOptions | None = None,
+    catalogue: str | os.PathLike | None = None,
+    force: bool = False,
+) -> Path:
+    """Register the diffusers folder ``path`` as catalogue entry ``name``, so ``lasagna edit --layer NAME``
+    uses it; returns the entry's preset.json.
+
+    Writes ``<catalogue>/<name>/`` — ``config.json`` (a ``PriorLink``: the folder and its ControlNets, by
+    absolute path; the weights are not copied) and ``preset.json`` (the preset ``like``'s layer and
+    distillation defaults, with this prior, ``vocabulary``/``prompt`` if given and the ``options``) — and,
+    with a ``corrective`` folder (``lasagna train-corrective``'s ``OUT/corrective``), a copy of it as
+    ``<name>-corrective``, which the preset names; its loss then defaults to LMC-SDS, else to SDS. Each
+    folder is built beside its place and renamed into it, so a failure leaves the catalogue as it was.
+    ``catalogue`` defaults to ``writable_catalogue()``; an entry already there is replaced only with ``force``.
+    """
+    import shutil
+
+    from lasagna.atomic import folder_lock, make_temp_folder, temp_path
+
+    _check_name(name, "prior")
+    source = prior_source(Path(path).resolve(), controlnets=[_absolute(n) for n in controlnets])
+    if source.kind != "diffusers":
+        raise LasagnaError("is a lasagna UNetPrior; expected a diffusers folder (it can be named as it is)", str(path))
+    base = load_preset(like)
+    data = base.model_dump(mode="json")
+    data.update(
+        name=name,
+        description=f"{base.description} Scored by the diffusers prior at {source.folder}.",
+        prior=name,
+        corrective=f"{name}-corrective" if corrective is not None else None,
+        method="per-image",  # no amortised generator was trained for this prior
+        diffusers=(options or base.diffusers or DiffusersOptions()).model_dump(mode="json"),
+    )
+    data["distill"] = {**data["distill"], "loss": "lmc-sds" if corrective is not None else "sds"}
+    if vocabulary is not None:
+        data["vocabulary"] = list(vocabulary)
+    if prompt is not None:
+        data["prompt"] = prompt
+    preset = Preset.from_dict(data, f"preset for {name!r}")
+    link = PriorLink(format="lasagna.prior_link", version=1, path=str(source.folder), controlnets=source.controlnets)
+    if corrective is not None:
+        fmt = _format_of(Path(corrective))
+        if FORMATS.get(fmt or "") != "corrective":
+            raise LasagnaError(
+                f"format is {fmt!r}; expected a corrective folder (lasagna train-corrective's OUT/corrective)",
+                str(corrective),
+            )
+    root = Path(catalogue) if catalogue is not None else writable_catalogue()
+    root.mkdir(parents=True, exist_ok=True)
+    entries = {name: {"preset.json": preset.to_json(), "config.json": link.model_dump_json(indent=2) + "\n"}}
+    staged: list[tuple[Path, Path]] = []
+    try:
+        for entry, files in entries.items():
+            tmp = make_temp_folder(root / entry)
+            staged.append((tmp, root / entry))
+            for file, text in files.items():
+                (tmp / file).write_text(text, encoding="utf-8")
+        if corrective is not None:
+            tmp = make_temp_folder(root / f"{name}-corrective")
+            staged.append((tmp, root / f"{name}-corrective"))
+            shutil.copytree(corrective, tmp, dirs_exist_ok=True)
+        with folder_lock(root):
+            taken = [str(target) for _, target in staged if target.exists()]
+            if taken and not force:
+                raise LasagnaError(
+                    f"{', '.join(taken)} already exist(s); expected a new name (or --force to replace)", name
+                )
+            for tmp, target in staged:
+                if target.exists():
+                    aside = temp_path(target, "old")
+                    os.rename(target, aside)
+                    os.rename(tmp, target)
+                    shutil.rmtree(aside, ignore_errors=True)
+                else:
+                    os.rename(tmp, target)
+    finally:
+        for tmp, _ in staged:
+            shutil.rmtree(tmp, ignore_errors=True)
+    return root / name / "preset.json"
+
+
+def _absolute(net: ControlNetRef) -> ControlNetRef:
+    return net.model_copy(update={"path": str(Path(net.path).resolve())})

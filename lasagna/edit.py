@@ -24,7 +24,20 @@ settings' typed model is ``lasagna.learned.LayerSettings``):
 * ``per-image`` — no amortised generator (or ``generator="per-image"``, also spelled ``"free"`` as on the
   command line: a free per-pixel layer): a free layer from the identity edit, distilled for the preset's
   ``distill.steps`` (or ``optimize``) with its defaults.
-  Images larger than the prior use the LMC-SDS patch strategy (``lasagna.distill.per_image``).
+  Images larger than the prior use the LMC-SDS patch strategy (``lasagna.distill.per_image``); an image of
+  another aspect than the prior's is letterboxed into its view (``aspect``).
+
+**Bring your own prior.** ``prior=`` (a diffusers folder written by ``save_pretrained`` — SD 1.x/2.x or
+SDXL — or any prior folder or catalogue name) scores the preset's layer instead of the preset's prior,
+with ``controlnets`` (folders, or (folder, scale) pairs), ``corrective`` (its b̂, for LMC-SDS: the
+preset's was fitted to its own prior and is not used; without one the loss defaults to SDS) and
+``diffusers`` options (dtype, variant, offload, …, over the preset's). ``prompt`` is free text (the
+label then only names it: ``"prompt"`` when no ``condition`` is given), ``negative_prompt`` replaces
+the unconditional branch; both are stored in the layer's ``condition``. ``control_image`` (a file or an
+image) is the ControlNet's conditioning image instead of the base; it is stored in the stack
+(``controls/<id>.png``). The layer's settings record the SHA-256 of every weight file used (prior,
+ControlNets, corrective); ``render_learned`` warns in one line when one changed. A stack made with a
+prior outside the catalogue can be re-rendered once the prior is in it (``lasagna prior add``).
 
 The layer itself is made by ``lasagna.learned.make_layer``, for ``edit`` and ``render_learned`` alike.
 Per-image runs are seeded (``settings.distill.seed``), so ``render_learned`` reproduces them from the
@@ -39,25 +52,36 @@ from __future__ import annotations
 import os
 import time
 import warnings
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 import torch
+from pydantic import ValidationError
 from torch import Tensor
 
 from lasagna import catalogue as cat
-from lasagna.document import LearnedLayer
-from lasagna.errors import DocumentError, ImageError, LasagnaError, PathError
+from lasagna.document import DiffusersOptions, LearnedLayer
+from lasagna.errors import (
+    ConditionError,
+    DocumentError,
+    ImageError,
+    LasagnaError,
+    PathError,
+    describe_validation_error,
+)
 from lasagna.io.folder import check_output_folder, stage_stack_folder, write_stack_folder
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 from lasagna.io.stack import Stack, load_stack, resolve_inside
 from lasagna.learned import (
     LayerRun,
     LayerSettings,
+    OwnPrior,
     as_stored,
+    canonical_method,
+    changed_weights,
     choose_method,
     conditioning_input,
     default_steps,
@@ -67,6 +91,7 @@ from lasagna.learned import (
 from lasagna.version import __version__
 
 META_KEY = "lasagna.edit"  # document metadata: per learned layer, the tool version, time, timing
+PROMPT_LABEL = "prompt"  # the label of a layer asked for by free text alone (it names the prompt, no more)
 
 
 @dataclass
@@ -181,7 +206,7 @@ def _unique_id(stack: Stack, wanted: str) -> str:
 def edit(
     image,
     preset: str = "shading",
-    condition: str = "left",
+    condition: str | None = None,
     *,
     on: str | None = None,
     id: str | None = None,
@@ -196,8 +221,23 @@ def edit(
     max_pixels: int = DEFAULT_EDIT_MAX_PIXELS,
     device: str | torch.device = "cpu",
     progress: bool = False,
+    prior: str | os.PathLike | None = None,
+    controlnets: Sequence[str | os.PathLike | tuple[str | os.PathLike, float]] = (),
+    corrective: str | os.PathLike | None = None,
+    control_image=None,
+    prompt: str | None = None,
+    negative_prompt: str | None = None,
+    diffusers: DiffusersOptions | dict | None = None,
+    t_min: float | None = None,
+    t_max: float | None = None,
+    aspect: str | None = None,
 ) -> EditResult:
     """Add a learned layer of ``preset`` for ``condition`` on top of ``image`` (module docstring).
+
+    ``condition``: a label of the preset's vocabulary (default its first, or ``"prompt"`` with a ``prompt``).
+    ``prior``, ``controlnets``, ``corrective``, ``control_image``, ``prompt``, ``negative_prompt``,
+    ``diffusers``: a prior of one's own (module docstring, "Bring your own prior"). ``t_min``/``t_max``
+    (t ~ U(t_min, t_max)) and ``aspect`` (``"letterbox"`` or ``"stretch"``) override the preset's too.
 
     ``image``: an image file, a stack folder, a ``Stack``, or a tensor/array/PIL image. ``on``: the
     layer it is conditioned on (default: the top layer). ``generator``: what makes the layer —
@@ -212,6 +252,7 @@ def edit(
     """
     start = time.monotonic()
     n = check_edit_options(preset, optimize, steps)
+    own = own_prior(prior, controlnets, corrective, diffusers)
     plan = plan_edit(
         image,
         preset,
@@ -222,11 +263,78 @@ def edit(
         optimize=n,
         max_pixels=max_pixels,
         catalogue_dirs=catalogue_dirs,
+        prompt=prompt,
+        negative_prompt=negative_prompt,
+        own=own,
     )
+    if control_image is not None:
+        own = own or OwnPrior()
+        own.control = read_control_image(control_image, tuple(plan.base.shape[-2:]), max_pixels)
+    plan.own = own
+    plan.overrides = {k: v for k, v in (("t_min", t_min), ("t_max", t_max), ("aspect", aspect)) if v is not None}
+    if own is not None and own.prior is not None and loss is None:
+        # The preset's corrective belongs to its own prior: without the user's, LMC-SDS cannot run; SDS can.
+        default = plan.resolved.preset.distill.loss
+        loss = "sds" if default == "lmc-sds" and own.corrective is None else None
     run = plan.make(
         loss=loss, guidance=guidance, seed=seed, lr=lr, catalogue_dirs=catalogue_dirs, device=device, progress=progress
     )
     return plan.finish(run, time.monotonic() - start)
+
+
+def own_prior(prior, controlnets=(), corrective=None, diffusers=None) -> OwnPrior | None:
+    """``edit``'s prior options as an ``OwnPrior`` (None when none is given). A folder that exists is taken by
+    its absolute path; anything else is a catalogue name. ControlNets and a corrective need ``prior``."""
+    from lasagna.document.preset import ControlNetRef
+
+    if prior is None:
+        if controlnets or corrective is not None:
+            raise LasagnaError(
+                "ControlNets and a corrective go with a prior of one's own; expected --prior PATH too", "prior"
+            )
+        if diffusers is None:
+            return None
+    nets = []
+    for i, net in enumerate(controlnets):
+        path, scale = net if isinstance(net, tuple) else (net, None)
+        if not Path(path).is_dir():
+            raise PathError("does not exist; expected a ControlNet folder written by save_pretrained", str(path))
+        nets.append(ControlNetRef(path=str(Path(path).resolve()), scale=scale))
+    if isinstance(diffusers, dict):
+        try:
+            diffusers = DiffusersOptions.model_validate(diffusers)
+        except ValidationError as err:
+            raise describe_validation_error(err, "diffusers", DiffusersOptions) from None
+
+    def absolute(ref):
+        if ref is None:
+            return None
+        return str(Path(ref).resolve()) if Path(ref).is_dir() or isinstance(ref, os.PathLike) else str(ref)
+
+    return OwnPrior(prior=absolute(prior), controlnets=tuple(nets), corrective=absolute(corrective), options=diffusers)
+
+
+def read_control_image(source, size: tuple[int, int], max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> Tensor:
+    """A conditioning image (a file, tensor (C, H, W), array or PIL image) as (3, H, W) in [0, 1] at the base's
+    ``size``: another size of the same aspect (within 1 %) is resampled; another aspect is refused."""
+    from lasagna.distill.objective import resize
+
+    if isinstance(source, (str, os.PathLike)):
+        from lasagna.io.image import read_image_file
+
+        img = torch.from_numpy(read_image_file(source, max_pixels=max_pixels).color).float()
+        where = str(source)
+    else:
+        img = Stack.from_image(source).tensors["base"].float()
+        where = "control_image"
+    if img.shape[0] == 1:
+        img = img.expand(3, -1, -1)
+    h, w = img.shape[-2:]
+    if abs(h * size[1] - w * size[0]) > 0.01 * h * size[1]:
+        raise ImageError(
+            f"is {w}x{h}; expected the aspect of the image it conditions, {size[1]}x{size[0]} (any size)", where
+        )
+    return resize(img[:3][None], size)[0].clamp(0, 1)
 
 
 def check_edit_options(preset, optimize: int | None, steps: int | None = None) -> int | None:
@@ -271,6 +379,10 @@ class EditPlan:
     optimize: int
     base: Tensor
     carried: dict[str, bytes]
+    prompt: str | None = None
+    negative_prompt: str | None = None
+    own: OwnPrior | None = None
+    overrides: dict[str, Any] = field(default_factory=dict)
 
     def make(self, **options) -> LayerRun:
         """The layer: ``make_layer`` with this plan's choices and ``options`` (loss, guidance, seed, lr,
@@ -283,13 +395,26 @@ class EditPlan:
             method=self.method,
             optimize=self.optimize,
             generator_dir=self.resolved.generator,
+            own=self.own,
+            prompt=self.prompt,
+            negative_prompt=self.negative_prompt,
+            overrides=self.overrides,
             **options,
         )
 
     def finish(self, run: LayerRun, seconds: float) -> EditResult:
         """Put ``run``'s layer on top of the stack, record the edit and render the composite."""
         stack = self.stack
-        place_layer(stack, self.layer_id, self.resolved.preset, self.condition, self.on, run)
+        place_layer(
+            stack,
+            self.layer_id,
+            self.resolved.preset,
+            self.condition,
+            self.on,
+            run,
+            prompt=self.prompt,
+            negative_prompt=self.negative_prompt,
+        )
         _record(stack, self.layer_id, seconds, run, self.source)
         composite = stack.render().image.detach().clamp(0.0, 1.0)
         return EditResult(
@@ -316,20 +441,37 @@ def plan_edit(
     max_pixels: int = DEFAULT_EDIT_MAX_PIXELS,
     catalogue_dirs=None,
     resolve: Callable[[Stack], cat.Resolved] | None = None,
+    prompt: str | None = None,
+    negative_prompt: str | None = None,
+    own: OwnPrior | None = None,
 ) -> EditPlan:
     """Read ``image`` and decide its edit (``edit``'s arguments; ``optimize`` checked by
     ``check_edit_options``). ``resolve`` finds the preset for a stack (default ``lasagna.catalogue.resolve``;
-    a batch passes a cached one)."""
+    a batch passes a cached one). Free text (``prompt``) or one's own prior (``own``) is scored per image:
+    the preset's amortised generator knows neither."""
     stack = input_stack(image, max_pixels)
     if resolve is None:
         resolved = cat.resolve(preset, stack.folder, catalogue_dirs, need_prior=False)
     else:
         resolved = resolve(stack)
     p = resolved.preset
-    p.prompt_for(condition)  # ConditionError listing the vocabulary
+    for text, name in ((prompt, "prompt"), (negative_prompt, "negative_prompt")):
+        if text is not None and not (isinstance(text, str) and text.strip()):
+            raise ConditionError(f"got {text!r}; expected non-empty text", name)
+    if condition is None:
+        condition = PROMPT_LABEL if prompt is not None else p.vocabulary[0]
+    if prompt is None:
+        p.prompt_for(condition)  # ConditionError listing the vocabulary
     on = on if on is not None else stack.ids[-1]
     stack.document.index(on)  # DocumentError listing the ids
-    method = choose_method(resolved, generator)
+    own_scored = prompt is not None or (own is not None and own.prior is not None)
+    if own_scored and generator is not None and canonical_method(generator) == "amortised":
+        raise LasagnaError(
+            "the amortised generator was trained with the preset's prior and labels; expected --generator free "
+            "with --prior or --prompt",
+            "generator",
+        )
+    method = choose_method(resolved, "per-image" if own_scored else generator)
     if method == "per-image" and optimize == 0:
         raise LasagnaError(
             "per-image optimisation with 0 steps would leave the identity edit; expected --optimize N > 0", "optimize"
@@ -345,12 +487,26 @@ def plan_edit(
         optimize=default_steps(resolved, method) if optimize is None else optimize,
         base=conditioning_input(stack, on),
         carried=carried_files(stack),  # before the new layer: its generator is not in the input folder
+        prompt=prompt,
+        negative_prompt=negative_prompt,
     )
 
 
-def place_layer(stack: Stack, layer_id: str, preset, label: str, on: str, run: LayerRun) -> None:
+def place_layer(
+    stack: Stack,
+    layer_id: str,
+    preset,
+    label: str,
+    on: str,
+    run: LayerRun,
+    *,
+    prompt: str | None = None,
+    negative_prompt: str | None = None,
+) -> None:
     """Add (or update) the learned layer ``layer_id`` with ``run``'s pixels, settings and generator."""
     settings = run.settings.to_json()
+    condition = {"label": label}
+    condition.update({k: v for k, v in (("prompt", prompt), ("negative_prompt", negative_prompt)) if v is not None})
     fields = {
         "id": layer_id,
         "name": f"{preset.name.capitalize()} ({label})",
@@ -358,7 +514,7 @@ def place_layer(stack: Stack, layer_id: str, preset, label: str, on: str, run: L
         "blend": preset.blend,
         "range": list(preset.range),
         "preset": preset.name,
-        "condition": {"label": label},
+        "condition": condition,
         "conditioned_on": on,
         "generator": run.generator_ref,
         "settings": settings,
@@ -418,6 +574,11 @@ def carried_files(stack: Stack) -> dict[str, bytes]:
                     f"{layer.generator.checkpoint!r} does not exist; expected the generator's weights",
                     f"layers[{i}].generator.checkpoint",
                 )
+        control = layer.settings.get("control_image") if isinstance(layer.settings, dict) else None
+        if isinstance(control, str):  # the layer's conditioning image (``lasagna.learned.CONTROLS_DIR``)
+            src = resolve_inside(stack.folder, control, f"layers[{i}].settings.control_image")
+            if src.is_file():
+                out[control] = src.read_bytes()
         shipped = stack.folder / "layers" / layer.preset / "preset.json"
         if "/" not in layer.preset and shipped.is_file():
             out[f"layers/{layer.preset}/preset.json"] = shipped.read_bytes()
@@ -466,6 +627,8 @@ def render_learned(
             layer.condition.label,
             layer.conditioned_on,
             run,
+            prompt=layer.condition.prompt,
+            negative_prompt=layer.condition.negative_prompt,
         )
         files.update(run.files)
         _record(stack, layer.id, time.monotonic() - start, run, rendered=True)
@@ -514,7 +677,8 @@ def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) 
     where = f"layer {layer.id!r}"
     resolved = cat.resolve(layer.preset, stack.folder, catalogue_dirs, need_prior=False)
     preset = resolved.preset
-    preset.prompt_for(layer.condition.label)
+    if layer.condition.prompt is None:
+        preset.prompt_for(layer.condition.label)
     s = LayerSettings.parse(layer.settings, where)
     method = s.method if s.method is not None else choose_method(resolved, None)
     optimize = s.optimize if s.optimize is not None else default_steps(resolved, method)
@@ -553,6 +717,19 @@ def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) 
     base = conditioning_input(stack, layer.conditioned_on)
     refs = {k: _confined_ref(stack, getattr(s, k), f"{where}.settings.{k}") for k in ("prior", "corrective")}
     refs = {k: v for k, v in refs.items() if v is not None}
+    control = None
+    if s.control_image is not None:
+        from lasagna.io.image import read_image_file
+
+        path = (
+            resolve_inside(stack.folder, s.control_image, f"{where}.settings.control_image") if stack.folder else None
+        )
+        if path is None or not path.is_file():
+            raise PathError(
+                f"{s.control_image!r} does not exist; expected the layer's conditioning image in the stack folder",
+                f"{where}.settings.control_image",
+            )
+        control = torch.from_numpy(read_image_file(path, max_pixels=stack.width * stack.height).color).float()
     run = make_layer(
         base,
         resolved,
@@ -567,9 +744,21 @@ def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) 
         device=device,
         progress=progress,
         working=s.working_size if s.working_size is not None else "full",  # recorded without one: the base's size
+        prompt=layer.condition.prompt,
+        negative_prompt=layer.condition.negative_prompt,
+        options=s.diffusers,
+        control=control,
     )
+    changed = changed_weights(s.weights, run.settings.weights or {}) if s.weights is not None else []
     recorded = s.prior_sha256
-    if recorded is not None and run.settings.prior_sha256 not in (None, recorded):
+    if changed:
+        more = f" (+{len(changed) - 1} more)" if len(changed) > 1 else ""
+        warnings.warn(
+            f"{where}: {changed[0]}{more} differs from the file the layer was made with (sha256); the layer is "
+            "re-rendered with the current weights",
+            stacklevel=2,
+        )
+    elif s.weights is None and recorded is not None and run.settings.prior_sha256 not in (None, recorded):
         warnings.warn(
             f"{where}: the catalogue's prior {run.settings.prior!r} differs from the one the layer was "
             "made with (sha256); the layer is re-rendered with the current one",

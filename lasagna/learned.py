@@ -23,12 +23,13 @@ from torch import Tensor
 from lasagna import catalogue as cat
 from lasagna.distill import DistillSettings
 from lasagna.document import LearnedLayer
-from lasagna.document.preset import METHODS, Method
+from lasagna.document.preset import METHODS, ControlNetRef, DiffusersOptions, Method
 from lasagna.errors import ConditionError, DocumentError, LasagnaError, describe_validation_error
 from lasagna.io.stack import Stack
 from lasagna.limits import MAX_DISTILL_STEPS
 
 GENERATORS_DIR = "generators"  # <stack>/generators/<layer id>/: copies of the generators a stack uses
+CONTROLS_DIR = "controls"  # <stack>/controls/<layer id>.png: the user's conditioning image of a layer
 
 # How a learned layer is made (``lasagna.edit`` describes both; the names are the document tier's,
 # ``lasagna.document.preset.Method``). ``free`` — the CLI's ``--generator free``, "a free per-pixel
@@ -60,8 +61,22 @@ class LayerSettings(BaseModel):
     method: Method | None = Field(None, description="amortised (the preset's generator) or per-image.")
     optimize: int | None = Field(None, ge=0, le=MAX_DISTILL_STEPS, strict=True, description="Per-image steps.")
     prior: str | None = Field(None, description="The prior scored against, by catalogue name or path.")
-    prior_sha256: str | None = Field(None, description="SHA-256 of the prior's model.safetensors.")
+    prior_sha256: str | None = Field(
+        None,
+        description="SHA-256 of the prior's model.safetensors (a diffusers prior: of its files' names and SHA-256s, "
+        "ControlNets included, as ``weights`` lists them).",
+    )
     corrective: str | None = Field(None, description="The LMC-SDS corrective, when the loss used one.")
+    controlnets: list[ControlNetRef] | None = Field(None, description="A diffusers prior's ControlNets, as used.")
+    diffusers: DiffusersOptions | None = Field(None, description="How a diffusers prior was loaded and run.")
+    control_image: str | None = Field(
+        None, description="The conditioning image used instead of the base: a PNG inside the stack folder."
+    )
+    weights: dict[str, str] | None = Field(
+        None,
+        description="SHA-256 of every file the prior, its ControlNets and the corrective were read from, by name "
+        "(prior/…, controlnet<i>/…, corrective/…); `lasagna render` warns when one changed.",
+    )
     distill: DistillSettings | None = Field(None, description="The per-image run's resolved settings.")
     working_size: int | None = Field(
         None, ge=8, le=4096, strict=True, description="The long side the layer was made at (absent: the base's size)."
@@ -85,6 +100,9 @@ class LayerSettings(BaseModel):
         data = self.model_dump(mode="json")
         if self.distill is None:
             data = {k: data[k] for k in ("method", "optimize", "working_size")}
+        for key in ("controlnets", "diffusers", "control_image", "weights"):  # absent: as before they existed
+            if data.get(key) is None:
+                data.pop(key, None)
         if self.working_size is None:
             del data["working_size"]  # a layer made at the base's size: the document as before working sizes
         return data
@@ -147,32 +165,110 @@ def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
+# (resolved path, size, mtime_ns) -> SHA-256: a multi-GB diffusers checkpoint is read once per process, not
+# once per edit (a file rewritten in place changes its mtime, so a stale digest is not reused).
+_SHA_CACHE: dict[tuple[str, int, int], str] = {}
+
+
 def file_sha256(path: Path) -> str:
+    stat = Path(path).stat()
+    key = (str(Path(path).resolve()), stat.st_size, stat.st_mtime_ns)
+    if key in _SHA_CACHE:
+        return _SHA_CACHE[key]
     digest = hashlib.sha256()
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
             digest.update(block)
-    return digest.hexdigest()
+    _SHA_CACHE[key] = digest.hexdigest()
+    return _SHA_CACHE[key]
+
+
+def files_sha256(files: dict[str, Path]) -> dict[str, str]:
+    """SHA-256 of each file by name (the files that exist; a missing one is simply not listed)."""
+    return {name: file_sha256(path) for name, path in sorted(files.items()) if Path(path).is_file()}
+
+
+def listing_sha256(digests: dict[str, str]) -> str:
+    """One SHA-256 for several files: of their "name digest" lines, sorted by name."""
+    return _sha256("".join(f"{name} {digest}\n" for name, digest in sorted(digests.items())).encode())
+
+
+def changed_weights(recorded: dict[str, str], current: dict[str, str]) -> list[str]:
+    """The names whose digest differs between two ``weights`` records (changed, missing or new), sorted."""
+    return sorted(n for n in set(recorded) | set(current) if recorded.get(n) != current.get(n))
+
+
+@dataclass
+class OwnPrior:
+    """A prior chosen for one edit instead of the preset's (``lasagna edit --prior``): a folder or catalogue
+    name, its ControlNets (a folder's), a corrective (the preset's was fitted to its own prior, so it is not
+    used), how a diffusers prior runs (``options``, over the preset's), and the conditioning image to use
+    instead of the base (``control``: (C, H, W) in [0, 1] at the base's size, or None)."""
+
+    prior: str | None = None
+    controlnets: tuple[ControlNetRef, ...] = ()
+    corrective: str | None = None
+    options: DiffusersOptions | None = None
+    control: Tensor | None = None
+
+
+@dataclass
+class Components:
+    """What a per-image run is scored with, and the record of it: the prior and its reference, the SHA-256
+    of its weights (``prior_sha``) and of every file read (``weights``), the corrective and its reference,
+    a diffusers prior's ControlNets and options as used."""
+
+    prior: Any
+    prior_ref: str
+    prior_sha: str | None
+    corrective: Any
+    corrective_ref: str | None
+    weights: dict[str, str]
+    controlnets: list[ControlNetRef] | None
+    options: DiffusersOptions | None
 
 
 def _components(
-    resolved: cat.Resolved, label: str, loss: str, catalogue_dirs, device, refs: dict[str, Any] | None = None
-):
-    """(prior, prior ref, its weights' sha256, corrective, corrective ref) for a per-image run: those the
-    preset names, or those named in ``refs`` (a layer's stored settings: a re-render uses what the
-    layer was made with, not what the preset names today)."""
+    resolved: cat.Resolved,
+    label: str,
+    loss: str,
+    catalogue_dirs,
+    device,
+    refs: dict[str, Any] | None = None,
+    *,
+    own: OwnPrior | None = None,
+    prompt: str | None = None,
+    negative_prompt: str | None = None,
+    options: DiffusersOptions | None = None,
+) -> Components:
+    """The prior and corrective of a per-image run: those the preset names, those named in ``refs`` (a
+    layer's stored settings: a re-render uses what the layer was made with, not what the preset names
+    today), or the user's ``own`` (then the preset's corrective is not used). ``prompt`` (free text for
+    ``label``) and ``negative_prompt`` go to a text-conditioned prior; ``options`` (stored settings) or
+    ``own.options`` replace the preset's diffusers options."""
     preset = resolved.preset
-    refs = refs or {}
+    refs = dict(refs or {})
     here = resolved.preset_file.parent
+    if own is not None and own.prior is not None:
+        refs = {"prior": own.prior, "corrective": own.corrective}
     prior_ref = refs.get("prior") or preset.prior
-    corrective_ref = refs.get("corrective") or preset.corrective
-    prior_dir = cat.find(
+    corrective_ref = refs["corrective"] if "corrective" in refs else preset.corrective
+    user = own is not None and own.prior is not None  # paths are the user's own (absolute), not the preset's
+    source = cat.prior_source(
         prior_ref,
-        "prior",
+        controlnets=own.controlnets if own is not None else (),
         catalogue_dirs=catalogue_dirs,  # raises, listing the priors there are
-        relative_to=here if "/" in prior_ref else None,
+        relative_to=here if "/" in prior_ref and not user else None,
     )
-    prior = cat.load_prior(prior_dir, preset=preset, device=device)
+    opts = options or (own.options if own is not None else None) or preset.diffusers or DiffusersOptions()
+    prior = cat.load_prior(
+        source,
+        preset=preset,
+        device=device,
+        options=opts,
+        prompts={label: prompt} if prompt else None,
+        negative_prompt=negative_prompt,
+    )
     known = tuple(getattr(prior, "vocabulary", ()) or ())
     if known and label not in known:
         raise ConditionError(
@@ -180,29 +276,47 @@ def _components(
             f"expected one of {', '.join(known)}",
             "condition.label",
         )
-    weights = prior_dir / "model.safetensors"
-    prior_sha = file_sha256(weights) if weights.is_file() else None
+    diffusers = source.kind == "diffusers"
+    weights = files_sha256(source.files(opts.variant if diffusers else None))
+    prior_sha = listing_sha256(weights) if diffusers else weights.get("prior/model.safetensors")
     corrective = None
     if loss == "lmc-sds":
         if corrective_ref is None:
+            hint = (
+                "--corrective PATH (fit one: lasagna train-corrective --kind spectral --prior PATH)"
+                if user
+                else "another --loss or a preset with a corrective"
+            )
             raise LasagnaError(
-                f"loss 'lmc-sds' needs a corrective and preset {preset.name!r} names none; expected "
-                "another --loss or a preset with a corrective",
+                f"loss 'lmc-sds' needs a corrective (b-hat of LMC-SDS eq. 10) and none is given; expected {hint}",
                 "loss",
             )
-        corrective = cat.load_corrective(
+        corrective_dir = cat.find(
             corrective_ref,
+            "corrective",
             catalogue_dirs=catalogue_dirs,
-            relative_to=here if "/" in corrective_ref else None,
-            device=device,
+            relative_to=here if "/" in corrective_ref and not user else None,
         )
-    return prior, prior_ref, prior_sha, corrective, corrective_ref if loss == "lmc-sds" else None
+        corrective = cat.load_corrective(corrective_dir, device=device)
+        weights.update(
+            files_sha256({f"corrective/{n}": corrective_dir / n for n in ("model.safetensors", "config.json")})
+        )
+    return Components(
+        prior=prior,
+        prior_ref=str(prior_ref),
+        prior_sha=prior_sha,
+        corrective=corrective,
+        corrective_ref=corrective_ref if loss == "lmc-sds" else None,
+        weights=weights,
+        controlnets=list(source.controlnets) if diffusers else None,
+        options=opts if diffusers else None,
+    )
 
 
-def _distill_settings(preset, *, refine: bool, steps: int | None, loss, guidance, seed, lr):
+def _distill_settings(preset, *, refine: bool, steps: int | None, loss, guidance, seed, lr, **more):
     from lasagna.distill.schedules import Weights
 
-    settings = DistillSettings.from_preset(preset, loss=loss, guidance=guidance, steps=steps, seed=seed, lr=lr)
+    settings = DistillSettings.from_preset(preset, loss=loss, guidance=guidance, steps=steps, seed=seed, lr=lr, **more)
     return settings.model_copy(update={"weights": Weights()}) if refine else settings
 
 
@@ -269,8 +383,19 @@ def make_layer(
     working: int | Literal["preset", "full"] = "preset",
     loaded: LoadedGenerator | None = None,
     initial: Tensor | None = None,
+    own: OwnPrior | None = None,
+    prompt: str | None = None,
+    negative_prompt: str | None = None,
+    options: DiffusersOptions | None = None,
+    control: Tensor | None = None,
+    overrides: dict[str, Any] | None = None,
 ) -> LayerRun:
     """One learned layer (C, H, W) for ``base`` (3, H, W) in [0, 1] and ``label`` (module docstring).
+
+    ``own``: the user's prior instead of the preset's (``OwnPrior``; its ``control`` image, too);
+    ``prompt``/``negative_prompt``: the layer's free text (a text-conditioned prior); ``options`` and
+    ``control`` (C, H, W): a diffusers prior's stored options and conditioning image, for a re-render;
+    ``overrides``: more ``DistillSettings`` fields over the preset's (``t_min``, ``t_max``, ``aspect``).
 
     ``distill`` (stored settings) replaces the preset defaults and the loss/guidance/seed/lr overrides,
     and ``refs`` (``prior``, ``corrective``) the preset's prior and corrective: how ``render_learned``
@@ -318,20 +443,52 @@ def make_layer(
             ds = distill
         else:
             ds = _distill_settings(
-                preset, refine=initial is not None, steps=optimize, loss=loss, guidance=guidance, seed=seed, lr=lr
+                preset,
+                refine=initial is not None,
+                steps=optimize,
+                loss=loss,
+                guidance=guidance,
+                seed=seed,
+                lr=lr,
+                **(overrides or {}),
             )
-        prior, prior_ref, prior_sha, corrective, corrective_ref = _components(
-            resolved, label, ds.loss, catalogue_dirs, device, refs
+        parts = _components(
+            resolved,
+            label,
+            ds.loss,
+            catalogue_dirs,
+            device,
+            refs,
+            own=own,
+            prompt=prompt,
+            negative_prompt=negative_prompt,
+            options=options,
         )
+        control = control if control is not None else (own.control if own is not None else None)
+        control_ref = None
+        if control is not None:
+            from lasagna.io.png import encode_png
+
+            # Stored as a 16-bit PNG in the stack, and used as stored, so a re-render sees the same values.
+            control = control.float().clamp(0, 1).mul(65535).round().div(65535)
+            control_ref = f"{CONTROLS_DIR}/{layer_id}.png"
+            files[control_ref] = encode_png(control.numpy(), bit_depth=16, where="control image")
+            control = working_input(control, side, device)
         model = "free" if initial is None else FreeLayer.from_layer(ds.layer, initial)
-        run = distill_image(x, ds, prior, corrective, condition=label, generator=model, progress=progress)
+        run = distill_image(
+            x, ds, parts.prior, parts.corrective, condition=label, generator=model, progress=progress, control=control
+        )
         layer, history, stopped = run.layer.float(), run.history, run.stopped_reason
         settings = LayerSettings(
             method=method,
             optimize=ds.steps,
-            prior=prior_ref,
-            prior_sha256=prior_sha,
-            corrective=corrective_ref,
+            prior=parts.prior_ref,
+            prior_sha256=parts.prior_sha,
+            corrective=parts.corrective_ref,
+            controlnets=parts.controlnets,
+            diffusers=parts.options,
+            control_image=control_ref,
+            weights=parts.weights,
             distill=ds,
             working_size=side,
         )

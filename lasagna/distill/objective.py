@@ -12,13 +12,17 @@ L2 term keeps the composite near the input:
   The prior sees out-of-range values as they are; its score points back towards the image manifold.
 * **The view.** The prior works at one resolution (``prior_image_size``). The whole image is
   resized to it ("downsample the optimization state to 128×128 px", LMC-SDS Sec. 5) with area
-  averaging (antialiased; bilinear where a side must grow), or — the LMC-SDS patch strategy — the
+  averaging (antialiased; bilinear where a side must grow) — an image of another aspect is
+  letterboxed (``aspect="letterbox"``: scaled to fit, centred, the rest filled with mid-gray
+  ``LETTERBOX_FILL``, which carries no gradient) or stretched (``"stretch"``) — or — the LMC-SDS patch strategy — the
   loss sees random crops of the prior's size at native resolution (``patches``: rows (sample, top,
   left)). Only the crops are composed then (blending is per pixel, so a crop of the composite is
   the composite of the crops).
 * **The conditioning image** is the base in the same view (ControlNet-style: what the prior was
   trained to be conditioned on): RGB, or its Rec. 709 luma for a prior with one conditioning channel
-  (the colourisation prior), or none for a prior without one (``condition_image="auto"``). For DDS the
+  (the colourisation prior), or none for a prior without one (``condition_image="auto"``); or a
+  user's ``control`` image (depth, normals, edges: (B, C, H, W) aligned with the base, put in the
+  same view — letterboxed or cropped exactly like the base). For DDS the
   source image is the base's view too: the composite of the identity edit.
 * **Scales.** S is the loss's surrogate divided by the number of its elements, and the L2 is a mean
   over the same pixels the loss sees (the whole image, or the crops at native resolution), so per
@@ -46,6 +50,9 @@ from lasagna.priors.base import Condition, Prior
 
 ConditionImage = Literal["auto", "base", "luma", "none"]
 REC709 = (0.2126, 0.7152, 0.0722)  # the luma the colourisation prior is conditioned on (lasagna.world.tasks)
+# The letterbox bars: mid-gray, the value farthest from both ends of [0, 1], so the prior reads them as a
+# flat neutral border rather than as black or white content. They are constants: no gradient reaches them.
+LETTERBOX_FILL = 0.5
 
 
 # -- views -----------------------------------------------------------------------------------------
@@ -63,6 +70,23 @@ def resize(image: Tensor, size: tuple[int, int]) -> Tensor:
     if image.shape[-2] >= size[0] and image.shape[-1] >= size[1]:
         return F.interpolate(image, size=size, mode="area")
     return F.interpolate(image, size=size, mode="bilinear", align_corners=False, antialias=True)
+
+
+def letterbox(image: Tensor, size: tuple[int, int]) -> Tensor:
+    """(B, C, H, W) → (B, C, *size): scaled to fit inside ``size`` with its aspect kept (``resize``),
+    centred, the rest ``LETTERBOX_FILL``."""
+    h, w = image.shape[-2:]
+    scale = min(size[0] / h, size[1] / w)
+    inner = (max(1, min(size[0], round(h * scale))), max(1, min(size[1], round(w * scale))))
+    fitted = resize(image, inner)
+    top, left = (size[0] - inner[0]) // 2, (size[1] - inner[1]) // 2
+    pad = (left, size[1] - inner[1] - left, top, size[0] - inner[0] - top)
+    return F.pad(fitted, pad, value=LETTERBOX_FILL) if any(pad) else fitted
+
+
+def view_of(image: Tensor, size: tuple[int, int], aspect: str = "stretch") -> Tensor:
+    """The whole image in the prior's view: ``letterbox`` (aspect kept) or ``stretch`` (``resize``)."""
+    return letterbox(image, size) if aspect == "letterbox" else resize(image, size)
 
 
 def draw_patches(
@@ -88,8 +112,13 @@ def crop(x: Tensor, patches: Tensor, size: tuple[int, int]) -> Tensor:
     return torch.stack([x[s, :, t : t + ph, left : left + pw] for s, t, left in patches.tolist()])
 
 
-def conditioning_image(prior: Prior, base_view: Tensor, mode: ConditionImage = "auto") -> Tensor | None:
-    """The ControlNet-style conditioning image for ``prior`` from the base in the prior's view."""
+def conditioning_image(
+    prior: Prior, base_view: Tensor, mode: ConditionImage = "auto", control_view: Tensor | None = None
+) -> Tensor | None:
+    """The ControlNet-style conditioning image for ``prior`` from the base in the prior's view (or the
+    user's control image in that view, when there is one)."""
+    if control_view is not None:
+        return control_view.detach()
     if mode == "auto":
         channels = getattr(getattr(prior, "config", None), "cond_channels", None)
         mode = {0: "none", 1: "luma"}.get(channels, "base") if channels is not None else "base"
@@ -171,10 +200,13 @@ class ScoreObjective:
         guidance: float,
         weights: Weights,
         condition_image: ConditionImage = "auto",
+        aspect: str = "stretch",
+        control: Tensor | None = None,
     ):
         self.spec, self.prior, self.loss, self.guidance = spec, prior, loss, float(guidance)
-        self.weights, self.condition_image = weights, condition_image
+        self.weights, self.condition_image, self.aspect = weights, condition_image, aspect
         self.size = prior_image_size(prior)
+        self.control = None if control is None else control.detach()  # (B, C, H, W), aligned with the base
 
     def __call__(
         self,
@@ -198,26 +230,35 @@ class ScoreObjective:
                 f"{base.shape[-1]})",
                 "layer",
             )
+        if self.control is not None and (
+            self.control.shape[0] != b or tuple(self.control.shape[-2:]) != tuple(base.shape[-2:])
+        ):
+            raise LasagnaError(
+                f"the control image has shape {tuple(self.control.shape)}; expected ({b}, C, {base.shape[-2]}, "
+                f"{base.shape[-1]}), aligned with the base",
+                "control_image",
+            )
         labels = label_list(labels, b)
         negative = None if negative is None else label_list(negative, b, "negative")
         if patches is None:
             comp = composite(base, layer, self.spec)  # (B, 3, H, W), unclamped
             reg = (comp - base).pow(2).mean()
-            view, base_view = resize(comp, self.size), resize(base, self.size)
+            view, base_view = view_of(comp, self.size, self.aspect), view_of(base, self.size, self.aspect)
+            control = None if self.control is None else view_of(self.control, self.size, self.aspect)
         else:
             rows = patches[:, 0].tolist()
             base_p = crop(base, patches, self.size)
             comp = composite(base_p, crop(layer, patches, self.size), self.spec)
             reg = (comp - base_p).pow(2).mean()
             view, base_view = comp, base_p
+            control = None if self.control is None else crop(self.control, patches, self.size)
             labels = [labels[i] for i in rows]
             negative = None if negative is None else [negative[i] for i in rows]
         if isinstance(self.loss, DDS):
             self.loss.source_image = base_view.detach()  # the source is the identity edit's composite
             negative = labels if negative is None else negative
-        cond = Condition(
-            labels, image=conditioning_image(self.prior, base_view, self.condition_image), negative=negative
-        )
+        image = conditioning_image(self.prior, base_view, self.condition_image, control)
+        cond = Condition(labels, image=image, negative=negative)
         out = self.loss(view, self.prior, cond, self.guidance, rng=rng, step=step)
         score = out.loss / out.diagnostics.grad.numel()
         w_score, w_reg = self.weights.at(step)

@@ -13,7 +13,9 @@ image is affected by the loss, but the signal may be blurry"); the remaining ste
 of the prior's size at native resolution ("to prevent the loss from producing fake detail … we lower
 the learning rate during this phase through Cosine decay": ``cosine_lr`` over the run). A free layer
 lives at native resolution; a generator is fully convolutional. Images whose sides are not both at
-least the prior's size use the whole view only; a non-square image is resized to the prior's square.
+least the prior's size use the whole view only; an image of another aspect than the prior's is
+letterboxed into its view (``settings.aspect``; ``"stretch"`` resizes it, as settings stored before
+the option meant).
 A preset sets ``whole_fraction`` (``distill.whole_fraction``): 1 keeps smooth layers off the crops
 (the light layer lost 2.6 dB to them at 64²; docs/BENCHMARKS.md#learned-layers).
 
@@ -140,6 +142,7 @@ def distill_image(
     progress: bool = False,
     checkpoint_dir: str | Path | None = None,
     callback: Callable[[int, Tensor], None] | None = None,
+    control: Tensor | None = None,
     **settings_overrides: Any,
 ) -> DistillResult:
     """Distil the edit layer of ``base`` (B, 3, H, W) or (3, H, W) in [0, 1] (see the module docstring).
@@ -153,6 +156,8 @@ def distill_image(
     ``FreeLayer`` to start from (copied, then fine-tuned). Runs on ``base``'s device.
     ``callback(step, layer)``, if given, sees the layer (detached, before that step's update) after
     every step's record is written — how benchmarks trace error against time without a second run.
+    ``control`` (B or 1, C, H, W) in [0, 1], aligned with ``base``: the ControlNet's conditioning image
+    instead of the base (a depth map, normals, edges), put in the prior's view like the base.
     """
     named = dict(loss=loss, guidance=guidance, steps=steps, lr=lr, seed=seed, patches=patches)
     if isinstance(early_stop, EarlyStop) or early_stop is True:
@@ -175,6 +180,8 @@ def distill_image(
         settings.guidance,
         weights,
         settings.condition_image,
+        settings.aspect,
+        control=None if control is None else control.to(base.device).expand(b, -1, -1, -1),
     )
     size = prior_image_size(prior)
     patchable = h >= size[0] and w >= size[1] and (h, w) != tuple(size)

@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from lasagna.distill.objective import ConditionImage
 from lasagna.distill.schedules import Ramp, Weights
-from lasagna.document.preset import LossName
+from lasagna.document.preset import Aspect, LossName
 from lasagna.errors import describe_validation_error
 from lasagna.generators.layer import LayerSpec
 from lasagna.limits import MAX_CROPS_PER_STEP, MAX_DISTILL_STEPS
@@ -87,6 +87,9 @@ class DistillSettings(BaseModel):
     patches: PatchConfig = PatchConfig()
     early_stop: EarlyStop | None = EarlyStop()
     condition_image: ConditionImage = "auto"
+    # Settings stored before ``aspect`` existed were made by stretching: that stays their meaning (a preset's
+    # default, which new edits take, is letterbox).
+    aspect: Aspect = Field("stretch", description="A view of another aspect than the prior's: letterbox or stretch.")
     checkpoint_every: int = Field(
         50, ge=1, le=MAX_DISTILL_STEPS, description="Steps between checkpoints when a checkpoint folder is given."
     )
@@ -114,6 +117,7 @@ class DistillSettings(BaseModel):
             "t_max": d.t_max,
             "seed": d.seed,
             "patches": PatchConfig(whole_fraction=d.whole_fraction),
+            "aspect": d.aspect,
         }
         return cls.parse({**data, **{k: v for k, v in overrides.items() if v is not None}})
 

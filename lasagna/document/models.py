@@ -67,10 +67,18 @@ class Size(StrictModel):
 
 
 class Condition(StrictModel):
-    """What a learned layer is asked for: a label of its preset's vocabulary, optionally a prompt."""
+    """What a learned layer is asked for: a label of its preset's vocabulary, optionally a prompt (free text for
+    a text-conditioned prior: the label then only names it) and a negative prompt."""
 
     label: str = Field(min_length=1, description="A label of the preset's condition vocabulary, e.g. 'left'.")
-    prompt: str | None = Field(None, min_length=1, description="Prompt overriding the preset's template.")
+    prompt: str | None = Field(
+        None, min_length=1, description="Free-text prompt replacing the preset's template (text-conditioned priors)."
+    )
+    negative_prompt: str | None = Field(
+        None,
+        min_length=1,
+        description="Text replacing the unconditional branch of classifier-free guidance (text-conditioned priors).",
+    )
 
 
 class GeneratorRef(StrictModel):

@@ -47,6 +47,14 @@ Method = Literal["amortised", "per-image"]
 METHODS: tuple[str, ...] = get_args(Method)
 
 
+# How a view of another aspect than the prior's is made (``lasagna.distill.objective``): ``letterbox`` keeps
+# the image's aspect (scaled to fit, the rest filled), ``stretch`` resizes it to the prior's shape.
+Aspect = Literal["letterbox", "stretch"]
+
+# Floating-point types a diffusers prior may run in ("auto": float16 on CUDA, float32 elsewhere).
+TorchDtype = Literal["auto", "float32", "float16", "bfloat16"]
+
+
 class DistillDefaults(StrictModel):
     """Default settings of a per-image distillation run (overridable per layer via ``settings``)."""
 
@@ -67,12 +75,54 @@ class DistillDefaults(StrictModel):
         "downsampled to the prior's size; the rest on random crops at native resolution (LMC-SDS, Sec. 5). "
         "1 = whole image only, for layers that should stay smooth.",
     )
+    aspect: Aspect = Field(
+        "letterbox",
+        description="An image of another aspect than the prior's: 'letterbox' scales it to fit and fills the rest "
+        "(the aspect is kept), 'stretch' resizes it to the prior's shape.",
+    )
 
     @model_validator(mode="after")
     def _t_interval(self) -> DistillDefaults:
         if not self.t_min < self.t_max:
             raise RuleError(f"t_min {self.t_min} >= t_max {self.t_max}; the rule is t_min < t_max", loc=("t_min",))
         return self
+
+
+class DiffusersOptions(StrictModel):
+    """How a diffusers prior is loaded and run (``lasagna.priors.diffusers``); other priors ignore it."""
+
+    torch_dtype: TorchDtype = Field(
+        "auto", description="Type the networks are read and run in; auto: float16 on CUDA, float32 elsewhere."
+    )
+    variant: str | None = Field(
+        None, min_length=1, description="Weight files' variant, e.g. 'fp16' (diffusion_pytorch_model.fp16.safetensors)."
+    )
+    cpu_offload: bool = Field(False, description="Keep each network on the CPU until it runs (needs CUDA).")
+    attention_slicing: bool = Field(False, description="Compute attention in slices: less memory, a little slower.")
+    channels_last: bool = Field(False, description="NHWC activations in the UNet and ControlNets (faster on GPUs).")
+    latent: Literal["mean", "sample"] = Field(
+        "mean", description="The VAE posterior's mean, or a seeded sample of it, as the latent."
+    )
+    conditioning_scale: FiniteFloat = Field(
+        1.0, ge=0, description="Scale of every ControlNet's residuals that has no scale of its own."
+    )
+
+
+class ControlNetRef(StrictModel):
+    """A ControlNet of a diffusers prior: its folder (written by save_pretrained) and residual scale."""
+
+    path: str = Field(min_length=1, description="The ControlNet's folder (absolute, or relative to the entry).")
+    scale: FiniteFloat | None = Field(None, ge=0, description="Residual scale; None: the options' conditioning_scale.")
+
+
+class PriorLink(StrictModel):
+    """A catalogue entry that points at a diffusers prior elsewhere on disk (``<catalogue>/<name>/config.json``,
+    written by ``lasagna prior add``): the weights stay where they are, the catalogue names them."""
+
+    format: Literal["lasagna.prior_link"] = Field(description="Always 'lasagna.prior_link'.")
+    version: Literal[1] = Field(description="Format version; this is version 1.")
+    path: str = Field(min_length=1, description="The diffusers pipeline folder (absolute).")
+    controlnets: tuple[ControlNetRef, ...] = Field((), description="Its ControlNets, in order.")
 
 
 class Preset(StrictModel):
@@ -96,6 +146,9 @@ class Preset(StrictModel):
     )
     prompt: str = Field(description="Prompt template with one '{label}' placeholder.")
     distill: DistillDefaults = Field(DistillDefaults(), description="Default distillation settings.")
+    diffusers: DiffusersOptions | None = Field(
+        None, description="How a diffusers prior is loaded and run (dtype, variant, offload, …); None: the defaults."
+    )
     method: Method | None = Field(
         None,
         description="How `lasagna edit` makes the layer when not told: 'amortised' (the preset's generator, then "
@@ -191,10 +244,22 @@ def load_preset(path: str | os.PathLike) -> Preset:
     return preset
 
 
+def user_catalogue() -> Path:
+    """Where ``lasagna prior add`` writes when ``$LASAGNA_LAYERS`` names no folder:
+    ``$XDG_DATA_HOME/lasagna/layers`` (``~/.local/share/lasagna/layers`` without it), searched after
+    ``$LASAGNA_LAYERS``'s folders."""
+    data = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(data) / "lasagna" / "layers"
+
+
 def default_catalogues() -> list[Path]:
-    """Catalogue folders searched for preset names: ``$LASAGNA_LAYERS`` (os.pathsep-separated),
-    then the repository's ``layers/`` when running from a checkout."""
+    """Catalogue folders searched for preset names: ``$LASAGNA_LAYERS`` (os.pathsep-separated), the user's
+    catalogue (``user_catalogue()``, when it exists), then the repository's ``layers/`` when running from a
+    checkout."""
     dirs = [Path(p) for p in os.environ.get("LASAGNA_LAYERS", "").split(os.pathsep) if p]
+    user = user_catalogue()
+    if user.is_dir():
+        dirs.append(user)
     root = Path(__file__).resolve().parents[2]
     # A checkout has pyproject.toml beside layers/; an installed package's parents[2] is
     # site-packages, whose layers/ (if any) belongs to someone else. The installed copy of the
