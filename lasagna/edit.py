@@ -29,8 +29,8 @@ settings' typed model is ``lasagna.learned.LayerSettings``):
 
 **Bring your own prior.** ``prior=`` (a diffusers folder written by ``save_pretrained`` — SD 1.x/2.x or
 SDXL — or any prior folder or catalogue name) scores the preset's layer instead of the preset's prior,
-with ``controlnets`` (folders, or (folder, scale) pairs), ``corrective`` (its b̂, for LMC-SDS: the
-preset's was fitted to its own prior and is not used; without one the loss defaults to SDS) and
+with ``controlnets`` (folders, or (folder, scale) pairs), ``corrective`` (its b̂: the loss then defaults to
+LMC-SDS; the preset's b̂ was fitted to its own prior and is not used, so without one it is SDS) and
 ``diffusers`` options (dtype, variant, offload, …, over the preset's). ``prompt`` is free text (the
 label then only names it: ``"prompt"`` when no ``condition`` is given), ``negative_prompt`` replaces
 the unconditional branch; both are stored in the layer's ``condition``. ``control_image`` (a file or an
@@ -252,7 +252,7 @@ def edit(
     """
     start = time.monotonic()
     n = check_edit_options(preset, optimize, steps)
-    own = own_prior(prior, controlnets, corrective, diffusers)
+    own = own_prior(prior, controlnets, corrective)
     plan = plan_edit(
         image,
         preset,
@@ -267,22 +267,36 @@ def edit(
         negative_prompt=negative_prompt,
         own=own,
     )
-    if control_image is not None:
+    if control_image is not None or diffusers is not None:
         own = own or OwnPrior()
+        own.options = diffusers_options(plan.resolved.preset, diffusers)
+    if control_image is not None:
         own.control = read_control_image(control_image, tuple(plan.base.shape[-2:]), max_pixels)
     plan.own = own
     plan.overrides = {k: v for k, v in (("t_min", t_min), ("t_max", t_max), ("aspect", aspect)) if v is not None}
     if own is not None and own.prior is not None and loss is None:
-        # The preset's corrective belongs to its own prior: without the user's, LMC-SDS cannot run; SDS can.
+        # A corrective is given for LMC-SDS; without one (the preset's belongs to its own prior) LMC-SDS
+        # cannot run, and the preset's other losses still can.
         default = plan.resolved.preset.distill.loss
-        loss = "sds" if default == "lmc-sds" and own.corrective is None else None
+        loss = "lmc-sds" if own.corrective is not None else ("sds" if default == "lmc-sds" else None)
     run = plan.make(
         loss=loss, guidance=guidance, seed=seed, lr=lr, catalogue_dirs=catalogue_dirs, device=device, progress=progress
     )
     return plan.finish(run, time.monotonic() - start)
 
 
-def own_prior(prior, controlnets=(), corrective=None, diffusers=None) -> OwnPrior | None:
+def diffusers_options(preset, diffusers: DiffusersOptions | dict | None) -> DiffusersOptions:
+    """The diffusers options of an edit: ``DiffusersOptions`` as given, or a dict of fields over the preset's."""
+    if isinstance(diffusers, DiffusersOptions):
+        return diffusers
+    base = preset.diffusers or DiffusersOptions()
+    try:
+        return DiffusersOptions.model_validate({**base.model_dump(), **(diffusers or {})})
+    except ValidationError as err:
+        raise describe_validation_error(err, "diffusers", DiffusersOptions) from None
+
+
+def own_prior(prior, controlnets=(), corrective=None) -> OwnPrior | None:
     """``edit``'s prior options as an ``OwnPrior`` (None when none is given). A folder that exists is taken by
     its absolute path; anything else is a catalogue name. ControlNets and a corrective need ``prior``."""
     from lasagna.document.preset import ControlNetRef
@@ -292,26 +306,20 @@ def own_prior(prior, controlnets=(), corrective=None, diffusers=None) -> OwnPrio
             raise LasagnaError(
                 "ControlNets and a corrective go with a prior of one's own; expected --prior PATH too", "prior"
             )
-        if diffusers is None:
-            return None
+        return None
     nets = []
     for i, net in enumerate(controlnets):
         path, scale = net if isinstance(net, tuple) else (net, None)
         if not Path(path).is_dir():
             raise PathError("does not exist; expected a ControlNet folder written by save_pretrained", str(path))
         nets.append(ControlNetRef(path=str(Path(path).resolve()), scale=scale))
-    if isinstance(diffusers, dict):
-        try:
-            diffusers = DiffusersOptions.model_validate(diffusers)
-        except ValidationError as err:
-            raise describe_validation_error(err, "diffusers", DiffusersOptions) from None
 
     def absolute(ref):
         if ref is None:
             return None
         return str(Path(ref).resolve()) if Path(ref).is_dir() or isinstance(ref, os.PathLike) else str(ref)
 
-    return OwnPrior(prior=absolute(prior), controlnets=tuple(nets), corrective=absolute(corrective), options=diffusers)
+    return OwnPrior(prior=absolute(prior), controlnets=tuple(nets), corrective=absolute(corrective))
 
 
 def read_control_image(source, size: tuple[int, int], max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> Tensor:

@@ -254,6 +254,16 @@ def _components(
     prior_ref = refs.get("prior") or preset.prior
     corrective_ref = refs["corrective"] if "corrective" in refs else preset.corrective
     user = own is not None and own.prior is not None  # paths are the user's own (absolute), not the preset's
+    if loss == "lmc-sds" and corrective_ref is None:  # before the prior is loaded: a refusal costs nothing
+        hint = (
+            "--corrective PATH (fit one: lasagna train-corrective --kind spectral --prior PATH)"
+            if user
+            else "another --loss or a preset with a corrective"
+        )
+        raise LasagnaError(
+            f"loss 'lmc-sds' needs a corrective (b-hat of LMC-SDS eq. 10) and none is given; expected {hint}",
+            "loss",
+        )
     source = cat.prior_source(
         prior_ref,
         controlnets=own.controlnets if own is not None else (),
@@ -281,16 +291,6 @@ def _components(
     prior_sha = listing_sha256(weights) if diffusers else weights.get("prior/model.safetensors")
     corrective = None
     if loss == "lmc-sds":
-        if corrective_ref is None:
-            hint = (
-                "--corrective PATH (fit one: lasagna train-corrective --kind spectral --prior PATH)"
-                if user
-                else "another --loss or a preset with a corrective"
-            )
-            raise LasagnaError(
-                f"loss 'lmc-sds' needs a corrective (b-hat of LMC-SDS eq. 10) and none is given; expected {hint}",
-                "loss",
-            )
         corrective_dir = cat.find(
             corrective_ref,
             "corrective",

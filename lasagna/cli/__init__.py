@@ -8,6 +8,7 @@
     lasagna edit IMAGE --layer P --condition L -o OUT   add a learned layer; writes a stack folder
     lasagna render STACK [--all]                  render learned layers from their stored settings
     lasagna layers                                list the learned-layer catalogue
+    lasagna prior add PATH --name N               register your own prior (a diffusers folder) as --layer N
     lasagna demo -o DIR                           relight, colourise and light the bundled examples
     lasagna world -o DIR --split S --count N      procedural scenes as stack folders (lasagna.world)
     lasagna train-prior --task T --out DIR        train a conditional prior on the world (resumable)
@@ -46,6 +47,7 @@ from lasagna.cli import (
     export,
     import_ora,
     layers,
+    prior,
     render,
     schema,
     train_corrective,
@@ -69,6 +71,7 @@ COMMANDS: dict[str, ModuleType] = {
     "edit": edit,
     "render": render,
     "layers": layers,
+    "prior": prior,
     "demo": demo,
     "world": world,
     "train-prior": train_prior,

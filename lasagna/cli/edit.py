@@ -2,6 +2,10 @@
 
     lasagna edit IMAGE --layer shading --condition left -o OUT [--on ID] [--optimize N] [--loss NAME]
                  [--guidance W] [--steps N] [--seed S] [--lr LR] [--generator amortised|free] [--force]
+    lasagna edit IMAGE --prior SD_FOLDER [--controlnet CN [--controlnet-scale S]]… [--control-image IMG]
+                 --prompt "dramatic rim light" [--negative-prompt TEXT] [--corrective B_HAT] -o OUT
+                 [--dtype auto|float16|bfloat16|float32] [--variant fp16] [--cpu-offload] [--attention-slicing]
+                 [--channels-last] [--t-min T] [--t-max T] [--aspect letterbox|stretch]
     lasagna edit IMAGE… | FOLDER | 'GLOB' --condition left -o OUTDIR [--batch-size N] [--force]
     torchrun --nproc_per_node=N -m lasagna.cli edit 'photos/**/*.png' --condition left -o OUTDIR
 
@@ -46,7 +50,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="PRESET",
         help="learned-layer preset (default shading; see 'lasagna layers')",
     )
-    p.add_argument("--condition", required=True, metavar="LABEL", help="a label of the preset's vocabulary, e.g. left")
+    p.add_argument(
+        "--condition",
+        metavar="LABEL",
+        help="a label of the preset's vocabulary, e.g. left (required unless --prompt gives free text)",
+    )
     p.add_argument(
         "-o",
         "--output",
@@ -71,6 +79,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--steps", type=int, metavar="N", help="the same number as --optimize, named as in the preset")
     distill_arguments(p)
+    own_prior_arguments(p)
     p.add_argument("--no-ora", action="store_true", help="do not write stack.ora")
     p.add_argument(
         "--force",
@@ -92,6 +101,77 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help=f"refuse images with more than N pixels (default {DEFAULT_EDIT_MAX_PIXELS})",
     )
+
+
+def own_prior_arguments(p: argparse.ArgumentParser) -> None:
+    """A prior of one's own (``lasagna.edit``'s "Bring your own prior"), its prompts and how it runs."""
+    from lasagna.document.preset import ASPECTS, TORCH_DTYPES
+
+    g = p.add_argument_group("a prior of your own (a diffusers folder written by save_pretrained)")
+    g.add_argument("--prior", metavar="PATH", help="the prior folder (SD 1.x/2.x/SDXL diffusers folder) or name")
+    g.add_argument(
+        "--controlnet", action="append", default=[], metavar="PATH", help="a ControlNet folder (repeat for several)"
+    )
+    g.add_argument(
+        "--controlnet-scale",
+        action="append",
+        type=float,
+        default=[],
+        metavar="S",
+        help="residual scale of each --controlnet, in order (one for all, or one per net; default 1)",
+    )
+    g.add_argument(
+        "--control-image", metavar="IMG", help="the ControlNet's conditioning image (default: the base), same aspect"
+    )
+    g.add_argument("--prompt", metavar="TEXT", help="free text instead of the preset's template")
+    g.add_argument("--negative-prompt", metavar="TEXT", help="text replacing the unconditional branch")
+    g.add_argument("--corrective", metavar="PATH", help="the prior's b̂ for LMC-SDS (lasagna train-corrective)")
+    g.add_argument("--dtype", choices=TORCH_DTYPES, help="networks' float type (default auto)")
+    g.add_argument("--variant", metavar="NAME", help="weight files' variant, e.g. fp16")
+    g.add_argument("--cpu-offload", action="store_true", default=None, help="model CPU offload (CUDA)")
+    g.add_argument("--attention-slicing", action="store_true", default=None, help="attention in slices")
+    g.add_argument("--channels-last", action="store_true", default=None, help="NHWC activations")
+    g.add_argument("--conditioning-scale", type=float, metavar="S", help="scale of nets without their own")
+    g.add_argument("--t-min", type=float, metavar="T", help="t ~ U(t_min, t_max): lower end (default the preset's)")
+    g.add_argument("--t-max", type=float, metavar="T", help="upper end (default the preset's)")
+    g.add_argument(
+        "--aspect",
+        choices=ASPECTS,
+        help="another aspect than the prior's: letterbox (kept) or stretch (default the preset's, letterbox)",
+    )
+
+
+def _own_prior_options(args: argparse.Namespace) -> dict:
+    """``edit``'s own-prior keywords from the arguments (only those given)."""
+    nets, scales = args.controlnet, args.controlnet_scale
+    if scales and len(scales) not in (1, len(nets)):
+        raise LasagnaError(
+            f"got {len(scales)} --controlnet-scale for {len(nets)} --controlnet; expected one, or one per net",
+            "--controlnet-scale",
+        )
+    pairs = [(net, scales[0] if len(scales) == 1 else scales[i]) if scales else net for i, net in enumerate(nets)]
+    names = {
+        "dtype": "torch_dtype",
+        "variant": "variant",
+        "cpu_offload": "cpu_offload",
+        "attention_slicing": "attention_slicing",
+        "channels_last": "channels_last",
+        "conditioning_scale": "conditioning_scale",
+    }
+    diffusers = {field: getattr(args, arg) for arg, field in names.items() if getattr(args, arg) is not None}
+    options = dict(
+        prior=args.prior,
+        controlnets=pairs,
+        corrective=args.corrective,
+        control_image=args.control_image,
+        prompt=args.prompt,
+        negative_prompt=args.negative_prompt,
+        diffusers=diffusers or None,
+        t_min=args.t_min,
+        t_max=args.t_max,
+        aspect=args.aspect,
+    )
+    return {k: v for k, v in options.items() if v not in (None, [])}
 
 
 def many_inputs(images: list[str]) -> bool:
@@ -142,6 +222,14 @@ def run_many(args: argparse.Namespace) -> int:
     from lasagna.training.loop import init_distributed, shutdown_distributed
 
     options = _edit_options(args)  # refused before the process group is joined
+    if _own_prior_options(args):
+        raise LasagnaError(
+            "--prior, --prompt and their options take one input; expected one image or stack (a loop in the shell "
+            "for many)",
+            "edit",
+        )
+    if args.condition is None:
+        raise LasagnaError("the following argument is required with many inputs: --condition", "edit")
     info = init_distributed(args.device)  # nothing without torchrun's WORLD_SIZE > 1; gloo on CPU
     try:
         report = edit_many(
@@ -183,7 +271,9 @@ def run_one(args: argparse.Namespace) -> int:
 
     if Path(args.image).resolve() == out.resolve() and not args.force:
         raise PathError("is the input stack; expected another folder (or --force to replace it)", str(out))
-    result = edit(args.image, args.layer, args.condition, progress=progress(), **_edit_options(args))
+    result = edit(
+        args.image, args.layer, args.condition, progress=progress(), **_edit_options(args), **_own_prior_options(args)
+    )
     result.save(out, force=args.force, ora=not args.no_ora, warn=warn)
     s = result.settings
     how = (

@@ -1,5 +1,15 @@
 """``lasagna train-corrective``: train the LMC-SDS manifold corrective b̂ of a prior (resumable), or fit
-the spectral b̂ in closed form (``lasagna.training.corrective``)."""
+the spectral b̂ in closed form (``lasagna.training.corrective``).
+
+    lasagna train-corrective --kind spectral --prior layers/relight-32 --task relight --out runs/b
+    lasagna train-corrective --kind spectral --prior /models/sd [--controlnet CN]… --images photos/ --out runs/b
+
+The prior is a lasagna UNetPrior folder, a diffusers folder (SD 1.x/2.x/SDXL, written by save_pretrained;
+``--controlnet`` adds ControlNets) or a catalogue name. A diffusers prior's b̂ is fitted on its
+unconditional branch with each image as its own conditioning image (``unconditional_source``), on the
+images of ``--images`` or the world's (``--task``). ``OUT/corrective`` is what ``lasagna edit --corrective``
+and ``lasagna prior add --corrective`` take.
+"""
 
 from __future__ import annotations
 
@@ -36,9 +46,21 @@ def _filters(text: str) -> tuple[int, ...]:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from lasagna.document.preset import TORCH_DTYPES
     from lasagna.training.tasks import TASKS
 
-    p.add_argument("--prior", required=True, help="folder of a UNetPrior (model.safetensors + config.json)")
+    p.add_argument(
+        "--prior",
+        required=True,
+        help="the prior: a UNetPrior folder, a diffusers folder (written by save_pretrained) or a catalogue name",
+    )
+    p.add_argument(
+        "--controlnet", action="append", default=[], metavar="PATH", help="a diffusers prior's ControlNet (repeat)"
+    )
+    p.add_argument("--images", metavar="FOLDER", help="draw clean images from this folder of images; instead of --task")
+    p.add_argument(
+        "--dtype", choices=TORCH_DTYPES, default="auto", help="a diffusers prior's float type (auto: fp16 on CUDA)"
+    )
     p.add_argument(
         "--kind",
         choices=("network", "spectral"),
@@ -78,19 +100,58 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true")
 
 
-def run(args: argparse.Namespace) -> int:
-    from lasagna.priors.unet import UNetPrior
-    from lasagna.training.corrective import CorrectiveTrainConfig, corrective_config_for, fit_spectral, train_corrective
+def _load_prior(args: argparse.Namespace):
+    """(prior, its image side, whether it is a diffusers prior) for ``--prior`` and ``--controlnet``."""
+    from pathlib import Path
 
-    prior = UNetPrior.from_pretrained(args.prior, device=args.device)
-    if (args.task is None) == (args.source is None):
-        raise LasagnaError("give exactly one of --task and --source", "train-corrective")
+    from lasagna import catalogue as cat
+    from lasagna.distill.objective import prior_image_size
+    from lasagna.document.preset import ControlNetRef
+
+    nets = [ControlNetRef(path=str(Path(p).resolve())) for p in args.controlnet]
+    ref = str(Path(args.prior).resolve()) if Path(args.prior).is_dir() else args.prior
+    source = cat.prior_source(ref, controlnets=nets)
+    if source.kind == "unet":
+        from lasagna.priors.unet import UNetPrior
+
+        prior = UNetPrior.from_pretrained(source.folder, device=args.device)
+        return prior, prior.config.resolution, False
+    from lasagna.priors.diffusers import DiffusersPrior
+
+    prior = DiffusersPrior.from_local(
+        source.folder,
+        controlnets=[n.path for n in source.controlnets],
+        conditioning_scale=[1.0 if n.scale is None else n.scale for n in source.controlnets],
+        vocabulary=("image",),  # one placeholder label: the fit uses the unconditional branch
+        device=args.device,
+        dtype=args.dtype,
+    )
+    return prior, prior_image_size(prior)[0], True
+
+
+def run(args: argparse.Namespace) -> int:
+    from lasagna.training.corrective import (
+        CorrectiveTrainConfig,
+        corrective_config_for,
+        fit_spectral,
+        image_folder_source,
+        train_corrective,
+        unconditional_source,
+    )
+
+    if sum(x is not None for x in (args.task, args.source, args.images)) != 1:
+        raise LasagnaError("give exactly one of --task, --images and --source", "train-corrective")
+    prior, size, diffusers = _load_prior(args)
     if args.task is not None:
         from lasagna.training.prior import world_source
 
-        source = world_source(args.task, prior.config.resolution)
+        source = world_source(args.task, size)
+    elif args.images is not None:
+        source = image_folder_source(args.images, size)
     else:
         source = _import_callable(args.source)
+    if diffusers:
+        source = unconditional_source(source, null=len(prior.vocabulary), control=len(prior.controlnets) > 0)
     if args.kind == "spectral":
         result = fit_spectral(
             prior,
@@ -117,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
             )
         )
         return 0
-    cond_channels = prior.config.cond_channels
+    cond_channels = sum(prior.control_channels) if diffusers else prior.config.cond_channels
     config = CorrectiveTrainConfig(
         corrective=corrective_config_for(prior, args.filters, args.sees_condition, cond_channels),
         steps=args.steps,

@@ -121,6 +121,8 @@ def conditioning_image(
         return control_view.detach()
     if mode == "auto":
         channels = getattr(getattr(prior, "config", None), "cond_channels", None)
+        if channels is None and hasattr(prior, "control_channels"):  # a diffusers prior: its ControlNets' (0: none)
+            channels = sum(prior.control_channels)
         mode = {0: "none", 1: "luma"}.get(channels, "base") if channels is not None else "base"
     if mode == "none":
         return None

@@ -50,9 +50,11 @@ METHODS: tuple[str, ...] = get_args(Method)
 # How a view of another aspect than the prior's is made (``lasagna.distill.objective``): ``letterbox`` keeps
 # the image's aspect (scaled to fit, the rest filled), ``stretch`` resizes it to the prior's shape.
 Aspect = Literal["letterbox", "stretch"]
+ASPECTS: tuple[str, ...] = get_args(Aspect)
 
 # Floating-point types a diffusers prior may run in ("auto": float16 on CUDA, float32 elsewhere).
 TorchDtype = Literal["auto", "float32", "float16", "bfloat16"]
+TORCH_DTYPES: tuple[str, ...] = get_args(TorchDtype)
 
 
 class DistillDefaults(StrictModel):

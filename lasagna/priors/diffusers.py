@@ -49,6 +49,7 @@ mode: the prior is never trained through this adapter. ``lasagna edit --prior PA
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from collections.abc import Mapping, Sequence
@@ -423,6 +424,45 @@ class DiffusersPrior(Prior):
         slices (less memory, a little slower); ``channels_last`` stores the UNet's and ControlNets'
         activations NHWC (faster convolutions on recent GPUs).
         """
+        with _quiet():
+            return cls._from_local(
+                path,
+                controlnets=controlnets,
+                controlnet=controlnet,
+                conditioning_scale=conditioning_scale,
+                vocabulary=vocabulary,
+                prompt_template=prompt_template,
+                prompts=prompts,
+                negative_prompt=negative_prompt,
+                device=device,
+                dtype=dtype,
+                variant=variant,
+                latent=latent,
+                cpu_offload=cpu_offload,
+                attention_slicing=attention_slicing,
+                channels_last=channels_last,
+            )
+
+    @classmethod
+    def _from_local(
+        cls,
+        path,
+        *,
+        controlnets,
+        controlnet,
+        conditioning_scale,
+        vocabulary,
+        prompt_template,
+        prompts,
+        negative_prompt,
+        device,
+        dtype,
+        variant,
+        latent,
+        cpu_offload,
+        attention_slicing,
+        channels_last,
+    ) -> DiffusersPrior:
         from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
         from transformers import CLIPTextModel, CLIPTextModelWithProjection, CLIPTokenizer
 
@@ -529,6 +569,30 @@ class DiffusersPrior(Prior):
                 prior.pooled_embeds = prior.pooled_embeds.to(execution)
         del text_encoder, text_encoder_2  # the prompts are encoded; the text encoders are not kept
         return prior
+
+
+@contextlib.contextmanager
+def _quiet():
+    """diffusers' and transformers' loading chatter (progress bars, the advice to install accelerate) off while
+    loading: the CLI's stderr carries one line per warning or error, and a library does not print."""
+    from diffusers.utils import logging as dlog
+    from transformers.utils import logging as tlog
+
+    levels = (dlog.get_verbosity(), tlog.get_verbosity())
+    bars = (dlog.is_progress_bar_enabled(), tlog.is_progress_bar_enabled())
+    dlog.set_verbosity_error()
+    tlog.set_verbosity_error()
+    dlog.disable_progress_bar()
+    tlog.disable_progress_bar()
+    try:
+        yield
+    finally:
+        dlog.set_verbosity(levels[0])
+        tlog.set_verbosity(levels[1])
+        if bars[0]:
+            dlog.enable_progress_bar()
+        if bars[1]:
+            tlog.enable_progress_bar()
 
 
 def _transformers_major() -> int:

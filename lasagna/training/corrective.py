@@ -24,7 +24,11 @@ is checkpointed), so a resumed run reproduces the uninterrupted one. ``max_minut
 invocation; the run then checkpoints and stops, and the next invocation continues.
 
 The data source is a callable ``sample_batch(batch, rng) -> (images in [0, 1] (B, 3, H, W),
-label_idx (B,) into the prior's vocabulary, cond_image (B, C, H, W) in [0, 1] or None)``.
+label_idx (B,) into the prior's vocabulary, cond_image (B, C, H, W) in [0, 1] or None)``: the world's
+scenes (``lasagna.training.prior.world_source``), a folder of the user's images (``image_folder_source``),
+or any callable. For a text-conditioned prior of one's own (a diffusers folder) ``unconditional_source``
+puts every sample on the null prompt with the image itself as the ControlNet's conditioning image — the
+branch L_lmc replaces, conditioned as an edit conditions it (on the base).
 """
 
 from __future__ import annotations
@@ -290,3 +294,47 @@ def fit_spectral(
     }
     atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2) + "\n")
     return result
+
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff")
+
+
+def image_folder_source(folder: str | Path, size: int, max_pixels: int = 4096 * 4096) -> Source:
+    """``sample_batch`` drawing the images of ``folder`` (uniformly, from ``rng``), each centre-cropped to a
+    square and resized to ``size``², labels 0 and no conditioning image (see ``unconditional_source``)."""
+    import torch.nn.functional as F
+
+    from lasagna.io.image import read_image_file
+
+    files = sorted(f for f in Path(folder).iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise LasagnaError(f"has no image ({', '.join(IMAGE_SUFFIXES)}); expected a folder of images", str(folder))
+    cache: dict[int, torch.Tensor] = {}
+
+    def image(i: int) -> torch.Tensor:
+        if i not in cache:
+            x = torch.from_numpy(read_image_file(files[i], max_pixels=max_pixels).color).float()
+            x = x.expand(3, -1, -1) if x.shape[0] == 1 else x[:3]
+            h, w = x.shape[-2:]
+            side = min(h, w)
+            top, left = (h - side) // 2, (w - side) // 2
+            square = x[None, :, top : top + side, left : left + side]
+            cache[i] = F.interpolate(square, size=(size, size), mode="area" if side >= size else "bilinear")[0]
+        return cache[i]
+
+    def sample_batch(batch: int, rng: torch.Generator):
+        idx = torch.randint(0, len(files), (batch,), generator=rng).tolist()
+        return torch.stack([image(i) for i in idx]).clamp(0, 1), torch.zeros(batch, dtype=torch.long), None
+
+    return sample_batch
+
+
+def unconditional_source(source: Source, null: int, control: bool) -> Source:
+    """``source`` with every label the null index ``null`` and, with ``control``, the image itself as the
+    conditioning image (else none)."""
+
+    def sample_batch(batch: int, rng: torch.Generator):
+        images, _, _ = source(batch, rng)
+        return images, torch.full((batch,), null, dtype=torch.long), images if control else None
+
+    return sample_batch
