@@ -44,9 +44,12 @@ def test_settings_model_round_trips_the_stored_json(tmp_path):
         "prior",
         "prior_sha256",
         "corrective",
+        "weights",
         "distill",
         "working_size",
     ]
+    assert set(a.settings["weights"]) == {"prior/model.safetensors", "prior/config.json"}
+    assert a.settings["weights"]["prior/model.safetensors"] == a.settings["prior_sha256"]
     assert LayerSettings.parse(a.settings, "here").to_json() == a.settings
     b = edit(PHOTO, "shading", "left")
     side = json.loads((ROOT / "layers" / "shading" / "preset.json").read_text(encoding="utf-8"))["working_size"]
