@@ -82,6 +82,7 @@ from lasagna.learned import (
     as_stored,
     canonical_method,
     changed_weights,
+    check_device,
     choose_method,
     conditioning_input,
     default_steps,
@@ -252,6 +253,7 @@ def edit(
     """
     start = time.monotonic()
     n = check_edit_options(preset, optimize, steps)
+    check_device(device)
     own = own_prior(prior, controlnets, corrective)
     plan = plan_edit(
         image,

@@ -37,6 +37,28 @@ CONTROLS_DIR = "controls"  # <stack>/controls/<layer id>.png: the user's conditi
 METHOD_ALIASES: dict[str, str] = {"free": "per-image"}
 
 
+def check_device(text: str | torch.device) -> str:
+    """``text`` if it names a device torch knows *and* this machine has (cpu, cuda, cuda:N, mps); else a
+    one-line ``LasagnaError`` — not torch's "not compiled with CUDA" from deep inside a load."""
+    name = str(text)
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise LasagnaError(f"{name!r} is not a torch device; expected cpu, cuda, cuda:N or mps", "device") from None
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise LasagnaError(f"{name!r}: this machine has no CUDA device; expected cpu", "device")
+        if device.index is not None and device.index >= count:
+            raise LasagnaError(f"{name!r}: this machine has {count} CUDA device(s); expected cuda:0..", "device")
+    elif device.type == "mps":
+        if not torch.backends.mps.is_available():
+            raise LasagnaError(f"{name!r}: MPS is not available here; expected cpu", "device")
+    elif device.type != "cpu":
+        raise LasagnaError(f"{name!r} is not supported; expected cpu, cuda, cuda:N or mps", "device")
+    return name
+
+
 def canonical_method(name: object, where: str = "generator") -> Method:
     """The method ``name`` names (``free`` is ``per-image``); a ``LasagnaError`` listing them otherwise."""
     name = METHOD_ALIASES.get(name, name) if isinstance(name, str) else name

@@ -194,6 +194,16 @@ class TestOneLineErrors:
         assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
 
 
+def test_api_device_without_cuda_is_one_line(disk):
+    from lasagna.api import edit
+    from lasagna.errors import LasagnaError
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    with pytest.raises(LasagnaError, match="device: 'cuda': this machine has no CUDA device"):
+        edit(disk["photo"], "shading", prior=disk["sd"], device="cuda")
+
+
 def test_letterbox_keeps_the_aspect():
     from lasagna.distill.objective import LETTERBOX_FILL, letterbox
 

@@ -58,24 +58,13 @@ def torch_device(text: str) -> str:
     bogus name or CUDA on a CPU-only machine is one line, not a failure after loading everything)."""
     if text == "cpu":
         return text  # always there; and parsing the default must not import torch
-    import torch
+    from lasagna.errors import LasagnaError
+    from lasagna.learned import check_device
 
     try:
-        device = torch.device(text)
-    except (RuntimeError, ValueError):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a torch device; expected cpu, cuda, cuda:N or mps") from None
-    if device.type == "cuda":
-        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        if count == 0:
-            raise argparse.ArgumentTypeError(f"{text!r}: this machine has no CUDA device; expected cpu")
-        if device.index is not None and device.index >= count:
-            raise argparse.ArgumentTypeError(f"{text!r}: this machine has {count} CUDA device(s); expected cuda:0..")
-    elif device.type == "mps":
-        if not torch.backends.mps.is_available():
-            raise argparse.ArgumentTypeError(f"{text!r}: MPS is not available here; expected cpu")
-    elif device.type != "cpu":
-        raise argparse.ArgumentTypeError(f"{text!r} is not supported; expected cpu, cuda, cuda:N or mps")
-    return text
+        return check_device(text)
+    except LasagnaError as err:
+        raise argparse.ArgumentTypeError(err.message) from None
 
 
 def device_argument(p: argparse.ArgumentParser, default: str | None = "cpu", help: str = "torch device (default cpu)"):
