@@ -8,6 +8,7 @@
     lasagna edit IMAGE --layer P --condition L -o OUT   add a learned layer; writes a stack folder
     lasagna render STACK [--all]                  render learned layers from their stored settings
     lasagna layers                                list the learned-layer catalogue
+    lasagna serve STACK|IMAGE [--port N]          the layer editor in the browser (lasagna[serve])
     lasagna demo -o DIR                           relight, colourise and light the bundled examples
     lasagna world -o DIR --split S --count N      procedural scenes as stack folders (lasagna.world)
     lasagna train-prior --task T --out DIR        train a conditional prior on the world (resumable)
@@ -48,6 +49,7 @@ from lasagna.cli import (
     layers,
     render,
     schema,
+    serve,
     train_corrective,
     train_layer,
     train_prior,
@@ -69,6 +71,7 @@ COMMANDS: dict[str, ModuleType] = {
     "edit": edit,
     "render": render,
     "layers": layers,
+    "serve": serve,
     "demo": demo,
     "world": world,
     "train-prior": train_prior,
