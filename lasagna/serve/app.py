@@ -26,6 +26,7 @@ from importlib import resources
 from typing import Any
 
 from starlette.applications import Starlette
+from starlette.exceptions import HTTPException
 from starlette.requests import Request
 from starlette.responses import JSONResponse, Response, StreamingResponse
 from starlette.routing import Route
@@ -51,6 +52,12 @@ class RequestError(LasagnaError):
 
 class TooLarge(LasagnaError):
     """A request body over its limit: HTTP 413."""
+
+
+def request_line(exc: HTTPException) -> str:
+    if exc.status_code == 404:
+        return "no such page or API route; expected one of the editor's routes (lasagna.serve.app)"
+    return str(exc.detail)
 
 
 def _error(status: int, message: str) -> JSONResponse:
@@ -258,7 +265,8 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str]) -> Gu
     async def on_error(request: Request, exc: Exception) -> Response:
         return _response_for(exc)
 
-    app = Starlette(routes=routes, exception_handlers={LasagnaError: on_error, Exception: on_error})
+    handlers = {HTTPException: on_error, LasagnaError: on_error, Exception: on_error}
+    app = Starlette(routes=routes, exception_handlers=handlers)
     return Guard(app, token, allowed_hosts)
 
 
@@ -305,6 +313,8 @@ class Guard:
 
 
 def _response_for(exc: Exception) -> Response:
+    if isinstance(exc, HTTPException):  # Starlette's own: no such route (404), a method it does not take (405)
+        return _error(exc.status_code, f"{request_line(exc)}")
     if isinstance(exc, TooLarge):
         return _error(413, str(exc))
     if isinstance(exc, ConflictError):

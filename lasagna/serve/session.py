@@ -444,7 +444,9 @@ class EditSession:
                 stamp = (tuple(layer.color), w, h, lo, hi)
                 hit = self.reduced.get(key)
                 if hit is None or hit[0] != stamp:
-                    solid = solid_tensors(layer, lo, hi, _reduced_side(w, level), _reduced_side(h, level), layer.id)
+                    rw, rh = _reduced_side(w, level), _reduced_side(h, level)
+                    shape = type("Solid", (), {"color": layer.color, "size": None})()  # its size is the one given
+                    solid = solid_tensors(shape, lo, hi, rw, rh, layer.id)
                     hit = (stamp, solid)
                     self.reduced[key] = hit
                 out[layer.id] = hit[1]
@@ -564,8 +566,10 @@ class EditSession:
     def start_job(self, version: Any, kind: str, id: str, steps: Any = None) -> Job:
         """Start ``refine`` (per-image optimisation of learned layer ``id`` for ``steps``; from its amortised
         pass when it has one) or ``rerender`` (from its record) in the worker thread."""
-        from lasagna.learned import LayerSettings
+        from lasagna.learned import LayerSettings, choose_method, default_steps
 
+        if kind not in ("refine", "rerender"):
+            raise LasagnaError(f"unknown job {kind!r}; expected refine or rerender", "job")
         with self.lock:
             self._check_version(version)
             self._check_idle(kind)
@@ -576,11 +580,13 @@ class EditSession:
                 if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 10_000:
                     raise LasagnaError(f"expected an integer number of steps in [1, 10000], got {steps!r}", "steps")
                 total = steps
-            elif kind == "rerender":
-                s = LayerSettings.parse(layer.settings, f"layer {id!r}")
-                total = int(s.optimize or 0)
             else:
-                raise LasagnaError(f"unknown job {kind!r}; expected refine or rerender", "job")
+                s = LayerSettings.parse(layer.settings, f"layer {id!r}")
+                if s.optimize is not None:
+                    total = int(s.optimize)
+                else:  # made as `lasagna edit` would make it: the preset's method and steps
+                    resolved = cat.resolve(layer.preset, self.folder, self.catalogue_dirs, need_prior=False)
+                    total = default_steps(resolved, s.method or choose_method(resolved, None))
             job = Job(uuid.uuid4().hex[:12], kind, id, total)
             self.job = job
             self.jobs[job.id] = job
@@ -592,22 +598,26 @@ class EditSession:
         from lasagna.edit import render_learned
 
         def callback(step: int, layer) -> None:
-            job.step = step
+            job.step = step + 1  # steps done once this one is
             if job.cancel.is_set():
                 raise Cancelled
 
+        files: dict[str, bytes] = {}
         try:
             layer = stack.document.layer(job.layer_id)
-            if job.what == "refine":
-                stack = _with_refine_settings(stack, layer, job.steps)
-            new, _ = render_learned(
-                stack,
-                ids=[job.layer_id],
-                write=False,
-                catalogue_dirs=self.catalogue_dirs,
-                device=self.device,
-                callback=callback,
-            )
+            if job.what == "refine" and _unsaved_generator(stack, layer):
+                new, files = self._refine_from_catalogue(stack, layer, job.steps, callback)
+            else:
+                if job.what == "refine":
+                    stack = _with_refine_settings(stack, layer, job.steps)
+                new, _ = render_learned(
+                    stack,
+                    ids=[job.layer_id],
+                    write=False,
+                    catalogue_dirs=self.catalogue_dirs,
+                    device=self.device,
+                    callback=callback,
+                )
         except Cancelled:
             job.state = "cancelled"
             return
@@ -636,13 +646,38 @@ class EditSession:
             self.stack.document = cur_doc.with_layer(fields).replace(metadata=new.document.metadata)
             self.stack.tensors[job.layer_id] = new.tensors[job.layer_id]
             self.stack.bit_depths[job.layer_id] = new.bit_depths.get(job.layer_id, 16)
+            self.files.update(files)
             self.undo_stack.append(before)
             del self.undo_stack[:-MAX_UNDO]
             self.redo_stack.clear()
             self.version += 1
             job.version = self.version
-            job.step = job.steps
+            job.step = max(job.step, job.steps)
             job.state = "done"
+
+    def _refine_from_catalogue(self, stack: Stack, layer: LearnedLayer, steps: int, callback):
+        """Refine an amortised layer whose generator copy is not saved yet: the catalogue's generator (the one
+        the copy was made from) and ``steps`` per-image steps, as ``lasagna edit --optimize`` runs them."""
+        from lasagna.edit import EditPlan
+        from lasagna.learned import conditioning_input
+
+        start = time.monotonic()
+        resolved = cat.resolve(layer.preset, stack.folder, self.catalogue_dirs, need_prior=False)
+        plan = EditPlan(
+            stack=stack,
+            source=None,
+            resolved=resolved,
+            condition=layer.condition.label,
+            on=layer.conditioned_on,
+            layer_id=layer.id,
+            method="amortised",
+            optimize=steps,
+            base=conditioning_input(stack, layer.conditioned_on),
+            carried={},
+        )
+        run = plan.make(catalogue_dirs=self.catalogue_dirs, device=self.device, callback=callback)
+        result = plan.finish(run, time.monotonic() - start)
+        return result.stack, dict(run.files)
 
     def cancel_job(self, job_id: str) -> dict[str, Any]:
         job = self.jobs.get(job_id)
@@ -672,6 +707,13 @@ class _ScaledLayer:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._layer, name)
+
+
+def _unsaved_generator(stack: Stack, layer: LearnedLayer) -> bool:
+    """Whether ``layer`` was made by a generator whose copy is not in the stack folder yet (added, unsaved)."""
+    if layer.generator is None or stack.folder is None:
+        return False
+    return not (Path(stack.folder) / layer.generator.checkpoint).is_file()
 
 
 def _with_refine_settings(stack: Stack, layer: LearnedLayer, steps: int) -> Stack:
