@@ -136,6 +136,9 @@ function layerRow(layer, index, n) {
   li.querySelector(".down").addEventListener("click", () => change({ op: "move", id: layer.id, index: index - 1 }));
   li.querySelector(".solo").addEventListener("click", () => { ui.solo = ui.solo === layer.id ? null : layer.id; drawLayers(); paint(); });
   li.querySelector(".del").addEventListener("click", () => change({ op: "delete", id: layer.id }));
+  // The row drags to reorder, but not from its controls: a slider dragged inside a draggable row would
+  // start a row drag and lose the slider.
+  li.addEventListener("pointerdown", (e) => { li.draggable = !e.target.closest("input, select, button"); });
   li.addEventListener("dragstart", (e) => { e.dataTransfer.setData("text/plain", layer.id); });
   li.addEventListener("dragover", (e) => { e.preventDefault(); li.classList.add("dragover"); });
   li.addEventListener("dragleave", () => li.classList.remove("dragover"));
@@ -405,7 +408,12 @@ function wire() {
   $("redo").onclick = () => change({ op: "redo" });
   $("save").onclick = async () => { if (await change({ op: "save" })) status("saved"); };
   $("reload").onclick = async () => {
-    await apply(() => api("api/reload", { method: "POST", headers: { "Content-Type": "application/json" }, body: "{}" }));
+    // Another tab changed the open stack: fetch it. Another program changed the folder: read it again
+    // (this tab's unsaved changes are dropped, as the message said).
+    const fromDisk = $("status").textContent.includes("changed on disk");
+    if (fromDisk) await apply(() => api("api/reload", { method: "POST", headers: { "Content-Type": "application/json" }, body: "{}" }));
+    else await refresh();
+    status(fromDisk ? "read the folder again" : "reloaded");
     $("reload").hidden = true;
   };
   $("zoom-in").onclick = () => setZoom(ui.zoom * 2);
