@@ -274,7 +274,8 @@ def test_a_per_image_layer_shows_progress_and_can_be_cancelled(browser, server, 
     page.select_option("#preset", "light")
     page.click('#picker button[data-condition="warm"]')
     v = version(page)
-    page.click("#add-learned")  # light has no generator: the layer is added, then made by a job with a bar
+    assert page.is_disabled("#add-learned")  # light has no generator
+    page.click("#add-per-image")  # the layer is added, then made by a job with a progress bar
     page.wait_for_function(f"window.lasagna.state.version >= {v + 2}", timeout=60_000)
     settle(page)
     top = page.evaluate("window.lasagna.state.document.layers.at(-1)")

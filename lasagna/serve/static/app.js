@@ -240,8 +240,8 @@ function drawPicker() {
   const box = $("picker");
   box.textContent = "";
   $("preset-why").textContent = p && !p.ready ? p.why : "";
-  $("add-learned").disabled = !p || !p.ready;
-  $("add-learned").textContent = p && p.method === "amortised" ? "Add (amortised)" : "Add (per-image)";
+  $("add-learned").disabled = !p || !p.ready || p.method !== "amortised";  // "amortised": a generator is installed
+  $("add-per-image").disabled = !p || !p.ready;
   if (!p || !p.vocabulary) return;
   if (!p.vocabulary.includes(ui.condition)) ui.condition = p.vocabulary[0];
   const compass = p.vocabulary.every((v) => v in NAMED);
@@ -423,9 +423,8 @@ function wire() {
   $("split").onchange = (e) => { ui.split = e.target.checked; paint(); };
   $("split-pos").oninput = () => draw();
   $("preset").onchange = drawPicker;
-  $("add-learned").onclick = async () => {
+  const addLearned = async (method) => {
     const p = ui.presets.find((x) => x.name === $("preset").value);
-    const method = p.method === "amortised" ? "amortised" : "per-image";
     status("adding a learned layer…");
     const before = new Set(ui.state.document.layers.map((l) => l.id));
     if (!(await change({ op: "learned", preset: p.name, condition: ui.condition, method }))) return;
@@ -434,6 +433,8 @@ function wire() {
     drawLayers(); drawProps();
     if (method === "per-image" && added) startJob("rerender", added.id);
   };
+  $("add-learned").onclick = () => addLearned("amortised");
+  $("add-per-image").onclick = () => addLearned("per-image");
   $("add-solid").onclick = () => {
     const hex = $("solid-color").value;
     const rgb = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
