@@ -55,8 +55,10 @@ MAX_UNDO = 100
 """Snapshots kept for undo: each holds references to tensors, so old pixels live while they can be undone."""
 THUMB_SIDE = 96
 """Long side of a layer thumbnail in the layers panel, in pixels."""
-LAYER_FIELDS = ("name", "visible", "opacity", "blend", "range", "offset", "mask", "condition")
-"""Document fields a layer change may set (``mask`` only to null: a mask is removed, not painted)."""
+LAYER_FIELDS = ("name", "visible", "opacity", "blend", "range", "offset", "mask", "condition", "settings")
+"""Document fields a layer change may set (``mask`` only to null: a mask is removed, not painted; ``condition``
+and ``settings`` of a learned layer, checked as ``lasagna render`` reads them, take effect when it is
+re-rendered)."""
 MAX_LEVEL = 6
 """Coarsest view: the canvas reduced 64×."""
 
@@ -240,9 +242,13 @@ class EditSession:
             raise LasagnaError("a mask can only be removed here (null); expected null", "changes.mask")
 
         def apply() -> None:
+            from lasagna.learned import LayerSettings
+
             s = self.stack
             layer = s.document.layer(id)
             s.document = s.document.replace_layer(id, **changes)
+            if "settings" in changes:
+                LayerSettings.parse(s.document.layer(id).settings, f"layer {id!r}.settings")
             t = s.tensors.get(id)
             new = s.document.layer(id)
             if t is not None and tuple(new.range) != tuple(layer.range):

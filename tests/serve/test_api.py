@@ -310,6 +310,16 @@ def test_bad_layer_changes_are_400_and_change_nothing(client, changes, words):
     assert state(client)["version"] == v and state(client)["undo"] is None
 
 
+def test_learned_settings_are_checked_as_render_reads_them(client):
+    s = change(client, op="learned", preset="shading", condition="left")
+    id = s["document"]["layers"][-1]["id"]
+    v = state(client)["version"]
+    bad = {"op": "set", "version": v, "id": id, "changes": {"settings": {"method": "magic"}}}
+    assert "method" in refused(client.post("/api/change", headers=H, json=bad), 400)
+    s = change(client, op="set", id=id, changes={"settings": {"method": "amortised", "optimize": 2}})
+    assert next(x for x in s["document"]["layers"] if x["id"] == id)["settings"]["optimize"] == 2
+
+
 def test_move_delete_undo_redo(client):
     ids = lambda s: [x["id"] for x in s["document"]["layers"]]  # noqa: E731
     first = ids(state(client))

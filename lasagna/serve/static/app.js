@@ -204,9 +204,17 @@ function drawProps() {
     for (const v of (preset && preset.vocabulary) || [layer.condition.label]) cond.add(new Option(v, v, false, v === layer.condition.label));
     cond.addEventListener("change", () => set({ condition: Object.assign({}, layer.condition, { label: cond.value }) }));
     box.append(field(`Preset ${layer.preset}, condition`, cond));
-    const pre = document.createElement("pre");
-    pre.textContent = JSON.stringify(layer.settings, null, 1);
-    box.append(pre);
+    const settings = document.createElement("textarea");
+    settings.id = "prop-settings"; settings.rows = 6; settings.spellcheck = false;
+    settings.value = JSON.stringify(layer.settings, null, 1);
+    const applySettings = document.createElement("button");
+    applySettings.textContent = "Apply settings";
+    applySettings.addEventListener("click", () => {
+      let value;
+      try { value = JSON.parse(settings.value); } catch (e) { status(`settings: not JSON (${e.message})`, true); return; }
+      set({ settings: value });
+    });
+    box.append(field("Settings (used by Re-render)", settings), applySettings);
     const steps = numberInput(20, () => {}, "1");
     steps.id = "refine-steps";
     const refine = document.createElement("button");
