@@ -607,6 +607,8 @@ def render_learned(
     progress: bool = False,
     write: bool = True,
     warn: Callable[[str], None] | None = None,
+    ids: Sequence[str] | None = None,
+    callback: Callable[[int, Tensor], None] | None = None,
 ) -> tuple[Stack, list[str]]:
     """Render the learned layers of ``stack`` (a folder or a ``Stack``) that have no pixels (every one
     with ``all``), bottom to top, from their stored generator and settings; returns (stack, ids rendered).
@@ -614,7 +616,8 @@ def render_learned(
     A layer whose settings are empty is made as ``edit`` would make it and its settings are filled
     in. With ``write`` (and a folder), the layer PNGs, generator copies, stack.json, composite.png —
     and stack.ora if the folder has one — are written back, each atomically, stack.json after the
-    layers it names.
+    layers it names. ``ids`` renders exactly those learned layers (whether they have pixels or not);
+    ``callback`` is ``make_layer``'s per-step report.
     """
 
     if not isinstance(stack, Stack):
@@ -623,13 +626,21 @@ def render_learned(
         raise DocumentError(
             f"blend_space is {stack.document.blend_space!r}; expected 'srgb' for learned layers", "blend_space"
         )
+    if ids is not None:
+        for id in ids:
+            if not isinstance(stack.document.layer(id), LearnedLayer):  # DocumentError for an unknown id
+                raise DocumentError(
+                    f"layer {id!r} is a {stack.document.layer(id).kind} layer; expected a learned layer", "ids"
+                )
     rendered: list[str] = []
     files: dict[str, bytes] = {}
     for layer in list(stack.document.layers):
-        if not isinstance(layer, LearnedLayer) or (layer.id in stack.tensors and not all):
+        if not isinstance(layer, LearnedLayer):
+            continue
+        if (ids is not None and layer.id not in ids) or (ids is None and layer.id in stack.tensors and not all):
             continue
         start = time.monotonic()
-        run = _rerun(stack, layer, catalogue_dirs, device, progress)
+        run = _rerun(stack, layer, catalogue_dirs, device, progress, callback)
         place_layer(
             stack,
             layer.id,
@@ -682,7 +693,7 @@ def _confined_ref(stack: Stack, ref: str | None, where: str) -> str | None:
         raise PathError(f"{ref!r} leaves the stack folder (through a link); expected a path inside it", where) from None
 
 
-def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) -> LayerRun:
+def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress, callback=None) -> LayerRun:
     """A learned layer made again from what the stack stores (see ``render_learned``)."""
     where = f"layer {layer.id!r}"
     resolved = cat.resolve(layer.preset, stack.folder, catalogue_dirs, need_prior=False)
@@ -758,6 +769,7 @@ def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress) 
         negative_prompt=layer.condition.negative_prompt,
         options=s.diffusers,
         control=control,
+        callback=callback,
     )
     changed = changed_weights(s.weights, run.settings.weights or {}) if s.weights is not None else []
     recorded = s.prior_sha256

@@ -45,6 +45,10 @@ class ExportError(LasagnaError):
     """A document cannot be written in the requested interchange format."""
 
 
+class ConflictError(LasagnaError):
+    """A stack folder changed on disk since it was read: saving would silently overwrite someone's work."""
+
+
 class ConditionError(LasagnaError):
     """A condition names a label outside a prior's vocabulary, or has the wrong shape."""
 

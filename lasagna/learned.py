@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -411,6 +412,7 @@ def make_layer(
     options: DiffusersOptions | None = None,
     control: Tensor | None = None,
     overrides: dict[str, Any] | None = None,
+    callback: Callable[[int, Tensor], None] | None = None,
 ) -> LayerRun:
     """One learned layer (C, H, W) for ``base`` (3, H, W) in [0, 1] and ``label`` (module docstring).
 
@@ -427,7 +429,9 @@ def make_layer(
 
     ``loaded`` is the generator already loaded from ``generator_dir`` (``load_generator``), and ``initial``
     its output (1, C, h, w) for this base at the working size (``working_input``), computed by the caller
-    in a batch (``lasagna.batch``); without them the generator is loaded and run here.
+    in a batch (``lasagna.batch``); without them the generator is loaded and run here. ``callback(step,
+    layer)`` is called before every per-image step (``lasagna.distill.distill_image``): a progress report
+    for the editor (``lasagna.serve``), which cancels a run by raising from it.
     """
     from lasagna.compose.resample import upsample
     from lasagna.distill import distill_image
@@ -498,7 +502,15 @@ def make_layer(
             control = working_input(control, side, device)
         model = "free" if initial is None else FreeLayer.from_layer(ds.layer, initial)
         run = distill_image(
-            x, ds, parts.prior, parts.corrective, condition=label, generator=model, progress=progress, control=control
+            x,
+            ds,
+            parts.prior,
+            parts.corrective,
+            condition=label,
+            generator=model,
+            progress=progress,
+            control=control,
+            callback=callback,
         )
         layer, history, stopped = run.layer.float(), run.history, run.stopped_reason
         settings = LayerSettings(

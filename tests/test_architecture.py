@@ -31,6 +31,7 @@ TIERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("catalogue", ("lasagna.catalogue",)),
     ("training", ("lasagna.training",)),
     ("user API", ("lasagna.learned", "lasagna.edit", "lasagna.batch", "lasagna.demo", "lasagna.api")),
+    ("editor", ("lasagna.serve",)),
     ("cli", ("lasagna.cli",)),
     ("package root", ("lasagna",)),  # lasagna/__init__.py: lazy names of lasagna.api
 )

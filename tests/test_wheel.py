@@ -79,6 +79,8 @@ def test_wheel_holds_every_catalogue_file(installed):
     }
     assert expected and expected <= names
     assert "lasagna/catalogue.py" in names and "lasagna/_layers/PACKAGING.md" in names
+    page = {f"lasagna/serve/static/{p.name}" for p in (ROOT / "lasagna" / "serve" / "static").iterdir()}
+    assert page and page <= names  # the editor's page works from an installed package, offline
 
 
 def test_presets_resolve_from_the_installed_package(installed, tmp_path):

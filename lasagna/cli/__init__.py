@@ -9,6 +9,7 @@
     lasagna render STACK [--all]                  render learned layers from their stored settings
     lasagna layers                                list the learned-layer catalogue
     lasagna prior add PATH --name N               register your own prior (a diffusers folder) as --layer N
+    lasagna serve STACK|IMAGE [--port N]          the layer editor in the browser (lasagna[serve])
     lasagna demo -o DIR                           relight, colourise and light the bundled examples
     lasagna world -o DIR --split S --count N      procedural scenes as stack folders (lasagna.world)
     lasagna train-prior --task T --out DIR        train a conditional prior on the world (resumable)
@@ -50,6 +51,7 @@ from lasagna.cli import (
     prior,
     render,
     schema,
+    serve,
     train_corrective,
     train_layer,
     train_prior,
@@ -72,6 +74,7 @@ COMMANDS: dict[str, ModuleType] = {
     "render": render,
     "layers": layers,
     "prior": prior,
+    "serve": serve,
     "demo": demo,
     "world": world,
     "train-prior": train_prior,

@@ -378,9 +378,10 @@ def _clamps(spec: RenderLayerSpec, decode: bool) -> tuple[bool, bool]:
 # ---- document adapter -----------------------------------------------------------------------------
 
 
-def _solid_tensors(
+def solid_tensors(
     layer: Any, lo: float, hi: float, width: int, height: int, where: str, dtype: torch.dtype | None = None
 ) -> LayerTensors:
+    """A solid layer's ``LayerTensors`` on a ``width`` × ``height`` canvas (its ``size`` if it has one)."""
     rgba = [float(v) for v in layer.color]
     if len(rgba) not in (3, 4):
         raise LasagnaError(f"color has {len(rgba)} components; expected RGB or RGBA", where=f"{where}.color")
@@ -418,7 +419,7 @@ def plan_from_document(
         lt = tensors.get(layer.id)
         if lt is None:
             if layer.kind == "solid":
-                lt = _solid_tensors(layer, float(lo), float(hi), width, height, where, dtype)
+                lt = solid_tensors(layer, float(lo), float(hi), width, height, where, dtype)
             elif layer.kind == "learned" and getattr(layer, "source", None) is None:
                 continue
             else:
@@ -456,5 +457,6 @@ __all__ = [
     "SkipReason",
     "compile_plan",
     "plan_from_document",
+    "solid_tensors",
     "BLEND_MODES",
 ]

@@ -13,14 +13,24 @@ is its first half, for a writer of many folders that makes them durable together
 from __future__ import annotations
 
 import errno
+import hashlib
 import os
 import shutil
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
-from lasagna.atomic import atomic_write_bytes, folder_lock, make_temp_folder, sweep_stale, temp_path, umask_mode
-from lasagna.document import STACK_FILE
-from lasagna.errors import PathError
+from lasagna.atomic import (
+    atomic_write_all,
+    atomic_write_bytes,
+    folder_lock,
+    make_temp_folder,
+    sweep_stale,
+    temp_path,
+    umask_mode,
+)
+from lasagna.document import STACK_FILE, stack_file
+from lasagna.errors import ConflictError, LasagnaError, PathError
 from lasagna.io.survey import resolve_inside
 
 if TYPE_CHECKING:
@@ -186,3 +196,194 @@ def swap_in(tmp: Path, out: Path, *, force: bool = False) -> None:
             os.rename(aside, out)
             raise
     shutil.rmtree(aside, ignore_errors=True)
+
+
+# ---- saving an open stack in place (the editor) -----------------------------------------------------
+
+
+def stack_sha256(folder: str | os.PathLike) -> str | None:
+    """SHA-256 of ``folder``'s stack.json as it is on disk (None if there is none): the version a saver
+    compares with the one it read, so that a second writer is told instead of overwritten."""
+    path = Path(folder) / STACK_FILE
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except FileNotFoundError:
+        return None
+
+
+def _fresh_name(folder: Path, rel: str, taken: set[str]) -> str:
+    """``rel`` if nothing is there and no document names it, else ``stem.N.ext`` (``N`` = 2, 3, …) that is free."""
+    if rel not in taken and not (folder / rel).exists():
+        return rel
+    p = Path(rel)
+    base = p.stem
+    while base.rsplit(".", 1)[-1].isdigit() and "." in base:  # layers/a.3.png saved again: a.4, not a.3.2
+        base = base.rsplit(".", 1)[0]
+    n = 2
+    while True:
+        candidate = (p.parent / f"{base}.{n}{p.suffix}").as_posix()
+        if candidate not in taken and not (folder / candidate).exists():
+            return candidate
+        n += 1
+
+
+def save_in_place(
+    stack: Stack,
+    *,
+    unchanged: Mapping[str, object],
+    files: Mapping[str, bytes] | None = None,
+    expect_sha256: str | None,
+    extra: Callable[[Stack, Any], dict[str, bytes]] | None = None,
+) -> tuple[str, dict[str, object]]:
+    """Save ``stack`` into its own folder so that a kill at any instant leaves the old or the new stack whole.
+
+    stack.json is the commit point and the only file replaced: every layer PNG (or mask) whose pixels
+    changed is written under a new name (``layers/<id>.2.png``, …; the document's ``source`` follows it),
+    new generator files likewise, all of them before stack.json is renamed into place. Files the old
+    stack.json named and the new one does not are removed after the commit; composite.png (and whatever
+    ``extra(stack, result)`` returns, e.g. stack.ora) are rewritten after it too, being derived.
+
+    ``unchanged`` maps layer ids to the ``LayerTensors`` object their PNG on disk holds (identity): those
+    are not encoded again. ``files`` are further files by relative path (generator copies); one already on
+    disk with the same bytes is kept. ``expect_sha256`` is the stack.json the caller read (``stack_sha256``;
+    None for a folder without one): a different one on disk is a ``ConflictError`` and nothing is written.
+    Returns the new stack.json's SHA-256 and the new ``unchanged`` map. ``stack.document`` is updated.
+    """
+    from lasagna.io.render import encode_composite
+    from lasagna.io.stack import encode_layer
+
+    if stack.folder is None:
+        raise PathError("the stack was not loaded from a folder; expected one to save into", "save")
+    folder = Path(stack.folder)
+    old_doc = _document_on_disk(folder)
+    old_refs = _referenced(old_doc) if old_doc is not None else set()
+    doc = stack.document
+    taken = set(_referenced(doc)) | old_refs
+    writes: list[tuple[Path, bytes]] = []
+    renamed: dict[str, str] = {}  # generator checkpoint folder → its fresh name
+    for rel, data in (files or {}).items():
+        target = resolve_inside(folder, rel, rel)
+        if target.is_file() and target.read_bytes() == data:
+            continue
+        parent = Path(rel).parent.as_posix()
+        if target.exists() and parent not in renamed:
+            renamed[parent] = _fresh_name(folder, parent, taken)
+            taken.add(renamed[parent])
+        out_rel = f"{renamed.get(parent, parent)}/{Path(rel).name}"
+        writes.append((resolve_inside(folder, out_rel, rel), data))
+    layers = []
+    now_unchanged: dict[str, object] = {}
+    for i, layer in enumerate(doc.layers):
+        changes: dict[str, Any] = {}
+        generator = getattr(layer, "generator", None)
+        if generator is not None:
+            parent = Path(generator.checkpoint).parent.as_posix()
+            if parent in renamed:
+                ckpt = f"{renamed[parent]}/{Path(generator.checkpoint).name}"
+                changes["generator"] = {**generator.model_dump(mode="json"), "checkpoint": ckpt}
+        tensors = stack.tensors.get(layer.id)
+        if tensors is not None and layer.kind != "solid":
+            same = unchanged.get(layer.id) is tensors and (folder / layer.source).is_file()
+            if not same:
+                data, mask_data = encode_layer(stack, layer.id)
+                same = _holds(folder, layer.source, data) and (
+                    mask_data is None or _holds(folder, layer.mask, mask_data)
+                )
+            if not same:
+                source = _fresh_name(
+                    folder, layer.source, taken - {layer.source} if layer.source not in old_refs else taken
+                )
+                taken.add(source)
+                writes.append((resolve_inside(folder, source, f"layers[{i}].source"), data))
+                if source != layer.source:
+                    changes["source"] = source
+                if mask_data is not None:
+                    mask = _fresh_name(
+                        folder, layer.mask, taken - {layer.mask} if layer.mask not in old_refs else taken
+                    )
+                    taken.add(mask)
+                    writes.append((resolve_inside(folder, mask, f"layers[{i}].mask"), mask_data))
+                    if mask != layer.mask:
+                        changes["mask"] = mask
+            now_unchanged[layer.id] = tensors
+        layers.append({**layer.model_dump(), **changes} if changes else layer)
+    stack.document = doc.with_layers(layers) if any(isinstance(layer, dict) for layer in layers) else doc
+    text = stack.document.to_json().encode("utf-8")
+    result = stack.render()
+    derived = [(folder / "composite.png", encode_composite(result, str(folder / "composite.png")))]
+    if extra is not None:
+        derived += [(resolve_inside(folder, rel, rel), data) for rel, data in extra(stack, result).items()]
+    with folder_lock(folder):
+        found = stack_sha256(folder)
+        if found != expect_sha256:
+            raise ConflictError(
+                "stack.json changed on disk since this stack was read (another editor or program saved it); "
+                "expected the version that was read: reload to see the other changes",
+                str(folder / STACK_FILE),
+            )
+        if writes:
+            atomic_write_all(writes)
+        atomic_write_bytes(stack_file(folder), text)  # the commit
+        for path, data in derived:
+            atomic_write_bytes(path, data)
+        for rel in old_refs - set(_referenced(stack.document)):
+            _remove_superseded(folder, rel)
+    return hashlib.sha256(text).hexdigest(), now_unchanged
+
+
+def _holds(folder: Path, rel: str | None, data: bytes) -> bool:
+    """Whether the file ``rel`` in ``folder`` holds exactly ``data`` (same size first: most differ there)."""
+    if rel is None:
+        return False
+    path = folder / rel
+    try:
+        return path.is_file() and path.stat().st_size == len(data) and path.read_bytes() == data
+    except OSError:
+        return False
+
+
+def _document_on_disk(folder: Path):
+    from lasagna.document import Document
+
+    path = folder / STACK_FILE
+    if not path.is_file():
+        return None
+    try:
+        return Document.from_json(path.read_text(encoding="utf-8"), where=str(path))
+    except (LasagnaError, UnicodeDecodeError):
+        return None  # an unreadable document names nothing we may remove
+
+
+def _referenced(doc) -> set[str]:
+    """Relative paths of the files ``doc`` names: sources, masks, generator checkpoints and their configs."""
+    out: set[str] = set()
+    for layer in doc.layers:
+        for rel in (getattr(layer, "source", None), getattr(layer, "mask", None)):
+            if rel:
+                out.add(Path(rel).as_posix())
+        generator = getattr(layer, "generator", None)
+        if generator is not None:
+            out.add(Path(generator.checkpoint).as_posix())
+            out.add((Path(generator.checkpoint).parent / "config.json").as_posix())
+    return out
+
+
+def _remove_superseded(folder: Path, rel: str) -> None:
+    """Remove a file the previous stack.json named and the new one does not, if it lies in one of the
+    folders the stack's own files live in (layers/, masks/, generators/) — never anything else."""
+    parts = Path(rel).parts
+    if len(parts) < 2 or parts[0] not in ("layers", "masks", "generators") or ".." in parts:
+        return
+    try:
+        path = resolve_inside(folder, rel, rel)
+    except PathError:
+        return
+    try:
+        path.unlink()
+    except (FileNotFoundError, IsADirectoryError, PermissionError):
+        return
+    if parts[0] == "generators":
+        try:
+            path.parent.rmdir()  # only when empty
+        except OSError:
+            pass

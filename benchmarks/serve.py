@@ -1,0 +1,244 @@
+"""The editor's speed in a real browser (issue #12): ``lasagna serve`` on a stack of 8 layers, measured with the
+page's own clock (``performance.now()``) in Debian's headless Chromium driven by Playwright. Plain script;
+ends with one JSON line.
+
+    python benchmarks/serve.py                     # 2048² and 512² stacks (~2 min on a quiet 2-core CPU)
+    python benchmarks/serve.py --sizes 256 --repeats 3   # a smoke run
+
+For each stack size the page is opened at a 1024-pixel canvas and fitted (a 2048² stack shows at 1/2, so
+the server composites the level-1 view; a 512² stack shows at 2×, level 0):
+
+* ``toggle_ms``: a click on a visibility checkbox → the repainted canvas (the change goes to the server,
+  the new state comes back, the view is composited through the prefix-cache ``Renderer`` and drawn);
+  median of ``--repeats`` clicks on a middle layer.
+* ``drag_fps``: an opacity slider dragged for 2 s (input events every animation frame, ~60 Hz): repaints
+  drawn per second (the page keeps one view request in flight and asks for the latest value next).
+* ``learned_ms``: a click on "Add (amortised)" with the shading preset → the canvas showing the layer.
+
+The baseline in the same run is what a server without the cache and the view levels would do per click:
+``render_stack`` of the whole stack at full size (``baseline_render_ms``, median of 3), before any transfer
+or drawing. Targets (docs/BENCHMARKS.md): at 2048², toggle ≤ 100 ms (median), drag ≥ 20 repaints/s, learned
+≤ 1.5 s. Measure on a quiet machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(ROOT))
+from _common import machine_info, print_json_line  # noqa: E402
+
+CHROMIUM = "/usr/bin/chromium"
+FLAGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+CANVAS = 1024
+ASIDE = 340  # the layers panel's width (app.css)
+
+
+def make_stack(folder: Path, size: int) -> None:
+    """8 layers on a ``size``² canvas: a photograph as the base, shading, colour, light, a masked patch, a
+    tint, a screen glaze and a hidden layer — every kind and the common blends."""
+    import numpy as np
+    import torch
+    from PIL import Image
+
+    from lasagna.io.stack import Stack
+
+    photo = Image.open(ROOT / "examples" / "photos" / "chelsea.png").convert("RGB").resize((size, size), Image.BICUBIC)
+    base = torch.from_numpy(np.asarray(photo, np.float32) / 255.0).permute(2, 0, 1).contiguous()
+    y, x = torch.meshgrid(torch.linspace(0, 1, size), torch.linspace(0, 1, size), indexing="ij")
+    stack = Stack.from_image(base, name="Photo")
+    stack.add_layer("shade", (0.6 + 0.8 * x * (1 - 0.5 * y))[None], blend="multiply", range=(0, 2), name="Shading")
+    blob = torch.exp(-((x - 0.6) ** 2 + (y - 0.4) ** 2) / 0.02)
+    stack.add_layer("paint", torch.stack([blob, 0.3 * blob, 0.6 + 0 * x]), alpha=(0.7 * blob)[None], name="Paint")
+    stack.add_layer("glow", torch.stack([0.3 * y, 0.2 * y, 0.05 + 0 * y]), blend="plus", name="Glow")
+    stack.add_layer("patch", torch.stack([x, y, 1 - x]), mask=(x > 0.5).float()[None] * 0.8, name="Patch")
+    stack.add_solid("tint", (0.2, 0.4, 1.0, 0.15), name="Tint")
+    stack.add_layer("glaze", (0.2 * torch.sin(20 * x) ** 2).expand(3, size, size).contiguous(), blend="screen")
+    stack.add_solid("hidden", (1.0, 0.0, 0.0), visible=False, name="Hidden")
+    stack.save(folder)
+
+
+class Server:
+    def __init__(self, folder: Path):
+        import uvicorn
+
+        from lasagna.serve import allowed_hosts, free_port
+        from lasagna.serve.app import create_app
+        from lasagna.serve.session import EditSession
+
+        self.session = EditSession(folder)
+        port = free_port("127.0.0.1")
+        app = create_app(self.session, "bench", allowed_hosts("127.0.0.1", port))
+        self.server = uvicorn.Server(
+            uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", lifespan="off")
+        )
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+        self.thread.start()
+        while not self.server.started:
+            time.sleep(0.02)
+        self.url = f"http://127.0.0.1:{port}/?token=bench"
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout=10)
+
+
+WAIT = """
+(pred) => new Promise((resolve) => { const tick = () => pred() ? resolve() : requestAnimationFrame(tick); tick(); })
+"""
+
+TOGGLE = """
+async (id) => {
+  const L = window.lasagna, wait = %s;
+  const v = L.state.version, c = L.paints.count;
+  const t0 = performance.now();
+  document.querySelector(`#layers li[data-id="${id}"] .eye`).click();
+  await wait(() => L.state.version > v && L.settled() && L.paints.count > c);
+  return L.paints.last - t0;
+}
+""" % WAIT.strip()
+
+DRAG = """
+async ([id, seconds]) => {
+  const L = window.lasagna;
+  const slider = document.querySelector(`#layers li[data-id="${id}"] .opacity`);
+  const c = L.paints.count, t0 = performance.now();
+  let k = 0;
+  await new Promise((resolve) => {
+    const tick = () => {
+      const t = performance.now() - t0;
+      if (t > seconds * 1000) return resolve();
+      slider.value = (0.5 + 0.5 * Math.sin(k++ / 10)).toFixed(3);
+      slider.dispatchEvent(new Event("input", { bubbles: true }));
+      requestAnimationFrame(tick);
+    };
+    tick();
+  });
+  const frames = L.paints.count - c, elapsed = (performance.now() - t0) / 1000;
+  slider.dispatchEvent(new Event("change", { bubbles: true }));
+  return [frames / elapsed, k / elapsed];
+}
+"""
+
+LEARNED = """
+async () => {
+  const L = window.lasagna, wait = %s;
+  const v = L.state.version, c = L.paints.count;
+  const t0 = performance.now();
+  document.getElementById("add-learned").click();
+  await wait(() => L.state.version > v && L.settled() && L.paints.count > c);
+  return L.paints.last - t0;
+}
+""" % WAIT.strip()
+
+
+def measure(context, size: int, repeats: int, work: Path) -> dict:
+    import torch
+
+    from lasagna.io.render import render_stack
+    from lasagna.io.stack import load_stack
+
+    folder = work / f"stack{size}"
+    make_stack(folder, size)
+    stack = load_stack(folder)
+    render_stack(stack)
+    times = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        render_stack(stack)
+        times.append(1000 * (time.perf_counter() - t0))
+    del stack
+    torch.set_num_threads(torch.get_num_threads())
+    server = Server(folder)
+    page = context.new_page()
+    try:
+        page.goto(server.url)
+        page.wait_for_function("window.lasagna.state !== null && window.lasagna.paints.count > 0 && window.lasagna.settled()")
+        page.wait_for_function("window.lasagna.presets.length > 0")
+        level = page.evaluate("(() => { const z = window.lasagna.zoom; return z >= 1 ? 0 : Math.floor(Math.log2(1 / z)); })()")
+        zoom = page.evaluate("window.lasagna.zoom")
+        page.evaluate(TOGGLE, "glow")  # warm-up: every view level's renderer built, caches filled
+        page.evaluate(TOGGLE, "glow")
+        toggles = [page.evaluate(TOGGLE, "glow") for _ in range(repeats)]
+        page.wait_for_function("window.lasagna.settled()")
+        drag_fps, input_hz = page.evaluate(DRAG, ["paint", 2.0])
+        page.wait_for_function("window.lasagna.settled()")
+        page.select_option("#preset", "shading")
+        learned = page.evaluate(LEARNED)
+        return {
+            "size": size,
+            "zoom": zoom,
+            "view_level": level,
+            "toggle_ms": round(statistics.median(toggles), 1),
+            "toggle_ms_all": [round(t, 1) for t in toggles],
+            "drag_fps": round(drag_fps, 1),
+            "drag_input_hz": round(input_hz, 1),
+            "learned_ms": round(learned, 1),
+            "baseline_render_ms": round(statistics.median(times), 1),
+        }
+    finally:
+        page.close()
+        server.stop()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[2048, 512])
+    ap.add_argument("--repeats", type=int, default=11)
+    args = ap.parse_args()
+    from playwright.sync_api import sync_playwright
+
+    work = Path(tempfile.mkdtemp(prefix="lasagna-serve-bench-"))
+    profile = work / "chromium"
+    rows = []
+    try:
+        with sync_playwright() as p:
+            context = p.chromium.launch_persistent_context(
+                str(profile),
+                executable_path=CHROMIUM,
+                headless=True,
+                args=FLAGS,
+                viewport={"width": CANVAS + ASIDE, "height": CANVAS + 80},
+            )
+            for size in args.sizes:
+                row = measure(context, size, args.repeats, work)
+                rows.append(row)
+                print(row, file=sys.stderr)
+            context.close()
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    big = rows[0]
+    print_json_line(
+        {
+            "benchmark": "serve",
+            **machine_info(),
+            "threads": int(os.environ.get("OMP_NUM_THREADS", "0")) or None,
+            "toggle_ms": big["toggle_ms"],
+            "drag_fps": big["drag_fps"],
+            "learned_ms": big["learned_ms"],
+            "baseline_render_ms": big["baseline_render_ms"],
+            "sizes": rows,
+        }
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,66 @@
+"""``lasagna serve``: the layer editor in the browser (needs ``pip install 'lasagna[serve]'``).
+
+``open_target(path)`` turns what the user named into a stack folder (an image gets a new stack folder
+beside it), ``EditSession`` (``session``) is the open stack, ``create_app`` (``app``) its HTTP face,
+and ``serve`` runs it on uvicorn until Ctrl-C. The page (``static/``) is plain HTML, CSS and JavaScript
+shipped in the package: it works offline and needs no build step.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import socket
+from pathlib import Path
+
+from lasagna.errors import PathError
+from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
+
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+STACK_SUFFIX = ".stack"
+"""An image ``photo.jpg`` opened by ``lasagna serve`` becomes the stack folder ``photo.stack/`` beside it."""
+
+
+def open_target(path: str | os.PathLike, *, max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> tuple[Path, bool]:
+    """The stack folder for ``path`` and whether it was made now: a stack folder (or its stack.json) is
+    itself; an image file gets ``<stem>.stack/`` beside it, made with the image as its base layer — or
+    opened again if an earlier ``serve`` made it."""
+    p = Path(path)
+    if p.is_dir() or p.suffix.lower() == ".json":
+        folder = p if p.is_dir() else p.parent
+        if not (folder / "stack.json").is_file():
+            raise PathError("holds no stack.json; expected a stack folder or an image file", str(folder))
+        return folder, False
+    if not p.is_file():
+        raise PathError("does not exist; expected a stack folder or an image file (PNG, JPEG, …)", str(p))
+    folder = p.with_name(p.stem + STACK_SUFFIX)
+    if (folder / "stack.json").is_file():
+        return folder, False
+    from lasagna.edit import read_image
+    from lasagna.io.folder import write_stack_folder
+
+    stack = read_image(p, max_pixels)
+    write_stack_folder(stack, folder)
+    return folder, True
+
+
+def free_port(host: str) -> int:
+    """A port the OS says is free on ``host`` (bound and released: a tiny race, as every such helper has)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def allowed_hosts(host: str, port: int) -> list[str]:
+    """Host header values naming this server: the bound address and, on loopback, every loopback name."""
+    names = {host, *LOOPBACK} if host in LOOPBACK or host == "0.0.0.0" else {host}
+    return sorted(f"[{n}]:{port}" if ":" in n else f"{n}:{port}" for n in names)
+
+
+def new_token() -> str:
+    """The access token: 24 random bytes, URL-safe (as Jupyter's)."""
+    return secrets.token_urlsafe(24)
+
+
+__all__ = ["STACK_SUFFIX", "allowed_hosts", "free_port", "new_token", "open_target"]

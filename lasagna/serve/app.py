@@ -1,0 +1,331 @@
+"""The HTTP face of ``lasagna serve``: a Starlette app over one ``EditSession``.
+
+Security (the editor can read and write a folder of the user's, so every request is checked):
+
+* **Token.** Every request carries the random token printed in the URL: the ``X-Lasagna-Token`` header,
+  the ``token`` query parameter, or the ``lasagna_token`` cookie the page sets (HttpOnly, SameSite=Strict).
+  Compared in constant time. Without it: 403, one line.
+* **Host.** The Host header must name this server (``127.0.0.1:PORT``, ``localhost:PORT``, …): a page on
+  another site that rebinds its DNS name to 127.0.0.1 still sends its own name, and is refused (DNS
+  rebinding).
+* **Origin.** A state-changing request (POST) that carries an Origin must come from this server's
+  origin; browsers send Origin on every cross-site POST.
+* **Paths.** No route takes a path: the session knows its folder, layers are named by id, exports are
+  downloads built in memory. Uploads are bytes, read under the CLI's image policy (size and pixel limits).
+* **Errors.** A ``LasagnaError`` is a 4xx with ``{"error": "<one line>"}`` (409 for a version conflict,
+  413 for an oversized body); a malformed request is a 400; anything unexpected is a 500 whose body is one
+  line without a traceback.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import secrets
+from importlib import resources
+from typing import Any
+
+from starlette.applications import Starlette
+from starlette.exceptions import HTTPException
+from starlette.requests import Request
+from starlette.responses import JSONResponse, Response, StreamingResponse
+from starlette.routing import Route
+
+from lasagna.errors import ConflictError, LasagnaError
+from lasagna.limits import BudgetError
+from lasagna.serve.session import EditSession
+
+TOKEN_HEADER = "x-lasagna-token"
+TOKEN_COOKIE = "lasagna_token"
+MAX_JSON_BYTES = 1 * 2**20
+"""A change is a few hundred bytes of JSON; 1 MiB leaves room for long names and still refuses floods."""
+MAX_UPLOAD_BYTES = 64 * 2**20
+"""An uploaded image file (before decoding; the pixel limit is the CLI's ``--max-pixels``)."""
+EVENT_INTERVAL_S = 0.1
+"""How often a job's progress stream reports (10 Hz: smooth for a bar, negligible work)."""
+STATIC_FILES = {"app.js": "text/javascript", "app.css": "text/css"}
+
+
+class RequestError(LasagnaError):
+    """A request that is malformed in itself (not JSON, a missing field): HTTP 400."""
+
+
+class TooLarge(LasagnaError):
+    """A request body over its limit: HTTP 413."""
+
+
+def request_line(exc: HTTPException) -> str:
+    if exc.status_code == 404:
+        return "no such page or API route; expected one of the editor's routes (lasagna.serve.app)"
+    return str(exc.detail)
+
+
+def _error(status: int, message: str) -> JSONResponse:
+    return JSONResponse({"error": " ".join(str(message).split())}, status_code=status)
+
+
+def _static(name: str) -> bytes:
+    return resources.files("lasagna.serve").joinpath("static", name).read_bytes()
+
+
+async def _body(request: Request, limit: int) -> bytes:
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise TooLarge(f"the request body is {int(declared)} bytes; expected at most {limit}", "body")
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise TooLarge(f"the request body is over {limit} bytes; expected at most {limit}", "body")
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+async def _json(request: Request) -> dict[str, Any]:
+    data = await _body(request, MAX_JSON_BYTES)
+    try:
+        value = json.loads(data.decode("utf-8")) if data else {}
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise RequestError(f"the body is not JSON ({exc.__class__.__name__}); expected a JSON object", "body") from None
+    if not isinstance(value, dict):
+        raise RequestError(f"the body is a JSON {type(value).__name__}; expected a JSON object", "body")
+    return value
+
+
+def _field(body: dict[str, Any], name: str, default: Any = ...) -> Any:
+    if name not in body:
+        if default is ...:
+            raise RequestError(f"missing field {name!r}; expected it in the JSON body", "body")
+        return default
+    return body[name]
+
+
+def create_app(session: EditSession, token: str, allowed_hosts: list[str]) -> Guard:
+    """The editor's app for ``session``; ``allowed_hosts`` are the Host header values that name this server
+    (``host:port``); its origins are ``http://`` + each."""
+
+    async def run(fn, *args, **kwargs):
+        """Session work off the event loop (it is CPU-bound torch): the loop keeps serving progress streams."""
+        return await asyncio.to_thread(fn, *args, **kwargs)
+
+    # ---- pages -------------------------------------------------------------------------------------
+
+    async def index(request: Request) -> Response:
+        page = _static("index.html")
+        response = Response(page, media_type="text/html; charset=utf-8")
+        response.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="strict")
+        response.headers["Cache-Control"] = "no-store"
+        return response
+
+    async def static(request: Request) -> Response:
+        name = request.path_params["name"]
+        if name not in STATIC_FILES:
+            return _error(404, f"no static file {name!r}; expected one of {', '.join(STATIC_FILES)}")
+        return Response(_static(name), media_type=STATIC_FILES[name])
+
+    # ---- reading -----------------------------------------------------------------------------------
+
+    async def state(request: Request) -> Response:
+        return JSONResponse(await run(session.state))
+
+    async def presets(request: Request) -> Response:
+        return JSONResponse({"presets": await run(session.presets)})
+
+    def _view_args(request: Request) -> dict[str, Any]:
+        q = request.query_params
+        try:
+            level = int(q.get("level", "0"))
+        except ValueError:
+            raise RequestError(f"level is {q.get('level')!r}; expected an integer", "level") from None
+        opacity: dict[str, float] = {}
+        for item in q.getlist("opacity"):
+            id, sep, value = item.rpartition(":")
+            try:
+                opacity[id] = float(value)
+            except ValueError:
+                sep = ""
+            if not sep:
+                raise RequestError(f"opacity is {item!r}; expected LAYER:VALUE", "opacity")
+        return {"level": level, "opacity": opacity, "solo": q.get("solo") or None, "upto": q.get("upto") or None}
+
+    async def view(request: Request) -> Response:
+        args = _view_args(request)
+        data, w, h = await run(session.view, args.pop("level"), **args)
+        return Response(
+            data,
+            media_type="application/octet-stream",
+            headers={"X-Width": str(w), "X-Height": str(h), "Cache-Control": "no-store"},
+        )
+
+    async def thumbnail(request: Request) -> Response:
+        data = await run(session.thumbnail, request.path_params["id"])
+        return Response(data, media_type="image/png", headers={"Cache-Control": "no-store"})
+
+    async def export(request: Request) -> Response:
+        data, name, media = await run(session.export, request.path_params["kind"])
+        return Response(data, media_type=media, headers={"Content-Disposition": f'attachment; filename="{name}"'})
+
+    # ---- changes -----------------------------------------------------------------------------------
+
+    async def change(request: Request) -> Response:
+        body = await _json(request)
+        op = _field(body, "op")
+        version = _field(body, "version")
+        ops = {
+            "set": lambda: session.set_layer(version, _field(body, "id"), _field(body, "changes")),
+            "move": lambda: session.move_layer(version, _field(body, "id"), _field(body, "index")),
+            "delete": lambda: session.delete_layer(version, _field(body, "id")),
+            "solid": lambda: session.add_solid(
+                version, _field(body, "color"), _field(body, "name", None), _field(body, "blend", "normal")
+            ),
+            "learned": lambda: session.add_learned(
+                version,
+                _field(body, "preset"),
+                _field(body, "condition"),
+                _field(body, "on", None),
+                _field(body, "method", "amortised"),
+            ),
+            "undo": lambda: session.undo(version),
+            "redo": lambda: session.redo(version),
+            "save": lambda: session.save(version),
+        }
+        if op not in ops:
+            raise RequestError(f"unknown op {op!r}; expected one of {', '.join(ops)}", "op")
+        return JSONResponse(await run(ops[op]))
+
+    async def upload(request: Request) -> Response:
+        q = request.query_params
+        try:
+            version = int(q.get("version", ""))
+        except ValueError:
+            raise RequestError("expected ?version=N, the version the upload is added to", "version") from None
+        data = await _body(request, MAX_UPLOAD_BYTES)
+        if not data:
+            raise RequestError("the upload is empty; expected an image file's bytes as the body", "body")
+        return JSONResponse(await run(session.add_image, version, data, q.get("name")))
+
+    async def reload(request: Request) -> Response:
+        await _json(request)
+        return JSONResponse(await run(session.reload))
+
+    async def start_job(request: Request) -> Response:
+        body = await _json(request)
+        job = await run(
+            session.start_job,
+            _field(body, "version"),
+            _field(body, "kind"),
+            _field(body, "id"),
+            _field(body, "steps", None),
+        )
+        return JSONResponse(job.report())
+
+    async def cancel_job(request: Request) -> Response:
+        await _json(request)
+        return JSONResponse(await run(session.cancel_job, request.path_params["job"]))
+
+    async def job_events(request: Request) -> Response:
+        job = session.jobs.get(request.path_params["job"])
+        if job is None:
+            return _error(404, f"no job {request.path_params['job']!r}; expected the id a job was started with")
+
+        async def events():
+            last = None
+            while True:
+                report = job.report()
+                key = (report["step"], report["state"])
+                if key != last:
+                    yield f"data: {json.dumps(report)}\n\n"
+                    last = key
+                if report["state"] != "running":
+                    return
+                await asyncio.sleep(EVENT_INTERVAL_S)
+
+        return StreamingResponse(events(), media_type="text/event-stream", headers={"Cache-Control": "no-store"})
+
+    async def favicon(request: Request) -> Response:
+        return Response(status_code=204)
+
+    routes = [
+        Route("/", index),
+        Route("/favicon.ico", favicon),
+        Route("/static/{name}", static),
+        Route("/api/state", state),
+        Route("/api/presets", presets),
+        Route("/api/view", view),
+        Route("/api/layers/{id}/thumb.png", thumbnail),
+        Route("/api/export/{kind}", export),
+        Route("/api/change", change, methods=["POST"]),
+        Route("/api/upload", upload, methods=["POST"]),
+        Route("/api/reload", reload, methods=["POST"]),
+        Route("/api/jobs", start_job, methods=["POST"]),
+        Route("/api/jobs/{job}/cancel", cancel_job, methods=["POST"]),
+        Route("/api/jobs/{job}/events", job_events),
+    ]
+
+    async def on_error(request: Request, exc: Exception) -> Response:
+        return _response_for(exc)
+
+    handlers = {HTTPException: on_error, LasagnaError: on_error, Exception: on_error}
+    app = Starlette(routes=routes, exception_handlers=handlers)
+    return Guard(app, token, allowed_hosts)
+
+
+class Guard:
+    """ASGI wrapper: the Host, token, Origin and method checks (module docstring) before any route."""
+
+    def __init__(self, app, token: str, allowed_hosts: list[str]):
+        self.app = app
+        self.token = token.encode()
+        self.allowed_hosts = list(allowed_hosts)
+        self.origins = {f"http://{h}" for h in allowed_hosts}
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] == "http":
+            refusal = self.check(Request(scope))
+            if refusal is not None:
+                await refusal(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
+
+    def check(self, request: Request) -> Response | None:
+        host = request.headers.get("host", "")
+        if host not in self.allowed_hosts:
+            return _error(
+                403,
+                f"Host {host!r} is not this server; expected one of {', '.join(self.allowed_hosts)} "
+                "(requests through another name are refused: DNS rebinding)",
+            )
+        given = (
+            request.headers.get(TOKEN_HEADER)
+            or request.query_params.get("token")
+            or request.cookies.get(TOKEN_COOKIE)
+            or ""
+        )
+        if not secrets.compare_digest(given.encode(), self.token):
+            return _error(403, "missing or wrong token; expected the URL `lasagna serve` printed (it carries ?token=…)")
+        if request.method not in ("GET", "HEAD", "POST"):
+            return _error(405, f"method {request.method} is not used here; expected GET or POST")
+        if request.method == "POST":
+            origin = request.headers.get("origin")
+            if origin is not None and origin not in self.origins:
+                return _error(403, f"Origin {origin!r} is not this server; expected {', '.join(sorted(self.origins))}")
+        return None
+
+
+def _response_for(exc: Exception) -> Response:
+    if isinstance(exc, HTTPException):  # Starlette's own: no such route (404), a method it does not take (405)
+        return _error(exc.status_code, f"{request_line(exc)}")
+    if isinstance(exc, TooLarge):
+        return _error(413, str(exc))
+    if isinstance(exc, ConflictError):
+        return _error(409, str(exc))
+    if isinstance(exc, BudgetError):
+        return _error(413, str(exc))
+    if isinstance(exc, LasagnaError):
+        return _error(400, str(exc))
+    if isinstance(exc, ImportError):
+        return _error(501, f"{exc}; expected the optional dependency installed (pip install 'lasagna[psd]')")
+    return _error(500, f"internal error: {type(exc).__name__}: {exc}; please report it")
+
+
+__all__ = ["Guard", "MAX_JSON_BYTES", "MAX_UPLOAD_BYTES", "create_app"]

@@ -1,0 +1,741 @@
+"""One open stack in the editor: the document and its tensors, undo/redo, views, versioned saves and jobs.
+
+An ``EditSession`` holds the stack folder's ``Stack`` in memory and changes it only through the engine's
+own verbs (``Document.replace_layer``, ``Stack.add_layer``, ``lasagna.edit.plan_edit``, ``make_layer``,
+``render_learned``, the exporters): the server is one more caller of the code the CLI runs, never a second
+implementation of it.
+
+* **Versions.** Every change of the document makes a new integer ``version``. A change names the version it
+  was made against; any other is a ``ConflictError`` (HTTP 409): two tabs never overwrite each other's
+  edits, the stale one is told and reloads.
+* **Undo/redo.** A change pushes a ``Snapshot`` (document, tensor map, pending generator files) — tensors
+  are never modified in place, so a snapshot costs a few dicts, not pixels.
+* **Saves** go through ``lasagna.io.folder.save_in_place``: stack.json is the commit point, so a kill at any
+  instant leaves the previous stack or the new one; a stack.json changed on disk by anyone else since it was
+  read is a ``ConflictError`` and nothing is written.
+* **Views** are composites at a power-of-two reduction ``level`` (0 = the canvas), each level with its own
+  prefix-cache ``Renderer`` (``lasagna.compose.renderer``): toggling or dragging layer k recomputes from k up,
+  at the size on screen. Layers are reduced once per level with an area filter and cached by tensor identity.
+  Level 0 is exactly ``lasagna composite``; a reduced level is the composite of reduced layers (a preview:
+  blends are not linear, so it differs slightly from a reduced composite).
+* **Jobs** (per-image refinement, re-rendering) run in one worker thread with a progress report and a
+  cancel flag checked between steps (``make_layer``'s callback); the result lands as a new, undoable version.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from lasagna import catalogue as cat
+from lasagna.atomic import atomic_write_bytes, temp_path
+from lasagna.compose.layer import LayerTensors
+from lasagna.compose.plan import plan_from_document, solid_tensors
+from lasagna.compose.renderer import Renderer
+from lasagna.document import Document, LearnedLayer
+from lasagna.document.blend import BLEND_MODES, RANGED_BLENDS
+from lasagna.document.types import check_id
+from lasagna.errors import ConflictError, DocumentError, ImageError, LasagnaError
+from lasagna.io.folder import save_in_place, stack_sha256
+from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS, read_image_file
+from lasagna.io.render import composite_codes, encode_composite
+from lasagna.io.stack import Stack, load_stack
+
+MAX_UNDO = 100
+"""Snapshots kept for undo: each holds references to tensors, so old pixels live while they can be undone."""
+THUMB_SIDE = 96
+"""Long side of a layer thumbnail in the layers panel, in pixels."""
+LAYER_FIELDS = ("name", "visible", "opacity", "blend", "range", "offset", "mask", "condition", "settings")
+"""Document fields a layer change may set (``mask`` only to null: a mask is removed, not painted; ``condition``
+and ``settings`` of a learned layer, checked as ``lasagna render`` reads them, take effect when it is
+re-rendered)."""
+MAX_LEVEL = 6
+"""Coarsest view: the canvas reduced 64×."""
+
+
+class Cancelled(Exception):
+    """Raised inside a job's per-step callback when its cancel button was pressed."""
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """Everything a change replaces: undoing puts it back."""
+
+    document: Document
+    tensors: dict[str, Any]
+    bit_depths: dict[str, int]
+    files: dict[str, bytes]
+    what: str
+
+
+@dataclass
+class Job:
+    """A long-running change (per-image refinement, re-rendering): progress and the cancel flag."""
+
+    id: str
+    what: str
+    layer_id: str
+    steps: int
+    step: int = 0
+    state: str = "running"  # running, done, cancelled, failed
+    error: str | None = None
+    version: int | None = None  # the version its result became
+    cancel: threading.Event = field(default_factory=threading.Event)
+    started: float = field(default_factory=time.monotonic)
+
+    def report(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "what": self.what,
+            "layer": self.layer_id,
+            "steps": self.steps,
+            "step": self.step,
+            "state": self.state,
+            "error": self.error,
+            "version": self.version,
+            "seconds": round(time.monotonic() - self.started, 2),
+        }
+
+
+@dataclass
+class _Level:
+    renderer: Renderer
+    key: tuple[Any, ...]
+
+
+def _reduce(t: torch.Tensor | None, size: tuple[int, int]) -> torch.Tensor | None:
+    if t is None:
+        return None
+    if tuple(t.shape[-2:]) == size:
+        return t
+    return F.interpolate(t.unsqueeze(0).float(), size=size, mode="area")[0].to(t.dtype)
+
+
+def _reduced_side(n: int, level: int) -> int:
+    return max(1, math.ceil(n / 2**level))
+
+
+class EditSession:
+    """The open stack (module docstring). Thread-safe: every method takes the session's lock."""
+
+    def __init__(
+        self,
+        folder: str | Path,
+        *,
+        catalogue_dirs=None,
+        device: str = "cpu",
+        max_pixels: int = DEFAULT_EDIT_MAX_PIXELS,
+    ):
+        self.folder = Path(folder)
+        self.catalogue_dirs = catalogue_dirs
+        self.device = device
+        self.max_pixels = max_pixels
+        self.lock = threading.RLock()
+        self._load()
+
+    # ---- state ---------------------------------------------------------------------------------------
+
+    def _load(self) -> None:
+        self.disk_sha = stack_sha256(self.folder)
+        self.stack = load_stack(self.folder)
+        self.files: dict[str, bytes] = {}
+        self.unchanged: dict[str, object] = dict(self.stack.tensors)  # what the PNGs on disk hold
+        self.version = 1
+        self.saved_version = 1
+        self.undo_stack: list[Snapshot] = []
+        self.redo_stack: list[Snapshot] = []
+        self.levels: dict[int, _Level] = {}
+        self.reduced: dict[tuple[str, int], tuple[object, LayerTensors]] = {}
+        self.thumbs: dict[str, tuple[object, Any, bytes]] = {}
+        self.job: Job | None = None
+        self.jobs: dict[str, Job] = {}
+
+    def reload(self) -> dict[str, Any]:
+        """Read the folder again, dropping unsaved changes and history (after a save conflict)."""
+        with self.lock:
+            self._check_idle("reload")
+            self._load()
+            self.version = int(time.time() * 1000) % 10**9  # never a version an old tab could still hold
+            self.saved_version = self.version
+            return self.state()
+
+    def _snapshot(self, what: str) -> Snapshot:
+        s = self.stack
+        return Snapshot(s.document, dict(s.tensors), dict(s.bit_depths), dict(self.files), what)
+
+    def _restore(self, snap: Snapshot) -> None:
+        self.stack = Stack(snap.document, self.stack.folder, dict(snap.tensors), dict(snap.bit_depths))
+        self.files = dict(snap.files)
+
+    def _check_version(self, version: Any) -> None:
+        if isinstance(version, bool) or not isinstance(version, int):
+            raise LasagnaError(f"expected the integer version the change was made against, got {version!r}", "version")
+        if version != self.version:
+            raise ConflictError(
+                f"the stack is at version {self.version}, the change was made against {version} (another tab "
+                "changed it); expected the current version: reload",
+                "version",
+            )
+
+    def _check_idle(self, what: str) -> None:
+        if self.job is not None and self.job.state == "running":
+            raise ConflictError(f"a {self.job.what} job is running; expected it to finish or be cancelled", what)
+
+    def _change(self, version: Any, what: str, apply) -> dict[str, Any]:
+        """Check ``version``, apply ``apply()`` (which changes ``self.stack``), push the undo snapshot."""
+        with self.lock:
+            self._check_version(version)
+            self._check_idle(what)
+            before = self._snapshot(what)
+            try:
+                apply()
+            except BaseException:
+                self._restore(before)
+                raise
+            self.undo_stack.append(before)
+            del self.undo_stack[:-MAX_UNDO]
+            self.redo_stack.clear()
+            self.version += 1
+            return self.state()
+
+    def state(self) -> dict[str, Any]:
+        """The document, version, history and job as the page needs them (JSON data)."""
+        with self.lock:
+            doc = self.stack.document
+            return {
+                "version": self.version,
+                "saved_version": self.saved_version,
+                "dirty": self.version != self.saved_version,
+                "folder": self.folder.name,
+                "document": doc.to_dict(),
+                "not_rendered": self.stack.not_rendered,
+                "undo": self.undo_stack[-1].what if self.undo_stack else None,
+                "redo": self.redo_stack[-1].what if self.redo_stack else None,
+                "job": self.job.report() if self.job is not None else None,
+                "levels": self.max_level() + 1,
+                "blends": list(BLEND_MODES),
+                "ranged_blends": sorted(RANGED_BLENDS),
+            }
+
+    # ---- document changes ---------------------------------------------------------------------------
+
+    def set_layer(self, version: Any, id: str, changes: dict[str, Any]) -> dict[str, Any]:
+        """Change document fields of layer ``id`` (``LAYER_FIELDS``); a range change keeps the stored values."""
+        if not isinstance(changes, dict) or not changes:
+            raise LasagnaError("expected an object of layer fields to change", "changes")
+        unknown = sorted(set(changes) - set(LAYER_FIELDS))
+        if unknown:
+            raise LasagnaError(
+                f"cannot set {', '.join(unknown)}; expected some of {', '.join(LAYER_FIELDS)}", "changes"
+            )
+        if "mask" in changes and changes["mask"] is not None:
+            raise LasagnaError("a mask can only be removed here (null); expected null", "changes.mask")
+
+        def apply() -> None:
+            from lasagna.learned import LayerSettings
+
+            s = self.stack
+            layer = s.document.layer(id)
+            s.document = s.document.replace_layer(id, **changes)
+            if "settings" in changes:
+                LayerSettings.parse(s.document.layer(id).settings, f"layer {id!r}.settings")
+            t = s.tensors.get(id)
+            new = s.document.layer(id)
+            if t is not None and tuple(new.range) != tuple(layer.range):
+                (lo, hi), (nlo, nhi) = tuple(layer.range), tuple(new.range)
+                color = nlo + (nhi - nlo) * ((t.color - lo) / (hi - lo))  # the same stored codes v
+                s.tensors[id] = LayerTensors(color, t.alpha, t.mask)
+            if "mask" in changes and t is not None and t.mask is not None:
+                s.tensors[id] = LayerTensors(s.tensors[id].color, s.tensors[id].alpha, None)
+
+        what = ", ".join(sorted(changes))
+        return self._change(version, f"{what} of {id}", apply)
+
+    def move_layer(self, version: Any, id: str, index: Any) -> dict[str, Any]:
+        """Move layer ``id`` to position ``index`` (0 = bottom)."""
+        n = len(self.stack.document.layers)
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < n:
+            raise LasagnaError(f"expected an integer position in [0, {n - 1}], got {index!r}", "index")
+
+        def apply() -> None:
+            doc = self.stack.document
+            layers = list(doc.layers)
+            layer = layers.pop(doc.index(id))
+            layers.insert(index, layer)
+            self.stack.document = doc.with_layers(layers)
+
+        return self._change(version, f"move {id}", apply)
+
+    def delete_layer(self, version: Any, id: str) -> dict[str, Any]:
+        if len(self.stack.document.layers) == 1:
+            raise DocumentError("it is the only layer; expected a stack to keep at least one", f"layer {id!r}")
+        return self._change(version, f"delete {id}", lambda: self.stack.remove_layer(id))
+
+    def _new_id(self, wanted: str) -> str:
+        base = "".join(c if c.isalnum() or c in "_.-" else "-" for c in wanted).strip("-._") or "layer"
+        base = base[:56]
+        taken = {i.casefold() for i in self.stack.ids}
+        candidate, n = base, 2
+        while candidate.casefold() in taken:
+            candidate, n = f"{base}-{n}", n + 1
+        return check_id(candidate)
+
+    def add_solid(self, version: Any, color: Any, name: Any = None, blend: Any = "normal") -> dict[str, Any]:
+        if not isinstance(color, list) or len(color) not in (3, 4):
+            raise LasagnaError(f"expected RGB or RGBA in [0, 1], got {color!r}", "color")
+        name = name if isinstance(name, str) and name.strip() else "Solid"
+        id = self._new_id(name.lower())
+        return self._change(
+            version, f"add {id}", lambda: self.stack.add_solid(id, [float(c) for c in color], name=name, blend=blend)
+        )
+
+    def add_image(self, version: Any, data: bytes, name: Any = None) -> dict[str, Any]:
+        """A new pixels layer on top from an uploaded image file's bytes, read under the CLI's input policy."""
+        name = name if isinstance(name, str) and name.strip() else "Image"
+        stem = Path(name).stem or "image"
+        with self.lock:
+            self._check_version(version)
+            tmp = temp_path(self.folder / "upload", suffix=Path(name).suffix.lower()[:8])
+            try:
+                atomic_write_bytes(tmp, data)
+                img = read_image_file(tmp, max_pixels=self.max_pixels)
+            except ImageError as exc:
+                raise ImageError(exc.message, f"upload {name!r}") from None
+            finally:
+                tmp.unlink(missing_ok=True)
+            id = self._new_id(stem.lower())
+            color = torch.from_numpy(img.color)
+            alpha = torch.from_numpy(img.alpha) if img.alpha is not None else None
+            return self._change(
+                version,
+                f"add {id}",
+                lambda: self.stack.add_layer(id, color, alpha=alpha, bit_depth=img.bit_depth, name=stem),
+            )
+
+    def add_learned(
+        self, version: Any, preset: Any, condition: Any, on: Any = None, method: Any = "amortised"
+    ) -> dict[str, Any]:
+        """A learned layer of catalogue preset ``preset`` for ``condition`` on top. ``amortised``: made now by
+        the preset's generator (one forward pass, ``lasagna.edit.plan_edit``). ``per-image``: the layer is
+        added without pixels, as a document may hold it, for a ``rerender`` job to make with progress."""
+        from lasagna.edit import plan_edit
+
+        if not isinstance(preset, str) or not isinstance(condition, str):
+            raise LasagnaError("expected a preset name and a condition", "preset")
+        if method not in ("amortised", "per-image"):
+            raise LasagnaError(f"expected method 'amortised' or 'per-image', got {method!r}", "method")
+        with self.lock:
+            self._check_version(version)
+            self._check_idle("add learned layer")
+            start = time.monotonic()
+            plan = plan_edit(self.stack, preset, condition, on=on, generator=method, catalogue_dirs=self.catalogue_dirs)
+            if method == "per-image":
+                p = plan.resolved.preset
+                fields = {
+                    "id": plan.layer_id,
+                    "name": f"{p.name.capitalize()} ({condition})",
+                    "kind": "learned",
+                    "blend": p.blend,
+                    "range": list(p.range),
+                    "preset": p.name,
+                    "condition": {"label": condition},
+                    "conditioned_on": plan.on,
+                }
+                return self._change(
+                    version,
+                    f"add {plan.layer_id}",
+                    lambda: setattr(self.stack, "document", self.stack.document.with_layer(fields)),
+                )
+            run = plan.make(catalogue_dirs=self.catalogue_dirs, device=self.device)
+            result = plan.finish(run, time.monotonic() - start)
+
+            def apply() -> None:
+                # The other layers keep their tensor objects (as_stored left their values as they were), so the
+                # view cache and the save's "unchanged" map still recognise them.
+                tensors = {
+                    id: self.stack.tensors.get(id, t) if id != result.layer_id else t
+                    for id, t in result.stack.tensors.items()
+                }
+                self.stack = Stack(result.stack.document, self.folder, tensors, result.stack.bit_depths)
+                self.files.update(run.files)
+
+            return self._change(version, f"add {result.layer_id}", apply)
+
+    def undo(self, version: Any) -> dict[str, Any]:
+        return self._step(version, self.undo_stack, self.redo_stack, "undo")
+
+    def redo(self, version: Any) -> dict[str, Any]:
+        return self._step(version, self.redo_stack, self.undo_stack, "redo")
+
+    def _step(self, version: Any, source: list[Snapshot], target: list[Snapshot], what: str) -> dict[str, Any]:
+        with self.lock:
+            self._check_version(version)
+            self._check_idle(what)
+            if not source:
+                raise LasagnaError(f"nothing to {what}; expected a change first", what)
+            snap = source.pop()
+            target.append(self._snapshot(snap.what))
+            self._restore(snap)
+            self.version += 1
+            return self.state()
+
+    # ---- saving and exporting -----------------------------------------------------------------------
+
+    def save(self, version: Any) -> dict[str, Any]:
+        """Write the stack into its folder (``save_in_place``); ``ConflictError`` if the tab is stale or the
+        folder's stack.json changed since it was read."""
+        from lasagna.export.ora import encode_ora
+
+        def extra(stack: Stack, result) -> dict[str, bytes]:
+            if (self.folder / "stack.ora").is_file():  # a `lasagna edit` folder keeps its OpenRaster current
+                return {"stack.ora": encode_ora(stack, composite=result.image)}
+            return {}
+
+        with self.lock:
+            self._check_version(version)
+            self._check_idle("save")
+            self.disk_sha, self.unchanged = save_in_place(
+                self.stack, unchanged=self.unchanged, files=self.files, expect_sha256=self.disk_sha, extra=extra
+            )
+            self.files = {}
+            self.saved_version = self.version
+            return self.state()
+
+    def export(self, kind: str) -> tuple[bytes, str, str]:
+        """(bytes, file name, media type) of the current stack as ``ora``, ``psd`` or ``png`` (the composite)."""
+        with self.lock:
+            stack = Stack(self.stack.document, self.folder, dict(self.stack.tensors), dict(self.stack.bit_depths))
+        result = stack.render()
+        name = self.folder.name
+        if kind == "ora":
+            from lasagna.export.ora import encode_ora
+
+            return encode_ora(stack, composite=result.image), f"{name}.ora", "image/openraster"
+        if kind == "psd":
+            from lasagna.export.psd import encode_psd
+
+            return encode_psd(stack, composite=result.image), f"{name}.psd", "image/vnd.adobe.photoshop"
+        if kind == "png":
+            return encode_composite(result), f"{name}.png", "image/png"
+        raise LasagnaError(f"unknown export {kind!r}; expected ora, psd or png", "export")
+
+    # ---- views ----------------------------------------------------------------------------------------
+
+    def max_level(self) -> int:
+        side = max(self.stack.width, self.stack.height)
+        return max(0, min(MAX_LEVEL, int(math.floor(math.log2(side))) - 4)) if side > 16 else 0
+
+    def _level_tensors(self, doc: Document, level: int) -> dict[str, LayerTensors]:
+        """Every layer's tensors reduced by 2**level (cached by the source tensors' identity)."""
+        out: dict[str, LayerTensors] = {}
+        for layer in doc.layers:
+            if layer.kind == "solid":
+                lo, hi = tuple(layer.range)
+                w, h = (
+                    (layer.size.width, layer.size.height)
+                    if layer.size is not None
+                    else (self.stack.width, self.stack.height)
+                )
+                key = (layer.id, level)
+                stamp = (tuple(layer.color), w, h, lo, hi)
+                hit = self.reduced.get(key)
+                if hit is None or hit[0] != stamp:
+                    rw, rh = _reduced_side(w, level), _reduced_side(h, level)
+                    shape = type("Solid", (), {"color": layer.color, "size": None})()  # its size is the one given
+                    solid = solid_tensors(shape, lo, hi, rw, rh, layer.id)
+                    hit = (stamp, solid)
+                    self.reduced[key] = hit
+                out[layer.id] = hit[1]
+                continue
+            t = self.stack.tensors.get(layer.id)
+            if t is None:
+                continue
+            if level == 0:
+                out[layer.id] = t
+                continue
+            key = (layer.id, level)
+            hit = self.reduced.get(key)
+            if hit is None or hit[0] is not t:
+                size = (_reduced_side(t.color.shape[-2], level), _reduced_side(t.color.shape[-1], level))
+                hit = (t, LayerTensors(_reduce(t.color, size), _reduce(t.alpha, size), _reduce(t.mask, size)))
+                self.reduced[key] = hit
+            out[layer.id] = hit[1]
+        return out
+
+    def view(
+        self,
+        level: int = 0,
+        *,
+        opacity: dict[str, float] | None = None,
+        solo: str | None = None,
+        upto: str | None = None,
+    ) -> tuple[bytes, int, int]:
+        """The composite at reduction ``level`` as RGBA8 bytes (row-major), with transient overrides that are
+        not changes (``opacity`` while a slider is dragged; ``solo`` one layer alone; ``upto`` a layer: the
+        stack up to and including it, the "before" of a before/after split)."""
+        if isinstance(level, bool) or not isinstance(level, int) or not 0 <= level <= self.max_level():
+            raise LasagnaError(f"expected a level in [0, {self.max_level()}], got {level!r}", "level")
+        with self.lock:
+            doc = self.stack.document
+            for id in [*(opacity or {}), *([solo] if solo else []), *([upto] if upto else [])]:
+                doc.index(id)  # DocumentError naming the ids
+            layers = []
+            seen_upto = False
+            for layer in doc.layers:
+                changes: dict[str, Any] = {}
+                if opacity and layer.id in opacity:
+                    v = opacity[layer.id]
+                    if not (isinstance(v, (int, float)) and 0.0 <= float(v) <= 1.0):
+                        raise LasagnaError(f"expected an opacity in [0, 1], got {v!r}", f"opacity.{layer.id}")
+                    changes["opacity"] = float(v)
+                if solo is not None:
+                    changes["visible"] = layer.id == solo
+                if seen_upto:
+                    changes["visible"] = False
+                if upto is not None and layer.id == upto:
+                    seen_upto = True
+                layers.append(layer.model_copy(update=changes) if changes else layer)
+            tensors = self._level_tensors(doc, level)
+            w, h = _reduced_side(self.stack.width, level), _reduced_side(self.stack.height, level)
+            f = 2**level
+            specs = plan_from_document(_Scaled(doc, layers, w, h, f), tensors, cull=True, dtype=torch.float32).layers
+            key = (w, h, tuple(doc.canvas.background), doc.blend_space, doc.clamp)
+            lv = self.levels.get(level)
+            if lv is None or lv.key != key:
+                lv = _Level(Renderer((h, w), tuple(doc.canvas.background), doc.blend_space, doc.clamp), key)
+                self.levels[level] = lv
+            image = lv.renderer.render(specs).image
+            codes = composite_codes(image) if level == 0 else (image.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8)
+            rgba = np.empty((h, w, 4), np.uint8)
+            rgba[..., :3] = codes.permute(1, 2, 0).numpy()
+            rgba[..., 3] = 255
+            return rgba.tobytes(), w, h
+
+    def thumbnail(self, id: str) -> bytes:
+        """A small PNG of layer ``id``'s stored values (RGB codes v and alpha), as the layers panel shows it."""
+        from PIL import Image
+
+        with self.lock:
+            layer = self.stack.document.layer(id)
+            t = self._level_tensors(self.stack.document, 0).get(id)
+        if t is None:  # a learned layer not rendered yet
+            rgba = np.zeros((8, 8, 4), np.uint8)
+        else:
+            hit = self.thumbs.get(id)
+            if hit is not None and hit[0] is t and hit[1] == tuple(layer.range):
+                return hit[2]
+            lo, hi = tuple(layer.range)
+            h, w = t.color.shape[-2:]
+            s = min(1.0, THUMB_SIDE / max(h, w))
+            size = (max(1, round(h * s)), max(1, round(w * s)))
+            color = _reduce(((t.color - lo) / (hi - lo)).clamp(0, 1), size).expand(3, *size)
+            alpha = _reduce(t.alpha, size) if t.alpha is not None else torch.ones(1, *size)
+            rgba = (torch.cat([color, alpha.clamp(0, 1)]) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
+        buf = io.BytesIO()
+        Image.fromarray(np.ascontiguousarray(rgba), "RGBA").save(buf, "PNG")
+        data = buf.getvalue()
+        if t is not None:
+            self.thumbs[id] = (t, tuple(layer.range), data)
+        return data
+
+    # ---- the catalogue --------------------------------------------------------------------------------
+
+    def presets(self) -> list[dict[str, Any]]:
+        """Every preset of the catalogue: ready or why not, its vocabulary, blend and description."""
+        out = []
+        for name in cat.available(self.catalogue_dirs)["preset"]:
+            status = cat.preset_status(name, self.catalogue_dirs)
+            entry: dict[str, Any] = {"name": name, "ready": bool(status["usable"]), "why": status["why"]}
+            entry["method"] = status.get("method")
+            try:
+                p = cat.load_preset(name, self.folder, self.catalogue_dirs)
+                entry.update(
+                    vocabulary=list(p.vocabulary), blend=p.blend, description=p.description, channels=p.channels
+                )
+            except LasagnaError as exc:
+                entry.update(ready=False, why=str(exc))
+            out.append(entry)
+        return out
+
+    # ---- jobs -----------------------------------------------------------------------------------------
+
+    def start_job(self, version: Any, kind: str, id: str, steps: Any = None) -> Job:
+        """Start ``refine`` (per-image optimisation of learned layer ``id`` for ``steps``; from its amortised
+        pass when it has one) or ``rerender`` (from its record) in the worker thread."""
+        from lasagna.learned import LayerSettings, choose_method, default_steps
+
+        if kind not in ("refine", "rerender"):
+            raise LasagnaError(f"unknown job {kind!r}; expected refine or rerender", "job")
+        with self.lock:
+            self._check_version(version)
+            self._check_idle(kind)
+            layer = self.stack.document.layer(id)
+            if not isinstance(layer, LearnedLayer):
+                raise DocumentError(f"is a {layer.kind} layer; expected a learned layer", f"layer {id!r}")
+            if kind == "refine":
+                if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 10_000:
+                    raise LasagnaError(f"expected an integer number of steps in [1, 10000], got {steps!r}", "steps")
+                total = steps
+            else:
+                s = LayerSettings.parse(layer.settings, f"layer {id!r}")
+                if s.optimize is not None:
+                    total = int(s.optimize)
+                else:  # made as `lasagna edit` would make it: the preset's method and steps
+                    resolved = cat.resolve(layer.preset, self.folder, self.catalogue_dirs, need_prior=False)
+                    total = default_steps(resolved, s.method or choose_method(resolved, None))
+            job = Job(uuid.uuid4().hex[:12], kind, id, total)
+            self.job = job
+            self.jobs[job.id] = job
+            snapshot = Stack(self.stack.document, self.folder, dict(self.stack.tensors), dict(self.stack.bit_depths))
+        threading.Thread(target=self._run_job, args=(job, snapshot, version), daemon=True, name=f"job-{job.id}").start()
+        return job
+
+    def _run_job(self, job: Job, stack: Stack, version: int) -> None:
+        from lasagna.edit import render_learned
+
+        def callback(step: int, layer) -> None:
+            job.step = step + 1  # steps done once this one is
+            if job.cancel.is_set():
+                raise Cancelled
+
+        files: dict[str, bytes] = {}
+        try:
+            layer = stack.document.layer(job.layer_id)
+            if job.what == "refine" and _unsaved_generator(stack, layer):
+                new, files = self._refine_from_catalogue(stack, layer, job.steps, callback)
+            else:
+                if job.what == "refine":
+                    stack = _with_refine_settings(stack, layer, job.steps)
+                new, _ = render_learned(
+                    stack,
+                    ids=[job.layer_id],
+                    write=False,
+                    catalogue_dirs=self.catalogue_dirs,
+                    device=self.device,
+                    callback=callback,
+                )
+        except Cancelled:
+            job.state = "cancelled"
+            return
+        except LasagnaError as exc:
+            job.state, job.error = "failed", str(exc)
+            return
+        except Exception as exc:  # noqa: BLE001 - reported to the page in one line, the server stays up
+            job.state, job.error = "failed", f"internal error: {type(exc).__name__}: {exc}"
+            return
+        finally:
+            if job.state == "running" and job.cancel.is_set():
+                job.state = "cancelled"
+        with self.lock:
+            base = stack.document.layer(job.layer_id)
+            cur_doc = self.stack.document
+            if job.layer_id not in cur_doc.ids or cur_doc.layer(job.layer_id).conditioned_on != base.conditioned_on:
+                job.state, job.error = "failed", "the layer was removed or re-parented while the job ran; run it again"
+                return
+            made = new.document.layer(job.layer_id)
+            before = self._snapshot(f"{job.what} {job.layer_id}")
+            keep = {k: getattr(cur_doc.layer(job.layer_id), k) for k in ("name", "visible", "opacity", "offset")}
+            fields = {
+                **made.model_dump(),
+                **{k: (v.model_dump() if hasattr(v, "model_dump") else v) for k, v in keep.items()},
+            }
+            self.stack.document = cur_doc.with_layer(fields).replace(metadata=new.document.metadata)
+            self.stack.tensors[job.layer_id] = new.tensors[job.layer_id]
+            self.stack.bit_depths[job.layer_id] = new.bit_depths.get(job.layer_id, 16)
+            self.files.update(files)
+            self.undo_stack.append(before)
+            del self.undo_stack[:-MAX_UNDO]
+            self.redo_stack.clear()
+            self.version += 1
+            job.version = self.version
+            job.step = max(job.step, job.steps)
+            job.state = "done"
+
+    def _refine_from_catalogue(self, stack: Stack, layer: LearnedLayer, steps: int, callback):
+        """Refine an amortised layer whose generator copy is not saved yet: the catalogue's generator (the one
+        the copy was made from) and ``steps`` per-image steps, as ``lasagna edit --optimize`` runs them."""
+        from lasagna.edit import EditPlan
+        from lasagna.learned import conditioning_input
+
+        start = time.monotonic()
+        resolved = cat.resolve(layer.preset, stack.folder, self.catalogue_dirs, need_prior=False)
+        plan = EditPlan(
+            stack=stack,
+            source=None,
+            resolved=resolved,
+            condition=layer.condition.label,
+            on=layer.conditioned_on,
+            layer_id=layer.id,
+            method="amortised",
+            optimize=steps,
+            base=conditioning_input(stack, layer.conditioned_on),
+            carried={},
+        )
+        run = plan.make(catalogue_dirs=self.catalogue_dirs, device=self.device, callback=callback)
+        result = plan.finish(run, time.monotonic() - start)
+        return result.stack, dict(run.files)
+
+    def cancel_job(self, job_id: str) -> dict[str, Any]:
+        job = self.jobs.get(job_id)
+        if job is None:
+            raise LasagnaError(f"no job {job_id!r}; expected the id a job was started with", "job")
+        job.cancel.set()
+        return job.report()
+
+
+class _Scaled:
+    """A document seen at a reduced view level: the canvas, offsets and solid sizes divided by ``f``, and the
+    layer list with transient overrides (read through attributes only, as ``plan_from_document`` does)."""
+
+    def __init__(self, doc: Document, layers, w: int, h: int, f: int):
+        self.canvas = type("Canvas", (), {"width": w, "height": h, "background": doc.canvas.background})()
+        self.blend_space = doc.blend_space
+        self.clamp = doc.clamp
+        self.layers = [_ScaledLayer(layer, f) for layer in layers] if f > 1 else layers
+
+
+class _ScaledLayer:
+    """A layer whose offset is divided by ``f`` (its other attributes are the layer's)."""
+
+    def __init__(self, layer, f: int):
+        self._layer = layer
+        self.offset = type("Offset", (), {"x": layer.offset.x // f, "y": layer.offset.y // f})()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._layer, name)
+
+
+def _unsaved_generator(stack: Stack, layer: LearnedLayer) -> bool:
+    """Whether ``layer`` was made by a generator whose copy is not in the stack folder yet (added, unsaved)."""
+    if layer.generator is None or stack.folder is None:
+        return False
+    return not (Path(stack.folder) / layer.generator.checkpoint).is_file()
+
+
+def _with_refine_settings(stack: Stack, layer: LearnedLayer, steps: int) -> Stack:
+    """``stack`` with learned layer ``layer`` set to be re-made with ``steps`` per-image steps: after its
+    amortised pass if it was made by the generator, else as a free layer (the preset's distillation)."""
+    from lasagna.learned import LayerSettings
+
+    s = LayerSettings.parse(layer.settings, f"layer {layer.id!r}")
+    settings = dict(layer.settings)
+    settings["optimize"] = steps
+    if isinstance(settings.get("distill"), dict):  # a recorded per-image run: the same run, for ``steps``
+        settings["distill"] = {**settings["distill"], "steps": steps}
+    if s.method is None:
+        settings["method"] = "per-image"
+    doc = stack.document.replace_layer(layer.id, settings=settings)
+    return Stack(doc, stack.folder, dict(stack.tensors), dict(stack.bit_depths))
+
+
+__all__ = ["Cancelled", "EditSession", "Job", "Snapshot"]

@@ -1,0 +1,483 @@
+// Lasagna's layer editor. Every change goes to the server (lasagna.serve), which runs the engine's own
+// code and answers with the new state; the page draws what the server composites (no second compositor).
+"use strict";
+
+const token = new URLSearchParams(location.search).get("token") || "";
+const $ = (id) => document.getElementById(id);
+const NAMED = { right: 0, "top-right": 45, top: 90, "top-left": 135, left: 180, "bottom-left": 225, bottom: 270, "bottom-right": 315 };
+const SWATCHES = { warm: "#ffb35c", cool: "#7fb2ff", white: "#ffffff" };
+
+const ui = {
+  state: null,          // the server's state (document, version, history, job)
+  presets: [],
+  selected: null,       // layer id
+  zoom: 1, panX: 0, panY: 0, fit: true,
+  solo: null,
+  split: false,
+  drag: null,           // {id, value} while an opacity slider is dragged (a transient view, not a change)
+  condition: null,
+  image: null,          // the last view: {canvas, level, w, h}
+  before: null,
+  paints: { count: 0, last: 0 },
+};
+window.lasagna = ui;    // for tests and benchmarks: the state, paint counter and pixel reader
+
+// ---- the server ---------------------------------------------------------------------------------
+
+async function api(path, options = {}) {
+  const headers = Object.assign({ "X-Lasagna-Token": token }, options.headers || {});
+  const response = await fetch(path, Object.assign({}, options, { headers }));
+  if (!response.ok) {
+    let message = response.statusText;
+    try { message = (await response.json()).error || message; } catch (e) { /* not JSON */ }
+    const err = new Error(message);
+    err.status = response.status;
+    throw err;
+  }
+  return response;
+}
+
+async function change(body) {
+  body.version = ui.state.version;
+  return apply(() => api("api/change", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) }));
+}
+
+async function apply(request) {
+  try {
+    const response = await request();
+    setState(await response.json());
+    status("");
+    return true;
+  } catch (err) {
+    fail(err);
+    return false;
+  }
+}
+
+function status(text, error = false) {
+  $("status").textContent = text;
+  $("status").className = error ? "error" : "";
+}
+
+function fail(err) {
+  status(err.message, true);
+  $("reload").hidden = err.status !== 409;
+}
+
+async function refresh() {
+  const response = await api("api/state");
+  setState(await response.json());
+}
+
+// ---- state → panels -------------------------------------------------------------------------------
+
+function setState(state) {
+  const first = ui.state === null;
+  ui.state = state;
+  const ids = state.document.layers.map((l) => l.id);
+  if (ui.selected && !ids.includes(ui.selected)) ui.selected = null;
+  if (ui.solo && !ids.includes(ui.solo)) ui.solo = null;
+  $("folder").textContent = state.folder + (state.dirty ? " •" : "");
+  $("undo").disabled = !state.undo;
+  $("undo").title = state.undo ? `Undo ${state.undo}` : "Nothing to undo";
+  $("redo").disabled = !state.redo;
+  $("redo").title = state.redo ? `Redo ${state.redo}` : "Nothing to redo";
+  $("save").disabled = !state.dirty;
+  for (const kind of ["ora", "psd", "png"]) $(`export-${kind}`).href = `api/export/${kind}?token=${encodeURIComponent(token)}`;
+  drawLayers();
+  drawProps();
+  if (first) fitView();
+  paint();
+}
+
+function layerRow(layer, index, n) {
+  const li = document.createElement("li");
+  li.dataset.id = layer.id;
+  li.draggable = true;
+  if (layer.id === ui.selected) li.classList.add("selected");
+  const stamp = ui.state.version;
+  li.innerHTML = `
+    <input type="checkbox" class="eye" title="visible" ${layer.visible ? "checked" : ""}>
+    <img alt="" src="api/layers/${encodeURIComponent(layer.id)}/thumb.png?v=${stamp}&token=${encodeURIComponent(token)}">
+    <span class="name" title="${layer.kind}: ${layer.id}"></span>
+    <span class="tools">
+      <button class="up" title="Move up" ${index === n - 1 ? "disabled" : ""}>▲</button><button class="down" title="Move down" ${index === 0 ? "disabled" : ""}>▼</button><button class="solo" title="Solo">S</button><button class="del" title="Delete">×</button>
+    </span>
+    <span class="row2">
+      <select class="blend" aria-label="blend"></select>
+      <input type="range" class="opacity" min="0" max="1" step="0.01" aria-label="opacity">
+      <span class="opv"></span>
+    </span>`;
+  li.querySelector(".name").textContent = layer.name + (ui.state.not_rendered[layer.id] ? " (not rendered)" : "");
+  const blend = li.querySelector(".blend");
+  for (const b of ui.state.blends) blend.add(new Option(b, b, false, b === layer.blend));
+  const op = li.querySelector(".opacity");
+  op.value = layer.opacity;
+  li.querySelector(".opv").textContent = Math.round(layer.opacity * 100) + "%";
+  if (ui.solo === layer.id) li.querySelector(".solo").classList.add("chosen");
+  li.addEventListener("click", (e) => {
+    if (e.target.closest("input, select, button")) return;
+    ui.selected = layer.id;
+    drawLayers(); drawProps();
+  });
+  li.querySelector(".eye").addEventListener("change", (e) => change({ op: "set", id: layer.id, changes: { visible: e.target.checked } }));
+  blend.addEventListener("change", () => change({ op: "set", id: layer.id, changes: { blend: blend.value } }));
+  op.addEventListener("input", () => {
+    ui.drag = { id: layer.id, value: parseFloat(op.value) };
+    li.querySelector(".opv").textContent = Math.round(op.value * 100) + "%";
+    paint();
+  });
+  op.addEventListener("change", async () => {
+    await change({ op: "set", id: layer.id, changes: { opacity: parseFloat(op.value) } });
+    ui.drag = null;
+    paint();
+  });
+  li.querySelector(".up").addEventListener("click", () => change({ op: "move", id: layer.id, index: index + 1 }));
+  li.querySelector(".down").addEventListener("click", () => change({ op: "move", id: layer.id, index: index - 1 }));
+  li.querySelector(".solo").addEventListener("click", () => { ui.solo = ui.solo === layer.id ? null : layer.id; drawLayers(); paint(); });
+  li.querySelector(".del").addEventListener("click", () => change({ op: "delete", id: layer.id }));
+  // The row drags to reorder, but not from its controls: a slider dragged inside a draggable row would
+  // start a row drag and lose the slider.
+  li.addEventListener("pointerdown", (e) => { li.draggable = !e.target.closest("input, select, button"); });
+  li.addEventListener("dragstart", (e) => { e.dataTransfer.setData("text/plain", layer.id); });
+  li.addEventListener("dragover", (e) => { e.preventDefault(); li.classList.add("dragover"); });
+  li.addEventListener("dragleave", () => li.classList.remove("dragover"));
+  li.addEventListener("drop", (e) => {
+    e.preventDefault();
+    li.classList.remove("dragover");
+    const id = e.dataTransfer.getData("text/plain");
+    if (id && id !== layer.id) change({ op: "move", id, index });  // dropped on a row: take its place
+  });
+  return li;
+}
+
+function drawLayers() {
+  const list = $("layers");
+  list.textContent = "";
+  const layers = ui.state.document.layers;
+  for (let i = layers.length - 1; i >= 0; i--) list.appendChild(layerRow(layers[i], i, layers.length));
+  $("solo-label").textContent = ui.solo ? `solo: ${ui.solo}` : "";
+}
+
+function field(label, input) {
+  const l = document.createElement("label");
+  l.append(label + " ", input);
+  return l;
+}
+
+function numberInput(value, onChange, step = "any") {
+  const input = document.createElement("input");
+  input.type = "number"; input.step = step; input.value = value;
+  input.addEventListener("change", () => onChange(parseFloat(input.value)));
+  return input;
+}
+
+function drawProps() {
+  const box = $("props");
+  box.textContent = "";
+  const layer = ui.state.document.layers.find((l) => l.id === ui.selected);
+  if (!layer) { box.innerHTML = '<p class="hint">Select a layer.</p>'; return; }
+  const set = (changes) => change({ op: "set", id: layer.id, changes });
+  const name = document.createElement("input");
+  name.value = layer.name; name.id = "prop-name";
+  name.addEventListener("change", () => set({ name: name.value }));
+  box.append(field("Name", name));
+  const info = document.createElement("div");
+  info.className = "hint";
+  info.textContent = `${layer.kind} layer · id ${layer.id}`;
+  box.append(info);
+  const [lo, hi] = layer.range;
+  box.append(field("Range", numberInput(lo, (v) => set({ range: [v, layer.range[1]] }))));
+  box.lastChild.append(" – ", numberInput(hi, (v) => set({ range: [layer.range[0], v] })));
+  box.append(field("Offset x", numberInput(layer.offset.x, (v) => set({ offset: { x: v, y: layer.offset.y } }), "1")));
+  box.lastChild.append(" y ", numberInput(layer.offset.y, (v) => set({ offset: { x: layer.offset.x, y: v } }), "1"));
+  if (layer.mask) {
+    const remove = document.createElement("button");
+    remove.textContent = "Remove mask";
+    remove.addEventListener("click", () => set({ mask: null }));
+    box.append(field(`Mask ${layer.mask}`, remove));
+  }
+  if (layer.kind === "learned") {
+    const preset = ui.presets.find((p) => p.name === layer.preset);
+    const cond = document.createElement("select");
+    cond.id = "prop-condition";
+    for (const v of (preset && preset.vocabulary) || [layer.condition.label]) cond.add(new Option(v, v, false, v === layer.condition.label));
+    cond.addEventListener("change", () => set({ condition: Object.assign({}, layer.condition, { label: cond.value }) }));
+    box.append(field(`Preset ${layer.preset}, condition`, cond));
+    const settings = document.createElement("textarea");
+    settings.id = "prop-settings"; settings.rows = 6; settings.spellcheck = false;
+    settings.value = JSON.stringify(layer.settings, null, 1);
+    const applySettings = document.createElement("button");
+    applySettings.textContent = "Apply settings";
+    applySettings.addEventListener("click", () => {
+      let value;
+      try { value = JSON.parse(settings.value); } catch (e) { status(`settings: not JSON (${e.message})`, true); return; }
+      set({ settings: value });
+    });
+    box.append(field("Settings (used by Re-render)", settings), applySettings);
+    const steps = numberInput(20, () => {}, "1");
+    steps.id = "refine-steps";
+    const refine = document.createElement("button");
+    refine.textContent = "Refine (per-image)"; refine.id = "refine";
+    refine.addEventListener("click", () => startJob("refine", layer.id, parseInt(steps.value, 10)));
+    const rerender = document.createElement("button");
+    rerender.textContent = "Re-render"; rerender.id = "rerender";
+    rerender.addEventListener("click", () => startJob("rerender", layer.id));
+    box.append(field("Steps", steps), refine, " ", rerender);
+  }
+}
+
+// ---- the catalogue and the light picker ---------------------------------------------------------
+
+async function loadPresets() {
+  const response = await api("api/presets");
+  ui.presets = (await response.json()).presets;
+  const select = $("preset");
+  select.textContent = "";
+  for (const p of ui.presets) {
+    const o = new Option(p.ready ? p.name : `${p.name} (not ready)`, p.name);
+    select.add(o);
+  }
+  const ready = ui.presets.find((p) => p.ready && p.method === "amortised") || ui.presets.find((p) => p.ready);
+  if (ready) select.value = ready.name;
+  drawPicker();
+}
+
+function drawPicker() {
+  const p = ui.presets.find((x) => x.name === $("preset").value);
+  const box = $("picker");
+  box.textContent = "";
+  $("preset-why").textContent = p && !p.ready ? p.why : "";
+  $("add-learned").disabled = !p || !p.ready || p.method !== "amortised";  // "amortised": a generator is installed
+  $("add-per-image").disabled = !p || !p.ready;
+  if (!p || !p.vocabulary) return;
+  if (!p.vocabulary.includes(ui.condition)) ui.condition = p.vocabulary[0];
+  const compass = p.vocabulary.every((v) => v in NAMED);
+  box.className = compass ? "" : "list";
+  if (compass) {
+    const ring = document.createElement("div");
+    ring.className = "compass";
+    box.append(ring);
+  }
+  for (const label of p.vocabulary) {
+    const b = document.createElement("button");
+    b.dataset.condition = label;
+    b.title = label;
+    if (compass) {
+      const a = (NAMED[label] * Math.PI) / 180;
+      b.style.left = `${50 + 42 * Math.cos(a)}%`;
+      b.style.top = `${50 - 42 * Math.sin(a)}%`;
+      b.textContent = "●";
+    } else if (label in SWATCHES) {
+      b.className = "swatch";
+      b.style.background = SWATCHES[label];
+    } else {
+      b.textContent = label;
+    }
+    if (label === ui.condition) b.classList.add("chosen");
+    b.addEventListener("click", () => { ui.condition = label; drawPicker(); });
+    box.append(b);
+  }
+}
+
+// ---- jobs ---------------------------------------------------------------------------------------
+
+async function startJob(kind, id, steps) {
+  let job;
+  try {
+    const response = await api("api/jobs", {
+      method: "POST", headers: { "Content-Type": "application/json" },
+      body: JSON.stringify({ version: ui.state.version, kind, id, steps }),
+    });
+    job = await response.json();
+  } catch (err) { fail(err); return; }
+  $("job").hidden = false;
+  $("job-bar").max = Math.max(1, job.steps);
+  $("job-cancel").onclick = () => api(`api/jobs/${job.id}/cancel`, { method: "POST", headers: { "Content-Type": "application/json" }, body: "{}" }).catch(fail);
+  const source = new EventSource(`api/jobs/${job.id}/events?token=${encodeURIComponent(token)}`);
+  source.onmessage = async (event) => {
+    const r = JSON.parse(event.data);
+    $("job-bar").value = r.step;
+    $("job-text").textContent = `${r.what} ${r.layer}: ${r.state} ${r.step}/${r.steps}`;
+    if (r.state !== "running") {
+      source.close();
+      if (r.state === "failed") status(r.error, true); else status(`${r.what} ${r.state}`);
+      await refresh();
+      setTimeout(() => { $("job").hidden = true; }, 1500);
+    }
+  };
+}
+
+// ---- the canvas ---------------------------------------------------------------------------------
+
+function levelFor(zoom) {
+  if (zoom >= 1) return 0;
+  return Math.max(0, Math.min(ui.state.levels - 1, Math.floor(Math.log2(1 / zoom))));
+}
+
+async function fetchView(params) {
+  const q = new URLSearchParams({ level: params.level });
+  if (params.drag) q.append("opacity", `${params.drag.id}:${params.drag.value}`);
+  if (params.solo) q.set("solo", params.solo);
+  if (params.upto) q.set("upto", params.upto);
+  const response = await api(`api/view?${q}`);
+  const w = parseInt(response.headers.get("X-Width"), 10), h = parseInt(response.headers.get("X-Height"), 10);
+  const data = new Uint8ClampedArray(await response.arrayBuffer());
+  const canvas = document.createElement("canvas");
+  canvas.width = w; canvas.height = h;
+  canvas.getContext("2d").putImageData(new ImageData(data, w, h), 0, 0);
+  return { canvas, level: params.level, w, h };
+}
+
+let wanted = null, inflight = false;
+function paint() {
+  if (!ui.state) return;
+  wanted = { level: levelFor(ui.zoom), drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split };
+  if (!inflight) paintLoop();
+}
+
+async function paintLoop() {
+  inflight = true;
+  try {
+    while (wanted) {
+      const p = wanted;
+      wanted = null;
+      const image = await fetchView(p);
+      let before = null;
+      if (p.split) before = await fetchView({ level: p.level, upto: ui.state.document.layers[0].id });
+      ui.image = image; ui.before = before;
+      draw();
+    }
+  } catch (err) { fail(err); }
+  inflight = false;
+}
+
+function draw() {
+  const canvas = $("canvas"), ctx = canvas.getContext("2d");
+  const stage = $("stage");
+  if (canvas.width !== stage.clientWidth || canvas.height !== stage.clientHeight) {
+    canvas.width = Math.max(1, stage.clientWidth); canvas.height = Math.max(1, stage.clientHeight);
+  }
+  ctx.setTransform(1, 0, 0, 1, 0, 0);
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  if (!ui.image) return;
+  const W = ui.state.document.canvas.width, H = ui.state.document.canvas.height;
+  ctx.imageSmoothingEnabled = ui.zoom < 1;
+  ctx.drawImage(ui.image.canvas, ui.panX, ui.panY, W * ui.zoom, H * ui.zoom);
+  if (ui.before) {
+    const cut = Math.round(ui.panX + W * ui.zoom * parseFloat($("split-pos").value));
+    ctx.save();
+    ctx.beginPath(); ctx.rect(0, 0, cut, canvas.height); ctx.clip();
+    ctx.drawImage(ui.before.canvas, ui.panX, ui.panY, W * ui.zoom, H * ui.zoom);
+    ctx.restore();
+    ctx.fillStyle = "#e0a030"; ctx.fillRect(cut, ui.panY, 1, H * ui.zoom);
+  }
+  ui.paints.count += 1;
+  ui.paints.last = performance.now();
+  $("zoom-label").textContent = `${Math.round(ui.zoom * 100)}%`;
+}
+
+function setZoom(zoom, cx, cy) {
+  const canvas = $("canvas");
+  cx = cx === undefined ? canvas.width / 2 : cx; cy = cy === undefined ? canvas.height / 2 : cy;
+  const ix = (cx - ui.panX) / ui.zoom, iy = (cy - ui.panY) / ui.zoom;
+  ui.zoom = Math.min(32, Math.max(1 / 64, zoom));
+  ui.panX = Math.round(cx - ix * ui.zoom); ui.panY = Math.round(cy - iy * ui.zoom);
+  paint();
+}
+
+function fitView() {
+  const stage = $("stage"), W = ui.state.document.canvas.width, H = ui.state.document.canvas.height;
+  const z = Math.min(stage.clientWidth / W, stage.clientHeight / H);
+  ui.zoom = z >= 1 ? Math.floor(z) : Math.pow(2, Math.floor(Math.log2(z)));  // exact pixels: integer or 1/2^k
+  ui.panX = Math.round((stage.clientWidth - W * ui.zoom) / 2); ui.panY = Math.round((stage.clientHeight - H * ui.zoom) / 2);
+  paint();
+}
+
+function oneToOne() {
+  const stage = $("stage"), W = ui.state.document.canvas.width, H = ui.state.document.canvas.height;
+  ui.zoom = 1;
+  ui.panX = Math.max(0, Math.round((stage.clientWidth - W) / 2)); ui.panY = Math.max(0, Math.round((stage.clientHeight - H) / 2));
+  paint();
+}
+
+// The composite's pixels as drawn at 1:1 (for tests): [w, h, RGBA bytes of the visible canvas region].
+ui.readPixels = function () {
+  const W = ui.state.document.canvas.width, H = ui.state.document.canvas.height;
+  const data = $("canvas").getContext("2d").getImageData(ui.panX, ui.panY, W, H).data;
+  return Array.from(data);
+};
+ui.settled = () => !inflight && wanted === null;
+
+// ---- wiring -------------------------------------------------------------------------------------
+
+function wire() {
+  $("undo").onclick = () => change({ op: "undo" });
+  $("redo").onclick = () => change({ op: "redo" });
+  $("save").onclick = async () => { if (await change({ op: "save" })) status("saved"); };
+  $("reload").onclick = async () => {
+    // Another tab changed the open stack: fetch it. Another program changed the folder: read it again
+    // (this tab's unsaved changes are dropped, as the message said).
+    const fromDisk = $("status").textContent.includes("changed on disk");
+    if (fromDisk) await apply(() => api("api/reload", { method: "POST", headers: { "Content-Type": "application/json" }, body: "{}" }));
+    else await refresh();
+    status(fromDisk ? "read the folder again" : "reloaded");
+    $("reload").hidden = true;
+  };
+  $("zoom-in").onclick = () => setZoom(ui.zoom * 2);
+  $("zoom-out").onclick = () => setZoom(ui.zoom / 2);
+  $("zoom-fit").onclick = fitView;
+  $("zoom-1").onclick = oneToOne;
+  $("split").onchange = (e) => { ui.split = e.target.checked; paint(); };
+  $("split-pos").oninput = () => draw();
+  $("preset").onchange = drawPicker;
+  const addLearned = async (method) => {
+    const p = ui.presets.find((x) => x.name === $("preset").value);
+    status("adding a learned layer…");
+    const before = new Set(ui.state.document.layers.map((l) => l.id));
+    if (!(await change({ op: "learned", preset: p.name, condition: ui.condition, method }))) return;
+    const added = ui.state.document.layers.find((l) => !before.has(l.id));
+    if (added) ui.selected = added.id;
+    drawLayers(); drawProps();
+    if (method === "per-image" && added) startJob("rerender", added.id);
+  };
+  $("add-learned").onclick = () => addLearned("amortised");
+  $("add-per-image").onclick = () => addLearned("per-image");
+  $("add-solid").onclick = () => {
+    const hex = $("solid-color").value;
+    const rgb = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
+    change({ op: "solid", color: rgb, name: `Solid ${hex}` });
+  };
+  $("add-image").onchange = async (e) => {
+    const file = e.target.files[0];
+    if (!file) return;
+    const q = new URLSearchParams({ version: ui.state.version, name: file.name });
+    await apply(() => api(`api/upload?${q}`, { method: "POST", body: file }));
+    e.target.value = "";
+  };
+  const canvas = $("canvas");
+  let panning = null;
+  canvas.addEventListener("mousedown", (e) => { panning = { x: e.clientX - ui.panX, y: e.clientY - ui.panY }; });
+  window.addEventListener("mouseup", () => { panning = null; });
+  window.addEventListener("mousemove", (e) => {
+    if (!panning) return;
+    ui.panX = Math.round(e.clientX - panning.x); ui.panY = Math.round(e.clientY - panning.y);
+    draw();
+  });
+  canvas.addEventListener("wheel", (e) => {
+    e.preventDefault();
+    const r = canvas.getBoundingClientRect();
+    setZoom(ui.zoom * (e.deltaY < 0 ? 2 : 0.5), e.clientX - r.left, e.clientY - r.top);
+  }, { passive: false });
+  window.addEventListener("resize", draw);
+  window.addEventListener("keydown", (e) => {
+    if (!(e.ctrlKey || e.metaKey)) return;
+    if (e.key === "z" && !e.shiftKey) { e.preventDefault(); change({ op: "undo" }); }
+    else if ((e.key === "z" && e.shiftKey) || e.key === "y" || e.key === "Z") { e.preventDefault(); change({ op: "redo" }); }
+    else if (e.key === "s") { e.preventDefault(); $("save").click(); }
+  });
+  window.addEventListener("beforeunload", (e) => { if (ui.state && ui.state.dirty) { e.preventDefault(); e.returnValue = ""; } });
+}
+
+wire();
+Promise.all([refresh(), loadPresets()]).catch(fail);

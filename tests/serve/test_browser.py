@@ -1,0 +1,323 @@
+"""The editor end to end in a real headless Chromium (Debian's, driven by Playwright), as a person uses it.
+
+After every step the canvas pixels read from the page at 1:1 zoom must equal ``lasagna composite`` of the
+saved stack (``load_stack`` + ``render_stack`` of the folder) within 1/255. Marked ``browser``; skipped with
+the reason where Chromium or Playwright is missing (``.ci/run`` installs Debian's ``chromium``).
+"""
+
+from __future__ import annotations
+
+import io
+import shutil
+import tempfile
+import threading
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.tinylayers import ROOT, tiny_catalogue
+
+pytestmark = pytest.mark.browser
+
+CHROMIUM = Path("/usr/bin/chromium")
+FLAGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+
+
+def _skip_reason() -> str | None:
+    try:
+        import playwright  # noqa: F401
+        import uvicorn  # noqa: F401
+    except ImportError as exc:
+        return f"{exc.name} is not installed (pip install -e '.[dev]')"
+    if not CHROMIUM.exists():
+        return "Debian's chromium is not installed (apt-get install chromium)"
+    return None
+
+
+if _skip_reason():
+    pytest.skip(_skip_reason(), allow_module_level=True)
+
+
+class Server:
+    """The editor app on uvicorn in a thread, on a free loopback port."""
+
+    def __init__(self, folder: Path):
+        import uvicorn
+
+        from lasagna.serve import allowed_hosts, free_port
+        from lasagna.serve.app import create_app
+        from lasagna.serve.session import EditSession
+
+        self.session = EditSession(folder)
+        self.port = free_port("127.0.0.1")
+        self.token = "browser-test-token"
+        app = create_app(self.session, self.token, allowed_hosts("127.0.0.1", self.port))
+        config = uvicorn.Config(app, host="127.0.0.1", port=self.port, log_level="warning", lifespan="off")
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+        self.thread.start()
+        deadline = time.monotonic() + 30
+        while not self.server.started and time.monotonic() < deadline:
+            time.sleep(0.02)
+        self.url = f"http://127.0.0.1:{self.port}/?token={self.token}"
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    return tiny_catalogue(tmp_path_factory.mktemp("browser") / "layers")
+
+
+@pytest.fixture
+def folder(tmp_path, tiny, monkeypatch):
+    monkeypatch.setenv("LASAGNA_LAYERS", str(tiny))
+    out = tmp_path / "basic"
+    shutil.copytree(ROOT / "examples" / "stacks" / "basic", out)
+    return out
+
+
+@pytest.fixture
+def server(folder):
+    s = Server(folder)
+    yield s
+    s.stop()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    profile = tempfile.mkdtemp(prefix="lasagna-chromium-")
+    with sync_playwright() as p:
+        context = p.chromium.launch_persistent_context(
+            profile,
+            executable_path=str(CHROMIUM),
+            headless=True,
+            args=FLAGS,
+            viewport={"width": 1280, "height": 800},
+            accept_downloads=True,
+        )
+        yield context
+        context.close()
+    shutil.rmtree(profile, ignore_errors=True)
+
+
+def open_page(browser, server):
+    page = browser.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server.url)
+    page.wait_for_function("window.lasagna.state !== null && window.lasagna.paints.count > 0")
+    page.errors = errors
+    return page
+
+
+def settle(page, version: int | None = None) -> None:
+    """Wait until the page shows ``version`` (default: whatever it has) and its last repaint has landed."""
+    if version is not None:
+        page.wait_for_function(f"window.lasagna.state.version === {version}")
+    page.wait_for_function("window.lasagna.settled()")
+
+
+def page_pixels(page) -> np.ndarray:
+    page.click("#zoom-1")
+    settle(page)
+    s = page.evaluate("window.lasagna.state.document.canvas")
+    data = np.array(page.evaluate("window.lasagna.readPixels()"), np.uint8)
+    return data.reshape(s["height"], s["width"], 4)[..., :3]
+
+
+def saved_composite(folder: Path) -> np.ndarray:
+    from lasagna.io.render import composite_codes, render_stack
+    from lasagna.io.stack import load_stack
+
+    return composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
+
+
+def save_and_check(page, folder: Path) -> None:
+    """Save from the page, then the page's 1:1 pixels against the saved stack's composite (≤ 1/255)."""
+    page.click("#save")
+    page.wait_for_function("!window.lasagna.state.dirty")
+    got = page_pixels(page).astype(int)
+    ref = saved_composite(folder).astype(int)
+    assert got.shape == ref.shape
+    assert np.abs(got - ref).max() <= 1
+
+
+def version(page) -> int:
+    return page.evaluate("window.lasagna.state.version")
+
+
+def row(page, id: str):
+    return page.locator(f'#layers li[data-id="{id}"]')
+
+
+def test_every_control_keeps_the_page_equal_to_the_saved_stack(browser, server, folder, tmp_path):
+    page = open_page(browser, server)
+    assert np.array_equal(page_pixels(page), saved_composite(folder))
+
+    # toggle a layer
+    v = version(page)
+    row(page, "glow").locator(".eye").click()
+    settle(page, v + 1)
+    assert page.evaluate("window.lasagna.state.document.layers.find(l => l.id === 'glow').visible") is False
+    save_and_check(page, folder)
+
+    # drag an opacity slider with the mouse: transient repaints while dragging, one change on release
+    v = version(page)
+    paints = page.evaluate("window.lasagna.paints.count")
+    box = row(page, "sticker").locator(".opacity").bounding_box()
+    y = box["y"] + box["height"] / 2
+    page.mouse.move(box["x"] + box["width"] - 2, y)
+    page.mouse.down()
+    for f in (0.8, 0.6, 0.45, 0.3):
+        page.mouse.move(box["x"] + box["width"] * f, y)
+        page.wait_for_timeout(30)
+    page.mouse.up()
+    settle(page, v + 1)
+    assert page.evaluate("window.lasagna.paints.count") > paints + 1
+    opacity = page.evaluate("window.lasagna.state.document.layers.find(l => l.id === 'sticker').opacity")
+    assert 0.2 < opacity < 0.45
+    save_and_check(page, folder)
+
+    # reorder by drag and drop: glow dropped on base takes the bottom place
+    v = version(page)
+    row(page, "glow").drag_to(row(page, "base"))
+    settle(page, v + 1)
+    assert page.evaluate("window.lasagna.state.document.layers[0].id") == "glow"
+    save_and_check(page, folder)
+    v = version(page)
+    row(page, "glow").locator(".up").click()  # and with the button
+    settle(page, v + 1)
+    assert page.evaluate("window.lasagna.state.document.layers[1].id") == "glow"
+
+    # rename and blend from the panels
+    v = version(page)
+    row(page, "sticker").locator(".name").click()
+    page.fill("#prop-name", "Blue sticker")
+    page.press("#prop-name", "Enter")
+    settle(page, v + 1)
+    v = version(page)
+    row(page, "sticker").locator(".blend").select_option("multiply")
+    settle(page, v + 1)
+    save_and_check(page, folder)
+
+    # add a solid layer and an amortised learned layer from the catalogue, with the light picker
+    v = version(page)
+    page.click("#add-solid")
+    settle(page, v + 1)
+    page.select_option("#preset", "shading")
+    page.click('#picker button[data-condition="top-left"]')
+    v = version(page)
+    page.click("#add-learned")
+    settle(page, v + 1)
+    top = page.evaluate("window.lasagna.state.document.layers.at(-1)")
+    assert top["kind"] == "learned" and top["condition"]["label"] == "top-left"
+    save_and_check(page, folder)
+
+    # undo takes the learned layer back; redo brings it again
+    v = version(page)
+    page.click("#undo")
+    settle(page, v + 1)
+    assert page.evaluate("window.lasagna.state.document.layers.at(-1).kind") == "solid"
+    save_and_check(page, folder)
+    v = version(page)
+    page.keyboard.press("Control+Shift+Z")
+    settle(page, v + 1)
+    save_and_check(page, folder)
+
+    # solo and before/after are views, not changes
+    v = version(page)
+    row(page, "base").locator(".solo").click()
+    settle(page)
+    base = np.asarray(__import__("PIL.Image", fromlist=["Image"]).open(folder / "layers" / "base.png").convert("RGB"))
+    assert np.array_equal(page_pixels(page), base)
+    row(page, "base").locator(".solo").click()
+    page.check("#split")
+    settle(page)
+    assert version(page) == v
+
+    # exports are downloads of the saved stack
+    page.uncheck("#split")
+    with page.expect_download() as d:
+        page.click("#export-png")
+    png = Path(d.value.path()).read_bytes()
+    from PIL import Image
+
+    assert np.array_equal(np.asarray(Image.open(io.BytesIO(png)).convert("RGB")), saved_composite(folder))
+    with page.expect_download() as d:
+        page.click("#export-ora")
+    with zipfile.ZipFile(d.value.path()) as z:
+        assert z.read("mimetype") == b"image/openraster"
+    with page.expect_download() as d:
+        page.click("#export-psd")
+    assert Path(d.value.path()).read_bytes()[:4] == b"8BPS"
+    assert page.errors == []
+    page.close()
+
+
+def test_a_per_image_layer_shows_progress_and_can_be_cancelled(browser, server, folder):
+    page = open_page(browser, server)
+    page.select_option("#preset", "light")
+    page.click('#picker button[data-condition="warm"]')
+    v = version(page)
+    assert page.is_disabled("#add-learned")  # light has no generator
+    page.click("#add-per-image")  # the layer is added, then made by a job with a progress bar
+    page.wait_for_function(f"window.lasagna.state.version >= {v + 2}", timeout=60_000)
+    settle(page)
+    top = page.evaluate("window.lasagna.state.document.layers.at(-1)")
+    assert top["kind"] == "learned" and page.evaluate("window.lasagna.state.not_rendered") == {}
+    assert "done" in page.inner_text("#job-text")
+    save_and_check(page, folder)
+
+    page.fill("#refine-steps", "10000")
+    v = version(page)
+    page.click("#refine")
+    page.wait_for_function("document.getElementById('job-bar').value > 0", timeout=60_000)
+    page.click("#job-cancel")
+    page.wait_for_function("document.getElementById('job-text').textContent.includes('cancelled')", timeout=60_000)
+    assert version(page) == v
+    assert page.errors == []
+    page.close()
+
+
+def test_two_tabs_never_overwrite_each_other(browser, server, folder):
+    a, b = open_page(browser, server), open_page(browser, server)
+    v = version(a)
+    row(a, "glow").locator(".eye").click()
+    settle(a, v + 1)
+    row(b, "sticker").locator(".eye").click()  # b still holds version v: told, not applied
+    b.wait_for_function("document.getElementById('status').classList.contains('error')")
+    assert "another tab" in b.inner_text("#status")
+    assert b.is_visible("#reload")
+    assert server.session.state()["version"] == v + 1
+    b.click("#reload")
+    settle(b, v + 1)
+    assert b.evaluate("window.lasagna.state.document.layers.find(l => l.id === 'glow').visible") is False
+    row(b, "sticker").locator(".eye").click()
+    settle(b, v + 2)
+    assert b.evaluate("window.lasagna.state.document.layers.find(l => l.id === 'sticker').visible") is False
+    assert a.errors == [] and b.errors == []
+    a.close()
+    b.close()
+
+
+def test_the_page_refuses_without_the_token(browser, server):
+    browser.clear_cookies()  # earlier pages left the token's cookie
+    page = browser.new_page()
+    response = page.goto(server.url.split("?")[0])
+    assert response.status == 403 and "token" in page.inner_text("body")
+    page.close()
