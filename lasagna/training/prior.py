@@ -1,6 +1,6 @@
 """Training the bundled conditional priors on the procedural world, on this CPU (resumable).
 
-Three tasks, each a ``UNetPrior`` trained with the simple diffusion objective (v-prediction by default)
+Four tasks, each a ``UNetPrior`` trained with the simple diffusion objective (v-prediction by default)
 and classifier-free label dropout, on fresh world batches generated on the fly (no data set on disk):
 
 * ``relight``: x₀ = the lit image (albedo × shading), conditioned ControlNet-style on the albedo
@@ -8,7 +8,9 @@ and classifier-free label dropout, on fresh world batches generated on the fly (
 * ``colorize``: x₀ = the colour image, conditioned on its Rec. 709 luma (1 channel) and the single
   label ``natural``;
 * ``light``: x₀ = the image with the world's coloured fill light added (``lasagna.world.tasks``),
-  conditioned on the unlit image (3 channels) and the glow's label (warm, cool, white).
+  conditioned on the unlit image (3 channels) and the glow's label (warm, cool, white);
+* ``relit``: x₀ = the scene lit by the label's light B, conditioned on the same scene lit by its own
+  random source light A (3 channels: an already lit image, the Lasagna paper's setting) and on B.
 
 The conditioning image is what Lasagna's base layer will be at distillation time. Every random draw
 (which scenes, t, ε, label dropout) comes from the loop's checkpointed ``rng``, so a killed run
@@ -65,7 +67,12 @@ class PriorTrainConfig(LoopConfig):
 def task_vocabulary(task: Task) -> tuple[str, ...]:
     from lasagna.world import GLOW_VOCABULARY, VOCABULARY
 
-    return {"relight": tuple(VOCABULARY), "colorize": ("natural",), "light": tuple(GLOW_VOCABULARY)}[task]
+    return {
+        "relight": tuple(VOCABULARY),
+        "relit": tuple(VOCABULARY),
+        "colorize": ("natural",),
+        "light": tuple(GLOW_VOCABULARY),
+    }[task]
 
 
 def task_cond_channels(task: Task) -> int:
@@ -99,6 +106,11 @@ def prior_batch(task: Task, scene) -> tuple[torch.Tensor, torch.Tensor, torch.Te
 
     if task == "relight":
         return scene.image, scene.label_index.long(), scene.albedo
+    if task == "relit":
+        from lasagna.training.tasks import relit
+
+        rel = relit(scene)
+        return rel.target, scene.label_index.long(), rel.base
     if task == "light":
         add = additive_light(scene)
         return add.lit, scene.params.glow_label.long(), add.base

@@ -4,9 +4,14 @@
 task       base layer                    condition               true layer (supervised ceiling)
 =========  ============================  ======================  ===================================
 relight    albedo                        a light direction       shading (1 channel; multiply)
+relit      the scene lit by light A      the new light B         the ratio S_B / S_A (1 channel; multiply)
 colorize   gray image (Rec. 709 luma)    the preset's label      the colour image with α = 1 (normal)
 light      the unlit image               the preset's label      the clipped glow (plus)
 =========  ============================  ======================  ===================================
+
+``relit`` is the Lasagna paper's own setting (relighting what is already lit): A is each scene's own
+random source light (``lasagna.world.tasks.relight_sources``: any azimuth, elevation in the relight range,
+drawn from a stream of its own), B the drawn label.
 
 Scenes come from ``lasagna.world`` (deterministic by split, seed and index); which scenes, and which
 label each gets (uniform over the preset's vocabulary), is drawn from the caller's ``rng`` only,
@@ -26,7 +31,7 @@ from torch import Tensor
 
 from lasagna.errors import LasagnaError
 
-Task = Literal["relight", "colorize", "light"]  # the world tasks priors and generators are trained on
+Task = Literal["relight", "colorize", "light", "relit"]  # the world tasks priors and generators are trained on
 TASKS: tuple[str, ...] = get_args(Task)
 TASK_FOR_BLEND = {"multiply": "relight", "normal": "colorize", "plus": "light"}
 # The world's scene-index range batches are drawn from (the prior trainer's too): large enough that no batch
@@ -60,7 +65,7 @@ def task_batch(
     start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
     idx = torch.randint(0, len(vocabulary), (count,), generator=rng).tolist()
     labels = [vocabulary[i] for i in idx]
-    if task == "relight":
+    if task in ("relight", "relit"):
         unknown = sorted(set(labels) - set(VOCABULARY))
         if unknown:
             raise LasagnaError(
@@ -68,6 +73,9 @@ def task_batch(
                 "vocabulary",
             )
         scene = generate(split, count, seed, resolution, start=start, labels=labels, shadows=shadows)
+        if task == "relit":
+            rel = relit(scene)
+            return TaskBatch(base=rel.base, labels=labels, target=rel.layer)
         return TaskBatch(base=scene.albedo, labels=labels, target=scene.shading)
     scene = generate(split, count, seed, resolution, start=start, shadows=shadows)
     if task == "colorize":
@@ -83,4 +91,12 @@ def task_batch(
             )
         add = additive_light(scene, labels)
         return TaskBatch(base=add.base, labels=labels, target=add.glow)
-    raise LasagnaError(f"unknown task {task!r}; expected relight, colorize or light", "task")
+    raise LasagnaError(f"unknown task {task!r}; expected relight, colorize, light or relit", "task")
+
+
+def relit(scene):
+    """The relit task of world scenes lit by their own labels (B): each lit first by its own source light A
+    (``relight_sources``); ``base`` is that, ``target`` the scene under B, ``layer`` the ratio S_B / S_A."""
+    from lasagna.world.tasks import relight_sources, relighting
+
+    return relighting(scene, relight_sources(scene.params))

@@ -40,6 +40,31 @@ class TestTaskData:
         assert torch.equal(cond, scene.albedo)
         assert [VOCABULARY[i] for i in lab.tolist()] == scene.label
 
+    def test_relit_batch_is_the_scene_under_b_conditioned_on_it_under_a(self):
+        from lasagna.world.tasks import relight_sources, with_light
+
+        scene = generate("train", 4, seed=1, resolution=8, dtype=torch.float64)
+        x0, lab, cond = prior_batch("relit", scene)
+        assert torch.equal(x0, scene.image)  # B: the scene's own label
+        source = with_light(scene, relight_sources(scene.params))
+        assert torch.equal(cond, source.image) and not torch.equal(cond, x0)
+        assert [VOCABULARY[i] for i in lab.tolist()] == scene.label
+        assert unet_config_for("relit").vocabulary == tuple(VOCABULARY)
+
+    def test_relit_task_layer_maps_the_base_onto_the_target(self):
+        from lasagna.training.tasks import task_batch
+
+        b = task_batch("relit", VOCABULARY, 6, torch.Generator().manual_seed(3), resolution=8)
+        assert b.target.shape == (6, 1, 8, 8) and float(b.target.min()) >= 0.25 - 1e-6 and float(b.target.max()) <= 4
+        assert b.base.shape == (6, 3, 8, 8) and set(b.labels) <= set(VOCABULARY)
+
+    def test_relit_ratio_times_the_lit_input_is_the_relit_scene(self):
+        from lasagna.training.tasks import relit
+
+        scene = generate("train", 5, seed=2, resolution=8, dtype=torch.float64)
+        rel = relit(scene)
+        assert torch.allclose(rel.base * rel.layer, rel.target, atol=1e-12)
+
     def test_colorize_condition_is_rec709_luma(self):
         scene = generate("train", 2, seed=1, resolution=8)
         x0, lab, cond = prior_batch("colorize", scene)
