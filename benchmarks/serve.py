@@ -107,14 +107,14 @@ WAIT = """
 
 TOGGLE = """
 async (id) => {
-  const L = window.lasagna, wait = %s;
+  const L = window.lasagna, wait = __WAIT__;
   const v = L.state.version, c = L.paints.count;
   const t0 = performance.now();
   document.querySelector(`#layers li[data-id="${id}"] .eye`).click();
   await wait(() => L.state.version > v && L.settled() && L.paints.count > c);
   return L.paints.last - t0;
 }
-""" % WAIT.strip()
+""".replace("__WAIT__", WAIT.strip())
 
 DRAG = """
 async ([id, seconds]) => {
@@ -140,14 +140,14 @@ async ([id, seconds]) => {
 
 LEARNED = """
 async () => {
-  const L = window.lasagna, wait = %s;
+  const L = window.lasagna, wait = __WAIT__;
   const v = L.state.version, c = L.paints.count;
   const t0 = performance.now();
   document.getElementById("add-learned").click();
   await wait(() => L.state.version > v && L.settled() && L.paints.count > c);
   return L.paints.last - t0;
 }
-""" % WAIT.strip()
+""".replace("__WAIT__", WAIT.strip())
 
 
 def measure(context, size: int, repeats: int, work: Path) -> dict:
@@ -171,9 +171,13 @@ def measure(context, size: int, repeats: int, work: Path) -> dict:
     page = context.new_page()
     try:
         page.goto(server.url)
-        page.wait_for_function("window.lasagna.state !== null && window.lasagna.paints.count > 0 && window.lasagna.settled()")
+        page.wait_for_function(
+            "window.lasagna.state !== null && window.lasagna.paints.count > 0 && window.lasagna.settled()"
+        )
         page.wait_for_function("window.lasagna.presets.length > 0")
-        level = page.evaluate("(() => { const z = window.lasagna.zoom; return z >= 1 ? 0 : Math.floor(Math.log2(1 / z)); })()")
+        level = page.evaluate(
+            "(() => { const z = window.lasagna.zoom; return z >= 1 ? 0 : Math.floor(Math.log2(1 / z)); })()"
+        )
         zoom = page.evaluate("window.lasagna.zoom")
         page.evaluate(TOGGLE, "glow")  # warm-up: every view level's renderer built, caches filled
         page.evaluate(TOGGLE, "glow")

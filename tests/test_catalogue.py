@@ -65,8 +65,8 @@ def test_preset_shipped_in_a_stack_wins(tmp_path, tiny):
 
 def test_available_lists_every_kind(tiny):
     assert cat.available(catalogue_dirs=[tiny]) == {
-        "preset": ["color", "light", "shading"],
-        "prior": ["light-32", "recolor-32", "relight-32"],
+        "preset": ["color", "light", "relight", "shading"],
+        "prior": ["light-32", "recolor-32", "relight-32", "relit-32"],
         "corrective": ["light-32-spectral", "recolor-32-spectral", "relight-32-bhat", "relight-32-spectral"],
         "generator": ["shading"],
     }
@@ -115,8 +115,8 @@ def test_unrelated_config_is_no_kind(tmp_path):
 @pytest.mark.parametrize(
     "kind, listed",
     [
-        ("preset", "color, light, shading"),
-        ("prior", "light-32, recolor-32, relight-32"),
+        ("preset", "color, light, relight, shading"),
+        ("prior", "light-32, recolor-32, relight-32, relit-32"),
         ("corrective", "light-32-spectral, recolor-32-spectral, relight-32-bhat, relight-32-spectral"),
         ("generator", "shading"),
     ],

@@ -6,9 +6,11 @@
                                                and a random amortised LayerGenerator
     color/preset.json                          the real colour preset, 4 steps, no generator
     light/preset.json                          the real light preset, 4 steps, no generator
+    relight/preset.json                        the real relight preset (lit image → ratio), 4 steps, no generator
     relight-32/                                a random UNetPrior (8×8, conditioned on RGB), the world's labels
     recolor-32/                                a random UNetPrior (8×8, conditioned on luma), label "natural"
     light-32/                                  a random UNetPrior (8×8, conditioned on RGB), labels warm, cool, white
+    relit-32/                                  a random UNetPrior (8×8, conditioned on the lit RGB), the world's labels
     relight-32-bhat/                           a random LMC-SDS corrective network for relight-32
     relight-32-spectral/, recolor-32-spectral/, light-32-spectral/
                                                random spectral correctives (the presets' b̂)
@@ -84,6 +86,7 @@ def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool =
     shading = _preset(folder, "shading", method=None)
     _preset(folder, "color")
     _preset(folder, "light")
+    _preset(folder, "relight")
     if generator:
         cfg = LayerGeneratorConfig(
             layer=LayerSpec(blend="multiply", channels=1, range=tuple(shading["range"])),
@@ -96,6 +99,7 @@ def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool =
         tiny_prior(3, tuple(VOCABULARY), 2).save_pretrained(folder / "relight-32")
         tiny_prior(1, ("natural",), 3).save_pretrained(folder / "recolor-32")
         tiny_prior(3, tuple(GLOW_VOCABULARY), 7).save_pretrained(folder / "light-32")
+        tiny_prior(3, tuple(VOCABULARY), 9).save_pretrained(folder / "relit-32")
         torch.manual_seed(4)
         corrective = Corrective(CorrectiveConfig(channels=3, resolution=PRIOR_RES, filters=(4, 8)))
         _jitter(corrective, 4).save_pretrained(folder / "relight-32-bhat")
