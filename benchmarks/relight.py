@@ -1,0 +1,208 @@
+"""Relighting what is already lit (issue #11): the `relight` preset on `heldout` and `far`, 64² and 256².
+
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/relight.py                  (~10 min on 2 vCPUs)
+    .venv/bin/python benchmarks/relight.py --quick                              (~1 min smoke run)
+
+Each scene of the world is lit by its own random source light A (``lasagna.world.tasks.relight_sources``:
+any azimuth, elevation in the relight range; the base is that lit image) and must be relit to a named light
+B (labels cycling through the vocabulary); the truth is the scene under B and the ratio S_B / S_A. Rows,
+against the truth, composite PSNR over all pixels and over object pixels, and the ratio layer's PSNR (in its
+[0, 4] units divided by 4):
+
+* **unchanged input** (ratio 1): the bar the issue's targets are measured from;
+* **best constant multiplier** per image (least squares, in [0, 4]);
+* **the prior sampled directly** (DDIM-50 at its size, conditioned on the lit input; the implied ratio
+  target / input, enlarged, applied to the input);
+* **the default edit** — exactly ``lasagna edit --layer relight`` (the API's ``edit``, one image at a time);
+* ``--omegas``: per-image SDS at other guidance weights (the default is SDS at ω = 1).
+
+No supervised ceiling: the preset has no amortised generator yet. Directions between the named ones need a
+continuously conditioned prior (relit-32 knows the eight labels): not measured. **Texture leak**: walls with
+no objects and no relief, whose true ratio is one constant: PSNR of the default layer (/4) against its own
+mean. Ends with one JSON line: ``far_gain_db``, ``far_gain_obj_db``, ``far256_gain_db`` (default edit over
+the unchanged input) and the rest of the headline.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _common import machine_info, print_json_line  # noqa: E402
+from distill_accuracy import psnr  # noqa: E402
+
+from lasagna import catalogue as cat  # noqa: E402
+from lasagna.compose.resample import downsample, upsample  # noqa: E402
+from lasagna.edit import edit  # noqa: E402
+from lasagna.priors.base import Condition  # noqa: E402
+from lasagna.priors.ddim import ddim_sample  # noqa: E402
+from lasagna.world import VOCABULARY, render, sample_scenes  # noqa: E402
+from lasagna.world.tasks import relight_sources, relighting  # noqa: E402
+
+RANGE_HI = 4.0  # the preset's range [0, 4]: ratios are compared in units of it
+
+
+def scenes(split: str, count: int, seed: int, size: int, walls: bool = False):
+    labels = [VOCABULARY[i % len(VOCABULARY)] for i in range(count)]
+    params = sample_scenes(split, seed, range(count))
+    if walls:
+        params = params.walls_only()
+    scene = render(params.with_labels(labels), size)
+    return relighting(scene, relight_sources(scene.params)), labels
+
+
+def default_layers(images: torch.Tensor, labels, dirs, **options) -> tuple[torch.Tensor, float]:
+    t0 = time.perf_counter()
+    out = [edit(images[i], "relight", labels[i], catalogue_dirs=dirs, **options).layer for i in range(images.shape[0])]
+    return torch.stack(out), time.perf_counter() - t0
+
+
+def row(rel, method: str, ratio: torch.Tensor, seconds: float | None = None) -> dict:
+    comp = (rel.base * ratio).clamp(0, 1)
+    target = rel.target.clamp(0, 1)
+    mask = rel.scene.mask
+    r = {
+        "method": method,
+        "composite_psnr": round(psnr(comp, target), 2),
+        "object_psnr": round(psnr(comp, target, mask), 2),
+        "ratio_psnr": round(psnr(ratio.expand_as(rel.layer) / RANGE_HI, rel.layer / RANGE_HI), 2),
+    }
+    if seconds is not None:
+        r["seconds_per_image"] = round(seconds / rel.base.shape[0], 3)
+    return r
+
+
+def prior_ratio(rel, labels, prior, omega: float = 1.0) -> torch.Tensor:
+    side = prior.sample_shape[-1]
+    small = downsample(rel.base.float(), (side, side))
+    cond = Condition(list(labels), image=small)
+    x = ddim_sample(prior, cond, steps=50, omega=omega, rng=torch.Generator().manual_seed(0)).image
+    x = x.clamp(0, 1).double()
+    ratio = (x / small.double().clamp_min(1e-3)).mean(dim=1, keepdim=True).clamp(0, RANGE_HI)
+    return upsample(ratio.float(), tuple(rel.base.shape[-2:])).double()
+
+
+def table(args, split: str, size: int, prior) -> list[dict]:
+    rel, labels = scenes(split, args.count, args.seed, size)
+    base, target = rel.base.double(), rel.target.clamp(0, 1).double()
+    c = ((base * target).sum(dim=(1, 2, 3)) / (base * base).sum(dim=(1, 2, 3)).clamp_min(1e-12)).clamp(0, RANGE_HI)
+    rows = [
+        row(rel, "unchanged input", torch.ones_like(rel.layer)),
+        row(rel, "best constant multiplier", c.view(-1, 1, 1, 1)),
+    ]
+    if prior is not None:
+        t0 = time.perf_counter()
+        rows.append(
+            row(
+                rel,
+                "prior sampled directly (DDIM-50, ω = 1)",
+                prior_ratio(rel, labels, prior),
+                time.perf_counter() - t0,
+            )
+        )
+    y, seconds = default_layers(rel.base.float(), labels, args.catalogue)
+    rows.append(row(rel, "default edit (`lasagna edit --layer relight`)", y.double(), seconds))
+    for omega in args.omegas:
+        y, seconds = default_layers(rel.base.float(), labels, args.catalogue, guidance=omega)
+        rows.append(row(rel, f"per-image SDS ω = {omega:g}", y.double(), seconds))
+    for r in rows:
+        r.update(split=split, size=size)
+        print(json.dumps(r), flush=True)
+    return rows
+
+
+def leak(args, split: str, size: int) -> dict:
+    rel, labels = scenes(split, args.count, args.seed, size, walls=True)
+    y, _ = default_layers(rel.base.float(), labels, args.catalogue)
+    y = y.double() / RANGE_HI
+    flat = y.mean(dim=(1, 2, 3), keepdim=True).expand_as(y)
+    out = {"split": split, "size": size, "leak_db": round(psnr(y, flat), 2), "sigma": round(float((y - flat).std()), 4)}
+    print(json.dumps({"leak": out}), flush=True)
+    return out
+
+
+def headline(rows: dict, leaks: list[dict]) -> dict:
+    def gain(key: str, field: str) -> float | None:
+        if key not in rows:
+            return None
+        by = {r["method"]: r for r in rows[key]}
+        d = next(r for m, r in by.items() if m.startswith("default edit"))
+        return round(d[field] - by["unchanged input"][field], 2)
+
+    return {
+        "far_gain_db": gain("far@64", "composite_psnr"),
+        "far_gain_obj_db": gain("far@64", "object_psnr"),
+        "far256_gain_db": gain("far@256", "composite_psnr"),
+        "far256_gain_obj_db": gain("far@256", "object_psnr"),
+        "heldout_gain_db": gain("heldout@64", "composite_psnr"),
+        "heldout_gain_obj_db": gain("heldout@64", "object_psnr"),
+        "leak_db": min((x["leak_db"] for x in leaks), default=None),
+    }
+
+
+def markdown(result: dict) -> str:
+    lines = [
+        "| split | size | method | composite PSNR (dB) | object pixels (dB) | ratio PSNR (dB) | s per image |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for rows in result["relight"].values():
+        for r in rows:
+            lines.append(
+                f"| {r['split']} | {r['size']}² | {r['method']} | {r['composite_psnr']} | {r['object_psnr']} | "
+                f"{r['ratio_psnr']} | {r.get('seconds_per_image', '')} |"
+            )
+    lines += ["", "| split | size | texture leak (dB) | σ of the ratio / 4 |", "|---|---|---|---|"]
+    lines += [f"| {x['split']} | {x['size']}² | {x['leak_db']} | {x['sigma']} |" for x in result["leak"]]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--splits", nargs="+", default=["heldout", "far"])
+    ap.add_argument("--sizes", nargs="+", type=int, default=[64, 256])
+    ap.add_argument("--count", type=int, default=16)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--omegas", nargs="*", type=float, default=[3.0])
+    ap.add_argument("--catalogue", type=Path, nargs="*", default=None, help="catalogue folders searched first")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--quick", action="store_true", help="4 scenes, 64² only, no extra ω")
+    ap.add_argument("--markdown", action="store_true")
+    ap.add_argument("--json-out", type=Path, default=ROOT / "docs" / "relight.json")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.count, args.sizes, args.omegas, args.json_out = 4, [64], [], Path("/tmp/relight_quick.json")
+    torch.set_num_threads(args.threads)
+    t0 = time.perf_counter()
+    status = cat.preset_status("relight", args.catalogue)
+    if not status["usable"]:
+        print(f"relight preset not usable: {status['why']}", file=sys.stderr)
+        return 2
+    parts = cat.resolve("relight", catalogue_dirs=args.catalogue)
+    prior = cat.load_prior(parts.prior)
+    result: dict = {"machine": machine_info(), "count": args.count, "seed": args.seed, "relight": {}, "leak": []}
+    result["preset"] = parts.preset.model_dump(mode="json")
+    for split in args.splits:
+        for size in args.sizes:
+            result["relight"][f"{split}@{size}"] = table(args, split, size, prior)
+            result["leak"].append(leak(args, split, size))
+    result["headline"] = headline(result["relight"], result["leak"])
+    result["wall_seconds"] = round(time.perf_counter() - t0, 1)
+    args.json_out.parent.mkdir(parents=True, exist_ok=True)
+    args.json_out.write_text(json.dumps(result, indent=1) + "\n")
+    if args.markdown:
+        print(markdown(result))
+    print_json_line({"benchmark": "relight", **result["headline"], "wall_seconds": result["wall_seconds"]})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
