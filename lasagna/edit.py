@@ -191,6 +191,14 @@ def input_stack(image, max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> Stack:
     return stack
 
 
+def _default_id(preset: str, condition: str) -> str:
+    """``<preset>-<condition>`` as a layer id: ``relight-left``, ``relight-az135-el40`` (characters an id may not
+    hold, such as ``=`` and ``,``, are dropped or become ``-``)."""
+    text = condition.replace("=", "").replace(",", "-")
+    text = "".join(c if c.isalnum() or c in "_.-" else "-" for c in text)
+    return f"{preset}-{text}"[:64]
+
+
 def _unique_id(stack: Stack, wanted: str) -> str:
     from lasagna.document.types import check_id
 
@@ -492,7 +500,7 @@ def plan_edit(
         resolved=resolved,
         condition=condition,
         on=on,
-        layer_id=_unique_id(stack, id or f"{p.name}-{condition}"),
+        layer_id=_unique_id(stack, id or _default_id(p.name, condition)),
         method=method,
         optimize=default_steps(resolved, method) if optimize is None else optimize,
         base=conditioning_input(stack, on),

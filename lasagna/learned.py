@@ -303,10 +303,12 @@ def _components(
         negative_prompt=negative_prompt,
     )
     known = tuple(getattr(prior, "vocabulary", ()) or ())
-    if known and label not in known:
+    directions = bool(getattr(getattr(prior, "config", None), "directions", False))  # any az=…,el=… (UNetPrior)
+    if known and label not in known and not directions:
         raise ConditionError(
             f"label {label!r} of preset {preset.name!r} is not one prior {prior_ref!r} was trained on; "
-            f"expected one of {', '.join(known)}",
+            f"expected one of {', '.join(known)}"
+            + (" (a direction az=…,el=… needs a prior trained with --directions)" if "=" in label else ""),
             "condition.label",
         )
     diffusers = source.kind == "diffusers"

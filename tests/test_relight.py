@@ -71,3 +71,24 @@ def test_relight_is_ready_in_the_catalogue_status(tiny):
     status = cat.preset_status("relight", [tiny])
     assert status["usable"] and status["method"] == "per-image" and "relit-32" in status["why"]
     assert np.isclose(cat.load_preset("relight", catalogue_dirs=[tiny]).range[1], 4.0)
+
+
+def test_any_direction_is_a_condition_recorded_as_given():
+    rel = lit_scene()
+    result = edit(rel.base[0].float(), "relight", "az=135,el=40")
+    layer = result.stack.document.layer(result.layer_id)
+    assert layer.condition.label == "az=135,el=40" and result.layer_id == "relight-az135-el40"
+    named = edit(rel.base[0].float(), "relight", "az=135,el=60")  # top-left's direction, given as angles
+    top_left = edit(rel.base[0].float(), "relight", "top-left")
+    assert torch.equal(named.layer, top_left.layer)  # a named light is just its direction
+
+
+def test_a_direction_needs_a_prior_trained_on_directions():
+    from lasagna.errors import ConditionError
+
+    with pytest.raises(ConditionError, match="--directions"):
+        edit(torch.rand(3, 16, 16), "shading", "az=135,el=40", generator="free")
+    with pytest.raises(ConditionError, match="unknown label 'az=135,el=40'"):  # the amortised generator: labels only
+        edit(torch.rand(3, 16, 16), "shading", "az=135,el=40", generator="amortised")
+    with pytest.raises(ConditionError, match="az=A,el=E"):
+        edit(torch.rand(3, 16, 16), "relight", "az=135,el=95")

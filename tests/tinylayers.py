@@ -10,7 +10,8 @@
     relight-32/                                a random UNetPrior (8×8, conditioned on RGB), the world's labels
     recolor-32/                                a random UNetPrior (8×8, conditioned on luma), label "natural"
     light-32/                                  a random UNetPrior (8×8, conditioned on RGB), labels warm, cool, white
-    relit-32/                                  a random UNetPrior (8×8, conditioned on the lit RGB), the world's labels
+    relit-32/                                  a random UNetPrior (8×8, conditioned on the lit RGB and any light
+                                               direction: the world's labels or az=…,el=…)
     relight-32-bhat/                           a random LMC-SDS corrective network for relight-32
     relight-32-spectral/, recolor-32-spectral/, light-32-spectral/
                                                random spectral correctives (the presets' b̂)
@@ -48,7 +49,7 @@ def _preset(folder: Path, name: str, **changes) -> dict:
     return data
 
 
-def tiny_prior(cond_channels: int, vocabulary: tuple[str, ...], seed: int):
+def tiny_prior(cond_channels: int, vocabulary: tuple[str, ...], seed: int, directions: bool = False):
     from lasagna.priors.unet import UNetConfig, UNetPrior
 
     config = UNetConfig(
@@ -58,6 +59,7 @@ def tiny_prior(cond_channels: int, vocabulary: tuple[str, ...], seed: int):
         channels=(8, 16),
         norm_groups=4,
         vocabulary=vocabulary,
+        directions=directions,
     )
     torch.manual_seed(seed)
     return _jitter(UNetPrior(config), seed).eval()
@@ -99,7 +101,7 @@ def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool =
         tiny_prior(3, tuple(VOCABULARY), 2).save_pretrained(folder / "relight-32")
         tiny_prior(1, ("natural",), 3).save_pretrained(folder / "recolor-32")
         tiny_prior(3, tuple(GLOW_VOCABULARY), 7).save_pretrained(folder / "light-32")
-        tiny_prior(3, tuple(VOCABULARY), 9).save_pretrained(folder / "relit-32")
+        tiny_prior(3, tuple(VOCABULARY), 9, directions=True).save_pretrained(folder / "relit-32")
         torch.manual_seed(4)
         corrective = Corrective(CorrectiveConfig(channels=3, resolution=PRIOR_RES, filters=(4, 8)))
         _jitter(corrective, 4).save_pretrained(folder / "relight-32-bhat")

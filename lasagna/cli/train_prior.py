@@ -20,6 +20,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--res-blocks", type=int, default=1)
     p.add_argument("--attention", action="store_true")
     p.add_argument("--prediction", choices=("v", "epsilon"), default="v")
+    p.add_argument(
+        "--directions",
+        action="store_true",
+        help="relight/relit: condition on any light direction (named or az=…,el=…), trained on named and random "
+        "ones; with --init-from a label prior, its weights start it",
+    )
     p.add_argument("--steps", type=int, default=100_000, help="upper bound; --minutes usually stops first")
     p.add_argument("--minutes", type=float, default=None, help="time budget of this invocation")
     p.add_argument("--batch-size", type=int, default=64)
@@ -60,7 +66,9 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.training.prior import PriorTrainConfig, run_unet_config, train_prior, unet_config_for
 
     channels = tuple(int(c) for c in str(args.channels).split(","))
-    unet = unet_config_for(args.task, args.resolution, channels, args.res_blocks, args.attention, args.prediction)
+    unet = unet_config_for(
+        args.task, args.resolution, channels, args.res_blocks, args.attention, args.prediction, args.directions
+    )
     unet = run_unet_config(args.task, unet, args.init_from, args.init_labels)
     config = PriorTrainConfig(
         task=args.task,

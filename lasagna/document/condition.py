@@ -117,6 +117,14 @@ def direction_label(az: float, el: float) -> str | None:
     return next((name for name, d in NAMED_DIRECTIONS.items() if d == key), None)
 
 
+def unit_vector(az: float, el: float) -> tuple[float, float, float]:
+    """The unit light vector (sin el·cos az, sin el·sin az, cos el) of (az, el) in degrees (float64): the
+    closed form of the module docstring's convention, for every tier that needs the vector."""
+    az, el = check_direction(az, el)
+    a, e = math.radians(az), math.radians(el)
+    return (math.sin(e) * math.cos(a), math.sin(e) * math.sin(a), math.cos(e))
+
+
 def canonical_condition(text: str) -> str:
     """A condition as one canonical text: the label of a named direction, else ``az=…,el=…``."""
     az, el = parse_direction(text)

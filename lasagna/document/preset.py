@@ -17,6 +17,7 @@ from typing import Any, Literal, get_args
 
 from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from lasagna.document.condition import NAMED_DIRECTIONS, parse_direction
 from lasagna.document.models import dumps
 from lasagna.document.types import (
     RANGE_FOR_BLEND_SCHEMA,
@@ -206,8 +207,18 @@ class Preset(StrictModel):
             )
         return self
 
+    @property
+    def takes_directions(self) -> bool:
+        """Whether the vocabulary is light directions (the eight named lights): then a condition may also be any
+        direction ``az=…,el=…`` (``lasagna.document.condition``), which a direction-conditioned prior renders."""
+        return bool(self.vocabulary) and set(self.vocabulary) <= set(NAMED_DIRECTIONS)
+
     def prompt_for(self, label: str) -> str:
-        """The prompt for ``label``; ``ConditionError`` if it is not in the vocabulary."""
+        """The prompt for ``label``; ``ConditionError`` if it is not in the vocabulary (nor, for a preset that
+        ``takes_directions``, an ``az=…,el=…`` direction)."""
+        if label not in self.vocabulary and self.takes_directions and isinstance(label, str) and "=" in label:
+            parse_direction(label)  # ConditionError saying what a direction is
+            return self.prompt.format(label=label)
         if label not in self.vocabulary:
             raise ConditionError(
                 f"label {label!r} is not in preset {self.name!r}'s vocabulary; expected one of "

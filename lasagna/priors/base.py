@@ -183,6 +183,15 @@ class Prior(nn.Module, abc.ABC):
                 ) from None
         return torch.tensor(out, dtype=torch.long)
 
+    def label_tensor(self, labels: Sequence[str]) -> torch.Tensor:
+        """What ``_eps`` takes for ``labels``: vocabulary indices (``label_index``), or another encoding in a
+        prior that conditions on something else (a light direction: ``UNetPrior`` with ``directions``)."""
+        return self.label_index(labels)
+
+    def null_tensor(self, batch: int) -> torch.Tensor:
+        """What ``_eps`` takes for the null label (the unconditional branch), ``batch`` times."""
+        return torch.full((batch,), len(self.vocabulary), dtype=torch.long)
+
     def encode(self, x: torch.Tensor) -> torch.Tensor:
         """Image in [0, 1] → denoiser space (differentiable). Pixel priors: 2x − 1."""
         return x * 2 - 1
@@ -240,11 +249,11 @@ class Prior(nn.Module, abc.ABC):
             if z_t.shape != queries[0][0].shape:
                 raise ValueError(f"predict_many: z_t shapes differ: {tuple(z_t.shape)} vs {tuple(queries[0][0].shape)}")
             if br == "cond":
-                idx.append(self.label_index(cond.label_list(b)))
+                idx.append(self.label_tensor(cond.label_list(b)))
             elif br == "uncond":
-                idx.append(torch.full((b,), len(self.vocabulary), dtype=torch.long))
+                idx.append(self.null_tensor(b))
             elif br == "negative":
-                idx.append(self.label_index(cond.negative_list(b)))
+                idx.append(self.label_tensor(cond.negative_list(b)))
             else:
                 raise ValueError(f"unknown branch {br!r}; expected cond, uncond or negative")
             zs.append(z_t.detach())

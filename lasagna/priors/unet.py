@@ -6,7 +6,10 @@ Architecture (ADM-style, Dhariwal & Nichol 2021, scaled down):
   image (ControlNet-style, e.g. the albedo; C_cond channels mapped from [0, 1] to [−1, 1]);
 * embedding: sinusoidal(t) → MLP, plus a learned label embedding whose last row is the null label
   (index ``len(vocabulary)``), the unconditional branch of classifier-free guidance (Ho & Salimans
-  2022); training drops labels to null with probability ``p_uncond``;
+  2022); training drops labels to null with probability ``p_uncond``. With ``directions`` the label is a
+  light direction instead (issue #11: any direction, a named light being just its direction): the unit
+  vector l (``lasagna.document.condition``: a name or ``az=…,el=…``) → Fourier features [l, sin 2^k π l,
+  cos 2^k π l] → MLP, and the null label a learned vector. The network then takes (B, 4) rows (l, null flag);
 * encoder: per level ``res_blocks`` residual blocks, then a stride-2 conv; a middle block (with
   self-attention when ``attention=True``); a mirrored decoder with skip connections; a zero-initialised
   output conv, so the untrained network predicts 0 (for v-prediction: x̂₀ = √ᾱ z_t).
@@ -61,6 +64,11 @@ class UNetConfig(BaseModel):
     attention: bool = Field(False, description="self-attention in the middle (lowest-resolution) block")
     norm_groups: int = Field(8, ge=1)
     vocabulary: tuple[str, ...] = ()
+    directions: bool = Field(
+        False,
+        description="condition on a light direction (a named label or 'az=…,el=…', as its unit vector) "
+        "instead of a label embedding; vocabulary then lists the names shown to people",
+    )
     prediction: Literal["epsilon", "v"] = "v"
     schedule: ScheduleConfig = ScheduleConfig()
 
@@ -98,7 +106,12 @@ class _Net(nn.Module):
         super().__init__()
         ch, g, e = cfg.channels, cfg.norm_groups, cfg.emb_dim
         self.time_mlp = nn.Sequential(nn.Linear(ch[0], e), nn.SiLU(), nn.Linear(e, e))
-        self.label_emb = nn.Embedding(len(cfg.vocabulary) + 1, e)  # last row: the null label
+        self.directions = cfg.directions
+        if cfg.directions:
+            self.dir_mlp = nn.Sequential(nn.Linear(DIRECTION_FEATURES, e), nn.SiLU(), nn.Linear(e, e))
+            self.null_emb = nn.Parameter(torch.zeros(e))
+        else:
+            self.label_emb = nn.Embedding(len(cfg.vocabulary) + 1, e)  # last row: the null label
         self.inp = nn.Conv2d(cfg.image_channels + cfg.cond_channels, ch[0], 3, padding=1)
         self.down = nn.ModuleList()
         prev = ch[0]
@@ -125,7 +138,7 @@ class _Net(nn.Module):
         self._t_dim = ch[0]
 
     def forward(self, x: torch.Tensor, t: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
-        emb = self.time_mlp(timestep_embedding(t, self._t_dim).to(x.dtype)) + self.label_emb(label)  # (B, E)
+        emb = self.time_mlp(timestep_embedding(t, self._t_dim).to(x.dtype)) + self.label_embedding(label, x.dtype)
         h = self.inp(x)
         skips = []
         for level in self.down:
@@ -143,6 +156,41 @@ class _Net(nn.Module):
             h = level["up"](h)
         return self.out(F.silu(self.out_norm(h)))
 
+    def label_embedding(self, label: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+        """(B, E): the label's embedding; with ``directions``, label rows are (l_x, l_y, l_z, null flag)."""
+        if not self.directions:
+            return self.label_emb(label)
+        feats = direction_features(label[:, :3].to(dtype))
+        null = label[:, 3:4].to(dtype) > 0.5
+        return torch.where(null, self.null_emb.to(dtype).expand(label.shape[0], -1), self.dir_mlp(feats))
+
+
+DIRECTION_OCTAVES = 3
+"""Fourier octaves of the direction features: sin/cos of 2^k π l, k < 3, resolve the eight named lights (45°
+apart) and what lies between them without a lookup table."""
+DIRECTION_FEATURES = 3 * (1 + 2 * DIRECTION_OCTAVES)
+
+
+def direction_features(unit: torch.Tensor) -> torch.Tensor:
+    """(B, 3) unit vectors → (B, DIRECTION_FEATURES): [l, sin 2^k π l, cos 2^k π l] for k < DIRECTION_OCTAVES."""
+    parts = [unit]
+    for k in range(DIRECTION_OCTAVES):
+        parts += [torch.sin((2**k) * torch.pi * unit), torch.cos((2**k) * torch.pi * unit)]
+    return torch.cat(parts, dim=1)
+
+
+def direction_rows(labels, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """(B, 4) rows (l, null flag) of condition texts: a named light or ``az=…,el=…``; None or "" is null."""
+    from lasagna.document.condition import parse_direction, unit_vector
+
+    rows = []
+    for lab in labels:
+        if lab is None or lab == "":
+            rows.append((0.0, 0.0, 0.0, 1.0))
+        else:
+            rows.append((*unit_vector(*parse_direction(lab)), 0.0))
+    return torch.tensor(rows, dtype=dtype)
+
 
 class UNetPrior(Pretrained, Prior):
     """A conditional pixel-space diffusion prior (see the module docstring)."""
@@ -157,6 +205,19 @@ class UNetPrior(Pretrained, Prior):
         self.vocabulary = tuple(config.vocabulary)
         self.sample_shape = (config.image_channels, config.resolution, config.resolution)
         self.net = _Net(config)
+
+    def label_tensor(self, labels) -> torch.Tensor:
+        if not self.config.directions:
+            return self.label_index(labels)
+        try:
+            return direction_rows(labels)
+        except ConditionError as exc:
+            raise ConditionError(exc.message, "condition.labels") from None
+
+    def null_tensor(self, batch: int) -> torch.Tensor:
+        if not self.config.directions:
+            return super().null_tensor(batch)
+        return direction_rows([None] * batch)
 
     # -- the raw network ------------------------------------------------------------------------
     def _inputs(self, z_t: torch.Tensor, image: torch.Tensor | None) -> torch.Tensor:
@@ -226,7 +287,11 @@ class UNetPrior(Pretrained, Prior):
         t = torch.randint(0, self.schedule.num_steps, (b,), generator=rng, device=_rng_device(rng, dev)).to(dev)
         eps = randn(tuple(x0.shape), rng, dev, x0.dtype)
         drop = torch.rand((b,), generator=rng, device=_rng_device(rng, dev)).to(dev) < p_uncond
-        labels = torch.where(drop, torch.full_like(labels_idx.to(dev), len(self.vocabulary)), labels_idx.to(dev))
+        if self.config.directions:  # labels_idx are (B, 4) direction rows; a dropped one becomes the null row
+            null = self.null_tensor(b).to(dev, labels_idx.dtype)
+            labels = torch.where(drop[:, None], null, labels_idx.to(dev))
+        else:
+            labels = torch.where(drop, torch.full_like(labels_idx.to(dev), len(self.vocabulary)), labels_idx.to(dev))
         z_t = self.schedule.add_noise(x0, eps, t)
         if self.config.prediction == "v":
             ab = self.schedule.alpha_bar(t, x0.dtype)[:, None, None, None]

@@ -64,6 +64,14 @@ class PriorTrainConfig(LoopConfig):
     )
 
 
+DIRECTION_TASKS: tuple[str, ...] = ("relight", "relit")
+"""Tasks whose label is a light direction, so a prior of them may be conditioned on any direction."""
+NAMED_SHARE = 0.5
+"""With ``directions``, the share of training samples lit by a named light (the rest: a uniform azimuth and an
+elevation in the relight range), so the named lights — what most people ask for — are as well learnt as a
+label prior's, and the directions between them are learnt at all (issue #11: within 1 dB of the named)."""
+
+
 def task_vocabulary(task: Task) -> tuple[str, ...]:
     from lasagna.world import GLOW_VOCABULARY, VOCABULARY
 
@@ -86,8 +94,14 @@ def unet_config_for(
     res_blocks: int = 1,
     attention: bool = False,
     prediction: Literal["epsilon", "v"] = "v",
+    directions: bool = False,
 ) -> UNetConfig:
-    """The UNetConfig of a task's prior: image 3 channels, its conditioning channels and vocabulary."""
+    """The UNetConfig of a task's prior: image 3 channels, its conditioning channels and vocabulary (and, for
+    the light tasks, ``directions``: conditioned on any light direction, not only the named labels)."""
+    if directions and task not in DIRECTION_TASKS:
+        raise LasagnaError(
+            f"the {task} task has no light direction; expected one of {', '.join(DIRECTION_TASKS)}", "--directions"
+        )
     return UNetConfig(
         image_channels=3,
         cond_channels=task_cond_channels(task),
@@ -97,6 +111,7 @@ def unet_config_for(
         attention=attention,
         vocabulary=task_vocabulary(task),
         prediction=prediction,
+        directions=directions,
     )
 
 
@@ -118,7 +133,35 @@ def prior_batch(task: Task, scene) -> tuple[torch.Tensor, torch.Tensor, torch.Te
     return col.target, torch.zeros(scene.image.shape[0], dtype=torch.long), col.base[:, :1]
 
 
-def world_source(task: Task, resolution: int, split: str = "train", seed: int = 0, shadows: bool = False):
+def direction_batch(task: Task, scene, rng: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``prior_batch`` for a prior conditioned on directions: each scene is lit by a named light (its own,
+    with probability ``NAMED_SHARE``) or by a random direction, drawn from ``rng``; the labels are (B, 4)
+    direction rows (``lasagna.priors.unet.direction_rows``)."""
+    from lasagna.document.condition import format_direction
+    from lasagna.priors.unet import direction_rows
+    from lasagna.world.scene import with_light
+    from lasagna.world.tasks import RELIGHT_ELEVATION, relight_sources, relighting
+
+    b = scene.image.shape[0]
+    u = torch.rand((b, 3), generator=rng, dtype=torch.float64)
+    lo, hi = RELIGHT_ELEVATION
+    lights = [
+        scene.label[i]
+        if float(u[i, 0]) < NAMED_SHARE
+        else format_direction(round(360.0 * float(u[i, 1]), 2) % 360.0, round(lo + (hi - lo) * float(u[i, 2]), 2))
+        for i in range(b)
+    ]
+    rows = direction_rows(lights)
+    if task == "relit":
+        rel = relighting(scene, relight_sources(scene.params), lights)
+        return rel.target, rows, rel.base
+    lit = with_light(scene, lights)
+    return lit.image, rows, scene.albedo
+
+
+def world_source(
+    task: Task, resolution: int, split: str = "train", seed: int = 0, shadows: bool = False, directions: bool = False
+):
     """``sample_batch(batch, rng) -> (images, label_idx, cond_image)`` drawing world scenes.
 
     The data-source signature shared with the corrective's trainer; the scenes drawn depend only on
@@ -129,6 +172,8 @@ def world_source(task: Task, resolution: int, split: str = "train", seed: int = 
     def sample_batch(batch: int, rng: torch.Generator):
         start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
         scene = generate(split, batch, seed, resolution, start=start, shadows=shadows)
+        if directions:
+            return direction_batch(task, scene, rng)
         return prior_batch(task, scene)
 
     return sample_batch
@@ -136,7 +181,9 @@ def world_source(task: Task, resolution: int, split: str = "train", seed: int = 
 
 def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | torch.device = "cpu") -> UNetPrior:
     """Train (or resume) the prior in ``out_dir``; the final EMA weights go to ``out_dir/prior``."""
-    source = world_source(config.task, config.unet.resolution, config.split, config.world_seed, config.shadows)
+    source = world_source(
+        config.task, config.unet.resolution, config.split, config.world_seed, config.shadows, config.unet.directions
+    )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         prior = UNetPrior(config.unet)
@@ -145,14 +192,19 @@ def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | tor
         theirs = start.config
         if config.init_labels == "fresh":
             theirs = theirs.model_copy(update={"vocabulary": config.unet.vocabulary})
+        to_directions = config.unet.directions and not theirs.directions
+        theirs = theirs.model_copy(update={"directions": config.unet.directions})
         if theirs != config.unet:
             raise LasagnaError(
                 f"its UNet config differs from this run's ({start.config} vs {config.unet})", config.init_from
             )
         state = start.state_dict()
-        if config.init_labels == "fresh":
+        if config.init_labels == "fresh" and not to_directions:
             key = "net.label_emb.weight"
             state[key] = state[key][-1].expand(len(config.unet.vocabulary) + 1, -1).clone()
+        if to_directions:  # a label prior starts a direction prior: its null label is the null, the MLP is new
+            state["net.null_emb"] = state.pop("net.label_emb.weight")[-1].clone()
+            state.update({k: v for k, v in prior.state_dict().items() if k.startswith("net.dir_mlp.")})
         prior.load_state_dict(state)
 
     def step_fn(net: UNetPrior, rng: torch.Generator, step: int):
@@ -200,7 +252,8 @@ def run_unet_config(
     ``task``'s vocabulary)."""
     if init_from is None:
         return unet
-    unet = read_config(init_from, UNetPrior.FORMAT, UNetConfig)
+    directions = unet.directions
+    unet = read_config(init_from, UNetPrior.FORMAT, UNetConfig).model_copy(update={"directions": directions})
     want = unet_config_for(task)
     if init_labels == "fresh":
         if unet.cond_channels != want.cond_channels:

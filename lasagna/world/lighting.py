@@ -56,7 +56,7 @@ from lasagna.document.condition import (
     direction_label,
     format_direction,
     parse_direction,
-    wrap_azimuth,
+    unit_vector,
 )
 from lasagna.document.condition import (
     named_direction as named_direction,  # re-exported: (az, el) of a label, beside its vector
@@ -181,8 +181,7 @@ def direction_vector(az: float, el: float) -> tuple[float, float, float]:
     label = direction_label(az, el)  # also checks el ∈ [0, 90) and finiteness
     if label is not None:
         return LIGHTS[label]
-    a, e = math.radians(wrap_azimuth(az)), math.radians(float(el))
-    return (math.sin(e) * math.cos(a), math.sin(e) * math.sin(a), math.cos(e))
+    return unit_vector(az, el)
 
 
 def condition_direction(condition: str) -> tuple[float, float, float]:

@@ -272,3 +272,74 @@ class TestTrainingLoss:
             opt.step()
         final = sum(prior.training_loss(x0, lab, img, torch.Generator().manual_seed(s)).item() for s in range(4)) / 4
         assert final < 0.7 * first, (first, final)
+
+
+class TestDirections:
+    """A prior conditioned on any light direction (issue #11): named labels are their unit vectors."""
+
+    def _prior(self, seed: int = 0):
+        from lasagna.priors.unet import UNetConfig, UNetPrior
+        from lasagna.world import VOCABULARY
+
+        torch.manual_seed(seed)
+        cfg = UNetConfig(
+            cond_channels=3,
+            resolution=8,
+            channels=(8, 16),
+            norm_groups=4,
+            vocabulary=tuple(VOCABULARY),
+            directions=True,
+        )
+        prior = UNetPrior(cfg)
+        with torch.no_grad():
+            for p in prior.parameters():
+                p.add_(0.05 * torch.randn_like(p))
+        return prior.eval()
+
+    def test_rows_are_the_unit_vectors_of_the_world(self):
+        from lasagna.priors.unet import direction_rows
+        from lasagna.world.lighting import LIGHTS, direction_vector
+
+        rows = direction_rows(["left", "az=135,el=60", "az=10,el=35", None], dtype=torch.float64)
+        assert torch.allclose(rows[0, :3], torch.tensor(LIGHTS["left"], dtype=torch.float64), atol=1e-15)
+        assert torch.allclose(rows[1, :3], torch.tensor(LIGHTS["top-left"], dtype=torch.float64), atol=1e-15)
+        assert torch.allclose(rows[2, :3], torch.tensor(direction_vector(10, 35), dtype=torch.float64), atol=1e-15)
+        assert rows[:3, 3].tolist() == [0, 0, 0] and rows[3].tolist() == [0, 0, 0, 1]
+
+    def test_a_named_label_and_its_angles_give_the_same_prediction(self):
+        from lasagna.priors.base import Condition
+
+        prior = self._prior()
+        z, t, img = torch.randn(1, 3, 8, 8), torch.tensor([400]), torch.rand(1, 3, 8, 8)
+        a = prior.predict(z, t, Condition(["top-left"], image=img)).eps["cond"]
+        b = prior.predict(z, t, Condition(["az=135,el=60"], image=img)).eps["cond"]
+        c = prior.predict(z, t, Condition(["az=150,el=60"], image=img)).eps["cond"]
+        assert torch.allclose(a, b, atol=1e-6) and not torch.allclose(a, c, atol=1e-6)
+        u = prior.predict(z, t, Condition([""], image=img)).eps["cond"]
+        assert torch.allclose(u, prior.predict(z, t, Condition(["left"], image=img)).eps["uncond"], atol=1e-6)
+
+    def test_label_dropout_uses_the_null_row_and_the_loss_trains(self):
+        from lasagna.priors.unet import direction_rows
+
+        prior = self._prior(1)
+        rows = direction_rows(["left", "az=200,el=45"] * 4)
+        x0 = torch.rand(8, 3, 8, 8) * 2 - 1
+        img = torch.rand(8, 3, 8, 8)
+        all_null = prior.training_loss(x0, rows, img, torch.Generator().manual_seed(0), p_uncond=1.0)
+        null = prior.training_loss(x0, direction_rows([None] * 8), img, torch.Generator().manual_seed(0), p_uncond=0.0)
+        assert torch.allclose(all_null, null)  # the same t, ε and the null rows
+        opt = torch.optim.Adam(prior.parameters(), 1e-2)
+        first = None
+        for i in range(30):
+            loss = prior.training_loss(x0, rows, img, torch.Generator().manual_seed(i % 2))
+            first = first if first is not None else float(loss.detach())
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        assert float(loss.detach()) < first
+
+    def test_a_bad_direction_is_one_condition_error(self):
+        from lasagna.errors import ConditionError
+
+        with pytest.raises(ConditionError, match="condition.labels.*az=A,el=E"):
+            self._prior().label_tensor(["az=10,el=99"])

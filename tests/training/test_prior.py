@@ -4,10 +4,12 @@ and the evaluation helpers measure what they claim (against closed forms)."""
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 import torch
 
+from lasagna.errors import LasagnaError
 from lasagna.priors.evaluate import denoising_error, psnr, sample_quality
 from lasagna.priors.unet import UNetPrior
 from lasagna.training.prior import PriorTrainConfig, prior_batch, train_prior, unet_config_for, world_source
@@ -231,3 +233,52 @@ class TestSchedulesAndStages:
         err = capsys.readouterr().err.strip()
         assert code == 2 and err.count("\n") == 0 and "expected a relight prior" in err
         assert not (tmp_path / "run").exists()
+
+
+class TestDirectionTraining:
+    def test_direction_batch_mixes_named_and_random_lights_and_relights_to_them(self):
+        from lasagna.document.condition import format_direction
+        from lasagna.training.prior import direction_batch
+        from lasagna.world.lighting import LIGHTS
+        from lasagna.world.scene import with_light
+        from lasagna.world.tasks import relight_sources, relighting
+
+        scene = generate("train", 32, seed=3, resolution=8, dtype=torch.float64)
+        x0, rows, cond = direction_batch("relit", scene, torch.Generator().manual_seed(0))
+        named = [
+            i
+            for i in range(32)
+            if any(
+                torch.allclose(rows[i, :3].double(), torch.tensor(v, dtype=torch.float64), atol=1e-6)
+                for v in LIGHTS.values()
+            )
+        ]
+        assert 6 <= len(named) <= 26 and rows[:, 3].eq(0).all()  # about half named, none null
+        source = with_light(scene, relight_sources(scene.params))
+        assert torch.equal(cond, source.image)
+        # the target is the scene under each row's direction
+        i = next(i for i in range(32) if i not in named)
+        v = rows[i, :3].double()
+        az = math.degrees(math.atan2(float(v[1]), float(v[0]))) % 360
+        el = math.degrees(math.acos(max(-1.0, min(1.0, float(v[2])))))
+        again = relighting(scene, relight_sources(scene.params), [format_direction(round(az, 2), round(el, 2))] * 32)
+        assert torch.allclose(x0[i], again.target[i], atol=1e-5)
+        x0b, rowsb, _ = direction_batch("relit", scene, torch.Generator().manual_seed(0))
+        assert torch.equal(x0, x0b) and torch.equal(rows, rowsb)  # a function of the generator's state
+
+    def test_a_label_prior_starts_a_direction_prior(self, tmp_path):
+        start = tmp_path / "start"
+        torch.manual_seed(0)
+        label_prior = UNetPrior(unet_config_for("relight", resolution=8, channels=(8, 16)))
+        label_prior.save_pretrained(start)
+        unet = unet_config_for("relit", resolution=8, channels=(8, 16), directions=True)
+        out = train_prior(tiny("relit", unet=unet, steps=1, lr=1e-12, init_from=str(start)), tmp_path / "run")
+        assert out.config.directions
+        old, new = label_prior.state_dict(), out.state_dict()
+        assert torch.allclose(new["net.null_emb"], old["net.label_emb.weight"][-1], atol=1e-6)
+        assert torch.allclose(new["net.inp.weight"], old["net.inp.weight"], atol=1e-6)
+        assert "net.label_emb.weight" not in new and "net.dir_mlp.0.weight" in new
+
+    def test_directions_only_for_light_tasks(self):
+        with pytest.raises(LasagnaError, match="no light direction"):
+            unet_config_for("colorize", directions=True)
