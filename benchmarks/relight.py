@@ -16,8 +16,9 @@ against the truth, composite PSNR over all pixels and over object pixels, and th
 * **the default edit** — exactly ``lasagna edit --layer relight`` (the API's ``edit``, one image at a time);
 * ``--omegas``: per-image SDS at other guidance weights (the default is SDS at ω = 1).
 
-No supervised ceiling: the preset has no amortised generator yet. Directions between the named ones need a
-continuously conditioned prior (relit-32 knows the eight labels): not measured. **Texture leak**: walls with
+No supervised ceiling: the preset has no amortised generator yet. **Directions between the named ones**: the
+same scenes relit to az + 22.5° of each named light (rows "… between the named"), through the same edit with
+``--condition az=…,el=…`` (the prior is conditioned on the direction's unit vector). **Texture leak**: walls with
 no objects and no relief, whose true ratio is one constant: PSNR of the default layer (/4) against its own
 mean. Ends with one JSON line: ``far_gain_db``, ``far_gain_obj_db``, ``far256_gain_db`` (default edit over
 the unchanged input) and the rest of the headline.
@@ -42,6 +43,7 @@ from distill_accuracy import psnr  # noqa: E402
 
 from lasagna import catalogue as cat  # noqa: E402
 from lasagna.compose.resample import downsample, upsample  # noqa: E402
+from lasagna.document.condition import format_direction, named_direction  # noqa: E402
 from lasagna.edit import edit  # noqa: E402
 from lasagna.priors.base import Condition  # noqa: E402
 from lasagna.priors.ddim import ddim_sample  # noqa: E402
@@ -51,12 +53,21 @@ from lasagna.world.tasks import relight_sources, relighting  # noqa: E402
 RANGE_HI = 4.0  # the preset's range [0, 4]: ratios are compared in units of it
 
 
-def scenes(split: str, count: int, seed: int, size: int, walls: bool = False):
+BETWEEN = 22.5
+"""Degrees of azimuth from each named light to the direction between it and the next (same elevation)."""
+
+
+def scenes(split: str, count: int, seed: int, size: int, walls: bool = False, between: bool = False):
+    """The relight task of ``count`` scenes: B cycles through the named lights or, with ``between``, through
+    the directions halfway between them (``az`` + 22.5°, the same elevation)."""
     labels = [VOCABULARY[i % len(VOCABULARY)] for i in range(count)]
     params = sample_scenes(split, seed, range(count))
     if walls:
         params = params.walls_only()
     scene = render(params.with_labels(labels), size)
+    if between:
+        labels = [format_direction(named_direction(n)[0] + BETWEEN, named_direction(n)[1]) for n in labels]
+        return relighting(scene, relight_sources(scene.params), labels), labels
     return relighting(scene, relight_sources(scene.params)), labels
 
 
@@ -111,6 +122,11 @@ def table(args, split: str, size: int, prior) -> list[dict]:
         )
     y, seconds = default_layers(rel.base.float(), labels, args.catalogue)
     rows.append(row(rel, "default edit (`lasagna edit --layer relight`)", y.double(), seconds))
+    if args.between:
+        mid, mid_labels = scenes(split, args.count, args.seed, size, between=True)
+        y, seconds = default_layers(mid.base.float(), mid_labels, args.catalogue)
+        rows.append(row(mid, "default edit, directions between the named (az + 22.5°)", y.double(), seconds))
+        rows.append(row(mid, "unchanged input, directions between the named", torch.ones_like(mid.layer)))
     for omega in args.omegas:
         y, seconds = default_layers(rel.base.float(), labels, args.catalogue, guidance=omega)
         rows.append(row(rel, f"per-image SDS ω = {omega:g}", y.double(), seconds))
@@ -146,7 +162,22 @@ def headline(rows: dict, leaks: list[dict]) -> dict:
         "heldout_gain_db": gain("heldout@64", "composite_psnr"),
         "heldout_gain_obj_db": gain("heldout@64", "object_psnr"),
         "leak_db": min((x["leak_db"] for x in leaks), default=None),
+        "far_between_minus_named_db": between_gap(rows.get("far@64")),
     }
+
+
+def between_gap(rows) -> float | None:
+    """The default edit's gain over the unchanged input for in-between directions minus that for named ones."""
+    if not rows:
+        return None
+    by = {r["method"]: r for r in rows}
+    mid = by.get("default edit, directions between the named (az + 22.5°)")
+    if mid is None:
+        return None
+    named = next(r for m, r in by.items() if m.startswith("default edit (`"))
+    gain_mid = mid["composite_psnr"] - by["unchanged input, directions between the named"]["composite_psnr"]
+    gain_named = named["composite_psnr"] - by["unchanged input"]["composite_psnr"]
+    return round(gain_mid - gain_named, 2)
 
 
 def markdown(result: dict) -> str:
@@ -174,6 +205,7 @@ def main(argv=None) -> int:
     ap.add_argument("--omegas", nargs="*", type=float, default=[3.0])
     ap.add_argument("--catalogue", type=Path, nargs="*", default=None, help="catalogue folders searched first")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--no-between", dest="between", action="store_false", help="skip the in-between directions")
     ap.add_argument("--quick", action="store_true", help="4 scenes, 64² only, no extra ω")
     ap.add_argument("--markdown", action="store_true")
     ap.add_argument("--json-out", type=Path, default=ROOT / "docs" / "relight.json")
