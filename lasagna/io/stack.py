@@ -443,11 +443,11 @@ def load_surveyed(survey: Survey) -> Stack:
     return stack
 
 
-def group_mask_tensors(mask_img, where: str = "mask") -> LayerTensors:
-    """A group's mask PNG as ``LayerTensors``: ``mask`` is the mask (one channel times its own alpha), and
-    ``color`` a zero-stride view of ones of its size (a group has no pixels; ``tensors[id].mask`` is then
-    every kind's mask, and saving writes it back)."""
-    mask = _mask_array(mask_img, where)
+def group_mask_tensors(mask, where: str = "mask") -> LayerTensors:
+    """A group's mask (a decoded PNG: one channel times its own alpha; or a (1, h, w) tensor) as
+    ``LayerTensors``: ``mask`` is the mask, and ``color`` a zero-stride view of ones of its size (a group
+    has no pixels; ``tensors[id].mask`` is then every kind's mask, and saving writes it back)."""
+    mask = mask if isinstance(mask, torch.Tensor) else _mask_array(mask, where)
     return LayerTensors(mask.new_ones(()).expand(mask.shape), mask=mask)
 
 
