@@ -26,6 +26,13 @@ DODGE_EPS = 1.0 / 65535.0
 # guarded division only pulls an almost-gray colour (|C − L| of the same order) towards its luminosity.
 CLIP_COLOR_EPS = 1e-6
 
+# Unpremultiplying a group's colour, C = c / α (W3C Compositing Level 1, section 5.1): where α = 0, c = 0 as
+# well and the spec leaves 0/0. Dividing by max(α, UNPREMULTIPLY_EPS) gives 0 there; where 0 < α < eps the
+# quotient is off by at most a factor, but every use weights it by α again (the group's alpha, αb·B(Cb, Cs)),
+# so its contribution stays below eps · |C|. 1e-12 is far below one 16-bit step of alpha (1.5e-5) and far
+# above float32's tiny (1.2e-38); the gradient −c/α² it leaves is bounded by |C|/α, times that same α.
+UNPREMULTIPLY_EPS = 1e-12
+
 # Logit of a value in [0, 1] (inverting y = lo + (hi - lo) * sigmoid(x)): clamp to
 # [LOGIT_EPS, 1 - LOGIT_EPS] so an exact 0 or 1 maps to a large finite logit (+-13.8).
 LOGIT_EPS = 1e-6

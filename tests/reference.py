@@ -10,6 +10,7 @@ W3C Compositing Level 1 for an opaque backdrop Cb, source Cs, α = alpha × mask
     screen    Cb + α(Cs − Cb·Cs)
     plus      Cb + α·Cs
     others    Cb + α(B(Cb, Cs) − Cb), B of W3C section 10 (``tests/compose/numpy_ref.py``'s ``W3C_B``)
+Groups: W3C section 8 (see ``composite_reference``).
 Stored PNG values v map to y = lo + (hi − lo)·v (alpha never). ``blend_space="linear"`` decodes colour
 values (background, solid colours, normal/plus/screen sources) from sRGB, never multiply factors, and
 encodes the result back. ``clamp="layer"`` clamps to [0, 1] after every blend, ``"output"`` once.
@@ -57,25 +58,93 @@ def read_png64(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
 def composite_reference(folder: str | Path) -> np.ndarray:
     """The composite of the stack in ``folder`` as float64 (3, H, W) in [0, 1] (clamped, not quantised).
 
-    Layers that are hidden, or learned without a ``source``, are not composed.
+    Layers that are hidden, or learned without a ``source``, are not composed. Groups (``kind: group``)
+    follow W3C Compositing Level 1, section 8: an isolated group composites its layers onto a transparent
+    canvas (with the spec's general formula, non-premultiplied: αo = αs + αb(1 − αs), αo·Co = αs(1 − αb)Cs
+    + αs·αb·B(Cb, Cs) + (1 − αs)·αb·Cb; plus: αo·Co = αs·Cs + αb·Cb, αo = min(1, αs + αb)) and is then one
+    layer of that colour and alpha × mask × opacity; a pass-through group composites its layers onto the
+    canvas and mixes the result with what was there by mask × opacity. A group's offset moves its layers
+    and its mask (0 outside the mask).
     """
     folder = Path(folder)
     doc = json.loads((folder / "stack.json").read_text())
     W, H = doc["canvas"]["width"], doc["canvas"]["height"]
     linear = doc.get("blend_space", "srgb") == "linear"
-    clamp_each = doc.get("clamp", "layer") == "layer"
+    ctx = (folder, W, H, linear, doc.get("clamp", "layer") == "layer")
     decode = srgb_to_linear if linear else (lambda c: c)
 
     bg = np.asarray(doc["canvas"].get("background", [0.0, 0.0, 0.0]), dtype=np.float64)
     out = np.empty((3, H, W))
     out[:] = decode(bg)[:, None, None]
+    out, _ = _compose(doc["layers"], out, None, (0, 0), ctx)
+    if linear:
+        out = linear_to_srgb(out)
+    return np.clip(out, 0.0, 1.0)
 
-    for layer in doc["layers"]:
+
+def _offset(layer: dict, origin: tuple[int, int]) -> tuple[int, int]:
+    off = layer.get("offset", {})
+    return off.get("x", 0) + origin[0], off.get("y", 0) + origin[1]
+
+
+def _read_mask(folder: Path, rel: str) -> np.ndarray:
+    m, m_alpha = read_png64(folder / rel)
+    return m[:1] * (1.0 if m_alpha is None else m_alpha)
+
+
+def _B(blend: str, cb: np.ndarray, cs: np.ndarray) -> np.ndarray:
+    cs = np.broadcast_to(cs, cb.shape)
+    return {"normal": lambda: cs, "multiply": lambda: cb * cs, "screen": lambda: cb + cs - cb * cs}.get(
+        blend, lambda: W3C_B[blend](cb, np.ascontiguousarray(cs))
+    )()
+
+
+def _over(C, A, Cs, As, blend):
+    """Source (Cs, As) onto a canvas (C, A) with alpha: the spec's general formula (see composite_reference)."""
+    if blend == "plus":
+        ao, premul = np.minimum(1.0, As + A), As * Cs + A * C
+    else:
+        ao = As + A * (1 - As)
+        premul = As * (1 - A) * Cs + As * A * _B(blend, C, Cs) + (1 - As) * A * C
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(ao > 0, premul / np.where(ao > 0, ao, 1.0), 0.0), ao
+
+
+def _compose(layers, out, A, origin, ctx):
+    """``layers`` onto the canvas ``out`` (3, H, W), opaque when ``A`` is None, else of alpha ``A`` (1, H, W)."""
+    folder, W, H, linear, clamp_each = ctx
+    decode = srgb_to_linear if linear else (lambda c: c)
+    for layer in layers:
         if not layer.get("visible", True):
             continue
         blend = ALIASES.get(layer.get("blend", "normal"), layer.get("blend", "normal"))
-        lo, hi = layer.get("range", [0.0, 1.0])
         kind = layer["kind"]
+        x, y = _offset(layer, origin)
+        if kind == "group":
+            m = np.full((1, H, W), layer.get("opacity", 1.0))
+            if layer.get("mask"):
+                mask = _read_mask(folder, layer["mask"])
+                placed = np.zeros((1, H, W))
+                mh, mw = mask.shape[1:]
+                x0, y0, x1, y1 = max(x, 0), max(y, 0), min(x + mw, W), min(y + mh, H)
+                if x0 < x1 and y0 < y1:
+                    placed[:, y0:y1, x0:x1] = mask[:, y0 - y : y1 - y, x0 - x : x1 - x]
+                m = m * placed
+            A0 = np.ones((1, H, W)) if A is None else A
+            if layer.get("isolated", False):
+                Cg, Ag = _compose(layer.get("layers", []), np.zeros((3, H, W)), np.zeros((1, H, W)), (x, y), ctx)
+                res, ao = _over(out, A0, Cg, Ag * m, blend)
+                res = np.clip(res, 0.0, 1.0) if clamp_each else res
+            else:
+                Cn, An = _compose(layer.get("layers", []), out.copy(), None if A is None else A.copy(), (x, y), ctx)
+                An = np.ones((1, H, W)) if An is None else An
+                ao = A0 + m * (An - A0)
+                premul = A0 * out + m * (An * Cn - A0 * out)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    res = np.where(ao > 0, premul / np.where(ao > 0, ao, 1.0), 0.0)
+            out, A = res, (None if A is None else ao)
+            continue
+        lo, hi = layer.get("range", [0.0, 1.0])
         if kind == "solid":
             rgba = list(layer["color"])
             size = layer.get("size") or {"width": W, "height": H}
@@ -95,10 +164,8 @@ def composite_reference(folder: str | Path) -> np.ndarray:
             color = decode(np.broadcast_to(color, (3, h, w)))
         a = alpha * layer.get("opacity", 1.0)
         if layer.get("mask"):
-            m, m_alpha = read_png64(folder / layer["mask"])
-            a = a * m[:1] * (1.0 if m_alpha is None else m_alpha)
+            a = a * _read_mask(folder, layer["mask"])
 
-        x, y = layer.get("offset", {}).get("x", 0), layer.get("offset", {}).get("y", 0)
         # Intersection of the layer's rectangle with the canvas.
         x0, y0, x1, y1 = max(x, 0), max(y, 0), min(x + w, W), min(y + h, H)
         if x0 >= x1 or y0 >= y1:
@@ -106,7 +173,9 @@ def composite_reference(folder: str | Path) -> np.ndarray:
         cb = out[:, y0:y1, x0:x1]
         cs = color[:, y0 - y : y1 - y, x0 - x : x1 - x]
         al = a[:, y0 - y : y1 - y, x0 - x : x1 - x]
-        if blend == "normal":
+        if A is not None:  # inside an isolated group: the canvas has alpha
+            res, A[:, y0:y1, x0:x1] = _over(cb, A[:, y0:y1, x0:x1], cs, al, blend)
+        elif blend == "normal":
             res = cb + al * (cs - cb)
         elif blend == "multiply":
             res = cb + al * (cb * cs - cb)
@@ -119,10 +188,7 @@ def composite_reference(folder: str | Path) -> np.ndarray:
         else:
             raise ValueError(f"unknown blend {blend!r}")
         out[:, y0:y1, x0:x1] = np.clip(res, 0.0, 1.0) if clamp_each else res
-
-    if linear:
-        out = linear_to_srgb(out)
-    return np.clip(out, 0.0, 1.0)
+    return out, A
 
 
 def to_uint8(image: np.ndarray) -> np.ndarray:

@@ -113,3 +113,70 @@ def random_stack(
         "layers": layers,
     }
     return write_stack(folder, doc)
+
+
+BLEND_NAMES = (
+    "normal multiply plus screen overlay darken lighten color-dodge color-burn hard-light soft-light "
+    "difference exclusion hue saturation color luminosity"
+).split()
+
+
+def random_group_stack(folder: Path, seed: int, *, depth: int = 3, clamp: str = "layer", modes=None) -> Path:
+    """A random stack with nested groups: isolated ones with every blend mode, pass-through ones, group
+    opacity, masks (any size, at the group's offset) and offsets, and pixel layers of every mode inside."""
+    rng = np.random.default_rng(seed)
+    W, H = int(rng.integers(8, 25)), int(rng.integers(8, 25))
+    count = iter(range(10_000))
+    modes = BLEND_NAMES if modes is None else modes
+
+    def pixels() -> dict:
+        lid = f"l{next(count)}"
+        h, w = int(rng.integers(3, H + 4)), int(rng.integers(3, W + 4))
+        src = f"layers/{lid}.png"
+        write_png8(folder / src, rng.integers(0, 256, (h, w, int(rng.choice([1, 2, 3, 4])))))
+        layer = {
+            "id": lid,
+            "kind": "pixels",
+            "source": src,
+            "blend": str(rng.choice(modes)),
+            "opacity": float(rng.choice([1.0, rng.random()])),
+            "offset": {"x": int(rng.integers(-w // 2, W)), "y": int(rng.integers(-h // 2, H))},
+        }
+        if rng.random() < 0.25:
+            write_png8(folder / f"masks/{lid}.png", rng.integers(0, 256, (h, w)))
+            layer["mask"] = f"masks/{lid}.png"
+        return layer
+
+    def group(d: int) -> dict:
+        gid = f"g{next(count)}"
+        isolated = bool(rng.random() < 0.5)
+        kids = [group(d - 1) if d > 0 and rng.random() < 0.4 else pixels() for _ in range(int(rng.integers(1, 4)))]
+        layer = {
+            "id": gid,
+            "kind": "group",
+            "isolated": isolated,
+            "blend": str(rng.choice(modes)) if isolated else "normal",
+            "opacity": float(rng.choice([1.0, rng.random()])),
+            "offset": {"x": int(rng.integers(-3, 4)), "y": int(rng.integers(-3, 4))},
+            "layers": kids,
+        }
+        if rng.random() < 0.3:
+            write_png8(
+                folder / f"masks/{gid}.png", rng.integers(0, 256, (int(rng.integers(3, H)), int(rng.integers(3, W))))
+            )
+            layer["mask"] = f"masks/{gid}.png"
+        if rng.random() < 0.1:
+            layer["visible"] = False
+        return layer
+
+    write_png8(folder / "layers/base.png", rng.integers(0, 256, (H, W, 3)))
+    layers = [{"id": "base", "kind": "pixels", "source": "layers/base.png"}]
+    layers += [group(depth) if rng.random() < 0.7 else pixels() for _ in range(int(rng.integers(2, 5)))]
+    doc = {
+        "format": "lasagna.stack",
+        "version": 1,
+        "canvas": {"width": W, "height": H, "background": [float(v) for v in rng.random(3)]},
+        "clamp": clamp,
+        "layers": layers,
+    }
+    return write_stack(folder, doc)

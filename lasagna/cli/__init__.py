@@ -5,6 +5,7 @@
     lasagna validate STACK                        check the document and every PNG: "ok: N layers"
     lasagna schema [stack|preset] [--out DIR]     print (or write) the JSON Schemas
     lasagna import-ora IN.ora -o FOLDER           an OpenRaster file as a stack folder
+    lasagna import-psd IN.psd -o FOLDER           a layered PSD as a stack folder (groups, masks, modes)
     lasagna edit IMAGE --layer P --condition L -o OUT   add a learned layer; writes a stack folder
     lasagna render STACK [--all]                  render learned layers from their stored settings
     lasagna layers                                list the learned-layer catalogue
@@ -47,6 +48,7 @@ from lasagna.cli import (
     edit,
     export,
     import_ora,
+    import_psd,
     layers,
     prior,
     render,
@@ -70,6 +72,7 @@ COMMANDS: dict[str, ModuleType] = {
     "validate": validate,
     "schema": schema,
     "import-ora": import_ora,
+    "import-psd": import_psd,
     "edit": edit,
     "render": render,
     "layers": layers,

@@ -34,7 +34,8 @@ def run(args: argparse.Namespace) -> int:
     check_not_input([out], stack)
     result = render_stack(stack)
     write_composite(result, out)
-    print(f"wrote {out} ({stack.width}x{stack.height}, {len(result.evaluated)} of {len(stack.ids)} layers composed)")
+    total = len(stack.document.all_ids)
+    print(f"wrote {out} ({stack.width}x{stack.height}, {len(result.evaluated)} of {total} layers composed)")
     if args.verbose:
         print(f"composed: {', '.join(result.evaluated) or '(none)'}")
         for id, reason in result.skipped.items():

@@ -22,6 +22,6 @@ def run(args: argparse.Namespace) -> int:
     waiting = sum(1 for layer in doc.layers if isinstance(layer, LearnedLayer) and layer.source is None)
     extra = f"; {waiting} learned layer(s) not rendered" if waiting else ""
     print(
-        f"ok: {len(doc.layers)} layers ({doc.canvas.width}x{doc.canvas.height}, blend_space={doc.blend_space}){extra}"
+        f"ok: {len(doc.all_ids)} layers ({doc.canvas.width}x{doc.canvas.height}, blend_space={doc.blend_space}){extra}"
     )
     return 0

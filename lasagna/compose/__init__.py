@@ -4,9 +4,11 @@
                 in ``BLEND_INPLACE``, and the clamp policy (``clamp_needed``);
 - ``color``     sRGB ↔ linear light (IEC 61966-2-1);
 - ``layer``     ``LayerTensors``: a layer's colour, alpha and mask with cached statistics;
-- ``plan``      ``RenderLayerSpec`` → ``compile_plan`` → ``RenderPlan`` (rectangles, skip reasons),
+- ``plan``      ``RenderLayerSpec`` / ``RenderGroupSpec`` → ``compile_plan`` → ``RenderPlan`` (rectangles,
+                skip reasons),
                 and ``plan_from_document`` for a ``lasagna.document`` stack;
 - ``render``    ``render(plan or layers) -> RenderResult(image, skipped, evaluated)``;
+- ``group``     groups: compositing onto a backdrop with alpha, isolated and pass-through groups;
 - ``renderer``  ``Renderer``: repeated renders with a prefix cache.
 
 Of the document tier only the blend names are imported (``lasagna.document.blend`` declares them; the kernel
@@ -30,7 +32,14 @@ from lasagna.compose.blend import (
 )
 from lasagna.compose.color import linear_to_srgb, srgb_to_linear
 from lasagna.compose.layer import LayerTensors
-from lasagna.compose.plan import PlanStep, RenderLayerSpec, RenderPlan, compile_plan, plan_from_document
+from lasagna.compose.plan import (
+    PlanStep,
+    RenderGroupSpec,
+    RenderLayerSpec,
+    RenderPlan,
+    compile_plan,
+    plan_from_document,
+)
 from lasagna.compose.render import HALF_PRECISION_ERROR, RenderResult, half_precision_bound, render
 from lasagna.compose.renderer import DEFAULT_CACHE_BYTES, Renderer
 
@@ -52,6 +61,7 @@ __all__ = [
     "linear_to_srgb",
     "LayerTensors",
     "RenderLayerSpec",
+    "RenderGroupSpec",
     "PlanStep",
     "RenderPlan",
     "compile_plan",

@@ -19,16 +19,9 @@ from torch.autograd.function import once_differentiable
 
 from lasagna.compose.blend import KERNELS, KERNELS_INPLACE, Alpha, broadcast_shape
 from lasagna.compose.color import linear_to_srgb_derivative, srgb_to_linear_derivative
-from lasagna.compose.engine import (
-    _alpha,
-    _clamp_,
-    _color,
-    background_tensor,
-    canvas_shape,
-    rows_per_band,
-    run_fast,
-)
+from lasagna.compose.engine import background_tensor, canvas_shape, rows_per_band, run_fast
 from lasagna.compose.plan import PlanStep, RenderPlan
+from lasagna.compose.step import _alpha, _clamp_, _color
 
 # Band size of the banded backward, shared among the layers whose backdrop it keeps (each keeps a
 # band-sized copy). Measured on the 2048² 4-layer stack, every layer learned, clamp=None, forward +

@@ -20,9 +20,11 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from lasagna.compose.blend import KERNELS, KERNELS_INPLACE, Alpha
+from lasagna.compose.blend import KERNELS, KERNELS_INPLACE
 from lasagna.compose.color import linear_to_srgb, srgb_to_linear
-from lasagna.compose.plan import PlanStep, RenderPlan
+from lasagna.compose.group import apply_group
+from lasagna.compose.plan import RenderPlan
+from lasagna.compose.step import _alpha, _clamp, _clamp_, _color
 
 # Canvas pixels (times batch entries) per band of the fast path. 2^18 float32 RGB pixels are 3 MB:
 # the band and the layer rows it reads stay in cache (L2 1 MB, L3 32 MB here) while all layers pass
@@ -42,57 +44,6 @@ def background_tensor(plan: RenderPlan, dtype: torch.dtype) -> Tensor:
     if plan.blend_space == "linear":
         bg = srgb_to_linear(bg)
     return bg.to(dtype=dtype, device=plan.device)
-
-
-def _color(step: PlanStep, sl: tuple, dtype: torch.dtype, grad: bool) -> Tensor:
-    """The layer's colour under ``sl``, decoded to linear light if the step says so, in ``dtype``."""
-    t = step.spec.tensors
-    if step.decode:
-        cs = srgb_to_linear(t.color[sl]) if grad and t.color.requires_grad else t.decoded_color()[sl]
-    else:
-        cs = t.color[sl]
-    return cs if cs.dtype == dtype else cs.to(dtype)
-
-
-def _alpha(step: PlanStep, sl: tuple, dtype: torch.dtype, grad: bool) -> Alpha:
-    """α = alpha × mask × opacity for the slice; a number when it is one, None when opaque."""
-    if step.opaque:
-        return None
-    t, op = step.spec.tensors, step.spec.opacity
-    if isinstance(op, Tensor):
-        if not (grad and op.requires_grad) and op.ndim == 0:
-            op = float(op)
-        if isinstance(op, Tensor) and op.dtype != dtype:
-            op = op.to(dtype)
-    a = None
-    for x in (t.alpha, t.mask):
-        if x is not None:
-            x = x[sl] if x.dtype == dtype else x[sl].to(dtype)
-            a = x if a is None else a * x
-    if a is None:
-        return op
-    if isinstance(op, Tensor) or op != 1.0:
-        a = a * op
-    return a
-
-
-def _clamp_(region: Tensor, step: PlanStep) -> None:
-    if step.clamp_lo and step.clamp_hi:
-        region.clamp_(0.0, 1.0)
-    elif step.clamp_lo:
-        region.clamp_min_(0.0)
-    elif step.clamp_hi:
-        region.clamp_max_(1.0)
-
-
-def _clamp(x: Tensor, step: PlanStep) -> Tensor:
-    if step.clamp_lo and step.clamp_hi:
-        return x.clamp(0.0, 1.0)
-    if step.clamp_lo:
-        return x.clamp_min(0.0)
-    if step.clamp_hi:
-        return x.clamp_max(1.0)
-    return x
 
 
 def rows_per_band(plan: RenderPlan, pixels: int) -> int:
@@ -164,8 +115,12 @@ def run_fast(
                     continue
                 a0, a1 = max(step.y0, r0), min(step.y1, r1)
                 region = cur[..., a0 - r0 : a1 - r0, step.x0 : step.x1]
-                sl = step.layer_slice(a0, a1)
-                KERNELS_INPLACE[step.blend](region, _color(step, sl, dtype, False), _alpha(step, sl, dtype, False))
+                if step.children is not None:  # a group: pure functions on its rectangle (group.py)
+                    region.copy_(apply_group(plan, step, region, a0, a1, dtype, False))
+                else:
+                    sl = step.layer_slice(a0, a1)
+                    cs, a = _color(step, sl, dtype, False), _alpha(step, sl, dtype, False)
+                    KERNELS_INPLACE[step.blend](region, cs, a)
                 _clamp_(region, step)
             while k < len(switch_at):
                 k += 1
@@ -200,13 +155,18 @@ def run_functional(
         if step.y0 >= r1 or step.y1 <= r0:
             continue
         a0, a1 = max(step.y0, r0), min(step.y1, r1)
-        sl = step.layer_slice(a0, a1)
-        cs, a = _color(step, sl, dtype, True), _alpha(step, sl, dtype, True)
-        if a0 == r0 and a1 == r1 and step.x0 == 0 and step.x1 == W:
-            canvas = _clamp(KERNELS[step.blend](canvas, cs, a), step)
+        rect = (..., slice(a0 - r0, a1 - r0), slice(step.x0, step.x1))
+        whole = a0 == r0 and a1 == r1 and step.x0 == 0 and step.x1 == W
+        backdrop = canvas if whole else canvas[rect]
+        if step.children is not None:  # a group (group.py)
+            new = _clamp(apply_group(plan, step, backdrop, a0, a1, dtype, True), step)
         else:
-            rect = (..., slice(a0 - r0, a1 - r0), slice(step.x0, step.x1))
-            new = _clamp(KERNELS[step.blend](canvas[rect], cs, a), step)
+            sl = step.layer_slice(a0, a1)
+            cs, a = _color(step, sl, dtype, True), _alpha(step, sl, dtype, True)
+            new = _clamp(KERNELS[step.blend](backdrop, cs, a), step)
+        if whole:
+            canvas = new
+        else:
             # A fresh clone: the previous canvas may be saved for backward by the blend above.
             canvas = canvas.expand(shape).clone()
             canvas[rect] = new

@@ -15,7 +15,20 @@ skip reason, checked in this order:
                     layer below it: rendering starts from it (no background fill);
 ``identity``        blending it changes nothing, bit for bit: multiply by 1, plus or screen of 0, or
                     alpha × mask = 0 everywhere — with finite colour (``LayerTensors.is_identity``);
-                    never for a layer whose tensors require grad.
+                    never for a layer whose tensors require grad. Over the transparent backdrop of
+                    an isolated group only alpha × mask = 0 counts (a multiply by 1 over
+                    transparency paints white: W3C Compositing Level 1, section 10, Cr = (1 − αb)·Cs + …);
+``empty``           a group none of whose children is live (always skipped: it changes nothing).
+
+**Groups** (``RenderGroupSpec``; the maths is ``group.py``'s). A group is one step of its parent's plan whose
+rectangle is the union of its live children's (cut by its mask's), and whose ``children`` are the steps of
+its own layers, compiled by the same rules on the same canvas (offsets add up: a child's position is its
+offset plus its ancestors'). Culling works inside a group (``occluded`` among siblings; ``identity`` as
+above) and on the group as a whole (hidden, zero opacity, outside the canvas, occluded by an opaque
+normal layer above its rectangle, empty); a group never occludes what lies below it. A pass-through group
+with opacity exactly 1 and no mask *is* its children composited in its place (W3C section 8.1, group
+invariance), so it is inlined: its children become steps of the parent, culled, cached and differentiated
+like any other layer.
 
 The last two are *culling* (``cull=True``, the default); with ``cull=False`` those layers are blended
 like any other, which is how the tests prove that culling never changes a result. Occlusion is tested
@@ -29,8 +42,8 @@ The statistics behind ``occluded``/``identity``/opacity and the clamp decisions 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from functools import reduce
 from typing import Any, Literal
 
@@ -42,7 +55,7 @@ from lasagna.compose.color import srgb_to_linear
 from lasagna.compose.layer import LayerTensors
 from lasagna.errors import LasagnaError
 
-SkipReason = Literal["hidden", "zero-opacity", "outside-canvas", "occluded", "identity"]
+SkipReason = Literal["hidden", "zero-opacity", "outside-canvas", "occluded", "identity", "empty"]
 BlendSpace = Literal["srgb", "linear"]
 ClampPolicy = Literal["layer", "output", None]
 Opacity = float | Tensor
@@ -76,36 +89,9 @@ class RenderLayerSpec:
     encoded: bool = True
 
     def __post_init__(self) -> None:
-        where = f"layer {self.id!r}"
-        if not isinstance(self.id, str) or not self.id:
-            raise LasagnaError(f"id is {self.id!r}; expected {_ID_OK}", where="RenderLayerSpec.id")
+        where = _check_common(self, "RenderLayerSpec")
         if not isinstance(self.tensors, LayerTensors):
             raise LasagnaError(f"tensors is a {type(self.tensors).__name__}; expected LayerTensors", where=where)
-        check_blend_name(self.blend, where=f"{where} blend")
-        op = self.opacity
-        if isinstance(op, Tensor):
-            if not op.is_floating_point() or not (op.ndim == 0 or (op.ndim >= 3 and op.shape[-3:] == (1, 1, 1))):
-                raise LasagnaError(
-                    f"opacity tensor has shape {tuple(op.shape)} and dtype {op.dtype}; expected a "
-                    "floating-point 0-d tensor or (..., 1, 1, 1)",
-                    where=where,
-                )
-            if not op.requires_grad:
-                lo, hi = torch.aminmax(op.detach())
-                if not (0.0 <= float(lo) and float(hi) <= 1.0):
-                    raise LasagnaError(
-                        f"opacity spans [{float(lo)}, {float(hi)}]; expected values in [0, 1]", where=where
-                    )
-        elif not _number(op) or not 0.0 <= op <= 1.0:
-            raise LasagnaError(f"opacity is {op!r}; expected a number in [0, 1] or a tensor", where=where)
-        if not isinstance(self.visible, bool):
-            raise LasagnaError(f"visible is {self.visible!r}; expected true or false", where=where)
-        if (
-            not isinstance(self.offset, (tuple, list))
-            or len(self.offset) != 2
-            or not all(isinstance(v, int) and not isinstance(v, bool) for v in self.offset)
-        ):
-            raise LasagnaError(f"offset is {self.offset!r}; expected two integers (x, y)", where=where)
         r = self.range
         if (
             not isinstance(r, (tuple, list))
@@ -123,13 +109,113 @@ class RenderLayerSpec:
 
     def opacity_value(self) -> float | None:
         """The opacity as a number when it is one value that carries no gradient, else None."""
-        op = self.opacity
-        if not isinstance(op, Tensor):
-            return float(op)
-        if op.requires_grad:
-            return None
-        lo, hi = torch.aminmax(op.detach())
-        return float(lo) if float(lo) == float(hi) else None
+        return _opacity_value(self.opacity)
+
+
+def _check_common(spec: Any, kind: str) -> str:
+    """Check the fields a layer and a group share (id, blend, opacity, visible, offset); return ``where``."""
+    where = f"layer {spec.id!r}"
+    if not isinstance(spec.id, str) or not spec.id:
+        raise LasagnaError(f"id is {spec.id!r}; expected {_ID_OK}", where=f"{kind}.id")
+    check_blend_name(spec.blend, where=f"{where} blend")
+    op = spec.opacity
+    if isinstance(op, Tensor):
+        if not op.is_floating_point() or not (op.ndim == 0 or (op.ndim >= 3 and op.shape[-3:] == (1, 1, 1))):
+            raise LasagnaError(
+                f"opacity tensor has shape {tuple(op.shape)} and dtype {op.dtype}; expected a "
+                "floating-point 0-d tensor or (..., 1, 1, 1)",
+                where=where,
+            )
+        if not op.requires_grad:
+            lo, hi = torch.aminmax(op.detach())
+            if not (0.0 <= float(lo) and float(hi) <= 1.0):
+                raise LasagnaError(f"opacity spans [{float(lo)}, {float(hi)}]; expected values in [0, 1]", where=where)
+    elif not _number(op) or not 0.0 <= op <= 1.0:
+        raise LasagnaError(f"opacity is {op!r}; expected a number in [0, 1] or a tensor", where=where)
+    if not isinstance(spec.visible, bool):
+        raise LasagnaError(f"visible is {spec.visible!r}; expected true or false", where=where)
+    if (
+        not isinstance(spec.offset, (tuple, list))
+        or len(spec.offset) != 2
+        or not all(isinstance(v, int) and not isinstance(v, bool) for v in spec.offset)
+    ):
+        raise LasagnaError(f"offset is {spec.offset!r}; expected two integers (x, y)", where=where)
+    return where
+
+
+def _opacity_value(op: Opacity) -> float | None:
+    if not isinstance(op, Tensor):
+        return float(op)
+    if op.requires_grad:
+        return None
+    lo, hi = torch.aminmax(op.detach())
+    return float(lo) if float(lo) == float(hi) else None
+
+
+@dataclass(frozen=True, kw_only=True)
+class RenderGroupSpec:
+    """A group of layers as the compositor sees it (W3C Compositing Level 1, section 8 "Compositing Groups").
+
+    ``children`` are ``RenderLayerSpec``s and ``RenderGroupSpec``s, bottom to top; their offsets are
+    relative to the group's ``offset``. ``isolated``: the children are composited onto a transparent
+    backdrop and the result blended with ``blend`` and its alpha × ``mask`` × ``opacity`` (section 8.2);
+    otherwise they pass through — composited onto the group backdrop, the result mixed with that backdrop
+    by ``mask`` × ``opacity`` — and ``blend`` must be ``normal``. ``mask`` ``(..., 1, h, w)`` lies with its
+    top-left corner at the group's offset; the group shows only inside it. See ``group.py``.
+    """
+
+    id: str
+    children: tuple[RenderLayerSpec | RenderGroupSpec, ...] = ()
+    isolated: bool = False
+    blend: str = "normal"
+    opacity: Opacity = 1.0
+    visible: bool = True
+    offset: tuple[int, int] = (0, 0)
+    mask: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        where = _check_common(self, "RenderGroupSpec")
+        if not isinstance(self.children, (tuple, list)) or not all(
+            isinstance(c, (RenderLayerSpec, RenderGroupSpec)) for c in self.children
+        ):
+            raise LasagnaError("children must be RenderLayerSpecs and RenderGroupSpecs, bottom to top", where=where)
+        object.__setattr__(self, "children", tuple(self.children))
+        if not isinstance(self.isolated, bool):
+            raise LasagnaError(f"isolated is {self.isolated!r}; expected true or false", where=where)
+        if not self.isolated and self.blend != "normal":
+            raise LasagnaError(
+                f"a pass-through group (isolated=False) has blend {self.blend!r}; expected 'normal' (a pass-through "
+                "group has no blend of its own) or isolated=True",
+                where=where,
+            )
+        m = self.mask
+        if m is not None and (not isinstance(m, Tensor) or not m.is_floating_point() or m.ndim < 3 or m.shape[-3] != 1):
+            got = f"{tuple(m.shape)} {m.dtype}" if isinstance(m, Tensor) else type(m).__name__
+            raise LasagnaError(f"mask is {got}; expected a floating-point tensor (..., 1, h, w) or None", where=where)
+
+    # A group's colour is computed in the blend space, never stored sRGB-encoded, and has no value range.
+    range = (0.0, 1.0)
+    encoded = False
+
+    @property
+    def requires_grad(self) -> bool:
+        return (
+            any(c.requires_grad for c in self.children)
+            or (self.mask is not None and self.mask.requires_grad)
+            or (isinstance(self.opacity, Tensor) and self.opacity.requires_grad)
+        )
+
+    def opacity_value(self) -> float | None:
+        """The opacity as a number when it is one value that carries no gradient, else None."""
+        return _opacity_value(self.opacity)
+
+    @property
+    def inlined(self) -> bool:
+        """A visible pass-through group of opacity exactly 1 without a mask: its children in its place."""
+        return not self.isolated and self.visible and self.mask is None and self.opacity_value() == 1.0
+
+
+RenderSpec = RenderLayerSpec | RenderGroupSpec
 
 
 @dataclass(frozen=True)
@@ -149,6 +235,7 @@ class PlanStep:
     clamp_hi: bool  # ... and above 1
     decode: bool  # decode the colour from sRGB (linear blend space, encoded, not multiply)
     full: bool  # the rectangle is the whole canvas
+    children: tuple[PlanStep, ...] | None = None  # a group's live steps (None for a layer); ly0, lx0 index its mask
 
     @property
     def blend(self) -> str:
@@ -185,7 +272,16 @@ class RenderPlan:
 
     @property
     def evaluated(self) -> list[str]:
-        return [s.spec.id for s in self.steps]
+        """Ids of the live layers and groups, bottom to top (a group before its live children)."""
+        return [s.spec.id for s in walk_steps(self.steps)]
+
+
+def walk_steps(steps: Sequence[PlanStep]) -> Iterator[PlanStep]:
+    """Every step, a group's children after it, depth first."""
+    for s in steps:
+        yield s
+        if s.children is not None:
+            yield from walk_steps(s.children)
 
 
 def _contains(outer: tuple[int, int, int, int], inner: tuple[int, int, int, int]) -> bool:
@@ -218,7 +314,7 @@ def _check_config(canvas: object, background: object, blend_space: object, clamp
 
 
 def compile_plan(
-    layers: Sequence[RenderLayerSpec],
+    layers: Sequence[RenderSpec],
     canvas: tuple[int, int],
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
     blend_space: BlendSpace = "srgb",
@@ -226,72 +322,184 @@ def compile_plan(
     *,
     cull: bool = True,
 ) -> RenderPlan:
-    """Compile bottom-to-top ``layers`` on a ``canvas = (H, W)`` into a ``RenderPlan`` (module docstring)."""
+    """Compile bottom-to-top ``layers`` (and groups) on a ``canvas = (H, W)`` into a ``RenderPlan`` (module
+    docstring). The plan's ``layers`` are the top-level entries after inlining, with canvas offsets."""
     _check_config(canvas, background, blend_space, clamp)
     layers = tuple(layers)
-    seen: dict[str, int] = {}
-    for i, spec in enumerate(layers):
-        if not isinstance(spec, RenderLayerSpec):
-            raise LasagnaError(f"is a {type(spec).__name__}; expected RenderLayerSpec", where=f"layers[{i}]")
-        if spec.id in seen:
-            raise LasagnaError(
-                f"id {spec.id!r} is used by layers[{seen[spec.id]}] too; expected unique ids", where=f"layers[{i}]"
-            )
-        seen[spec.id] = i
+    _check_ids(layers, {}, "layers")
     H, W = canvas
-    n = len(layers)
+    skipped: dict[str, SkipReason] = {}
+    entries = _inline(layers, (0, 0))
+    steps, reasons = _compile_level(entries, canvas, blend_space, clamp, cull, True, skipped)
+
+    batch: torch.Size = torch.Size()
+    dtypes: list[torch.dtype] = []
+    devices: set[torch.device] = set()
+    for s in walk_steps(steps):
+        spec = s.spec
+        own = [spec.opacity] if isinstance(spec.opacity, Tensor) else []
+        if s.children is None:
+            shapes = [spec.tensors.batch_shape]
+            dtypes.append(spec.tensors.color.dtype)
+            devices.add(spec.tensors.color.device)
+        else:
+            shapes = [spec.mask.shape[:-3]] if spec.mask is not None else []
+            own += [spec.mask] if spec.mask is not None else []
+        shapes += [op.shape[:-3] for op in own if op.ndim]
+        for shape in shapes:
+            try:
+                batch = torch.Size(broadcast_shape(batch, shape))
+            except RuntimeError:
+                raise LasagnaError(
+                    f"batch dimensions {tuple(shape)} do not broadcast with {tuple(batch)} of the "
+                    "layers below; expected equal sizes or 1",
+                    where=f"layer {spec.id!r}",
+                ) from None
+    if len(devices) > 1:
+        raise LasagnaError(
+            f"live layers are on several devices {sorted(map(str, devices))}; expected one", where="compile_plan"
+        )
+    dtype = reduce(torch.promote_types, dtypes) if dtypes else torch.get_default_dtype()
+    device = devices.pop() if devices else torch.device("cpu")
+    return RenderPlan(
+        entries,
+        (H, W),
+        tuple(float(v) for v in background),
+        blend_space,
+        clamp,
+        cull,  # type: ignore[arg-type]
+        steps,
+        tuple(reasons),
+        batch,
+        dtype,
+        device,
+        skipped,
+    )
+
+
+def _check_ids(layers: Sequence[Any], seen: dict[str, str], where: str) -> None:
+    """Every entry is a spec, and ids are unique across the whole tree."""
+    for i, spec in enumerate(layers):
+        here = f"{where}[{i}]"
+        if not isinstance(spec, (RenderLayerSpec, RenderGroupSpec)):
+            raise LasagnaError(f"is a {type(spec).__name__}; expected RenderLayerSpec or RenderGroupSpec", where=here)
+        if spec.id in seen:
+            raise LasagnaError(f"id {spec.id!r} is used by {seen[spec.id]} too; expected unique ids", where=here)
+        seen[spec.id] = here
+        if isinstance(spec, RenderGroupSpec):
+            _check_ids(spec.children, seen, f"{here}.children")
+
+
+def _inline(layers: Sequence[RenderSpec], origin: tuple[int, int]) -> tuple[RenderSpec, ...]:
+    """``layers`` with canvas offsets (``origin`` added) and inlined pass-through groups replaced by their
+    children (module docstring)."""
+    out: list[RenderSpec] = []
+    for spec in layers:
+        offset = (spec.offset[0] + origin[0], spec.offset[1] + origin[1])
+        if isinstance(spec, RenderGroupSpec) and spec.inlined:
+            out.extend(_inline(spec.children, offset))
+        else:
+            out.append(spec if offset == tuple(spec.offset) else replace(spec, offset=offset))
+    return tuple(out)
+
+
+def _opaque(spec: RenderLayerSpec) -> bool:
+    """alpha × mask × opacity is exactly 1 and carries no gradient."""
+    t = spec.tensors
+    if spec.opacity_value() != 1.0:
+        return False
+    if t.alpha is None and t.mask is None:
+        return True
+    return not any(x is not None and x.requires_grad for x in (t.alpha, t.mask)) and t.is_opaque()
+
+
+def _compile_level(
+    entries: tuple[RenderSpec, ...],
+    canvas: tuple[int, int],
+    blend_space: BlendSpace,
+    clamp: ClampPolicy,
+    cull: bool,
+    opaque_backdrop: bool,
+    skipped: dict[str, SkipReason],
+) -> tuple[tuple[PlanStep, ...], list[SkipReason | None]]:
+    """The live steps of one layer list (entries with canvas offsets) and a skip reason per entry; the
+    reasons of this list and of every group inside it go into ``skipped``. ``opaque_backdrop``: the list
+    is composited onto an opaque canvas (False inside an isolated group)."""
+    H, W = canvas
+    n = len(entries)
     reasons: list[SkipReason | None] = [None] * n
     rects: list[tuple[int, int, int, int]] = []
-    for i, spec in enumerate(layers):
+    children: dict[int, tuple[PlanStep, ...]] = {}
+    for i, spec in enumerate(entries):
         ox, oy = spec.offset
-        t = spec.tensors
-        rect = (max(0, oy), min(H, oy + t.height), max(0, ox), min(W, ox + t.width))
-        rects.append(rect)
+        rect = (0, 0, 0, 0)
         if not spec.visible:
             reasons[i] = "hidden"
         elif cull and spec.opacity_value() == 0.0:
             reasons[i] = "zero-opacity"
-        elif rect[0] >= rect[1] or rect[2] >= rect[3]:
+        elif isinstance(spec, RenderGroupSpec):
+            inner = _inline(spec.children, spec.offset)
+            opaque_inside = opaque_backdrop and not spec.isolated
+            sub, _ = _compile_level(inner, canvas, blend_space, clamp, cull, opaque_inside, skipped)
+            if not sub:
+                reasons[i] = "empty"
+            else:
+                rect = (min(s.y0 for s in sub), max(s.y1 for s in sub), min(s.x0 for s in sub), max(s.x1 for s in sub))
+                if spec.mask is not None:  # the group shows only inside its mask
+                    mh, mw = spec.mask.shape[-2:]
+                    rect = (max(rect[0], oy), min(rect[1], oy + mh), max(rect[2], ox), min(rect[3], ox + mw))
+                children[i] = sub
+        else:
+            t = spec.tensors
+            rect = (max(0, oy), min(H, oy + t.height), max(0, ox), min(W, ox + t.width))
+        rects.append(rect)
+        if reasons[i] is None and (rect[0] >= rect[1] or rect[2] >= rect[3]):
             reasons[i] = "outside-canvas"
-
-    def opaque(spec: RenderLayerSpec) -> bool:
-        t = spec.tensors
-        if spec.opacity_value() != 1.0:
-            return False
-        if t.alpha is None and t.mask is None:
-            return True
-        return not any(x is not None and x.requires_grad for x in (t.alpha, t.mask)) and t.is_opaque()
 
     opaque_flags = [False] * n
     occluders: list[tuple[int, int, int, int]] = []
     for i in range(n - 1, -1, -1):  # top down: occluders are the opaque normal layers above
         if reasons[i] is not None:
             continue
-        spec = layers[i]
+        spec = entries[i]
         if cull and any(_contains(o, rects[i]) for o in occluders):
             reasons[i] = "occluded"
             continue
-        if cull and not spec.requires_grad and spec.tensors.is_identity(spec.blend):
-            reasons[i] = "identity"
-            continue
-        opaque_flags[i] = opaque(spec)
+        if isinstance(spec, RenderGroupSpec):
+            continue  # never an identity by value, never an occluder (conservative)
+        if cull and not spec.requires_grad:
+            # Over transparency only a transparent layer is an identity (see the module docstring).
+            identity = spec.tensors.is_identity(spec.blend) if opaque_backdrop else spec.tensors.is_transparent()
+            if identity:
+                reasons[i] = "identity"
+                continue
+        opaque_flags[i] = _opaque(spec)
         if opaque_flags[i] and spec.blend == "normal":
             occluders.append(rects[i])
 
     steps: list[PlanStep] = []
-    for i, spec in enumerate(layers):
+    for i, spec in enumerate(entries):
         if reasons[i] is not None:
+            skipped[spec.id] = reasons[i]  # type: ignore[assignment]
             continue
         y0, y1, x0, x1 = rects[i]
         ox, oy = spec.offset
-        decode = blend_space == "linear" and spec.encoded and spec.blend != "multiply"
+        group = isinstance(spec, RenderGroupSpec)
+        decode = not group and blend_space == "linear" and spec.encoded and spec.blend != "multiply"
         clamp_lo = clamp_hi = False
         if clamp == "layer":
-            clamp_lo, clamp_hi = _clamps(spec, decode)
+            if group:
+                # An isolated group's colour is a quotient c/α (an ulp outside [0, 1] is possible): clamp. A
+                # pass-through group mixes two clamped canvases, which stays in range.
+                clamp_lo = clamp_hi = spec.isolated
+            elif not opaque_backdrop:
+                clamp_lo = clamp_hi = True  # over transparency: premultiplied colour kept in [0, α]
+            else:
+                clamp_lo, clamp_hi = _clamps(spec, decode)
         steps.append(
             PlanStep(
                 i,
-                spec,
+                spec,  # type: ignore[arg-type]
                 y0,
                 y1,
                 x0,
@@ -303,46 +511,10 @@ def compile_plan(
                 clamp_hi,
                 decode,
                 (y0, y1, x0, x1) == (0, H, 0, W),
+                children.get(i) if group else None,
             )
         )
-
-    batch: torch.Size = torch.Size()
-    for s in steps:
-        shapes = [batch, s.spec.tensors.batch_shape]
-        if isinstance(s.spec.opacity, Tensor) and s.spec.opacity.ndim:
-            shapes.append(s.spec.opacity.shape[:-3])
-        try:
-            batch = torch.Size(broadcast_shape(*shapes))
-        except RuntimeError:
-            raise LasagnaError(
-                f"batch dimensions {tuple(shapes[1])} do not broadcast with {tuple(batch)} of the "
-                "layers below; expected equal sizes or 1",
-                where=f"layer {s.spec.id!r}",
-            ) from None
-    devices = {s.spec.tensors.color.device for s in steps}
-    if len(devices) > 1:
-        raise LasagnaError(
-            f"live layers are on several devices {sorted(map(str, devices))}; expected one", where="compile_plan"
-        )
-    dtype = (
-        reduce(torch.promote_types, (s.spec.tensors.color.dtype for s in steps)) if steps else torch.get_default_dtype()
-    )
-    device = devices.pop() if devices else torch.device("cpu")
-    skipped = {spec.id: r for spec, r in zip(layers, reasons) if r is not None}
-    return RenderPlan(
-        layers,
-        (H, W),
-        tuple(float(v) for v in background),
-        blend_space,
-        clamp,
-        cull,  # type: ignore[arg-type]
-        tuple(steps),
-        tuple(reasons),
-        batch,
-        dtype,
-        device,
-        skipped,
-    )
+    return tuple(steps), reasons
 
 
 def _clamps(spec: RenderLayerSpec, decode: bool) -> tuple[bool, bool]:
@@ -407,51 +579,69 @@ def plan_from_document(
     when the layer names one). ``solid`` layers may be omitted: they are built from their colour
     (RGB range-mapped, alpha not) and size, in ``dtype`` (default: torch's default dtype). A ``learned``
     layer with neither a ``source`` nor tensors has no pixels yet and is left out of the plan (it appears
-    neither in ``evaluated`` nor in ``skipped``). Reads the document through its attributes only
+    neither in ``evaluated`` nor in ``skipped``). A ``group`` becomes a ``RenderGroupSpec`` of its layers; its
+    mask, when it names one, is ``tensors[group.id].mask``. Reads the document through its attributes only
     (docs/ARCHITECTURE.md): the compositor imports nothing of the document tier but its blend names.
     """
     width, height = int(doc.canvas.width), int(doc.canvas.height)
-    specs: list[RenderLayerSpec] = []
-    for i, layer in enumerate(doc.layers):
-        where = f"layers[{i}]"
+    specs = _document_specs(doc.layers, tensors, width, height, dtype, "layers")
+    background = tuple(float(v) for v in doc.canvas.background)
+    return compile_plan(specs, (height, width), background, doc.blend_space, doc.clamp, cull=cull)  # type: ignore[arg-type]
+
+
+def _document_specs(
+    layers: Sequence[Any],
+    tensors: Mapping[str, LayerTensors],
+    width: int,
+    height: int,
+    dtype: torch.dtype | None,
+    where: str,
+) -> list[RenderSpec]:
+    """The compositor's specs of one layer list of a document (recursively for groups)."""
+    specs: list[RenderSpec] = []
+    for i, layer in enumerate(layers):
+        here = f"{where}[{i}]"
+        lt = tensors.get(layer.id)
+        blend = getattr(layer.blend, "value", layer.blend)
+        common = dict(
+            id=layer.id,
+            blend=blend,
+            opacity=float(layer.opacity),
+            visible=bool(layer.visible),
+            offset=(int(layer.offset.x), int(layer.offset.y)),
+        )
+        mask_name = getattr(layer, "mask", None)
+        if mask_name is not None and (lt is None or lt.mask is None):
+            raise LasagnaError(
+                f"names mask {str(mask_name)!r} but tensors[{layer.id!r}].mask is missing; expected the loaded mask",
+                where=f"{here}.mask",
+            )
+        if layer.kind == "group":
+            children = _document_specs(layer.layers, tensors, width, height, dtype, f"{here}.layers")
+            mask = lt.mask if mask_name is not None and lt is not None else None
+            specs.append(RenderGroupSpec(children=tuple(children), isolated=bool(layer.isolated), mask=mask, **common))
+            continue
         rng = layer.range
         lo, hi = (rng.lo, rng.hi) if hasattr(rng, "lo") else tuple(rng)
-        lt = tensors.get(layer.id)
         if lt is None:
             if layer.kind == "solid":
-                lt = solid_tensors(layer, float(lo), float(hi), width, height, where, dtype)
+                lt = solid_tensors(layer, float(lo), float(hi), width, height, here, dtype)
             elif layer.kind == "learned" and getattr(layer, "source", None) is None:
                 continue
             else:
                 raise LasagnaError(
                     f"no tensors for {layer.kind} layer {layer.id!r}; expected tensors[{layer.id!r}] "
                     "(load its source first)",
-                    where=where,
+                    where=here,
                 )
-        if getattr(layer, "mask", None) is not None and lt.mask is None:
-            raise LasagnaError(
-                f"names mask {str(layer.mask)!r} but tensors[{layer.id!r}].mask is None; expected the loaded mask",
-                where=f"{where}.mask",
-            )
-        blend = getattr(layer.blend, "value", layer.blend)
-        specs.append(
-            RenderLayerSpec(
-                id=layer.id,
-                tensors=lt,
-                blend=blend,
-                opacity=float(layer.opacity),
-                visible=bool(layer.visible),
-                offset=(int(layer.offset.x), int(layer.offset.y)),
-                range=(float(lo), float(hi)),
-                encoded=True,
-            )
-        )
-    background = tuple(float(v) for v in doc.canvas.background)
-    return compile_plan(specs, (height, width), background, doc.blend_space, doc.clamp, cull=cull)  # type: ignore[arg-type]
+        specs.append(RenderLayerSpec(tensors=lt, range=(float(lo), float(hi)), encoded=True, **common))
+    return specs
 
 
 __all__ = [
     "RenderLayerSpec",
+    "RenderGroupSpec",
+    "walk_steps",
     "PlanStep",
     "RenderPlan",
     "SkipReason",

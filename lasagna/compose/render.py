@@ -9,7 +9,8 @@ from there on ``grad_engine`` decides: ``"banded"`` (default) runs the same fast
 backward with closed-form derivatives that recomputes each band's backdrops instead of storing
 full-canvas intermediates (``backward.py``); ``"autograd"`` records every blend as pure functions
 (``engine.run_functional``; twice differentiable). Both give the same gradients (tested); they reach
-every live layer tensor, opacity and mask, and any module that produced them.
+every live layer tensor, opacity and mask, and any module that produced them. From the first learned layer
+up, a plan holding a group is always recorded (``differentiable_tail``).
 
 Precision: ``dtype`` defaults to the promoted dtype of the live layers' colours (float32 for float32
 layers); float64 is the reference. float16 and bfloat16 are computed in that dtype (inputs cast band
@@ -140,7 +141,11 @@ def render(
 def differentiable_tail(
     plan: RenderPlan, begin: int, dtype: torch.dtype, prefix: Tensor | None, grad_engine: GradEngine
 ) -> Tensor:
-    """Composite ``plan.steps[begin:]`` over ``prefix`` (None: the background) with autograd."""
-    if grad_engine == "autograd":
+    """Composite ``plan.steps[begin:]`` over ``prefix`` (None: the background) with autograd.
+
+    A tail holding a group is recorded (``run_functional``) whichever ``grad_engine`` is asked: the banded
+    backward has closed forms for layers over an opaque canvas only, and a group is a function of its
+    backdrop (pass-through) and of every child (``group.py``)."""
+    if grad_engine == "autograd" or any(s.children is not None for s in plan.steps[begin:]):
         return run_functional(plan, begin, dtype, prefix)
     return BandedGrad.apply(plan, begin, dtype, prefix, *grad_inputs(plan, begin))

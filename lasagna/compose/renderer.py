@@ -2,7 +2,8 @@
 
 ``Renderer(canvas, ...).render(layers)`` compiles the plan, fingerprints every layer — tensor
 identity and ``_version`` of colour, alpha, mask and an opacity tensor; opacity value, visibility,
-offset, blend, range, ``encoded``; its skip reason and live-step flags — and finds the lowest layer
+offset, blend, range, ``encoded``; its skip reason and live-step flags; a group's fingerprint covers
+its own fields and mask and all of its children's, recursively (a group is one step) — and finds the lowest layer
 ``k`` whose fingerprint changed. The canvas as it was *before* a layer ``e`` (the composite of layers
 ``0..e-1``) is a snapshot that stays valid while no layer below ``e`` changes, so the render restarts
 from the nearest snapshot at or below ``k``.
@@ -35,36 +36,54 @@ import torch
 from torch import Tensor
 
 from lasagna.compose.engine import canvas_shape, first_grad_step, run_fast
-from lasagna.compose.plan import BlendSpace, ClampPolicy, RenderLayerSpec, RenderPlan, _check_config, compile_plan
+from lasagna.compose.plan import (
+    BlendSpace,
+    ClampPolicy,
+    RenderGroupSpec,
+    RenderPlan,
+    RenderSpec,
+    _check_config,
+    compile_plan,
+)
 from lasagna.compose.render import GradEngine, RenderResult, check_out, differentiable_tail, resolve_dtype
 from lasagna.errors import LasagnaError
 
 DEFAULT_CACHE_BYTES = 512 * 2**20
 
 
-def _tensor_refs(spec: RenderLayerSpec) -> tuple[Any, ...]:
-    ts = (*spec.tensors.tensors(), spec.opacity if isinstance(spec.opacity, Tensor) else None)
-    return tuple(None if t is None else weakref.ref(t) for t in ts)
+def _spec_tensors(spec: RenderSpec) -> list[Tensor | None]:
+    """Every tensor a spec reads (a group's: its mask, opacity and all its children's), in a fixed order."""
+    op = spec.opacity if isinstance(spec.opacity, Tensor) else None
+    if isinstance(spec, RenderGroupSpec):
+        return [spec.mask, op, *(t for c in spec.children for t in _spec_tensors(c))]
+    return [*spec.tensors.tensors(), op]
+
+
+def _tensor_refs(spec: RenderSpec) -> tuple[Any, ...]:
+    return tuple(None if t is None else weakref.ref(t) for t in _spec_tensors(spec))
+
+
+def _spec_fingerprint(spec: RenderSpec) -> tuple[Any, ...]:
+    """Everything of a spec that its pixels depend on; a group's covers its children (so editing a child
+    invalidates the snapshots above the group)."""
+    op = spec.opacity
+    op_fp = (id(op), op._version) if isinstance(op, Tensor) else float(op)
+    common = (spec.id, spec.blend, spec.visible, tuple(spec.offset), op_fp, spec.requires_grad)
+    if isinstance(spec, RenderGroupSpec):
+        mask = None if spec.mask is None else (id(spec.mask), spec.mask._version)
+        return (*common, "group", spec.isolated, mask, tuple(_spec_fingerprint(c) for c in spec.children))
+    return (*common, tuple(spec.range), spec.encoded, spec.tensors.fingerprint())
+
+
+def _step_fingerprint(step: Any) -> tuple[Any, ...] | None:
+    if step is None:
+        return None
+    kids = None if step.children is None else tuple(_step_fingerprint(c) for c in step.children)
+    return (step.opaque, step.clamp_lo, step.clamp_hi, step.decode, step.y0, step.y1, step.x0, step.x1, kids)
 
 
 def _signature(plan: RenderPlan, i: int, step: Any) -> tuple[Any, ...]:
-    spec = plan.layers[i]
-    op = spec.opacity
-    op_fp = (id(op), op._version) if isinstance(op, Tensor) else float(op)
-    live = None if step is None else (step.opaque, step.clamp_lo, step.clamp_hi, step.decode, step.y0, step.x0)
-    return (
-        spec.id,
-        spec.blend,
-        spec.visible,
-        tuple(spec.offset),
-        tuple(spec.range),
-        spec.encoded,
-        op_fp,
-        spec.tensors.fingerprint(),
-        spec.requires_grad,
-        plan.reasons[i],
-        live,
-    )
+    return (_spec_fingerprint(plan.layers[i]), plan.reasons[i], _step_fingerprint(step))
 
 
 class Renderer:
@@ -123,7 +142,7 @@ class Renderer:
                 return i
         return min(len(sigs), len(self._sigs))
 
-    def render(self, layers: Sequence[RenderLayerSpec], *, out: Tensor | None = None) -> RenderResult:
+    def render(self, layers: Sequence[RenderSpec], *, out: Tensor | None = None) -> RenderResult:
         """Composite bottom-to-top ``layers``; the same image as ``render(layers, ...)``, usually sooner.
 
         ``out`` receives the image when no gradient is needed (as in ``render``).

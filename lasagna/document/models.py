@@ -14,6 +14,7 @@ output of a canonical document is byte-for-byte stable.
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError, model_validator
@@ -100,12 +101,12 @@ def _layer_schema(schema: dict[str, Any]) -> None:
     schema.update(RANGE_FOR_BLEND_SCHEMA)
 
 
-class _LayerBase(StrictModel):
-    """Fields every layer kind shares (listed bottom to top in ``Document.layers``)."""
+class _Common(StrictModel):
+    """Fields every layer kind shares, groups included (listed bottom to top in ``Document.layers``)."""
 
     model_config = ConfigDict(json_schema_extra=_layer_schema)
 
-    id: LayerId = Field(description="Unique (case-insensitively) id, safe as a file name: layers/<id>.png.")
+    id: LayerId = Field(description="Unique (case-insensitively, in the whole tree) id, safe as a file name.")
     name: str = Field(
         default_factory=lambda data: data["id"], min_length=1, description="Display name; defaults to the id."
     )
@@ -114,6 +115,11 @@ class _LayerBase(StrictModel):
     opacity: Unit = Field(1.0, description="Opacity in [0, 1]; alpha_effective = alpha * mask * opacity.")
     visible: bool = Field(True, strict=True, description="Hidden layers are kept but not composed.")
     offset: Offset = Field(Offset(), description="Top-left corner on the canvas, integer pixels.")
+
+
+class _LayerBase(_Common):
+    """Fields every raster kind shares (pixels, solid, learned): a value range and a mask of its size."""
+
     range: Range = Field(
         UNIT_RANGE,
         description="[lo, hi], lo < hi: stored values v in [0, 1] mean y = lo + (hi - lo) * v (alpha is never "
@@ -159,8 +165,85 @@ class LearnedLayer(_LayerBase):
     )
 
 
-Layer = Annotated[PixelsLayer | SolidLayer | LearnedLayer, Field(discriminator="kind")]
-LAYER_KINDS: tuple[str, ...] = tuple(m.model_fields["kind"].default for m in (PixelsLayer, SolidLayer, LearnedLayer))
+def _group_schema(schema: dict[str, Any]) -> None:
+    schema["required"] = ["kind", *(r for r in schema.get("required", []) if r != "kind")]
+    # JSON Schema form of _pass_through_blends_normally: isolated absent or false -> blend normal.
+    schema.update(
+        {
+            "if": {"not": {"required": ["isolated"], "properties": {"isolated": {"const": True}}}},
+            "then": {"properties": {"blend": {"enum": [PASS_THROUGH_BLEND, *PASS_THROUGH_ALIASES]}}},
+        }
+    )
+
+
+# A pass-through group has no blend of its own (Photoshop's "Pass Through" is a blend mode in place of
+# the others; Krita ignores the composite op of a pass-through group): its children blend with what
+# lies below it. "alpha-linear" is normal's alias.
+PASS_THROUGH_BLEND = "normal"
+PASS_THROUGH_ALIASES = ("alpha-linear",)
+
+
+class GroupLayer(_Common):
+    """A group of layers composited as one (W3C Compositing and Blending Level 1, section 8 "Compositing Groups").
+
+    ``isolated: true`` — an isolated group (section 8.2): the children are composited onto a fully transparent
+    initial backdrop, and the result (colour and alpha) is blended onto the group backdrop with the group's
+    ``blend``, alpha × ``mask`` × ``opacity``. ``isolated: false`` (the default, as Photoshop's and Krita's
+    "pass through") — the children are composited onto the group backdrop itself, and the group's
+    ``mask`` × ``opacity`` α mixes that result with the backdrop, Cb + α(Cn − Cb): a non-isolated group
+    whose blend is normal. ``offset`` moves the group's children and its mask.
+    """
+
+    model_config = ConfigDict(json_schema_extra=_group_schema)
+
+    kind: Literal["group"] = Field("group", description="Layer kind: a group of layers.")
+    mask: RelativePath | None = Field(
+        None,
+        description="Gray PNG whose top-left corner is at the group's offset; the group shows only inside it "
+        "(its effective alpha is multiplied by the mask, 0 outside).",
+    )
+    isolated: bool = Field(
+        False,
+        strict=True,
+        description="true: composite the children onto a transparent backdrop, then blend the group (W3C "
+        "isolated group); false: pass through (children blend with what lies below; blend must be normal).",
+    )
+    layers: tuple[Layer, ...] = Field((), description="The group's layers, bottom to top (nested groups allowed).")
+
+    @model_validator(mode="after")
+    def _pass_through_blends_normally(self) -> GroupLayer:
+        if not self.isolated and self.blend != PASS_THROUGH_BLEND:
+            raise RuleError(
+                f"group {self.id!r} passes through (isolated: false) with blend {self.blend!r}; a pass-through "
+                "group has no blend of its own: expected blend 'normal', or isolated: true to blend the group",
+                loc=("blend",),
+            )
+        return self
+
+
+Layer = Annotated[PixelsLayer | SolidLayer | LearnedLayer | GroupLayer, Field(discriminator="kind")]
+GroupLayer.model_rebuild()
+LAYER_KINDS: tuple[str, ...] = tuple(
+    m.model_fields["kind"].default for m in (PixelsLayer, SolidLayer, LearnedLayer, GroupLayer)
+)
+LayerPath = tuple[str | int, ...]  # JSON path of a layer: ("layers", 2, "layers", 0)
+
+
+def walk_layers(layers: tuple[Layer, ...], loc: LayerPath = ()) -> Iterator[tuple[LayerPath, Layer]]:
+    """Every layer of a tree with its JSON path, depth first, bottom to top, a group before its children."""
+    for i, layer in enumerate(layers):
+        here = (*loc, "layers", i)
+        yield here, layer
+        if isinstance(layer, GroupLayer):
+            yield from walk_layers(layer.layers, here)
+
+
+def json_path(loc: LayerPath) -> str:
+    """``("layers", 2, "layers", 0, "mask")`` → ``layers[2].layers[0].mask``."""
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else part)
+    return out
 
 
 class Document(StrictModel):
@@ -180,23 +263,30 @@ class Document(StrictModel):
 
     @model_validator(mode="after")
     def _ids_and_references(self) -> Document:
-        seen: dict[str, int] = {}  # casefolded id -> index, for uniqueness
-        below: set[str] = set()  # exact ids of the layers below the current one
-        for i, layer in enumerate(self.layers):
+        seen: dict[str, LayerPath] = {}  # casefolded id -> JSON path, for uniqueness across the tree
+        for loc, layer in walk_layers(self.layers):
             key = layer.id.casefold()
             if key in seen:
-                j = seen[key]
                 raise RuleError(
-                    f"id {layer.id!r} repeats layers[{j}].id {self.layers[j].id!r}; ids are unique case-insensitively",
-                    loc=("layers", i, "id"),
+                    f"id {layer.id!r} repeats {json_path(seen[key])}.id; ids are unique case-insensitively "
+                    "across the whole tree, groups included",
+                    loc=(*loc, "id"),
                 )
+            seen[key] = loc
+            if isinstance(layer, LearnedLayer) and len(loc) > 2:
+                raise RuleError(
+                    f"learned layer {layer.id!r} is inside a group; learned layers are top-level (their input, "
+                    "the composite up to conditioned_on, is defined on the top-level list)",
+                    loc=(*loc, "kind"),
+                )
+        below: set[str] = set()  # exact ids of the top-level layers below the current one
+        for i, layer in enumerate(self.layers):
             if isinstance(layer, LearnedLayer) and layer.conditioned_on not in below:
                 raise RuleError(
-                    f"{layer.conditioned_on!r} is not the id of a layer below {layer.id!r}; "
-                    "conditioned_on names a layer below the learned layer",
+                    f"{layer.conditioned_on!r} is not the id of a layer below {layer.id!r} in the top-level list; "
+                    "conditioned_on names a layer below the learned layer (a top-level layer or group)",
                     loc=("layers", i, "conditioned_on"),
                 )
-            seen[key] = i
             below.add(layer.id)
         return self
 
@@ -215,8 +305,21 @@ class Document(StrictModel):
         raise DocumentError(f"no layer with id {id!r}; expected one of {', '.join(self.ids)}", "layers")
 
     def layer(self, id: str) -> Layer:
-        """The layer with id ``id``."""
-        return self.layers[self.index(id)]
+        """The layer with id ``id``, at any depth (inside groups too)."""
+        for _, layer in walk_layers(self.layers):
+            if layer.id == id:
+                return layer
+        raise DocumentError(f"no layer with id {id!r}; expected one of {', '.join(self.all_ids)}", "layers")
+
+    def walk(self) -> Iterator[tuple[str, Layer]]:
+        """Every layer with its JSON path (``layers[2].layers[0]``), depth first, a group before its children."""
+        for loc, layer in walk_layers(self.layers):
+            yield json_path(loc), layer
+
+    @property
+    def all_ids(self) -> tuple[str, ...]:
+        """Every layer id of the tree, depth first, a group before its children."""
+        return tuple(layer.id for _, layer in walk_layers(self.layers))
 
     # ---- changing (each returns a new, validated document) ------------------------------------
 

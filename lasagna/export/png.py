@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from lasagna.atomic import atomic_write_all
-from lasagna.document import LearnedLayer, SolidLayer
+from lasagna.document import GroupLayer, LearnedLayer, SolidLayer
 from lasagna.io.png import encode_png
 from lasagna.io.stack import NOT_RENDERED, encode_layer
 
@@ -26,17 +26,29 @@ def layer_pngs(stack, *, clip: bool = False) -> tuple[dict[str, bytes], dict]:
     """The files of a per-layer export (relative name → bytes) and the index written as layers.json."""
     files: dict[str, bytes] = {}
     index = []
-    for layer in stack.document.layers:
+    for path, layer in stack.document.walk():
         entry = {
             "id": layer.id,
             "name": layer.name,
             "kind": layer.kind,
             "blend": layer.blend,
-            "range": list(layer.range),
             "offset": {"x": layer.offset.x, "y": layer.offset.y},
             "opacity": layer.opacity,
             "visible": layer.visible,
         }
+        if len(path.split(".")) > 1:  # inside a group: its offset adds the groups' (layers[i].layers[j])
+            entry["path"] = path
+        if isinstance(layer, GroupLayer):
+            entry.update(isolated=layer.isolated, layers=[child.id for child in layer.layers], file=None)
+            t = stack.tensors.get(layer.id)
+            if layer.mask is not None and t is not None and t.mask is not None:
+                files[f"masks/{layer.id}.png"] = encode_png(
+                    np.clip(t.mask.detach().double().numpy(), 0.0, 1.0), bit_depth=8, where=f"group {layer.id!r} mask"
+                )
+                entry["mask"] = f"masks/{layer.id}.png"
+            index.append(entry)
+            continue
+        entry["range"] = list(layer.range)
         lo, hi = layer.range
         if isinstance(layer, SolidLayer):
             w, h = (layer.size.width, layer.size.height) if layer.size else (stack.width, stack.height)

@@ -160,6 +160,25 @@ def _clamp_matters(stack, composite) -> bool:
     return bool((codes(render_stack(interop, dtype=torch.float64).image.numpy()) != codes(composite)).any())
 
 
+def _leaves(layers, origin: tuple[int, int], shown: bool, inexact: list[str]):
+    """(layer, canvas origin of its offset, visible with its groups) of every non-group layer, bottom to top.
+
+    A pass-through group of opacity 1 without a mask is exactly its layers in its place (W3C Compositing
+    Level 1, section 8.1, group invariance), so its layers are written flat. Any other group (isolated,
+    partly opaque or masked) is not written as a group: its layers are written flat and the file gets the
+    exact composite on top (``inexact``).
+    """
+    for layer in layers:
+        if layer.kind != "group":
+            yield layer, origin, shown
+            continue
+        if layer.isolated or layer.opacity != 1.0 or layer.mask is not None:
+            what = "isolated" if layer.isolated else ("masked" if layer.mask is not None else "partly opaque")
+            inexact.append(f"{what} group {layer.id!r} (its layers are written flat, outside any group)")
+        offset = (origin[0] + layer.offset.x, origin[1] + layer.offset.y)
+        yield from _leaves(layer.layers, offset, shown and layer.visible, inexact)
+
+
 def _layers(stack, target: str, warn) -> tuple[list[ExportLayer], list[str]]:
     doc = stack.document
     W, H = stack.width, stack.height
@@ -167,7 +186,7 @@ def _layers(stack, target: str, warn) -> tuple[list[ExportLayer], list[str]]:
     if doc.blend_space == "linear":
         inexact.append("blend_space='linear' (paint programs blend sRGB-encoded values)")
     out = [background_layer(stack)]
-    for layer in doc.layers:
+    for layer, (ox, oy), shown in _leaves(doc.layers, (0, 0), True, inexact):
         raster = _layer_raster(stack, layer)
         if raster is None:
             if isinstance(layer, LearnedLayer):
@@ -181,14 +200,16 @@ def _layers(stack, target: str, warn) -> tuple[list[ExportLayer], list[str]]:
             )
         if color.shape[0] == 1:
             color = np.repeat(color, 3, axis=0)  # a 1-channel multiplier is written as gray in RGB
-        cropped = _crop(color, alpha, layer.offset.x, layer.offset.y, W, H)
+        cropped = _crop(color, alpha, layer.offset.x + ox, layer.offset.y + oy, W, H)
         if cropped is None:
             continue  # entirely outside the canvas: contributes nothing
         color, alpha, x, y = cropped
         if float(color.min(initial=0.0)) < 0.0:
             inexact.append(f"the negative values of layer {layer.id!r} (min {color.min():.4g}; written as 0)")
         color = np.maximum(color, 0.0)
-        common = dict(x=x, y=y, alpha=alpha, opacity=float(layer.opacity), visible=bool(layer.visible), source=layer.id)
+        common = dict(
+            x=x, y=y, alpha=alpha, opacity=float(layer.opacity), visible=shown and layer.visible, source=layer.id
+        )
         a = alpha * float(layer.opacity)
         fractional = not bool(np.isin(a, (0.0, 1.0)).all())
         if layer.blend == "multiply":

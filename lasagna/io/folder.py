@@ -66,7 +66,7 @@ def input_files(stack: Stack) -> dict[Path, str]:
         return {}
     folder = Path(stack.folder)
     found = {(folder / STACK_FILE).resolve(): "the input document"}
-    for i, layer in enumerate(stack.document.layers):
+    for loc, layer in stack.document.walk():
         generator = getattr(layer, "generator", None)
         refs = [
             ("source", getattr(layer, "source", None)),
@@ -75,7 +75,7 @@ def input_files(stack: Stack) -> dict[Path, str]:
         ]
         for field, rel in refs:
             if rel:
-                found[(folder / rel).resolve()] = f"layers[{i}].{field} of the input"
+                found[(folder / rel).resolve()] = f"{loc}.{field} of the input"
     return found
 
 

@@ -51,7 +51,7 @@ def render_stack(stack, dtype: torch.dtype = torch.float32, *, cull: bool = True
     result = render(plan, dtype=dtype)
     skipped = dict(result.skipped)
     skipped.update(stack.not_rendered)
-    order = {id: i for i, id in enumerate(stack.ids)}
+    order = {id: i for i, id in enumerate(stack.document.all_ids)}
     skipped = dict(sorted(skipped.items(), key=lambda kv: order.get(kv[0], len(order))))
     return RenderResult(result.image, skipped, list(result.evaluated))
 

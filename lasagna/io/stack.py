@@ -27,6 +27,7 @@ from lasagna.atomic import atomic_write_all
 from lasagna.compose.layer import LayerTensors
 from lasagna.document import (
     Document,
+    GroupLayer,
     LearnedLayer,
     PixelsLayer,
     SolidLayer,
@@ -62,7 +63,8 @@ class Stack:
 
     ``tensors[id]`` is a ``LayerTensors(color, alpha, mask)`` of values y (range-mapped) for every
     pixels layer and every learned layer that has a ``source``; solid layers need none (the
-    compositor draws them from the document). ``bit_depths[id]`` is the depth a layer was read at,
+    compositor draws them from the document); a group with a mask has ``LayerTensors`` whose ``mask`` is
+    it (``group_mask_tensors``). ``bit_depths[id]`` is the depth a layer was read at,
     so saving never loses precision it had.
     """
 
@@ -419,23 +421,44 @@ def load_surveyed(survey: Survey) -> Stack:
     """Decode the stack a ``survey_stack`` passed (the CLI surveys before it imports torch, then decodes
     what it surveyed: the document is read and the headers are checked once)."""
     file, doc, planned = survey.file, survey.document, survey.rasters
-    images: dict[tuple[int, str], PngImage] = {}
+    images: dict[tuple[str, str], PngImage] = {}
     for r in planned:
         try:
-            images[(r.index, r.field)] = read_png(r.target, max_pixels=survey.max_pixels, max_side=MAX_SIDE)
+            images[(r.loc, r.field)] = read_png(r.target, max_pixels=survey.max_pixels, max_side=MAX_SIDE)
         except ImageError as err:
             raise err.at(f"{file}: {r.where}") from None
 
     stack = Stack(doc, file.parent)
     for r in planned:
+        layer = r.layer
+        if isinstance(layer, GroupLayer):  # a group's mask: its own raster, with no source beside it
+            stack.tensors[layer.id] = group_mask_tensors(images.pop((r.loc, "mask")), f"{file}: {r.where}")
+            continue
         if r.field != "source":
             continue
-        i, layer = r.index, r.layer
-        img = images.pop((i, "source"))
-        mask_img = images.pop((i, "mask")) if layer.mask is not None else None
-        stack.tensors[layer.id] = layer_tensors(img, layer.range, mask_img, f"{file}: layers[{i}].mask ({layer.mask})")
+        img = images.pop((r.loc, "source"))
+        mask_img = images.pop((r.loc, "mask")) if layer.mask is not None else None
+        stack.tensors[layer.id] = layer_tensors(img, layer.range, mask_img, f"{file}: {r.loc}.mask ({layer.mask})")
         stack.bit_depths[layer.id] = img.header.bit_depth if img.header.bit_depth == 16 else 8
     return stack
+
+
+def group_mask_tensors(mask, where: str = "mask") -> LayerTensors:
+    """A group's mask (a decoded PNG: one channel times its own alpha; or a (1, h, w) tensor) as
+    ``LayerTensors``: ``mask`` is the mask, and ``color`` a zero-stride view of ones of its size (a group
+    has no pixels; ``tensors[id].mask`` is then every kind's mask, and saving writes it back)."""
+    mask = mask if isinstance(mask, torch.Tensor) else _mask_array(mask, where)
+    return LayerTensors(mask.new_ones(()).expand(mask.shape), mask=mask)
+
+
+def _mask_array(m, where: str) -> torch.Tensor:
+    c = m.color
+    if c.shape[0] == 3 and not (np.array_equal(c[0], c[1]) and np.array_equal(c[0], c[2])):
+        raise ImageError("mask is a colour image; expected a gray PNG (or RGB with equal channels)", where=where)
+    mask_np = m.color[:1]
+    if m.alpha is not None:
+        mask_np = mask_np * m.alpha  # a transparent mask pixel hides the layer
+    return torch.from_numpy(np.ascontiguousarray(mask_np))
 
 
 def layer_tensors(img, value_range, mask_img=None, mask_where: str = "mask"):
@@ -446,19 +469,7 @@ def layer_tensors(img, value_range, mask_img=None, mask_where: str = "mask"):
     if (lo, hi) != (0.0, 1.0):
         color = lo + (hi - lo) * color
     alpha = torch.from_numpy(img.alpha) if img.alpha is not None else None
-    mask = None
-    if mask_img is not None:
-        m = mask_img
-        if m.color.shape[0] == 3 and not (
-            np.array_equal(m.color[0], m.color[1]) and np.array_equal(m.color[0], m.color[2])
-        ):
-            raise ImageError(
-                "mask is a colour image; expected a gray PNG (or RGB with equal channels)", where=mask_where
-            )
-        mask_np = m.color[:1]
-        if m.alpha is not None:
-            mask_np = mask_np * m.alpha  # a transparent mask pixel hides the layer
-        mask = torch.from_numpy(np.ascontiguousarray(mask_np))
+    mask = _mask_array(mask_img, mask_where) if mask_img is not None else None
     return LayerTensors(color, alpha, mask)
 
 
@@ -514,24 +525,31 @@ def stack_files(stack: Stack, folder: str | os.PathLike, *, clip: bool = False) 
     if folder.suffix.lower() == ".json":
         raise PathError(f"{folder} is a file name; expected a stack folder", where="save_stack")
     doc = stack.document
-    missing = [layer.id for layer in doc.layers if isinstance(layer, PixelsLayer) and layer.id not in stack.tensors]
+    missing = [layer.id for _, layer in doc.walk() if isinstance(layer, PixelsLayer) and layer.id not in stack.tensors]
     if missing:
         raise ImageError(
             f"pixels layer(s) {', '.join(missing)} have no tensors; expected add_layer/set_pixels first",
             where="save_stack",
         )
     writes: list[tuple[Path, bytes]] = []
-    for i, layer in enumerate(doc.layers):
+    for loc, layer in doc.walk():
         if layer.id not in stack.tensors or isinstance(layer, SolidLayer):
             continue
+        if isinstance(layer, GroupLayer):
+            if layer.mask is not None:  # a group's tensors hold its mask only (group_mask_tensors)
+                t = stack.tensors[layer.id]
+                if t.mask is None or t.mask.ndim != 3:
+                    raise ImageError("group mask tensor missing or batched; expected (1, h, w)", where=f"{loc}.mask")
+                depth = stack.bit_depths.get(layer.id, 8)
+                data = encode_png(_unit(t.mask, f"group {layer.id!r} mask", clip), bit_depth=depth, where=loc)
+                writes.append((resolve_inside(folder, layer.mask, f"{loc}.mask"), data))
+            continue
         data, mask_data = encode_layer(stack, layer.id, clip=clip)
-        writes.append((resolve_inside(folder, layer.source, f"layers[{i}].source"), data))
+        writes.append((resolve_inside(folder, layer.source, f"{loc}.source"), data))
         if mask_data is not None:
             if layer.mask is None:
-                raise DocumentError(
-                    f"layer {layer.id!r} has a mask tensor but no `mask` path", where=f"layers[{i}].mask"
-                )
-            writes.append((resolve_inside(folder, layer.mask, f"layers[{i}].mask"), mask_data))
+                raise DocumentError(f"layer {layer.id!r} has a mask tensor but no `mask` path", where=f"{loc}.mask")
+            writes.append((resolve_inside(folder, layer.mask, f"{loc}.mask"), mask_data))
     writes.append((stack_file(folder), doc.to_json().encode("utf-8")))
     return writes
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from lasagna.document import Document, LearnedLayer, PixelsLayer, load_document, stack_file
+from lasagna.document import Document, GroupLayer, LearnedLayer, PixelsLayer, load_document, stack_file
 from lasagna.errors import ImageError, PathError
 from lasagna.io.png import DEFAULT_MAX_PIXELS, check_size, decode_bytes, read_png_header, verify_png
 from lasagna.limits import check_memory
@@ -41,20 +41,23 @@ def resolve_inside(folder: Path, relative: str, where: str) -> Path:
     return target
 
 
-def _rasters(doc: Document) -> Iterable[tuple[int, Any, str, str]]:
-    """(index, layer, field, relative path) for every PNG the document names."""
-    for i, layer in enumerate(doc.layers):
+def _rasters(doc: Document) -> Iterable[tuple[str, Any, str, str]]:
+    """(JSON path, layer, field, relative path) for every PNG the document names, groups' layers and masks
+    included (``layers[2].layers[0]``, depth first)."""
+    for loc, layer in doc.walk():
         if isinstance(layer, (PixelsLayer, LearnedLayer)) and layer.source is not None:
-            yield i, layer, "source", layer.source
+            yield loc, layer, "source", layer.source
             if layer.mask is not None:
-                yield i, layer, "mask", layer.mask
+                yield loc, layer, "mask", layer.mask
+        elif isinstance(layer, GroupLayer) and layer.mask is not None:
+            yield loc, layer, "mask", layer.mask
 
 
 @dataclass(frozen=True)
 class _Raster:
     """One PNG a document names, resolved and with its header read (nothing decoded yet)."""
 
-    index: int
+    loc: str  # the layer's JSON path, e.g. layers[2].layers[0]
     layer: Any
     field: str  # "source" or "mask"
     rel: str
@@ -63,18 +66,18 @@ class _Raster:
 
     @property
     def where(self) -> str:
-        return f"layers[{self.index}].{self.field} ({self.rel})"
+        return f"{self.loc}.{self.field} ({self.rel})"
 
 
 def _plan_rasters(file: Path, doc: Document, max_pixels: int, max_total_pixels: int) -> list[_Raster]:
     """Resolve every path a document names and read every PNG header (cheap) before decoding anything:
-    sizes per image and in total, masks the size of their source."""
+    sizes per image and in total, masks the size of their source (a group's mask may have any size)."""
     folder = file.parent
     planned: list[_Raster] = []
-    sources: dict[int, Any] = {}
+    sources: dict[str, Any] = {}
     total = 0
-    for i, layer, fieldname, rel in _rasters(doc):
-        where = f"{file}: layers[{i}].{fieldname}"
+    for loc, layer, fieldname, rel in _rasters(doc):
+        where = f"{file}: {loc}.{fieldname}"
         target = resolve_inside(folder, rel, where)
         if not target.is_file():
             what = "is not a file" if target.exists() else "does not exist"
@@ -91,16 +94,16 @@ def _plan_rasters(file: Path, doc: Document, max_pixels: int, max_total_pixels: 
                 where=where,
             )
         if fieldname == "source":
-            sources[i] = header
-        else:
-            src = sources[i]
+            sources[loc] = header
+        elif loc in sources:
+            src = sources[loc]
             if (header.width, header.height) != (src.width, src.height):
                 raise ImageError(
                     f"mask is {header.width}x{header.height}; expected the size of its layer's source, "
                     f"{src.width}x{src.height}",
                     where=f"{where} ({rel})",
                 )
-        planned.append(_Raster(i, layer, fieldname, rel, target, header))
+        planned.append(_Raster(loc, layer, fieldname, rel, target, header))
     return planned
 
 

@@ -1,0 +1,303 @@
+"""Reading a layered PSD into a stack (``lasagna import-psd``), through psd-tools (the optional extra).
+
+What each PSD thing becomes:
+
+* a pixel layer → a ``pixels`` layer: its RGBA at its offset, ``blend`` the psd-tools ``BlendMode`` of the
+  same W3C name (``LINEAR_DODGE`` → ``plus``), ``opacity`` = opacity × fill (for a layer without effects the
+  two fade its paint alike), ``visible``; its user mask (enabled, cut to the layer's rectangle, the mask's
+  background colour outside the stored bbox) → ``mask``;
+* a group → a ``group`` layer: blend ``PASS_THROUGH`` → ``isolated: false`` (pass-through), any other →
+  ``isolated: true`` with that blend (W3C Compositing Level 1, section 8); its mask → a canvas-size group mask;
+* layers psd-tools can draw but a stack cannot hold as such — type, shape, smart-object and fill layers, a
+  layer with effects, a layer with clipping layers over it (with them) — → a ``pixels`` layer of psd-tools'
+  rendering of it (``Layer.composite``), one warning line each saying what was rasterised;
+* what cannot be represented at all — adjustment layers, blend modes outside W3C's (linear burn, vivid light,
+  …: imported as normal), a group's fill opacity, dissolve, knockout — one warning line each; nothing is
+  dropped without one.
+
+The PSD's top level is composited over transparency, and a stack over an opaque background (white: W3C
+section 8.3, the page group's backdrop): unless the bottom visible layer is an opaque, full-canvas normal one,
+the layers are wrapped in one isolated group, so the stack flattens exactly as psd-tools' composite laid
+over white. Refused in one line: a file psd-tools cannot read, a colour mode other than RGB or grayscale, a
+canvas or layer over the pixel limit, decoding over the memory budget (``lasagna.limits``).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lasagna.errors import ExportError, ImageError
+from lasagna.export.psd import INSTALL_HINT, psd_blend_modes
+from lasagna.io.png import DEFAULT_MAX_PIXELS
+from lasagna.limits import check_memory
+
+# Page group backdrop (W3C Compositing Level 1, section 8.3: "composited with a backdrop color of white").
+PAGE_BACKGROUND = (1.0, 1.0, 1.0)
+# Bytes a decoded layer pixel costs on import: float32 RGBA read by psd-tools, then our float32 tensors
+# (colour, alpha, mask), and the 16-bit PNG bytes written: ~2 copies of 4 float32 channels.
+IMPORT_BYTES_PER_PIXEL = 2 * 4 * 4
+# psd-tools layer kinds rasterised by its own renderer (their stored channels may be stale or absent).
+RASTERISED_KINDS = {"type": "type layer", "shape": "shape layer", "smartobject": "smart object"}
+
+
+def _require():
+    try:
+        from psd_tools import PSDImage
+        from psd_tools.api.layers import AdjustmentLayer, FillLayer
+        from psd_tools.constants import BlendMode, ColorMode
+    except ImportError:
+        raise ExportError(f"PSD import needs psd-tools, which is not installed; expected it: {INSTALL_HINT}") from None
+    return PSDImage, BlendMode, ColorMode, AdjustmentLayer, FillLayer
+
+
+def _id(name: str, taken: set[str]) -> str:
+    base = re.sub(r"[^A-Za-z0-9_.-]", "-", name).lstrip("_.-")[:56] or "layer"
+    candidate, n = base, 2
+    while candidate.casefold() in taken or candidate.split(".")[0].upper() in {"CON", "PRN", "AUX", "NUL"}:
+        candidate, n = f"{base}-{n}", n + 1
+    taken.add(candidate.casefold())
+    return candidate
+
+
+class _Reader:
+    """One PSD's layers → document dicts and tensors (module docstring), with its warnings."""
+
+    def __init__(self, psd, where: str, max_pixels: int, warn: Callable[[str], None]):
+        _, self.BlendMode, _, self.AdjustmentLayer, self.FillLayer = _require()
+        self.psd, self.where, self.max_pixels, self.warn = psd, where, max_pixels, warn
+        self.modes = {mode: name for name, mode in psd_blend_modes(self.BlendMode).items()}
+        self.taken: set[str] = set()
+        self.tensors: dict[str, Any] = {}
+
+    def layers(self, group, path: str) -> list[dict]:
+        out: list[dict] = []
+        for layer in group:
+            if layer.clipping:
+                continue  # drawn with the layer it clips (see _raster)
+            entry = self.layer(layer, f"{path}/{layer.name}" if path else layer.name)
+            if entry is not None:
+                out.append(entry)
+        return out
+
+    def _blend(self, layer, what: str) -> str:
+        mode = layer.blend_mode
+        if mode in self.modes:
+            return self.modes[mode]
+        self.warn(f"{what}: blend mode {mode.name} has no W3C Compositing equivalent; imported as normal")
+        return "normal"
+
+    def layer(self, layer, path: str) -> dict | None:
+        what = f"{self.where}: layer {path!r}"
+        if isinstance(layer, self.AdjustmentLayer):
+            self.warn(f"{what}: {layer.kind} adjustment layer cannot be represented in a stack; left out")
+            return None
+        lid = _id(layer.name, self.taken)
+        entry: dict[str, Any] = {
+            "id": lid,
+            "name": layer.name or lid,
+            "opacity": layer.opacity / 255.0,
+            "visible": bool(layer.visible),
+        }
+        if layer.is_group():
+            entry.update(kind="group", layers=self.layers(layer, path))
+            if layer.blend_mode == self.BlendMode.PASS_THROUGH:
+                entry.update(isolated=False, blend="normal")
+            else:
+                entry.update(isolated=True, blend=self._blend(layer, what))
+                if entry["blend"] == "plus":  # a group's alpha is its children's coverage: partial in general
+                    self._warn_linear_dodge(np.array([0.5]), what)
+            if layer.fill_opacity != 255:
+                self.warn(f"{what}: a group's fill opacity ({layer.fill_opacity}/255) cannot be represented; ignored")
+            if layer.has_effects():
+                self.warn(f"{what}: a group's layer effects cannot be represented; left out")
+            mask = self._mask(layer, (0, 0, self.psd.width, self.psd.height), what)
+            if mask is not None:
+                entry["mask"] = f"masks/{lid}.png"
+                from lasagna.io.stack import group_mask_tensors
+
+                self.tensors[lid] = group_mask_tensors(_tensor(mask))
+            return entry
+        rgba, bbox, baked = self._raster(layer, what)
+        if rgba is None:
+            self.warn(f"{what}: {layer.kind} layer has no pixels; left out")
+            return None
+        blend = self._blend(layer, what)
+        fill = 1.0 if baked else layer.fill_opacity / 255.0
+        entry.update(
+            kind="pixels",
+            source=f"layers/{lid}.png",
+            blend=blend,
+            opacity=1.0 if baked else entry["opacity"] * fill,
+            offset={"x": int(bbox[0]), "y": int(bbox[1])},
+        )
+        mask = None if baked else self._mask(layer, bbox, what)
+        if blend == "plus":
+            self._warn_linear_dodge(rgba[3:] * entry["opacity"] * (1.0 if mask is None else mask), what)
+        color, alpha = _tensor(rgba[:3]), _tensor(rgba[3:])
+        if mask is not None:
+            entry["mask"] = f"masks/{lid}.png"
+        from lasagna.compose.layer import LayerTensors
+
+        self.tensors[lid] = LayerTensors(color, alpha, None if mask is None else _tensor(mask))
+        return entry
+
+    def _warn_linear_dodge(self, alpha: np.ndarray, what: str) -> None:
+        """Photoshop's Linear Dodge clamps inside the blend, Cb + α(min(1, Cb + Cs) − Cb); W3C plus after it,
+        min(1, Cb + α·Cs): the two agree where α is 0 or 1 (or Cb + Cs ≤ 1) only."""
+        if bool(((alpha > 0.0) & (alpha < 1.0)).any()):
+            self.warn(
+                f"{what}: Linear Dodge with partial alpha imported as W3C plus, which clamps after the blend "
+                "(Photoshop clamps inside it): the composite differs where backdrop + layer > 1"
+            )
+
+    def _raster(self, layer, what: str) -> tuple[np.ndarray | None, tuple[int, int, int, int], bool]:
+        """(RGBA (4, h, w) float64, bbox, baked): the stored pixels, or psd-tools' rendering of the layer
+        (``baked``: mask, opacity, fill, effects and clipping layers are in it)."""
+        reasons = []
+        if layer.kind in RASTERISED_KINDS or isinstance(layer, self.FillLayer):
+            reasons.append(RASTERISED_KINDS.get(layer.kind, f"{layer.kind} fill layer"))
+        if layer.has_effects():
+            reasons.append("layer effects (drawn with the layer's blend mode, not their own)")
+        clips = [c.name for c in layer.clip_layers] if layer.has_clip_layers() else []
+        if clips:
+            reasons.append(f"clipping layers {', '.join(map(repr, clips))}")
+        if not reasons:
+            bbox = layer.bbox
+            self._check_size(bbox, what)
+            arr = layer.numpy()
+            if arr is None or bbox[2] <= bbox[0] or bbox[3] <= bbox[1]:
+                return None, bbox, False
+            return _rgba(arr), bbox, False
+        bbox = (0, 0, self.psd.width, self.psd.height)
+        self._check_size(bbox, what)
+        pil = layer.composite(viewport=bbox, color=0.0, alpha=0.0)
+        if pil is None:
+            return None, bbox, True
+        self.warn(f"{what}: {', '.join(reasons)} rasterised by psd-tools into one pixels layer")
+        arr = np.asarray(pil.convert("RGBA"), dtype=np.float64) / 255.0
+        return arr.transpose(2, 0, 1), bbox, True
+
+    def _mask(self, layer, bbox: tuple[int, int, int, int], what: str) -> np.ndarray | None:
+        """The layer's enabled user mask over ``bbox`` (1, h, w), its background colour outside its data."""
+        if not layer.has_mask() or layer.mask is None or layer.mask.disabled:
+            return None
+        m = layer.mask
+        raw = m.topil(real=False)
+        out = np.full((1, bbox[3] - bbox[1], bbox[2] - bbox[0]), m.background_color / 255.0)
+        if raw is not None:
+            data = np.asarray(raw.convert("L"), dtype=np.float64) / 255.0
+            x, y = m.left - bbox[0], m.top - bbox[1]
+            h, w = data.shape
+            y0, y1, x0, x1 = max(y, 0), min(y + h, out.shape[1]), max(x, 0), min(x + w, out.shape[2])
+            if y0 < y1 and x0 < x1:
+                out[0, y0:y1, x0:x1] = data[y0 - y : y1 - y, x0 - x : x1 - x]
+        if layer.has_vector_mask():
+            self.warn(f"{what}: a vector mask cannot be represented; only the pixel mask is imported")
+        return out
+
+    def _check_size(self, bbox, what: str) -> None:
+        pixels = max(0, bbox[2] - bbox[0]) * max(0, bbox[3] - bbox[1])
+        if pixels > self.max_pixels:
+            raise ImageError(f"holds {pixels} pixels, over the limit of {self.max_pixels}; expected fewer", what)
+
+
+def _first_line(exc: BaseException) -> str:
+    """``Type: message`` on one line (psd-tools' messages may span several), at most 200 characters."""
+    text = f"{type(exc).__name__}: {exc}".splitlines()[0] if str(exc) else type(exc).__name__
+    return text[:200]
+
+
+def _rgba(arr: np.ndarray) -> np.ndarray:
+    """psd-tools' (h, w, C) float array as (4, h, w) float64 RGBA (gray broadcast, opaque if no alpha)."""
+    a = np.asarray(arr, dtype=np.float64).transpose(2, 0, 1)
+    if a.shape[0] in (1, 2):  # gray, gray+alpha
+        a = np.concatenate([np.repeat(a[:1], 3, axis=0), a[1:]])
+    if a.shape[0] == 3:
+        a = np.concatenate([a, np.ones_like(a[:1])])
+    return a[:4]
+
+
+def _tensor(x: np.ndarray):
+    import torch  # only once a file passed its checks
+
+    return torch.from_numpy(np.ascontiguousarray(x, dtype=np.float32))
+
+
+def _opaque_base(layers: list[dict], stack_tensors: dict, width: int, height: int) -> bool:
+    """Whether the bottom visible layer covers the canvas opaquely with blend normal (the canvas is then
+    opaque from it on, as a stack's is, and no wrapping group is needed)."""
+    for entry in layers:
+        if not entry["visible"]:
+            continue
+        t = stack_tensors.get(entry["id"])
+        return (
+            entry["kind"] == "pixels"
+            and entry["blend"] == "normal"
+            and entry["opacity"] == 1.0
+            and entry.get("offset") == {"x": 0, "y": 0}
+            and t is not None
+            and tuple(t.color.shape[-2:]) == (height, width)
+            and bool((t.alpha == 1.0).all())
+            and (t.mask is None or bool((t.mask == 1.0).all()))
+        )
+    return False
+
+
+def read_psd(
+    path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS, warn: Callable[[str], None] | None = None
+):
+    """A PSD file as a :class:`~lasagna.io.stack.Stack` (module docstring); ``warn`` receives one line per
+    thing that was rasterised or could not be represented (default: ``warnings.warn``)."""
+    import warnings
+
+    PSDImage, _, ColorMode, _, _ = _require()
+    where = str(path)
+    warn = warn or (lambda message: warnings.warn(message, stacklevel=2))
+    file = Path(path)
+    if not file.is_file():
+        raise ImageError("does not exist or is not a file; expected a PSD file", where=where)
+    try:
+        psd = PSDImage.open(file)
+    except Exception as exc:  # psd-tools raises many kinds on a corrupt or foreign file
+        raise ImageError(f"psd-tools cannot read it ({_first_line(exc)}); expected a PSD file", where) from None
+    if psd.color_mode not in (ColorMode.RGB, ColorMode.GRAYSCALE):
+        raise ImageError(f"colour mode {psd.color_mode.name}; expected an RGB or grayscale PSD", where=where)
+    if not (1 <= psd.width <= 32768 and 1 <= psd.height <= 32768) or psd.width * psd.height > max_pixels:
+        raise ImageError(
+            f"canvas is {psd.width}x{psd.height}; expected sides in [1, 32768] and at most {max_pixels} pixels", where
+        )
+    pixels = sum(max(0, b[2] - b[0]) * max(0, b[3] - b[1]) for b in (layer.bbox for layer in psd.descendants()))
+    check_memory(pixels * IMPORT_BYTES_PER_PIXEL, f"decoding the PSD's {len(list(psd.descendants()))} layers", where)
+    reader = _Reader(psd, where, max_pixels, warn)
+    try:
+        layers = reader.layers(psd, "")
+    except (ImageError, ExportError):
+        raise
+    except Exception as exc:  # a layer psd-tools fails to decode
+        raise ImageError(f"psd-tools cannot decode a layer ({_first_line(exc)}); expected a valid PSD", where) from None
+    if not layers:
+        raise ImageError("has no layer a stack can hold; expected at least one pixel layer or group", where=where)
+    if not _opaque_base(layers, reader.tensors, psd.width, psd.height):
+        group_id = _id(Path(where).stem or "psd", reader.taken)
+        layers = [{"id": group_id, "name": Path(where).name, "kind": "group", "isolated": True, "layers": layers}]
+    from lasagna.document import Document
+    from lasagna.io.stack import Stack
+
+    doc = Document.from_dict(
+        {
+            "format": "lasagna.stack",
+            "version": 1,
+            "canvas": {"width": psd.width, "height": psd.height, "background": list(PAGE_BACKGROUND)},
+            "layers": layers,
+            "metadata": {"imported_from": Path(where).name},
+        },
+        where=where,
+    )
+    depth = 16 if psd.depth > 8 else 8
+    return Stack(doc, None, reader.tensors, {id: depth for id in reader.tensors})

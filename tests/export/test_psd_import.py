@@ -1,0 +1,228 @@
+"""``import-psd``: PSDs built here with psd-tools (not written by Lasagna), flattened by psd-tools' own
+``composite()`` laid over white, against ``read_psd`` + our composite.
+
+Measured (8-bit codes, max |difference|): every W3C mode, as a layer with partial alpha and opacity, as an
+isolated group of that mode and inside a pass-through group with opacity: ≤ 1 (rounding). Linear Dodge with
+partial alpha differs by up to ~62 codes (Photoshop clamps inside the blend, W3C plus after it): import says
+so in a warning line, and with alpha in {0, 1} the two agree (≤ 1).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+psd_tools = pytest.importorskip("psd_tools")
+from psd_tools import PSDImage  # noqa: E402
+from psd_tools.constants import BlendMode  # noqa: E402
+
+from lasagna.cli import main  # noqa: E402
+from lasagna.document.blend import BLEND_MODES  # noqa: E402
+from lasagna.errors import ImageError  # noqa: E402
+from lasagna.export.psd import psd_blend_modes  # noqa: E402
+from lasagna.export.psd_import import read_psd  # noqa: E402
+from lasagna.io.render import render_stack  # noqa: E402
+from lasagna.io.stack import load_stack  # noqa: E402
+
+MODES = psd_blend_modes(BlendMode)
+W3C = [m for m in BLEND_MODES if m != "plus"]
+H, W = 16, 20
+
+
+def rgba(rng, h, w, alpha="random"):
+    a = rng.integers(0, 256, (h, w, 4), dtype=np.uint8)
+    if alpha == "opaque":
+        a[..., 3] = 255
+    elif alpha == "binary":
+        a[..., 3] = np.where(a[..., 3] > 127, 255, 0)
+    return Image.fromarray(a)
+
+
+def psd_tools_flat(path: Path) -> np.ndarray:
+    """psd-tools' own composite of the file, laid over white (the page backdrop), as 8-bit codes."""
+    c = np.asarray(PSDImage.open(path).composite(force=True).convert("RGBA"), dtype=np.float64) / 255.0
+    return np.rint((c[..., :3] * c[..., 3:] + 1.0 - c[..., 3:]) * 255.0)
+
+
+def ours(path: Path, warnings: list[str] | None = None) -> np.ndarray:
+    stack = read_psd(path, warn=(warnings.append if warnings is not None else lambda m: None))
+    image = render_stack(stack, dtype=torch.float64).image.numpy().transpose(1, 2, 0)
+    return np.rint(np.clip(image, 0.0, 1.0) * 255.0)
+
+
+def err(path: Path) -> float:
+    return float(np.abs(psd_tools_flat(path) - ours(path)).max())
+
+
+def new_psd():
+    return PSDImage.new("RGBA", (W, H))
+
+
+@pytest.mark.parametrize("mode", W3C)
+def test_a_layer_of_every_mode_matches_psd_tools(tmp_path, mode):
+    for seed in range(2):
+        rng = np.random.default_rng(seed)
+        psd = new_psd()
+        psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+        top = psd.create_pixel_layer(rgba(rng, 10, 12), name="top", top=3, left=4, blend_mode=MODES[mode])
+        top.opacity = int(rng.integers(80, 256))
+        top.fill_opacity = int(rng.integers(80, 256))
+        path = tmp_path / f"{seed}.psd"
+        psd.save(path)
+        assert err(path) <= 1, mode
+
+
+@pytest.mark.parametrize("mode", W3C)
+def test_isolated_and_pass_through_groups_of_every_mode_match_psd_tools(tmp_path, mode):
+    rng = np.random.default_rng(9)
+    psd = new_psd()
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    group = psd.create_group(name="iso", blend_mode=MODES[mode], opacity=170)
+    group.create_pixel_layer(rgba(rng, 8, 9), name="k1", top=1, left=2)
+    group.create_pixel_layer(rgba(rng, 8, 9), name="k2", top=5, left=6, blend_mode=MODES[mode])
+    passing = psd.create_group(name="pass", opacity=140)
+    passing.create_pixel_layer(rgba(rng, 9, 9), name="k3", top=6, left=9, blend_mode=MODES[mode])
+    inner = passing.create_group(name="inner", blend_mode=MODES[mode])
+    inner.create_pixel_layer(rgba(rng, 6, 7), name="k4", top=2, left=11)
+    path = tmp_path / "g.psd"
+    psd.save(path)
+    doc = read_psd(path).document
+    assert doc.layer("iso").isolated and doc.layer("iso").blend == mode
+    assert not doc.layer("pass").isolated and doc.layer("pass").opacity == pytest.approx(140 / 255)
+    assert doc.layer("inner").isolated
+    assert err(path) <= 1, mode
+
+
+def test_masks_offsets_visibility_and_fill(tmp_path):
+    rng = np.random.default_rng(3)
+    psd = new_psd()
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    a = psd.create_pixel_layer(rgba(rng, 10, 12), name="masked", top=-3, left=12, blend_mode=BlendMode.OVERLAY)
+    a.create_mask(Image.fromarray(rng.integers(0, 256, (5, 6), dtype=np.uint8)), top=-1, left=14)
+    a.fill_opacity = 100
+    hidden = psd.create_pixel_layer(rgba(rng, 6, 6), name="hidden", top=1, left=1)
+    hidden.visible = False
+    group = psd.create_group(name="g", blend_mode=BlendMode.MULTIPLY)
+    group.create_pixel_layer(rgba(rng, 12, 14), name="in", top=2, left=2)
+    # (No group mask: psd-tools 1.26 writes a group's mask channel it cannot read back, "not a valid Compression".)
+    path = tmp_path / "m.psd"
+    psd.save(path)
+    stack = read_psd(path)
+    doc = stack.document
+    assert doc.layer("masked").mask == "masks/masked.png" and doc.layer("masked").offset.x == 12
+    assert doc.layer("masked").opacity == pytest.approx(100 / 255)
+    assert not doc.layer("hidden").visible
+    assert err(path) <= 1
+
+
+def test_linear_dodge_with_binary_alpha_matches_and_partial_alpha_is_reported(tmp_path):
+    rng = np.random.default_rng(4)
+    psd = new_psd()
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    psd.create_pixel_layer(rgba(rng, 10, 12, "binary"), name="add", top=3, left=4, blend_mode=BlendMode.LINEAR_DODGE)
+    path = tmp_path / "binary.psd"
+    psd.save(path)
+    warnings: list[str] = []
+    assert float(np.abs(psd_tools_flat(path) - ours(path, warnings)).max()) <= 1
+    assert warnings == []
+    psd.create_pixel_layer(rgba(rng, 10, 12), name="soft", top=5, left=6, blend_mode=BlendMode.LINEAR_DODGE)
+    path = tmp_path / "partial.psd"
+    psd.save(path)
+    ours(path, warnings)
+    assert len(warnings) == 1 and "layer 'soft': Linear Dodge with partial alpha" in warnings[0]
+
+
+def test_what_cannot_be_represented_is_reported_one_line_each(tmp_path):
+    rng = np.random.default_rng(5)
+    psd = new_psd()
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    psd.create_pixel_layer(rgba(rng, 8, 8), name="burn", blend_mode=BlendMode.LINEAR_BURN)
+    clipped_base = psd.create_pixel_layer(rgba(rng, 10, 10), name="clipbase", top=4, left=6)
+    clip = psd.create_pixel_layer(rgba(rng, 12, 12, "opaque"), name="clip", top=2, left=5)
+    clip.clipping = True
+    path = tmp_path / "r.psd"
+    psd.save(path)
+    warnings: list[str] = []
+    stack = read_psd(path, warn=warnings.append)
+    assert all("\n" not in w for w in warnings) and len(warnings) == 2
+    assert "layer 'burn': blend mode LINEAR_BURN has no W3C Compositing equivalent; imported as normal" in warnings[0]
+    assert "layer 'clipbase': clipping layers 'clip' rasterised by psd-tools" in warnings[1]
+    assert "clip" not in stack.document.all_ids and stack.document.layer("clipbase").kind == "pixels"
+    assert clipped_base.clipping is False
+    # The clipping stack is psd-tools' own rendering: with the LINEAR_BURN layer hidden the files agree.
+    PSDImage.open(path)  # still a valid file
+    psd2 = new_psd()
+    psd2.create_pixel_layer(rgba(np.random.default_rng(5), H, W, "opaque"), name="base")
+    b2 = psd2.create_pixel_layer(rgba(rng, 10, 10), name="clipbase", top=4, left=6)
+    c2 = psd2.create_pixel_layer(rgba(rng, 12, 12, "opaque"), name="clip", top=2, left=5)
+    c2.clipping = True
+    assert b2.has_clip_layers()
+    path2 = tmp_path / "clip.psd"
+    psd2.save(path2)
+    assert err(path2) <= 1
+
+
+def test_transparent_documents_are_wrapped_in_an_isolated_group(tmp_path):
+    rng = np.random.default_rng(6)
+    psd = new_psd()
+    psd.create_pixel_layer(rgba(rng, 10, 12), name="a", top=2, left=3)
+    psd.create_pixel_layer(rgba(rng, 10, 12), name="b", top=4, left=5, blend_mode=BlendMode.SCREEN)
+    path = tmp_path / "open.psd"
+    psd.save(path)
+    doc = read_psd(path).document
+    assert [layer.kind for layer in doc.layers] == ["group"] and doc.layers[0].isolated
+    assert err(path) <= 1
+    psd = new_psd()
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="bg")
+    path = tmp_path / "closed.psd"
+    psd.save(path)
+    assert read_psd(path).document.ids == ("bg",)
+
+
+def test_cli_import_then_composite(tmp_path, capsys):
+    rng = np.random.default_rng(7)
+    psd = new_psd()
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    g = psd.create_group(name="g", blend_mode=BlendMode.HUE, opacity=200)
+    g.create_pixel_layer(rgba(rng, 9, 9), name="x", top=2, left=2, blend_mode=BlendMode.SOFT_LIGHT)
+    path = tmp_path / "in.psd"
+    psd.save(path)
+    out = tmp_path / "stack"
+    assert main(["import-psd", str(path), "-o", str(out)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    assert main(["composite", str(out), "-o", str(tmp_path / "c.png")]) == 0
+    with Image.open(tmp_path / "c.png") as im:
+        got = np.asarray(im).astype(float)
+    assert np.abs(got - psd_tools_flat(path)).max() <= 1
+    assert load_stack(out).document == read_psd(path).document
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    bad = tmp_path / "bad.psd"
+    bad.write_bytes(b"8BPS" + b"\x00" * 40)
+    code = main(["import-psd", str(bad), "-o", str(tmp_path / "o")])
+    err_text = capsys.readouterr().err
+    assert code == 2 and err_text.count("\n") == 1 and "psd-tools cannot read it" in err_text
+    assert not (tmp_path / "o").exists()
+    code = main(["import-psd", str(tmp_path / "missing.psd"), "-o", str(tmp_path / "o")])
+    err_text = capsys.readouterr().err
+    assert code == 2 and err_text.count("\n") == 1 and "expected a PSD file" in err_text
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "x").write_text("x")
+    psd = new_psd()
+    psd.create_pixel_layer(rgba(np.random.default_rng(0), H, W, "opaque"), name="base")
+    psd.save(tmp_path / "ok.psd")
+    code = main(["import-psd", str(tmp_path / "ok.psd"), "-o", str(tmp_path / "full")])
+    assert code == 2 and capsys.readouterr().err.count("\n") == 1
+
+
+def test_huge_canvas_is_refused_before_decoding(tmp_path):
+    psd = PSDImage.new("RGBA", (64, 64))
+    psd.create_pixel_layer(Image.new("RGBA", (64, 64)), name="a")
+    psd.save(tmp_path / "big.psd")
+    with pytest.raises(ImageError, match="canvas is 64x64; expected .* at most 1000 pixels"):
+        read_psd(tmp_path / "big.psd", max_pixels=1000)
