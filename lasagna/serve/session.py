@@ -49,7 +49,7 @@ from lasagna.errors import ConflictError, DocumentError, ImageError, LasagnaErro
 from lasagna.io.folder import save_in_place, stack_sha256
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS, read_image_file
 from lasagna.io.render import composite_codes, encode_composite
-from lasagna.io.stack import Stack, load_stack
+from lasagna.io.stack import Stack, group_mask_tensors, load_stack
 
 MAX_UNDO = 100
 """Snapshots kept for undo: each holds references to tensors, so old pixels live while they can be undone."""
@@ -438,7 +438,20 @@ class EditSession:
     def _level_tensors(self, doc: Document, level: int) -> dict[str, LayerTensors]:
         """Every layer's tensors reduced by 2**level (cached by the source tensors' identity)."""
         out: dict[str, LayerTensors] = {}
-        for layer in doc.layers:
+        for _, layer in doc.walk():  # groups' children too
+            if layer.kind == "group":
+                t = self.stack.tensors.get(layer.id)  # a group's tensors hold only its mask
+                if t is not None and level > 0:
+                    key = (layer.id, level)
+                    hit = self.reduced.get(key)
+                    if hit is None or hit[0] is not t:
+                        size = (_reduced_side(t.mask.shape[-2], level), _reduced_side(t.mask.shape[-1], level))
+                        hit = (t, group_mask_tensors(_reduce(t.mask, size)))
+                        self.reduced[key] = hit
+                    t = hit[1]
+                if t is not None:
+                    out[layer.id] = t
+                continue
             if layer.kind == "solid":
                 lo, hi = tuple(layer.range)
                 w, h = (
@@ -705,11 +718,14 @@ class _Scaled:
 
 
 class _ScaledLayer:
-    """A layer whose offset is divided by ``f`` (its other attributes are the layer's)."""
+    """A layer whose offset is divided by ``f`` (its other attributes are the layer's; a group's children
+    are scaled too)."""
 
     def __init__(self, layer, f: int):
         self._layer = layer
         self.offset = type("Offset", (), {"x": layer.offset.x // f, "y": layer.offset.y // f})()
+        if layer.kind == "group":
+            self.layers = [_ScaledLayer(child, f) for child in layer.layers]
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._layer, name)

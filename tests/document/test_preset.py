@@ -102,7 +102,9 @@ class TestResolve:
             resolve_preset("./p/mine.json")
 
     def test_unknown_name_lists_what_exists(self, tmp_path):
-        with pytest.raises(DocumentError, match=r"no preset named 'shadow' .*; expected one of color, light, relight, shading"):
+        with pytest.raises(
+            DocumentError, match=r"no preset named 'shadow' .*; expected one of color, light, relight, shading"
+        ):
             resolve_preset("shadow", tmp_path, catalogues=[CATALOGUE])
         with pytest.raises(DocumentError, match="^preset: id 'my preset' breaks the rule"):
             resolve_preset("my preset")

@@ -239,6 +239,32 @@ def test_reduced_levels_are_a_preview_close_to_the_reduced_composite(tmp_path, t
     assert "level" in refused(c.get("/api/view", headers=H, params={"level": 99}), 400)
 
 
+def test_views_composite_groups_as_the_engine_does(tmp_path, tiny, monkeypatch):
+    import torch
+
+    from lasagna.io.stack import Stack
+
+    monkeypatch.setenv("LASAGNA_LAYERS", str(tiny))
+    y, x = torch.meshgrid(torch.linspace(0, 1, 64), torch.linspace(0, 1, 48), indexing="ij")
+    stack = Stack.from_image(torch.stack([x, y, 1 - x]))
+    stack.add_layer("a", torch.stack([y, x, y]), alpha=(0.5 + 0.5 * x)[None], offset={"x": 6, "y": 2})
+    stack.add_solid("b", (1.0, 0.2, 0.1, 0.6), blend="multiply")
+    stack.save(tmp_path / "g")
+    doc = json.loads((tmp_path / "g" / "stack.json").read_text())
+    base, *rest = doc["layers"]
+    rest[1]["blend"] = "screen"
+    doc["layers"] = [
+        base,
+        {"id": "grp", "kind": "group", "blend": "overlay", "opacity": 0.8, "isolated": True, "layers": rest},
+    ]
+    (tmp_path / "g" / "stack.json").write_text(json.dumps(doc))
+    c = TestClient(create_app(EditSession(tmp_path / "g"), TOKEN, ["testserver"]))
+    assert np.array_equal(view(c, level=0)[..., :3], engine_codes(tmp_path / "g"))
+    half = view(c, level=1)[..., :3].astype(float)
+    reduced = engine_codes(tmp_path / "g").astype(float).reshape(32, 2, 24, 2, 3).mean(axis=(1, 3))
+    assert np.abs(half - reduced).mean() < 2.0
+
+
 @pytest.mark.parametrize(
     "params, words",
     [
