@@ -432,7 +432,7 @@ class TestKillAndResume:
             ]
         )
         err = capsys.readouterr().err.strip()
-        assert code == 2 and err.count("\n") == 0 and "config.json not found" in err
+        assert code == 2 and err.count("\n") == 0 and "does not exist" in err and str(tmp_path / "none") in err
         UNetPrior(UNetConfig(channels=(4, 8), resolution=8, norm_groups=4)).save_pretrained(tmp_path / "p")
         code = cli_main(
             [
