@@ -19,6 +19,12 @@ top_edit_vs_full      Renderer re-render after an in-place edit of the top layer
                       render(plan); both allocate their output
 backward_vs_forward   forward + backward with every layer tensor (and the normal layer's opacity)
                       requiring grad, clamp="output", vs the no-grad forward with a fresh output
+top_edit32_vs_full    on a 32-layer stack (``random_stack``) at the same size: Renderer re-render after an
+                      in-place edit of the top layer vs a full render (the prefix cache keeps 31 layers)
+modes_vs_pillow       a stack of the base and one opaque full-canvas layer per blend mode Pillow has
+                      (ImageChops multiply, screen, overlay, darker, lighter, hard_light, soft_light,
+                      difference, add; Image.alpha_composite for normal RGBA) vs Pillow's chain of the same
+                      uint8 images; ``mode_ms`` gives each of the 17 modes' cost over the base alone
 
 The script sets THP_MEM_ALLOC_ENABLE=1 before importing torch (PyTorch's switch to back large CPU
 allocations with transparent huge pages): a fresh 48 MiB output otherwise costs ~20 ms of page faults.
@@ -387,6 +393,85 @@ def measure_autograd(layers, size: int, reps: int, res: dict) -> None:
     )
 
 
+# The modes ImageChops has, as W3C names (Pillow's soft_light is not the W3C formula and its hard_light
+# and overlay round differently: the timing compares the same work, the error is reported per mode).
+PILLOW_MODES = {
+    "normal": Image.alpha_composite,
+    "multiply": ImageChops.multiply,
+    "screen": ImageChops.screen,
+    "overlay": ImageChops.overlay,
+    "darken": ImageChops.darker,
+    "lighten": ImageChops.lighter,
+    "hard-light": ImageChops.hard_light,
+    "soft-light": ImageChops.soft_light,
+    "difference": ImageChops.difference,
+    "plus": ImageChops.add,
+}
+
+
+def measure_top_edit32(size: int, reps: int, res: dict) -> None:
+    """The prefix cache on a deep stack: edit the top of 32 layers in place and re-render."""
+    layers = random_stack(32, size, seed=32)
+    renderer = Renderer((size, size))
+    renderer.render(layers)
+    top = layers[-1].tensors.color
+    times = []
+    for i in range(reps + 1):
+        top[0, 0, i % size] = 8 / 255 if i % 2 else 0.0
+        times.append(median_time(lambda: renderer.render(layers), 1, warmup=0))
+        assert renderer.last_recomputed == [layers[-1].id]
+    t_top = float(np.median(times[1:]))
+    assert torch.equal(renderer.render(layers).image, render(layers, canvas=(size, size)).image)
+    t_full = median_time(lambda: render(layers, canvas=(size, size)), reps)
+    res.update(top_edit32_s=t_top, full_render32_s=t_full, top_edit32_vs_full=t_top / t_full)
+    log(f"[prefix cache, 32 layers] top edit: {t_top * 1e3:.2f} ms, full render: {t_full * 1e3:.2f} ms")
+
+
+def measure_modes(size: int, reps: int, res: dict) -> None:
+    """Every mode's cost over the base, and the Pillow-mode stack against Pillow's chain."""
+    from lasagna.document import BLEND_MODES
+
+    g = torch.Generator().manual_seed(16)
+    base = RenderLayerSpec(id="base", tensors=LayerTensors(grid(g, 3, size, size)))
+    out = torch.empty(3, size, size)
+    t_base = median_time(lambda: render([base], canvas=(size, size), out=out), reps)
+    mode_ms = {}
+    for mode in BLEND_MODES:
+        channels = 1 if mode == "multiply" else 3
+        alpha = grid(g, 1, size, size) if mode == "normal" else None
+        top = RenderLayerSpec(id="top", blend=mode, tensors=LayerTensors(grid(g, channels, size, size), alpha))
+        plan = compile_plan([base, top], (size, size), cull=False)
+        mode_ms[mode] = round((median_time(lambda: render(plan, out=out), reps) - t_base) * 1e3, 2)  # noqa: B023
+    layers = [base]
+    for mode in PILLOW_MODES:
+        alpha = grid(g, 1, size, size, top=96) if mode == "normal" else None
+        top = 12 if mode == "plus" else 255
+        layers.append(
+            RenderLayerSpec(id=mode, blend=mode, tensors=LayerTensors(grid(g, 3, size, size, top=top), alpha))
+        )
+    plan = compile_plan(layers, (size, size), cull=False)
+    t_ours = median_time(lambda: render(plan, out=out), reps)
+    images = [to_rgba(s.tensors) for s in layers]
+
+    def pillow() -> Image.Image:
+        img = images[0]
+        for mode, im in zip(PILLOW_MODES, images[1:]):
+            img = PILLOW_MODES[mode](img, im)
+        return img
+
+    t_pil = median_time(pillow, reps)
+    res.update(
+        modes_base_s=t_base,
+        mode_ms=mode_ms,
+        modes_stack_s=t_ours,
+        modes_pillow_s=t_pil,
+        modes_vs_pillow=t_ours / t_pil,
+        modes_stack=list(PILLOW_MODES),
+    )
+    log(f"[modes] {len(PILLOW_MODES)}-mode stack: {t_ours * 1e3:.2f} ms, Pillow: {t_pil * 1e3:.2f} ms")
+    log(f"[modes] cost over the base, ms: {mode_ms}")
+
+
 def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
@@ -420,6 +505,8 @@ def main() -> None:
     measure_culling(layers, plan, out, size, reps, res)
     measure_prefix_cache(layers, out, size, reps, res)
     measure_autograd(layers, size, reps, res)
+    measure_top_edit32(size, reps, res)
+    measure_modes(size, reps, res)
 
     prec_reps = max(1, min(reps, 3))
     rows = (

@@ -50,7 +50,7 @@ from distill_accuracy import add_labels, darkening, glow_colour_error, implied_s
 from lasagna import catalogue as cat  # noqa: E402
 from lasagna.compose.resample import downsample, upsample, working_size  # noqa: E402
 from lasagna.distill import DistillSettings, distill_image  # noqa: E402
-from lasagna.edit import edit  # noqa: E402
+from lasagna.editing import edit  # noqa: E402
 from lasagna.priors.base import Condition  # noqa: E402
 from lasagna.priors.ddim import ddim_sample  # noqa: E402
 from lasagna.world import GLOW_VOCABULARY, VOCABULARY, additive_light, generate, render, sample_scenes  # noqa: E402

@@ -44,7 +44,7 @@ from distill_accuracy import psnr  # noqa: E402
 from lasagna import catalogue as cat  # noqa: E402
 from lasagna.compose.resample import downsample, upsample  # noqa: E402
 from lasagna.document.condition import format_direction, named_direction  # noqa: E402
-from lasagna.edit import edit  # noqa: E402
+from lasagna.editing import edit  # noqa: E402
 from lasagna.priors.base import Condition  # noqa: E402
 from lasagna.priors.ddim import ddim_sample  # noqa: E402
 from lasagna.world import VOCABULARY, render, sample_scenes  # noqa: E402

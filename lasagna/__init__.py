@@ -3,7 +3,9 @@
     import lasagna
     stack = lasagna.load("examples/stacks/basic")      # a folder or its stack.json
     result = lasagna.render(stack)                     # RenderResult(image, skipped, evaluated)
-    lasagna.save(stack, "out/mystack")                 # stack.json + layer PNGs + composite.png
+    lasagna.save(stack, "out/mystack")                 # stack.json + layer PNGs (composite=True: composite.png)
+    lasagna.to_pil(result)                             # the composite as an 8-bit PIL image
+    lasagna.edit("photo.png", "shading", "left")       # a learned layer (lasagna.editing.edit)
 
 The API names are loaded lazily so that ``import lasagna.document`` (pydantic only) never imports
 torch. See docs/ARCHITECTURE.md for the tiers.
@@ -24,6 +26,11 @@ _API = (
     "export_layer_pngs",
     "write_composite",
     "RenderResult",
+    "to_pil",
+    "to_numpy",
+    "edit",
+    "edit_many",
+    "render_learned",
 )
 __all__ = ["__version__", *_API]
 

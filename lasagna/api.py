@@ -5,19 +5,22 @@
     result = lasagna.render(stack)                         # RenderResult(image (3, H, W), skipped, evaluated)
     lasagna.save(stack, "out/copy", composite=True)        # stack.json, layers/*.png, composite.png
 
-    stack = lasagna.from_image(albedo)                     # a tensor (C, h, w), numpy array or PIL image
+    lasagna.to_pil(result).save("view.png")                # 8-bit sRGB as composite.png; to_numpy: (H, W, 3)
+
+    stack = lasagna.from_image(albedo)                     # a tensor (C, h, w), numpy array (h, w, C) or PIL image
     stack.add_layer("shade", shading, blend="multiply", range=(0, 2))
     stack.add_solid("tint", (1.0, 0.5, 0.0, 0.25), blend="normal")
     lasagna.export_ora(stack, "out/stack.ora")
 
-    from lasagna.api import edit, render_learned            # learned layers (lasagna.edit)
-    result = edit("photo.png", "shading", "left")          # EditResult: stack, layer, composite, settings
+    result = lasagna.edit("photo.png", "shading", "left")  # EditResult: stack, layer, composite, settings
     result.save("out/relit")                               # the stack folder `lasagna edit` writes
-    from lasagna.api import edit_many                       # many images (lasagna.batch)
-    report = edit_many(["photos/", "more/*.jpg"], "shading", "left", "out/")   # out/<stem>/ each; resumable
+    report = lasagna.edit_many(["photos/", "more/*.jpg"], "shading", "left", "out/")   # out/<stem>/ each; resumable
+    (lasagna.editing: edit, render_learned; lasagna.batch: edit_many)
 
 Tensors and float arrays are layer values y (a [0, 2] multiplier is given in [0, 2]); PIL images and
-integer arrays are stored codes, mapped by the layer's range like a PNG in a stack folder. Everything
+integer arrays are stored codes, mapped by the layer's range like a PNG in a stack folder. Tensors are
+channels first (C, h, w); numpy arrays may be either, (h, w, C) as PIL and imageio give them (an array
+whose last axis has 1 to 4 entries and whose first has more is read as (h, w, C)). Everything
 here is a thin name for a function of ``lasagna.io`` / ``lasagna.export``; see them for details.
 """
 
@@ -31,10 +34,11 @@ import torch
 
 from lasagna.batch import BatchReport, edit_many
 from lasagna.compose.render import RenderResult
-from lasagna.edit import EditResult, edit, render_learned
+from lasagna.editing import EditResult, edit, render_learned
+from lasagna.errors import ImageError
 from lasagna.export.ora import export_ora, import_ora
 from lasagna.export.png import export_layer_pngs
-from lasagna.io.render import render_stack, write_composite
+from lasagna.io.render import composite_codes, render_stack, write_composite
 from lasagna.io.stack import Stack, load_stack, save_stack, stack_from_tensors
 
 __all__ = [
@@ -55,6 +59,8 @@ __all__ = [
     "render_learned",
     "BatchReport",
     "edit_many",
+    "to_pil",
+    "to_numpy",
 ]
 
 
@@ -99,3 +105,30 @@ def export_psd(stack: Stack, path: str | os.PathLike, **kwargs: Any) -> Path:
     from lasagna.export.psd import export_psd as _export_psd
 
     return _export_psd(stack, path, **kwargs)
+
+
+def to_numpy(image):
+    """The composite as (H, W, 3) uint8 sRGB codes, clamped and rounded exactly as ``composite.png`` is
+    (``lasagna.io.render.composite_codes``). ``image``: a ``RenderResult``, an ``EditResult``, a ``Stack`` or
+    stack folder (rendered), or a (3, H, W) / (1, H, W) tensor of values in [0, 1]."""
+    if isinstance(image, (Stack, str, os.PathLike)):
+        image = render(image)
+    if isinstance(image, RenderResult):
+        image = image.image
+    elif isinstance(image, EditResult):
+        image = image.composite
+    if not isinstance(image, torch.Tensor) or image.ndim != 3 or image.shape[0] not in (1, 3):
+        got = tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__
+        raise ImageError(
+            f"got {got}; expected a RenderResult, EditResult, Stack or (3, H, W) tensor (no batch)", where="to_pil"
+        )
+    if bool(torch.isnan(image.detach()).any()):
+        raise ImageError("the image contains NaN; expected finite values", where="to_pil")
+    return composite_codes(image.expand(3, *image.shape[-2:])).permute(1, 2, 0).contiguous().numpy()
+
+
+def to_pil(image):
+    """The composite as an 8-bit RGB PIL image (``to_numpy``'s codes)."""
+    from PIL import Image
+
+    return Image.fromarray(to_numpy(image), "RGB")

@@ -59,7 +59,7 @@ import torch
 from lasagna import catalogue as cat
 from lasagna.atomic import sweep_stale, sync_filesystem, unsynced
 from lasagna.document import STACK_FILE
-from lasagna.edit import EditPlan, check_edit_options, plan_edit
+from lasagna.editing import EditPlan, check_edit_options, plan_edit
 from lasagna.errors import LasagnaError, PathError
 from lasagna.io.folder import check_writable, swap_in
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
@@ -268,7 +268,7 @@ def edit_many(
     device: str | torch.device = "cpu",
     warn: Callable[[str], None] | None = None,
 ) -> BatchReport:
-    """Edit every input (``collect_inputs``) as ``lasagna.edit.edit`` would, writing ``out_dir/<name>/`` per
+    """Edit every input (``collect_inputs``) as ``lasagna.editing.edit`` would, writing ``out_dir/<name>/`` per
     input (module docstring). ``progress``: a progress bar on rank 0 (True), or a function called with each
     outcome. The other keywords are ``edit``'s and ``EditResult.save``'s. Returns the ``BatchReport``.
 

@@ -13,7 +13,7 @@ scikit-image's CC0 / public-domain samples). For each:
   cool fill light; for a world scene the truth column shows the world's own fill light of that
   label added (``lasagna.world.tasks.additive_light``).
 
-Each edit is ``lasagna.edit.edit`` with the preset's default method (``lasagna edit``'s: the preset's
+Each edit is ``lasagna.editing.edit`` with the preset's default method (``lasagna edit``'s: the preset's
 ``method``, else its amortised generator when the catalogue has one, else a per-image optimisation with
 the preset's settings) — written as a stack folder under
 ``OUT/stacks/``. ``OUT/sheet.png`` has one labelled row per edit: input | layer | composite | truth.
@@ -270,7 +270,7 @@ class _Edits:
     def one(
         self, image, preset: str, label: str, name: str, title: str, truth: Tensor | None, on: str | None = None
     ) -> None:
-        from lasagna.edit import conditioning_input, edit
+        from lasagna.editing import conditioning_input, edit
 
         method = self.runnable[preset]
         optimize = self.refine if method == "amortised" else self.steps
@@ -317,7 +317,7 @@ class _Edits:
 
     def photo(self, photo: Path, *, colourise: bool, glow: str | None) -> None:
         """Relight a photograph in every direction; colourise its gray image and add a ``glow`` light if asked."""
-        from lasagna.edit import read_image
+        from lasagna.editing import read_image
         from lasagna.io.stack import Stack
 
         if "shading" in self.runnable:

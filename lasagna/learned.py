@@ -1,7 +1,7 @@
 """Making one learned layer: the amortised generator's forward pass, per-image distillation, or both.
 
 ``make_layer(base, resolved, label, id, method=…, optimize=…)`` is the one place a learned layer's
-pixels are computed, for ``lasagna edit`` and ``lasagna render`` alike (``lasagna.edit`` describes the
+pixels are computed, for ``lasagna edit`` and ``lasagna render`` alike (``lasagna.editing`` describes the
 methods and what the stack records). The generator's input is ``conditioning_input``: the composite
 of the stack up to and including the layer it is conditioned on. ``as_stored`` replaces tensors by
 what their PNGs will hold, so an edit is computed from, and composited with, exactly the values its
@@ -32,7 +32,7 @@ from lasagna.limits import MAX_DISTILL_STEPS
 GENERATORS_DIR = "generators"  # <stack>/generators/<layer id>/: copies of the generators a stack uses
 CONTROLS_DIR = "controls"  # <stack>/controls/<layer id>.png: the user's conditioning image of a layer
 
-# How a learned layer is made (``lasagna.edit`` describes both; the names are the document tier's,
+# How a learned layer is made (``lasagna.editing`` describes both; the names are the document tier's,
 # ``lasagna.document.preset.Method``). ``free`` — the CLI's ``--generator free``, "a free per-pixel
 # layer" — names the per-image method and is accepted wherever a method is read.
 METHOD_ALIASES: dict[str, str] = {"free": "per-image"}
@@ -148,17 +148,19 @@ class LayerRun:
 def as_stored(stack: Stack, ids=None) -> Stack:
     """Replace the tensors of raster layers ``ids`` (default all) by what saving and loading them gives
     (PNG codes at their bit depth, mapped to the range as ``load_stack`` maps them), so the edit is
-    computed from, and composited with, exactly the values its stack folder will hold."""
-    from lasagna.io.png import decode_png
-    from lasagna.io.stack import encode_layer, layer_tensors
+    computed from, and composited with, exactly the values its stack folder will hold.
+
+    Tensors already known to hold stored values at the layer's range (loaded from a folder, or made here,
+    and unchanged since: ``LayerTensors.noted``) are kept as they are, so an editor that adds learned
+    layers to a large stack does not re-quantise every layer each time."""
+    from lasagna.io.stack import stored_tensors
 
     for layer_id in list(stack.tensors) if ids is None else ids:
         layer = stack.document.layer(layer_id)
-        data, mask_data = encode_layer(stack, layer_id)
-        img = decode_png(data, f"layer {layer_id!r}")
-        mask_img = decode_png(mask_data, f"layer {layer_id!r} mask") if mask_data is not None else None
-        stack.tensors[layer_id] = layer_tensors(img, layer.range, mask_img, f"layer {layer_id!r} mask")
-        stack.bit_depths[layer_id] = img.header.bit_depth if img.header.bit_depth == 16 else 8
+        if stack.tensors[layer_id].noted("stored") == tuple(layer.range):
+            continue
+        stack.tensors[layer_id], depth = stored_tensors(stack, layer_id)
+        stack.bit_depths[layer_id] = depth
     return stack
 
 

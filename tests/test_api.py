@@ -71,3 +71,56 @@ def test_render_refuses_batches_for_png(tmp_path):
 
     with pytest.raises(ImageError, match="expected \\(3, H, W\\)"):
         api.write_composite(torch.rand(2, 3, 4, 4), tmp_path / "x.png")
+
+
+def test_to_pil_and_to_numpy_equal_the_composite_png(tmp_path):
+    stack = api.load(BASIC)
+    api.save(stack, tmp_path / "copy", composite=True)
+    png = np.asarray(Image.open(tmp_path / "copy/composite.png").convert("RGB"))
+    for source in (stack, BASIC, api.render(stack), api.render(stack).image):
+        codes = api.to_numpy(source)
+        assert codes.shape == (48, 64, 3) and codes.dtype == np.uint8
+        assert np.array_equal(codes, png)
+    pil = api.to_pil(stack)
+    assert pil.mode == "RGB" and pil.size == (64, 48) and np.array_equal(np.asarray(pil), png)
+    gray = api.to_numpy(torch.full((1, 2, 3), 0.5))
+    assert gray.shape == (2, 3, 3) and (gray == 128).all()  # round half to even of 127.5
+    with pytest.raises(api.ImageError, match="expected a RenderResult"):
+        api.to_pil(torch.zeros(2, 3, 4, 4))
+    with pytest.raises(api.ImageError, match="NaN"):
+        api.to_pil(torch.full((3, 2, 2), float("nan")))
+
+
+def test_numpy_arrays_may_be_channels_last():
+    g = np.random.default_rng(0)
+    hwc = g.integers(0, 256, (6, 9, 3), dtype=np.uint8)
+    a = api.from_image(hwc)
+    b = api.from_image(hwc.transpose(2, 0, 1))  # channels first, as before
+    assert (a.width, a.height) == (9, 6)
+    assert torch.equal(a.tensors["base"].color, b.tensors["base"].color)
+    rgba = g.random((7, 5, 4)).astype(np.float32)
+    c = api.from_image(rgba)
+    assert c.tensors["base"].color.shape == (3, 7, 5) and c.tensors["base"].alpha.shape == (1, 7, 5)
+    assert torch.equal(c.tensors["base"].alpha[0], torch.from_numpy(rgba[..., 3]))
+    # tensors stay channels first: a (6, 9, 3) tensor is refused with the rule
+    with pytest.raises(api.ImageError, match="numpy array may be"):
+        api.from_image(torch.from_numpy(hwc).float())
+
+
+def test_top_level_names_are_the_api_functions():
+    import lasagna
+    import lasagna.editing
+
+    assert lasagna.edit is api.edit is lasagna.editing.edit
+    assert lasagna.edit_many is api.edit_many and lasagna.render_learned is api.render_learned
+    assert lasagna.to_pil is api.to_pil
+
+
+def test_edit_refuses_a_preset_object_in_one_line():
+    from lasagna.catalogue import resolve
+    from lasagna.errors import LasagnaError
+
+    preset = resolve("shading", need_prior=False).preset
+    with pytest.raises(LasagnaError, match="got a Preset; expected a catalogue name") as err:
+        api.edit(torch.rand(3, 8, 8), preset=preset)
+    assert "\n" not in str(err.value)

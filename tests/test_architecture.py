@@ -30,7 +30,7 @@ TIERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("world", ("lasagna.world",)),
     ("catalogue", ("lasagna.catalogue",)),
     ("training", ("lasagna.training",)),
-    ("user API", ("lasagna.learned", "lasagna.edit", "lasagna.batch", "lasagna.demo", "lasagna.api")),
+    ("user API", ("lasagna.learned", "lasagna.editing", "lasagna.batch", "lasagna.demo", "lasagna.api")),
     ("editor", ("lasagna.serve",)),
     ("cli", ("lasagna.cli",)),
     ("package root", ("lasagna",)),  # lasagna/__init__.py: lazy names of lasagna.api
@@ -124,7 +124,7 @@ def test_no_module_imports_a_tier_above_its_own():
 
 
 def test_an_upward_import_is_caught():
-    graph = {"lasagna.document.models": {"lasagna.io.stack"}, "lasagna.cli.edit": {"lasagna.edit"}}
+    graph = {"lasagna.document.models": {"lasagna.io.stack"}, "lasagna.cli.edit": {"lasagna.editing"}}
     assert upward_imports(graph) == ["lasagna.document.models (document) imports lasagna.io.stack (io)"]
 
 

@@ -23,7 +23,7 @@ from PIL import Image
 
 from lasagna.batch import collect_inputs, edit_many, is_complete, output_names, shard
 from lasagna.cli import main
-from lasagna.edit import edit
+from lasagna.editing import edit
 from lasagna.errors import LasagnaError, PathError
 from tests.tinylayers import ROOT, tiny_catalogue
 

@@ -1,4 +1,4 @@
-"""``lasagna edit`` / ``render`` / ``train-layer`` / ``demo`` and the API behind them (lasagna.edit), on a
+"""``lasagna edit`` / ``render`` / ``train-layer`` / ``demo`` and the API behind them (lasagna.editing), on a
 tiny random catalogue (tests/tinylayers.py) put first in LASAGNA_LAYERS.
 
 Checked against independent decoders (pypng, Pillow) and a float64 numpy composite, not against the
@@ -19,7 +19,7 @@ import torch
 from PIL import Image
 
 from lasagna.cli import main
-from lasagna.edit import edit, render_learned
+from lasagna.editing import edit, render_learned
 from lasagna.errors import LasagnaError
 from tests.tinylayers import ROOT, STEPS, tiny_catalogue
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from lasagna.cli import main
-from lasagna.edit import edit
+from lasagna.editing import edit
 from lasagna.errors import DocumentError, LasagnaError
 from lasagna.learned import METHODS, LayerSettings, canonical_method
 from tests.tinylayers import ROOT, tiny_catalogue

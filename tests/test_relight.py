@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from lasagna.edit import edit
+from lasagna.editing import edit
 from lasagna.io.render import render_stack
 from lasagna.world import generate
 from lasagna.world.tasks import relight_sources, relighting

@@ -13,7 +13,7 @@ import torch
 from PIL import Image
 
 from lasagna.cli import main
-from lasagna.edit import edit
+from lasagna.editing import edit
 from tests.compose.test_resample import _bilinear_ref
 from tests.tinylayers import ROOT, tiny_catalogue
 

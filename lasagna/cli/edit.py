@@ -104,7 +104,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def own_prior_arguments(p: argparse.ArgumentParser) -> None:
-    """A prior of one's own (``lasagna.edit``'s "Bring your own prior"), its prompts and how it runs."""
+    """A prior of one's own (``lasagna.editing``'s "Bring your own prior"), its prompts and how it runs."""
     from lasagna.document.preset import ASPECTS, TORCH_DTYPES
 
     g = p.add_argument_group("a prior of your own (a diffusers folder written by save_pretrained)")
@@ -267,7 +267,7 @@ def run_one(args: argparse.Namespace) -> int:
     elif image.exists():
         probe_image_file(image, max_pixels=args.max_pixels)
 
-    from lasagna.edit import edit
+    from lasagna.editing import edit
 
     if Path(args.image).resolve() == out.resolve() and not args.force:
         raise PathError("is the input stack; expected another folder (or --force to replace it)", str(out))

@@ -23,7 +23,7 @@ def run(args: argparse.Namespace) -> int:
 
     survey = survey_stack(args.stack, composite=True)  # refused here without loading torch
 
-    from lasagna.edit import render_learned
+    from lasagna.editing import render_learned
     from lasagna.io.stack import load_surveyed
 
     stack = load_surveyed(survey)

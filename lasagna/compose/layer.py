@@ -141,6 +141,16 @@ class LayerTensors:
 
     # ---- cached statistics --------------------------------------------------------------------
 
+    def note(self, name: str, value: Any) -> None:
+        """Remember ``value`` under ``name`` until a tensor is replaced or modified in place (a fact about the
+        current pixels that a caller established, e.g. "these are the values a PNG at this range holds")."""
+        refs = tuple(None if t is None else weakref.ref(t) for t in self.tensors())
+        self._cache[f"note:{name}"] = (self.fingerprint(), refs, value)
+
+    def noted(self, name: str) -> Any:
+        """The value ``note`` remembered under ``name`` while the pixels are unchanged, else None."""
+        return self._peek(f"note:{name}", self.tensors())
+
     def _peek(self, name: str, tensors: tuple[Tensor | None, ...]) -> Any:
         """The cached value of ``name`` if it is still valid for ``tensors``, else None."""
         hit = self._cache.get(name)

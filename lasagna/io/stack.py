@@ -38,6 +38,7 @@ from lasagna.io.png import (
     DEFAULT_MAX_PIXELS,
     PngImage,
     encode_png,
+    quantize,
     read_png,
 )
 from lasagna.io.render import render_stack
@@ -297,6 +298,8 @@ def _channels_first(image, where: str) -> tuple[torch.Tensor, bool]:
         return torch.from_numpy(_pil_to_codes(image)), True
     if not isinstance(image, (torch.Tensor, np.ndarray)):
         raise ImageError(f"got {type(image).__name__}; expected a torch tensor, numpy array or PIL image", where=where)
+    if isinstance(image, np.ndarray) and image.ndim == 3 and image.shape[-1] <= 4 < image.shape[0]:
+        image = image.transpose(2, 0, 1)  # (h, w, C) as PIL and imageio give arrays
     t = image if isinstance(image, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(image))
     codes = not t.is_floating_point()
     if codes:
@@ -309,7 +312,8 @@ def _channels_first(image, where: str) -> tuple[torch.Tensor, bool]:
         t = t[None]
     if t.ndim != 3 or t.shape[0] not in (1, 2, 3, 4) or t.shape[1] < 1 or t.shape[2] < 1:
         raise ImageError(
-            f"shape {tuple(t.shape)}; expected (C, h, w) or (h, w) with C in 1..4, channels first", where=where
+            f"shape {tuple(t.shape)}; expected (C, h, w) or (h, w) with C in 1..4 (a numpy array may be (h, w, C))",
+            where=where,
         )
     return t, codes
 
@@ -439,6 +443,7 @@ def load_surveyed(survey: Survey) -> Stack:
         img = images.pop((r.loc, "source"))
         mask_img = images.pop((r.loc, "mask")) if layer.mask is not None else None
         stack.tensors[layer.id] = layer_tensors(img, layer.range, mask_img, f"{file}: {r.loc}.mask ({layer.mask})")
+        stack.tensors[layer.id].note("stored", tuple(layer.range))  # what the folder holds (learned.as_stored)
         stack.bit_depths[layer.id] = img.header.bit_depth if img.header.bit_depth == 16 else 8
     return stack
 
@@ -499,8 +504,9 @@ def _unit(values, where: str, clip: bool) -> np.ndarray:
     return _stored_codes(values, 0.0, 1.0, where, clip)
 
 
-def encode_layer(stack: Stack, id: str, *, clip: bool = False) -> tuple[bytes, bytes | None]:
-    """PNG bytes of layer ``id``'s source and of its mask (None without one)."""
+def _layer_codes(stack: Stack, id: str, clip: bool):
+    """Layer ``id``'s stored codes v as float64 arrays (colour, alpha or None, mask or None) and the bit depth
+    its PNGs are written at: 16 for a range other than [0, 1] and for learned layers, never less than read."""
     layer = stack.document.layer(id)
     t = stack.tensors[id]
     where = f"layer {id!r}"
@@ -511,11 +517,47 @@ def encode_layer(stack: Stack, id: str, *, clip: bool = False) -> tuple[bytes, b
         raise ImageError(f"colour has shape {tuple(t.color.shape)}; expected (C, h, w) to save (no batch)", where=where)
     color = _stored_codes(t.color, lo, hi, where, clip)
     alpha = _unit(t.alpha, f"{where} alpha", clip) if t.alpha is not None else None
+    mask = _unit(t.mask, f"{where} mask", clip) if t.mask is not None else None
+    return color, alpha, mask, depth
+
+
+def encode_layer(stack: Stack, id: str, *, clip: bool = False) -> tuple[bytes, bytes | None]:
+    """PNG bytes of layer ``id``'s source and of its mask (None without one)."""
+    where = f"layer {id!r}"
+    color, alpha, mask, depth = _layer_codes(stack, id, clip)
     data = encode_png(color, alpha, bit_depth=depth, where=where)
-    mask_data = None
-    if t.mask is not None:
-        mask_data = encode_png(_unit(t.mask, f"{where} mask", clip), bit_depth=depth, where=f"{where} mask")
+    mask_data = None if mask is None else encode_png(mask, bit_depth=depth, where=f"{where} mask")
     return data, mask_data
+
+
+@dataclass
+class _Planes:
+    """What ``decode_png`` gives ``layer_tensors``: float32 colour (C, h, w) and alpha in [0, 1]."""
+
+    color: np.ndarray
+    alpha: np.ndarray | None = None
+
+
+def _decoded(v: np.ndarray, depth: int, where: str) -> np.ndarray:
+    # The codes a PNG of this depth holds (encode_png's quantize), read back as decode_png reads them:
+    # float32 codes divided by the float32 maximum code.
+    codes = quantize(v, depth, where)
+    return np.divide(codes, np.float32(2**depth - 1), dtype=np.float32)
+
+
+def stored_tensors(stack: Stack, id: str) -> tuple[LayerTensors, int]:
+    """Layer ``id``'s tensors as saving and loading them gives them, and the bit depth: exactly
+    ``layer_tensors(decode_png(encode_layer(...)))``, computed without encoding (the same codes, divided and
+    range-mapped the same way), and noted as stored (``LayerTensors.note``) so that ``as_stored`` can skip
+    them until they or the layer's range change."""
+    layer = stack.document.layer(id)
+    where = f"layer {id!r}"
+    color, alpha, mask, depth = _layer_codes(stack, id, clip=False)
+    img = _Planes(_decoded(color, depth, where), None if alpha is None else _decoded(alpha, depth, f"{where} alpha"))
+    mask_img = None if mask is None else _Planes(_decoded(mask, depth, f"{where} mask"))
+    tensors = layer_tensors(img, layer.range, mask_img, f"{where} mask")
+    tensors.note("stored", tuple(layer.range))
+    return tensors, depth
 
 
 def stack_files(stack: Stack, folder: str | os.PathLike, *, clip: bool = False) -> list[tuple[Path, bytes]]:

@@ -36,7 +36,7 @@ def open_target(path: str | os.PathLike, *, max_pixels: int = DEFAULT_EDIT_MAX_P
     folder = p.with_name(p.stem + STACK_SUFFIX)
     if (folder / "stack.json").is_file():
         return folder, False
-    from lasagna.edit import read_image
+    from lasagna.editing import read_image
     from lasagna.io.folder import write_stack_folder
 
     stack = read_image(p, max_pixels)

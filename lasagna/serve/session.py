@@ -1,7 +1,7 @@
 """One open stack in the editor: the document and its tensors, undo/redo, views, versioned saves and jobs.
 
 An ``EditSession`` holds the stack folder's ``Stack`` in memory and changes it only through the engine's
-own verbs (``Document.replace_layer``, ``Stack.add_layer``, ``lasagna.edit.plan_edit``, ``make_layer``,
+own verbs (``Document.replace_layer``, ``Stack.add_layer``, ``lasagna.editing.plan_edit``, ``make_layer``,
 ``render_learned``, the exporters): the server is one more caller of the code the CLI runs, never a second
 implementation of it.
 
@@ -326,9 +326,9 @@ class EditSession:
         self, version: Any, preset: Any, condition: Any, on: Any = None, method: Any = "amortised"
     ) -> dict[str, Any]:
         """A learned layer of catalogue preset ``preset`` for ``condition`` on top. ``amortised``: made now by
-        the preset's generator (one forward pass, ``lasagna.edit.plan_edit``). ``per-image``: the layer is
+        the preset's generator (one forward pass, ``lasagna.editing.plan_edit``). ``per-image``: the layer is
         added without pixels, as a document may hold it, for a ``rerender`` job to make with progress."""
-        from lasagna.edit import plan_edit
+        from lasagna.editing import plan_edit
 
         if not isinstance(preset, str) or not isinstance(condition, str):
             raise LasagnaError("expected a preset name and a condition", "preset")
@@ -614,7 +614,7 @@ class EditSession:
         return job
 
     def _run_job(self, job: Job, stack: Stack, version: int) -> None:
-        from lasagna.edit import render_learned
+        from lasagna.editing import render_learned
 
         def callback(step: int, layer) -> None:
             job.step = step + 1  # steps done once this one is
@@ -677,7 +677,7 @@ class EditSession:
     def _refine_from_catalogue(self, stack: Stack, layer: LearnedLayer, steps: int, callback):
         """Refine an amortised layer whose generator copy is not saved yet: the catalogue's generator (the one
         the copy was made from) and ``steps`` per-image steps, as ``lasagna edit --optimize`` runs them."""
-        from lasagna.edit import EditPlan
+        from lasagna.editing import EditPlan
         from lasagna.learned import conditioning_input
 
         start = time.monotonic()

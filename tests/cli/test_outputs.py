@@ -156,10 +156,10 @@ def test_a_long_legal_output_name(tmp_path, capsys):
 
 
 def test_edit_refuses_a_symlinked_output_before_any_work(tmp_path, capsys, monkeypatch, tiny):
-    import lasagna.edit
+    import lasagna.editing
 
     monkeypatch.setenv("LASAGNA_LAYERS", str(tiny))
-    monkeypatch.setattr(lasagna.edit, "edit", lambda *a, **k: pytest.fail("the edit ran before the check"))
+    monkeypatch.setattr(lasagna.editing, "edit", lambda *a, **k: pytest.fail("the edit ran before the check"))
     (tmp_path / "real").mkdir()
     (tmp_path / "link").symlink_to(tmp_path / "real")
     code, _, err = run(capsys, "edit", PHOTO, "--condition", "left", "-o", tmp_path / "link")

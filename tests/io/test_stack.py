@@ -420,3 +420,67 @@ def test_ranges_of_a_32768_expanded_view_do_not_materialise_it():
     assert lt.color_range() == pytest.approx((0.1, 0.3))
     assert lt.alpha_range() == (0.5, 0.5)
     assert time.perf_counter() - start < 2
+
+
+# ---- stored values without encoding ---------------------------------------------------------------
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    lo=st.sampled_from([0.0, 0.25]),
+    width=st.sampled_from([1.0, 2.0, 3.75]),
+    channels=st.sampled_from([1, 3]),
+    alpha=st.booleans(),
+    mask=st.booleans(),
+    depth=st.sampled_from([8, 16]),
+    seed=st.integers(0, 2**16),
+)
+def test_stored_tensors_equal_an_encode_decode_round_trip(lo, width, channels, alpha, mask, depth, seed):
+    """``stored_tensors`` is bit-identical to encoding the layer's PNGs and loading them back."""
+    from lasagna.io.png import decode_png
+    from lasagna.io.stack import encode_layer, layer_tensors, stored_tensors
+
+    g = torch.Generator().manual_seed(seed)
+    hi = lo + width
+    values = lo + width * torch.rand((channels, 5, 7), generator=g)
+    stack = Stack.from_image(torch.rand((3, 5, 7), generator=g))
+    stack.add_layer(
+        "x",
+        values,
+        range=(lo, hi),
+        blend="multiply",
+        alpha=torch.rand((1, 5, 7), generator=g) if alpha else None,
+        mask=torch.rand((1, 5, 7), generator=g) if mask else None,
+    )
+    stack.bit_depths["x"] = depth
+    data, mask_data = encode_layer(stack, "x")
+    img = decode_png(data, "x")
+    ref = layer_tensors(img, (lo, hi), decode_png(mask_data, "m") if mask_data else None)
+    got, got_depth = stored_tensors(stack, "x")
+    assert got_depth == img.header.bit_depth
+    for a, b in zip(got.tensors(), ref.tensors()):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert a.dtype == b.dtype and torch.equal(a, b)
+
+
+def test_as_stored_keeps_loaded_tensors_until_they_or_the_range_change(tmp_path):
+    from lasagna.learned import as_stored
+
+    stack = load_stack(EXAMPLES / "basic")
+    before = dict(stack.tensors)
+    as_stored(stack)
+    assert all(stack.tensors[i] is before[i] for i in before)  # loaded values are stored values: kept
+    shade = stack.tensors["shade"]
+    shade.color.add_(1e-3)  # modified in place: no longer on the 16-bit grid
+    as_stored(stack, ["shade"])
+    assert stack.tensors["shade"] is not shade
+    step = 2.0 / 65535
+    k = stack.tensors["shade"].color.double() / step
+    assert torch.allclose(k, k.round(), atol=1e-2)  # back on the grid of the range's codes
+    kept = stack.tensors["shade"]
+    as_stored(stack, ["shade"])
+    assert stack.tensors["shade"] is kept  # made here: noted as stored
+    stack.document = stack.document.with_layer({**stack.document.layer("shade").model_dump(), "range": [0.0, 4.0]})
+    as_stored(stack, ["shade"])
+    assert stack.tensors["shade"] is not kept  # another range: other codes

@@ -436,7 +436,7 @@ def test_presets_are_listed_ready_or_why_not(client):
 
 
 def test_an_amortised_layer_in_one_request_equals_lasagna_edit(client, folder, tmp_path):
-    from lasagna.edit import edit
+    from lasagna.editing import edit
 
     s = change(client, op="learned", preset="shading", condition="top-left")
     top = s["document"]["layers"][-1]

@@ -329,10 +329,24 @@ async function fetchView(params) {
   return { canvas, level: params.level, w, h };
 }
 
+// While a slider is dragged the canvas shows a proxy: the view one level coarser when that still has
+// DRAG_PROXY_SIDE pixels on its long side (a 2048² stack fitted at 1/2 is previewed at 512², a quarter of
+// the bytes to composite, send and draw); releasing the slider repaints at the full view level.
+const DRAG_PROXY_SIDE = 512;
+function dragLevel(level) {
+  const W = ui.state.document.canvas.width, H = ui.state.document.canvas.height;
+  let l = level;
+  while (l + 1 < ui.state.levels && Math.ceil(Math.max(W, H) / 2 ** (l + 1)) >= DRAG_PROXY_SIDE) l += 1;
+  return Math.min(l, level + 1);
+}
+
 let wanted = null, inflight = false;
 function paint() {
   if (!ui.state) return;
-  wanted = { level: levelFor(ui.zoom), drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split };
+  const level = levelFor(ui.zoom);
+  wanted = {
+    level: ui.drag ? dragLevel(level) : level, drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split,
+  };
   if (!inflight) paintLoop();
 }
 

@@ -1,6 +1,6 @@
 """Learned layers for users: fill a learned layer of an image or stack, re-render one from its stack.
 
-    from lasagna.edit import edit, render_learned
+    from lasagna.editing import edit, render_learned
     result = edit("photo.png", "shading", "left")   # EditResult: stack, layer, composite, …
     result.save("out/relit")                        # stack.json, layers/, generators/, composite.png, stack.ora
     render_learned("out/relit", all=True)           # the stack document alone reproduces the layer
@@ -358,6 +358,13 @@ def read_control_image(source, size: tuple[int, int], max_pixels: int = DEFAULT_
 def check_edit_options(preset, optimize: int | None, steps: int | None = None) -> int | None:
     """``edit``'s checks of its options that need no image: the preset is a name, ``optimize`` (or its
     deprecated second name ``steps``) a non-negative integer; returns the steps asked for (None: default)."""
+    if preset is not None and not isinstance(preset, (str, os.PathLike)):
+        # A Preset object has no folder: the layer's record could not name it for a later render.
+        raise LasagnaError(
+            f"got a {type(preset).__name__}; expected a catalogue name (write the preset with preset.to_json() "
+            "into <folder>/<name>/preset.json and add <folder> with catalogue_dirs= or LASAGNA_LAYERS)",
+            "preset",
+        )
     if preset is None or "/" in str(preset) or isinstance(preset, os.PathLike):
         raise LasagnaError(
             f"preset {str(preset)!r} is not a name; expected a catalogue name (add a catalogue folder "
