@@ -1,6 +1,6 @@
 """The learned-layer catalogue ships in the wheel: build it, install it apart from the checkout, load presets.
 
-The wheel is built from a copy of the sources (pyproject.toml, README.md, lasagna/, layers/) so the
+The wheel is built from a copy of the sources (pyproject.toml, README.md, LICENSE, lasagna/, layers/) so the
 checkout gets no build/ or egg-info; it is installed with ``pip install --no-deps --target`` and
 imported from a temporary folder in a fresh interpreter, with ``LASAGNA_LAYERS`` unset — the checkout
 is not importable there, so the presets can only come from the installed package (``lasagna/_layers``).
@@ -41,7 +41,7 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
     tmp = tmp_path_factory.mktemp("wheel")
     src = tmp / "src"
     src.mkdir()
-    for name in ("pyproject.toml", "README.md"):
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
         shutil.copy2(ROOT / name, src / name)
     ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
     for name in ("lasagna", "layers"):
@@ -81,6 +81,8 @@ def test_wheel_holds_every_catalogue_file(installed):
     assert "lasagna/catalogue.py" in names and "lasagna/_layers/PACKAGING.md" in names
     page = {f"lasagna/serve/static/{p.name}" for p in (ROOT / "lasagna" / "serve" / "static").iterdir()}
     assert page and page <= names  # the editor's page works from an installed package, offline
+    assert "lasagna/py.typed" in names  # PEP 561: type checkers read the package's annotations
+    assert any(n.endswith("LICENSE") and ".dist-info/" in n for n in names)
 
 
 def test_presets_resolve_from_the_installed_package(installed, tmp_path):
