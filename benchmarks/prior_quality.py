@@ -35,19 +35,45 @@ sys.path.insert(0, str(ROOT))
 from lasagna.priors.evaluate import denoising_error, sample_quality  # noqa: E402
 from lasagna.priors.unet import UNetPrior  # noqa: E402
 from lasagna.training import cumulative_seconds, read_log  # noqa: E402
-from lasagna.training.prior import PriorTrainConfig, prior_batch, prior_from_checkpoint, task_vocabulary  # noqa: E402
+from lasagna.training.prior import (  # noqa: E402
+    NAMED_SHARE,
+    PriorTrainConfig,
+    prior_batch,
+    prior_from_checkpoint,
+    task_vocabulary,
+)
 from lasagna.world import generate  # noqa: E402
+
+BETWEEN = 22.5
+"""Degrees of azimuth from each named light to the direction between it and the next (benchmarks/relight.py's)."""
 
 
 def heldout(task: str, count: int, resolution: int, seed: int, split: str = "heldout"):
     vocab = task_vocabulary(task)
     # An equal number of scenes per label, so per-label means are comparable.
     labels = [vocab[i % len(vocab)] for i in range(count)]
-    scene = generate(split, count, seed, resolution, labels=labels if task == "relight" else None)
+    scene = generate(split, count, seed, resolution, labels=labels if task in ("relight", "relit") else None)
     if task == "light":
         scene = replace(scene, params=scene.params.with_glow_labels(labels))
     x0, lab_idx, cond = prior_batch(task, scene)
     return x0, [vocab[i] for i in lab_idx.tolist()], cond
+
+
+def between(task: str, count: int, resolution: int, seed: int, split: str = "heldout"):
+    """``heldout``'s scenes and targets for the directions between the named ones (az + 22.5°, the same
+    elevation), as ``az=…,el=…`` labels: what a prior conditioned on directions never saw named."""
+    from lasagna.document.condition import format_direction, named_direction
+    from lasagna.world import relighting, with_light
+    from lasagna.world.tasks import relight_sources
+
+    vocab = task_vocabulary(task)
+    named = [vocab[i % len(vocab)] for i in range(count)]
+    scene = generate(split, count, seed, resolution, labels=named)
+    lights = [format_direction(named_direction(n)[0] + BETWEEN, named_direction(n)[1]) for n in named]
+    if task == "relit":
+        rel = relighting(scene, relight_sources(scene.params), lights)
+        return rel.target, lights, rel.base
+    return with_light(scene, lights).image, lights, scene.albedo
 
 
 def train_seconds(log: list[dict], step: int) -> float:
@@ -115,6 +141,11 @@ def main(argv=None) -> int:
     quality = sample_quality(prior, x0, labels, cond, omegas=omegas, steps=args.steps, seed=args.seed)
     eval_s = time.perf_counter() - t0
     denoise = denoising_error(prior, x0, labels, cond, seed=args.seed)
+    mid = None
+    if config.unet.directions:
+        xm, lm, cm = between(config.task, args.count, res, args.seed, args.split)
+        q = sample_quality(prior, xm, lm, cm, omegas=omegas, steps=args.steps, seed=args.seed)
+        mid = {str(w): round(v["all"], 2) for w, v in q.items()}
 
     log = read_log(args.run)
     growth = []
@@ -184,6 +215,7 @@ def main(argv=None) -> int:
         "ddim_steps": args.steps,
         "psnr": {str(w): {k: round(v, 2) for k, v in q.items()} for w, q in quality.items()},
         "denoise_mse_per_t": {str(k): round(v, 6) for k, v in denoise.items()},
+        "psnr_between": mid,
         "growth": growth,
         "eval_seconds": round(eval_s, 1),
         "previous": previous and {k: v for k, v in previous.items() if k != "growth"},
@@ -219,9 +251,14 @@ def _previous_stage(path: Path | None) -> dict | None:
 def _training_section(m: dict, config: PriorTrainConfig) -> str:
     extra = "".join(
         [
+            " --directions" if config.unet.directions else "",
+            f" --init-from layers/{Path(config.init_from).name}" if config.init_from is not None else "",
             f" --lr {config.lr:g}" if config.lr != 2e-3 else "",
             f" --lr-schedule {config.lr_schedule}" if config.lr_schedule != "step" else "",
+            f" --warmup {config.warmup_steps}" if config.init_from is not None else "",
+            f" --ema {config.ema_decay:g}" if config.init_from is not None else "",
             " --ema-warmup" if config.ema_warmup else "",
+            f" --seed {config.seed}" if config.seed != 0 else "",
         ]
     )
     one = (
@@ -252,8 +289,20 @@ def _training_section(m: dict, config: PriorTrainConfig) -> str:
             f"python benchmarks/prior_quality.py --run runs/{m['name']} --name {m['name']}\n```\n"
         )
     if not prev:
+        start = ""
+        if config.init_from is not None:
+            source = Path(config.init_from).name
+            start = (
+                f"Started from the bundled prior `{source}`'s weights ([its card](../{source}/MODEL.md))"
+                + (
+                    " — its label embedding gives way to the direction encoder, trained from scratch"
+                    if config.unet.directions
+                    else ""
+                )
+                + "; "
+            )
         return (
-            f"{stage}. Reproduce:\n\n```sh\n{one}\n"
+            f"{start}{stage}. Reproduce:\n\n```sh\n{one}\n"
             f"python benchmarks/prior_quality.py --run runs/{m['name']} --name {m['name']}\n```\n"
         )
     total = round((prev.get("train_minutes") or 0) + (m["train_minutes"] or 0), 1)
@@ -275,10 +324,27 @@ def _training_section(m: dict, config: PriorTrainConfig) -> str:
     )
 
 
+def _families(split: str) -> str:
+    from lasagna.world.splits import get_split
+
+    sp = get_split(split)
+    walls = sorted(set(sp.wall_textures))
+    relief = f"; wall relief {', '.join(sp.reliefs)}" if sp.reliefs else ""
+    return (
+        f"shapes {', '.join(sp.shapes)}, {sp.objects[0]}–{sp.objects[1]} per scene; object textures "
+        f"{', '.join(sp.object_textures)}; wall textures {', '.join(walls)}{relief}"
+    )
+
+
 def model_card(m: dict, config: PriorTrainConfig, args) -> str:
     u = config.unet
     cond, target = {
         "relight": ("the albedo (3 channels) and the lighting label", "the lit image albedo × shading"),
+        "relit": (
+            "the scene already lit by a random source light A (3 channels: the Lasagna paper's setting) and the "
+            "target light B",
+            "the same scene lit by B (the relight ratio S_B / S_A is what a layer then carries)",
+        ),
         "colorize": ("the Rec. 709 luma (1 channel) and the label `natural`", "the colour image"),
         "light": (
             "the unlit image (3 channels) and the glow's label (warm, cool, white)",
@@ -299,6 +365,23 @@ def model_card(m: dict, config: PriorTrainConfig, args) -> str:
         + " | ".join(f"{v:.4f}" for v in m["denoise_mse_per_t"].values())
         + " |\n"
     )
+    light = ""
+    if u.directions:
+        light = (
+            "\nThe light is a direction, not a label: a named light is its unit vector (azimuth from +x toward +y, "
+            "elevation from the view axis; `left` is az=180,el=60), Fourier features → MLP; training lit "
+            f"{round(100 * NAMED_SHARE)} % of scenes by a named light and the rest by a uniformly random direction.\n"
+        )
+    mid = ""
+    if m.get("psnr_between"):
+        mid = (
+            "\nDirections between the named ones (each named light's azimuth + 22.5°, the same elevation), the same "
+            "scenes: "
+            + ", ".join(f"ω = {w}: {v:.2f} dB" for w, v in m["psnr_between"].items())
+            + " (named: "
+            + ", ".join(f"ω = {w}: {q['all']:.2f} dB" for w, q in m["psnr"].items())
+            + ").\n"
+        )
     grow = ""
     if m["growth"]:
         grow = (
@@ -313,12 +396,11 @@ A `UNetPrior` ({m["params"] / 1e6:.2f} M parameters, channels {list(u.channels)}
 {u.prediction}-prediction, linear β schedule with T = {u.schedule.num_steps}) at {m["resolution"]}² pixels, trained on
 this 2-core CPU on the procedural world, conditioned ControlNet-style on {cond}; it generates {target}.
 Label dropout {config.p_uncond} trains the null label for classifier-free guidance (ε̂ = ε_u + ω(ε_c − ε_u)).
-
+{light}
 ## Data
-Fresh batches of {config.batch_size} scenes from the world's `train` split every step (no data set on disk; shapes
-ellipsoid/box/cylinder, textures stripes/checker/noise); `val` and `heldout` are never seen. Evaluated on
-{m["heldout_scenes"]} scenes of the `heldout` split: other seeds and shape/texture families the prior never saw
-(torus, capsule, cone; dots, marble, rings; bricks).
+Fresh batches of {config.batch_size} scenes from the world's `train` split every step (no data set on disk; {_families("train")});
+`val`, `heldout` and `far` are never seen. Evaluated on {m["heldout_scenes"]} scenes of the `heldout` split: other seeds
+and families the prior never saw ({_families("heldout")}).
 
 ## Training
 {_training_section(m, config)}
@@ -330,7 +412,7 @@ DDIM-{m["ddim_steps"]} samples against the true image, PSNR in dB (higher is bet
 {head}{rows}
 Denoising error per t (conditional x̂₀, [0, 1] units):
 
-{den}{grow}
+{den}{mid}{grow}
 Measured {m["date"]} on {m["machine"]}; evaluation took {m["eval_seconds"]} s.
 """
 
