@@ -11,10 +11,14 @@ are expressed as in :mod:`lasagna.export.rasters` (multiplier y > 1 as a multipl
 ``svg:color-dodge`` pair). A bottom background layer makes the file flatten to our opaque composite.
 Alpha × mask is baked into each PNG's alpha, opacity into ``opacity``.
 
-Import is the inverse for flat stacks and refuses what it cannot read safely: entry names that are
+Groups are nested ``<stack>`` elements (``isolation="isolate"`` for an isolated group with its
+composite-op and opacity, ``"auto"`` for a pass-through one), their layers at canvas offsets, as Krita
+writes them; see :mod:`lasagna.export.rasters` for what is exact.
+
+Import is the inverse, nested stacks included, and refuses what it cannot read safely: entry names that are
 absolute or contain ``..`` (zip-slip), archives whose declared or actual uncompressed size exceeds
 a limit, PNGs over the pixel limit (checked from the header before decoding), DTDs/entities in
-stack.xml, nested stacks (groups) and unknown composite-ops.
+stack.xml, groups nested deeper than ``MAX_GROUP_DEPTH`` and unknown composite-ops.
 """
 
 from __future__ import annotations
@@ -66,6 +70,9 @@ DODGE_PREFIX = "data/_dodge/"  # the src of the colour-dodge half of a multiplie
 # An archive whose entries inflate to more than this is refused (zip bombs); 4 GiB holds 2^28
 # RGBA pixels, the per-image limit, with room to spare.
 DEFAULT_MAX_UNCOMPRESSED = 4 * 2**30
+# Nested <stack> levels read; deeper files are refused, so a crafted file cannot exhaust the recursion of
+# the reader, the compositor or the document's validation (paint programs' files nest a few levels).
+MAX_GROUP_DEPTH = 32
 
 
 # ---- export --------------------------------------------------------------------------------------
@@ -79,19 +86,47 @@ def _thumbnail(composite_hwc: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def _stack_xml(width: int, height: int, layers: list[ExportLayer]) -> str:
-    lines = ["<?xml version='1.0' encoding='UTF-8'?>", f'<image version="0.0.5" w="{width}" h="{height}">', "  <stack>"]
-    for layer in reversed(layers):  # topmost first
+def _layer_xml(layer: ExportLayer, indent: str) -> str:
+    attrs = {
+        "name": layer.name,
+        "src": f"data/{layer.key}.png",
+        "x": str(layer.x),
+        "y": str(layer.y),
+        "opacity": f"{layer.opacity:.6f}",
+        "visibility": "visible" if layer.visible else "hidden",
+        "composite-op": OPS_TO_SVG[layer.op],
+    }
+    return indent + "<layer " + " ".join(f"{k}={quoteattr(v)}" for k, v in attrs.items()) + " />"
+
+
+def _items_xml(items: list, indent: str) -> list[str]:
+    from lasagna.export.rasters import ExportGroup
+
+    lines = []
+    for item in reversed(items):  # topmost first
+        if not isinstance(item, ExportGroup):
+            lines.append(_layer_xml(item, indent))
+            continue
+        # A group is a nested stack at x = y = 0 (its layers carry canvas offsets), as Krita writes one;
+        # isolation "isolate" | "auto" (pass-through) as the OpenRaster spec and Krita name them.
         attrs = {
-            "name": layer.name,
-            "src": f"data/{layer.key}.png",
-            "x": str(layer.x),
-            "y": str(layer.y),
-            "opacity": f"{layer.opacity:.6f}",
-            "visibility": "visible" if layer.visible else "hidden",
-            "composite-op": OPS_TO_SVG[layer.op],
+            "name": item.name,
+            "x": "0",
+            "y": "0",
+            "opacity": f"{item.opacity:.6f}",
+            "visibility": "visible" if item.visible else "hidden",
+            "composite-op": OPS_TO_SVG[item.op],
+            "isolation": "isolate" if item.isolated else "auto",
         }
-        lines.append("    <layer " + " ".join(f"{k}={quoteattr(v)}" for k, v in attrs.items()) + " />")
+        lines.append(indent + "<stack " + " ".join(f"{k}={quoteattr(v)}" for k, v in attrs.items()) + ">")
+        lines += _items_xml(item.layers, indent + "  ")
+        lines.append(indent + "</stack>")
+    return lines
+
+
+def _stack_xml(width: int, height: int, layers: list) -> str:
+    lines = ["<?xml version='1.0' encoding='UTF-8'?>", f'<image version="0.0.5" w="{width}" h="{height}">', "  <stack>"]
+    lines += _items_xml(layers, "    ")
     lines += ["  </stack>", "</image>", ""]
     return "\n".join(lines)
 
@@ -115,11 +150,13 @@ def encode_ora(stack, *, composite: torch.Tensor | None = None, warn: Callable[[
 
         composite = render_stack(stack).image
     merged = composite_uint8(composite)
-    from lasagna.export.rasters import export_layers
+    from lasagna.export.rasters import export_layers, leaves
 
-    layers = export_layers(stack, composite.detach().cpu().double().numpy(), target="OpenRaster", warn=warn)
+    layers = export_layers(
+        stack, composite.detach().cpu().double().numpy(), target="OpenRaster", warn=warn, groups=True
+    )
     entries: list[tuple[str, bytes]] = [("stack.xml", _stack_xml(stack.width, stack.height, layers).encode("utf-8"))]
-    for layer in layers:
+    for layer in leaves(layers):
         rgba = layer.rgba_uint8().transpose(2, 0, 1) / 255.0
         entries.append((f"data/{layer.key}.png", encode_png(rgba[:3], rgba[3:], where=layer.key)))
     buf = io.BytesIO()
@@ -231,7 +268,9 @@ def read_ora(
     any is decoded, and each entry is read only up to what a PNG of its header can hold.
 
     Each layer is a dict with ``name``, ``src``, ``x``, ``y``, ``opacity``, ``visible``,
-    ``blend`` (ours) and ``image`` (a decoded :class:`PngImage`).
+    ``blend`` (ours) and ``image`` (a decoded :class:`PngImage`); each nested ``<stack>`` a dict with
+    ``kind="group"``, ``name``, ``opacity``, ``visible``, ``blend``, ``isolation`` ("isolate" | "auto") and its
+    ``layers`` (bottom to top; their ``x``, ``y`` on the canvas, the stacks' offsets added).
     """
     where = str(path)
     try:
@@ -296,34 +335,67 @@ def read_ora(
         stacks = [c for c in root if c.tag == "stack"]
         if len(stacks) != 1:
             raise ImageError(f"<image> holds {len(stacks)} <stack> elements; expected exactly one", where=xwhere)
-        planned = []
+        planned: list[dict] = []
         users: dict[str, int] = {}
-        for n, el in enumerate(stacks[0]):
-            lwhere = f"{xwhere}: stack[{n}]"
-            if el.tag == "stack":
-                raise ImageError(
-                    "nested <stack> (a layer group) is not supported; expected a flat stack "
-                    "(merge or ungroup groups in your editor before exporting)",
-                    where=lwhere,
-                )
-            if el.tag != "layer":
-                raise ImageError(f"<{el.tag}> element is not supported; expected <layer>", where=lwhere)
+
+        def items(stack_el, swhere: str, depth: int) -> list[dict]:
+            """The layers and groups of a <stack>, bottom to top; every layer is appended to ``planned``."""
+            if depth > MAX_GROUP_DEPTH:
+                raise ImageError(f"groups nest deeper than {MAX_GROUP_DEPTH}; expected fewer levels", where=swhere)
+            out = []
+            for n, el in enumerate(stack_el):
+                lwhere = f"{swhere}[{n}]"
+                if el.tag == "stack":
+                    out.append(group(el, lwhere, depth + 1))
+                    continue
+                if el.tag != "layer":
+                    raise ImageError(f"<{el.tag}> element is not supported; expected <layer> or <stack>", where=lwhere)
+                out.append(leaf(el, lwhere, len(planned)))
+            out.reverse()  # stack.xml is topmost first; documents are bottom first
+            return out
+
+        def common(el, lwhere: str) -> dict:
             op = el.get("composite-op", "svg:src-over")
             if op not in SVG_TO_BLEND:
                 raise ImageError(
                     f"composite-op {op!r} is not supported; expected one of {', '.join(SVG_TO_BLEND)}",
                     where=lwhere,
                 )
-            src = el.get("src")
-            if not src:
-                raise ImageError("layer has no src; expected src naming a PNG in the archive", where=lwhere)
-            _check_entry_name(src, lwhere)
             opacity = _float_attr(el, "opacity", 1.0, lwhere)
             if not 0.0 <= opacity <= 1.0:
                 raise ImageError(f"opacity={opacity}; expected a number in [0, 1]", where=lwhere)
             visibility = el.get("visibility", "visible")
             if visibility not in ("visible", "hidden"):
                 raise ImageError(f"visibility={visibility!r}; expected 'visible' or 'hidden'", where=lwhere)
+            return dict(
+                x=_int_attr(el, "x", lwhere),
+                y=_int_attr(el, "y", lwhere),
+                opacity=opacity,
+                visible=visibility == "visible",
+                blend=SVG_TO_BLEND[op],
+                where=lwhere,
+            )
+
+        def group(el, lwhere: str, depth: int) -> dict:
+            g = common(el, lwhere)
+            isolation = el.get("isolation", "auto")
+            if isolation not in ("isolate", "auto"):
+                raise ImageError(f"isolation={isolation!r}; expected 'isolate' or 'auto'", where=lwhere)
+            # Layers inside carry canvas offsets, as Krita writes them; a stack's own x, y move its layers.
+            g.update(kind="group", name=el.get("name") or "", isolation=isolation)
+            g["layers"] = items(el, f"{lwhere}: stack", depth)
+            if g["x"] or g["y"]:
+                for lay in _walk_leaves(g["layers"]):
+                    lay["x"] += g["x"]
+                    lay["y"] += g["y"]
+            return g
+
+        def leaf(el, lwhere: str, n: int) -> dict:
+            src = el.get("src")
+            if not src:
+                raise ImageError("layer has no src; expected src naming a PNG in the archive", where=lwhere)
+            _check_entry_name(src, lwhere)
+            c = common(el, lwhere)
             # Check the PNG's header before inflating the rest of it.
             entry = names.get(src)
             if entry is None:
@@ -344,30 +416,27 @@ def read_ora(
                 raise ImageError(f"entry {src!r} is corrupt ({exc}); expected a valid zip entry", where=where) from None
             header = parse_header(head, pwhere)
             check_size(header, pwhere, max_pixels, 32768)
-            planned.append(
-                dict(
-                    name=el.get("name") or PurePosixPath(src).stem,
-                    src=src,
-                    x=_int_attr(el, "x", lwhere),
-                    y=_int_attr(el, "y", lwhere),
-                    opacity=opacity,
-                    visible=visibility == "visible",
-                    blend=SVG_TO_BLEND[op],
-                    header=header,
-                    where=lwhere,
-                )
-            )
+            layer = dict(name=el.get("name") or PurePosixPath(src).stem, src=src, header=header, **c)
+            planned.append(layer)
+            return layer
+
+        tree = items(stacks[0], f"{xwhere}: stack", 0)
         # Every layer's header is known: refuse over the memory budget before decoding any of them.
         needed = load_bytes((layer["header"] for layer in planned), copies)
         check_memory(needed, f"decoding the {len(planned)} layers", where)
-        layers = []
         for layer in planned:
             pwhere = f"{where}: {layer['src']}"
             data = read(layer["src"], png_file_limit(layer.pop("header")))
             layer["image"] = decode_png(data, pwhere, max_pixels=max_pixels, max_side=32768)
-            layers.append(layer)
-    layers.reverse()  # stack.xml is topmost first; documents are bottom first
-    return width, height, layers
+    return width, height, tree
+
+
+def _walk_leaves(items: list[dict]):
+    for item in items:
+        if item.get("kind") == "group":
+            yield from _walk_leaves(item["layers"])
+        else:
+            yield item
 
 
 def _same_geometry(a: dict, b: dict) -> bool:
@@ -404,9 +473,9 @@ def import_ora(
     """
     width, height, layers = read_ora(path, max_pixels=max_pixels, max_uncompressed=max_uncompressed)
     background = (0.0, 0.0, 0.0)
-    if layers and layers[-1]["src"] == "data/_composite.png":
+    if layers and layers[-1].get("src") == "data/_composite.png":
         layers = layers[:-1]  # the exact composite export_ora adds when layers cannot express the stack
-    if layers and layers[0]["src"] == "data/_background.png":
+    if layers and layers[0].get("src") == "data/_background.png":
         bg = layers[0]["image"]
         c = bg.color if bg.color.shape[0] == 3 else np.repeat(bg.color, 3, axis=0)
         opaque = bg.alpha is None or bool((bg.alpha == 1.0).all())
@@ -420,12 +489,92 @@ def import_ora(
         ):
             background = tuple(float(v) for v in c[:, 0, 0])
             layers = layers[1:]
-    # Merge the multiply + colour-dodge pairs export_ora writes for multipliers above 1.
+    merged = _merge_dodges(layers)
+    if not any(True for _ in _walk_leaves(merged)):
+        raise ImageError("the file has no layers besides the background; expected at least one layer", where=str(path))
+    import torch  # only now: a refused file never loads it
+
+    from lasagna.io.stack import stack_from_tensors
+
+    taken: set[str] = set()
+    specs: list[dict] = []
+
+    def tree(items: list[dict]) -> list:
+        """The document's layer tree: a leaf's id (its fields come from ``stack_from_tensors``), or a group."""
+        out: list = []
+        for layer in items:
+            if layer.get("kind") == "group":
+                gid = _id_from("", layer["name"] or "group", taken)
+                # An "isolate" stack is an isolated group; an "auto" one passes through unless it has a blend of
+                # its own (the OpenRaster spec then renders it isolated). Our pass-through opacity is Krita's.
+                isolated = layer["isolation"] == "isolate" or layer["blend"] != "normal"
+                out.append(
+                    {
+                        "id": gid,
+                        "kind": "group",
+                        "name": layer["name"] or gid,
+                        "isolated": isolated,
+                        "blend": layer["blend"] if isolated else "normal",
+                        "opacity": layer["opacity"],
+                        "visible": layer["visible"],
+                        "layers": tree(layer["layers"]),
+                    }
+                )
+                continue
+            img = layer["image"]
+            values = layer.get("values", img.color)
+            hi = max(1.0, float(np.ceil(values.max()))) if layer.get("dodged") else 1.0
+            lid = _id_from(layer["src"], layer["name"], taken)
+            specs.append(
+                dict(
+                    id=lid,
+                    image=torch.from_numpy(np.ascontiguousarray(values, dtype=np.float32)),
+                    alpha=torch.from_numpy(img.alpha) if img.alpha is not None else None,
+                    name=layer["name"],
+                    blend=layer["blend"],
+                    opacity=layer["opacity"],
+                    visible=layer["visible"],
+                    offset=(layer["x"], layer["y"]),
+                    range=(0.0, hi),
+                    bit_depth=16 if layer.get("dodged") or img.header.bit_depth == 16 else 8,
+                )
+            )
+            out.append(lid)
+        return out
+
+    shape = tree(merged)
+    stack = stack_from_tensors(specs, width=width, height=height, background=background)
+    if any(isinstance(item, dict) for item in shape):
+        fields = {layer.id: layer.model_dump(mode="json", exclude_none=True) for layer in stack.document.layers}
+
+        def nest(items: list) -> list:
+            return [
+                fields[item] if isinstance(item, str) else {**item, "layers": nest(item["layers"])} for item in items
+            ]
+
+        stack.document = stack.document.with_layers(nest(shape))
+    if out_folder is not None:
+        stack.save(out_folder)
+    return stack
+
+
+def _merge_dodges(layers: list[dict]) -> list[dict]:
+    """``layers`` (and every group's, recursively) with the multiply + colour-dodge pairs ``export_ora`` writes
+    for multipliers above 1 merged back into the multiply layer (``values`` y = m/(1 − d), ``dodged``)."""
     merged: list[dict] = []
     for layer in layers:
+        if layer.get("kind") == "group":
+            merged.append({**layer, "layers": _merge_dodges(layer["layers"])})
+            continue
         if layer["blend"] == "color-dodge" and layer["src"].startswith(DODGE_PREFIX):
             below = merged[-1] if merged else None
-            if below is None or below["blend"] != "multiply" or below.get("dodged") or not _same_geometry(below, layer):
+            if (
+                below is None
+                or below.get("kind") == "group"
+                or below["blend"] != "multiply"
+                or below.get("dodged")
+                or not _same_geometry(below, layer)
+            ):
                 raise ImageError(
                     f"colour-dodge helper {layer['src']!r} is not directly above an svg:multiply layer of the "
                     "same position, size, opacity and alpha; expected the pair export_ora writes for a "
@@ -437,34 +586,4 @@ def import_ora(
             below["dodged"] = True
             continue
         merged.append(dict(layer))
-    if not merged:
-        raise ImageError("the file has no layers besides the background; expected at least one layer", where=str(path))
-    import torch  # only now: a refused file never loads it
-
-    from lasagna.io.stack import stack_from_tensors
-
-    taken: set[str] = set()
-    specs = []
-    for layer in merged:
-        img = layer["image"]
-        values = layer.get("values", img.color)
-        hi = max(1.0, float(np.ceil(values.max()))) if layer.get("dodged") else 1.0
-        lid = _id_from(layer["src"], layer["name"], taken)
-        specs.append(
-            dict(
-                id=lid,
-                image=torch.from_numpy(np.ascontiguousarray(values, dtype=np.float32)),
-                alpha=torch.from_numpy(img.alpha) if img.alpha is not None else None,
-                name=layer["name"],
-                blend=layer["blend"],
-                opacity=layer["opacity"],
-                visible=layer["visible"],
-                offset=(layer["x"], layer["y"]),
-                range=(0.0, hi),
-                bit_depth=16 if layer.get("dodged") or img.header.bit_depth == 16 else 8,
-            )
-        )
-    stack = stack_from_tensors(specs, width=width, height=height, background=background)
-    if out_folder is not None:
-        stack.save(out_folder)
-    return stack
+    return merged

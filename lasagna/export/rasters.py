@@ -24,6 +24,14 @@ target cannot express exactly:
   the exact composite, so the file still flattens to our image in any reader; a one-line warning
   says why (hide that layer to edit the others). The merged image is always the exact composite.
 
+* Groups: OpenRaster nests them (``groups=True``): a ``<stack>`` per group, ``isolation="isolate"`` with the
+  group's composite-op and opacity for an isolated group, ``"auto"`` for a pass-through one (as Krita writes
+  them); their layers carry canvas offsets (the groups' offsets added). A group mask, a pass-through group of
+  opacity < 1 (the OpenRaster spec renders it isolated) and, inside an isolated group, the helper layers above
+  (which assume an opaque backdrop) are not exact: the composite layer goes on top. PSD export writes groups
+  flat: a pass-through group of opacity 1 without a mask is exactly its layers (W3C Compositing Level 1,
+  section 8.1, group invariance); any other is not exact.
+
 Every raster is cropped to the canvas (layers may lie partly outside), with its offset adjusted.
 """
 
@@ -63,6 +71,29 @@ class ExportLayer:
         """(h, w, 4) uint8, rounded to nearest."""
         rgba = np.concatenate([self.color, self.alpha]).transpose(1, 2, 0)
         return np.rint(np.clip(rgba, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+@dataclass
+class ExportGroup:
+    """A group of an interchange file: its layers (``ExportLayer`` or ``ExportGroup``, bottom to top) blended
+    as one (``isolated``) or passed through."""
+
+    name: str
+    key: str
+    op: Op
+    opacity: float
+    visible: bool
+    isolated: bool
+    layers: list
+    source: str = ""
+
+
+def leaves(layers: list) -> list[ExportLayer]:
+    """Every ``ExportLayer`` of a list that may hold groups, bottom to top."""
+    out: list[ExportLayer] = []
+    for item in layers:
+        out.extend(leaves(item.layers) if isinstance(item, ExportGroup) else [item])
+    return out
 
 
 def _warn(warn: Callable[[str], None] | None, message: str) -> None:
@@ -131,13 +162,16 @@ def composite_layer(composite: np.ndarray) -> ExportLayer:
     return ExportLayer(COMPOSITE_NAME, "_composite", "normal", 0, 0, color, np.ones((1, H, W)), 1.0, True)
 
 
-def export_layers(stack, composite, *, target: str, warn: Callable[[str], None] | None = None) -> list[ExportLayer]:
+def export_layers(
+    stack, composite, *, target: str, warn: Callable[[str], None] | None = None, groups: bool = False
+) -> list:
     """The stack's layers as interchange layers, bottom to top: background first, and on top, when
     the layers cannot reproduce it, the exact ``composite`` (3, H, W) (see the module docstring).
 
-    ``target`` names the format in warnings ("OpenRaster", "PSD").
+    ``target`` names the format in warnings ("OpenRaster", "PSD"). ``groups``: groups become ``ExportGroup``
+    entries (nested); otherwise their layers are listed flat in their place.
     """
-    layers, inexact = _layers(stack, target, warn)
+    layers, inexact = _layers(stack, target, warn, groups)
     if stack.document.clamp == "output" and _clamp_matters(stack, composite):
         inexact.append("clamp='output' (intermediate values outside [0, 1]; paint programs clamp after every layer)")
     if inexact:
@@ -160,38 +194,59 @@ def _clamp_matters(stack, composite) -> bool:
     return bool((codes(render_stack(interop, dtype=torch.float64).image.numpy()) != codes(composite)).any())
 
 
-def _leaves(layers, origin: tuple[int, int], shown: bool, inexact: list[str]):
-    """(layer, canvas origin of its offset, visible with its groups) of every non-group layer, bottom to top.
+class _Walk:
+    """What exporting the layers of one stack collects: the canvas size, what is not exact, the target."""
 
-    A pass-through group of opacity 1 without a mask is exactly its layers in its place (W3C Compositing
-    Level 1, section 8.1, group invariance), so its layers are written flat. Any other group (isolated,
-    partly opaque or masked) is not written as a group: its layers are written flat and the file gets the
-    exact composite on top (``inexact``).
-    """
-    for layer in layers:
-        if layer.kind != "group":
-            yield layer, origin, shown
-            continue
-        if layer.isolated or layer.opacity != 1.0 or layer.mask is not None:
-            what = "isolated" if layer.isolated else ("masked" if layer.mask is not None else "partly opaque")
-            inexact.append(f"{what} group {layer.id!r} (its layers are written flat, outside any group)")
+    def __init__(self, stack, target: str, warn, groups: bool):
+        self.stack, self.target, self.warn, self.groups = stack, target, warn, groups
+        self.W, self.H = stack.width, stack.height
+        self.inexact: list[str] = []
+
+    def items(self, layers, origin: tuple[int, int], shown: bool, isolated_in: bool) -> list:
+        """Export items of ``layers`` (bottom to top) whose offsets are relative to ``origin``; ``shown``: every
+        enclosing group is visible (flat export only); ``isolated_in``: inside an isolated group."""
+        out: list = []
+        for layer in layers:
+            if layer.kind == "group":
+                out.extend(self.group(layer, origin, shown, isolated_in))
+            else:
+                out.extend(self.leaf(layer, origin, shown, isolated_in))
+        return out
+
+    def group(self, layer, origin, shown, isolated_in) -> list:
         offset = (origin[0] + layer.offset.x, origin[1] + layer.offset.y)
-        yield from _leaves(layer.layers, offset, shown and layer.visible, inexact)
+        if not self.groups:
+            if layer.isolated or layer.opacity != 1.0 or layer.mask is not None:
+                what = "isolated" if layer.isolated else ("masked" if layer.mask is not None else "partly opaque")
+                self.inexact.append(f"{what} group {layer.id!r} (its layers are written flat, outside any group)")
+            return self.items(layer.layers, offset, shown and layer.visible, isolated_in)
+        if layer.mask is not None:
+            self.inexact.append(f"the mask of group {layer.id!r} (written without it)")
+        if not layer.isolated and layer.opacity != 1.0:
+            self.inexact.append(f"pass-through group {layer.id!r} of opacity {layer.opacity:g} (readers isolate it)")
+        children = self.items(layer.layers, offset, True, isolated_in or layer.isolated)
+        op = layer.blend if layer.isolated else "normal"
+        return [
+            ExportGroup(
+                layer.name,
+                layer.id,
+                op,
+                float(layer.opacity),
+                bool(layer.visible),
+                bool(layer.isolated),
+                children,
+                source=layer.id,
+            )
+        ]
 
-
-def _layers(stack, target: str, warn) -> tuple[list[ExportLayer], list[str]]:
-    doc = stack.document
-    W, H = stack.width, stack.height
-    inexact: list[str] = []
-    if doc.blend_space == "linear":
-        inexact.append("blend_space='linear' (paint programs blend sRGB-encoded values)")
-    out = [background_layer(stack)]
-    for layer, (ox, oy), shown in _leaves(doc.layers, (0, 0), True, inexact):
+    def leaf(self, layer, origin, shown, isolated_in) -> list[ExportLayer]:
+        stack, target, W, H = self.stack, self.target, self.W, self.H
         raster = _layer_raster(stack, layer)
         if raster is None:
             if isinstance(layer, LearnedLayer):
-                _warn(warn, f"layer {layer.id!r} is not rendered (run `lasagna render`); left out of the {target} file")
-            continue
+                why = f"layer {layer.id!r} is not rendered (run `lasagna render`); left out of the {target} file"
+                _warn(self.warn, why)
+            return []
         color, alpha = raster
         bad = int((~np.isfinite(color)).sum() + (~np.isfinite(alpha)).sum())
         if bad:
@@ -200,26 +255,30 @@ def _layers(stack, target: str, warn) -> tuple[list[ExportLayer], list[str]]:
             )
         if color.shape[0] == 1:
             color = np.repeat(color, 3, axis=0)  # a 1-channel multiplier is written as gray in RGB
-        cropped = _crop(color, alpha, layer.offset.x + ox, layer.offset.y + oy, W, H)
+        cropped = _crop(color, alpha, layer.offset.x + origin[0], layer.offset.y + origin[1], W, H)
         if cropped is None:
-            continue  # entirely outside the canvas: contributes nothing
+            return []  # entirely outside the canvas: contributes nothing
         color, alpha, x, y = cropped
         if float(color.min(initial=0.0)) < 0.0:
-            inexact.append(f"the negative values of layer {layer.id!r} (min {color.min():.4g}; written as 0)")
+            self.inexact.append(f"the negative values of layer {layer.id!r} (min {color.min():.4g}; written as 0)")
         color = np.maximum(color, 0.0)
         common = dict(
             x=x, y=y, alpha=alpha, opacity=float(layer.opacity), visible=shown and layer.visible, source=layer.id
         )
         a = alpha * float(layer.opacity)
         fractional = not bool(np.isin(a, (0.0, 1.0)).all())
+        out: list[ExportLayer] = []
         if layer.blend == "multiply":
-            if float(color.max(initial=0.0)) > 1.0 and fractional:
+            above_one = float(color.max(initial=0.0)) > 1.0
+            if above_one and isolated_in:
+                self.inexact.append(f"multiplier values above 1 of layer {layer.id!r} inside an isolated group")
+            if above_one and fractional:
                 # Over an opaque backdrop a multiply with alpha is a multiply by the gain
                 # g = 1 + α(y − 1): bake α into the values, so the pair is exact for any α.
                 color = 1.0 + a * (color - 1.0)
                 common.update(alpha=np.ones_like(alpha), opacity=1.0)
             out.append(ExportLayer(layer.name, layer.id, "multiply", color=np.minimum(color, 1.0), **common))
-            if float(color.max(initial=0.0)) > 1.0:
+            if above_one:
                 out.append(
                     ExportLayer(
                         f"{layer.name} (colour dodge: values above 1)",
@@ -231,6 +290,8 @@ def _layers(stack, target: str, warn) -> tuple[list[ExportLayer], list[str]]:
                 )
         elif layer.blend == "plus":
             if fractional:
+                if isolated_in:
+                    self.inexact.append(f"the partial alpha of plus layer {layer.id!r} inside an isolated group")
                 # Paint programs clamp inside the blend, Cb + α(min(1, Cb + Cs) − Cb), where the
                 # W3C plus is min(1, Cb + α·Cs); with α baked in (Cs' = α·Cs, opaque) both agree.
                 color = a * color
@@ -242,8 +303,16 @@ def _layers(stack, target: str, warn) -> tuple[list[ExportLayer], list[str]]:
                 out.append(ExportLayer(name, key, "plus", color=np.clip(color - k, 0.0, 1.0), **common))
         else:
             if float(color.max(initial=0.0)) > 1.0:
-                inexact.append(
+                self.inexact.append(
                     f"the values above 1 of {layer.blend} layer {layer.id!r} (max {color.max():.4g}; written as 1)"
                 )
             out.append(ExportLayer(layer.name, layer.id, layer.blend, color=np.minimum(color, 1.0), **common))
-    return out, inexact
+        return out
+
+
+def _layers(stack, target: str, warn, groups: bool = False) -> tuple[list, list[str]]:
+    walk = _Walk(stack, target, warn, groups)
+    if stack.document.blend_space == "linear":
+        walk.inexact.append("blend_space='linear' (paint programs blend sRGB-encoded values)")
+    out = [background_layer(stack), *walk.items(stack.document.layers, (0, 0), True, False)]
+    return out, walk.inexact

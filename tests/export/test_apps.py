@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -227,3 +228,54 @@ def test_gimp_flattens_every_blend_mode(tmp_path):
     for mode, bound in {**differs, **fractional_alpha}.items():
         assert errs[mode] <= bound, mode
     assert {m: e for m, e in errs.items() if m not in differs and m not in fractional_alpha and e > 3} == {}
+
+
+def _group_stack(folder: Path) -> Path:
+    """Nested groups as Krita holds them: a pass-through group (a normal layer with alpha, a multiply) holding
+    an isolated overlay group at opacity 0.7 (a normal layer with alpha and a screen layer inside), beside an
+    isolated normal group at opacity 0.6 and a hidden group."""
+    g = torch.Generator().manual_seed(12)
+    H, W = 48, 64
+    codes = lambda *shape: torch.randint(0, 256, shape, generator=g) / 255.0  # noqa: E731
+    stack = Stack.from_image(codes(3, H, W), id="base")
+    stack.add_layer("a", codes(4, 30, 40), offset=(4, 6))
+    stack.add_layer("m", codes(3, 24, 30), blend="multiply", offset=(20, 10))
+    stack.add_layer("b", codes(4, 20, 30), offset=(10, 20))
+    stack.add_layer("s", codes(3, 20, 20) * 0.7, blend="screen", offset=(30, 16))
+    stack.add_layer("c", codes(4, 16, 20), offset=(40, 28))
+    stack.add_layer("d", codes(3, 10, 10), offset=(2, 2))
+    fields = {layer.id: layer.model_dump(mode="json", exclude_none=True) for layer in stack.document.layers}
+    inner = {"id": "inner", "kind": "group", "isolated": True, "blend": "overlay", "opacity": 0.7}
+    inner["layers"] = [fields["b"], fields["s"]]
+    outer = {"id": "outer", "kind": "group", "layers": [fields["a"], fields["m"], inner]}
+    side = {"id": "side", "kind": "group", "isolated": True, "opacity": 0.6, "layers": [fields["c"]]}
+    hidden = {"id": "hidden", "kind": "group", "visible": False, "layers": [fields["d"]]}
+    stack.document = stack.document.with_layers([fields["base"], outer, side, hidden])
+    stack.save(folder)
+    return folder
+
+
+@pytest.mark.krita
+@pytest.mark.skipif(
+    not (KRITA and XVFB), reason="krita and xvfb-run are not installed (apt-get install krita xvfb xauth)"
+)
+def test_krita_flattens_our_nested_groups(tmp_path):
+    folder = _group_stack(tmp_path / "stack")
+    assert main(["export", str(folder), "--ora", str(tmp_path / "in.ora")]) == 0
+    with zipfile.ZipFile(tmp_path / "in.ora") as zf:
+        xml = zf.read("stack.xml").decode()
+    # the groups themselves reach Krita: four nested stacks, and no exact-composite layer to fall back on
+    assert xml.count("<stack ") == 4 and 'isolation="isolate"' in xml and "Composite (exact)" not in xml
+    proc = subprocess.run(
+        [XVFB, "-a", KRITA, "--nosplash", "--export", "--export-filename", str(tmp_path / "flat.png")]
+        + [str(tmp_path / "in.ora")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
+    with Image.open(tmp_path / "flat.png") as im:
+        flat = np.asarray(im.convert("RGB")).astype(int)
+    err = np.abs(flat - to_uint8(composite_reference(folder)).astype(int))
+    print(f"\nKrita, nested groups vs reference: max {err.max()}/255, mean {err.mean():.3f}/255")
+    assert err.max() <= 3 and err.mean() <= 0.5

@@ -1,6 +1,7 @@
-"""Exporting stacks with groups (ORA, PSD, per-layer PNGs) until nested export exists: nothing is lost
-silently. Pass-through groups of opacity 1 are their layers (written flat, exact); any other group is
-written flat with a warning line and the exact composite on top, so every file flattens to our image."""
+"""Exporting stacks with groups (ORA, PSD, per-layer PNGs): nothing is lost silently. OpenRaster nests every
+group (a <stack> with isolation "isolate" or "auto") and imports it back; PSD writes pass-through groups of
+opacity 1 as their layers (exact) and any other group flat with a warning line and the exact composite on
+top, so every file flattens to our image."""
 
 from __future__ import annotations
 
@@ -41,29 +42,85 @@ def test_pass_through_groups_of_opacity_one_export_flat_and_exact(tmp_path):
     assert np.abs(ours - theirs).max() <= 1
 
 
-@pytest.mark.parametrize("seed", range(4))
-def test_other_groups_warn_and_keep_the_exact_composite(tmp_path, seed):
+def _groups(doc) -> list[tuple]:
+    """Each group's depth and fields, depth first (a layer wholly off the canvas is not written, so children
+    are not counted)."""
+    return [
+        (path.count("layers"), layer.isolated, layer.blend, round(layer.opacity, 4), layer.visible)  # 6 decimals
+        for path, layer in doc.walk()
+        if layer.kind == "group"
+    ]
+
+
+def _stacks(el, depth: int = 0):
+    for child in el:
+        if child.tag == "stack":
+            yield depth + 1, child
+            yield from _stacks(child, depth + 1)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_ora_nests_groups_and_imports_them_back(tmp_path, seed):
     folder = random_group_stack(tmp_path / "s", seed)
     stack = load_stack(folder)
     warnings: list[str] = []
     data = encode_ora(stack, warn=warnings.append)
     doc = stack.document
-    other = [
-        layer
-        for _, layer in doc.walk()
-        if layer.kind == "group" and (layer.isolated or layer.opacity != 1.0 or layer.mask is not None)
-    ]
-    if other:
-        assert len(warnings) == 1 and "group" in warnings[0] and "Composite (exact)" in warnings[0]
+    groups = [layer for _, layer in doc.walk() if layer.kind == "group"]
     with zipfile.ZipFile(io.BytesIO(data)) as zf:
-        top = list(ET.fromstring(zf.read("stack.xml")).find("stack"))[0]
-        if other:  # the file flattens to the exact composite, whatever a reader makes of the flat layers
+        root = ET.fromstring(zf.read("stack.xml")).find("stack")
+        stacks = list(_stacks(root))
+        assert len(stacks) == len(groups)  # one nested <stack> per group, in document order (topmost first)
+        for _, el in stacks:
+            assert el.get("isolation") in ("isolate", "auto") and el.get("x") == el.get("y") == "0"
+        inexact = [
+            g for g in groups if g.mask is not None or (not g.isolated and g.opacity != 1.0)
+        ]  # what OpenRaster cannot hold
+        if inexact:
+            assert len(warnings) == 1 and "Composite (exact)" in warnings[0]
+            assert all(repr(g.id) in warnings[0] for g in inexact)
+        top = list(root)[0]
+        if warnings:  # the file flattens to the exact composite, whatever a reader makes of the layers
             assert top.get("name") == "Composite (exact)"
             flat = np.rint(read_png_rgb(zf.read(top.get("src"))) * 255)
             ours = np.rint(np.clip(render_stack(stack).image.numpy(), 0, 1) * 255).transpose(1, 2, 0)
             assert np.abs(flat - ours).max() <= 1
-        else:
-            assert warnings == [] or "group" not in warnings[0]
+    (tmp_path / "f.ora").write_bytes(data)
+    back = import_ora(tmp_path / "f.ora")
+    assert _groups(back.document) == _groups(doc)  # the same groups, nested the same way
+    if not warnings:  # exact: the imported stack composes to ours (layer alpha × mask rounded to 8 bits)
+        ours = np.rint(np.clip(render_stack(stack).image.numpy(), 0, 1) * 255)
+        theirs = np.rint(np.clip(render_stack(back).image.numpy(), 0, 1) * 255)
+        assert np.abs(ours - theirs).max() <= 2
+
+
+def test_ora_group_fields_and_refusals(tmp_path):
+    write_png8(tmp_path / "s/layers/a.png", np.random.default_rng(1).integers(0, 256, (4, 5, 4)))
+    inner = {"id": "a", "kind": "pixels", "source": "layers/a.png", "blend": "screen"}
+    iso = {"id": "iso", "kind": "group", "isolated": True, "blend": "multiply", "opacity": 0.5, "layers": [inner]}
+    hidden = {"id": "pt", "kind": "group", "visible": False, "layers": [iso]}
+    base = {"id": "base", "kind": "solid", "color": [0.5, 0.6, 0.7]}
+    stack = load_stack(write_stack(tmp_path / "s", _doc([base, hidden])))
+    data = encode_ora(stack)
+    with zipfile.ZipFile(io.BytesIO(data)) as zf:
+        root = ET.fromstring(zf.read("stack.xml")).find("stack")
+    (pt,) = [el for el in root if el.tag == "stack"]
+    (iso_el,) = [el for el in pt if el.tag == "stack"]
+    assert (pt.get("isolation"), pt.get("visibility"), pt.get("composite-op")) == ("auto", "hidden", "svg:src-over")
+    assert (iso_el.get("isolation"), iso_el.get("composite-op"), float(iso_el.get("opacity"))) == (
+        "isolate",
+        "svg:multiply",
+        0.5,
+    )
+    # A stack nested past the limit is refused in one line, naming where.
+    deep = "".join('<stack name="g">' for _ in range(40)) + '<layer src="data/a.png"/>' + "</stack>" * 40
+    xml = f'<image w="4" h="4"><stack>{deep}</stack></image>'
+    with zipfile.ZipFile(tmp_path / "deep.ora", "w") as zf:
+        zf.writestr("mimetype", "image/openraster")
+        zf.writestr("stack.xml", xml)
+    with pytest.raises(Exception, match="groups nest deeper than 32") as err:
+        import_ora(tmp_path / "deep.ora")
+    assert "\n" not in str(err.value)
 
 
 def test_layer_pngs_list_groups(tmp_path):
