@@ -8,7 +8,9 @@ mode to its psd-tools name (normal → NORMAL, color-dodge → COLOR_DODGE, …,
 round(255·opacity); hidden layers are hidden. After each plus layer and each dodge pair comes an
 opaque white DARKEN layer, min(Cb, 1): the identity in 8/16-bit tools, and the clamp GIMP 2.10's
 float compositing otherwise skips (it keeps Cb·y > 1 for the next layer). The file's merged image is
-our exact composite, not psd-tools' own flattening.
+our exact composite, not psd-tools' own flattening. Groups are psd-tools ``Group``s (nested): a pass-through
+group is PASS_THROUGH, an isolated one has the group's blend mode; both keep opacity and visibility
+(``lasagna.export.rasters`` says what stays inexact: group masks, pass-through opacity below 1).
 
 Layer names: the layer record's Pascal string is MacRoman and at most 255 bytes, so, as Photoshop does,
 it holds a lossy stand-in (``pascal_name``) and the full name goes in the Unicode layer-name block
@@ -29,7 +31,7 @@ from lasagna.atomic import atomic_write_bytes
 from lasagna.document.blend import BLEND_MODES
 from lasagna.errors import ExportError
 from lasagna.export.ora import composite_uint8
-from lasagna.export.rasters import export_layers
+from lasagna.export.rasters import ExportGroup, export_layers
 
 INSTALL_HINT = "pip install 'lasagna[psd]'"
 
@@ -100,8 +102,30 @@ def encode_psd(stack, *, composite: torch.Tensor | None = None, warn: Callable[[
     # An RGBA document: layer alpha is stored as each layer's transparency channel (in an RGB document
     # psd-tools would store it as a user layer mask instead).
     psd = PSDImage.new("RGBA", (stack.width, stack.height), color=background + (1.0,))
-    layers = export_layers(stack, composite.detach().cpu().double().numpy(), target="PSD", warn=warn)
-    for i, layer in enumerate(layers):
+    layers = export_layers(stack, composite.detach().cpu().double().numpy(), target="PSD", warn=warn, groups=True)
+    _write_items(psd, psd, layers, stack, modes, BlendMode, isolated_in=False)
+    _set_merged_image(psd, merged)
+    buf = io.BytesIO()
+    psd.save(buf)
+    return buf.getvalue()
+
+
+def _write_items(psd, parent, items: list, stack, modes, BlendMode, *, isolated_in: bool) -> None:
+    """Create ``items`` (bottom to top) in ``parent`` (the document or a group): pixel layers, and groups
+    as psd-tools ``Group``s — PASS_THROUGH for a pass-through group, else the group's blend (isolated)."""
+    from psd_tools.api.layers import Group
+    from psd_tools.constants import Tag
+
+    for i, item in enumerate(items):
+        if isinstance(item, ExportGroup):
+            group = Group.new(parent, name=pascal_name(item.name))
+            group._record.tagged_blocks.set_data(Tag.UNICODE_LAYER_NAME, item.name)
+            group.blend_mode = modes[item.op] if item.isolated else BlendMode.PASS_THROUGH
+            group.opacity = int(round(255 * item.opacity))
+            group.visible = item.visible
+            _write_items(psd, group, item.layers, stack, modes, BlendMode, isolated_in=isolated_in or item.isolated)
+            continue
+        layer = item
         pil = Image.fromarray(layer.rgba_uint8())
         created = _create_layer(
             psd,
@@ -113,11 +137,15 @@ def encode_psd(stack, *, composite: torch.Tensor | None = None, warn: Callable[[
             blend_mode=modes[layer.op],
         )
         created.visible = layer.visible
-        last_part = i + 1 == len(layers) or layers[i + 1].source != layer.source
-        if layer.op in ("plus", "color-dodge") and last_part:
+        if parent is not psd:
+            parent.append(created)
+        nxt = items[i + 1] if i + 1 < len(items) else None
+        last_part = nxt is None or getattr(nxt, "source", None) != layer.source or isinstance(nxt, ExportGroup)
+        if layer.op in ("plus", "color-dodge") and last_part and not isolated_in:
             # GIMP 2.10 composites PSD layers in float and keeps a dodge or addition result above 1
             # unclamped, so a layer with alpha above it would blend with that value. An opaque
             # white "darken" layer, min(Cb, 1), clamps it there and is the identity in 8/16-bit tools.
+            # (Not inside an isolated group: over its transparent backdrop it would paint white.)
             white = Image.new("RGBA", pil.size, (255, 255, 255, 255))
             clamp = _create_layer(
                 psd,
@@ -128,10 +156,8 @@ def encode_psd(stack, *, composite: torch.Tensor | None = None, warn: Callable[[
                 blend_mode=BlendMode.DARKEN,
             )
             clamp.visible = layer.visible
-    _set_merged_image(psd, merged)
-    buf = io.BytesIO()
-    psd.save(buf)
-    return buf.getvalue()
+            if parent is not psd:
+                parent.append(clamp)
 
 
 def export_psd(

@@ -24,13 +24,14 @@ target cannot express exactly:
   the exact composite, so the file still flattens to our image in any reader; a one-line warning
   says why (hide that layer to edit the others). The merged image is always the exact composite.
 
-* Groups: OpenRaster nests them (``groups=True``): a ``<stack>`` per group, ``isolation="isolate"`` with the
-  group's composite-op and opacity for an isolated group, ``"auto"`` for a pass-through one (as Krita writes
-  them); their layers carry canvas offsets (the groups' offsets added). A group mask, a pass-through group of
-  opacity < 1 (the OpenRaster spec renders it isolated) and, inside an isolated group, the helper layers above
-  (which assume an opaque backdrop) are not exact: the composite layer goes on top. PSD export writes groups
-  flat: a pass-through group of opacity 1 without a mask is exactly its layers (W3C Compositing Level 1,
-  section 8.1, group invariance); any other is not exact.
+* Groups (``groups=True``, what both formats use) stay groups: OpenRaster nests a ``<stack>`` per group
+  (``isolation="isolate"`` with the group's composite-op and opacity, ``"auto"`` for pass-through, as Krita
+  writes them), PSD a group record (PASS_THROUGH, or the group's blend mode); their layers carry canvas
+  offsets (the groups' offsets added). A group mask, a pass-through group of opacity < 1 (the OpenRaster spec
+  renders it isolated; paint programs differ) and, inside an isolated group, the helper layers above (which
+  assume an opaque backdrop) are not exact: the composite layer goes on top. With ``groups=False`` a group's
+  layers are listed flat: exact for a pass-through group of opacity 1 without a mask (W3C Compositing
+  Level 1, section 8.1, group invariance), else not.
 
 Every raster is cropped to the canvas (layers may lie partly outside), with its offset adjusted.
 """
@@ -223,7 +224,7 @@ class _Walk:
         if layer.mask is not None:
             self.inexact.append(f"the mask of group {layer.id!r} (written without it)")
         if not layer.isolated and layer.opacity != 1.0:
-            self.inexact.append(f"pass-through group {layer.id!r} of opacity {layer.opacity:g} (readers isolate it)")
+            self.inexact.append(f"pass-through group {layer.id!r} of opacity {layer.opacity:g} (readers differ on it)")
         children = self.items(layer.layers, offset, True, isolated_in or layer.isolated)
         op = layer.blend if layer.isolated else "normal"
         return [

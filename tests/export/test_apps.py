@@ -279,3 +279,30 @@ def test_krita_flattens_our_nested_groups(tmp_path):
     err = np.abs(flat - to_uint8(composite_reference(folder)).astype(int))
     print(f"\nKrita, nested groups vs reference: max {err.max()}/255, mean {err.mean():.3f}/255")
     assert err.max() <= 3 and err.mean() <= 0.5
+
+
+@pytest.mark.gimp
+@pytest.mark.skipif(not GIMP, reason="gimp is not installed (apt-get install gimp)")
+def test_gimp_flattens_our_nested_groups(tmp_path):
+    from psd_tools import PSDImage
+
+    folder = _group_stack(tmp_path / "stack")
+    assert main(["export", str(folder), "--psd", str(tmp_path / "in.psd")]) == 0
+    kinds = [layer.kind for layer in PSDImage.open(tmp_path / "in.psd").descendants()]
+    assert kinds.count("group") == 4 and "Composite (exact)" not in [
+        layer.name for layer in PSDImage.open(tmp_path / "in.psd").descendants()
+    ]
+    script = (
+        f'(let* ((image (car (gimp-file-load RUN-NONINTERACTIVE "{tmp_path / "in.psd"}" "in.psd")))'
+        f" (layer (car (gimp-image-flatten image))))"
+        f' (file-png-save-defaults RUN-NONINTERACTIVE image layer "{tmp_path / "flat.png"}" "flat.png"))'
+    )
+    proc = subprocess.run(
+        [GIMP, "-i", "-d", "-f", "-b", script, "-b", "(gimp-quit 0)"], capture_output=True, text=True, timeout=300
+    )
+    assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
+    with Image.open(tmp_path / "flat.png") as im:
+        flat = np.asarray(im.convert("RGB")).astype(int)
+    err = np.abs(flat - to_uint8(composite_reference(folder)).astype(int))
+    print(f"\nGIMP, nested groups vs reference: max {err.max()}/255, mean {err.mean():.3f}/255")
+    assert err.max() <= 3 and err.mean() <= 0.5

@@ -1,7 +1,7 @@
 """Exporting stacks with groups (ORA, PSD, per-layer PNGs): nothing is lost silently. OpenRaster nests every
-group (a <stack> with isolation "isolate" or "auto") and imports it back; PSD writes pass-through groups of
-opacity 1 as their layers (exact) and any other group flat with a warning line and the exact composite on
-top, so every file flattens to our image."""
+group (a <stack> with isolation "isolate" or "auto"), PSD writes group records (PASS_THROUGH or the group's
+mode); import-ora and import-psd read them back. What a format cannot hold (group masks, pass-through opacity
+below 1) gets one warning line and the exact composite on top, so every file flattens to our image."""
 
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def _groups(doc) -> list[tuple]:
     """Each group's depth and fields, depth first (a layer wholly off the canvas is not written, so children
     are not counted)."""
     return [
-        (path.count("layers"), layer.isolated, layer.blend, round(layer.opacity, 4), layer.visible)  # 6 decimals
+        (path.count("layers"), layer.isolated, layer.blend, round(255 * layer.opacity), layer.visible)  # PSD: 8 bits
         for path, layer in doc.walk()
         if layer.kind == "group"
     ]
@@ -130,3 +130,65 @@ def test_layer_pngs_list_groups(tmp_path):
     index = json.loads((tmp_path / "out" / "layers.json").read_text())
     assert [e["id"] for e in index["layers"]] == list(stack.document.all_ids)
     assert all(e["kind"] != "group" or e["file"] is None for e in index["layers"])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_psd_keeps_groups_and_import_psd_reads_them_back(tmp_path, seed):
+    pytest.importorskip("psd_tools")
+    from lasagna.export.psd import encode_psd
+    from lasagna.export.psd_import import read_psd
+
+    folder = random_group_stack(tmp_path / "s", seed)
+    stack = load_stack(folder)
+    warnings: list[str] = []
+    (tmp_path / "f.psd").write_bytes(encode_psd(stack, warn=warnings.append))
+    back = read_psd(tmp_path / "f.psd", warn=lambda line: None)
+    assert _groups(back.document) == _groups(stack.document)
+    if not warnings:
+        ours = np.rint(np.clip(render_stack(stack).image.numpy(), 0, 1) * 255)
+        theirs = np.rint(np.clip(render_stack(back).image.numpy(), 0, 1) * 255)
+        assert np.abs(ours - theirs).max() <= 2
+
+
+def _exact_group_stack(folder, seed):
+    """A random group stack with what both formats hold exactly: no group masks, pass-through groups at
+    opacity 1, no plus layers (their alpha is baked against an opaque backdrop)."""
+    from tests.stackcraft import BLEND_NAMES
+
+    random_group_stack(folder, seed, modes=[m for m in BLEND_NAMES if m != "plus"])
+    doc = json.loads((folder / "stack.json").read_text())
+
+    def fix(layers):
+        for layer in layers:
+            if layer["kind"] == "group":
+                layer.pop("mask", None)
+                if not layer["isolated"]:
+                    layer["opacity"] = 1.0
+                fix(layer["layers"])
+
+    fix(doc["layers"])
+    (folder / "stack.json").write_text(json.dumps(doc))
+    return load_stack(folder)
+
+
+@pytest.mark.parametrize("fmt", ["ora", "psd"])
+@pytest.mark.parametrize("seed", range(5))
+def test_groups_both_formats_hold_export_exactly(tmp_path, seed, fmt):
+    stack = _exact_group_stack(tmp_path / "s", seed)
+    assert any(layer.kind == "group" for _, layer in stack.document.walk())
+    warnings: list[str] = []
+    if fmt == "ora":
+        (tmp_path / "f.ora").write_bytes(encode_ora(stack, warn=warnings.append))
+        back = import_ora(tmp_path / "f.ora")
+    else:
+        pytest.importorskip("psd_tools")
+        from lasagna.export.psd import encode_psd
+        from lasagna.export.psd_import import read_psd
+
+        (tmp_path / "f.psd").write_bytes(encode_psd(stack, warn=warnings.append))
+        back = read_psd(tmp_path / "f.psd", warn=lambda line: None)
+    assert warnings == []
+    assert _groups(back.document) == _groups(stack.document)
+    ours = np.rint(np.clip(render_stack(stack).image.numpy(), 0, 1) * 255)
+    theirs = np.rint(np.clip(render_stack(back).image.numpy(), 0, 1) * 255)
+    assert np.abs(ours - theirs).max() <= 2  # layer alpha × mask and group opacity rounded to 8 bits
