@@ -10,7 +10,9 @@ gradients as ``grad_engine="autograd"`` (tested, and with ``gradcheck``); not tw
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import torch
@@ -28,6 +30,9 @@ from lasagna.compose.step import _alpha, _clamp_, _color
 # backward, best of 9: 2^16 → 59.9 ms, 2^17 → 52.6, 2^18 → 50.1, 2^19 → 49.8, 2^20 → 52.6, one band
 # for the whole canvas → 59.5 (recording autograd, grad_engine="autograd": 53.4 ms).
 BACKWARD_TILE_PIXELS = 1 << 19
+# Threads that run bands of the backward at once: 0 = torch's intra-op thread count (``_band_workers``); 1 =
+# one band at a time, each op using the intra-op threads (the behaviour before bands ran in parallel).
+BACKWARD_BAND_THREADS = 0
 
 
 def grad_inputs(plan: RenderPlan, begin: int) -> list[Tensor]:
@@ -92,6 +97,17 @@ class _Grads:
                     whole[id(x)] = covers and x.ndim > 0
         self.write_once = {i for i, n in uses.items() if n == 1 and whole[i]}
         self.out: list[Tensor | None] = [None] * len(tensors)
+        # Bands may run in parallel (``banded_backward``) only where the result cannot depend on their order:
+        # every gradient element then gets one contribution (a tensor read by one step, not broadcast over
+        # rows), except 0-dim tensors (an opacity), whose per-band parts are kept and summed in band order.
+        self.band_private = all(
+            uses[id(t)] == 1 and t.ndim >= 2 and t.shape[-2] > 1 or t.ndim == 0
+            for t, n in zip(tensors, needs)
+            if n and id(t) in uses
+        )
+        self.lock = threading.Lock()
+        self.band: Any = threading.local()  # .parts: where this thread defers 0-dim contributions
+        self.deferred: list[tuple[int, int, int, Tensor]] = []  # (band, order in band, slot, value)
 
     def wants(self, t: object) -> bool:
         return isinstance(t, Tensor) and id(t) in self.slot
@@ -100,7 +116,9 @@ class _Grads:
         k = self.slot[id(t)]
         once = id(t) in self.write_once
         if self.out[k] is None:
-            self.out[k] = (torch.empty_like if once else torch.zeros_like)(self.tensors[k])
+            with self.lock:
+                if self.out[k] is None:
+                    self.out[k] = (torch.empty_like if once else torch.zeros_like)(self.tensors[k])
         return (self.out[k] if sl is None else self.out[k][sl]), once
 
     def add(self, t: object, sl: Any, g: Tensor) -> None:
@@ -110,13 +128,33 @@ class _Grads:
         target, once = self._target(t, sl)  # type: ignore[arg-type]
         if g.shape != target.shape:
             g = g.sum_to_size(target.shape)
+        parts = getattr(self.band, "parts", None)
+        if parts is not None and target.ndim == 0:  # a parallel band: summed in band order at the end
+            parts.append((self.slot[id(t)], g.clone()))
+            return
         target.copy_(g) if once else target.add_(g)
+
+    def start_band(self) -> None:
+        self.band.parts = []
+
+    def end_band(self, index: int) -> None:
+        with self.lock:
+            self.deferred += [(index, n, k, g) for n, (k, g) in enumerate(self.band.parts)]
+        self.band.parts = None
+
+    def finish(self) -> None:
+        """Add the deferred 0-dim parts in band order: the same additions, in the same order, as one thread."""
+        for _, _, k, g in sorted(self.deferred, key=lambda d: (d[0], d[1])):
+            self.out[k].add_(g)  # type: ignore[union-attr]
+        self.deferred = []
 
     def add_product(self, t: object, sl: Any, x: Tensor, y: Tensor | float) -> None:
         """∂L/∂t[sl] += x·y, fused (``mul(out=)``/``addcmul_``) when no reduction is needed."""
         if not self.wants(t):
             return
         target, once = self._target(t, sl)  # type: ignore[arg-type]
+        if target.ndim == 0:
+            return self.add(t, sl, x * y)
         fused = isinstance(y, Tensor) and target.dtype == x.dtype
         if fused and broadcast_shape(x.shape, y.shape) == tuple(target.shape):  # type: ignore[union-attr]
             torch.mul(x, y, out=target) if once else target.addcmul_(x, y)
@@ -223,62 +261,115 @@ def banded_backward(
     shape = canvas_shape(plan)
     # Every layer keeps a band-sized backdrop: share the band budget among them.
     rows = rows_per_band(plan, max(W, BACKWARD_TILE_PIXELS // max(1, sum(1 for s in steps if _needs_cb(s)))))
-    ws = _Workspace(dtype, plan.device)
-    with torch.no_grad():
-        for r0 in range(0, H, rows):
-            r1 = min(H, r0 + rows)
-            band = (*shape[:-2], r1 - r0, W)
-            cur = source[..., r0:r1, :] if source is not None else background_tensor(plan, dtype).expand(band)
-            owned = False  # may cur be written in place (a buffer of ours that no layer keeps)?
-            # 1. the band's forward again, keeping what the derivatives read: each layer's backdrop and
-            #    where its clamp changed a value. A backdrop is never written afterwards: full-band
-            #    steps write a new buffer, partial ones write in place only into a canvas buffer of
-            #    our own, after copying the backdrop region.
-            kept = []
-            for j, step in enumerate(steps):
-                if step.y0 >= r1 or step.y1 <= r0:
-                    continue
-                a0, a1 = max(step.y0, r0), min(step.y1, r1)
-                sl = step.layer_slice(a0, a1)
-                cs, a = _color(step, sl, dtype, False), _alpha(step, sl, dtype, False)
-                full = a0 == r0 and a1 == r1 and step.x0 == 0 and step.x1 == W
-                cb = clamped = None
-                if j > upto:
-                    pass  # nothing above reads this layer's output
-                elif full:
-                    cb = cur
-                    if step.opaque and step.blend == "normal":
-                        cur, owned = cs.expand(band), False
-                    else:
-                        cur, owned = _blend_into(step.blend, cb, cs, a, ws(("out", j), band)), True
-                    if step.clamp_lo or step.clamp_hi:
-                        clamped, cur = cur, _clamp_into(cur, step, ws(("clamped", j), band))
-                else:
-                    if not owned:
-                        cur, owned = ws(("own", j), band).copy_(cur), True
-                    region = cur[..., a0 - r0 : a1 - r0, step.x0 : step.x1]
-                    cb = ws(("cb", j), region.shape).copy_(region) if j >= lowest and _needs_cb(step) else None
-                    KERNELS_INPLACE[step.blend](region, cs, a)
-                    if step.clamp_lo or step.clamp_hi:
-                        clamped = ws(("pre", j), region.shape).copy_(region)
-                        _clamp_(region, step)
-                kept.append((j, step, a0, a1, sl, cs, a, cb if j >= lowest else None, clamped, full))
-            # 2. the output's derivative: clamp, then encode. g is a buffer of ours, modified in place.
-            g = ws("g", band).copy_(grad[..., r0:r1, :])
-            if plan.blend_space == "linear":
-                post = torch.clamp(cur, 0.0, 1.0, out=ws("post", band)) if plan.clamp == "output" else cur
-                g.mul_(linear_to_srgb_derivative(post))
-            if plan.clamp == "output":
-                _clamp_grad_(g, cur, True, True)
-            # 3. down the stack
-            for j, step, a0, a1, sl, cs, a, cb, clamped, full in reversed(kept):
-                if j < lowest:
-                    break
-                gr = g if full else g[..., a0 - r0 : a1 - r0, step.x0 : step.x1]
-                if clamped is not None:  # the values before this layer's clamp
-                    _clamp_grad_(gr, clamped, step.clamp_lo, step.clamp_hi)
-                _step_backward(step, sl, dtype, gr, cs, a, cb, grads, j > lowest, ws)
+    bands = list(range(0, H, rows))
+
+    def band(r0: int, ws: _Workspace) -> None:
+        with torch.no_grad():  # grad mode is per thread
+            _backward_band(plan, steps, dtype, source, grad, grads, r0, min(H, r0 + rows), shape, lowest, upto, ws)
+
+    workers = _band_workers(plan, len(bands), grads)
+    if workers == 1:
+        ws = _Workspace(dtype, plan.device)
+        for r0 in bands:
+            band(r0, ws)
+        return grads.out
+    # Bands in parallel, one intra-op thread each: the band ops are many and small, and parallelise better
+    # across bands than inside each op (BENCHMARKS.md, Compositing). Results are bit-identical to one thread.
+    local = threading.local()
+
+    def run(index: int) -> None:
+        if getattr(local, "ws", None) is None:
+            local.ws = _Workspace(dtype, plan.device)
+        grads.start_band()
+        band(bands[index], local.ws)
+        grads.end_band(index)
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with ThreadPoolExecutor(workers, thread_name_prefix="lasagna-backward") as pool:
+            list(pool.map(run, range(len(bands))))
+    finally:
+        torch.set_num_threads(threads)
+    grads.finish()
     return grads.out
+
+
+def _band_workers(plan: RenderPlan, n_bands: int, grads: _Grads) -> int:
+    """Threads for the bands: torch's intra-op thread count on a CPU (1 on other devices, or when the
+    result could depend on the order of the bands: ``_Grads.band_private``), at most one per band."""
+    if plan.device.type != "cpu" or not grads.band_private or BACKWARD_BAND_THREADS == 1:
+        return 1
+    return max(1, min(torch.get_num_threads(), n_bands, BACKWARD_BAND_THREADS or n_bands))
+
+
+def _backward_band(
+    plan: RenderPlan,
+    steps: Sequence[PlanStep],
+    dtype: torch.dtype,
+    source: Tensor | None,
+    grad: Tensor,
+    grads: _Grads,
+    r0: int,
+    r1: int,
+    shape: tuple[int, ...],
+    lowest: int,
+    upto: int,
+    ws: _Workspace,
+) -> None:
+    """Rows [r0, r1) of ``banded_backward``: the band's forward again, then its gradients down the stack."""
+    W = plan.canvas[1]
+    band = (*shape[:-2], r1 - r0, W)
+    cur = source[..., r0:r1, :] if source is not None else background_tensor(plan, dtype).expand(band)
+    owned = False  # may cur be written in place (a buffer of ours that no layer keeps)?
+    # 1. the band's forward again, keeping what the derivatives read: each layer's backdrop and
+    #    where its clamp changed a value. A backdrop is never written afterwards: full-band
+    #    steps write a new buffer, partial ones write in place only into a canvas buffer of
+    #    our own, after copying the backdrop region.
+    kept = []
+    for j, step in enumerate(steps):
+        if step.y0 >= r1 or step.y1 <= r0:
+            continue
+        a0, a1 = max(step.y0, r0), min(step.y1, r1)
+        sl = step.layer_slice(a0, a1)
+        cs, a = _color(step, sl, dtype, False), _alpha(step, sl, dtype, False)
+        full = a0 == r0 and a1 == r1 and step.x0 == 0 and step.x1 == W
+        cb = clamped = None
+        if j > upto:
+            pass  # nothing above reads this layer's output
+        elif full:
+            cb = cur
+            if step.opaque and step.blend == "normal":
+                cur, owned = cs.expand(band), False
+            else:
+                cur, owned = _blend_into(step.blend, cb, cs, a, ws(("out", j), band)), True
+            if step.clamp_lo or step.clamp_hi:
+                clamped, cur = cur, _clamp_into(cur, step, ws(("clamped", j), band))
+        else:
+            if not owned:
+                cur, owned = ws(("own", j), band).copy_(cur), True
+            region = cur[..., a0 - r0 : a1 - r0, step.x0 : step.x1]
+            cb = ws(("cb", j), region.shape).copy_(region) if j >= lowest and _needs_cb(step) else None
+            KERNELS_INPLACE[step.blend](region, cs, a)
+            if step.clamp_lo or step.clamp_hi:
+                clamped = ws(("pre", j), region.shape).copy_(region)
+                _clamp_(region, step)
+        kept.append((j, step, a0, a1, sl, cs, a, cb if j >= lowest else None, clamped, full))
+    # 2. the output's derivative: clamp, then encode. g is a buffer of ours, modified in place.
+    g = ws("g", band).copy_(grad[..., r0:r1, :])
+    if plan.blend_space == "linear":
+        post = torch.clamp(cur, 0.0, 1.0, out=ws("post", band)) if plan.clamp == "output" else cur
+        g.mul_(linear_to_srgb_derivative(post))
+    if plan.clamp == "output":
+        _clamp_grad_(g, cur, True, True)
+    # 3. down the stack
+    for j, step, a0, a1, sl, cs, a, cb, clamped, full in reversed(kept):
+        if j < lowest:
+            break
+        gr = g if full else g[..., a0 - r0 : a1 - r0, step.x0 : step.x1]
+        if clamped is not None:  # the values before this layer's clamp
+            _clamp_grad_(gr, clamped, step.clamp_lo, step.clamp_hi)
+        _step_backward(step, sl, dtype, gr, cs, a, cb, grads, j > lowest, ws)
 
 
 def _clamp_grad_(g: Tensor, pre: Tensor, lo: bool, hi: bool) -> None:

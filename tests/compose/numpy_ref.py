@@ -47,9 +47,10 @@ def lum(c):
 
 def clip_color(c):
     L, n, x = lum(c), c.min(axis=-3, keepdims=True), c.max(axis=-3, keepdims=True)
+    # L − n = 0 (or x − L = 0) only for a gray C = L, where the spec's (C − L)·… is 0·(…/0): its limit keeps C.
     with np.errstate(divide="ignore", invalid="ignore"):
-        c = np.where(n < 0, L + (c - L) * L / (L - n), c)
-        return np.where(x > 1, L + (c - L) * (1 - L) / (x - L), c)
+        c = np.where((n < 0) & (L - n > 0), L + (c - L) * L / (L - n), c)
+        return np.where((x > 1) & (x - L > 0), L + (c - L) * (1 - L) / (x - L), c)
 
 
 def set_lum(c, l):  # noqa: E741

@@ -305,6 +305,47 @@ def test_banded_backward_equals_autograd(clamp, blend_space, monkeypatch):
             assert torch.allclose(a, b, atol=1e-6)
 
 
+@pytest.mark.parametrize("shared", [False, True])
+def test_parallel_bands_give_the_one_thread_gradients_bit_for_bit(monkeypatch, shared):
+    """Bands run on two threads (BACKWARD_BAND_THREADS) give exactly the gradients of one band at a time: the
+    0-dim opacity's per-band parts are summed in band order; a tensor two steps read (``shared``) keeps the
+    bands sequential."""
+    monkeypatch.setattr(backward, "BACKWARD_TILE_PIXELS", 16)  # bands of 2 rows: 3 bands
+    layers = stack(seed=14, dtype=torch.float32, requires_grad=True)
+    op = torch.tensor(0.8, requires_grad=True)
+    layers[3] = RenderLayerSpec(
+        id="light", blend="overlay", offset=(2, 2), opacity=op, tensors=layers[3].tensors
+    )  # a W3C mode: its band derivative runs autograd inside the worker thread
+    if shared:
+        layers.append(RenderLayerSpec(id="again", blend="screen", offset=(1, 0), tensors=layers[2].tensors))
+    leaves = [t for s in layers for t in s.tensors.tensors() if t is not None] + [op]
+    weights = torch.rand(3, *CANVAS, generator=torch.Generator().manual_seed(0))
+    calls = []
+    real = backward.ThreadPoolExecutor
+
+    def counting(workers, **kw):
+        calls.append(workers)
+        return real(workers, **kw)
+
+    monkeypatch.setattr(backward, "ThreadPoolExecutor", counting)
+    grads = {}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        for band_threads in (1, 2):
+            monkeypatch.setattr(backward, "BACKWARD_BAND_THREADS", band_threads)
+            image = render(layers, canvas=CANVAS, background=BG, clamp=None).image
+            grads[band_threads] = torch.autograd.grad((image * weights).sum(), leaves, allow_unused=True)
+    finally:
+        torch.set_num_threads(threads)
+    assert calls == ([] if shared else [2])
+    assert torch.get_num_threads() == threads
+    for a, b in zip(grads[1], grads[2]):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert torch.equal(a, b)
+
+
 def test_banded_backward_refuses_modified_inputs():
     layers = stack(seed=13, dtype=torch.float32, requires_grad=True)
     image = render(layers, canvas=CANVAS).image
