@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from lasagna.export.ora import MAX_GROUP_DEPTH
 from lasagna.cli import main
 from tests import pngcraft
 from tests.reference import composite_reference, to_uint8
@@ -299,7 +300,7 @@ def _xml(*layers: str, w: int = 4, h: int = 3) -> bytes:
         "zip-slip-entry",
         "zip-slip-src",
         "absolute-src",
-        "nested-stack",
+        "too-deep-stack",
         "unknown-op",
         "bomb-layer",
         "not-zip",
@@ -319,8 +320,9 @@ def test_hostile_ora(tmp_path, capsys, case):
         entries["stack.xml"] = _xml('<layer name="a" src="../evil.png"/>')
     elif case == "absolute-src":
         entries["stack.xml"] = _xml('<layer name="a" src="/etc/passwd"/>')
-    elif case == "nested-stack":
-        entries["stack.xml"] = _xml('<stack><layer name="a" src="data/a.png"/></stack>')
+    elif case == "too-deep-stack":  # nested groups are read back, but only so deep
+        deep = MAX_GROUP_DEPTH + 1
+        entries["stack.xml"] = _xml("<stack>" * deep + '<layer name="a" src="data/a.png"/>' + "</stack>" * deep)
     elif case == "unknown-op":
         entries["stack.xml"] = _xml(layer.format(op="svg:vivid-light"))
     elif case == "bomb-layer":
