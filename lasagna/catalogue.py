@@ -323,7 +323,7 @@ def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | Non
     except LasagnaError as err:
         return {"usable": False, "method": None, "why": str(err)}
     p = parts.preset
-    if parts.generator is not None:
+    if parts.generator is not None and p.method != "per-image":  # the choice learned.choose_method makes
         return {"usable": True, "method": "amortised", "why": f"generator {parts.generator}"}
     if not parts.prior.is_dir():
         return {"usable": False, "method": None, "why": f"its prior {p.prior!r} is not in the catalogue"}

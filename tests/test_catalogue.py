@@ -11,6 +11,7 @@ import torch
 
 from lasagna import catalogue as cat
 from lasagna.errors import ConditionError, LasagnaError
+from lasagna.learned import choose_method
 from tests.tinylayers import ROOT, tiny_catalogue
 
 
@@ -248,6 +249,10 @@ def test_preset_status(tmp_path, tiny):
     colour = cat.preset_status("color", catalogue_dirs=[tiny])
     assert colour["usable"] and colour["method"] == "per-image"
     other = shutil.copytree(tiny, tmp_path / "layers")
+    _preset_copy(other, method="per-image")  # a preset that asks for per-image keeps it, generator or not
+    st = cat.preset_status("shading", catalogue_dirs=[other])
+    assert (other / "shading" / "generator").is_dir() and st["method"] == "per-image"
+    assert st["method"] == choose_method(cat.resolve("shading", catalogue_dirs=[other]), None)
     shutil.rmtree(other / "shading" / "generator")
     _preset_copy(other, vocabulary=["left", "warm"])  # a label the prior was never trained on
     st = cat.preset_status("shading", catalogue_dirs=[other])
