@@ -59,6 +59,21 @@ PHOTOS = ("astronaut", "coffee", "rocket", "chelsea")
 PHOTO_LIGHTS = ("left", "top-right")
 
 
+def region_means(shading: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """Each visible object's and the wall's own true mean shading: what silhouettes alone could reach.
+
+    An oracle (it reads the truth, as the best constant does): a layer that knows every object's outline
+    and its average brightness, but nothing of its shape inside. Its gain over the best constant bounds
+    what outlines buy; the rest of a target above it has to come from shape inferred inside objects.
+    """
+    out = torch.empty_like(shading)
+    for b in range(shading.shape[0]):
+        for k in index[b].unique():
+            where = index[b] == k
+            out[b][where] = shading[b][where].mean()
+    return out
+
+
 # -- shading ------------------------------------------------------------------------------------
 def row(method: str, y: torch.Tensor, scene, const_db: tuple[float, float], seconds: float | None, **extra) -> dict:
     """Shading metrics of y (B, 1, H, W) against the scene's truth, and the gain over the best constant."""
@@ -130,6 +145,7 @@ def shading_table(args, split: str, size: int, parts, prior, corrective) -> tupl
     rows = [
         row("identity (y = 1)", torch.ones_like(const), scene, cdb, None),
         row("best constant", const, scene, cdb, None),
+        row("oracle: true mean per object and wall", region_means(scene.shading, scene.object_index), scene, cdb, None),
     ]
     t0 = time.perf_counter()
     rows.append(
