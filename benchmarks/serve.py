@@ -142,8 +142,11 @@ LEARNED = """
 async () => {
   const L = window.lasagna, wait = __WAIT__;
   const v = L.state.version, c = L.paints.count;
+  const button = document.getElementById("add-learned");
+  const why = document.getElementById("preset-why").textContent;
+  if (button.disabled) throw new Error(`"Add (amortised)" is disabled: ${why}`);
   const t0 = performance.now();
-  document.getElementById("add-learned").click();
+  button.click();
   await wait(() => L.state.version > v && L.settled() && L.paints.count > c);
   return L.paints.last - t0;
 }

@@ -313,20 +313,24 @@ def resolve(
 
 def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> dict[str, object]:
     """Whether ``preset`` can make layers here, read from configs only (no weights, no torch):
-    ``{"usable": bool, "method": "amortised" | "per-image" | None, "why": str}``.
+    ``{"usable": bool, "method": "amortised" | "per-image" | None, "amortised": bool, "why": str}``.
 
     Usable means: an amortised generator is installed, or the prior is found and knows every label
-    of the preset's vocabulary (and the corrective is found when the default loss is LMC-SDS).
+    of the preset's vocabulary (and the corrective is found when the default loss is LMC-SDS). ``method``
+    is what ``edit`` does by default; ``amortised`` whether the one-pass generator is there to ask for
+    (``--generator amortised``; the editor's one-click add), whatever the default.
     """
     try:
         parts = resolve(preset, catalogue_dirs=catalogue_dirs, need_prior=False)
     except LasagnaError as err:
-        return {"usable": False, "method": None, "why": str(err)}
+        return {"usable": False, "method": None, "amortised": False, "why": str(err)}
     p = parts.preset
-    if parts.generator is not None and p.method != "per-image":  # the choice learned.choose_method makes
-        return {"usable": True, "method": "amortised", "why": f"generator {parts.generator}"}
+    has_generator = parts.generator is not None
+    if has_generator and p.method != "per-image":  # the choice learned.choose_method makes
+        return {"usable": True, "method": "amortised", "amortised": True, "why": f"generator {parts.generator}"}
     if not parts.prior.is_dir():
-        return {"usable": False, "method": None, "why": f"its prior {p.prior!r} is not in the catalogue"}
+        why = f"its prior {p.prior!r} is not in the catalogue"
+        return {"usable": False, "method": None, "amortised": has_generator, "why": why}
     config = _config_doc(parts.prior).get("config")
     known = tuple(config.get("vocabulary") or ()) if isinstance(config, dict) else ()
     missing = [lab for lab in p.vocabulary if known and lab not in known]
@@ -334,15 +338,14 @@ def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | Non
         return {
             "usable": False,
             "method": None,
+            "amortised": has_generator,
             "why": f"its prior {p.prior!r} was not trained on {', '.join(missing)} (it knows {', '.join(known)})",
         }
     if p.distill.loss == "lmc-sds" and parts.corrective is None:
-        return {"usable": False, "method": None, "why": f"its corrective {p.corrective!r} is not in the catalogue"}
-    return {
-        "usable": True,
-        "method": "per-image",
-        "why": f"prior {p.prior}, {p.distill.loss} ω = {p.distill.guidance:g}",
-    }
+        why = f"its corrective {p.corrective!r} is not in the catalogue"
+        return {"usable": False, "method": None, "amortised": has_generator, "why": why}
+    why = f"prior {p.prior}, {p.distill.loss} ω = {p.distill.guidance:g}"
+    return {"usable": True, "method": "per-image", "amortised": has_generator, "why": why}
 
 
 @dataclass(frozen=True)

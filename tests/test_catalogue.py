@@ -252,8 +252,10 @@ def test_preset_status(tmp_path, tiny):
     _preset_copy(other, method="per-image")  # a preset that asks for per-image keeps it, generator or not
     st = cat.preset_status("shading", catalogue_dirs=[other])
     assert (other / "shading" / "generator").is_dir() and st["method"] == "per-image"
+    assert st["amortised"]  # the generator stays one click away (the editor's "Add (amortised)")
     assert st["method"] == choose_method(cat.resolve("shading", catalogue_dirs=[other]), None)
     shutil.rmtree(other / "shading" / "generator")
+    assert not cat.preset_status("shading", catalogue_dirs=[other])["amortised"]
     _preset_copy(other, vocabulary=["left", "warm"])  # a label the prior was never trained on
     st = cat.preset_status("shading", catalogue_dirs=[other])
     assert not st["usable"] and "was not trained on warm" in st["why"] and "\n" not in st["why"]

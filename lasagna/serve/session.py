@@ -569,7 +569,7 @@ class EditSession:
         for name in cat.available(self.catalogue_dirs)["preset"]:
             status = cat.preset_status(name, self.catalogue_dirs)
             entry: dict[str, Any] = {"name": name, "ready": bool(status["usable"]), "why": status["why"]}
-            entry["method"] = status.get("method")
+            entry.update(method=status.get("method"), amortised=bool(status.get("amortised")))
             try:
                 p = cat.load_preset(name, self.folder, self.catalogue_dirs)
                 entry.update(

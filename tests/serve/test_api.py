@@ -432,6 +432,7 @@ def test_an_upload_over_the_pixel_limit_is_refused(folder):
 def test_presets_are_listed_ready_or_why_not(client):
     presets = {p["name"]: p for p in client.get("/api/presets", headers=H).json()["presets"]}
     assert presets["shading"]["ready"] and presets["shading"]["method"] == "amortised"
+    assert presets["shading"]["amortised"] and not presets["color"]["amortised"]
     assert presets["light"]["vocabulary"] == ["warm", "cool", "white"]
 
 

@@ -238,7 +238,7 @@ async function loadPresets() {
     const o = new Option(p.ready ? p.name : `${p.name} (not ready)`, p.name);
     select.add(o);
   }
-  const ready = ui.presets.find((p) => p.ready && p.method === "amortised") || ui.presets.find((p) => p.ready);
+  const ready = ui.presets.find((p) => p.ready && p.amortised) || ui.presets.find((p) => p.ready);
   if (ready) select.value = ready.name;
   drawPicker();
 }
@@ -248,7 +248,7 @@ function drawPicker() {
   const box = $("picker");
   box.textContent = "";
   $("preset-why").textContent = p && !p.ready ? p.why : "";
-  $("add-learned").disabled = !p || !p.ready || p.method !== "amortised";  // "amortised": a generator is installed
+  $("add-learned").disabled = !p || !p.amortised;  // a generator is installed (whatever the preset's default)
   $("add-per-image").disabled = !p || !p.ready;
   if (!p || !p.vocabulary) return;
   if (!p.vocabulary.includes(ui.condition)) ui.condition = p.vocabulary[0];
