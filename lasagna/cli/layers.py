@@ -26,5 +26,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{kind}s: {', '.join(found[kind]) or '(none)'}")
     for name, st in status.items():
         how = f"ready ({st['method']}: {st['why']})" if st["usable"] else f"not usable: {st['why']}"
+        if st["amortised"] and st["method"] != "amortised":
+            how += "; --generator amortised: its generator"
         print(f"  {name}: {how}")
     return 0
