@@ -54,6 +54,7 @@ from lasagna.editing import edit  # noqa: E402
 from lasagna.priors.base import Condition  # noqa: E402
 from lasagna.priors.ddim import ddim_sample  # noqa: E402
 from lasagna.world import GLOW_VOCABULARY, VOCABULARY, additive_light, generate, render, sample_scenes  # noqa: E402
+from lasagna.world.lighting import lambert, light_vectors  # noqa: E402
 
 PHOTOS = ("astronaut", "coffee", "rocket", "chelsea")
 PHOTO_LIGHTS = ("left", "top-right")
@@ -72,6 +73,46 @@ def region_means(shading: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
             where = index[b] == k
             out[b][where] = shading[b][where].mean()
     return out
+
+
+def inflated_silhouettes(index: torch.Tensor, labels: list[str]) -> torch.Tensor:
+    """Shading of every object's *true* outline inflated into a round dome, lit by the scene's light.
+
+    Another oracle (it reads the true outlines, not the albedo): each visible object region becomes a height
+    field with a circular profile, h = √(R² − (R − d)²) for the distance d to the region's edge and R its
+    largest d (a sphere's own profile: a disc inflates to the exact hemisphere), normals from h's gradient,
+    ``lambert`` with the condition's light; the wall keeps n = +z. This is the classic shape-from-silhouette
+    prior (Johnston's Lumo, Teddy-style inflation): what a model that only segments objects and assumes
+    generic round shapes can reach. Faceted objects (far's octahedra and prisms) are where it falls short.
+    """
+    b_, _, h_, w_ = index.shape
+    rows, cols = torch.meshgrid(
+        torch.arange(h_, dtype=torch.float64), torch.arange(w_, dtype=torch.float64), indexing="ij"
+    )
+    pts = torch.stack([rows, cols], -1).reshape(-1, 2)
+    normals = torch.zeros(b_, 3, h_, w_, dtype=torch.float64)
+    normals[:, 2] = 1.0
+    for b in range(b_):
+        idx = index[b, 0]
+        height = torch.zeros(h_, w_, dtype=torch.float64)
+        for k in idx.unique().tolist():
+            if k < 0:
+                continue
+            region = (idx == k).to(torch.float64)[None, None]
+            # the nearest outside pixel is always one touching the region: search those only
+            edge = (torch.nn.functional.max_pool2d(region, 3, 1, 1) - region).reshape(-1) > 0
+            inside = region.reshape(-1) > 0
+            if edge.any():
+                d = torch.cdist(pts[inside], pts[edge]).min(dim=1).values
+            else:  # the region fills the image
+                d = torch.zeros(int(inside.sum()), dtype=torch.float64)
+            r = d.max() + 0.5
+            height.view(-1)[inside] = (r**2 - (r - d) ** 2).clamp_min(0).sqrt()
+        d_row, d_col = torch.gradient(height)
+        n = torch.stack([-d_col, d_row, torch.ones_like(height)])  # y up: ∂h/∂y = −∂h/∂row
+        n = n / n.norm(dim=0, keepdim=True)
+        normals[b] = torch.where(idx[None] >= 0, n, normals[b])
+    return lambert(normals, light_vectors(labels, dtype=torch.float64)).float()
 
 
 # -- shading ------------------------------------------------------------------------------------
@@ -146,6 +187,7 @@ def shading_table(args, split: str, size: int, parts, prior, corrective) -> tupl
         row("identity (y = 1)", torch.ones_like(const), scene, cdb, None),
         row("best constant", const, scene, cdb, None),
         row("oracle: true mean per object and wall", region_means(scene.shading, scene.object_index), scene, cdb, None),
+        row("oracle: true outlines inflated", inflated_silhouettes(scene.object_index, labels), scene, cdb, None),
     ]
     t0 = time.perf_counter()
     rows.append(
