@@ -20,7 +20,10 @@ top_edit_vs_full      Renderer re-render after an in-place edit of the top layer
 backward_vs_forward   forward + backward with every layer tensor (and the normal layer's opacity)
                       requiring grad, clamp="output", vs the no-grad forward with a fresh output
 top_edit32_vs_full    on a 32-layer stack (``random_stack``) at the same size: Renderer re-render after an
-                      in-place edit of the top layer vs a full render (the prefix cache keeps 31 layers)
+                      in-place edit of the top layer vs a full render (the prefix cache keeps 31 layers),
+                      both into a preallocated ``out=`` (as composite_vs_pillow): a fresh 48 MiB output
+                      costs this VM 5–35 ms of page zeroing that swings from call to call
+                      (``top_edit32_fresh_vs_full``: both allocating)
 modes_vs_pillow       a stack of the base and one opaque full-canvas layer per blend mode Pillow has
                       (ImageChops multiply, screen, overlay, darker, lighter, hard_light, soft_light,
                       difference, add; Image.alpha_composite for normal RGBA) vs Pillow's chain of the same
@@ -412,19 +415,33 @@ PILLOW_MODES = {
 def measure_top_edit32(size: int, reps: int, res: dict) -> None:
     """The prefix cache on a deep stack: edit the top of 32 layers in place and re-render."""
     layers = random_stack(32, size, seed=32)
-    renderer = Renderer((size, size))
-    renderer.render(layers)
-    top = layers[-1].tensors.color
-    times = []
-    for i in range(reps + 1):
-        top[0, 0, i % size] = 8 / 255 if i % 2 else 0.0
-        times.append(median_time(lambda: renderer.render(layers), 1, warmup=0))
-        assert renderer.last_recomputed == [layers[-1].id]
-    t_top = float(np.median(times[1:]))
+    out = torch.empty(3, size, size)
+    found = {}
+    for use_out in (True, False):
+        renderer = Renderer((size, size))
+        renderer.render(layers)
+        top = layers[-1].tensors.color
+        times = []
+        for i in range(2 * reps + 1):
+            top[0, 0, i % size] = 8 / 255 if i % 2 else 0.0
+            times.append(median_time(lambda: renderer.render(layers, out=out if use_out else None), 1, warmup=0))  # noqa: B023
+            assert renderer.last_recomputed == [layers[-1].id]
+        found[use_out] = float(np.median(times[1:]))
     assert torch.equal(renderer.render(layers).image, render(layers, canvas=(size, size)).image)
-    t_full = median_time(lambda: render(layers, canvas=(size, size)), reps)
-    res.update(top_edit32_s=t_top, full_render32_s=t_full, top_edit32_vs_full=t_top / t_full)
-    log(f"[prefix cache, 32 layers] top edit: {t_top * 1e3:.2f} ms, full render: {t_full * 1e3:.2f} ms")
+    t_full = median_time(lambda: render(layers, canvas=(size, size), out=out), reps)
+    t_full_fresh = median_time(lambda: render(layers, canvas=(size, size)), reps)
+    res.update(
+        top_edit32_s=found[True],
+        full_render32_s=t_full,
+        top_edit32_vs_full=found[True] / t_full,
+        top_edit32_fresh_s=found[False],
+        full_render32_fresh_s=t_full_fresh,
+        top_edit32_fresh_vs_full=found[False] / t_full_fresh,
+    )
+    log(
+        f"[prefix cache, 32 layers] top edit: {found[True] * 1e3:.2f} ms, full render: {t_full * 1e3:.2f} ms "
+        f"(fresh outputs: {found[False] * 1e3:.2f} vs {t_full_fresh * 1e3:.2f} ms)"
+    )
 
 
 def measure_modes(size: int, reps: int, res: dict) -> None:
