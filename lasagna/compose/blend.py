@@ -38,6 +38,9 @@ The non-separable four follow the spec's pseudo-code (section 10.3: Lum with wei
 does (ties included). A 1-channel source or backdrop is gray in RGB for them (expanded to three
 channels; a gray backdrop gets channel 0 of the result, all three being equal).
 
+Every per-pixel select of these formulas goes through ``lasagna.compose.select`` (``torch.where``'s value
+and gradient as arithmetic: ~20× faster on CPU, bit for bit the same for finite branches).
+
 Gradients at the kinks (subgradients, chosen so every gradient is finite — tested at the kinks):
 color-dodge at Cs = 1 and color-burn at Cs = 0 are constant there (1 and 0: the derivative of the
 saturated branch, 0), and their quotients are only evaluated with a denominator of 1 where they
@@ -89,6 +92,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from lasagna.compose.select import as_value, pick, step
 from lasagna.document.blend import BLEND_MODES as BLEND_MODES  # the names are declared there, once
 from lasagna.errors import LasagnaError
 from lasagna.numerics import CLIP_COLOR_EPS
@@ -171,7 +175,7 @@ def _plus_(out: Tensor, Cs: Tensor, a: Alpha) -> Tensor:
 def _hard_light_B(Cb: Tensor, Cs: Tensor) -> Tensor:
     # Cs ≤ ½: multiply(Cb, 2Cs); else screen(Cb, 2Cs − 1) = Cb + (2Cs − 1)(1 − Cb).
     s2 = Cs * 2.0
-    return torch.where(Cs <= 0.5, Cb * s2, Cb + (s2 - 1.0) * (1.0 - Cb))
+    return pick(step("<=", Cs, 0.5), Cb * s2, Cb + (s2 - 1.0) * (1.0 - Cb))
 
 
 def _overlay_B(Cb: Tensor, Cs: Tensor) -> Tensor:
@@ -190,23 +194,25 @@ def _color_dodge_B(Cb: Tensor, Cs: Tensor) -> Tensor:
     # The quotient is only selected where Cs < 1; elsewhere it divides by 1 (finite, and its derivative
     # is multiplied by 0). At Cs ≥ 1 (> 1 is not a colour: dodged fully) B is the constant 1, or 0 where
     # Cb = 0 — the spec's first case — so its derivative there is 0.
-    pole = Cs >= 1.0
-    q = torch.div(Cb, torch.where(pole, 1.0, 1.0 - Cs)).clamp_max(1.0)
-    return torch.where(pole, (Cb != 0.0).to(q.dtype), q)
+    pole = step(">=", Cs, 1.0)
+    q = torch.div(Cb, pick(pole, torch.ones_like(Cs), 1.0 - Cs)).clamp_max(1.0)
+    return pick(pole, as_value(step("!=", Cb, 0.0), q), q)
 
 
 def _color_burn_B(Cb: Tensor, Cs: Tensor) -> Tensor:
     # The mirror image: at Cs ≤ 0 B is the constant 0, or 1 where Cb = 1 (the spec's first case).
-    pole = Cs <= 0.0
-    q = torch.div(1.0 - Cb, torch.where(pole, 1.0, Cs)).clamp_max(1.0)
-    return torch.where(pole, (Cb == 1.0).to(q.dtype), 1.0 - q)
+    pole = step("<=", Cs, 0.0)
+    q = torch.div(1.0 - Cb, pick(pole, torch.ones_like(Cs), Cs)).clamp_max(1.0)
+    return pick(pole, as_value(step("==", Cb, 1.0), q), 1.0 - q)
 
 
 def _soft_light_B(Cb: Tensor, Cs: Tensor) -> Tensor:
-    # D(Cb): the polynomial on Cb ≤ ¼, √Cb above; √ reads max(Cb, ¼) so its slope stays finite.
-    D = torch.where(Cb <= 0.25, ((16.0 * Cb - 12.0) * Cb + 4.0) * Cb, Cb.clamp_min(0.25).sqrt())
+    # D(Cb): the polynomial on Cb ≤ ¼, √Cb above; √ reads max(Cb, ¼) so its slope stays finite, and the
+    # polynomial min(Cb, ¼) so a large backdrop cannot overflow it where it is not selected.
+    low = Cb.clamp_max(0.25)
+    D = pick(step("<=", Cb, 0.25), ((16.0 * low - 12.0) * low + 4.0) * low, Cb.clamp_min(0.25).sqrt())
     s2 = Cs * 2.0
-    return torch.where(Cs <= 0.5, Cb - (1.0 - s2) * Cb * (1.0 - Cb), Cb + (s2 - 1.0) * (D - Cb))
+    return pick(step("<=", Cs, 0.5), Cb - (1.0 - s2) * Cb * (1.0 - Cb), Cb + (s2 - 1.0) * (D - Cb))
 
 
 def _difference_B(Cb: Tensor, Cs: Tensor) -> Tensor:
@@ -226,8 +232,8 @@ def _clip_color(C: Tensor) -> Tensor:
     L = _lum(C)
     n = C.amin(dim=-3, keepdim=True)
     x = C.amax(dim=-3, keepdim=True)  # the spec takes x before the first correction
-    C = torch.where(n < 0.0, L + (C - L) * L / (L - n).clamp_min(CLIP_COLOR_EPS), C)
-    return torch.where(x > 1.0, L + (C - L) * (1.0 - L) / (x - L).clamp_min(CLIP_COLOR_EPS), C)
+    C = pick(step("<", n, 0.0), L + (C - L) * L / (L - n).clamp_min(CLIP_COLOR_EPS), C)
+    return pick(step(">", x, 1.0), L + (C - L) * (1.0 - L) / (x - L).clamp_min(CLIP_COLOR_EPS), C)
 
 
 def _set_lum(C: Tensor, l: Tensor) -> Tensor:  # noqa: E741 (the spec's name)
@@ -242,7 +248,7 @@ def _set_sat(C: Tensor, s: Tensor) -> Tensor:
     # Max → s, min → 0, mid → (Cmid − Cmin)·s/(Cmax − Cmin); a gray (Cmax = Cmin) gives 0·s/1 = 0.
     lo = C.amin(dim=-3, keepdim=True)
     d = C.amax(dim=-3, keepdim=True) - lo
-    return (C - lo) * s / torch.where(d > 0.0, d, 1.0)
+    return (C - lo) * s / pick(step(">", d, 0.0), d, torch.ones_like(d))
 
 
 def _rgb(C: Tensor) -> Tensor:

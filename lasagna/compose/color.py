@@ -10,12 +10,12 @@ to negative values odd-symmetrically, ``f(x) = sign(x)·f(|x|)``, as CSS Color M
 for its "extended" sRGB (values outside [0, 1] appear in unclamped intermediates). Values above 1
 follow the power segment.
 
-Autograd: each branch of the ``torch.where`` is evaluated everywhere, and the gradient of the branch
-*not* selected still enters the backward pass multiplied by zero — ``0·inf`` or ``0·nan`` would poison
-it. The power segment therefore reads its argument clamped to the power domain (``|x| ≥ threshold``),
-so its gradient is finite at 0 where the linear segment is selected (gradient 1/12.92 at x = 0 for
-decode, 12.92 for encode). All arithmetic stays in the input's dtype (float64-safe: the constants are
-Python floats, exact to the printed digits in float64).
+Autograd: each branch of the select (``lasagna.compose.select.pick``, a ``torch.where``) is evaluated
+everywhere, and the gradient of the branch *not* selected still enters the backward pass multiplied by
+zero — ``0·inf`` or ``0·nan`` would poison it. The power segment therefore reads its argument clamped to
+the power domain (``|x| ≥ threshold``), so its gradient is finite at 0 where the linear segment is
+selected (gradient 1/12.92 at x = 0 for decode, 12.92 for encode). All arithmetic stays in the input's
+dtype (float64-safe: the constants are Python floats, exact to the printed digits in float64).
 
 The standard's two segments do not meet exactly (0.04045 / 12.92 = 0.0031308049…): decode jumps by
 2.3e-9 at its threshold and encode by 2.9e-8 at its own, so a float64 round trip is exact to 3e-8 for
@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import torch
 
+from lasagna.compose.select import pick, step
 from lasagna.errors import LasagnaError
 
 # IEC 61966-2-1:1999, section 5.2 (encoding) and 5.3 (decoding).
@@ -52,7 +53,7 @@ def srgb_to_linear(x: torch.Tensor) -> torch.Tensor:
     a = x.abs()
     # Clamp into the power segment's domain so its (unselected) gradient stays finite near 0.
     power = ((a.clamp_min(SRGB_DECODE_THRESHOLD) + SRGB_OFFSET) / (1.0 + SRGB_OFFSET)).pow(SRGB_GAMMA)
-    return torch.where(a <= SRGB_DECODE_THRESHOLD, x / SRGB_SLOPE, torch.copysign(power, x))
+    return pick(step("<=", a, SRGB_DECODE_THRESHOLD), x / SRGB_SLOPE, torch.copysign(power, x))
 
 
 def linear_to_srgb(y: torch.Tensor) -> torch.Tensor:
@@ -65,7 +66,7 @@ def linear_to_srgb(y: torch.Tensor) -> torch.Tensor:
     _check(y, "linear_to_srgb")
     a = y.abs()
     power = (1.0 + SRGB_OFFSET) * a.clamp_min(SRGB_ENCODE_THRESHOLD).pow(1.0 / SRGB_GAMMA) - SRGB_OFFSET
-    return torch.where(a <= SRGB_ENCODE_THRESHOLD, y * SRGB_SLOPE, torch.copysign(power, y))
+    return pick(step("<=", a, SRGB_ENCODE_THRESHOLD), y * SRGB_SLOPE, torch.copysign(power, y))
 
 
 def srgb_to_linear_derivative(x: torch.Tensor) -> torch.Tensor:
@@ -75,7 +76,7 @@ def srgb_to_linear_derivative(x: torch.Tensor) -> torch.Tensor:
     power = (SRGB_GAMMA / (1.0 + SRGB_OFFSET)) * (
         (a.clamp_min(SRGB_DECODE_THRESHOLD) + SRGB_OFFSET) / (1.0 + SRGB_OFFSET)
     ).pow(SRGB_GAMMA - 1.0)
-    return torch.where(a <= SRGB_DECODE_THRESHOLD, torch.full_like(x, 1.0 / SRGB_SLOPE), power)
+    return pick(step("<=", a, SRGB_DECODE_THRESHOLD), torch.full_like(x, 1.0 / SRGB_SLOPE), power)
 
 
 def linear_to_srgb_derivative(y: torch.Tensor) -> torch.Tensor:
@@ -83,4 +84,4 @@ def linear_to_srgb_derivative(y: torch.Tensor) -> torch.Tensor:
     _check(y, "linear_to_srgb_derivative")
     a = y.abs()
     power = ((1.0 + SRGB_OFFSET) / SRGB_GAMMA) * a.clamp_min(SRGB_ENCODE_THRESHOLD).pow(1.0 / SRGB_GAMMA - 1.0)
-    return torch.where(a <= SRGB_ENCODE_THRESHOLD, torch.full_like(y, SRGB_SLOPE), power)
+    return pick(step("<=", a, SRGB_ENCODE_THRESHOLD), torch.full_like(y, SRGB_SLOPE), power)
