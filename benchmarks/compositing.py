@@ -18,7 +18,8 @@ culled64_vs_live4     a 64-layer stack (the 4 live layers + 60 hidden / zero-opa
 top_edit_vs_full      Renderer re-render after an in-place edit of the top layer vs a plain full
                       render(plan); both allocate their output
 backward_vs_forward   forward + backward with every layer tensor (and the normal layer's opacity)
-                      requiring grad, clamp="output", vs the no-grad forward with a fresh output
+                      requiring grad, clamp=None, as a training step runs it (gradients cleared
+                      first, as optimizer.zero_grad() does), vs the no-grad forward with a fresh output
 top_edit32_vs_full    on a 32-layer stack (``random_stack``) at the same size: Renderer re-render after an
                       in-place edit of the top layer vs a full render (the prefix cache keeps 31 layers),
                       both into a preallocated ``out=`` (as composite_vs_pillow): a fresh 48 MiB output
@@ -348,6 +349,17 @@ def learned_copy(layers, learn: set[str]) -> list[RenderLayerSpec]:
     return out
 
 
+def training_step(plan, layers, engine: str = "banded") -> None:
+    """One forward + backward as a training step runs it: the leaves' gradients cleared first
+    (``optimizer.zero_grad()``, set to None by default), so backward writes them instead of adding
+    into the previous step's (an extra read-modify-write of every full-size gradient)."""
+    for s in layers:
+        for x in (*s.tensors.tensors(), s.opacity):
+            if isinstance(x, torch.Tensor) and x.requires_grad:
+                x.grad = None
+    render(plan, grad_engine=engine).image.sum().backward()
+
+
 def measure_autograd(layers, size: int, reps: int, res: dict) -> None:
     """Forward + backward with every layer learned (and a learned opacity) vs the no-grad forward."""
     every = {s.id for s in layers}
@@ -359,7 +371,7 @@ def measure_autograd(layers, size: int, reps: int, res: dict) -> None:
         )
         for engine in ("banded", "autograd"):
             plan = compile_plan(grad_layers, (size, size), clamp=clamp)
-            timings[clamp, engine] = median_time(lambda: render(plan, grad_engine=engine).image.sum().backward(), reps)  # noqa: B023 (called at once)
+            timings[clamp, engine] = median_time(lambda: training_step(plan, grad_layers, engine), reps)  # noqa: B023
         timings[clamp, "forward_grad"] = median_time(lambda: render(plan), reps)  # noqa: B023
         nograd = compile_plan(layers, (size, size), clamp=clamp)
         timings[clamp, "forward"] = median_time(lambda: render(nograd), reps)  # noqa: B023
@@ -369,13 +381,14 @@ def measure_autograd(layers, size: int, reps: int, res: dict) -> None:
         grad_none = learned_copy(layers, every)
         plan_none = compile_plan(grad_none, (size, size), clamp=None)
         nograd = compile_plan(layers, (size, size), clamp=None)
-        t1_fb = median_time(lambda: render(plan_none).image.sum().backward(), reps)
+        t1_fb = median_time(lambda: training_step(plan_none, grad_none), reps)
         t1_f = median_time(lambda: render(nograd), reps)
         torch.set_num_threads(threads)
         res.update(backward_vs_forward_1thread=t1_fb / t1_f, forward_1thread_s=t1_f, forward_backward_1thread_s=t1_fb)
         log(f"[autograd, 1 thread] clamp=None: forward {t1_f * 1e3:.2f} ms, forward+backward {t1_fb * 1e3:.2f} ms")
-    top_plan = compile_plan(learned_copy(layers, {"light"}), (size, size), clamp=None)
-    t_top = median_time(lambda: render(top_plan).image.sum().backward(), reps)
+    top_layers = learned_copy(layers, {"light"})
+    top_plan = compile_plan(top_layers, (size, size), clamp=None)
+    t_top = median_time(lambda: training_step(top_plan, top_layers), reps)
     f = timings[None, "forward"]
     res.update(
         forward_s=f,

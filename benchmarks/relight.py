@@ -130,10 +130,29 @@ def table(args, split: str, size: int, prior) -> list[dict]:
     for omega in args.omegas:
         y, seconds = default_layers(rel.base.float(), labels, args.catalogue, guidance=omega)
         rows.append(row(rel, f"per-image SDS ω = {omega:g}", y.double(), seconds))
+    for n in args.methods:  # the amortised generator, then N refinement steps: candidates for the default
+        y, seconds = default_layers(rel.base.float(), labels, args.catalogue, generator="amortised", optimize=n)
+        rows.append(row(rel, "edit --generator amortised" + (f" --optimize {n}" if n else ""), y.double(), seconds))
+    if args.supervised is not None:
+        rows.append(row(rel, "supervised ceiling", supervised_ratio(rel, labels, args.supervised), None))
     for r in rows:
         r.update(split=split, size=size)
         print(json.dumps(r), flush=True)
     return rows
+
+
+def supervised_ratio(rel, labels, folder: Path) -> torch.Tensor:
+    """A generator trained on the world's true ratio (``train-layer --preset relight --supervised``), at the
+    preset's working size and enlarged, as the edit does."""
+    from lasagna.compose.resample import working_size
+    from lasagna.generators.unet import LayerGenerator
+
+    gen = LayerGenerator.from_pretrained(folder)
+    full = tuple(rel.base.shape[-2:])
+    side = cat.resolve("relight").preset.working_size
+    with torch.no_grad():
+        small = downsample(rel.base.float(), working_size(*full, side))
+        return upsample(gen(small, list(labels))[:, :1], full).double()
 
 
 def leak(args, split: str, size: int) -> dict:
@@ -204,6 +223,14 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--omegas", nargs="*", type=float, default=[3.0])
     ap.add_argument("--catalogue", type=Path, nargs="*", default=None, help="catalogue folders searched first")
+    ap.add_argument(
+        "--methods",
+        type=int,
+        nargs="*",
+        default=[],
+        help="N: the amortised generator then N refinement steps (0: one pass); needs a generator",
+    )
+    ap.add_argument("--supervised", type=Path, default=None, help="a supervised generator folder: the ceiling row")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--no-between", dest="between", action="store_false", help="skip the in-between directions")
     ap.add_argument("--quick", action="store_true", help="4 scenes, 64² only, no extra ω")
@@ -212,6 +239,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.quick:
         args.count, args.sizes, args.omegas, args.json_out = 4, [64], [], Path("/tmp/relight_quick.json")
+        args.methods = args.methods[:1]
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     status = cat.preset_status("relight", args.catalogue)

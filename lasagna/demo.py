@@ -11,7 +11,12 @@ scikit-image's CC0 / public-domain samples). For each:
   truth column shows the original colours;
 * **add light** (preset ``light``): the image as it is gets a learned ``plus`` layer of a warm or
   cool fill light; for a world scene the truth column shows the world's own fill light of that
-  label added (``lasagna.world.tasks.additive_light``).
+  label added (``lasagna.world.tasks.additive_light``);
+* **relight what is lit** (preset ``relight``, the Lasagna paper's setting): a lit image — a world
+  scene lit by its relight task's source light (``lasagna.world.tasks.relight_sources``), or a
+  photograph as it is — gets a luminosity-ratio layer in [0, 4] toward a named light and toward a
+  direction between the named ones (``RELIGHT_TO``); for a world scene the truth column shows the
+  scene rendered under that light.
 
 Each edit is ``lasagna.editing.edit`` with the preset's default method (``lasagna edit``'s: the preset's
 ``method``, else its amortised generator when the catalogue has one, else a per-image optimisation with
@@ -43,6 +48,7 @@ PHOTOS = ("coffee", "helmet", "chelsea")  # photographs relit; the first COLOURI
 COLOURISED_PHOTOS = 2
 GLOWS = ("warm", "cool")  # world scene / photograph k gets a GLOWS[k % 2] light; the first LIT_PHOTOS photos
 LIT_PHOTOS = 2
+RELIGHT_TO = ("right", "az=135,el=40")  # relight targets: a named light and any direction (az, el in degrees)
 # Per-image steps when a preset has no amortised generator: None = the preset's own distill.steps
 # (150 for shading: ~1.5 s per 64² edit on this CPU with the 32² relighting prior, early stopping included).
 DEMO_STEPS: int | None = None
@@ -236,7 +242,7 @@ def runnable_presets(catalogue_dirs=None) -> tuple[dict[str, str], list[str]]:
     """({preset: "amortised" | "per-image"} of the demo's presets that can run, [why each other cannot])."""
     runnable: dict[str, str] = {}
     missing: list[str] = []
-    for preset in ("shading", "color", "light"):
+    for preset in ("shading", "color", "light", "relight"):
         try:
             parts = cat.resolve(preset, catalogue_dirs=catalogue_dirs, need_prior=False)
         except LasagnaError as err:
@@ -314,6 +320,15 @@ class _Edits:
             truth = additive_light(generate(split, 1, seed, stack.width, start=index), glow).lit[0]
             stack.document = as_rendered
             self.one(stack, "light", glow, f"{scene.name}-{glow}-light", f"{scene.name} · {glow} light", truth)
+        if "relight" in self.runnable:  # the relight task: the scene lit by its own source light A, relit to B
+            from lasagna.world.tasks import relight_sources, relighting
+
+            world = generate(split, 1, seed, stack.width, start=index)
+            for label in RELIGHT_TO:
+                rel = relighting(world, relight_sources(world.params), [label])
+                lit = Stack.from_image(rel.base[0].clamp(0, 1), name="Lit")
+                name = f"{scene.name}-relit-{_slug(label)}"
+                self.one(lit, "relight", label, name, f"{scene.name} · relit {label}", rel.target[0].clamp(0, 1))
 
     def photo(self, photo: Path, *, colourise: bool, glow: str | None) -> None:
         """Relight a photograph in every direction; colourise its gray image and add a ``glow`` light if asked."""
@@ -335,6 +350,16 @@ class _Edits:
             )
         if "light" in self.runnable and glow is not None:
             self.one(photo, "light", glow, f"{photo.stem}-{glow}-light", f"{photo.name} · {glow} light", None)
+        if "relight" in self.runnable:
+            for label in RELIGHT_TO:
+                self.one(
+                    photo, "relight", label, f"{photo.stem}-relit-{_slug(label)}", f"{photo.name} · relit {label}", None
+                )
+
+
+def _slug(label: str) -> str:
+    """A condition as a folder-name part: ``az=135,el=40`` → ``az135-el40``."""
+    return label.replace("=", "").replace(",", "-")
 
 
 def _has_prior(parts, catalogue_dirs) -> bool:

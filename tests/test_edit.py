@@ -514,7 +514,8 @@ def test_demo_end_to_end(tmp_path, capsys):
     with Image.open(sheet) as im:
         assert im.mode == "RGB" and im.width > 1000 and im.height > 600
     stacks = sorted(p.name for p in (out / "stacks").iterdir())
-    assert "coffee-left" in stacks and "heldout-s0-000000-color" in stacks and len(stacks) == 28
+    assert "coffee-left" in stacks and "heldout-s0-000000-color" in stacks and len(stacks) == 38
+    assert {"coffee-relit-right", "chelsea-relit-az135-el40", "heldout-s0-000001-relit-right"} <= set(stacks)
     assert {
         "heldout-s0-000000-warm-light",
         "heldout-s0-000001-cool-light",
@@ -537,7 +538,7 @@ def test_demo_end_to_end(tmp_path, capsys):
 
 def test_demo_falls_back_without_priors(tmp_path, capsys, monkeypatch):
     empty = tmp_path / "layers"
-    for name in ("shading", "color", "light"):
+    for name in ("shading", "color", "light", "relight"):
         (empty / name).mkdir(parents=True)
         preset = json.loads((ROOT / "layers" / name / "preset.json").read_text())
         preset["prior"] = "missing-prior"
