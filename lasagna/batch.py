@@ -20,7 +20,10 @@ folders are staged (written into temporary siblings without fsync, ``lasagna.ato
 committed together: one file-system sync, then each renamed into place (``COMMIT_EVERY``). A killed run
 leaves only hidden temporaries, swept when the next run starts (``lasagna.atomic.sweep_stale``): running
 again finishes the rest, losing nothing complete and redoing nothing complete. Each input's failure is
-caught and reported (``Outcome.error``, one line) and the others go on.
+caught and reported (``Outcome.error``, one line) and the others go on. A large file every folder carries
+byte for byte (the generator's weights, 2 MB) is written once per run and hard-linked into each folder
+(``lasagna.io.folder.SharedFiles``; copies where the file system takes no links): each folder stays whole
+and self-contained.
 
 **Batches and shards.** The sorted inputs are cut into consecutive chunks of ``batch_size``; chunk k belongs
 to rank ``k mod world`` (with ``batch_size`` 1: ``inputs[rank::world]``). Within a chunk the amortised
@@ -61,7 +64,7 @@ from lasagna.atomic import sweep_stale, sync_filesystem, unsynced
 from lasagna.document import STACK_FILE
 from lasagna.editing import EditPlan, check_edit_options, plan_edit
 from lasagna.errors import LasagnaError, PathError
-from lasagna.io.folder import check_writable, swap_in
+from lasagna.io.folder import SharedFiles, check_writable, swap_in
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 from lasagna.learned import LoadedGenerator, choose_method, load_generator
 
@@ -314,6 +317,7 @@ def edit_many(
         bar = tqdm(total=sum(map(len, mine)), desc=f"edit {preset}-{condition}", unit="image", leave=False)
     outcomes: list[Outcome] = []
     staged: list[tuple[int, Path, float]] = []  # (index, temporary folder, start): written, not yet renamed
+    shared = SharedFiles(out_dir)  # the generator's weights: written once, hard-linked into every stack folder
     since = [time.monotonic()]
 
     def report(outcome: Outcome) -> None:
@@ -374,7 +378,13 @@ def edit_many(
                     run = plan.make(**options, progress=False, loaded=gen, initial=y)
                     with unsynced():  # made durable together by commit()
                         staged.append(
-                            (i, plan.finish(run, time.monotonic() - t0).stage(out, force=force, ora=ora, warn=warn), t0)
+                            (
+                                i,
+                                plan.finish(run, time.monotonic() - t0).stage(
+                                    out, force=force, ora=ora, warn=warn, shared=shared
+                                ),
+                                t0,
+                            )
                         )
                 except Exception as exc:  # noqa: BLE001
                     report(Outcome(i, label, str(out), "failed", _describe(exc, label), time.monotonic() - t0))
@@ -384,6 +394,7 @@ def edit_many(
     finally:
         for _, tmp, _ in staged:  # interrupted: finished work not yet renamed in is dropped, nothing half-written
             shutil.rmtree(tmp, ignore_errors=True)
+        shared.close()
         if bar is not None:
             bar.close()
     return BatchReport(_gather(outcomes), time.monotonic() - start)

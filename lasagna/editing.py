@@ -72,7 +72,7 @@ from lasagna.errors import (
     PathError,
     describe_validation_error,
 )
-from lasagna.io.folder import check_output_folder, stage_stack_folder, write_stack_folder
+from lasagna.io.folder import SharedFiles, check_output_folder, stage_stack_folder, write_stack_folder
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 from lasagna.io.stack import Stack, load_stack, resolve_inside
 from lasagna.learned import (
@@ -131,19 +131,23 @@ class EditResult:
         force: bool = False,
         ora: bool = True,
         warn: Callable[[str], None] | None = None,
+        shared: SharedFiles | None = None,
     ) -> Path:
         """``save`` up to the rename: the stack folder written into a temporary sibling of ``out``, returned
-        (``lasagna.io.folder.stage_stack_folder``; ``swap_in`` renames it into place)."""
-        return stage_stack_folder(self.stack, out, **self._contents(ora, warn), force=force)
+        (``lasagna.io.folder.stage_stack_folder``; ``swap_in`` renames it into place). ``shared``: a batch's
+        store its large files (the generator's weights) are hard-linked from (``SharedFiles``)."""
+        return stage_stack_folder(self.stack, out, **self._contents(ora, warn), force=force, shared=shared)
 
     def _contents(self, ora: bool, warn) -> dict[str, Any]:
         from lasagna.export.ora import encode_ora
+        from lasagna.io.render import encode_composite
 
         result = self.stack.render()
+        composite_png = encode_composite(result)  # composite.png, and the ORA's merged image: encoded once
         files = dict(self.files)
         if ora:
-            files["stack.ora"] = encode_ora(self.stack, composite=result.image, warn=warn)
-        return {"files": files, "result": result}
+            files["stack.ora"] = encode_ora(self.stack, composite=result.image, merged_png=composite_png, warn=warn)
+        return {"files": files, "result": result, "composite_png": composite_png}
 
 
 # ---- inputs ----------------------------------------------------------------------------------------

@@ -204,6 +204,48 @@ def test_equals_edit_one_at_a_time(tmp_path, options):
         assert _files(tmp_path / "many" / name) == _files(alone)
 
 
+def _weights(folder: Path) -> list[Path]:
+    return sorted(folder.glob("*/generators/*/model.safetensors"))
+
+
+def test_generator_weights_are_written_once_and_hard_linked(tmp_path, tiny, monkeypatch):
+    """Every stack folder of a run carries the generator's weights, one file on disk (its link count is the
+    number of folders: the run's store is gone); each folder is still edit's, and loads on its own."""
+    import lasagna.io.folder as folder_mod
+
+    monkeypatch.setattr(folder_mod, "SHARE_MIN_BYTES", 0)  # the tiny generator is smaller than the real 2 MB
+    images = _images(tmp_path / "in", 3)
+    assert edit_many(images, "shading", "left", tmp_path / "many", generator="amortised").ok
+    weights = _weights(tmp_path / "many")
+    assert len(weights) == 3 and len({os.stat(p).st_ino for p in weights}) == 1
+    assert os.stat(weights[0]).st_nlink == 3
+    assert weights[0].read_bytes() == (tiny / "shading" / "generator" / "model.safetensors").read_bytes()
+    assert sorted(p.name for p in (tmp_path / "many").iterdir()) == [p.stem for p in images]  # no store left
+    alone = edit(images[1], "shading", "left", generator="amortised").save(tmp_path / "alone")
+    assert _files(tmp_path / "many" / images[1].stem) == _files(alone)
+    shutil.rmtree(tmp_path / "many" / images[0].stem)  # removing one folder leaves the others whole
+    assert (
+        weights[1].read_bytes()
+        == weights[2].read_bytes()
+        == (alone / weights[1].relative_to(tmp_path / "many" / images[1].stem)).read_bytes()
+    )
+
+
+def test_weights_are_copied_where_links_fail(tmp_path, monkeypatch):
+    import lasagna.io.folder as folder_mod
+
+    def refuse(src, dst):
+        raise OSError(1, "Operation not permitted")
+
+    monkeypatch.setattr(folder_mod, "SHARE_MIN_BYTES", 0)
+    monkeypatch.setattr(folder_mod.os, "link", refuse)
+    images = _images(tmp_path / "in", 2)
+    assert edit_many(images, "shading", "left", tmp_path / "many", generator="amortised").ok
+    weights = _weights(tmp_path / "many")
+    assert len({os.stat(p).st_ino for p in weights}) == 2 and weights[0].read_bytes() == weights[1].read_bytes()
+    assert sorted(p.name for p in (tmp_path / "many").iterdir()) == [p.stem for p in images]
+
+
 def test_batched_forward_within_tolerance(tmp_path):
     images = _images(tmp_path / "in", 4)
     edit_many(images, "shading", "left", tmp_path / "one", generator="amortised")

@@ -140,10 +140,18 @@ def composite_uint8(image: torch.Tensor) -> np.ndarray:
     return (image.detach().cpu().double().clamp(0.0, 1.0) * 255.0).round().to(torch.uint8).permute(1, 2, 0).numpy()
 
 
-def encode_ora(stack, *, composite: torch.Tensor | None = None, warn: Callable[[str], None] | None = None) -> bytes:
+def encode_ora(
+    stack,
+    *,
+    composite: torch.Tensor | None = None,
+    merged_png: bytes | None = None,
+    warn: Callable[[str], None] | None = None,
+) -> bytes:
     """The OpenRaster file of ``stack`` as bytes (see the module docstring).
 
     ``composite`` (3, H, W) is the exact composite for ``mergedimage.png``; rendered if not given.
+    ``merged_png``: that composite already encoded as an 8-bit RGB PNG (``lasagna.io.render.encode_composite``,
+    the same codes as ``composite_uint8``), used as is rather than encoded again.
     """
     if composite is None:
         from lasagna.io.render import render_stack
@@ -159,10 +167,14 @@ def encode_ora(stack, *, composite: torch.Tensor | None = None, warn: Callable[[
     for layer in leaves(layers):
         rgba = layer.rgba_uint8().transpose(2, 0, 1) / 255.0
         entries.append((f"data/{layer.key}.png", encode_png(rgba[:3], rgba[3:], where=layer.key)))
-    buf = io.BytesIO()
-    Image.fromarray(merged).save(buf, format="PNG")
-    entries.append(("mergedimage.png", buf.getvalue()))
-    entries.append(("Thumbnails/thumbnail.png", _thumbnail(merged)))
+    if merged_png is None:
+        buf = io.BytesIO()
+        Image.fromarray(merged).save(buf, format="PNG")
+        merged_png = buf.getvalue()
+    entries.append(("mergedimage.png", merged_png))
+    # A canvas that fits the thumbnail is its own thumbnail (Pillow's ``thumbnail`` never enlarges).
+    small = max(stack.width, stack.height) <= THUMBNAIL_MAX
+    entries.append(("Thumbnails/thumbnail.png", merged_png if small else _thumbnail(merged)))
     out = io.BytesIO()
     with zipfile.ZipFile(out, "w") as zf:
         # The spec: mimetype first, stored (not deflated), no extra field, so that the bytes

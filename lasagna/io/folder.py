@@ -7,7 +7,9 @@ stack folder all or nothing.
 into place (``swap_in``, which checks the rule again under a lock, so two writers racing for one folder
 cannot both win): a failure leaves no half-written stack and the target as it was. ``stage_stack_folder``
 is its first half, for a writer of many folders that makes them durable together before renaming them
-(``lasagna.batch``). ``check_not_input`` refuses an output that is one of the input stack's own files.
+(``lasagna.batch``); its ``SharedFiles`` writes a large file many of those folders carry byte for byte (a
+generator's weights) once and hard-links it into each. ``check_not_input`` refuses an output that is one
+of the input stack's own files.
 """
 
 from __future__ import annotations
@@ -117,8 +119,74 @@ def check_output_folder(out: str | os.PathLike, *, force: bool = False) -> Path:
     return out
 
 
+# Files at least this large that many stack folders of one batch carry byte for byte (a generator's 2 MB
+# weights) are written once and hard-linked into each: writing 2 MB per 64² stack folder was a fifth of an
+# amortised batch edit's time (``benchmarks/batch.py``). Smaller files cost less to write than to hash.
+SHARE_MIN_BYTES = 64 * 1024
+
+
+class SharedFiles:
+    """A batch's store of large identical files, hard-linked into the stack folders it stages.
+
+    The store is a hidden temporary folder in ``folder`` (the batch's OUTDIR: the same file system as the
+    stack folders, so a link is possible; swept like any temporary when its process dies) holding each
+    distinct content once, named by its SHA-256. ``place`` links it to a destination; ``close`` removes the
+    store, and the stack folders keep their links: each stays a whole, self-contained folder (copy or move
+    it anywhere), its large files sharing disk blocks with its batch siblings'. Lasagna never writes into a
+    file in place (every write is a new file renamed over the old), so a later ``lasagna render`` of one
+    folder cannot change another's. Where the file system refuses hard links (FAT, some network mounts)
+    ``place`` declines and the caller writes the bytes as before.
+    """
+
+    def __init__(self, folder: str | os.PathLike) -> None:
+        self.folder = Path(folder)
+        self.enabled = True
+        self._store: Path | None = None
+        self._digests: dict[int, tuple[bytes, str]] = {}  # id(data) → (data kept alive, its SHA-256)
+        self._files: dict[str, Path] = {}  # SHA-256 → the store's file
+
+    def place(self, data: bytes, dst: Path) -> bool:
+        """Hard-link a stored copy of ``data`` as the new file ``dst``; False (nothing done) for small
+        data, or where links fail, and the caller writes ``data`` itself."""
+        if not self.enabled or len(data) < SHARE_MIN_BYTES:
+            return False
+        known = self._digests.get(id(data))
+        if known is None or known[0] is not data:
+            known = (data, hashlib.sha256(data).hexdigest())
+            self._digests[id(data)] = known
+        digest = known[1]
+        try:
+            src = self._files.get(digest)
+            if src is None:
+                if self._store is None:
+                    self._store = make_temp_folder(self.folder / "shared")
+                src = self._store / digest
+                atomic_write_bytes(src, data)
+                self._files[digest] = src
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            os.link(src, dst)
+        except OSError:
+            self.enabled = False  # the file system takes no links (or the store cannot be written): write copies
+            return False
+        return True
+
+    def close(self) -> None:
+        """Remove the store (the linked stack folders keep their files)."""
+        if self._store is not None:
+            shutil.rmtree(self._store, ignore_errors=True)
+        self._store = None
+        self._files.clear()
+        self._digests.clear()
+
+
 def write_stack_folder(
-    stack: Stack, out: str | os.PathLike, *, files: dict[str, bytes] | None = None, force: bool = False, result=None
+    stack: Stack,
+    out: str | os.PathLike,
+    *,
+    files: dict[str, bytes] | None = None,
+    force: bool = False,
+    result=None,
+    composite_png: bytes | None = None,
 ) -> Path:
     """Write ``stack`` as the folder ``out``: stack.json, layers/, masks/, composite.png and ``files``
     (relative path → bytes: generators/, stack.ora, …), all or nothing.
@@ -129,7 +197,7 @@ def write_stack_folder(
     """
     out = Path(out)
     old_folder = stack.folder
-    tmp = stage_stack_folder(stack, out, files=files, force=force, result=result)
+    tmp = stage_stack_folder(stack, out, files=files, force=force, result=result, composite_png=composite_png)
     try:
         swap_in(tmp, out, force=force)
     except BaseException:
@@ -141,11 +209,20 @@ def write_stack_folder(
 
 
 def stage_stack_folder(
-    stack: Stack, out: str | os.PathLike, *, files: dict[str, bytes] | None = None, force: bool = False, result=None
+    stack: Stack,
+    out: str | os.PathLike,
+    *,
+    files: dict[str, bytes] | None = None,
+    force: bool = False,
+    result=None,
+    composite_png: bytes | None = None,
+    shared: SharedFiles | None = None,
 ) -> Path:
     """``write_stack_folder`` up to the rename: the whole stack folder written into a fresh temporary sibling
     of ``out``, which is returned (``swap_in`` renames it into place; on failure nothing is left).
-    ``stack.folder`` is left as it was."""
+    ``stack.folder`` is left as it was. ``composite_png`` is composite.png's bytes when the caller encoded
+    them already (``lasagna.io.render.encode_composite``); ``shared`` links large ``files`` from a batch's
+    store instead of writing them (``SharedFiles``)."""
     out = check_output_folder(out, force=force)
     out.parent.mkdir(parents=True, exist_ok=True)
     sweep_stale(out.parent)
@@ -157,8 +234,13 @@ def stage_stack_folder(
 
         save_stack(stack, tmp)
         for rel, data in (files or {}).items():
-            atomic_write_bytes(resolve_inside(tmp, rel, rel), data)
-        write_composite(result if result is not None else stack.render(), tmp / "composite.png")
+            dst = resolve_inside(tmp, rel, rel)
+            if shared is None or not shared.place(data, dst):
+                atomic_write_bytes(dst, data)
+        if composite_png is not None:
+            atomic_write_bytes(tmp / "composite.png", composite_png)
+        else:
+            write_composite(result if result is not None else stack.render(), tmp / "composite.png")
         os.chmod(tmp, umask_mode(0o777))  # made 0700 (as mkdtemp does); a folder made by mkdir would not be
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -3,6 +3,7 @@ above 1, what an independent W3C flattener makes of the layers, warnings, and th
 
 from __future__ import annotations
 
+import io
 import warnings
 import zipfile
 from pathlib import Path
@@ -83,6 +84,23 @@ def test_merged_image_and_thumbnail(tmp_path):
     np.testing.assert_array_equal(np.rint(merged * 255).astype(np.uint8), ours)
     w, h = png_size(thumb)
     assert max(w, h) == 256 and (w, h) == (256, 34)
+
+
+def test_small_canvas_is_its_own_thumbnail_and_a_given_merged_png_is_kept(tmp_path):
+    """A canvas within 256² is its own thumbnail (what Pillow's ``thumbnail`` would give: it never
+    enlarges); ``merged_png`` (composite.png's bytes) is stored as mergedimage.png unchanged."""
+    from lasagna.io.render import encode_composite
+
+    stack = Stack.from_image(torch.rand(3, 50, 70))
+    result = render_stack(stack)
+    ours = to_uint8(render_stack(stack, dtype=torch.float64).image.numpy())
+    given = encode_composite(result)
+    for merged_png in (None, given):
+        with zipfile.ZipFile(io.BytesIO(encode_ora(stack, composite=result.image, merged_png=merged_png))) as zf:
+            merged, thumb = zf.read("mergedimage.png"), zf.read("Thumbnails/thumbnail.png")
+        assert thumb == merged and png_size(thumb) == (70, 50)
+        np.testing.assert_array_equal(np.rint(read_png_rgb(merged) * 255).astype(np.uint8), ours)
+        assert (merged == given) == (merged_png is not None)
 
 
 @pytest.mark.parametrize("seed", range(6))
