@@ -14,9 +14,13 @@ against the truth, composite PSNR over all pixels and over object pixels, and th
 * **the prior sampled directly** (DDIM-50 at its size, conditioned on the lit input; the implied ratio
   target / input, enlarged, applied to the input);
 * **the default edit** — exactly ``lasagna edit --layer relight`` (the API's ``edit``, one image at a time);
-* ``--omegas``: per-image SDS at other guidance weights (the default is SDS at ω = 1).
+* ``--omegas``: per-image SDS at other guidance weights (the default is SDS at ω = 1);
+* ``--methods N …``: the preset's amortised generator (``lasagna edit --generator amortised``), then N
+  refinement steps (0: the one forward pass);
+* ``--supervised FOLDER``: the supervised ceiling, the same generator trained on the world's true ratio
+  (``lasagna train-layer --preset relight --supervised``), run as the edit runs a generator.
 
-No supervised ceiling: the preset has no amortised generator yet. **Directions between the named ones**: the
+**Directions between the named ones**: the
 same scenes relit to az + 22.5° of each named light (rows "… between the named"), through the same edit with
 ``--condition az=…,el=…`` (the prior is conditioned on the direction's unit vector). **Texture leak**: walls with
 no objects and no relief, whose true ratio is one constant: PSNR of the default layer (/4) against its own

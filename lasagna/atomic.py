@@ -16,6 +16,10 @@ writing into a folder, so litter lasts only until the next write there.
 Every temporary file is fsync'd before it is renamed, except inside ``unsynced()``: a writer of many
 outputs (``lasagna.batch``) stages them there and makes them durable together with one ``sync_filesystem``
 before renaming any into place — one flush instead of one per file (seven per stack folder).
+
+Inside a ``private_folder`` (a fresh temporary folder its writer renames into place whole, or removes whole:
+``lasagna.io.folder.stage_stack_folder``) the folder is the unit of atomicity, so the files written into it
+go straight to their names, without a temporary and a rename each.
 """
 
 from __future__ import annotations
@@ -122,15 +126,48 @@ def sweep_stale(folder: str | os.PathLike) -> list[Path]:
     return removed
 
 
+# The private staging folder of this context (``private_folder``), as an absolute path; None outside one.
+_PRIVATE: contextvars.ContextVar[str | None] = contextvars.ContextVar("lasagna_atomic_private", default=None)
+
+
+@contextlib.contextmanager
+def private_folder(folder: str | os.PathLike) -> Iterator[None]:
+    """Within, files written inside ``folder`` go straight to their names (no temporary, no rename).
+
+    Only for a fresh temporary folder that nothing else reads and whose writer renames it into place as a
+    whole or removes it as a whole: a failure half-way then leaves nothing, whatever state its files are in.
+    Writes elsewhere stay atomic file by file."""
+    token = _PRIVATE.set(os.path.abspath(folder))
+    try:
+        yield
+    finally:
+        _PRIVATE.reset(token)
+
+
+def _in_private(target: Path) -> bool:
+    root = _PRIVATE.get()
+    return root is not None and os.path.abspath(target).startswith(root + os.sep)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path in ``path``'s folder; on success it replaces ``path`` atomically.
 
     The temporary keeps the target's suffix (``.png``, ``.ora``; or ``suffix``) so libraries that choose
     a format by extension still do. On an exception (Ctrl-C and SIGTERM included) the temporary file is
-    removed and ``path`` is left as it was.
+    removed and ``path`` is left as it was. Inside a ``private_folder`` the path itself is yielded.
     """
     target = Path(path)
+    if _in_private(target):
+        if not target.parent.is_dir():
+            target.parent.mkdir(parents=True)
+        try:
+            yield target
+        except BaseException:
+            with contextlib.suppress(FileNotFoundError, IsADirectoryError):
+                target.unlink()
+            raise
+        return
     target.parent.mkdir(parents=True, exist_ok=True)
     sweep_stale(target.parent)
     tmp = _create(target, suffix)
@@ -240,6 +277,15 @@ def atomic_write_all(files: Sequence[tuple[str | os.PathLike, bytes]]) -> list[P
         seen.add(key)
         if t.is_dir():
             raise PathError("is a folder; expected a file path to write", str(t))
+    if all(_in_private(t) for t in targets):  # the folder is the unit of atomicity: straight to the names
+        for t, (_, data) in zip(targets, files):
+            try:
+                if not t.parent.is_dir():
+                    t.parent.mkdir(parents=True)
+                _write(t, data)
+            except OSError as exc:
+                raise _cannot_write(exc, t) from None
+        return targets
     made: list[Path] = []  # folders this call created, deepest last
     temps: list[Path] = []
     asides: list[tuple[Path, Path]] = []  # (backup, target) of outputs already replaced

@@ -166,3 +166,33 @@ def test_unsynced_skips_fsync_only_within(tmp_path, monkeypatch):
     atomic_write_bytes(tmp_path / "b", b"2")
     assert len(calls) == 1
     atomic.sync_filesystem(tmp_path)  # syncfs (or sync): returns once flushed
+
+
+def test_private_folder_writes_straight_to_names_inside_only(tmp_path, monkeypatch):
+    """Inside a private staging folder no temporary is made (``_create`` would be called for one); a write
+    outside it, in the same context, is still a temporary and a rename; a failure removes the half file."""
+    private, outside = tmp_path / ".stage.tmp", tmp_path / "out"
+    made = []
+    real_create = atomic._create
+    monkeypatch.setattr(atomic, "_create", lambda t, s=None: made.append(t) or real_create(t, s))
+    with atomic.private_folder(private):
+        atomic_write_bytes(private / "layers" / "a.png", b"a")
+        atomic_write_all([(private / "stack.json", b"{}"), (private / "deep" / "b", b"b")])
+        assert made == []
+        atomic_write_bytes(outside / "c", b"c")
+        assert made == [outside / "c"]
+        with pytest.raises(RuntimeError), atomic.atomic_path(private / "half.png") as p:
+            assert p == private / "half.png"
+            p.write_bytes(b"half")
+            raise RuntimeError("interrupted")
+    assert sorted(q.relative_to(private).as_posix() for q in private.rglob("*") if q.is_file()) == [
+        "deep/b",
+        "layers/a.png",
+        "stack.json",
+    ]
+    assert (private / "deep" / "b").read_bytes() == b"b" and (outside / "c").read_bytes() == b"c"
+    with pytest.raises(PathError, match="written twice"), atomic.private_folder(private):
+        atomic_write_all([(private / "x", b"1"), (private / "x", b"2")])
+    made.clear()
+    atomic_write_bytes(private / "after", b"1")  # the context is over: atomic again
+    assert made == [private / "after"]

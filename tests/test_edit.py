@@ -489,6 +489,39 @@ def test_train_layer_and_install(tmp_path, capsys, tiny, monkeypatch):
     assert result.settings["method"] == "amortised"
 
 
+@pytest.mark.parametrize("supervised", [False, True])
+def test_train_layer_trains_on_the_presets_task(tmp_path, capsys, tiny, supervised):
+    """The relight preset's layer is a ratio onto an image already lit (``"task": "relit"``), not the shading
+    of an albedo its blend (multiply) would say: its generator trains on that task, supervised or not."""
+    from lasagna.document.preset import load_preset
+
+    preset = load_preset(ROOT / "layers" / "relight" / "preset.json")
+    assert preset.world_task == "relit" and load_preset(ROOT / "layers" / "shading" / "preset.json").world_task == (
+        "relight"
+    )
+    flags = ["--supervised"] if supervised else []
+    code, _, err = run(
+        capsys,
+        "train-layer",
+        "--preset",
+        "relight",
+        "--out",
+        tmp_path / "run",
+        "--steps",
+        "1",
+        "--batch-size",
+        "2",
+        "--channels",
+        "4,8",
+        "--resolution",
+        "8",
+        *flags,
+    )
+    assert code == 0, err
+    config = json.loads((tmp_path / "run" / "train_config.json").read_text())
+    assert config["task"] == "relit" and config["supervised"] is supervised
+
+
 def test_train_layer_bad_input(tmp_path, capsys):
     code, _, err = run(capsys, "train-layer", "--preset", "nope", "--out", tmp_path / "run")
     assert code == 2 and "no preset named 'nope'" in err

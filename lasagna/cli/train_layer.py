@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     from lasagna import catalogue as cat
     from lasagna.distill import Weights, prior_image_size
     from lasagna.generators.unet import LayerGeneratorConfig
-    from lasagna.training import TASK_FOR_BLEND, AmortisedConfig, install_generator, train_layer_generator
+    from lasagna.training import AmortisedConfig, install_generator, train_layer_generator
 
     resolved = cat.resolve(args.preset, need_prior=not args.supervised)
     preset = resolved.preset
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     guidance = args.guidance if args.guidance is not None else preset.distill.guidance
     config = AmortisedConfig(
         generator=LayerGeneratorConfig.for_preset(preset, channels=widths),
-        task=TASK_FOR_BLEND[preset.blend],
+        task=preset.world_task,
         prior=None if args.supervised else str(resolved.prior),
         corrective=str(resolved.corrective) if corrective is not None else None,
         supervised=args.supervised,

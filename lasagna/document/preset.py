@@ -128,6 +128,12 @@ class PriorLink(StrictModel):
     controlnets: tuple[ControlNetRef, ...] = Field((), description="Its ControlNets, in order.")
 
 
+# The world tasks a preset's generator (and a prior) is trained on (``lasagna.training.tasks``): what the base
+# layer is and what the true layer is. A preset that says none gets its blend's (``task_for``).
+WorldTask = Literal["relight", "colorize", "light", "relit"]
+TASK_FOR_BLEND: dict[str, str] = {"multiply": "relight", "normal": "colorize", "plus": "light"}
+
+
 class Preset(StrictModel):
     """A learned-layer preset, the content of ``layers/<name>/preset.json``."""
 
@@ -164,6 +170,12 @@ class Preset(StrictModel):
         le=10_000,
         strict=True,
         description="Per-image steps after the amortised pass, by default (0: the generator's layer as it is).",
+    )
+    task: WorldTask | None = Field(
+        None,
+        description="The world task `lasagna train-layer` trains the preset's generator on: 'relight' (shading "
+        "multiplied onto an albedo), 'relit' (a luminosity ratio multiplied onto an image already lit), 'colorize', "
+        "'light'. None: the blend's task (multiply: relight, normal: colorize, plus: light).",
     )
     working_size: int | None = Field(
         None,
@@ -206,6 +218,11 @@ class Preset(StrictModel):
                 "loss 'lmc-sds' needs a corrective (b-hat of LMC-SDS eq. 10); name one", loc=("corrective",)
             )
         return self
+
+    @property
+    def world_task(self) -> str:
+        """The world task the generator trains on: ``task``, else the blend's (``TASK_FOR_BLEND``)."""
+        return self.task or TASK_FOR_BLEND[self.blend]
 
     @property
     def takes_directions(self) -> bool:

@@ -27,6 +27,7 @@ from lasagna.atomic import (
     atomic_write_bytes,
     folder_lock,
     make_temp_folder,
+    private_folder,
     sweep_stale,
     temp_path,
     umask_mode,
@@ -232,15 +233,16 @@ def stage_stack_folder(
         from lasagna.io.render import write_composite  # torch: imported only when a stack is written
         from lasagna.io.stack import save_stack
 
-        save_stack(stack, tmp)
-        for rel, data in (files or {}).items():
-            dst = resolve_inside(tmp, rel, rel)
-            if shared is None or not shared.place(data, dst):
-                atomic_write_bytes(dst, data)
-        if composite_png is not None:
-            atomic_write_bytes(tmp / "composite.png", composite_png)
-        else:
-            write_composite(result if result is not None else stack.render(), tmp / "composite.png")
+        with private_folder(tmp):  # renamed into place whole or removed whole: no per-file temporaries
+            save_stack(stack, tmp)
+            for rel, data in (files or {}).items():
+                dst = resolve_inside(tmp, rel, rel)
+                if shared is None or not shared.place(data, dst):
+                    atomic_write_bytes(dst, data)
+            if composite_png is not None:
+                atomic_write_bytes(tmp / "composite.png", composite_png)
+            else:
+                write_composite(result if result is not None else stack.render(), tmp / "composite.png")
         os.chmod(tmp, umask_mode(0o777))  # made 0700 (as mkdtemp does); a folder made by mkdir would not be
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
