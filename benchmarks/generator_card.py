@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import hashlib
 import json
 import sys
 from pathlib import Path
@@ -55,7 +56,7 @@ def plot(distilled: list[dict], ceiling: list[dict] | None, path: Path) -> None:
     ax[1].set_yscale("log")
     ax[1].set_xlabel("minutes")
     ax[1].set_ylabel("MSE to the true layer")
-    ax[1].set_title("supervised ceiling (same generator, same minutes)")
+    ax[1].set_title("supervised ceiling (same net)")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -178,6 +179,7 @@ def relight_card(args) -> int:
     body = "".join(
         f"| {label} | " + " | ".join(cell(k, n) for k in keys) + f" | {ms(n)} |\n" for n, label in names.items()
     )
+    sha256 = hashlib.sha256((args.run / "generator" / "model.safetensors").read_bytes()).hexdigest()
     card = f"""# relight/generator: the amortised relight generator
 
 A conditioned convolutional UNet (`lasagna.generators.LayerGenerator`: channels {g["channels"]}, {g["blocks"]} conv blocks
@@ -205,6 +207,9 @@ OMP_NUM_THREADS=2 python benchmarks/relight.py --threads 2 --methods 0 20 --supe
 python benchmarks/generator_card.py --preset relight --run runs/relight-generator --ceiling runs/relight-supervised \\
     --accuracy docs/relight.json
 ```
+
+`model.safetensors` SHA-256 `{sha256}` (the run is seeded and single-process, so the first command gives the
+same bytes again on this machine).
 
 ![training](loss.png)
 

@@ -24,8 +24,10 @@ against the truth, composite PSNR over all pixels and over object pixels, and th
 same scenes relit to az + 22.5° of each named light (rows "… between the named"), through the same edit with
 ``--condition az=…,el=…`` (the prior is conditioned on the direction's unit vector). **Texture leak**: walls with
 no objects and no relief, whose true ratio is one constant: PSNR of the default layer (/4) against its own
-mean. Ends with one JSON line: ``far_gain_db``, ``far_gain_obj_db``, ``far256_gain_db`` (default edit over
-the unchanged input) and the rest of the headline.
+mean. **Sheets** (``docs/img/relight_{heldout,far}.png``, the first ``--sheet`` scenes at the smallest size):
+input | truth | composites of the default edit, the amortised generator and the supervised ceiling | their
+ratio layers (ratio / 2 as grey: mid-grey is "unchanged"). Ends with one JSON line: ``far_gain_db``,
+``far_gain_obj_db``, ``far256_gain_db`` (default edit over the unchanged input) and the rest of the headline.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _common import machine_info, print_json_line  # noqa: E402
 from distill_accuracy import psnr  # noqa: E402
+from generalisation import save_sheet  # noqa: E402
 
 from lasagna import catalogue as cat  # noqa: E402
 from lasagna.compose.resample import downsample, upsample  # noqa: E402
@@ -93,6 +96,8 @@ def row(rel, method: str, ratio: torch.Tensor, seconds: float | None = None) -> 
     }
     if seconds is not None:
         r["seconds_per_image"] = round(seconds / rel.base.shape[0], 3)
+    if method in SHEET:
+        r["_ratio"] = ratio.expand(ratio.shape[0], 1, *rel.layer.shape[-2:])  # for the sheet; not written
     return r
 
 
@@ -106,7 +111,17 @@ def prior_ratio(rel, labels, prior, omega: float = 1.0) -> torch.Tensor:
     return upsample(ratio.float(), tuple(rel.base.shape[-2:])).double()
 
 
-def table(args, split: str, size: int, prior) -> list[dict]:
+SHEET = {
+    "default edit (`lasagna edit --layer relight`)": "default",
+    "edit --generator amortised": "amortised",
+    "supervised ceiling": "supervised",
+}
+"""Methods whose composites (and ratio layers) go into the sheet, in this order."""
+
+
+def table(args, split: str, size: int, prior, sheets: dict | None = None) -> list[dict]:
+    """The rows of one split and size; with ``sheets``, its first ``args.sheet`` scenes as sheet columns:
+    input | truth | each of ``SHEET``'s composites, then each of their ratio layers (ratio / 2, grey)."""
     rel, labels = scenes(split, args.count, args.seed, size)
     base, target = rel.base.double(), rel.target.clamp(0, 1).double()
     c = ((base * target).sum(dim=(1, 2, 3)) / (base * base).sum(dim=(1, 2, 3)).clamp_min(1e-12)).clamp(0, RANGE_HI)
@@ -139,7 +154,15 @@ def table(args, split: str, size: int, prior) -> list[dict]:
         rows.append(row(rel, "edit --generator amortised" + (f" --optimize {n}" if n else ""), y.double(), seconds))
     if args.supervised is not None:
         rows.append(row(rel, "supervised ceiling", supervised_ratio(rel, labels, args.supervised), None))
+    if sheets is not None:
+        n = min(args.sheet, rel.base.shape[0])
+        ratios = {name: r.pop("_ratio")[:n] for r in rows if (name := SHEET.get(r["method"]))}
+        cols = [list(rel.base[:n].float()), list(rel.target[:n].clamp(0, 1).float())]
+        cols += [list((rel.base[:n] * ratios[k]).clamp(0, 1).float()) for k in SHEET.values() if k in ratios]
+        cols += [list(ratios[k].float()) for k in SHEET.values() if k in ratios]  # shown halved by save_sheet
+        sheets[(split, size)] = cols
     for r in rows:
+        r.pop("_ratio", None)
         r.update(split=split, size=size)
         print(json.dumps(r), flush=True)
     return rows
@@ -240,9 +263,12 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="4 scenes, 64² only, no extra ω")
     ap.add_argument("--markdown", action="store_true")
     ap.add_argument("--json-out", type=Path, default=ROOT / "docs" / "relight.json")
+    ap.add_argument("--sheet", type=int, default=8, help="scenes per sheet (0: none)")
+    ap.add_argument("--img", type=Path, default=ROOT / "docs" / "img", help="folder of the sheets")
     args = ap.parse_args(argv)
     if args.quick:
         args.count, args.sizes, args.omegas, args.json_out = 4, [64], [], Path("/tmp/relight_quick.json")
+        args.img = Path("/tmp/relight_quick")
         args.methods = args.methods[:1]
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
@@ -254,10 +280,14 @@ def main(argv=None) -> int:
     prior = cat.load_prior(parts.prior)
     result: dict = {"machine": machine_info(), "count": args.count, "seed": args.seed, "relight": {}, "leak": []}
     result["preset"] = parts.preset.model_dump(mode="json")
+    sheets: dict = {}
     for split in args.splits:
         for size in args.sizes:
-            result["relight"][f"{split}@{size}"] = table(args, split, size, prior)
+            keep = sheets if args.sheet > 0 and size == min(args.sizes) else None
+            result["relight"][f"{split}@{size}"] = table(args, split, size, prior, keep)
             result["leak"].append(leak(args, split, size))
+    for (split, _), cols in sheets.items():  # input | truth | composites | ratio layers, one row per scene
+        save_sheet(cols, args.img / f"relight_{split}.png")
     result["headline"] = headline(result["relight"], result["leak"])
     result["wall_seconds"] = round(time.perf_counter() - t0, 1)
     args.json_out.parent.mkdir(parents=True, exist_ok=True)

@@ -522,6 +522,26 @@ def test_train_layer_trains_on_the_presets_task(tmp_path, capsys, tiny, supervis
     assert config["task"] == "relit" and config["supervised"] is supervised
 
 
+def test_train_layer_on_another_split(tmp_path, capsys):
+    """--split/--world-seed/--eval-split reach the run's config (an in-family oracle); a held-out split at the
+    benchmarks' own world seed 0, an unknown split and a negative seed are refused in one line, before any run."""
+    common = ["train-layer", "--preset", "shading", "--supervised", "--steps", "1", "--batch-size", "2"]
+    common += ["--channels", "4,8", "--resolution", "8"]
+    code, _, err = run(capsys, *common, "--out", tmp_path / "run", "--split", "heldout", "--world-seed", "1")
+    assert code == 0, err
+    config = json.loads((tmp_path / "run" / "train_config.json").read_text())
+    assert (config["split"], config["world_seed"], config["eval_split"]) == ("heldout", 1, "val")
+    for flags, needle in (
+        (["--split", "far"], "--world-seed: training on far scenes of world seed 0"),
+        (["--split", "nope"], "--split: unknown split 'nope'; expected one of train, val, heldout, far"),
+        (["--eval-split", "nope"], "--eval-split: unknown split 'nope'"),
+        (["--world-seed", "-1"], "--world-seed: expected an integer in [0, 2**63), got -1"),
+    ):
+        code, _, err = run(capsys, *common, "--out", tmp_path / "bad", *flags)
+        assert code == 2 and needle in err and len(err.strip().splitlines()) == 1, err
+        assert not (tmp_path / "bad").exists()
+
+
 def test_train_layer_bad_input(tmp_path, capsys):
     code, _, err = run(capsys, "train-layer", "--preset", "nope", "--out", tmp_path / "run")
     assert code == 2 and "no preset named 'nope'" in err

@@ -53,6 +53,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
+        "--split",
+        default="train",
+        metavar="NAME",
+        help="world split of the training scenes (default train). Another split makes an in-family oracle, "
+        "never a shipped default: heldout chooses defaults and far only measures (lasagna.world.splits)",
+    )
+    p.add_argument(
+        "--world-seed",
+        type=int,
+        default=0,
+        metavar="N",
+        help="world seed of the training scenes (default 0); with --split heldout or far it must not be 0, "
+        "the seed the benchmarks' scenes come from",
+    )
+    p.add_argument("--eval-split", default="val", metavar="NAME", help="split of metrics.json's scenes (default val)")
+    p.add_argument(
         "--install",
         action="store_true",
         help="copy the trained generator into the preset's catalogue folder (<catalogue>/<preset>/generator/)",
@@ -74,6 +90,19 @@ def run(args: argparse.Namespace) -> int:
         raise LasagnaError(
             f"{args.channels!r} is not a comma-separated list of integers; expected e.g. 16,32,64,128", "--channels"
         ) from None
+    from lasagna.world.splits import SPLIT_NAMES, check_seed
+
+    check_seed(args.world_seed, where="--world-seed")
+
+    for flag, name in (("--split", args.split), ("--eval-split", args.eval_split)):
+        if name not in SPLIT_NAMES:
+            raise LasagnaError(f"unknown split {name!r}; expected one of {', '.join(SPLIT_NAMES)}", flag)
+    if args.split in ("heldout", "far") and args.world_seed == 0:
+        raise LasagnaError(
+            f"training on {args.split} scenes of world seed 0 would train on the benchmarks' own scenes; "
+            "expected --world-seed other than 0",
+            "--world-seed",
+        )
     loss = args.loss or preset.distill.loss
     prior = corrective = None
     resolution = args.resolution
@@ -100,6 +129,9 @@ def run(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         weights=Weights.lmc_network(args.ramp, reg_end=args.reg_final),
         resolution=resolution or 32,
+        split=args.split,
+        world_seed=args.world_seed,
+        eval_split=args.eval_split,
         steps=args.steps,
         max_minutes=args.minutes,
         ema_decay=args.ema,
