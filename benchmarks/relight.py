@@ -14,7 +14,8 @@ against the truth, composite PSNR over all pixels and over object pixels, and th
 * **the prior sampled directly** (DDIM-50 at its size, conditioned on the lit input; the implied ratio
   target / input, enlarged, applied to the input);
 * **the default edit** — exactly ``lasagna edit --layer relight`` (the API's ``edit``, one image at a time);
-* ``--omegas``: per-image SDS at other guidance weights (the default is SDS at ω = 1);
+* ``--omegas`` × ``--losses``: per-image runs at other guidance weights and losses (the default is SDS at
+  ω = 1; ``lmc-sds`` needs a preset with a corrective, e.g. a candidate catalogue through ``--catalogue``);
 * ``--methods N …``: the preset's amortised generator (``lasagna edit --generator amortised``), then N
   refinement steps (0: the one forward pass);
 * ``--supervised FOLDER``: the supervised ceiling, the same generator trained on the world's true ratio
@@ -146,9 +147,10 @@ def table(args, split: str, size: int, prior, sheets: dict | None = None) -> lis
         y, seconds = default_layers(mid.base.float(), mid_labels, args.catalogue)
         rows.append(row(mid, "default edit, directions between the named (az + 22.5°)", y.double(), seconds))
         rows.append(row(mid, "unchanged input, directions between the named", torch.ones_like(mid.layer)))
-    for omega in args.omegas:
-        y, seconds = default_layers(rel.base.float(), labels, args.catalogue, guidance=omega)
-        rows.append(row(rel, f"per-image SDS ω = {omega:g}", y.double(), seconds))
+    for loss in args.losses:
+        for omega in args.omegas:
+            y, seconds = default_layers(rel.base.float(), labels, args.catalogue, loss=loss, guidance=omega)
+            rows.append(row(rel, f"per-image {loss.upper()} ω = {omega:g}", y.double(), seconds))
     for n in args.methods:  # the amortised generator, then N refinement steps: candidates for the default
         y, seconds = default_layers(rel.base.float(), labels, args.catalogue, generator="amortised", optimize=n)
         rows.append(row(rel, "edit --generator amortised" + (f" --optimize {n}" if n else ""), y.double(), seconds))
@@ -249,6 +251,12 @@ def main(argv=None) -> int:
     ap.add_argument("--count", type=int, default=16)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--omegas", nargs="*", type=float, default=[3.0])
+    ap.add_argument(
+        "--losses",
+        nargs="*",
+        default=["sds"],
+        help="per-image losses run at each --omegas (lmc-sds needs a corrective in the preset: --catalogue)",
+    )
     ap.add_argument("--catalogue", type=Path, nargs="*", default=None, help="catalogue folders searched first")
     ap.add_argument(
         "--methods",

@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     ap.add_argument("--run", type=Path, required=True)
     ap.add_argument("--name", required=True)
     ap.add_argument("--prior", required=True, help="catalogue name of the prior it was fitted for")
-    ap.add_argument("--task", choices=("relight", "colorize", "light"), required=True)
+    ap.add_argument("--task", choices=("relight", "colorize", "light", "relit"), required=True)
     ap.add_argument("--fit-seconds", type=float, default=None, help="wall time of the fit, for the card")
     ap.add_argument("--out", type=Path, default=ROOT / "layers")
     args = ap.parse_args(argv)
@@ -85,7 +85,12 @@ def main(argv=None) -> int:
     plt.close(fig)
 
     c = model.config
-    cond = {"relight": "the albedo", "colorize": "the luma", "light": "the unlit image"}[args.task]
+    cond = {
+        "relight": "the albedo",
+        "colorize": "the luma",
+        "light": "the unlit image",
+        "relit": "the image lit by its source light",
+    }[args.task]
     fit = f"{args.fit_seconds / 60:.1f} minutes" if args.fit_seconds else "a few minutes"
     card = f"""# {args.name}: a spectral manifold corrective b̂ for `{args.prior}`
 
