@@ -97,8 +97,6 @@ def row(rel, method: str, ratio: torch.Tensor, seconds: float | None = None) -> 
     }
     if seconds is not None:
         r["seconds_per_image"] = round(seconds / rel.base.shape[0], 3)
-    if method in SHEET:
-        r["_ratio"] = ratio.expand(ratio.shape[0], 1, *rel.layer.shape[-2:])  # for the sheet; not written
     return r
 
 
@@ -126,45 +124,44 @@ def table(args, split: str, size: int, prior, sheets: dict | None = None) -> lis
     rel, labels = scenes(split, args.count, args.seed, size)
     base, target = rel.base.double(), rel.target.clamp(0, 1).double()
     c = ((base * target).sum(dim=(1, 2, 3)) / (base * base).sum(dim=(1, 2, 3)).clamp_min(1e-12)).clamp(0, RANGE_HI)
-    rows = [
-        row(rel, "unchanged input", torch.ones_like(rel.layer)),
-        row(rel, "best constant multiplier", c.view(-1, 1, 1, 1)),
-    ]
+    rows: list[dict] = []
+    kept: dict[str, torch.Tensor] = {}  # SHEET's ratio layers, by their sheet name
+
+    def add(on, method: str, ratio: torch.Tensor, seconds: float | None = None) -> None:
+        rows.append(row(on, method, ratio, seconds))
+        if method in SHEET:
+            kept[SHEET[method]] = ratio
+
+    add(rel, "unchanged input", torch.ones_like(rel.layer))
+    add(rel, "best constant multiplier", c.view(-1, 1, 1, 1))
     if prior is not None:
         t0 = time.perf_counter()
-        rows.append(
-            row(
-                rel,
-                "prior sampled directly (DDIM-50, ω = 1)",
-                prior_ratio(rel, labels, prior),
-                time.perf_counter() - t0,
-            )
-        )
+        ratio = prior_ratio(rel, labels, prior)
+        add(rel, "prior sampled directly (DDIM-50, ω = 1)", ratio, time.perf_counter() - t0)
     y, seconds = default_layers(rel.base.float(), labels, args.catalogue)
-    rows.append(row(rel, "default edit (`lasagna edit --layer relight`)", y.double(), seconds))
+    add(rel, "default edit (`lasagna edit --layer relight`)", y.double(), seconds)
     if args.between:
         mid, mid_labels = scenes(split, args.count, args.seed, size, between=True)
         y, seconds = default_layers(mid.base.float(), mid_labels, args.catalogue)
-        rows.append(row(mid, "default edit, directions between the named (az + 22.5°)", y.double(), seconds))
-        rows.append(row(mid, "unchanged input, directions between the named", torch.ones_like(mid.layer)))
+        add(mid, "default edit, directions between the named (az + 22.5°)", y.double(), seconds)
+        add(mid, "unchanged input, directions between the named", torch.ones_like(mid.layer))
     for loss in args.losses:
         for omega in args.omegas:
             y, seconds = default_layers(rel.base.float(), labels, args.catalogue, loss=loss, guidance=omega)
-            rows.append(row(rel, f"per-image {loss.upper()} ω = {omega:g}", y.double(), seconds))
+            add(rel, f"per-image {loss.upper()} ω = {omega:g}", y.double(), seconds)
     for n in args.methods:  # the amortised generator, then N refinement steps: candidates for the default
         y, seconds = default_layers(rel.base.float(), labels, args.catalogue, generator="amortised", optimize=n)
-        rows.append(row(rel, "edit --generator amortised" + (f" --optimize {n}" if n else ""), y.double(), seconds))
+        add(rel, "edit --generator amortised" + (f" --optimize {n}" if n else ""), y.double(), seconds)
     if args.supervised is not None:
-        rows.append(row(rel, "supervised ceiling", supervised_ratio(rel, labels, args.supervised), None))
+        add(rel, "supervised ceiling", supervised_ratio(rel, labels, args.supervised))
     if sheets is not None:
         n = min(args.sheet, rel.base.shape[0])
-        ratios = {name: r.pop("_ratio")[:n] for r in rows if (name := SHEET.get(r["method"]))}
+        ratios = [kept[k][:n] for k in SHEET.values() if k in kept]
         cols = [list(rel.base[:n].float()), list(rel.target[:n].clamp(0, 1).float())]
-        cols += [list((rel.base[:n] * ratios[k]).clamp(0, 1).float()) for k in SHEET.values() if k in ratios]
-        cols += [list(ratios[k].float()) for k in SHEET.values() if k in ratios]  # shown halved by save_sheet
+        cols += [list((rel.base[:n] * r).clamp(0, 1).float()) for r in ratios]
+        cols += [list(r.float()) for r in ratios]  # shown halved by save_sheet
         sheets[(split, size)] = cols
     for r in rows:
-        r.pop("_ratio", None)
         r.update(split=split, size=size)
         print(json.dumps(r), flush=True)
     return rows

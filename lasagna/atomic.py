@@ -159,8 +159,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     """
     target = Path(path)
     if _in_private(target):
-        if not target.parent.is_dir():
-            target.parent.mkdir(parents=True)
+        target.parent.mkdir(parents=True, exist_ok=True)
         try:
             yield target
         except BaseException:
@@ -280,8 +279,7 @@ def atomic_write_all(files: Sequence[tuple[str | os.PathLike, bytes]]) -> list[P
     if all(_in_private(t) for t in targets):  # the folder is the unit of atomicity: straight to the names
         for t, (_, data) in zip(targets, files):
             try:
-                if not t.parent.is_dir():
-                    t.parent.mkdir(parents=True)
+                t.parent.mkdir(parents=True, exist_ok=True)
                 _write(t, data)
             except OSError as exc:
                 raise _cannot_write(exc, t) from None

@@ -81,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.distill import Weights, prior_image_size
     from lasagna.generators.unet import LayerGeneratorConfig
     from lasagna.training import AmortisedConfig, install_generator, train_layer_generator
+    from lasagna.world.splits import SPLIT_NAMES, check_seed
 
     resolved = cat.resolve(args.preset, need_prior=not args.supervised)
     preset = resolved.preset
@@ -90,10 +91,7 @@ def run(args: argparse.Namespace) -> int:
         raise LasagnaError(
             f"{args.channels!r} is not a comma-separated list of integers; expected e.g. 16,32,64,128", "--channels"
         ) from None
-    from lasagna.world.splits import SPLIT_NAMES, check_seed
-
     check_seed(args.world_seed, where="--world-seed")
-
     for flag, name in (("--split", args.split), ("--eval-split", args.eval_split)):
         if name not in SPLIT_NAMES:
             raise LasagnaError(f"unknown split {name!r}; expected one of {', '.join(SPLIT_NAMES)}", flag)
