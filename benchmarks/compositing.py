@@ -29,6 +29,13 @@ modes_vs_pillow       a stack of the base and one opaque full-canvas layer per b
                       (ImageChops multiply, screen, overlay, darker, lighter, hard_light, soft_light,
                       difference, add; Image.alpha_composite for normal RGBA) vs Pillow's chain of the same
                       uint8 images; ``mode_ms`` gives each of the 17 modes' cost over the base alone
+modes_vs_pillow_fused the same stack with ``set_fused(True)`` (``lasagna.compose.fused``: the W3C modes
+                      compiled by torch.compile), steady state; ``mode_compile_s_fused`` gives each mode's
+                      first call (the compile; inductor's on-disk cache makes repeats fast) apart, and
+                      ``mode_ms_fused`` its cost over the base
+fresh_modes_vs_heap_system  a fresh Python process rendering base + overlay + soft-light + hue with
+                      lasagna's heap thresholds (``lasagna.heap``) vs with glibc's defaults
+                      (``LASAGNA_HEAP=system``): what one ``lasagna composite`` call sees
 
 The script sets THP_MEM_ALLOC_ENABLE=1 before importing torch (PyTorch's switch to back large CPU
 allocations with transparent huge pages): a fresh 48 MiB output otherwise costs ~20 ms of page faults.
@@ -39,6 +46,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 
 os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
 
@@ -457,20 +465,21 @@ def measure_top_edit32(size: int, reps: int, res: dict) -> None:
     )
 
 
-def measure_modes(size: int, reps: int, res: dict) -> None:
-    """Every mode's cost over the base, and the Pillow-mode stack against Pillow's chain."""
+def measure_modes(size: int, reps: int, res: dict, fused: bool = True) -> None:
+    """Every mode's cost over the base, and the Pillow-mode stack against Pillow's chain; then the same
+    with the fused kernels (``measure_modes_fused``)."""
     from lasagna.document import BLEND_MODES
 
     g = torch.Generator().manual_seed(16)
     base = RenderLayerSpec(id="base", tensors=LayerTensors(grid(g, 3, size, size)))
     out = torch.empty(3, size, size)
     t_base = median_time(lambda: render([base], canvas=(size, size), out=out), reps)
-    mode_ms = {}
+    mode_ms, mode_planes = {}, {}
     for mode in BLEND_MODES:
         channels = 1 if mode == "multiply" else 3
         alpha = grid(g, 1, size, size) if mode == "normal" else None
         top = RenderLayerSpec(id="top", blend=mode, tensors=LayerTensors(grid(g, channels, size, size), alpha))
-        plan = compile_plan([base, top], (size, size), cull=False)
+        plan = mode_planes[mode] = compile_plan([base, top], (size, size), cull=False)
         mode_ms[mode] = round((median_time(lambda: render(plan, out=out), reps) - t_base) * 1e3, 2)  # noqa: B023
     layers = [base]
     for mode in PILLOW_MODES:
@@ -500,6 +509,93 @@ def measure_modes(size: int, reps: int, res: dict) -> None:
     )
     log(f"[modes] {len(PILLOW_MODES)}-mode stack: {t_ours * 1e3:.2f} ms, Pillow: {t_pil * 1e3:.2f} ms")
     log(f"[modes] cost over the base, ms: {mode_ms}")
+    if fused:
+        measure_modes_fused(plan, mode_planes, t_base, out, t_pil, reps, res)
+
+
+def measure_modes_fused(
+    plan: object, mode_planes: dict, t_base: float, out: torch.Tensor, t_pil: float, reps: int, res: dict
+) -> None:
+    """The same stack and per-mode costs with ``set_fused(True)`` (compiled W3C kernels, steady state),
+    the first call's compile time per mode apart; outputs compared with the eager kernels'."""
+    from lasagna.compose import set_fused
+
+    eager = {}
+    for mode, p in mode_planes.items():
+        render(p, out=out)
+        eager[mode] = out.clone()
+    render(plan, out=out)
+    eager_stack = out.clone()
+    set_fused(True)
+    try:
+        compile_s, mode_ms, worst = {}, {}, 0.0
+        for mode, p in mode_planes.items():
+            t0 = time.perf_counter()
+            render(p, out=out)
+            compile_s[mode] = round(time.perf_counter() - t0, 2)
+            worst = max(worst, float((out - eager[mode]).abs().max()))
+            mode_ms[mode] = round((median_time(lambda: render(p, out=out), reps) - t_base) * 1e3, 2)  # noqa: B023
+        render(plan, out=out)
+        worst = max(worst, float((out - eager_stack).abs().max()))
+        t_ours = median_time(lambda: render(plan, out=out), reps)
+    finally:
+        set_fused(False)
+    res.update(
+        mode_ms_fused=mode_ms,
+        mode_compile_s_fused=compile_s,
+        modes_stack_fused_s=t_ours,
+        modes_vs_pillow_fused=t_ours / t_pil,
+        fused_max_abs_diff_vs_eager=worst,
+    )
+    log(f"[modes, fused] {len(PILLOW_MODES)}-mode stack: {t_ours * 1e3:.2f} ms ({t_ours / t_pil:.2f} of Pillow)")
+    log(f"[modes, fused] cost over the base, ms: {mode_ms}; first call (compile), s: {compile_s}")
+    log(f"[modes, fused] largest difference from the eager kernels: {worst:.2e}")
+
+
+FRESH_PROCESS = """
+import statistics, sys, time
+import torch
+from lasagna.compose import LayerTensors, RenderLayerSpec, compile_plan, render
+torch.set_num_threads(int(sys.argv[1]))
+size = int(sys.argv[2])
+g = torch.Generator().manual_seed(0)
+def grid(*shape):
+    return torch.randint(0, 256, shape, generator=g, dtype=torch.int32).float().div_(255.0)
+layers = [RenderLayerSpec(id="base", tensors=LayerTensors(grid(3, size, size)))]
+for mode in ("overlay", "soft-light", "hue"):
+    layers.append(RenderLayerSpec(id=mode, blend=mode, tensors=LayerTensors(grid(3, size, size))))
+plan = compile_plan(layers, (size, size), cull=False)
+out = torch.empty(3, size, size)
+times = []
+for _ in range(int(sys.argv[3])):
+    t0 = time.perf_counter()
+    render(plan, out=out)
+    times.append(time.perf_counter() - t0)
+print(statistics.median(times))
+"""
+
+
+def measure_fresh_process(size: int, reps: int, threads: int, res: dict) -> None:
+    """A fresh process rendering base + overlay + soft-light + hue, with lasagna's heap thresholds
+    (``lasagna.heap``) and with glibc's defaults (``LASAGNA_HEAP=system``): what one CLI call sees."""
+    import subprocess
+
+    times = {}
+    for heap in ("lasagna", "system"):
+        env = {k: v for k, v in os.environ.items() if k != "LASAGNA_HEAP"}
+        if heap == "system":
+            env["LASAGNA_HEAP"] = "system"
+        cmd = [sys.executable, "-c", FRESH_PROCESS, str(threads), str(size), str(reps)]
+        times[heap] = float(subprocess.run(cmd, env=env, check=True, capture_output=True, text=True).stdout)
+    res.update(
+        fresh_modes_s=times["lasagna"],
+        fresh_modes_heap_system_s=times["system"],
+        fresh_modes_vs_heap_system=times["lasagna"] / times["system"],
+    )
+    log(
+        f"[fresh process] base + overlay + soft-light + hue: {times['lasagna'] * 1e3:.1f} ms, with glibc's "
+        f"default heap thresholds {times['system'] * 1e3:.1f} ms"
+    )
 
 
 def log(msg: str) -> None:
@@ -518,6 +614,7 @@ def main() -> None:
         help="where to write the precision plot ('' = none; default docs/img/compositing_precision.png, "
         "none with --quick)",
     )
+    ap.add_argument("--no-fused", action="store_true", help="skip the compiled kernels (no C++ compiler)")
     args = ap.parse_args()
     if args.quick:
         args.size, args.repeats, args.precision_size = min(args.size, 512), min(args.repeats, 3), 128
@@ -536,7 +633,8 @@ def main() -> None:
     measure_prefix_cache(layers, out, size, reps, res)
     measure_autograd(layers, size, reps, res)
     measure_top_edit32(size, reps, res)
-    measure_modes(size, reps, res)
+    measure_modes(size, reps, res, fused=not args.no_fused)
+    measure_fresh_process(size, reps, torch.get_num_threads(), res)
 
     prec_reps = max(1, min(reps, 3))
     rows = (

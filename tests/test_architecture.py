@@ -18,7 +18,10 @@ PACKAGE = Path(__file__).resolve().parents[1] / "lasagna"
 
 # Lowest first. A module may import its own tier and those before it, never one after it.
 TIERS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("ground floor", ("lasagna.errors", "lasagna.numerics", "lasagna.atomic", "lasagna.limits", "lasagna.version")),
+    (
+        "ground floor",
+        ("lasagna.errors", "lasagna.numerics", "lasagna.atomic", "lasagna.limits", "lasagna.heap", "lasagna.version"),
+    ),
     ("document", ("lasagna.document",)),
     ("compose", ("lasagna.compose",)),
     ("io", ("lasagna.io",)),

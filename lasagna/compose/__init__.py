@@ -9,7 +9,8 @@
                 and ``plan_from_document`` for a ``lasagna.document`` stack;
 - ``render``    ``render(plan or layers) -> RenderResult(image, skipped, evaluated)``;
 - ``group``     groups: compositing onto a backdrop with alpha, isolated and pass-through groups;
-- ``renderer``  ``Renderer``: repeated renders with a prefix cache.
+- ``renderer``  ``Renderer``: repeated renders with a prefix cache;
+- ``fused``     opt-in compiled kernels of the W3C modes for the banded forward (``set_fused``).
 
 Of the document tier only the blend names are imported (``lasagna.document.blend`` declares them; the kernel
 tables here implement one function per name); ``plan_from_document`` reads a document by attribute.
@@ -31,6 +32,7 @@ from lasagna.compose.blend import (
     screen_,
 )
 from lasagna.compose.color import linear_to_srgb, srgb_to_linear
+from lasagna.compose.fused import fused_enabled, set_fused
 from lasagna.compose.layer import LayerTensors
 from lasagna.compose.plan import (
     PlanStep,
@@ -72,4 +74,6 @@ __all__ = [
     "half_precision_bound",
     "Renderer",
     "DEFAULT_CACHE_BYTES",
+    "set_fused",
+    "fused_enabled",
 ]

@@ -20,11 +20,13 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from lasagna.compose.blend import KERNELS, KERNELS_INPLACE
+from lasagna.compose.blend import KERNELS
 from lasagna.compose.color import linear_to_srgb, srgb_to_linear
+from lasagna.compose.fused import kernel_inplace
 from lasagna.compose.group import apply_group
 from lasagna.compose.plan import RenderPlan
 from lasagna.compose.step import _alpha, _clamp, _clamp_, _color
+from lasagna.heap import tune_heap
 
 # Canvas pixels (times batch entries) per band of the fast path. 2^18 float32 RGB pixels are 3 MB:
 # the band and the layer rows it reads stay in cache (L2 1 MB, L3 32 MB here) while all layers pass
@@ -84,6 +86,7 @@ def run_fast(
     canvas as it was before that step (the prefix cache's snapshots). ``post`` applies the output
     clamp and sRGB encoding to the last buffer.
     """
+    tune_heap()  # band-sized temporaries stay on the heap (lasagna/heap.py: up to 10× per W3C mode)
     steps = plan.steps[begin:end]
     H = plan.canvas[0]
     bg = background_tensor(plan, dtype) if source is None else None
@@ -120,7 +123,7 @@ def run_fast(
                 else:
                     sl = step.layer_slice(a0, a1)
                     cs, a = _color(step, sl, dtype, False), _alpha(step, sl, dtype, False)
-                    KERNELS_INPLACE[step.blend](region, cs, a)
+                    kernel_inplace(step.blend)(region, cs, a)  # fused.py: compiled where on
                 _clamp_(region, step)
             while k < len(switch_at):
                 k += 1
@@ -146,6 +149,7 @@ def run_functional(
 
     ``rows = (r0, r1)`` restricts the work to those canvas rows (``canvas`` is then that band).
     """
+    tune_heap()
     H, W = plan.canvas
     r0, r1 = rows if rows is not None else (0, H)
     shape = (*plan.batch_shape, 3, r1 - r0, W)

@@ -1,0 +1,78 @@
+"""glibc's heap thresholds, set once so band-sized temporaries are not page-faulted in on every band.
+
+The compose engine works in bands of ``TILE_PIXELS`` pixels (``compose/engine.py``): a 2^18-pixel RGB
+float32 band is 3 MiB, and a W3C mode's formula allocates several temporaries of that size per band
+(soft-light about a dozen). glibc serves an allocation of at least ``M_MMAP_THRESHOLD`` bytes (128 KiB
+at start) with its own ``mmap``, and gives the top of the heap back to the kernel once more than
+``M_TRIM_THRESHOLD`` of it is free. Both adapt upwards only when an mmapped chunk is freed (to its
+size, at most 32 MiB, the trim threshold to twice that), so what a fresh process pays depends on what
+it happened to allocate before: band-sized temporaries land on a heap that is trimmed after each band
+and faulted in again (zeroed page by page) on the next one.
+
+Measured on this project's box (2 vCPU AMD EPYC, torch 2.13.0+cpu, 2048² RGB, 2 threads, a base and one
+opaque layer, ``render(plan, out=)``, median of 7): overlay 96–104 ms, soft-light 260–280 ms in a fresh
+process; 9–13 ms and 21–28 ms after these thresholds are set (or after anything in the process freed a
+large mmapped chunk, which is why ``benchmarks/compositing.py`` always saw the fast figures).
+
+``tune_heap()`` sets ``M_MMAP_THRESHOLD`` to ``MMAP_THRESHOLD_BYTES`` (glibc's own dynamic maximum) and
+``M_TRIM_THRESHOLD`` to ``TRIM_THRESHOLD_BYTES`` with ``mallopt``, once per process: what the adaptive
+rule reaches anyway after one large free, made deterministic. The cost is that up to
+``TRIM_THRESHOLD_BYTES`` of freed heap stays mapped to the process. Full-canvas tensors of a large image
+(a 2048² RGB float32 canvas is 48 MiB) are still mmapped and returned on free.
+
+It does nothing where the C library is not glibc (macOS, musl, Windows), when the user has set the
+thresholds themselves (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``, or ``GLIBC_TUNABLES``
+naming either), or when ``LASAGNA_HEAP=system``.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import platform
+
+# mallopt parameter numbers, from glibc's <malloc.h>.
+M_TRIM_THRESHOLD = -1
+M_MMAP_THRESHOLD = -3
+
+# glibc's DEFAULT_MMAP_THRESHOLD_MAX on 64-bit systems: the largest value its adaptive rule reaches.
+MMAP_THRESHOLD_BYTES = 32 << 20
+# Twice the mmap threshold, as the adaptive rule sets it, and a multiple of one band's temporaries.
+TRIM_THRESHOLD_BYTES = 2 * MMAP_THRESHOLD_BYTES
+
+_state: dict[str, bool] = {}
+
+
+def _user_has_set() -> bool:
+    if os.environ.get("LASAGNA_HEAP", "").strip().lower() == "system":
+        return True
+    if "MALLOC_MMAP_THRESHOLD_" in os.environ or "MALLOC_TRIM_THRESHOLD_" in os.environ:
+        return True
+    tunables = os.environ.get("GLIBC_TUNABLES", "")
+    return "mmap_threshold" in tunables or "trim_threshold" in tunables
+
+
+def tune_heap() -> bool:
+    """Set glibc's mmap and trim thresholds once per process (module docstring); True if they are set."""
+    if "done" in _state:
+        return _state["done"]
+    done = False
+    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc" and not _user_has_set():
+        try:
+            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+            done = bool(libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(
+                libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES)
+            )
+        except (OSError, AttributeError):  # no loadable C library, or no mallopt in it
+            done = False
+    _state["done"] = done
+    return done
+
+
+def heap_tuned() -> bool:
+    """Whether ``tune_heap`` has set the thresholds in this process."""
+    return _state.get("done", False)
+
+
+__all__ = ["MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES", "heap_tuned", "tune_heap"]
