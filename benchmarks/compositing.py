@@ -19,7 +19,8 @@ top_edit_vs_full      Renderer re-render after an in-place edit of the top layer
                       render(plan); both allocate their output
 backward_vs_forward   forward + backward with every layer tensor (and the normal layer's opacity)
                       requiring grad, clamp=None, as a training step runs it (gradients cleared
-                      first, as optimizer.zero_grad() does), vs the no-grad forward with a fresh output
+                      first, as optimizer.zero_grad() does), vs the no-grad forward with a fresh output;
+                      the default grad_engine ("auto"), with ``_banded`` and ``_autograd_engine`` apart
 top_edit32_vs_full    on a 32-layer stack (``random_stack``) at the same size: Renderer re-render after an
                       in-place edit of the top layer vs a full render (the prefix cache keeps 31 layers),
                       both into a preallocated ``out=`` (as composite_vs_pillow): a fresh 48 MiB output
@@ -377,7 +378,7 @@ def measure_autograd(layers, size: int, reps: int, res: dict) -> None:
         grad_layers[2] = RenderLayerSpec(
             id="tint", tensors=grad_layers[2].tensors, opacity=torch.tensor(0.9, requires_grad=True)
         )
-        for engine in ("banded", "autograd"):
+        for engine in ("auto", "banded", "autograd"):
             plan = compile_plan(grad_layers, (size, size), clamp=clamp)
             timings[clamp, engine] = median_time(lambda: training_step(plan, grad_layers, engine), reps)  # noqa: B023
         timings[clamp, "forward_grad"] = median_time(lambda: render(plan), reps)  # noqa: B023
@@ -390,10 +391,20 @@ def measure_autograd(layers, size: int, reps: int, res: dict) -> None:
         plan_none = compile_plan(grad_none, (size, size), clamp=None)
         nograd = compile_plan(layers, (size, size), clamp=None)
         t1_fb = median_time(lambda: training_step(plan_none, grad_none), reps)
+        t1_fb_banded = median_time(lambda: training_step(plan_none, grad_none, "banded"), reps)
         t1_f = median_time(lambda: render(nograd), reps)
         torch.set_num_threads(threads)
-        res.update(backward_vs_forward_1thread=t1_fb / t1_f, forward_1thread_s=t1_f, forward_backward_1thread_s=t1_fb)
-        log(f"[autograd, 1 thread] clamp=None: forward {t1_f * 1e3:.2f} ms, forward+backward {t1_fb * 1e3:.2f} ms")
+        res.update(
+            backward_vs_forward_1thread=t1_fb / t1_f,
+            backward_vs_forward_banded_1thread=t1_fb_banded / t1_f,
+            forward_1thread_s=t1_f,
+            forward_backward_1thread_s=t1_fb,
+            forward_backward_banded_1thread_s=t1_fb_banded,
+        )
+        log(
+            f"[autograd, 1 thread] clamp=None: forward {t1_f * 1e3:.2f} ms, forward+backward {t1_fb * 1e3:.2f} ms "
+            f"(banded {t1_fb_banded * 1e3:.2f})"
+        )
     top_layers = learned_copy(layers, {"light"})
     top_plan = compile_plan(top_layers, (size, size), clamp=None)
     t_top = median_time(lambda: training_step(top_plan, top_layers), reps)
@@ -401,18 +412,20 @@ def measure_autograd(layers, size: int, reps: int, res: dict) -> None:
     res.update(
         forward_s=f,
         forward_grad_s=timings[None, "forward_grad"],
-        forward_backward_s=timings[None, "banded"],
+        forward_backward_s=timings[None, "auto"],
+        forward_backward_banded_s=timings[None, "banded"],
         forward_backward_autograd_engine_s=timings[None, "autograd"],
-        backward_vs_forward=timings[None, "banded"] / f,
+        backward_vs_forward=timings[None, "auto"] / f,
+        backward_vs_forward_banded=timings[None, "banded"] / f,
         backward_vs_forward_autograd_engine=timings[None, "autograd"] / f,
-        backward_vs_forward_clamp_output=timings["output", "banded"] / timings["output", "forward"],
+        backward_vs_forward_clamp_output=timings["output", "auto"] / timings["output", "forward"],
         learned_top_fwd_bwd_vs_forward=t_top / f,
     )
     log(
         f"[autograd] clamp=None: forward {f * 1e3:.2f} ms, with grad {timings[None, 'forward_grad'] * 1e3:.2f}, "
-        f"forward+backward banded {timings[None, 'banded'] * 1e3:.2f} / autograd "
-        f"{timings[None, 'autograd'] * 1e3:.2f}; "
-        f"clamp=output: {timings['output', 'forward'] * 1e3:.2f} vs {timings['output', 'banded'] * 1e3:.2f}; "
+        f"forward+backward default (auto) {timings[None, 'auto'] * 1e3:.2f} / banded "
+        f"{timings[None, 'banded'] * 1e3:.2f} / autograd {timings[None, 'autograd'] * 1e3:.2f}; "
+        f"clamp=output: {timings['output', 'forward'] * 1e3:.2f} vs {timings['output', 'auto'] * 1e3:.2f}; "
         f"learned top only {t_top * 1e3:.2f}"
     )
 

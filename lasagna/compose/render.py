@@ -5,10 +5,11 @@ off) the banded in-place engine runs under ``torch.no_grad()``: no autograd grap
 read once, the output written once — a 4-layer 2048² stack costs about as much as copying its bytes
 (docs/BENCHMARKS.md, "Compositing"). When some live layer's colour, alpha, mask or opacity requires
 grad, the layers below the first such layer are still composited that way (they are constants);
-from there on ``grad_engine`` decides: ``"banded"`` (default) runs the same fast forward and a banded
-backward with closed-form derivatives that recomputes each band's backdrops instead of storing
-full-canvas intermediates (``backward.py``); ``"autograd"`` records every blend as pure functions
-(``engine.run_functional``; twice differentiable). Both give the same gradients (tested); they reach
+from there on ``grad_engine`` decides: ``"banded"`` runs the same fast forward and a banded backward with
+closed-form derivatives that recomputes each band's backdrops instead of storing full-canvas
+intermediates (``backward.py``); ``"autograd"`` records every blend as pure functions
+(``engine.run_functional``; twice differentiable); ``"auto"`` (default) records where the recorded graph's
+intermediates fit ``AUTO_RECORD_BYTES`` and runs banded above that. Both give the same gradients (tested); they reach
 every live layer tensor, opacity and mask, and any module that produced them. From the first learned layer
 up, a plan holding a group is always recorded (``differentiable_tail``).
 
@@ -38,7 +39,16 @@ from lasagna.compose.engine import canvas_shape, first_grad_step, run_fast, run_
 from lasagna.compose.plan import BlendSpace, ClampPolicy, RenderLayerSpec, RenderPlan, compile_plan
 from lasagna.errors import LasagnaError
 
-GradEngine = Literal["banded", "autograd"]
+GradEngine = Literal["auto", "banded", "autograd"]
+
+# "auto" records the tail (grad_engine="autograd") when its live steps times the canvas's bytes stay within
+# this, else runs the banded backward. The recorded graph keeps about one canvas-sized intermediate per live
+# step (measured: a training step of 4 learned layers at 2048² peaks 130 MB — 2.7 canvases of 48 MB — above
+# the banded engine's), and it is the faster engine wherever it fits: training steps on this project's box
+# (2 threads, lasagna.heap's thresholds; docs/BENCHMARKS.md, Compositing) took 23 vs 41 ms (4 layers, 2048²),
+# 15 vs 52 ms (32 layers, 512²), 93 vs 134 ms (4 layers, 4096²), 0.42 vs 0.63 ms (4 layers, 256²). Above
+# 1 GiB of intermediates (an 8192² stack: 768 MB a canvas) the banded engine's few band-sized buffers win.
+AUTO_RECORD_BYTES = 1 << 30
 
 # Per live layer, plus one for the background and the inputs' cast: 8 unit roundoffs of the dtype
 # (bfloat16 u = 2^-8, float16 u = 2^-11); see the module docstring for when it holds.
@@ -106,7 +116,7 @@ def render(
     cull: bool = True,
     dtype: torch.dtype | None = None,
     out: Tensor | None = None,
-    grad_engine: GradEngine = "banded",
+    grad_engine: GradEngine = "auto",
 ) -> RenderResult:
     """Composite a ``RenderPlan`` (or bottom-to-top layers on ``canvas``) into ``(..., 3, H, W)``.
 
@@ -115,8 +125,7 @@ def render(
     gradient is needed (it saves allocating ``H·W·3`` values per call in a loop). ``grad_engine``
     chooses how gradients are computed (module docstring).
     """
-    if grad_engine not in ("banded", "autograd"):
-        raise LasagnaError(f"grad_engine is {grad_engine!r}; expected 'banded' or 'autograd'", where="render")
+    check_grad_engine(grad_engine, "render")
     plan = as_plan(plan_or_layers, canvas, background, blend_space, clamp, cull)
     dtype = resolve_dtype(plan, dtype)
     shape = canvas_shape(plan)
@@ -146,6 +155,24 @@ def differentiable_tail(
     A tail holding a group is recorded (``run_functional``) whichever ``grad_engine`` is asked: the banded
     backward has closed forms for layers over an opaque canvas only, and a group is a function of its
     backdrop (pass-through) and of every child (``group.py``)."""
-    if grad_engine == "autograd" or any(s.children is not None for s in plan.steps[begin:]):
+    if resolve_grad_engine(plan, begin, dtype, grad_engine) == "autograd" or any(
+        s.children is not None for s in plan.steps[begin:]
+    ):
         return run_functional(plan, begin, dtype, prefix)
     return BandedGrad.apply(plan, begin, dtype, prefix, *grad_inputs(plan, begin))
+
+
+def check_grad_engine(grad_engine: object, where: str) -> None:
+    if grad_engine not in ("auto", "banded", "autograd"):
+        raise LasagnaError(f"grad_engine is {grad_engine!r}; expected 'auto', 'banded' or 'autograd'", where=where)
+
+
+def resolve_grad_engine(plan: RenderPlan, begin: int, dtype: torch.dtype, grad_engine: GradEngine) -> GradEngine:
+    """The engine ``grad_engine`` stands for on ``plan.steps[begin:]``: itself, or for ``"auto"`` the recorded
+    one while (live steps) × (canvas bytes) ≤ ``AUTO_RECORD_BYTES``, else the banded one."""
+    if grad_engine != "auto":
+        return grad_engine
+    canvas = dtype.itemsize
+    for d in canvas_shape(plan):
+        canvas *= d
+    return "autograd" if (len(plan.steps) - begin) * canvas <= AUTO_RECORD_BYTES else "banded"

@@ -45,7 +45,14 @@ from lasagna.compose.plan import (
     _check_config,
     compile_plan,
 )
-from lasagna.compose.render import GradEngine, RenderResult, check_out, differentiable_tail, resolve_dtype
+from lasagna.compose.render import (
+    GradEngine,
+    RenderResult,
+    check_grad_engine,
+    check_out,
+    differentiable_tail,
+    resolve_dtype,
+)
 from lasagna.errors import LasagnaError
 
 DEFAULT_CACHE_BYTES = 512 * 2**20
@@ -99,9 +106,10 @@ class Renderer:
         cull: bool = True,
         dtype: torch.dtype | None = None,
         cache_bytes: int = DEFAULT_CACHE_BYTES,
-        grad_engine: GradEngine = "banded",
+        grad_engine: GradEngine = "auto",
     ):
         _check_config(canvas, background, blend_space, clamp)
+        check_grad_engine(grad_engine, "Renderer")
         if not isinstance(cache_bytes, int) or cache_bytes < 0:
             raise LasagnaError(f"cache_bytes is {cache_bytes!r}; expected a non-negative integer", where="Renderer")
         self.canvas = tuple(canvas)

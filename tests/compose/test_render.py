@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -11,6 +13,7 @@ from lasagna.compose import backward, engine
 from lasagna.compose.layer import LayerTensors
 from lasagna.compose.plan import RenderLayerSpec, compile_plan
 from lasagna.compose.render import half_precision_bound, render
+from lasagna.compose.renderer import Renderer
 from lasagna.errors import LasagnaError
 from tests.compose import numpy_ref
 
@@ -334,7 +337,7 @@ def test_parallel_bands_give_the_one_thread_gradients_bit_for_bit(monkeypatch, s
     try:
         for band_threads in (1, 2):
             monkeypatch.setattr(backward, "BACKWARD_BAND_THREADS", band_threads)
-            image = render(layers, canvas=CANVAS, background=BG, clamp=None).image
+            image = render(layers, canvas=CANVAS, background=BG, clamp=None, grad_engine="banded").image
             grads[band_threads] = torch.autograd.grad((image * weights).sum(), leaves, allow_unused=True)
     finally:
         torch.set_num_threads(threads)
@@ -346,9 +349,10 @@ def test_parallel_bands_give_the_one_thread_gradients_bit_for_bit(monkeypatch, s
             assert torch.equal(a, b)
 
 
-def test_banded_backward_refuses_modified_inputs():
+@pytest.mark.parametrize("engine_name", ["banded", "autograd"])
+def test_backward_refuses_modified_inputs(engine_name):
     layers = stack(seed=13, dtype=torch.float32, requires_grad=True)
-    image = render(layers, canvas=CANVAS).image
+    image = render(layers, canvas=CANVAS, grad_engine=engine_name).image
     with torch.no_grad():
         layers[2].tensors.color.mul_(0.5)
     with pytest.raises(RuntimeError, match="modified by an inplace operation"):
@@ -356,8 +360,31 @@ def test_banded_backward_refuses_modified_inputs():
 
 
 def test_unknown_grad_engine():
-    with pytest.raises(LasagnaError, match="grad_engine is 'magic'; expected 'banded' or 'autograd'"):
+    with pytest.raises(LasagnaError, match="grad_engine is 'magic'; expected 'auto', 'banded' or 'autograd'"):
         render(stack(), canvas=CANVAS, grad_engine="magic")
+    with pytest.raises(LasagnaError, match="grad_engine is 'magic'"):
+        Renderer(CANVAS, grad_engine="magic")
+
+
+def test_auto_records_while_the_intermediates_fit_then_bands(monkeypatch):
+    """``grad_engine="auto"`` (the default) records the tail while (live steps) × (canvas bytes) ≤
+    ``AUTO_RECORD_BYTES``, and runs the banded backward above it; the gradients agree either way."""
+    render_module = sys.modules["lasagna.compose.render"]  # the package's ``render`` is the function
+
+    layers = stack(seed=15, dtype=torch.float32, requires_grad=True)
+    leaves = [t for s in layers for t in s.tensors.tensors() if t is not None]
+    canvas_bytes = 3 * CANVAS[0] * CANVAS[1] * 4
+    live = len(compile_plan(layers, CANVAS).steps)
+    grads = {}
+    for cap, expect in ((live * canvas_bytes, "autograd"), (live * canvas_bytes - 1, "banded")):
+        monkeypatch.setattr(render_module, "AUTO_RECORD_BYTES", cap)
+        image = render(layers, canvas=CANVAS, background=BG, clamp=None).image
+        assert (type(image.grad_fn).__name__ == "BandedGradBackward") == (expect == "banded")
+        grads[expect] = torch.autograd.grad(image.sum(), leaves, allow_unused=True)
+    for a, b in zip(grads["autograd"], grads["banded"]):
+        assert (a is None) == (b is None)
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
 
 
 @pytest.mark.parametrize("clamp", ["layer", "output"])
