@@ -244,13 +244,15 @@ def edit(
     t_min: float | None = None,
     t_max: float | None = None,
     aspect: str | None = None,
+    particles: int | None = None,
 ) -> EditResult:
     """Add a learned layer of ``preset`` for ``condition`` on top of ``image`` (module docstring).
 
     ``condition``: a label of the preset's vocabulary (default its first, or ``"prompt"`` with a ``prompt``).
     ``prior``, ``controlnets``, ``corrective``, ``control_image``, ``prompt``, ``negative_prompt``,
     ``diffusers``: a prior of one's own (module docstring, "Bring your own prior"). ``t_min``/``t_max``
-    (t ~ U(t_min, t_max)) and ``aspect`` (``"letterbox"`` or ``"stretch"``) override the preset's too.
+    (t ~ U(t_min, t_max)), ``aspect`` (``"letterbox"`` or ``"stretch"``) and ``particles`` (per-image free
+    layers averaged at the end, ``lasagna.distill.per_image``) override the preset's too.
 
     ``image``: an image file, a stack folder, a ``Stack``, or a tensor/array/PIL image. ``on``: the
     layer it is conditioned on (default: the top layer). ``generator``: what makes the layer —
@@ -287,7 +289,11 @@ def edit(
     if control_image is not None:
         own.control = read_control_image(control_image, tuple(plan.base.shape[-2:]), max_pixels)
     plan.own = own
-    plan.overrides = {k: v for k, v in (("t_min", t_min), ("t_max", t_max), ("aspect", aspect)) if v is not None}
+    plan.overrides = {
+        k: v
+        for k, v in (("t_min", t_min), ("t_max", t_max), ("aspect", aspect), ("particles", particles))
+        if v is not None
+    }
     if own is not None and own.prior is not None and loss is None:
         # A corrective is given for LMC-SDS; without one (the preset's belongs to its own prior) LMC-SDS
         # cannot run, and the preset's other losses still can.

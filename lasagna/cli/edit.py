@@ -5,7 +5,7 @@
     lasagna edit IMAGE --prior SD_FOLDER [--controlnet CN [--controlnet-scale S]]… [--control-image IMG]
                  --prompt "dramatic rim light" [--negative-prompt TEXT] [--corrective B_HAT] -o OUT
                  [--dtype auto|float16|bfloat16|float32] [--variant fp16] [--cpu-offload] [--attention-slicing]
-                 [--channels-last] [--t-min T] [--t-max T] [--aspect letterbox|stretch]
+                 [--channels-last] [--t-min T] [--t-max T] [--particles K] [--aspect letterbox|stretch]
     lasagna edit IMAGE… | FOLDER | 'GLOB' --condition left -o OUTDIR [--batch-size N] [--force]
     torchrun --nproc_per_node=N -m lasagna.cli edit 'photos/**/*.png' --condition left -o OUTDIR
 
@@ -135,6 +135,12 @@ def own_prior_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--t-min", type=float, metavar="T", help="t ~ U(t_min, t_max): lower end (default the preset's)")
     g.add_argument("--t-max", type=float, metavar="T", help="upper end (default the preset's)")
     g.add_argument(
+        "--particles",
+        type=int,
+        metavar="K",
+        help="per-image: K layers with their own noise draws, averaged (K× the passes; default the preset's)",
+    )
+    g.add_argument(
         "--aspect",
         choices=ASPECTS,
         help="another aspect than the prior's: letterbox (kept) or stretch (default the preset's, letterbox)",
@@ -170,6 +176,7 @@ def _own_prior_options(args: argparse.Namespace) -> dict:
         t_min=args.t_min,
         t_max=args.t_max,
         aspect=args.aspect,
+        particles=args.particles,
     )
     return {k: v for k, v in options.items() if v not in (None, [])}
 

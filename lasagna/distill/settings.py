@@ -83,6 +83,9 @@ class DistillSettings(BaseModel):
     t_min: float = Field(0.02, ge=0.0, le=1.0)
     t_max: float = Field(0.98, ge=0.0, le=1.0)
     seed: int = Field(0, ge=0)
+    particles: int = Field(
+        1, ge=1, le=16, description="Layers per image with their own noise draws, averaged at the end (per_image.py)."
+    )
     weights: Weights | None = Field(None, description="Objective weights; None = per_image_weights(steps).")
     patches: PatchConfig = PatchConfig()
     early_stop: EarlyStop | None = EarlyStop()
@@ -116,6 +119,7 @@ class DistillSettings(BaseModel):
             "t_min": d.t_min,
             "t_max": d.t_max,
             "seed": d.seed,
+            "particles": d.particles,
             "patches": PatchConfig(whole_fraction=d.whole_fraction),
             "aspect": d.aspect,
         }

@@ -72,6 +72,14 @@ class DistillDefaults(StrictModel):
     t_min: Unit = Field(0.02, description="Lower end of t ~ U(t_min, t_max), as a fraction of the schedule.")
     t_max: Unit = Field(0.98, description="Upper end of t ~ U(t_min, t_max).")
     seed: int = Field(0, ge=0, strict=True, description="Random seed of noise and timesteps.")
+    particles: int = Field(
+        1,
+        ge=1,
+        le=16,
+        strict=True,
+        description="Free layers optimised per image, each with its own noise draws, averaged at the end: "
+        "an ensemble that averages out the score's noise (costs about as many network passes).",
+    )
     whole_fraction: Unit = Field(
         0.4,
         description="For an image larger than the prior: the fraction of the steps on the whole image, "

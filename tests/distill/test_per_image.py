@@ -282,3 +282,63 @@ class TestFreeStart:
         base = torch.rand(1, 3, 4, 4, generator=torch.Generator().manual_seed(0))
         for spec, value in ((SHADING, 1.0), (LayerSpec(blend="plus", channels=3), 0.0)):
             assert torch.all(_make_model("free", DistillSettings(layer=spec), base)() == value)
+
+
+class TestParticles:
+    """``particles`` = k: k free layers per image with their own noise draws, averaged at the end."""
+
+    def test_the_layer_is_the_mean_of_k_independent_runs_in_one_batch(self, shading_problem):
+        base, shading, prior = shading_problem
+        one_image = base if base.dim() == 4 else base.unsqueeze(0)
+        base2 = torch.cat([one_image, one_image.flip(-1)])
+        seen = []
+        r = distill_image(
+            base2,
+            PLAIN,
+            prior,
+            condition=["x", "x"],
+            steps=12,
+            lr=0.05,
+            seed=3,
+            particles=3,
+            callback=lambda step, layer: seen.append(layer),
+        )
+        assert r.layer.shape == (2, 1, *base.shape[-2:]) and seen[0].shape == r.layer.shape
+        assert r.settings.particles == 3
+        with torch.no_grad():
+            every = r.model(base2.repeat_interleave(3, dim=0))  # the 6 particle layers, image by image
+        assert not torch.equal(every[0], every[1])  # particles differ: each has its own noise draws
+        torch.testing.assert_close(r.layer, every.view(2, 3, *every.shape[1:]).mean(1))
+        torch.testing.assert_close(r.composite, composite(base2, r.layer, SHADING).clamp(0, 1))
+        again = distill_image(base2, PLAIN, prior, condition=["x", "x"], steps=12, lr=0.05, seed=3, particles=3)
+        assert torch.equal(again.layer, r.layer)  # seeded
+        one = distill_image(base2, PLAIN, prior, condition=["x", "x"], steps=12, lr=0.05, seed=3)
+        assert not torch.equal(one.layer, r.layer)
+
+    def test_a_given_start_is_every_particles_start(self, shading_problem):
+        from lasagna.generators import FreeLayer
+
+        base, _, prior = shading_problem
+        start = FreeLayer.from_layer(SHADING, torch.full((1, 1, *base.shape[-2:]), 0.7))
+        r = distill_image(base, PLAIN, prior, condition="x", steps=0 + 1, lr=1e-9, generator=start, particles=4)
+        torch.testing.assert_close(r.layer, start(), atol=1e-6, rtol=0)  # a negligible step from the start
+        assert start.u.shape[0] == 1  # the caller's layer is not modified
+
+    def test_averaging_reduces_the_score_noise(self, shading_problem):
+        """On a Gaussian prior whose optimum is known, the mean of 8 particles lands nearer it than one run
+        after the same steps (the per-step noise of SDS averages out)."""
+        base, shading, prior = shading_problem
+        errs = {}
+        for k in (1, 8):
+            r = distill_image(base, PLAIN, prior, condition="x", steps=15, lr=0.05, lr_final=0.05, seed=0, particles=k)
+            errs[k] = float((r.layer[0] - shading).pow(2).mean())
+        assert errs[8] < errs[1]
+
+    @pytest.mark.parametrize("bad", [0, 17])
+    def test_out_of_range_is_one_line(self, bad):
+        with pytest.raises(LasagnaError, match="particles"):
+            PLAIN.with_overrides(particles=bad)
+        with pytest.raises(Exception, match="particles"):
+            load_preset(LAYERS / "relight" / "preset.json").model_copy().model_validate(
+                {**load_preset(LAYERS / "relight" / "preset.json").model_dump(), "distill": {"particles": bad}}
+            )
