@@ -213,6 +213,10 @@ def main() -> None:
     args = ap.parse_args()
     from playwright.sync_api import sync_playwright
 
+    from lasagna.heap import tune_heap
+
+    tune_heap("server")  # the server runs in this process: the profile `lasagna serve` sets before anything renders
+
     work = Path(tempfile.mkdtemp(prefix="lasagna-serve-bench-"))
     profile = work / "chromium"
     rows = []

@@ -27,6 +27,15 @@ The cost: up to ``TRIM_THRESHOLD_BYTES`` of freed memory stays mapped to the pro
 8192² composite peaked at 2401 MB with these thresholds and 2406 MB without (its target is a peak within
 1.5× the output and inputs). Tensors above 256 MiB are still mmapped and returned on free.
 
+Two profiles (``PROFILES``): ``"compute"`` above, the default, for a process that composites or trains;
+``"server"`` (``SERVER_MMAP_THRESHOLD_BYTES``, ``SERVER_TRIM_THRESHOLD_BYTES``: 32 MiB and 64 MiB, glibc's own
+adaptive maxima), which ``lasagna serve`` asks for: a long-lived editor should not keep up to 1 GiB of freed
+memory mapped for hours. "server" still fixes the band temporaries. What it costs, measured with
+``benchmarks/serve.py`` at 2048² (alternating runs, ``LASAGNA_HEAP=compute`` / ``server``): adding a learned
+layer 256–298 ms with "compute" against 470–514 ms with "server" (target ≤ 1.5 s); toggle → repaint medians
+69–81 ms against 71–78 ms, no difference this VM's noise can show (single runs ranged 63–98 ms with either).
+The first call in a process sets the profile; ``LASAGNA_HEAP=compute|server`` overrides the caller's choice.
+
 It does nothing where the C library is not glibc (macOS, musl, Windows), when the user has set the
 thresholds themselves (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``, or ``GLIBC_TUNABLES``
 naming either), or when ``LASAGNA_HEAP=system``.
@@ -49,11 +58,23 @@ MMAP_THRESHOLD_BYTES = 256 << 20
 # gradients and intermediates (4 layers at 2048²: ~400 MB) are reused, not faulted in again.
 TRIM_THRESHOLD_BYTES = 1 << 30
 
-_state: dict[str, bool] = {}
+# glibc's adaptive maxima on 64-bit (DEFAULT_MMAP_THRESHOLD_MAX and twice it): the "server" profile.
+SERVER_MMAP_THRESHOLD_BYTES = 32 << 20
+SERVER_TRIM_THRESHOLD_BYTES = 64 << 20
+PROFILES = {
+    "compute": (MMAP_THRESHOLD_BYTES, TRIM_THRESHOLD_BYTES),
+    "server": (SERVER_MMAP_THRESHOLD_BYTES, SERVER_TRIM_THRESHOLD_BYTES),
+}
+
+_state: dict[str, bool | str] = {}
+
+
+def _env() -> str:
+    return os.environ.get("LASAGNA_HEAP", "").strip().lower()
 
 
 def _user_has_set() -> bool:
-    if os.environ.get("LASAGNA_HEAP", "").strip().lower() == "system":
+    if _env() == "system":
         return True
     if "MALLOC_MMAP_THRESHOLD_" in os.environ or "MALLOC_TRIM_THRESHOLD_" in os.environ:
         return True
@@ -61,26 +82,44 @@ def _user_has_set() -> bool:
     return "mmap_threshold" in tunables or "trim_threshold" in tunables
 
 
-def tune_heap() -> bool:
-    """Set glibc's mmap and trim thresholds once per process (module docstring); True if they are set."""
+def tune_heap(profile: str = "compute") -> bool:
+    """Set glibc's mmap and trim thresholds to ``PROFILES[profile]`` (``LASAGNA_HEAP`` naming a profile wins),
+    once per process: later calls change nothing (module docstring). True if they are set."""
     if "done" in _state:
-        return _state["done"]
+        return bool(_state["done"])
+    profile = _env() if _env() in PROFILES else profile
+    if profile not in PROFILES:
+        raise ValueError(f"heap profile {profile!r}; expected one of {', '.join(PROFILES)}")
     done = False
     if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc" and not _user_has_set():
+        mmap_bytes, trim_bytes = PROFILES[profile]
         try:
             libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-            done = bool(libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(
-                libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES)
-            )
+            done = bool(libc.mallopt(M_MMAP_THRESHOLD, mmap_bytes)) and bool(libc.mallopt(M_TRIM_THRESHOLD, trim_bytes))
         except (OSError, AttributeError):  # no loadable C library, or no mallopt in it
             done = False
     _state["done"] = done
+    _state["profile"] = profile if done else "system"
     return done
 
 
 def heap_tuned() -> bool:
     """Whether ``tune_heap`` has set the thresholds in this process."""
-    return _state.get("done", False)
+    return bool(_state.get("done", False))
 
 
-__all__ = ["MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES", "heap_tuned", "tune_heap"]
+def heap_profile() -> str | None:
+    """The profile set in this process ("system" where none could be), None before ``tune_heap`` ran."""
+    return _state.get("profile")  # type: ignore[return-value]
+
+
+__all__ = [
+    "MMAP_THRESHOLD_BYTES",
+    "PROFILES",
+    "SERVER_MMAP_THRESHOLD_BYTES",
+    "SERVER_TRIM_THRESHOLD_BYTES",
+    "TRIM_THRESHOLD_BYTES",
+    "heap_profile",
+    "heap_tuned",
+    "tune_heap",
+]

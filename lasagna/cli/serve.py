@@ -35,9 +35,12 @@ def run(args: argparse.Namespace) -> int:
         raise LasagnaError(
             "the editor needs Starlette and uvicorn; expected them installed: pip install 'lasagna[serve]'", "serve"
         ) from None
+    from lasagna.heap import tune_heap
     from lasagna.serve import LOOPBACK, allowed_hosts, free_port, new_token, open_target
     from lasagna.serve.app import create_app
     from lasagna.serve.session import EditSession
+
+    tune_heap("server")  # before anything renders (lasagna/heap.py, the two profiles)
 
     if args.port is not None and not 0 < args.port < 65536:
         raise LasagnaError(f"expected a port in [1, 65535], got {args.port}", "--port")

@@ -46,6 +46,7 @@ from lasagna.document import Document, LearnedLayer
 from lasagna.document.blend import BLEND_MODES, RANGED_BLENDS
 from lasagna.document.types import check_id
 from lasagna.errors import ConflictError, DocumentError, ImageError, LasagnaError
+from lasagna.heap import tune_heap
 from lasagna.io.folder import save_in_place, stack_sha256
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS, read_image_file
 from lasagna.io.render import composite_codes, encode_composite
@@ -136,6 +137,9 @@ class EditSession:
         device: str = "cpu",
         max_pixels: int = DEFAULT_EDIT_MAX_PIXELS,
     ):
+        # Before any render: a long-lived server keeps glibc's adaptive maxima, not the compute profile's
+        # up to 1 GiB of retained heap (lasagna/heap.py, the two profiles).
+        tune_heap("server")
         self.folder = Path(folder)
         self.catalogue_dirs = catalogue_dirs
         self.device = device

@@ -12,6 +12,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -169,3 +170,53 @@ def test_tune_heap_is_idempotent():
     band = 3 * (1 << 18) * 4  # one temporary of a 2^18-pixel RGB float32 band (engine.TILE_PIXELS)
     assert MMAP_THRESHOLD_BYTES > band  # served from the heap, not by mmap
     assert TRIM_THRESHOLD_BYTES > 18 * band  # soft-light's ~18 temporaries freed without a trim
+
+
+_PROFILE = textwrap.dedent(
+    """
+    import sys
+    from lasagna.heap import heap_profile, tune_heap
+    print(tune_heap(sys.argv[1]), tune_heap("compute"), heap_profile())
+    """
+)
+
+
+@pytest.mark.parametrize(
+    ("asked", "env", "expect"),
+    [
+        ("compute", None, "compute"),
+        ("server", None, "server"),
+        ("server", "compute", "compute"),
+        ("compute", "system", "system"),
+    ],
+)
+def test_heap_profiles_first_call_wins_and_env_overrides(asked, env, expect):
+    import os
+    import platform
+
+    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
+        pytest.skip("glibc's mallopt")
+    envs = {k: v for k, v in os.environ.items() if not k.startswith(("MALLOC_", "GLIBC_TUNABLES", "LASAGNA_HEAP"))}
+    if env is not None:
+        envs["LASAGNA_HEAP"] = env
+    out = subprocess.run([sys.executable, "-c", _PROFILE, asked], env=envs, capture_output=True, text=True, check=True)
+    first, second, profile = out.stdout.split()
+    assert first == second == str(expect != "system") and profile == expect
+
+
+def test_serve_session_asks_for_the_server_profile(tmp_path):
+    import os
+    import platform
+    import shutil
+
+    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
+        pytest.skip("glibc's mallopt")
+    stack = tmp_path / "basic"
+    shutil.copytree(Path(__file__).resolve().parents[2] / "examples" / "stacks" / "basic", stack)
+    code = (
+        "import sys\nfrom lasagna.heap import heap_profile\nfrom lasagna.serve.session import EditSession\n"
+        "EditSession(sys.argv[1])\nprint(heap_profile())"
+    )
+    envs = {k: v for k, v in os.environ.items() if not k.startswith(("MALLOC_", "GLIBC_TUNABLES", "LASAGNA_HEAP"))}
+    out = subprocess.run([sys.executable, "-c", code, str(stack)], env=envs, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["server"]
