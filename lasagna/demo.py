@@ -179,6 +179,8 @@ def _how(result) -> str:
     else:
         d = s["distill"]
         how = f"per-image {d['loss']}, {len(result.history)} steps, w={d['guidance']:g}"
+        if d.get("particles", 1) > 1:
+            how += f" ×{d['particles']}"  # particles averaged (lasagna.distill.per_image)
     return f"{how}; {result.seconds:.2f} s"
 
 

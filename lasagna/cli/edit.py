@@ -290,7 +290,9 @@ def run_one(args: argparse.Namespace) -> int:
             f"amortised generator + {s['optimize']} per-image steps"
             if s["method"] == "amortised"
             else f"per-image optimisation, {len(result.history)} of {s['optimize']} steps "
-            f"({s['distill']['loss']}, ω = {s['distill']['guidance']:g})"
+            f"({s['distill']['loss']}, ω = {s['distill']['guidance']:g}"
+            + (f", {s['distill']['particles']} particles averaged" if s["distill"].get("particles", 1) > 1 else "")
+            + ")"
         )
     )
     lo, hi = float(result.layer.min()), float(result.layer.max())
