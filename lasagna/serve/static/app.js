@@ -283,6 +283,12 @@ function drawPicker() {
 // ---- jobs ---------------------------------------------------------------------------------------
 
 async function startJob(kind, id, steps) {
+  // Until the server answers, the bar and the cancel button must not speak for the previous job: a cancel
+  // clicked now would go to that finished job's id, and a stale bar would read as this job's progress.
+  $("job-bar").value = 0;
+  $("job-text").textContent = `${kind} ${id}: starting`;
+  $("job-cancel").onclick = null;
+  $("job-cancel").disabled = true;
   let job;
   try {
     const response = await api("api/jobs", {
@@ -294,6 +300,7 @@ async function startJob(kind, id, steps) {
   $("job").hidden = false;
   $("job-bar").max = Math.max(1, job.steps);
   $("job-cancel").onclick = () => api(`api/jobs/${job.id}/cancel`, { method: "POST", headers: { "Content-Type": "application/json" }, body: "{}" }).catch(fail);
+  $("job-cancel").disabled = false;
   const source = new EventSource(`api/jobs/${job.id}/events?token=${encodeURIComponent(token)}`);
   source.onmessage = async (event) => {
     const r = JSON.parse(event.data);
