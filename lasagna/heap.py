@@ -103,11 +103,6 @@ def tune_heap(profile: str = "compute") -> bool:
     return done
 
 
-def heap_tuned() -> bool:
-    """Whether ``tune_heap`` has set the thresholds in this process."""
-    return bool(_state.get("done", False))
-
-
 def heap_profile() -> str | None:
     """The profile set in this process ("system" where none could be), None before ``tune_heap`` ran."""
     return _state.get("profile")  # type: ignore[return-value]
@@ -120,6 +115,5 @@ __all__ = [
     "SERVER_TRIM_THRESHOLD_BYTES",
     "TRIM_THRESHOLD_BYTES",
     "heap_profile",
-    "heap_tuned",
     "tune_heap",
 ]

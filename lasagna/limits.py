@@ -46,6 +46,8 @@ MAX_INT_DIGITS = 20
 # stops before 600; 10 000 is ~2 minutes at 64² on this CPU) and random crops per step.
 MAX_DISTILL_STEPS = 10_000
 MAX_CROPS_PER_STEP = 16
+# Particles per image (``distill.particles``): each is one more copy of the image in every step's batch.
+MAX_PARTICLES = 16
 # A layer generator's shape as its config.json may state it: the catalogue's are 4 levels of at most 192
 # channels; these bounds keep a hostile config's weights under ~1 GB before anything is allocated.
 MAX_GENERATOR_WIDTH = 1024

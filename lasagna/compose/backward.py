@@ -24,7 +24,6 @@ from lasagna.compose.color import linear_to_srgb_derivative, srgb_to_linear_deri
 from lasagna.compose.engine import background_tensor, canvas_shape, rows_per_band, run_fast
 from lasagna.compose.plan import PlanStep, RenderPlan
 from lasagna.compose.step import _alpha, _clamp_, _color
-from lasagna.heap import tune_heap
 
 # Band size of the banded backward, shared among the layers whose backdrop it keeps (each keeps a
 # band-sized copy). Measured on the 2048² 4-layer stack, every layer learned, clamp=None, forward +
@@ -239,7 +238,6 @@ def banded_backward(
     colour multiplies by the sRGB decode's derivative; a clamp passes ``g`` where it changed nothing
     (both bounds inclusive, as ``torch.clamp``'s own derivative).
     """
-    tune_heap()
     grads = _Grads(plan, begin, tensors, needs)
     steps = plan.steps[begin:]
 

@@ -29,11 +29,12 @@ zero, is what convergence looks like. The batch stops as a whole.
 
 **Particles** (``settings.particles`` = k > 1, a preset's ``distill.particles``): each image is scored k
 times per step in the same batch, each copy a free layer of its own with its own noise and timestep
-draws, all starting at the identity edit; the result, the history's layer change and the callback's layer
-are the mean of the k layers. The score of one noise draw is a noisy estimate (SDS gradients never
-vanish), so an ensemble of k runs averages that noise out of the layer: on the relight task, 4 seeds
-averaged gave +0.45 dB on heldout and 8 gave +0.74 (docs/BENCHMARKS.md#relighting-lit-images). One
-batched pass per step serves all k copies.
+draws, all starting at the identity edit (or at a given free layer, for a refinement); the result, the
+history's layer change and the callback's layer are the mean of the k layers. The score of one noise draw
+is a noisy estimate (SDS gradients never vanish), so the mean of k layers carries less of that noise: on
+the relight task's heldout split, 4 particles gave +0.35 dB over one run, 8 gave +0.78, and 4 with
+t_min 0.1 gave +0.76 (docs/BENCHMARKS.md#relighting-lit-images). One batched pass per step serves all k
+copies; it costs about k single runs' time on a CPU.
 
 **Reproducibility.** Every random draw (t, ε, patch positions) comes from one ``torch.Generator``
 seeded with ``settings.seed``; the free layer starts at the identity edit (an alpha layer at the base's

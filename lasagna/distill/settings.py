@@ -32,7 +32,7 @@ from lasagna.distill.schedules import Ramp, Weights
 from lasagna.document.preset import Aspect, LossName
 from lasagna.errors import describe_validation_error
 from lasagna.generators.layer import LayerSpec
-from lasagna.limits import MAX_CROPS_PER_STEP, MAX_DISTILL_STEPS
+from lasagna.limits import MAX_CROPS_PER_STEP, MAX_DISTILL_STEPS, MAX_PARTICLES
 
 
 class PatchConfig(BaseModel):
@@ -84,7 +84,10 @@ class DistillSettings(BaseModel):
     t_max: float = Field(0.98, ge=0.0, le=1.0)
     seed: int = Field(0, ge=0)
     particles: int = Field(
-        1, ge=1, le=16, description="Layers per image with their own noise draws, averaged at the end (per_image.py)."
+        1,
+        ge=1,
+        le=MAX_PARTICLES,
+        description="Layers per image with their own noise draws, averaged at the end (per_image.py).",
     )
     weights: Weights | None = Field(None, description="Objective weights; None = per_image_weights(steps).")
     patches: PatchConfig = PatchConfig()

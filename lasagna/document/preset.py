@@ -34,6 +34,7 @@ from lasagna.document.types import (
 )
 from lasagna.document.validation import RuleError, document_error, parse_json, read_json_text
 from lasagna.errors import ConditionError, DocumentError
+from lasagna.limits import MAX_PARTICLES
 
 # The score-distillation losses a preset (and ``lasagna edit --loss``) may name: declared here, in the
 # tier every other reads; ``lasagna.losses`` registers one implementation under each name.
@@ -75,7 +76,7 @@ class DistillDefaults(StrictModel):
     particles: int = Field(
         1,
         ge=1,
-        le=16,
+        le=MAX_PARTICLES,
         strict=True,
         description="Free layers optimised per image, each with its own noise draws, averaged at the end: "
         "an ensemble that averages out the score's noise (costs about as many network passes).",
