@@ -40,7 +40,7 @@ from lasagna.document.preset import (
     resolve_preset,
 )
 from lasagna.document.schema import SCHEMA_BASE, schemas, write_schemas
-from lasagna.document.types import check_id, check_relative_path
+from lasagna.document.types import check_id, check_relative_path, unique_id
 from lasagna.document.validation import RuleError, format_validation_error, parse_json
 
 __all__ = [
@@ -83,6 +83,7 @@ __all__ = [
     "write_schemas",
     "check_id",
     "check_relative_path",
+    "unique_id",
     "RuleError",
     "format_validation_error",
     "parse_json",

@@ -60,6 +60,32 @@ def check_id(value: str) -> str:
     return value
 
 
+_NOT_ID_CHARS = re.compile(r"[^A-Za-z0-9_.-]")
+_ID_MAX = 64
+_ID_BASE = 56  # leaves room for a reserved stem's "_" and a "-N" suffix within _ID_MAX
+
+
+def unique_id(name: str, taken: set[str]) -> str:
+    """An id made from ``name`` that passes ``check_id`` and whose casefold is not in ``taken`` (then added).
+
+    Characters an id cannot hold become ``-``; a stem that is a Windows device name gets ``_`` appended
+    (``aux.png`` → ``aux_.png``); a clash gets ``-2``, ``-3``, … on the stem, before the first dot
+    (``a.png`` → ``a-2.png``: after it, a reserved stem would never change). Candidates differ in that
+    number, so at most ``len(taken) + 1`` are tried."""
+    base = _NOT_ID_CHARS.sub("-", name).lstrip("_.-")[:_ID_BASE] or "layer"
+    stem, dot, rest = base.partition(".")
+    if stem.upper() in WINDOWS_RESERVED:
+        stem += "_"
+    n = 1
+    while True:
+        suffix = f"-{n}" if n > 1 else ""
+        candidate = (stem + suffix + dot + rest)[:_ID_MAX]  # stem ≤ 57 characters: only the extension is cut
+        if candidate.casefold() not in taken:
+            taken.add(candidate.casefold())
+            return check_id(candidate)
+        n += 1
+
+
 LayerId = Annotated[
     str,
     Strict(),

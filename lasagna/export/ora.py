@@ -40,6 +40,7 @@ from PIL import Image
 
 from lasagna.atomic import atomic_write_bytes
 from lasagna.document.blend import BLEND_MODES
+from lasagna.document.types import unique_id
 from lasagna.errors import ExportError, ImageError
 from lasagna.io.png import (
     DEFAULT_MAX_PIXELS,
@@ -214,16 +215,6 @@ def _check_entry_name(name: str, where: str) -> None:
             "'..'",
             where=where,
         )
-
-
-def _id_from(src: str, name: str, taken: set[str]) -> str:
-    stem = PurePosixPath(src).stem or name
-    base = re.sub(r"[^A-Za-z0-9_.-]", "-", stem).lstrip("_.-")[:56] or "layer"
-    candidate, n = base, 2
-    while candidate.casefold() in taken or candidate.split(".")[0].upper() in {"CON", "PRN", "AUX", "NUL"}:
-        candidate, n = f"{base}-{n}", n + 1
-    taken.add(candidate.casefold())
-    return candidate
 
 
 def _float_attr(el, name: str, default: float, where: str) -> float:
@@ -516,7 +507,7 @@ def import_ora(
         out: list = []
         for layer in items:
             if layer.get("kind") == "group":
-                gid = _id_from("", layer["name"] or "group", taken)
+                gid = unique_id(layer["name"] or "group", taken)
                 # An "isolate" stack is an isolated group; an "auto" one passes through unless it has a blend of
                 # its own (the OpenRaster spec then renders it isolated). Our pass-through opacity is Krita's.
                 isolated = layer["isolation"] == "isolate" or layer["blend"] != "normal"
@@ -536,7 +527,7 @@ def import_ora(
             img = layer["image"]
             values = layer.get("values", img.color)
             hi = max(1.0, float(np.ceil(values.max()))) if layer.get("dodged") else 1.0
-            lid = _id_from(layer["src"], layer["name"], taken)
+            lid = unique_id(PurePosixPath(layer["src"]).stem or layer["name"], taken)
             specs.append(
                 dict(
                     id=lid,

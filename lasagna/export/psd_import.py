@@ -25,13 +25,13 @@ canvas or layer over the pixel limit, decoding over the memory budget (``lasagna
 from __future__ import annotations
 
 import os
-import re
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from lasagna.document.types import unique_id
 from lasagna.errors import ExportError, ImageError
 from lasagna.export.psd import INSTALL_HINT, psd_blend_modes
 from lasagna.io.png import DEFAULT_MAX_PIXELS
@@ -54,15 +54,6 @@ def _require():
     except ImportError:
         raise ExportError(f"PSD import needs psd-tools, which is not installed; expected it: {INSTALL_HINT}") from None
     return PSDImage, BlendMode, ColorMode, AdjustmentLayer, FillLayer
-
-
-def _id(name: str, taken: set[str]) -> str:
-    base = re.sub(r"[^A-Za-z0-9_.-]", "-", name).lstrip("_.-")[:56] or "layer"
-    candidate, n = base, 2
-    while candidate.casefold() in taken or candidate.split(".")[0].upper() in {"CON", "PRN", "AUX", "NUL"}:
-        candidate, n = f"{base}-{n}", n + 1
-    taken.add(candidate.casefold())
-    return candidate
 
 
 class _Reader:
@@ -97,7 +88,7 @@ class _Reader:
         if isinstance(layer, self.AdjustmentLayer):
             self.warn(f"{what}: {layer.kind} adjustment layer cannot be represented in a stack; left out")
             return None
-        lid = _id(layer.name, self.taken)
+        lid = unique_id(layer.name, self.taken)
         entry: dict[str, Any] = {
             "id": lid,
             "name": layer.name or lid,
@@ -284,7 +275,7 @@ def read_psd(
     if not layers:
         raise ImageError("has no layer a stack can hold; expected at least one pixel layer or group", where=where)
     if not _opaque_base(layers, reader.tensors, psd.width, psd.height):
-        group_id = _id(Path(where).stem or "psd", reader.taken)
+        group_id = unique_id(Path(where).stem or "psd", reader.taken)
         layers = [{"id": group_id, "name": Path(where).name, "kind": "group", "isolated": True, "layers": layers}]
     from lasagna.document import Document
     from lasagna.io.stack import Stack

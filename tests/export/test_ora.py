@@ -18,6 +18,7 @@ from lasagna.export.ora import encode_ora, export_ora, import_ora, read_ora
 from lasagna.export.rasters import dodge_codes
 from lasagna.io.render import render_stack
 from lasagna.io.stack import Stack, load_stack
+from tests.export.bounded import within
 from tests.export.oraflat import flatten, png_size, read_png_rgb
 from tests.reference import composite_reference, to_uint8
 from tests.stackcraft import random_stack
@@ -398,3 +399,14 @@ def test_an_unknown_composite_op_lists_the_supported_ones(tmp_path):
         ImageError, match="composite-op 'svg:vivid-light' is not supported; expected one of svg:src-over"
     ):
         import_ora(bad)
+
+
+# ---- #28 -------------------------------------------------------------------------------------------------
+
+
+def test_srcs_named_like_windows_devices_import(tmp_path):
+    srcs = ["data/aux.png", "data/con.x.png", "data/nul.a.png", "data/COM3.png", "x/aux.png"]
+    xml = _xml("".join(_layer(s, f"n{i}") for i, s in enumerate(srcs)))
+    path = _write_ora(tmp_path / "dev.ora", {"stack.xml": xml.encode(), **{s: _png8() for s in srcs}})
+    stack = within(20, lambda: import_ora(path))
+    assert stack.document.ids == ("aux_", "COM3_", "nul_.a", "con_.x", "aux_-2")  # bottom first

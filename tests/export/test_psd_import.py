@@ -27,6 +27,7 @@ from lasagna.export.psd import psd_blend_modes  # noqa: E402
 from lasagna.export.psd_import import read_psd  # noqa: E402
 from lasagna.io.render import render_stack  # noqa: E402
 from lasagna.io.stack import load_stack  # noqa: E402
+from tests.export.bounded import within  # noqa: E402
 
 MODES = psd_blend_modes(BlendMode)
 W3C = [m for m in BLEND_MODES if m != "plus"]
@@ -226,3 +227,19 @@ def test_huge_canvas_is_refused_before_decoding(tmp_path):
     psd.save(tmp_path / "big.psd")
     with pytest.raises(ImageError, match="canvas is 64x64; expected .* at most 1000 pixels"):
         read_psd(tmp_path / "big.psd", max_pixels=1000)
+
+
+# ---- #28 -------------------------------------------------------------------------------------------------
+
+
+def test_layers_named_like_windows_devices_import(tmp_path):
+    rng = np.random.default_rng(3)
+    psd = new_psd()
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    for name in ("aux.png", "con.x", "nul.a", "COM1.txt", "lpt9", "aux.png"):
+        psd.create_pixel_layer(rgba(rng, 4, 4), name=name)
+    path = tmp_path / "dev.psd"
+    psd.save(path)
+    doc = within(20, lambda: read_psd(path)).document
+    assert doc.ids == ("base", "aux_.png", "con_.x", "nul_.a", "COM1_.txt", "lpt9_", "aux_-2.png")
+    assert [layer.name for layer in doc.layers][1:] == ["aux.png", "con.x", "nul.a", "COM1.txt", "lpt9", "aux.png"]
