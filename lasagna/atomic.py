@@ -11,6 +11,9 @@ that choose a format by extension still do). A process killed with SIGKILL canno
 ``sweep_stale`` removes the temporaries of owners that no longer run, and every writer calls it before
 writing into a folder, so litter lasts only until the next write there.
 
+``open_regular`` is how every reader opens a user's input: a regular file, or one line saying what it is
+instead (a FIFO would block the reader forever; a device never ends).
+
 ``folder_lock`` serialises check-then-rename sequences between processes (``lasagna.io.folder``'s swap).
 
 Every temporary file is fsync'd before it is renamed, except inside ``unsynced()``: a writer of many
@@ -26,11 +29,14 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import errno
 import os
 import re
 import shutil
+import stat
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import BinaryIO
 
 from lasagna.errors import PathError
 
@@ -42,6 +48,65 @@ _MAX_SUFFIX = 16
 _TEMP = re.compile(
     r"^\.(?P<kept>.*)\.lasagna-(?P<pid>[0-9]+)-(?P<random>[0-9a-f]{8})\.(?P<kind>tmp|old)(?P<suffix>\.[^.]*)?$", re.S
 )
+
+
+def file_kind(mode: int) -> str:
+    """What a ``st_mode`` is, in words: ``a named pipe (FIFO)``, ``a character device``, ``a folder``, …"""
+    for test, what in (
+        (stat.S_ISREG, "a regular file"),
+        (stat.S_ISDIR, "a folder"),
+        (stat.S_ISLNK, "a symbolic link"),
+        (stat.S_ISFIFO, "a named pipe (FIFO)"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+    ):
+        if test(mode):
+            return what
+    return "not a file"
+
+
+def _not_regular(mode: int, where: str, expected: str) -> PathError:
+    return PathError(f"is not a regular file ({file_kind(mode)}); expected {expected}", where)
+
+
+def open_regular(
+    path: str | os.PathLike,
+    where: str | None = None,
+    *,
+    follow_symlinks: bool = True,
+    expected: str = "a regular file",
+) -> BinaryIO:
+    """Open a user's input for reading in binary, only if it is a regular file.
+
+    A FIFO, device or socket is refused (``PathError``, one line: ``X: is not a regular file (a named pipe
+    (FIFO)); expected …``) without blocking: its type is checked with ``stat`` before the open (opening some
+    devices has effects of its own), and the file is opened ``O_NONBLOCK`` and checked again with ``fstat``
+    (the name may have been swapped in between); only then is the descriptor made blocking again. A folder
+    raises ``IsADirectoryError`` and other failures their ``OSError``, as ``open`` does, for the caller to
+    word. ``follow_symlinks=False`` refuses a symbolic link too (``O_NOFOLLOW``)."""
+    where = str(path) if where is None else where
+    flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
+    if not follow_symlinks:
+        flags |= getattr(os, "O_NOFOLLOW", 0)
+
+    def check(mode: int) -> None:
+        if stat.S_ISDIR(mode):
+            raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), os.fspath(path))
+        if not stat.S_ISREG(mode):
+            raise _not_regular(mode, where, expected)
+
+    check(os.stat(path, follow_symlinks=follow_symlinks).st_mode)
+    fd = os.open(path, flags)
+    try:
+        check(os.fstat(fd).st_mode)
+        os.set_blocking(fd, True)
+        fh = os.fdopen(fd, "rb")
+        fh.raw.name = os.fspath(path)  # type: ignore[attr-defined]  # as open() names it (tifffile reads it)
+        return fh
+    except BaseException:
+        os.close(fd)
+        raise
 
 
 def umask_mode(mode: int) -> int:
@@ -309,12 +374,12 @@ def atomic_write_all(files: Sequence[tuple[str | os.PathLike, bytes]]) -> list[P
         for t, tmp in zip(targets, temps):
             try:
                 backup = None
-                if t.is_file():
+                if t.is_symlink() or t.is_file():  # a link is put back as the link, never as its target
                     backup = temp_path(t, "old")
                     try:
-                        os.link(t, backup)
+                        os.link(t, backup, follow_symlinks=False)
                     except OSError:  # no hard links here (FAT, some network shares): copy instead
-                        shutil.copy2(t, backup)
+                        shutil.copy2(t, backup, follow_symlinks=False)
                 os.replace(tmp, t)
             except OSError as exc:
                 if backup is not None:

@@ -179,6 +179,28 @@ def test_one_corrupt_input_fails_alone(tmp_path, capsys):
     assert [p.name for p in out.iterdir() if p.name.startswith(".")] == []
 
 
+def test_a_fifo_among_the_inputs_fails_alone(tmp_path, capsys):
+    """Issue #28 (3): a named pipe is one line, not a read that blocks the batch forever; the others are edited."""
+    import threading
+
+    images = _images(tmp_path / "in", 2)
+    fifo = tmp_path / "in" / "pipe.png"
+    os.mkfifo(fifo)
+    box: list = []
+    argv = ["edit", *images, fifo, "--condition", "left", "-o", tmp_path / "out"]
+    thread = threading.Thread(target=lambda: box.append(run(capsys, *argv)), daemon=True)
+    thread.start()
+    thread.join(120)  # a hang guard, not a timing
+    assert box, "the batch blocked on the FIFO"
+    code, stdout, err = box[0]
+    assert code == 2
+    assert err.strip().splitlines() == [
+        f"lasagna: error: {fifo}: is not a regular file (a named pipe (FIFO)); expected an image file or a stack folder"
+    ]
+    assert "edited 2, skipped 0 (complete), failed 1" in stdout
+    assert all(is_complete(tmp_path / "out" / p.stem) for p in images)
+
+
 def test_refusals_before_any_work(tmp_path):
     images = _images(tmp_path / "in", 2)
     with pytest.raises(LasagnaError, match="label 'nowhere'|nowhere"):

@@ -16,6 +16,7 @@ from typing import Any
 
 from pydantic import BaseModel, ValidationError
 
+from lasagna.atomic import open_regular
 from lasagna.errors import DocumentError, describe_validation_error
 from lasagna.limits import MAX_DOCUMENT_BYTES, MAX_INT_DIGITS, MAX_JSON_DEPTH, format_size
 
@@ -120,7 +121,7 @@ def read_json_text(path: str | os.PathLike, what: str) -> str:
             raise DocumentError(
                 f"is {format_size(size)}; expected {what} of at most {format_size(MAX_DOCUMENT_BYTES)}", str(file)
             )
-        with open(file, "rb") as fh:
+        with open_regular(file, expected=what) as fh:  # a FIFO would block the read forever
             data = fh.read(MAX_DOCUMENT_BYTES + 1)  # the file may grow between stat and read
     except FileNotFoundError:
         raise DocumentError(f"not found; expected {what}", str(file)) from None

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lasagna.atomic import open_regular
 from lasagna.errors import ImageError, LasagnaError
 from lasagna.io.png import PNG_SIGNATURE, check_size, read_png, read_png_header
 from lasagna.limits import check_memory, raster_bytes
@@ -62,7 +63,7 @@ MAX_JPEG_SCANS = 100
 def _check_jpeg_scans(path: Path, where: str) -> None:
     """Refuse a JPEG with more than ``MAX_JPEG_SCANS`` start-of-scan markers, counted in its bytes (entropy-
     coded data never holds 0xFF 0xDA: a data byte 0xFF is stuffed with 0x00)."""
-    with open(path, "rb") as fh:
+    with open_regular(path, where) as fh:
         scans = fh.read().count(b"\xff\xda")
     if scans > MAX_JPEG_SCANS:
         raise ImageError(
@@ -122,7 +123,7 @@ def _read_tiff_wide(path: Path, where: str, max_pixels: int) -> RasterImage:
     import tifffile
 
     try:
-        with tifffile.TiffFile(path) as tif:
+        with open_regular(path, where) as fh, tifffile.TiffFile(fh) as tif:
             page = tif.pages.first
             shape = dict(zip(page.axes, page.shape))
             _check_pixels(shape.get("X", 1), shape.get("Y", 1), max_pixels, where)
@@ -163,7 +164,7 @@ _TIFF_MAGIC = (b"II*\x00", b"MM\x00*")
 
 
 def _is_tiff(path: Path) -> bool:
-    with open(path, "rb") as fh:
+    with open_regular(path) as fh:
         return fh.read(4) in _TIFF_MAGIC
 
 
@@ -172,9 +173,11 @@ def _tiff_size(path: Path, where: str) -> tuple[int, int]:
     import tifffile
 
     try:
-        with tifffile.TiffFile(path) as tif:
+        with open_regular(path, where) as fh, tifffile.TiffFile(fh) as tif:
             page = tif.pages.first
             shape = dict(zip(page.axes, page.shape))
+    except LasagnaError:
+        raise
     except Exception as exc:  # as above
         raise _tiff_error(exc, where) from None
     return shape.get("X", 1), shape.get("Y", 1)
@@ -185,7 +188,7 @@ def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
 
     Image = _pillow()
     try:
-        with Image.open(path, formats=PILLOW_FORMATS) as im:
+        with open_regular(path, where) as fh, Image.open(fh, formats=PILLOW_FORMATS) as im:
             w, h = im.size
             _check_pixels(w, h, max_pixels, where)
             if im.format == "JPEG":
@@ -216,7 +219,7 @@ def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
 
 def _magic(p: Path, where: str) -> bytes:
     try:
-        with open(p, "rb") as fh:
+        with open_regular(p, where, expected="an image file or a stack folder") as fh:
             return fh.read(8)
     except IsADirectoryError:
         raise _refuse(where, "is a folder without a stack.json") from None
@@ -242,7 +245,7 @@ def probe_image_file(path: str | os.PathLike, *, max_pixels: int) -> tuple[int, 
 
     Image = _pillow()
     try:
-        with Image.open(p, formats=PILLOW_FORMATS) as im:
+        with open_regular(p, where) as fh, Image.open(fh, formats=PILLOW_FORMATS) as im:
             w, h = im.size
             jpeg = im.format == "JPEG"
     except _pillow_errors(Image) as exc:

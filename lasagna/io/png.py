@@ -26,7 +26,7 @@ import numpy as np
 import png as pypng
 from PIL import Image
 
-from lasagna.atomic import atomic_write_bytes
+from lasagna.atomic import atomic_write_bytes, open_regular
 from lasagna.errors import ImageError
 
 # Pixels beyond which a PNG is refused before decoding. 2^28 (16384²) float32 RGBA pixels are 4 GiB:
@@ -143,7 +143,7 @@ def read_png_header(path: str | os.PathLike) -> PngHeader:
     """Read only the header of the PNG at ``path`` (33 bytes)."""
     where = str(path)
     try:
-        with open(path, "rb") as fh:
+        with open_regular(path, where) as fh:
             head = fh.read(33)
     except OSError as exc:
         raise _open_error(where, exc) from None
@@ -282,7 +282,7 @@ def _read_bounded(path: str | os.PathLike, where: str, max_pixels: int, max_side
     """The bytes of the PNG at ``path``, read only after its header passed the size limits and its file
     size is plausible for that header."""
     try:
-        with open(path, "rb") as fh:
+        with open_regular(path, where) as fh:
             head = fh.read(33)
             header = parse_header(head, where)
             check_size(header, where, max_pixels, max_side)

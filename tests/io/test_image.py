@@ -188,3 +188,71 @@ def test_a_jpeg_of_thousands_of_scans_is_refused_before_decoding(tmp_path, monke
     for fn in (probe_image_file, read_image_file):
         with pytest.raises(ImageError, match=f"scans; expected at most {MAX_JPEG_SCANS}"):
             fn(bomb, max_pixels=10**6)
+
+
+def _returns(fn, *args, **kw):
+    """``fn(*args, **kw)`` in a daemon thread: (finished, its result or exception). A read that blocks forever
+    (a FIFO no one writes) leaves the thread behind instead of the test."""
+    import threading
+
+    box: list = []
+
+    def target():
+        try:
+            box.append(fn(*args, **kw))
+        except BaseException as exc:  # noqa: BLE001 - handed to the test
+            box.append(exc)
+
+    thread = threading.Thread(target=target, daemon=True)
+    thread.start()
+    thread.join(60)  # a hang guard, not a timing: the refusal takes milliseconds
+    return (not thread.is_alive()), (box[0] if box else None)
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg", ".tif"])
+def test_a_fifo_is_refused_without_blocking(tmp_path, suffix):
+    """Issue #28 (3): a named pipe is not opened for reading (which would block until a writer came)."""
+    import os
+
+    from lasagna.io.image import probe_image_file
+
+    fifo = tmp_path / f"pipe{suffix}"
+    os.mkfifo(fifo)
+    for read in (read_image_file, probe_image_file):
+        finished, result = _returns(read, fifo, max_pixels=BIG)
+        assert finished, f"{read.__name__} blocked on a FIFO"
+        assert isinstance(result, LasagnaError), result
+        expected = "expected an image file or a stack folder"
+        assert str(result) == f"{fifo}: is not a regular file (a named pipe (FIFO)); {expected}"
+
+
+def test_open_regular_refuses_devices_and_swaps(tmp_path, monkeypatch):
+    """The type is checked before the open and again on the open descriptor (a name swapped in between)."""
+    import os
+
+    from lasagna import atomic
+    from lasagna.atomic import open_regular
+    from lasagna.errors import PathError
+
+    with pytest.raises(PathError, match=r"^/dev/null: is not a regular file \(a character device\)"):
+        open_regular("/dev/null")
+    with pytest.raises(IsADirectoryError):
+        open_regular(tmp_path)
+    real, fifo = tmp_path / "real.png", tmp_path / "pipe"
+    real.write_bytes(b"x")
+    os.mkfifo(fifo)
+    opened = os.open
+
+    def swap(path, flags, *a):  # the stat saw a regular file; by the open the name is a FIFO
+        return opened(fifo if os.fspath(path) == str(real) else path, flags, *a)
+
+    monkeypatch.setattr(atomic.os, "open", swap)
+    finished, result = _returns(open_regular, real)
+    assert finished and isinstance(result, PathError) and "named pipe" in str(result)
+    link = tmp_path / "link"
+    link.symlink_to(real)
+    monkeypatch.undo()
+    with pytest.raises(PathError, match="symbolic link"):
+        open_regular(link, follow_symlinks=False)
+    with open_regular(link) as fh:
+        assert fh.read() == b"x"
