@@ -17,7 +17,8 @@ images, Lee, Mumford & Huang 2001), ``cells`` (Voronoi cells with a tone each an
 ``gradient`` (smooth linear or radial ramps), ``glyphs`` (text: letters and digits rendered with
 Pillow's bundled font), ``photo`` (crops of public-domain photographs as paint); and for the ``far``
 split only, ``hexagons`` (a hexagonal tiling with borders), ``zigzag`` (chevron stripes) and
-``naturephoto`` (photographs of grass, gravel and brick).
+``naturephoto`` (photographs of grass, gravel and brick); for the ``select`` split only, ``plaid``
+(tartan bands), ``scales`` (overlapping fish scales) and ``weave`` (basket weave).
 """
 
 from __future__ import annotations
@@ -253,3 +254,48 @@ def zigzag(p: Vec, prm: Tensor, seed: Tensor) -> Tensor:
     a, b = _coords(p, prm)
     s = b + (0.5 + prm[:, 9]) * (1.0 - 2.0 * (torch.remainder(a, 2.0) - 1.0).abs())
     return (torch.remainder(s, 1.0) < prm[:, 7]).to(a.dtype)
+
+
+# ---- the select split's families (lasagna.world.splits): neither train's nor far's -------------------
+
+
+def plaid(p: Vec, prm: Tensor, seed: Tensor) -> Tensor:
+    """Tartan: two sets of bands (one along a, one along b, widths duty and duty/2) whose tones add."""
+    a, b = _coords(p, prm)
+    band_a = (torch.remainder(a, 1.0) < prm[:, 7]).to(a.dtype)
+    band_b = (torch.remainder(b + prm[:, 9], 1.0) < 0.5 * prm[:, 7]).to(a.dtype)
+    return 0.15 + 0.45 * band_a + 0.4 * band_b
+
+
+def scales(p: Vec, prm: Tensor, seed: Tensor) -> Tensor:
+    """Fish scales: rows of overlapping discs, each row shifted half a disc, the lower row on top;
+    a hashed tone per scale and a dark rim (width duty of the radius)."""
+    a, b = _coords(p, prm)
+    dt = a.dtype
+    best, tone = torch.full_like(a, -1.0), torch.zeros_like(a)
+    base_row = torch.floor(b * 2.0)
+    for dr in (1, 0, -1):  # higher rows first, so the lower row (drawn last) overlaps them
+        row = base_row + dr
+        shift = 0.5 * torch.remainder(row, 2.0)
+        col = torch.floor(a - shift + 0.5)
+        for dc in (-1.0, 0.0, 1.0):
+            cc = col + dc
+            ca, cb = cc + shift, row * 0.5
+            r = torch.sqrt((a - ca) ** 2 + (b - cb) ** 2)
+            inside = (r < 0.5) & (b <= cb + 1e-9)  # the upper half of each disc is hidden by the row above
+            h = hash01(cc.to(torch.int64), row.to(torch.int64), torch.full_like(seed, 3), seed, dt)
+            value = torch.where(r > 0.5 * (1.0 - prm[:, 7]), torch.zeros_like(h), 0.3 + 0.7 * h)
+            take = inside & (best < 0)
+            tone = torch.where(take, value, tone)
+            best = torch.where(take, torch.ones_like(best), best)
+    return tone
+
+
+def weave(p: Vec, prm: Tensor, seed: Tensor) -> Tensor:
+    """Basket weave: unit squares alternately filled with bands along a and along b (duty = gap)."""
+    a, b = _coords(p, prm)
+    ia, ib = torch.floor(a), torch.floor(b)
+    along_a = torch.remainder(ia + ib, 2.0) < 0.5
+    across = torch.where(along_a, torch.remainder(b * 3.0, 1.0), torch.remainder(a * 3.0, 1.0))
+    band = across > prm[:, 7]
+    return torch.where(band, torch.where(along_a, 0.9, 0.6).to(a.dtype), torch.zeros_like(a))

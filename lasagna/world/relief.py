@@ -16,6 +16,7 @@ Families (``RELIEFS``; which split uses which is in ``lasagna.world.splits``):
 bumps      five Gaussian bumps and dents h = Σ Aᵢ·exp(−|p − cᵢ|²/2σᵢ²), signs drawn per bump
 grooves    parallel grooves of period P along an angle: h = −D·sin²(πξ) on the groove (ξ ∈ [0, 1))
 bevels     two raised rectangles with sloped rims: h = s·clamp(distance inside the edge, 0, width)
+ripples    concentric waves about a centre, 2–4 whole wavelengths: h = A·sin(2πr/λ) for r < reach
 =========  =====================================================================================
 """
 
@@ -119,6 +120,26 @@ def _sample_bevels(u: np.ndarray) -> np.ndarray:
     return out
 
 
+def ripples(x: Tensor, y: Tensor, prm: Tensor) -> tuple[Tensor, Tensor]:
+    cx, cy, wavelength, amp, reach = (prm[:, j] for j in range(5))
+    dx, dy = x - cx, y - cy
+    r = torch.sqrt(dx * dx + dy * dy).clamp_min(1e-12)
+    k = 2.0 * math.pi / wavelength
+    # h = A·sin(k·r) inside r < reach (whole waves, so h is 0 at the edge): ∂h/∂r = A·k·cos(k·r).
+    dh_dr = torch.where(r < reach, amp * k * torch.cos(k * r), torch.zeros_like(x))
+    return dh_dr * dx / r, dh_dr * dy / r
+
+
+def _sample_ripples(u: np.ndarray) -> np.ndarray:
+    out = np.zeros(N_RELIEF_PARAMS)
+    wavelength = _lerp(u[2], 0.15, 0.4)
+    # The steepest slope of A·sin(k·r) is A·k: solve for A.
+    amp = _lerp(u[3], *_SLOPE) * wavelength / (2.0 * math.pi)
+    reach = wavelength * (2 + int(u[4] * 3))  # 2–4 whole waves
+    out[:5] = (_lerp(u[0], -0.7, 0.7), _lerp(u[1], -0.7, 0.7), wavelength, amp, reach)
+    return out
+
+
 @dataclass(frozen=True)
 class ReliefFamily:
     name: str
@@ -132,6 +153,7 @@ RELIEFS: dict[str, ReliefFamily] = {
         ReliefFamily("bumps", bumps, _sample_bumps),
         ReliefFamily("grooves", grooves, _sample_grooves),
         ReliefFamily("bevels", bevels, _sample_bevels),
+        ReliefFamily("ripples", ripples, _sample_ripples),
     )
 }
 RELIEF_NAMES: tuple[str, ...] = tuple(RELIEFS)

@@ -38,6 +38,12 @@ hexprism      apothem s0 (flat edges at y = ±s0), half-      sphere tracing of 
               length s1 along z
 triprism      inradius s0/2 (triangle in xy),        sphere tracing of a distance bound
               half-length s1 along z
+pyramid       base half-width s0 (at y = −s1), apex   sphere tracing of the five planes' bound
+              at y = +s1
+bicone        rim radius s0 (y = 0), apexes y = ±s1   sphere tracing of a distance bound;
+                                                     normals in closed form
+lens          rim radius s0 in xy, half-thickness s1  sphere tracing of two spheres' bound;
+              along z (two spherical caps)            radial normals
 ============  =====================================  ===========================================
 """
 
@@ -331,6 +337,62 @@ def triprism(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
     return t, _sdf_normal(lambda q: _triprism_sdf(q, s), p, d, 1e-4 * bound)
 
 
+def _pyramid_sdf(p: Vec, s: Vec) -> Tensor:
+    # A square pyramid (base half-width s0 at y = −s1, apex at y = +s1) as the intersection of five
+    # half-spaces: the largest signed plane distance is a lower bound of a convex polytope's distance,
+    # exact on each face's normal line, which suffices to trace.
+    base, half = s[0], s[1]
+    norm = torch.rsqrt(4.0 * half * half + base * base)
+    side_x = (2.0 * half * p[0].abs() + base * p[1] - base * half) * norm
+    side_z = (2.0 * half * p[2].abs() + base * p[1] - base * half) * norm
+    return torch.maximum(torch.maximum(side_x, side_z), -p[1] - half)
+
+
+def pyramid(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    bound = torch.sqrt(2.0 * s[0] * s[0] + s[1] * s[1])
+    t, p = _trace(o, d, lambda q: _pyramid_sdf(q, s), bound, t_min)
+    return t, _sdf_normal(lambda q: _pyramid_sdf(q, s), p, d, 1e-4 * bound)
+
+
+def _bicone_sdf(p: Vec, s: Vec) -> Tensor:
+    # Two cones base to base (radius s0 at y = 0, apexes at y = ±s1): the distance to the side's line
+    # in the (r, |y|) half-plane, a lower bound of the true distance near the apexes and the rim.
+    r = torch.sqrt(p[0] * p[0] + p[2] * p[2])
+    return (s[1] * r + s[0] * p[1].abs() - s[0] * s[1]) * torch.rsqrt(s[0] * s[0] + s[1] * s[1])
+
+
+def bicone(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    bound = torch.maximum(s[0], s[1])
+    t, p = _trace(o, d, lambda q: _bicone_sdf(q, s), bound, t_min)
+    # The gradient of s1·r + s0·|y|: (s1·x/r, s0·sgn y, s1·z/r); the rim (y = 0) takes the side toward the ray.
+    r = torch.sqrt(p[0] * p[0] + p[2] * p[2]).clamp_min(1e-30)
+    sign_y = torch.where(p[1] == 0, -torch.sign(d[1]), torch.sign(p[1]))
+    return t, normalize((s[1] * p[0] / r, s[0] * sign_y, s[1] * p[2] / r))
+
+
+def _lens_sdf(p: Vec, s: Vec) -> Tensor:
+    # A convex lens: the intersection of two spheres of radius R whose centres lie at z = ±(R − s1), so
+    # the rim is a circle of radius s0 in the xy plane and the lens is 2·s1 thick (R = (s0² + s1²)/2s1).
+    # The larger of two convex distances is a lower bound of the intersection's.
+    big_r = (s[0] * s[0] + s[1] * s[1]) / (2.0 * s[1])
+    off = big_r - s[1]
+    xy = p[0] * p[0] + p[1] * p[1]
+    front = torch.sqrt(xy + (p[2] + off) ** 2) - big_r
+    back = torch.sqrt(xy + (p[2] - off) ** 2) - big_r
+    return torch.maximum(front, back)
+
+
+def lens(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    t, p = _trace(o, d, lambda q: _lens_sdf(q, s), s[0], t_min)
+    big_r = (s[0] * s[0] + s[1] * s[1]) / (2.0 * s[1])
+    off = big_r - s[1]
+    # On the lens each point lies on the sphere whose distance is the larger: its normal is radial.
+    xy = p[0] * p[0] + p[1] * p[1]
+    use_front = torch.sqrt(xy + (p[2] + off) ** 2) >= torch.sqrt(xy + (p[2] - off) ** 2)
+    cz = torch.where(use_front, -off * torch.ones_like(p[2]), off * torch.ones_like(p[2]))
+    return t, normalize((p[0], p[1], p[2] - cz))
+
+
 @dataclass(frozen=True)
 class ShapeFamily:
     """One analytic family: its exact intersection, bounding radius and size distribution."""
@@ -416,6 +478,25 @@ SHAPES: dict[str, ShapeFamily] = {
             triprism,
             lambda s: float(math.hypot(s[0], s[1])),
             lambda u: (_lerp(u[0], 0.25, 0.45), _lerp(u[1], 0.12, 0.35), 0.0),
+        ),
+        # The select split's families (lasagna.world.splits): appended, so every earlier index is unchanged.
+        ShapeFamily(
+            "pyramid",
+            pyramid,
+            lambda s: float(math.hypot(s[0] * math.sqrt(2.0), s[1])),
+            lambda u: (_lerp(u[0], 0.18, 0.32), _lerp(u[1], 0.18, 0.38), 0.0),
+        ),
+        ShapeFamily(
+            "bicone",
+            bicone,
+            lambda s: float(max(s[0], s[1])),
+            lambda u: (_lerp(u[0], 0.2, 0.4), _lerp(u[1], 0.2, 0.45), 0.0),
+        ),
+        ShapeFamily(
+            "lens",
+            lens,
+            lambda s: float(s[0]),
+            lambda u: (_lerp(u[0], 0.25, 0.5), _lerp(u[1], 0.08, 0.2), 0.0),
         ),
     )
 }

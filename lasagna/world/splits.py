@@ -4,9 +4,11 @@ Each split names the families its scenes draw from. ``train`` is broad on purpos
 texture families laid on walls and objects independently of their geometry, flat textured panels,
 relief that is not in the paint, up to five objects that occlude each other — so that a model
 trained on it learns that texture is not geometry. ``val`` shares ``train``'s families (other
-scenes). ``heldout`` (unchanged since the first world, bit for bit) and ``far`` use only families
-``train`` never uses, checked at import. The rule for learned layers: every default, hyper-parameter
-and stopping rule is chosen on ``heldout``; ``far`` is touched only by the final measurement.
+scenes). ``heldout`` (unchanged since the first world, bit for bit), ``far`` and ``select`` use only
+families ``train`` never uses, and no two of them share one, checked at import. The rule for learned
+layers: every default, hyper-parameter and stopping rule is chosen on ``select``; ``heldout`` (training's
+shape of world, other families) is reported, never chosen on; ``far`` is touched only by the final
+measurement.
 
 =========  ===========================  ==================================  ===================  ==============
 split      shapes (objects per scene)   object textures                     wall textures        wall relief
@@ -17,9 +19,11 @@ train/val  ellipsoid, box, cylinder,    stripes, checker, noise, tiles,     the 
 heldout    torus, capsule, cone (1–3)   dots, marble, rings                 bricks, dots         none
 far        octahedron, hexprism,        hexagons, zigzag, naturephoto       hexagons, zigzag,    bevels
            triprism (1–5)                                                   naturephoto          (p = 0.25)
+select     pyramid, bicone, lens (1–5)  plaid, scales, weave                the same 3           ripples
+                                                                                                 (p = 0.25)
 =========  ===========================  ==================================  ===================  ==============
 
-In train/val and far half of the surfaces are painted between two free colours (``two_tone``), the
+In train/val, far and select half of the surfaces are painted between two free colours (``two_tone``), the
 rest in one colour and its shade, as every surface of heldout.
 
 Scene ``index`` of split ``split`` under ``seed`` is drawn from its own counter-based generator
@@ -43,9 +47,10 @@ from lasagna.world.textures import TEXTURES
 
 MAX_OBJECTS = 5
 """Object slots per scene (the first world had 3; ``heldout`` still draws 1–3)."""
-WORLD_VERSION = 2
+WORLD_VERSION = 3
 """The families and layout: 1 was the first world (train: 3 shapes, 3 + 2 textures); 2 broadened train/val
-and added ``far``. ``heldout``'s scenes are bit-identical in both (new draws are appended to its stream)."""
+and added ``far``; 3 added ``select`` (new families appended to the registries, so every scene of 2 is unchanged).
+``heldout``'s scenes are bit-identical in all (new draws are appended to its stream)."""
 
 
 @dataclass(frozen=True)
@@ -101,13 +106,32 @@ SPLITS: dict[str, Split] = {
         reliefs=("bevels",),
         **_BROAD,
     ),
+    # Where every choice of a learned layer is made: families that neither train nor far (nor heldout) use,
+    # drawn as broadly as train and far, so a choice made here is a choice made off-family.
+    "select": Split(
+        "select",
+        shapes=("pyramid", "bicone", "lens"),
+        object_textures=("plaid", "scales", "weave"),
+        wall_textures=("plaid", "scales", "weave"),
+        reliefs=("ripples",),
+        **_BROAD,
+    ),
 }
 SPLIT_NAMES: tuple[str, ...] = tuple(SPLITS)
+HELD_SPLITS: tuple[str, ...] = ("heldout", "far", "select")
+"""The splits of families training never sees; their scenes at world seed 0 are the benchmarks' own."""
 
 for _s in SPLITS.values():
     assert set(_s.shapes) <= set(SHAPES) and _s.textures <= set(TEXTURES) and set(_s.reliefs) <= set(RELIEFS), _s
     assert 1 <= _s.objects[0] <= _s.objects[1] <= MAX_OBJECTS, _s
-for _a, _b in (("heldout", "train"), ("far", "train"), ("far", "heldout")):
+for _a, _b in (
+    ("heldout", "train"),
+    ("far", "train"),
+    ("far", "heldout"),
+    ("select", "train"),
+    ("select", "heldout"),
+    ("select", "far"),
+):
     assert not set(SPLITS[_a].shapes) & set(SPLITS[_b].shapes)
     assert not SPLITS[_a].textures & SPLITS[_b].textures
     assert not set(SPLITS[_a].reliefs) & set(SPLITS[_b].reliefs)

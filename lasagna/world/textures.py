@@ -17,7 +17,8 @@ its inputs: vectorised, deterministic, identical in any batch.
 Families (``TEXTURES``; which split uses which is in ``lasagna.world.splits``). Solid: stripes,
 checker, noise (fBm value noise), tiles (grout grid with per-tile tone), dots, marble (sine warped by
 fBm), rings (wood-like rings about an axis), bricks (running bond with mortar). Painted
-(`lasagna.world.paint`): deadleaves, cells, gradient, glyphs, photo, hexagons, zigzag, naturephoto.
+(`lasagna.world.paint`): deadleaves, cells, gradient, glyphs, photo, hexagons, zigzag, naturephoto, plaid,
+scales, weave.
 """
 
 from __future__ import annotations
@@ -148,6 +149,10 @@ TEXTURES: dict[str, TextureFamily] = {
         TextureFamily("hexagons", paint.hexagons, (1.5, 7.0), (0.08, 0.3)),
         TextureFamily("zigzag", paint.zigzag, (1.5, 7.0), (0.3, 0.7)),
         TextureFamily("naturephoto", paint.naturephoto, (0.3, 1.5), (0.0, 0.0)),
+        # The select split's (appended: every earlier index is unchanged).
+        TextureFamily("plaid", paint.plaid, (1.0, 6.0), (0.2, 0.5)),
+        TextureFamily("scales", paint.scales, (2.0, 7.0), (0.08, 0.25)),
+        TextureFamily("weave", paint.weave, (1.5, 5.0), (0.2, 0.45)),
     )
 }
 TEXTURE_NAMES: tuple[str, ...] = tuple(TEXTURES)

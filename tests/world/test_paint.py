@@ -139,3 +139,38 @@ def test_photo_samples_the_photograph(family):
     # Mirrored repeats: a and 2 − a sample the same column.
     w = run(paint.photo if family == "photo" else paint.naturephoto, 2.0 - a, b, row, seed=seed)
     np.testing.assert_allclose(v, w, atol=1e-9)
+
+
+def test_plaid():
+    x, y = grid(97)
+    row = prm_row(f=2.5, phi=0.4, offset=(0.7, 1.9), duty=0.3, extra=0.6)
+    a, b = coords(x, y, row)
+    band_a, band_b = np.mod(a, 1.0) < 0.3, np.mod(b + 0.6, 1.0) < 0.15
+    ref = 0.15 + 0.45 * band_a + 0.4 * band_b
+    got = run(paint.plaid, x, y, row)
+    edge = (np.minimum(np.abs(np.mod(a, 1.0) - 0.3), np.mod(a, 1.0)) < 1e-9) | (
+        np.minimum(np.abs(np.mod(b + 0.6, 1.0) - 0.15), np.mod(b + 0.6, 1.0)) < 1e-9
+    )
+    np.testing.assert_allclose(got[~edge], ref[~edge], atol=1e-12)
+
+
+def test_weave():
+    x, y = grid(97)
+    row = prm_row(f=2.0, phi=-0.6, offset=(0.2, 0.5), duty=0.3)
+    a, b = coords(x, y, row)
+    along_a = np.mod(np.floor(a) + np.floor(b), 2.0) < 0.5
+    across = np.where(along_a, np.mod(3 * b, 1.0), np.mod(3 * a, 1.0))
+    ref = np.where(across > 0.3, np.where(along_a, 0.9, 0.6), 0.0)
+    got = run(paint.weave, x, y, row)
+    edge = (np.abs(across - 0.3) < 1e-9) | (np.abs(a - np.round(a)) < 1e-9) | (np.abs(b - np.round(b)) < 1e-9)
+    np.testing.assert_allclose(got[~edge], ref[~edge], atol=1e-12)
+
+
+def test_scales_tones_and_rims():
+    x, y = grid(129)
+    row = prm_row(f=3.0, phi=0.2, duty=0.2)
+    got = run(paint.scales, x, y, row)
+    # Every point is covered by a scale: a dark rim (0) or a hashed tone in [0.3, 1].
+    assert ((got == 0) | ((got >= 0.3) & (got <= 1.0))).all()
+    assert 0.1 < (got == 0).mean() < 0.6  # rims are a visible share, not everything
+    assert len(np.unique(np.round(got[got > 0], 9))) > 10  # a tone per scale

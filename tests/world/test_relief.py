@@ -34,6 +34,10 @@ def height(name: str, x: np.ndarray, y: np.ndarray, prm: np.ndarray) -> np.ndarr
             e = np.minimum(hx - np.abs(x - cx), hy - np.abs(y - cy))
             h += slope * np.clip(e, 0.0, rim)
         return h
+    if name == "ripples":
+        cx, cy, wavelength, amp, reach = prm[:5]
+        r = np.hypot(x - cx, y - cy)
+        return np.where(r < reach, amp * np.sin(2 * np.pi * r / wavelength), 0.0)
     raise AssertionError(name)
 
 
@@ -62,7 +66,8 @@ def test_gradient_matches_finite_differences(name, seed):
     x, y = rng.uniform(-1, 1, 4000), rng.uniform(-1, 1, 4000)
     gx, gy = RELIEFS[name].gradient(torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(prm).expand(4000, -1))
     fx, fy = fd_gradient(name, x, y, prm)
-    # Grooves and bevels have kinks (the groove's ends, the rim's edges): there the two one-sided
+    # Grooves, bevels and ripples have kinks (the groove's ends, the rim's edges, the ripples' centre and
+    # reach): there the two one-sided
     # slopes differ and a central difference straddles them. Away from kinks they must agree.
     smooth = away_from_kinks(name, x, y, prm, (fx, fy))
     assert smooth.mean() > 0.9
@@ -70,7 +75,7 @@ def test_gradient_matches_finite_differences(name, seed):
     np.testing.assert_allclose(gy.numpy()[smooth], fy[smooth], atol=1e-5)
     # Each component's steepest slope is at most 1.2; overlapping bumps or bevels add up.
     slope = np.hypot(gx.numpy(), gy.numpy())
-    components = {"bumps": 5, "grooves": 1, "bevels": 2}[name]
+    components = {"bumps": 5, "grooves": 1, "bevels": 2, "ripples": 1}[name]
     assert slope.max() <= 1.2 * components * (1 + 1e-9) and slope.max() > 0.05
 
 

@@ -205,3 +205,54 @@ def test_hexprism_normal_faces_the_ray_at_an_edge():
     t, n = cast("hexprism", o.tolist(), d.tolist(), size)
     hit = np.isfinite(t)
     assert hit.any() and ((n[hit] * d[hit]).sum(1) <= 1e-9).all()
+
+
+class TestSelectFamilies:
+    """The select split's families against closed forms (rays down −z, identity rotation)."""
+
+    def test_pyramid_front_face(self):
+        # Apex at y = s1, base half-width s0 at y = −s1: at height y the square section has half-width
+        # w = s0·(s1 − y)/(2·s1); a ray down −z with |x| < w meets the +z face at z = w, normal ∝ (0, s0, 2·s1).
+        s0, s1 = 0.3, 0.25
+        pts = [(0.0, 0.0), (0.05, -0.1), (-0.08, 0.05), (0.1, -0.2)]
+        t, n = cast("pyramid", [(x, y, 2.0) for x, y in pts], [DOWN] * len(pts), (s0, s1, 0.0))
+        normal = np.array([0.0, s0, 2 * s1]) / math.hypot(s0, 2 * s1)
+        for (x, y), ti, ni in zip(pts, t, n):
+            w = s0 * (s1 - y) / (2 * s1)
+            assert abs(x) < w
+            assert ti == pytest.approx(2.0 - w, abs=1e-5)
+            np.testing.assert_allclose(ni, normal, atol=1e-4)
+        # Beside the base and above the apex: misses.
+        t, _ = cast("pyramid", [(0.0, s1 + 0.02, 2.0), (s0 + 0.02, -s1 + 0.01, 2.0)], [DOWN] * 2, (s0, s1, 0.0))
+        assert np.isinf(t).all()
+
+    def test_bicone_side(self):
+        # Radius ρ(y) = s0·(1 − |y|/s1): a ray down −z at (x, y) with |x| < ρ meets z = √(ρ² − x²), where the
+        # normal is the gradient of s1·r + s0·|y|: (s1·x/r, s0·sgn y, s1·z/r), r = ρ.
+        s0, s1 = 0.3, 0.35
+        pts = [(0.0, 0.1), (0.1, -0.05), (-0.05, 0.2), (0.12, 0.12)]
+        t, n = cast("bicone", [(x, y, 2.0) for x, y in pts], [DOWN] * len(pts), (s0, s1, 0.0))
+        for (x, y), ti, ni in zip(pts, t, n):
+            rho = s0 * (1 - abs(y) / s1)
+            z = math.sqrt(rho * rho - x * x)
+            assert ti == pytest.approx(2.0 - z, abs=1e-5)
+            g = np.array([s1 * x / rho, s0 * np.sign(y), s1 * z / rho])
+            np.testing.assert_allclose(ni, g / np.linalg.norm(g), atol=1e-4)
+
+    def test_lens_front_cap_and_rim(self):
+        # Rim radius s0 in xy, half-thickness s1: the front cap is the sphere of radius R = (s0² + s1²)/2s1
+        # centred at z = −(R − s1).
+        s0, s1 = 0.4, 0.12
+        big_r = (s0 * s0 + s1 * s1) / (2 * s1)
+        off = big_r - s1
+        rng = np.random.default_rng(2)
+        xy = rng.uniform(-0.45, 0.45, size=(300, 2))
+        t, n = cast("lens", [(x, y, 2.0) for x, y in xy], [DOWN] * 300, (s0, s1, 0.0))
+        r = np.hypot(xy[:, 0], xy[:, 1])
+        clear = np.abs(r - s0) > 2e-3
+        assert np.array_equal(np.isfinite(t)[clear], (r < s0)[clear])
+        hit = np.isfinite(t) & (r < s0 - 2e-3)
+        z = -off + np.sqrt(big_r**2 - r[hit] ** 2)
+        np.testing.assert_allclose(t[hit], 2.0 - z, atol=1e-5)
+        ref = np.stack([xy[hit, 0], xy[hit, 1], z + off], 1) / big_r
+        np.testing.assert_allclose(n[hit], ref, atol=2e-5)  # the traced hit is within 1e-5·size of the sphere

@@ -27,23 +27,25 @@ def _fingerprints(p) -> set[bytes]:
 
 class TestTable:
     def test_names(self):
-        assert SPLIT_NAMES == ("train", "val", "heldout", "far")
+        assert SPLIT_NAMES == ("train", "val", "heldout", "far", "select")
 
     def test_val_shares_train_families(self):
         t, v = SPLITS["train"], SPLITS["val"]
         assert (t.shapes, t.object_textures, t.wall_textures) == (v.shapes, v.object_textures, v.wall_textures)
 
-    @pytest.mark.parametrize("held", ["heldout", "far"])
+    @pytest.mark.parametrize("held", ["heldout", "far", "select"])
     def test_held_families_are_new(self, held):
         t, h = SPLITS["train"], SPLITS[held]
         assert not set(h.shapes) & set(t.shapes) and not h.textures & t.textures
         assert not set(h.reliefs) & set(t.reliefs)
         assert len(t.shapes) >= 5 and len(t.textures) >= 9 and len(h.shapes) >= 2 and len(h.textures) >= 2
 
-    def test_far_shares_nothing_with_heldout(self):
-        # heldout chooses defaults; far must be new to them too.
-        f, h = SPLITS["far"], SPLITS["heldout"]
-        assert not set(f.shapes) & set(h.shapes) and not f.textures & h.textures
+    @pytest.mark.parametrize("a, b", [("far", "heldout"), ("select", "heldout"), ("select", "far")])
+    def test_held_splits_share_nothing(self, a, b):
+        # select chooses defaults, heldout is reported, far is the final measurement: each new to the others.
+        x, y = SPLITS[a], SPLITS[b]
+        assert not set(x.shapes) & set(y.shapes) and not x.textures & y.textures
+        assert not set(x.reliefs) & set(y.reliefs)
 
     def test_every_family_is_registered(self):
         for s in SPLITS.values():
@@ -69,7 +71,7 @@ class TestSampledScenes:
         if spec.reliefs:  # relief on a quarter of the walls: 150 draws, 4σ bounds
             assert abs(float((p.relief >= 0).double().mean()) - spec.relief_probability) < 4 * (0.25 * 0.75 / N) ** 0.5
 
-    @pytest.mark.parametrize("held", ["heldout", "far"])
+    @pytest.mark.parametrize("held", ["heldout", "far", "select"])
     def test_held_families_never_in_train(self, params, held):
         held = SPLITS[held]
         for name in ("train", "val"):
