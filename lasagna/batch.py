@@ -63,7 +63,7 @@ from lasagna import catalogue as cat
 from lasagna.atomic import sweep_stale, sync_filesystem, unsynced
 from lasagna.document import STACK_FILE
 from lasagna.editing import EditPlan, check_edit_options, plan_edit
-from lasagna.errors import LasagnaError, PathError
+from lasagna.errors import LasagnaError, PathError, printable
 from lasagna.io.folder import SharedFiles, check_writable, swap_in
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 from lasagna.learned import LoadedGenerator, choose_method, load_generator
@@ -210,8 +210,8 @@ def _one_line(text: str) -> str:
 def _describe(exc: BaseException, label: str) -> str:
     """An input's failure as one line (a ``LasagnaError`` as it reads, less a leading ``label: ``, which the
     report names anyway; anything else with its type)."""
-    text = _message(exc)
-    return text[len(label) + 2 :] if text.startswith(f"{label}: ") else text
+    text, shown = _message(exc), printable(label)  # a LasagnaError writes its place escaped (lasagna.errors)
+    return text[len(shown) + 2 :] if text.startswith(f"{shown}: ") else text
 
 
 def _message(exc: BaseException) -> str:

@@ -1,6 +1,8 @@
 """Errors that teach: every Lasagna error is one line naming what was wrong, where, and what was expected.
 
-The CLI prints ``str(error)`` and exits with status 2; no traceback reaches the user.
+The CLI prints ``str(error)`` and exits with status 2; no traceback reaches the user. ``str(error)`` is
+one line whatever the names in it hold: control characters (a newline in a file name, an escape sequence)
+are written as ``repr`` writes them (``printable``), here, once, for every error.
 ``describe_validation_error`` is the one place a pydantic ``ValidationError`` becomes such a line.
 """
 
@@ -15,6 +17,15 @@ from typing import Any, TypeVar
 from pydantic import BaseModel, ValidationError
 
 
+def printable(text: str) -> str:
+    """``text`` with every non-printable character (newline, tab, escape, a file name's undecodable byte)
+    escaped as ``repr`` writes it (``\\n``, ``\\x1b``, ``\\udcff``): a name cannot break a one-line error
+    into two, nor send a terminal control sequence."""
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 class LasagnaError(ValueError):
     """Base class. ``message`` says what was wrong and what was expected; ``where`` is a file, a JSON path
     (``layers[2].blend``) or a tensor name. ``str(error)`` is ``"where: message"`` (or the message alone)."""
@@ -22,7 +33,7 @@ class LasagnaError(ValueError):
     def __init__(self, message: str, where: str | None = None):
         self.message = message
         self.where = where
-        super().__init__(f"{where}: {message}" if where else message)
+        super().__init__(printable(f"{where}: {message}" if where else message))
 
     def at(self, where: str) -> LasagnaError:
         """The same error (same class and message) reported at ``where`` instead."""

@@ -201,6 +201,18 @@ def test_a_fifo_among_the_inputs_fails_alone(tmp_path, capsys):
     assert all(is_complete(tmp_path / "out" / p.stem) for p in images)
 
 
+def test_a_name_with_a_newline_is_one_escaped_line(tmp_path, capsys):
+    """Issue #28 (17): a failing input whose name holds a newline is still one line on stderr."""
+    _images(tmp_path / "in", 1)
+    bad = tmp_path / "in" / "two\nlines.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n")  # a signature and nothing else
+    code, stdout, err = run(capsys, "edit", tmp_path / "in", "--condition", "left", "-o", tmp_path / "out")
+    assert code == 2 and "edited 1, skipped 0 (complete), failed 1" in stdout
+    (line,) = err.strip().splitlines()
+    assert line.startswith(f"lasagna: error: {tmp_path}/in/two\\nlines.png: ") and "expected" in line
+    assert line.count("lines.png") == 1  # the place is not repeated
+
+
 def test_refusals_before_any_work(tmp_path):
     images = _images(tmp_path / "in", 2)
     with pytest.raises(LasagnaError, match="label 'nowhere'|nowhere"):

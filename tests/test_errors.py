@@ -48,3 +48,22 @@ def test_one_formatter_for_validation_errors(data, where, prefix, expected):
         _Config.model_validate(data)
     err = describe_validation_error(exc.value, where, _Config, DocumentError, prefix=prefix)
     assert type(err) is DocumentError and str(err) == expected
+
+
+@pytest.mark.parametrize(
+    "name,shown",
+    [
+        ("a\nb.png", "a\\nb.png"),
+        ("tab\there.png", "tab\\there.png"),
+        ("esc\x1b[31m.png", "esc\\x1b[31m.png"),
+        ("bad\udcff.png", "bad\\udcff.png"),  # an undecodable byte of a file name (surrogateescape)
+        ("line\u2028sep.png", "line\\u2028sep.png"),
+        ("plain é.png", "plain é.png"),
+    ],
+)
+def test_names_with_control_characters_stay_on_one_line(name, shown):
+    """Issue #28 (17): the one place errors are formatted escapes what would break the line (as repr does)."""
+    err = ImageError("cannot decode; expected a PNG", name)
+    assert str(err) == f"{shown}: cannot decode; expected a PNG"
+    assert str(err).isprintable() and err.where == name  # the place itself is kept as it is
+    assert str(LasagnaError(f"{name} is missing")) == f"{shown} is missing"

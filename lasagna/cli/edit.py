@@ -30,7 +30,7 @@ import sys
 from pathlib import Path
 
 from lasagna.cli.common import PROG, distill_arguments, progress, warn
-from lasagna.errors import LasagnaError, PathError
+from lasagna.errors import LasagnaError, PathError, printable
 
 HELP = "add a learned layer (relight, colourise, …) to an image or stack; writes a stack folder"
 
@@ -255,7 +255,7 @@ def run_many(args: argparse.Namespace) -> int:
         shutdown_distributed(info)
     if info.is_main:
         for o in report.failed:
-            print(f"{PROG}: error: {o.input}: {o.error}", file=sys.stderr)
+            print(f"{PROG}: error: {printable(o.input)}: {o.error}", file=sys.stderr)
         where = f"{Path(args.output)}/" + (f" ({info.world_size} processes)" if info.world_size > 1 else "")
         print(f"{where}: {report.summary()} ({report.seconds:.1f} s)")
     return 0 if report.ok else 2
