@@ -34,7 +34,7 @@ from lasagna.atomic import (
 )
 from lasagna.document import STACK_FILE, stack_file
 from lasagna.errors import ConflictError, LasagnaError, PathError
-from lasagna.io.survey import resolve_inside
+from lasagna.io.survey import entry_inside, resolve_inside
 
 if TYPE_CHECKING:
     from lasagna.io.stack import Stack
@@ -334,7 +334,7 @@ def save_in_place(
     Returns the new stack.json's SHA-256 and the new ``unchanged`` map. ``stack.document`` is updated.
     """
     from lasagna.io.render import encode_composite
-    from lasagna.io.stack import encode_layer
+    from lasagna.io.stack import encode_group_mask, encode_layer
 
     if stack.folder is None:
         raise PathError("the stack was not loaded from a folder; expected one to save into", "save")
@@ -354,10 +354,16 @@ def save_in_place(
             renamed[parent] = _fresh_name(folder, parent, taken)
             taken.add(renamed[parent])
         out_rel = f"{renamed.get(parent, parent)}/{Path(rel).name}"
-        writes.append((resolve_inside(folder, out_rel, rel), data))
-    layers = []
+        writes.append((entry_inside(folder, out_rel, rel), data))
+
+    def fresh(rel: str) -> str:
+        name = _fresh_name(folder, rel, taken - {rel} if rel not in old_refs else taken)
+        taken.add(name)
+        return name
+
+    changed: dict[str, dict[str, Any]] = {}  # layer id → fields that name new files
     now_unchanged: dict[str, object] = {}
-    for i, layer in enumerate(doc.layers):
+    for loc, layer in doc.walk():  # groups' layers and masks too
         changes: dict[str, Any] = {}
         generator = getattr(layer, "generator", None)
         if generator is not None:
@@ -366,7 +372,14 @@ def save_in_place(
                 ckpt = f"{renamed[parent]}/{Path(generator.checkpoint).name}"
                 changes["generator"] = {**generator.model_dump(mode="json"), "checkpoint": ckpt}
         tensors = stack.tensors.get(layer.id)
-        if tensors is not None and layer.kind != "solid":
+        if tensors is not None and layer.kind == "group":
+            if layer.mask is not None and not (unchanged.get(layer.id) is tensors and (folder / layer.mask).is_file()):
+                data = encode_group_mask(stack, layer.id, loc)
+                if not _holds(folder, layer.mask, data):
+                    changes["mask"] = fresh(layer.mask)
+                    writes.append((entry_inside(folder, changes["mask"], f"{loc}.mask"), data))
+            now_unchanged[layer.id] = tensors
+        elif tensors is not None and layer.kind != "solid":
             same = unchanged.get(layer.id) is tensors and (folder / layer.source).is_file()
             if not same:
                 data, mask_data = encode_layer(stack, layer.id)
@@ -374,24 +387,21 @@ def save_in_place(
                     mask_data is None or _holds(folder, layer.mask, mask_data)
                 )
             if not same:
-                source = _fresh_name(
-                    folder, layer.source, taken - {layer.source} if layer.source not in old_refs else taken
-                )
-                taken.add(source)
-                writes.append((resolve_inside(folder, source, f"layers[{i}].source"), data))
+                source = fresh(layer.source)
+                writes.append((entry_inside(folder, source, f"{loc}.source"), data))
                 if source != layer.source:
                     changes["source"] = source
                 if mask_data is not None:
-                    mask = _fresh_name(
-                        folder, layer.mask, taken - {layer.mask} if layer.mask not in old_refs else taken
-                    )
-                    taken.add(mask)
-                    writes.append((resolve_inside(folder, mask, f"layers[{i}].mask"), mask_data))
+                    mask = fresh(layer.mask)
+                    writes.append((entry_inside(folder, mask, f"{loc}.mask"), mask_data))
                     if mask != layer.mask:
                         changes["mask"] = mask
             now_unchanged[layer.id] = tensors
-        layers.append({**layer.model_dump(), **changes} if changes else layer)
-    stack.document = doc.with_layers(layers) if any(isinstance(layer, dict) for layer in layers) else doc
+        if changes:
+            changed[layer.id] = changes
+    for id, changes in changed.items():
+        doc = doc.replace_layer(id, **changes)
+    stack.document = doc
     text = stack.document.to_json().encode("utf-8")
     result = stack.render()
     derived = [(folder / "composite.png", encode_composite(result, str(folder / "composite.png")))]
@@ -410,8 +420,10 @@ def save_in_place(
         atomic_write_bytes(stack_file(folder), text)  # the commit
         for path, data in derived:
             atomic_write_bytes(path, data)
-        for rel in old_refs - set(_referenced(stack.document)):
-            _remove_superseded(folder, rel)
+        now_refs = _referenced(stack.document)
+        kept = {(folder / rel).resolve() for rel in now_refs}
+        for rel in old_refs - now_refs:
+            _remove_superseded(folder, rel, kept)
     return hashlib.sha256(text).hexdigest(), now_unchanged
 
 
@@ -441,7 +453,7 @@ def _document_on_disk(folder: Path):
 def _referenced(doc) -> set[str]:
     """Relative paths of the files ``doc`` names: sources, masks, generator checkpoints and their configs."""
     out: set[str] = set()
-    for layer in doc.layers:
+    for _, layer in doc.walk():  # groups' layers and masks too
         for rel in (getattr(layer, "source", None), getattr(layer, "mask", None)):
             if rel:
                 out.add(Path(rel).as_posix())
@@ -452,22 +464,28 @@ def _referenced(doc) -> set[str]:
     return out
 
 
-def _remove_superseded(folder: Path, rel: str) -> None:
+def _remove_superseded(folder: Path, rel: str, kept: set[Path]) -> None:
     """Remove a file the previous stack.json named and the new one does not, if it lies in one of the
-    folders the stack's own files live in (layers/, masks/, generators/) — never anything else."""
+    folders the stack's own files live in (layers/, masks/, generators/) — never anything else.
+
+    What is removed is the folder's entry ``rel`` itself (``os.unlink``; a symlink there is unlinked, its
+    target never touched), and a file is kept while a name the new document uses (``kept``, resolved)
+    leads to it: another layer's symlink to it."""
     parts = Path(rel).parts
     if len(parts) < 2 or parts[0] not in ("layers", "masks", "generators") or ".." in parts:
         return
     try:
-        path = resolve_inside(folder, rel, rel)
+        entry = entry_inside(folder, rel, rel)
     except PathError:
         return
+    if not entry.is_symlink() and (not entry.is_file() or entry.resolve() in kept):
+        return
     try:
-        path.unlink()
-    except (FileNotFoundError, IsADirectoryError, PermissionError):
+        os.unlink(entry)
+    except OSError:
         return
     if parts[0] == "generators":
         try:
-            path.parent.rmdir()  # only when empty
+            entry.parent.rmdir()  # only when empty
         except OSError:
             pass

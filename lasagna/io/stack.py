@@ -46,6 +46,7 @@ from lasagna.io.survey import (  # noqa: F401  (MAX_SIDE, DEFAULT_MAX_TOTAL_PIXE
     DEFAULT_MAX_TOTAL_PIXELS,
     MAX_SIDE,
     Survey,
+    entry_inside,
     resolve_inside,
     survey_stack,
     verify_stack,
@@ -530,6 +531,15 @@ def encode_layer(stack: Stack, id: str, *, clip: bool = False) -> tuple[bytes, b
     return data, mask_data
 
 
+def encode_group_mask(stack: Stack, id: str, where: str, *, clip: bool = False) -> bytes:
+    """PNG bytes of group ``id``'s mask (its tensors hold only the mask: ``group_mask_tensors``)."""
+    t = stack.tensors[id]
+    if t.mask is None or t.mask.ndim != 3:
+        raise ImageError("group mask tensor missing or batched; expected (1, h, w)", where=f"{where}.mask")
+    depth = stack.bit_depths.get(id, 8)
+    return encode_png(_unit(t.mask, f"group {id!r} mask", clip), bit_depth=depth, where=where)
+
+
 @dataclass
 class _Planes:
     """What ``decode_png`` gives ``layer_tensors``: float32 colour (C, h, w) and alpha in [0, 1]."""
@@ -562,7 +572,9 @@ def stored_tensors(stack: Stack, id: str) -> tuple[LayerTensors, int]:
 
 def stack_files(stack: Stack, folder: str | os.PathLike, *, clip: bool = False) -> list[tuple[Path, bytes]]:
     """Every file of ``stack`` saved in ``folder``, encoded in memory and with its path checked inside the
-    folder: each layer's (and mask's) PNG, then stack.json. Nothing is written."""
+    folder: each layer's (and mask's) PNG, then stack.json. Nothing is written. Each path is the folder's
+    own entry (``entry_inside``): a layer PNG that is a symlink is replaced by the new file, its target
+    (another layer's PNG, a file of the user's) is never written."""
     folder = Path(folder)
     if folder.suffix.lower() == ".json":
         raise PathError(f"{folder} is a file name; expected a stack folder", where="save_stack")
@@ -579,19 +591,15 @@ def stack_files(stack: Stack, folder: str | os.PathLike, *, clip: bool = False) 
             continue
         if isinstance(layer, GroupLayer):
             if layer.mask is not None:  # a group's tensors hold its mask only (group_mask_tensors)
-                t = stack.tensors[layer.id]
-                if t.mask is None or t.mask.ndim != 3:
-                    raise ImageError("group mask tensor missing or batched; expected (1, h, w)", where=f"{loc}.mask")
-                depth = stack.bit_depths.get(layer.id, 8)
-                data = encode_png(_unit(t.mask, f"group {layer.id!r} mask", clip), bit_depth=depth, where=loc)
-                writes.append((resolve_inside(folder, layer.mask, f"{loc}.mask"), data))
+                data = encode_group_mask(stack, layer.id, loc, clip=clip)
+                writes.append((entry_inside(folder, layer.mask, f"{loc}.mask"), data))
             continue
         data, mask_data = encode_layer(stack, layer.id, clip=clip)
-        writes.append((resolve_inside(folder, layer.source, f"{loc}.source"), data))
+        writes.append((entry_inside(folder, layer.source, f"{loc}.source"), data))
         if mask_data is not None:
             if layer.mask is None:
                 raise DocumentError(f"layer {layer.id!r} has a mask tensor but no `mask` path", where=f"{loc}.mask")
-            writes.append((resolve_inside(folder, layer.mask, f"{loc}.mask"), mask_data))
+            writes.append((entry_inside(folder, layer.mask, f"{loc}.mask"), mask_data))
     writes.append((stack_file(folder), doc.to_json().encode("utf-8")))
     return writes
 

@@ -41,6 +41,16 @@ def resolve_inside(folder: Path, relative: str, where: str) -> Path:
     return target
 
 
+def entry_inside(folder: Path, relative: str, where: str) -> Path:
+    """The directory entry ``folder/relative`` itself, its last component *not* followed: the file a stack
+    owns and may replace or remove. A symlink there is the stack's entry (replacing or unlinking it leaves
+    its target alone); the folders above it are resolved and must lie inside ``folder`` (``resolve_inside``)."""
+    rel = Path(relative)
+    if rel.name in ("", ".", ".."):
+        raise PathError(f"{relative!r} names no file; expected a file path inside the stack folder", where=where)
+    return resolve_inside(folder, rel.parent.as_posix(), where) / rel.name
+
+
 def _rasters(doc: Document) -> Iterable[tuple[str, Any, str, str]]:
     """(JSON path, layer, field, relative path) for every PNG the document names, groups' layers and masks
     included (``layers[2].layers[0]``, depth first)."""

@@ -4,6 +4,7 @@ overwrite the input stack's own files refused."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import threading
 from pathlib import Path
@@ -13,7 +14,13 @@ import torch
 
 from lasagna.errors import PathError
 from lasagna.io import folder as folder_module
-from lasagna.io.folder import check_not_input, check_output_folder, write_stack_folder
+from lasagna.io.folder import (
+    check_not_input,
+    check_output_folder,
+    save_in_place,
+    stack_sha256,
+    write_stack_folder,
+)
 from lasagna.io.stack import Stack, load_stack
 
 BASIC = Path(__file__).resolve().parents[2] / "examples" / "stacks" / "basic"
@@ -115,3 +122,72 @@ def test_outputs_onto_the_input_stack_are_refused(tmp_path):
     with pytest.raises(PathError, match=r"hard\.png: is layers\[3\]\.source"):
         check_not_input([tmp_path / "hard.png"], stack)
     check_not_input([folder / "composite.png", folder / "layers" / "new.png", tmp_path / "x.png"], stack)
+
+
+# ---- files the document owns: a symlink is the stack's entry, its target never written or removed ----------
+
+
+def _linked(tmp_path: Path, link: str, target: str) -> Path:
+    """A copy of the basic stack whose ``link`` (relative to the folder) is a symlink to ``target``."""
+    folder = tmp_path / "linked"
+    shutil.copytree(BASIC, folder)
+    (folder / link).unlink()
+    (folder / link).symlink_to(target)
+    return folder
+
+
+def _reads_back(folder: Path) -> None:
+    stack = load_stack(folder)  # every file named is there, whole and inside the folder
+    stack.render()
+
+
+@pytest.mark.parametrize(
+    "target, victim",
+    [("glow.png", "layers/glow.png"), ("../photo.png", "photo.png")],
+    ids=["another-layers-png", "a-users-file"],
+)
+def test_saving_in_place_without_a_linked_layer_unlinks_the_link_not_its_target(tmp_path, target, victim):
+    folder = _linked(tmp_path, "layers/sticker.png", target)
+    shutil.copy(BASIC / "layers" / "sticker.png", folder / "photo.png")
+    kept = (folder / victim).read_bytes()
+    stack = load_stack(folder)
+    stack.remove_layer("sticker")
+    save_in_place(stack, unchanged=dict(stack.tensors), expect_sha256=stack_sha256(folder))
+    assert (folder / victim).read_bytes() == kept
+    assert not os.path.lexists(folder / "layers" / "sticker.png")
+    _reads_back(folder)
+
+
+def test_a_file_another_layers_link_leads_to_is_kept(tmp_path):
+    folder = _linked(tmp_path, "layers/glow.png", "sticker.png")  # glow's name leads to sticker's file
+    stack = load_stack(folder)
+    glow = stack.tensors["glow"].color.clone()
+    stack.remove_layer("sticker")
+    save_in_place(stack, unchanged=dict(stack.tensors), expect_sha256=stack_sha256(folder))
+    assert (folder / "layers" / "sticker.png").is_file()
+    assert torch.equal(load_stack(folder).tensors["glow"].color, glow)
+
+
+def test_stack_save_replaces_a_linked_png_and_leaves_its_target(tmp_path):
+    folder = _linked(tmp_path, "layers/sticker.png", "../photo.png")
+    shutil.copy(BASIC / "layers" / "sticker.png", folder / "photo.png")
+    photo = (folder / "photo.png").read_bytes()
+    stack = load_stack(folder)
+    new = torch.full_like(stack.tensors["sticker"].color, 0.25)
+    stack.set_pixels("sticker", new, alpha=stack.tensors["sticker"].alpha)
+    stack.save()
+    assert (folder / "photo.png").read_bytes() == photo
+    assert not (folder / "layers" / "sticker.png").is_symlink()
+    assert torch.allclose(load_stack(folder).tensors["sticker"].color, new, atol=1 / 255)
+
+
+def test_stack_save_of_a_layer_linked_to_another_layers_png_keeps_both(tmp_path):
+    folder = _linked(tmp_path, "layers/sticker.png", "glow.png")
+    stack = load_stack(folder)
+    glow = stack.tensors["glow"].color.clone()
+    sticker = torch.full_like(stack.tensors["sticker"].color, 0.5)
+    stack.set_pixels("sticker", sticker, alpha=stack.tensors["sticker"].alpha)
+    stack.save()
+    back = load_stack(folder)
+    assert torch.allclose(back.tensors["glow"].color, glow, atol=1 / 255)
+    assert torch.allclose(back.tensors["sticker"].color, sticker, atol=1 / 255)
