@@ -13,7 +13,9 @@ Security (the editor can read and write a folder of the user's, so every request
 * **Paths.** No route takes a path: the session knows its folder, layers are named by id, exports are
   downloads built in memory. Uploads are bytes, read under the CLI's image policy (size and pixel limits).
 * **Errors.** A ``LasagnaError`` is a 4xx with ``{"error": "<one line>"}`` (409 for a version conflict,
-  413 for an oversized body); a malformed request is a 400; anything unexpected is a 500 whose body is one
+  413 for an oversized body); a malformed request is a 400 naming the field, what it expected and what it
+  was given: bodies are parsed with bounded depth and digits and validated by strict models in one place
+  (``lasagna.serve.bodies``) before any session method runs. Anything unexpected is a 500 whose body is one
   line without a traceback.
 """
 
@@ -33,6 +35,7 @@ from starlette.routing import Route
 
 from lasagna.errors import ConflictError, LasagnaError
 from lasagna.limits import BudgetError
+from lasagna.serve.bodies import Empty, RequestError, StartJob, parse_body, parse_change, parse_request_json
 from lasagna.serve.session import EditSession
 
 TOKEN_HEADER = "x-lasagna-token"
@@ -44,10 +47,6 @@ MAX_UPLOAD_BYTES = 64 * 2**20
 EVENT_INTERVAL_S = 0.1
 """How often a job's progress stream reports (10 Hz: smooth for a bar, negligible work)."""
 STATIC_FILES = {"app.js": "text/javascript", "app.css": "text/css"}
-
-
-class RequestError(LasagnaError):
-    """A request that is malformed in itself (not JSON, a missing field): HTTP 400."""
 
 
 class TooLarge(LasagnaError):
@@ -82,22 +81,8 @@ async def _body(request: Request, limit: int) -> bytes:
 
 
 async def _json(request: Request) -> dict[str, Any]:
-    data = await _body(request, MAX_JSON_BYTES)
-    try:
-        value = json.loads(data.decode("utf-8")) if data else {}
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise RequestError(f"the body is not JSON ({exc.__class__.__name__}); expected a JSON object", "body") from None
-    if not isinstance(value, dict):
-        raise RequestError(f"the body is a JSON {type(value).__name__}; expected a JSON object", "body")
-    return value
-
-
-def _field(body: dict[str, Any], name: str, default: Any = ...) -> Any:
-    if name not in body:
-        if default is ...:
-            raise RequestError(f"missing field {name!r}; expected it in the JSON body", "body")
-        return default
-    return body[name]
+    """The body as a JSON object, bounded in size, depth and digits (``bodies.parse_request_json``)."""
+    return parse_request_json(await _body(request, MAX_JSON_BYTES))
 
 
 def create_app(session: EditSession, token: str, allowed_hosts: list[str]) -> Guard:
@@ -168,30 +153,8 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str]) -> Gu
     # ---- changes -----------------------------------------------------------------------------------
 
     async def change(request: Request) -> Response:
-        body = await _json(request)
-        op = _field(body, "op")
-        version = _field(body, "version")
-        ops = {
-            "set": lambda: session.set_layer(version, _field(body, "id"), _field(body, "changes")),
-            "move": lambda: session.move_layer(version, _field(body, "id"), _field(body, "index")),
-            "delete": lambda: session.delete_layer(version, _field(body, "id")),
-            "solid": lambda: session.add_solid(
-                version, _field(body, "color"), _field(body, "name", None), _field(body, "blend", "normal")
-            ),
-            "learned": lambda: session.add_learned(
-                version,
-                _field(body, "preset"),
-                _field(body, "condition"),
-                _field(body, "on", None),
-                _field(body, "method", "amortised"),
-            ),
-            "undo": lambda: session.undo(version),
-            "redo": lambda: session.redo(version),
-            "save": lambda: session.save(version),
-        }
-        if op not in ops:
-            raise RequestError(f"unknown op {op!r}; expected one of {', '.join(ops)}", "op")
-        return JSONResponse(await run(ops[op]))
+        body = parse_change(await _json(request))  # one model per op (lasagna.serve.bodies.CHANGES)
+        return JSONResponse(await run(body.call, session))
 
     async def upload(request: Request) -> Response:
         q = request.query_params
@@ -205,22 +168,16 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str]) -> Gu
         return JSONResponse(await run(session.add_image, version, data, q.get("name")))
 
     async def reload(request: Request) -> Response:
-        await _json(request)
+        parse_body(Empty, await _json(request))
         return JSONResponse(await run(session.reload))
 
     async def start_job(request: Request) -> Response:
-        body = await _json(request)
-        job = await run(
-            session.start_job,
-            _field(body, "version"),
-            _field(body, "kind"),
-            _field(body, "id"),
-            _field(body, "steps", None),
-        )
+        body = parse_body(StartJob, await _json(request))
+        job = await run(session.start_job, body.version, body.kind, body.id, body.steps)
         return JSONResponse(job.report())
 
     async def cancel_job(request: Request) -> Response:
-        await _json(request)
+        parse_body(Empty, await _json(request))
         return JSONResponse(await run(session.cancel_job, request.path_params["job"]))
 
     async def job_events(request: Request) -> Response:
