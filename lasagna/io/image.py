@@ -9,8 +9,12 @@ clipped). Every other format is refused unopened: Pillow is only ever asked for 
 EPS or PDF never reaches Ghostscript, whatever its file name says.
 
 Before any pixel is decoded the size is checked against ``max_pixels`` and the memory budget
-(``lasagna.limits``). Values are float32 channels first, ``color`` (3, h, w) and ``alpha`` (1, h, w) or
-None, with the bit depth they were stored at (8 or 16) so a stack made from them saves them losslessly.
+(``lasagna.limits``), from the header alone: width, height, samples per pixel and bytes per sample
+(``decode_bytes``, the one estimate of every decode path; a PNG's is ``lasagna.io.png.decode_bytes``).
+An image of more than 4 samples per pixel is refused there: nothing reads it as colour and alpha (a TIFF's
+header is read by tifffile before Pillow sees the file). Values are float32 channels first, ``color``
+(3, h, w) and ``alpha`` (1, h, w) or None, with the bit depth they were stored at (8 or 16) so a stack
+made from them saves them losslessly.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ import numpy as np
 from lasagna.atomic import open_regular
 from lasagna.errors import ImageError, LasagnaError
 from lasagna.io.png import PNG_SIGNATURE, check_size, read_png, read_png_header
+from lasagna.io.png import decode_bytes as png_decode_bytes
 from lasagna.limits import check_memory, raster_bytes
 
 # Pillow's names of the formats read through Pillow (PNG has its own reader).
@@ -36,8 +41,8 @@ READABLE = "PNG, JPEG, WebP, BMP or TIFF (8/16-bit)"
 # Larger images need max_pixels raised on purpose.
 DEFAULT_EDIT_MAX_PIXELS = 2048 * 2048
 
-# Bytes a pixel costs while Pillow decodes it (its image: up to 4 a pixel; the converted copy: 4 more).
-_PILLOW_BYTES_PER_PIXEL = 8
+# Samples per pixel an image may have: gray, gray + alpha, RGB, RGBA (CMYK is converted to RGB).
+MAX_SAMPLES = 4
 
 
 @dataclass
@@ -71,14 +76,50 @@ def _check_jpeg_scans(path: Path, where: str) -> None:
         )
 
 
-def _check_pixels(w: int, h: int, max_pixels: int, where: str) -> None:
+def decode_bytes(w: int, h: int, samples: int, sample_bytes: int) -> int:
+    """Peak bytes of decoding a ``w`` × ``h`` image of ``samples`` per pixel, ``sample_bytes`` each: the decoded
+    samples (a decoder holds at least 4 a pixel, Pillow's layout) and one converted or transposed copy of them,
+    their float32 values, and the (4, h, w) float32 colour and alpha returned."""
+    pixels = int(w) * int(h)
+    decoded = pixels * max(int(samples), 4) * max(int(sample_bytes), 1)
+    return 2 * decoded + raster_bytes(w, h, samples) + raster_bytes(w, h, 4)
+
+
+def _check_pixels(w: int, h: int, max_pixels: int, where: str, samples: int = 4, sample_bytes: int = 1) -> None:
+    """Refuse, before decoding, an image too large for ``max_pixels``, of more than ``MAX_SAMPLES`` samples per
+    pixel, or whose decoding (``decode_bytes``) would exceed the memory budget."""
     if w * h > max_pixels:
         raise ImageError(
             f"image is {w}x{h} = {w * h} pixels, over the limit of {max_pixels}; expected at most "
             f"{max_pixels} pixels (raise --max-pixels if this is intended)",
             where,
         )
-    check_memory(raster_bytes(w, h, 4) + w * h * _PILLOW_BYTES_PER_PIXEL, f"decoding a {w}x{h} image", where)
+    if not 1 <= samples <= MAX_SAMPLES:
+        raise ImageError(
+            f"image has {samples} samples per pixel (from its header); expected 1 to {MAX_SAMPLES} (gray, gray and "
+            "alpha, RGB or RGBA)",
+            where,
+        )
+    check_memory(decode_bytes(w, h, samples, sample_bytes), f"decoding a {w}x{h} image", where)
+
+
+def _tiff_header(page) -> tuple[int, int, int, int]:
+    """(width, height, samples per pixel, bytes per sample) of a tifffile page, from its tags alone: every axis
+    but X and Y counts as samples (a page of several planes or a volume is as costly as that many channels)."""
+    shape = dict(zip(page.axes, page.shape))
+    w, h = int(shape.get("X", 1)), int(shape.get("Y", 1))
+    samples = int(np.prod(page.shape, dtype=np.int64)) // max(w * h, 1)
+    dtype = page.dtype
+    sample_bytes = dtype.itemsize if dtype is not None else -(-int(max(np.atleast_1d(page.bitspersample))) // 8)
+    return w, h, samples, sample_bytes
+
+
+def _pillow_header(im) -> tuple[int, int, int, int]:
+    """(width, height, bands, bytes per band) of an opened Pillow image, from its header."""
+    w, h = im.size
+    bands = len(im.getbands())
+    sample_bytes = 4 if im.mode in ("I", "F") else (2 if im.mode.startswith("I;16") else 1)
+    return w, h, bands, sample_bytes
 
 
 def _as_rgb(values: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray | None]:
@@ -125,8 +166,8 @@ def _read_tiff_wide(path: Path, where: str, max_pixels: int) -> RasterImage:
     try:
         with open_regular(path, where) as fh, tifffile.TiffFile(fh) as tif:
             page = tif.pages.first
-            shape = dict(zip(page.axes, page.shape))
-            _check_pixels(shape.get("X", 1), shape.get("Y", 1), max_pixels, where)
+            w, h, samples, sample_bytes = _tiff_header(page)
+            _check_pixels(w, h, max_pixels, where, samples, sample_bytes)
             values = page.asarray()
             axes = page.axes
     except LasagnaError:  # the size and budget refusals, as they are
@@ -168,19 +209,18 @@ def _is_tiff(path: Path) -> bool:
         return fh.read(4) in _TIFF_MAGIC
 
 
-def _tiff_size(path: Path, where: str) -> tuple[int, int]:
-    """(width, height) of a TIFF's first page from its header (tifffile; nothing decoded)."""
+def _tiff_size(path: Path, where: str) -> tuple[int, int, int, int]:
+    """(width, height, samples per pixel, bytes per sample) of a TIFF's first page from its header (tifffile;
+    nothing decoded)."""
     import tifffile
 
     try:
         with open_regular(path, where) as fh, tifffile.TiffFile(fh) as tif:
-            page = tif.pages.first
-            shape = dict(zip(page.axes, page.shape))
+            return _tiff_header(tif.pages.first)
     except LasagnaError:
         raise
     except Exception as exc:  # as above
         raise _tiff_error(exc, where) from None
-    return shape.get("X", 1), shape.get("Y", 1)
 
 
 def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
@@ -189,8 +229,8 @@ def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
     Image = _pillow()
     try:
         with open_regular(path, where) as fh, Image.open(fh, formats=PILLOW_FORMATS) as im:
-            w, h = im.size
-            _check_pixels(w, h, max_pixels, where)
+            w, h, samples, sample_bytes = _pillow_header(im)
+            _check_pixels(w, h, max_pixels, where, samples, sample_bytes)
             if im.format == "JPEG":
                 _check_jpeg_scans(path, where)
             if im.format == "TIFF":
@@ -234,26 +274,28 @@ def probe_image_file(path: str | os.PathLike, *, max_pixels: int) -> tuple[int, 
     (nothing decoded, no torch): what ``lasagna edit`` runs before it loads anything heavy."""
     p = Path(path)
     where = str(p)
-    if _magic(p, where) == PNG_SIGNATURE:
+    magic = _magic(p, where)
+    if magic == PNG_SIGNATURE:
         header = read_png_header(p)
         check_size(header, where, max_pixels)
-        check_memory(
-            raster_bytes(header.width, header.height, 4), f"decoding a {header.width}x{header.height} PNG", where
-        )
+        check_memory(sum(png_decode_bytes(header)), f"decoding a {header.width}x{header.height} PNG", where)
         return header.width, header.height
     from PIL import UnidentifiedImageError
 
+    if magic[:4] in _TIFF_MAGIC:  # as read_image_file does
+        w, h, samples, sample_bytes = _tiff_size(p, where)
+        _check_pixels(w, h, max_pixels, where, samples, sample_bytes)
     Image = _pillow()
     try:
         with open_regular(p, where) as fh, Image.open(fh, formats=PILLOW_FORMATS) as im:
-            w, h = im.size
+            w, h, samples, sample_bytes = _pillow_header(im)
             jpeg = im.format == "JPEG"
     except _pillow_errors(Image) as exc:
         if not (isinstance(exc, UnidentifiedImageError) and _is_tiff(p)):
             raise _pillow_error(exc, where) from None
-        w, h = _tiff_size(p, where)  # a float or other wide TIFF Pillow cannot open: tifffile's header
+        w, h, samples, sample_bytes = _tiff_size(p, where)  # a TIFF Pillow cannot open: tifffile's header
         jpeg = False
-    _check_pixels(w, h, max_pixels, where)
+    _check_pixels(w, h, max_pixels, where, samples, sample_bytes)
     if jpeg:
         _check_jpeg_scans(p, where)
     return w, h
@@ -267,11 +309,12 @@ def read_image_file(path: str | os.PathLike, *, max_pixels: int) -> RasterImage:
     if magic == PNG_SIGNATURE:
         header = read_png_header(p)
         if header.pixels <= max_pixels:
-            check_memory(
-                raster_bytes(header.width, header.height, 4), f"decoding a {header.width}x{header.height} PNG", where
-            )
+            check_memory(sum(png_decode_bytes(header)), f"decoding a {header.width}x{header.height} PNG", where)
         png = read_png(p, max_pixels=max_pixels)  # gray stays one channel, as stored
         return RasterImage(png.color, png.alpha, 16 if png.header.bit_depth == 16 else 8)
+    if magic[:4] in _TIFF_MAGIC:  # tifffile's header first: Pillow would print to stderr on many samples
+        w, h, samples, sample_bytes = _tiff_size(p, where)
+        _check_pixels(w, h, max_pixels, where, samples, sample_bytes)
     return _read_pillow(p, where, max_pixels)
 
 
@@ -280,6 +323,7 @@ __all__ = [
     "PILLOW_FORMATS",
     "READABLE",
     "RasterImage",
+    "decode_bytes",
     "probe_image_file",
     "read_image_file",
 ]

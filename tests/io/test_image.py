@@ -256,3 +256,62 @@ def test_open_regular_refuses_devices_and_swaps(tmp_path, monkeypatch):
         open_regular(link, follow_symlinks=False)
     with open_regular(link) as fh:
         assert fh.read() == b"x"
+
+
+def _many_samples_tiff(path, side: int, samples: int):
+    """A ``side``² uint8 TIFF of ``samples`` per pixel, zlib tiles of zeros, written tile by tile (never whole):
+    2048² × 128 is 0.5 MB on disk and 512 MiB of samples (2.9 GB peak when decoded before the refusal)."""
+    tile = np.zeros((256, 256, samples), np.uint8)
+    tiles = (tile for _ in range((side // 256) ** 2))
+    tifffile.imwrite(
+        path, tiles, shape=(side, side, samples), dtype=np.uint8, tile=(256, 256), photometric="minisblack",
+        planarconfig="contig", compression="zlib",
+    )  # fmt: skip
+    return path
+
+
+@pytest.mark.parametrize("samples", [5, 128])
+def test_many_samples_per_pixel_are_refused_from_the_header(tmp_path, samples):
+    from lasagna.io.image import probe_image_file
+
+    path = _many_samples_tiff(tmp_path / "wide.tif", 512, samples)
+    for read in (read_image_file, probe_image_file):
+        with pytest.raises(ImageError) as info:
+            read(path, max_pixels=BIG)
+        assert str(info.value) == (
+            f"{path}: image has {samples} samples per pixel (from its header); expected 1 to 4 "
+            "(gray, gray and alpha, RGB or RGBA)"
+        )
+
+
+def test_the_estimate_counts_every_sample(tmp_path):
+    """The budget is checked with the samples the header states, not 4 (a 3-sample 16-bit TIFF costs more
+    than an 8-bit one of the same size)."""
+    from lasagna.io.image import decode_bytes
+    from lasagna.limits import BudgetError, memory_budget_scope
+
+    assert decode_bytes(100, 100, 4, 2) > decode_bytes(100, 100, 4, 1)
+    assert decode_bytes(100, 100, 3, 4) > decode_bytes(100, 100, 3, 2)
+    path = tmp_path / "rgb16.tif"
+    tifffile.imwrite(path, np.zeros((64, 64, 3), np.uint16), photometric="rgb")
+    with memory_budget_scope(decode_bytes(64, 64, 3, 2) - 1), pytest.raises(BudgetError):
+        read_image_file(path, max_pixels=BIG)
+    with memory_budget_scope(decode_bytes(64, 64, 3, 2)):
+        assert read_image_file(path, max_pixels=BIG).color.shape == (3, 64, 64)
+
+
+def test_a_2048_tiff_of_128_samples_is_refused_in_little_memory(tmp_path):
+    """Issue #28 (6): refused from the header: the refusing process's peak stays far below the 512 MiB of samples
+    (2.9 GB when it was decoded first)."""
+    from tests.peak import run_python
+
+    path = _many_samples_tiff(tmp_path / "wide.tif", 2048, 128)
+    code, out, err, peak = run_python(
+        "from lasagna.io.image import read_image_file\n"
+        "try:\n"
+        f"    read_image_file({str(path)!r}, max_pixels=2048 * 2048)\n"
+        "except Exception as exc:\n"
+        "    print(type(exc).__name__, exc)\n"
+    )
+    assert code == 0 and out.startswith("ImageError ") and "128 samples per pixel" in out, (out, err)
+    assert peak < 500, f"peak {peak:.0f} MB"
