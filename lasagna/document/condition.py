@@ -38,6 +38,9 @@ NAMED_DIRECTIONS: dict[str, tuple[float, float]] = {
 }
 """(az, el) in degrees of each named light, in the order of `lasagna.world.lighting.VOCABULARY`."""
 
+AMBIENT = 0.25
+"""Default ambient term a of shading = a + (1 − a)·max(0, n·l) (the world's contract)."""
+
 MAX_ELEVATION = 90.0
 """Elevations lie in [0, MAX_ELEVATION): at 90° the light grazes the image plane."""
 
@@ -123,6 +126,13 @@ def unit_vector(az: float, el: float) -> tuple[float, float, float]:
     az, el = check_direction(az, el)
     a, e = math.radians(az), math.radians(el)
     return (math.sin(e) * math.cos(a), math.sin(e) * math.sin(a), math.cos(e))
+
+
+def check_ambient(ambient: float) -> float:
+    """Ambient must lie in [0, 1): at 1 the light would have no effect."""
+    if not (0.0 <= ambient < 1.0) or math.isnan(ambient):
+        raise ConditionError(f"ambient must be in [0, 1), got {ambient}", where="ambient")
+    return float(ambient)
 
 
 def canonical_condition(text: str) -> str:

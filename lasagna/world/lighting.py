@@ -50,6 +50,8 @@ import math
 
 import torch
 
+from lasagna.compose.surface import lambert as lambert  # re-exported: the one shading model
+from lasagna.document.condition import AMBIENT as AMBIENT  # re-exported: the contract's default ambient
 from lasagna.document.condition import (
     NAMED_DIRECTIONS,
     canonical_condition,
@@ -58,10 +60,11 @@ from lasagna.document.condition import (
     parse_direction,
     unit_vector,
 )
+from lasagna.document.condition import check_ambient as check_ambient  # re-exported
 from lasagna.document.condition import (
     named_direction as named_direction,  # re-exported: (az, el) of a label, beside its vector
 )
-from lasagna.errors import ConditionError, LasagnaError
+from lasagna.errors import ConditionError
 
 # The elevation of every light: 30° above the image plane, i.e. 60° from the viewing axis +z.
 _S = math.sin(math.radians(60.0))
@@ -91,8 +94,6 @@ LIGHTS: dict[str, tuple[float, float, float]] = {
 }
 assert tuple(LIGHTS) == VOCABULARY == tuple(NAMED_DIRECTIONS)
 
-AMBIENT = 0.25
-"""Default ambient term a of shading = a + (1 − a)·max(0, n·l)."""
 
 WALL_SHADING = AMBIENT + (1.0 - AMBIENT) * _C
 """The unshadowed wall's shading with the default ambient (n = +z, so n·l = cos 60° = 0.5): 0.625."""
@@ -142,26 +143,6 @@ def light_vectors(
     """Unit light directions for ``labels``: (B, 3) in the camera frame."""
     rows = [LIGHTS[VOCABULARY[label_index(name)]] for name in labels]
     return torch.tensor(rows, dtype=dtype, device=device).reshape(len(rows), 3)
-
-
-def check_ambient(ambient: float) -> float:
-    """Ambient must lie in [0, 1): at 1 the light would have no effect."""
-    if not (0.0 <= ambient < 1.0) or math.isnan(ambient):
-        raise LasagnaError(f"ambient must be in [0, 1), got {ambient}", where="ambient")
-    return float(ambient)
-
-
-def lambert(normals: torch.Tensor, light: torch.Tensor, ambient: float = AMBIENT) -> torch.Tensor:
-    """shading = a + (1 − a)·max(0, n·l), without shadows.
-
-    normals (B, 3, H, W) unit vectors; light (B, 3) unit vectors; returns (B, 1, H, W).
-    The dot product is written out per component (no matmul) so every pixel's value is independent of
-    the batch it was computed in — a scene renders bit-identically alone or in a batch.
-    """
-    check_ambient(ambient)
-    lx, ly, lz = (light[:, i, None, None, None] for i in range(3))
-    ndotl = normals[:, 0:1] * lx + normals[:, 1:2] * ly + normals[:, 2:3] * lz
-    return ambient + (1.0 - ambient) * ndotl.clamp_min(0.0)
 
 
 # ---- any direction ----------------------------------------------------------------------------------

@@ -1,0 +1,99 @@
+"""Surfaces: a height field or a normal map, rendered to a shading multiplier under a directional light.
+
+A shading layer under a directional light is the rendering of one surface (docs/ARCHITECTURE.md, "Surface
+layers"). This module is that renderer, differentiable and batch-independent:
+
+- **Shading model** — the world's contract (`lasagna.document.condition`): S = a + (1 − a)·max(0, n·l), Lambert
+  with ambient a (default ``AMBIENT`` = 0.25), l the unit light (sin el·cos az, sin el·sin az, cos el); camera
+  frame x right, y up, z toward the viewer; image row 0 is the top.
+- **Relight** of a lit image I = A·S(l_src) to l_tgt multiplies it by the ratio S(l_tgt)/S(l_src) of one surface.
+  With a > 0 the denominator is at least a, so the ratio is finite and at most 1/a.
+- **Height field** h (..., 1, H, W) in canvas units where the canvas is 2 units wide (the world's convention; a
+  pixel is 2/W): n ∝ (−∂h/∂x, −∂h/∂y, 1), by central differences inside and one-sided differences on the border
+  (``torch.gradient``), with ∂h/∂y = −∂h/∂row because rows run down.
+- **Normal map** — tangent-space RGB n ↦ (n + 1)/2 with +Y up: the "OpenGL" convention Blender, Krita's
+  tangent-normal brush and Godot's ``CanvasTexture.normal_texture`` read (a "DirectX" map flips the green
+  channel). Decoding renormalises, since a quantised unit vector is not exactly unit; a 16-bit map stores each
+  component to 1.5e-5, so S from a stored map is within 3e-5 of S from the exact normals.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from lasagna.document.condition import AMBIENT, check_ambient, unit_vector
+from lasagna.errors import LasagnaError
+
+# A normal decoded from a map whose three channels round to (0.5, 0.5, 0.5) — a zero vector, which no unit
+# normal encodes — would divide by zero; below this length it is taken as the flat normal +z instead.
+NORMAL_EPS = 1e-6
+
+
+def light_vector(az: float, el: float, *, dtype: torch.dtype = torch.float32, device=None) -> Tensor:
+    """The unit light (3,) of (az, el) in degrees, by the one closed form (`lasagna.document.condition`)."""
+    return torch.tensor(unit_vector(az, el), dtype=torch.float64).to(dtype=dtype, device=device)
+
+
+def lambert(normals: Tensor, light: Tensor, ambient: float = AMBIENT) -> Tensor:
+    """Shading a + (1 − a)·max(0, n·l) of unit ``normals`` (B, 3, H, W) under ``light`` (B, 3): (B, 1, H, W).
+
+    The dot product is written out per component (no matmul), so every pixel's value is independent of the
+    batch it was computed in: a scene renders bit-identically alone or in any batch.
+    """
+    check_ambient(ambient)
+    if light.ndim == 1:
+        light = light[None].expand(normals.shape[0], 3)
+    lx, ly, lz = (light[:, i, None, None, None] for i in range(3))
+    ndotl = normals[:, 0:1] * lx + normals[:, 1:2] * ly + normals[:, 2:3] * lz
+    return ambient + (1.0 - ambient) * ndotl.clamp_min(0.0)
+
+
+def relight_ratio(normals: Tensor, target: Tensor, source: Tensor, ambient: float = AMBIENT) -> Tensor:
+    """S(target)/S(source) of one surface (B, 1, H, W): the multiplier that relights A·S(source) to A·S(target).
+
+    Needs a > 0 (the denominator is then ≥ a; at a = 0 an unlit pixel would be 0/0, and nothing is known of
+    its albedo): raises otherwise.
+    """
+    if check_ambient(ambient) <= 0.0:
+        raise LasagnaError("a relight ratio needs an ambient term a > 0 (S(source) ≥ a); got 0", where="ambient")
+    return lambert(normals, target, ambient) / lambert(normals, source, ambient)
+
+
+def normals_from_height(height: Tensor) -> Tensor:
+    """Unit normals (B, 3, H, W) of a height field (B, 1, H, W) in canvas units (the canvas is 2 units wide).
+
+    Central differences inside, one-sided on the border (``torch.gradient``); a 1-pixel-wide axis has no
+    slope along it.
+    """
+    if height.ndim != 4 or height.shape[1] != 1:
+        raise LasagnaError(f"got shape {tuple(height.shape)}; expected (B, 1, H, W)", where="height")
+    h = height[:, 0]
+    pixel = 2.0 / h.shape[-1]
+    zero = torch.zeros_like(h)
+    d_row = torch.gradient(h, spacing=pixel, dim=-2)[0] if h.shape[-2] > 1 else zero
+    d_col = torch.gradient(h, spacing=pixel, dim=-1)[0] if h.shape[-1] > 1 else zero
+    # y up: ∂h/∂y = −∂h/∂row, so n ∝ (−∂h/∂x, +∂h/∂row, 1).
+    n = torch.stack([-d_col, d_row, torch.ones_like(h)], 1)
+    return n * torch.rsqrt((n * n).sum(1, keepdim=True))
+
+
+def encode_normal_map(normals: Tensor) -> Tensor:
+    """Tangent-space RGB in [0, 1] of unit normals (B, 3, H, W): (n + 1)/2, +Y up (OpenGL convention)."""
+    return ((normals + 1.0) * 0.5).clamp(0.0, 1.0)
+
+
+def decode_normal_map(rgb: Tensor, *, convention: str = "opengl") -> Tensor:
+    """Unit normals (B, 3, H, W) of a tangent-space normal map in [0, 1]; ``convention="directx"`` flips Y.
+
+    Renormalised (quantised maps are not exactly unit); a zero vector (below ``NORMAL_EPS``) becomes +z.
+    """
+    if convention not in ("opengl", "directx"):
+        raise LasagnaError(f"unknown normal-map convention {convention!r}; expected opengl or directx", "convention")
+    n = rgb * 2.0 - 1.0
+    if convention == "directx":
+        n = torch.cat([n[:, 0:1], -n[:, 1:2], n[:, 2:3]], 1)
+    length = (n * n).sum(1, keepdim=True).sqrt()
+    flat = torch.zeros_like(n)
+    flat[:, 2] = 1.0
+    return torch.where(length > NORMAL_EPS, n / length.clamp_min(NORMAL_EPS), flat)
