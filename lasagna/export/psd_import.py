@@ -40,8 +40,17 @@ from lasagna.limits import check_memory
 # Page group backdrop (W3C Compositing Level 1, section 8.3: "composited with a backdrop color of white").
 PAGE_BACKGROUND = (1.0, 1.0, 1.0)
 # Bytes a decoded layer pixel costs on import: float32 RGBA read by psd-tools, then our float32 tensors
-# (colour, alpha, mask), and the 16-bit PNG bytes written: ~2 copies of 4 float32 channels.
+# (colour, alpha), and the 16-bit PNG bytes written: ~2 copies of 4 float32 channels. Kept until saved.
 IMPORT_BYTES_PER_PIXEL = 2 * 4 * 4
+# A mask pixel on the rectangle it is cut to (the layer's, or the canvas for a group): the float64 array it
+# is cut into, our float32 tensor, the PNG's bytes. Kept until saved.
+MASK_BYTES_PER_PIXEL = 8 + 4 + 4
+# A pixel of a mask's stored rectangle while it is decoded (one at a time): the inflated channel bytes and
+# psd-tools' copy of them, Pillow's image (16/32-bit masks go through a 4-byte image), the 8-bit copy.
+MASK_DECODE_BYTES = {8: 4, 16: 2 * 2 + 2 * 4 + 2, 32: 2 * 4 + 2 * 4 + 2}
+# A canvas pixel while psd-tools renders a rasterised layer (Layer.composite): its float colour, shape and
+# alpha arrays for the layer and each clipping layer's, and the RGBA image returned (one layer at a time).
+COMPOSITE_BYTES_PER_PIXEL = 3 * IMPORT_BYTES_PER_PIXEL
 # psd-tools layer kinds rasterised by its own renderer (their stored channels may be stale or absent).
 RASTERISED_KINDS = {"type": "type layer", "shape": "shape layer", "smartobject": "smart object"}
 
@@ -178,24 +187,68 @@ class _Reader:
         """The layer's enabled user mask over ``bbox`` (1, h, w), its background colour outside its data."""
         if not layer.has_mask() or layer.mask is None or layer.mask.disabled:
             return None
-        m = layer.mask
-        raw = m.topil(real=False)
+        m = layer.mask.data  # the user mask's own rectangle and colour: what topil(real=False) returns
+        raw = layer.mask.topil(real=False)
         out = np.full((1, bbox[3] - bbox[1], bbox[2] - bbox[0]), m.background_color / 255.0)
         if raw is not None:
-            data = np.asarray(raw.convert("L"), dtype=np.float64) / 255.0
             x, y = m.left - bbox[0], m.top - bbox[1]
-            h, w = data.shape
+            w, h = raw.size
             y0, y1, x0, x1 = max(y, 0), min(y + h, out.shape[1]), max(x, 0), min(x + w, out.shape[2])
-            if y0 < y1 and x0 < x1:
-                out[0, y0:y1, x0:x1] = data[y0 - y : y1 - y, x0 - x : x1 - x]
+            if y0 < y1 and x0 < x1:  # only the part on the layer is converted (the rest may be huge)
+                part = raw.crop((x0 - x, y0 - y, x1 - x, y1 - y)).convert("L")
+                out[0, y0:y1, x0:x1] = np.asarray(part, dtype=np.float64) / 255.0
         if layer.has_vector_mask():
             self.warn(f"{what}: a vector mask cannot be represented; only the pixel mask is imported")
         return out
 
     def _check_size(self, bbox, what: str) -> None:
-        pixels = max(0, bbox[2] - bbox[0]) * max(0, bbox[3] - bbox[1])
-        if pixels > self.max_pixels:
-            raise ImageError(f"holds {pixels} pixels, over the limit of {self.max_pixels}; expected fewer", what)
+        _check_pixels(_area(bbox), self.max_pixels, what)
+
+
+def _area(bbox) -> int:
+    return max(0, bbox[2] - bbox[0]) * max(0, bbox[3] - bbox[1])
+
+
+def import_bytes(psd, layers_in_file: list, max_pixels: int, where: str) -> int:
+    """Peak bytes ``read_psd`` needs, from the layer records alone (nothing is decoded): every raster it
+    keeps until the stack is saved — each layer's pixels (canvas-size for one psd-tools rasterises), each
+    mask cut to its layer's rectangle (the canvas for a group's) — plus the largest one-at-a-time transient,
+    a mask's whole stored rectangle being decoded or a layer being rendered. A layer or mask rectangle over
+    ``max_pixels`` is refused (``ImageError``) here, before anything is decoded."""
+    _, _, _, AdjustmentLayer, FillLayer = _require()
+    canvas = psd.width * psd.height
+    depth = psd.depth if psd.depth in MASK_DECODE_BYTES else 32
+    kept = transient = 0
+    for layer in layers_in_file:
+        what = f"{where}: layer {layer.name!r}"
+        if isinstance(layer, AdjustmentLayer) or layer.clipping:
+            continue  # nothing decoded, or drawn in the rendering of the layer it clips
+        if layer.is_group():
+            target = canvas
+        elif (
+            layer.kind in RASTERISED_KINDS
+            or isinstance(layer, FillLayer)
+            or layer.has_effects()
+            or layer.has_clip_layers()
+        ):
+            kept += canvas * IMPORT_BYTES_PER_PIXEL
+            transient = max(transient, canvas * COMPOSITE_BYTES_PER_PIXEL)
+            continue  # its mask is drawn into the rendering, not decoded on its own
+        else:
+            target = _area(layer.bbox)
+            _check_pixels(target, max_pixels, what)
+            kept += target * IMPORT_BYTES_PER_PIXEL
+        if layer.has_mask() and layer.mask is not None and not layer.mask.disabled:
+            stored = layer.mask.data.width * layer.mask.data.height
+            _check_pixels(stored, max_pixels, f"{what}'s mask")
+            kept += target * MASK_BYTES_PER_PIXEL
+            transient = max(transient, stored * MASK_DECODE_BYTES[depth])
+    return kept + transient
+
+
+def _check_pixels(pixels: int, max_pixels: int, what: str) -> None:
+    if pixels > max_pixels:
+        raise ImageError(f"holds {pixels} pixels, over the limit of {max_pixels}; expected fewer", what)
 
 
 def _first_line(exc: BaseException) -> str:
@@ -263,8 +316,9 @@ def read_psd(
         raise ImageError(
             f"canvas is {psd.width}x{psd.height}; expected sides in [1, 32768] and at most {max_pixels} pixels", where
         )
-    pixels = sum(max(0, b[2] - b[0]) * max(0, b[3] - b[1]) for b in (layer.bbox for layer in psd.descendants()))
-    check_memory(pixels * IMPORT_BYTES_PER_PIXEL, f"decoding the PSD's {len(list(psd.descendants()))} layers", where)
+    layers_in_file = list(psd.descendants())
+    needed = import_bytes(psd, layers_in_file, max_pixels, where)
+    check_memory(needed, f"decoding the PSD's {len(layers_in_file)} layers and their masks", where)
     reader = _Reader(psd, where, max_pixels, warn)
     try:
         layers = reader.layers(psd, "")

@@ -243,3 +243,44 @@ def test_layers_named_like_windows_devices_import(tmp_path):
     doc = within(20, lambda: read_psd(path)).document
     assert doc.ids == ("base", "aux_.png", "con_.x", "nul_.a", "COM1_.txt", "lpt9_", "aux_-2.png")
     assert [layer.name for layer in doc.layers][1:] == ["aux.png", "con.x", "nul.a", "COM1.txt", "lpt9", "aux.png"]
+
+
+def _big_mask_psd(path: Path, side: int) -> Path:
+    """An 8×8 canvas and layer whose user mask's stored rectangle is ``side``² (zeros, ZIP-compressed row by
+    row, so neither this process nor the file holds the raw mask: 16384² is ~1 MB on disk, 256 MB decoded)."""
+    import zlib
+
+    from psd_tools.constants import ChannelID, Compression
+
+    psd = PSDImage.new("RGBA", (8, 8))
+    layer = psd.create_pixel_layer(Image.new("RGBA", (8, 8), (9, 9, 9, 255)), name="small")
+    layer.create_mask(Image.new("L", (8, 8), 255), top=0, left=0)
+    record = layer._record.mask_data
+    record.top, record.left, record.bottom, record.right = 0, 0, side, side
+    channel = layer._channels[[c.id for c in layer._record.channel_info].index(ChannelID.USER_LAYER_MASK)]
+    deflate, row = zlib.compressobj(1), bytes(side)
+    channel.compression = Compression.ZIP
+    channel.data = b"".join([deflate.compress(row) for _ in range(side)] + [deflate.flush()])
+    psd.save(path)
+    return path
+
+
+def test_a_masks_stored_rectangle_counts_in_the_memory_estimate(tmp_path):
+    from lasagna.limits import memory_budget_scope
+
+    small = _big_mask_psd(tmp_path / "small.psd", 64)
+    assert read_psd(small).document.layer("small").mask == "masks/small.png"  # cut to the layer: 8×8
+    path = _big_mask_psd(tmp_path / "big.psd", 16384)
+    with memory_budget_scope("512M"), pytest.raises(Exception) as info:
+        read_psd(path)
+    assert "over the memory budget" in str(info.value) and str(path) in str(info.value)
+
+
+def test_a_huge_mask_is_refused_in_bounded_memory(tmp_path):
+    from tests.peak import run_cli
+
+    path = _big_mask_psd(tmp_path / "big.psd", 16384)
+    code, out, err, peak = run_cli("import-psd", path, "-o", tmp_path / "out", "--memory-budget", "512M")
+    assert code == 2 and err.count("\n") == 1 and "over the memory budget" in err, err
+    assert peak < 500, f"refusing a 16384² mask peaked at {peak:.0f} MB"
+    assert not (tmp_path / "out").exists()
