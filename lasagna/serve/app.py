@@ -26,6 +26,7 @@ import json
 import secrets
 from importlib import resources
 from typing import Any
+from urllib.parse import quote
 
 from starlette.applications import Starlette
 from starlette.exceptions import HTTPException
@@ -78,6 +79,15 @@ async def _body(request: Request, limit: int) -> bytes:
             raise TooLarge(f"the request body is over {limit} bytes; expected at most {limit}", "body")
         chunks.append(chunk)
     return b"".join(chunks)
+
+
+def _attachment(name: str) -> str:
+    """A download's Content-Disposition: an ASCII ``filename`` (headers are Latin-1) and the real, possibly
+    Unicode, name as ``filename*`` (RFC 6266 / RFC 5987), which every current browser prefers."""
+    fallback = "".join(c if c.isascii() and c.isprintable() and c not in '"\\' else "_" for c in name)
+    if fallback == name:
+        return f'attachment; filename="{name}"'
+    return f"attachment; filename=\"{fallback}\"; filename*=UTF-8''{quote(name, safe='')}"
 
 
 async def _json(request: Request) -> dict[str, Any]:
@@ -148,7 +158,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str]) -> Gu
 
     async def export(request: Request) -> Response:
         data, name, media = await run(session.export, request.path_params["kind"])
-        return Response(data, media_type=media, headers={"Content-Disposition": f'attachment; filename="{name}"'})
+        return Response(data, media_type=media, headers={"Content-Disposition": _attachment(name)})
 
     # ---- changes -----------------------------------------------------------------------------------
 

@@ -18,16 +18,24 @@ implementation of it.
   at the size on screen. Layers are reduced once per level with an area filter and cached by tensor identity.
   Level 0 is exactly ``lasagna composite``; a reduced level is the composite of reduced layers (a preview:
   blends are not linear, so it differs slightly from a reduced composite).
+* **Memory.** The session holds its budget (``--memory-budget`` when it opened; server and job threads do
+  not inherit the CLI's scope) and accounts everything it holds against it (``held_bytes``: the stack, the
+  undo/redo history, the views' reduced layers and cached canvases). Every render (views at any level,
+  thumbnails, exports, saves) and every upload is admitted by ``_admit`` first: caches and then the oldest
+  undo steps are let go, and what still does not fit is a ``BudgetError`` (HTTP 413, one line) before
+  anything is allocated.
 * **Jobs** (per-image refinement, re-rendering) run in one worker thread with a progress report and a
   cancel flag checked between steps (``make_layer``'s callback); the result lands as a new, undoable version.
 """
 
 from __future__ import annotations
 
+import contextlib
 import io
 import math
 import threading
 import time
+import unicodedata
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,13 +52,15 @@ from lasagna.compose.plan import plan_from_document, solid_tensors
 from lasagna.compose.renderer import Renderer
 from lasagna.document import Document, LearnedLayer
 from lasagna.document.blend import BLEND_MODES, RANGED_BLENDS
-from lasagna.document.types import check_id
+from lasagna.document.types import unique_id
 from lasagna.errors import ConflictError, DocumentError, ImageError, LasagnaError
 from lasagna.heap import tune_heap
 from lasagna.io.folder import save_in_place, stack_sha256
-from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS, read_image_file
-from lasagna.io.render import composite_codes, encode_composite
+from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS, probe_image_file, read_image_file
+from lasagna.io.render import BAND_ROWS, composite_codes, encode_composite, render_bytes, tensor_bytes
 from lasagna.io.stack import Stack, group_mask_tensors, load_stack
+from lasagna.limits import FLOAT_BYTES, BudgetError, format_size, memory_budget_scope, raster_bytes
+from lasagna.limits import memory_budget as budget_in_force
 
 MAX_UNDO = 100
 """Snapshots kept for undo: each holds references to tensors, so old pixels live while they can be undone."""
@@ -136,6 +146,7 @@ class EditSession:
         catalogue_dirs=None,
         device: str = "cpu",
         max_pixels: int = DEFAULT_EDIT_MAX_PIXELS,
+        memory_budget: int | None = None,
     ):
         # Before any render: a long-lived server keeps glibc's adaptive maxima, not the compute profile's
         # up to 1 GiB of retained heap (lasagna/heap.py, the two profiles).
@@ -144,6 +155,7 @@ class EditSession:
         self.catalogue_dirs = catalogue_dirs
         self.device = device
         self.max_pixels = max_pixels
+        self.budget = int(memory_budget) if memory_budget is not None else budget_in_force()
         self.lock = threading.RLock()
         self._load()
 
@@ -164,9 +176,59 @@ class EditSession:
         self.job: Job | None = None
         self.jobs: dict[str, Job] = {}
 
+    @contextlib.contextmanager
+    def _guard(self):
+        """The session's lock, under the session's memory budget: the engine's own checks (decoding, rendering)
+        then measure against the budget the editor was opened with, in whatever thread runs the request."""
+        with self.lock, memory_budget_scope(self.budget):
+            yield
+
+    # ---- memory ----------------------------------------------------------------------------------------
+
+    def held_bytes(self) -> int:
+        """Bytes the session holds: every tensor of the stack, of the undo/redo history, of the files on disk
+        (``unchanged``) and of the views' reduced layers (each storage once: snapshots share unchanged
+        tensors), the views' cached canvases, and the pending generator files."""
+        with self.lock:
+            maps = [self.stack.tensors, self.unchanged, *(s.tensors for s in (*self.undo_stack, *self.redo_stack))]
+            tensors = [x for m in maps for lt in m.values() for x in lt.tensors()]
+            tensors += [x for _, lt in self.reduced.values() for x in lt.tensors()]
+            held = tensor_bytes(tensors)
+            for lv in self.levels.values():
+                w, h = lv.key[:2]
+                held += lv.renderer.cached_bytes + render_bytes(w, h)  # its snapshots and its last image
+            files = {id(b): len(b) for f in (self.files, *(s.files for s in self.undo_stack)) for b in f.values()}
+            return held + sum(files.values())
+
+    def _evict(self, extra: int = 0) -> None:
+        """Let go of what the session holds beyond the document until ``extra`` more bytes fit the budget:
+        first the views' caches, then undo steps, oldest first, then redo steps."""
+        self.levels.clear()
+        self.reduced.clear()
+        self.thumbs.clear()
+        for history in (self.undo_stack, self.redo_stack):
+            while history and self.held_bytes() + extra > self.budget:
+                history.pop(0)
+
+    def _admit(self, extra: int, what: str, where: str) -> None:
+        """Refuse (``BudgetError``, one line) work that would allocate ``extra`` bytes beyond what the session
+        holds when the two together exceed the budget even after ``_evict``; every render and upload asks."""
+        with self.lock:
+            if self.held_bytes() + extra <= self.budget:
+                return
+            self._evict(extra)
+            held = self.held_bytes()
+            if held + extra > self.budget:
+                raise BudgetError(
+                    f"{what} needs ~{format_size(extra)} beside the ~{format_size(held)} the editor holds (the open "
+                    f"stack), over the memory budget of {format_size(self.budget)}; expected a coarser view, a "
+                    "smaller image or fewer layers, or a larger --memory-budget",
+                    where,
+                )
+
     def reload(self) -> dict[str, Any]:
         """Read the folder again, dropping unsaved changes and history (after a save conflict)."""
-        with self.lock:
+        with self._guard():
             self._check_idle("reload")
             self._load()
             self.version = int(time.time() * 1000) % 10**9  # never a version an old tab could still hold
@@ -197,7 +259,7 @@ class EditSession:
 
     def _change(self, version: Any, what: str, apply) -> dict[str, Any]:
         """Check ``version``, apply ``apply()`` (which changes ``self.stack``), push the undo snapshot."""
-        with self.lock:
+        with self._guard():
             self._check_version(version)
             self._check_idle(what)
             before = self._snapshot(what)
@@ -210,11 +272,12 @@ class EditSession:
             del self.undo_stack[:-MAX_UNDO]
             self.redo_stack.clear()
             self.version += 1
+            self._evict()  # history beyond the budget goes (the change itself was admitted)
             return self.state()
 
     def state(self) -> dict[str, Any]:
         """The document, version, history and job as the page needs them (JSON data)."""
-        with self.lock:
+        with self._guard():
             doc = self.stack.document
             return {
                 "version": self.version,
@@ -286,13 +349,10 @@ class EditSession:
         return self._change(version, f"delete {id}", lambda: self.stack.remove_layer(id))
 
     def _new_id(self, wanted: str) -> str:
-        base = "".join(c if c.isalnum() or c in "_.-" else "-" for c in wanted).strip("-._") or "layer"
-        base = base[:56]
-        taken = {i.casefold() for i in self.stack.ids}
-        candidate, n = base, 2
-        while candidate.casefold() in taken:
-            candidate, n = f"{base}-{n}", n + 1
-        return check_id(candidate)
+        """An id for a new layer from its display name (free text: ``café``, ``写真``, ``Ébauche``): accents
+        folded to ASCII first (``cafe``), then ``unique_id`` (what an id cannot hold becomes ``-``)."""
+        folded = unicodedata.normalize("NFKD", wanted).encode("ascii", "ignore").decode("ascii")
+        return unique_id(folded, {i.casefold() for i in self.stack.ids})
 
     def add_solid(self, version: Any, color: Any, name: Any = None, blend: Any = "normal") -> dict[str, Any]:
         if not isinstance(color, list) or len(color) not in (3, 4):
@@ -307,7 +367,7 @@ class EditSession:
         """A new pixels layer on top from an uploaded image file's bytes, read under the CLI's input policy."""
         name = name if isinstance(name, str) and name.strip() else "Image"
         stem = Path(name).stem or "image"
-        with self.lock:
+        with self._guard():
             self._check_version(version)
             tmp = temp_path(self.folder / "upload", suffix=Path(name).suffix.lower()[:8])
             try:
@@ -338,7 +398,7 @@ class EditSession:
             raise LasagnaError("expected a preset name and a condition", "preset")
         if method not in ("amortised", "per-image"):
             raise LasagnaError(f"expected method 'amortised' or 'per-image', got {method!r}", "method")
-        with self.lock:
+        with self._guard():
             self._check_version(version)
             self._check_idle("add learned layer")
             start = time.monotonic()
@@ -382,7 +442,7 @@ class EditSession:
         return self._step(version, self.redo_stack, self.undo_stack, "redo")
 
     def _step(self, version: Any, source: list[Snapshot], target: list[Snapshot], what: str) -> dict[str, Any]:
-        with self.lock:
+        with self._guard():
             self._check_version(version)
             self._check_idle(what)
             if not source:
@@ -405,7 +465,7 @@ class EditSession:
                 return {"stack.ora": encode_ora(stack, composite=result.image)}
             return {}
 
-        with self.lock:
+        with self._guard():
             self._check_version(version)
             self._check_idle("save")
             self.disk_sha, self.unchanged = save_in_place(
@@ -417,7 +477,7 @@ class EditSession:
 
     def export(self, kind: str) -> tuple[bytes, str, str]:
         """(bytes, file name, media type) of the current stack as ``ora``, ``psd`` or ``png`` (the composite)."""
-        with self.lock:
+        with self._guard():
             stack = Stack(self.stack.document, self.folder, dict(self.stack.tensors), dict(self.stack.bit_depths))
         result = stack.render()
         name = self.folder.name
@@ -502,7 +562,7 @@ class EditSession:
         stack up to and including it, the "before" of a before/after split)."""
         if isinstance(level, bool) or not isinstance(level, int) or not 0 <= level <= self.max_level():
             raise LasagnaError(f"expected a level in [0, {self.max_level()}], got {level!r}", "level")
-        with self.lock:
+        with self._guard():
             doc = self.stack.document
             for id in [*(opacity or {}), *([solo] if solo else []), *([upto] if upto else [])]:
                 doc.index(id)  # DocumentError naming the ids
@@ -542,7 +602,7 @@ class EditSession:
         """A small PNG of layer ``id``'s stored values (RGB codes v and alpha), as the layers panel shows it."""
         from PIL import Image
 
-        with self.lock:
+        with self._guard():
             layer = self.stack.document.layer(id)
             t = self._level_tensors(self.stack.document, 0).get(id)
         if t is None:  # a learned layer not rendered yet
@@ -593,7 +653,7 @@ class EditSession:
 
         if kind not in ("refine", "rerender"):
             raise LasagnaError(f"unknown job {kind!r}; expected refine or rerender", "job")
-        with self.lock:
+        with self._guard():
             self._check_version(version)
             self._check_idle(kind)
             layer = self.stack.document.layer(id)
@@ -653,7 +713,7 @@ class EditSession:
         finally:
             if job.state == "running" and job.cancel.is_set():
                 job.state = "cancelled"
-        with self.lock:
+        with self._guard():
             base = stack.document.layer(job.layer_id)
             cur_doc = self.stack.document
             if job.layer_id not in cur_doc.ids or cur_doc.layer(job.layer_id).conditioned_on != base.conditioned_on:
