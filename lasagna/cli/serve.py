@@ -3,13 +3,16 @@
     lasagna serve STACK|IMAGE [--host 127.0.0.1] [--port N] [--no-browser]
 
 Prints the URL with its access token and serves until Ctrl-C (exit 0 then). Binds 127.0.0.1 unless told
-otherwise; another address is reachable from other machines, so a warning says so. Needs the ``serve``
+otherwise; another address is reachable from other machines, so a warning says so. The port is bound before
+anything else: a busy one is one line ("port N on HOST is in use; …", exit 2), before any URL is printed.
+Slow or unfinished requests and connection floods are bounded (``lasagna.serve.server``). Needs the ``serve``
 extra (Starlette and uvicorn): without it, one line says how to install it.
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import sys
 
 from lasagna.cli.common import PROG, device_argument, max_pixels_argument, warn
@@ -36,41 +39,48 @@ def run(args: argparse.Namespace) -> int:
             "the editor needs Starlette and uvicorn; expected them installed: pip install 'lasagna[serve]'", "serve"
         ) from None
     from lasagna.heap import tune_heap
-    from lasagna.serve import LOOPBACK, allowed_hosts, free_port, new_token, open_target
-    from lasagna.serve.app import create_app
+    from lasagna.serve import LOOPBACK, allowed_hosts, new_token, open_target
+    from lasagna.serve.app import HttpLimits, create_app
+    from lasagna.serve.server import bind, serve, server_config
     from lasagna.serve.session import EditSession
 
     tune_heap("server")  # before anything renders (lasagna/heap.py, the two profiles)
 
     if args.port is not None and not 0 < args.port < 65536:
         raise LasagnaError(f"expected a port in [1, 65535], got {args.port}", "--port")
-    folder, made = open_target(args.stack, max_pixels=args.max_pixels)
-    if made:
-        print(f"{PROG}: made the stack folder {folder} from {args.stack}")
-    session = EditSession(folder, device=args.device, max_pixels=args.max_pixels)
-    port = args.port or free_port(args.host)
-    token = new_token()
-    if args.host not in LOOPBACK:
-        warn(f"binding {args.host}: the editor is reachable from other machines (anyone with the token edits {folder})")
-    shown = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
-    host = f"[{shown}]" if ":" in shown else shown
-    url = f"http://{host}:{port}/?token={token}"
-    app = create_app(session, token, allowed_hosts(args.host, port))
-    print(f"{PROG} serve: editing {folder}")
-    print(f"  {url}")
-    print("  Ctrl-C stops the server (unsaved changes are not written).", flush=True)
-    if not args.no_browser:
-        import webbrowser
+    # Bound first: a busy port is one line before anything is made or printed (no URL that does not work).
+    sock = bind(args.host, args.port or 0)
+    with sock:
+        folder, made = open_target(args.stack, max_pixels=args.max_pixels)
+        if made:
+            print(f"{PROG}: made the stack folder {folder} from {args.stack}")
+        session = EditSession(folder, device=args.device, max_pixels=args.max_pixels)
+        port = int(sock.getsockname()[1])
+        token = new_token()
+        if args.host not in LOOPBACK:
+            warn(
+                f"binding {args.host}: the editor is reachable from other machines (anyone with the token edits "
+                f"{folder})"
+            )
+        shown = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
+        host = f"[{shown}]" if ":" in shown else shown
+        url = f"http://{host}:{port}/?token={token}"
+        limits = HttpLimits()
+        app = create_app(session, token, allowed_hosts(args.host, port), limits)
+        server = uvicorn.Server(server_config(app, sock, limits))
+        print(f"{PROG} serve: editing {folder}")
+        print(f"  {url}")
+        print("  Ctrl-C stops the server (unsaved changes are not written).", flush=True)
+        if not args.no_browser:
+            import webbrowser
 
+            try:
+                webbrowser.open(url)
+            except Exception:  # noqa: BLE001 - no browser is not an error: the URL is printed
+                pass
         try:
-            webbrowser.open(url)
-        except Exception:  # noqa: BLE001 - no browser is not an error: the URL is printed
+            asyncio.run(serve(server, sock))
+        except KeyboardInterrupt:
             pass
-    config = uvicorn.Config(app, host=args.host, port=port, log_level="warning", lifespan="off")
-    server = uvicorn.Server(config)
-    try:
-        server.run()
-    except KeyboardInterrupt:
-        pass
     print(f"{PROG} serve: stopped", file=sys.stderr)
     return 0

@@ -24,13 +24,15 @@ from __future__ import annotations
 import asyncio
 import json
 import secrets
+import time
+from dataclasses import dataclass
 from importlib import resources
 from typing import Any
 from urllib.parse import quote
 
 from starlette.applications import Starlette
 from starlette.exceptions import HTTPException
-from starlette.requests import Request
+from starlette.requests import ClientDisconnect, Request
 from starlette.responses import JSONResponse, Response, StreamingResponse
 from starlette.routing import Route
 
@@ -68,17 +70,88 @@ def _static(name: str) -> bytes:
     return resources.files("lasagna.serve").joinpath("static", name).read_bytes()
 
 
-async def _body(request: Request, limit: int) -> bytes:
-    declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit() and int(declared) > limit:
-        raise TooLarge(f"the request body is {int(declared)} bytes; expected at most {limit}", "body")
-    chunks, size = [], 0
-    async for chunk in request.stream():
-        size += len(chunk)
-        if size > limit:
-            raise TooLarge(f"the request body is over {limit} bytes; expected at most {limit}", "body")
-        chunks.append(chunk)
-    return b"".join(chunks)
+class RequestTimeout(LasagnaError):
+    """A request body that did not arrive in time: HTTP 408, and the connection is closed."""
+
+
+class Busy(LasagnaError):
+    """More upload bytes in flight than the server holds at once: HTTP 429 (try again)."""
+
+
+@dataclass(frozen=True)
+class HttpLimits:
+    """How long a request may take to arrive and how much the server holds while it does (``serve`` and the
+    app share them; ``lasagna.serve.server`` applies the connection-level ones)."""
+
+    head_timeout_s: float = 10.0
+    """A connection must send a complete request head within this of connecting (or of its last response)."""
+    body_idle_s: float = 10.0
+    """A body may pause this long between chunks (a browser sends a local file's bytes without pause)."""
+    body_deadline_s: float = 120.0
+    """A whole body must arrive within this: a 64 MiB upload at ~0.5 MiB/s, far slower than any LAN."""
+    max_in_flight_bytes: int = 2 * MAX_UPLOAD_BYTES
+    """Body bytes held across all requests at once: two full-size uploads (twelve stalled 60 MiB uploads
+    held 750 MB before this bound)."""
+    max_connections: int = 1024
+    """Open connections at most (lowered to what the file-descriptor limit allows; the oldest connection
+    still waiting for a request head is closed to make room)."""
+    backlog: int = 128
+    keep_alive_s: float = 5.0
+    max_head_bytes: int = 64 * 2**10
+    """Request line and headers (h11's incomplete-event limit): a long query string of opacity overrides
+    fits; a flood does not."""
+
+
+class BodyReader:
+    """Reads request bodies under ``HttpLimits``: a size limit per route, a deadline, and one budget of
+    bytes in flight for the whole server."""
+
+    def __init__(self, limits: HttpLimits):
+        self.limits = limits
+        self.in_flight = 0
+
+    async def read(self, request: Request, limit: int) -> bytes:
+        declared = request.headers.get("content-length")
+        if declared is not None and declared.isdigit() and int(declared) > limit:
+            raise TooLarge(f"the request body is {int(declared)} bytes; expected at most {limit}", "body")
+        held = 0
+        try:
+            if declared is not None and declared.isdigit():
+                held = self._take(int(declared))
+            chunks, size = [], 0
+            deadline = time.monotonic() + self.limits.body_deadline_s
+            stream = request.stream()
+            while True:
+                wait = min(self.limits.body_idle_s, deadline - time.monotonic())
+                try:
+                    chunk = await asyncio.wait_for(anext(stream), max(wait, 0.0))
+                except StopAsyncIteration:
+                    break
+                except TimeoutError:
+                    raise RequestTimeout(
+                        f"the request body stopped after {size} bytes; expected it whole within "
+                        f"{self.limits.body_deadline_s:g} s, with pauses under {self.limits.body_idle_s:g} s",
+                        "body",
+                    ) from None
+                size += len(chunk)
+                if size > limit:
+                    raise TooLarge(f"the request body is over {limit} bytes; expected at most {limit}", "body")
+                if size > held:
+                    held += self._take(size - held)
+                chunks.append(chunk)
+            return b"".join(chunks)
+        finally:
+            self.in_flight -= held
+
+    def _take(self, n: int) -> int:
+        if self.in_flight + n > self.limits.max_in_flight_bytes:
+            raise Busy(
+                f"{self.in_flight} bytes of other requests are arriving; expected at most "
+                f"{self.limits.max_in_flight_bytes} at once: try again when they are in",
+                "body",
+            )
+        self.in_flight += n
+        return n
 
 
 def _attachment(name: str) -> str:
@@ -90,14 +163,14 @@ def _attachment(name: str) -> str:
     return f"attachment; filename=\"{fallback}\"; filename*=UTF-8''{quote(name, safe='')}"
 
 
-async def _json(request: Request) -> dict[str, Any]:
-    """The body as a JSON object, bounded in size, depth and digits (``bodies.parse_request_json``)."""
-    return parse_request_json(await _body(request, MAX_JSON_BYTES))
-
-
-def create_app(session: EditSession, token: str, allowed_hosts: list[str]) -> Guard:
+def create_app(session: EditSession, token: str, allowed_hosts: list[str], limits: HttpLimits = HttpLimits()) -> Guard:
     """The editor's app for ``session``; ``allowed_hosts`` are the Host header values that name this server
     (``host:port``); its origins are ``http://`` + each."""
+    bodies = BodyReader(limits)
+
+    async def _json(request: Request) -> dict[str, Any]:
+        """The body as a JSON object, bounded in size, depth and digits (``bodies.parse_request_json``)."""
+        return parse_request_json(await bodies.read(request, MAX_JSON_BYTES))
 
     async def run(fn, *args, **kwargs):
         """Session work off the event loop (it is CPU-bound torch): the loop keeps serving progress streams."""
@@ -172,7 +245,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str]) -> Gu
             version = int(q.get("version", ""))
         except ValueError:
             raise RequestError("expected ?version=N, the version the upload is added to", "version") from None
-        data = await _body(request, MAX_UPLOAD_BYTES)
+        data = await bodies.read(request, MAX_UPLOAD_BYTES)
         if not data:
             raise RequestError("the upload is empty; expected an image file's bytes as the body", "body")
         return JSONResponse(await run(session.add_image, version, data, q.get("name")))
@@ -284,6 +357,17 @@ def _response_for(exc: Exception) -> Response:
         return _error(exc.status_code, f"{request_line(exc)}")
     if isinstance(exc, TooLarge):
         return _error(413, str(exc))
+    if isinstance(exc, RequestTimeout):  # the rest of the body may still be arriving: do not wait for it
+        response = _error(408, str(exc))
+        response.headers["Connection"] = "close"
+        return response
+    if isinstance(exc, Busy):  # as for 408: the body it refused may still be arriving
+        response = _error(429, str(exc))
+        response.headers["Retry-After"] = "5"
+        response.headers["Connection"] = "close"
+        return response
+    if isinstance(exc, ClientDisconnect):  # nobody reads this answer; it is one line, not a 500
+        return _error(400, "the client closed the connection before its request body was whole")
     if isinstance(exc, ConflictError):
         return _error(409, str(exc))
     if isinstance(exc, BudgetError):
@@ -295,4 +379,4 @@ def _response_for(exc: Exception) -> Response:
     return _error(500, f"internal error: {type(exc).__name__}: {exc}; please report it")
 
 
-__all__ = ["Guard", "MAX_JSON_BYTES", "MAX_UPLOAD_BYTES", "create_app"]
+__all__ = ["Guard", "HttpLimits", "MAX_JSON_BYTES", "MAX_UPLOAD_BYTES", "create_app"]
