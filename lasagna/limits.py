@@ -39,6 +39,10 @@ FLOAT_BYTES = 4
 MAX_DOCUMENT_BYTES = 16 * 2**20
 # Documents nest ~5 deep (layers → layer → offset); 64 leaves room and stays far from the recursion limit.
 MAX_JSON_DEPTH = 64
+# Groups nest at most this deep (a top-level group is 1 deep): a layer inside 30 groups is a JSON object 2·30 + 3
+# deep and its offset one deeper, 64, so every layer tree the document allows is a stack.json ``validate``
+# reads. Paint programs' files nest a few levels.
+MAX_GROUP_DEPTH = (MAX_JSON_DEPTH - 4) // 2
 # No field of a document needs an integer of more than 12 digits (sides ≤ 32768, seeds < 2⁶³ fit in 19).
 MAX_INT_DIGITS = 20
 
@@ -156,6 +160,7 @@ __all__ = [
     "MAX_GENERATOR_BLOCKS",
     "MAX_GENERATOR_LEVELS",
     "MAX_GENERATOR_WIDTH",
+    "MAX_GROUP_DEPTH",
     "MAX_VOCABULARY",
     "MAX_INT_DIGITS",
     "MAX_JSON_DEPTH",

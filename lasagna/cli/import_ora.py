@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from lasagna.cli.common import max_pixels_argument
+from lasagna.cli.common import max_pixels_argument, warn
 
 HELP = "read an OpenRaster file into a new stack folder"
 
@@ -25,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.io.folder import check_output_folder, write_stack_folder
 
     out = check_output_folder(args.output, force=args.force)
-    stack = import_ora(args.ora, max_pixels=args.max_pixels)
+    stack = import_ora(args.ora, max_pixels=args.max_pixels, warn=warn)
     write_stack_folder(stack, out, force=args.force)
     print(f"wrote {out / 'stack.json'} ({len(stack.ids)} layers, {stack.width}x{stack.height})")
     return 0

@@ -26,6 +26,7 @@ from lasagna.document.types import (
     Colour,
     Coordinate,
     LayerId,
+    LayerName,
     NameOrPath,
     OpaqueColour,
     Pixels,
@@ -36,8 +37,9 @@ from lasagna.document.types import (
     Unit,
     check_range_for_blend,
 )
-from lasagna.document.validation import RuleError, document_error, parse_json
+from lasagna.document.validation import RuleError, check_serialised, document_error, parse_json
 from lasagna.errors import DocumentError
+from lasagna.limits import MAX_GROUP_DEPTH
 
 FORMAT = "lasagna.stack"
 VERSION = 1
@@ -107,8 +109,9 @@ class _Common(StrictModel):
     model_config = ConfigDict(json_schema_extra=_layer_schema)
 
     id: LayerId = Field(description="Unique (case-insensitively, in the whole tree) id, safe as a file name.")
-    name: str = Field(
-        default_factory=lambda data: data["id"], min_length=1, description="Display name; defaults to the id."
+    name: LayerName = Field(
+        default_factory=lambda data: data["id"],
+        description="Display name, without control characters; defaults to the id.",
     )
     kind: str  # each kind redeclares it as a Literal tag; declared here so it is written third
     blend: Blend = Field("normal", description="How the layer composes onto what lies below it.")
@@ -273,6 +276,12 @@ class Document(StrictModel):
                     loc=(*loc, "id"),
                 )
             seen[key] = loc
+            if isinstance(layer, GroupLayer) and len(loc) // 2 > MAX_GROUP_DEPTH:
+                raise RuleError(
+                    f"group {layer.id!r} is nested {len(loc) // 2} deep; groups nest at most {MAX_GROUP_DEPTH} "
+                    "deep (so that stack.json stays within the JSON depth validate reads)",
+                    loc=(*loc, "layers"),
+                )
             if isinstance(layer, LearnedLayer) and len(loc) > 2:
                 raise RuleError(
                     f"learned layer {layer.id!r} is inside a group; learned layers are top-level (their input, "
@@ -370,8 +379,11 @@ class Document(StrictModel):
         return self.model_dump(mode="json")
 
     def to_json(self) -> str:
-        """The stack.json text: full, stable, 2-space indent, trailing newline (see the module doc)."""
-        return dumps(self.to_dict()) + "\n"
+        """The stack.json text: full, stable, 2-space indent, trailing newline (see the module doc); a text
+        ``validate`` would refuse (too large, too deep) is a ``DocumentError`` instead (``check_serialised``)."""
+        text = dumps(self.to_dict()) + "\n"
+        check_serialised(text, "stack.json")
+        return text
 
     @classmethod
     def from_dict(cls, data: Any, where: str | None = None) -> Document:

@@ -93,6 +93,42 @@ LayerId = Annotated[
     WithJsonSchema({"type": "string", "pattern": ID_PATTERN, "not": {"pattern": _RESERVED_PATTERN}}),
 ]
 
+# ---- names -----------------------------------------------------------------------------------------
+
+# What a display name may not hold: control characters (C0, DEL, C1), UTF-16 surrogates (no UTF-8 or UTF-16
+# form) and the non-characters U+FFFE, U+FFFF. XML 1.0 (OpenRaster's stack.xml) cannot hold most of them and
+# paint programs refuse the rest, so a name the document allows, every writer can write and read back.
+_NOT_NAME_CHARS = re.compile("[\x00-\x1f\x7f-\x9f\ud800-\udfff\ufffe\uffff]")
+NAME_PATTERN = "^[^\\u0000-\\u001f\\u007f-\\u009f\\ufffe\\uffff]+$"  # JSON Schema's part of the rule
+NAME_REPLACEMENT = "\ufffd"  # what importers put in place of each such character (Unicode's replacement)
+
+
+def check_name(value: str) -> str:
+    """Rule: a name is non-empty text without control characters (U+0000–U+001F, U+007F–U+009F), surrogates
+    or U+FFFE/U+FFFF."""
+    if not value:
+        raise RuleError("empty name; names are at least 1 character")
+    bad = _NOT_NAME_CHARS.search(value)
+    if bad is not None:
+        raise RuleError(
+            f"name {value[:40]!r} holds {bad.group()!r} at {bad.start()}; names hold no control characters "
+            "(U+0000-U+001F, U+007F-U+009F), surrogates or U+FFFE/U+FFFF"
+        )
+    return value
+
+
+def sanitise_name(value: str) -> str:
+    """``value`` with each character ``check_name`` refuses replaced by U+FFFD (importers, with a warning)."""
+    return _NOT_NAME_CHARS.sub(NAME_REPLACEMENT, value)
+
+
+LayerName = Annotated[
+    str,
+    Strict(),
+    AfterValidator(check_name),
+    WithJsonSchema({"type": "string", "minLength": 1, "pattern": NAME_PATTERN}),
+]
+
 # ---- safe relative paths --------------------------------------------------------------------------
 
 # What JSON Schema can say about a safe path: not absolute, no drive letter, no backslash or control

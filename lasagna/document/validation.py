@@ -111,6 +111,29 @@ def parse_json(text: str, where: str) -> Any:
         raise DocumentError(str(exc), where) from None
 
 
+def check_serialised(text: str, what: str) -> bytes:
+    """``text`` as the UTF-8 bytes to write, refused (``DocumentError``) where ``read_json_text`` or
+    ``parse_json`` would refuse the file: over ``MAX_DOCUMENT_BYTES``, nested deeper than ``MAX_JSON_DEPTH``,
+    or holding a lone surrogate (no UTF-8 form). Every writer of a document goes through it, so no writer
+    writes what ``validate`` refuses."""
+    try:
+        data = text.encode("utf-8")
+    except UnicodeEncodeError as exc:
+        raise DocumentError(
+            f"holds the lone surrogate {text[exc.start]!r} at character {exc.start}; expected text with a UTF-8 form",
+            what,
+        ) from None
+    if len(data) > MAX_DOCUMENT_BYTES:
+        raise DocumentError(
+            f"would be {format_size(len(data))}; expected at most {format_size(MAX_DOCUMENT_BYTES)} (shorter "
+            "names, metadata or fewer layers)",
+            what,
+        )
+    if json_depth(text) > MAX_JSON_DEPTH:
+        raise DocumentError(f"would nest deeper than {MAX_JSON_DEPTH} levels of JSON; expected at most that", what)
+    return data
+
+
 def read_json_text(path: str | os.PathLike, what: str) -> str:
     """The text of a JSON file of at most ``MAX_DOCUMENT_BYTES``, checked before it is read. ``what`` names
     the file's kind in the messages (``stack.json``, ``a preset``); a UTF-8 byte-order mark is dropped."""

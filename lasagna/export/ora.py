@@ -18,7 +18,10 @@ writes them; see :mod:`lasagna.export.rasters` for what is exact.
 Import is the inverse, nested stacks included, and refuses what it cannot read safely: entry names that are
 absolute or contain ``..`` (zip-slip), archives whose declared or actual uncompressed size exceeds
 a limit, PNGs over the pixel limit (checked from the header before decoding), DTDs/entities in
-stack.xml, groups nested deeper than ``MAX_GROUP_DEPTH`` and unknown composite-ops.
+stack.xml, groups nested deeper than a stack may hold (``lasagna.limits.MAX_GROUP_DEPTH``; a crafted file
+cannot exhaust the recursion of the reader, the compositor or the document's validation) and unknown
+composite-ops. A name with characters a document name may not hold (controls: XML 1.0 carries tab, newline
+and C1 controls) is imported with each replaced by U+FFFD, one warning line each.
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ from PIL import Image
 
 from lasagna.atomic import atomic_write_bytes
 from lasagna.document.blend import BLEND_MODES
-from lasagna.document.types import unique_id
+from lasagna.document.types import sanitise_name, unique_id
 from lasagna.errors import ExportError, ImageError
 from lasagna.io.png import (
     DEFAULT_MAX_PIXELS,
@@ -51,7 +54,7 @@ from lasagna.io.png import (
     png_file_limit,
 )
 from lasagna.io.survey import load_bytes
-from lasagna.limits import check_memory
+from lasagna.limits import MAX_GROUP_DEPTH, check_memory
 
 if TYPE_CHECKING:  # torch and the rasters (which import it) are loaded by the functions that write
     import torch
@@ -71,9 +74,6 @@ DODGE_PREFIX = "data/_dodge/"  # the src of the colour-dodge half of a multiplie
 # An archive whose entries inflate to more than this is refused (zip bombs); 4 GiB holds 2^28
 # RGBA pixels, the per-image limit, with room to spare.
 DEFAULT_MAX_UNCOMPRESSED = 4 * 2**30
-# Nested <stack> levels read; deeper files are refused, so a crafted file cannot exhaust the recursion of
-# the reader, the compositor or the document's validation (paint programs' files nest a few levels).
-MAX_GROUP_DEPTH = 32
 
 
 # ---- export --------------------------------------------------------------------------------------
@@ -344,7 +344,11 @@ def read_ora(
         def items(stack_el, swhere: str, depth: int) -> list[dict]:
             """The layers and groups of a <stack>, bottom to top; every layer is appended to ``planned``."""
             if depth > MAX_GROUP_DEPTH:
-                raise ImageError(f"groups nest deeper than {MAX_GROUP_DEPTH}; expected fewer levels", where=swhere)
+                raise ImageError(
+                    f"groups nest deeper than {MAX_GROUP_DEPTH}; expected at most {MAX_GROUP_DEPTH} nested <stack> "
+                    "levels (a stack's limit)",
+                    where=swhere,
+                )
             out = []
             for n, el in enumerate(stack_el):
                 lwhere = f"{swhere}[{n}]"
@@ -463,6 +467,7 @@ def import_ora(
     *,
     max_pixels: int = DEFAULT_MAX_PIXELS,
     max_uncompressed: int = DEFAULT_MAX_UNCOMPRESSED,
+    warn: Callable[[str], None] | None = None,
 ):
     """Read an OpenRaster file as a :class:`~lasagna.io.stack.Stack` (saved to ``out_folder`` if given).
 
@@ -472,8 +477,12 @@ def import_ora(
     opacity and alpha) is merged back into one multiply layer y = m/(1 − d) with range [0, ⌈max y⌉];
     any other ``svg:color-dodge`` layer is a colour-dodge layer. The background layer
     :func:`export_ora` adds becomes the canvas background, and its "Composite (exact)" top layer, if
-    any, is dropped (the stack is re-composed from its layers).
+    any, is dropped (the stack is re-composed from its layers). ``warn`` receives one line per name changed
+    to fit the document's name rule (default: ``warnings.warn``).
     """
+    import warnings
+
+    warn = warn or (lambda message: warnings.warn(message, stacklevel=2))
     width, height, layers = read_ora(path, max_pixels=max_pixels, max_uncompressed=max_uncompressed)
     background = (0.0, 0.0, 0.0)
     if layers and layers[-1].get("src") == "data/_composite.png":
@@ -502,12 +511,19 @@ def import_ora(
     taken: set[str] = set()
     specs: list[dict] = []
 
+    def name_of(layer: dict) -> str:
+        name = sanitise_name(layer["name"])
+        if name != layer["name"]:
+            warn(f"{layer['where']}: name {layer['name']!r} holds control characters; imported as {name!r}")
+        return name
+
     def tree(items: list[dict]) -> list:
         """The document's layer tree: a leaf's id (its fields come from ``stack_from_tensors``), or a group."""
         out: list = []
         for layer in items:
             if layer.get("kind") == "group":
-                gid = unique_id(layer["name"] or "group", taken)
+                name = name_of(layer)
+                gid = unique_id(name or "group", taken)
                 # An "isolate" stack is an isolated group; an "auto" one passes through unless it has a blend of
                 # its own (the OpenRaster spec then renders it isolated). Our pass-through opacity is Krita's.
                 isolated = layer["isolation"] == "isolate" or layer["blend"] != "normal"
@@ -515,7 +531,7 @@ def import_ora(
                     {
                         "id": gid,
                         "kind": "group",
-                        "name": layer["name"] or gid,
+                        "name": name or gid,
                         "isolated": isolated,
                         "blend": layer["blend"] if isolated else "normal",
                         "opacity": layer["opacity"],
@@ -533,7 +549,7 @@ def import_ora(
                     id=lid,
                     image=torch.from_numpy(np.ascontiguousarray(values, dtype=np.float32)),
                     alpha=torch.from_numpy(img.alpha) if img.alpha is not None else None,
-                    name=layer["name"],
+                    name=name_of(layer) or lid,
                     blend=layer["blend"],
                     opacity=layer["opacity"],
                     visible=layer["visible"],

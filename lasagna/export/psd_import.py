@@ -19,7 +19,9 @@ The PSD's top level is composited over transparency, and a stack over an opaque 
 section 8.3, the page group's backdrop): unless the bottom visible layer is an opaque, full-canvas normal one,
 the layers are wrapped in one isolated group, so the stack flattens exactly as psd-tools' composite laid
 over white. Refused in one line: a file psd-tools cannot read, a colour mode other than RGB or grayscale, a
-canvas or layer over the pixel limit, decoding over the memory budget (``lasagna.limits``).
+canvas, layer or mask over the pixel limit, decoding over the memory budget, groups nested deeper than a stack
+may hold (``lasagna.limits``; the wrapping group counts). A name with control characters is imported with each
+replaced by U+FFFD, with a warning line (the document's name rule, ``lasagna.document.types.check_name``).
 """
 
 from __future__ import annotations
@@ -31,11 +33,11 @@ from typing import Any
 
 import numpy as np
 
-from lasagna.document.types import unique_id
+from lasagna.document.types import sanitise_name, unique_id
 from lasagna.errors import ExportError, ImageError
 from lasagna.export.psd import INSTALL_HINT, psd_blend_modes
 from lasagna.io.png import DEFAULT_MAX_PIXELS
-from lasagna.limits import check_memory
+from lasagna.limits import MAX_GROUP_DEPTH, check_memory
 
 # Page group backdrop (W3C Compositing Level 1, section 8.3: "composited with a backdrop color of white").
 PAGE_BACKGROUND = (1.0, 1.0, 1.0)
@@ -97,10 +99,13 @@ class _Reader:
         if isinstance(layer, self.AdjustmentLayer):
             self.warn(f"{what}: {layer.kind} adjustment layer cannot be represented in a stack; left out")
             return None
-        lid = unique_id(layer.name, self.taken)
+        name = sanitise_name(layer.name)
+        if name != layer.name:
+            self.warn(f"{what}: name holds control characters; imported as {name!r}")
+        lid = unique_id(name, self.taken)
         entry: dict[str, Any] = {
             "id": lid,
-            "name": layer.name or lid,
+            "name": name or lid,
             "opacity": layer.opacity / 255.0,
             "visible": bool(layer.visible),
         }
@@ -251,6 +256,16 @@ def _check_pixels(pixels: int, max_pixels: int, what: str) -> None:
         raise ImageError(f"holds {pixels} pixels, over the limit of {max_pixels}; expected fewer", what)
 
 
+def _group_depth(psd) -> int:
+    """How deep the PSD's groups nest (0: no group), without recursion."""
+    deepest, todo = 0, [(psd, 0)]
+    while todo:
+        group, depth = todo.pop()
+        deepest = max(deepest, depth)
+        todo.extend((child, depth + 1) for child in group if child.is_group())
+    return deepest
+
+
 def _first_line(exc: BaseException) -> str:
     """``Type: message`` on one line (psd-tools' messages may span several), at most 200 characters."""
     text = f"{type(exc).__name__}: {exc}".splitlines()[0] if str(exc) else type(exc).__name__
@@ -316,6 +331,11 @@ def read_psd(
         raise ImageError(
             f"canvas is {psd.width}x{psd.height}; expected sides in [1, 32768] and at most {max_pixels} pixels", where
         )
+    nesting = _group_depth(psd)
+    if nesting > MAX_GROUP_DEPTH:
+        raise ImageError(
+            f"groups nest {nesting} deep; expected at most {MAX_GROUP_DEPTH} levels (a stack's limit)", where
+        )
     layers_in_file = list(psd.descendants())
     needed = import_bytes(psd, layers_in_file, max_pixels, where)
     check_memory(needed, f"decoding the PSD's {len(layers_in_file)} layers and their masks", where)
@@ -329,6 +349,12 @@ def read_psd(
     if not layers:
         raise ImageError("has no layer a stack can hold; expected at least one pixel layer or group", where=where)
     if not _opaque_base(layers, reader.tensors, psd.width, psd.height):
+        if nesting == MAX_GROUP_DEPTH:
+            raise ImageError(
+                f"groups nest {nesting} deep, and the layers need one more (an isolated group, as the PSD is not over "
+                f"an opaque base layer); expected at most {MAX_GROUP_DEPTH - 1} levels, or an opaque bottom layer",
+                where,
+            )
         group_id = unique_id(Path(where).stem or "psd", reader.taken)
         layers = [{"id": group_id, "name": Path(where).name, "kind": "group", "isolated": True, "layers": layers}]
     from lasagna.document import Document

@@ -217,6 +217,9 @@ INVALID = [
     ("unknown blend space", "blend_space", "rgb", "blend_space", "expected 'srgb' or 'linear'", True),
     ("unknown clamp", "clamp", "none", "clamp", "expected 'layer' or 'output'", True),
     ("empty name", "layers.0.name", "", "layers[0].name", "at least 1 character", True),
+    ("name with a control character", "layers.0.name", "a\x07b", "layers[0].name", "no control characters", True),
+    ("name with a C1 control", "layers.1.name", "a\x85", "layers[1].name", "no control characters", True),
+    ("name with a lone surrogate", "layers.0.name", "a\ud800", "layers[0].name", "no control characters", False),
     ("metadata not an object", "metadata", [1], "metadata", "valid dictionary", True),
 ]
 

@@ -28,6 +28,11 @@ blends = st.sampled_from(["normal", "multiply", "plus", "screen", "alpha-linear"
 RANGED = {"multiply", "plus", "multiply-luminosity", "additive"}
 
 
+# The name rule (check_name): no control characters, surrogates or U+FFFE/U+FFFF.
+_NAME_CHARS = st.characters(blacklist_categories=("Cc", "Cs"), blacklist_characters="\ufffe\uffff")
+_UTF8_CHARS = st.characters(blacklist_categories=("Cs",))  # free text: anything stack.json can hold as UTF-8
+
+
 @st.composite
 def layers(draw, id_: str, below: list[str]) -> dict:
     kinds = ["pixels", "solid"] + (["learned"] if below else [])
@@ -42,7 +47,7 @@ def layers(draw, id_: str, below: list[str]) -> dict:
     for key, strategy in [
         ("opacity", unit),
         ("visible", st.booleans()),
-        ("name", st.text(min_size=1, max_size=8)),
+        ("name", st.text(_NAME_CHARS, min_size=1, max_size=8)),
         ("offset", st.fixed_dictionaries({"x": st.integers(-5000, 5000), "y": st.integers(-5000, 5000)})),
         ("mask", st.none() | paths),
     ]:
@@ -57,7 +62,7 @@ def layers(draw, id_: str, below: list[str]) -> dict:
     else:
         layer.update(
             preset=draw(ids),
-            condition={"label": draw(st.text(min_size=1, max_size=6))},
+            condition={"label": draw(st.text(_UTF8_CHARS, min_size=1, max_size=6))},
             conditioned_on=draw(st.sampled_from(below)),
         )
         if draw(st.booleans()):
@@ -66,7 +71,7 @@ def layers(draw, id_: str, below: list[str]) -> dict:
                 "sha256": draw(st.none() | st.from_regex(r"[0-9a-f]{64}", fullmatch=True)),
             }
         if draw(st.booleans()):
-            layer["settings"] = {"steps": draw(st.integers(1, 500)), "note": draw(st.text(max_size=5))}
+            layer["settings"] = {"steps": draw(st.integers(1, 500)), "note": draw(st.text(_UTF8_CHARS, max_size=5))}
     return layer
 
 

@@ -17,6 +17,7 @@ from lasagna.export.ora import encode_ora, import_ora
 from lasagna.export.png import export_layer_pngs
 from lasagna.io.render import render_stack
 from lasagna.io.stack import load_stack
+from lasagna.limits import MAX_GROUP_DEPTH
 from tests.export.oraflat import read_png_rgb
 from tests.stackcraft import random_group_stack, write_png8, write_stack
 
@@ -118,7 +119,7 @@ def test_ora_group_fields_and_refusals(tmp_path):
     with zipfile.ZipFile(tmp_path / "deep.ora", "w") as zf:
         zf.writestr("mimetype", "image/openraster")
         zf.writestr("stack.xml", xml)
-    with pytest.raises(Exception, match="groups nest deeper than 32") as err:
+    with pytest.raises(Exception, match=f"groups nest deeper than {MAX_GROUP_DEPTH}") as err:
         import_ora(tmp_path / "deep.ora")
     assert "\n" not in str(err.value)
 

@@ -410,3 +410,39 @@ def test_srcs_named_like_windows_devices_import(tmp_path):
     path = _write_ora(tmp_path / "dev.ora", {"stack.xml": xml.encode(), **{s: _png8() for s in srcs}})
     stack = within(20, lambda: import_ora(path))
     assert stack.document.ids == ("aux_", "COM3_", "nul_.a", "con_.x", "aux_-2")  # bottom first
+
+
+def _nested_ora(path: Path, depth: int) -> Path:
+    xml = _xml("".join("<stack>" for _ in range(depth)) + _layer("data/a.png") + "</stack>" * depth)
+    return _write_ora(path, {"stack.xml": xml.encode(), "data/a.png": _png8()})
+
+
+def test_stacks_nested_as_deep_as_a_stack_allows_import_and_validate(tmp_path, capsys):
+    from lasagna.cli import main
+    from lasagna.limits import MAX_GROUP_DEPTH
+
+    path = _nested_ora(tmp_path / "ok.ora", MAX_GROUP_DEPTH)
+    assert main(["import-ora", str(path), "-o", str(tmp_path / "out")]) == 0
+    assert main(["validate", str(tmp_path / "out")]) == 0, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("depth", [31, 32, 40])
+def test_stacks_nested_deeper_than_a_stack_allows_are_one_line(tmp_path, capsys, depth):
+    from lasagna.cli import main
+
+    code = main(["import-ora", str(_nested_ora(tmp_path / "deep.ora", depth)), "-o", str(tmp_path / "out")])
+    err_text = capsys.readouterr().err
+    assert code == 2 and err_text.count("\n") == 1 and "groups nest deeper than" in err_text, err_text
+    assert not (tmp_path / "out").exists()
+
+
+def test_names_with_control_characters_import_replaced_with_a_warning(tmp_path, capsys):
+    from lasagna.cli import main
+
+    xml = _xml(f'<stack name="g&#9;">{_layer("data/a.png", "a&#10;b&#x85;")}</stack>')
+    path = _write_ora(tmp_path / "n.ora", {"stack.xml": xml.encode(), "data/a.png": _png8()})
+    assert main(["import-ora", str(path), "-o", str(tmp_path / "out")]) == 0
+    err_text = capsys.readouterr().err
+    assert err_text.count("holds control characters") == 2 and err_text.count("\n") == 2, err_text
+    names = [layer.name for _, layer in load_stack(tmp_path / "out").document.walk()]
+    assert names == ["g\ufffd", "a\ufffdb\ufffd"]

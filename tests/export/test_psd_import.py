@@ -284,3 +284,49 @@ def test_a_huge_mask_is_refused_in_bounded_memory(tmp_path):
     assert code == 2 and err.count("\n") == 1 and "over the memory budget" in err, err
     assert peak < 500, f"refusing a 16384² mask peaked at {peak:.0f} MB"
     assert not (tmp_path / "out").exists()
+
+
+def _nested_psd(path: Path, depth: int, opaque_base: bool) -> Path:
+    rng = np.random.default_rng(5)
+    psd = new_psd()
+    if opaque_base:
+        psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    parent = psd
+    for i in range(depth):
+        parent = parent.create_group(name=f"g{i}", blend_mode=BlendMode.MULTIPLY if i % 2 else BlendMode.PASS_THROUGH)
+    parent.create_pixel_layer(rgba(rng, 4, 4), name="leaf")
+    psd.save(path)
+    return path
+
+
+def test_groups_nested_as_deep_as_a_stack_allows_import_and_validate(tmp_path, capsys):
+    from lasagna.limits import MAX_GROUP_DEPTH
+
+    path = _nested_psd(tmp_path / "ok.psd", MAX_GROUP_DEPTH, opaque_base=True)
+    assert main(["import-psd", str(path), "-o", str(tmp_path / "out")]) == 0
+    assert main(["validate", str(tmp_path / "out")]) == 0, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("depth, opaque_base", [(31, True), (40, True), (30, False)])
+def test_groups_nested_deeper_than_a_stack_allows_are_one_line(tmp_path, capsys, depth, opaque_base):
+    path = _nested_psd(tmp_path / "deep.psd", depth, opaque_base)
+    code = main(["import-psd", str(path), "-o", str(tmp_path / "out")])
+    err_text = capsys.readouterr().err
+    assert code == 2 and err_text.count("\n") == 1 and "expected at most" in err_text, err_text
+    assert "Traceback" not in err_text and not (tmp_path / "out").exists()
+
+
+def test_names_with_control_characters_import_replaced_with_a_warning(tmp_path, capsys):
+    rng = np.random.default_rng(6)
+    psd = new_psd()
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    psd.create_pixel_layer(rgba(rng, 4, 4), name="bad\x01name\n")
+    psd.create_group(name="\x07").create_pixel_layer(rgba(rng, 4, 4), name="in")
+    path = tmp_path / "names.psd"
+    psd.save(path)
+    assert main(["import-psd", str(path), "-o", str(tmp_path / "out")]) == 0
+    err_text = capsys.readouterr().err
+    assert err_text.count("holds control characters") == 2 and err_text.count("\n") == 2, err_text
+    names = [layer.name for _, layer in load_stack(tmp_path / "out").document.walk()]
+    assert names == ["base", "bad\ufffdname\ufffd", "\ufffd", "in"]
+    assert main(["validate", str(tmp_path / "out")]) == 0
