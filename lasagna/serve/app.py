@@ -12,6 +12,9 @@ Security (the editor can read and write a folder of the user's, so every request
   origin; browsers send Origin on every cross-site POST.
 * **Paths.** No route takes a path: the session knows its folder, layers are named by id, exports are
   downloads built in memory. Uploads are bytes, read under the CLI's image policy (size and pixel limits).
+* **Slow requests.** A body must arrive within ``HttpLimits`` (pauses and a deadline: 408, the connection
+  closed) and all bodies in flight share one byte budget (429); request heads and connections are bounded in
+  ``lasagna.serve.server``.
 * **Errors.** A ``LasagnaError`` is a 4xx with ``{"error": "<one line>"}`` (409 for a version conflict,
   413 for an oversized body); a malformed request is a 400 naming the field, what it expected and what it
   was given: bodies are parsed with bounded depth and digits and validated by strict models in one place
