@@ -53,6 +53,7 @@ from torch import Tensor
 from lasagna.compose.blend import BLEND_MODES, broadcast_shape, check_blend_name, clamp_needed
 from lasagna.compose.color import srgb_to_linear
 from lasagna.compose.layer import LayerTensors
+from lasagna.document.types import range_problem
 from lasagna.errors import LasagnaError
 
 SkipReason = Literal["hidden", "zero-opacity", "outside-canvas", "occluded", "identity", "empty"]
@@ -93,13 +94,11 @@ class RenderLayerSpec:
         if not isinstance(self.tensors, LayerTensors):
             raise LasagnaError(f"tensors is a {type(self.tensors).__name__}; expected LayerTensors", where=where)
         r = self.range
-        if (
-            not isinstance(r, (tuple, list))
-            or len(r) != 2
-            or not all(_number(v) and math.isfinite(v) for v in r)
-            or not r[0] < r[1]
-        ):
+        if not isinstance(r, (tuple, list)) or len(r) != 2 or not all(_number(v) and math.isfinite(v) for v in r):
             raise LasagnaError(f"range is {r!r}; expected (lo, hi), finite, with lo < hi", where=where)
+        problem = range_problem(float(r[0]), float(r[1]))  # the document's rule, stated once
+        if problem is not None:
+            raise LasagnaError(f"range is {r!r}; expected (lo, hi) within the rule: {problem}", where=where)
         if not isinstance(self.encoded, bool):
             raise LasagnaError(f"encoded is {self.encoded!r}; expected true or false", where=where)
 

@@ -354,16 +354,90 @@ class Document(StrictModel):
         return self.with_layers(layers)  # validates a dict layer with the rest, so errors name layers[i]
 
     def replace_layer(self, id: str, **changes: Any) -> Document:
-        """A copy where layer ``id`` has ``changes`` applied, e.g. ``replace_layer("shade", opacity=0.5)``."""
-        layers: list[Layer | dict[str, Any]] = list(self.layers)
-        layers[self.index(id)] = {**self.layer(id).model_dump(), **changes}
-        return self.with_layers(layers)
+        """A copy where layer ``id`` (at any depth) has ``changes`` applied, e.g.
+        ``replace_layer("shade", opacity=0.5)``."""
+        return self._edit_siblings(id, lambda layers, i: layers.__setitem__(i, {**layers[i], **changes}))
 
     def without_layer(self, id: str) -> Document:
-        """A copy without layer ``id`` (a learned layer conditioned on it makes this an error)."""
-        layers = list(self.layers)
-        del layers[self.index(id)]
-        return self.with_layers(layers)
+        """A copy without layer ``id`` (at any depth, a group with its layers; a learned layer conditioned on
+        it makes this an error)."""
+        return self._edit_siblings(id, lambda layers, i: layers.__delitem__(i))
+
+    def moved_layer(self, id: str, index: int) -> Document:
+        """A copy where layer ``id`` is at position ``index`` (0 = bottom) of the list it is in (the top-level
+        list, or its group's)."""
+
+        def move(layers: list[dict[str, Any]], i: int) -> None:
+            if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(layers):
+                raise DocumentError(f"expected a position in [0, {len(layers) - 1}], got {index!r}", f"layer {id!r}")
+            layers.insert(index, layers.pop(i))
+
+        return self._edit_siblings(id, move)
+
+    def grouped(self, ids: list[str], group: dict[str, Any]) -> Document:
+        """A copy where the layers ``ids`` (siblings: of one list) are the layers of the new group ``group`` (a
+        group layer's fields without ``layers``), in their order, at the place of the topmost of them."""
+        ids = list(ids)
+        if not ids or len(set(ids)) != len(ids):
+            raise DocumentError(f"expected one or more distinct layer ids to group, got {ids!r}", "group")
+
+        def wrap(layers: list[dict[str, Any]], i: int) -> None:
+            at = [j for j, d in enumerate(layers) if d["id"] in ids]
+            if len(at) != len(ids):
+                raise DocumentError(
+                    f"layers {', '.join(map(repr, ids))} are not all in one list; expected siblings (the "
+                    "top-level list, or one group's)",
+                    "group",
+                )
+            children = [layers[j] for j in at]
+            for j in reversed(at):
+                del layers[j]
+            layers.insert(at[-1] - len(at) + 1, {**group, "kind": "group", "layers": children})
+
+        return self._edit_siblings(ids[0], wrap)
+
+    def ungrouped(self, id: str) -> Document:
+        """A copy where group ``id`` is replaced by its layers, in place, each moved by the group's offset. A
+        group whose own fields change how its layers compose (a mask, opacity below 1, hidden, isolated) is
+        refused: ungrouping it would change the composite."""
+        layer = self.layer(id)
+        if not isinstance(layer, GroupLayer):
+            raise DocumentError(f"is a {layer.kind} layer; expected a group to ungroup", f"layer {id!r}")
+        if layer.mask is not None or layer.opacity != 1.0 or not layer.visible or layer.isolated:
+            raise DocumentError(
+                "has a mask, opacity below 1, is hidden or isolated: ungrouping would change the composite; "
+                "expected a plain group (visible, opacity 1, pass-through, no mask)",
+                f"layer {id!r}",
+            )
+        dx, dy = layer.offset.x, layer.offset.y
+
+        def spill(layers: list[dict[str, Any]], i: int) -> None:
+            children = [
+                {**c, "offset": {"x": c["offset"]["x"] + dx, "y": c["offset"]["y"] + dy}} for c in layers[i]["layers"]
+            ]
+            layers[i : i + 1] = children
+
+        return self._edit_siblings(id, spill)
+
+    def _edit_siblings(self, id: str, edit) -> Document:
+        """A validated copy where ``edit(layers, i)`` changed the list (dumped dicts) holding layer ``id`` at ``i``."""
+        data = self.model_dump()
+
+        def visit(layers) -> list[dict[str, Any]] | None:
+            layers = list(layers)
+            for i, d in enumerate(layers):
+                if d["id"] == id:
+                    edit(layers, i)
+                    return layers
+                if d["kind"] == "group" and (inner := visit(d["layers"])) is not None:
+                    layers[i] = {**d, "layers": inner}
+                    return layers
+            return None
+
+        layers = visit(data["layers"])
+        if layers is None:
+            raise DocumentError(f"no layer with id {id!r}; expected one of {', '.join(self.all_ids)}", "layers")
+        return self._validated({**data, "layers": layers})
 
     @classmethod
     def _validated(cls, data: dict[str, Any], where: str | None = None) -> Document:

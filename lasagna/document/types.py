@@ -8,7 +8,9 @@ silently coerced.
 
 from __future__ import annotations
 
+import math
 import re
+import struct
 from typing import Annotated
 
 from pydantic import AfterValidator, AllowInfNan, BaseModel, BeforeValidator, ConfigDict, Field, Strict, WithJsonSchema
@@ -221,11 +223,51 @@ Colour = Annotated[tuple[Unit, ...], Field(min_length=3, max_length=4)]
 OpaqueColour = tuple[Unit, Unit, Unit]
 
 
-def check_range(value: tuple[float, float]) -> tuple[float, float]:
-    """Rule: range [lo, hi] with lo < hi (finiteness is checked by the item type)."""
-    lo, hi = value
+# Layer values are float32 tensors y = lo + (hi − lo)·v of 16-bit codes v. Both ends and the span hi − lo must
+# be finite float32 numbers (beyond FLOAT32_MAX a value is infinite, and v = (y − lo)/(hi − lo) is NaN), and
+# one 16-bit step of the span, (hi − lo)/65535, a normal float32 (≥ FLOAT32_TINY): a smaller span flushes
+# to a subnormal or to 0 and the stored codes are lost (0/0 again). The spans of real layers (1 for colour,
+# 2 for shading, 1e4 for light) are far inside both bounds.
+FLOAT32_MAX = 3.4028234663852886e38
+FLOAT32_TINY = 1.1754943508222875e-38
+MIN_RANGE_SPAN = 65535 * FLOAT32_TINY
+
+
+def _float32(x: float) -> float:
+    """``x`` rounded to float32 (``inf`` beyond its largest finite value)."""
+    try:
+        return struct.unpack("f", struct.pack("f", x))[0]
+    except OverflowError:
+        return math.copysign(math.inf, x)
+
+
+def range_problem(lo: float, hi: float) -> str | None:
+    """The range rule, stated once (the document's validator, the compositor's layer specs and the editor
+    use it): what [lo, hi] breaks, or None. Rule: finite, lo < hi, both ends and the span hi − lo finite in
+    float32, and the span at least ``MIN_RANGE_SPAN`` (one 16-bit step a normal float32)."""
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return f"range [{lo}, {hi}] breaks the rule: both ends finite"
     if not lo < hi:
-        raise RuleError(f"range [{lo}, {hi}] breaks the rule lo < hi")
+        return f"range [{lo}, {hi}] breaks the rule lo < hi"
+    span = _float32(_float32(hi) - _float32(lo))
+    if not (abs(_float32(lo)) <= FLOAT32_MAX and abs(_float32(hi)) <= FLOAT32_MAX and span <= FLOAT32_MAX):
+        return (
+            f"range [{lo:g}, {hi:g}] breaks the rule: both ends and the span hi - lo within float32's "
+            f"±{FLOAT32_MAX:.4g} (layer values are float32)"
+        )
+    if span < MIN_RANGE_SPAN:
+        return (
+            f"range [{lo:g}, {hi:g}] breaks the rule: a span hi - lo of at least {MIN_RANGE_SPAN:.3g} "
+            "(one 16-bit step of it a normal float32; layer values are float32)"
+        )
+    return None
+
+
+def check_range(value: tuple[float, float]) -> tuple[float, float]:
+    """Rule: ``range_problem`` (finiteness is checked by the item type first)."""
+    problem = range_problem(*value)
+    if problem is not None:
+        raise RuleError(problem)
     return value
 
 

@@ -210,10 +210,13 @@ class Stack:
         return self
 
     def remove_layer(self, id: str) -> Stack:
-        """Remove layer ``id`` with its tensors; a ``DocumentError`` if a learned layer is conditioned on it."""
+        """Remove layer ``id`` (at any depth; a group with its layers) with its tensors; a ``DocumentError`` if a
+        learned layer is conditioned on it."""
+        before = set(self.document.all_ids)
         self.document = self.document.without_layer(id)
-        self.tensors.pop(id, None)
-        self.bit_depths.pop(id, None)
+        for gone in before - set(self.document.all_ids):
+            self.tensors.pop(gone, None)
+            self.bit_depths.pop(gone, None)
         return self
 
     def _store(self, id: str, tensors, bit_depth: int | None) -> None:

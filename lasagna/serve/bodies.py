@@ -78,6 +78,27 @@ class DeleteLayer(_Body):
         return session.delete_layer(self.version, self.id)
 
 
+class GroupLayers(_Body):
+    """Wrap sibling layers into a new group (``EditSession.group_layers``)."""
+
+    op: Literal["group"]
+    version: Version
+    ids: list[Text] = Field(min_length=1)
+    name: Text | None = None
+
+    def call(self, session):
+        return session.group_layers(self.version, list(self.ids), self.name)
+
+
+class Ungroup(_Body):
+    op: Literal["ungroup"]
+    version: Version
+    id: Text
+
+    def call(self, session):
+        return session.ungroup(self.version, self.id)
+
+
 class AddSolid(_Body):
     op: Literal["solid"]
     version: Version
@@ -129,6 +150,8 @@ CHANGES: dict[str, type[_Body]] = {
     "set": SetLayer,
     "move": MoveLayer,
     "delete": DeleteLayer,
+    "group": GroupLayers,
+    "ungroup": Ungroup,
     "solid": AddSolid,
     "learned": AddLearned,
     "undo": Undo,

@@ -203,6 +203,8 @@ class EditSession:
     def _evict(self, extra: int = 0) -> None:
         """Let go of what the session holds beyond the document until ``extra`` more bytes fit the budget:
         first the views' caches, then undo steps, oldest first, then redo steps."""
+        if self.held_bytes() + extra <= self.budget:
+            return
         self.levels.clear()
         self.reduced.clear()
         self.thumbs.clear()
@@ -320,7 +322,15 @@ class EditSession:
             new = s.document.layer(id)
             if t is not None and tuple(new.range) != tuple(layer.range):
                 (lo, hi), (nlo, nhi) = tuple(layer.range), tuple(new.range)
-                color = nlo + (nhi - nlo) * ((t.color - lo) / (hi - lo))  # the same stored codes v
+                # The same stored codes v = (y - lo)/(hi - lo): both ranges passed the document's range rule
+                # (spans normal and finite in float32), so v and the new values are finite.
+                color = nlo + (nhi - nlo) * ((t.color - lo) / (hi - lo))
+                if not bool(torch.isfinite(color).all()):
+                    raise DocumentError(
+                        f"re-encoding [{lo:g}, {hi:g}] as [{nlo:g}, {nhi:g}] gives values that are not finite; "
+                        "expected a range whose values float32 holds",
+                        f"layer {id!r}.range",
+                    )
                 s.tensors[id] = LayerTensors(color, t.alpha, t.mask)
             if "mask" in changes and t is not None and t.mask is not None:
                 s.tensors[id] = LayerTensors(s.tensors[id].color, s.tensors[id].alpha, None)
@@ -329,30 +339,47 @@ class EditSession:
         return self._change(version, f"{what} of {id}", apply)
 
     def move_layer(self, version: Any, id: str, index: Any) -> dict[str, Any]:
-        """Move layer ``id`` to position ``index`` (0 = bottom)."""
-        n = len(self.stack.document.layers)
-        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < n:
-            raise LasagnaError(f"expected an integer position in [0, {n - 1}], got {index!r}", "index")
+        """Move layer ``id`` to position ``index`` (0 = bottom) of the list it is in (top level, or its group)."""
+        if isinstance(index, bool) or not isinstance(index, int):
+            raise LasagnaError(f"expected an integer position, got {index!r}", "index")
 
         def apply() -> None:
-            doc = self.stack.document
-            layers = list(doc.layers)
-            layer = layers.pop(doc.index(id))
-            layers.insert(index, layer)
-            self.stack.document = doc.with_layers(layers)
+            self.stack.document = self.stack.document.moved_layer(id, index)
 
         return self._change(version, f"move {id}", apply)
 
     def delete_layer(self, version: Any, id: str) -> dict[str, Any]:
-        if len(self.stack.document.layers) == 1:
+        """Delete layer ``id`` (at any depth; a group with its layers)."""
+        if [layer.id for layer in self.stack.document.layers] == [id]:
             raise DocumentError("it is the only layer; expected a stack to keep at least one", f"layer {id!r}")
         return self._change(version, f"delete {id}", lambda: self.stack.remove_layer(id))
+
+    def group_layers(self, version: Any, ids: Any, name: Any = None) -> dict[str, Any]:
+        """Wrap the layers ``ids`` (siblings, at any depth) into a new pass-through group at their place."""
+        if not isinstance(ids, list) or not ids or not all(isinstance(i, str) for i in ids):
+            raise LasagnaError(f"expected a list of layer ids to group, got {ids!r}", "ids")
+        name = name if isinstance(name, str) and name.strip() else "Group"
+        with self._guard():
+            gid = self._new_id(name.lower())
+
+            def apply() -> None:
+                self.stack.document = self.stack.document.grouped(ids, {"id": gid, "name": name})
+
+            return self._change(version, f"group {', '.join(ids)}", apply)
+
+    def ungroup(self, version: Any, id: Any) -> dict[str, Any]:
+        """Replace group ``id`` by its layers, in place (``Document.ungrouped``)."""
+
+        def apply() -> None:
+            self.stack.document = self.stack.document.ungrouped(id)
+
+        return self._change(version, f"ungroup {id}", apply)
 
     def _new_id(self, wanted: str) -> str:
         """An id for a new layer from its display name (free text: ``café``, ``写真``, ``Ébauche``): accents
         folded to ASCII first (``cafe``), then ``unique_id`` (what an id cannot hold becomes ``-``)."""
         folded = unicodedata.normalize("NFKD", wanted).encode("ascii", "ignore").decode("ascii")
-        return unique_id(folded, {i.casefold() for i in self.stack.ids})
+        return unique_id(folded, {i.casefold() for i in self.stack.document.all_ids})
 
     def add_solid(self, version: Any, color: Any, name: Any = None, blend: Any = "normal") -> dict[str, Any]:
         if not isinstance(color, list) or len(color) not in (3, 4):
@@ -372,9 +399,12 @@ class EditSession:
             tmp = temp_path(self.folder / "upload", suffix=Path(name).suffix.lower()[:8])
             try:
                 atomic_write_bytes(tmp, data)
+                w, h = probe_image_file(tmp, max_pixels=self.max_pixels)
+                # Its float32 RGBA tensors, kept, and half as much again for the decoder's codes while reading.
+                self._admit(raster_bytes(w, h, 4) * 3 // 2, f"the {w}x{h} upload", f"upload {name!r}")
                 img = read_image_file(tmp, max_pixels=self.max_pixels)
-            except ImageError as exc:
-                raise ImageError(exc.message, f"upload {name!r}") from None
+            except (ImageError, BudgetError) as exc:
+                raise exc.at(f"upload {name!r}") from None
             finally:
                 tmp.unlink(missing_ok=True)
             id = self._new_id(stem.lower())
@@ -468,6 +498,7 @@ class EditSession:
         with self._guard():
             self._check_version(version)
             self._check_idle("save")
+            self._admit(self._render_bytes(encode_layers=True), f"saving {self.folder.name}", "save")
             self.disk_sha, self.unchanged = save_in_place(
                 self.stack, unchanged=self.unchanged, files=self.files, expect_sha256=self.disk_sha, extra=extra
             )
@@ -477,8 +508,15 @@ class EditSession:
 
     def export(self, kind: str) -> tuple[bytes, str, str]:
         """(bytes, file name, media type) of the current stack as ``ora``, ``psd`` or ``png`` (the composite)."""
+        if kind not in ("ora", "psd", "png"):
+            raise LasagnaError(f"unknown export {kind!r}; expected ora, psd or png", "export")
         with self._guard():
+            self._admit(self._render_bytes(encode_layers=kind != "png"), f"the {kind} export", f"export {kind}")
             stack = Stack(self.stack.document, self.folder, dict(self.stack.tensors), dict(self.stack.bit_depths))
+        with memory_budget_scope(self.budget):
+            return self._encode_export(stack, kind)
+
+    def _encode_export(self, stack: Stack, kind: str) -> tuple[bytes, str, str]:
         result = stack.render()
         name = self.folder.name
         if kind == "ora":
@@ -489,9 +527,16 @@ class EditSession:
             from lasagna.export.psd import encode_psd
 
             return encode_psd(stack, composite=result.image), f"{name}.psd", "image/vnd.adobe.photoshop"
-        if kind == "png":
-            return encode_composite(result), f"{name}.png", "image/png"
-        raise LasagnaError(f"unknown export {kind!r}; expected ora, psd or png", "export")
+        return encode_composite(result), f"{name}.png", "image/png"
+
+    def _render_bytes(self, *, encode_layers: bool) -> int:
+        """What a full-size render of the stack allocates (``render_stack``'s output canvas) and, with
+        ``encode_layers`` (saves, ORA and PSD), a layer's stored codes while it is encoded: float64 values and
+        codes of the largest layer, four times its float32 tensors."""
+        need = render_bytes(self.stack.width, self.stack.height)
+        if encode_layers:
+            need += 4 * max((tensor_bytes(lt.tensors()) for lt in self.stack.tensors.values()), default=0)
+        return need
 
     # ---- views ----------------------------------------------------------------------------------------
 
@@ -503,51 +548,61 @@ class EditSession:
         """Every layer's tensors reduced by 2**level (cached by the source tensors' identity)."""
         out: dict[str, LayerTensors] = {}
         for _, layer in doc.walk():  # groups' children too
-            if layer.kind == "group":
-                t = self.stack.tensors.get(layer.id)  # a group's tensors hold only its mask
-                if t is not None and level > 0:
-                    key = (layer.id, level)
-                    hit = self.reduced.get(key)
-                    if hit is None or hit[0] is not t:
-                        size = (_reduced_side(t.mask.shape[-2], level), _reduced_side(t.mask.shape[-1], level))
-                        hit = (t, group_mask_tensors(_reduce(t.mask, size)))
-                        self.reduced[key] = hit
-                    t = hit[1]
-                if t is not None:
-                    out[layer.id] = t
-                continue
-            if layer.kind == "solid":
-                lo, hi = tuple(layer.range)
-                w, h = (
-                    (layer.size.width, layer.size.height)
-                    if layer.size is not None
-                    else (self.stack.width, self.stack.height)
-                )
-                key = (layer.id, level)
-                stamp = (tuple(layer.color), w, h, lo, hi)
-                hit = self.reduced.get(key)
-                if hit is None or hit[0] != stamp:
-                    rw, rh = _reduced_side(w, level), _reduced_side(h, level)
-                    shape = type("Solid", (), {"color": layer.color, "size": None})()  # its size is the one given
-                    solid = solid_tensors(shape, lo, hi, rw, rh, layer.id)
-                    hit = (stamp, solid)
-                    self.reduced[key] = hit
-                out[layer.id] = hit[1]
-                continue
-            t = self.stack.tensors.get(layer.id)
-            if t is None:
-                continue
-            if level == 0:
+            t = self._layer_at(layer, level)
+            if t is not None:
                 out[layer.id] = t
-                continue
+        return out
+
+    def _layer_at(self, layer, level: int) -> LayerTensors | None:
+        """Layer ``layer``'s tensors reduced by 2**level (None for a layer without pixels): a solid's are
+        zero-stride views of its size at that level, a group's hold its mask (``group_mask_tensors``)."""
+        if layer.kind == "solid":
+            lo, hi = tuple(layer.range)
+            w, h = (
+                (layer.size.width, layer.size.height)
+                if layer.size is not None
+                else (self.stack.width, self.stack.height)
+            )
             key = (layer.id, level)
+            stamp = (tuple(layer.color), w, h, lo, hi)
             hit = self.reduced.get(key)
-            if hit is None or hit[0] is not t:
+            if hit is None or hit[0] != stamp:
+                rw, rh = _reduced_side(w, level), _reduced_side(h, level)
+                shape = type("Solid", (), {"color": layer.color, "size": None})()  # its size is the one given
+                hit = (stamp, solid_tensors(shape, lo, hi, rw, rh, layer.id))
+                self.reduced[key] = hit
+            return hit[1]
+        t = self.stack.tensors.get(layer.id)  # a group's tensors hold only its mask
+        if t is None or level == 0:
+            return t
+        key = (layer.id, level)
+        hit = self.reduced.get(key)
+        if hit is None or hit[0] is not t:
+            if layer.kind == "group":
+                size = (_reduced_side(t.mask.shape[-2], level), _reduced_side(t.mask.shape[-1], level))
+                hit = (t, group_mask_tensors(_reduce(t.mask, size)))
+            else:
                 size = (_reduced_side(t.color.shape[-2], level), _reduced_side(t.color.shape[-1], level))
                 hit = (t, LayerTensors(_reduce(t.color, size), _reduce(t.alpha, size), _reduce(t.mask, size)))
-                self.reduced[key] = hit
-            out[layer.id] = hit[1]
-        return out
+            self.reduced[key] = hit
+        return hit[1]
+
+    def _reduction_bytes(self, layers, level: int) -> int:
+        """Bytes ``_layer_at`` would allocate for ``layers`` at ``level`` (reductions not cached yet; a solid's
+        and level 0's cost nothing)."""
+        need = 0
+        for layer in layers:
+            t = self.stack.tensors.get(layer.id)
+            if level == 0 or layer.kind == "solid" or t is None:
+                continue
+            hit = self.reduced.get((layer.id, level))
+            if hit is not None and hit[0] is t:
+                continue
+            for x in t.tensors():
+                if x is not None and x.stride(-1) != 0:  # a zero-stride view (a group's ones) is reduced to one
+                    rows, cols = _reduced_side(x.shape[-2], level), _reduced_side(x.shape[-1], level)
+                    need += x.shape[0] * rows * cols * FLOAT_BYTES
+        return need
 
     def view(
         self,
@@ -559,31 +614,24 @@ class EditSession:
     ) -> tuple[bytes, int, int]:
         """The composite at reduction ``level`` as RGBA8 bytes (row-major), with transient overrides that are
         not changes (``opacity`` while a slider is dragged; ``solo`` one layer alone; ``upto`` a layer: the
-        stack up to and including it, the "before" of a before/after split)."""
+        stack up to and including it, the "before" of a before/after split). Layers are named at any depth:
+        a soloed layer inside a group shows with the groups that hold it."""
         if isinstance(level, bool) or not isinstance(level, int) or not 0 <= level <= self.max_level():
             raise LasagnaError(f"expected a level in [0, {self.max_level()}], got {level!r}", "level")
         with self._guard():
             doc = self.stack.document
             for id in [*(opacity or {}), *([solo] if solo else []), *([upto] if upto else [])]:
-                doc.index(id)  # DocumentError naming the ids
-            layers = []
-            seen_upto = False
-            for layer in doc.layers:
-                changes: dict[str, Any] = {}
-                if opacity and layer.id in opacity:
-                    v = opacity[layer.id]
-                    if not (isinstance(v, (int, float)) and 0.0 <= float(v) <= 1.0):
-                        raise LasagnaError(f"expected an opacity in [0, 1], got {v!r}", f"opacity.{layer.id}")
-                    changes["opacity"] = float(v)
-                if solo is not None:
-                    changes["visible"] = layer.id == solo
-                if seen_upto:
-                    changes["visible"] = False
-                if upto is not None and layer.id == upto:
-                    seen_upto = True
-                layers.append(layer.model_copy(update=changes) if changes else layer)
-            tensors = self._level_tensors(doc, level)
+                doc.layer(id)  # DocumentError naming the ids
+            for id, v in (opacity or {}).items():
+                if not (isinstance(v, (int, float)) and 0.0 <= float(v) <= 1.0):
+                    raise LasagnaError(f"expected an opacity in [0, 1], got {v!r}", f"opacity.{id}")
+            layers = _overridden(doc, opacity or {}, solo, upto)
             w, h = _reduced_side(self.stack.width, level), _reduced_side(self.stack.height, level)
+            # The layers reduced to this level, the canvas and the renderer's snapshot below the top layer
+            # (``lasagna.compose.renderer``), and the RGBA8 bytes returned.
+            need = self._reduction_bytes([layer for _, layer in doc.walk()], level) + 2 * render_bytes(w, h) + 4 * w * h
+            self._admit(need, f"the {w}x{h} view (level {level})", "view")
+            tensors = self._level_tensors(doc, level)
             f = 2**level
             specs = plan_from_document(_Scaled(doc, layers, w, h, f), tensors, cull=True, dtype=torch.float32).layers
             key = (w, h, tuple(doc.canvas.background), doc.blend_space, doc.clamp)
@@ -592,37 +640,46 @@ class EditSession:
                 lv = _Level(Renderer((h, w), tuple(doc.canvas.background), doc.blend_space, doc.clamp), key)
                 self.levels[level] = lv
             image = lv.renderer.render(specs).image
-            codes = composite_codes(image) if level == 0 else (image.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8)
             rgba = np.empty((h, w, 4), np.uint8)
-            rgba[..., :3] = codes.permute(1, 2, 0).numpy()
             rgba[..., 3] = 255
+            for y in range(0, h, BAND_ROWS):  # a band at a time: no canvas-sized float64 copy
+                band = image[:, y : y + BAND_ROWS]
+                codes = composite_codes(band) if level == 0 else (band.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8)
+                rgba[y : y + BAND_ROWS, :, :3] = codes.permute(1, 2, 0).numpy()
             return rgba.tobytes(), w, h
 
     def thumbnail(self, id: str) -> bytes:
-        """A small PNG of layer ``id``'s stored values (RGB codes v and alpha), as the layers panel shows it."""
+        """A small PNG of layer ``id``'s stored values (RGB codes v and alpha), as the layers panel shows it,
+        made from the layer reduced to about twice the thumbnail's side (a reduced view level's tensors)."""
         from PIL import Image
 
         with self._guard():
             layer = self.stack.document.layer(id)
-            t = self._level_tensors(self.stack.document, 0).get(id)
+            side = max(self.stack.width, self.stack.height)
+            level = max(0, int(math.log2(max(1, side // (2 * THUMB_SIDE)))))
+            need = self._reduction_bytes([layer], level) + 8 * 4 * THUMB_SIDE * THUMB_SIDE
+            self._admit(need, f"the thumbnail of {id}", f"layer {id!r}")
+            t = self._layer_at(layer, level)
+            rng = tuple(layer.range) if layer.kind != "group" else (0.0, 1.0)  # a group's tensors: its mask
         if t is None:  # a learned layer not rendered yet
             rgba = np.zeros((8, 8, 4), np.uint8)
         else:
             hit = self.thumbs.get(id)
-            if hit is not None and hit[0] is t and hit[1] == tuple(layer.range):
+            if hit is not None and hit[0] is t and hit[1] == rng:
                 return hit[2]
-            lo, hi = tuple(layer.range)
+            lo, hi = rng
             h, w = t.color.shape[-2:]
             s = min(1.0, THUMB_SIDE / max(h, w))
             size = (max(1, round(h * s)), max(1, round(w * s)))
-            color = _reduce(((t.color - lo) / (hi - lo)).clamp(0, 1), size).expand(3, *size)
+            # Reduced first, then mapped to codes: the map is linear, so the area average commutes with it.
+            color = ((_reduce(t.color, size) - lo) / (hi - lo)).clamp(0, 1).expand(3, *size)
             alpha = _reduce(t.alpha, size) if t.alpha is not None else torch.ones(1, *size)
             rgba = (torch.cat([color, alpha.clamp(0, 1)]) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
         buf = io.BytesIO()
         Image.fromarray(np.ascontiguousarray(rgba), "RGBA").save(buf, "PNG")
         data = buf.getvalue()
         if t is not None:
-            self.thumbs[id] = (t, tuple(layer.range), data)
+            self.thumbs[id] = (t, rng, data)
         return data
 
     # ---- the catalogue --------------------------------------------------------------------------------
@@ -678,6 +735,10 @@ class EditSession:
         return job
 
     def _run_job(self, job: Job, stack: Stack, version: int) -> None:
+        with memory_budget_scope(self.budget):  # a new thread: the session's budget, not the default
+            self._run_job_in_budget(job, stack, version)
+
+    def _run_job_in_budget(self, job: Job, stack: Stack, version: int) -> None:
         from lasagna.editing import render_learned
 
         def callback(step: int, layer) -> None:
@@ -734,6 +795,7 @@ class EditSession:
             del self.undo_stack[:-MAX_UNDO]
             self.redo_stack.clear()
             self.version += 1
+            self._evict()
             job.version = self.version
             job.step = max(job.step, job.steps)
             job.state = "done"
@@ -768,6 +830,53 @@ class EditSession:
             raise LasagnaError(f"no job {job_id!r}; expected the id a job was started with", "job")
         job.cancel.set()
         return job.report()
+
+
+def _overridden(doc: Document, opacity: dict[str, float], solo: str | None, upto: str | None) -> list:
+    """``doc``'s layer tree with a view's transient overrides (``EditSession.view``), layers named at any depth:
+    ``opacity`` per layer; ``solo``: that layer (with what it holds) alone, the groups holding it shown;
+    ``upto``: every layer after it in the tree's order (depth first, a group before its layers) hidden,
+    except its own layers."""
+    order = [layer.id for _, layer in doc.walk()]
+    inside: dict[str, set[str]] = {}  # group id → ids of every layer it holds, at any depth
+    holders: dict[str, list[str]] = {}  # layer id → ids of the groups holding it, outermost first
+
+    def index(layers, path: list[str]) -> None:
+        for layer in layers:
+            holders[layer.id] = list(path)
+            for g in path:
+                inside.setdefault(g, set()).add(layer.id)
+            if layer.kind == "group":
+                inside.setdefault(layer.id, set())
+                index(layer.layers, [*path, layer.id])
+
+    index(doc.layers, [])
+    shown: set[str] | None = None
+    if solo is not None:
+        shown = {solo, *holders[solo], *inside.get(solo, ())}
+    hidden: set[str] = set()
+    if upto is not None:
+        after = order[order.index(upto) + 1 :]
+        hidden = set(after) - inside.get(upto, set())
+
+    def visit(layers) -> list:
+        out = []
+        for layer in layers:
+            changes: dict[str, Any] = {}
+            if layer.id in opacity:
+                changes["opacity"] = float(opacity[layer.id])
+            if shown is not None and layer.id == solo:
+                changes["visible"] = True
+            elif shown is not None and layer.id not in shown:
+                changes["visible"] = False
+            if layer.id in hidden:
+                changes["visible"] = False
+            if layer.kind == "group":
+                changes["layers"] = tuple(visit(layer.layers))
+            out.append(layer.model_copy(update=changes) if changes else layer)
+        return out
+
+    return visit(doc.layers)
 
 
 class _Scaled:

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from jsonschema import Draft202012Validator
 
 from lasagna.document import Document, check_id, check_relative_path, schemas
-from lasagna.document.types import ID_PATTERN, PATH_PATTERN, WINDOWS_RESERVED
+from lasagna.document.types import ID_PATTERN, PATH_PATTERN, WINDOWS_RESERVED, range_problem
 from lasagna.errors import DocumentError
 
 STACK_SCHEMA = Draft202012Validator(schemas()["stack.schema.json"])
@@ -42,7 +42,8 @@ def layers(draw, id_: str, below: list[str]) -> dict:
     if draw(st.booleans()):
         layer["blend"] = blend
     if layer.get("blend") in RANGED and draw(st.booleans()):
-        lo, hi = sorted(draw(st.tuples(finite, finite).filter(lambda t: t[0] != t[1])))
+        # The range rule (range_problem): lo < hi, and a span float32 holds.
+        lo, hi = sorted(draw(st.tuples(finite, finite).filter(lambda t: range_problem(*sorted(t)) is None)))
         layer["range"] = [lo, hi]
     for key, strategy in [
         ("opacity", unit),

@@ -74,7 +74,7 @@ async function refresh() {
 function setState(state) {
   const first = ui.state === null;
   ui.state = state;
-  const ids = state.document.layers.map((l) => l.id);
+  const ids = allLayers(state.document.layers).map((l) => l.id);
   if (ui.selected && !ids.includes(ui.selected)) ui.selected = null;
   if (ui.solo && !ids.includes(ui.solo)) ui.solo = null;
   $("folder").textContent = state.folder + (state.dirty ? " •" : "");
@@ -90,9 +90,19 @@ function setState(state) {
   paint();
 }
 
-function layerRow(layer, index, n) {
+// Every layer of the tree, groups' layers too (depth first, a group before its layers).
+function allLayers(layers) {
+  return layers.flatMap((l) => [l, ...(l.kind === "group" ? allLayers(l.layers) : [])]);
+}
+
+function findLayer(id) {
+  return allLayers(ui.state.document.layers).find((l) => l.id === id);
+}
+
+function layerRow(layer, index, n, depth = 0) {
   const li = document.createElement("li");
   li.dataset.id = layer.id;
+  li.style.paddingLeft = `${depth * 1.2}em`;  // a group's layers are indented under it
   li.draggable = true;
   if (layer.id === ui.selected) li.classList.add("selected");
   const stamp = ui.state.version;
@@ -101,7 +111,7 @@ function layerRow(layer, index, n) {
     <img alt="" src="api/layers/${encodeURIComponent(layer.id)}/thumb.png?v=${stamp}&token=${encodeURIComponent(token)}">
     <span class="name" title="${layer.kind}: ${layer.id}"></span>
     <span class="tools">
-      <button class="up" title="Move up" ${index === n - 1 ? "disabled" : ""}>▲</button><button class="down" title="Move down" ${index === 0 ? "disabled" : ""}>▼</button><button class="solo" title="Solo">S</button><button class="del" title="Delete">×</button>
+      <button class="up" title="Move up" ${index === n - 1 ? "disabled" : ""}>▲</button><button class="down" title="Move down" ${index === 0 ? "disabled" : ""}>▼</button><button class="solo" title="Solo">S</button><button class="group" title="${layer.kind === "group" ? "Ungroup" : "Group (wrap in a new group)"}">${layer.kind === "group" ? "U" : "G"}</button><button class="del" title="Delete">×</button>
     </span>
     <span class="row2">
       <select class="blend" aria-label="blend"></select>
@@ -136,6 +146,7 @@ function layerRow(layer, index, n) {
   li.querySelector(".down").addEventListener("click", () => change({ op: "move", id: layer.id, index: index - 1 }));
   li.querySelector(".solo").addEventListener("click", () => { ui.solo = ui.solo === layer.id ? null : layer.id; drawLayers(); paint(); });
   li.querySelector(".del").addEventListener("click", () => change({ op: "delete", id: layer.id }));
+  li.querySelector(".group").addEventListener("click", () => change(layer.kind === "group" ? { op: "ungroup", id: layer.id } : { op: "group", ids: [layer.id] }));
   // The row drags to reorder, but not from its controls: a slider dragged inside a draggable row would
   // start a row drag and lose the slider.
   li.addEventListener("pointerdown", (e) => { li.draggable = !e.target.closest("input, select, button"); });
@@ -154,8 +165,13 @@ function layerRow(layer, index, n) {
 function drawLayers() {
   const list = $("layers");
   list.textContent = "";
-  const layers = ui.state.document.layers;
-  for (let i = layers.length - 1; i >= 0; i--) list.appendChild(layerRow(layers[i], i, layers.length));
+  const rows = (layers, depth) => {
+    for (let i = layers.length - 1; i >= 0; i--) {
+      list.appendChild(layerRow(layers[i], i, layers.length, depth));
+      if (layers[i].kind === "group") rows(layers[i].layers, depth + 1);
+    }
+  };
+  rows(ui.state.document.layers, 0);
   $("solo-label").textContent = ui.solo ? `solo: ${ui.solo}` : "";
 }
 
@@ -175,7 +191,7 @@ function numberInput(value, onChange, step = "any") {
 function drawProps() {
   const box = $("props");
   box.textContent = "";
-  const layer = ui.state.document.layers.find((l) => l.id === ui.selected);
+  const layer = findLayer(ui.selected);
   if (!layer) { box.innerHTML = '<p class="hint">Select a layer.</p>'; return; }
   const set = (changes) => change({ op: "set", id: layer.id, changes });
   const name = document.createElement("input");
@@ -186,9 +202,11 @@ function drawProps() {
   info.className = "hint";
   info.textContent = `${layer.kind} layer · id ${layer.id}`;
   box.append(info);
-  const [lo, hi] = layer.range;
-  box.append(field("Range", numberInput(lo, (v) => set({ range: [v, layer.range[1]] }))));
-  box.lastChild.append(" – ", numberInput(hi, (v) => set({ range: [layer.range[0], v] })));
+  if (layer.range) {  // a group has none
+    const [lo, hi] = layer.range;
+    box.append(field("Range", numberInput(lo, (v) => set({ range: [v, layer.range[1]] }))));
+    box.lastChild.append(" – ", numberInput(hi, (v) => set({ range: [layer.range[0], v] })));
+  }
   box.append(field("Offset x", numberInput(layer.offset.x, (v) => set({ offset: { x: v, y: layer.offset.y } }), "1")));
   box.lastChild.append(" y ", numberInput(layer.offset.y, (v) => set({ offset: { x: layer.offset.x, y: v } }), "1"));
   if (layer.mask) {
