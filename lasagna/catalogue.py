@@ -85,18 +85,59 @@ def _places(catalogue_dirs: Sequence[str | os.PathLike] | None) -> list[Path]:
     return catalogues() if catalogue_dirs is None else [Path(p) for p in catalogue_dirs if Path(p).is_dir()]
 
 
-def _config_doc(folder: Path) -> dict:
-    """``folder/config.json`` as a dict; {} when there is none, it is unreadable or not an object."""
-    try:
-        doc = json.loads((folder / "config.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+def _read_config(folder: Path) -> dict:
+    """``folder/config.json`` as a dict, read under the JSON limits (``lasagna.document.validation``: size,
+    nesting, integer digits); {} when there is none. A file that is there but broken raises one
+    ``LasagnaError``: not JSON, nested too deep, not an object, or a ``format`` that is not a string."""
+    from lasagna.document.validation import parse_json, read_json_text
+
+    file = folder / "config.json"
+    if not file.is_file():
         return {}
-    return doc if isinstance(doc, dict) else {}
+    doc = parse_json(read_json_text(file, "a config.json"), str(file))
+    if not isinstance(doc, dict):
+        raise LasagnaError(f"holds a JSON {type(doc).__name__}; expected an object with a format", str(file))
+    if not isinstance(doc.get("format", ""), str):
+        raise LasagnaError(
+            f"format is {json.dumps(doc['format'])[:40]}; expected a string such as 'lasagna.unet_prior'", str(file)
+        )
+    return doc
+
+
+def _config_doc(folder: Path) -> dict:
+    """``folder/config.json`` as a dict; {} when there is none or it is broken (``entry_problem`` says why)."""
+    try:
+        return _read_config(folder)
+    except (LasagnaError, OSError, RecursionError):
+        return {}
 
 
 def _format_of(folder: Path) -> str | None:
-    """The ``format`` of ``folder/config.json``, or None (no file, unreadable, not a lasagna config)."""
+    """The ``format`` of ``folder/config.json``, or None (no file, broken, not a lasagna config)."""
     return _config_doc(folder).get("format")
+
+
+def entry_problem(folder: Path) -> str | None:
+    """Why the catalogue entry ``folder`` is broken, in one line (its config.json, or its generator's, cannot
+    be read as a config), or None. A broken entry is left out of the listing; the others are listed."""
+    for where in (folder, folder / GENERATOR_DIR):
+        try:
+            _read_config(where)
+        except LasagnaError as err:
+            return str(err)
+        except (OSError, RecursionError) as exc:
+            return str(LasagnaError(f"cannot read ({exc}); expected a config.json", str(where / "config.json")))
+    return None
+
+
+def problems(catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> list[str]:
+    """One line per broken entry of the catalogues (``entry_problem``), in search order."""
+    return [
+        why
+        for place in _places(catalogue_dirs)
+        for folder in sorted(p for p in place.iterdir() if p.is_dir())
+        if (why := entry_problem(folder)) is not None
+    ]
 
 
 def _is_diffusers(folder: Path) -> bool:
@@ -332,7 +373,8 @@ def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | Non
         why = f"its prior {p.prior!r} is not in the catalogue"
         return {"usable": False, "method": None, "amortised": has_generator, "why": why}
     config = _config_doc(parts.prior).get("config")
-    known = tuple(config.get("vocabulary") or ()) if isinstance(config, dict) else ()
+    vocabulary = config.get("vocabulary") if isinstance(config, dict) else None
+    known = tuple(vocabulary) if isinstance(vocabulary, list) and all(isinstance(v, str) for v in vocabulary) else ()
     missing = [lab for lab in p.vocabulary if known and lab not in known]
     if missing:
         return {

@@ -295,3 +295,74 @@ def test_a_preset_object_is_refused_with_how_to_use_it(tmp_path):
     (tmp_path / "shading").mkdir()
     (tmp_path / "shading" / "preset.json").write_text(p.to_json(), encoding="utf-8")
     assert cat.resolve(tmp_path / "shading" / "preset.json", need_prior=False).preset == p
+
+
+# ---- broken entries (issue #28, 15) ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "config,why",
+    [
+        ('{"format": {}}', "format is {}; expected a string"),
+        ('{"format": []}', "format is []; expected a string"),
+        ("[1, 2]", "holds a JSON list; expected an object"),
+        ("[" * 100_000 + "]" * 100_000, "nested more than"),
+        ("{not json", "config.json"),
+    ],
+)
+def test_a_broken_entry_is_one_line_and_the_rest_are_listed(tmp_path, tiny, monkeypatch, capsys, config, why):
+    from lasagna.cli import main
+
+    broken = tmp_path / "extra" / "broken"
+    broken.mkdir(parents=True)
+    (broken / "config.json").write_text(config)
+    monkeypatch.setenv("LASAGNA_LAYERS", f"{tmp_path / 'extra'}{__import__('os').pathsep}{tiny}")
+    assert "shading" in cat.available()["preset"] and "broken" not in cat.available()["prior"]
+    (line,) = cat.problems()
+    assert line.startswith(f"{broken / 'config.json'}: ") and why in line and "\n" not in line
+    assert main(["layers"]) == 0
+    out = capsys.readouterr().out
+    assert f"broken entry: {line}" in out and "shading" in out
+    assert main(["layers", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["broken"] == [line]
+
+
+def test_a_prior_vocabulary_of_the_wrong_type_does_not_break_the_status(tmp_path, tiny):
+    shutil.copytree(tiny, tmp_path / "layers")
+    config = tmp_path / "layers" / "relight-32" / "config.json"
+    doc = json.loads(config.read_text())
+    doc["config"]["vocabulary"] = 5
+    config.write_text(json.dumps(doc))
+    status = cat.preset_status("relight", [tmp_path / "layers"])
+    assert set(status) == {"usable", "method", "amortised", "why"}
+
+
+@pytest.mark.parametrize(
+    "change,why",
+    [
+        ({"channels": [2**40]}, r"channels must lie in \[1, 1024\]"),
+        ({"res_blocks": 10**6}, "config.res_blocks"),
+        ({"channels": [8, 32]}, "has shape"),
+        ({"res_blocks": 2}, "weights do not match the config"),
+    ],
+)
+def test_a_unet_config_that_does_not_match_its_weights_is_one_line(tmp_path, tiny, capsys, change, why):
+    """A UNetPrior whose config.json disagrees with its weights (or asks for an absurd network) is one line,
+    before anything of that size is allocated; the CLI exits 2."""
+    from lasagna.cli import main
+
+    shutil.copytree(tiny / "relight-32", tmp_path / "relight-32")
+    config = tmp_path / "relight-32" / "config.json"
+    doc = json.loads(config.read_text())
+    doc["config"].update(change)
+    config.write_text(json.dumps(doc))
+    with pytest.raises(LasagnaError, match=why):
+        cat.load_prior(tmp_path / "relight-32")
+    image = tmp_path / "in.png"
+    from PIL import Image
+
+    Image.new("RGB", (8, 8)).save(image)
+    argv = ["edit", image, "--layer", "relight", "--prior", tmp_path / "relight-32", "--condition", "left"]
+    code = main([str(a) for a in [*argv, "-o", tmp_path / "out", "--steps", "1"]])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "internal error" not in err, err

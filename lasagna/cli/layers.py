@@ -18,8 +18,10 @@ def run(args: argparse.Namespace) -> int:
 
     found = cat.available()
     status = {name: cat.preset_status(name) for name in found["preset"]}
+    broken = cat.problems()  # each broken entry in one line; the others are listed as usual
     if args.json:
-        print(json.dumps({"catalogues": [str(c) for c in cat.catalogues()], **found, "status": status}))
+        catalogues = [str(c) for c in cat.catalogues()]
+        print(json.dumps({"catalogues": catalogues, **found, "status": status, "broken": broken}))
         return 0
     print(f"catalogues: {', '.join(map(str, cat.catalogues())) or '(none)'}")
     for kind in cat.KINDS:
@@ -29,4 +31,6 @@ def run(args: argparse.Namespace) -> int:
         if st["amortised"] and st["method"] != "amortised":
             how += "; --generator amortised: its generator"
         print(f"  {name}: {how}")
+    for why in broken:
+        print(f"broken entry: {why}")
     return 0

@@ -31,6 +31,7 @@ from torch import nn
 
 from lasagna.errors import ConditionError
 from lasagna.io.checkpoint import Pretrained
+from lasagna.limits import MAX_GENERATOR_BLOCKS, MAX_GENERATOR_LEVELS, MAX_GENERATOR_WIDTH, MAX_VOCABULARY
 from lasagna.priors.base import NoiseSchedule, Prior
 from lasagna.priors.nn import Downsample, ResBlock, SelfAttention, Upsample, group_norm, randn, timestep_embedding
 
@@ -56,14 +57,20 @@ class UNetConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    image_channels: int = Field(3, ge=1)
-    cond_channels: int = Field(0, ge=0, description="channels of the conditioning image; 0 = none")
-    resolution: int = Field(32, ge=1)
-    channels: tuple[int, ...] = Field((32, 64, 128), min_length=1, description="feature channels per level")
-    res_blocks: int = Field(1, ge=1, description="residual blocks per level")
+    # The bounds are the layer generator's (lasagna.limits): a config.json is read before its weights, and a
+    # hostile one (channels [2**40], res_blocks 10**6) must be one line, not an allocation that fails or hangs.
+    image_channels: int = Field(3, ge=1, le=MAX_GENERATOR_WIDTH)
+    cond_channels: int = Field(
+        0, ge=0, le=MAX_GENERATOR_WIDTH, description="channels of the conditioning image; 0 = none"
+    )
+    resolution: int = Field(32, ge=1, le=2**15)
+    channels: tuple[int, ...] = Field(
+        (32, 64, 128), min_length=1, max_length=MAX_GENERATOR_LEVELS, description="feature channels per level"
+    )
+    res_blocks: int = Field(1, ge=1, le=MAX_GENERATOR_BLOCKS, description="residual blocks per level")
     attention: bool = Field(False, description="self-attention in the middle (lowest-resolution) block")
     norm_groups: int = Field(8, ge=1)
-    vocabulary: tuple[str, ...] = ()
+    vocabulary: tuple[str, ...] = Field((), max_length=MAX_VOCABULARY)
     directions: bool = Field(
         False,
         description="condition on a light direction (a named label or 'az=…,el=…', as its unit vector) "
@@ -83,6 +90,8 @@ class UNetConfig(BaseModel):
 
     @model_validator(mode="after")
     def _shapes(self) -> UNetConfig:
+        if any(c > MAX_GENERATOR_WIDTH for c in self.channels):
+            raise ValueError(f"channels must lie in [1, {MAX_GENERATOR_WIDTH}]; got {list(self.channels)}")
         bad = [c for c in self.channels if c < 1 or c % self.norm_groups]
         if bad:
             raise ValueError(
