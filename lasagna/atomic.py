@@ -14,6 +14,8 @@ writing into a folder, so litter lasts only until the next write there.
 ``open_regular`` is how every reader opens a user's input: a regular file, or one line saying what it is
 instead (a FIFO would block the reader forever; a device never ends).
 
+``copy_tree`` copies a user's folder without following a link, within a cap on bytes and files.
+
 ``folder_lock`` serialises check-then-rename sequences between processes (``lasagna.io.folder``'s swap).
 
 Every temporary file is fsync'd before it is renamed, except inside ``unsynced()``: a writer of many
@@ -39,6 +41,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from lasagna.errors import PathError
+from lasagna.limits import MAX_COPY_BYTES, MAX_COPY_FILES, format_size
 
 # The longest file name most file systems take (ext4, APFS, NTFS: 255 bytes). A temporary longer than its
 # target would make a legal output name fail, so temporaries are cut to this.
@@ -107,6 +110,53 @@ def open_regular(
     except BaseException:
         os.close(fd)
         raise
+
+
+def copy_tree(
+    src: str | os.PathLike,
+    dst: str | os.PathLike,
+    *,
+    max_bytes: int = MAX_COPY_BYTES,
+    max_files: int = MAX_COPY_FILES,
+) -> int:
+    """Copy the folder ``src`` into the existing folder ``dst``: its folders and regular files only, never
+    following a link inside it; returns the bytes copied.
+
+    A symbolic link (to the folder itself, to ``/dev/zero``, anywhere) or a FIFO, device or socket inside
+    ``src`` is refused (``PathError``, one line naming it), and so is a tree of more than ``max_files`` files
+    or ``max_bytes`` bytes, counted while copying (a file growing meanwhile is cut off at the cap). The caller
+    copies into a temporary folder it removes on failure (``lasagna.catalogue.add_prior``)."""
+    root, out = Path(src), Path(dst)
+    total, files = 0, 0
+    todo: list[Path] = [Path()]
+    while todo:
+        rel = todo.pop()
+        with os.scandir(root / rel) as it:
+            entries = sorted(it, key=lambda e: e.name)
+        for entry in entries:
+            path, child = root / rel / entry.name, rel / entry.name
+            mode = entry.stat(follow_symlinks=False).st_mode
+            if stat.S_ISDIR(mode):
+                (out / child).mkdir()
+                todo.append(child)
+                continue
+            if not stat.S_ISREG(mode):
+                raise PathError(
+                    f"is {file_kind(mode)}; expected only folders and regular files (links are not followed)",
+                    str(path),
+                )
+            files += 1
+            if files > max_files:
+                raise PathError(f"holds more than {max_files} files; expected a smaller folder", str(root))
+            with open_regular(path, follow_symlinks=False) as fh, open(out / child, "xb") as copy:
+                while chunk := fh.read(min(1 << 20, max_bytes - total + 1)):
+                    total += len(chunk)
+                    if total > max_bytes:
+                        raise PathError(
+                            f"holds more than {format_size(max_bytes)}; expected a smaller folder", str(root)
+                        )
+                    copy.write(chunk)
+    return total
 
 
 def umask_mode(mode: int) -> int:

@@ -625,10 +625,10 @@ def add_prior(
     """
     import shutil
 
-    from lasagna.atomic import folder_lock, make_temp_folder, temp_path
+    from lasagna.atomic import copy_tree, folder_lock, make_temp_folder, temp_path
 
     _check_name(name, "prior")
-    source = prior_source(Path(path).resolve(), controlnets=[_absolute(n) for n in controlnets])
+    source = prior_source(_resolved(path), controlnets=[_absolute(n) for n in controlnets])
     if source.kind != "diffusers":
         raise LasagnaError("is a lasagna UNetPrior; expected a diffusers folder (it can be named as it is)", str(path))
     base = load_preset(like)
@@ -668,7 +668,7 @@ def add_prior(
         if corrective is not None:
             tmp = make_temp_folder(root / f"{name}-corrective")
             staged.append((tmp, root / f"{name}-corrective"))
-            shutil.copytree(corrective, tmp, dirs_exist_ok=True)
+            copy_tree(_resolved(corrective), tmp)  # bounded; no link inside it followed
         with folder_lock(root):
             taken = [str(target) for _, target in staged if target.exists()]
             if taken and not force:
@@ -689,5 +689,16 @@ def add_prior(
     return root / name / "preset.json"
 
 
+def _resolved(path: str | os.PathLike) -> Path:
+    """``path`` made absolute, its links followed; a link loop is one line."""
+    try:
+        return Path(path).resolve(strict=True)
+    except FileNotFoundError:
+        return Path(path).absolute()  # reported as missing where it is looked for
+    except (RuntimeError, OSError) as exc:  # Python < 3.13 raises RuntimeError on a loop, later OSError(ELOOP)
+        detail = getattr(exc, "strerror", None) or "symlink loop"
+        raise LasagnaError(f"cannot be resolved ({detail}); expected a folder (not a link loop)", str(path)) from None
+
+
 def _absolute(net: ControlNetRef) -> ControlNetRef:
-    return net.model_copy(update={"path": str(Path(net.path).resolve())})
+    return net.model_copy(update={"path": str(_resolved(net.path))})

@@ -58,6 +58,10 @@ MAX_GENERATOR_WIDTH = 1024
 MAX_GENERATOR_LEVELS = 6
 MAX_GENERATOR_BLOCKS = 8
 MAX_VOCABULARY = 1024
+# A folder copied into the catalogue (``prior add --corrective``: b̂ is a config.json and a few MB of weights):
+# links are never followed, and the copy stops at these, so a crafted folder cannot fill the disk.
+MAX_COPY_BYTES = 2**30
+MAX_COPY_FILES = 1000
 
 _UNITS = {"": 1, "B": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 _SIZE = re.compile(r"^\s*([0-9]+(?:\.[0-9]+)?)\s*([KMGT]?)(?:I?B)?\s*$", re.IGNORECASE)
@@ -154,6 +158,8 @@ def is_out_of_memory(exc: BaseException) -> bool:
 __all__ = [
     "DEFAULT_MEMORY_BUDGET",
     "FLOAT_BYTES",
+    "MAX_COPY_BYTES",
+    "MAX_COPY_FILES",
     "MAX_CROPS_PER_STEP",
     "MAX_DISTILL_STEPS",
     "MAX_DOCUMENT_BYTES",

@@ -196,3 +196,27 @@ def test_private_folder_writes_straight_to_names_inside_only(tmp_path, monkeypat
     made.clear()
     atomic_write_bytes(private / "after", b"1")  # the context is over: atomic again
     assert made == [private / "after"]
+
+
+def test_copy_tree_copies_files_and_folders_within_its_caps(tmp_path):
+    """Issue #28 (9): folders and regular files only, counted against the caps while copying."""
+    from lasagna.atomic import copy_tree
+    from lasagna.errors import PathError
+
+    src = tmp_path / "src"
+    (src / "sub").mkdir(parents=True)
+    (src / "a.bin").write_bytes(b"a" * 10)
+    (src / "sub" / "b.bin").write_bytes(b"b" * 20)
+    (tmp_path / "ok").mkdir()
+    assert copy_tree(src, tmp_path / "ok") == 30
+    assert (tmp_path / "ok" / "sub" / "b.bin").read_bytes() == b"b" * 20
+    (tmp_path / "few").mkdir()
+    with pytest.raises(PathError, match=r"src: holds more than 1 files; expected a smaller folder"):
+        copy_tree(src, tmp_path / "few", max_files=1)
+    (tmp_path / "small").mkdir()
+    with pytest.raises(PathError, match=r"src: holds more than 29 B"):
+        copy_tree(src, tmp_path / "small", max_bytes=29)
+    (src / "sub" / "loop").symlink_to(src)
+    (tmp_path / "links").mkdir()
+    with pytest.raises(PathError, match=r"loop: is a symbolic link; expected only folders and regular files"):
+        copy_tree(src, tmp_path / "links")

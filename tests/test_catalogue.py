@@ -366,3 +366,79 @@ def test_a_unet_config_that_does_not_match_its_weights_is_one_line(tmp_path, tin
     code = main([str(a) for a in [*argv, "-o", tmp_path / "out", "--steps", "1"]])
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1 and "internal error" not in err, err
+
+
+# ---- prior add: bounded copies that follow no link (issue #28, 9) -------------------------------------
+
+
+def _fake_diffusers(folder: Path) -> Path:
+    folder.mkdir(parents=True)
+    (folder / "model_index.json").write_text("{}")  # all add_prior needs to see a diffusers folder
+    return folder
+
+
+def _corrective(folder: Path) -> Path:
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps({"format": "lasagna.corrective", "version": 1, "config": {}}))
+    (folder / "model.safetensors").write_bytes(b"\0" * 64)
+    return folder
+
+
+@pytest.mark.parametrize("link", ["self", "parent", "dev-zero"])
+def test_prior_add_refuses_a_corrective_holding_links(tmp_path, tiny, capsys, link):
+    """Two links to the folder itself grew the copy exponentially; a link to /dev/zero filled the disk. Links
+    inside the folder are refused, one line, and the catalogue is left as it was."""
+    from lasagna.cli import main
+
+    sd = _fake_diffusers(tmp_path / "sd")
+    bhat = _corrective(tmp_path / "bhat")
+    if link == "self":
+        (bhat / "a").symlink_to(bhat)
+        (bhat / "b").symlink_to(bhat)
+    elif link == "parent":
+        (bhat / "sub").mkdir()
+        (bhat / "sub" / "up").symlink_to("..")
+    else:
+        (bhat / "zero.bin").symlink_to("/dev/zero")
+    code = main(
+        ["prior", "add", str(sd), "--name", "mine", "--corrective", str(bhat), "--catalogue", str(tmp_path / "c")]
+    )
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "is a symbolic link; expected only folders and regular files (links are not followed)" in err
+    assert list((tmp_path / "c").iterdir()) == []  # nothing staged is left behind
+
+
+def test_prior_add_refuses_special_files_and_caps_the_copy(tmp_path, tiny, monkeypatch):
+    import os
+
+    from lasagna import atomic
+    from lasagna.errors import PathError
+
+    sd = _fake_diffusers(tmp_path / "sd")
+    bhat = _corrective(tmp_path / "bhat")
+    os.mkfifo(bhat / "pipe")
+    with pytest.raises(PathError, match=r"pipe: is a named pipe \(FIFO\); expected only folders and regular files"):
+        cat.add_prior(sd, "mine", corrective=bhat, catalogue=tmp_path / "c")
+    (bhat / "pipe").unlink()
+    monkeypatch.setattr(atomic.copy_tree, "__kwdefaults__", {"max_bytes": 300, "max_files": 1000})  # the caps
+    (bhat / "big.bin").write_bytes(b"\0" * 300)
+    with pytest.raises(PathError, match=r"bhat: holds more than 300 B; expected a smaller folder"):
+        cat.add_prior(sd, "mine", corrective=bhat, catalogue=tmp_path / "c")
+    (bhat / "big.bin").unlink()
+    written = cat.add_prior(sd, "mine", corrective=bhat, catalogue=tmp_path / "c")
+    copied = written.parent.parent / "mine-corrective"
+    assert sorted(p.name for p in copied.iterdir()) == ["config.json", "model.safetensors"]
+    assert [p.name for p in (tmp_path / "c").iterdir() if p.name.startswith(".")] == []
+
+
+def test_prior_add_on_a_link_loop_is_one_line(tmp_path, capsys):
+    from lasagna.cli import main
+
+    (tmp_path / "a").symlink_to(tmp_path / "b")
+    (tmp_path / "b").symlink_to(tmp_path / "a")
+    code = main(["prior", "add", str(tmp_path / "a"), "--name", "mine", "--catalogue", str(tmp_path / "c")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.strip().splitlines() == [
+        f"lasagna: error: {tmp_path / 'a'}: cannot be resolved (symlink loop); expected a folder (not a link loop)"
+    ]
