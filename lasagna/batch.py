@@ -12,10 +12,19 @@ folders; its matches filtered to image files and stack folders). A folder or pat
 is refused before any work. Path inputs are sorted and de-duplicated; in-memory images (tensors, arrays,
 PIL images, ``Stack``) keep their order and come after them.
 
-**Outputs**: ``out_dir/<name>/`` per input, ``<name>`` the file's stem (a stack folder's name), made unique
-in input order without regard to case (``a.png``, ``a.jpg`` → ``a``, ``a-2``); in-memory images are
-``image-1``, ``image-2``, … Each stack folder is written all or nothing (``lasagna.io.folder``), so a
-folder that exists with its stack.json is **complete**: it is skipped (``force`` rewrites it). Finished
+**Outputs**: ``out_dir/<name>/`` per input. Each stack folder records, in its stack.json's metadata
+(``lasagna.batch``), the source it was made from — its path relative to its **batch root** (the folder
+given, a pattern's fixed leading folder, a file's own folder), size and SHA-256 — and what was asked
+(preset, condition and the settings that change the layer). Names are matched to sources, never to sort
+positions (``assign_names``): an existing folder is claimed by the input whose path it records, so one
+input keeps its folder across runs whatever is added beside it; the other inputs take their stem (a stack
+folder's name), made unique in input order without regard to case (``a.png``, ``a.jpg`` → ``a``, ``a-2``)
+and skipping every name already in ``out_dir`` (a folder of another source, or one without a record, is
+never touched). In-memory images are ``image-1``, ``image-2``, … Each stack folder is written all or
+nothing (``lasagna.io.folder``), so a folder that exists with its stack.json is **complete**: it is
+skipped when its record matches (same source bytes, same request); redone in place when its source
+changed (``Outcome.note`` says so); refused in one line when it was asked with other settings (a
+different condition or layer: ``force`` redoes it, or use another ``out_dir``). ``force`` rewrites all. Finished
 folders are staged (written into temporary siblings without fsync, ``lasagna.atomic.unsynced``) and
 committed together: one file-system sync, then each renamed into place (``COMMIT_EVERY``). A killed run
 leaves only hidden temporaries, swept when the next run starts (``lasagna.atomic.sweep_stale``): running
@@ -49,6 +58,8 @@ CPU); with a group, every rank's report holds every input's outcome (gathered at
 from __future__ import annotations
 
 import glob
+import hashlib
+import json
 import os
 import shutil
 import time
@@ -60,7 +71,7 @@ from typing import Any, Literal
 import torch
 
 from lasagna import catalogue as cat
-from lasagna.atomic import sweep_stale, sync_filesystem, unsynced
+from lasagna.atomic import open_regular, sweep_stale, sync_filesystem, unsynced
 from lasagna.document import STACK_FILE
 from lasagna.editing import EditPlan, check_edit_options, plan_edit
 from lasagna.errors import LasagnaError, PathError, printable
@@ -80,11 +91,14 @@ Status = Literal["done", "skipped", "failed"]
 COMMIT_EVERY = 32
 COMMIT_SECONDS = 2.0
 
+# The stack.json metadata key of a batch output's record: its source and what was asked (module docstring).
+BATCH_KEY = "lasagna.batch"
+
 
 @dataclass
 class Outcome:
     """What became of one input: ``done`` (written to ``output``), ``skipped`` (``output`` was complete),
-    ``failed`` (``error``: one line, ``where: what; expected …``)."""
+    ``failed`` (``error``: one line, ``where: what; expected …``); ``note``: why a complete output was redone."""
 
     index: int  # in the sorted input list
     input: str
@@ -92,6 +106,7 @@ class Outcome:
     status: Status
     error: str | None = None
     seconds: float = 0.0
+    note: str | None = None
 
 
 @dataclass
@@ -145,9 +160,21 @@ def _found(paths, where: str, what: str) -> list[Path]:
 
 def collect_inputs(items: Sequence[Any] | Any) -> list[Any]:
     """The inputs ``items`` name (module docstring): paths sorted and de-duplicated, then in-memory images."""
+    return _collect(items)[0]
+
+
+def _pattern_root(pattern: str) -> Path:
+    """A glob pattern's fixed leading folder: ``photos/**/*.png`` → ``photos``."""
+    parts = Path(pattern).parts
+    fixed = parts[: next(i for i, part in enumerate(parts) if glob.has_magic(part))]
+    return Path(*fixed) if fixed else Path(".")
+
+
+def _collect(items: Sequence[Any] | Any) -> tuple[list[Any], list[Path | None]]:
+    """``collect_inputs``'s list, and each path input's batch root (module docstring; None for an image)."""
     if isinstance(items, (str, os.PathLike)) or not isinstance(items, Sequence):
         items = [items]
-    paths: dict[str, Path] = {}
+    paths: dict[str, tuple[Path, Path]] = {}
     images: list[Any] = []
     for item in items:
         if not isinstance(item, (str, os.PathLike)):
@@ -156,23 +183,119 @@ def collect_inputs(items: Sequence[Any] | Any) -> list[Any]:
         text = os.fspath(item)
         p = Path(text)
         if p.exists() or os.path.lexists(p):
-            found = _found(sorted(p.iterdir()), text, "holds") if p.is_dir() and not _is_stack(p) else [p]
+            listed = p.is_dir() and not _is_stack(p)
+            found = _found(sorted(p.iterdir()), text, "holds") if listed else [p]
+            root = p if listed else _folder_of(p).parent
         elif glob.has_magic(text):
             found = _found((Path(m) for m in sorted(glob.glob(text, recursive=True))), text, "matches")
+            root = _pattern_root(text)
         else:
-            found = [p]  # reported as missing, with the others written
+            found, root = [p], p.parent  # reported as missing, with the others written
         for f in found:
-            paths.setdefault(os.path.normpath(os.path.abspath(f)), f)
-    return [paths[k] for k in sorted(paths)] + images
+            paths.setdefault(os.path.normpath(os.path.abspath(f)), (f, root))
+    keys = sorted(paths)
+    return [paths[k][0] for k in keys] + images, [paths[k][1] for k in keys] + [None] * len(images)
 
 
-def output_names(inputs: Sequence[Any]) -> list[str]:
-    """One folder name per input: a file's stem, a stack folder's name (a stack.json's folder's), else
-    ``image-<k>``; made unique in order, case-insensitively, by ``-2``, ``-3``, …"""
-    names: list[str] = []
+def _folder_of(p: Path) -> Path:
+    """A stack input's folder (``p`` itself for a folder or an image file's path)."""
+    return p.parent if p.name == STACK_FILE else p
+
+
+def _relative(item: Path, root: Path) -> str:
+    """``item``'s path relative to its batch root, with '/' (what a record keeps)."""
+    return Path(os.path.relpath(os.path.abspath(_folder_of(item)), os.path.abspath(root))).as_posix()
+
+
+def source_record(item: Path, root: Path) -> dict[str, Any]:
+    """What a batch output records of its source: path relative to the batch root, size and SHA-256 of the
+    image file (of a stack folder's stack.json). Read through ``open_regular``: a FIFO is one line."""
+    p = Path(item)
+    file = p / STACK_FILE if p.is_dir() else p
+    digest, size = hashlib.sha256(), 0
+    with open_regular(file, str(p), expected="an image file or a stack folder") as fh:
+        while chunk := fh.read(1 << 20):
+            digest.update(chunk)
+            size += len(chunk)
+    return {"path": _relative(p, root), "size": size, "sha256": digest.hexdigest()}
+
+
+def read_record(folder: Path) -> dict[str, Any] | None:
+    """The batch record in ``folder``'s stack.json (``BATCH_KEY``), or None (none, or not readable)."""
+    from lasagna.document.validation import parse_json, read_json_text
+
+    try:
+        doc = parse_json(read_json_text(folder / STACK_FILE, "stack.json"), str(folder / STACK_FILE))
+    except (LasagnaError, OSError, RecursionError):
+        return None
+    meta = doc.get("metadata") if isinstance(doc, dict) else None
+    record = meta.get(BATCH_KEY) if isinstance(meta, dict) else None
+    return record if isinstance(record, dict) else None
+
+
+def _recorded_path(record: dict[str, Any] | None) -> str | None:
+    source = record.get("source") if record else None
+    path = source.get("path") if isinstance(source, dict) else None
+    return path if isinstance(path, str) else None
+
+
+def assign_names(inputs: Sequence[Any], roots: Sequence[Path | None], out_dir: Path) -> list[str]:
+    """One folder name per input, stable across runs (module docstring): each existing folder of ``out_dir``
+    is claimed by the input whose path (relative to its root) it records — among several inputs of that
+    path, the one whose bytes it records, else the first — then the others get ``output_names``' names,
+    skipping every name already in ``out_dir`` (but empty folders)."""
+    rels = {i: _relative(Path(x), r) for i, (x, r) in enumerate(zip(inputs, roots)) if r is not None}
+    by_rel: dict[str, list[int]] = {}
+    for i, rel in rels.items():
+        by_rel.setdefault(rel, []).append(i)
+    claimed: dict[int, str] = {}
     taken: set[str] = set()
+    unsourced: dict[str, str] = {}  # casefolded name → folder made from an in-memory image (its record says so)
+    entries = sorted(os.scandir(out_dir), key=lambda e: e.name) if out_dir.is_dir() else []
+    for entry in entries:
+        if entry.name.startswith("."):
+            continue  # temporaries (swept) and hidden files are no one's output
+        folder = Path(entry.path)
+        if not (entry.is_dir(follow_symlinks=False) and not any(folder.iterdir())):
+            taken.add(entry.name.casefold())  # a name in use: never given to another source
+        record = read_record(folder) if entry.is_dir(follow_symlinks=False) else None
+        if record is not None and record.get("source") is None:
+            unsourced[entry.name.casefold()] = entry.name
+        candidates = [i for i in by_rel.get(_recorded_path(record) or "", []) if i not in claimed]
+        if len(candidates) > 1:  # one relative path under several roots: the bytes decide
+            want = record["source"] if record else None
+            same = [i for i in candidates if _same_source(inputs[i], roots[i], want)]
+            candidates = same or candidates
+        if candidates:
+            claimed[candidates[0]] = entry.name
+    positional = output_names(inputs)  # an in-memory image has only its position: image-<k>
+    for i, root in enumerate(roots):
+        if root is None and positional[i].casefold() in unsourced:
+            claimed[i] = unsourced[positional[i].casefold()]
+    return output_names(inputs, claimed=claimed, taken=taken)
+
+
+def _same_source(item: Any, root: Path | None, want: Any) -> bool:
+    try:
+        return root is not None and source_record(Path(item), root) == want
+    except (LasagnaError, OSError):
+        return False
+
+
+def output_names(
+    inputs: Sequence[Any], *, claimed: dict[int, str] | None = None, taken: set[str] | None = None
+) -> list[str]:
+    """One folder name per input: a file's stem, a stack folder's name (a stack.json's folder's), else
+    ``image-<k>``; made unique in order, case-insensitively, by ``-2``, ``-3``, … ``claimed``: inputs whose
+    name is already decided (index → name); ``taken``: casefolded names no other input may get."""
+    claimed = claimed or {}
+    names: list[str] = []
+    taken = set(taken or ()) | {name.casefold() for name in claimed.values()}
     width = len(str(len(inputs)))
     for k, item in enumerate(inputs):
+        if k in claimed:
+            names.append(claimed[k])
+            continue
         if isinstance(item, (str, os.PathLike)):
             p = Path(item)
             stem = p.parent.resolve().name if p.name == STACK_FILE else (p.resolve().name if p.is_dir() else p.stem)
@@ -292,11 +415,13 @@ def edit_many(
     generators: dict[Path, LoadedGenerator] = {}
     if choose_method(first, generator) == "amortised":
         generators[first.generator] = load_generator(first, first.generator, device)
-    items = collect_inputs(inputs)
-    names = output_names(items)
+    items, roots = _collect(inputs)
     out_dir = check_writable(out_dir, folder=True)
     out_dir.mkdir(parents=True, exist_ok=True)
     sweep_stale(out_dir)  # a killed run's temporaries (their owners are gone)
+    names = assign_names(items, roots, out_dir)
+    asked = _request(preset, condition, on=on, id=id, generator=generator, optimize=n, loss=loss)
+    asked.update(_request(None, None, guidance=guidance, seed=seed, lr=lr))
 
     resolved: dict[Path | None, cat.Resolved] = {}
 
@@ -316,7 +441,9 @@ def edit_many(
 
         bar = tqdm(total=sum(map(len, mine)), desc=f"edit {preset}-{condition}", unit="image", leave=False)
     outcomes: list[Outcome] = []
-    staged: list[tuple[int, Path, float]] = []  # (index, temporary folder, start): written, not yet renamed
+    records: dict[int, dict[str, Any]] = {}  # what each output will record (BATCH_KEY)
+    notes: dict[int, str | None] = {}  # why a complete output is redone
+    staged: list[tuple[int, Path, float, str | None]] = []  # (index, temporary folder, start, note): not renamed
     shared = SharedFiles(out_dir)  # the generator's weights: written once, hard-linked into every stack folder
     since = [time.monotonic()]
 
@@ -332,10 +459,10 @@ def edit_many(
         if staged:
             sync_filesystem(out_dir)
         while staged:
-            i, tmp, t0 = staged.pop(0)
+            i, tmp, t0, note = staged.pop(0)
             try:
-                swap_in(tmp, outputs[i], force=force)
-                report(Outcome(i, labels[i], str(outputs[i]), "done", None, time.monotonic() - t0))
+                swap_in(tmp, outputs[i], force=force or note is not None)  # a note: a stale output redone
+                report(Outcome(i, labels[i], str(outputs[i]), "done", None, time.monotonic() - t0, note))
             except Exception as exc:  # noqa: BLE001 - e.g. another writer filled the folder meanwhile
                 shutil.rmtree(tmp, ignore_errors=True)
                 report(Outcome(i, labels[i], str(outputs[i]), "failed", _describe(exc, labels[i]), 0.0))
@@ -350,9 +477,12 @@ def edit_many(
                 try:
                     if isinstance(item, (str, os.PathLike)) and Path(item).resolve() == out.resolve():
                         raise PathError("is the input stack; expected an OUTDIR other than its folder", str(out))
+                    records[i] = {"source": _source_or_none(item, roots[i]), "request": asked}
                     if is_complete(out) and not force:
-                        report(Outcome(i, label, str(out), "skipped"))
-                        continue
+                        notes[i] = _compare(read_record(out), records[i], out)
+                        if notes[i] is None:
+                            report(Outcome(i, label, str(out), "skipped"))
+                            continue
                     plan = plan_edit(
                         item,
                         preset,
@@ -376,28 +506,74 @@ def edit_many(
                     if isinstance(y, Exception):
                         raise y
                     run = plan.make(**options, progress=False, loaded=gen, initial=y)
+                    result = _recorded(plan.finish(run, time.monotonic() - t0), records[i])
                     with unsynced():  # made durable together by commit()
-                        staged.append(
-                            (
-                                i,
-                                plan.finish(run, time.monotonic() - t0).stage(
-                                    out, force=force, ora=ora, warn=warn, shared=shared
-                                ),
-                                t0,
-                            )
-                        )
+                        tmp = result.stage(out, force=force or i in notes, ora=ora, warn=warn, shared=shared)
+                        staged.append((i, tmp, t0, notes.get(i)))
                 except Exception as exc:  # noqa: BLE001
                     report(Outcome(i, label, str(out), "failed", _describe(exc, label), time.monotonic() - t0))
                 if len(staged) >= COMMIT_EVERY or time.monotonic() - since[0] >= COMMIT_SECONDS:
                     commit()
         commit()
     finally:
-        for _, tmp, _ in staged:  # interrupted: finished work not yet renamed in is dropped, nothing half-written
+        for _, tmp, _, _ in staged:  # interrupted: finished work not yet renamed in is dropped, nothing half-written
             shutil.rmtree(tmp, ignore_errors=True)
         shared.close()
         if bar is not None:
             bar.close()
     return BatchReport(_gather(outcomes), time.monotonic() - start)
+
+
+def _request(preset: str | None, condition: str | None, **settings: Any) -> dict[str, Any]:
+    """What was asked, as an output records it: the preset, the condition and the settings that change the
+    layer (those given), as JSON values."""
+    asked = {"preset": preset, "condition": condition, **settings}
+    return json.loads(json.dumps({k: v for k, v in asked.items() if v is not None}))
+
+
+def _source_or_none(item: Any, root: Path | None) -> dict[str, Any] | None:
+    """``source_record`` of a path input; None for an in-memory image, or a path that cannot be read as a file
+    (missing, a folder without stack.json: ``plan_edit`` says why, in its words). A FIFO, a device: refused."""
+    if root is None:
+        return None
+    try:
+        return source_record(Path(item), root)
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+        return None
+
+
+def _compare(old: dict[str, Any] | None, new: dict[str, Any], out: Path) -> str | None:
+    """Whether a complete output may be skipped (None), is to be redone (the reason, for ``Outcome.note``: its
+    source changed), or is refused (a ``LasagnaError``: made with other settings, or not by a batch)."""
+    if old is None:
+        raise PathError(
+            "holds a stack folder without a batch record (written by hand or by an older lasagna); expected a "
+            "folder this batch wrote (--force to replace it, or another OUTDIR)",
+            str(out),
+        )
+    before = old.get("request") if isinstance(old.get("request"), dict) else {}
+    differ = [k for k in sorted(set(before) | set(new["request"])) if before.get(k) != new["request"].get(k)]
+    if differ:
+
+        def shown(value: Any) -> str:
+            return "(default)" if value is None else repr(value)
+
+        now = new["request"]
+        was = ", ".join(f"{k} {shown(before.get(k))} (asked now: {shown(now.get(k))})" for k in differ)
+        raise PathError(
+            f"was made with {was}; expected the same request to resume (--force redoes it, or another OUTDIR)",
+            str(out),
+        )
+    if old.get("source") != new["source"] and new["source"] is not None:
+        return "redone: its source changed since this output was made"
+    return None
+
+
+def _recorded(result, record: dict[str, Any]):
+    """``result`` with ``record`` in its stack.json's metadata (``BATCH_KEY``)."""
+    doc = result.stack.document
+    result.stack.document = doc.replace(metadata={**dict(doc.metadata), BATCH_KEY: record})
+    return result
 
 
 def _forward(todo, generators: dict[Path, LoadedGenerator], device) -> dict[int, tuple[Any, Any]]:
@@ -430,4 +606,16 @@ def _forward(todo, generators: dict[Path, LoadedGenerator], device) -> dict[int,
     return out
 
 
-__all__ = ["BatchReport", "IMAGE_SUFFIXES", "Outcome", "collect_inputs", "edit_many", "is_complete", "output_names"]
+__all__ = [
+    "BATCH_KEY",
+    "BatchReport",
+    "IMAGE_SUFFIXES",
+    "Outcome",
+    "assign_names",
+    "collect_inputs",
+    "edit_many",
+    "is_complete",
+    "output_names",
+    "read_record",
+    "source_record",
+]

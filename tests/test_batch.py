@@ -327,3 +327,86 @@ def test_two_processes_equal_one(tmp_path, tiny, capsys, how):
     assert done.stdout.strip().splitlines()[-1].startswith(f"{tmp_path / 'two'}/ (2 processes): edited 5, skipped 0")
     for p in images:
         assert _files(tmp_path / "two" / p.stem) == _files(tmp_path / "one" / p.stem), p.stem
+
+
+# ---- outputs matched to their sources (issue #28, 4; issue #27) ------------------------------------------
+
+
+def _record(folder: Path) -> dict:
+    from lasagna.batch import read_record
+
+    record = read_record(folder)
+    assert record is not None, folder
+    return record
+
+
+def test_an_added_file_of_the_same_stem_does_not_take_the_other_ones_folder(tmp_path, capsys):
+    """Issue #28 (4): photo.jpg added beside photo.png must not take photo/ (made from photo.png) and be skipped
+    while photo.png is redone as photo-2/: each folder belongs to the source it records."""
+    (png,) = _images(tmp_path / "in", 1)
+    png = png.rename(tmp_path / "in" / "photo.png")
+    out = tmp_path / "out"
+    code, stdout, err = run(capsys, "edit", tmp_path / "in", "--condition", "left", "-o", out)
+    assert code == 0, err
+    made = (out / "photo" / "stack.json").stat().st_ino
+    assert _record(out / "photo")["source"]["path"] == "photo.png"
+    Image.open(png).convert("RGB").save(tmp_path / "in" / "photo.jpg")  # sorts before photo.png
+    code, stdout, err = run(capsys, "edit", tmp_path / "in", "--condition", "left", "-o", out)
+    assert code == 0, err
+    assert "edited 1, skipped 1 (complete), failed 0" in stdout
+    assert (out / "photo" / "stack.json").stat().st_ino == made  # photo.png's, untouched
+    assert _record(out / "photo")["source"]["path"] == "photo.png"
+    assert _record(out / "photo-2")["source"]["path"] == "photo.jpg"
+    assert sorted(p.name for p in out.iterdir()) == ["photo", "photo-2"]
+    # the same names however the inputs are named: a glob, the files one by one
+    for argv in ([str(tmp_path / "in" / "photo.*")], [tmp_path / "in" / "photo.png", tmp_path / "in" / "photo.jpg"]):
+        code, stdout, err = run(capsys, "edit", *argv, "--condition", "left", "-o", out)
+        assert code == 0 and "edited 0, skipped 2 (complete), failed 0" in stdout, (stdout, err)
+
+
+def test_a_rerun_asking_for_something_else_is_refused_per_file_not_skipped(tmp_path, capsys):
+    """Issue #27: a re-run with another condition (or layer) must not print "skipped (complete)"."""
+    images = _images(tmp_path / "in", 2)
+    out = tmp_path / "out"
+    assert run(capsys, "edit", tmp_path / "in", "--condition", "left", "-o", out)[0] == 0
+    code, stdout, err = run(capsys, "edit", tmp_path / "in", "--condition", "right", "-o", out)
+    assert code == 2 and "edited 0, skipped 0 (complete), failed 2" in stdout
+    lines = err.strip().splitlines()
+    assert len(lines) == 2
+    for line, p in zip(lines, images):
+        assert line.startswith(f"lasagna: error: {p}: {out / p.stem}: was made with condition 'left' (asked now: ")
+        assert "'right'" in line and "--force redoes it" in line
+    code, stdout, err = run(capsys, "edit", tmp_path / "in", "--condition", "right", "-o", out, "--force")
+    assert code == 0 and "edited 2" in stdout, err
+    assert _record(out / images[0].stem)["request"]["condition"] == "right"
+    code, stdout, err = run(capsys, "edit", tmp_path / "in", "--condition", "right", "-o", out, "--generator", "free")
+    assert code == 2 and "generator (default) (asked now: 'free')" in err
+
+
+def test_a_changed_source_is_redone_in_place_and_said(tmp_path, capsys):
+    images = _images(tmp_path / "in", 2)
+    out = tmp_path / "out"
+    assert run(capsys, "edit", tmp_path / "in", "--condition", "left", "-o", out)[0] == 0
+    kept = (out / images[1].stem / "stack.json").stat().st_ino
+    Image.new("RGB", (16, 12), (200, 10, 10)).save(images[0])
+    code, stdout, err = run(capsys, "edit", tmp_path / "in", "--condition", "left", "-o", out)
+    assert code == 0 and "edited 1, skipped 1 (complete), failed 0" in stdout, err
+    assert f"{images[0]}: redone: its source changed since this output was made ({out / images[0].stem})" in stdout
+    assert (
+        _record(out / images[0].stem)["source"]["sha256"]
+        == __import__("hashlib").sha256(images[0].read_bytes()).hexdigest()
+    )
+    assert (out / images[1].stem / "stack.json").stat().st_ino == kept
+    assert sorted(p.name for p in out.iterdir()) == [p.stem for p in images]
+
+
+def test_a_folder_without_a_record_is_never_taken(tmp_path, capsys):
+    """A folder the batch did not write (by hand, an older lasagna) is left alone: its stem goes to another name."""
+    (image,) = _images(tmp_path / "in", 1)
+    out = tmp_path / "out"
+    (out / image.stem).mkdir(parents=True)
+    (out / image.stem / "notes.txt").write_text("mine")
+    code, stdout, err = run(capsys, "edit", tmp_path / "in", "--condition", "left", "-o", out)
+    assert code == 0, err
+    assert (out / image.stem / "notes.txt").read_text() == "mine"
+    assert _record(out / f"{image.stem}-2")["source"]["path"] == image.name

@@ -15,7 +15,10 @@ sibling folder renamed at the end (``lasagna.io.folder``), so a failure leaves n
 **Many inputs** — more than one, a folder that is not a stack folder, or a glob pattern (expanded here, so
 quote it: ``**`` crosses folders) — and OUTDIR holds one stack folder per input, ``OUTDIR/<stem>/``
 (``lasagna.batch``: names, resumption, shards). A stack folder among them is edited on top, as alone.
-Complete outputs are skipped (``--force`` rewrites them), so running again after a kill finishes the rest.
+Each output records its source file (path under the folder given, size, hash) and what was asked; a
+complete output is skipped when both match, redone when its source changed (one line says so), refused in
+one line when it was made with another condition or layer (``--force`` rewrites them), so running again
+after a kill finishes the rest.
 Each failure is one line on stderr, ``lasagna: error: <input>: <what>``, and the others are still written;
 the last line on stdout is ``edited N, skipped K (complete), failed F``; exit status 2 if any failed. Under
 ``torchrun`` (``WORLD_SIZE`` > 1) every process takes its shard and rank 0 reports for all.
@@ -254,6 +257,9 @@ def run_many(args: argparse.Namespace) -> int:
     finally:
         shutdown_distributed(info)
     if info.is_main:
+        for o in report.outcomes:  # what was done to a file beyond editing it: a stale output redone
+            if o.note:
+                print(f"{printable(o.input)}: {o.note} ({o.output})")
         for o in report.failed:
             print(f"{PROG}: error: {printable(o.input)}: {o.error}", file=sys.stderr)
         where = f"{Path(args.output)}/" + (f" ({info.world_size} processes)" if info.world_size > 1 else "")
