@@ -16,6 +16,7 @@
     lasagna train-prior --task T --out DIR        train a conditional prior on the world (resumable)
     lasagna train-corrective --prior P --out DIR  train or fit the LMC-SDS corrective b̂ of a prior
     lasagna train-layer --preset P [--out DIR]    train a preset's amortised generator
+    lasagna train-surface --input I --out DIR     train a surface estimator on the world (resumable)
 
 One module per command (``lasagna/cli/<command>.py``, ``-`` spelled ``_``), each with one convention:
 ``HELP`` (one line), ``add_arguments(parser)`` and ``run(args) -> exit status``. A command's module
@@ -57,6 +58,7 @@ from lasagna.cli import (
     train_corrective,
     train_layer,
     train_prior,
+    train_surface,
     validate,
     world,
 )
@@ -83,6 +85,7 @@ COMMANDS: dict[str, ModuleType] = {
     "train-prior": train_prior,
     "train-corrective": train_corrective,
     "train-layer": train_layer,
+    "train-surface": train_surface,
 }
 
 

@@ -97,3 +97,36 @@ def decode_normal_map(rgb: Tensor, *, convention: str = "opengl") -> Tensor:
     flat = torch.zeros_like(n)
     flat[:, 2] = 1.0
     return torch.where(length > NORMAL_EPS, n / length.clamp_min(NORMAL_EPS), flat)
+
+
+def inflate_regions(index: Tensor) -> Tensor:
+    """A height field (B, 1, H, W) in canvas units that inflates every labelled region into a round dome.
+
+    ``index`` (B, 1, H, W) integer: ≥ 0 labels a region (an object's silhouette), < 0 is flat background (the
+    wall). Each region becomes h = √(R² − (R − d)²), d the distance (pixels) to the nearest pixel outside it
+    and R its largest d (+½): a disc inflates to the exact hemisphere. This is the classic shape-from-
+    silhouette prior (Johnston's Lumo; Igarashi's Teddy): the surface a model that only knows outlines and
+    assumes generic round shapes can reach — the benchmarks' oracle when given the true outlines.
+    """
+    b_, _, h_, w_ = index.shape
+    rows, cols = torch.meshgrid(
+        torch.arange(h_, dtype=torch.float64), torch.arange(w_, dtype=torch.float64), indexing="ij"
+    )
+    pts = torch.stack([rows, cols], -1).reshape(-1, 2)
+    height = torch.zeros(b_, 1, h_, w_, dtype=torch.float64)
+    for b in range(b_):
+        idx = index[b, 0]
+        for k in idx.unique().tolist():
+            if k < 0:
+                continue
+            region = (idx == k).to(torch.float64)[None, None]
+            # The nearest outside pixel always touches the region: search those only.
+            edge = (torch.nn.functional.max_pool2d(region, 3, 1, 1) - region).reshape(-1) > 0
+            inside = region.reshape(-1) > 0
+            if edge.any():
+                d = torch.cdist(pts[inside], pts[edge]).min(dim=1).values
+            else:  # the region fills the image
+                d = torch.zeros(int(inside.sum()), dtype=torch.float64)
+            r = d.max() + 0.5
+            height[b, 0].view(-1)[inside] = (r**2 - (r - d) ** 2).clamp_min(0).sqrt()
+    return height * (2.0 / w_)  # pixels → canvas units (the canvas is 2 units wide)

@@ -1,0 +1,61 @@
+"""``lasagna train-surface``: train a surface estimator on the world's truth under many lights (resumable;
+``lasagna.training.surface``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+HELP = "train a surface estimator (height field from an image) on the procedural world (resumable)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--input", choices=("albedo", "lit"), required=True, help="what it reads: unlit base or lit image")
+    p.add_argument("--out", required=True, help="run folder; run again with the same folder to resume")
+    p.add_argument("--working-size", type=int, default=32, help="the side it trains (and later works) at")
+    p.add_argument("--channels", default="32,64,128", help="feature channels per level")
+    p.add_argument("--blocks", type=int, default=2)
+    p.add_argument("--lights", type=int, default=3, help="random lights per scene and step")
+    p.add_argument("--steps", type=int, default=100_000, help="upper bound; --minutes usually stops first")
+    p.add_argument("--minutes", type=float, default=None, help="time budget of this invocation")
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--warmup", type=int, default=100)
+    p.add_argument("--ema", type=float, default=0.998)
+    p.add_argument("--grad-clip", type=float, default=1.0)
+    p.add_argument("--world-seed", type=int, default=7, help="seed of the training split's scenes")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-progress", action="store_true")
+    p.epilog = "example: lasagna train-surface --input lit --out runs/surface-lit-32 --minutes 30"
+
+
+def run(args: argparse.Namespace) -> int:
+    from lasagna.errors import LasagnaError
+    from lasagna.generators.surface import SurfaceConfig
+    from lasagna.training.surface import SurfaceTrainConfig, train_surface
+
+    try:
+        channels = tuple(int(c) for c in str(args.channels).split(","))
+    except ValueError:
+        raise LasagnaError(
+            f"{args.channels!r} is not a comma-separated list of integers; expected e.g. 32,64,128", "--channels"
+        ) from None
+    config = SurfaceTrainConfig(
+        net=SurfaceConfig(input=args.input, channels=channels, blocks=args.blocks, working_size=args.working_size),
+        lights=args.lights,
+        steps=args.steps,
+        max_minutes=args.minutes,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        warmup_steps=args.warmup,
+        ema_decay=args.ema,
+        ema_warmup=True,
+        grad_clip=args.grad_clip,
+        world_seed=args.world_seed,
+        seed=args.seed,
+        progress=not args.no_progress,
+    )
+    train_surface(config, args.out)
+    print(json.dumps({"out": str(Path(args.out) / "surface"), "input": args.input}))
+    return 0

@@ -1,0 +1,127 @@
+"""``SurfaceEstimator``: the conditioned U-Net whose layer is a surface — a height field — not a multiplier.
+
+A shading layer under a directional light is the rendering of one surface (`lasagna.compose.surface`): the
+estimator reads an image and outputs the height field h (B, 1, H, W) in canvas units (the canvas is 2 units
+wide), whose normals n ∝ (−∂h/∂x, −∂h/∂y, 1) are rendered by Lambert with ambient under *any* light. So one
+estimate serves every light, a flat painted wall stays flat unless the estimator bends it, and relighting
+toward left and toward right differ by construction.
+
+Two inputs (``SurfaceConfig.input``):
+
+* ``"albedo"`` — the unlit base layer (the ``shading`` task): geometry from outlines and paint alone;
+* ``"lit"`` — an image already lit by an unknown directional light (the ``relight`` task): geometry from
+  shading, and a second head estimating that source light l_src (global average of the bottleneck → MLP →
+  azimuth and elevation below ``MAX_LIGHT_ELEVATION``), which the relight ratio S(l_tgt)/S(l_src) needs.
+
+The body is the layer generator's (`lasagna.generators.unet`): per level ``blocks`` × (Conv3×3 → SiLU), 2×2
+average pooling, nearest ×2 and skip concatenation on the way up, no normalisation layer (a pixel does not
+depend on the batch or on far-away pixels' statistics); any H, W (replicate-padded to a multiple of
+2^(levels − 1), cropped back). The height head is a zero-initialised 1×1 convolution: an untrained estimator
+returns the flat surface h = 0 (n = +z everywhere), whose shading is the wall's, a + (1 − a)·cos el.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+from torch import Tensor, nn
+
+from lasagna.errors import LasagnaError
+from lasagna.generators.unet import _convs
+from lasagna.io.checkpoint import Pretrained
+from lasagna.limits import MAX_GENERATOR_BLOCKS, MAX_GENERATOR_LEVELS, MAX_GENERATOR_WIDTH
+
+FORMAT = "lasagna.surface_estimator"
+# The source light's elevation (from the view axis) stays below this: a light in the image plane (el = 90°)
+# lights nothing head-on, and the relight ratio divides by the source's shading (≥ a, so finite, but
+# meaningless there). cos 85° = 0.087.
+MAX_LIGHT_ELEVATION = 85.0
+
+
+class SurfaceConfig(BaseModel):
+    """Everything that rebuilds a ``SurfaceEstimator`` (saved as config.json beside the weights)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    input: Literal["albedo", "lit"] = Field(description="What it reads: the unlit base, or an image already lit.")
+    channels: tuple[int, ...] = Field(
+        (32, 64, 128), min_length=1, max_length=MAX_GENERATOR_LEVELS, description="Feature widths per level."
+    )
+    blocks: int = Field(2, ge=1, le=MAX_GENERATOR_BLOCKS, description="Conv3×3+SiLU blocks per level.")
+    working_size: int = Field(32, ge=8, le=1024, description="The side it was trained at (and is applied at).")
+
+    @field_validator("channels")
+    @classmethod
+    def _widths(cls, v: tuple[int, ...]) -> tuple[int, ...]:
+        if any(c < 1 or c > MAX_GENERATOR_WIDTH for c in v):
+            raise ValueError(f"widths must lie in [1, {MAX_GENERATOR_WIDTH}]; got {list(v)}")
+        return v
+
+
+class SurfaceEstimator(Pretrained, nn.Module):
+    """image (B, 3, H, W) in [0, 1] → height (B, 1, H, W) and, for ``input="lit"``, the source light (B, 3)."""
+
+    FORMAT = FORMAT
+    CONFIG = SurfaceConfig
+
+    def __init__(self, config: SurfaceConfig):
+        super().__init__()
+        self.config = config
+        ch = config.channels
+        self.enc = nn.ModuleList()
+        prev = 3
+        for c in ch:
+            self.enc.append(_convs(prev, c, config.blocks))
+            prev = c
+        self.dec = nn.ModuleList(_convs(ch[i + 1] + ch[i], ch[i], config.blocks) for i in reversed(range(len(ch) - 1)))
+        self.head = nn.Conv2d(ch[0], 1, 1)
+        with torch.no_grad():  # the flat surface for every input (module docstring)
+            self.head.weight.zero_()
+            self.head.bias.zero_()
+        self.light_head = (
+            nn.Sequential(nn.Linear(ch[-1], 64), nn.SiLU(), nn.Linear(64, 3)) if config.input == "lit" else None
+        )
+
+    def _features(self, image: Tensor) -> tuple[Tensor, Tensor]:
+        if not isinstance(image, Tensor) or image.dim() != 4 or image.shape[1] != 3:
+            got = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
+            raise LasagnaError(f"image has shape {got}; expected (B, 3, H, W) in [0, 1]", "image")
+        b, _, h, w = image.shape
+        factor = 2 ** (len(self.config.channels) - 1)
+        ph, pw = (-h) % factor, (-w) % factor
+        x = image.to(self.head.weight.dtype) * 2 - 1
+        if ph or pw:
+            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
+        skips = []
+        for i, block in enumerate(self.enc):
+            x = block(x)
+            if i < len(self.enc) - 1:
+                skips.append(x)
+                x = F.avg_pool2d(x, 2)
+        bottleneck = x
+        for block in self.dec:
+            x = F.interpolate(x, scale_factor=2.0, mode="nearest")
+            x = block(torch.cat([x, skips.pop()], dim=1))
+        return self.head(x)[:, :, :h, :w], bottleneck
+
+    def forward(self, image: Tensor) -> Tensor:
+        """The height field (B, 1, H, W) in canvas units."""
+        return self._features(image)[0]
+
+    def estimate(self, image: Tensor) -> tuple[Tensor, Tensor | None]:
+        """(height (B, 1, H, W), source light (B, 3), or None for albedo input).
+
+        The light is a unit vector by construction: its azimuth is the direction of the head's first two
+        outputs, its elevation ``MAX_LIGHT_ELEVATION``·sigmoid(third), so it always faces the viewer."""
+        height, bottleneck = self._features(image)
+        if self.light_head is None:
+            return height, None
+        v = self.light_head(bottleneck.mean(dim=(-2, -1)))
+        planar = v[:, :2] / (v[:, :2].norm(dim=1, keepdim=True) + 1e-6)  # (cos az, sin az); 1e-6: v = 0 → 0
+        el = torch.sigmoid(v[:, 2:3]) * math.radians(MAX_LIGHT_ELEVATION)
+        light = torch.cat([planar * torch.sin(el), torch.cos(el)], 1)
+        return height, light / light.norm(dim=1, keepdim=True)

@@ -1,0 +1,144 @@
+"""Training the surface estimator (`lasagna.generators.surface`) on the world's truth, under many lights.
+
+The world knows every scene's normals, so the estimator is trained on the quantity a shading layer is made
+from: its height field h is turned into normals and **rendered under K random lights per step** (multi-light
+supervision: one geometry must shade right under all of them, as multi-view supervision makes one shape fit
+every view), compared with the true shading under the same lights::
+
+    L = mean_k ‖S(n̂, l_k) − S(n, l_k)‖²  +  λ_n‖n̂ − n‖²  (+ λ_l (1 − l̂_src·l_src) for a lit input)
+
+S = a + (1 − a)·max(0, n·l) (`lasagna.compose.surface.lambert`); lights l_k uniform in azimuth, elevation in
+[0°, ``MAX_TRAIN_ELEVATION``]. A ``"lit"`` estimator reads each scene lit by its own random source light
+(elevation in the relight range, `lasagna.world.tasks.RELIGHT_ELEVATION`) and also learns that light.
+
+Scenes come from one world split (``train`` by default) and never from ``select``, ``heldout`` or ``far`` at
+the benchmarks' seed; every random draw of a step comes from the loop's generator, so a run resumes bit for bit
+(`lasagna.training.loop`). ``surface_metrics`` is the measurement the trainer logs and the benchmarks print.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import torch
+from pydantic import ConfigDict, Field
+
+from lasagna.compose.resample import downsample, upsample, working_size
+from lasagna.compose.surface import lambert, normals_from_height
+from lasagna.errors import LasagnaError
+from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
+from lasagna.training.loop import LoopConfig, train_loop
+from lasagna.training.tasks import SCENE_RANGE
+from lasagna.world import generate
+from lasagna.world.scene import with_light
+from lasagna.world.splits import HELD_SPLITS
+from lasagna.world.tasks import RELIGHT_ELEVATION
+
+CHECKPOINT_FORMAT = "lasagna.surface_run"
+MAX_TRAIN_ELEVATION = 75.0
+"""Highest elevation (degrees from the view axis) of the training lights: grazing lights beyond it shade
+almost every surface at the ambient floor and say little about shape."""
+
+
+class SurfaceTrainConfig(LoopConfig):
+    """How a surface estimator is trained (saved as train_config.json and inside every checkpoint)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    net: SurfaceConfig
+    batch_size: int = Field(32, ge=1)
+    lights: int = Field(3, ge=1, le=16, description="random lights per scene and step (multi-light supervision)")
+    normal_weight: float = Field(0.5, ge=0.0, description="λ_n: weight of the normals' own squared error")
+    light_weight: float = Field(0.1, ge=0.0, description="λ_l: weight of the source light's cosine error (lit)")
+    split: str = Field("train", description="world split the training scenes come from")
+    world_seed: int = Field(7, description="seed of the world split (scenes are (split, seed, index))")
+
+
+def random_lights(count: int, rng: torch.Generator, el_range: tuple[float, float]) -> torch.Tensor:
+    """(count, 3) unit lights: azimuth uniform in [0, 360°), elevation uniform in ``el_range`` (degrees)."""
+    az = torch.rand(count, generator=rng, dtype=torch.float64) * (2 * math.pi)
+    lo, hi = (math.radians(e) for e in el_range)
+    el = lo + (hi - lo) * torch.rand(count, generator=rng, dtype=torch.float64)
+    return torch.stack([el.sin() * az.cos(), el.sin() * az.sin(), el.cos()], 1).float()
+
+
+def estimator_input(net: SurfaceConfig, scene, source: torch.Tensor | None) -> torch.Tensor:
+    """What the estimator reads of ``scene``: its albedo, or the scene lit by ``source`` (B, 3)."""
+    if net.input == "albedo":
+        return scene.albedo
+    if source is None:
+        raise LasagnaError("a lit-input estimator needs the source lights", "source")
+    return with_light(scene, source).image
+
+
+def surface_loss(
+    net: SurfaceEstimator,
+    config: SurfaceTrainConfig,
+    scene,
+    source: torch.Tensor | None,
+    lights: torch.Tensor,
+    device: str | torch.device = "cpu",
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """The module docstring's L on one batch: ``scene`` (B scenes), ``source`` (B, 3) their source lights (lit
+    input), ``lights`` (K·B, 3) the lights their estimate and truth are compared under (K per scene)."""
+    b = len(scene)
+    height, light = net.estimate(estimator_input(config.net, scene, source).to(device))
+    normals, truth = normals_from_height(height), scene.normals.to(device)
+    groups = lights.to(device).split(b)
+    shading = sum(torch.nn.functional.mse_loss(lambert(normals, lk), lambert(truth, lk)) for lk in groups)
+    shading = shading / len(groups)
+    loss = shading + config.normal_weight * torch.nn.functional.mse_loss(normals, truth)
+    metrics = {"shading_mse": float(shading.detach())}
+    if light is not None and source is not None:
+        cos_err = (1.0 - (light * source.to(device)).sum(1)).mean()
+        loss = loss + config.light_weight * cos_err
+        metrics["light_cos_err"] = float(cos_err.detach())
+    return loss, metrics
+
+
+def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str | torch.device = "cpu"):
+    """Train (or resume) the estimator in ``out_dir``; the final EMA weights go to ``out_dir/surface``."""
+    if config.split in HELD_SPLITS and config.world_seed == 0:
+        raise LasagnaError(
+            f"training on {config.split} scenes of world seed 0 would train on the benchmarks' own scenes; "
+            "expected another world seed",
+            "world_seed",
+        )
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        estimator = SurfaceEstimator(config.net)
+    side = config.net.working_size
+
+    def step_fn(net: SurfaceEstimator, rng: torch.Generator, step: int):
+        start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
+        scene = generate(config.split, config.batch_size, config.world_seed, side, start=start)
+        source = random_lights(config.batch_size, rng, RELIGHT_ELEVATION) if config.net.input == "lit" else None
+        lights = random_lights(config.batch_size * config.lights, rng, (0.0, MAX_TRAIN_ELEVATION))
+        return surface_loss(net, config, scene, source, lights, device)
+
+    done = train_loop(
+        estimator,
+        step_fn,
+        config,
+        config,
+        out_dir,
+        checkpoint_format=CHECKPOINT_FORMAT,
+        desc=f"surface:{config.net.input}",
+        device=device,
+    )
+    final: SurfaceEstimator = done.model  # type: ignore[assignment]
+    final.save_pretrained(Path(out_dir) / "surface")
+    return final
+
+
+@torch.no_grad()
+def estimate_at(estimator: SurfaceEstimator, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The estimate for ``image`` (B, 3, H, W) made at the estimator's working size, its height enlarged back
+    (bilinear, so the normals at full size are smooth) to (H, W). Heights are in canvas units, so normals do
+    not depend on the size the height is sampled at."""
+
+    full = tuple(image.shape[-2:])
+    small = downsample(image, working_size(*full, estimator.config.working_size))
+    height, light = estimator.estimate(small)
+    return upsample(height, full), light

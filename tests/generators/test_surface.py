@@ -1,0 +1,62 @@
+"""The surface estimator: flat at initialisation, any size, a unit source light, save/load round trip."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from lasagna.compose.surface import normals_from_height
+from lasagna.errors import LasagnaError
+from lasagna.generators.surface import MAX_LIGHT_ELEVATION, SurfaceConfig, SurfaceEstimator
+
+TINY = dict(channels=(4, 8), blocks=1, working_size=8)
+
+
+@pytest.mark.parametrize("kind", ["albedo", "lit"])
+def test_untrained_is_the_flat_surface(kind):
+    net = SurfaceEstimator(SurfaceConfig(input=kind, **TINY))
+    h = net(torch.rand(2, 3, 9, 13))  # not multiples of 2: padded and cropped back
+    assert h.shape == (2, 1, 9, 13) and h.abs().max() == 0
+    n = normals_from_height(h)
+    assert torch.equal(n[:, 2], torch.ones_like(n[:, 2]))
+
+
+def test_lit_estimates_a_unit_light_facing_the_viewer():
+    torch.manual_seed(0)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", **TINY))
+    for p in net.light_head.parameters():
+        torch.nn.init.normal_(p, std=3.0)  # extreme outputs: still unit, z above the floor
+    _, light = net.estimate(torch.rand(5, 3, 8, 8))
+    torch.testing.assert_close(light.norm(dim=1), torch.ones(5), atol=1e-6, rtol=0)
+    assert (light[:, 2] >= math.cos(math.radians(MAX_LIGHT_ELEVATION)) - 1e-6).all()
+    _, none = SurfaceEstimator(SurfaceConfig(input="albedo", **TINY)).estimate(torch.rand(1, 3, 8, 8))
+    assert none is None
+
+
+def test_pixels_do_not_depend_on_the_batch():
+    torch.manual_seed(1)
+    net = SurfaceEstimator(SurfaceConfig(input="albedo", **TINY))
+    torch.nn.init.normal_(net.head.weight)
+    x = torch.rand(3, 3, 8, 8)
+    whole = net(x)
+    for i in range(3):
+        torch.testing.assert_close(net(x[i : i + 1]), whole[i : i + 1], atol=1e-6, rtol=0)
+
+
+def test_save_and_load(tmp_path):
+    torch.manual_seed(2)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", **TINY))
+    torch.nn.init.normal_(net.head.weight)
+    net.save_pretrained(tmp_path / "s")
+    back = SurfaceEstimator.from_pretrained(tmp_path / "s")
+    x = torch.rand(1, 3, 8, 8)
+    assert back.config == net.config
+    assert torch.equal(back(x), net.eval()(x))
+
+
+def test_bad_input():
+    net = SurfaceEstimator(SurfaceConfig(input="albedo", **TINY))
+    with pytest.raises(LasagnaError, match=r"image: image has shape \(1, 1, 8, 8\); expected \(B, 3, H, W\)"):
+        net(torch.rand(1, 1, 8, 8))

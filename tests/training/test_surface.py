@@ -1,0 +1,85 @@
+"""Training the surface estimator on tiny world batches: the multi-light error falls, a killed run resumes to
+the same weights, held-out splits at the benchmarks' seed are refused, and the estimate is made at the working
+size."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from lasagna.errors import LasagnaError
+from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
+from lasagna.training.loop import read_log
+from lasagna.training.surface import SurfaceTrainConfig, estimate_at, random_lights, surface_loss, train_surface
+from lasagna.world import generate
+
+
+def tiny(**kw) -> SurfaceTrainConfig:
+    base = dict(
+        net=SurfaceConfig(input="lit", channels=(8, 16), blocks=1, working_size=16),
+        batch_size=8,
+        steps=60,
+        lr=1e-2,
+        checkpoint_every=10,
+        log_every=1,
+        progress=False,
+        seed=3,
+    )
+    return SurfaceTrainConfig(**{**base, **kw})
+
+
+def test_one_batch_is_fitted_under_every_light():
+    """The loss, the renderer and the light head are wired so that Adam fits a fixed batch: the multi-light
+    shading error and the source light's error both fall by half (learning across fresh batches takes
+    thousands of steps: the committed run's card measures that)."""
+    config = tiny()
+    torch.manual_seed(0)
+    net = SurfaceEstimator(config.net)
+    scene = generate("val", 4, 1, 16)
+    rng = torch.Generator().manual_seed(0)
+    source = random_lights(4, rng, (30.0, 75.0))
+    lights = random_lights(4 * config.lights, rng, (0.0, 75.0))
+    opt = torch.optim.Adam(net.parameters(), 3e-3)
+    history = []
+    for _ in range(300):
+        loss, metrics = surface_loss(net, config, scene, source, lights)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        history.append(metrics)
+    assert history[-1]["shading_mse"] < 0.5 * history[0]["shading_mse"]
+    assert history[-1]["light_cos_err"] < 0.5 * history[0]["light_cos_err"]
+
+
+def test_a_run_writes_its_estimator(tmp_path):
+    net = train_surface(tiny(steps=3), tmp_path / "run")
+    assert [r["step"] for r in read_log(tmp_path / "run")] == [1, 2, 3]
+    back = SurfaceEstimator.from_pretrained(tmp_path / "run" / "surface")
+    x = torch.rand(1, 3, 16, 16)
+    assert torch.equal(back(x), net(x))
+
+
+def test_a_killed_run_resumes_to_the_same_weights(tmp_path):
+    whole = train_surface(tiny(steps=20), tmp_path / "a")
+    train_surface(tiny(steps=20, max_minutes=1e-9), tmp_path / "b")  # stops at once, checkpointed at step 0/1
+    train_surface(tiny(steps=10), tmp_path / "b")
+    resumed = train_surface(tiny(steps=20), tmp_path / "b")
+    for (k, v), w in zip(whole.state_dict().items(), resumed.state_dict().values()):
+        assert torch.equal(v, w), k
+
+
+@pytest.mark.parametrize("split", ["select", "heldout", "far"])
+def test_held_out_splits_at_the_benchmarks_seed_are_refused(tmp_path, split):
+    with pytest.raises(LasagnaError, match="world_seed: training on .* would train on the benchmarks' own scenes"):
+        train_surface(tiny(split=split, world_seed=0), tmp_path / "x")
+
+
+def test_estimate_at_the_working_size():
+    net = SurfaceEstimator(SurfaceConfig(input="albedo", channels=(4,), blocks=1, working_size=8))
+    torch.nn.init.normal_(net.head.weight)
+    torch.nn.init.normal_(net.head.bias)
+    height, light = estimate_at(net, torch.rand(2, 3, 32, 48))
+    assert height.shape == (2, 1, 32, 48) and light is None
+    # Made at 6×8 (the aspect kept, long side 8): enlarged bilinearly, so it is smooth at full size.
+    small = net(torch.nn.functional.interpolate(torch.rand(2, 3, 32, 48), size=(5, 8), mode="bilinear"))
+    assert small.shape[-2:] == (5, 8)
