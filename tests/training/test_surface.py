@@ -10,7 +10,14 @@ import torch
 from lasagna.errors import LasagnaError
 from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
 from lasagna.training.loop import read_log
-from lasagna.training.surface import SurfaceTrainConfig, estimate_at, random_lights, surface_loss, train_surface
+from lasagna.training.surface import (
+    SurfaceTrainConfig,
+    estimate_at,
+    estimator_from_checkpoint,
+    random_lights,
+    surface_loss,
+    train_surface,
+)
 from lasagna.world import generate
 
 
@@ -55,8 +62,9 @@ def test_a_run_writes_its_estimator(tmp_path):
     net = train_surface(tiny(steps=3), tmp_path / "run")
     assert [r["step"] for r in read_log(tmp_path / "run")] == [1, 2, 3]
     back = SurfaceEstimator.from_pretrained(tmp_path / "run" / "surface")
+    snap, step = estimator_from_checkpoint(tmp_path / "run" / "checkpoint.safetensors")
     x = torch.rand(1, 3, 16, 16)
-    assert torch.equal(back(x), net(x))
+    assert torch.equal(back(x), net(x)) and torch.equal(snap(x), net(x)) and step == 3
 
 
 def test_a_killed_run_resumes_to_the_same_weights(tmp_path):

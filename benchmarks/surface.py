@@ -1,0 +1,222 @@
+"""Surface layers on held-back scenes: shading and relight through one estimated surface, with their oracles.
+
+    OMP_NUM_THREADS=1 python benchmarks/surface.py --splits select heldout --sizes 64 256 \
+        --albedo layers/surface-albedo-32 --lit layers/surface-lit-32 --json-out docs/surface.json
+
+Rows per split and size (``--count`` scenes of world seed 0, the light cycling through the eight named lights):
+
+* **shading** (the base is the albedo; the layer multiplies it; dB over the best constant, all / object pixels):
+  the best constant; *oracle: true outlines inflated* (each object's true silhouette inflated into a dome,
+  `lasagna.compose.surface.inflate_regions`, Lambert-shaded under the scene's light — what a model that knows
+  the outlines and assumes round shapes reaches); *truth at working size 32* (the true shading reduced to the
+  working size and enlarged back: the headroom of any layer made at that size); the albedo estimator's surface.
+* **relight** (the base is the scene lit by its own random source light; the layer is S(target)/S(source);
+  dB of the clamped composite over the unchanged input): the oracle with the true source light; truth at
+  working size; the lit estimator with its own source-light estimate, and with the true one (a diagnostic of
+  the light head alone).
+* **leak** on walls alone (every scene's objects removed: the true shading is one constant): the layer's PSNR
+  against its own mean; ∞ for a flat surface.
+
+``far`` is the final measurement: pass it only then (``--splits far``). Ends with one JSON line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _common import machine_info, print_json_line  # noqa: E402
+from distill_accuracy import psnr  # noqa: E402
+
+from lasagna.compose.resample import downsample, upsample  # noqa: E402
+from lasagna.compose.surface import (  # noqa: E402
+    inflate_regions,
+    lambert,
+    light_vector,  # noqa: E402
+    normals_from_height,
+)
+from lasagna.document.condition import parse_direction  # noqa: E402
+from lasagna.generators.surface import SurfaceEstimator  # noqa: E402
+from lasagna.training.surface import estimate_at, estimator_from_checkpoint  # noqa: E402
+from lasagna.world import VOCABULARY, render, sample_scenes  # noqa: E402
+from lasagna.world.tasks import relight_sources, relighting  # noqa: E402
+
+WORKING = 32
+
+
+def lights_of(conditions: list[str]) -> torch.Tensor:
+    return torch.stack([light_vector(*parse_direction(c)) for c in conditions])
+
+
+def scenes(split: str, count: int, seed: int, size: int, walls: bool = False):
+    labels = [VOCABULARY[i % len(VOCABULARY)] for i in range(count)]
+    params = sample_scenes(split, seed, range(count))
+    if walls:
+        params = params.walls_only()
+    return render(params.with_labels(labels), size), labels
+
+
+def gain_row(method: str, y: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, base_db, seconds=None) -> dict:
+    a, o = psnr(y, truth), psnr(y, truth, mask)
+    row = {"method": method, "gain_db": round(a - base_db[0], 2), "gain_obj_db": round(o - base_db[1], 2)}
+    if seconds is not None:
+        row["seconds_per_image"] = round(seconds, 4)
+    return row
+
+
+def shading_rows(scene, labels, albedo_net) -> list[dict]:
+    truth, mask = scene.shading, scene.mask
+    const = truth.mean(dim=(1, 2, 3), keepdim=True).expand_as(truth)
+    cdb = (psnr(const, truth), psnr(const, truth, mask))
+    light = lights_of(labels)
+    size = tuple(truth.shape[-2:])
+    rows = [
+        gain_row("best constant", const, truth, mask, cdb),
+        gain_row(
+            "oracle: true outlines inflated",
+            lambert(normals_from_height(inflate_regions(scene.object_index)), light),
+            truth,
+            mask,
+            cdb,
+        ),
+        gain_row(
+            f"truth at working size {WORKING}", upsample(downsample(truth, (WORKING, WORKING)), size), truth, mask, cdb
+        ),
+    ]
+    if albedo_net is not None:
+        t0 = time.perf_counter()
+        height, _ = estimate_at(albedo_net, scene.albedo)
+        y = lambert(normals_from_height(height), light)
+        secs = (time.perf_counter() - t0) / len(labels)
+        rows.append(gain_row("surface estimator (albedo)", y, truth, mask, cdb, secs))
+    return rows
+
+
+def relight_rows(scene, labels, lit_net) -> list[dict]:
+    sources = relight_sources(scene.params)
+    rel = relighting(scene, sources)
+    base, target, mask = rel.base, rel.target.clamp(0, 1), scene.mask
+    bdb = (psnr(base.clamp(0, 1), target), psnr(base.clamp(0, 1), target, mask))
+    size = tuple(base.shape[-2:])
+    src, tgt = lights_of(sources), lights_of(labels)
+
+    def comp(ratio):
+        return (base * ratio).clamp(0, 1)
+
+    n_oracle = normals_from_height(inflate_regions(scene.object_index))
+    rows = [
+        gain_row("unchanged input", base.clamp(0, 1), target, mask, bdb),
+        gain_row(
+            "oracle: true outlines inflated, true source light",
+            comp(lambert(n_oracle, tgt) / lambert(n_oracle, src)),
+            target,
+            mask,
+            bdb,
+        ),
+        gain_row(
+            f"truth at working size {WORKING}",
+            comp(upsample(downsample(rel.layer, (WORKING, WORKING)), size)),
+            target,
+            mask,
+            bdb,
+        ),
+    ]
+    if lit_net is not None:
+        t0 = time.perf_counter()
+        height, light = estimate_at(lit_net, base)
+        n = normals_from_height(height)
+        ratio = lambert(n, tgt) / lambert(n, light)
+        secs = (time.perf_counter() - t0) / len(labels)
+        rows.append(gain_row("surface estimator (lit), its source light", comp(ratio), target, mask, bdb, secs))
+        rows.append(
+            gain_row(
+                "surface estimator (lit), true source light", comp(lambert(n, tgt) / lambert(n, src)), target, mask, bdb
+            )
+        )
+        err = torch.rad2deg(torch.acos((light * src).sum(1).clamp(-1, 1)))
+        rows[-2]["source_light_error_deg_median"] = round(float(err.median()), 1)
+    return rows
+
+
+def leak_row(args, split: str, size: int, albedo_net, lit_net) -> dict:
+    walls, labels = scenes(split, args.count, args.seed, size, walls=True)
+    out = {"split": split, "size": size}
+    for name, net, image in (("albedo", albedo_net, walls.albedo), ("lit", lit_net, None)):
+        if net is None:
+            continue
+        if image is None:
+            image = relighting(walls, relight_sources(walls.params)).base
+        height, _ = estimate_at(net, image)
+        y = lambert(normals_from_height(height), lights_of(labels)).double()
+        flat = y.mean(dim=(1, 2, 3), keepdim=True).expand_as(y)
+        out[f"leak_db_{name}"] = round(psnr(y, flat), 2)
+    return out
+
+
+def load(path: str | None) -> SurfaceEstimator | None:
+    """A saved estimator folder, or a run's checkpoint.safetensors (its EMA weights: a run measured mid-way)."""
+    if path is None:
+        return None
+    if str(path).endswith(".safetensors"):
+        return estimator_from_checkpoint(path)[0]
+    return SurfaceEstimator.from_pretrained(path)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--splits", nargs="+", default=["select", "heldout"])
+    p.add_argument("--sizes", nargs="+", type=int, default=[64, 256])
+    p.add_argument("--count", type=int, default=16)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--albedo", default=None, help="an albedo-input surface estimator folder")
+    p.add_argument("--lit", default=None, help="a lit-input surface estimator folder")
+    p.add_argument("--json-out", type=Path, default=None)
+    args = p.parse_args(argv)
+    torch.set_grad_enabled(False)
+    albedo_net, lit_net = load(args.albedo), load(args.lit)
+    result = {"machine": machine_info(), "command": " ".join(sys.argv), "shading": [], "relight": [], "leak": []}
+    for split in args.splits:
+        for size in args.sizes:
+            scene, labels = scenes(split, args.count, args.seed, size)
+            for task, rows in (
+                ("shading", shading_rows(scene, labels, albedo_net)),
+                ("relight", relight_rows(scene, labels, lit_net)),
+            ):
+                for r in rows:
+                    r.update(split=split, size=size)
+                    print(json.dumps({task: r}), flush=True)
+                    result[task].append(r)
+            leak = leak_row(args, split, size, albedo_net, lit_net)
+            print(json.dumps({"leak": leak}), flush=True)
+            result["leak"].append(leak)
+    if args.json_out is not None:
+        args.json_out.write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
+
+    def best(task: str, method: str, key: str):
+        vals = [r[key] for r in result[task] if r["method"] == method and r["split"] == args.splits[0]]
+        return min(vals) if vals else None
+
+    print_json_line(
+        {
+            "split": args.splits[0],
+            "shading_gain_obj_db": best("shading", "surface estimator (albedo)", "gain_obj_db"),
+            "shading_oracle_obj_db": best("shading", "oracle: true outlines inflated", "gain_obj_db"),
+            "relight_gain_obj_db": best("relight", "surface estimator (lit), its source light", "gain_obj_db"),
+            "relight_oracle_obj_db": best(
+                "relight", "oracle: true outlines inflated, true source light", "gain_obj_db"
+            ),
+        }
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
