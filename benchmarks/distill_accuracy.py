@@ -226,14 +226,15 @@ def refined(scene, preset, prior, corrective, folder: Path | None, steps: int) -
     """The amortised pass, then ``steps`` per-image steps of the preset's loss from it (``lasagna edit --optimize``)."""
     if folder is None or not (folder / "config.json").is_file():
         return None
+    from lasagna.distill import DistillSettings
     from lasagna.generators.free import FreeLayer
     from lasagna.generators.unet import LayerGenerator
-    from lasagna.learned import _distill_settings  # exactly the settings `lasagna edit --optimize` refines with
+    from lasagna.recipe import refining  # exactly the settings `lasagna edit --optimize` refines with
 
     t0 = time.perf_counter()
     with torch.no_grad():
         start = LayerGenerator.from_pretrained(folder)(scene.albedo, list(scene.label))
-    settings = _distill_settings(preset, refine=True, steps=steps, loss=None, guidance=None, seed=None, lr=None)
+    settings = refining(DistillSettings.from_preset(preset, steps=steps))
     res = distill_image(
         scene.albedo,
         settings,

@@ -72,12 +72,14 @@ import torch
 
 from lasagna import catalogue as cat
 from lasagna.atomic import open_regular, sweep_stale, sync_filesystem, unsynced
+from lasagna.components import LoadedGenerator
 from lasagna.document import STACK_FILE
-from lasagna.editing import EditPlan, check_edit_options, plan_edit
+from lasagna.editing import EditPlan, plan_edit
 from lasagna.errors import LasagnaError, PathError, printable
 from lasagna.io.folder import SharedFiles, check_writable, swap_in
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
-from lasagna.learned import LoadedGenerator, choose_method, load_generator
+from lasagna.learned import choose_method, make_layer, working_input
+from lasagna.recipe import EditRequest, amortised_generator
 
 # The image files a folder or a glob contributes (``lasagna.io.image`` reads these; nothing else is opened).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff")
@@ -393,10 +395,12 @@ def edit_many(
     max_pixels: int = DEFAULT_EDIT_MAX_PIXELS,
     device: str | torch.device = "cpu",
     warn: Callable[[str], None] | None = None,
+    request: EditRequest | None = None,
 ) -> BatchReport:
     """Edit every input (``collect_inputs``) as ``lasagna.editing.edit`` would, writing ``out_dir/<name>/`` per
     input (module docstring). ``progress``: a progress bar on rank 0 (True), or a function called with each
-    outcome. The other keywords are ``edit``'s and ``EditResult.save``'s. Returns the ``BatchReport``.
+    outcome. The other keywords are ``edit``'s and ``EditResult.save``'s (``request``: an ``EditRequest`` in
+    place of the preset, condition and ``edit``'s options). Returns the ``BatchReport``.
 
     Refused before any work (a ``LasagnaError``): a bad preset name, condition or ``optimize``, an
     ``out_dir`` that is not a writable folder, a folder or pattern that finds nothing.
@@ -409,19 +413,30 @@ def edit_many(
     world = group_world if world is None else world
     if not 0 <= rank < world:
         raise LasagnaError(f"rank {rank} of world {world}; expected 0 <= rank < world", "rank")
-    n = check_edit_options(preset, optimize)
+    request = request or EditRequest(
+        preset=preset,
+        condition=condition,
+        on=on,
+        id=id,
+        generator=generator,
+        optimize=optimize,
+        loss=loss,
+        guidance=guidance,
+        seed=seed,
+        lr=lr,
+    )
+    preset, condition = request.preset, request.condition
     first = cat.resolve(preset, None, catalogue_dirs, need_prior=False)  # refusals before any work
     first.preset.prompt_for(condition)
     generators: dict[Path, LoadedGenerator] = {}
-    if choose_method(first, generator) == "amortised":
-        generators[first.generator] = load_generator(first, first.generator, device)
+    if choose_method(first, request.generator) == "amortised":
+        generators[first.generator] = LoadedGenerator.read(amortised_generator(first), first.preset, device)
     items, roots = _collect(inputs)
     out_dir = check_writable(out_dir, folder=True)
     out_dir.mkdir(parents=True, exist_ok=True)
     sweep_stale(out_dir)  # a killed run's temporaries (their owners are gone)
     names = assign_names(items, roots, out_dir)
-    asked = _request(preset, condition, on=on, id=id, generator=generator, optimize=n, loss=loss)
-    asked.update(_request(None, None, guidance=guidance, seed=seed, lr=lr))
+    asked = _request(request)
 
     resolved: dict[Path | None, cat.Resolved] = {}
 
@@ -433,7 +448,6 @@ def edit_many(
 
     labels = [os.fspath(x) if isinstance(x, (str, os.PathLike)) else name for x, name in zip(items, names)]
     outputs = [out_dir / name for name in names]
-    options = dict(loss=loss, guidance=guidance, seed=seed, lr=lr, catalogue_dirs=catalogue_dirs, device=device)
     mine = shard(len(items), batch_size, rank, world)
     bar = None
     if progress is True and rank == 0:
@@ -484,16 +498,7 @@ def edit_many(
                             report(Outcome(i, label, str(out), "skipped"))
                             continue
                     plan = plan_edit(
-                        item,
-                        preset,
-                        condition,
-                        on=on,
-                        id=id,
-                        generator=generator,
-                        optimize=n,
-                        max_pixels=max_pixels,
-                        catalogue_dirs=catalogue_dirs,
-                        resolve=resolve,
+                        item, request, max_pixels=max_pixels, catalogue_dirs=catalogue_dirs, resolve=resolve
                     )
                     todo.append((i, plan, t0))
                 except Exception as exc:  # noqa: BLE001 - every input's failure is reported, the others go on
@@ -505,7 +510,9 @@ def edit_many(
                     gen, y = initial[i]
                     if isinstance(y, Exception):
                         raise y
-                    run = plan.make(**options, progress=False, loaded=gen, initial=y)
+                    run = make_layer(
+                        plan.recipe, plan.conditioning, plan.layer_id, device=device, loaded=gen, initial=y
+                    )
                     result = _recorded(plan.finish(run, time.monotonic() - t0), records[i])
                     with unsynced():  # made durable together by commit()
                         tmp = result.stage(out, force=force or i in notes, ora=ora, warn=warn, shared=shared)
@@ -524,10 +531,12 @@ def edit_many(
     return BatchReport(_gather(outcomes), time.monotonic() - start)
 
 
-def _request(preset: str | None, condition: str | None, **settings: Any) -> dict[str, Any]:
+def _request(request: EditRequest) -> dict[str, Any]:
     """What was asked, as an output records it: the preset, the condition and the settings that change the
     layer (those given), as JSON values."""
-    asked = {"preset": preset, "condition": condition, **settings}
+    r = request
+    asked = {"preset": r.preset, "condition": r.condition, "on": r.on, "id": r.id, "generator": r.generator}
+    asked.update(optimize=r.asked_steps, loss=r.loss, guidance=r.guidance, seed=r.seed, lr=r.lr)
     return json.loads(json.dumps({k: v for k, v in asked.items() if v is not None}))
 
 
@@ -580,23 +589,22 @@ def _forward(todo, generators: dict[Path, LoadedGenerator], device) -> dict[int,
     """The amortised generator's outputs at the working size for the planned inputs of one chunk, one
     forward pass per (generator, label, shape) group: index → (loaded generator, (1, C, h, w)); (None, None)
     for a per-image plan; (None, the exception) for an input whose generator could not be loaded."""
-    from lasagna.learned import working_input, working_side
-
     out: dict[int, tuple[Any, Any]] = {}
     groups: dict[tuple, list[tuple[int, torch.Tensor]]] = {}
     for i, plan, _ in todo:
-        if plan.method != "amortised":
+        recipe = plan.recipe
+        if recipe.method != "amortised":
             out[i] = (None, None)
             continue
-        gen_dir = plan.resolved.generator
+        gen_dir = recipe.generator
         try:
             if gen_dir not in generators:
-                generators[gen_dir] = load_generator(plan.resolved, gen_dir, device)
-            x = working_input(plan.base, working_side(plan.resolved.preset), device)
+                generators[gen_dir] = LoadedGenerator.read(gen_dir, recipe.preset, device)
+            x = working_input(plan.conditioning, recipe.working_size, device)
         except Exception as exc:  # noqa: BLE001 - reported as that input's failure
             out[i] = (None, exc)
             continue
-        groups.setdefault((gen_dir, plan.condition, tuple(x.shape)), []).append((i, x))
+        groups.setdefault((gen_dir, recipe.label, tuple(x.shape)), []).append((i, x))
     for (gen_dir, condition, _), members in groups.items():
         gen = generators[gen_dir]
         with torch.no_grad():

@@ -30,13 +30,14 @@ where it looked and every name of that kind it found.
 
 from __future__ import annotations
 
-import json
 import os
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from lasagna import components
+from lasagna.components import PriorSource, config_doc, format_of, is_diffusers, read_config
 from lasagna.document.preset import (
     ControlNetRef,
     DiffusersOptions,
@@ -61,7 +62,7 @@ FORMATS: dict[str, str] = {
     "lasagna.layer_generator": "generator",
     "lasagna.prior_link": "prior",
 }
-GENERATOR_DIR = "generator"  # <catalogue>/<preset>/generator/: the preset's amortised generator
+PRESET_GENERATOR = "generator"  # <catalogue>/<preset>/generator/: the preset's amortised generator
 PACKAGED = Path(__file__).resolve().parent / "_layers"  # where a wheel installs the catalogue
 
 
@@ -85,44 +86,12 @@ def _places(catalogue_dirs: Sequence[str | os.PathLike] | None) -> list[Path]:
     return catalogues() if catalogue_dirs is None else [Path(p) for p in catalogue_dirs if Path(p).is_dir()]
 
 
-def _read_config(folder: Path) -> dict:
-    """``folder/config.json`` as a dict, read under the JSON limits (``lasagna.document.validation``: size,
-    nesting, integer digits); {} when there is none. A file that is there but broken raises one
-    ``LasagnaError``: not JSON, nested too deep, not an object, or a ``format`` that is not a string."""
-    from lasagna.document.validation import parse_json, read_json_text
-
-    file = folder / "config.json"
-    if not file.is_file():
-        return {}
-    doc = parse_json(read_json_text(file, "a config.json"), str(file))
-    if not isinstance(doc, dict):
-        raise LasagnaError(f"holds a JSON {type(doc).__name__}; expected an object with a format", str(file))
-    if not isinstance(doc.get("format", ""), str):
-        raise LasagnaError(
-            f"format is {json.dumps(doc['format'])[:40]}; expected a string such as 'lasagna.unet_prior'", str(file)
-        )
-    return doc
-
-
-def _config_doc(folder: Path) -> dict:
-    """``folder/config.json`` as a dict; {} when there is none or it is broken (``entry_problem`` says why)."""
-    try:
-        return _read_config(folder)
-    except (LasagnaError, OSError, RecursionError):
-        return {}
-
-
-def _format_of(folder: Path) -> str | None:
-    """The ``format`` of ``folder/config.json``, or None (no file, broken, not a lasagna config)."""
-    return _config_doc(folder).get("format")
-
-
 def entry_problem(folder: Path) -> str | None:
     """Why the catalogue entry ``folder`` is broken, in one line (its config.json, or its generator's, cannot
     be read as a config), or None. A broken entry is left out of the listing; the others are listed."""
-    for where in (folder, folder / GENERATOR_DIR):
+    for where in (folder, folder / PRESET_GENERATOR):
         try:
-            _read_config(where)
+            read_config(where)
         except LasagnaError as err:
             return str(err)
         except (OSError, RecursionError) as exc:
@@ -140,21 +109,17 @@ def problems(catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> list[
     ]
 
 
-def _is_diffusers(folder: Path) -> bool:
-    return (folder / "model_index.json").is_file() or ((folder / "unet").is_dir() and (folder / "scheduler").is_dir())
-
-
 def entry_kinds(folder: Path) -> set[str]:
     """The kinds the catalogue entry ``folder`` provides (a preset folder may also hold its generator)."""
     kinds = set()
     if (folder / "preset.json").is_file():
         kinds.add("preset")
-        if _format_of(folder / GENERATOR_DIR) == "lasagna.layer_generator":
+        if format_of(folder / PRESET_GENERATOR) == "lasagna.layer_generator":
             kinds.add("generator")
-    fmt = FORMATS.get(_format_of(folder) or "")
+    fmt = FORMATS.get(format_of(folder) or "")
     if fmt is not None:
         kinds.add(fmt)
-    if _is_diffusers(folder):
+    if is_diffusers(folder):
         kinds.add("prior")
     return kinds
 
@@ -163,8 +128,8 @@ def _entry_path(folder: Path, kind: str) -> Path:
     """What ``find`` returns for an entry: preset.json, the generator's folder, or the entry itself."""
     if kind == "preset":
         return folder / "preset.json"
-    if kind == "generator" and (folder / GENERATOR_DIR / "config.json").is_file():
-        return folder / GENERATOR_DIR
+    if kind == "generator" and (folder / PRESET_GENERATOR / "config.json").is_file():
+        return folder / PRESET_GENERATOR
     return folder
 
 
@@ -306,16 +271,28 @@ def component_path(
     return find(ref, kind, catalogue_dirs=catalogue_dirs, relative_to=Path(preset_file).parent if "/" in ref else None)
 
 
+PRESET = "<preset>"  # ``resolve``'s default for a component: the one the preset names (never a name or path)
+
+
 @dataclass(frozen=True)
 class Resolved:
-    """A preset and the paths of what it names: prior, corrective (None if it names none or it is not
-    installed) and amortised generator (None until one is trained and installed in the preset's folder)."""
+    """A preset and what it names, each found once: ``prior`` (its folder; None when it is not found) and
+    ``source`` (what kind of prior it is), ``corrective`` (None when none is named or it is not found) and the
+    amortised ``generator`` (None until one is trained and installed in the preset's folder).
+
+    ``prior_ref``/``corrective_ref`` are the references resolved (the preset's, or those asked for);
+    ``missing`` holds, per component that was named but not found, the one-line error a caller that needs
+    it raises (listing the names of that kind there are)."""
 
     preset: Preset
     preset_file: Path
-    prior: Path
+    prior: Path | None
     corrective: Path | None
     generator: Path | None
+    prior_ref: str | None = None
+    corrective_ref: str | None = None
+    source: PriorSource | None = None
+    missing: Mapping[str, LasagnaError] = field(default_factory=dict)
 
 
 def resolve(
@@ -324,9 +301,16 @@ def resolve(
     catalogue_dirs: Sequence[str | os.PathLike] | None = None,
     *,
     need_prior: bool = True,
+    prior: str | None = PRESET,
+    corrective: str | None = PRESET,
+    controlnets: Sequence[ControlNetRef] = (),
 ) -> Resolved:
-    """The preset ``preset`` and the paths of its parts. A missing prior is an error listing the priors
-    found (unless ``need_prior`` is False: then ``prior`` is the unresolved reference as a Path)."""
+    """The preset ``preset`` and its parts, found once (``Resolved``): the one lookup of an edit.
+
+    ``prior``/``corrective``: references instead of the preset's (a name, or a path taken as it is: a
+    user's folder or a stack's confined path; None: no corrective), ``controlnets`` the prior's ControlNets.
+    The preset's own references with '/' are relative to its folder. A missing prior is an error listing
+    the priors found unless ``need_prior`` is False (then ``Resolved.missing`` holds it)."""
     if not isinstance(preset, (str, os.PathLike)):
         # A Preset object has no folder to resolve its relative prior, corrective and generator against.
         raise LasagnaError(
@@ -336,20 +320,41 @@ def resolve(
         )
     file = preset_path(preset, stack_dir, catalogue_dirs)
     p = _load_preset_file(file)
-    try:
-        prior = component_path(p, "prior", file, catalogue_dirs)
-    except LasagnaError:
-        if need_prior:
-            raise
-        prior = Path(p.prior)
-    try:  # needed only by LMC-SDS: its absence is the caller's error to raise (component_path says why)
-        corrective = component_path(p, "corrective", file, catalogue_dirs)
-    except LasagnaError:
-        corrective = None
-    generator = file.parent / GENERATOR_DIR
-    if _format_of(generator) != "lasagna.layer_generator":
+    refs = {
+        "prior": p.prior if prior == PRESET else prior,
+        "corrective": p.corrective if corrective == PRESET else corrective,
+    }
+    own = {"prior": prior != PRESET, "corrective": corrective != PRESET}
+    found: dict[str, Path | None] = {"prior": None, "corrective": None}
+    missing: dict[str, LasagnaError] = {}
+    source = None
+    for kind in ("prior", "corrective"):
+        ref = refs[kind]
+        if ref is None:
+            continue
+        relative = file.parent if "/" in str(ref) and not own[kind] else None
+        try:
+            found[kind] = find(ref, kind, catalogue_dirs=catalogue_dirs, relative_to=relative)
+            if kind == "prior":
+                source = _source_at(found[kind], controlnets)
+        except LasagnaError as err:
+            if kind == "prior" and need_prior:
+                raise
+            missing[kind] = err
+    generator = file.parent / PRESET_GENERATOR
+    if format_of(generator) != "lasagna.layer_generator":
         generator = None
-    return Resolved(p, file, prior, corrective, generator)
+    return Resolved(
+        p,
+        file,
+        found["prior"],
+        found["corrective"],
+        generator,
+        prior_ref=None if refs["prior"] is None else str(refs["prior"]),
+        corrective_ref=None if refs["corrective"] is None else str(refs["corrective"]),
+        source=source,
+        missing=missing,
+    )
 
 
 def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> dict[str, object]:
@@ -369,10 +374,10 @@ def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | Non
     has_generator = parts.generator is not None
     if has_generator and p.method != "per-image":  # the choice learned.choose_method makes
         return {"usable": True, "method": "amortised", "amortised": True, "why": f"generator {parts.generator}"}
-    if not parts.prior.is_dir():
+    if parts.prior is None:
         why = f"its prior {p.prior!r} is not in the catalogue"
         return {"usable": False, "method": None, "amortised": has_generator, "why": why}
-    config = _config_doc(parts.prior).get("config")
+    config = config_doc(parts.prior).get("config")
     vocabulary = config.get("vocabulary") if isinstance(config, dict) else None
     known = tuple(vocabulary) if isinstance(vocabulary, list) and all(isinstance(v, str) for v in vocabulary) else ()
     missing = [lab for lab in p.vocabulary if known and lab not in known]
@@ -390,28 +395,6 @@ def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | Non
     return {"usable": True, "method": "per-image", "amortised": has_generator, "why": why}
 
 
-@dataclass(frozen=True)
-class PriorSource:
-    """Where a prior's weights are: a ``UNetPrior`` folder (``kind="unet"``), or a diffusers pipeline folder
-    and its ControlNets (``kind="diffusers"``; a link entry already followed)."""
-
-    kind: Literal["unet", "diffusers"]
-    folder: Path
-    controlnets: tuple[ControlNetRef, ...] = ()
-
-    def files(self, variant: str | None = None) -> dict[str, Path]:
-        """Every file a load reads, by a stable name (``prior/…``, ``controlnet<i>/…``): what provenance hashes."""
-        if self.kind == "unet":
-            return {f"prior/{n}": self.folder / n for n in ("model.safetensors", "config.json")}
-        from lasagna.priors.diffusers import used_files
-
-        out = {f"prior/{f.relative_to(self.folder).as_posix()}": f for f in used_files(self.folder, variant)}
-        for i, net in enumerate(self.controlnets):
-            root = Path(net.path)
-            out.update({f"controlnet{i}/{f.name}": f for f in used_files(root, variant, pipeline=False)})
-        return out
-
-
 def prior_source(
     name_or_path: str | os.PathLike,
     *,
@@ -422,7 +405,12 @@ def prior_source(
     """What prior ``name_or_path`` (a catalogue name or a folder) is: a UNetPrior, a diffusers folder (its
     ControlNets: ``controlnets``, else a nested ``controlnet/``), or a link entry (its path and ControlNets)."""
     folder = find(name_or_path, "prior", catalogue_dirs=catalogue_dirs, relative_to=relative_to)
-    fmt = _format_of(folder)
+    return _source_at(folder, controlnets)
+
+
+def _source_at(folder: Path, controlnets: Sequence[ControlNetRef] = ()) -> PriorSource:
+    """What the prior found at ``folder`` is (``prior_source``)."""
+    fmt = format_of(folder)
     if fmt == "lasagna.unet_prior":
         if controlnets:
             raise LasagnaError("a UNetPrior takes no ControlNet; expected a diffusers prior", str(folder))
@@ -435,7 +423,7 @@ def prior_source(
                 str(folder),
             )
         return PriorSource("diffusers", Path(link.path), link.controlnets)
-    if _is_diffusers(folder):
+    if is_diffusers(folder):
         for net in controlnets:
             if not (Path(net.path) / "config.json").is_file():
                 raise LasagnaError(
@@ -459,10 +447,10 @@ def read_link(folder: Path) -> PriorLink:
     from lasagna.errors import describe_validation_error
 
     try:
-        link = PriorLink.model_validate(_config_doc(folder))
+        link = PriorLink.model_validate(config_doc(folder))
     except ValidationError as err:
         raise describe_validation_error(err, str(folder / "config.json"), PriorLink) from None
-    if not _is_diffusers(Path(link.path)):
+    if not is_diffusers(Path(link.path)):
         raise LasagnaError(
             f"links to {link.path}, which is not a diffusers folder (moved or deleted?); expected model_index.json "
             "or unet/ and scheduler/ there",
@@ -482,50 +470,14 @@ def load_prior(
     prompts: dict[str, str] | None = None,
     negative_prompt: str | None = None,
 ):
-    """A prior from the catalogue (or a ``PriorSource``): a ``UNetPrior`` (eval mode), or a ``DiffusersPrior``
-    for a diffusers folder — its vocabulary and prompt template from ``preset`` (required), run as
-    ``options`` say (default the preset's ``diffusers``), ``prompts`` (label → free text) replacing the
-    template and ``negative_prompt`` the unconditional prompt."""
+    """A prior by catalogue name or folder (or a ``PriorSource``), loaded by ``lasagna.components.load_prior``."""
     source = (
         name_or_path
         if isinstance(name_or_path, PriorSource)
         else prior_source(name_or_path, catalogue_dirs=catalogue_dirs, relative_to=relative_to)
     )
-    if source.kind == "unet":
-        if prompts or negative_prompt:
-            raise LasagnaError(
-                "this prior is conditioned on its vocabulary's labels (a UNetPrior); expected no --prompt or "
-                "--negative-prompt (free text needs a text-conditioned diffusers prior)",
-                str(source.folder),
-            )
-        from lasagna.priors.unet import UNetPrior
-
-        return UNetPrior.from_pretrained(source.folder, device=device)
-    if preset is None:
-        raise LasagnaError(
-            "a diffusers prior needs the preset (its vocabulary and prompt); expected preset=", str(source.folder)
-        )
-    from lasagna.priors.diffusers import DiffusersPrior
-
-    opts = options or preset.diffusers or DiffusersOptions()
-    vocabulary = tuple(prompts) if prompts else preset.vocabulary
-    return DiffusersPrior.from_local(
-        source.folder,
-        controlnets=[net.path for net in source.controlnets],
-        conditioning_scale=[
-            net.scale if net.scale is not None else opts.conditioning_scale for net in source.controlnets
-        ],
-        vocabulary=vocabulary,
-        prompt_template=preset.prompt,
-        prompts=prompts,
-        negative_prompt=negative_prompt or "",
-        device=device,
-        dtype=opts.torch_dtype,
-        variant=opts.variant,
-        latent=opts.latent,
-        cpu_offload=opts.cpu_offload,
-        attention_slicing=opts.attention_slicing,
-        channels_last=opts.channels_last,
+    return components.load_prior(
+        source, preset=preset, device=device, options=options, prompts=prompts, negative_prompt=negative_prompt
     )
 
 
@@ -536,14 +488,9 @@ def load_corrective(
     catalogue_dirs: Sequence[str | os.PathLike] | None = None,
     relative_to: str | os.PathLike | None = None,
 ):
-    """The LMC-SDS corrective b̂, eval mode: a ``lasagna.losses.corrective.Corrective`` network or a
-    ``lasagna.losses.spectral.SpectralCorrective``, by the format in its config.json."""
-    from lasagna.losses.corrective import Corrective
-    from lasagna.losses.spectral import SpectralCorrective
-
+    """The LMC-SDS corrective b̂ by catalogue name or folder (``lasagna.components.load_corrective``)."""
     folder = find(name_or_path, "corrective", catalogue_dirs=catalogue_dirs, relative_to=relative_to)
-    cls = SpectralCorrective if _format_of(folder) == SpectralCorrective.FORMAT else Corrective
-    return cls.from_pretrained(folder, device=device)
+    return components.load_corrective(folder, device=device)
 
 
 def load_generator(
@@ -556,35 +503,8 @@ def load_generator(
 ):
     """A preset's amortised ``LayerGenerator`` (eval mode), by preset name or folder; with ``preset``
     it must produce that preset's layer and know its whole vocabulary."""
-    from lasagna.generators.unet import LayerGenerator
-
     folder = find(name_or_path, "generator", catalogue_dirs=catalogue_dirs, relative_to=relative_to)
-    generator = LayerGenerator.from_pretrained(folder, device=device)
-    if preset is not None:
-        check_generator(generator, preset, str(folder))
-    return generator
-
-
-def check_generator(generator, preset: Preset, where: str) -> None:
-    """The generator makes ``preset``'s layer (blend, channels, range) and knows its labels."""
-    from lasagna.generators.layer import LayerSpec
-
-    want = LayerSpec.from_preset(preset)
-    got = generator.spec
-    if (got.blend, got.channels, tuple(got.range)) != (want.blend, want.channels, tuple(want.range)):
-        raise LasagnaError(
-            f"the generator makes a {got.blend} layer of {got.channels} channel(s) in {list(got.range)}; "
-            f"expected the {want.blend} layer of {want.channels} channel(s) in {list(want.range)} "
-            f"of preset {preset.name!r}",
-            where,
-        )
-    missing = [lab for lab in preset.vocabulary if lab not in generator.config.vocabulary]
-    if missing:
-        raise LasagnaError(
-            f"the generator does not know label(s) {', '.join(missing)} of preset {preset.name!r}; "
-            f"expected its vocabulary to contain {', '.join(preset.vocabulary)}",
-            where,
-        )
+    return components.open_generator(folder, preset=preset, device=device)
 
 
 # ---- adding a prior of one's own -----------------------------------------------------------------
@@ -649,7 +569,7 @@ def add_prior(
     preset = Preset.from_dict(data, f"preset for {name!r}")
     link = PriorLink(format="lasagna.prior_link", version=1, path=str(source.folder), controlnets=source.controlnets)
     if corrective is not None:
-        fmt = _format_of(Path(corrective))
+        fmt = format_of(Path(corrective))
         if FORMATS.get(fmt or "") != "corrective":
             raise LasagnaError(
                 f"format is {fmt!r}; expected a corrective folder (lasagna train-corrective's OUT/corrective)",

@@ -53,46 +53,29 @@ import os
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 import torch
-from pydantic import ValidationError
 from torch import Tensor
 
 from lasagna import catalogue as cat
-from lasagna.document import DiffusersOptions, LearnedLayer
+from lasagna.document import LearnedLayer
 from lasagna.errors import (
-    ConditionError,
     DocumentError,
     ImageError,
-    LasagnaError,
     PathError,
-    describe_validation_error,
 )
 from lasagna.io.folder import SharedFiles, check_output_folder, stage_stack_folder, write_stack_folder
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 from lasagna.io.stack import Stack, load_stack, resolve_inside
-from lasagna.learned import (
-    LayerRun,
-    LayerSettings,
-    OwnPrior,
-    as_stored,
-    canonical_method,
-    changed_weights,
-    check_device,
-    choose_method,
-    conditioning_input,
-    default_steps,
-    file_sha256,
-    make_layer,
-)
+from lasagna.learned import LayerRun, as_stored, check_device, conditioning_input, make_layer
+from lasagna.recipe import EditRequest, Recipe
 from lasagna.version import __version__
 
 META_KEY = "lasagna.edit"  # document metadata: per learned layer, the tool version, time, timing
-PROMPT_LABEL = "prompt"  # the label of a layer asked for by free text alone (it names the prompt, no more)
 
 
 @dataclass
@@ -221,235 +204,59 @@ def edit(
     preset: str = "shading",
     condition: str | None = None,
     *,
-    on: str | None = None,
-    id: str | None = None,
-    generator: str | None = None,
-    optimize: int | None = None,
-    steps: int | None = None,
-    loss: str | None = None,
-    guidance: float | None = None,
-    seed: int | None = None,
-    lr: float | None = None,
+    request: EditRequest | None = None,
     catalogue_dirs=None,
     max_pixels: int = DEFAULT_EDIT_MAX_PIXELS,
     device: str | torch.device = "cpu",
     progress: bool = False,
-    prior: str | os.PathLike | None = None,
-    controlnets: Sequence[str | os.PathLike | tuple[str | os.PathLike, float]] = (),
-    corrective: str | os.PathLike | None = None,
-    control_image=None,
-    prompt: str | None = None,
-    negative_prompt: str | None = None,
-    diffusers: DiffusersOptions | dict | None = None,
-    t_min: float | None = None,
-    t_max: float | None = None,
-    aspect: str | None = None,
-    particles: int | None = None,
+    **options: Any,
 ) -> EditResult:
     """Add a learned layer of ``preset`` for ``condition`` on top of ``image`` (module docstring).
 
-    ``condition``: a label of the preset's vocabulary (default its first, or ``"prompt"`` with a ``prompt``).
-    ``prior``, ``controlnets``, ``corrective``, ``control_image``, ``prompt``, ``negative_prompt``,
-    ``diffusers``: a prior of one's own (module docstring, "Bring your own prior"). ``t_min``/``t_max``
-    (t ~ U(t_min, t_max)), ``aspect`` (``"letterbox"`` or ``"stretch"``) and ``particles`` (per-image free
-    layers averaged at the end, ``lasagna.distill.per_image``) override the preset's too.
-
-    ``image``: an image file, a stack folder, a ``Stack``, or a tensor/array/PIL image. ``on``: the
-    layer it is conditioned on (default: the top layer). ``generator``: what makes the layer —
-    ``"amortised"`` (the preset's trained network) or ``"free"`` (a free per-pixel layer optimised for this
-    image: the ``"per-image"`` method, accepted by that name too); default the preset's ``method``, else
-    amortised if the preset has a generator (``lasagna.learned.choose_method``). ``optimize``: per-image
-    steps — after the amortised pass (default the preset's ``refine_steps``), or of the free layer (default
-    its ``distill.steps``); the layer's
-    settings record it under the same name. ``steps`` is its old second name, deprecated (a
-    ``DeprecationWarning``; give ``optimize``). ``loss``, ``guidance``, ``seed``, ``lr`` override the
-    preset's ``distill`` defaults.
+    ``image``: an image file, a stack folder, a ``Stack``, or a tensor/array/PIL image. The other keywords
+    are ``lasagna.recipe.EditRequest``'s fields (or give ``request``): ``on`` (the layer it is conditioned on,
+    default the top layer), ``id``, ``generator`` (``"amortised"``, ``"per-image"`` or ``"free"``; default the
+    preset's), ``optimize`` (per-image steps; ``steps`` is its deprecated second name), ``loss``,
+    ``guidance``, ``seed``, ``lr``, ``t_min``, ``t_max``, ``aspect``, ``particles`` (over the preset's
+    ``distill`` defaults), and a prior of one's own: ``prior``, ``controlnets``, ``corrective``,
+    ``control_image``, ``prompt``, ``negative_prompt``, ``diffusers`` (module docstring).
     """
     start = time.monotonic()
-    n = check_edit_options(preset, optimize, steps)
-    check_device(device)
-    own = own_prior(prior, controlnets, corrective)
-    plan = plan_edit(
-        image,
-        preset,
-        condition,
-        on=on,
-        id=id,
-        generator=generator,
-        optimize=n,
-        max_pixels=max_pixels,
-        catalogue_dirs=catalogue_dirs,
-        prompt=prompt,
-        negative_prompt=negative_prompt,
-        own=own,
-    )
-    if control_image is not None or diffusers is not None:
-        own = own or OwnPrior()
-        own.options = diffusers_options(plan.resolved.preset, diffusers)
-    if control_image is not None:
-        own.control = read_control_image(control_image, tuple(plan.base.shape[-2:]), max_pixels)
-    plan.own = own
-    plan.overrides = {
-        k: v
-        for k, v in (("t_min", t_min), ("t_max", t_max), ("aspect", aspect), ("particles", particles))
-        if v is not None
-    }
-    if own is not None and own.prior is not None and loss is None:
-        # A corrective is given for LMC-SDS; without one (the preset's belongs to its own prior) LMC-SDS
-        # cannot run, and the preset's other losses still can.
-        default = plan.resolved.preset.distill.loss
-        loss = "lmc-sds" if own.corrective is not None else ("sds" if default == "lmc-sds" else None)
-    run = plan.make(
-        loss=loss, guidance=guidance, seed=seed, lr=lr, catalogue_dirs=catalogue_dirs, device=device, progress=progress
-    )
-    return plan.finish(run, time.monotonic() - start)
-
-
-def diffusers_options(preset, diffusers: DiffusersOptions | dict | None) -> DiffusersOptions:
-    """The diffusers options of an edit: ``DiffusersOptions`` as given, or a dict of fields over the preset's."""
-    if isinstance(diffusers, DiffusersOptions):
-        return diffusers
-    base = preset.diffusers or DiffusersOptions()
-    try:
-        return DiffusersOptions.model_validate({**base.model_dump(), **(diffusers or {})})
-    except ValidationError as err:
-        raise describe_validation_error(err, "diffusers", DiffusersOptions) from None
-
-
-def own_prior(prior, controlnets=(), corrective=None) -> OwnPrior | None:
-    """``edit``'s prior options as an ``OwnPrior`` (None when none is given). A folder that exists is taken by
-    its absolute path; anything else is a catalogue name. ControlNets and a corrective need ``prior``."""
-    from lasagna.document.preset import ControlNetRef
-
-    if prior is None:
-        if controlnets or corrective is not None:
-            raise LasagnaError(
-                "ControlNets and a corrective go with a prior of one's own; expected --prior PATH too", "prior"
-            )
-        return None
-    nets = []
-    for i, net in enumerate(controlnets):
-        path, scale = net if isinstance(net, tuple) else (net, None)
-        if not Path(path).is_dir():
-            raise PathError("does not exist; expected a ControlNet folder written by save_pretrained", str(path))
-        nets.append(ControlNetRef(path=str(Path(path).resolve()), scale=scale))
-
-    def absolute(ref):
-        if ref is None:
-            return None
-        return str(Path(ref).resolve()) if Path(ref).is_dir() or isinstance(ref, os.PathLike) else str(ref)
-
-    return OwnPrior(prior=absolute(prior), controlnets=tuple(nets), corrective=absolute(corrective))
-
-
-def read_control_image(source, size: tuple[int, int], max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> Tensor:
-    """A conditioning image (a file, tensor (C, H, W), array or PIL image) as (3, H, W) in [0, 1] at the base's
-    ``size``: another size of the same aspect (within 1 %) is resampled; another aspect is refused."""
-    from lasagna.distill.objective import resize
-
-    if isinstance(source, (str, os.PathLike)):
-        from lasagna.io.image import read_image_file
-
-        img = torch.from_numpy(read_image_file(source, max_pixels=max_pixels).color).float()
-        where = str(source)
-    else:
-        img = Stack.from_image(source).tensors["base"].float()
-        where = "control_image"
-    if img.shape[0] == 1:
-        img = img.expand(3, -1, -1)
-    h, w = img.shape[-2:]
-    if abs(h * size[1] - w * size[0]) > 0.01 * h * size[1]:
-        raise ImageError(
-            f"is {w}x{h}; expected the aspect of the image it conditions, {size[1]}x{size[0]} (any size)", where
-        )
-    return resize(img[:3][None], size)[0].clamp(0, 1)
-
-
-def check_edit_options(preset, optimize: int | None, steps: int | None = None) -> int | None:
-    """``edit``'s checks of its options that need no image: the preset is a name, ``optimize`` (or its
-    deprecated second name ``steps``) a non-negative integer; returns the steps asked for (None: default)."""
-    if preset is not None and not isinstance(preset, (str, os.PathLike)):
-        # A Preset object has no folder: the layer's record could not name it for a later render.
-        raise LasagnaError(
-            f"got a {type(preset).__name__}; expected a catalogue name (write the preset with preset.to_json() "
-            "into <folder>/<name>/preset.json and add <folder> with catalogue_dirs= or LASAGNA_LAYERS)",
-            "preset",
-        )
-    if preset is None or "/" in str(preset) or isinstance(preset, os.PathLike):
-        raise LasagnaError(
-            f"preset {str(preset)!r} is not a name; expected a catalogue name (add a catalogue folder "
-            "with LASAGNA_LAYERS)",
-            "preset",
-        )
-    if steps is not None:
+    if options.get("steps") is not None:
         warnings.warn(
             "edit(steps=N) is deprecated; use optimize=N (the same number, as the layer's settings record it)",
             DeprecationWarning,
-            stacklevel=3,
+            stacklevel=2,
         )
-        if optimize is not None and optimize != steps:
-            raise LasagnaError(
-                f"optimize {optimize} and steps {steps} differ; expected one of them (they are the same number)",
-                "steps",
-            )
-    n = optimize if optimize is not None else steps
-    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 0):
-        raise LasagnaError(f"expected a non-negative integer, got {n!r}", "optimize")
-    return n
+    if request is None:
+        unknown = sorted(set(options) - set(EditRequest.__dataclass_fields__))
+        if unknown:
+            raise TypeError(f"edit() got unexpected keyword argument(s) {', '.join(unknown)}")
+        request = EditRequest(preset=preset, condition=condition, **options)
+    check_device(device)
+    plan = plan_edit(image, request, catalogue_dirs=catalogue_dirs, max_pixels=max_pixels)
+    run = make_layer(plan.recipe, plan.conditioning, plan.layer_id, device=device, progress=progress)
+    return plan.finish(run, time.monotonic() - start)
 
 
-@dataclass
+@dataclass(frozen=True)
 class EditPlan:
-    """One edit with everything decided but its layer: the input ``stack``, the resolved preset, the method
-    and per-image steps, the new layer's id, what it is conditioned on and the conditioning input ``base``
-    (3, H, W). ``make`` computes the layer (``lasagna.learned.make_layer``), ``finish`` places it."""
+    """One edit with everything decided but its layer: the input ``stack`` (and the ``source`` given), the
+    ``recipe``, the new layer's id, the layer it is conditioned on and its ``conditioning`` input (3, H, W),
+    the files the input folder carries. ``make_layer`` computes the layer, ``finish`` places it."""
 
     stack: Stack
     source: Any  # what was given (a path is recorded by name in the edit's metadata)
-    resolved: cat.Resolved
-    condition: str
+    recipe: Recipe
     on: str
     layer_id: str
-    method: str
-    optimize: int
-    base: Tensor
+    conditioning: Tensor
     carried: dict[str, bytes]
-    prompt: str | None = None
-    negative_prompt: str | None = None
-    own: OwnPrior | None = None
-    overrides: dict[str, Any] = field(default_factory=dict)
-
-    def make(self, **options) -> LayerRun:
-        """The layer: ``make_layer`` with this plan's choices and ``options`` (loss, guidance, seed, lr,
-        catalogue_dirs, device, progress, and ``loaded``/``initial`` for a generator run in a batch)."""
-        return make_layer(
-            self.base,
-            self.resolved,
-            self.condition,
-            self.layer_id,
-            method=self.method,
-            optimize=self.optimize,
-            generator_dir=self.resolved.generator,
-            own=self.own,
-            prompt=self.prompt,
-            negative_prompt=self.negative_prompt,
-            overrides=self.overrides,
-            **options,
-        )
 
     def finish(self, run: LayerRun, seconds: float) -> EditResult:
         """Put ``run``'s layer on top of the stack, record the edit and render the composite."""
         stack = self.stack
-        place_layer(
-            stack,
-            self.layer_id,
-            self.resolved.preset,
-            self.condition,
-            self.on,
-            run,
-            prompt=self.prompt,
-            negative_prompt=self.negative_prompt,
-        )
+        place_layer(stack, self.layer_id, self.recipe, self.on, run)
         _record(stack, self.layer_id, seconds, run, self.source)
         composite = stack.render().image.detach().clamp(0.0, 1.0)
         return EditResult(
@@ -466,101 +273,59 @@ class EditPlan:
 
 def plan_edit(
     image,
-    preset: str,
-    condition: str,
+    request: EditRequest,
     *,
-    on: str | None = None,
-    id: str | None = None,
-    generator: str | None = None,
-    optimize: int | None = None,
-    max_pixels: int = DEFAULT_EDIT_MAX_PIXELS,
     catalogue_dirs=None,
+    max_pixels: int = DEFAULT_EDIT_MAX_PIXELS,
     resolve: Callable[[Stack], cat.Resolved] | None = None,
-    prompt: str | None = None,
-    negative_prompt: str | None = None,
-    own: OwnPrior | None = None,
 ) -> EditPlan:
-    """Read ``image`` and decide its edit (``edit``'s arguments; ``optimize`` checked by
-    ``check_edit_options``). ``resolve`` finds the preset for a stack (default ``lasagna.catalogue.resolve``;
-    a batch passes a cached one). Free text (``prompt``) or one's own prior (``own``) is scored per image:
-    the preset's amortised generator knows neither."""
+    """Read ``image`` and decide its edit: the ``Recipe`` of ``request``, the layer's id and what it is
+    conditioned on. ``resolve`` finds the preset for a stack (a batch passes a cached lookup)."""
     stack = input_stack(image, max_pixels)
-    if resolve is None:
-        resolved = cat.resolve(preset, stack.folder, catalogue_dirs, need_prior=False)
-    else:
-        resolved = resolve(stack)
-    p = resolved.preset
-    for text, name in ((prompt, "prompt"), (negative_prompt, "negative_prompt")):
-        if text is not None and not (isinstance(text, str) and text.strip()):
-            raise ConditionError(f"got {text!r}; expected non-empty text", name)
-    if condition is None:
-        condition = PROMPT_LABEL if prompt is not None else p.vocabulary[0]
-    if prompt is None:
-        p.prompt_for(condition)  # ConditionError listing the vocabulary
-    on = on if on is not None else stack.ids[-1]
+    on = request.on if request.on is not None else stack.ids[-1]
     stack.document.index(on)  # DocumentError listing the ids
-    own_scored = prompt is not None or (own is not None and own.prior is not None)
-    if own_scored and generator is not None and canonical_method(generator) == "amortised":
-        raise LasagnaError(
-            "the amortised generator was trained with the preset's prior and labels; expected --generator free "
-            "with --prior or --prompt",
-            "generator",
-        )
-    method = choose_method(resolved, "per-image" if own_scored else generator)
-    if method == "per-image" and optimize == 0:
-        raise LasagnaError(
-            "per-image optimisation with 0 steps would leave the identity edit; expected --optimize N > 0", "optimize"
-        )
+    recipe = Recipe.for_edit(stack, request, catalogue_dirs=catalogue_dirs, max_pixels=max_pixels, resolve=resolve)
     return EditPlan(
         stack=stack,
         source=image,
-        resolved=resolved,
-        condition=condition,
+        recipe=recipe,
         on=on,
-        layer_id=_unique_id(stack, id or _default_id(p.name, condition)),
-        method=method,
-        optimize=default_steps(resolved, method) if optimize is None else optimize,
-        base=conditioning_input(stack, on),
+        layer_id=_unique_id(stack, request.id or _default_id(recipe.preset.name, recipe.label)),
+        conditioning=conditioning_input(stack, on),
         carried=carried_files(stack),  # before the new layer: its generator is not in the input folder
-        prompt=prompt,
-        negative_prompt=negative_prompt,
     )
 
 
-def place_layer(
-    stack: Stack,
-    layer_id: str,
-    preset,
-    label: str,
-    on: str,
-    run: LayerRun,
-    *,
-    prompt: str | None = None,
-    negative_prompt: str | None = None,
-) -> None:
+def place_layer(stack: Stack, layer_id: str, recipe: Recipe, on: str, run: LayerRun) -> None:
     """Add (or update) the learned layer ``layer_id`` with ``run``'s pixels, settings and generator."""
     settings = run.settings.to_json()
-    condition = {"label": label}
-    condition.update({k: v for k, v in (("prompt", prompt), ("negative_prompt", negative_prompt)) if v is not None})
-    fields = {
+    if layer_id in stack.ids:
+        old = stack.document.layer(layer_id).model_dump(mode="json")
+        stack.document = stack.document.with_layer({**old, "generator": run.generator_ref, "settings": settings})
+    else:
+        stack.document = stack.document.with_layer(
+            {**layer_fields(layer_id, recipe, on), "generator": run.generator_ref, "settings": settings}
+        )
+    stack.set_pixels(layer_id, run.layer, bit_depth=16)
+    as_stored(stack, [layer_id])
+
+
+def layer_fields(layer_id: str, recipe: Recipe, on: str) -> dict[str, Any]:
+    """The document fields of a new learned layer made by ``recipe`` (its generator and settings aside)."""
+    condition = {"label": recipe.label}
+    pairs = (("prompt", recipe.prompt), ("negative_prompt", recipe.negative_prompt))
+    condition.update({k: v for k, v in pairs if v is not None})
+    preset = recipe.preset
+    return {
         "id": layer_id,
-        "name": f"{preset.name.capitalize()} ({label})",
+        "name": f"{preset.name.capitalize()} ({recipe.label})",
         "kind": "learned",
         "blend": preset.blend,
         "range": list(preset.range),
         "preset": preset.name,
         "condition": condition,
         "conditioned_on": on,
-        "generator": run.generator_ref,
-        "settings": settings,
     }
-    if layer_id in stack.ids:
-        old = stack.document.layer(layer_id).model_dump(mode="json")
-        stack.document = stack.document.with_layer({**old, "generator": run.generator_ref, "settings": settings})
-    else:
-        stack.document = stack.document.with_layer(fields)
-    stack.set_pixels(layer_id, run.layer, bit_depth=16)
-    as_stored(stack, [layer_id])
 
 
 def _record(stack: Stack, layer_id: str, seconds: float, run: LayerRun, source=None, *, rendered: bool = False) -> None:
@@ -664,20 +429,9 @@ def render_learned(
             continue
         if (ids is not None and layer.id not in ids) or (ids is None and layer.id in stack.tensors and not all):
             continue
-        start = time.monotonic()
-        run = _rerun(stack, layer, catalogue_dirs, device, progress, callback)
-        place_layer(
-            stack,
-            layer.id,
-            cat.load_preset(layer.preset, stack.folder, catalogue_dirs),
-            layer.condition.label,
-            layer.conditioned_on,
-            run,
-            prompt=layer.condition.prompt,
-            negative_prompt=layer.condition.negative_prompt,
-        )
+        recipe = Recipe.from_layer(stack, layer, catalogue_dirs=catalogue_dirs)
+        run = remake_layer(stack, layer.id, recipe, device=device, progress=progress, callback=callback)
         files.update(run.files)
-        _record(stack, layer.id, time.monotonic() - start, run, rendered=True)
         rendered.append(layer.id)
     if write and stack.folder is not None and rendered:
         from lasagna.atomic import atomic_write_all, folder_lock
@@ -700,131 +454,35 @@ def render_learned(
     return stack, rendered
 
 
-def _confined_ref(stack: Stack, ref: str | None, where: str) -> str | None:
-    """A stored prior/corrective reference as ``render`` may follow it: a catalogue name, or a relative
-    path inside the stack folder. Anything else is refused before the filesystem is asked about it, so
-    the message says nothing about what exists outside the folder."""
-    if ref is None or ("/" not in ref and "\\" not in ref):
-        return ref
-    parts = ref.replace("\\", "/").split("/")
-    if ref.startswith(("/", "\\")) or ":" in parts[0] or ".." in parts or stack.folder is None:
-        raise PathError(
-            f"{ref!r} is not a catalogue name or a relative path inside the stack folder; expected one of those",
-            where,
-        )
-    try:
-        return str(resolve_inside(stack.folder, ref, where))
-    except PathError:
-        raise PathError(f"{ref!r} leaves the stack folder (through a link); expected a path inside it", where) from None
-
-
-def _rerun(stack: Stack, layer: LearnedLayer, catalogue_dirs, device, progress, callback=None) -> LayerRun:
-    """A learned layer made again from what the stack stores (see ``render_learned``)."""
-    where = f"layer {layer.id!r}"
-    resolved = cat.resolve(layer.preset, stack.folder, catalogue_dirs, need_prior=False)
-    preset = resolved.preset
-    if layer.condition.prompt is None:
-        preset.prompt_for(layer.condition.label)
-    s = LayerSettings.parse(layer.settings, where)
-    method = s.method if s.method is not None else choose_method(resolved, None)
-    optimize = s.optimize if s.optimize is not None else default_steps(resolved, method)
-    generator_dir = resolved.generator
-    if method == "amortised" and layer.generator is not None:
-        if stack.folder is None:
-            raise PathError(
-                "the stack has no folder to find its generator in; expected a stack loaded from a folder", where
-            )
-        ckpt = resolve_inside(stack.folder, layer.generator.checkpoint, f"{where}.generator.checkpoint")
-        if not ckpt.is_file():
-            raise PathError(
-                f"{layer.generator.checkpoint!r} does not exist; expected the generator's weights",
-                f"{where}.generator.checkpoint",
-            )
-        if layer.generator.sha256 is not None and file_sha256(ckpt) != layer.generator.sha256:
-            raise LasagnaError(
-                "the generator's weights do not match the recorded sha256; expected the file the layer was made with",
-                f"{where}.generator.checkpoint",
-            )
-        config = ckpt.parent / "config.json"
-        if layer.generator.config_sha256 is not None:
-            if not config.is_file() or file_sha256(config) != layer.generator.config_sha256:
-                raise LasagnaError(
-                    "the generator's config.json does not match the recorded config_sha256; expected the config "
-                    "the layer was made with",
-                    f"{where}.generator.config_sha256",
-                )
-        elif layer.generator.sha256 is not None:
-            warnings.warn(
-                f"{where}: the generator's config.json is under no checksum (a stack written before config_sha256); "
-                "its vocabulary is trusted as found",
-                stacklevel=2,
-            )
-        generator_dir = ckpt.parent
+def remake_layer(
+    stack: Stack,
+    layer_id: str,
+    recipe: Recipe,
+    *,
+    device: str | torch.device = "cpu",
+    progress: bool = False,
+    callback: Callable[[int, Tensor], None] | None = None,
+) -> LayerRun:
+    """Learned layer ``layer_id`` of ``stack`` made by ``recipe``, put in place and recorded as rendered
+    (``render_learned``, the editor's jobs)."""
+    start = time.monotonic()
+    layer = stack.document.layer(layer_id)
     base = conditioning_input(stack, layer.conditioned_on)
-    refs = {k: _confined_ref(stack, getattr(s, k), f"{where}.settings.{k}") for k in ("prior", "corrective")}
-    refs = {k: v for k, v in refs.items() if v is not None}
-    control = None
-    if s.control_image is not None:
-        from lasagna.io.image import read_image_file
-
-        path = (
-            resolve_inside(stack.folder, s.control_image, f"{where}.settings.control_image") if stack.folder else None
-        )
-        if path is None or not path.is_file():
-            raise PathError(
-                f"{s.control_image!r} does not exist; expected the layer's conditioning image in the stack folder",
-                f"{where}.settings.control_image",
-            )
-        control = torch.from_numpy(read_image_file(path, max_pixels=stack.width * stack.height).color).float()
-    run = make_layer(
-        base,
-        resolved,
-        layer.condition.label,
-        layer.id,
-        method=method,
-        optimize=optimize,
-        generator_dir=generator_dir,
-        distill=s.distill,
-        refs=refs,
-        catalogue_dirs=catalogue_dirs,
-        device=device,
-        progress=progress,
-        working=s.working_size if s.working_size is not None else "full",  # recorded without one: the base's size
-        prompt=layer.condition.prompt,
-        negative_prompt=layer.condition.negative_prompt,
-        options=s.diffusers,
-        control=control,
-        callback=callback,
-    )
-    changed = changed_weights(s.weights, run.settings.weights or {}) if s.weights is not None else []
-    recorded = s.prior_sha256
-    if changed:
-        more = f" (+{len(changed) - 1} more)" if len(changed) > 1 else ""
-        warnings.warn(
-            f"{where}: {changed[0]}{more} differs from the file the layer was made with (sha256); the layer is "
-            "re-rendered with the current weights",
-            stacklevel=2,
-        )
-    elif s.weights is None and recorded is not None and run.settings.prior_sha256 not in (None, recorded):
-        warnings.warn(
-            f"{where}: the catalogue's prior {run.settings.prior!r} differs from the one the layer was "
-            "made with (sha256); the layer is re-rendered with the current one",
-            stacklevel=2,
-        )
-    if layer.generator is not None and method == "amortised":
-        run.generator_ref = layer.generator.model_dump(mode="json")
-        run.files = {}  # already in the stack folder
+    run = make_layer(recipe, base, layer_id, device=device, progress=progress, callback=callback)
+    place_layer(stack, layer_id, recipe, layer.conditioned_on, run)
+    _record(stack, layer_id, time.monotonic() - start, run, rendered=True)
     return run
 
 
 __all__ = [
     "DEFAULT_EDIT_MAX_PIXELS",
     "EditPlan",
+    "EditRequest",
     "EditResult",
-    "check_edit_options",
     "edit",
     "input_stack",
     "plan_edit",
     "read_image",
+    "remake_layer",
     "render_learned",
 ]

@@ -31,9 +31,12 @@ TIERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("generators", ("lasagna.generators",)),
     ("distill", ("lasagna.distill",)),
     ("world", ("lasagna.world",)),
-    ("catalogue", ("lasagna.catalogue",)),
+    ("catalogue", ("lasagna.catalogue", "lasagna.components")),
     ("training", ("lasagna.training",)),
-    ("user API", ("lasagna.learned", "lasagna.editing", "lasagna.batch", "lasagna.demo", "lasagna.api")),
+    (
+        "user API",
+        ("lasagna.learned", "lasagna.recipe", "lasagna.editing", "lasagna.batch", "lasagna.demo", "lasagna.api"),
+    ),
     ("editor", ("lasagna.serve",)),
     ("cli", ("lasagna.cli",)),
     ("package root", ("lasagna",)),  # lasagna/__init__.py: lazy names of lasagna.api

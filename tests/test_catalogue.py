@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from lasagna import catalogue as cat
+from lasagna.components import check_generator
 from lasagna.errors import ConditionError, LasagnaError
 from lasagna.learned import choose_method
 from tests.tinylayers import ROOT, tiny_catalogue
@@ -180,7 +181,9 @@ def test_resolve_without_prior(tmp_path):
     with pytest.raises(LasagnaError, match="no prior named 'relight-32'"):
         cat.resolve("shading", catalogue_dirs=[tmp_path])
     parts = cat.resolve("shading", catalogue_dirs=[tmp_path], need_prior=False)
-    assert parts.prior == Path("relight-32") and parts.corrective is None
+    # Never an unresolved path: None, the reference, and the error a caller that needs the prior raises (#26).
+    assert parts.prior is None and parts.prior_ref == "relight-32" and parts.corrective is None
+    assert "no prior named 'relight-32'" in str(parts.missing["prior"])
 
 
 def test_prior_path_relative_to_the_preset(tmp_path, tiny):
@@ -231,7 +234,7 @@ def test_generator_missing_labels_is_refused(tiny, tmp_path):
     preset = cat.load_preset("shading", catalogue_dirs=[tiny])
     small = preset.model_copy(update={"vocabulary": (*preset.vocabulary, "sunset")})
     with pytest.raises(LasagnaError, match="does not know label\\(s\\) sunset"):
-        cat.check_generator(gen, small, "here")
+        check_generator(gen, small, "here")
     with pytest.raises(ConditionError, match="unknown label 'sunset'"):
         gen(torch.rand(1, 3, 8, 8), ["sunset"])
 

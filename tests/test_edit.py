@@ -269,7 +269,10 @@ def test_render_fills_in_a_hand_written_learned_layer(tmp_path, capsys):
     code, _, err = run(capsys, "render", folder)
     assert code == 0, err
     relit = _stack_json(folder)["layers"][1]
-    assert relit["source"] == "layers/relit.png" and relit["settings"] == {"method": "amortised", "optimize": 0}
+    # Made as `lasagna edit` makes it: the preset's method, steps and working size (#26).
+    side = json.loads((ROOT / "layers" / "shading" / "preset.json").read_text(encoding="utf-8"))["working_size"]
+    expected = {"method": "amortised", "optimize": 0, "working_size": side}
+    assert relit["source"] == "layers/relit.png" and relit["settings"] == expected
     assert (folder / relit["generator"]["checkpoint"]).is_file() and (folder / "composite.png").is_file()
 
 

@@ -194,28 +194,23 @@ def many_inputs(images: list[str]) -> bool:
     return not os.path.lexists(p) and glob.has_magic(images[0])
 
 
-def _optimize(args: argparse.Namespace) -> int | None:
-    if args.optimize is not None and args.steps is not None and args.optimize != args.steps:
-        raise LasagnaError(
-            f"optimize {args.optimize} and steps {args.steps} differ; expected one of them (they are the same number)",
-            "steps",
-        )
-    return args.optimize if args.optimize is not None else args.steps  # --steps: --optimize's other name
+def _request(args: argparse.Namespace):
+    """The ``EditRequest`` of the arguments (``lasagna.recipe``: checked there, as for every caller)."""
+    from lasagna.recipe import EditRequest
 
-
-def _edit_options(args: argparse.Namespace) -> dict:
-    """The keywords ``edit`` and ``edit_many`` share, from the arguments."""
-    return dict(
+    return EditRequest(
+        preset=args.layer,
+        condition=args.condition,
         on=args.on,
         id=args.id,
         generator=args.generator,
-        optimize=_optimize(args),
+        optimize=args.optimize,
+        steps=args.steps,  # --optimize's other name
         loss=args.loss,
         guidance=args.guidance,
         seed=args.seed,
         lr=args.lr,
-        max_pixels=args.max_pixels,
-        device=args.device,
+        **_own_prior_options(args),
     )
 
 
@@ -231,7 +226,7 @@ def run_many(args: argparse.Namespace) -> int:
     from lasagna.batch import edit_many
     from lasagna.training.loop import init_distributed, shutdown_distributed
 
-    options = _edit_options(args)  # refused before the process group is joined
+    request = _request(args)  # refused before the process group is joined
     if _own_prior_options(args):
         raise LasagnaError(
             "--prior, --prompt and their options take one input; expected one image or stack (a loop in the shell "
@@ -247,12 +242,14 @@ def run_many(args: argparse.Namespace) -> int:
             args.layer,
             args.condition,
             args.output,
+            request=request,
             batch_size=args.batch_size,
             force=args.force,
             ora=not args.no_ora,
             progress=progress(),
             warn=warn,
-            **options,
+            max_pixels=args.max_pixels,
+            device=args.device,
         )
     finally:
         shutdown_distributed(info)
@@ -285,7 +282,7 @@ def run_one(args: argparse.Namespace) -> int:
     if Path(args.image).resolve() == out.resolve() and not args.force:
         raise PathError("is the input stack; expected another folder (or --force to replace it)", str(out))
     result = edit(
-        args.image, args.layer, args.condition, progress=progress(), **_edit_options(args), **_own_prior_options(args)
+        args.image, request=_request(args), max_pixels=args.max_pixels, device=args.device, progress=progress()
     )
     result.save(out, force=args.force, ora=not args.no_ora, warn=warn)
     s = result.settings

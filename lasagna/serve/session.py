@@ -270,12 +270,16 @@ class EditSession:
             except BaseException:
                 self._restore(before)
                 raise
-            self.undo_stack.append(before)
-            del self.undo_stack[:-MAX_UNDO]
-            self.redo_stack.clear()
-            self.version += 1
-            self._evict()  # history beyond the budget goes (the change itself was admitted)
+            self._push(before)
             return self.state()
+
+    def _push(self, before: Snapshot) -> None:
+        """A change is made: ``before`` goes on the undo stack, the redo stack is cleared, a new version."""
+        self.undo_stack.append(before)
+        del self.undo_stack[:-MAX_UNDO]
+        self.redo_stack.clear()
+        self.version += 1
+        self._evict()  # history beyond the budget goes (the change itself was admitted)
 
     def state(self) -> dict[str, Any]:
         """The document, version, history and job as the page needs them (JSON data)."""
@@ -419,38 +423,32 @@ class EditSession:
     def add_learned(
         self, version: Any, preset: Any, condition: Any, on: Any = None, method: Any = "amortised"
     ) -> dict[str, Any]:
-        """A learned layer of catalogue preset ``preset`` for ``condition`` on top. ``amortised``: made now by
-        the preset's generator (one forward pass, ``lasagna.editing.plan_edit``). ``per-image``: the layer is
-        added without pixels, as a document may hold it, for a ``rerender`` job to make with progress."""
-        from lasagna.editing import plan_edit
+        """A learned layer of catalogue preset ``preset`` for ``condition`` on top, by ``lasagna edit``'s recipe
+        (``lasagna.editing.plan_edit``). ``amortised``: made now (one forward pass). ``per-image``: added without
+        pixels, its settings saying how to make it, for a ``rerender`` job to make with progress."""
+        from lasagna.editing import layer_fields, plan_edit
+        from lasagna.learned import make_layer
+        from lasagna.recipe import EditRequest
 
         if not isinstance(preset, str) or not isinstance(condition, str):
             raise LasagnaError("expected a preset name and a condition", "preset")
-        if method not in ("amortised", "per-image"):
-            raise LasagnaError(f"expected method 'amortised' or 'per-image', got {method!r}", "method")
         with self._guard():
             self._check_version(version)
             self._check_idle("add learned layer")
             start = time.monotonic()
-            plan = plan_edit(self.stack, preset, condition, on=on, generator=method, catalogue_dirs=self.catalogue_dirs)
-            if method == "per-image":
-                p = plan.resolved.preset
+            request = EditRequest(preset=preset, condition=condition, on=on, generator=method)
+            plan = plan_edit(self.stack, request, catalogue_dirs=self.catalogue_dirs)
+            if plan.recipe.method == "per-image":
                 fields = {
-                    "id": plan.layer_id,
-                    "name": f"{p.name.capitalize()} ({condition})",
-                    "kind": "learned",
-                    "blend": p.blend,
-                    "range": list(p.range),
-                    "preset": p.name,
-                    "condition": {"label": condition},
-                    "conditioned_on": plan.on,
+                    **layer_fields(plan.layer_id, plan.recipe, plan.on),
+                    "settings": plan.recipe.pending_settings(),
                 }
                 return self._change(
                     version,
                     f"add {plan.layer_id}",
                     lambda: setattr(self.stack, "document", self.stack.document.with_layer(fields)),
                 )
-            run = plan.make(catalogue_dirs=self.catalogue_dirs, device=self.device)
+            run = make_layer(plan.recipe, plan.conditioning, plan.layer_id, device=self.device)
             result = plan.finish(run, time.monotonic() - start)
 
             def apply() -> None:
@@ -687,7 +685,7 @@ class EditSession:
     def presets(self) -> list[dict[str, Any]]:
         """Every preset of the catalogue: ready or why not, its vocabulary, blend and description."""
         out = []
-        for name in cat.available(self.catalogue_dirs)["preset"]:
+        for name in cat.available("preset", self.catalogue_dirs)["preset"]:
             status = cat.preset_status(name, self.catalogue_dirs)
             entry: dict[str, Any] = {"name": name, "ready": bool(status["usable"]), "why": status["why"]}
             entry.update(method=status.get("method"), amortised=bool(status.get("amortised")))
@@ -706,7 +704,8 @@ class EditSession:
     def start_job(self, version: Any, kind: str, id: str, steps: Any = None) -> Job:
         """Start ``refine`` (per-image optimisation of learned layer ``id`` for ``steps``; from its amortised
         pass when it has one) or ``rerender`` (from its record) in the worker thread."""
-        from lasagna.learned import LayerSettings, choose_method, default_steps
+        from lasagna.limits import MAX_DISTILL_STEPS
+        from lasagna.recipe import Recipe
 
         if kind not in ("refine", "rerender"):
             raise LasagnaError(f"unknown job {kind!r}; expected refine or rerender", "job")
@@ -716,52 +715,36 @@ class EditSession:
             layer = self.stack.document.layer(id)
             if not isinstance(layer, LearnedLayer):
                 raise DocumentError(f"is a {layer.kind} layer; expected a learned layer", f"layer {id!r}")
+            stack = Stack(self.stack.document, self.folder, dict(self.stack.tensors), dict(self.stack.bit_depths))
+            options: dict[str, Any] = {}
             if kind == "refine":
-                if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= 10_000:
-                    raise LasagnaError(f"expected an integer number of steps in [1, 10000], got {steps!r}", "steps")
-                total = steps
-            else:
-                s = LayerSettings.parse(layer.settings, f"layer {id!r}")
-                if s.optimize is not None:
-                    total = int(s.optimize)
-                else:  # made as `lasagna edit` would make it: the preset's method and steps
-                    resolved = cat.resolve(layer.preset, self.folder, self.catalogue_dirs, need_prior=False)
-                    total = default_steps(resolved, s.method or choose_method(resolved, None))
-            job = Job(uuid.uuid4().hex[:12], kind, id, total)
+                if isinstance(steps, bool) or not isinstance(steps, int) or not 1 <= steps <= MAX_DISTILL_STEPS:
+                    raise LasagnaError(
+                        f"expected an integer number of steps in [1, {MAX_DISTILL_STEPS}], got {steps!r}", "steps"
+                    )
+                # A generator copy not saved yet is the catalogue's it was copied from.
+                options = {"refine": steps, "catalogue_generator": _unsaved_generator(stack, layer)}
+            recipe = Recipe.from_layer(stack, layer, catalogue_dirs=self.catalogue_dirs, **options)
+            job = Job(uuid.uuid4().hex[:12], kind, id, recipe.steps)
             self.job = job
             self.jobs[job.id] = job
-            snapshot = Stack(self.stack.document, self.folder, dict(self.stack.tensors), dict(self.stack.bit_depths))
-        threading.Thread(target=self._run_job, args=(job, snapshot, version), daemon=True, name=f"job-{job.id}").start()
+        threading.Thread(target=self._run_job, args=(job, stack, recipe), daemon=True, name=f"job-{job.id}").start()
         return job
 
-    def _run_job(self, job: Job, stack: Stack, version: int) -> None:
+    def _run_job(self, job: Job, stack: Stack, recipe) -> None:
         with memory_budget_scope(self.budget):  # a new thread: the session's budget, not the default
-            self._run_job_in_budget(job, stack, version)
+            self._run_job_in_budget(job, stack, recipe)
 
-    def _run_job_in_budget(self, job: Job, stack: Stack, version: int) -> None:
-        from lasagna.editing import render_learned
+    def _run_job_in_budget(self, job: Job, stack: Stack, recipe) -> None:
+        from lasagna.editing import remake_layer
 
         def callback(step: int, layer) -> None:
             job.step = step + 1  # steps done once this one is
             if job.cancel.is_set():
                 raise Cancelled
 
-        files: dict[str, bytes] = {}
         try:
-            layer = stack.document.layer(job.layer_id)
-            if job.what == "refine" and _unsaved_generator(stack, layer):
-                new, files = self._refine_from_catalogue(stack, layer, job.steps, callback)
-            else:
-                if job.what == "refine":
-                    stack = _with_refine_settings(stack, layer, job.steps)
-                new, _ = render_learned(
-                    stack,
-                    ids=[job.layer_id],
-                    write=False,
-                    catalogue_dirs=self.catalogue_dirs,
-                    device=self.device,
-                    callback=callback,
-                )
+            run = remake_layer(stack, job.layer_id, recipe, device=self.device, callback=callback)
         except Cancelled:
             job.state = "cancelled"
             return
@@ -775,54 +758,30 @@ class EditSession:
             if job.state == "running" and job.cancel.is_set():
                 job.state = "cancelled"
         with self._guard():
-            base = stack.document.layer(job.layer_id)
-            cur_doc = self.stack.document
-            if job.layer_id not in cur_doc.ids or cur_doc.layer(job.layer_id).conditioned_on != base.conditioned_on:
-                job.state, job.error = "failed", "the layer was removed or re-parented while the job ran; run it again"
-                return
-            made = new.document.layer(job.layer_id)
-            before = self._snapshot(f"{job.what} {job.layer_id}")
-            keep = {k: getattr(cur_doc.layer(job.layer_id), k) for k in ("name", "visible", "opacity", "offset")}
-            fields = {
-                **made.model_dump(),
-                **{k: (v.model_dump() if hasattr(v, "model_dump") else v) for k, v in keep.items()},
-            }
-            self.stack.document = cur_doc.with_layer(fields).replace(metadata=new.document.metadata)
-            self.stack.tensors[job.layer_id] = new.tensors[job.layer_id]
-            self.stack.bit_depths[job.layer_id] = new.bit_depths.get(job.layer_id, 16)
-            self.files.update(files)
-            self.undo_stack.append(before)
-            del self.undo_stack[:-MAX_UNDO]
-            self.redo_stack.clear()
-            self.version += 1
-            self._evict()
-            job.version = self.version
-            job.step = max(job.step, job.steps)
-            job.state = "done"
+            self._land(job, stack, run.files)
 
-    def _refine_from_catalogue(self, stack: Stack, layer: LearnedLayer, steps: int, callback):
-        """Refine an amortised layer whose generator copy is not saved yet: the catalogue's generator (the one
-        the copy was made from) and ``steps`` per-image steps, as ``lasagna edit --optimize`` runs them."""
-        from lasagna.editing import EditPlan
-        from lasagna.learned import conditioning_input
-
-        start = time.monotonic()
-        resolved = cat.resolve(layer.preset, stack.folder, self.catalogue_dirs, need_prior=False)
-        plan = EditPlan(
-            stack=stack,
-            source=None,
-            resolved=resolved,
-            condition=layer.condition.label,
-            on=layer.conditioned_on,
-            layer_id=layer.id,
-            method="amortised",
-            optimize=steps,
-            base=conditioning_input(stack, layer.conditioned_on),
-            carried={},
-        )
-        run = plan.make(catalogue_dirs=self.catalogue_dirs, device=self.device, callback=callback)
-        result = plan.finish(run, time.monotonic() - start)
-        return result.stack, dict(run.files)
+    def _land(self, job: Job, new: Stack, files: dict[str, bytes]) -> None:
+        """A finished job's layer put into the current stack as a new, undoable version (its name, visibility,
+        opacity and offset as they are now: the user may have changed them while it ran)."""
+        cur_doc = self.stack.document
+        base = new.document.layer(job.layer_id)
+        if job.layer_id not in cur_doc.ids or cur_doc.layer(job.layer_id).conditioned_on != base.conditioned_on:
+            job.state, job.error = "failed", "the layer was removed or re-parented while the job ran; run it again"
+            return
+        before = self._snapshot(f"{job.what} {job.layer_id}")
+        keep = {k: getattr(cur_doc.layer(job.layer_id), k) for k in ("name", "visible", "opacity", "offset")}
+        fields = {
+            **base.model_dump(),
+            **{k: (v.model_dump() if hasattr(v, "model_dump") else v) for k, v in keep.items()},
+        }
+        self.stack.document = cur_doc.with_layer(fields).replace(metadata=new.document.metadata)
+        self.stack.tensors[job.layer_id] = new.tensors[job.layer_id]
+        self.stack.bit_depths[job.layer_id] = new.bit_depths.get(job.layer_id, 16)
+        self.files.update(files)
+        self._push(before)
+        job.version = self.version
+        job.step = max(job.step, job.steps)
+        job.state = "done"
 
     def cancel_job(self, job_id: str) -> dict[str, Any]:
         job = self.jobs.get(job_id)
@@ -909,22 +868,6 @@ def _unsaved_generator(stack: Stack, layer: LearnedLayer) -> bool:
     if layer.generator is None or stack.folder is None:
         return False
     return not (Path(stack.folder) / layer.generator.checkpoint).is_file()
-
-
-def _with_refine_settings(stack: Stack, layer: LearnedLayer, steps: int) -> Stack:
-    """``stack`` with learned layer ``layer`` set to be re-made with ``steps`` per-image steps: after its
-    amortised pass if it was made by the generator, else as a free layer (the preset's distillation)."""
-    from lasagna.learned import LayerSettings
-
-    s = LayerSettings.parse(layer.settings, f"layer {layer.id!r}")
-    settings = dict(layer.settings)
-    settings["optimize"] = steps
-    if isinstance(settings.get("distill"), dict):  # a recorded per-image run: the same run, for ``steps``
-        settings["distill"] = {**settings["distill"], "steps": steps}
-    if s.method is None:
-        settings["method"] = "per-image"
-    doc = stack.document.replace_layer(layer.id, settings=settings)
-    return Stack(doc, stack.folder, dict(stack.tensors), dict(stack.bit_depths))
 
 
 __all__ = ["Cancelled", "EditSession", "Job", "Snapshot"]
