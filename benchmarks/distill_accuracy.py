@@ -56,6 +56,7 @@ from lasagna.distill import distill_image  # noqa: E402
 from lasagna.distill.objective import REC709  # noqa: E402
 from lasagna.priors.base import Condition  # noqa: E402
 from lasagna.priors.ddim import ddim_sample  # noqa: E402
+from lasagna.priors.evaluate import psnr_db  # noqa: E402
 from lasagna.world import GLOW_VOCABULARY, VOCABULARY, additive_light, colorization, generate  # noqa: E402
 
 METHODS = ("sds", "lmc-sds", "dds", "nfsd", "ms-sds")
@@ -76,10 +77,10 @@ CHROMA_EPS = 0.05  # pixels darker than this (sum of RGB) have no meaningful chr
 
 # -- metrics ------------------------------------------------------------------------------------
 def psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> float:
-    """PSNR (peak 1) of the mean squared error over all images, or over ``mask`` pixels."""
+    """PSNR (``psnr_db``) of the mean squared error over all images, or over ``mask`` pixels."""
     d = (a.double() - b.double()) ** 2
     mse = d.mean() if mask is None else (d * mask).sum() / (mask.sum() * a.shape[1]).clamp_min(1)
-    return float(-10 * torch.log10(mse.clamp_min(1e-12)))
+    return float(psnr_db(mse, floor=1e-12))
 
 
 def scale_invariant_mse(y: torch.Tensor, true: torch.Tensor) -> float:

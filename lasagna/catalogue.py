@@ -63,18 +63,16 @@ FORMATS: dict[str, str] = {
     "lasagna.prior_link": "prior",
 }
 PRESET_GENERATOR = "generator"  # <catalogue>/<preset>/generator/: the preset's amortised generator
-PACKAGED = Path(__file__).resolve().parent / "_layers"  # where a wheel installs the catalogue
 
 
 def catalogues(extra: Sequence[str | os.PathLike] | None = None) -> list[Path]:
-    """Catalogue folders in search order: ``extra`` first, then ``default_catalogues()``, then the
-    installed package's copy. Folders that do not exist are left out; duplicates (one folder reached
-    twice, e.g. through an editable install) are listed once."""
+    """Catalogue folders in search order: ``extra`` first, then ``default_catalogues()`` (the one statement of
+    the order: ``$LASAGNA_LAYERS``, the user's, the checkout's, the installed package's copy). Folders that do
+    not exist are left out; duplicates (one folder reached twice, e.g. through an editable install) are listed
+    once."""
     out: list[Path] = []
     seen: set[Path] = set()
-    # In a checkout lasagna/_layers holds only its PACKAGING.md placeholder: listed only when it has entries.
-    packaged = [PACKAGED] if PACKAGED.is_dir() and any(p.is_dir() for p in PACKAGED.iterdir()) else []
-    for folder in [*(Path(p) for p in (extra or ())), *default_catalogues(), *packaged]:
+    for folder in [*(Path(p) for p in (extra or ())), *default_catalogues()]:
         key = folder.resolve()
         if folder.is_dir() and key not in seen:
             seen.add(key)

@@ -34,7 +34,7 @@ from lasagna.document.types import (
 )
 from lasagna.document.validation import RuleError, document_error, parse_json, read_json_text
 from lasagna.errors import ConditionError, DocumentError
-from lasagna.limits import MAX_PARTICLES
+from lasagna.limits import MAX_DISTILL_STEPS, MAX_PARTICLES
 
 # The score-distillation losses a preset (and ``lasagna edit --loss``) may name: declared here, in the
 # tier every other reads; ``lasagna.losses`` registers one implementation under each name.
@@ -176,7 +176,7 @@ class Preset(StrictModel):
     refine_steps: int = Field(
         0,
         ge=0,
-        le=10_000,
+        le=MAX_DISTILL_STEPS,
         strict=True,
         description="Per-image steps after the amortised pass, by default (0: the generator's layer as it is).",
     )

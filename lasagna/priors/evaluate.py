@@ -23,10 +23,16 @@ from lasagna.priors.nn import randn
 PSNR_FLOOR_MSE = 1e-10  # an exact match is reported as 100 dB rather than +inf
 
 
+def psnr_db(mse: torch.Tensor | float, floor: float = PSNR_FLOOR_MSE) -> torch.Tensor:
+    """PSNR in dB (peak 1) of a mean squared error of images in [0, 1]: 10·log10(1 / MSE), float64, the MSE
+    floored at ``floor`` (an exact match is a finite number). The one PSNR of the package, its benchmarks and
+    its trainers."""
+    return -10 * torch.log10(torch.as_tensor(mse, dtype=torch.float64).clamp_min(floor))
+
+
 def psnr(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Per-image PSNR (B,) of images in [0, 1]."""
-    mse = (a.double() - b.double()).pow(2).flatten(1).mean(1).clamp_min(PSNR_FLOOR_MSE)
-    return -10 * torch.log10(mse)
+    return psnr_db((a.double() - b.double()).pow(2).flatten(1).mean(1))
 
 
 @torch.no_grad()

@@ -33,7 +33,6 @@ their random draws, not in their statistics). Only rank 0 writes files.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -249,7 +248,9 @@ def evaluate(generator: LayerGenerator, cfg: AmortisedConfig, device: torch.devi
 
 
 def _psnr(mse: float) -> float | None:
-    return None if mse <= 0 else 10.0 * math.log10(1.0 / mse)  # strict JSON has no infinity
+    from lasagna.priors.evaluate import psnr_db
+
+    return None if mse <= 0 else float(psnr_db(mse, floor=0.0))  # strict JSON has no infinity
 
 
 def _load_prior(path: str | None, device: torch.device) -> Prior:
