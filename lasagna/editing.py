@@ -434,24 +434,29 @@ def render_learned(
         files.update(run.files)
         rendered.append(layer.id)
     if write and stack.folder is not None and rendered:
-        from lasagna.atomic import atomic_write_all, folder_lock
-        from lasagna.export.ora import encode_ora
-        from lasagna.io.render import encode_composite
-        from lasagna.io.stack import stack_files
-
-        folder = stack.folder
-        # Everything encoded first, then written all or nothing under the folder's lock: a kill, a full disk
-        # or a second `lasagna render` of the same stack never leaves stack.json, the PNGs and the
-        # composite out of step.
-        writes = [(resolve_inside(folder, rel, rel), data) for rel, data in files.items()]
-        writes += stack_files(stack, folder)
-        result = stack.render()
-        writes.append((folder / "composite.png", encode_composite(result, str(folder / "composite.png"))))
-        if (folder / "stack.ora").is_file():
-            writes.append((folder / "stack.ora", encode_ora(stack, composite=result.image, warn=warn)))
-        with folder_lock(folder):
-            atomic_write_all(writes)
+        _write_back(stack, files, warn)
     return stack, rendered
+
+
+def _write_back(stack: Stack, files: dict[str, bytes], warn) -> None:
+    """Re-rendered layers written into the stack's folder with ``files`` (generator copies, controls)."""
+    from lasagna.atomic import atomic_write_all, folder_lock
+    from lasagna.export.ora import encode_ora
+    from lasagna.io.render import encode_composite
+    from lasagna.io.stack import stack_files
+
+    folder = stack.folder
+    # Everything encoded first, then written all or nothing under the folder's lock: a kill, a full disk
+    # or a second `lasagna render` of the same stack never leaves stack.json, the PNGs and the
+    # composite out of step.
+    writes = [(resolve_inside(folder, rel, rel), data) for rel, data in files.items()]
+    writes += stack_files(stack, folder)
+    result = stack.render()
+    writes.append((folder / "composite.png", encode_composite(result, str(folder / "composite.png"))))
+    if (folder / "stack.ora").is_file():
+        writes.append((folder / "stack.ora", encode_ora(stack, composite=result.image, warn=warn)))
+    with folder_lock(folder):
+        atomic_write_all(writes)
 
 
 def remake_layer(

@@ -137,3 +137,14 @@ def test_a_stack_rendered_twice_is_the_same(edited, tmp_path):
     assert ids == [f"{PRESET}-{LABEL}"]
     assert isinstance(stack, Stack) and _layer(folder, ids[0])[0] == png
     assert np.array_equal(stack.tensors[ids[0]].color.numpy(), load_stack(out).tensors[ids[0]].color.numpy())
+
+
+def test_the_editors_presets_with_catalogue_folders(catalogue, photo, tmp_path):
+    """``EditSession.presets`` lists the catalogue folders it was given (it passed them as the kind before)."""
+    from lasagna.editing import read_image
+    from lasagna.serve.session import EditSession
+
+    folder = tmp_path / "stack"
+    read_image(photo).save(folder)
+    listed = {p["name"]: p for p in EditSession(folder, catalogue_dirs=[catalogue]).presets()}
+    assert listed[PRESET]["ready"] and listed[PRESET]["method"] == "per-image", listed[PRESET]
