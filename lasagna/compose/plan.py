@@ -53,6 +53,7 @@ from torch import Tensor
 from lasagna.compose.blend import BLEND_MODES, broadcast_shape, check_blend_name, clamp_needed
 from lasagna.compose.color import srgb_to_linear
 from lasagna.compose.layer import LayerTensors
+from lasagna.compose.surface import surface_range, surface_tensors
 from lasagna.document.types import range_problem
 from lasagna.errors import LasagnaError
 
@@ -633,6 +634,9 @@ def _document_specs(
                     "(load its source first)",
                     where=here,
                 )
+        if layer.kind == "surface":  # a normal map, rendered to its multiplier under the layer's light
+            lt = surface_tensors(lt, layer.light, layer.source_light, float(layer.ambient))
+            lo, hi = surface_range(layer.source_light, float(layer.ambient))
         specs.append(RenderLayerSpec(tensors=lt, range=(float(lo), float(hi)), encoded=True, **common))
     return specs
 

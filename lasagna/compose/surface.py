@@ -19,10 +19,13 @@ layers"). This module is that renderer, differentiable and batch-independent:
 
 from __future__ import annotations
 
+import weakref
+
 import torch
 from torch import Tensor
 
-from lasagna.document.condition import AMBIENT, check_ambient, unit_vector
+from lasagna.compose.layer import LayerTensors
+from lasagna.document.condition import AMBIENT, check_ambient, parse_direction, unit_vector
 from lasagna.errors import LasagnaError
 
 # A normal decoded from a map whose three channels round to (0.5, 0.5, 0.5) — a zero vector, which no unit
@@ -130,3 +133,43 @@ def inflate_regions(index: Tensor) -> Tensor:
             r = d.max() + 0.5
             height[b, 0].view(-1)[inside] = (r**2 - (r - d) ** 2).clamp_min(0).sqrt()
     return height * (2.0 / w_)  # pixels → canvas units (the canvas is 2 units wide)
+
+
+# ---- a surface layer of a document ------------------------------------------------------------------------
+
+# The rendered multiplier of each stored normal map, kept while the map's tensors live and unchanged: a render
+# plan asks for it on every render, and its statistics (culling) are then computed once per light, not per call.
+_RENDERED: weakref.WeakKeyDictionary[LayerTensors, tuple[tuple, LayerTensors]] = weakref.WeakKeyDictionary()
+
+
+def surface_range(source_light: str | None, ambient: float) -> tuple[float, float]:
+    """The interval a surface layer's multiplier lies in: [a, 1] (shading) or [a, 1/a] (relight ratio)."""
+    return (ambient, 1.0) if source_light is None else (ambient, 1.0 / ambient)
+
+
+def surface_tensors(stored: LayerTensors, light: str, source_light: str | None, ambient: float) -> LayerTensors:
+    """A surface layer's tensors as the compositor blends them: its normal map ``stored.color`` (..., 3, h, w)
+    of values in [0, 1] (the PNG's codes) rendered to the multiplier (..., 1, h, w) — S(light), or
+    S(light)/S(source_light) — with the map's alpha and mask. ``light`` and ``source_light`` are condition
+    texts (a named light or ``az=…,el=…``). The same stored map and light always give the same bits.
+    """
+    color = stored.color
+    if color.shape[-3] != 3:
+        raise LasagnaError(
+            f"the normal map has {color.shape[-3]} channel(s); expected an RGB normal map", where="surface layer"
+        )
+    key = (id(color), color._version, light, source_light, float(ambient))
+    hit = _RENDERED.get(stored)
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    flat = color.reshape(-1, *color.shape[-3:])
+    normals = decode_normal_map(flat)
+    target = light_vector(*parse_direction(light), dtype=normals.dtype, device=normals.device)
+    if source_light is None:
+        y = lambert(normals, target, ambient)
+    else:
+        source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
+        y = relight_ratio(normals, target, source, ambient)
+    out = LayerTensors(y.reshape(*color.shape[:-3], 1, *color.shape[-2:]), stored.alpha, stored.mask)
+    _RENDERED[stored] = (key, out)
+    return out

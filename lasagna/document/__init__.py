@@ -26,6 +26,7 @@ from lasagna.document.models import (
     PixelsLayer,
     Size,
     SolidLayer,
+    SurfaceLayer,
 )
 from lasagna.document.preset import (
     LOSS_NAMES,
@@ -66,6 +67,7 @@ __all__ = [
     "LearnedLayer",
     "Offset",
     "PixelsLayer",
+    "SurfaceLayer",
     "Size",
     "SolidLayer",
     "LOSS_NAMES",

@@ -46,6 +46,13 @@ MAX_ELEVATION = 90.0
 
 _NUMBER = r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?"
 _PAIR = re.compile(rf"\s*(az|el)\s*=\s*({_NUMBER})\s*")
+DIRECTION_PATTERN = (
+    "^(?:"
+    + "|".join(re.escape(n) for n in NAMED_DIRECTIONS)
+    + rf"|\s*(?:az|el)\s*=\s*{_NUMBER}\s*,\s*(?:az|el)\s*=\s*{_NUMBER}\s*)$"
+)
+"""What JSON Schema can say of a light's text: a named light or two ``key=number`` pairs (ECMA-262 regex).
+Which keys (az and el once each) and the elevation's range are checked by `parse_direction`."""
 _EXPECTED = (
     f"expected one of {', '.join(NAMED_DIRECTIONS)} or 'az=A,el=E' in degrees "
     f"(azimuth from +x toward +y, elevation from the view axis in [0, {MAX_ELEVATION:g}))"

@@ -17,8 +17,19 @@ import json
 from collections.abc import Iterator
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    JsonValue,
+    Strict,
+    ValidationError,
+    WithJsonSchema,
+    model_validator,
+)
 
+from lasagna.document.condition import AMBIENT, DIRECTION_PATTERN, parse_direction
 from lasagna.document.types import (
     RANGE_FOR_BLEND_SCHEMA,
     UNIT_RANGE,
@@ -38,7 +49,7 @@ from lasagna.document.types import (
     check_range_for_blend,
 )
 from lasagna.document.validation import RuleError, check_serialised, document_error, parse_json
-from lasagna.errors import DocumentError
+from lasagna.errors import ConditionError, DocumentError
 from lasagna.limits import MAX_GROUP_DEPTH
 
 FORMAT = "lasagna.stack"
@@ -168,6 +179,85 @@ class LearnedLayer(_LayerBase):
     )
 
 
+def _light_text(value: str) -> str:
+    """Rule: a light is a named direction (``left``, ``top-right``, …) or ``az=A,el=E`` in degrees, el in [0, 90)."""
+    try:
+        parse_direction(value)
+    except ConditionError as exc:
+        raise RuleError(exc.message) from None
+    return value
+
+
+LightText = Annotated[
+    str,
+    Strict(),
+    AfterValidator(_light_text),
+    WithJsonSchema(
+        {
+            "type": "string",
+            "pattern": DIRECTION_PATTERN,
+            "description": "A named light (left, top-right, …) or 'az=A,el=E' in degrees, el in [0, 90).",
+        }
+    ),
+]
+
+
+def _surface_schema(schema: dict[str, Any]) -> None:
+    schema["required"] = ["kind", *(r for r in schema.get("required", []) if r != "kind")]
+    # JSON Schema form of SurfaceLayer._multiplies: blend multiply; a relight ratio needs ambient > 0.
+    schema["properties"]["blend"] = {"enum": ["multiply", "multiply-luminosity"], "default": "multiply"}
+    schema["if"] = {"required": ["source_light"], "properties": {"source_light": {"type": "string"}}}
+    schema["then"] = {"properties": {"ambient": {"exclusiveMinimum": 0}}}
+
+
+class SurfaceLayer(_Common):
+    """A surface — a tangent-space normal map — rendered to a luminosity multiplier under its light.
+
+    The multiplier is Lambert with ambient, the world's contract (`lasagna.compose.surface`): the shading
+    S(light) = a + (1 − a)·max(0, n·l) or, with ``source_light``, the relight ratio S(light)/S(source_light)
+    that turns an image lit from ``source_light`` into one lit from ``light``. Editing ``light`` in stack.json
+    re-lights the layer exactly, with no learning. Its blend is multiply: the multiplier scales the colour
+    below it, so the paint under it is kept.
+    """
+
+    model_config = ConfigDict(json_schema_extra=_surface_schema)
+
+    kind: Literal["surface"] = Field("surface", description="Layer kind: a normal map lit by a directional light.")
+    source: RelativePath = Field(
+        description="The normal map: a 16-bit RGB PNG, tangent space, n ↦ (n + 1)/2 with +Y up (the OpenGL "
+        "convention of Blender, Krita and Godot)."
+    )
+    light: LightText = Field(description="The light it is rendered under: a named light or 'az=A,el=E'.")
+    source_light: LightText | None = Field(
+        None, description="If set, the layer is the relight ratio S(light)/S(source_light) of the surface."
+    )
+    ambient: float = Field(
+        AMBIENT, ge=0.0, lt=1.0, allow_inf_nan=False, description="Ambient term a of a + (1 − a)·max(0, n·l)."
+    )
+    mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
+
+    @property
+    def range(self) -> tuple[float, float]:
+        """The stored map's codes are read as [0, 1] (a normal map is not range-mapped)."""
+        return UNIT_RANGE
+
+    @model_validator(mode="after")
+    def _multiplies(self) -> SurfaceLayer:
+        if self.blend not in ("multiply", "multiply-luminosity"):
+            raise RuleError(
+                f"surface layer {self.id!r} has blend {self.blend!r}; a surface renders a luminosity multiplier: "
+                "expected blend 'multiply'",
+                loc=("blend",),
+            )
+        if self.source_light is not None and self.ambient <= 0.0:
+            raise RuleError(
+                f"surface layer {self.id!r} is a relight ratio with ambient 0 (S(source_light) would be 0 where the "
+                "source does not reach); expected ambient > 0",
+                loc=("ambient",),
+            )
+        return self
+
+
 def _group_schema(schema: dict[str, Any]) -> None:
     schema["required"] = ["kind", *(r for r in schema.get("required", []) if r != "kind")]
     # JSON Schema form of _pass_through_blends_normally: isolated absent or false -> blend normal.
@@ -224,10 +314,10 @@ class GroupLayer(_Common):
         return self
 
 
-Layer = Annotated[PixelsLayer | SolidLayer | LearnedLayer | GroupLayer, Field(discriminator="kind")]
+Layer = Annotated[PixelsLayer | SolidLayer | LearnedLayer | SurfaceLayer | GroupLayer, Field(discriminator="kind")]
 GroupLayer.model_rebuild()
 LAYER_KINDS: tuple[str, ...] = tuple(
-    m.model_fields["kind"].default for m in (PixelsLayer, SolidLayer, LearnedLayer, GroupLayer)
+    m.model_fields["kind"].default for m in (PixelsLayer, SolidLayer, LearnedLayer, SurfaceLayer, GroupLayer)
 )
 LayerPath = tuple[str | int, ...]  # JSON path of a layer: ("layers", 2, "layers", 0)
 

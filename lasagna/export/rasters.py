@@ -45,7 +45,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from lasagna.document import LearnedLayer, SolidLayer
+from lasagna.compose.surface import surface_tensors
+from lasagna.document import LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
 
 # ORA/PSD blend names for our blends and the helper layers.
@@ -117,6 +118,8 @@ def _layer_raster(stack, layer) -> tuple[np.ndarray, np.ndarray] | None:
     t = stack.tensors.get(layer.id)
     if t is None:
         return None
+    if isinstance(layer, SurfaceLayer):  # the multiplier its normal map renders to, as the compositor blends it
+        t = surface_tensors(t, layer.light, layer.source_light, float(layer.ambient))
     color = t.color.detach().cpu().double().numpy()
     if color.ndim != 3:
         raise ExportError(

@@ -25,14 +25,17 @@ import torch
 
 from lasagna.atomic import atomic_write_all
 from lasagna.compose.layer import LayerTensors
+from lasagna.compose.surface import encode_normal_map
 from lasagna.document import (
     Document,
     GroupLayer,
     LearnedLayer,
     PixelsLayer,
     SolidLayer,
+    SurfaceLayer,
     stack_file,
 )
+from lasagna.document.condition import AMBIENT
 from lasagna.errors import DocumentError, ImageError, PathError
 from lasagna.io.png import (
     DEFAULT_MAX_PIXELS,
@@ -207,6 +210,55 @@ class Stack:
         if changes:
             self.document = self.document.replace_layer(id, **changes)
         self._store(id, tensors, bit_depth)
+        return self
+
+    def add_surface(
+        self,
+        id: str,
+        normals: torch.Tensor,
+        light: str,
+        *,
+        source_light: str | None = None,
+        ambient: float = AMBIENT,
+        index: int | None = None,
+        mask=None,
+        **fields: Any,
+    ) -> Stack:
+        """Add (on top, or at ``index``) or replace the surface layer ``id`` of unit ``normals`` (3, h, w) (camera
+        frame, +Y up), rendered under ``light`` (a named light or ``az=…,el=…``; with ``source_light``, the relight
+        ratio). The normals are kept as a 16-bit normal map's values, exactly as the saved PNG gives them back,
+        so the stack renders the same bits before saving and after loading. ``fields``: name, opacity, visible,
+        offset."""
+        if not isinstance(normals, torch.Tensor) or normals.ndim != 3 or normals.shape[0] != 3:
+            got = tuple(normals.shape) if isinstance(normals, torch.Tensor) else type(normals).__name__
+            raise ImageError(f"normals have shape {got}; expected (3, h, w) unit vectors", where=f"layer {id!r}")
+        values = encode_normal_map(normals[None].double())[0].numpy()
+        color = torch.from_numpy(_decoded(values, 16, f"layer {id!r}"))
+        tensors = _make_tensors(id, color, None, mask, 16)
+        existing = self.document.layer(id) if id in self.document.all_ids else None
+        if existing is not None and not isinstance(existing, SurfaceLayer):
+            raise DocumentError(f"layer {id!r} is a {existing.kind} layer; expected a new id", where="add_surface")
+        layer = _layer_dict(id, "surface", {**fields, "blend": "multiply"}, has_mask=mask is not None)
+        layer.update(light=light, source_light=source_light, ambient=float(ambient))
+        if existing is not None:
+            self.document = self.document.with_layer(layer)
+        else:
+            self.document = self.document.with_layer(layer, index)
+        self._store(id, tensors, 16)
+        return self
+
+    def set_light(self, id: str, light: str, *, source_light: str | None = ..., ambient: float | None = None) -> Stack:
+        """Re-light the surface layer ``id``: a new ``light`` (and ``source_light`` / ``ambient`` when given). No
+        pixels change; the next render draws the stored surface under the new light."""
+        layer = self.document.layer(id)
+        if not isinstance(layer, SurfaceLayer):
+            raise DocumentError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", where="set_light")
+        changes: dict[str, Any] = {"light": light}
+        if source_light is not ...:
+            changes["source_light"] = source_light
+        if ambient is not None:
+            changes["ambient"] = float(ambient)
+        self.document = self.document.replace_layer(id, **changes)
         return self
 
     def remove_layer(self, id: str) -> Stack:
@@ -515,7 +567,8 @@ def _layer_codes(stack: Stack, id: str, clip: bool):
     t = stack.tensors[id]
     where = f"layer {id!r}"
     lo, hi = layer.range
-    depth = 16 if (tuple(layer.range) != (0.0, 1.0) or isinstance(layer, LearnedLayer)) else stack.bit_depths.get(id, 8)
+    sixteen = tuple(layer.range) != (0.0, 1.0) or isinstance(layer, (LearnedLayer, SurfaceLayer))  # maps: 16-bit
+    depth = 16 if sixteen else stack.bit_depths.get(id, 8)
     depth = max(depth, stack.bit_depths.get(id, 8))
     if t.color.ndim != 3:
         raise ImageError(f"colour has shape {tuple(t.color.shape)}; expected (C, h, w) to save (no batch)", where=where)

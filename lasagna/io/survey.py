@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from lasagna.document import Document, GroupLayer, LearnedLayer, PixelsLayer, load_document, stack_file
+from lasagna.document import Document, GroupLayer, LearnedLayer, PixelsLayer, SurfaceLayer, load_document, stack_file
 from lasagna.errors import ImageError, PathError
 from lasagna.io.png import DEFAULT_MAX_PIXELS, check_size, decode_bytes, read_png_header, verify_png
 from lasagna.limits import check_memory
@@ -55,7 +55,7 @@ def _rasters(doc: Document) -> Iterable[tuple[str, Any, str, str]]:
     """(JSON path, layer, field, relative path) for every PNG the document names, groups' layers and masks
     included (``layers[2].layers[0]``, depth first)."""
     for loc, layer in doc.walk():
-        if isinstance(layer, (PixelsLayer, LearnedLayer)) and layer.source is not None:
+        if isinstance(layer, (PixelsLayer, LearnedLayer, SurfaceLayer)) and layer.source is not None:
             yield loc, layer, "source", layer.source
             if layer.mask is not None:
                 yield loc, layer, "mask", layer.mask
