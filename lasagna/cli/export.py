@@ -17,7 +17,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ora", help="OpenRaster file to write")
     p.add_argument("--psd", help="layered PSD file to write (needs the psd extra)")
     p.add_argument("--layers", metavar="DIR", help="folder for one raw-value PNG per layer")
+    p.add_argument(
+        "--normal-map",
+        metavar="PNG",
+        help="write a surface layer's normal map (16-bit RGB, tangent space, +Y up: the OpenGL convention of "
+        "Blender, Krita and Godot), on the canvas, for a game or 2D-lighting engine",
+    )
+    p.add_argument("--surface", metavar="ID", help="which surface layer --normal-map writes (default: the topmost)")
     max_pixels_argument(p)
+    p.epilog = "example: lasagna export out/photo --ora photo.ora --psd photo.psd --normal-map photo-normals.png"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -25,9 +33,13 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.io.folder import check_not_input, check_writable
     from lasagna.io.survey import survey_stack
 
-    if not (args.ora or args.psd or args.layers):
-        raise LasagnaError("nothing to export; expected at least one of --ora, --psd, --layers", where="export")
-    for path in (args.ora, args.psd):
+    if not (args.ora or args.psd or args.layers or args.normal_map):
+        raise LasagnaError(
+            "nothing to export; expected at least one of --ora, --psd, --layers, --normal-map", where="export"
+        )
+    if args.surface and not args.normal_map:
+        raise LasagnaError("--surface names the layer --normal-map writes; expected --normal-map too", "--surface")
+    for path in (args.ora, args.psd, args.normal_map):
         if path:
             check_writable(path)
     if args.layers:
@@ -61,9 +73,13 @@ def run(args: argparse.Namespace) -> int:
         layer_files, meta = layer_pngs(stack)
         outputs += [(folder / name, data) for name, data in layer_files.items()]
         outputs.append((folder / "layers.json", (json.dumps(meta, indent=2) + "\n").encode("utf-8")))
+    if args.normal_map:
+        from lasagna.export.png import normal_map_png
+
+        outputs.append((Path(args.normal_map), normal_map_png(stack, args.surface)))
     check_not_input([path for path, _ in outputs], stack)
     atomic_write_all(outputs)
-    for path in (args.ora, args.psd):
+    for path in (args.ora, args.psd, args.normal_map):
         if path:
             print(f"wrote {path}")
     if args.layers:

@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from lasagna.atomic import atomic_write_all
-from lasagna.document import GroupLayer, LearnedLayer, SolidLayer
+from lasagna.document import GroupLayer, LearnedLayer, SolidLayer, SurfaceLayer
+from lasagna.errors import ExportError
 from lasagna.io.png import encode_png
 from lasagna.io.stack import NOT_RENDERED, encode_layer
 
@@ -87,3 +88,37 @@ def export_layer_pngs(stack, folder: str | os.PathLike, *, clip: bool = False) -
     outputs = [(folder / name, data) for name, data in files.items()]
     outputs.append((folder / "layers.json", (json.dumps(meta, indent=2) + "\n").encode("utf-8")))
     return atomic_write_all(outputs)
+
+
+def normal_map_png(stack, layer_id: str | None = None) -> bytes:
+    """PNG bytes of surface layer ``layer_id``'s normal map (default: the topmost surface layer) on the canvas:
+    16-bit RGB, tangent space, n ↦ (n + 1)/2 with +Y up (the OpenGL convention Blender, Krita's tangent-normal
+    brush and Godot's ``CanvasTexture.normal_texture`` read; flip green for DirectX). Outside the layer, and
+    where its mask or alpha is 0, the map holds the flat normal (0.5, 0.5, 1.0)."""
+    surfaces = [layer for _, layer in stack.document.walk() if isinstance(layer, SurfaceLayer)]
+    if not surfaces:
+        raise ExportError("the stack has no surface layer; expected one to write its normal map", "normal map")
+    if layer_id is None:
+        layer = surfaces[-1]
+    else:
+        named = [layer for layer in surfaces if layer.id == layer_id]
+        if not named:
+            ids = ", ".join(layer.id for layer in surfaces)
+            raise ExportError(f"no surface layer {layer_id!r}; expected one of {ids}", "normal map")
+        layer = named[0]
+    t = stack.tensors[layer.id]
+    h_, w_ = stack.height, stack.width
+    out = np.empty((3, h_, w_))
+    out[:] = np.array([0.5, 0.5, 1.0])[:, None, None]
+    color = t.color.detach().cpu().double().numpy()
+    keep = np.ones(color.shape[1:], dtype=bool)
+    for extra in (t.alpha, t.mask):
+        if extra is not None:
+            keep &= extra.detach().cpu().double().numpy().reshape(color.shape[1:]) > 0
+    x0, y0 = layer.offset.x, layer.offset.y
+    ys, xs = slice(max(0, y0), min(h_, y0 + color.shape[1])), slice(max(0, x0), min(w_, x0 + color.shape[2]))
+    src = (slice(None), slice(ys.start - y0, ys.stop - y0), slice(xs.start - x0, xs.stop - x0))
+    if ys.start < ys.stop and xs.start < xs.stop:
+        region = out[:, ys, xs]
+        out[:, ys, xs] = np.where(keep[src[1:]][None], color[src], region)
+    return encode_png(out, bit_depth=16, where=f"layer {layer.id!r} normal map")

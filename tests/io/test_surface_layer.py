@@ -150,3 +150,38 @@ def test_add_surface_refuses_bad_normals():
     with pytest.raises(Exception, match=r"normals have shape \(1, 4, 4\); expected \(3, h, w\)"):
         s.add_surface("x", torch.zeros(1, 4, 4), "left")
     assert s.ids == ("base",)
+
+
+def test_export_normal_map_is_the_stored_map_on_the_canvas(stack, tmp_path, capsys):
+    from lasagna.cli import main
+
+    stack.save(tmp_path / "s")
+    assert main(["export", str(tmp_path / "s"), "--normal-map", str(tmp_path / "n.png")]) == 0
+    stored = read_normals(tmp_path / "s" / "layers" / "shape.png")
+    exported = read_normals(tmp_path / "n.png")
+    np.testing.assert_array_equal(exported, stored)
+    assert main(["export", str(tmp_path / "s"), "--normal-map", str(tmp_path / "m.png"), "--surface", "base"]) == 2
+    assert "no surface layer 'base'; expected one of shape" in capsys.readouterr().err
+
+
+def test_a_2d_engine_lights_our_map_as_we_do(stack, tmp_path):
+    """Round trip through the convention a 2D engine reads (Godot's CanvasTexture normal map, OpenGL +Y up):
+    decode n = 2·rgb − 1 from the exported 8-bit-per-channel-or-better PNG, light with N·L as a Light2D does
+    (its height gives the light's z), and the engine's Lambert term equals our shading's."""
+    from lasagna.cli import main
+
+    stack.save(tmp_path / "s")
+    main(["export", str(tmp_path / "s"), "--normal-map", str(tmp_path / "n.png")])
+    rgb = np.asarray(
+        [list(r) for r in png.Reader(filename=str(tmp_path / "n.png")).read()[2]], dtype=np.float64
+    ).reshape(12, 16, 3)
+    engine_n = rgb / 65535.0 * 2 - 1  # Godot: NORMAL_MAP texture.rgb * 2.0 - 1.0, green up
+    engine_n /= np.linalg.norm(engine_n, axis=-1, keepdims=True)
+    # A light up and to the right of the screen: screen y runs down in the engine, so "up" is +Y of the map.
+    l_vec = light(45, 50)
+    engine = np.maximum(0, engine_n @ l_vec)
+    stack.set_light("shape", "az=45,el=50")
+    ours = (stack.render().image.double().numpy() / stack.tensors["base"].color.double().numpy().clip(1e-6))[0]
+    ours_lambert = (ours - 0.25) / 0.75
+    visible = stack.tensors["base"].color.double().numpy()[0] > 0.05  # where the ratio is well defined
+    np.testing.assert_allclose(ours_lambert[visible], engine[visible], atol=1e-4)
