@@ -26,6 +26,12 @@ DODGE_EPS = 1.0 / 65535.0
 # guarded division only pulls an almost-gray colour (|C − L| of the same order) towards its luminosity.
 CLIP_COLOR_EPS = 1e-6
 
+# Hard mix's tie Cb + Cs = 1 (Photoshop answers 1 only where Cb > 1/2) is a fact of 8-bit codes: a + b = 255. Our
+# values arrive as float32 code/255 (then perhaps float64), whose sum is 1 only to a few float32 ulps; a sum
+# within HARD_MIX_TIE_EPS of 1 is that tie. 2^-20 is far above those roundings and far below half a 16-bit code
+# (1/131070), so no two distinct codes are confused.
+HARD_MIX_TIE_EPS = 2.0**-20
+
 # Unpremultiplying a group's colour, C = c / α (W3C Compositing Level 1, section 5.1): where α = 0, c = 0 as
 # well and the spec leaves 0/0. Dividing by max(α, UNPREMULTIPLY_EPS) gives 0 there; where 0 < α < eps the
 # quotient is off by at most a factor, but every use weights it by α again (the group's alpha, αb·B(Cb, Cs)),

@@ -9,7 +9,9 @@ W3C Compositing Level 1 for an opaque backdrop Cb, source Cs, α = alpha × mask
     multiply  Cb + α(Cb·Cs − Cb)      (a 1-channel multiplier broadcasts over RGB)
     screen    Cb + α(Cs − Cb·Cs)
     plus      Cb + α·Cs
-    others    Cb + α(B(Cb, Cs) − Cb), B of W3C section 10 (``tests/compose/numpy_ref.py``'s ``W3C_B``)
+    others    Cb + α(B(Cb, Cs) − Cb), B of W3C section 10 and of Photoshop's other modes
+              (``tests/compose/numpy_ref.py``'s ``W3C_B``); dissolve: α → [u(x, y) < α] (``dissolve_u``, on the
+              layer's pixel coordinates; a group's on the canvas's)
 Groups: W3C section 8 (see ``composite_reference``).
 Stored PNG values v map to y = lo + (hi − lo)·v (alpha never). ``blend_space="linear"`` decodes colour
 values (background, solid colours, normal/plus/screen sources) from sRGB, never multiply factors, and
@@ -24,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import png
 
-from tests.compose.numpy_ref import W3C_B
+from tests.compose.numpy_ref import W3C_B, dissolve_u
 
 ALIASES = {"alpha-linear": "normal", "multiply-luminosity": "multiply", "additive": "plus"}
 
@@ -133,7 +135,10 @@ def _compose(layers, out, A, origin, ctx):
             A0 = np.ones((1, H, W)) if A is None else A
             if layer.get("isolated", False):
                 Cg, Ag = _compose(layer.get("layers", []), np.zeros((3, H, W)), np.zeros((1, H, W)), (x, y), ctx)
-                res, ao = _over(out, A0, Cg, Ag * m, blend)
+                ag = Ag * m
+                if blend == "dissolve":
+                    ag = (dissolve_u(H, W) < ag).astype(np.float64)
+                res, ao = _over(out, A0, Cg, ag, blend)
                 res = np.clip(res, 0.0, 1.0) if clamp_each else res
             else:
                 Cn, An = _compose(layer.get("layers", []), out.copy(), None if A is None else A.copy(), (x, y), ctx)
@@ -173,6 +178,8 @@ def _compose(layers, out, A, origin, ctx):
         cb = out[:, y0:y1, x0:x1]
         cs = color[:, y0 - y : y1 - y, x0 - x : x1 - x]
         al = a[:, y0 - y : y1 - y, x0 - x : x1 - x]
+        if blend == "dissolve":
+            al = (dissolve_u(y1 - y0, x1 - x0, y0 - y, x0 - x) < al).astype(np.float64)
         if A is not None:  # inside an isolated group: the canvas has alpha
             res, A[:, y0:y1, x0:x1] = _over(cb, A[:, y0:y1, x0:x1], cs, al, blend)
         elif blend == "normal":

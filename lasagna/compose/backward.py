@@ -448,7 +448,8 @@ def _step_backward(
     turn ``gr`` into ∂L/∂Cb in place (when ``need_cb``: a layer below needs it)."""
     t, op = step.spec.tensors, step.spec.opacity
     need_cs = grads.wants(t.color)
-    need_a = any(grads.wants(x) for x in (t.alpha, t.mask, op))
+    # dissolve's α is a step of alpha × mask × opacity (blend.dissolve_alpha): no gradient reaches them.
+    need_a = step.blend != "dissolve" and any(grads.wants(x) for x in (t.alpha, t.mask, op))
     blend = step.blend
     g_a: Tensor | None = None
     color_shape = (*t.color[sl].shape,) if need_cs else ()
@@ -556,7 +557,9 @@ def _local_vjp(
         if not leaves:
             return None
         out = KERNELS[blend](cb_l, cs_l, a_l)
-        grads = dict(zip(map(id, leaves), torch.autograd.grad(out, leaves, gr)))
+        # allow_unused: an opaque dissolve layer (normal, α = None) does not read Cb, whose gradient is then 0.
+        got = torch.autograd.grad(out, leaves, gr, allow_unused=True)
+        grads = {id(x): torch.zeros_like(x) if g is None else g for x, g in zip(leaves, got)}
     if cs_grad is not None:
         cs_grad(grads[id(cs_l)])
     if need_cb:

@@ -32,6 +32,36 @@ color        SetLum(Cs, Lum(Cb))
 luminosity   SetLum(Cb, Lum(Cs))
 ===========  ==============================================================================
 
+Photoshop's other modes (its names; the formulas psd-tools' ``composite/blend.py`` pins against
+Photoshop's own renders) are computed the same way, ``lerp(Cb, B, α)``: Photoshop applies a layer's pixel
+alpha, mask and opacity as that lerp for every mode, the clamp of the linear modes inside ``B``:
+
+=============  ===============================================================================
+linear-burn    max(0, Cb + Cs − 1)
+linear-dodge   min(1, Cb + Cs)   (Photoshop's "Linear Dodge (Add)"; W3C ``plus`` is Cb + α·Cs clamped
+               after the blend: the two differ where 0 < α < 1 and Cb + Cs > 1)
+subtract       max(0, Cb − Cs)
+divide         min(1, Cb / Cs); at Cs ≤ 0: 0 where Cb ≤ 0, else 1
+vivid-light    Cs ≤ ½: 1 − min(1, (1 − Cb) / 2Cs), 0 at Cs ≤ 0; else min(1, Cb / 2(1 − Cs)), 1 at
+               Cs ≥ 1 (the source's pole wins, unlike color-burn/-dodge's backdrop cases)
+linear-light   Cs ≤ ½: max(0, Cb + 2Cs − 1); else min(1, Cb + 2Cs − 1)
+pin-light      Cs ≤ ½: min(Cb, 2Cs); else max(Cb, 2Cs − 1)
+hard-mix       1 where Cb + Cs > 1, or Cb + Cs = 1 and Cb > ½; else 0 (a sum within ``HARD_MIX_TIE_EPS``
+               of 1 is the tie: 8-bit codes a + b = 255 sum to 1 only to a few float32 ulps)
+darker-color   Cs where Lum(Cs) < Lum(Cb), else Cb (whole pixels; Lum of section 10.3)
+lighter-color  Cs where Lum(Cs) > Lum(Cb), else Cb
+dissolve       Cs, with α replaced per pixel by 1 where u < α, else 0 (``dissolve_alpha``: u a hash of
+               the layer's pixel coordinates and ``DISSOLVE_SEED``, so the pattern moves with the
+               layer, and is the same in every band, engine and run)
+=============  ===============================================================================
+
+Gradients: hard-mix is piecewise constant (its gradient is 0 everywhere), dissolve's pattern is a step
+in α (no gradient reaches alpha, mask or opacity; the colour's does); the clamps of linear-burn/-dodge,
+subtract and linear-light pass the gradient where the bound is reached exactly (``clamp``'s convention);
+divide's and vivid-light's quotients are only selected away from their poles, where their denominators
+are ≥ the values they guard, and read 1 at the pole (as color-dodge does); darker/lighter-color at equal
+Lum take Cb (Photoshop's strict comparison).
+
 The non-separable four follow the spec's pseudo-code (section 10.3: Lum with weights 0.3, 0.59,
 0.11, ClipColor, SetLum, Sat, SetSat), vectorised: SetSat maps each channel to (C − Cmin)·s /
 (Cmax − Cmin), which sets the max to s, the min to 0 and scales the mid, as the spec's sorted form
@@ -95,7 +125,7 @@ from torch import Tensor
 from lasagna.compose.select import as_value, pick, step
 from lasagna.document.blend import BLEND_MODES as BLEND_MODES  # the names are declared there, once
 from lasagna.errors import LasagnaError
-from lasagna.numerics import CLIP_COLOR_EPS
+from lasagna.numerics import CLIP_COLOR_EPS, HARD_MIX_TIE_EPS
 
 Alpha = Tensor | float | None
 
@@ -284,6 +314,134 @@ def _luminosity_B(Cb: Tensor, Cs: Tensor) -> Tensor:
     return _set_lum(Cb, _lum(Cs))
 
 
+# ---- Photoshop's other modes (module docstring) --------------------------------------------------
+
+
+def _linear_burn_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return (Cb + Cs - 1.0).clamp_min(0.0)
+
+
+def _linear_dodge_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return (Cb + Cs).clamp_max(1.0)
+
+
+def _subtract_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return (Cb - Cs).clamp_min(0.0)
+
+
+def _divide_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    # At Cs ≤ 0 the quotient divides by 1 (not selected); B is 1 where Cb > 0, else 0 (constant: no gradient).
+    pole = step("<=", Cs, 0.0)
+    q = torch.div(Cb, pick(pole, torch.ones_like(Cs), Cs)).clamp_max(1.0)
+    return pick(pole, as_value(step(">", Cb, 0.0), q), q)
+
+
+def _vivid_light_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    # Burn by 2Cs on Cs ≤ ½ (0 at Cs ≤ 0), dodge by 2(1 − Cs) above (1 at Cs ≥ 1); each quotient reads a
+    # denominator of 1 where it is not selected, so both branches stay finite.
+    low = step("<=", Cs, 0.5)
+    burn_pole, dodge_pole = step("<=", Cs, 0.0), step(">=", Cs, 1.0)
+    one = torch.ones_like(Cs)
+    burn = 1.0 - torch.div(1.0 - Cb, pick(burn_pole, one, pick(low, 2.0 * Cs, one))).clamp_max(1.0)
+    dodge = torch.div(Cb, pick(dodge_pole, one, pick(low, one, 2.0 * (1.0 - Cs)))).clamp_max(1.0)
+    burn = pick(burn_pole, torch.zeros_like(burn), burn)
+    dodge = pick(dodge_pole, torch.ones_like(dodge), dodge)
+    return pick(low, burn, dodge)
+
+
+def _linear_light_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    s = Cb + 2.0 * Cs - 1.0
+    return pick(step("<=", Cs, 0.5), s.clamp_min(0.0), s.clamp_max(1.0))
+
+
+def _pin_light_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    s2 = 2.0 * Cs
+    return pick(step("<=", Cs, 0.5), torch.minimum(Cb, s2), torch.maximum(Cb, s2 - 1.0))
+
+
+def _hard_mix_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    # Photoshop's tie (Cb + Cs = 1, common in 8-bit codes): 1 only where Cb > ½ (psd-tools #189); a sum within
+    # HARD_MIX_TIE_EPS of 1 is the tie (numerics.py). The sum is taken in float32 at least (exact for half
+    # inputs). B is piecewise constant: "+ 0·(Cb + Cs)" keeps the graph (a zero gradient, not a missing one)
+    # and the NaN policy (a NaN input stays NaN).
+    wide = torch.float32 if Cb.dtype not in (torch.float32, torch.float64) else Cb.dtype
+    cb = Cb.detach().to(wide)
+    off = cb + Cs.detach().to(wide) - 1.0
+    tie = off.abs() <= HARD_MIX_TIE_EPS
+    levels = (~tie & (off > 0.0)) | (tie & (cb > 0.5))
+    return levels.to(Cb.dtype) + (Cb + Cs) * 0.0
+
+
+def _lum_below(Cb: Tensor, Cs: Tensor, op: str) -> Tensor:
+    # Lum(Cs) op Lum(Cb), compared in float32 at least: in half precision the two sums round apart.
+    wide = torch.float32 if Cb.dtype not in (torch.float32, torch.float64) else Cb.dtype
+    d = _lum(Cs.detach().to(wide)) - _lum(Cb.detach().to(wide))
+    w = step(op, d, 0.0)
+    return w if Cb.dtype in (torch.float32, torch.float64) else w.to(torch.bool)
+
+
+@_non_separable
+def _darker_color_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return pick(_lum_below(Cb, Cs, "<"), Cs, Cb)
+
+
+@_non_separable
+def _lighter_color_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return pick(_lum_below(Cb, Cs, ">"), Cs, Cb)
+
+
+def _dissolve_B(Cb: Tensor, Cs: Tensor) -> Tensor:
+    return Cs.expand(broadcast_shape(Cb.shape, Cs.shape))
+
+
+# The pattern of dissolve: a pixel (x, y) of the layer shows where u(x, y) < α, u = h / 2^24 with h the top 24
+# bits of a 32-bit integer hash of (x, y, DISSOLVE_SEED) (two rounds of a multiply-xorshift mixer; every
+# product stays below 2^63, so int64 arithmetic is exact). Fixed, documented, reproducible in numpy.
+DISSOLVE_SEED = 0x2545F491
+_MIX = 0x045D9F3B
+_MASK32 = 0xFFFFFFFF
+
+
+def dissolve_pattern(y: Tensor, x: Tensor) -> Tensor:
+    """u(x, y) ∈ [0, 1) of dissolve (above), float64, for int64 row indices ``y`` (h, 1) and columns ``x`` (1, w)."""
+    h = (x * 73856093) ^ (y * 19349663) ^ DISSOLVE_SEED
+    h = h & _MASK32
+    for _ in range(2):
+        h = h ^ (h >> 16)
+        h = (h * _MIX) & _MASK32
+    h = h ^ (h >> 16)
+    return (h >> 8).to(torch.float64) / float(1 << 24)
+
+
+def dissolve_alpha(a: Alpha, ly: int, lx: int, h: int, w: int, dtype: torch.dtype, device=None) -> Alpha:
+    """Dissolve's α over the layer pixels rows ``ly:ly+h``, columns ``lx:lx+w``: 1 where u < α, else 0 (gradient
+    0; NaN where α is NaN); None (opaque) stays None."""
+    if a is None:
+        return None
+    ys = torch.arange(ly, ly + h, device=device).unsqueeze(1)
+    xs = torch.arange(lx, lx + w, device=device).unsqueeze(0)
+    u = dissolve_pattern(ys, xs).to(dtype).unsqueeze(0)  # (1, h, w); exact in float32 (24-bit codes)
+    if not isinstance(a, Tensor):
+        return torch.lt(u, a).to(dtype)
+    return torch.lt(u, a.detach()).to(dtype) + a * 0.0  # 0·α: a zero gradient, and a NaN α stays NaN
+
+
+# B(Cb, Cs) of Photoshop's other modes, computed as lerp(Cb, B, α) like the W3C ones.
+PHOTOSHOP_B: dict[str, Callable[[Tensor, Tensor], Tensor]] = {
+    "linear-burn": _linear_burn_B,
+    "linear-dodge": _linear_dodge_B,
+    "subtract": _subtract_B,
+    "divide": _divide_B,
+    "vivid-light": _vivid_light_B,
+    "linear-light": _linear_light_B,
+    "pin-light": _pin_light_B,
+    "hard-mix": _hard_mix_B,
+    "darker-color": _darker_color_B,
+    "lighter-color": _lighter_color_B,
+    "dissolve": _dissolve_B,
+}
+
+
 # B(Cb, Cs) of the modes computed as lerp(Cb, B, α).
 W3C_B: dict[str, Callable[[Tensor, Tensor], Tensor]] = {
     "overlay": _overlay_B,
@@ -321,7 +479,12 @@ def _lerp_kernels(
     return kernel, kernel_
 
 
-_W3C_KERNELS = {name: _lerp_kernels(B) for name, B in W3C_B.items()}
+# Every mode computed as lerp(Cb, B, α): the W3C ones and Photoshop's.
+LERP_B: dict[str, Callable[[Tensor, Tensor], Tensor]] = {**W3C_B, **PHOTOSHOP_B}
+
+_W3C_KERNELS = {name: _lerp_kernels(B) for name, B in LERP_B.items()}
+# dissolve is normal with a dissolved α (``dissolve_alpha``, applied where α is read: ``step._alpha``).
+_W3C_KERNELS["dissolve"] = (_normal, _normal_)
 
 KERNELS: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
     "normal": _normal,
@@ -478,8 +641,8 @@ def _public(name: str, inplace: bool) -> Callable[[Tensor, Tensor, Alpha], Tenso
     fn.__doc__ = (
         f"In-place ``{name}``: ``Cb.lerp_(B(Cb, Cs), α)`` (``Cb.copy_(B)`` if α is None); returns ``Cb``."
         if inplace
-        else f"{name.capitalize()} (W3C Compositing Level 1): ``lerp(Cb, B(Cb, Cs), α)``, B in the module "
-        "docstring; ``B`` if α is None."
+        else f"{name.capitalize()} ({'Photoshop' if name in PHOTOSHOP_B else 'W3C Compositing Level 1'}): "
+        "``lerp(Cb, B(Cb, Cs), α)``, B in the module docstring; ``B`` if α is None."
     )
     return fn
 
@@ -497,6 +660,32 @@ hue, hue_ = _public("hue", False), _public("hue", True)
 saturation, saturation_ = _public("saturation", False), _public("saturation", True)
 color, color_ = _public("color", False), _public("color", True)
 luminosity, luminosity_ = _public("luminosity", False), _public("luminosity", True)
+linear_burn, linear_burn_ = _public("linear-burn", False), _public("linear-burn", True)
+linear_dodge, linear_dodge_ = _public("linear-dodge", False), _public("linear-dodge", True)
+subtract, subtract_ = _public("subtract", False), _public("subtract", True)
+divide, divide_ = _public("divide", False), _public("divide", True)
+vivid_light, vivid_light_ = _public("vivid-light", False), _public("vivid-light", True)
+linear_light, linear_light_ = _public("linear-light", False), _public("linear-light", True)
+pin_light, pin_light_ = _public("pin-light", False), _public("pin-light", True)
+hard_mix, hard_mix_ = _public("hard-mix", False), _public("hard-mix", True)
+darker_color, darker_color_ = _public("darker-color", False), _public("darker-color", True)
+lighter_color, lighter_color_ = _public("lighter-color", False), _public("lighter-color", True)
+
+
+def dissolve(Cb: Tensor, Cs: Tensor, a: Alpha = None) -> Tensor:
+    """Dissolve (Photoshop): normal with α replaced by ``dissolve_alpha`` (the pattern anchored at the top-left
+    pixel of ``Cs``); ``Cs`` if α is None."""
+    _check("dissolve", Cb, Cs, a, inplace=False)
+    h, w = Cb.shape[-2:]
+    return _normal(Cb, Cs, dissolve_alpha(a, 0, 0, h, w, Cb.dtype, Cb.device))
+
+
+def dissolve_(Cb: Tensor, Cs: Tensor, a: Alpha = None) -> Tensor:
+    """In-place ``dissolve``: ``Cb.lerp_(Cs, dissolve_alpha(α))``; returns ``Cb``."""
+    _check("dissolve_", Cb, Cs, a, inplace=True)
+    h, w = Cb.shape[-2:]
+    return _normal_(Cb, Cs, dissolve_alpha(a, 0, 0, h, w, Cb.dtype, Cb.device))
+
 
 BLEND_FUNC: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
     "normal": normal,
@@ -516,6 +705,17 @@ BLEND_FUNC: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
     "saturation": saturation,
     "color": color,
     "luminosity": luminosity,
+    "linear-burn": linear_burn,
+    "linear-dodge": linear_dodge,
+    "subtract": subtract,
+    "divide": divide,
+    "vivid-light": vivid_light,
+    "linear-light": linear_light,
+    "pin-light": pin_light,
+    "hard-mix": hard_mix,
+    "darker-color": darker_color,
+    "lighter-color": lighter_color,
+    "dissolve": dissolve,
 }
 BLEND_INPLACE: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
     "normal": normal_,
@@ -535,6 +735,17 @@ BLEND_INPLACE: dict[str, Callable[[Tensor, Tensor, Alpha], Tensor]] = {
     "saturation": saturation_,
     "color": color_,
     "luminosity": luminosity_,
+    "linear-burn": linear_burn_,
+    "linear-dodge": linear_dodge_,
+    "subtract": subtract_,
+    "divide": divide_,
+    "vivid-light": vivid_light_,
+    "linear-light": linear_light_,
+    "pin-light": pin_light_,
+    "hard-mix": hard_mix_,
+    "darker-color": darker_color_,
+    "lighter-color": lighter_color_,
+    "dissolve": dissolve_,
 }
 
 
@@ -558,10 +769,11 @@ def clamp_needed(blend: str, lo: float, hi: float) -> tuple[bool, bool]:
         return True, True
     if blend == "plus":
         return lo < 0.0, hi > 0.0
-    if blend in W3C_B and blend not in _PROVEN_IN_RANGE:
+    if blend in LERP_B and blend not in _PROVEN_IN_RANGE:
         return True, True
     return lo < 0.0, hi > 1.0
 
 
 # W3C modes whose rounded B of in-range values is proven to lie in [0, 1] (module docstring).
-_PROVEN_IN_RANGE = frozenset({"darken", "lighten", "difference"})
+# dissolve is normal with α ∈ {0, 1}; darker/lighter-color pick whole in-range pixels, then lerp.
+_PROVEN_IN_RANGE = frozenset({"darken", "lighten", "difference", "dissolve", "darker-color", "lighter-color"})

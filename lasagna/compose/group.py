@@ -34,19 +34,20 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from lasagna.compose.blend import KERNELS, W3C_B, Alpha, broadcast_shape
+from lasagna.compose.blend import KERNELS, LERP_B, Alpha, broadcast_shape, dissolve_alpha
 from lasagna.compose.plan import PlanStep, RenderPlan
 from lasagna.compose.step import _alpha, _clamp, _color
 from lasagna.numerics import UNPREMULTIPLY_EPS
 
 State = tuple[Tensor, Tensor | None]  # (C, None) opaque, or premultiplied (c, α)
 
-# B(Cb, Cs) of every mode but plus (W3C section 10.1 and 10.2; blend.py's for the lerp-computed modes).
+# B(Cb, Cs) of every mode but plus (W3C section 10.1 and 10.2; blend.py's for the lerp-computed modes, Photoshop's
+# included: over a backdrop with alpha they take the same general formula).
 MIX: dict[str, Callable[[Tensor, Tensor], Tensor]] = {
     "normal": lambda Cb, Cs: Cs,
     "multiply": lambda Cb, Cs: Cb * Cs,
     "screen": lambda Cb, Cs: Cb + Cs - Cb * Cs,
-    **W3C_B,
+    **LERP_B,
 }
 
 
@@ -117,6 +118,9 @@ def group_state(step: PlanStep, state: State, rect: tuple[int, int, int, int], d
         empty = (C.new_zeros(shape), C.new_zeros((*C.shape[:-3], 1, *C.shape[-2:])))
         cg, ag = _children(step, empty, rect, dtype, grad)
         alpha = ag if a is None else ag * a
+        if step.spec.blend == "dissolve":  # the group's pattern, on canvas coordinates (it has no pixels of its own)
+            y0, y1, x0, x1 = rect
+            alpha = dissolve_alpha(alpha, y0, x0, y1 - y0, x1 - x0, C.dtype, C.device)
         return blend_state(state, step.spec.blend, unpremultiply(cg, ag), alpha)
     after = _children(step, state, rect, dtype, grad)
     if a is None:

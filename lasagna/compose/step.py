@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from lasagna.compose.blend import Alpha
+from lasagna.compose.blend import Alpha, dissolve_alpha
 from lasagna.compose.color import srgb_to_linear
 from lasagna.compose.plan import PlanStep
 
@@ -25,9 +25,19 @@ def _color(step: PlanStep, sl: tuple, dtype: torch.dtype, grad: bool) -> Tensor:
 
 
 def _alpha(step: PlanStep, sl: tuple, dtype: torch.dtype, grad: bool) -> Alpha:
-    """α = alpha × mask × opacity for the slice; a number when it is one, None when opaque."""
+    """α = alpha × mask × opacity for the slice; a number when it is one, None when opaque. A dissolve layer's
+    α is its dissolve pattern (``blend.dissolve_alpha``, 0 or 1 per pixel of the layer)."""
     if step.opaque:
         return None
+    if step.blend == "dissolve":
+        a = _effective_alpha(step, sl, dtype, grad)
+        ly, lx = sl[-2], sl[-1]
+        h, w = ly.stop - ly.start, lx.stop - lx.start
+        return dissolve_alpha(a, ly.start, lx.start, h, w, dtype, step.spec.tensors.color.device)
+    return _effective_alpha(step, sl, dtype, grad)
+
+
+def _effective_alpha(step: PlanStep, sl: tuple, dtype: torch.dtype, grad: bool) -> Alpha:
     t, op = step.spec.tensors, step.spec.opacity
     if isinstance(op, Tensor):
         if not (grad and op.requires_grad) and op.ndim == 0:

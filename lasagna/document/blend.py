@@ -1,7 +1,10 @@
 """Blend-mode names: the canonical modes of a stack document and the aliases accepted on input.
 
 The canonical names are CSS ``mix-blend-mode``'s: every mode of W3C Compositing and Blending Level 1
-(the twelve separable and four non-separable ones) plus Porter–Duff ``plus``. The formulas themselves
+(the twelve separable and four non-separable ones) plus Porter–Duff ``plus``; then Photoshop's other modes
+under their Photoshop names in CSS spelling (``linear-burn`` … ``dissolve``; Krita and GIMP have all of
+them). ``linear-dodge`` is Photoshop's "Linear Dodge (Add)", which clamps inside the blend and so differs
+from W3C ``plus`` under partial alpha. The formulas themselves
 live in the compose tier (opaque backdrop); this module only names them. Aliases are the names the
 Lasagna paper uses ("alpha-linear" colour, "multiply-luminosity" shading, "additive" light); a
 document may use them, but it is always written back with the canonical name, so two documents that
@@ -36,6 +39,18 @@ BlendMode = Literal[
     "saturation",
     "color",
     "luminosity",
+    # Photoshop's other modes (psd-tools' BlendMode names, CSS spelling)
+    "linear-burn",
+    "linear-dodge",
+    "subtract",
+    "divide",
+    "vivid-light",
+    "linear-light",
+    "pin-light",
+    "hard-mix",
+    "darker-color",
+    "lighter-color",
+    "dissolve",
 ]
 
 BLEND_MODES: tuple[str, ...] = get_args(BlendMode)

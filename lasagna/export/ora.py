@@ -5,10 +5,11 @@ The file (OpenRaster spec, https://www.openraster.org/baseline/file-layout-spec.
 ``stack.xml`` (``<image w h><stack>`` with layers **topmost first**, each ``<layer name src x y
 opacity visibility composite-op>``), ``data/*.png`` (8-bit RGBA, what every reader supports),
 ``mergedimage.png`` (our exact composite) and ``Thumbnails/thumbnail.png`` (at most 256×256). Blends
-map to ``svg:src-over`` (normal), ``svg:plus``, and ``svg:<name>`` for every W3C mode
-(``svg:multiply``, ``svg:overlay``, …, ``svg:luminosity``); values a reader cannot blend directly
-are expressed as in :mod:`lasagna.export.rasters` (multiplier y > 1 as a multiply +
-``svg:color-dodge`` pair). A bottom background layer makes the file flatten to our opaque composite.
+map to ``svg:src-over`` (normal), ``svg:plus``, ``svg:<name>`` for every W3C mode the OpenRaster spec
+names (``svg:multiply``, ``svg:overlay``, …, ``svg:luminosity``) and Krita's ``krita:<id>`` for exclusion
+and Photoshop's modes (``KRITA_OPS``: what Krita writes and reads; it reads ``svg:exclusion`` as normal);
+values a reader cannot blend directly are expressed as in :mod:`lasagna.export.rasters` (multiplier y > 1 as
+a multiply + ``svg:color-dodge`` pair). A bottom background layer makes the file flatten to our opaque composite.
 Alpha × mask is baked into each PNG's alpha, opacity into ``opacity``.
 
 Groups are nested ``<stack>`` elements (``isolation="isolate"`` for an isolated group with its
@@ -65,10 +66,32 @@ MIMETYPE = b"image/openraster"
 THUMBNAIL_MAX = 256
 _EPOCH = (1980, 1, 1, 0, 0, 0)  # fixed entry dates: the same stack gives the same bytes
 
-# OpenRaster's composite-op for every blend: svg:src-over for normal, else "svg:" + the CSS name (the
-# OpenRaster spec names the W3C modes and svg:plus exactly so).
-OPS_TO_SVG = {mode: "svg:src-over" if mode == "normal" else f"svg:{mode}" for mode in BLEND_MODES}
-SVG_TO_BLEND = {svg: mode for mode, svg in OPS_TO_SVG.items()}
+# Krita's composite-op ids (KoCompositeOpRegistry.h) of the blends the OpenRaster spec does not name: Krita writes
+# and reads them as "krita:<id>" and reads an svg: name outside the spec's list (svg:exclusion included) as normal
+# (kis_open_raster_stack_load_visitor.cpp). Photoshop's Hard Mix is Krita's hard_mix_photoshop ("hard mix" is
+# another formula).
+KRITA_OPS = {
+    "exclusion": "exclusion",
+    "linear-burn": "linear_burn",
+    "linear-dodge": "linear_dodge",
+    "subtract": "subtract",
+    "divide": "divide",
+    "vivid-light": "vivid_light",
+    "linear-light": "linear light",
+    "pin-light": "pin_light",
+    "hard-mix": "hard_mix_photoshop",
+    "darker-color": "darker color",
+    "lighter-color": "lighter color",
+    "dissolve": "dissolve",
+}
+# OpenRaster's composite-op for every blend: svg:src-over for normal, "svg:" + the CSS name for the modes the
+# OpenRaster spec names (W3C's but exclusion, and svg:plus), "krita:" + Krita's id for the others.
+OPS_TO_SVG = {
+    mode: "svg:src-over" if mode == "normal" else f"krita:{KRITA_OPS[mode]}" if mode in KRITA_OPS else f"svg:{mode}"
+    for mode in BLEND_MODES
+}
+# Read: every name written, and svg:exclusion (what earlier versions wrote; other readers may too).
+SVG_TO_BLEND = {svg: mode for mode, svg in OPS_TO_SVG.items()} | {"svg:exclusion": "exclusion"}
 DODGE_PREFIX = "data/_dodge/"  # the src of the colour-dodge half of a multiplier above 1 (rasters.py's key)
 
 # An archive whose entries inflate to more than this is refused (zip bombs); 4 GiB holds 2^28

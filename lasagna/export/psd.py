@@ -84,8 +84,10 @@ def _create_layer(psd, image, name: str, **kwargs):
 
 
 def psd_blend_modes(BlendMode) -> dict[str, object]:
-    """psd-tools' ``BlendMode`` of every blend: plus is Photoshop's LINEAR_DODGE ("Linear Dodge (Add)"),
-    every W3C mode its own name in upper case (``color-dodge`` → ``COLOR_DODGE``)."""
+    """psd-tools' ``BlendMode`` of every blend: its own name in upper case (``color-dodge`` → ``COLOR_DODGE``,
+    ``linear-dodge`` → ``LINEAR_DODGE``), and plus too is LINEAR_DODGE ("Linear Dodge (Add)"): its partial alpha
+    is baked into its values on export (``lasagna.export.rasters``), on which the two agree. Read back,
+    LINEAR_DODGE is ``linear-dodge`` (the last of the two in this table)."""
     return {m: BlendMode.LINEAR_DODGE if m == "plus" else BlendMode[m.upper().replace("-", "_")] for m in BLEND_MODES}
 
 
@@ -141,7 +143,7 @@ def _write_items(psd, parent, items: list, stack, modes, BlendMode, *, isolated_
             parent.append(created)
         nxt = items[i + 1] if i + 1 < len(items) else None
         last_part = nxt is None or getattr(nxt, "source", None) != layer.source or isinstance(nxt, ExportGroup)
-        if layer.op in ("plus", "color-dodge") and last_part and not isolated_in:
+        if layer.op in ("plus", "linear-dodge", "color-dodge") and last_part and not isolated_in:
             # GIMP 2.10 composites PSD layers in float and keeps a dodge or addition result above 1
             # unclamped, so a layer with alpha above it would blend with that value. An opaque
             # white "darken" layer, min(Cb, 1), clamps it there and is the identity in 8/16-bit tools.

@@ -3,17 +3,18 @@
 What each PSD thing becomes:
 
 * a pixel layer → a ``pixels`` layer: its RGBA at its offset, ``blend`` the psd-tools ``BlendMode`` of the
-  same W3C name (``LINEAR_DODGE`` → ``plus``), ``opacity`` = opacity × fill (for a layer without effects the
-  two fade its paint alike), ``visible``; its user mask (enabled, cut to the layer's rectangle, the mask's
-  background colour outside the stored bbox) → ``mask``;
+  same name (``LINEAR_DODGE`` → ``linear-dodge``: Photoshop's, clamped inside the blend), ``opacity`` = opacity
+  × fill (for a layer without effects the two fade its paint alike, except under Photoshop's eight modes whose
+  fill acts inside the blend — color burn/dodge, linear burn/dodge, vivid/linear light, hard mix, difference:
+  a fill below 255 there is one warning line), ``visible``; its user mask (enabled, cut to the layer's
+  rectangle, the mask's background colour outside the stored bbox) → ``mask``;
 * a group → a ``group`` layer: blend ``PASS_THROUGH`` → ``isolated: false`` (pass-through), any other →
   ``isolated: true`` with that blend (W3C Compositing Level 1, section 8); its mask → a canvas-size group mask;
 * layers psd-tools can draw but a stack cannot hold as such — type, shape, smart-object and fill layers, a
   layer with effects, a layer with clipping layers over it (with them) — → a ``pixels`` layer of psd-tools'
   rendering of it (``Layer.composite``), one warning line each saying what was rasterised;
-* what cannot be represented at all — adjustment layers, blend modes outside W3C's (linear burn, vivid light,
-  …: imported as normal), a group's fill opacity, dissolve, knockout — one warning line each; nothing is
-  dropped without one.
+* what cannot be represented at all — adjustment layers, a group's fill opacity, knockout — one warning line
+  each; nothing is dropped without one.
 
 The PSD's top level is composited over transparency, and a stack over an opaque background (white: W3C
 section 8.3, the page group's backdrop): unless the bottom visible layer is an opaque, full-canvas normal one,
@@ -53,6 +54,12 @@ MASK_DECODE_BYTES = {8: 4, 16: 2 * 2 + 2 * 4 + 2, 32: 2 * 4 + 2 * 4 + 2}
 # A canvas pixel while psd-tools renders a rasterised layer (Layer.composite): its float colour, shape and
 # alpha arrays for the layer and each clipping layer's, and the RGBA image returned (one layer at a time).
 COMPOSITE_BYTES_PER_PIXEL = 3 * IMPORT_BYTES_PER_PIXEL
+# Photoshop's eight modes whose Fill blends differently from Opacity (the "special eight" of Photoshop tutorials,
+# e.g. photoshoptrainingchannel.com, "Opacity vs. Fill with blend modes"); how is not published, so not modelled.
+FILL_INSIDE_BLEND = frozenset(
+    {"color-burn", "linear-burn", "color-dodge", "linear-dodge"}
+    | {"vivid-light", "linear-light", "hard-mix", "difference"}
+)
 # psd-tools layer kinds rasterised by its own renderer (their stored channels may be stale or absent).
 RASTERISED_KINDS = {"type": "type layer", "shape": "shape layer", "smartobject": "smart object"}
 
@@ -91,7 +98,7 @@ class _Reader:
         mode = layer.blend_mode
         if mode in self.modes:
             return self.modes[mode]
-        self.warn(f"{what}: blend mode {mode.name} has no W3C Compositing equivalent; imported as normal")
+        self.warn(f"{what}: blend mode {mode.name} has no stack equivalent; imported as normal")
         return "normal"
 
     def layer(self, layer, path: str) -> dict | None:
@@ -115,8 +122,6 @@ class _Reader:
                 entry.update(isolated=False, blend="normal")
             else:
                 entry.update(isolated=True, blend=self._blend(layer, what))
-                if entry["blend"] == "plus":  # a group's alpha is its children's coverage: partial in general
-                    self._warn_linear_dodge(np.array([0.5]), what)
             if layer.fill_opacity != 255:
                 self.warn(f"{what}: a group's fill opacity ({layer.fill_opacity}/255) cannot be represented; ignored")
             if layer.has_effects():
@@ -142,8 +147,11 @@ class _Reader:
             offset={"x": int(bbox[0]), "y": int(bbox[1])},
         )
         mask = None if baked else self._mask(layer, bbox, what)
-        if blend == "plus":
-            self._warn_linear_dodge(rgba[3:] * entry["opacity"] * (1.0 if mask is None else mask), what)
+        if blend in FILL_INSIDE_BLEND and not baked and layer.fill_opacity != 255:
+            self.warn(
+                f"{what}: fill opacity {layer.fill_opacity}/255 of a {blend} layer imported as opacity (Photoshop "
+                "applies fill inside this mode's blend): the composite may differ"
+            )
         color, alpha = _tensor(rgba[:3]), _tensor(rgba[3:])
         if mask is not None:
             entry["mask"] = f"masks/{lid}.png"
@@ -151,15 +159,6 @@ class _Reader:
 
         self.tensors[lid] = LayerTensors(color, alpha, None if mask is None else _tensor(mask))
         return entry
-
-    def _warn_linear_dodge(self, alpha: np.ndarray, what: str) -> None:
-        """Photoshop's Linear Dodge clamps inside the blend, Cb + α(min(1, Cb + Cs) − Cb); W3C plus after it,
-        min(1, Cb + α·Cs): the two agree where α is 0 or 1 (or Cb + Cs ≤ 1) only."""
-        if bool(((alpha > 0.0) & (alpha < 1.0)).any()):
-            self.warn(
-                f"{what}: Linear Dodge with partial alpha imported as W3C plus, which clamps after the blend "
-                "(Photoshop clamps inside it): the composite differs where backdrop + layer > 1"
-            )
 
     def _raster(self, layer, what: str) -> tuple[np.ndarray | None, tuple[int, int, int, int], bool]:
         """(RGBA (4, h, w) float64, bbox, baked): the stored pixels, or psd-tools' rendering of the layer

@@ -18,6 +18,8 @@ target cannot express exactly:
   opacity is written with α baked into its values (Cs' = α·Cs, opaque), on which both agree.
   Values above 1 are split into ⌈max y⌉ plus layers of min(max(y − k, 0), 1): additions of
   non-negative values commute with clamping at 1, so the split is exact.
+* A dissolve layer is written with our pattern baked into its alpha (0 or 1 per pixel, opacity 1): every
+  reader then shows the same pixels (each draws its own pattern for a partial alpha).
 * Negative values, colours above 1 in normal/screen layers, ``blend_space="linear"`` and a
   ``clamp="output"`` that changes the result cannot be expressed. The layers are then written as
   they are (values clipped to [0, 0] / [.., 1]), and an opaque top layer "Composite (exact)" holds
@@ -45,6 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from lasagna.compose.blend import dissolve_pattern
 from lasagna.compose.surface import surface_tensors
 from lasagna.document import LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
@@ -226,6 +229,8 @@ class _Walk:
             return self.items(layer.layers, offset, shown and layer.visible, isolated_in)
         if layer.mask is not None:
             self.inexact.append(f"the mask of group {layer.id!r} (written without it)")
+        if layer.isolated and layer.blend == "dissolve":
+            self.inexact.append(f"the dissolve pattern of group {layer.id!r} (each reader draws its own)")
         if not layer.isolated and layer.opacity != 1.0:
             self.inexact.append(f"pass-through group {layer.id!r} of opacity {layer.opacity:g} (readers differ on it)")
         children = self.items(layer.layers, offset, True, isolated_in or layer.isolated)
@@ -259,6 +264,12 @@ class _Walk:
             )
         if color.shape[0] == 1:
             color = np.repeat(color, 3, axis=0)  # a 1-channel multiplier is written as gray in RGB
+        dissolved = layer.blend == "dissolve"
+        if dissolved:
+            # Every reader draws its own dissolve pattern: bake ours (α ∈ {0, 1}, opacity 1), on which they agree.
+            h, w = alpha.shape[1:]
+            u = dissolve_pattern(torch.arange(h)[:, None], torch.arange(w)[None]).numpy()[None]
+            alpha = (u < alpha * float(layer.opacity)).astype(np.float64)
         cropped = _crop(color, alpha, layer.offset.x + origin[0], layer.offset.y + origin[1], W, H)
         if cropped is None:
             return []  # entirely outside the canvas: contributes nothing
@@ -267,9 +278,14 @@ class _Walk:
             self.inexact.append(f"the negative values of layer {layer.id!r} (min {color.min():.4g}; written as 0)")
         color = np.maximum(color, 0.0)
         common = dict(
-            x=x, y=y, alpha=alpha, opacity=float(layer.opacity), visible=shown and layer.visible, source=layer.id
+            x=x,
+            y=y,
+            alpha=alpha,
+            opacity=1.0 if dissolved else float(layer.opacity),
+            visible=shown and layer.visible,
+            source=layer.id,
         )
-        a = alpha * float(layer.opacity)
+        a = alpha * common["opacity"]
         fractional = not bool(np.isin(a, (0.0, 1.0)).all())
         out: list[ExportLayer] = []
         if layer.blend == "multiply":

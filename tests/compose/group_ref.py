@@ -12,7 +12,8 @@ The top-level canvas is the opaque background (αb = 1: the formulas reduce to t
 ``numpy_ref.py``). An isolated group (section 8.2) composites its children onto a transparent canvas and
 is then one source of colour Cg, alpha αg × mask × opacity. A pass-through group composites its children
 onto the canvas itself and mixes: αo = αb + m(αn − αb), αo·Co = αb·Cb + m(αn·Cn − αb·Cb), m = mask × opacity.
-``clamp="layer"`` clamps Co to [0, 1] after every layer and every isolated group.
+``clamp="layer"`` clamps Co to [0, 1] after every layer and every isolated group. Dissolve (Photoshop): αs is
+replaced by [u < αs], u of ``numpy_ref.dissolve_u`` on the layer's pixel grid (an isolated group's: the canvas's).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 import torch
 
 from lasagna.compose.plan import RenderGroupSpec
-from tests.compose.numpy_ref import NON_SEPARABLE, W3C_B, decode, encode, np64
+from tests.compose.numpy_ref import NON_SEPARABLE, W3C_B, decode, dissolve_u, encode, np64
 
 
 def _B(name: str, cb: np.ndarray, cs: np.ndarray) -> np.ndarray:
@@ -76,7 +77,10 @@ def _composite(specs, C, A, origin, ctx):
                 m = m * _placed(np64(spec.mask), offset, H, W, 0.0)
             if spec.isolated:
                 Cg, Ag = _composite(spec.children, np.zeros((3, H, W)), np.zeros((1, H, W)), offset, ctx)
-                C, A = _over(C, A, Cg, Ag * m, spec.blend)
+                ag = Ag * m
+                if spec.blend == "dissolve":
+                    ag = (dissolve_u(H, W) < ag).astype(np.float64)
+                C, A = _over(C, A, Cg, ag, spec.blend)
                 if clamp == "layer":
                     C = np.clip(C, 0, 1)
             else:
@@ -97,7 +101,10 @@ def _composite(specs, C, A, origin, ctx):
             if extra is not None:
                 a = a * np64(extra)
         Cs = _placed(np.broadcast_to(color, (color.shape[0], *a.shape[1:])), offset, H, W, 0.0)
-        As = _placed(a * _opacity(spec), offset, H, W, 0.0)
+        a = a * _opacity(spec)
+        if spec.blend == "dissolve":
+            a = (dissolve_u(*a.shape[1:]) < a).astype(np.float64)
+        As = _placed(a, offset, H, W, 0.0)
         C, A = _over(C, A, Cs, As, spec.blend)
         if clamp == "layer":
             C = np.clip(C, 0, 1)

@@ -9,7 +9,10 @@ asked. W3C Compositing Level 1 for an opaque backdrop Cb, source Cs, α = alpha 
     screen    Cb + α(Cs − Cb·Cs)
     plus      Cb + α·Cs
     others    Cb + α(B(Cb, Cs) − Cb), B of W3C section 10 (``W3C_B`` below, written from the spec's
-              pseudo-code: branches with ``if``-like selects, SetSat by sorting the channels)
+              pseudo-code: branches with ``if``-like selects, SetSat by sorting the channels), and of
+              Photoshop's other modes (``PHOTOSHOP_B``: the formulas psd-tools pins against Photoshop)
+    dissolve  normal with α replaced by 1 where u(x, y) < α, else 0 (``dissolve_u``: the documented hash,
+              rewritten here in numpy uint64 arithmetic)
 """
 
 from __future__ import annotations
@@ -92,7 +95,66 @@ W3C_B = {
     "color": lambda cb, cs: set_lum(cs, lum(cb)),
     "luminosity": lambda cb, cs: set_lum(cb, lum(cs)),
 }
-NON_SEPARABLE = ("hue", "saturation", "color", "luminosity")
+
+
+def _vivid_light(cb, cs):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        burn = 1.0 - np.minimum(1.0, (1.0 - cb) / (2.0 * cs))
+        dodge = np.minimum(1.0, cb / (2.0 * (1.0 - cs)))
+    out = np.where(cs <= 0.5, burn, dodge)
+    return np.where(cs <= 0.0, 0.0, np.where(cs >= 1.0, 1.0, out))
+
+
+def _divide(cb, cs):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = np.minimum(1.0, cb / cs)
+    return np.where(cs <= 0.0, np.where(cb > 0.0, 1.0, 0.0), q)
+
+
+def _pick_pixel(cond):
+    def choose(cb, cs):
+        cb, cs = np.broadcast_arrays(cb, cs)
+        return np.where(cond(lum(cs), lum(cb)), cs, cb)
+
+    return choose
+
+
+# Photoshop's other modes (psd-tools' composite/blend.py, pinned there against Photoshop's own renders).
+PHOTOSHOP_B = {
+    "linear-burn": lambda cb, cs: np.maximum(0.0, cb + cs - 1.0),
+    "linear-dodge": lambda cb, cs: np.minimum(1.0, cb + cs),
+    "subtract": lambda cb, cs: np.maximum(0.0, cb - cs),
+    "divide": _divide,
+    "vivid-light": _vivid_light,
+    "linear-light": lambda cb, cs: np.where(
+        cs > 0.5, np.minimum(1.0, cb + 2 * cs - 1), np.maximum(0.0, cb + 2 * cs - 1)
+    ),
+    "pin-light": lambda cb, cs: np.where(cs > 0.5, np.maximum(cb, 2 * cs - 1), np.minimum(cb, 2 * cs)),
+    # the tie Cb + Cs = 1 (8-bit codes a + b = 255) taken to 2^-20, as the package documents
+    "hard-mix": lambda cb, cs: np.where(
+        np.abs(cb + cs - 1) <= 2.0**-20, np.where(cb > 0.5, 1.0, 0.0), np.where(cb + cs > 1, 1.0, 0.0)
+    ),
+    "darker-color": _pick_pixel(lambda ls, lb: ls < lb),
+    "lighter-color": _pick_pixel(lambda ls, lb: ls > lb),
+    "dissolve": lambda cb, cs: cs + 0 * cb,
+}
+W3C_B.update(PHOTOSHOP_B)
+NON_SEPARABLE = ("hue", "saturation", "color", "luminosity", "darker-color", "lighter-color")
+
+
+def dissolve_u(h: int, w: int, y0: int = 0, x0: int = 0) -> np.ndarray:
+    """u(x, y) of dissolve for layer pixels rows y0:y0+h, columns x0:x0+w, (1, h, w) float64: the 32-bit hash
+    of lasagna.compose.blend's docstring (x·73856093 ⊕ y·19349663 ⊕ 0x2545F491, then twice h ^= h >> 16,
+    h = h·0x045D9F3B mod 2^32, then h ^= h >> 16), top 24 bits / 2^24."""
+    M = np.uint64(0xFFFFFFFF)
+    y = np.arange(y0, y0 + h, dtype=np.uint64)[:, None]
+    x = np.arange(x0, x0 + w, dtype=np.uint64)[None, :]
+    v = ((x * np.uint64(73856093)) ^ (y * np.uint64(19349663)) ^ np.uint64(0x2545F491)) & M
+    for _ in range(2):
+        v = v ^ (v >> np.uint64(16))
+        v = (v * np.uint64(0x045D9F3B)) & M
+    v = v ^ (v >> np.uint64(16))
+    return ((v >> np.uint64(8)).astype(np.float64) / 2.0**24)[None]
 
 
 def _w3c(name):
@@ -108,12 +170,20 @@ def _w3c(name):
     return formula
 
 
+def _dissolve(cb, cs, a):
+    """Normal with α → [u < α], the pattern anchored at the top-left pixel (idempotent on α ∈ {0, 1})."""
+    h, w = np.broadcast_shapes(np.shape(cb), np.shape(cs))[-2:]
+    a = (dissolve_u(h, w) < a).astype(np.float64)
+    return cb + a * (cs - cb)
+
+
 FORMULAS = {
     "normal": lambda cb, cs, a: cb + a * (cs - cb),
     "multiply": lambda cb, cs, a: cb + a * (cb * cs - cb),
     "screen": lambda cb, cs, a: cb + a * (cs - cb * cs),
     "plus": lambda cb, cs, a: cb + a * cs,
-    **{name: _w3c(name) for name in W3C_B if name not in ("normal", "multiply", "screen")},
+    **{name: _w3c(name) for name in W3C_B if name not in ("normal", "multiply", "screen", "dissolve")},
+    "dissolve": _dissolve,
 }
 
 
@@ -160,6 +230,8 @@ def composite(layers, canvas, background=(0.0, 0.0, 0.0), blend_space="srgb", cl
         cb = out[:, y0:y1, x0:x1]
         cs = color[:, y0 - y : y1 - y, x0 - x : x1 - x]
         al = a[:, y0 - y : y1 - y, x0 - x : x1 - x]
+        if spec.blend == "dissolve":
+            al = (dissolve_u(y1 - y0, x1 - x0, y0 - y, x0 - x) < al).astype(np.float64)
         res = FORMULAS[spec.blend](cb, cs, al)
         out[:, y0:y1, x0:x1] = np.clip(res, 0.0, 1.0) if clamp == "layer" else res
     if clamp == "output":

@@ -141,7 +141,7 @@ def test_clamp_decisions():
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        (dict(blend="vivid-light"), "unknown blend 'vivid-light'; expected one of normal, multiply, screen, plus, "),
+        (dict(blend="grain-merge"), "unknown blend 'grain-merge'; expected one of normal, multiply, screen, plus, "),
         (dict(opacity=1.5), "opacity is 1.5; expected a number in \\[0, 1\\]"),
         (dict(opacity=torch.tensor(2.0)), "opacity spans \\[2.0, 2.0\\]"),
         (dict(opacity=torch.ones(2)), "opacity tensor has shape \\(2,\\)"),

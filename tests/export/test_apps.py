@@ -170,6 +170,28 @@ def _per_mode(
     return errs
 
 
+def _off_special(flat_png: Path, folder: Path, tiles: dict[str, tuple[int, int]], modes) -> dict[str, int]:
+    """Max error per mode's tile away from the pixels where Photoshop's formula has a special case a paint
+    program may not share: a source pole with the opposite backdrop (Cs = 0 with Cb = 1, Cs = 1 with Cb = 0:
+    vivid light) and the tie Cb + Cs = 1 (hard mix). Each tile's backdrop is the opaque base."""
+    from lasagna.io.stack import load_stack
+
+    with Image.open(flat_png) as im:
+        flat = np.asarray(im.convert("RGB")).astype(int)
+    ref = to_uint8(composite_reference(folder)).astype(int)
+    stack = load_stack(folder)
+    base = stack.tensors["base"].color.double().numpy()
+    T, errs = MODES_TILE, {}
+    for m in modes:
+        x, y = tiles[m]
+        cs, cb = stack.tensors[f"m-{m}"].color.double().numpy(), base[:, y : y + T, x : x + T]
+        special = (((cs == 0) & (cb == 1)) | ((cs == 1) & (cb == 0)) | (np.abs(cs + cb - 1) < 1e-6)).any(0)
+        e = np.abs(flat[y : y + T, x : x + T] - ref[y : y + T, x : x + T]).max(-1)
+        errs[m] = int(e[~special].max())
+    print("\naway from poles and ties, max error per mode (/255): " + ", ".join(f"{m} {e}" for m, e in errs.items()))
+    return errs
+
+
 def _krita_flatten(ora: Path, out: Path) -> subprocess.CompletedProcess:
     return subprocess.run(
         [XVFB, "-a", KRITA, "--nosplash", "--export", "--export-filename", str(out), str(ora)],
@@ -199,12 +221,16 @@ def test_krita_flattens_every_blend_mode(tmp_path):
     assert main(["export", str(folder), "--ora", str(tmp_path / "in.ora")]) == 0
     proc = _krita_flatten(tmp_path / "in.ora", tmp_path / "flat.png")
     assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
-    errs = _per_mode(tmp_path / "flat.png", folder, tiles, "Krita vs W3C reference")
-    # Krita 5 reads svg:exclusion (the OpenRaster name) as src-over: its tile equals the composite with
-    # that layer normal. Every other mode, the non-separable four included, is the W3C formula.
-    as_normal = _per_mode(tmp_path / "flat.png", _with_blend(folder, "m-exclusion", "normal"), tiles, "as normal")
-    assert as_normal["exclusion"] <= 3 and errs["exclusion"] > 100
-    assert {m: e for m, e in errs.items() if m != "exclusion" and e > 3} == {}
+    errs = _per_mode(tmp_path / "flat.png", folder, tiles, "Krita vs reference")
+    # Every mode is our formula, exclusion included (written krita:exclusion: Krita reads svg:exclusion as
+    # src-over), Photoshop's modes under Krita's ids (the dissolve pattern baked into alpha), except two special
+    # cases: Krita's vivid light keeps color burn/dodge's backdrop cases at the source's poles (Photoshop answers
+    # by the source) and its hard_mix_photoshop answers 0 at the tie Cb + Cs = 1 (Photoshop: 1 where Cb > ½).
+    # Measured (Krita 5): every mode ≤ 3/255 (hue, luminosity 3; the rest ≤ 2); off those pixels vivid light
+    # ≤ 1, hard mix 0.
+    special = ("vivid-light", "hard-mix")
+    assert all(e <= 1 for e in _off_special(tmp_path / "flat.png", folder, tiles, special).values())
+    assert {m: e for m, e in errs.items() if m not in special and e > 3} == {}
 
 
 @pytest.mark.gimp
@@ -220,14 +246,23 @@ def test_gimp_flattens_every_blend_mode(tmp_path):
     # the spec's Lum/SetLum); colour dodge and burn match where the layer is opaque but apply a
     # fractional alpha otherwise. Bounds measured (GIMP 2.10.34) with a margin; their opaque halves
     # are checked exactly where GIMP agrees.
+    # Photoshop's modes: linear burn/dodge, subtract, divide and linear light are exact where the layer is opaque
+    # and, like dodge and burn, apply a fractional alpha otherwise; vivid light and hard mix are exact away from
+    # the poles and ties GIMP does not share (see the Krita test); darker and lighter colour are not Photoshop's
+    # in GIMP 2.10 (bounded, measured 244 and 255); pin light and dissolve (baked) are exact.
     differs = {"soft-light": 40, "hue": 160, "saturation": 255, "color": 160, "luminosity": 160}
-    fractional_alpha = {"color-dodge": 255, "color-burn": 255}
+    differs |= {"darker-color": 255, "lighter-color": 255}
+    fractional_alpha = {"color-dodge": 255, "color-burn": 255, "linear-burn": 80, "linear-dodge": 80}
+    fractional_alpha |= {"subtract": 80, "divide": 200, "linear-light": 80}
+    special = {"vivid-light": 255, "hard-mix": 255}
     T = MODES_TILE
     opaque = _per_mode(tmp_path / "flat.png", folder, {m: tiles[m] for m in fractional_alpha}, "opaque rows", T // 2)
     assert all(e <= 3 for e in opaque.values())
-    for mode, bound in {**differs, **fractional_alpha}.items():
+    assert all(e <= 1 for e in _off_special(tmp_path / "flat.png", folder, tiles, special).values())
+    bounded = {**differs, **fractional_alpha, **special}
+    for mode, bound in bounded.items():
         assert errs[mode] <= bound, mode
-    assert {m: e for m, e in errs.items() if m not in differs and m not in fractional_alpha and e > 3} == {}
+    assert {m: e for m, e in errs.items() if m not in bounded and e > 3} == {}
 
 
 def _group_stack(folder: Path) -> Path:

@@ -368,20 +368,40 @@ def _every_mode_stack(folder: Path) -> Stack:
     return load_stack(folder)
 
 
-def test_every_mode_is_an_svg_composite_op_and_imports_back(tmp_path):
+def test_every_mode_is_a_composite_op_krita_reads_and_imports_back(tmp_path):
     from lasagna.document.blend import BLEND_MODES
+    from lasagna.export.ora import KRITA_OPS
 
     stack = _every_mode_stack(tmp_path / "s")
     path = _ora(tmp_path, stack)
     with zipfile.ZipFile(path) as zf:
         ops = {el.get("name"): el.get("composite-op") for el in ET.fromstring(zf.read("stack.xml")).find("stack")}
     for mode in BLEND_MODES:
-        assert ops[f"m-{mode}"] == ("svg:src-over" if mode == "normal" else f"svg:{mode}")
+        # The OpenRaster spec's svg: names where it has one (Krita reads those), Krita's own for exclusion (which it
+        # reads as normal under svg:) and Photoshop's modes.
+        expect = "svg:src-over" if mode == "normal" else f"svg:{mode}"
+        assert ops[f"m-{mode}"] == (f"krita:{KRITA_OPS[mode]}" if mode in KRITA_OPS else expect)
+    assert ops["m-exclusion"] == "krita:exclusion" and ops["m-linear-light"] == "krita:linear light"
     back = import_ora(path, tmp_path / "back")
     assert [layer.blend for layer in back.document.layers] == ["normal", *BLEND_MODES]  # a lone dodge included
     ours = to_uint8(composite_reference(tmp_path / "s")).astype(int)
     again = to_uint8(composite_reference(tmp_path / "back")).astype(int)
-    assert np.abs(ours - again).max() <= 1
+    assert np.abs(ours - again).max() <= 1  # dissolve's pattern is baked into its alpha, so it reads back exactly
+
+
+def test_svg_exclusion_of_earlier_files_still_reads_as_exclusion(tmp_path):
+    stack = _every_mode_stack(tmp_path / "s")
+    path = _ora(tmp_path, stack)
+    with zipfile.ZipFile(path) as zf:
+        entries = {i.filename: zf.read(i) for i in zf.infolist()}
+    entries["stack.xml"] = entries["stack.xml"].replace(b'"krita:exclusion"', b'"svg:exclusion"')
+    old = tmp_path / "old.ora"
+    with zipfile.ZipFile(old, "w") as zf:
+        zf.writestr("mimetype", entries.pop("mimetype"), compress_type=zipfile.ZIP_STORED)
+        for name, data in entries.items():
+            zf.writestr(name, data)
+    back = import_ora(old)
+    assert {layer.id: layer.blend for layer in back.document.layers}["m-exclusion"] == "exclusion"
 
 
 def test_an_unknown_composite_op_lists_the_supported_ones(tmp_path):

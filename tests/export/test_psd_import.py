@@ -1,10 +1,10 @@
 """``import-psd``: PSDs built here with psd-tools (not written by Lasagna), flattened by psd-tools' own
 ``composite()`` laid over white, against ``read_psd`` + our composite.
 
-Measured (8-bit codes, max |difference|): every W3C mode, as a layer with partial alpha and opacity, as an
-isolated group of that mode and inside a pass-through group with opacity: ≤ 1 (rounding). Linear Dodge with
-partial alpha differs by up to ~62 codes (Photoshop clamps inside the blend, W3C plus after it): import says
-so in a warning line, and with alpha in {0, 1} the two agree (≤ 1).
+Measured (8-bit codes, max |difference|): every mode (W3C's and Photoshop's), as a layer with partial alpha and
+opacity, as an isolated group of that mode and inside a pass-through group with opacity: ≤ 1 (rounding).
+Linear Dodge is read as ``linear-dodge`` (Photoshop's, clamped inside the blend), so partial alpha matches too.
+Dissolve is read as dissolve (psd-tools draws it as normal: checked on its own).
 """
 
 from __future__ import annotations
@@ -30,7 +30,9 @@ from lasagna.io.stack import load_stack  # noqa: E402
 from tests.export.bounded import within  # noqa: E402
 
 MODES = psd_blend_modes(BlendMode)
-W3C = [m for m in BLEND_MODES if m != "plus"]
+# Every mode psd-tools composites as Photoshop does (plus is written as LINEAR_DODGE, read back as linear-dodge;
+# psd-tools draws dissolve as normal).
+W3C = [m for m in BLEND_MODES if m not in ("plus", "dissolve")]
 H, W = 16, 20
 
 
@@ -120,28 +122,55 @@ def test_masks_offsets_visibility_and_fill(tmp_path):
     assert err(path) <= 1
 
 
-def test_linear_dodge_with_binary_alpha_matches_and_partial_alpha_is_reported(tmp_path):
+def test_linear_dodge_is_photoshops_under_partial_alpha(tmp_path):
     rng = np.random.default_rng(4)
     psd = new_psd()
     psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
     psd.create_pixel_layer(rgba(rng, 10, 12, "binary"), name="add", top=3, left=4, blend_mode=BlendMode.LINEAR_DODGE)
-    path = tmp_path / "binary.psd"
+    psd.create_pixel_layer(rgba(rng, 10, 12), name="soft", top=5, left=6, blend_mode=BlendMode.LINEAR_DODGE)
+    path = tmp_path / "partial.psd"
     psd.save(path)
     warnings: list[str] = []
     assert float(np.abs(psd_tools_flat(path) - ours(path, warnings)).max()) <= 1
     assert warnings == []
-    psd.create_pixel_layer(rgba(rng, 10, 12), name="soft", top=5, left=6, blend_mode=BlendMode.LINEAR_DODGE)
-    path = tmp_path / "partial.psd"
+    assert read_psd(path).document.layer("soft").blend == "linear-dodge"
+
+
+def test_dissolve_is_read_as_dissolve_and_shows_a_fraction_alpha(tmp_path):
+    psd = new_psd()
+    psd.create_pixel_layer(Image.new("RGBA", (W, H), (0, 0, 0, 255)), name="base")
+    top = psd.create_pixel_layer(
+        Image.new("RGBA", (W, H), (255, 255, 255, 255)), name="d", blend_mode=BlendMode.DISSOLVE
+    )
+    top.opacity = 128
+    path = tmp_path / "d.psd"
     psd.save(path)
-    ours(path, warnings)
-    assert len(warnings) == 1 and "layer 'soft': Linear Dodge with partial alpha" in warnings[0]
+    flat = ours(path)
+    assert read_psd(path).document.layer("d").blend == "dissolve"
+    assert set(np.unique(flat).tolist()) <= {0.0, 255.0}
+    assert float((flat == 255).mean()) == pytest.approx(128 / 255, abs=0.1)
+
+
+def test_fill_inside_the_special_modes_is_reported(tmp_path):
+    rng = np.random.default_rng(7)
+    psd = new_psd()
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    burn = psd.create_pixel_layer(rgba(rng, 8, 8), name="burn", blend_mode=BlendMode.LINEAR_BURN)
+    burn.fill_opacity = 128
+    mult = psd.create_pixel_layer(rgba(rng, 8, 8), name="mult", blend_mode=BlendMode.MULTIPLY)
+    mult.fill_opacity = 128
+    path = tmp_path / "fill.psd"
+    psd.save(path)
+    warnings: list[str] = []
+    read_psd(path, warn=warnings.append)
+    assert len(warnings) == 1 and "layer 'burn': fill opacity 128/255 of a linear-burn layer" in warnings[0]
 
 
 def test_what_cannot_be_represented_is_reported_one_line_each(tmp_path):
     rng = np.random.default_rng(5)
     psd = new_psd()
     psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
-    psd.create_pixel_layer(rgba(rng, 8, 8), name="burn", blend_mode=BlendMode.LINEAR_BURN)
+    psd.create_pixel_layer(rgba(rng, 8, 8), name="burn", blend_mode=BlendMode.LINEAR_BURN)  # a mode of its own now
     clipped_base = psd.create_pixel_layer(rgba(rng, 10, 10), name="clipbase", top=4, left=6)
     clip = psd.create_pixel_layer(rgba(rng, 12, 12, "opaque"), name="clip", top=2, left=5)
     clip.clipping = True
@@ -149,12 +178,13 @@ def test_what_cannot_be_represented_is_reported_one_line_each(tmp_path):
     psd.save(path)
     warnings: list[str] = []
     stack = read_psd(path, warn=warnings.append)
-    assert all("\n" not in w for w in warnings) and len(warnings) == 2
-    assert "layer 'burn': blend mode LINEAR_BURN has no W3C Compositing equivalent; imported as normal" in warnings[0]
-    assert "layer 'clipbase': clipping layers 'clip' rasterised by psd-tools" in warnings[1]
+    assert all("\n" not in w for w in warnings) and len(warnings) == 1
+    assert "layer 'clipbase': clipping layers 'clip' rasterised by psd-tools" in warnings[0]
+    assert stack.document.layer("burn").blend == "linear-burn"
     assert "clip" not in stack.document.all_ids and stack.document.layer("clipbase").kind == "pixels"
     assert clipped_base.clipping is False
-    # The clipping stack is psd-tools' own rendering: with the LINEAR_BURN layer hidden the files agree.
+    # The clipping stack is psd-tools' own rendering: the files agree.
+    assert err(path) <= 1
     PSDImage.open(path)  # still a valid file
     psd2 = new_psd()
     psd2.create_pixel_layer(rgba(np.random.default_rng(5), H, W, "opaque"), name="base")

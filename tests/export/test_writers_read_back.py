@@ -6,8 +6,8 @@ back by ``load_stack`` / ``import_ora`` / ``read_psd`` to the same layer tree. T
 What the interchange files add is dropped before comparing: PSD's "(clamp to 1)" helper layers, its
 "Background" layer and "Composite (exact)" layer (OpenRaster's import drops its own); groups' ids (the files
 keep names, not ids; a PSD's layer ids come from names too); opacity is compared in 8-bit steps (PSD stores
-round(255 · opacity)), and not for plus layers (their fractional alpha × opacity is baked into the values,
-``lasagna.export.rasters``).
+round(255 · opacity)), and not for plus and dissolve layers (their fractional alpha × opacity, or dissolve's
+pattern, is baked into the values, ``lasagna.export.rasters``); a PSD's plus reads back as linear-dodge.
 """
 
 from __future__ import annotations
@@ -112,23 +112,30 @@ def documents(draw) -> Stack:
     return Stack(doc, None, tensors, {lid: 8 for lid in tensors})
 
 
-def tree(layers, *, ids: str = "leaves", helpers: bool = False) -> list:
+# Leaves whose opacity the writers bake into their pixels (plus: its fractional α; dissolve: its pattern).
+BAKED = ("plus", "dissolve")
+
+
+def tree(layers, *, ids: str = "leaves", helpers: bool = False, psd: bool = False) -> list:
     """The layer tree as comparable tuples, with the ids of ``ids`` ("leaves" or "none"; group ids are made from
-    names on import), the interchange files' helper layers dropped unless ``helpers``."""
+    names on import), the interchange files' helper layers dropped unless ``helpers``. ``psd``: plus is compared
+    as linear-dodge (a PSD holds both as LINEAR_DODGE, read back as Photoshop's)."""
     out = []
     for layer in layers:
         if not helpers and (layer.name == COMPOSITE_NAME or layer.name.endswith(" (clamp to 1)")):
             continue
+        blend = layer.blend.value if hasattr(layer.blend, "value") else str(layer.blend)
+        baked = layer.kind == "pixels" and (blend in BAKED or (psd and blend == "linear-dodge"))
         row = (
             layer.id if ids == "leaves" and layer.kind != "group" else "",
             layer.kind,
             layer.name,
-            layer.blend.value if hasattr(layer.blend, "value") else str(layer.blend),
-            None if layer.kind == "pixels" and layer.blend == "plus" else round(layer.opacity * 255),
+            "linear-dodge" if psd and blend == "plus" else blend,
+            None if baked else round(layer.opacity * 255),
             layer.visible,
         )
         if layer.kind == "group":
-            row += (layer.isolated, tuple(tree(layer.layers, ids=ids, helpers=helpers)))
+            row += (layer.isolated, tuple(tree(layer.layers, ids=ids, helpers=helpers, psd=psd)))
         out.append(row)
     return out
 
@@ -168,4 +175,4 @@ def test_psd_reads_back_the_same_tree(tmp_path_factory, stack):
     back = read_psd(path, warn=lambda m: None).document.layers
     # The PSD holds the canvas background as an opaque bottom layer, which import keeps as a layer.
     assert back[0].name == "Background" and back[0].kind == "pixels"
-    assert tree(back[1:], ids="none") == tree(stack.document.layers, ids="none")
+    assert tree(back[1:], ids="none", psd=True) == tree(stack.document.layers, ids="none", psd=True)

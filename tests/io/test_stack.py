@@ -214,7 +214,7 @@ def test_bad_layer_fields_are_refused():
     with pytest.raises(DocumentError, match="unknown layer field"):
         stack.add_layer("x", torch.rand(3, 2, 2), colour="red")
     with pytest.raises(DocumentError, match="blend"):
-        stack.add_layer("x", torch.rand(3, 2, 2), blend="vivid-light")
+        stack.add_layer("x", torch.rand(3, 2, 2), blend="grain-merge")
     with pytest.raises(ImageError, match="mask is 3x2"):
         stack.add_layer("x", torch.rand(3, 2, 2), mask=torch.rand(1, 2, 3))
     assert stack.ids == ("base",) and set(stack.tensors) == {"base"}  # nothing half-added
