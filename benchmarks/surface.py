@@ -170,6 +170,67 @@ def leak_row(args, split: str, size: int, albedo_net, lit_net) -> dict:
     return out
 
 
+PHOTO_AXES = {"left-right": ("left", "right"), "top-bottom": ("top", "bottom")}
+
+
+def thirds(ratio: torch.Tensor, light: str) -> float:
+    """Mean of ``ratio`` (1, H, W) over the third of the image nearest ``light`` minus over the farthest third."""
+    h, w = ratio.shape[-2:]
+    cols, rows = w // 3, h // 3
+    near, far = {
+        "left": (ratio[..., :cols], ratio[..., w - cols :]),
+        "right": (ratio[..., w - cols :], ratio[..., :cols]),
+        "top": (ratio[..., :rows, :], ratio[..., h - rows :, :]),
+        "bottom": (ratio[..., h - rows :, :], ratio[..., :rows, :]),
+    }[light]
+    return float(near.double().mean() - far.double().mean())
+
+
+def read_photo(path: Path, side: int = 512) -> torch.Tensor:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        im = im.convert("RGB")
+        scale = side / max(im.size)
+        im = im.resize((round(im.width * scale), round(im.height * scale)), Image.LANCZOS)
+        return torch.from_numpy(__import__("numpy").asarray(im, dtype="float32") / 255.0).permute(2, 0, 1)[None]
+
+
+def photo_rows(lit_net, folder: Path, sheet: Path | None) -> list[dict]:
+    """Relight each photograph toward opposite lights; the swing of composite/input between the thirds nearest and
+    farthest from the light, summed over the two edits of an axis (≥ 0.10 per photo and axis is the target)."""
+    from PIL import Image
+
+    rows, tiles = [], []
+    for file in sorted(folder.glob("*.jpg")):
+        image = read_photo(file)
+        t0 = time.perf_counter()
+        height, source = estimate_at(lit_net, image)
+        n = normals_from_height(height)
+        seconds = time.perf_counter() - t0
+        row = {"photo": file.stem, "size": list(image.shape[-2:]), "estimate_seconds": round(seconds, 3)}
+        composites = {}
+        for axis, pair in PHOTO_AXES.items():
+            swing = 0.0
+            for light in pair:
+                ratio = lambert(n, lights_of([light])) / lambert(n, source)
+                comp = (image * ratio).clamp(0, 1)
+                swing += thirds((comp / image.clamp_min(1e-3)).mean(1, keepdim=True)[0], light)
+                composites[light] = comp
+            row[f"swing_{axis}"] = round(swing, 4)
+        rows.append(row)
+        print(json.dumps({"photo": row}), flush=True)
+        shading = lambert(n, lights_of(["top-left"])).expand(-1, 3, -1, -1)
+        tiles.append(torch.cat([image, (n + 1) / 2, shading, composites["left"], composites["right"]], -1))
+    if sheet is not None and tiles:
+        w = max(t.shape[-1] for t in tiles)
+        tiles = [torch.nn.functional.pad(t, (0, w - t.shape[-1])) for t in tiles]
+        grid = torch.cat(tiles, -2)[0].clamp(0, 1).permute(1, 2, 0).numpy()
+        sheet.parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray((grid * 255 + 0.5).astype("uint8")).save(sheet)
+    return rows
+
+
 def load(path: str | None) -> SurfaceEstimator | None:
     """A saved estimator folder, or a run's checkpoint.safetensors (its EMA weights: a run measured mid-way)."""
     if path is None:
@@ -188,10 +249,14 @@ def main(argv=None) -> int:
     p.add_argument("--albedo", default=None, help="an albedo-input surface estimator folder")
     p.add_argument("--lit", default=None, help="a lit-input surface estimator folder")
     p.add_argument("--json-out", type=Path, default=None)
+    p.add_argument("--photos", type=Path, default=ROOT / "examples" / "photos" / "large", help="512² photographs")
+    p.add_argument("--sheet", type=Path, default=None, help="photo sheet: input | normals | shading | left | right")
     args = p.parse_args(argv)
     torch.set_grad_enabled(False)
     albedo_net, lit_net = load(args.albedo), load(args.lit)
     result = {"machine": machine_info(), "command": " ".join(sys.argv), "shading": [], "relight": [], "leak": []}
+    if lit_net is not None and args.photos.is_dir():
+        result["photos"] = photo_rows(lit_net, args.photos, args.sheet)
     for split in args.splits:
         for size in args.sizes:
             scene, labels = scenes(split, args.count, args.seed, size)

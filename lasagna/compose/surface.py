@@ -19,6 +19,7 @@ layers"). This module is that renderer, differentiable and batch-independent:
 
 from __future__ import annotations
 
+import math
 import weakref
 
 import torch
@@ -61,6 +62,40 @@ def relight_ratio(normals: Tensor, target: Tensor, source: Tensor, ambient: floa
     if check_ambient(ambient) <= 0.0:
         raise LasagnaError("a relight ratio needs an ambient term a > 0 (S(source) ≥ a); got 0", where="ambient")
     return lambert(normals, target, ambient) / lambert(normals, source, ambient)
+
+
+# Lit pixels in a light fit: a shading at least this far above the ambient floor (in units of 1 − a) is taken
+# as n·l > 0 — below it the clamp max(0, n·l) may hide the dot product, which then says nothing of l.
+LIT_MARGIN = 0.05
+# Tikhonov term of the light fit's 3×3 normal equations (in units of the lit pixels' count): keeps the solve
+# finite for a flat surface (all n = +z, where only l_z is determined), pulling the unseen components to 0.
+FIT_RIDGE = 1e-3
+MAX_FIT_ELEVATION = 85.0
+"""A fitted light's elevation (degrees from the view axis) stays below this: l_z ≥ cos 85° = 0.087."""
+
+
+def fit_light(normals: Tensor, shading: Tensor, ambient: float = AMBIENT) -> Tensor:
+    """The unit light (B, 3) under which ``normals`` (B, 3, H, W) best give ``shading`` (B, 1, H, W): the least-
+    squares solution of (1 − a)·n·l = S − a over the lit pixels (S − a > ``LIT_MARGIN``·(1 − a)), with a ridge
+    ``FIT_RIDGE``, normalised, its elevation kept below ``MAX_FIT_ELEVATION``. Exact for exact data; differentiable
+    (a trainer can learn through it).
+    """
+    check_ambient(ambient)
+    b = (shading - ambient) / (1.0 - ambient)  # = n·l where lit
+    w = (b > LIT_MARGIN).to(normals.dtype)
+    n = normals.flatten(2)  # (B, 3, P)
+    wf, bf = w.flatten(2), b.flatten(2)
+    count = wf.sum(-1, keepdim=True).clamp_min(1.0)  # (B, 1, 1)
+    gram = torch.einsum("bip,bjp->bij", n * wf, n) / count
+    rhs = torch.einsum("bip,bp->bi", n * wf, bf[:, 0]) / count[..., 0]
+    eye = torch.eye(3, dtype=normals.dtype, device=normals.device)
+    light = torch.linalg.solve(gram + FIT_RIDGE * eye, rhs.unsqueeze(-1)).squeeze(-1)
+    light = light / light.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    z_min = math.cos(math.radians(MAX_FIT_ELEVATION))
+    low = light[:, 2:3] < z_min
+    planar = light[:, :2] / light[:, :2].norm(dim=1, keepdim=True).clamp_min(1e-12)
+    grazing = torch.cat([planar * math.sqrt(1.0 - z_min * z_min), torch.full_like(light[:, 2:3], z_min)], 1)
+    return torch.where(low, grazing, light)
 
 
 def normals_from_height(height: Tensor) -> Tensor:

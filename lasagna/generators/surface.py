@@ -10,8 +10,12 @@ Two inputs (``SurfaceConfig.input``):
 
 * ``"albedo"`` — the unlit base layer (the ``shading`` task): geometry from outlines and paint alone;
 * ``"lit"`` — an image already lit by an unknown directional light (the ``relight`` task): geometry from
-  shading, and a second head estimating that source light l_src (global average of the bottleneck → MLP →
-  azimuth and elevation below ``MAX_LIGHT_ELEVATION``), which the relight ratio S(l_tgt)/S(l_src) needs.
+  shading. A second output channel is that light's shading S_src (a + (1 − a)·sigmoid, per pixel: an
+  intrinsic decomposition's shading), and the source light the relight ratio S(l_tgt)/S(l_src) needs is the
+  least-squares fit of the surface's normals to it (`lasagna.compose.surface.fit_light`): one surface and one
+  light that explain the image together. (A global head regressing the light from the bottleneck's average
+  collapsed to the mean answer, "light from the viewer", within 1 500 steps: the fit reads the light where it
+  shows, in each surface's shading.)
 
 The body is the layer generator's (`lasagna.generators.unet`): per level ``blocks`` × (Conv3×3 → SiLU), 2×2
 average pooling, nearest ×2 and skip concatenation on the way up, no normalisation layer (a pixel does not
@@ -22,7 +26,6 @@ returns the flat surface h = 0 (n = +z everywhere), whose shading is the wall's,
 
 from __future__ import annotations
 
-import math
 from typing import Literal
 
 import torch
@@ -30,16 +33,14 @@ import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from torch import Tensor, nn
 
+from lasagna.compose.surface import fit_light, normals_from_height
+from lasagna.document.condition import AMBIENT
 from lasagna.errors import LasagnaError
 from lasagna.generators.unet import _convs
 from lasagna.io.checkpoint import Pretrained
 from lasagna.limits import MAX_GENERATOR_BLOCKS, MAX_GENERATOR_LEVELS, MAX_GENERATOR_WIDTH
 
 FORMAT = "lasagna.surface_estimator"
-# The source light's elevation (from the view axis) stays below this: a light in the image plane (el = 90°)
-# lights nothing head-on, and the relight ratio divides by the source's shading (≥ a, so finite, but
-# meaningless there). cos 85° = 0.087.
-MAX_LIGHT_ELEVATION = 85.0
 
 
 class SurfaceConfig(BaseModel):
@@ -78,15 +79,14 @@ class SurfaceEstimator(Pretrained, nn.Module):
             self.enc.append(_convs(prev, c, config.blocks))
             prev = c
         self.dec = nn.ModuleList(_convs(ch[i + 1] + ch[i], ch[i], config.blocks) for i in reversed(range(len(ch) - 1)))
-        self.head = nn.Conv2d(ch[0], 1, 1)
-        with torch.no_grad():  # the flat surface for every input (module docstring)
+        # Height, and for a lit input its source shading's logit; zero-initialised: the flat surface, lit at the
+        # midpoint a + (1 − a)/2 of the shading's range (module docstring).
+        self.head = nn.Conv2d(ch[0], 2 if config.input == "lit" else 1, 1)
+        with torch.no_grad():
             self.head.weight.zero_()
             self.head.bias.zero_()
-        self.light_head = (
-            nn.Sequential(nn.Linear(ch[-1], 64), nn.SiLU(), nn.Linear(64, 3)) if config.input == "lit" else None
-        )
 
-    def _features(self, image: Tensor) -> tuple[Tensor, Tensor]:
+    def _features(self, image: Tensor) -> Tensor:
         if not isinstance(image, Tensor) or image.dim() != 4 or image.shape[1] != 3:
             got = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
             raise LasagnaError(f"image has shape {got}; expected (B, 3, H, W) in [0, 1]", "image")
@@ -102,26 +102,26 @@ class SurfaceEstimator(Pretrained, nn.Module):
             if i < len(self.enc) - 1:
                 skips.append(x)
                 x = F.avg_pool2d(x, 2)
-        bottleneck = x
         for block in self.dec:
             x = F.interpolate(x, scale_factor=2.0, mode="nearest")
             x = block(torch.cat([x, skips.pop()], dim=1))
-        return self.head(x)[:, :, :h, :w], bottleneck
+        return self.head(x)[:, :, :h, :w]
 
     def forward(self, image: Tensor) -> Tensor:
         """The height field (B, 1, H, W) in canvas units."""
-        return self._features(image)[0]
+        return self._features(image)[:, :1]
+
+    def decompose(self, image: Tensor) -> tuple[Tensor, Tensor | None]:
+        """(height (B, 1, H, W), the source light's shading (B, 1, H, W) in [a, 1], or None for albedo input)."""
+        out = self._features(image)
+        if out.shape[1] == 1:
+            return out, None
+        return out[:, :1], AMBIENT + (1.0 - AMBIENT) * torch.sigmoid(out[:, 1:2])
 
     def estimate(self, image: Tensor) -> tuple[Tensor, Tensor | None]:
-        """(height (B, 1, H, W), source light (B, 3), or None for albedo input).
-
-        The light is a unit vector by construction: its azimuth is the direction of the head's first two
-        outputs, its elevation ``MAX_LIGHT_ELEVATION``·sigmoid(third), so it always faces the viewer."""
-        height, bottleneck = self._features(image)
-        if self.light_head is None:
+        """(height (B, 1, H, W), source light (B, 3) or None for albedo input): the light is the fit of the
+        height's normals to the estimated source shading (module docstring)."""
+        height, shading = self.decompose(image)
+        if shading is None:
             return height, None
-        v = self.light_head(bottleneck.mean(dim=(-2, -1)))
-        planar = v[:, :2] / (v[:, :2].norm(dim=1, keepdim=True) + 1e-6)  # (cos az, sin az); 1e-6: v = 0 → 0
-        el = torch.sigmoid(v[:, 2:3]) * math.radians(MAX_LIGHT_ELEVATION)
-        light = torch.cat([planar * torch.sin(el), torch.cos(el)], 1)
-        return height, light / light.norm(dim=1, keepdim=True)
+        return height, fit_light(normals_from_height(height), shading)

@@ -5,11 +5,13 @@ from: its height field h is turned into normals and **rendered under K random li
 supervision: one geometry must shade right under all of them, as multi-view supervision makes one shape fit
 every view), compared with the true shading under the same lights::
 
-    L = mean_k ‖S(n̂, l_k) − S(n, l_k)‖²  +  λ_n‖n̂ − n‖²  (+ λ_l (1 − l̂_src·l_src) for a lit input)
+    L = mean_k ‖S(n̂, l_k) − S(n, l_k)‖²  +  λ_n‖n̂ − n‖²  (+ ‖Ŝ_src − S(n, l_src)‖² + λ_l (1 − l̂_src·l_src) lit)
 
 S = a + (1 − a)·max(0, n·l) (`lasagna.compose.surface.lambert`); lights l_k uniform in azimuth, elevation in
 [0°, ``MAX_TRAIN_ELEVATION``]. A ``"lit"`` estimator reads each scene lit by its own random source light
-(elevation in the relight range, `lasagna.world.tasks.RELIGHT_ELEVATION`) and also learns that light.
+(elevation in the relight range, `lasagna.world.tasks.RELIGHT_ELEVATION`) and also learns that light's shading
+Ŝ_src; the light l̂_src fitted to it through the surface (`lasagna.compose.surface.fit_light`) is trained end
+to end.
 
 Scenes come from one world split (``train`` by default) and never from ``select``, ``heldout`` or ``far`` at
 the benchmarks' seed; every random draw of a step comes from the loop's generator, so a run resumes bit for bit
@@ -24,8 +26,8 @@ from pathlib import Path
 import torch
 from pydantic import ConfigDict, Field
 
-from lasagna.compose.resample import downsample, upsample, working_size
-from lasagna.compose.surface import lambert, normals_from_height
+from lasagna.compose.resample import downsample, working_size
+from lasagna.compose.surface import fit_light, lambert, normals_from_height
 from lasagna.errors import LasagnaError
 from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
 from lasagna.io.checkpoint import load_state_strict, load_tensors
@@ -84,17 +86,19 @@ def surface_loss(
     """The module docstring's L on one batch: ``scene`` (B scenes), ``source`` (B, 3) their source lights (lit
     input), ``lights`` (K·B, 3) the lights their estimate and truth are compared under (K per scene)."""
     b = len(scene)
-    height, light = net.estimate(estimator_input(config.net, scene, source).to(device))
+    height, source_shading = net.decompose(estimator_input(config.net, scene, source).to(device))
     normals, truth = normals_from_height(height), scene.normals.to(device)
     groups = lights.to(device).split(b)
     shading = sum(torch.nn.functional.mse_loss(lambert(normals, lk), lambert(truth, lk)) for lk in groups)
     shading = shading / len(groups)
     loss = shading + config.normal_weight * torch.nn.functional.mse_loss(normals, truth)
     metrics = {"shading_mse": float(shading.detach())}
-    if light is not None and source is not None:
-        cos_err = (1.0 - (light * source.to(device)).sum(1)).mean()
-        loss = loss + config.light_weight * cos_err
-        metrics["light_cos_err"] = float(cos_err.detach())
+    if source_shading is not None and source is not None:
+        src = source.to(device)
+        source_mse = torch.nn.functional.mse_loss(source_shading, lambert(truth, src))
+        cos_err = (1.0 - (fit_light(normals, source_shading) * src).sum(1)).mean()
+        loss = loss + source_mse + config.light_weight * cos_err
+        metrics.update(source_shading_mse=float(source_mse.detach()), light_cos_err=float(cos_err.detach()))
     return loss, metrics
 
 
@@ -148,11 +152,14 @@ def estimator_from_checkpoint(path: str | Path, ema: bool = True) -> tuple[Surfa
 
 @torch.no_grad()
 def estimate_at(estimator: SurfaceEstimator, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """The estimate for ``image`` (B, 3, H, W) made at the estimator's working size, its height enlarged back
-    (bilinear, so the normals at full size are smooth) to (H, W). Heights are in canvas units, so normals do
-    not depend on the size the height is sampled at."""
+    """The estimate for ``image`` (B, 3, H, W) made at the estimator's working size, its height enlarged back to
+    (H, W) bicubically: the normals are the height's slopes, and a bilinear height has piecewise-constant slopes
+    (shading in blocks of the working size's pixels), a bicubic one continuous slopes. Heights are in canvas
+    units, so normals do not depend on the size the height is sampled at."""
 
     full = tuple(image.shape[-2:])
     small = downsample(image, working_size(*full, estimator.config.working_size))
     height, light = estimator.estimate(small)
-    return upsample(height, full), light
+    if tuple(height.shape[-2:]) != full:
+        height = torch.nn.functional.interpolate(height, size=full, mode="bicubic", align_corners=False)
+    return height, light

@@ -172,3 +172,32 @@ class TestInflate:
         inside = rho < 0.8 * r
         ref = np.stack(np.broadcast_arrays(x / big_r, y / big_r, hp / big_r))
         assert np.abs(n - ref)[:, inside].mean() < 0.03
+
+
+class TestFitLight:
+    def test_recovers_the_light_of_exact_shading(self):
+        from lasagna.compose.surface import fit_light
+
+        rng = np.random.default_rng(5)
+        n = torch.from_numpy(random_normals(rng, b=3, h=16, w=16))
+        lights = torch.stack([light_vector(a, e, dtype=F64) for a, e in ((10, 30), (200, 55), (300, 75))])
+        got = fit_light(n, lambert(n, lights))
+        # The ridge (1e-3 of the lit pixels' second moment) biases the solution by about that much.
+        torch.testing.assert_close(got, lights, atol=5e-3, rtol=0)
+
+    def test_flat_surface_keeps_a_valid_light(self):
+        from lasagna.compose.surface import MAX_FIT_ELEVATION, fit_light
+
+        flat = torch.zeros(1, 3, 4, 4, dtype=F64)
+        flat[:, 2] = 1
+        got = fit_light(flat, lambert(flat, light_vector(90, 40, dtype=F64)[None]))
+        assert torch.isfinite(got).all() and abs(float(got.norm()) - 1) < 1e-12
+        assert float(got[0, 2]) >= math.cos(math.radians(MAX_FIT_ELEVATION)) - 1e-12
+
+    def test_differentiable(self):
+        from lasagna.compose.surface import fit_light
+
+        rng = np.random.default_rng(6)
+        n = torch.from_numpy(random_normals(rng, b=1, h=4, w=4))
+        s = lambert(n, light_vector(30, 40, dtype=F64)[None]).requires_grad_()
+        assert torch.autograd.gradcheck(lambda t: fit_light(n, t), (s,))

@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from lasagna.compose.surface import normals_from_height
+from lasagna.compose.surface import MAX_FIT_ELEVATION, normals_from_height
 from lasagna.errors import LasagnaError
-from lasagna.generators.surface import MAX_LIGHT_ELEVATION, SurfaceConfig, SurfaceEstimator
+from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
 
 TINY = dict(channels=(4, 8), blocks=1, working_size=8)
 
@@ -23,14 +23,15 @@ def test_untrained_is_the_flat_surface(kind):
     assert torch.equal(n[:, 2], torch.ones_like(n[:, 2]))
 
 
-def test_lit_estimates_a_unit_light_facing_the_viewer():
+def test_lit_estimates_its_source_shading_and_a_unit_light_facing_the_viewer():
     torch.manual_seed(0)
     net = SurfaceEstimator(SurfaceConfig(input="lit", **TINY))
-    for p in net.light_head.parameters():
-        torch.nn.init.normal_(p, std=3.0)  # extreme outputs: still unit, z above the floor
+    torch.nn.init.normal_(net.head.weight, std=3.0)  # extreme outputs: still a valid shading and light
+    height, shading = net.decompose(torch.rand(5, 3, 8, 8))
+    assert shading.min() >= 0.25 and shading.max() <= 1.0
     _, light = net.estimate(torch.rand(5, 3, 8, 8))
     torch.testing.assert_close(light.norm(dim=1), torch.ones(5), atol=1e-6, rtol=0)
-    assert (light[:, 2] >= math.cos(math.radians(MAX_LIGHT_ELEVATION)) - 1e-6).all()
+    assert (light[:, 2] >= math.cos(math.radians(MAX_FIT_ELEVATION)) - 1e-6).all()
     _, none = SurfaceEstimator(SurfaceConfig(input="albedo", **TINY)).estimate(torch.rand(1, 3, 8, 8))
     assert none is None
 

@@ -36,7 +36,7 @@ def tiny(**kw) -> SurfaceTrainConfig:
 
 
 def test_one_batch_is_fitted_under_every_light():
-    """The loss, the renderer and the light head are wired so that Adam fits a fixed batch: the multi-light
+    """The loss, the renderer and the light fit are wired so that Adam fits a fixed batch: the multi-light
     shading error and the source light's error both fall by half (learning across fresh batches takes
     thousands of steps: the committed run's card measures that)."""
     config = tiny()
