@@ -232,6 +232,36 @@ def test_cli_import_then_composite(tmp_path, capsys):
     assert load_stack(out).document == read_psd(path).document
 
 
+def test_a_psd_of_every_mode_composites_as_the_float64_reference(tmp_path):
+    # One psd-tools-written PSD holding a layer of every blend mode (partial alpha, opacity), imported with
+    # ``lasagna import-psd`` and composited with ``lasagna composite``: within 3/255 of tests/reference.py's
+    # float64 composite of the imported stack folder (independent of the compositor), and of psd-tools' own
+    # flattening except dissolve (psd-tools draws it as normal).
+    from tests.reference import composite_reference, to_uint8
+
+    rng = np.random.default_rng(11)
+    T = 8
+    modes = [m for m in BLEND_MODES if m != "plus"]  # plus is LINEAR_DODGE, i.e. linear-dodge, in a PSD
+    psd = PSDImage.new("RGBA", (T * len(modes), T))
+    psd.create_pixel_layer(rgba(rng, T, T * len(modes), "opaque"), name="base")
+    for i, mode in enumerate(modes):
+        layer = psd.create_pixel_layer(rgba(rng, T, T), name=mode, left=T * i, blend_mode=MODES[mode])
+        layer.opacity = int(rng.integers(120, 256))
+    path = tmp_path / "modes.psd"
+    psd.save(path)
+    out = tmp_path / "stack"
+    assert main(["import-psd", str(path), "-o", str(out)]) == 0
+    assert [layer.blend for layer in load_stack(out).document.layers] == ["normal", *modes]
+    assert main(["composite", str(out), "-o", str(tmp_path / "c.png")]) == 0
+    with Image.open(tmp_path / "c.png") as im:
+        got = np.asarray(im.convert("RGB")).astype(int)
+    assert np.abs(got - to_uint8(composite_reference(out)).astype(int)).max() <= 3
+    flat = psd_tools_flat(path)
+    drawn = np.ones(got.shape[1], dtype=bool)
+    drawn[T * modes.index("dissolve") : T * (modes.index("dissolve") + 1)] = False
+    assert np.abs(got - flat)[:, drawn].max() <= 1
+
+
 def test_cli_errors_are_one_line(tmp_path, capsys):
     bad = tmp_path / "bad.psd"
     bad.write_bytes(b"8BPS" + b"\x00" * 40)
