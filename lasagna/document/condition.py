@@ -36,7 +36,8 @@ NAMED_DIRECTIONS: dict[str, tuple[float, float]] = {
     "bottom-left": (225.0, NAMED_ELEVATION),
     "bottom-right": (315.0, NAMED_ELEVATION),
 }
-"""(az, el) in degrees of each named light, in the order of `lasagna.world.lighting.VOCABULARY`."""
+"""(az, el) in degrees of each named light: the one list of them (its order is `lasagna.world.lighting.VOCABULARY`,
+its vectors `LIGHTS`; the editor gets them from ``/api/state``)."""
 
 AMBIENT = 0.25
 """Default ambient term a of shading = a + (1 − a)·max(0, n·l) (the world's contract)."""

@@ -39,6 +39,7 @@ from starlette.requests import ClientDisconnect, Request
 from starlette.responses import JSONResponse, Response, StreamingResponse
 from starlette.routing import Route
 
+from lasagna.document.condition import NAMED_DIRECTIONS
 from lasagna.errors import ConflictError, LasagnaError
 from lasagna.limits import BudgetError
 from lasagna.serve.bodies import Empty, RequestError, StartJob, parse_body, parse_change, parse_request_json
@@ -200,7 +201,9 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
         return JSONResponse(await run(session.state))
 
     async def presets(request: Request) -> Response:
-        return JSONResponse({"presets": await run(session.presets)})
+        # The named lights with the presets: the compass draws a vocabulary of them (NAMED_DIRECTIONS, the one list).
+        lights = {name: {"az": az, "el": el} for name, (az, el) in NAMED_DIRECTIONS.items()}
+        return JSONResponse({"presets": await run(session.presets), "lights": lights})
 
     def _view_args(request: Request) -> dict[str, Any]:
         q = request.query_params

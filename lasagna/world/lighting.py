@@ -66,36 +66,28 @@ from lasagna.document.condition import (
 )
 from lasagna.errors import ConditionError
 
-# The elevation of every light: 30° above the image plane, i.e. 60° from the viewing axis +z.
-_S = math.sin(math.radians(60.0))
-_C = math.cos(math.radians(60.0))
-_D = _S / math.sqrt(2.0)
-
-VOCABULARY: tuple[str, ...] = (
-    "left",
-    "right",
-    "top",
-    "bottom",
-    "top-left",
-    "top-right",
-    "bottom-left",
-    "bottom-right",
-)
-
-LIGHTS: dict[str, tuple[float, float, float]] = {
-    "left": (-_S, 0.0, _C),
-    "right": (_S, 0.0, _C),
-    "top": (0.0, _S, _C),
-    "bottom": (0.0, -_S, _C),
-    "top-left": (-_D, _D, _C),
-    "top-right": (_D, _D, _C),
-    "bottom-left": (-_D, -_D, _C),
-    "bottom-right": (_D, -_D, _C),
-}
-assert tuple(LIGHTS) == VOCABULARY == tuple(NAMED_DIRECTIONS)
+VOCABULARY: tuple[str, ...] = tuple(NAMED_DIRECTIONS)
+"""The eight named lights in their fixed order: `lasagna.document.condition.NAMED_DIRECTIONS`'s, the one list."""
 
 
-WALL_SHADING = AMBIENT + (1.0 - AMBIENT) * _C
+def _named_vector(az: float, el: float) -> tuple[float, float, float]:
+    """The exact vector of a named light (az a multiple of 45°): the in-plane part is ±sin el along an axis or
+    ±sin el/√2 along a diagonal, not the closed form's cos/sin of π-multiples (1e-16 off zero)."""
+    if az % 45.0 != 0.0:
+        raise ValueError(f"a named light's azimuth must be a multiple of 45°, got {az!r}")
+    a = math.radians(az)
+    dx, dy = round(math.cos(a) * math.sqrt(2.0)), round(math.sin(a) * math.sqrt(2.0))  # each in {-1, 0, 1}
+    s = math.sin(math.radians(el))
+    if dx != 0 and dy != 0:
+        s = s / math.sqrt(2.0)
+    return (dx * s + 0.0, dy * s + 0.0, math.cos(math.radians(el)))
+
+
+LIGHTS: dict[str, tuple[float, float, float]] = {name: _named_vector(*d) for name, d in NAMED_DIRECTIONS.items()}
+"""The unit vector of each named light (module docstring), derived from `NAMED_DIRECTIONS`."""
+
+
+WALL_SHADING = AMBIENT + (1.0 - AMBIENT) * LIGHTS["top"][2]
 """The unshadowed wall's shading with the default ambient (n = +z, so n·l = cos 60° = 0.5): 0.625."""
 
 

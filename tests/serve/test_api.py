@@ -436,6 +436,15 @@ def test_presets_are_listed_ready_or_why_not(client):
     assert presets["light"]["vocabulary"] == ["warm", "cool", "white"]
 
 
+def test_the_light_picker_gets_the_named_lights_from_the_server(client):
+    from lasagna.document.condition import NAMED_DIRECTIONS
+
+    lights = client.get("/api/presets", headers=H).json()["lights"]
+    assert {k: (v["az"], v["el"]) for k, v in lights.items()} == NAMED_DIRECTIONS
+    js = (Path(__file__).parents[2] / "lasagna/serve/static/app.js").read_text()
+    assert '"top-right"' not in js  # no second list of the named lights in the page
+
+
 def test_an_amortised_layer_in_one_request_equals_lasagna_edit(client, folder, tmp_path):
     from lasagna.editing import edit
 

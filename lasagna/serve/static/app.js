@@ -4,12 +4,12 @@
 
 const token = new URLSearchParams(location.search).get("token") || "";
 const $ = (id) => document.getElementById(id);
-const NAMED = { right: 0, "top-right": 45, top: 90, "top-left": 135, left: 180, "bottom-left": 225, bottom: 270, "bottom-right": 315 };
 const SWATCHES = { warm: "#ffb35c", cool: "#7fb2ff", white: "#ffffff" };
 
 const ui = {
   state: null,          // the server's state (document, version, history, job)
   presets: [],
+  lights: {},           // the named lights, {label: {az, el}} in degrees (the server's NAMED_DIRECTIONS)
   selected: null,       // layer id
   zoom: 1, panX: 0, panY: 0, fit: true,
   solo: null,
@@ -249,7 +249,9 @@ function drawProps() {
 
 async function loadPresets() {
   const response = await api("api/presets");
-  ui.presets = (await response.json()).presets;
+  const body = await response.json();
+  ui.presets = body.presets;
+  ui.lights = body.lights;
   const select = $("preset");
   select.textContent = "";
   for (const p of ui.presets) {
@@ -270,7 +272,7 @@ function drawPicker() {
   $("add-per-image").disabled = !p || !p.ready;
   if (!p || !p.vocabulary) return;
   if (!p.vocabulary.includes(ui.condition)) ui.condition = p.vocabulary[0];
-  const compass = p.vocabulary.every((v) => v in NAMED);
+  const compass = p.vocabulary.every((v) => v in ui.lights);
   box.className = compass ? "" : "list";
   if (compass) {
     const ring = document.createElement("div");
@@ -282,7 +284,7 @@ function drawPicker() {
     b.dataset.condition = label;
     b.title = label;
     if (compass) {
-      const a = (NAMED[label] * Math.PI) / 180;
+      const a = (ui.lights[label].az * Math.PI) / 180;
       b.style.left = `${50 + 42 * Math.cos(a)}%`;
       b.style.top = `${50 - 42 * Math.sin(a)}%`;
       b.textContent = "●";
