@@ -40,7 +40,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import BinaryIO
 
-from lasagna.errors import PathError
+from lasagna.errors import LasagnaError, PathError
 from lasagna.limits import MAX_COPY_BYTES, MAX_COPY_FILES, format_size
 
 # The longest file name most file systems take (ext4, APFS, NTFS: 255 bytes). A temporary longer than its
@@ -369,8 +369,18 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
-def _cannot_write(exc: OSError, target: Path) -> PathError:
-    return PathError(f"cannot write ({exc.strerror or exc}); expected a writable location", str(target))
+def _cannot_write(exc: OSError, target: Path, error: type[LasagnaError] = PathError) -> LasagnaError:
+    return error(f"cannot write ({exc.strerror or exc}); expected a writable location", str(target))
+
+
+def write_output(path: str | os.PathLike, data: bytes, error: type[LasagnaError] = PathError) -> Path:
+    """Write an output file the user named (an export, a composite, a PNG) atomically; a failure to write is
+    one line of ``error`` naming the file: "cannot write (why); expected a writable location"."""
+    try:
+        atomic_write_bytes(path, data)
+    except OSError as exc:
+        raise _cannot_write(exc, Path(path), error) from None
+    return Path(path)
 
 
 def atomic_write_all(files: Sequence[tuple[str | os.PathLike, bytes]]) -> list[Path]:

@@ -11,8 +11,16 @@ import sys
 import pytest
 
 from lasagna import atomic
-from lasagna.atomic import NAME_MAX, atomic_write_all, atomic_write_bytes, make_temp_folder, sweep_stale, temp_path
-from lasagna.errors import PathError
+from lasagna.atomic import (
+    NAME_MAX,
+    atomic_write_all,
+    atomic_write_bytes,
+    make_temp_folder,
+    sweep_stale,
+    temp_path,
+    write_output,
+)
+from lasagna.errors import ExportError, ImageError, PathError
 
 
 @pytest.fixture(scope="module")
@@ -220,3 +228,14 @@ def test_copy_tree_copies_files_and_folders_within_its_caps(tmp_path):
     (tmp_path / "links").mkdir()
     with pytest.raises(PathError, match=r"loop: is a symbolic link; expected only folders and regular files"):
         copy_tree(src, tmp_path / "links")
+
+
+@pytest.mark.parametrize("error", [PathError, ImageError, ExportError])
+def test_write_output_is_one_line_of_the_callers_error(tmp_path, error):
+    (tmp_path / "a-file").write_bytes(b"")
+    target = tmp_path / "a-file" / "out.png"  # its folder is a file
+    with pytest.raises(error) as info:
+        write_output(target, b"x", error)
+    assert str(info.value).startswith(f"{target}: cannot write (") and "expected a writable location" in str(info.value)
+    assert write_output(tmp_path / "ok.png", b"x", error) == tmp_path / "ok.png"
+    assert (tmp_path / "ok.png").read_bytes() == b"x"

@@ -42,7 +42,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 from PIL import Image
 
-from lasagna.atomic import atomic_write_bytes
+from lasagna.atomic import write_output
 from lasagna.document.blend import BLEND_MODES
 from lasagna.document.types import sanitise_name, unique_id
 from lasagna.errors import ExportError, ImageError
@@ -216,13 +216,7 @@ def export_ora(
 ) -> Path:
     """Write ``stack`` as an OpenRaster file at ``path`` (atomically); returns the path."""
     data = encode_ora(stack, composite=composite, warn=warn)
-    try:
-        atomic_write_bytes(path, data)
-    except OSError as exc:
-        raise ExportError(
-            f"cannot write ({exc.strerror or exc}); expected a writable location", where=str(path)
-        ) from None
-    return Path(path)
+    return write_output(path, data, ExportError)
 
 
 # ---- import --------------------------------------------------------------------------------------

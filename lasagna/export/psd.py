@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 from PIL import Image
 
-from lasagna.atomic import atomic_write_bytes
+from lasagna.atomic import write_output
 from lasagna.document.blend import BLEND_MODES
 from lasagna.errors import ExportError
 from lasagna.export.ora import composite_uint8
@@ -167,10 +167,4 @@ def export_psd(
 ) -> Path:
     """Write ``stack`` as a layered PSD at ``path`` (atomically); returns the path."""
     data = encode_psd(stack, composite=composite, warn=warn)
-    try:
-        atomic_write_bytes(path, data)
-    except OSError as exc:
-        raise ExportError(
-            f"cannot write ({exc.strerror or exc}); expected a writable location", where=str(path)
-        ) from None
-    return Path(path)
+    return write_output(path, data, ExportError)

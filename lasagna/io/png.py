@@ -26,7 +26,7 @@ import numpy as np
 import png as pypng
 from PIL import Image
 
-from lasagna.atomic import atomic_write_bytes, open_regular
+from lasagna.atomic import open_regular, write_output
 from lasagna.errors import ImageError
 
 # Pixels beyond which a PNG is refused before decoding. 2^28 (16384²) float32 RGBA pixels are 4 GiB:
@@ -495,9 +495,4 @@ def encode_rgb8_bands(bands, width: int, height: int) -> bytes:
 def write_png(path: str | os.PathLike, color, alpha=None, *, bit_depth: BitDepth = 8, clip: bool = False) -> None:
     """Write a PNG atomically (temporary file beside ``path``, then rename). See :func:`encode_png`."""
     data = encode_png(color, alpha, bit_depth=bit_depth, clip=clip, where=str(path))
-    try:
-        atomic_write_bytes(path, data)
-    except OSError as exc:
-        raise ImageError(
-            f"cannot write file ({exc.strerror or type(exc).__name__}); expected a writable location", where=str(path)
-        ) from None
+    write_output(path, data, ImageError)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-from lasagna.atomic import atomic_write_bytes
+from lasagna.atomic import write_output
 from lasagna.compose.plan import plan_from_document
 from lasagna.compose.render import RenderResult, render
 from lasagna.errors import ImageError
@@ -91,10 +91,4 @@ def encode_composite(result: RenderResult | torch.Tensor, where: str = "composit
 def write_composite(result: RenderResult | torch.Tensor, path: str | os.PathLike) -> Path:
     """Write a composite (a ``RenderResult`` or an image (3, H, W)) as an 8-bit sRGB PNG, atomically."""
     data = encode_composite(result, str(path))
-    try:
-        atomic_write_bytes(path, data)
-    except OSError as exc:
-        raise ImageError(
-            f"cannot write file ({exc.strerror or type(exc).__name__}); expected a writable location", where=str(path)
-        ) from None
-    return Path(path)
+    return write_output(path, data, ImageError)
