@@ -38,7 +38,6 @@ from lasagna.document.preset import (
     PriorLink,
     default_catalogues,
     load_preset,
-    resolve_preset,
 )
 from lasagna.document.schema import SCHEMA_BASE, schemas, write_schemas
 from lasagna.document.types import check_id, check_relative_path, unique_id
@@ -79,7 +78,6 @@ __all__ = [
     "PriorLink",
     "default_catalogues",
     "load_preset",
-    "resolve_preset",
     "SCHEMA_BASE",
     "schemas",
     "write_schemas",

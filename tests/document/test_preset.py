@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from lasagna.document import Preset, load_preset, resolve_preset
+from lasagna.document import Preset, load_preset
 from lasagna.errors import ConditionError, DocumentError
 from tests.document.cases import DELETE, ROOT, load_json, patched
 
@@ -84,33 +84,3 @@ def test_name_must_match_folder(tmp_path):
     (tmp_path / "relight" / "preset.json").write_text(json.dumps(shading()), encoding="utf-8")
     with pytest.raises(DocumentError, match=r"name: name 'shading' differs from its folder 'relight'"):
         load_preset(tmp_path / "relight")
-
-
-class TestResolve:
-    def test_catalogue_name(self):
-        assert resolve_preset("shading", catalogues=[CATALOGUE]) == CATALOGUE / "shading" / "preset.json"
-
-    def test_stack_local_preset_wins(self, tmp_path):
-        local = tmp_path / "layers" / "shading"
-        local.mkdir(parents=True)
-        (local / "preset.json").write_text(json.dumps(shading()), encoding="utf-8")
-        assert resolve_preset("shading", tmp_path, catalogues=[CATALOGUE]) == local / "preset.json"
-
-    def test_path_reference(self, tmp_path):
-        assert resolve_preset("./p/mine.json", tmp_path) == tmp_path / "./p/mine.json"
-        with pytest.raises(DocumentError, match="needs the stack folder"):
-            resolve_preset("./p/mine.json")
-
-    def test_unknown_name_lists_what_exists(self, tmp_path):
-        with pytest.raises(
-            DocumentError, match=r"no preset named 'shadow' .*; expected one of color, light, relight, shading"
-        ):
-            resolve_preset("shadow", tmp_path, catalogues=[CATALOGUE])
-        with pytest.raises(DocumentError, match="^preset: id 'my preset' breaks the rule"):
-            resolve_preset("my preset")
-
-    def test_environment_catalogue(self, tmp_path, monkeypatch):
-        (tmp_path / "mine").mkdir()
-        (tmp_path / "mine" / "preset.json").write_text(json.dumps({**shading(), "name": "mine"}), encoding="utf-8")
-        monkeypatch.setenv("LASAGNA_LAYERS", str(tmp_path))
-        assert resolve_preset("mine") == tmp_path / "mine" / "preset.json"
