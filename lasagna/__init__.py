@@ -7,37 +7,37 @@
     lasagna.to_pil(result)                             # the composite as an 8-bit PIL image
     lasagna.edit("photo.png", "shading", "left")       # a learned layer (lasagna.editing.edit)
 
-The API names are loaded lazily so that ``import lasagna.document`` (pydantic only) never imports
-torch. See docs/ARCHITECTURE.md for the tiers.
+The API's names are ``lasagna.api.__all__`` (the one list) and are loaded lazily on first use, so that
+``import lasagna.document`` (pydantic only) never imports torch; ``dir(lasagna)``, ``help(lasagna)`` and
+``from lasagna import *`` load them. See docs/ARCHITECTURE.md for the tiers.
 """
 
-from lasagna.version import __version__
+from importlib.util import find_spec as _find_spec
+from typing import TYPE_CHECKING
 
-_API = (
-    "load",
-    "render",
-    "save",
-    "Stack",
-    "from_image",
-    "from_tensors",
-    "export_ora",
-    "export_psd",
-    "import_ora",
-    "export_layer_pngs",
-    "write_composite",
-    "RenderResult",
-    "to_pil",
-    "to_numpy",
-    "edit",
-    "edit_many",
-    "render_learned",
-)
-__all__ = ["__version__", *_API]
+from lasagna.version import __version__ as __version__
+
+if TYPE_CHECKING:  # type checkers see the real names and types; at run time they come from __getattr__
+    from lasagna.api import *  # noqa: F403
+
+
+def _api():
+    from lasagna import api
+
+    return api
 
 
 def __getattr__(name: str):
-    if name in _API:
-        from lasagna import api
-
-        return getattr(api, name)
+    # A private name or a submodule (``from lasagna import catalogue`` asks here first) is not the API's: answered
+    # without importing it, so the document tier stays torch-free.
+    if (name.startswith("_") and name != "__all__") or _find_spec(f"lasagna.{name}") is not None:
+        raise AttributeError(f"module 'lasagna' has no attribute {name!r}")
+    if name == "__all__":
+        return ["__version__", *_api().__all__]
+    if name in _api().__all__:
+        return getattr(_api(), name)
     raise AttributeError(f"module 'lasagna' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_api().__all__})

@@ -116,6 +116,25 @@ def test_top_level_names_are_the_api_functions():
     assert lasagna.to_pil is api.to_pil
 
 
+def test_the_api_names_are_declared_once_and_listed_lazily():
+    import subprocess
+    import sys
+
+    import lasagna
+
+    assert lasagna.__all__ == ["__version__", *api.__all__]
+    assert set(api.__all__) <= set(dir(lasagna)) and all(getattr(lasagna, n) is getattr(api, n) for n in api.__all__)
+    with pytest.raises(AttributeError, match="no attribute 'nope'"):
+        lasagna.nope  # noqa: B018
+    code = (
+        "import sys, lasagna, lasagna.document\nfrom lasagna import catalogue, errors\n"
+        "assert 'torch' not in sys.modules and 'lasagna.api' not in sys.modules\n"
+        "print(len(dir(lasagna)), 'torch' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out[1] == "True"  # dir() loads the API
+
+
 def test_edit_refuses_a_preset_object_in_one_line():
     from lasagna.catalogue import resolve
     from lasagna.errors import LasagnaError
