@@ -49,14 +49,21 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _common import machine_info, print_json_line  # noqa: E402
+from _common import (  # noqa: E402
+    add_labels,
+    darkening,
+    glow_colour_error,
+    implied_shading,
+    luma,
+    machine_info,
+    print_json_line,
+    psnr,
+)
 
 from lasagna.catalogue import load_corrective, load_preset, load_prior, resolve  # noqa: E402
 from lasagna.distill import distill_image  # noqa: E402
-from lasagna.distill.objective import REC709  # noqa: E402
 from lasagna.priors.base import Condition  # noqa: E402
 from lasagna.priors.ddim import ddim_sample  # noqa: E402
-from lasagna.priors.evaluate import psnr_db  # noqa: E402
 from lasagna.world import GLOW_VOCABULARY, VOCABULARY, additive_light, colorization, generate  # noqa: E402
 
 METHODS = ("sds", "lmc-sds", "dds", "nfsd", "ms-sds")
@@ -76,11 +83,6 @@ CHROMA_EPS = 0.05  # pixels darker than this (sum of RGB) have no meaningful chr
 
 
 # -- metrics ------------------------------------------------------------------------------------
-def psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> float:
-    """PSNR (``psnr_db``) of the mean squared error over all images, or over ``mask`` pixels."""
-    d = (a.double() - b.double()) ** 2
-    mse = d.mean() if mask is None else (d * mask).sum() / (mask.sum() * a.shape[1]).clamp_min(1)
-    return float(psnr_db(mse, floor=1e-12))
 
 
 def scale_invariant_mse(y: torch.Tensor, true: torch.Tensor) -> float:
@@ -101,16 +103,6 @@ def chromaticity_drift(out: torch.Tensor, base: torch.Tensor) -> float:
     cb, mb = chroma(base)
     m = mo * mb
     return float(((co - cb).abs().sum(1, keepdim=True) * m).sum() / m.sum().clamp_min(1))
-
-
-def luma(x: torch.Tensor) -> torch.Tensor:
-    r, g, b = REC709
-    return r * x[:, 0:1] + g * x[:, 1:2] + b * x[:, 2:3]
-
-
-def implied_shading(out: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
-    """The luminosity multiplier that best explains ``out`` as ``base`` × y: luma ratio, in [0, 2]."""
-    return (luma(out) / luma(base).clamp_min(1e-3)).clamp(0.0, 2.0)
 
 
 def albedo_error(out: torch.Tensor, base: torch.Tensor) -> float:
@@ -292,25 +284,6 @@ def color_run(method: str, omega: float, col, preset, prior, corrective, steps: 
     }
 
 
-def glow_colour_error(glow: torch.Tensor, true: torch.Tensor) -> float:
-    """Mean over images of the angle (degrees) between the summed RGB of a glow and of the true glow.
-
-    Brightness-free: it asks only whether the light added has the label's colour. A glow with no
-    light at all has no colour; it counts as 90° (orthogonal).
-    """
-    a, b = glow.double().sum(dim=(2, 3)), true.double().sum(dim=(2, 3))
-    cos = (a * b).sum(1) / (a.norm(dim=1) * b.norm(dim=1)).clamp_min(1e-12)
-    return float(torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0))).mean())
-
-
-def darkening(out: torch.Tensor, base: torch.Tensor) -> float:
-    """Mean over pixels and channels of max(0, base − out): what an edit took away from the input.
-
-    Adding light never darkens, so for the light task this is pure content drift.
-    """
-    return float((base.double() - out.double()).clamp_min(0.0).mean())
-
-
 def light_row(method: str, omega: float | None, glow: torch.Tensor, comp: torch.Tensor, add, seconds: float) -> dict:
     """The metrics of one glow result (B, 3, H, W) with its composite, against the true glow and lit image."""
     mask = add.scene.mask
@@ -364,10 +337,6 @@ def light_amortised(add, folder: Path | None) -> dict | None:
         seconds = time.perf_counter() - t0
         comp = composite(add.base, glow, gen.spec).clamp(0, 1)
     return light_row("amortised (distilled)", None, glow, comp, add, seconds)
-
-
-def add_labels(add) -> list[str]:
-    return [GLOW_VOCABULARY[int(k)] for k in add.scene.params.glow_label]
 
 
 def light_run(method: str, omega: float, add, preset, prior, corrective, steps: int, seed: int) -> dict:

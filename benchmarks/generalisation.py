@@ -44,8 +44,16 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _common import machine_info, print_json_line  # noqa: E402
-from distill_accuracy import add_labels, darkening, glow_colour_error, implied_shading, psnr  # noqa: E402
+from _common import (  # noqa: E402
+    add_labels,
+    darkening,
+    glow_colour_error,
+    implied_shading,
+    machine_info,
+    print_json_line,
+    psnr,
+    save_sheet,
+)
 
 from lasagna import catalogue as cat  # noqa: E402
 from lasagna.compose.resample import downsample, upsample, working_size  # noqa: E402
@@ -284,29 +292,6 @@ def light_table(args, split: str, size: int) -> list[dict]:
 
 
 # -- sheets -------------------------------------------------------------------------------------
-def _tile(x: torch.Tensor) -> np.ndarray:
-    """(C, H, W) in [0, 1] (a shading in [0, 2] is shown halved) → (H, W, 3) uint8."""
-    x = x.detach().double()
-    if x.shape[0] == 1:
-        x = (x / 2.0).expand(3, -1, -1)
-    return (x.clamp(0, 1).permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
-
-
-def save_sheet(columns: list[list[torch.Tensor]], path: Path, pad: int = 2) -> None:
-    """A grid: one row per list in ``columns``' transpose (each column a list of (C, H, W) images)."""
-    rows = []
-    for i in range(len(columns[0])):
-        tiles = [_tile(col[i]) for col in columns]
-        h = max(t.shape[0] for t in tiles)
-        line = []
-        for t in tiles:
-            line += [t, np.full((h, pad, 3), 255, np.uint8)]
-        rows += [
-            np.concatenate(line[:-1], 1),
-            np.full((pad, sum(t.shape[1] for t in tiles) + pad * (len(tiles) - 1), 3), 255, np.uint8),
-        ]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.concatenate(rows[:-1], 0)).save(path)
 
 
 def photo_sheet(args, path: Path) -> list[dict]:

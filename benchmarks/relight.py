@@ -45,59 +45,19 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _common import machine_info, print_json_line  # noqa: E402
-from distill_accuracy import psnr  # noqa: E402
-from generalisation import save_sheet  # noqa: E402
+from _common import RANGE_HI, machine_info, print_json_line, psnr, row, save_sheet, scenes  # noqa: E402
 
 from lasagna import catalogue as cat  # noqa: E402
 from lasagna.compose.resample import downsample, upsample  # noqa: E402
-from lasagna.document.condition import format_direction, named_direction  # noqa: E402
 from lasagna.editing import edit  # noqa: E402
 from lasagna.priors.base import Condition  # noqa: E402
 from lasagna.priors.ddim import ddim_sample  # noqa: E402
-from lasagna.world import VOCABULARY, render, sample_scenes  # noqa: E402
-from lasagna.world.tasks import relight_sources, relighting  # noqa: E402
-
-RANGE_HI = 4.0  # the preset's range [0, 4]: ratios are compared in units of it
-
-
-BETWEEN = 22.5
-"""Degrees of azimuth from each named light to the direction between it and the next (same elevation)."""
-
-
-def scenes(split: str, count: int, seed: int, size: int, walls: bool = False, between: bool = False):
-    """The relight task of ``count`` scenes: B cycles through the named lights or, with ``between``, through
-    the directions halfway between them (``az`` + 22.5°, the same elevation)."""
-    labels = [VOCABULARY[i % len(VOCABULARY)] for i in range(count)]
-    params = sample_scenes(split, seed, range(count))
-    if walls:
-        params = params.walls_only()
-    scene = render(params.with_labels(labels), size)
-    if between:
-        labels = [format_direction(named_direction(n)[0] + BETWEEN, named_direction(n)[1]) for n in labels]
-        return relighting(scene, relight_sources(scene.params), labels), labels
-    return relighting(scene, relight_sources(scene.params)), labels
 
 
 def default_layers(images: torch.Tensor, labels, dirs, **options) -> tuple[torch.Tensor, float]:
     t0 = time.perf_counter()
     out = [edit(images[i], "relight", labels[i], catalogue_dirs=dirs, **options).layer for i in range(images.shape[0])]
     return torch.stack(out), time.perf_counter() - t0
-
-
-def row(rel, method: str, ratio: torch.Tensor, seconds: float | None = None) -> dict:
-    comp = (rel.base * ratio).clamp(0, 1)
-    target = rel.target.clamp(0, 1)
-    mask = rel.scene.mask
-    r = {
-        "method": method,
-        "composite_psnr": round(psnr(comp, target), 2),
-        "object_psnr": round(psnr(comp, target, mask), 2),
-        "ratio_psnr": round(psnr(ratio.expand_as(rel.layer) / RANGE_HI, rel.layer / RANGE_HI), 2),
-    }
-    if seconds is not None:
-        r["seconds_per_image"] = round(seconds / rel.base.shape[0], 3)
-    return r
 
 
 def prior_ratio(rel, labels, prior, omega: float = 1.0) -> torch.Tensor:

@@ -6,7 +6,7 @@ never chosen on far). Plain script; one JSON row per setting, then one JSON line
 
 Each setting runs ``lasagna.editing.edit(image, "relight", label, **overrides)`` on the scenes of
 ``benchmarks/relight.py`` (each lit by its own source light A, relit to a named light B) and reports the
-composite PSNR against the truth over all pixels and over object pixels (``relight.row``). "N seeds" rows
+composite PSNR against the truth over all pixels and over object pixels (``_common.row``). "N seeds" rows
 average the layers of N runs with seeds 0…N−1 after the runs; "particles K" rows are one run with K
 particles (``distill.particles``: K layers per image in one batch, averaged). The overrides are given
 explicitly, so the rows do not depend on the preset's current defaults (the preset now says particles 4,
@@ -27,8 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _common import machine_info, print_json_line  # noqa: E402
-from relight import row, scenes  # noqa: E402
+from _common import machine_info, print_json_line, row, scenes  # noqa: E402
 
 from lasagna.editing import edit  # noqa: E402
 

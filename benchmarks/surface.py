@@ -33,8 +33,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _common import machine_info, print_json_line  # noqa: E402
-from distill_accuracy import psnr  # noqa: E402
+from _common import machine_info, print_json_line, psnr  # noqa: E402
 
 from lasagna.compose.resample import downsample, upsample  # noqa: E402
 from lasagna.compose.surface import (  # noqa: E402
