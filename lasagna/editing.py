@@ -297,7 +297,13 @@ def plan_edit(
 
 
 def place_layer(stack: Stack, layer_id: str, recipe: Recipe, on: str, run: LayerRun) -> None:
-    """Add (or update) the learned layer ``layer_id`` with ``run``'s pixels, settings and generator."""
+    """Add (or update) the learned layer ``layer_id`` with ``run``'s pixels, settings and generator (a surface
+    run: the surface layer of its normals, lit by the recipe's condition)."""
+    if run.normals is not None:
+        name = layer_fields(layer_id, recipe, on)["name"]
+        stack.add_surface(layer_id, run.normals, recipe.label, source_light=run.source_light, name=name)
+        stack.document = stack.document.replace_layer(layer_id, made_by={**run.made_by, "conditioned_on": on})
+        return
     settings = run.settings.to_json()
     if layer_id in stack.ids:
         old = stack.document.layer(layer_id).model_dump(mode="json")

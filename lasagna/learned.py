@@ -62,6 +62,9 @@ class LayerRun:
     seconds: float
     history: list[dict[str, Any]] = field(default_factory=list)
     stopped: str | None = None
+    normals: Tensor | None = None  # a surface layer's unit normals (3, H, W); ``layer`` is then its multiplier
+    source_light: str | None = None  # a surface relight's source light (given, or estimated)
+    made_by: dict[str, Any] = field(default_factory=dict)  # a surface layer's record (``SurfaceLayer.made_by``)
 
 
 def as_stored(stack: Stack, ids=None) -> Stack:
@@ -134,6 +137,8 @@ def make_layer(
     (``lasagna.serve``), which cancels a run by raising from it."""
     from lasagna.compose.resample import upsample
 
+    if recipe.kind == "surface":
+        return _make_surface(recipe, base, device, callback)
     start = time.monotonic()
     x = working_input(base, recipe.working_size, device)  # (1, 3, h, w)
     files: dict[str, bytes] = {}
@@ -172,6 +177,89 @@ def make_layer(
         history=history,
         stopped=stopped,
     )
+
+
+def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
+    """A surface layer (``recipe.kind == "surface"``): the estimator's height field at the working size, refined by
+    ``recipe.steps`` multi-light score-distillation steps when asked, enlarged bicubically to the base's size; its
+    normals, its source light (a lit input's: given, else fitted) and the multiplier they render to under the
+    condition's light — through the 16-bit map the stack will store, so it is what the stack renders."""
+    from lasagna.components import load_prior
+    from lasagna.compose.layer import LayerTensors
+    from lasagna.compose.surface import encode_normal_map, normals_from_height, surface_tensors
+    from lasagna.distill.surface import distill_surface
+    from lasagna.document.condition import AMBIENT, parse_direction
+    from lasagna.generators.surface import SurfaceEstimator
+    from lasagna.io.stack import stored_map
+
+    start = time.monotonic()
+    net = SurfaceEstimator.from_pretrained(recipe.estimator, device=device)
+    x = working_input(base, recipe.working_size, device)  # (1, 3, h, w)
+    with torch.no_grad():
+        height, fitted = net.estimate(x)
+    source = None
+    if net.config.input == "lit":
+        source = recipe.source_light or light_condition(fitted[0])
+    history: list[dict[str, Any]] = []
+    made_by: dict[str, Any] = {
+        "preset": recipe.preset.name,
+        "estimator_sha256": recipe.estimator_sha256,
+        "working_size": recipe.working_size,
+    }
+    if recipe.distill is not None:
+        from lasagna.compose.surface import light_vector
+
+        prior = load_prior(recipe.prior, preset=recipe.preset, device=device)
+        ds, sd = recipe.distill, recipe.surface
+        src = None if source is None else light_vector(*parse_direction(source), device=device)[None]
+        fit = distill_surface(
+            x,
+            prior,
+            init_height=height,
+            lights=list(recipe.preset.vocabulary),
+            source=src,
+            steps=recipe.steps,
+            lights_per_step=sd.lights_per_step,
+            lr=sd.lr,
+            anchor=sd.anchor,
+            guidance=ds.guidance,
+            loss=ds.loss,
+            t_min=ds.t_min,
+            t_max=ds.t_max,
+            seed=ds.seed,
+            aspect=ds.aspect,
+        )
+        height, history = fit.height, fit.history
+        made_by.update(refine_steps=recipe.steps, prior=recipe.prior_ref, prior_sha256=recipe.prior_sha256)
+    full = torch.nn.functional.interpolate(height, size=tuple(base.shape[-2:]), mode="bicubic", align_corners=False)
+    normals = normals_from_height(full)[0].cpu()
+    stored = LayerTensors(stored_map(encode_normal_map(normals[None].double())[0].numpy()))
+    layer = surface_tensors(stored, recipe.label, source, AMBIENT).color
+    settings = LayerSettings(method=recipe.method, optimize=recipe.steps, working_size=recipe.working_size)
+    return LayerRun(
+        layer=layer.float(),
+        settings=settings,
+        files={},
+        generator_ref=None,
+        seconds=time.monotonic() - start,
+        history=history,
+        normals=normals,
+        source_light=source,
+        made_by=made_by,
+    )
+
+
+def light_condition(light: Tensor) -> str:
+    """The condition text ``az=…,el=…`` of a unit light (3,), its angles rounded to 0.01° (the text is what the
+    stack stores and renders, so it is exact: the vector is rounded, not the text)."""
+    import math
+
+    from lasagna.document.condition import format_direction
+
+    x, y, z = (float(v) for v in light)
+    az = round(math.degrees(math.atan2(y, x)) % 360.0, 2) % 360.0
+    el = round(math.degrees(math.acos(max(-1.0, min(1.0, z)))), 2)
+    return format_direction(az, el)
 
 
 def _optimise(

@@ -32,7 +32,16 @@ from lasagna import catalogue as cat
 from lasagna.components import PriorSource, changed_weights, file_sha256, files_sha256, listing_sha256
 from lasagna.distill import DistillSettings
 from lasagna.document import LearnedLayer
-from lasagna.document.preset import METHODS, ControlNetRef, DiffusersOptions, Method, Preset
+from lasagna.document.condition import parse_direction
+from lasagna.document.preset import (
+    METHODS,
+    PRESET_LAYER_KINDS,
+    ControlNetRef,
+    DiffusersOptions,
+    Method,
+    Preset,
+    SurfaceDefaults,
+)
 from lasagna.errors import ConditionError, DocumentError, ImageError, LasagnaError, PathError, describe_validation_error
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 from lasagna.io.stack import Stack, resolve_inside
@@ -204,6 +213,8 @@ class EditRequest:
     prompt: str | None = None
     negative_prompt: str | None = None
     diffusers: DiffusersOptions | dict | None = None
+    layer_kind: str | None = None
+    source_light: str | None = None
 
     def __post_init__(self) -> None:
         check_preset_name(self.preset)
@@ -213,6 +224,12 @@ class EditRequest:
         for text, name in ((self.prompt, "prompt"), (self.negative_prompt, "negative_prompt")):
             if text is not None and not (isinstance(text, str) and text.strip()):
                 raise ConditionError(f"got {text!r}; expected non-empty text", name)
+        if self.layer_kind is not None and self.layer_kind not in PRESET_LAYER_KINDS:
+            raise LasagnaError(
+                f"got {self.layer_kind!r}; expected one of {', '.join(PRESET_LAYER_KINDS)}", "layer_kind"
+            )
+        if self.source_light is not None:
+            parse_direction(self.source_light)  # ConditionError saying what a light is
         if self.prior is None and (self.controlnets or self.corrective is not None):
             raise LasagnaError(
                 "ControlNets and a corrective go with a prior of one's own; expected --prior PATH too", "prior"
@@ -254,7 +271,7 @@ class Recipe:
     method: Method
     steps: int
     working_size: int | None
-    kind: Literal["learned"] = "learned"
+    kind: Literal["learned", "surface"] = "learned"
     prompt: str | None = None
     negative_prompt: str | None = None
     generator: Path | None = None
@@ -269,6 +286,10 @@ class Recipe:
     options: DiffusersOptions | None = None
     weights: Mapping[str, str] = field(default_factory=dict)
     control: Tensor | None = None
+    estimator: Path | None = None
+    estimator_sha256: str | None = None
+    surface: SurfaceDefaults | None = None
+    source_light: str | None = None
 
     @classmethod
     def for_edit(
@@ -288,6 +309,12 @@ class Recipe:
             refs = {"prior": own[0], "corrective": own[2], "controlnets": own[1]} if own else {}
             resolved = cat.resolve(request.preset, stack.folder, catalogue_dirs, need_prior=False, **refs)
         p = resolved.preset
+        if (request.layer_kind or p.layer_kind) == "surface":
+            return _surface_recipe(resolved, request)
+        if request.source_light is not None:
+            raise LasagnaError(
+                "a source light is what a surface relight divides by; expected --layer-kind surface", "from"
+            )
         label = request.condition
         if label is None:
             label = PROMPT_LABEL if request.prompt is not None else p.vocabulary[0]
@@ -433,6 +460,50 @@ def _made(
         stored=record,
         distill=distill,
         control=control,
+        **scoring,
+    )
+
+
+def _surface_recipe(resolved: cat.Resolved, request: EditRequest) -> Recipe:
+    """The recipe of a surface layer (``kind="surface"``): the preset's estimator at its working size, then
+    ``refine_steps`` multi-light score-distillation steps (``lasagna.distill.surface``) scored by its prior. The
+    condition is any light, named or ``az=…,el=…``: a surface is lit by every light alike."""
+    p = resolved.preset
+    if p.surface is None:
+        raise LasagnaError(
+            f"preset {p.name!r} names no surface estimator; expected a preset with `surface` (e.g. shading, "
+            "relight) or --layer-kind free",
+            "layer_kind",
+        )
+    if resolved.estimator is None:
+        raise resolved.missing.get("estimator") or LasagnaError(f"preset {p.name!r} names no estimator", "surface")
+    if request.own_scored or request.generator is not None:
+        raise LasagnaError(
+            "a surface layer is made by its estimator and the preset's prior; expected no --generator, --prior or "
+            "--prompt with --layer-kind surface",
+            "layer_kind",
+        )
+    label = request.condition if request.condition is not None else p.vocabulary[0]
+    parse_direction(label)  # ConditionError saying what a light is
+    steps = request.asked_steps
+    steps = p.surface.refine_steps if steps is None else steps
+    distill = None
+    scoring: dict[str, Any] = {}
+    if steps > 0:
+        distill = DistillSettings.from_preset(p, loss=request.loss or "sds", steps=steps, **request.distill_overrides())
+        scoring = _scoring(resolved, distill.loss, diffusers_options(p, None), user=False)
+    return Recipe(
+        preset=p,
+        label=label,
+        method="per-image" if steps > 0 else "amortised",
+        steps=steps,
+        working_size=p.surface.working_size,
+        kind="surface",
+        estimator=resolved.estimator,
+        estimator_sha256=file_sha256(resolved.estimator / "model.safetensors"),
+        surface=p.surface,
+        source_light=request.source_light,
+        distill=distill,
         **scoring,
     )
 

@@ -15,6 +15,7 @@
     relight-32-bhat/                           a random LMC-SDS corrective network for relight-32
     relight-32-spectral/, recolor-32-spectral/, light-32-spectral/
                                                random spectral correctives (the presets' b̂)
+    surface-albedo-32/, surface-lit-32/        random surface estimators (unlit and lit input), working size 16
 
 The names are the bundled ones, so a folder put first in ``LASAGNA_LAYERS`` shadows the real catalogue.
 The weights are random but not the identity (every parameter gets noise), so outputs depend on input.
@@ -107,4 +108,16 @@ def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool =
         _jitter(corrective, 4).save_pretrained(folder / "relight-32-bhat")
         for seed, name in ((5, "relight-32-spectral"), (6, "recolor-32-spectral"), (8, "light-32-spectral")):
             tiny_spectral(seed).save_pretrained(folder / name)
+    tiny_estimators(folder)
     return folder
+
+
+def tiny_estimators(folder: Path) -> None:
+    """Random surface estimators under the bundled names: surface-albedo-32 (reads the unlit base) and
+    surface-lit-32 (reads a lit image, fits its source light)."""
+    from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
+
+    for seed, name, kind in ((10, "surface-albedo-32", "albedo"), (11, "surface-lit-32", "lit")):
+        torch.manual_seed(seed)
+        net = SurfaceEstimator(SurfaceConfig(input=kind, channels=(4, 8), blocks=1, working_size=16))
+        _jitter(net, seed, 0.1).save_pretrained(folder / name)

@@ -81,6 +81,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "or its distill.steps for a free layer)",
     )
     p.add_argument("--steps", type=int, metavar="N", help="the same number as --optimize, named as in the preset")
+    p.add_argument(
+        "--layer-kind",
+        choices=("free", "surface"),
+        help="free: a per-pixel multiplier; surface: a surface lit by the condition's light (any az=…,el=…), "
+        "re-lit by editing its light (default: the preset's)",
+    )
+    p.add_argument(
+        "--from",
+        dest="source_light",
+        metavar="LIGHT",
+        help="a surface relight's source light (named or az=…,el=…), when you know it (default: estimated)",
+    )
     distill_arguments(p)
     own_prior_arguments(p)
     p.add_argument("--no-ora", action="store_true", help="do not write stack.ora")
@@ -210,6 +222,8 @@ def _request(args: argparse.Namespace):
         guidance=args.guidance,
         seed=args.seed,
         lr=args.lr,
+        layer_kind=args.layer_kind,
+        source_light=args.source_light,
         **_own_prior_options(args),
     )
 

@@ -29,6 +29,7 @@ from lasagna.document.types import (
     Range,
     StrictModel,
     Unit,
+    check_id,
     check_range_for_blend,
 )
 from lasagna.document.validation import RuleError, document_error, parse_json, read_json_text
@@ -142,6 +143,34 @@ WorldTask = Literal["relight", "colorize", "light", "relit"]
 TASK_FOR_BLEND: dict[str, str] = {"multiply": "relight", "normal": "colorize", "plus": "light"}
 
 
+LayerKind = Literal["free", "surface"]
+"""What a multiply preset's layer is: ``free`` — a per-pixel multiplier (a generator's or a per-image one);
+``surface`` — a surface (a height field's normals) rendered under the light (`lasagna.compose.surface`)."""
+PRESET_LAYER_KINDS: tuple[str, ...] = ("free", "surface")
+
+
+class SurfaceDefaults(StrictModel):
+    """How a preset makes a surface layer: its estimator, and the multi-light score distillation after it."""
+
+    estimator: NameOrPath = Field(
+        description="The surface estimator (`lasagna train-surface`): a catalogue name, or a path (with '/') relative "
+        "to this preset's folder."
+    )
+    refine_steps: int = Field(
+        0,
+        ge=0,
+        le=MAX_DISTILL_STEPS,
+        strict=True,
+        description="Multi-light score-distillation steps after the estimate (0: the estimate as it is).",
+    )
+    lights_per_step: int = Field(4, ge=1, le=16, strict=True, description="Lights each refinement step scores.")
+    lr: FiniteFloat = Field(0.01, gt=0, description="Adam learning rate of the height field's refinement.")
+    anchor: FiniteFloat = Field(
+        1.0, ge=0, description="Weight of ‖h − h₀‖², which keeps the refinement near the estimate."
+    )
+    working_size: int = Field(32, ge=8, le=4096, strict=True, description="The long side the surface is estimated at.")
+
+
 class Preset(StrictModel):
     """A learned-layer preset, the content of ``layers/<name>/preset.json``."""
 
@@ -195,6 +224,13 @@ class Preset(StrictModel):
         "the image's resolution. None: made at the image's own size.",
     )
 
+    layer_kind: LayerKind = Field(
+        "free",
+        description="The layer `lasagna edit` makes when not told: 'free' (a per-pixel multiplier) or 'surface' (a "
+        "surface lit by the condition's light; needs `surface`).",
+    )
+    surface: SurfaceDefaults | None = Field(None, description="How the surface route makes its layer.")
+
     @field_validator("vocabulary")
     @classmethod
     def _labels(cls, labels: tuple[str, ...]) -> tuple[str, ...]:
@@ -225,6 +261,14 @@ class Preset(StrictModel):
             raise RuleError(
                 "loss 'lmc-sds' needs a corrective (b-hat of LMC-SDS eq. 10); name one", loc=("corrective",)
             )
+        if self.surface is not None and (self.blend not in ("multiply", "multiply-luminosity") or self.channels != 1):
+            raise RuleError(
+                f"a surface renders a 1-channel multiplier; preset {self.name!r} has blend {self.blend!r} and "
+                f"{self.channels} channel(s): expected blend multiply, channels 1 for `surface`",
+                loc=("surface",),
+            )
+        if self.layer_kind == "surface" and self.surface is None:
+            raise RuleError("layer_kind 'surface' needs `surface` (its estimator); name one", loc=("surface",))
         return self
 
     @property
@@ -308,3 +352,32 @@ def default_catalogues() -> list[Path]:
     if not (installed.is_dir() and any(p.is_dir() for p in installed.iterdir())):
         installed = None
     return dirs + [d for d in (checkout, installed) if d is not None and d.is_dir()]
+
+
+def resolve_preset(ref: str, stack_dir: str | os.PathLike | None = None, catalogues: list[Path] | None = None) -> Path:
+    """The preset.json a learned layer's ``preset`` names.
+
+    A reference containing '/' is a path relative to the stack folder. A name is looked up as
+    ``<stack_dir>/layers/<name>/preset.json``, then ``<catalogue>/<name>/preset.json`` in each
+    catalogue (default ``default_catalogues()``); the first that exists wins.
+    """
+    if "/" in ref:
+        if stack_dir is None:
+            raise DocumentError(f"preset path {ref!r} needs the stack folder to resolve against", "preset")
+        return Path(stack_dir) / ref
+    try:
+        check_id(ref)
+    except DocumentError as exc:
+        raise DocumentError(str(exc), "preset") from None
+    places = ([Path(stack_dir) / "layers"] if stack_dir is not None else []) + list(
+        default_catalogues() if catalogues is None else catalogues
+    )
+    for place in places:
+        if (place / ref / "preset.json").is_file():
+            return place / ref / "preset.json"
+    known = sorted({p.parent.name for place in places for p in place.glob("*/preset.json")})
+    raise DocumentError(
+        f"no preset named {ref!r} in {', '.join(map(str, places)) or 'no catalogue'}; "
+        f"expected one of {', '.join(known) or '(none found)'}",
+        "preset",
+    )

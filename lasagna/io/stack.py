@@ -232,8 +232,7 @@ class Stack:
         if not isinstance(normals, torch.Tensor) or normals.ndim != 3 or normals.shape[0] != 3:
             got = tuple(normals.shape) if isinstance(normals, torch.Tensor) else type(normals).__name__
             raise ImageError(f"normals have shape {got}; expected (3, h, w) unit vectors", where=f"layer {id!r}")
-        values = encode_normal_map(normals[None].double())[0].numpy()
-        color = torch.from_numpy(_decoded(values, 16, f"layer {id!r}"))
+        color = stored_map(encode_normal_map(normals[None].double())[0].numpy(), f"layer {id!r}")
         tensors = _make_tensors(id, color, None, mask, 16)
         existing = self.document.layer(id) if id in self.document.all_ids else None
         if existing is not None and not isinstance(existing, SurfaceLayer):
@@ -609,6 +608,12 @@ def _decoded(v: np.ndarray, depth: int, where: str) -> np.ndarray:
     # float32 codes divided by the float32 maximum code.
     codes = quantize(v, depth, where)
     return np.divide(codes, np.float32(2**depth - 1), dtype=np.float32)
+
+
+def stored_map(values: np.ndarray, where: str = "normal map") -> torch.Tensor:
+    """A normal map's values (3, h, w) in [0, 1] as its 16-bit PNG gives them back (float32): what a surface
+    layer holds from the start, so it renders the same bits before saving and after loading."""
+    return torch.from_numpy(_decoded(values, 16, where))
 
 
 def stored_tensors(stack: Stack, id: str) -> tuple[LayerTensors, int]:

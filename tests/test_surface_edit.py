@@ -1,0 +1,89 @@
+"""The surface route of `lasagna edit`: a surface layer from the preset's estimator, lit by any light, re-lit bit for
+bit by editing its light; the relight's source light given (--from) or fitted; one-line refusals."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from lasagna import edit
+from lasagna.errors import LasagnaError
+from lasagna.io.stack import load_stack
+from tests.tinylayers import _preset, tiny_catalogue
+
+SURFACE = {"estimator": "surface-albedo-32", "refine_steps": 0, "working_size": 16}
+
+
+@pytest.fixture(scope="module")
+def catalogue(tmp_path_factory):
+    folder = tiny_catalogue(tmp_path_factory.mktemp("layers"))
+    _preset(folder, "shading", surface=SURFACE, layer_kind="surface")
+    _preset(folder, "relight", surface={**SURFACE, "estimator": "surface-lit-32"})
+    return [folder]
+
+
+def image(seed=0):
+    torch.manual_seed(seed)
+    return torch.rand(3, 24, 40)
+
+
+def test_shading_makes_a_surface_layer_relit_exactly_by_its_light(catalogue, tmp_path):
+    res = edit(image(), "shading", "az=20,el=35", catalogue_dirs=catalogue)
+    layer = res.stack.document.layer(res.layer_id)
+    assert layer.kind == "surface" and layer.light == "az=20,el=35" and layer.source_light is None
+    assert layer.made_by["preset"] == "shading" and layer.made_by["conditioned_on"] == "base"
+    assert res.layer.shape == (1, 24, 40) and float(res.layer.min()) >= 0.25 - 1e-6
+    res.stack.save(tmp_path / "s")
+    assert torch.equal(load_stack(tmp_path / "s").render().image, res.stack.render().image)
+    other = edit(image(), "shading", "left", catalogue_dirs=catalogue)
+    doc = json.loads((tmp_path / "s" / "stack.json").read_text())
+    doc["layers"][1]["light"] = "left"
+    (tmp_path / "s" / "stack.json").write_text(json.dumps(doc))
+    assert torch.equal(load_stack(tmp_path / "s").render().image, other.stack.render().image)
+
+
+def test_relight_fits_the_source_light_or_takes_it(catalogue):
+    fitted = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=catalogue)
+    layer = fitted.stack.document.layer(fitted.layer_id)
+    assert layer.kind == "surface" and layer.source_light is not None and layer.source_light.startswith("az=")
+    given = edit(image(), "relight", "right", layer_kind="surface", source_light="left", catalogue_dirs=catalogue)
+    assert given.stack.document.layer(given.layer_id).source_light == "left"
+    # Left and right differ: the ratio of one surface under two lights.
+    toward_left = edit(image(), "relight", "left", layer_kind="surface", source_light="top", catalogue_dirs=catalogue)
+    toward_right = edit(image(), "relight", "right", layer_kind="surface", source_light="top", catalogue_dirs=catalogue)
+    assert not torch.equal(toward_left.layer, toward_right.layer)
+
+
+def test_free_stays_available(catalogue):
+    res = edit(image(), "shading", "left", layer_kind="free", catalogue_dirs=catalogue)
+    assert res.stack.document.layer(res.layer_id).kind == "learned"
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"layer_kind": "mesh"}, "layer_kind: got 'mesh'; expected one of free, surface"),
+        ({"source_light": "sideways"}, "expected one of left"),
+        ({"layer_kind": "surface", "generator": "free"}, "expected no --generator, --prior or --prompt"),
+        ({"source_light": "left", "layer_kind": "free"}, "expected --layer-kind surface"),
+    ],
+)
+def test_bad_requests_are_one_line(catalogue, options, message):
+    with pytest.raises(LasagnaError, match=message):
+        edit(image(), "shading", "left", catalogue_dirs=catalogue, **options)
+
+
+def test_cli_edit_surface_and_from(catalogue, tmp_path, capsys, monkeypatch):
+    from lasagna.cli import main
+    from lasagna.io.png import encode_png
+
+    monkeypatch.setenv("LASAGNA_LAYERS", str(catalogue[0]))
+    (tmp_path / "in.png").write_bytes(encode_png(image().double().numpy(), bit_depth=8))
+    argv = ["edit", str(tmp_path / "in.png"), "--layer", "relight", "--condition", "az=300,el=40"]
+    assert main([*argv, "--layer-kind", "surface", "--from", "left", "-o", str(tmp_path / "out"), "--no-ora"]) == 0
+    doc = json.loads((tmp_path / "out" / "stack.json").read_text())
+    assert doc["layers"][-1]["kind"] == "surface" and doc["layers"][-1]["source_light"] == "left"
+    assert main([*argv, "--from", "left", "-o", str(tmp_path / "out2")]) == 2
+    assert "expected --layer-kind surface" in capsys.readouterr().err
