@@ -44,7 +44,6 @@ from lasagna.document.preset import (
     Preset,
     PriorLink,
     default_catalogues,
-    resolve_preset,
 )
 from lasagna.document.preset import load_preset as _load_preset_file
 from lasagna.errors import DocumentError, LasagnaError
@@ -151,23 +150,34 @@ def _check_kind(kind: str) -> str:
     return kind
 
 
+class NotFound(LasagnaError):
+    """No catalogue entry of that name and kind: ``find`` raises it, ``locate`` answers None."""
+
+
+def _search_places(
+    kind: str, stack_dir: str | os.PathLike | None, catalogue_dirs: Sequence[str | os.PathLike] | None
+) -> list[Path]:
+    """Where a name of ``kind`` is looked for, first wins: a preset in the stack folder's ``layers/``, then the
+    catalogues (``catalogues()``'s order)."""
+    places = _places(catalogue_dirs)
+    if kind == "preset" and stack_dir is not None:
+        places = [Path(stack_dir) / "layers", *places]
+    return places
+
+
 def locate(
     name: str,
     kind: Kind = "preset",
     stack_dir: str | os.PathLike | None = None,
     catalogue_dirs: Sequence[str | os.PathLike] | None = None,
 ) -> Path | None:
-    """Like ``find`` for a name, but None when no catalogue has it (a malformed name still raises)."""
+    """``find`` for a name, but None when no catalogue has it (a malformed name still raises)."""
     _check_kind(kind)
     _check_name(name, kind)
-    places = _places(catalogue_dirs)
-    if kind == "preset" and stack_dir is not None:
-        places = [Path(stack_dir) / "layers", *places]
-    for place in places:
-        folder = place / name
-        if folder.is_dir() and kind in entry_kinds(folder):
-            return _entry_path(folder, kind)
-    return None
+    try:
+        return find(name, kind, stack_dir, catalogue_dirs)
+    except NotFound:
+        return None
 
 
 def find(
@@ -178,15 +188,19 @@ def find(
     relative_to: str | os.PathLike | None = None,
 ) -> Path:
     """The path of catalogue entry ``name`` of ``kind``: a preset's preset.json, a generator's folder,
-    a prior's or corrective's folder.
+    a prior's or corrective's folder. The one lookup of a named thing (``locate``, ``preset_path`` and
+    ``component_path`` call it).
 
     A ``Path`` or a string containing '/' is taken as a path (relative to ``relative_to`` or, for a
-    preset path, to ``stack_dir``; else to the current folder) and must exist. A name is searched as
-    the module docstring says; ``LasagnaError`` lists the names of that kind if it is not found.
+    preset, to ``stack_dir``: a learned layer's relative preset path needs its stack folder; else to the
+    current folder) and must exist. A name is searched in ``_search_places``' order; ``NotFound`` lists the
+    names of that kind if it is not found.
     """
     _check_kind(kind)
     if isinstance(name, os.PathLike) or "/" in name or os.sep in name:
         base = relative_to if relative_to is not None else (stack_dir if kind == "preset" else None)
+        if kind == "preset" and base is None and isinstance(name, str) and not Path(name).is_absolute():
+            raise DocumentError(f"preset path {name!r} needs the stack folder to resolve against", "preset")
         path = Path(base) / name if base is not None and not Path(name).is_absolute() else Path(name)
         if kind == "preset" and path.is_dir():
             path = path / "preset.json"
@@ -197,19 +211,19 @@ def find(
                 kind,
             )
         return path
-    found = locate(name, kind, stack_dir, catalogue_dirs)
-    if found is not None:
-        return found
-    places = _places(catalogue_dirs)
-    if kind == "preset" and stack_dir is not None:
-        places = [Path(stack_dir) / "layers", *places]
+    _check_name(name, kind)
+    places = _search_places(kind, stack_dir, catalogue_dirs)
+    for place in places:
+        folder = place / name
+        if folder.is_dir() and kind in entry_kinds(folder):
+            return _entry_path(folder, kind)
     known = available(kind, catalogue_dirs)[kind]
     hint = {
         "prior": " (train one: lasagna train-prior)",
         "corrective": " (train one: lasagna train-corrective)",
         "generator": " (train one: lasagna train-layer --preset NAME)",
     }.get(kind, "")
-    raise LasagnaError(
+    raise NotFound(
         f"no {kind} named {name!r} in {', '.join(map(str, places)) or 'no catalogue folder'}; "
         f"expected one of {', '.join(known) or '(none found)'}{hint}",
         kind,
@@ -242,17 +256,7 @@ def preset_path(
     stack_dir: str | os.PathLike | None = None,
     catalogue_dirs: Sequence[str | os.PathLike] | None = None,
 ) -> Path:
-    """The preset.json of a learned layer's ``preset`` reference (``resolve_preset``'s rule, with this
-    module's catalogues, so an installed wheel's presets resolve too)."""
-    if isinstance(name_or_path, os.PathLike):
-        return find(name_or_path, "preset", stack_dir, catalogue_dirs)
-    if "/" in name_or_path:
-        path = resolve_preset(name_or_path, stack_dir)
-        if not path.is_file():
-            raise LasagnaError(
-                f"preset path {name_or_path!r} does not exist (looked for {path}); expected a preset.json", "preset"
-            )
-        return path
+    """The preset.json of a learned layer's ``preset`` reference: ``find`` for a preset."""
     return find(name_or_path, "preset", stack_dir, catalogue_dirs)
 
 

@@ -446,3 +446,38 @@ def test_prior_add_on_a_link_loop_is_one_line(tmp_path, capsys):
     assert code == 2 and err.strip().splitlines() == [
         f"lasagna: error: {tmp_path / 'a'}: cannot be resolved (symlink loop); expected a folder (not a link loop)"
     ]
+
+
+class TestFindPreset:
+    """``find`` for a preset: the one lookup (the document tier's ``resolve_preset`` was a second statement of it)."""
+
+    CATALOGUE = ROOT / "layers"
+
+    def test_catalogue_name(self):
+        assert cat.find("shading", catalogue_dirs=[self.CATALOGUE]) == self.CATALOGUE / "shading" / "preset.json"
+
+    def test_stack_local_preset_wins(self, tmp_path):
+        local = tmp_path / "layers" / "shading"
+        local.mkdir(parents=True)
+        shutil.copy(self.CATALOGUE / "shading" / "preset.json", local / "preset.json")
+        assert cat.find("shading", "preset", tmp_path, [self.CATALOGUE]) == local / "preset.json"
+
+    def test_path_reference_is_relative_to_the_stack_folder(self, tmp_path):
+        (tmp_path / "p").mkdir()
+        (tmp_path / "p" / "mine.json").write_text("{}", encoding="utf-8")
+        assert cat.find("./p/mine.json", "preset", tmp_path) == tmp_path / "./p/mine.json"
+        assert cat.preset_path("./p/mine.json", tmp_path) == tmp_path / "./p/mine.json"
+        with pytest.raises(LasagnaError, match="needs the stack folder"):
+            cat.find("./p/mine.json")
+
+    def test_unknown_name_lists_what_exists(self, tmp_path):
+        with pytest.raises(cat.NotFound, match=r"no preset named 'shadow' .*; expected one of .*shading"):
+            cat.find("shadow", "preset", tmp_path, [self.CATALOGUE])
+        assert cat.locate("shadow", "preset", tmp_path, [self.CATALOGUE]) is None
+        with pytest.raises(LasagnaError, match="'my preset'"):
+            cat.locate("my preset")
+
+    def test_environment_catalogue(self, tmp_path, monkeypatch):
+        mine = _preset_copy(tmp_path, "mine")
+        monkeypatch.setenv("LASAGNA_LAYERS", str(tmp_path))
+        assert cat.find("mine") == mine

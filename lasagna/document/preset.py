@@ -29,7 +29,6 @@ from lasagna.document.types import (
     Range,
     StrictModel,
     Unit,
-    check_id,
     check_range_for_blend,
 )
 from lasagna.document.validation import RuleError, document_error, parse_json, read_json_text
@@ -352,32 +351,3 @@ def default_catalogues() -> list[Path]:
     if not (installed.is_dir() and any(p.is_dir() for p in installed.iterdir())):
         installed = None
     return dirs + [d for d in (checkout, installed) if d is not None and d.is_dir()]
-
-
-def resolve_preset(ref: str, stack_dir: str | os.PathLike | None = None, catalogues: list[Path] | None = None) -> Path:
-    """The preset.json a learned layer's ``preset`` names.
-
-    A reference containing '/' is a path relative to the stack folder. A name is looked up as
-    ``<stack_dir>/layers/<name>/preset.json``, then ``<catalogue>/<name>/preset.json`` in each
-    catalogue (default ``default_catalogues()``); the first that exists wins.
-    """
-    if "/" in ref:
-        if stack_dir is None:
-            raise DocumentError(f"preset path {ref!r} needs the stack folder to resolve against", "preset")
-        return Path(stack_dir) / ref
-    try:
-        check_id(ref)
-    except DocumentError as exc:
-        raise DocumentError(str(exc), "preset") from None
-    places = ([Path(stack_dir) / "layers"] if stack_dir is not None else []) + list(
-        default_catalogues() if catalogues is None else catalogues
-    )
-    for place in places:
-        if (place / ref / "preset.json").is_file():
-            return place / ref / "preset.json"
-    known = sorted({p.parent.name for place in places for p in place.glob("*/preset.json")})
-    raise DocumentError(
-        f"no preset named {ref!r} in {', '.join(map(str, places)) or 'no catalogue'}; "
-        f"expected one of {', '.join(known) or '(none found)'}",
-        "preset",
-    )
