@@ -36,7 +36,8 @@ from lasagna.batch import BatchReport, edit_many
 from lasagna.compose.render import RenderResult
 from lasagna.editing import EditResult, edit, render_learned
 from lasagna.errors import ImageError
-from lasagna.export.ora import export_ora, import_ora
+from lasagna.export.ora import export_ora
+from lasagna.export.ora_import import import_ora
 from lasagna.export.png import export_layer_pngs
 from lasagna.io.render import composite_codes, render_stack, write_composite
 from lasagna.io.stack import Stack, load_stack, save_stack, stack_from_tensors

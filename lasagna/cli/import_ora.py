@@ -21,7 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from lasagna.export.ora import import_ora
+    from lasagna.export.ora_import import import_ora
     from lasagna.io.folder import check_output_folder, write_stack_folder
 
     out = check_output_folder(args.output, force=args.force)

@@ -1,7 +1,7 @@
 """Interchange exports: per-layer raw PNGs, OpenRaster (export and import), layered PSD.
 
 png.py      export_layer_pngs: each layer's stored values, never normalised, 16-bit when ranged
-ora.py      export_ora / encode_ora, import_ora / read_ora (zip-slip and bomb safe)
+ora.py      export_ora / encode_ora; ora_import.py: import_ora / read_ora (zip-slip and bomb safe)
 psd.py      export_psd / encode_psd (optional extra: pip install 'lasagna[psd]')
 rasters.py  the layers as paint programs see them (dodge pairs, baked alpha, exact-composite layer)
 
@@ -16,8 +16,8 @@ from typing import Any
 _EXPORTS = {
     "encode_ora": "ora",
     "export_ora": "ora",
-    "import_ora": "ora",
-    "read_ora": "ora",
+    "import_ora": "ora_import",
+    "read_ora": "ora_import",
     "export_layer_pngs": "png",
     "encode_psd": "psd",
     "export_psd": "psd",

@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 
 from lasagna.cli import main
-from lasagna.export.ora import MAX_GROUP_DEPTH
+from lasagna.export.ora_import import MAX_GROUP_DEPTH
 from tests import pngcraft
 from tests.reference import composite_reference, to_uint8
 from tests.stackcraft import random_stack, write_png8, write_stack

@@ -13,7 +13,8 @@ from xml.etree import ElementTree as ET
 import numpy as np
 import pytest
 
-from lasagna.export.ora import encode_ora, import_ora
+from lasagna.export.ora import encode_ora
+from lasagna.export.ora_import import import_ora
 from lasagna.export.png import export_layer_pngs
 from lasagna.io.render import render_stack
 from lasagna.io.stack import load_stack

@@ -14,7 +14,8 @@ import pytest
 import torch
 
 from lasagna.errors import ImageError
-from lasagna.export.ora import encode_ora, export_ora, import_ora, read_ora
+from lasagna.export.ora import encode_ora, export_ora
+from lasagna.export.ora_import import import_ora, read_ora
 from lasagna.export.rasters import dodge_codes
 from lasagna.io.render import render_stack
 from lasagna.io.stack import Stack, load_stack
@@ -271,7 +272,7 @@ def _refused_ora(path: Path, **kw) -> str:
 def test_one_entry_named_by_many_layers_is_refused(tmp_path, monkeypatch):
     import time
 
-    import lasagna.export.ora as ora_module
+    import lasagna.export.ora_import as ora_module
 
     xml = _xml("".join(_layer("data/a.png", f"l{i}") for i in range(40)), 4096, 4096)
     path = _write_ora(tmp_path / "x.ora", {"stack.xml": xml.encode(), "data/a.png": _png8(4096, 4096)})
@@ -347,7 +348,7 @@ def test_a_plain_utf8_archive_is_read(tmp_path):
 
 
 def test_import_is_refused_over_the_budget_before_decoding(tmp_path, monkeypatch):
-    import lasagna.export.ora as ora_module
+    import lasagna.export.ora_import as ora_module
     from lasagna.limits import BudgetError, memory_budget_scope
 
     path = _ora(tmp_path, load_stack(BASIC))

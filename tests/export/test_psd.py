@@ -113,7 +113,8 @@ def test_any_layer_name_survives(tmp_path, name):
 
 
 def test_japanese_names_from_an_ora_reach_the_psd(tmp_path):
-    from lasagna.export.ora import export_ora, import_ora
+    from lasagna.export.ora import export_ora
+    from lasagna.export.ora_import import import_ora
 
     stack = Stack.from_image(torch.rand(3, 4, 5))
     stack.add_layer("kage", torch.full((1, 4, 5), 0.5), blend="multiply", name="影の層")

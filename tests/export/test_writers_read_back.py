@@ -23,7 +23,8 @@ from lasagna.document import Document
 from lasagna.document.blend import BLEND_MODES
 from lasagna.document.types import check_name, sanitise_name
 from lasagna.errors import DocumentError
-from lasagna.export.ora import encode_ora, import_ora
+from lasagna.export.ora import encode_ora
+from lasagna.export.ora_import import import_ora
 from lasagna.export.rasters import COMPOSITE_NAME
 from lasagna.io.stack import Stack, load_stack, save_stack
 from lasagna.limits import MAX_GROUP_DEPTH

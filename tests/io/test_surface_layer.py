@@ -89,7 +89,7 @@ def test_cli_composite_and_exports(stack, tmp_path, capsys):
         main(["export", str(tmp_path / "s"), "--ora", str(tmp_path / "s.ora"), "--psd", str(tmp_path / "s.psd")]) == 0
     )
     # The ORA's layer is the rendered multiplier, not the map: the file flattens to the composite.
-    from lasagna.export.ora import import_ora
+    from lasagna.export.ora_import import import_ora
 
     back = import_ora(tmp_path / "s.ora")
     assert "surface" not in {layer.kind for layer in back.document.layers}
