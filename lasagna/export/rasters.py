@@ -18,6 +18,8 @@ target cannot express exactly:
   opacity is written with α baked into its values (Cs' = α·Cs, opaque), on which both agree.
   Values above 1 are split into ⌈max y⌉ plus layers of min(max(y − k, 0), 1): additions of
   non-negative values commute with clamping at 1, so the split is exact.
+* A surface layer is written as its rendered multiplier (what it blends as), with its normal map below it as a
+  hidden normal layer "<name> (normal map)" (tangent space, +Y up), so readers flatten it as we do.
 * A dissolve layer is written with our pattern baked into its alpha (0 or 1 per pixel, opacity 1): every
   reader then shows the same pixels (each draws its own pattern for a partial alpha).
 * Negative values, colours above 1 in normal/screen layers, ``blend_space="linear"`` and a
@@ -327,7 +329,31 @@ class _Walk:
                     f"the values above 1 of {layer.blend} layer {layer.id!r} (max {color.max():.4g}; written as 1)"
                 )
             out.append(ExportLayer(layer.name, layer.id, layer.blend, color=np.minimum(color, 1.0), **common))
+        if isinstance(layer, SurfaceLayer):
+            out.insert(0, self.normal_map(layer, origin))
         return out
+
+    def normal_map(self, layer, origin) -> ExportLayer:
+        """A surface layer's normal map as a hidden normal layer (tangent space, +Y up) below its rendered
+        multiplier: a reader flattens the file as we do, and an artist can show or reuse the map."""
+        t = self.stack.tensors[layer.id]
+        color = t.color.detach().cpu().double().numpy()
+        h, w = color.shape[1:]
+        x0, y0 = layer.offset.x + origin[0], layer.offset.y + origin[1]
+        cropped = _crop(color, np.ones((1, h, w)), x0, y0, self.W, self.H)
+        color, alpha, x, y = cropped if cropped is not None else (color[:, :1, :1], np.zeros((1, 1, 1)), 0, 0)
+        return ExportLayer(
+            f"{layer.name} (normal map)",
+            f"_normals/{layer.id}",
+            "normal",
+            x=x,
+            y=y,
+            color=color,
+            alpha=alpha,
+            opacity=1.0,
+            visible=False,
+            source=layer.id,
+        )
 
 
 def _layers(stack, target: str, warn, groups: bool = False) -> tuple[list, list[str]]:

@@ -185,3 +185,25 @@ def test_a_2d_engine_lights_our_map_as_we_do(stack, tmp_path):
     ours_lambert = (ours - 0.25) / 0.75
     visible = stack.tensors["base"].color.double().numpy()[0] > 0.05  # where the ratio is well defined
     np.testing.assert_allclose(ours_lambert[visible], engine[visible], atol=1e-4)
+
+
+def test_ora_and_psd_carry_the_normal_map_hidden_below_the_shading(stack, tmp_path):
+    from lasagna.export import import_ora
+
+    stack.save(tmp_path / "s")
+    from lasagna.cli import main
+
+    assert (
+        main(["export", str(tmp_path / "s"), "--ora", str(tmp_path / "s.ora"), "--psd", str(tmp_path / "s.psd")]) == 0
+    )
+    back = import_ora(tmp_path / "s.ora")
+    names = [layer.name for layer in back.document.layers]
+    hidden = [layer for layer in back.document.layers if layer.name.endswith("(normal map)")]
+    assert len(hidden) == 1 and not hidden[0].visible and names.index(hidden[0].name) < len(names) - 1
+    stored = stack.tensors["shape"].color.double().numpy()
+    np.testing.assert_allclose(back.tensors[hidden[0].id].color.double().numpy(), stored, atol=0.5 / 255 + 1e-9)
+    from psd_tools import PSDImage
+
+    psd = PSDImage.open(tmp_path / "s.psd")
+    psd_names = {layer.name: layer.visible for layer in psd.descendants()}
+    assert psd_names.get("shape (normal map)") is False
