@@ -57,6 +57,7 @@ from _common import (  # noqa: E402
 
 from lasagna import catalogue as cat  # noqa: E402
 from lasagna.compose.resample import downsample, upsample, working_size  # noqa: E402
+from lasagna.compose.surface import inflated_normals  # noqa: E402
 from lasagna.distill import DistillSettings, distill_image  # noqa: E402
 from lasagna.editing import edit  # noqa: E402
 from lasagna.priors.base import Condition  # noqa: E402
@@ -87,40 +88,13 @@ def inflated_silhouettes(index: torch.Tensor, labels: list[str]) -> torch.Tensor
     """Shading of every object's *true* outline inflated into a round dome, lit by the scene's light.
 
     Another oracle (it reads the true outlines, not the albedo): each visible object region becomes a height
-    field with a circular profile, h = √(R² − (R − d)²) for the distance d to the region's edge and R its
-    largest d (a sphere's own profile: a disc inflates to the exact hemisphere), normals from h's gradient,
-    ``lambert`` with the condition's light; the wall keeps n = +z. This is the classic shape-from-silhouette
-    prior (Johnston's Lumo, Teddy-style inflation): what a model that only segments objects and assumes
-    generic round shapes can reach. Faceted objects (far's octahedra and prisms) are where it falls short.
+    field with a circular profile (`lasagna.compose.surface.inflate_regions`: a disc inflates to the exact
+    hemisphere), the wall keeps n = +z (``inflated_normals``), Lambert with the condition's light. This is the
+    classic shape-from-silhouette prior (Johnston's Lumo, Teddy-style inflation): what a model that only segments
+    objects and assumes generic round shapes can reach. Faceted objects (far's octahedra and prisms) are where it
+    falls short.
     """
-    b_, _, h_, w_ = index.shape
-    rows, cols = torch.meshgrid(
-        torch.arange(h_, dtype=torch.float64), torch.arange(w_, dtype=torch.float64), indexing="ij"
-    )
-    pts = torch.stack([rows, cols], -1).reshape(-1, 2)
-    normals = torch.zeros(b_, 3, h_, w_, dtype=torch.float64)
-    normals[:, 2] = 1.0
-    for b in range(b_):
-        idx = index[b, 0]
-        height = torch.zeros(h_, w_, dtype=torch.float64)
-        for k in idx.unique().tolist():
-            if k < 0:
-                continue
-            region = (idx == k).to(torch.float64)[None, None]
-            # the nearest outside pixel is always one touching the region: search those only
-            edge = (torch.nn.functional.max_pool2d(region, 3, 1, 1) - region).reshape(-1) > 0
-            inside = region.reshape(-1) > 0
-            if edge.any():
-                d = torch.cdist(pts[inside], pts[edge]).min(dim=1).values
-            else:  # the region fills the image
-                d = torch.zeros(int(inside.sum()), dtype=torch.float64)
-            r = d.max() + 0.5
-            height.view(-1)[inside] = (r**2 - (r - d) ** 2).clamp_min(0).sqrt()
-        d_row, d_col = torch.gradient(height)
-        n = torch.stack([-d_col, d_row, torch.ones_like(height)])  # y up: ∂h/∂y = −∂h/∂row
-        n = n / n.norm(dim=0, keepdim=True)
-        normals[b] = torch.where(idx[None] >= 0, n, normals[b])
-    return lambert(normals, light_vectors(labels, dtype=torch.float64)).float()
+    return lambert(inflated_normals(index), light_vectors(labels, dtype=torch.float64)).float()
 
 
 # -- shading ------------------------------------------------------------------------------------
@@ -210,6 +184,10 @@ def shading_table(args, split: str, size: int, parts, prior, corrective) -> tupl
     layers, seconds = default_edit(scene.albedo, labels, "shading", args.catalogue)
     rows.append(row("default edit", layers[:, :1], scene, cdb, seconds))
     for n in args.methods:  # the candidates for the preset's method / refine_steps, each through `lasagna edit`
+        if n in ("surface", "free"):  # the layer kinds (issue #24): a surface, or today's per-pixel layer
+            y, secs = default_edit(scene.albedo, labels, "shading", args.catalogue, layer_kind=n)
+            rows.append(row(f"edit --layer-kind {n}", y[:, :1], scene, cdb, secs))
+            continue
         generator, optimize = ("free", None) if n == "per-image" else ("amortised", int(n))
         y, secs = default_edit(scene.albedo, labels, "shading", args.catalogue, generator=generator, optimize=optimize)
         rows.append(
@@ -422,7 +400,8 @@ def main(argv=None) -> int:
         "--methods",
         nargs="*",
         default=[],
-        help="edit variants to add: 'per-image' (the preset's per-image run) and/or N (amortised + N refine steps)",
+        help="edit variants to add: 'per-image' (the preset's per-image run), N (amortised + N refine steps), "
+        "'surface' or 'free' (--layer-kind)",
     )
     ap.add_argument("--losses", nargs="*", default=["sds", "lmc-sds"])
     ap.add_argument("--omegas", nargs="*", type=float, default=[1.0, 3.0])

@@ -49,6 +49,7 @@ from _common import RANGE_HI, machine_info, print_json_line, psnr, row, save_she
 
 from lasagna import catalogue as cat  # noqa: E402
 from lasagna.compose.resample import downsample, upsample  # noqa: E402
+from lasagna.compose.surface import inflated_normals, lambert  # noqa: E402
 from lasagna.editing import edit  # noqa: E402
 from lasagna.priors.base import Condition  # noqa: E402
 from lasagna.priors.ddim import ddim_sample  # noqa: E402
@@ -112,6 +113,10 @@ def table(args, split: str, size: int, prior, sheets: dict | None = None) -> lis
     for n in args.methods:  # the amortised generator, then N refinement steps: candidates for the default
         y, seconds = default_layers(rel.base.float(), labels, args.catalogue, generator="amortised", optimize=n)
         add(rel, "edit --generator amortised" + (f" --optimize {n}" if n else ""), y.double(), seconds)
+    for kind in args.layer_kinds:  # issue #24: a surface's ratio S(l)/S(l_src), or today's per-pixel layer
+        y, seconds = default_layers(rel.base.float(), labels, args.catalogue, layer_kind=kind)
+        add(rel, f"edit --layer-kind {kind}", y.double(), seconds)
+    add(rel, "oracle: true outlines inflated, true source light", inflated_ratio(rel))
     if args.supervised is not None:
         add(rel, "supervised ceiling", supervised_ratio(rel, labels, args.supervised))
     if sheets is not None:
@@ -125,6 +130,13 @@ def table(args, split: str, size: int, prior, sheets: dict | None = None) -> lis
         r.update(split=split, size=size)
         print(json.dumps(r), flush=True)
     return rows
+
+
+def inflated_ratio(rel) -> torch.Tensor:
+    """The outline-inflation oracle's ratio S(target)/S(source) with the true source light (the true outlines
+    inflated into domes, the wall flat: `lasagna.compose.surface.inflated_normals`)."""
+    n = inflated_normals(rel.scene.object_index).double()
+    return lambert(n, rel.scene.light.double()) / lambert(n, rel.source.light.double())
 
 
 def supervised_ratio(rel, labels, folder: Path) -> torch.Tensor:
@@ -215,6 +227,13 @@ def main(argv=None) -> int:
         help="per-image losses run at each --omegas (lmc-sds needs a corrective in the preset: --catalogue)",
     )
     ap.add_argument("--catalogue", type=Path, nargs="*", default=None, help="catalogue folders searched first")
+    ap.add_argument(
+        "--layer-kinds",
+        nargs="*",
+        default=[],
+        choices=("free", "surface"),
+        help="also `lasagna edit --layer-kind K` (surface: the estimated surface's ratio)",
+    )
     ap.add_argument(
         "--methods",
         type=int,

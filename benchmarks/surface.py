@@ -37,7 +37,7 @@ from _common import machine_info, print_json_line, psnr  # noqa: E402
 
 from lasagna.compose.resample import downsample, upsample  # noqa: E402
 from lasagna.compose.surface import (  # noqa: E402
-    inflate_regions,
+    inflated_normals,
     lambert,
     light_vector,  # noqa: E402
     normals_from_height,
@@ -64,12 +64,8 @@ def scenes(split: str, count: int, seed: int, size: int, walls: bool = False):
 
 
 def oracle_normals(scene) -> torch.Tensor:
-    """The oracle's normals: the true outlines inflated into domes; the wall (outside every outline) flat, +z —
-    the oracle knows where the outlines are, so no slope bleeds onto the wall beside them."""
-    n = normals_from_height(inflate_regions(scene.object_index))
-    flat = torch.zeros_like(n)
-    flat[:, 2] = 1.0
-    return torch.where(scene.object_index >= 0, n, flat)
+    """The oracle's normals: the true outlines inflated into domes, the wall flat (``inflated_normals``)."""
+    return inflated_normals(scene.object_index)
 
 
 def gain_row(method: str, y: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, base_db, seconds=None) -> dict:
@@ -80,7 +76,17 @@ def gain_row(method: str, y: torch.Tensor, truth: torch.Tensor, mask: torch.Tens
     return row
 
 
-def shading_rows(scene, labels, albedo_net) -> list[dict]:
+def edit_layers(images: torch.Tensor, preset: str, labels: list[str], **options) -> tuple[torch.Tensor, float]:
+    """``lasagna edit``'s layer for every image (B, 3, H, W) with ``options`` (e.g. layer_kind), and seconds per
+    image: what a user gets, through the whole edit path."""
+    from lasagna import edit
+
+    t0 = time.perf_counter()
+    layers = [edit(images[i], preset, labels[i], **options).layer[:1] for i in range(images.shape[0])]
+    return torch.stack(layers), (time.perf_counter() - t0) / images.shape[0]
+
+
+def shading_rows(scene, labels, albedo_net, edits: list[str]) -> list[dict]:
     truth, mask = scene.shading, scene.mask
     const = truth.mean(dim=(1, 2, 3), keepdim=True).expand_as(truth)
     cdb = (psnr(const, truth), psnr(const, truth, mask))
@@ -105,10 +111,13 @@ def shading_rows(scene, labels, albedo_net) -> list[dict]:
         y = lambert(normals_from_height(height), light)
         secs = (time.perf_counter() - t0) / len(labels)
         rows.append(gain_row("surface estimator (albedo)", y, truth, mask, cdb, secs))
+    for kind in edits:
+        y, secs = edit_layers(scene.albedo, "shading", labels, layer_kind=kind)
+        rows.append(gain_row(f"lasagna edit --layer shading --layer-kind {kind}", y, truth, mask, cdb, secs))
     return rows
 
 
-def relight_rows(scene, labels, lit_net) -> list[dict]:
+def relight_rows(scene, labels, lit_net, edits: list[str]) -> list[dict]:
     sources = relight_sources(scene.params)
     rel = relighting(scene, sources)
     base, target, mask = rel.base, rel.target.clamp(0, 1), scene.mask
@@ -151,6 +160,9 @@ def relight_rows(scene, labels, lit_net) -> list[dict]:
         )
         err = torch.rad2deg(torch.acos((light * src).sum(1).clamp(-1, 1)))
         rows[-2]["source_light_error_deg_median"] = round(float(err.median()), 1)
+    for kind in edits:
+        ratio, secs = edit_layers(base.float(), "relight", labels, layer_kind=kind)
+        rows.append(gain_row(f"lasagna edit --layer relight --layer-kind {kind}", comp(ratio), target, mask, bdb, secs))
     return rows
 
 
@@ -248,10 +260,16 @@ def main(argv=None) -> int:
     p.add_argument("--albedo", default=None, help="an albedo-input surface estimator folder")
     p.add_argument("--lit", default=None, help="a lit-input surface estimator folder")
     p.add_argument("--json-out", type=Path, default=None)
+    p.add_argument(
+        "--edits",
+        nargs="*",
+        default=[],
+        choices=("free", "surface"),
+        help="also measure `lasagna edit` with these --layer-kind (the catalogue's presets: free is today's layer)",
+    )
     p.add_argument("--photos", type=Path, default=ROOT / "examples" / "photos" / "large", help="512² photographs")
     p.add_argument("--sheet", type=Path, default=None, help="photo sheet: input | normals | shading | left | right")
     args = p.parse_args(argv)
-    torch.set_grad_enabled(False)
     albedo_net, lit_net = load(args.albedo), load(args.lit)
     result = {"machine": machine_info(), "command": " ".join(sys.argv), "shading": [], "relight": [], "leak": []}
     if lit_net is not None and args.photos.is_dir():
@@ -260,8 +278,8 @@ def main(argv=None) -> int:
         for size in args.sizes:
             scene, labels = scenes(split, args.count, args.seed, size)
             for task, rows in (
-                ("shading", shading_rows(scene, labels, albedo_net)),
-                ("relight", relight_rows(scene, labels, lit_net)),
+                ("shading", shading_rows(scene, labels, albedo_net, args.edits)),
+                ("relight", relight_rows(scene, labels, lit_net, args.edits)),
             ):
                 for r in rows:
                     r.update(split=split, size=size)
