@@ -22,6 +22,12 @@ section 8: the initial backdrop is the group backdrop), and the group's ``mask �
 opaque backdrop that is exactly the PDF/W3C non-isolated group of blend normal: the backdrop removed from the
 group's result and the group composited back with opacity α give Cb + α(Cn − Cb).
 
+A clipping chain (``spec.clip``, Photoshop's clipping mask) is an isolated group whose first child is the base:
+the clipped layers are composited onto the base's result ``(cb, αb)`` by the same general formula, and the chain
+is one layer of colour ``c / α`` and the base's alpha αb × mask × opacity. That is psd-tools' model (its
+``_apply_clip_layers`` seeds a compositor with the base's colour and alpha and keeps the base's alpha), which it
+pins against Photoshop's merged images.
+
 Clamping (``clamp="layer"``): after each child the premultiplied colour is clamped to [0, α] (the colour to
 [0, 1]), and an isolated group's colour after it is blended. Everything here is pure functions, so autograd
 differentiates through groups (``render`` uses the recorded engine for a tail with groups).
@@ -116,24 +122,32 @@ def group_state(step: PlanStep, state: State, rect: tuple[int, int, int, int], d
         C = state[0]
         shape = (*C.shape[:-3], 3, *C.shape[-2:])
         empty = (C.new_zeros(shape), C.new_zeros((*C.shape[:-3], 1, *C.shape[-2:])))
-        cg, ag = _children(step, empty, rect, dtype, grad)
-        alpha = ag if a is None else ag * a
+        kids = step.children or ()
+        if step.spec.clip:  # a clipping chain: the clipped layers paint on the base, which keeps its alpha
+            base = _children(kids[:1], empty, rect, dtype, grad)
+            cg, ag = _children(kids[1:], base, rect, dtype, grad)
+            alpha = base[1] if a is None else base[1] * a
+        else:
+            cg, ag = _children(kids, empty, rect, dtype, grad)
+            alpha = ag if a is None else ag * a
         if step.spec.blend == "dissolve":  # the group's pattern, on canvas coordinates (it has no pixels of its own)
             y0, y1, x0, x1 = rect
             alpha = dissolve_alpha(alpha, y0, x0, y1 - y0, x1 - x0, C.dtype, C.device)
         return blend_state(state, step.spec.blend, unpremultiply(cg, ag), alpha)
-    after = _children(step, state, rect, dtype, grad)
+    after = _children(step.children or (), state, rect, dtype, grad)
     if a is None:
         return after
     mixed = tuple(None if s is None else s + a * (n - s) for s, n in zip(state, after))
     return mixed  # type: ignore[return-value]
 
 
-def _children(step: PlanStep, state: State, rect: tuple[int, int, int, int], dtype: torch.dtype, grad: bool) -> State:
-    """``state`` after each live child of group ``step`` in turn, each on its part of ``rect``."""
+def _children(
+    children: tuple[PlanStep, ...], state: State, rect: tuple[int, int, int, int], dtype: torch.dtype, grad: bool
+) -> State:
+    """``state`` after each live step of ``children`` in turn, each on its part of ``rect``."""
     y0, y1, x0, x1 = rect
     C, ab = state
-    for child in step.children or ():
+    for child in children:
         cy0, cy1, cx0, cx1 = max(child.y0, y0), min(child.y1, y1), max(child.x0, x0), min(child.x1, x1)
         if cy0 >= cy1 or cx0 >= cx1:
             continue

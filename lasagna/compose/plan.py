@@ -18,7 +18,13 @@ skip reason, checked in this order:
                     never for a layer whose tensors require grad. Over the transparent backdrop of
                     an isolated group only alpha × mask = 0 counts (a multiply by 1 over
                     transparency paints white: W3C Compositing Level 1, section 10, Cr = (1 − αb)·Cs + …);
-``empty``           a group none of whose children is live (always skipped: it changes nothing).
+``empty``           a group none of whose children is live (always skipped: it changes nothing);
+``outside-base``    a layer clipped to a base whose rectangle it does not meet (it shows only on the base).
+
+**Clipping chains** (``RenderGroupSpec(clip=True)``: a base and the layers clipped to it, Photoshop's clipping
+mask) are isolated groups whose rectangle is the base's (cut by the base's mask, which the chain carries); the
+base is compiled on its own, so no clipped layer occludes it, and a chain whose base is skipped shows nothing
+(it takes the base's reason).
 
 **Groups** (``RenderGroupSpec``; the maths is ``group.py``'s). A group is one step of its parent's plan whose
 rectangle is the union of its live children's (cut by its mask's), and whose ``children`` are the steps of
@@ -57,7 +63,7 @@ from lasagna.compose.surface import surface_range, surface_tensors
 from lasagna.document.types import range_problem
 from lasagna.errors import LasagnaError
 
-SkipReason = Literal["hidden", "zero-opacity", "outside-canvas", "occluded", "identity", "empty"]
+SkipReason = Literal["hidden", "zero-opacity", "outside-canvas", "occluded", "identity", "empty", "outside-base"]
 BlendSpace = Literal["srgb", "linear"]
 ClampPolicy = Literal["layer", "output", None]
 Opacity = float | Tensor
@@ -162,6 +168,11 @@ class RenderGroupSpec:
     otherwise they pass through — composited onto the group backdrop, the result mixed with that backdrop
     by ``mask`` × ``opacity`` — and ``blend`` must be ``normal``. ``mask`` ``(..., 1, h, w)`` lies with its
     top-left corner at the group's offset; the group shows only inside it. See ``group.py``.
+
+    ``clip``: a clipping chain (Photoshop's clipping mask): ``children[0]`` is the base, the others are clipped
+    to it. They are composited onto the base as in an isolated group, and the result keeps the base's alpha
+    (times ``mask`` × ``opacity``: the base's own, moved onto the chain), blended with ``blend`` (the base's).
+    ``plan_from_document`` builds one per chain of a document.
     """
 
     id: str
@@ -172,6 +183,7 @@ class RenderGroupSpec:
     visible: bool = True
     offset: tuple[int, int] = (0, 0)
     mask: Tensor | None = None
+    clip: bool = False
 
     def __post_init__(self) -> None:
         where = _check_common(self, "RenderGroupSpec")
@@ -186,6 +198,12 @@ class RenderGroupSpec:
             raise LasagnaError(
                 f"a pass-through group (isolated=False) has blend {self.blend!r}; expected 'normal' (a pass-through "
                 "group has no blend of its own) or isolated=True",
+                where=where,
+            )
+        if self.clip and (not self.isolated or not self.children):
+            raise LasagnaError(
+                "a clipping chain (clip=True) must be isolated with its base as children[0]; expected isolated=True "
+                "and at least one child",
                 where=where,
             )
         m = self.mask
@@ -437,6 +455,12 @@ def _compile_level(
             reasons[i] = "hidden"
         elif cull and spec.opacity_value() == 0.0:
             reasons[i] = "zero-opacity"
+        elif isinstance(spec, RenderGroupSpec) and spec.clip:
+            sub, reason = _compile_chain(spec, canvas, blend_space, clamp, cull, skipped)
+            if sub:
+                rect, children[i] = (sub[0].y0, sub[0].y1, sub[0].x0, sub[0].x1), sub
+            else:
+                reasons[i] = reason
         elif isinstance(spec, RenderGroupSpec):
             inner = _inline(spec.children, spec.offset)
             opaque_inside = opaque_backdrop and not spec.isolated
@@ -515,6 +539,42 @@ def _compile_level(
             )
         )
     return tuple(steps), reasons
+
+
+def _compile_chain(
+    spec: RenderGroupSpec,
+    canvas: tuple[int, int],
+    blend_space: BlendSpace,
+    clamp: ClampPolicy,
+    cull: bool,
+    skipped: dict[str, SkipReason],
+) -> tuple[tuple[PlanStep, ...], SkipReason | None]:
+    """The live steps of clipping chain ``spec`` — its base first, then the clipped layers that meet the base's
+    rectangle — or ``((), reason)``: a chain whose base is not live shows nothing (the base's reason). The base
+    is compiled on its own (a clipped layer above never occludes it: the base's alpha is the chain's), and its
+    rectangle, cut by the chain's mask, is the chain's; a clipped layer outside it is skipped ``outside-base``."""
+    base, _ = _compile_level(_inline(spec.children[:1], spec.offset), canvas, blend_space, clamp, cull, False, skipped)
+    if not base:
+        return (), skipped.get(spec.children[0].id, "empty")
+    b = base[0]
+    y0, y1, x0, x1 = b.y0, b.y1, b.x0, b.x1
+    if spec.mask is not None:  # the chain shows only inside its (the base's) mask
+        ox, oy = spec.offset
+        mh, mw = spec.mask.shape[-2:]
+        y0, y1, x0, x1 = max(y0, oy), min(y1, oy + mh), max(x0, ox), min(x1, ox + mw)
+        if y0 >= y1 or x0 >= x1:
+            return (), "outside-canvas"
+        b = replace(b, y0=y0, y1=y1, x0=x0, x1=x1, ly0=b.ly0 + y0 - b.y0, lx0=b.lx0 + x0 - b.x0)
+    clipped, _ = _compile_level(
+        _inline(spec.children[1:], spec.offset), canvas, blend_space, clamp, cull, False, skipped
+    )
+    live = []
+    for s in clipped:
+        if s.y1 <= y0 or y1 <= s.y0 or s.x1 <= x0 or x1 <= s.x0:
+            skipped[s.spec.id] = "outside-base"
+        else:
+            live.append(s)
+    return (b, *live), None
 
 
 def _clamps(spec: RenderLayerSpec, decode: bool) -> tuple[bool, bool]:
@@ -597,9 +657,12 @@ def _document_specs(
     dtype: torch.dtype | None,
     where: str,
 ) -> list[RenderSpec]:
-    """The compositor's specs of one layer list of a document (recursively for groups)."""
+    """The compositor's specs of one layer list of a document (recursively for groups); each clipping chain (a
+    base and the layers with ``clip`` above it) becomes one ``clip_chain``."""
     specs: list[RenderSpec] = []
+    clips: list[bool] = []  # per spec: the layer is clipped to the one below
     for i, layer in enumerate(layers):
+        clips.append(bool(getattr(layer, "clip", False)))
         here = f"{where}[{i}]"
         lt = tensors.get(layer.id)
         blend = getattr(layer.blend, "value", layer.blend)
@@ -627,6 +690,7 @@ def _document_specs(
             if layer.kind == "solid":
                 lt = solid_tensors(layer, float(lo), float(hi), width, height, here, dtype)
             elif layer.kind == "learned" and getattr(layer, "source", None) is None:
+                clips.pop()
                 continue
             else:
                 raise LasagnaError(
@@ -638,7 +702,43 @@ def _document_specs(
             lt = surface_tensors(lt, layer.light, layer.source_light, float(layer.ambient))
             lo, hi = surface_range(layer.source_light, float(layer.ambient))
         specs.append(RenderLayerSpec(tensors=lt, range=(float(lo), float(hi)), encoded=True, **common))
-    return specs
+    chains: list[list[RenderSpec]] = []
+    for spec, clipped in zip(specs, clips):
+        if clipped and chains:
+            chains[-1].append(spec)
+        else:
+            chains.append([spec])
+    return [chain[0] if len(chain) == 1 else clip_chain(chain[0], chain[1:]) for chain in chains]
+
+
+def clip_chain(base: RenderSpec, clipped: Sequence[RenderSpec]) -> RenderGroupSpec:
+    """The clipping chain of ``base`` and the specs ``clipped`` to it (canvas offsets as siblings of ``base``):
+    a ``RenderGroupSpec(clip=True)`` at the base's offset with the base's blend, opacity, visibility and mask, whose
+    ``children[0]`` is the base without them (normal, opaque, unmasked; a group base is isolated: its clipped
+    layers paint on its result, as Photoshop composites a group that has clipping layers)."""
+    bx, by = base.offset
+    if isinstance(base, RenderGroupSpec):
+        mask = base.mask
+        inner: RenderSpec = replace(
+            base, blend="normal", opacity=1.0, visible=True, offset=(0, 0), mask=None, isolated=True
+        )
+    else:
+        t = base.tensors
+        mask = t.mask
+        bare = t if t.mask is None else LayerTensors(t.color, t.alpha)
+        inner = replace(base, tensors=bare, blend="normal", opacity=1.0, visible=True, offset=(0, 0))
+    moved = tuple(replace(c, offset=(c.offset[0] - bx, c.offset[1] - by)) for c in clipped)
+    return RenderGroupSpec(
+        id=f"{base.id}:clip",
+        children=(inner, *moved),
+        isolated=True,
+        clip=True,
+        blend=base.blend,
+        opacity=base.opacity,
+        visible=base.visible,
+        offset=base.offset,
+        mask=mask,
+    )
 
 
 __all__ = [
@@ -651,5 +751,6 @@ __all__ = [
     "compile_plan",
     "plan_from_document",
     "solid_tensors",
+    "clip_chain",
     "BLEND_MODES",
 ]

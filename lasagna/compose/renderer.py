@@ -78,7 +78,7 @@ def _spec_fingerprint(spec: RenderSpec) -> tuple[Any, ...]:
     common = (spec.id, spec.blend, spec.visible, tuple(spec.offset), op_fp, spec.requires_grad)
     if isinstance(spec, RenderGroupSpec):
         mask = None if spec.mask is None else (id(spec.mask), spec.mask._version)
-        return (*common, "group", spec.isolated, mask, tuple(_spec_fingerprint(c) for c in spec.children))
+        return (*common, "group", spec.isolated, spec.clip, mask, tuple(_spec_fingerprint(c) for c in spec.children))
     return (*common, tuple(spec.range), spec.encoded, spec.tensors.fingerprint())
 
 

@@ -8,7 +8,8 @@ with the ``with_*``/``replace*`` helpers, which return a new, re-validated docum
 Serialisation choice: ``to_json`` writes *explicit, full* documents (every field, defaults
 included, in declaration order, 2-space indent, short number arrays on one line), so a reader of
 a stack.json sees every setting that affects the render without knowing the defaults, and the
-output of a canonical document is byte-for-byte stable.
+output of a canonical document is byte-for-byte stable. The one exception is ``clip``, written only
+when true, so that stacks without clipping masks keep their bytes.
 """
 
 from __future__ import annotations
@@ -23,9 +24,11 @@ from pydantic import (
     ConfigDict,
     Field,
     JsonValue,
+    SerializerFunctionWrapHandler,
     Strict,
     ValidationError,
     WithJsonSchema,
+    model_serializer,
     model_validator,
 )
 
@@ -129,6 +132,23 @@ class _Common(StrictModel):
     opacity: Unit = Field(1.0, description="Opacity in [0, 1]; alpha_effective = alpha * mask * opacity.")
     visible: bool = Field(True, strict=True, description="Hidden layers are kept but not composed.")
     offset: Offset = Field(Offset(), description="Top-left corner on the canvas, integer pixels.")
+    clip: bool = Field(
+        False,
+        strict=True,
+        description="Clipped to the layer below (Photoshop's clipping mask): shown only where the chain's base — the "
+        "nearest layer below in the same list that is not clipped — has alpha; the base's blend and opacity apply to "
+        "the chain as one.",
+    )
+
+
+    @model_serializer(mode="wrap")
+    def _clip_written_when_set(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        # The one field written only when set: a stack without clipping masks keeps the bytes it had before
+        # clipping existed (the module doc's "every field" otherwise holds).
+        data = handler(self)
+        if not self.clip:
+            data.pop("clip", None)
+        return data
 
 
 class _LayerBase(_Common):
@@ -235,11 +255,6 @@ class SurfaceLayer(_Common):
         AMBIENT, ge=0.0, lt=1.0, allow_inf_nan=False, description="Ambient term a of a + (1 − a)·max(0, n·l)."
     )
     mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
-    made_by: dict[str, JsonValue] = Field(
-        default_factory=dict,
-        description="How the surface was made (preset, estimator and its SHA-256, the layer it was estimated from, "
-        "refinement): a record; the render reads only the map and the light.",
-    )
 
     @property
     def range(self) -> tuple[float, float]:
@@ -336,6 +351,26 @@ def walk_layers(layers: tuple[Layer, ...], loc: LayerPath = ()) -> Iterator[tupl
             yield from walk_layers(layer.layers, here)
 
 
+def _layer_lists(layers: tuple[Layer, ...], loc: LayerPath = ()) -> Iterator[tuple[LayerPath, tuple[Layer, ...]]]:
+    """Every layer list of a tree (the top-level one, then each group's) with the JSON path of its owner."""
+    yield loc, layers
+    for i, layer in enumerate(layers):
+        if isinstance(layer, GroupLayer):
+            yield from _layer_lists(layer.layers, (*loc, "layers", i))
+
+
+def clip_chains(layers: tuple[Layer, ...]) -> list[tuple[Layer, tuple[Layer, ...]]]:
+    """One list's layers as (layer, the layers clipped to it), bottom to top: a clipping chain is a base and the
+    run of clipped layers directly above it."""
+    out: list[tuple[Layer, list[Layer]]] = []
+    for layer in layers:
+        if layer.clip and out:
+            out[-1][1].append(layer)
+        else:
+            out.append((layer, []))
+    return [(base, tuple(clipped)) for base, clipped in out]
+
+
 def json_path(loc: LayerPath) -> str:
     """``("layers", 2, "layers", 0, "mask")`` → ``layers[2].layers[0].mask``."""
     out = ""
@@ -382,6 +417,13 @@ class Document(StrictModel):
                     f"learned layer {layer.id!r} is inside a group; learned layers are top-level (their input, "
                     "the composite up to conditioned_on, is defined on the top-level list)",
                     loc=(*loc, "kind"),
+                )
+        for loc, layers in _layer_lists(self.layers):
+            if layers and layers[0].clip:
+                raise RuleError(
+                    f"layer {layers[0].id!r} is clipped but is the bottom of its list; a clipped layer clips to the "
+                    "layer below it in the same list: expected clip false",
+                    loc=(*loc, "layers", 0, "clip"),
                 )
         below: set[str] = set()  # exact ids of the top-level layers below the current one
         for i, layer in enumerate(self.layers):

@@ -14,7 +14,9 @@ Alpha × mask is baked into each PNG's alpha, opacity into ``opacity``.
 
 Groups are nested ``<stack>`` elements (``isolation="isolate"`` for an isolated group with its
 composite-op and opacity, ``"auto"`` for a pass-through one), their layers at canvas offsets, as Krita
-writes them; see :mod:`lasagna.export.rasters` for what is exact.
+writes them; see :mod:`lasagna.export.rasters` for what is exact. A clipping chain is an isolated ``<stack>``
+of the base and its clipped layers, ``svg:src-atop`` (Krita's inherit alpha; ``krita_clip_stacks``); read
+back, ``svg:src-atop`` is ``clip``.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import io
 import os
 import zipfile
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 from xml.sax.saxutils import quoteattr
@@ -94,7 +97,7 @@ def _layer_xml(layer: ExportLayer, indent: str) -> str:
         "y": str(layer.y),
         "opacity": f"{layer.opacity:.6f}",
         "visibility": "visible" if layer.visible else "hidden",
-        "composite-op": OPS_TO_SVG[layer.op],
+        "composite-op": "svg:src-atop" if layer.clip and layer.op == "normal" else OPS_TO_SVG[layer.op],
     }
     return indent + "<layer " + " ".join(f"{k}={quoteattr(v)}" for k, v in attrs.items()) + " />"
 
@@ -122,6 +125,31 @@ def _items_xml(items: list, indent: str) -> list[str]:
         lines += _items_xml(item.layers, indent + "  ")
         lines.append(indent + "</stack>")
     return lines
+
+
+def krita_clip_stacks(items: list) -> list:
+    """``items`` (and every group's) with each clipping chain — an item and the ``clip`` items above it — as Krita
+    writes one: an isolated ``<stack>`` with the base's composite-op, opacity and visibility, holding the base
+    (normal, opaque, visible) and the clipped layers, ``svg:src-atop`` (Krita's inherit alpha: clipped to what
+    lies below them in the stack, here the base alone)."""
+    from lasagna.export.rasters import ExportGroup
+
+    out: list = []
+    for item in items:
+        if isinstance(item, ExportGroup) and not item.clip:
+            item = replace(item, layers=krita_clip_stacks(item.layers))
+        if not item.clip or not out:
+            out.append(item)
+            continue
+        below = out[-1]
+        if not (isinstance(below, ExportGroup) and below.key.startswith("_clip/")):
+            isolated = {"isolated": True} if isinstance(below, ExportGroup) else {}  # a group base is isolated
+            base = replace(below, op="normal", opacity=1.0, visible=True, **isolated)
+            below = out[-1] = ExportGroup(
+                below.name, f"_clip/{below.source}", below.op, below.opacity, below.visible, True, [base], below.source
+            )
+        below.layers.append(item)
+    return out
 
 
 def _stack_xml(width: int, height: int, layers: list) -> str:
@@ -163,7 +191,8 @@ def encode_ora(
     layers = export_layers(
         stack, composite.detach().cpu().double().numpy(), target="OpenRaster", warn=warn, groups=True
     )
-    entries: list[tuple[str, bytes]] = [("stack.xml", _stack_xml(stack.width, stack.height, layers).encode("utf-8"))]
+    tree = krita_clip_stacks(layers)
+    entries: list[tuple[str, bytes]] = [("stack.xml", _stack_xml(stack.width, stack.height, tree).encode("utf-8"))]
     for layer in leaves(layers):
         rgba = layer.rgba_uint8().transpose(2, 0, 1) / 255.0
         entries.append((f"data/{layer.key}.png", encode_png(rgba[:3], rgba[3:], where=layer.key)))

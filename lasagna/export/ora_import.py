@@ -199,6 +199,8 @@ def read_ora(
 
         def common(el, lwhere: str) -> dict:
             op = el.get("composite-op", "svg:src-over")
+            clip = op == "svg:src-atop"  # Krita's inherit alpha: read as a clipping mask (krita_clip_stacks)
+            op = "svg:src-over" if clip else op
             if op not in SVG_TO_BLEND:
                 raise ImageError(
                     f"composite-op {op!r} is not supported; expected one of {', '.join(SVG_TO_BLEND)}",
@@ -216,6 +218,7 @@ def read_ora(
                 opacity=opacity,
                 visible=visibility == "visible",
                 blend=SVG_TO_BLEND[op],
+                clip=clip,
                 where=lwhere,
             )
 
@@ -353,10 +356,29 @@ def import_ora(
             warn(f"{layer['where']}: name {layer['name']!r} holds control characters; imported as {name!r}")
         return name
 
+    clipped: set[str] = set()  # ids of the layers read with clip (Krita's svg:src-atop)
+
+    def clip_of(layer: dict, n: int, items: list[dict]) -> bool:
+        if not layer["clip"]:
+            return False
+        if n == 0:
+            warn(
+                f"{layer['where']}: svg:src-atop (inherit alpha) at the bottom of its stack clips to nothing; read "
+                "as src-over"
+            )
+            return False
+        if any(not below["clip"] for below in items[1:n]):
+            warn(
+                f"{layer['where']}: svg:src-atop inherits the alpha of several layers below; read as a clipping mask "
+                "on the nearest one"
+            )
+        return True
+
     def tree(items: list[dict]) -> list:
         """The document's layer tree: a leaf's id (its fields come from ``stack_from_tensors``), or a group."""
         out: list = []
-        for layer in items:
+        for n, layer in enumerate(items):
+            clip = clip_of(layer, n, items)
             if layer.get("kind") == "group":
                 name = name_of(layer)
                 gid = unique_id(name or "group", taken)
@@ -372,6 +394,7 @@ def import_ora(
                         "blend": layer["blend"] if isolated else "normal",
                         "opacity": layer["opacity"],
                         "visible": layer["visible"],
+                        "clip": clip,
                         "layers": tree(layer["layers"]),
                     }
                 )
@@ -395,16 +418,21 @@ def import_ora(
                 )
             )
             out.append(lid)
+            if clip:
+                clipped.add(lid)
         return out
 
     shape = tree(merged)
     stack = stack_from_tensors(specs, width=width, height=height, background=background)
-    if any(isinstance(item, dict) for item in shape):
+    if clipped or any(isinstance(item, dict) for item in shape):
         fields = {layer.id: layer.model_dump(mode="json", exclude_none=True) for layer in stack.document.layers}
 
         def nest(items: list) -> list:
             return [
-                fields[item] if isinstance(item, str) else {**item, "layers": nest(item["layers"])} for item in items
+                {**fields[item], "clip": item in clipped}
+                if isinstance(item, str)
+                else {**item, "layers": nest(item["layers"])}
+                for item in items
             ]
 
         stack.document = stack.document.with_layers(nest(shape))

@@ -10,7 +10,9 @@ opaque white DARKEN layer, min(Cb, 1): the identity in 8/16-bit tools, and the c
 float compositing otherwise skips (it keeps Cb·y > 1 for the next layer). The file's merged image is
 our exact composite, not psd-tools' own flattening. Groups are psd-tools ``Group``s (nested): a pass-through
 group is PASS_THROUGH, an isolated one has the group's blend mode; both keep opacity and visibility
-(``lasagna.export.rasters`` says what stays inexact: group masks, pass-through opacity below 1).
+(``lasagna.export.rasters`` says what stays inexact: group masks, pass-through opacity below 1). A clipped layer
+has the record's clipping flag (Photoshop's clipping mask); a clipped group is written unclipped, as psd-tools
+and Photoshop read none.
 
 Layer names: the layer record's Pascal string is MacRoman and at most 255 bytes, so, as Photoshop does,
 it holds a lossy stand-in (``pascal_name``) and the full name goes in the Unicode layer-name block
@@ -139,11 +141,13 @@ def _write_items(psd, parent, items: list, stack, modes, BlendMode, *, isolated_
             blend_mode=modes[layer.op],
         )
         created.visible = layer.visible
+        created.clipping = layer.clip  # Photoshop's clipping mask: clipped to the nearest unclipped layer below
         if parent is not psd:
             parent.append(created)
         nxt = items[i + 1] if i + 1 < len(items) else None
         last_part = nxt is None or getattr(nxt, "source", None) != layer.source or isinstance(nxt, ExportGroup)
-        if layer.op in ("plus", "linear-dodge", "color-dodge") and last_part and not isolated_in:
+        in_chain = layer.clip or getattr(nxt, "clip", False)  # a layer between would break the clipping run
+        if layer.op in ("plus", "linear-dodge", "color-dodge") and last_part and not isolated_in and not in_chain:
             # GIMP 2.10 composites PSD layers in float and keeps a dodge or addition result above 1
             # unclamped, so a layer with alpha above it would blend with that value. An opaque
             # white "darken" layer, min(Cb, 1), clamps it there and is the identity in 8/16-bit tools.

@@ -10,9 +10,14 @@ What each PSD thing becomes:
   rectangle, the mask's background colour outside the stored bbox) → ``mask``;
 * a group → a ``group`` layer: blend ``PASS_THROUGH`` → ``isolated: false`` (pass-through), any other →
   ``isolated: true`` with that blend (W3C Compositing Level 1, section 8); its mask → a canvas-size group mask;
+* a clipping mask (a layer or group with clipping layers over it) → the base and its clipped layers, each with
+  ``clip: true`` (a clipping chain), when psd-tools would read each as it is; a clipping layer that clips to
+  nothing (the bottom of its list, or above a clipped group: psd-tools and Photoshop draw none) is left out with
+  a warning line;
 * layers psd-tools can draw but a stack cannot hold as such — type, shape, smart-object and fill layers, a
-  layer with effects, a layer with clipping layers over it (with them) — → a ``pixels`` layer of psd-tools'
-  rendering of it (``Layer.composite``), one warning line each saying what was rasterised;
+  layer with effects, a clipping base whose chain holds one of those or an adjustment layer (with its chain) —
+  → a ``pixels`` layer of psd-tools' rendering of it (``Layer.composite``), one warning line each saying what
+  was rasterised;
 * what cannot be represented at all — adjustment layers, a group's fill opacity, knockout — one warning line
   each; nothing is dropped without one.
 
@@ -83,15 +88,50 @@ class _Reader:
         self.modes = {mode: name for name, mode in psd_blend_modes(self.BlendMode).items()}
         self.taken: set[str] = set()
         self.tensors: dict[str, Any] = {}
+        self.clipped: list[Any] = []  # clipping layers imported with their chain
 
     def layers(self, group, path: str) -> list[dict]:
         out: list[dict] = []
         for layer in group:
+            here = f"{path}/{layer.name}" if path else layer.name
             if layer.clipping:
-                continue  # drawn with the layer it clips (see _raster)
-            entry = self.layer(layer, f"{path}/{layer.name}" if path else layer.name)
+                if not any(layer is c for c in self.clipped):
+                    self.warn(
+                        f"{self.where}: layer {here!r} is clipped to no layer (the bottom of its list, or above a "
+                        "clipped group); left out, as Photoshop draws it"
+                    )
+                continue  # imported with the layer it clips to (see clip_chain)
+            entry = self.layer(layer, here)
             if entry is not None:
                 out.append(entry)
+                out.extend(self.clip_chain(layer, entry, path))
+        return out
+
+    def _drawn_by_psd_tools(self, layer) -> bool:
+        return layer.kind in RASTERISED_KINDS or isinstance(layer, self.FillLayer) or layer.has_effects()
+
+    def _chain_splits(self, layer) -> bool:
+        """Whether the layers clipped to ``layer`` are imported as a clipping chain (each its own layer, ``clip``)
+        rather than rasterised with it: the base and every clipped layer are read as they are."""
+        return not self._drawn_by_psd_tools(layer) and not any(
+            isinstance(c, self.AdjustmentLayer) or self._drawn_by_psd_tools(c) for c in layer.clip_layers
+        )
+
+    def clip_chain(self, layer, entry: dict, path: str) -> list[dict]:
+        """The entries of the layers clipped to ``layer`` (``clip``: true), when its chain splits."""
+        if not layer.has_clip_layers(visible=False) or not self._chain_splits(layer):
+            return []
+        if layer.fill_opacity != 255 and not layer.is_group():
+            self.warn(
+                f"{self.where}: layer {layer.name!r} is a clipping base of fill {layer.fill_opacity}/255, imported as "
+                "opacity: it fades its clipped layers too"
+            )
+        out = []
+        for c in layer.clip_layers:
+            self.clipped.append(c)
+            clipped = self.layer(c, f"{path}/{c.name}" if path else c.name)
+            if clipped is not None:
+                out.append({**clipped, "clip": True})
         return out
 
     def _blend(self, layer, what: str) -> str:
@@ -168,7 +208,9 @@ class _Reader:
             reasons.append(RASTERISED_KINDS.get(layer.kind, f"{layer.kind} fill layer"))
         if layer.has_effects():
             reasons.append("layer effects (drawn with the layer's blend mode, not their own)")
-        clips = [c.name for c in layer.clip_layers] if layer.has_clip_layers() else []
+        clips = [c.name for c in layer.clip_layers] if layer.has_clip_layers() and not self._chain_splits(layer) else []
+        if clips:
+            self.clipped.extend(layer.clip_layers)
         if clips:
             reasons.append(f"clipping layers {', '.join(map(repr, clips))}")
         if not reasons:
@@ -225,8 +267,8 @@ def import_bytes(psd, layers_in_file: list, max_pixels: int, where: str) -> int:
     kept = transient = 0
     for layer in layers_in_file:
         what = f"{where}: layer {layer.name!r}"
-        if isinstance(layer, AdjustmentLayer) or layer.clipping:
-            continue  # nothing decoded, or drawn in the rendering of the layer it clips
+        if isinstance(layer, AdjustmentLayer):
+            continue  # nothing decoded
         if layer.is_group():
             target = canvas
         elif (

@@ -28,6 +28,10 @@ target cannot express exactly:
   the exact composite, so the file still flattens to our image in any reader; a one-line warning
   says why (hide that layer to edit the others). The merged image is always the exact composite.
 
+* Clipping chains (``groups=True``): every item of a clipped layer has ``clip``; the writers place them (PSD's
+  clipping flag; in OpenRaster an isolated stack of the base and ``svg:src-atop`` layers, as Krita writes its
+  inherit-alpha). Not exact, the composite then on top: a chain with helper layers, flat export, a non-normal
+  clipped layer in OpenRaster (Krita writes only normal ones as src-atop), a clipped group in PSD.
 * Groups (``groups=True``, what both formats use) stay groups: OpenRaster nests a ``<stack>`` per group
   (``isolation="isolate"`` with the group's composite-op and opacity, ``"auto"`` for pass-through, as Krita
   writes them), PSD a group record (PASS_THROUGH, or the group's blend mode); their layers carry canvas
@@ -73,6 +77,7 @@ class ExportLayer:
     opacity: float
     visible: bool
     source: str = ""  # id of the document layer it comes from ("" for the background)
+    clip: bool = False  # clipped to the item below (Photoshop's clipping mask; the document's ``clip``)
 
     def rgba_uint8(self) -> np.ndarray:
         """(h, w, 4) uint8, rounded to nearest."""
@@ -93,6 +98,7 @@ class ExportGroup:
     isolated: bool
     layers: list
     source: str = ""
+    clip: bool = False
 
 
 def leaves(layers: list) -> list[ExportLayer]:
@@ -215,12 +221,30 @@ class _Walk:
         """Export items of ``layers`` (bottom to top) whose offsets are relative to ``origin``; ``shown``: every
         enclosing group is visible (flat export only); ``isolated_in``: inside an isolated group."""
         out: list = []
-        for layer in layers:
+        for i, layer in enumerate(layers):
             if layer.kind == "group":
-                out.extend(self.group(layer, origin, shown, isolated_in))
+                made = self.group(layer, origin, shown, isolated_in)
             else:
-                out.extend(self.leaf(layer, origin, shown, isolated_in))
+                made = self.leaf(layer, origin, shown, isolated_in)
+            out.extend(made)
+            if layer.clip or (i + 1 < len(layers) and layers[i + 1].clip):
+                self.clipping(layer, made)
         return out
+
+    def clipping(self, layer, made: list) -> None:
+        """Mark the items of a layer of a clipping chain (base or clipped), and say what the target cannot hold."""
+        if not self.groups:
+            self.inexact.append(f"the clipping chain of layer {layer.id!r} (groups are written flat)")
+        elif len(made) != 1:
+            self.inexact.append(f"layer {layer.id!r} in a clipping chain (written as {len(made)} layers)")
+        elif layer.clip and layer.blend not in ("normal", "alpha-linear") and self.target == "OpenRaster":
+            self.inexact.append(
+                f"the {layer.blend} blend of clipped layer {layer.id!r} (Krita's ORA clips normal only)"
+            )
+        elif layer.clip and layer.kind == "group" and self.target == "PSD":
+            self.inexact.append(f"clipped group {layer.id!r} (Photoshop clips layers, not groups)")
+        for item in made:
+            item.clip = bool(layer.clip)
 
     def group(self, layer, origin, shown, isolated_in) -> list:
         offset = (origin[0] + layer.offset.x, origin[1] + layer.offset.y)

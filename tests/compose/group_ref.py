@@ -14,6 +14,9 @@ is then one source of colour Cg, alpha αg × mask × opacity. A pass-through gr
 onto the canvas itself and mixes: αo = αb + m(αn − αb), αo·Co = αb·Cb + m(αn·Cn − αb·Cb), m = mask × opacity.
 ``clamp="layer"`` clamps Co to [0, 1] after every layer and every isolated group. Dissolve (Photoshop): αs is
 replaced by [u < αs], u of ``numpy_ref.dissolve_u`` on the layer's pixel grid (an isolated group's: the canvas's).
+A clipping chain (``clip=True``, psd-tools' model of Photoshop's): children[0] onto a transparent canvas gives
+(Cb, αb), the other children are composited onto that, and the chain is one source of their colour and alpha
+αb × mask × opacity.
 """
 
 from __future__ import annotations
@@ -75,7 +78,16 @@ def _composite(specs, C, A, origin, ctx):
             m = np.full((1, H, W), _opacity(spec))
             if spec.mask is not None:
                 m = m * _placed(np64(spec.mask), offset, H, W, 0.0)
-            if spec.isolated:
+            if spec.clip:  # psd-tools' clipping: the clipped layers over the base, the base's alpha kept
+                Cb, Ab = _composite(spec.children[:1], np.zeros((3, H, W)), np.zeros((1, H, W)), offset, ctx)
+                Cg, _ = _composite(spec.children[1:], Cb, Ab, offset, ctx)
+                ag = Ab * m
+                if spec.blend == "dissolve":
+                    ag = (dissolve_u(H, W) < ag).astype(np.float64)
+                C, A = _over(C, A, Cg, ag, spec.blend)
+                if clamp == "layer":
+                    C = np.clip(C, 0, 1)
+            elif spec.isolated:
                 Cg, Ag = _composite(spec.children, np.zeros((3, H, W)), np.zeros((1, H, W)), offset, ctx)
                 ag = Ag * m
                 if spec.blend == "dissolve":

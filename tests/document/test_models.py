@@ -57,6 +57,8 @@ VALID = [
     ("sha256 digest", "layers.3.generator.sha256", "ab" * 32),
     ("canvas at the size limit", "canvas", {"width": 32768, "height": 1}),
     ("free-form metadata", "metadata", {"author": "me", "tags": ["a", 1, None, {"k": 2.5}]}),
+    ("a layer clipped to the one below", "layers.2.clip", True),
+    ("a clipping chain of two", "layers.1.clip", True),
 ]
 
 
@@ -221,6 +223,8 @@ INVALID = [
     ("name with a C1 control", "layers.1.name", "a\x85", "layers[1].name", "no control characters", True),
     ("name with a lone surrogate", "layers.0.name", "a\ud800", "layers[0].name", "no control characters", False),
     ("metadata not an object", "metadata", [1], "metadata", "valid dictionary", True),
+    ("the bottom layer clipped", "layers.0.clip", True, "layers[0].clip", "clips to the layer below it", False),
+    ("clip not a boolean", "layers.1.clip", "yes", "layers[1].clip", "valid boolean", True),
 ]
 
 
@@ -345,3 +349,16 @@ class TestHelpers:
         assert doc.replace(blend_space="linear").blend_space == "linear"
         with pytest.raises(DocumentError, match="^blend_space: got 'lin'"):
             doc.replace(blend_space="lin")
+
+
+def test_clip_is_written_only_when_set_and_chains_are_found():
+    from lasagna.document import clip_chains
+
+    doc = Document.from_dict(patched(patched(valid_stack(), "layers.1.clip", True), "layers.2.clip", True))
+    assert '"clip": true' in doc.to_json() and doc.to_json().count('"clip"') == 2
+    assert '"clip"' not in Document.from_dict(valid_stack()).to_json()
+    assert Document.from_json(doc.to_json()) == doc
+    assert [(b.id, [c.id for c in cs]) for b, cs in clip_chains(doc.layers)] == [
+        ("base", ["shade", "tint"]),
+        (doc.layers[3].id, []),
+    ]

@@ -467,3 +467,43 @@ def test_names_with_control_characters_import_replaced_with_a_warning(tmp_path, 
     assert err_text.count("holds control characters") == 2 and err_text.count("\n") == 2, err_text
     names = [layer.name for _, layer in load_stack(tmp_path / "out").document.walk()]
     assert names == ["g\ufffd", "a\ufffdb\ufffd"]
+
+
+def _chain_stack(group_base: bool = False) -> Stack:
+    """An opaque ground, a clipping chain (a half-transparent base of opacity .8, or a group as base; a normal
+    and a multiply clipped layer), a layer above."""
+    from lasagna.io.stack import stack_from_tensors
+
+    g = torch.Generator().manual_seed(5)
+    r = lambda *s: torch.rand(*s, generator=g)  # noqa: E731
+    stack = stack_from_tensors(
+        [
+            dict(id="ground", image=r(3, 12, 16)),
+            dict(id="base", image=r(3, 6, 8), alpha=r(1, 6, 8), offset=(3, 2), opacity=0.8, blend="screen"),
+            dict(id="a", image=r(3, 12, 16), alpha=r(1, 12, 16)),
+            dict(id="top", image=r(3, 4, 4), offset=(10, 7)),
+        ]
+    )
+    layers = [layer.model_dump() for layer in stack.document.layers]
+    layers[2]["clip"] = True
+    if group_base:
+        layers[1] = {"id": "g", "kind": "group", "isolated": True, "opacity": 0.8, "layers": [layers[1] | {"opacity": 1.0}]}
+    stack.document = stack.document.with_layers(layers)
+    return stack
+
+
+@pytest.mark.parametrize("group_base", [False, True])
+def test_a_clipping_chain_is_written_as_krita_writes_inherit_alpha_and_read_back(tmp_path, group_base):
+    stack = _chain_stack(group_base)
+    said: list[str] = []
+    path = _ora(tmp_path, stack, warn=said.append)
+    assert said == []
+    root = ET.fromstring(zipfile.ZipFile(path).read("stack.xml"))
+    chain = [el for el in root.iter("stack") if el.get("isolation") == "isolate" and len(el) == 2][-1]
+    assert [el.get("composite-op") for el in chain] == ["svg:src-atop", "svg:src-over"]  # topmost first
+    assert chain.get("composite-op") == ("svg:src-over" if group_base else "svg:screen")
+    back = import_ora(path)
+    assert any(layer.clip for _, layer in back.document.walk())
+    ours = to_uint8(render_stack(stack, dtype=torch.float64).image.numpy()).astype(int)
+    again = to_uint8(render_stack(back, dtype=torch.float64).image.numpy()).astype(int)
+    assert np.abs(ours - again).max() <= 1  # the layers' 8-bit codes

@@ -4,7 +4,9 @@
 Measured (8-bit codes, max |difference|): every mode (W3C's and Photoshop's), as a layer with partial alpha and
 opacity, as an isolated group of that mode and inside a pass-through group with opacity: ≤ 1 (rounding).
 Linear Dodge is read as ``linear-dodge`` (Photoshop's, clamped inside the blend), so partial alpha matches too.
-Dissolve is read as dissolve (psd-tools draws it as normal: checked on its own).
+Dissolve is read as dissolve (psd-tools draws it as normal: checked on its own). Clipping chains (a layer or a
+group as base, clipped layers of other modes, base opacity and blend): ≤ 1, read as chains and written back with
+the clipping flag.
 """
 
 from __future__ import annotations
@@ -178,12 +180,10 @@ def test_what_cannot_be_represented_is_reported_one_line_each(tmp_path):
     psd.save(path)
     warnings: list[str] = []
     stack = read_psd(path, warn=warnings.append)
-    assert all("\n" not in w for w in warnings) and len(warnings) == 1
-    assert "layer 'clipbase': clipping layers 'clip' rasterised by psd-tools" in warnings[0]
+    assert warnings == []  # a clipping mask of pixel layers is a clipping chain now, not a rasterised layer
     assert stack.document.layer("burn").blend == "linear-burn"
-    assert "clip" not in stack.document.all_ids and stack.document.layer("clipbase").kind == "pixels"
+    assert stack.document.layer("clip").clip and not stack.document.layer("clipbase").clip
     assert clipped_base.clipping is False
-    # The clipping stack is psd-tools' own rendering: the files agree.
     assert err(path) <= 1
     PSDImage.open(path)  # still a valid file
     psd2 = new_psd()
@@ -390,3 +390,82 @@ def test_names_with_control_characters_import_replaced_with_a_warning(tmp_path, 
     names = [layer.name for _, layer in load_stack(tmp_path / "out").document.walk()]
     assert names == ["base", "bad\ufffdname\ufffd", "\ufffd", "in"]
     assert main(["validate", str(tmp_path / "out")]) == 0
+
+
+def _chain_psd(path: Path, rng, *, group_base: bool = False, blend=BlendMode.NORMAL) -> None:
+    """A PSD with a clipping chain over an opaque base: a partly transparent base (or a group of two as base)
+    with its opacity and blend, two clipped layers (the upper with a mode and partial opacity), a layer above."""
+    from psd_tools.api.layers import Group
+
+    psd = new_psd()
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="ground")
+    if group_base:
+        group = Group.new(psd, name="base")
+        for n in range(2):
+            group.append(psd.create_pixel_layer(rgba(rng, 8, 9), name=f"g{n}", top=2 + 3 * n, left=3 + 4 * n))
+        base = group
+    else:
+        base = psd.create_pixel_layer(rgba(rng, 10, 12), name="base", top=3, left=4, blend_mode=blend)
+    base.opacity = int(rng.integers(120, 256))
+    a = psd.create_pixel_layer(rgba(rng, 12, 14), name="a", top=1, left=2)
+    b = psd.create_pixel_layer(rgba(rng, H, W), name="b", blend_mode=BlendMode.MULTIPLY)
+    b.opacity = int(rng.integers(80, 256))
+    a.clipping = b.clipping = True
+    psd.create_pixel_layer(rgba(rng, 5, 5), name="top", top=9, left=12)
+    psd.save(path)
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("group_base", [False, True])
+def test_a_clipping_chain_is_imported_as_one_and_matches_psd_tools(tmp_path, seed, group_base):
+    rng = np.random.default_rng(seed)
+    path = tmp_path / "clip.psd"
+    _chain_psd(path, rng, group_base=group_base, blend=BlendMode.SCREEN)
+    said: list[str] = []
+    stack = read_psd(path, warn=said.append)
+    layers = stack.document.layers
+    assert [(layer.id, layer.clip) for layer in layers] == [
+        ("ground", False),
+        ("base", False),
+        ("a", True),
+        ("b", True),
+        ("top", False),
+    ]
+    assert not any("rasterised" in s for s in said), said
+    assert err(path) <= 1
+
+
+def test_a_clipping_layer_at_the_bottom_is_left_out_with_a_warning(tmp_path):
+    rng = np.random.default_rng(0)
+    psd = new_psd()
+    alone = psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="alone")
+    alone.clipping = True
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="over")
+    path = tmp_path / "orphan.psd"
+    psd.save(path)
+    said: list[str] = []
+    assert [layer.id for layer in read_psd(path, warn=said.append).document.layers] == ["over"]
+    assert any("clipped to no layer" in s for s in said)
+
+
+def test_a_clipping_chain_is_written_back_with_the_clipping_flag(tmp_path):
+    from lasagna.export.psd import export_psd
+
+    path = tmp_path / "clip.psd"
+    _chain_psd(path, np.random.default_rng(4), blend=BlendMode.MULTIPLY)
+    stack = read_psd(path)
+    said: list[str] = []
+    export_psd(stack, tmp_path / "back.psd", warn=said.append)
+    assert said == []
+    back = PSDImage.open(tmp_path / "back.psd")
+    assert [(layer.name, layer.clipping) for layer in back] == [
+        ("Background", False),
+        ("ground", False),
+        ("base", False),
+        ("a", True),
+        ("b", True),
+        ("top", False),
+    ]
+    assert np.abs(psd_tools_flat(tmp_path / "back.psd") - ours(path)).max() <= 1
+    again = read_psd(tmp_path / "back.psd").document.layers
+    assert [layer.clip for layer in again] == [False, False, False, True, True, False]
