@@ -176,7 +176,23 @@ def inflate_regions(index: Tensor) -> Tensor:
 
 # The rendered multiplier of each stored normal map, kept while the map's tensors live and unchanged: a render
 # plan asks for it on every render, and its statistics (culling) are then computed once per light, not per call.
-_RENDERED: weakref.WeakKeyDictionary[LayerTensors, tuple[tuple, LayerTensors]] = weakref.WeakKeyDictionary()
+# A map rendered under a second light is being re-lit (the editor's light drag): its decoded unit normals, which
+# do not depend on the light, are kept with it from then on, so each further light costs Lambert alone. A map
+# rendered under one light (a render, an export) keeps only its multiplier.
+_RENDERED: weakref.WeakKeyDictionary[LayerTensors, tuple[tuple, LayerTensors, Tensor | None]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def memo_tensors() -> list[Tensor]:
+    """Every tensor ``surface_tensors`` keeps (multipliers, re-lit maps' normals), for a caller that accounts
+    the memory it holds (the editor's session)."""
+    out: list[Tensor] = []
+    for _, rendered, normals in list(_RENDERED.values()):
+        out.append(rendered.color)
+        if normals is not None:
+            out.append(normals)
+    return out
 
 
 def surface_range(source_light: str | None, ambient: float) -> tuple[float, float]:
@@ -195,12 +211,15 @@ def surface_tensors(stored: LayerTensors, light: str, source_light: str | None, 
         raise LasagnaError(
             f"the normal map has {color.shape[-3]} channel(s); expected an RGB normal map", where="surface layer"
         )
-    key = (id(color), color._version, light, source_light, float(ambient))
+    same_map = (id(color), color._version)
+    key = (*same_map, light, source_light, float(ambient))
     hit = _RENDERED.get(stored)
     if hit is not None and hit[0] == key:
         return hit[1]
-    flat = color.reshape(-1, *color.shape[-3:])
-    normals = decode_normal_map(flat)
+    relit = hit is not None and hit[0][:2] == same_map and not color.requires_grad
+    normals = hit[2] if relit else None
+    if normals is None:
+        normals = decode_normal_map(color.reshape(-1, *color.shape[-3:]))
     target = light_vector(*parse_direction(light), dtype=normals.dtype, device=normals.device)
     if source_light is None:
         y = lambert(normals, target, ambient)
@@ -208,7 +227,7 @@ def surface_tensors(stored: LayerTensors, light: str, source_light: str | None, 
         source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
         y = relight_ratio(normals, target, source, ambient)
     out = LayerTensors(y.reshape(*color.shape[:-3], 1, *color.shape[-2:]), stored.alpha, stored.mask)
-    _RENDERED[stored] = (key, out)
+    _RENDERED[stored] = (key, out, normals if relit else None)
     return out
 
 

@@ -220,16 +220,35 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
                 sep = ""
             if not sep:
                 raise RequestError(f"opacity is {item!r}; expected LAYER:VALUE", "opacity")
-        return {"level": level, "opacity": opacity, "solo": q.get("solo") or None, "upto": q.get("upto") or None}
+        light: dict[str, str] = {}
+        for item in q.getlist("light"):  # a light's text holds no ':' (nor does an id)
+            id, sep, text = item.partition(":")
+            if not sep:
+                raise RequestError(f"light is {item!r}; expected LAYER:LIGHT (az=A,el=E or a named light)", "light")
+            light[id] = text
+        return {
+            "level": level,
+            "opacity": opacity,
+            "light": light,
+            "solo": q.get("solo") or None,
+            "upto": q.get("upto") or None,
+        }
 
     async def view(request: Request) -> Response:
         args = _view_args(request)
-        data, w, h = await run(session.view, args.pop("level"), **args)
+        return _pixels(*await run(session.view, args.pop("level"), **args))
+
+    def _pixels(data: bytes, w: int, h: int) -> Response:
+        """A view's RGBA8 bytes, its size in headers (the page draws them with ``putImageData``)."""
         return Response(
             data,
             media_type="application/octet-stream",
             headers={"X-Width": str(w), "X-Height": str(h), "Cache-Control": "no-store"},
         )
+
+    async def normal_map(request: Request) -> Response:
+        level = _view_args(request)["level"]
+        return _pixels(*await run(session.normal_map, request.path_params["id"], level))
 
     async def thumbnail(request: Request) -> Response:
         data = await run(session.thumbnail, request.path_params["id"])
@@ -299,6 +318,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
         Route("/api/presets", presets),
         Route("/api/view", view),
         Route("/api/layers/{id}/thumb.png", thumbnail),
+        Route("/api/layers/{id}/normals", normal_map),
         Route("/api/export/{kind}", export),
         Route("/api/change", change, methods=["POST"]),
         Route("/api/upload", upload, methods=["POST"]),

@@ -15,11 +15,12 @@ from __future__ import annotations
 import json
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, PlainValidator, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PlainValidator, ValidationError
 
+from lasagna.document.condition import parse_direction
 from lasagna.document.types import Blend, Colour
 from lasagna.document.validation import parse_json
-from lasagna.errors import DocumentError, LasagnaError, describe_validation_error
+from lasagna.errors import ConditionError, DocumentError, LasagnaError, describe_validation_error
 
 MAX_TEXT = 1024
 """Longest name, id, preset or condition a request may carry (the document's ids are at most 64 characters;
@@ -32,9 +33,20 @@ def _version(value: Any) -> int:
     return value
 
 
+def _light(value: str) -> str:
+    try:
+        parse_direction(value)
+    except ConditionError as exc:
+        raise ValueError(exc.message) from None
+    return value
+
+
 Version = Annotated[int, PlainValidator(_version)]
 Text = Annotated[str, Field(strict=True, max_length=MAX_TEXT)]
 Count = Annotated[int, Field(strict=True)]
+Light = Annotated[str, Field(strict=True, max_length=MAX_TEXT), AfterValidator(_light)]
+"""A light as the document writes it: a named light or ``az=A,el=E`` (``parse_direction``), kept as given."""
+Ambient = Annotated[float, Field(strict=True, ge=0.0, lt=1.0)]
 
 
 class RequestError(LasagnaError):
@@ -122,6 +134,23 @@ class AddLearned(_Body):
         return session.add_learned(self.version, self.preset, self.condition, self.on, self.method)
 
 
+class SetLight(_Body):
+    """Re-light a surface layer (``EditSession.set_light``): ``light``, and ``source_light`` (null: plain
+    shading) and ``ambient`` when given; an absent field keeps the layer's value."""
+
+    op: Literal["light"]
+    version: Version
+    id: Text
+    light: Light
+    source_light: Light | None = None
+    ambient: Ambient | None = None
+
+    def call(self, session):
+        keep = "source_light" not in self.model_fields_set  # absent keeps it; null removes it
+        source = ... if keep else self.source_light
+        return session.set_light(self.version, self.id, self.light, source_light=source, ambient=self.ambient)
+
+
 class Undo(_Body):
     op: Literal["undo"]
     version: Version
@@ -154,6 +183,7 @@ CHANGES: dict[str, type[_Body]] = {
     "ungroup": Ungroup,
     "solid": AddSolid,
     "learned": AddLearned,
+    "light": SetLight,
     "undo": Undo,
     "redo": Redo,
     "save": Save,

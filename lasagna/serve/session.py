@@ -39,8 +39,10 @@ import torch
 from lasagna import catalogue as cat
 from lasagna.atomic import atomic_write_bytes, temp_path
 from lasagna.compose.layer import LayerTensors
+from lasagna.compose.surface import memo_tensors
 from lasagna.document import Document
 from lasagna.document.blend import BLEND_MODES, RANGED_BLENDS
+from lasagna.document.condition import parse_direction
 from lasagna.document.types import unique_id
 from lasagna.errors import ConflictError, DocumentError, ImageError, LasagnaError
 from lasagna.heap import tune_heap
@@ -124,11 +126,13 @@ class EditSession(SessionViews, SessionJobs):
     def held_bytes(self) -> int:
         """Bytes the session holds: every tensor of the stack, of the undo/redo history, of the files on disk
         (``unchanged``) and of the views' reduced layers (each storage once: snapshots share unchanged
-        tensors), the views' cached canvases, and the pending generator files."""
+        tensors), surface layers' rendered multipliers and normals, the views' cached canvases, and the pending
+        generator files."""
         with self.lock:
             maps = [self.stack.tensors, self.unchanged, *(s.tensors for s in (*self.undo_stack, *self.redo_stack))]
             tensors = [x for m in maps for lt in m.values() for x in lt.tensors()]
             tensors += [x for _, lt in self.reduced.values() for x in lt.tensors()]
+            tensors += memo_tensors()  # surface layers' multipliers and re-lit normals (compose.surface)
             held = tensor_bytes(tensors)
             for lv in self.levels.values():
                 w, h = lv.key[:2]
@@ -234,6 +238,7 @@ class EditSession(SessionViews, SessionJobs):
                 "levels": self.max_level() + 1,
                 "blends": list(BLEND_MODES),
                 "ranged_blends": sorted(RANGED_BLENDS),
+                "surfaces": _surfaces(doc),
             }
 
     # ---- document changes ---------------------------------------------------------------------------
@@ -277,6 +282,17 @@ class EditSession(SessionViews, SessionJobs):
 
         what = ", ".join(sorted(changes))
         return self._change(version, f"{what} of {id}", apply)
+
+    def set_light(
+        self, version: Any, id: str, light: str, *, source_light: str | None = ..., ambient: float | None = None
+    ) -> dict[str, Any]:
+        """Re-light surface layer ``id`` (``Stack.set_light``): its stored normal map is drawn under ``light`` (and
+        ``source_light`` / ``ambient`` when given); no pixels change, nothing is learned. One undo step."""
+
+        def apply() -> None:
+            self.stack.set_light(id, light, source_light=source_light, ambient=ambient)
+
+        return self._change(version, f"light of {id}", apply)
 
     def move_layer(self, version: Any, id: str, index: Any) -> dict[str, Any]:
         """Move layer ``id`` to position ``index`` (0 = bottom) of the list it is in (top level, or its group)."""
@@ -458,6 +474,23 @@ class EditSession(SessionViews, SessionJobs):
                 entry.update(ready=False, why=str(exc))
             out.append(entry)
         return out
+
+
+def _surfaces(doc: Document) -> dict[str, dict[str, Any]]:
+    """Each surface layer's light as the page draws its control: the texts, the light's (az, el) in degrees
+    (``parse_direction``: a named light resolved) and the ambient term."""
+    out = {}
+    for _, layer in doc.walk():
+        if layer.kind == "surface":
+            az, el = parse_direction(layer.light)
+            out[layer.id] = {
+                "light": layer.light,
+                "az": az,
+                "el": el,
+                "source_light": layer.source_light,
+                "ambient": float(layer.ambient),
+            }
+    return out
 
 
 __all__ = ["Cancelled", "EditSession", "Job", "Snapshot"]

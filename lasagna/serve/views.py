@@ -8,6 +8,9 @@ caches (``levels``, ``reduced``, ``thumbs``) and asks ``_admit`` before it alloc
   at the size on screen. Layers are reduced once per level with an area filter and cached by tensor identity.
   Level 0 is exactly ``lasagna composite``; a reduced level is the composite of reduced layers (a preview:
   blends are not linear, so it differs slightly from a reduced composite).
+* **Light drags** are a view with a surface layer's ``light`` overridden: the layers below come from the level's
+  cached prefix, and only the surface (re-rendered from its stored map, ``compose.surface.surface_tensors``)
+  and the layers above it are blended again. **Normal maps** are a surface layer's stored map at a level.
 * **Thumbnails** are a layer's stored values reduced to about twice ``THUMB_SIDE``, cached by tensor identity.
 * **Exports** (ORA, PSD, the composite PNG) encode a copy of the stack outside the session's lock.
 """
@@ -28,6 +31,7 @@ from lasagna.compose.layer import LayerTensors
 from lasagna.compose.plan import plan_from_document, solid_tensors
 from lasagna.compose.renderer import Renderer
 from lasagna.document import Document
+from lasagna.document.condition import parse_direction
 from lasagna.errors import LasagnaError
 from lasagna.io.render import BAND_ROWS, composite_codes, encode_composite, render_bytes, tensor_bytes
 from lasagna.io.stack import Stack, group_mask_tensors
@@ -177,21 +181,27 @@ class SessionViews:
         opacity: dict[str, float] | None = None,
         solo: str | None = None,
         upto: str | None = None,
+        light: dict[str, str] | None = None,
     ) -> tuple[bytes, int, int]:
         """The composite at reduction ``level`` as RGBA8 bytes (row-major), with transient overrides that are
-        not changes (``opacity`` while a slider is dragged; ``solo`` one layer alone; ``upto`` a layer: the
-        stack up to and including it, the "before" of a before/after split). Layers are named at any depth:
-        a soloed layer inside a group shows with the groups that hold it."""
-        if isinstance(level, bool) or not isinstance(level, int) or not 0 <= level <= self.max_level():
-            raise LasagnaError(f"expected a level in [0, {self.max_level()}], got {level!r}", "level")
+        not changes (``opacity`` while a slider is dragged; ``light`` of a surface layer while its light is
+        dragged: the stored map drawn under it, as ``set_light`` would; ``solo`` one layer alone; ``upto`` a
+        layer: the stack up to and including it, the "before" of a before/after split). Layers are named at
+        any depth: a soloed layer inside a group shows with the groups that hold it."""
+        self._check_level(level)
         with self._guard():
             doc = self.stack.document
-            for id in [*(opacity or {}), *([solo] if solo else []), *([upto] if upto else [])]:
+            for id in [*(opacity or {}), *(light or {}), *([solo] if solo else []), *([upto] if upto else [])]:
                 doc.layer(id)  # DocumentError naming the ids
             for id, v in (opacity or {}).items():
                 if not (isinstance(v, (int, float)) and 0.0 <= float(v) <= 1.0):
                     raise LasagnaError(f"expected an opacity in [0, 1], got {v!r}", f"opacity.{id}")
-            layers = _overridden(doc, opacity or {}, solo, upto)
+            for id, text in (light or {}).items():
+                kind = doc.layer(id).kind
+                if kind != "surface":
+                    raise LasagnaError(f"layer {id!r} is a {kind} layer; expected a surface layer", "light")
+                parse_direction(text)  # a ConditionError naming what a light is
+            layers = _overridden(doc, opacity or {}, solo, upto, light or {})
             w, h = _reduced_side(self.stack.width, level), _reduced_side(self.stack.height, level)
             # The layers reduced to this level, the canvas and the renderer's snapshot below the top layer
             # (``lasagna.compose.renderer``), and the RGBA8 bytes returned.
@@ -213,6 +223,34 @@ class SessionViews:
                 codes = composite_codes(band) if level == 0 else (band.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8)
                 rgba[y : y + BAND_ROWS, :, :3] = codes.permute(1, 2, 0).numpy()
             return rgba.tobytes(), w, h
+
+    def normal_map(self, id: str, level: int = 0) -> tuple[bytes, int, int]:
+        """Surface layer ``id``'s stored normal map at reduction ``level`` as RGBA8 bytes of the view's size (the
+        map's RGB codes where the layer lies, at its offset; transparent elsewhere): what the layer holds, not
+        how it is lit."""
+        self._check_level(level)
+        with self._guard():
+            layer = self.stack.document.layer(id)
+            if layer.kind != "surface":
+                raise LasagnaError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", "normals")
+            w, h = _reduced_side(self.stack.width, level), _reduced_side(self.stack.height, level)
+            self._admit(self._reduction_bytes([layer], level) + 4 * w * h, f"the normal map of {id}", "normals")
+            t = self._layer_at(layer, level)
+        rgba = np.zeros((h, w, 4), np.uint8)
+        f = 2**level
+        x0, y0 = layer.offset.x // f, layer.offset.y // f  # as the view places it (_ScaledLayer)
+        mh, mw = t.color.shape[-2:]
+        top, left = max(0, y0), max(0, x0)
+        bottom, right = min(h, y0 + mh), min(w, x0 + mw)
+        if bottom > top and right > left:
+            part = t.color[:, top - y0 : bottom - y0, left - x0 : right - x0]
+            rgba[top:bottom, left:right, :3] = (part.clamp(0, 1) * 255.0).round().to(torch.uint8).permute(1, 2, 0)
+            rgba[top:bottom, left:right, 3] = 255
+        return rgba.tobytes(), w, h
+
+    def _check_level(self, level: Any) -> None:
+        if isinstance(level, bool) or not isinstance(level, int) or not 0 <= level <= self.max_level():
+            raise LasagnaError(f"expected a level in [0, {self.max_level()}], got {level!r}", "level")
 
     def thumbnail(self, id: str) -> bytes:
         """A small PNG of layer ``id``'s stored values (RGB codes v and alpha), as the layers panel shows it,
@@ -249,11 +287,13 @@ class SessionViews:
         return data
 
 
-def _overridden(doc: Document, opacity: dict[str, float], solo: str | None, upto: str | None) -> list:
+def _overridden(
+    doc: Document, opacity: dict[str, float], solo: str | None, upto: str | None, light: dict[str, str]
+) -> list:
     """``doc``'s layer tree with a view's transient overrides (``EditSession.view``), layers named at any depth:
-    ``opacity`` per layer; ``solo``: that layer (with what it holds) alone, the groups holding it shown;
-    ``upto``: every layer after it in the tree's order (depth first, a group before its layers) hidden,
-    except its own layers."""
+    ``opacity`` per layer; ``light`` per surface layer; ``solo``: that layer (with what it holds) alone, the
+    groups holding it shown; ``upto``: every layer after it in the tree's order (depth first, a group before
+    its layers) hidden, except its own layers."""
     order = [layer.id for _, layer in doc.walk()]
     inside: dict[str, set[str]] = {}  # group id → ids of every layer it holds, at any depth
     holders: dict[str, list[str]] = {}  # layer id → ids of the groups holding it, outermost first
@@ -282,6 +322,8 @@ def _overridden(doc: Document, opacity: dict[str, float], solo: str | None, upto
             changes: dict[str, Any] = {}
             if layer.id in opacity:
                 changes["opacity"] = float(opacity[layer.id])
+            if layer.id in light:
+                changes["light"] = light[layer.id]
             if shown is not None and layer.id == solo:
                 changes["visible"] = True
             elif shown is not None and layer.id not in shown:

@@ -118,6 +118,8 @@ def test_a_bad_colour_names_the_field_what_was_expected_and_what_was_given(clien
         ({"op": "learned", "preset": 1, "condition": "x"}, "preset"),
         ({"op": "learned", "preset": "shading", "condition": "x", "method": "fast"}, "method"),
         ({"op": "undo", "extra": 1}, "extra"),
+        ({"op": "light", "id": "glow", "light": 45}, "light"),
+        ({"op": "light", "id": "glow", "light": "left", "ambient": "0.5"}, "ambient"),
     ],
 )
 def test_strict_types_in_change_bodies(client, body, field):
@@ -154,6 +156,7 @@ ROUTES = [
     ("GET", "/api/state"),
     ("GET", "/api/view"),
     ("GET", "/api/layers/{}/thumb.png"),
+    ("GET", "/api/layers/{}/normals"),
     ("GET", "/api/export/{}"),
     ("GET", "/api/jobs/{}/events"),
     ("POST", "/api/change"),
@@ -165,7 +168,7 @@ ROUTES = [
     ("POST", "/{}"),
 ]
 LAYER_IDS = ["background", "glow", "sticker", "nope", ""]
-QUERY_KEYS = ["level", "opacity", "solo", "upto", "version", "name", "x"]
+QUERY_KEYS = ["level", "opacity", "light", "solo", "upto", "version", "name", "x"]
 
 scalars = st.none() | st.booleans() | st.integers(-(10**25), 10**25) | st.floats() | st.text(max_size=12)
 json_values = st.recursive(
@@ -178,7 +181,8 @@ field_values = json_values | st.sampled_from(LAYER_IDS) | st.lists(st.floats(0, 
 def op_bodies(draw):
     """An /api/change-shaped object: a real op (usually), a nearly right version and fields of any type."""
     body = draw(st.dictionaries(st.sampled_from(sorted({"id", "changes", "index", "color", "name", "blend",
-                                                        "preset", "condition", "on", "method", "steps", "kind"})),
+                                                        "preset", "condition", "on", "method", "steps", "kind",
+                                                        "light", "source_light", "ambient"})),
                                 field_values, max_size=5))  # fmt: skip
     body["op"] = draw(st.sampled_from(list(CHANGES)) | json_values)
     if draw(st.booleans()):

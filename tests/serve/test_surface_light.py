@@ -1,0 +1,222 @@
+"""A surface layer's light in the editor (#24 item 5): the ``light`` change, the light-drag preview of
+``/api/view`` and the normal-map view, against the engine: ``Stack.set_light`` on a freshly loaded stack, rendered
+by ``render_stack`` (the CLI's composite), bit for bit; undo; one-line refusals."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("starlette")
+pytest.importorskip("httpx")
+
+from starlette.testclient import TestClient  # noqa: E402
+
+from lasagna.compose.surface import encode_normal_map  # noqa: E402
+from lasagna.document.condition import NAMED_DIRECTIONS  # noqa: E402
+from lasagna.io.render import composite_codes, render_stack  # noqa: E402
+from lasagna.io.stack import load_stack  # noqa: E402
+from lasagna.serve.app import create_app  # noqa: E402
+from lasagna.serve.session import EditSession  # noqa: E402
+from tests.serve.surface_stack import dome_normals, surface_stack  # noqa: E402
+
+TOKEN = "test-token"
+H = {"X-Lasagna-Token": TOKEN}
+
+
+@pytest.fixture
+def folder(tmp_path):
+    return surface_stack(tmp_path / "lit")
+
+
+@pytest.fixture
+def session(folder):
+    return EditSession(folder)
+
+
+@pytest.fixture
+def client(session):
+    return TestClient(create_app(session, TOKEN, ["testserver"]), raise_server_exceptions=False)
+
+
+def state(client) -> dict:
+    r = client.get("/api/state", headers=H)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def post(client, **body):
+    body.setdefault("version", state(client)["version"])
+    return client.post("/api/change", headers=H, json=body)
+
+
+def ok(response) -> dict:
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def one_line_4xx(response) -> str:
+    assert 400 <= response.status_code < 500, (response.status_code, response.text)
+    message = response.json()["error"]
+    assert "\n" not in message and "Traceback" not in message and "internal error" not in message
+    return message
+
+
+def pixels(response) -> np.ndarray:
+    assert response.status_code == 200, response.text
+    w, h = int(response.headers["x-width"]), int(response.headers["x-height"])
+    return np.frombuffer(response.content, np.uint8).reshape(h, w, 4)
+
+
+def view(client, **params) -> np.ndarray:
+    return pixels(client.get("/api/view", headers=H, params=params))
+
+
+def relit_codes(folder, light: str, **fields) -> np.ndarray:
+    """The composite of the folder's stack, freshly loaded and re-lit by the engine: (H, W, 3) uint8."""
+    stack = load_stack(folder).set_light("shape", light, **fields)
+    return composite_codes(render_stack(stack).image).permute(1, 2, 0).numpy()
+
+
+# ---- state ---------------------------------------------------------------------------------------
+
+
+def test_state_gives_each_surface_layers_light(client):
+    s = state(client)["surfaces"]
+    az, el = NAMED_DIRECTIONS["top-left"]
+    assert s == {"shape": {"light": "top-left", "az": az, "el": el, "source_light": None, "ambient": 0.25}}
+
+
+# ---- the change ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("light", ["az=20,el=35", "bottom-right", "el=80,az=-90"])
+def test_a_new_light_renders_as_a_fresh_stack_relit_by_the_engine(client, folder, light):
+    before = view(client, level=0)
+    after = ok(post(client, op="light", id="shape", light=light))
+    assert after["document"]["layers"][1]["light"] == light and after["undo"] == "light of shape"
+    got = view(client, level=0)
+    assert not np.array_equal(got, before)
+    assert np.array_equal(got[..., :3], relit_codes(folder, light))
+    ok(post(client, op="save"))
+    assert json.loads((folder / "stack.json").read_text())["layers"][1]["light"] == light
+    fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
+    assert np.array_equal(got[..., :3], fresh)
+
+
+def test_undo_restores_the_light_and_the_pixels_redo_again(client):
+    before, lit_before = view(client, level=0), state(client)["surfaces"]["shape"]
+    ok(post(client, op="light", id="shape", light="az=300,el=60"))
+    after = view(client, level=0)
+    undone = ok(post(client, op="undo"))
+    assert undone["surfaces"]["shape"] == lit_before and undone["redo"] == "light of shape"
+    assert np.array_equal(view(client, level=0), before)
+    ok(post(client, op="redo"))
+    assert np.array_equal(view(client, level=0), after)
+
+
+def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
+    s = ok(post(client, op="light", id="shape", light="right", source_light="left", ambient=0.4))
+    el = NAMED_DIRECTIONS["right"][1]
+    assert s["surfaces"]["shape"] == {"light": "right", "az": 0.0, "el": el, "source_light": "left", "ambient": 0.4}
+    assert np.array_equal(
+        view(client, level=0)[..., :3], relit_codes(folder, "right", source_light="left", ambient=0.4)
+    )
+    s = ok(post(client, op="light", id="shape", light="top"))
+    assert s["surfaces"]["shape"]["source_light"] == "left" and s["surfaces"]["shape"]["ambient"] == 0.4
+    s = ok(post(client, op="light", id="shape", light="top", source_light=None))
+    assert s["surfaces"]["shape"]["source_light"] is None and s["surfaces"]["shape"]["ambient"] == 0.4
+
+
+# ---- the light-drag preview ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("level", [0, 1, 2])
+def test_a_preview_is_the_view_the_change_gives_and_changes_nothing(client, level):
+    v = state(client)["version"]
+    previews = [view(client, level=level, light=f"shape:az={az},el=50") for az in (0, 180, 0)]
+    assert not np.array_equal(previews[0], previews[1]) and np.array_equal(previews[0], previews[2])
+    s = state(client)
+    assert s["version"] == v and s["undo"] is None and s["surfaces"]["shape"]["light"] == "top-left"
+    ok(post(client, op="light", id="shape", light="az=180,el=50"))
+    assert np.array_equal(view(client, level=level), previews[1])
+
+
+def test_re_lit_normals_are_kept_and_accounted(session):
+    held = session.held_bytes()
+    session.view(0, light={"shape": "left"})
+    session.view(0, light={"shape": "right"})  # a second light: the map's decoded normals are kept
+    sw, sh = 64 * 5 // 8, 48 * 2 // 3
+    assert session.held_bytes() - held >= 3 * sw * sh * 4
+
+
+# ---- the normal map --------------------------------------------------------------------------------
+
+
+def test_the_normal_map_view_is_the_stored_map_at_its_place(client, folder):
+    got = pixels(client.get("/api/layers/shape/normals", headers=H, params={"level": 0}))
+    stored = load_stack(folder).tensors["shape"].color  # (3, 32, 40) as its 16-bit PNG gives it back
+    codes = (stored.double() * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
+    assert got.shape == (48, 64, 4)
+    assert np.array_equal(got[8:40, 8:48, :3], codes) and (got[8:40, 8:48, 3] == 255).all()
+    assert (got[:8, :, 3] == 0).all() and (got[:, 48:, 3] == 0).all()
+    exact = (encode_normal_map(dome_normals(40, 32)[None])[0] * 255).permute(1, 2, 0).numpy()
+    assert np.abs(got[8:40, 8:48, :3] - exact).max() <= 0.5 + 1e-6  # the map itself, not a lit image
+    small = pixels(client.get("/api/layers/shape/normals", headers=H, params={"level": 1}))
+    assert small.shape == (24, 32, 4) and (small[4:20, 4:24, 3] == 255).all()
+
+
+# ---- refusals ----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "body, field, words",
+    [
+        ({"id": "base", "light": "left"}, "set_light: layer 'base'", "expected a surface layer"),
+        ({"id": "tint", "light": "left"}, "set_light: layer 'tint'", "expected a surface layer"),
+        ({"id": "nope", "light": "left"}, "", "nope"),
+        ({"id": "shape", "light": "sideways"}, "light", "'az=A,el=E'"),
+        ({"id": "shape", "light": "az=10"}, "light", "'az=A,el=E'"),
+        ({"id": "shape", "light": "az=10,el=95"}, "light", "outside [0, 90)"),
+        ({"id": "shape", "light": "az=nan,el=10"}, "light", "'az=A,el=E'"),
+        ({"id": "shape", "light": 45}, "light", "45"),
+        ({"id": "shape", "light": ["left"]}, "light", "expected"),
+        ({"id": "shape"}, "light", "missing"),
+        ({"id": "shape", "light": "left", "source_light": "up"}, "source_light", "'up'"),
+        ({"id": "shape", "light": "left", "ambient": 1.0}, "ambient", "less than 1"),
+        ({"id": "shape", "light": "left", "ambient": "0.5"}, "ambient", "'0.5'"),
+        ({"id": "shape", "light": "left", "ambient": True}, "ambient", "True"),
+        ({"id": "shape", "light": "left", "source_light": "top", "ambient": 0}, "layers[1].ambient", "ambient > 0"),
+        ({"id": "shape", "light": "left", "az": 10}, "az", "unknown field"),
+    ],
+)
+def test_a_bad_light_change_is_a_one_line_4xx_and_changes_nothing(client, body, field, words):
+    before = state(client)
+    message = one_line_4xx(post(client, op="light", **body))
+    assert message.startswith(field) and words in message, message
+    after = state(client)
+    assert after["version"] == before["version"] and after["surfaces"] == before["surfaces"]
+
+
+@pytest.mark.parametrize(
+    "params, words",
+    [
+        ({"light": "base:left"}, "expected a surface layer"),
+        ({"light": "shape:up"}, "'az=A,el=E'"),
+        ({"light": "shape"}, "expected LAYER:LIGHT"),
+        ({"light": "nope:left"}, "nope"),
+    ],
+)
+def test_a_bad_preview_is_a_one_line_400(client, params, words):
+    assert words in one_line_4xx(client.get("/api/view", headers=H, params={"level": 0, **params}))
+
+
+@pytest.mark.parametrize(
+    "id, params, words",
+    [("base", {}, "expected a surface layer"), ("nope", {}, "nope"), ("shape", {"level": 99}, "level")],
+)
+def test_a_bad_normal_map_request_is_a_one_line_4xx(client, id, params, words):
+    assert words in one_line_4xx(client.get(f"/api/layers/{id}/normals", headers=H, params=params))
