@@ -324,3 +324,70 @@ def test_the_page_refuses_without_the_token(browser, server):
     response = page.goto(server.url.split("?")[0])
     assert response.status == 403 and "token" in page.inner_text("body")
     page.close()
+
+
+# ---- a surface layer's light -------------------------------------------------------------------------
+
+
+@pytest.fixture
+def surface_server(tmp_path):
+    from tests.serve.surface_stack import surface_stack
+
+    s = Server(surface_stack(tmp_path / "lit"))
+    yield s
+    s.stop()
+
+
+def drag_light(page, dx: float, dy: float) -> None:
+    """Drag the light control from its centre to (dx, dy) in units of its radius (y up), in small moves."""
+    box = page.locator("#light-sphere").bounding_box()
+    cx, cy, r = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2, box["width"] / 2 - 2
+    page.mouse.move(cx, cy)
+    page.mouse.down()
+    for k in range(1, 13):
+        page.mouse.move(cx + r * dx * k / 12, cy - r * dy * k / 12)
+        page.wait_for_timeout(25)
+    page.mouse.up()
+
+
+def test_dragging_a_surface_layers_light_repaints_live_and_commits_one_step(browser, surface_server):
+    folder = surface_server.session.folder
+    page = open_page(browser, surface_server)
+    before = page_pixels(page)
+    assert np.array_equal(before, saved_composite(folder))
+    row(page, "shape").locator(".name").click()
+    page.wait_for_selector("#light-sphere")
+    v, paints = version(page), page.evaluate("window.lasagna.paints.count")
+
+    drag_light(page, -0.9, 0.0)  # the light toward the left
+    settle(page, v + 1)
+    assert page.evaluate("window.lasagna.paints.count") - paints >= 3  # repainted while dragging, not only at the end
+    s = page.evaluate("window.lasagna.state")
+    lit = s["surfaces"]["shape"]
+    assert s["undo"] == "light of shape" and abs(lit["az"] - 180) < 2 and abs(lit["el"] - 64.2) < 2
+    assert page.inner_text("#light-readout") == lit["light"]
+    left = page_pixels(page)
+    assert not np.array_equal(left, before)
+
+    drag_light(page, 0.9, 0.0)  # and toward the right: another image
+    settle(page, v + 2)
+    right = page_pixels(page)
+    assert not np.array_equal(right, left) and not np.array_equal(right, before)
+    save_and_check(page, folder)  # the page shows what the engine renders of the saved light
+    assert abs(page.evaluate("window.lasagna.state.surfaces.shape.az")) < 2
+
+    page.click("#undo")  # one step per drag (a save is not a version)
+    settle(page, v + 3)
+    assert np.array_equal(page_pixels(page), left)
+
+    page.check("#normal-map")  # the stored map, not the lit composite
+    settle(page)
+    from lasagna.io.stack import load_stack
+
+    stored = load_stack(folder).tensors["shape"].color
+    codes = (stored.double() * 255).round().byte().permute(1, 2, 0).numpy()
+    assert np.array_equal(page_pixels(page)[8:40, 8:48], codes)
+    page.uncheck("#normal-map")
+    settle(page)
+    assert np.array_equal(page_pixels(page), left)
+    assert page.errors == []

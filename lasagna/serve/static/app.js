@@ -15,6 +15,8 @@ const ui = {
   solo: null,
   split: false,
   drag: null,           // {id, value} while an opacity slider is dragged (a transient view, not a change)
+  light: null,          // {id, text} while a surface layer's light is dragged (a transient view, not a change)
+  normals: null,        // a surface layer's id while the view shows its stored normal map
   condition: null,
   image: null,          // the last view: {canvas, level, w, h}
   before: null,
@@ -77,6 +79,7 @@ function setState(state) {
   const ids = allLayers(state.document.layers).map((l) => l.id);
   if (ui.selected && !ids.includes(ui.selected)) ui.selected = null;
   if (ui.solo && !ids.includes(ui.solo)) ui.solo = null;
+  if (ui.normals && !(ui.normals in state.surfaces)) ui.normals = null;
   $("folder").textContent = state.folder + (state.dirty ? " •" : "");
   $("undo").disabled = !state.undo;
   $("undo").title = state.undo ? `Undo ${state.undo}` : "Nothing to undo";
@@ -128,6 +131,7 @@ function layerRow(layer, index, n, depth = 0) {
   li.addEventListener("click", (e) => {
     if (e.target.closest("input, select, button")) return;
     ui.selected = layer.id;
+    if (ui.normals && ui.normals !== layer.id) { ui.normals = null; paint(); }
     drawLayers(); drawProps();
   });
   li.querySelector(".eye").addEventListener("change", (e) => change({ op: "set", id: layer.id, changes: { visible: e.target.checked } }));
@@ -215,6 +219,7 @@ function drawProps() {
     remove.addEventListener("click", () => set({ mask: null }));
     box.append(field(`Mask ${layer.mask}`, remove));
   }
+  if (layer.kind === "surface") box.append(lightControl(layer));
   if (layer.kind === "learned") {
     const preset = ui.presets.find((p) => p.name === layer.preset);
     const cond = document.createElement("select");
@@ -243,6 +248,106 @@ function drawProps() {
     rerender.addEventListener("click", () => startJob("rerender", layer.id));
     box.append(field("Steps", steps), refine, " ", rerender);
   }
+}
+
+// ---- a surface layer's light ----------------------------------------------------------------------
+// A shaded sphere whose highlight follows a point dragged on its disc: the point (x, y) (y up, radius r ≤ 1)
+// is the light's direction seen from the viewer, az = atan2(y, x) from +x toward +y and el = asin(r) from the
+// view axis (lasagna.document.condition). Pointer moves are read once per animation frame; each frame sets a
+// transient light (ui.light) and asks for a repaint, and paint() keeps one view request in flight, the latest
+// light asked next. While dragging, the view is a preview (/api/view?light=…: nothing changes on the server,
+// no undo step); releasing commits the light with one "light" change, one undo step.
+
+const SPHERE_SIDE = 120;
+const MAX_DRAG_ELEVATION = 89;  // el must stay below 90° (the light would graze the image plane)
+
+function lightText(az, el) {
+  return `az=${az.toFixed(1)},el=${el.toFixed(1)}`;
+}
+
+function drawSphere(canvas, az, el, ambient) {
+  const ctx = canvas.getContext("2d"), n = canvas.width, R = n / 2 - 2, c = n / 2;
+  const a = (az * Math.PI) / 180, e = (el * Math.PI) / 180;
+  const lx = Math.sin(e) * Math.cos(a), ly = Math.sin(e) * Math.sin(a), lz = Math.cos(e);
+  const img = ctx.createImageData(n, n);
+  for (let py = 0; py < n; py++) {
+    for (let px = 0; px < n; px++) {
+      const x = (px + 0.5 - c) / R, y = (c - py - 0.5) / R, r2 = x * x + y * y;
+      if (r2 > 1) continue;
+      const s = ambient + (1 - ambient) * Math.max(0, x * lx + y * ly + Math.sqrt(1 - r2) * lz);
+      const k = 4 * (py * n + px);
+      img.data[k] = img.data[k + 1] = img.data[k + 2] = Math.round(255 * s);
+      img.data[k + 3] = 255;
+    }
+  }
+  ctx.putImageData(img, 0, 0);
+  ctx.beginPath();
+  ctx.arc(c + R * lx, c - R * ly, 5, 0, 2 * Math.PI);
+  ctx.strokeStyle = "#e0a030"; ctx.lineWidth = 2; ctx.stroke();
+}
+
+function lightControl(layer) {
+  const lit = ui.state.surfaces[layer.id];
+  const box = document.createElement("div");
+  box.id = "light";
+  const sphere = document.createElement("canvas");
+  sphere.id = "light-sphere"; sphere.width = sphere.height = SPHERE_SIDE;
+  sphere.title = "Drag to move the light";
+  const readout = document.createElement("div");
+  readout.id = "light-readout";
+  readout.textContent = lit.light;
+  const show = document.createElement("input");
+  show.type = "checkbox"; show.id = "normal-map"; show.checked = ui.normals === layer.id;
+  show.addEventListener("change", () => { ui.normals = show.checked ? layer.id : null; paint(); });
+  const info = document.createElement("div");
+  info.className = "hint";
+  info.textContent = (lit.source_light ? `relight from ${lit.source_light} · ` : "") + `ambient ${lit.ambient}`;
+  box.append(sphere, readout, info, field("Show normal map", show));
+  drawSphere(sphere, lit.az, lit.el, lit.ambient);
+
+  let at = null, frame = 0, dragging = false;
+  const direction = () => {  // the pointer's place on the disc → (az, el) in degrees
+    const r = sphere.getBoundingClientRect(), R = r.width / 2 - 2;
+    let x = (at.x - r.left - r.width / 2) / R, y = (r.top + r.height / 2 - at.y) / R;
+    const len = Math.hypot(x, y);
+    if (len > 1) { x /= len; y /= len; }
+    const el = Math.min(MAX_DRAG_ELEVATION, (Math.asin(Math.min(1, len)) * 180) / Math.PI);
+    const az = (((Math.atan2(y, x) * 180) / Math.PI) % 360 + 360) % 360;
+    return [az, el];
+  };
+  const step = () => {
+    frame = 0;
+    const [az, el] = direction();
+    ui.light = { id: layer.id, text: lightText(az, el) };
+    readout.textContent = ui.light.text;
+    drawSphere(sphere, az, el, lit.ambient);
+    paint();
+  };
+  sphere.addEventListener("pointerdown", (e) => {
+    e.preventDefault();
+    sphere.setPointerCapture(e.pointerId);
+    dragging = true; at = { x: e.clientX, y: e.clientY };
+    frame = requestAnimationFrame(step);
+  });
+  sphere.addEventListener("pointermove", (e) => {
+    if (!dragging) return;
+    at = { x: e.clientX, y: e.clientY };
+    if (!frame) frame = requestAnimationFrame(step);  // at most one update per frame; the latest point wins
+  });
+  const release = async (e) => {
+    if (!dragging) return;
+    dragging = false;
+    if (frame) { cancelAnimationFrame(frame); frame = 0; }
+    at = { x: e.clientX, y: e.clientY };
+    const [az, el] = direction();
+    ui.light = { id: layer.id, text: lightText(az, el) };
+    await change({ op: "light", id: layer.id, light: ui.light.text });
+    ui.light = null;
+    paint();
+  };
+  sphere.addEventListener("pointerup", release);
+  sphere.addEventListener("pointercancel", release);
+  return box;
 }
 
 // ---- the catalogue and the light picker ---------------------------------------------------------
@@ -347,7 +452,9 @@ async function fetchView(params) {
   if (params.drag) q.append("opacity", `${params.drag.id}:${params.drag.value}`);
   if (params.solo) q.set("solo", params.solo);
   if (params.upto) q.set("upto", params.upto);
-  const response = await api(`api/view?${q}`);
+  if (params.light) q.append("light", `${params.light.id}:${params.light.text}`);
+  const path = params.normals ? `api/layers/${encodeURIComponent(params.normals)}/normals?level=${params.level}` : `api/view?${q}`;
+  const response = await api(path);
   const w = parseInt(response.headers.get("X-Width"), 10), h = parseInt(response.headers.get("X-Height"), 10);
   const data = new Uint8ClampedArray(await response.arrayBuffer());
   const canvas = document.createElement("canvas");
@@ -373,6 +480,7 @@ function paint() {
   const level = levelFor(ui.zoom);
   wanted = {
     level: ui.drag ? dragLevel(level) : level, drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split,
+    light: ui.light, normals: ui.normals,
   };
   if (!inflight) paintLoop();
 }
@@ -385,7 +493,7 @@ async function paintLoop() {
       wanted = null;
       const image = await fetchView(p);
       let before = null;
-      if (p.split) before = await fetchView({ level: p.level, upto: ui.state.document.layers[0].id });
+      if (p.split && !p.normals) before = await fetchView({ level: p.level, upto: ui.state.document.layers[0].id });
       ui.image = image; ui.before = before;
       draw();
     }
