@@ -17,6 +17,7 @@ const ui = {
   drag: null,           // {id, value} while an opacity slider is dragged (a transient view, not a change)
   light: null,          // {id, text} while a surface layer's light is dragged (a transient view, not a change)
   normals: null,        // a surface layer's id while the view shows its stored normal map
+  lightProxy: true,     // a light drag previews at the drag proxy's level (dragLevel); false: at the view's level
   condition: null,
   image: null,          // the last view: {canvas, level, w, h}
   before: null,
@@ -463,9 +464,9 @@ async function fetchView(params) {
   return { canvas, level: params.level, w, h };
 }
 
-// While a slider is dragged the canvas shows a proxy: the view one level coarser when that still has
+// While a slider or a light is dragged the canvas shows a proxy: the view one level coarser when that still has
 // DRAG_PROXY_SIDE pixels on its long side (a 2048² stack fitted at 1/2 is previewed at 512², a quarter of
-// the bytes to composite, send and draw); releasing the slider repaints at the full view level.
+// the bytes to composite, send and draw); releasing repaints at the full view level.
 const DRAG_PROXY_SIDE = 512;
 function dragLevel(level) {
   const W = ui.state.document.canvas.width, H = ui.state.document.canvas.height;
@@ -479,7 +480,7 @@ function paint() {
   if (!ui.state) return;
   const level = levelFor(ui.zoom);
   wanted = {
-    level: ui.drag ? dragLevel(level) : level, drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split,
+    level: ui.drag || (ui.light && ui.lightProxy) ? dragLevel(level) : level, drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split,
     light: ui.light, normals: ui.normals,
   };
   if (!inflight) paintLoop();
