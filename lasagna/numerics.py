@@ -39,6 +39,12 @@ HARD_MIX_TIE_EPS = 2.0**-20
 # above float32's tiny (1.2e-38); the gradient −c/α² it leaves is bounded by |C|/α, times that same α.
 UNPREMULTIPLY_EPS = 1e-12
 
+# Adjustments (compose/adjust.py): a power t^(1/γ) of a tone curve has an infinite slope at t = 0 for γ > 1, and a
+# few divisions (a gray's HSL saturation, a flat interpolation interval) vanish. Bases and divisors are kept >=
+# ADJUST_POW_EPS: 1e-12 is far below one 16-bit step (1.5e-5; (1e-12)^(1/9.99) = 0.063 is still only reached at
+# t = 1e-12, never at a code) and far above float32's tiny, so values and gradients stay finite.
+ADJUST_POW_EPS = 1e-12
+
 # Logit of a value in [0, 1] (inverting y = lo + (hi - lo) * sigmoid(x)): clamp to
 # [LOGIT_EPS, 1 - LOGIT_EPS] so an exact 0 or 1 maps to a large finite logit (+-13.8).
 LOGIT_EPS = 1e-6

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import png
 
+from tests.adjust_ref import adjust_reference
 from tests.compose.numpy_ref import W3C_B, dissolve_u
 
 ALIASES = {"alpha-linear": "normal", "multiply-luminosity": "multiply", "additive": "plus"}
@@ -148,6 +149,21 @@ def _compose(layers, out, A, origin, ctx):
                 with np.errstate(divide="ignore", invalid="ignore"):
                     res = np.where(ao > 0, premul / np.where(ao > 0, ao, 1.0), 0.0)
             out, A = res, (None if A is None else ao)
+            continue
+        if kind == "adjustment":  # f of the (encoded) colour below, mixed by mask × opacity; alpha kept
+            m = np.full((1, H, W), layer.get("opacity", 1.0))
+            if layer.get("mask"):
+                mask = _read_mask(folder, layer["mask"])
+                placed = np.zeros((1, H, W))
+                mh, mw = mask.shape[1:]
+                x0, y0, x1, y1 = max(x, 0), max(y, 0), min(x + mw, W), min(y + mh, H)
+                if x0 < x1 and y0 < y1:
+                    placed[:, y0:y1, x0:x1] = mask[:, y0 - y : y1 - y, x0 - x : x1 - x]
+                m = m * placed
+            encoded = linear_to_srgb(np.clip(out, 0, 1)) if linear else out
+            cs = decode(adjust_reference(layer["adjustment"], encoded))
+            res = out + m * (_B(blend, out, cs) - out)
+            out = np.clip(res, 0.0, 1.0) if clamp_each else res
             continue
         lo, hi = layer.get("range", [0.0, 1.0])
         if kind == "solid":

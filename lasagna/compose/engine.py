@@ -25,7 +25,7 @@ from lasagna.compose.color import linear_to_srgb, srgb_to_linear
 from lasagna.compose.fused import kernel_inplace
 from lasagna.compose.group import apply_group
 from lasagna.compose.plan import RenderPlan
-from lasagna.compose.step import _alpha, _clamp, _clamp_, _color
+from lasagna.compose.step import _adjusted, _alpha, _clamp, _clamp_, _color
 from lasagna.heap import tune_heap
 
 # Canvas pixels (times batch entries) per band of the fast path. 2^18 float32 RGB pixels are 3 MB:
@@ -122,7 +122,8 @@ def run_fast(
                     region.copy_(apply_group(plan, step, region, a0, a1, dtype, False))
                 else:
                     sl = step.layer_slice(a0, a1)
-                    cs, a = _color(step, sl, dtype, False), _alpha(step, sl, dtype, False)
+                    a = _alpha(step, sl, dtype, False)
+                    cs = _color(step, sl, dtype, False) if step.spec.adjust is None else _adjusted(step, region, dtype)
                     kernel_inplace(step.blend)(region, cs, a)  # fused.py: compiled where on
                 _clamp_(region, step)
             while k < len(switch_at):
@@ -166,7 +167,8 @@ def run_functional(
             new = _clamp(apply_group(plan, step, backdrop, a0, a1, dtype, True), step)
         else:
             sl = step.layer_slice(a0, a1)
-            cs, a = _color(step, sl, dtype, True), _alpha(step, sl, dtype, True)
+            a = _alpha(step, sl, dtype, True)
+            cs = _color(step, sl, dtype, True) if step.spec.adjust is None else _adjusted(step, backdrop, dtype)
             new = _clamp(KERNELS[step.blend](backdrop, cs, a), step)
         if whole:
             canvas = new

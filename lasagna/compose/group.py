@@ -28,6 +28,9 @@ is one layer of colour ``c / α`` and the base's alpha αb × mask × opacity. T
 ``_apply_clip_layers`` seeds a compositor with the base's colour and alpha and keeps the base's alpha), which it
 pins against Photoshop's merged images.
 
+An adjustment layer (``spec.adjust``) changes the colour under it and keeps its alpha: over ``(c, αb)`` the colour
+``Cb = c / αb`` becomes ``Cb + α(B(Cb, f(Cb)) − Cb)`` (psd-tools' ``_apply_adjustment``), premultiplied again.
+
 Clamping (``clamp="layer"``): after each child the premultiplied colour is clamped to [0, α] (the colour to
 [0, 1]), and an isolated group's colour after it is blended. Everything here is pure functions, so autograd
 differentiates through groups (``render`` uses the recorded engine for a tail with groups).
@@ -42,7 +45,7 @@ from torch import Tensor
 
 from lasagna.compose.blend import KERNELS, LERP_B, Alpha, broadcast_shape, dissolve_alpha
 from lasagna.compose.plan import PlanStep, RenderPlan
-from lasagna.compose.step import _alpha, _clamp, _color
+from lasagna.compose.step import _adjusted, _alpha, _clamp, _color
 from lasagna.numerics import UNPREMULTIPLY_EPS
 
 State = tuple[Tensor, Tensor | None]  # (C, None) opaque, or premultiplied (c, α)
@@ -82,6 +85,16 @@ def blend_state(state: State, blend: str, Cs: Tensor, a: Alpha) -> State:
     if ab is None:
         return KERNELS[blend](C, Cs, a), None
     return composite_over(C, ab, Cs, a, blend)
+
+
+def adjust_state(state: State, step: PlanStep, a: Alpha, dtype: torch.dtype) -> State:
+    """Adjustment layer ``step`` over ``state``: the colour Cb becomes Cb + α(B(Cb, f(Cb)) − Cb) and the alpha is
+    kept (psd-tools' ``_apply_adjustment``: an adjustment has no coverage of its own)."""
+    C, ab = state
+    if ab is None:
+        return KERNELS[step.blend](C, _adjusted(step, C, dtype), a), None
+    Cb = unpremultiply(C, ab)
+    return KERNELS[step.blend](Cb, _adjusted(step, Cb, dtype), a) * ab, ab
 
 
 def clamp_state(state: State, step: PlanStep) -> State:
@@ -158,7 +171,11 @@ def _children(
         else:
             ly, lx = child.ly0 + cy0 - child.y0, child.lx0 + cx0 - child.x0
             sl = (..., slice(ly, ly + (cy1 - cy0)), slice(lx, lx + (cx1 - cx0)))
-            new = blend_state(sub, child.blend, _color(child, sl, dtype, grad), _alpha(child, sl, dtype, grad))
+            a = _alpha(child, sl, dtype, grad)
+            if child.spec.adjust is not None:
+                new = adjust_state(sub, child, a, dtype)
+            else:
+                new = blend_state(sub, child.blend, _color(child, sl, dtype, grad), a)
         new = clamp_state(new, child)
         if (cy0, cy1, cx0, cx1) == rect:
             C, ab = new

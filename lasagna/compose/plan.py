@@ -21,6 +21,11 @@ skip reason, checked in this order:
 ``empty``           a group none of whose children is live (always skipped: it changes nothing);
 ``outside-base``    a layer clipped to a base whose rectangle it does not meet (it shows only on the base).
 
+**Adjustment layers** (``RenderLayerSpec(adjust=...)``, ``adjust.py``) read the canvas below them: their colour is
+``adjust(Cb)``, their tensors hold only the mask (a zero-stride colour of its size). They are never occluders and
+never identities by value (only a mask of zeros makes one an identity), and a clamp follows them under
+``clamp="layer"``.
+
 **Clipping chains** (``RenderGroupSpec(clip=True)``: a base and the layers clipped to it, Photoshop's clipping
 mask) are isolated groups whose rectangle is the base's (cut by the base's mask, which the chain carries); the
 base is compiled on its own, so no clipped layer occludes it, and a chain whose base is skipped shows nothing
@@ -56,6 +61,7 @@ from typing import Any, Literal
 import torch
 from torch import Tensor
 
+from lasagna.compose.adjust import Adjustment
 from lasagna.compose.blend import BLEND_MODES, broadcast_shape, check_blend_name, clamp_needed
 from lasagna.compose.color import srgb_to_linear
 from lasagna.compose.layer import LayerTensors
@@ -85,6 +91,8 @@ class RenderLayerSpec:
     mapped to; it only matters for clamping a layer that carries gradients (see ``clamp_needed``).
     ``encoded``: the colour is sRGB-encoded, so it is decoded when blending in linear light —
     except for ``multiply``, whose values are factors and are never decoded.
+    ``adjust``: an adjustment layer: its colour is ``adjust`` of the backdrop (of the sRGB-encoded backdrop in the
+    linear blend space), and ``tensors`` carry only its mask (``adjustment_tensors``).
     """
 
     id: str
@@ -95,9 +103,12 @@ class RenderLayerSpec:
     offset: tuple[int, int] = (0, 0)
     range: tuple[float, float] = (0.0, 1.0)
     encoded: bool = True
+    adjust: Adjustment | None = None
 
     def __post_init__(self) -> None:
         where = _check_common(self, "RenderLayerSpec")
+        if self.adjust is not None and not isinstance(self.adjust, Adjustment):
+            raise LasagnaError(f"adjust is a {type(self.adjust).__name__}; expected an Adjustment or None", where=where)
         if not isinstance(self.tensors, LayerTensors):
             raise LasagnaError(f"tensors is a {type(self.tensors).__name__}; expected LayerTensors", where=where)
         r = self.range
@@ -111,7 +122,11 @@ class RenderLayerSpec:
 
     @property
     def requires_grad(self) -> bool:
-        return self.tensors.requires_grad or (isinstance(self.opacity, Tensor) and self.opacity.requires_grad)
+        return (
+            self.tensors.requires_grad
+            or (isinstance(self.opacity, Tensor) and self.opacity.requires_grad)
+            or (self.adjust is not None and self.adjust.requires_grad)
+        )
 
     def opacity_value(self) -> float | None:
         """The opacity as a number when it is one value that carries no gradient, else None."""
@@ -491,6 +506,12 @@ def _compile_level(
             continue
         if isinstance(spec, RenderGroupSpec):
             continue  # never an identity by value, never an occluder (conservative)
+        if spec.adjust is not None:  # reads its backdrop: an identity only where its mask is 0, never an occluder
+            if cull and not spec.requires_grad and spec.tensors.is_transparent():
+                reasons[i] = "identity"
+                continue
+            opaque_flags[i] = _opaque(spec)
+            continue
         if cull and not spec.requires_grad:
             # Over transparency only a transparent layer is an identity (see the module docstring).
             identity = spec.tensors.is_identity(spec.blend) if opaque_backdrop else spec.tensors.is_transparent()
@@ -509,10 +530,13 @@ def _compile_level(
         y0, y1, x0, x1 = rects[i]
         ox, oy = spec.offset
         group = isinstance(spec, RenderGroupSpec)
-        decode = not group and blend_space == "linear" and spec.encoded and spec.blend != "multiply"
+        adjusting = not group and spec.adjust is not None
+        decode = not group and blend_space == "linear" and (adjusting or (spec.encoded and spec.blend != "multiply"))
         clamp_lo = clamp_hi = False
         if clamp == "layer":
-            if group:
+            if adjusting:
+                clamp_lo = clamp_hi = True  # its colour depends on the backdrop: no bound is proven
+            elif group:
                 # An isolated group's colour is a quotient c/α (an ulp outside [0, 1] is possible): clamp. A
                 # pass-through group mixes two clamped canvases, which stays in range.
                 clamp_lo = clamp_hi = spec.isolated
@@ -630,6 +654,14 @@ def solid_tensors(
     return LayerTensors(color, alpha)
 
 
+def adjustment_tensors(mask: Tensor | None, width: int, height: int, dtype: torch.dtype | None = None) -> LayerTensors:
+    """An adjustment layer's ``LayerTensors``: its ``mask`` (``(..., 1, h, w)``, or None: the canvas), and a
+    zero-stride colour of that size (an adjustment has no pixels; its colour is computed from the backdrop)."""
+    dtype = dtype or (mask.dtype if mask is not None else torch.get_default_dtype())
+    h, w = (mask.shape[-2], mask.shape[-1]) if mask is not None else (height, width)
+    return LayerTensors(torch.zeros((), dtype=dtype).expand(3, h, w), None, mask)
+
+
 def plan_from_document(
     doc: Any, tensors: Mapping[str, LayerTensors], *, cull: bool = True, dtype: torch.dtype | None = None
 ) -> RenderPlan:
@@ -679,6 +711,12 @@ def _document_specs(
                 f"names mask {str(mask_name)!r} but tensors[{layer.id!r}].mask is missing; expected the loaded mask",
                 where=f"{here}.mask",
             )
+        if layer.kind == "adjustment":
+            mask = lt.mask if mask_name is not None and lt is not None else None
+            adjust = Adjustment(layer.adjustment.type, layer.adjustment.model_dump(exclude={"type"}))
+            lt = adjustment_tensors(mask, width, height, dtype)
+            specs.append(RenderLayerSpec(tensors=lt, adjust=adjust, **common))
+            continue
         if layer.kind == "group":
             children = _document_specs(layer.layers, tensors, width, height, dtype, f"{here}.layers")
             mask = lt.mask if mask_name is not None and lt is not None else None
@@ -717,6 +755,29 @@ def clip_chain(base: RenderSpec, clipped: Sequence[RenderSpec]) -> RenderGroupSp
     ``children[0]`` is the base without them (normal, opaque, unmasked; a group base is isolated: its clipped
     layers paint on its result, as Photoshop composites a group that has clipping layers)."""
     bx, by = base.offset
+    moved = tuple(replace(c, offset=(c.offset[0] - bx, c.offset[1] - by)) for c in clipped)
+    if isinstance(base, RenderLayerSpec) and base.adjust is not None:
+        # An adjustment has no alpha of its own: its clipped layers paint on its result f(Cb) where the canvas is,
+        # and the mask and opacity mix that with the backdrop (psd-tools' _apply_adjustment with clip layers) — a
+        # pass-through group of the bare adjustment and the clipped layers.
+        t = base.tensors
+        bare = replace(
+            base,
+            tensors=adjustment_tensors(None, t.width, t.height, t.color.dtype),
+            opacity=1.0,
+            visible=True,
+            offset=(0, 0),
+        )
+        return RenderGroupSpec(
+            id=f"{base.id}:clip",
+            children=(bare, *moved),
+            isolated=False,
+            blend="normal",
+            opacity=base.opacity,
+            visible=base.visible,
+            offset=base.offset,
+            mask=t.mask,
+        )
     if isinstance(base, RenderGroupSpec):
         mask = base.mask
         inner: RenderSpec = replace(
@@ -727,7 +788,6 @@ def clip_chain(base: RenderSpec, clipped: Sequence[RenderSpec]) -> RenderGroupSp
         mask = t.mask
         bare = t if t.mask is None else LayerTensors(t.color, t.alpha)
         inner = replace(base, tensors=bare, blend="normal", opacity=1.0, visible=True, offset=(0, 0))
-    moved = tuple(replace(c, offset=(c.offset[0] - bx, c.offset[1] - by)) for c in clipped)
     return RenderGroupSpec(
         id=f"{base.id}:clip",
         children=(inner, *moved),
@@ -751,6 +811,7 @@ __all__ = [
     "compile_plan",
     "plan_from_document",
     "solid_tensors",
+    "adjustment_tensors",
     "clip_chain",
     "BLEND_MODES",
 ]

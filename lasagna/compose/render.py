@@ -11,7 +11,7 @@ intermediates (``backward.py``); ``"autograd"`` records every blend as pure func
 (``engine.run_functional``; twice differentiable); ``"auto"`` (default) records where the recorded graph's
 intermediates fit ``AUTO_RECORD_BYTES`` and runs banded above that. Both give the same gradients (tested); they reach
 every live layer tensor, opacity and mask, and any module that produced them. From the first learned layer
-up, a plan holding a group is always recorded (``differentiable_tail``).
+up, a plan holding a group or an adjustment layer is always recorded (``differentiable_tail``).
 
 Precision: ``dtype`` defaults to the promoted dtype of the live layers' colours (float32 for float32
 layers); float64 is the reference. float16 and bfloat16 are computed in that dtype (inputs cast band
@@ -154,9 +154,9 @@ def differentiable_tail(
 
     A tail holding a group is recorded (``run_functional``) whichever ``grad_engine`` is asked: the banded
     backward has closed forms for layers over an opaque canvas only, and a group is a function of its
-    backdrop (pass-through) and of every child (``group.py``)."""
+    backdrop (pass-through) and of every child (``group.py``), an adjustment layer of its backdrop."""
     if resolve_grad_engine(plan, begin, dtype, grad_engine) == "autograd" or any(
-        s.children is not None for s in plan.steps[begin:]
+        s.children is not None or s.spec.adjust is not None for s in plan.steps[begin:]
     ):
         return run_functional(plan, begin, dtype, prefix)
     return BandedGrad.apply(plan, begin, dtype, prefix, *grad_inputs(plan, begin))

@@ -63,7 +63,7 @@ def _spec_tensors(spec: RenderSpec) -> list[Tensor | None]:
     op = spec.opacity if isinstance(spec.opacity, Tensor) else None
     if isinstance(spec, RenderGroupSpec):
         return [spec.mask, op, *(t for c in spec.children for t in _spec_tensors(c))]
-    return [*spec.tensors.tensors(), op]
+    return [*spec.tensors.tensors(), op, *(spec.adjust.tensors() if spec.adjust is not None else ())]
 
 
 def _tensor_refs(spec: RenderSpec) -> tuple[Any, ...]:
@@ -79,7 +79,8 @@ def _spec_fingerprint(spec: RenderSpec) -> tuple[Any, ...]:
     if isinstance(spec, RenderGroupSpec):
         mask = None if spec.mask is None else (id(spec.mask), spec.mask._version)
         return (*common, "group", spec.isolated, spec.clip, mask, tuple(_spec_fingerprint(c) for c in spec.children))
-    return (*common, tuple(spec.range), spec.encoded, spec.tensors.fingerprint())
+    adjust = None if spec.adjust is None else spec.adjust.fingerprint()
+    return (*common, tuple(spec.range), spec.encoded, spec.tensors.fingerprint(), adjust)
 
 
 def _step_fingerprint(step: Any) -> tuple[Any, ...] | None:

@@ -1,4 +1,5 @@
-"""What one live plan step reads when it is blended: its colour, its alpha, and the clamp after it.
+"""What one live plan step reads when it is blended: its colour (an adjustment's, of the backdrop), its alpha, and
+the clamp after it.
 
 Shared by the forward engines (``engine.py``), the group compositor (``group.py``) and the banded
 backward (``backward.py``), so all of them read a layer the same way.
@@ -10,7 +11,7 @@ import torch
 from torch import Tensor
 
 from lasagna.compose.blend import Alpha, dissolve_alpha
-from lasagna.compose.color import srgb_to_linear
+from lasagna.compose.color import linear_to_srgb, srgb_to_linear
 from lasagna.compose.plan import PlanStep
 
 
@@ -22,6 +23,16 @@ def _color(step: PlanStep, sl: tuple, dtype: torch.dtype, grad: bool) -> Tensor:
     else:
         cs = t.color[sl]
     return cs if cs.dtype == dtype else cs.to(dtype)
+
+
+def _adjusted(step: PlanStep, Cb: Tensor, dtype: torch.dtype) -> Tensor:
+    """An adjustment layer's colour over the backdrop colour ``Cb`` (unpremultiplied): its function of ``Cb``, of
+    the sRGB-encoded ``Cb`` in the linear blend space (Photoshop adjusts encoded values)."""
+    f = step.spec.adjust
+    Cb = Cb if Cb.dtype == dtype else Cb.to(dtype)
+    if step.decode:
+        return srgb_to_linear(f(linear_to_srgb(Cb.clamp(0.0, 1.0))))
+    return f(Cb)
 
 
 def _alpha(step: PlanStep, sl: tuple, dtype: torch.dtype, grad: bool) -> Alpha:

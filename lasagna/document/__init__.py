@@ -2,6 +2,7 @@
 presets, blend names, JSON load/save and JSON Schema generation. No torch here (docs/ARCHITECTURE.md).
 """
 
+from lasagna.document.adjustment import ADJUSTMENT_TYPES, Adjustment
 from lasagna.document.blend import (
     ACCEPTED_BLEND_NAMES,
     BLEND_ALIASES,
@@ -15,6 +16,7 @@ from lasagna.document.models import (
     FORMAT,
     LAYER_KINDS,
     VERSION,
+    AdjustmentLayer,
     Canvas,
     clip_chains,
     Condition,
@@ -45,6 +47,9 @@ from lasagna.document.types import check_id, check_relative_path, unique_id
 from lasagna.document.validation import RuleError, format_validation_error, parse_json
 
 __all__ = [
+    "ADJUSTMENT_TYPES",
+    "Adjustment",
+    "AdjustmentLayer",
     "ACCEPTED_BLEND_NAMES",
     "BLEND_ALIASES",
     "BLEND_MODES",

@@ -32,6 +32,7 @@ from pydantic import (
     model_validator,
 )
 
+from lasagna.document.adjustment import Adjustment
 from lasagna.document.condition import AMBIENT, DIRECTION_PATTERN, parse_direction
 from lasagna.document.types import (
     RANGE_FOR_BLEND_SCHEMA,
@@ -278,6 +279,30 @@ class SurfaceLayer(_Common):
         return self
 
 
+class AdjustmentLayer(_Common):
+    """An adjustment layer: a parametric function of what lies below it (Photoshop's adjustment layers).
+
+    Where it applies, the layer's colour is ``f(Cb)``, ``f`` the adjustment of ``adjustment.type``
+    (``lasagna.compose.adjust``) of the backdrop Cb, blended with ``blend`` and α = mask × opacity; the alpha
+    below is kept (over a backdrop with alpha, inside an isolated group or a clipping chain, only its colour
+    changes). It covers the canvas, or with a ``mask`` only the mask's rectangle, its top-left corner at the
+    layer's offset (as a group's mask).
+    """
+
+    kind: Literal["adjustment"] = Field("adjustment", description="Layer kind: an adjustment of what lies below.")
+    adjustment: Adjustment = Field(description="The function and its parameters; ``type`` names it.")
+    mask: RelativePath | None = Field(
+        None,
+        description="Gray PNG whose top-left corner is at the layer's offset; the adjustment applies only inside "
+        "it, by its value.",
+    )
+
+    @property
+    def range(self) -> tuple[float, float]:
+        """An adjustment's colour is a colour: the unit range."""
+        return UNIT_RANGE
+
+
 def _group_schema(schema: dict[str, Any]) -> None:
     schema["required"] = ["kind", *(r for r in schema.get("required", []) if r != "kind")]
     # JSON Schema form of _pass_through_blends_normally: isolated absent or false -> blend normal.
@@ -334,10 +359,13 @@ class GroupLayer(_Common):
         return self
 
 
-Layer = Annotated[PixelsLayer | SolidLayer | LearnedLayer | SurfaceLayer | GroupLayer, Field(discriminator="kind")]
+Layer = Annotated[
+    PixelsLayer | SolidLayer | LearnedLayer | SurfaceLayer | AdjustmentLayer | GroupLayer, Field(discriminator="kind")
+]
 GroupLayer.model_rebuild()
 LAYER_KINDS: tuple[str, ...] = tuple(
-    m.model_fields["kind"].default for m in (PixelsLayer, SolidLayer, LearnedLayer, SurfaceLayer, GroupLayer)
+    m.model_fields["kind"].default
+    for m in (PixelsLayer, SolidLayer, LearnedLayer, SurfaceLayer, AdjustmentLayer, GroupLayer)
 )
 LayerPath = tuple[str | int, ...]  # JSON path of a layer: ("layers", 2, "layers", 0)
 

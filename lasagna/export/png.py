@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from lasagna.atomic import atomic_write_all
-from lasagna.document import GroupLayer, LearnedLayer, SolidLayer, SurfaceLayer
+from lasagna.document import AdjustmentLayer, GroupLayer, LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
 from lasagna.io.png import encode_png
 from lasagna.io.stack import NOT_RENDERED, encode_layer
@@ -39,8 +39,11 @@ def layer_pngs(stack, *, clip: bool = False) -> tuple[dict[str, bytes], dict]:
         }
         if len(path.split(".")) > 1:  # inside a group: its offset adds the groups' (layers[i].layers[j])
             entry["path"] = path
-        if isinstance(layer, GroupLayer):
-            entry.update(isolated=layer.isolated, layers=[child.id for child in layer.layers], file=None)
+        if isinstance(layer, (GroupLayer, AdjustmentLayer)):  # no pixels: the index records it, and its mask
+            if isinstance(layer, GroupLayer):
+                entry.update(isolated=layer.isolated, layers=[child.id for child in layer.layers], file=None)
+            else:
+                entry.update(adjustment=layer.adjustment.model_dump(mode="json"), file=None)
             t = stack.tensors.get(layer.id)
             if layer.mask is not None and t is not None and t.mask is not None:
                 files[f"masks/{layer.id}.png"] = encode_png(

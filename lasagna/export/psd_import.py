@@ -14,12 +14,17 @@ What each PSD thing becomes:
   ``clip: true`` (a clipping chain), when psd-tools would read each as it is; a clipping layer that clips to
   nothing (the bottom of its list, or above a clipped group: psd-tools and Photoshop draw none) is left out with
   a warning line;
-* layers psd-tools can draw but a stack cannot hold as such — type, shape, smart-object and fill layers, a
-  layer with effects, a clipping base whose chain holds one of those or an adjustment layer (with its chain) —
-  → a ``pixels`` layer of psd-tools' rendering of it (``Layer.composite``), one warning line each saying what
-  was rasterised;
-* what cannot be represented at all — adjustment layers, a group's fill opacity, knockout — one warning line
-  each; nothing is dropped without one.
+* an adjustment layer of a kind the compositor has (levels, curves, hue/saturation and its colorize, brightness/
+  contrast new and legacy, exposure, invert, posterize, threshold) → an ``adjustment`` layer with its parameters
+  (``adjustment_params``), its blend, opacity × fill and its mask on the canvas (the mask's background colour
+  outside its data); hue/saturation's six colour ranges are not modelled (one warning line when one is set);
+* a fill layer → a ``pixels`` layer of the fill Photoshop stored in its channels, with its mask (psd-tools'
+  rendering when none is stored);
+* layers psd-tools can draw but a stack cannot hold as such — type, shape and smart-object layers, a layer with
+  effects, a clipping base whose chain holds one of those — → a ``pixels`` layer of psd-tools' rendering of it
+  (``Layer.composite``), one warning line each saying what was rasterised;
+* what cannot be represented at all — other adjustment layers, a group's fill opacity, knockout — one warning
+  line each; nothing is dropped without one.
 
 The PSD's top level is composited over transparency, and a stack over an opaque background (white: W3C
 section 8.3, the page group's backdrop): unless the bottom visible layer is an opaque, full-canvas normal one,
@@ -69,6 +74,100 @@ FILL_INSIDE_BLEND = frozenset(
 RASTERISED_KINDS = {"type": "type layer", "shape": "shape layer", "smartobject": "smart object"}
 
 
+def _signed16(v: int) -> int:
+    """A legacy brightness/contrast value: stored as an unsigned 16-bit integer, read as a signed one."""
+    return v - 65536 if v >= 32768 else v
+
+
+def _levels(records, warn: Callable[[str], None], what: str) -> dict | None:
+    """Levels' records (composite, red, green, blue, … in codes, gamma × 100) as the document's parameters."""
+    out: dict[str, Any] = {"type": "levels"}
+    for name, r in zip(("rgb", "red", "green", "blue"), records):
+        lo, hi = r.input_floor / 255.0, r.input_ceiling / 255.0
+        if lo >= hi:
+            warn(f"{what}: levels {name} input points {r.input_floor} ≥ {r.input_ceiling}; that channel left as is")
+            continue
+        gamma = min(max(r.gamma / 100.0, 0.01), 9.99)  # Photoshop's dialog range (psd-tools clamps alike)
+        out[name] = dict(
+            in_black=lo, in_white=hi, gamma=gamma, out_black=r.output_floor / 255.0, out_white=r.output_ceiling / 255.0
+        )
+    return out
+
+
+def _curve_points(points) -> list[list[float]]:
+    """A curve's (output, input) code pairs as [x, y] in [0, 1], sorted by x, each x once."""
+    seen: dict[int, int] = {}
+    for out_code, in_code in points:
+        seen.setdefault(int(in_code), int(out_code))
+    return [[x / 255.0, seen[x] / 255.0] for x in sorted(seen)]
+
+
+def adjustment_params(layer, warn: Callable[[str], None], what: str, depth: int = 8) -> dict | None:
+    """The document's ``adjustment`` of a psd-tools adjustment layer (or a legacy brightness/contrast pixel
+    layer), or None (with a warning line) for a kind the compositor does not have."""
+    from psd_tools.constants import Tag
+
+    kind = layer.kind
+    if kind == "pixel":  # psd-tools reads Photoshop's legacy brightness/contrast block as a layer without pixels
+        b = layer.tagged_blocks.get_data(Tag.BRIGHTNESS_AND_CONTRAST)
+        return dict(
+            type="brightness-contrast",
+            brightness=float(_signed16(b.brightness)),
+            contrast=float(_signed16(b.contrast)),
+            legacy=True,
+        )
+    if kind == "levels":
+        return _levels(layer.data or [], warn, what)
+    if kind == "curves":
+        out: dict[str, Any] = {"type": "curves"}
+        for item in layer.extra or []:
+            name = {0: "rgb", 1: "red", 2: "green", 3: "blue"}.get(item.channel_id)
+            pts = _curve_points(item.points)
+            if name is not None and len(pts) >= 2:
+                out[name] = pts
+        return out
+    if kind == "brightnesscontrast":
+        return dict(
+            type="brightness-contrast",
+            brightness=float(layer.brightness),
+            contrast=float(layer.contrast),
+            legacy=bool(layer.use_legacy),
+        )
+    if kind == "exposure":
+        return dict(
+            type="exposure",
+            exposure=float(layer.exposure or 0.0),
+            offset=float(layer.exposure_offset or 0.0),
+            gamma=min(max(float(layer.gamma or 1.0), 0.01), 9.99),
+        )
+    if kind == "huesaturation":
+        if any(tuple(hsl) != (0, 0, 0) for _, hsl in (layer.data or [])):
+            warn(f"{what}: hue/saturation colour ranges cannot be represented; only the master channel is imported")
+        h, sat, light = layer.master or (0, 0, 0)
+        out = dict(type="hue-saturation", hue=float(h), saturation=float(sat), lightness=float(light))
+        if layer.enable_colorization:
+            ch, cs, cl = layer.colorization or (0, 25, 0)
+            out["colorize"] = dict(hue=float(ch % 360), saturation=float(cs), lightness=float(cl))
+        return out
+    if kind == "invert":
+        return dict(type="invert")
+    if kind == "posterize":
+        return dict(type="posterize", levels=min(max(int(layer.posterize or 4), 2), 255), bits=16 if depth > 8 else 8)
+    if kind == "threshold":
+        # Photoshop compares the luminosity's codes with the level: half a code below it is met.
+        code = min(max(int(layer.threshold or 128), 1), 255) / 255.0
+        return dict(type="threshold", level=code - (0.5 / 255.0 if depth <= 8 else 0.5 / 65535.0))
+    warn(f"{what}: {kind} adjustment layer cannot be represented in a stack; left out")
+    return None
+
+
+def _legacy_adjustment(layer) -> bool:
+    """A pixel layer that is Photoshop's legacy brightness/contrast adjustment (psd-tools has no class for it)."""
+    from psd_tools.constants import Tag
+
+    return layer.kind == "pixel" and Tag.BRIGHTNESS_AND_CONTRAST in layer.tagged_blocks
+
+
 def _require():
     try:
         from psd_tools import PSDImage
@@ -108,14 +207,16 @@ class _Reader:
         return out
 
     def _drawn_by_psd_tools(self, layer) -> bool:
-        return layer.kind in RASTERISED_KINDS or isinstance(layer, self.FillLayer) or layer.has_effects()
+        return (
+            layer.kind in RASTERISED_KINDS
+            or layer.has_effects()
+            or (isinstance(layer, self.FillLayer) and not _has_pixels(layer))
+        )
 
     def _chain_splits(self, layer) -> bool:
         """Whether the layers clipped to ``layer`` are imported as a clipping chain (each its own layer, ``clip``)
         rather than rasterised with it: the base and every clipped layer are read as they are."""
-        return not self._drawn_by_psd_tools(layer) and not any(
-            isinstance(c, self.AdjustmentLayer) or self._drawn_by_psd_tools(c) for c in layer.clip_layers
-        )
+        return not self._drawn_by_psd_tools(layer) and not any(self._drawn_by_psd_tools(c) for c in layer.clip_layers)
 
     def clip_chain(self, layer, entry: dict, path: str) -> list[dict]:
         """The entries of the layers clipped to ``layer`` (``clip``: true), when its chain splits."""
@@ -143,9 +244,11 @@ class _Reader:
 
     def layer(self, layer, path: str) -> dict | None:
         what = f"{self.where}: layer {path!r}"
-        if isinstance(layer, self.AdjustmentLayer):
-            self.warn(f"{what}: {layer.kind} adjustment layer cannot be represented in a stack; left out")
-            return None
+        adjustment = None
+        if isinstance(layer, self.AdjustmentLayer) or _legacy_adjustment(layer):
+            adjustment = adjustment_params(layer, self.warn, what, self.psd.depth)
+            if adjustment is None:
+                return None
         name = sanitise_name(layer.name)
         if name != layer.name:
             self.warn(f"{what}: name holds control characters; imported as {name!r}")
@@ -156,6 +259,17 @@ class _Reader:
             "opacity": layer.opacity / 255.0,
             "visible": bool(layer.visible),
         }
+        if adjustment is not None:
+            # Fill fades an adjustment as opacity does (psd-tools' _get_const: shape × opacity).
+            entry.update(kind="adjustment", blend=self._blend(layer, what), adjustment=adjustment)
+            entry["opacity"] *= layer.fill_opacity / 255.0
+            mask = self._mask(layer, (0, 0, self.psd.width, self.psd.height), what)
+            if mask is not None:
+                entry["mask"] = f"masks/{lid}.png"
+                from lasagna.io.stack import group_mask_tensors
+
+                self.tensors[lid] = group_mask_tensors(_tensor(mask))
+            return entry
         if layer.is_group():
             entry.update(kind="group", layers=self.layers(layer, path))
             if layer.blend_mode == self.BlendMode.PASS_THROUGH:
@@ -204,7 +318,7 @@ class _Reader:
         """(RGBA (4, h, w) float64, bbox, baked): the stored pixels, or psd-tools' rendering of the layer
         (``baked``: mask, opacity, fill, effects and clipping layers are in it)."""
         reasons = []
-        if layer.kind in RASTERISED_KINDS or isinstance(layer, self.FillLayer):
+        if layer.kind in RASTERISED_KINDS or (isinstance(layer, self.FillLayer) and not _has_pixels(layer)):
             reasons.append(RASTERISED_KINDS.get(layer.kind, f"{layer.kind} fill layer"))
         if layer.has_effects():
             reasons.append("layer effects (drawn with the layer's blend mode, not their own)")
@@ -251,6 +365,12 @@ class _Reader:
         _check_pixels(_area(bbox), self.max_pixels, what)
 
 
+def _has_pixels(layer) -> bool:
+    """Whether a fill layer's channels hold its rendered fill (Photoshop stores it; psd-tools' writer may not)."""
+    bbox = layer.bbox
+    return bbox[2] > bbox[0] and bbox[3] > bbox[1] and layer.has_pixels()
+
+
 def _area(bbox) -> int:
     return max(0, bbox[2] - bbox[0]) * max(0, bbox[3] - bbox[1])
 
@@ -267,13 +387,11 @@ def import_bytes(psd, layers_in_file: list, max_pixels: int, where: str) -> int:
     kept = transient = 0
     for layer in layers_in_file:
         what = f"{where}: layer {layer.name!r}"
-        if isinstance(layer, AdjustmentLayer):
-            continue  # nothing decoded
-        if layer.is_group():
-            target = canvas
+        if layer.is_group() or isinstance(layer, AdjustmentLayer) or _legacy_adjustment(layer):
+            target = canvas  # a group's or an adjustment's mask is cut to the canvas (pixels: none)
         elif (
             layer.kind in RASTERISED_KINDS
-            or isinstance(layer, FillLayer)
+            or (isinstance(layer, FillLayer) and not _has_pixels(layer))
             or layer.has_effects()
             or layer.has_clip_layers()
         ):

@@ -28,6 +28,7 @@ target cannot express exactly:
   the exact composite, so the file still flattens to our image in any reader; a one-line warning
   says why (hide that layer to edit the others). The merged image is always the exact composite.
 
+* An adjustment layer is left out (psd-tools and the OpenRaster writer make none): the composite goes on top.
 * Clipping chains (``groups=True``): every item of a clipped layer has ``clip``; the writers place them (PSD's
   clipping flag; in OpenRaster an isolated stack of the base and ``svg:src-atop`` layers, as Krita writes its
   inherit-alpha). Not exact, the composite then on top: a chain with helper layers, flat export, a non-normal
@@ -80,9 +81,12 @@ class ExportLayer:
     clip: bool = False  # clipped to the item below (Photoshop's clipping mask; the document's ``clip``)
 
     def rgba_uint8(self) -> np.ndarray:
-        """(h, w, 4) uint8, rounded to nearest."""
-        rgba = np.concatenate([self.color, self.alpha]).transpose(1, 2, 0)
-        return np.rint(np.clip(rgba, 0.0, 1.0) * 255.0).astype(np.uint8)
+        """(h, w, 4) uint8, rounded to nearest (a plane at a time: a 12 MP layer's float64 RGBA is 384 MB a copy)."""
+        planes = [*self.color, *self.alpha]
+        out = np.empty(planes[0].shape + (4,), dtype=np.uint8)
+        for i, plane in enumerate(planes):
+            out[:, :, i] = np.rint(np.clip(plane, 0.0, 1.0) * 255.0)
+        return out
 
 
 @dataclass
@@ -224,6 +228,10 @@ class _Walk:
         for i, layer in enumerate(layers):
             if layer.kind == "group":
                 made = self.group(layer, origin, shown, isolated_in)
+            elif layer.kind == "adjustment":  # no writer here makes adjustment layers: the composite shows it
+                made = []
+                if layer.visible and shown:
+                    self.inexact.append(f"{layer.adjustment.type} adjustment layer {layer.id!r} (left out)")
             else:
                 made = self.leaf(layer, origin, shown, isolated_in)
             out.extend(made)

@@ -27,6 +27,7 @@ from lasagna.atomic import atomic_write_all
 from lasagna.compose.layer import LayerTensors
 from lasagna.compose.surface import encode_normal_map
 from lasagna.document import (
+    AdjustmentLayer,
     Document,
     GroupLayer,
     LearnedLayer,
@@ -490,7 +491,7 @@ def load_surveyed(survey: Survey) -> Stack:
     stack = Stack(doc, file.parent)
     for r in planned:
         layer = r.layer
-        if isinstance(layer, GroupLayer):  # a group's mask: its own raster, with no source beside it
+        if isinstance(layer, (GroupLayer, AdjustmentLayer)):  # a group's or adjustment's mask: no source beside it
             stack.tensors[layer.id] = group_mask_tensors(images.pop((r.loc, "mask")), f"{file}: {r.where}")
             continue
         if r.field != "source":
@@ -650,8 +651,8 @@ def stack_files(stack: Stack, folder: str | os.PathLike, *, clip: bool = False) 
     for loc, layer in doc.walk():
         if layer.id not in stack.tensors or isinstance(layer, SolidLayer):
             continue
-        if isinstance(layer, GroupLayer):
-            if layer.mask is not None:  # a group's tensors hold its mask only (group_mask_tensors)
+        if isinstance(layer, (GroupLayer, AdjustmentLayer)):
+            if layer.mask is not None:  # a group's or adjustment's tensors hold its mask only (group_mask_tensors)
                 data = encode_group_mask(stack, layer.id, loc, clip=clip)
                 writes.append((entry_inside(folder, layer.mask, f"{loc}.mask"), data))
             continue

@@ -13,7 +13,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from lasagna.document import Document, GroupLayer, LearnedLayer, PixelsLayer, SurfaceLayer, load_document, stack_file
+from lasagna.document import (
+    AdjustmentLayer,
+    Document,
+    GroupLayer,
+    LearnedLayer,
+    PixelsLayer,
+    SurfaceLayer,
+    load_document,
+    stack_file,
+)
 from lasagna.errors import ImageError, PathError
 from lasagna.io.png import DEFAULT_MAX_PIXELS, check_size, decode_bytes, read_png_header, verify_png
 from lasagna.limits import check_memory
@@ -59,7 +68,7 @@ def _rasters(doc: Document) -> Iterable[tuple[str, Any, str, str]]:
             yield loc, layer, "source", layer.source
             if layer.mask is not None:
                 yield loc, layer, "mask", layer.mask
-        elif isinstance(layer, GroupLayer) and layer.mask is not None:
+        elif isinstance(layer, (GroupLayer, AdjustmentLayer)) and layer.mask is not None:
             yield loc, layer, "mask", layer.mask
 
 

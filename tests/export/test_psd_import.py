@@ -469,3 +469,49 @@ def test_a_clipping_chain_is_written_back_with_the_clipping_flag(tmp_path):
     assert np.abs(psd_tools_flat(tmp_path / "back.psd") - ours(path)).max() <= 1
     again = read_psd(tmp_path / "back.psd").document.layers
     assert [layer.clip for layer in again] == [False, False, False, True, True, False]
+
+
+def test_adjustment_layers_written_by_psd_tools_import_with_their_parameters(tmp_path):
+    # psd-tools writes adjustment records as tagged blocks (it has no constructor for adjustment layers): levels,
+    # legacy brightness/contrast, invert, posterize and threshold over a base, one of them clipped, one masked, one
+    # inside a group. Imported with ``lasagna import-psd`` and composited: within 3/255 of tests/reference.py's
+    # float64 composite of the stack folder, each adjustment read with its parameters.
+    from psd_tools.constants import Tag
+    from psd_tools.psd.adjustments import LevelRecord
+
+    from tests.reference import composite_reference, to_uint8
+
+    rng = np.random.default_rng(5)
+    psd = PSDImage.new("RGBA", (W, H))
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    empty = Image.fromarray(np.zeros((H, W, 4), dtype=np.uint8))
+
+    def adjustment(name, tag, *data, **fields):
+        layer = psd.create_pixel_layer(empty, name=name)
+        layer.tagged_blocks.set_data(tag, *data, **fields)
+        return layer
+
+    records = [LevelRecord(20, 230, 10, 250, 130), LevelRecord(0, 200, 0, 255, 80)]
+    records += [LevelRecord(0, 255, 0, 255, 100)] * 27
+    adjustment("levels", Tag.LEVELS, items=records, version=2)
+    adjustment("legacy", Tag.BRIGHTNESS_AND_CONTRAST, 30, 65536 - 40, 127, 0)
+    group = psd.create_group(name="group")
+    group.append(psd.create_pixel_layer(rgba(rng, H, W), name="inner"))
+    inv = adjustment("invert", Tag.INVERT)
+    inv.opacity = 150
+    adjustment("posterize", Tag.POSTERIZE, 4)
+    adjustment("threshold", Tag.THRESHOLD, 140).clipping = True
+    path = tmp_path / "adjust.psd"
+    psd.save(path)
+    out = tmp_path / "stack"
+    assert main(["import-psd", str(path), "-o", str(out)]) == 0
+    doc = load_stack(out).document
+    kinds = {layer.id: layer.adjustment for _, layer in doc.walk() if layer.kind == "adjustment"}
+    assert [a.type for a in kinds.values()] == ["levels", "brightness-contrast", "invert", "posterize", "threshold"]
+    assert kinds["levels"].rgb.in_black == 20 / 255 and kinds["levels"].red.gamma == 0.8
+    assert (kinds["legacy"].brightness, kinds["legacy"].contrast, kinds["legacy"].legacy) == (30.0, -40.0, True)
+    assert kinds["posterize"].levels == 4 and kinds["threshold"].level == pytest.approx(139.5 / 255)
+    assert main(["composite", str(out), "-o", str(tmp_path / "c.png")]) == 0
+    with Image.open(tmp_path / "c.png") as im:
+        got = np.asarray(im.convert("RGB")).astype(int)
+    assert np.abs(got - to_uint8(composite_reference(out)).astype(int)).max() <= 3

@@ -1,0 +1,136 @@
+"""Float64 numpy references of the adjustments (``lasagna.compose.adjust``), written from the formulas directly
+(per pixel, no tables): psd-tools' ``composite/adjustments.py`` in continuous form, the natural cubic spline by its
+textbook tridiagonal system, HSL by the standard hexcone cases."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _spline(xs, ys, t):
+    xs, ys = np.asarray(xs, float), np.asarray(ys, float)
+    n = len(xs)
+    m = np.zeros(n)
+    if n > 2:
+        h = np.diff(xs)
+        a = np.zeros((n - 2, n - 2))
+        for i in range(n - 2):
+            a[i, i] = 2 * (h[i] + h[i + 1])
+            if i:
+                a[i, i - 1] = h[i]
+            if i < n - 3:
+                a[i, i + 1] = h[i + 1]
+        s = np.diff(ys) / h
+        m[1:-1] = np.linalg.solve(a, 6 * np.diff(s))
+    t = np.clip(t, xs[0], xs[-1])
+    k = np.clip(np.searchsorted(xs, t, side="right") - 1, 0, n - 2)
+    h = xs[k + 1] - xs[k]
+    u, v = (xs[k + 1] - t) / h, (t - xs[k]) / h
+    return u * ys[k] + v * ys[k + 1] + ((u**3 - u) * m[k] + (v**3 - v) * m[k + 1]) * h**2 / 6
+
+
+def _levels(x, c):
+    t = np.clip((x - c["in_black"]) / (c["in_white"] - c["in_black"]), 0, 1) ** (1 / c["gamma"])
+    return np.clip(c["out_black"] + t * (c["out_white"] - c["out_black"]), 0, 1)
+
+
+def _curve(x, pts):
+    pts = np.asarray(pts, float)
+    return np.clip(_spline(pts[:, 0], pts[:, 1], x), 0, 1)
+
+
+def _per_channel(C, p, f):
+    out = C.copy()
+    for i, name in enumerate(("red", "green", "blue")):
+        if p.get(name) is not None:
+            out[i] = f(C[i], p[name])
+    return f(out, p["rgb"]) if p.get("rgb") is not None else out
+
+
+def _bc(x, p):
+    b, c = p["brightness"], p["contrast"]
+    if p.get("legacy"):
+        k = 1 + c / 100 if c <= 0 else 1 / max(1 - c / 100, 1 / 255)
+        return np.clip((x + b / 255 - 0.5) * k + 0.5, 0, 1)
+    b, c = b / 150, c / 100
+    t = np.linspace(0, 1, 65536)
+    cx = np.array([0, 63 / 255, 191 / 255, 1])
+    con = _spline(cx, [0, cx[1] - c * 25 / 255, cx[2] + c * 25 / 255, 1], t)
+    a, r = (1.65, -1.0, 1.96, 1.0, 1.0), (0.35, 10.0, 0.4, 4.0, 1.25)
+    pol = [a[i] * t ** r[i] for i in range(5)]
+    h = 0.5 * (abs(b) * (pol[0] + pol[1]) + (1 - abs(b)) * (pol[2] + pol[3]) + pol[4])
+    bs = b * t * (1 - t) * h
+    return np.clip(np.interp(x, t, np.clip(np.interp(t, t - bs, con + bs), 0, 1)), 0, 1)
+
+
+def _rgb_to_hsl(C):
+    r, g, b = C
+    mx, mn = C.max(0), C.min(0)
+    d = mx - mn
+    L = (mx + mn) / 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        S = np.where(d > 1e-12, d / np.maximum(1 - np.abs(2 * L - 1), 1e-12), 0)
+        h = np.where(mx == r, ((g - b) / d) % 6, np.where(mx == g, (b - r) / d + 2, (r - g) / d + 4))
+    return np.where(d > 1e-12, h / 6, 0), S, L
+
+
+def _hsl_to_rgb(H, S, L):
+    c = (1 - np.abs(2 * L - 1)) * S
+    h6 = (H % 1) * 6
+    x = c * (1 - np.abs(h6 % 2 - 1))
+    z = np.zeros_like(c)
+    sector = np.floor(h6).astype(int) % 6
+    table = [(c, x, z), (x, c, z), (z, c, x), (z, x, c), (x, z, c), (c, z, x)]
+    out = np.zeros((3, *c.shape))
+    for s, rgb in enumerate(table):
+        for i in range(3):
+            out[i] = np.where(sector == s, rgb[i], out[i])
+    return out + (L - c / 2)
+
+
+def _lighten(x, light):
+    if light > 0:
+        return np.clip(x * (1 - light) + light, 0, 1)
+    return np.clip(x * (1 + light), 0, 1)
+
+
+def _hue_saturation(C, p):
+    col = p.get("colorize")
+    if col is not None:
+        _, _, L = _rgb_to_hsl(C)
+        L = _lighten(L, col["lightness"] / 100)
+        return np.clip(
+            _hsl_to_rgb(np.full_like(L, col["hue"] / 360 % 1), np.full_like(L, col["saturation"] / 100), L), 0, 1
+        )
+    C = _lighten(C, p["lightness"] / 100)
+    H, S, L = _rgb_to_hsl(C)
+    s = p["saturation"] / 100
+    if s:
+        S = np.clip(S / (1 - s + 1e-2) if s > 0 else S * (1 + s), 0, 1)
+    return np.clip(_hsl_to_rgb(H + p["hue"] / 360, S, L), 0, 1)
+
+
+def adjust_reference(adjustment: dict, C: np.ndarray) -> np.ndarray:
+    """The adjusted colour of ``C`` (3, h, w) float64 in [0, 1]."""
+    p, kind = adjustment, adjustment["type"]
+    C = np.clip(np.asarray(C, dtype=np.float64), 0, 1)
+    if kind == "levels":
+        return _per_channel(C, p, _levels)
+    if kind == "curves":
+        return _per_channel(C, p, _curve)
+    if kind == "brightness-contrast":
+        return _bc(C, p)
+    if kind == "exposure":
+        x = np.clip(C**2.2 * 2.0 ** p["exposure"] + p["offset"], 0, 1)
+        return x ** (1 / (p["gamma"] * 2.2))
+    if kind == "invert":
+        return 1 - C
+    if kind == "posterize":
+        n, codes = p["levels"], 2.0 ** p.get("bits", 8)
+        return np.floor(C * n * (codes - 1) / codes) / (n - 1)
+    if kind == "threshold":
+        lum = 0.3 * C[0] + 0.59 * C[1] + 0.11 * C[2]
+        return np.repeat((lum >= p["level"])[None].astype(float), 3, axis=0)
+    if kind == "hue-saturation":
+        return _hue_saturation(C, p)
+    raise ValueError(f"unknown adjustment {kind!r}")
