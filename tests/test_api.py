@@ -11,7 +11,7 @@ import torch
 from PIL import Image
 
 import lasagna.api as api
-from tests.reference import composite_reference, to_uint8
+from tests.support.reference import composite_reference, to_uint8
 
 ROOT = Path(__file__).resolve().parents[1]
 BASIC = ROOT / "examples" / "stacks" / "basic"

@@ -1,5 +1,5 @@
 """Edits at scale (``lasagna.batch``, ``lasagna edit`` with many inputs) on the tiny catalogue
-(tests/tinylayers.py): inputs and names, skipping complete outputs and finishing after a kill, failures
+(tests/support/tinylayers.py): inputs and names, skipping complete outputs and finishing after a kill, failures
 per input, equality with one-at-a-time ``edit``, and two processes against one.
 
 Batched forward passes and float order, measured here (``test_batched_forward_within_tolerance``): a
@@ -25,12 +25,7 @@ from lasagna.batch import collect_inputs, edit_many, is_complete, output_names, 
 from lasagna.cli import main
 from lasagna.editing import edit
 from lasagna.errors import LasagnaError, PathError
-from tests.tinylayers import ROOT, tiny_catalogue
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> Path:
-    return tiny_catalogue(tmp_path_factory.mktemp("batch") / "layers")
+from tests.support.tinylayers import ROOT
 
 
 @pytest.fixture(autouse=True)

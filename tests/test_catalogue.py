@@ -13,12 +13,7 @@ from lasagna import catalogue as cat
 from lasagna.components import check_generator
 from lasagna.errors import ConditionError, LasagnaError
 from lasagna.learned import choose_method
-from tests.tinylayers import ROOT, tiny_catalogue
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> Path:
-    return tiny_catalogue(tmp_path_factory.mktemp("catalogue") / "layers")
+from tests.support.tinylayers import ROOT
 
 
 def _preset_copy(folder: Path, name: str = "shading", **changes) -> Path:

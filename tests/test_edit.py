@@ -1,5 +1,5 @@
 """``lasagna edit`` / ``render`` / ``train-layer`` / ``demo`` and the API behind them (lasagna.editing), on a
-tiny random catalogue (tests/tinylayers.py) put first in LASAGNA_LAYERS.
+tiny random catalogue (tests/support/tinylayers.py) put first in LASAGNA_LAYERS.
 
 Checked against independent decoders (pypng, Pillow) and a float64 numpy composite, not against the
 code's own output: the stored layer PNG, the composite PNG, re-rendering from the document alone.
@@ -21,15 +21,10 @@ from PIL import Image
 from lasagna.cli import main
 from lasagna.editing import edit, render_learned
 from lasagna.errors import LasagnaError
-from tests.tinylayers import ROOT, STEPS, tiny_catalogue
+from tests.support.tinylayers import ROOT, STEPS
 
 PHOTO = ROOT / "examples" / "photos" / "coffee.png"
 SCENE = ROOT / "examples" / "world" / "heldout-s0-000000"
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> Path:
-    return tiny_catalogue(tmp_path_factory.mktemp("edit") / "layers")
 
 
 @pytest.fixture(autouse=True)
@@ -297,11 +292,11 @@ def test_render_all_and_nothing_to_render(tmp_path, capsys):
     ],
 )
 def test_the_presets_method_and_refine_steps_are_the_default(tmp_path, tiny, monkeypatch, fields, method, steps):
-    from tests.tinylayers import _preset
+    from tests.support.tinylayers import write_preset
 
     folder = tmp_path / "layers"
     shutil.copytree(tiny, folder)
-    _preset(folder, "shading", **fields)
+    write_preset(folder, "shading", **fields)
     monkeypatch.setenv("LASAGNA_LAYERS", str(folder))
     result = edit(PHOTO, "shading", "left")
     settings = result.stack.document.layer("shading-left").settings
@@ -313,12 +308,12 @@ def test_the_presets_method_and_refine_steps_are_the_default(tmp_path, tiny, mon
 
 
 def test_a_preset_asking_for_amortised_without_a_generator_runs_per_image(tmp_path, tiny, monkeypatch):
-    from tests.tinylayers import _preset
+    from tests.support.tinylayers import write_preset
 
     folder = tmp_path / "layers"
     shutil.copytree(tiny, folder)
     shutil.rmtree(folder / "shading" / "generator")
-    _preset(folder, "shading", method="amortised", refine_steps=3)
+    write_preset(folder, "shading", method="amortised", refine_steps=3)
     monkeypatch.setenv("LASAGNA_LAYERS", str(folder))
     settings = edit(PHOTO, "shading", "left").stack.document.layer("shading-left").settings
     assert (settings["method"], settings["optimize"]) == ("per-image", STEPS)

@@ -5,7 +5,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 
@@ -13,14 +12,9 @@ from lasagna.cli import main
 from lasagna.editing import edit
 from lasagna.errors import DocumentError, LasagnaError
 from lasagna.learned import METHODS, LayerSettings, canonical_method
-from tests.tinylayers import ROOT, tiny_catalogue
+from tests.support.tinylayers import ROOT
 
 PHOTO = ROOT / "examples" / "photos" / "coffee.png"
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> Path:
-    return tiny_catalogue(tmp_path_factory.mktemp("learned") / "layers")
 
 
 @pytest.fixture(autouse=True)

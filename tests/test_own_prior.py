@@ -1,5 +1,5 @@
-"""Bring your own prior (issue #15), end to end on TINY random Stable-Diffusion pipelines saved to disk as a
-user's checkpoint would be (``tests.tinydiffusers``; nothing is downloaded): ``lasagna edit --prior`` with
+"""Bring your own prior (issue #15), end to end on toy random Stable-Diffusion pipelines saved to disk as a
+user's checkpoint would be (``tests.support.toydiffusers``; nothing is downloaded): ``lasagna edit --prior`` with
 ControlNets, prompts and a control image, the API's ``edit(prior=…)``, ``lasagna train-corrective`` on a
 diffusers folder and LMC-SDS with it, ``lasagna prior add`` then ``--layer NAME``, provenance and
 ``lasagna render``'s warning, aspect kept, and every bad input as one line with exit status 2.
@@ -18,7 +18,7 @@ pytest.importorskip("diffusers", reason="diffusers is not installed (optional ex
 
 from lasagna.cli import main  # noqa: E402
 from lasagna.io.png import write_png  # noqa: E402
-from tests.tinydiffusers import controlnet_for, save_controlnet, save_pipeline, sd_parts, sdxl_parts  # noqa: E402
+from tests.support.toydiffusers import controlnet_for, save_controlnet, save_pipeline, sd_parts, sdxl_parts  # noqa: E402
 
 STEPS = "2"
 

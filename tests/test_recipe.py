@@ -19,7 +19,7 @@ from PIL import Image
 
 from lasagna.cli import main
 from lasagna.io.stack import Stack, load_stack
-from tests.tinylayers import ROOT, tiny_catalogue
+from tests.support.tinylayers import ROOT, tiny_variant
 
 SIDE = 16  # the working size of the preset below: smaller than the image, so a full-size run would differ
 PRESET = "shading"
@@ -27,9 +27,10 @@ LABEL = "left"
 
 
 @pytest.fixture(scope="module")
-def catalogue(tmp_path_factory) -> Path:
-    """The tiny catalogue, its shading preset per-image (its default method) at working size ``SIDE``."""
-    folder = tiny_catalogue(tmp_path_factory.mktemp("recipe") / "layers", generator=False)
+def catalogue(tiny, tmp_path_factory) -> Path:
+    """A variant of the tiny catalogue: no shading generator, its shading preset per-image (its default method)
+    at working size ``SIDE``."""
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("recipe") / "layers", generator=False)
     path = folder / PRESET / "preset.json"
     data = json.loads(path.read_text(encoding="utf-8"))
     data.update(method="per-image", working_size=SIDE)

@@ -1,6 +1,6 @@
 """The ``relight`` preset (issue #11): an already lit image relit by a 1-channel luminosity ratio in [0, 4].
 
-Runs on the tiny random catalogue (tests/tinylayers.py): the machinery, the record and the maths of the layer
+Runs on the tiny random catalogue (tests/support/tinylayers.py): the machinery, the record and the maths of the layer
 against the world's truth format, not the trained prior's quality (benchmarks/relight.py measures that).
 """
 
@@ -14,12 +14,6 @@ from lasagna.editing import edit
 from lasagna.io.render import render_stack
 from lasagna.world import generate
 from lasagna.world.tasks import relight_sources, relighting
-from tests.tinylayers import tiny_catalogue
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return tiny_catalogue(tmp_path_factory.mktemp("relight") / "layers")
 
 
 @pytest.fixture(autouse=True)

@@ -15,14 +15,13 @@ from PIL import Image
 
 from lasagna.cli import main
 from lasagna.limits import MAX_DISTILL_STEPS
-from tests.tinylayers import tiny_catalogue
 
 
 @pytest.fixture(scope="module")
-def made(tmp_path_factory) -> dict[str, Path]:
+def made(tmp_path_factory, tiny) -> dict[str, Path]:
     """A per-image stack (settings.prior written) and an amortised one (a generator folder), 16×16."""
     root = tmp_path_factory.mktemp("confined")
-    catalogue = tiny_catalogue(root / "layers")
+    catalogue = tiny
     image = root / "img.png"
     Image.fromarray(np.random.default_rng(0).integers(0, 256, (16, 16, 3)).astype(np.uint8)).save(image)
     with pytest.MonkeyPatch.context() as mp:

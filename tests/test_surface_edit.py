@@ -11,16 +11,17 @@ import torch
 from lasagna import edit
 from lasagna.errors import LasagnaError
 from lasagna.io.stack import load_stack
-from tests.tinylayers import _preset, tiny_catalogue
+from tests.support.tinylayers import tiny_variant, write_preset
 
 SURFACE = {"estimator": "surface-albedo-32", "refine_steps": 0, "working_size": 16}
 
 
 @pytest.fixture(scope="module")
-def catalogue(tmp_path_factory):
-    folder = tiny_catalogue(tmp_path_factory.mktemp("layers"))
-    _preset(folder, "shading", surface=SURFACE, layer_kind="surface")
-    _preset(folder, "relight", surface={**SURFACE, "estimator": "surface-lit-32"})
+def catalogue(tiny, tmp_path_factory):
+    """A variant of the tiny catalogue: shading and relight make surface layers (their presets rewritten)."""
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("surface") / "layers")
+    write_preset(folder, "shading", surface=SURFACE, layer_kind="surface")
+    write_preset(folder, "relight", surface={**SURFACE, "estimator": "surface-lit-32"})
     return [folder]
 
 

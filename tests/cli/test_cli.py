@@ -17,9 +17,9 @@ from PIL import Image
 
 from lasagna.cli import main
 from lasagna.export.ora_import import MAX_GROUP_DEPTH
-from tests import pngcraft
-from tests.reference import composite_reference, to_uint8
-from tests.stackcraft import random_stack, write_png8, write_stack
+from tests.support import pngcraft
+from tests.support.reference import composite_reference, to_uint8
+from tests.support.stackcraft import random_stack, write_png8, write_stack
 
 BASIC = Path(__file__).resolve().parents[2] / "examples" / "stacks" / "basic"
 

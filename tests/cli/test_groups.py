@@ -1,5 +1,5 @@
 """Stacks with nested groups through the CLI and the stack-folder I/O: ``lasagna composite`` against the
-independent float64 reference (``tests/reference.py``), validate, load/save round trips, one-line errors."""
+independent float64 reference (``tests/support/reference.py``), validate, load/save round trips, one-line errors."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from PIL import Image
 from lasagna.cli import main
 from lasagna.io.render import render_stack
 from lasagna.io.stack import load_stack, save_stack
-from tests.reference import composite_reference, to_uint8
-from tests.stackcraft import random_group_stack, write_png8, write_stack
+from tests.support.reference import composite_reference, to_uint8
+from tests.support.stackcraft import random_group_stack, write_png8, write_stack
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -8,7 +8,7 @@ import torch
 
 import lasagna.cli.validate as validate_command
 from lasagna.cli import COMMANDS, main
-from tests.stackcraft import write_stack
+from tests.support.stackcraft import write_stack
 
 
 def run(capsys, *argv) -> tuple[int, str, str]:

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from lasagna.cli import main
-from tests.tinylayers import ROOT, tiny_catalogue
+from tests.support.tinylayers import ROOT
 
 BASIC = ROOT / "examples" / "stacks" / "basic"
 PHOTO = ROOT / "examples" / "photos" / "coffee.png"
@@ -57,11 +57,6 @@ def one_error_line(code: int, err: str) -> bool:
 
 def litter(*folders: Path) -> list[str]:
     return [p.name for folder in folders if folder.is_dir() for p in folder.iterdir() if ".lasagna-" in p.name]
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> Path:
-    return tiny_catalogue(tmp_path_factory.mktemp("outputs") / "layers")
 
 
 def start_slow(tmp_path: Path, *argv, env: dict | None = None) -> tuple[subprocess.Popen, Path]:

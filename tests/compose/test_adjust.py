@@ -1,7 +1,7 @@
 """Adjustment layers: each adjustment against its float64 numpy reference (``tests/adjust_ref.py``: the formulas per
 pixel, no tables), gradients in float64 (``gradcheck``) in the colour and the parameters, refusals, and adjustment
 layers composited in stacks (opaque canvas, isolated groups, clipping chains, the banded and recorded engines, the
-prefix-cache Renderer) against ``tests/reference.py``'s float64 composite of the same stack folder.
+prefix-cache Renderer) against ``tests/support/reference.py``'s float64 composite of the same stack folder.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from lasagna.errors import DocumentError, LasagnaError
 from lasagna.io.render import render_stack
 from lasagna.io.stack import Stack, save_stack
 from tests.adjust_ref import adjust_reference
-from tests.reference import composite_reference
+from tests.support.reference import composite_reference
 
 # One of each, with parameters away from the identity (document units; see lasagna/document/adjustment.py).
 CASES = {

@@ -27,7 +27,7 @@ from PIL import Image
 
 from lasagna.cli import main
 from lasagna.io.stack import Stack
-from tests.reference import composite_reference, to_uint8
+from tests.support.reference import composite_reference, to_uint8
 
 KRITA, GIMP, XVFB = shutil.which("krita"), shutil.which("gimp"), shutil.which("xvfb-run")
 

@@ -20,7 +20,7 @@ from lasagna.io.render import render_stack
 from lasagna.io.stack import load_stack
 from lasagna.limits import MAX_GROUP_DEPTH
 from tests.export.oraflat import read_png_rgb
-from tests.stackcraft import random_group_stack, write_png8, write_stack
+from tests.support.stackcraft import random_group_stack, write_png8, write_stack
 
 
 def _doc(layers):
@@ -155,7 +155,7 @@ def test_psd_keeps_groups_and_import_psd_reads_them_back(tmp_path, seed):
 def _exact_group_stack(folder, seed):
     """A random group stack with what both formats hold exactly: no group masks, pass-through groups at
     opacity 1, no plus layers (their alpha is baked against an opaque backdrop)."""
-    from tests.stackcraft import BLEND_NAMES
+    from tests.support.stackcraft import BLEND_NAMES
 
     random_group_stack(folder, seed, modes=[m for m in BLEND_NAMES if m != "plus"])
     doc = json.loads((folder / "stack.json").read_text())

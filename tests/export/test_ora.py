@@ -21,8 +21,8 @@ from lasagna.io.render import render_stack
 from lasagna.io.stack import Stack, load_stack
 from tests.export.bounded import within
 from tests.export.oraflat import flatten, png_size, read_png_rgb
-from tests.reference import composite_reference, to_uint8
-from tests.stackcraft import random_stack
+from tests.support.reference import composite_reference, to_uint8
+from tests.support.stackcraft import random_stack
 
 BASIC = Path(__file__).resolve().parents[2] / "examples" / "stacks" / "basic"
 
@@ -256,7 +256,7 @@ def _layer(src: str, name: str = "a") -> str:
 
 
 def _png8(w: int = 8, h: int = 8) -> bytes:
-    from tests import pngcraft
+    from tests.support import pngcraft
 
     return pngcraft.gray8(w, h, 90)
 
@@ -308,7 +308,7 @@ def test_an_entry_padded_past_its_png_is_refused_unread(tmp_path):
 
 @pytest.mark.slow
 def test_an_entry_padded_with_1gib_is_refused_in_bounded_memory(tmp_path):
-    from tests.peak import run_cli
+    from tests.support.peak import run_cli
 
     path = _padded_entry_ora(tmp_path / "x.ora", 2**30)
     assert path.stat().st_size < 4 * 2**20

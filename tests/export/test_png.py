@@ -10,7 +10,7 @@ import torch
 
 from lasagna.export.png import export_layer_pngs
 from lasagna.io.stack import NOT_RENDERED, Stack
-from tests.reference import read_png64
+from tests.support.reference import read_png64
 
 
 def test_raw_values_depths_and_index(tmp_path):

@@ -14,8 +14,8 @@ from lasagna.errors import ExportError
 from lasagna.export.psd import export_psd
 from lasagna.io.render import render_stack
 from lasagna.io.stack import Stack, load_stack
-from tests.reference import composite_reference, to_uint8
-from tests.stackcraft import random_stack
+from tests.support.reference import composite_reference, to_uint8
+from tests.support.stackcraft import random_stack
 
 psd_tools = pytest.importorskip("psd_tools")
 from psd_tools import PSDImage  # noqa: E402

@@ -234,10 +234,10 @@ def test_cli_import_then_composite(tmp_path, capsys):
 
 def test_a_psd_of_every_mode_composites_as_the_float64_reference(tmp_path):
     # One psd-tools-written PSD holding a layer of every blend mode (partial alpha, opacity), imported with
-    # ``lasagna import-psd`` and composited with ``lasagna composite``: within 3/255 of tests/reference.py's
+    # ``lasagna import-psd`` and composited with ``lasagna composite``: within 3/255 of tests/support/reference.py's
     # float64 composite of the imported stack folder (independent of the compositor), and of psd-tools' own
     # flattening except dissolve (psd-tools draws it as normal).
-    from tests.reference import composite_reference, to_uint8
+    from tests.support.reference import composite_reference, to_uint8
 
     rng = np.random.default_rng(11)
     T = 8
@@ -337,7 +337,7 @@ def test_a_masks_stored_rectangle_counts_in_the_memory_estimate(tmp_path):
 
 
 def test_a_huge_mask_is_refused_in_bounded_memory(tmp_path):
-    from tests.peak import run_cli
+    from tests.support.peak import run_cli
 
     path = _big_mask_psd(tmp_path / "big.psd", 16384)
     code, out, err, peak = run_cli("import-psd", path, "-o", tmp_path / "out", "--memory-budget", "512M")
@@ -474,12 +474,12 @@ def test_a_clipping_chain_is_written_back_with_the_clipping_flag(tmp_path):
 def test_adjustment_layers_written_by_psd_tools_import_with_their_parameters(tmp_path):
     # psd-tools writes adjustment records as tagged blocks (it has no constructor for adjustment layers): levels,
     # legacy brightness/contrast, invert, posterize and threshold over a base, one of them clipped, one masked, one
-    # inside a group. Imported with ``lasagna import-psd`` and composited: within 3/255 of tests/reference.py's
+    # inside a group. Imported with ``lasagna import-psd`` and composited: within 3/255 of tests/support/reference.py's
     # float64 composite of the stack folder, each adjustment read with its parameters.
     from psd_tools.constants import Tag
     from psd_tools.psd.adjustments import LevelRecord
 
-    from tests.reference import composite_reference, to_uint8
+    from tests.support.reference import composite_reference, to_uint8
 
     rng = np.random.default_rng(5)
     psd = PSDImage.new("RGBA", (W, H))

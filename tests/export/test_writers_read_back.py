@@ -1,7 +1,7 @@
 """Every document a writer writes, we read back (#28): random documents — names of arbitrary Unicode (those the
 name rule refuses are refused in one line, then imported as importers would), groups nested up to
 ``MAX_GROUP_DEPTH``, every blend mode — written as a stack folder, an OpenRaster file and a PSD, are read
-back by ``load_stack`` / ``import_ora`` / ``read_psd`` to the same layer tree. Tiny canvases, bounded examples.
+back by ``load_stack`` / ``import_ora`` / ``read_psd`` to the same layer tree. Small canvases, bounded examples.
 
 What the interchange files add is dropped before comparing: PSD's "(clamp to 1)" helper layers, its
 "Background" layer and "Composite (exact)" layer (OpenRaster's import drops its own); groups' ids (the files

@@ -431,7 +431,7 @@ def base_oras() -> list[dict[str, bytes]]:
     """The entries of a few valid .ora files written by ``lasagna.export.ora`` from small random stacks."""
     from lasagna.export.ora import encode_ora
     from lasagna.io.stack import load_stack
-    from tests.stackcraft import random_stack
+    from tests.support.stackcraft import random_stack
 
     out = []
     with tempfile.TemporaryDirectory() as folder:

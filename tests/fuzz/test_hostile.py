@@ -15,17 +15,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 
 from tests.fuzz import hostile
-from tests.tinylayers import tiny_catalogue
 
 DEFAULT_EXAMPLES = 25
 SLOW_EXAMPLES = int(os.environ.get("LASAGNA_FUZZ_EXAMPLES", "3500"))
 
 
 @pytest.fixture(scope="module")
-def env(tmp_path_factory) -> dict[str, str]:
+def env(tiny) -> dict[str, str]:
     """The child's environment: the tiny catalogue first (``lasagna edit`` runs in milliseconds), the
     default memory budget."""
-    return {"LASAGNA_LAYERS": str(tiny_catalogue(tmp_path_factory.mktemp("fuzz") / "layers"))}
+    return {"LASAGNA_LAYERS": str(tiny)}
 
 
 @pytest.fixture(scope="module")

@@ -11,12 +11,12 @@ from lasagna.compose.surface import MAX_FIT_ELEVATION, normals_from_height
 from lasagna.errors import LasagnaError
 from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
 
-TINY = dict(channels=(4, 8), blocks=1, working_size=8)
+TOY = dict(channels=(4, 8), blocks=1, working_size=8)
 
 
 @pytest.mark.parametrize("kind", ["albedo", "lit"])
 def test_untrained_is_the_flat_surface(kind):
-    net = SurfaceEstimator(SurfaceConfig(input=kind, **TINY))
+    net = SurfaceEstimator(SurfaceConfig(input=kind, **TOY))
     h = net(torch.rand(2, 3, 9, 13))  # not multiples of 2: padded and cropped back
     assert h.shape == (2, 1, 9, 13) and h.abs().max() == 0
     n = normals_from_height(h)
@@ -25,20 +25,20 @@ def test_untrained_is_the_flat_surface(kind):
 
 def test_lit_estimates_its_source_shading_and_a_unit_light_facing_the_viewer():
     torch.manual_seed(0)
-    net = SurfaceEstimator(SurfaceConfig(input="lit", **TINY))
+    net = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
     torch.nn.init.normal_(net.head.weight, std=3.0)  # extreme outputs: still a valid shading and light
     height, shading = net.decompose(torch.rand(5, 3, 8, 8))
     assert shading.min() >= 0.25 and shading.max() <= 1.0
     _, light = net.estimate(torch.rand(5, 3, 8, 8))
     torch.testing.assert_close(light.norm(dim=1), torch.ones(5), atol=1e-6, rtol=0)
     assert (light[:, 2] >= math.cos(math.radians(MAX_FIT_ELEVATION)) - 1e-6).all()
-    _, none = SurfaceEstimator(SurfaceConfig(input="albedo", **TINY)).estimate(torch.rand(1, 3, 8, 8))
+    _, none = SurfaceEstimator(SurfaceConfig(input="albedo", **TOY)).estimate(torch.rand(1, 3, 8, 8))
     assert none is None
 
 
 def test_pixels_do_not_depend_on_the_batch():
     torch.manual_seed(1)
-    net = SurfaceEstimator(SurfaceConfig(input="albedo", **TINY))
+    net = SurfaceEstimator(SurfaceConfig(input="albedo", **TOY))
     torch.nn.init.normal_(net.head.weight)
     x = torch.rand(3, 3, 8, 8)
     whole = net(x)
@@ -48,7 +48,7 @@ def test_pixels_do_not_depend_on_the_batch():
 
 def test_save_and_load(tmp_path):
     torch.manual_seed(2)
-    net = SurfaceEstimator(SurfaceConfig(input="lit", **TINY))
+    net = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
     torch.nn.init.normal_(net.head.weight)
     net.save_pretrained(tmp_path / "s")
     back = SurfaceEstimator.from_pretrained(tmp_path / "s")
@@ -58,6 +58,6 @@ def test_save_and_load(tmp_path):
 
 
 def test_bad_input():
-    net = SurfaceEstimator(SurfaceConfig(input="albedo", **TINY))
+    net = SurfaceEstimator(SurfaceConfig(input="albedo", **TOY))
     with pytest.raises(LasagnaError, match=r"image: image has shape \(1, 1, 8, 8\); expected \(B, 3, H, W\)"):
         net(torch.rand(1, 1, 8, 8))

@@ -16,7 +16,7 @@ LAYERS = Path(__file__).resolve().parents[2] / "layers"
 PRESETS = ("shading", "color", "light")
 
 
-def tiny(preset: str = "shading", **kw) -> LayerGenerator:
+def toy(preset: str = "shading", **kw) -> LayerGenerator:
     torch.manual_seed(0)
     return LayerGenerator(LayerGeneratorConfig.for_preset(load_preset(LAYERS / preset), channels=(8, 16, 16), **kw))
 
@@ -33,7 +33,7 @@ class TestLayerGenerator:
     @pytest.mark.parametrize("preset", PRESETS)
     @pytest.mark.parametrize("condition", ["frequency", "embedding"])
     def test_first_composite_equals_input(self, preset, condition):
-        gen = tiny(preset, condition=condition)
+        gen = toy(preset, condition=condition)
         p = load_preset(LAYERS / preset)
         base = torch.rand(3, 3, 16, 16, generator=torch.Generator().manual_seed(2))
         layer = gen(base, list(p.vocabulary[:1]) * 3)
@@ -47,13 +47,13 @@ class TestLayerGenerator:
 
     @pytest.mark.parametrize("hw", [(16, 16), (8, 24), (13, 7), (1, 1), (33, 20)])
     def test_shapes_at_any_size(self, hw):
-        gen = tiny("color")
+        gen = toy("color")
         base = torch.rand(2, 3, *hw)
         assert gen(base, "natural").shape == (2, 4, *hw)
 
     @pytest.mark.parametrize("preset", PRESETS)
     def test_output_in_range_after_training_like_weights(self, preset):
-        gen = tiny(preset)
+        gen = toy(preset)
         perturb(gen)
         spec = gen.spec
         y = gen(torch.rand(4, 3, 16, 16), load_preset(LAYERS / preset).vocabulary[0])
@@ -64,7 +64,7 @@ class TestLayerGenerator:
             assert y[:, 3:].min() >= 0 and y[:, 3:].max() <= 1
 
     def test_labels_change_the_output(self):
-        gen = tiny("shading")
+        gen = toy("shading")
         perturb(gen)
         base = torch.rand(1, 3, 8, 8)
         assert not torch.allclose(gen(base, "left"), gen(base, "right"))
@@ -72,7 +72,7 @@ class TestLayerGenerator:
         assert torch.equal(gen(base.repeat(2, 1, 1, 1), idx), gen(base.repeat(2, 1, 1, 1), ["left", "right"]))
 
     def test_condition_errors(self):
-        gen = tiny("shading")
+        gen = toy("shading")
         with pytest.raises(ConditionError, match="unknown label 'sideways'"):
             gen(torch.rand(1, 3, 8, 8), "sideways")
         with pytest.raises(ConditionError, match="3 labels for a batch of 2"):
@@ -84,7 +84,7 @@ class TestLayerGenerator:
 
     @pytest.mark.parametrize("preset", PRESETS)
     def test_gradient_reaches_every_parameter_through_the_composite(self, preset):
-        gen = tiny(preset)
+        gen = toy(preset)
         perturb(gen)
         base = torch.rand(2, 3, 8, 8)
         target = torch.rand(2, 3, 8, 8)
@@ -96,14 +96,14 @@ class TestLayerGenerator:
 
     def test_at_identity_only_the_head_moves_first(self):
         """Zero head weights: the first gradient reaches the head (not the trunk): the start is stable."""
-        gen = tiny("shading")
+        gen = toy("shading")
         base = torch.rand(2, 3, 8, 8)
         composite(base, gen(base, "left"), gen.spec).sum().backward()
         assert gen.head.weight.grad.abs().sum() > 0 and gen.head.bias.grad.abs().sum() > 0
         assert gen.enc[0][0].weight.grad.abs().sum() == 0
 
     def test_save_load_roundtrip(self, tmp_path):
-        gen = tiny("color", condition="embedding")
+        gen = toy("color", condition="embedding")
         perturb(gen)
         gen.save_pretrained(tmp_path / "g")
         back = LayerGenerator.from_pretrained(tmp_path / "g")

@@ -10,13 +10,13 @@ import torch
 from lasagna.errors import LasagnaError
 from lasagna.io import checkpoint as io
 from lasagna.priors.unet import ScheduleConfig, UNetPrior
-from tests.priors.test_unet import randomize, tiny_config
+from tests.priors.test_unet import randomize, toy_config
 
 
 @pytest.fixture()
 def saved(tmp_path):
     prior = randomize(
-        UNetPrior(tiny_config(schedule=ScheduleConfig(kind="cosine", num_steps=500), prediction="epsilon"))
+        UNetPrior(toy_config(schedule=ScheduleConfig(kind="cosine", num_steps=500), prediction="epsilon"))
     )
     prior.save_pretrained(tmp_path / "p")
     return prior, tmp_path / "p"
@@ -87,11 +87,11 @@ class TestErrors:
 
     def test_weights_that_do_not_match_the_config(self, saved, tmp_path):
         _, path = saved
-        other = UNetPrior(tiny_config(channels=(8, 16, 32)))
+        other = UNetPrior(toy_config(channels=(8, 16, 32)))
         io.save_tensors(path / "model.safetensors", other.state_dict(), {"format": "lasagna.unet_prior"})
         with pytest.raises(LasagnaError, match="weights do not match the config"):
             UNetPrior.from_pretrained(path)
-        wider = UNetPrior(tiny_config(channels=(12, 16)))
+        wider = UNetPrior(toy_config(channels=(12, 16)))
         io.save_tensors(path / "model.safetensors", wider.state_dict(), {"format": "lasagna.unet_prior"})
         with pytest.raises(LasagnaError, match="has shape"):
             UNetPrior.from_pretrained(path)

@@ -303,7 +303,7 @@ def test_the_estimate_counts_every_sample(tmp_path):
 def test_a_2048_tiff_of_128_samples_is_refused_in_little_memory(tmp_path):
     """Issue #28 (6): refused from the header: the refusing process's peak stays far below the 512 MiB of samples
     (2.9 GB when it was decoded first)."""
-    from tests.peak import run_python
+    from tests.support.peak import run_python
 
     path = _many_samples_tiff(tmp_path / "wide.tif", 2048, 128)
     code, out, err, peak = run_python(

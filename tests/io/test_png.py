@@ -15,7 +15,7 @@ from PIL import Image
 
 from lasagna.errors import ImageError
 from lasagna.io.png import decode_png, encode_png, read_png, read_png_header, write_png
-from tests import pngcraft
+from tests.support import pngcraft
 
 RNG = np.random.default_rng(7)
 H, W = 13, 17
@@ -222,7 +222,7 @@ def test_header_bomb_refused_before_decoding(tmp_path):
     with pytest.raises(ImageError, match="over the limit of 268435456") as info:
         read_png(tmp_path / "bomb.png")
     _one_line(info.value, tmp_path / "bomb.png")
-    # Under the pixel limit, a tiny IDAT still cannot hold 10000² pixels: refused unread.
+    # Under the pixel limit, a few-byte IDAT still cannot hold 10000² pixels: refused unread.
     with pytest.raises(ImageError, match="cannot expand"):
         decode_png(pngcraft.header_bomb(10_000, 10_000), "b")
     with pytest.raises(ImageError, match="over the limit of 100"):

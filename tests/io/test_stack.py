@@ -18,8 +18,8 @@ from lasagna.errors import DocumentError, ImageError, PathError
 from lasagna.io.png import read_png
 from lasagna.io.render import render_stack, write_composite
 from lasagna.io.stack import NOT_RENDERED, Stack, load_stack, save_stack, stack_from_tensors
-from tests.reference import composite_reference, read_png64, to_uint8
-from tests.stackcraft import random_stack, write_png8, write_png16, write_stack
+from tests.support.reference import composite_reference, read_png64, to_uint8
+from tests.support.stackcraft import random_stack, write_png8, write_png16, write_stack
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "stacks"
 
@@ -287,7 +287,7 @@ def test_remove_layer_drops_the_layer_its_tensors_and_bit_depth():
 
 
 def _big_layer_stack(folder: Path, side: int) -> Path:
-    from tests.peak import zero_rgb_png
+    from tests.support.peak import zero_rgb_png
 
     zero_rgb_png(folder / "layers" / "big.png", side)
     return write_stack(folder, _doc([{"id": "big", "kind": "pixels", "source": "layers/big.png"}], w=8, h=8))
@@ -306,7 +306,7 @@ def big16k(tmp_path_factory) -> Path:
 
 
 def _validate_without_decoding(folder: Path, side: int) -> None:
-    from tests.peak import run_cli
+    from tests.support.peak import run_cli
 
     code, out, err, peak = run_cli("validate", folder)
     assert code == 0 and err == "", err
@@ -364,7 +364,7 @@ def _solid_stack(folder: Path, side: int, color=(0.2, 0.4, 0.6)) -> Path:
 
 
 def test_composite_of_a_32768_solid_canvas_is_refused_in_bounded_memory(tmp_path):
-    from tests.peak import run_cli
+    from tests.support.peak import run_cli
 
     folder = _solid_stack(tmp_path / "s", 32768)
     code, out, err, peak = run_cli("composite", folder, "-o", tmp_path / "out.png")
@@ -374,7 +374,7 @@ def test_composite_of_a_32768_solid_canvas_is_refused_in_bounded_memory(tmp_path
 
 
 def test_a_2048_solid_canvas_renders_in_bounded_memory(tmp_path):
-    from tests.peak import baseline_mb, run_cli
+    from tests.support.peak import baseline_mb, run_cli
 
     folder = _solid_stack(tmp_path / "s", 2048)
     code, out, err, peak = run_cli("composite", folder, "-o", tmp_path / "out.png")

@@ -1,4 +1,4 @@
-"""Shared fixtures for the loss tests: small closed-form priors and a tiny prior with parameters."""
+"""Shared fixtures for the loss tests: small closed-form priors and a toy prior with parameters."""
 
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ def components(params, label: str, explicit_uncond: bool):
 
 
 class ConvPrior(Prior):
-    """A tiny prior with trainable parameters (a 3×3 conv and a label embedding), to prove that no
+    """A toy prior with trainable parameters (a 3×3 conv and a label embedding), to prove that no
     gradient reaches a prior's parameters through any loss."""
 
     def __init__(self, shape=SHAPE, vocabulary=("a", "b")):

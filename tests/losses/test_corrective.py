@@ -76,7 +76,7 @@ class BlurPrior(Prior):
         return self.schedule.eps_from_x0(z_t, x0, t)
 
 
-def tiny_train_config(**kw) -> ct.CorrectiveTrainConfig:
+def toy_train_config(**kw) -> ct.CorrectiveTrainConfig:
     base = dict(
         corrective=CorrectiveConfig(channels=3, resolution=8, filters=(8, 16)),
         steps=150,
@@ -246,7 +246,7 @@ class TestCorrective:
 # -- training ---------------------------------------------------------------------------------------
 class TestTraining:
     def test_short_run_lowers_lk(self, tmp_path):
-        result = ct.train_corrective(BlurPrior(), toy_source, tiny_train_config(), tmp_path / "run")
+        result = ct.train_corrective(BlurPrior(), toy_source, toy_train_config(), tmp_path / "run")
         assert result.step == 150 and result.stopped == "done"
         assert result.ratio < 0.8, (result.lk_trained, result.lk_trivial)  # learned the blur
         metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
@@ -254,7 +254,7 @@ class TestTraining:
         log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
         assert [r["step"] for r in log] == list(range(10, 151, 10))
         assert np.mean([r["lk"] for r in log[-3:]]) < np.mean([r["lk"] for r in log[:2]])
-        assert Corrective.from_pretrained(tmp_path / "run" / "corrective").config == tiny_train_config().corrective
+        assert Corrective.from_pretrained(tmp_path / "run" / "corrective").config == toy_train_config().corrective
 
     def test_triplets_use_the_unconditional_x0(self):
         """ẑ_t is the prior's x̂₀ of the null-label branch; b̂ is told the sample's own label."""
@@ -285,19 +285,19 @@ class TestTraining:
 
     def test_time_budget_then_resume(self, tmp_path):
         first = ct.train_corrective(
-            BlurPrior(), toy_source, tiny_train_config(steps=40, max_minutes=1e-9), tmp_path / "run"
+            BlurPrior(), toy_source, toy_train_config(steps=40, max_minutes=1e-9), tmp_path / "run"
         )
         assert first.stopped == "time" and first.step < 40
         _, meta = io.load_tensors(tmp_path / "run" / "checkpoint.safetensors")
         assert int(meta["step"]) == first.step
-        second = ct.train_corrective(BlurPrior(), toy_source, tiny_train_config(steps=40), tmp_path / "run")
+        second = ct.train_corrective(BlurPrior(), toy_source, toy_train_config(steps=40), tmp_path / "run")
         assert second.stopped == "done" and second.step == 40
 
     def test_resume_reproduces_an_uninterrupted_run_with_ema(self, tmp_path):
         kw = dict(ema_decay=0.9, checkpoint_every=7)
-        ct.train_corrective(BlurPrior(), toy_source, tiny_train_config(steps=30, **kw), tmp_path / "ref")
-        ct.train_corrective(BlurPrior(), toy_source, tiny_train_config(steps=17, **kw), tmp_path / "split")
-        ct.train_corrective(BlurPrior(), toy_source, tiny_train_config(steps=30, **kw), tmp_path / "split")
+        ct.train_corrective(BlurPrior(), toy_source, toy_train_config(steps=30, **kw), tmp_path / "ref")
+        ct.train_corrective(BlurPrior(), toy_source, toy_train_config(steps=17, **kw), tmp_path / "split")
+        ct.train_corrective(BlurPrior(), toy_source, toy_train_config(steps=30, **kw), tmp_path / "split")
         a, _ = io.load_tensors(tmp_path / "ref" / "checkpoint.safetensors")
         b, _ = io.load_tensors(tmp_path / "split" / "checkpoint.safetensors")
         assert set(a) == set(b) and any(k.startswith("ema.") for k in a)
@@ -305,10 +305,10 @@ class TestTraining:
             torch.testing.assert_close(a[k], b[k], atol=1e-6, rtol=1e-5, msg=k)
 
     def test_refuses_a_different_run_in_the_same_folder(self, tmp_path):
-        ct.train_corrective(BlurPrior(), toy_source, tiny_train_config(steps=5), tmp_path / "run")
+        ct.train_corrective(BlurPrior(), toy_source, toy_train_config(steps=5), tmp_path / "run")
         with pytest.raises(LasagnaError, match="different batch_size, lr"):
             ct.train_corrective(
-                BlurPrior(), toy_source, tiny_train_config(steps=5, lr=1e-2, batch_size=8), tmp_path / "run"
+                BlurPrior(), toy_source, toy_train_config(steps=5, lr=1e-2, batch_size=8), tmp_path / "run"
             )
 
     def test_failed_checkpoint_write_keeps_the_previous_one(self, tmp_path, monkeypatch):
@@ -324,7 +324,7 @@ class TestTraining:
         monkeypatch.setattr(io, "_st_save", flaky)
         with pytest.raises(OSError, match="disk full"):
             ct.train_corrective(
-                BlurPrior(), toy_source, tiny_train_config(steps=30, checkpoint_every=10), tmp_path / "run"
+                BlurPrior(), toy_source, toy_train_config(steps=30, checkpoint_every=10), tmp_path / "run"
             )
         _, meta = io.load_tensors(tmp_path / "run" / "checkpoint.safetensors")
         assert meta["step"] == "10"
@@ -335,7 +335,7 @@ class TestTraining:
         ]
 
     def test_mismatched_prior(self, tmp_path):
-        cfg = tiny_train_config(corrective=CorrectiveConfig(channels=4, resolution=8, filters=(8, 16)))
+        cfg = toy_train_config(corrective=CorrectiveConfig(channels=4, resolution=8, filters=(8, 16)))
         with pytest.raises(LasagnaError, match="expected the prior's 3"):
             ct.train_corrective(BlurPrior(), toy_source, cfg, tmp_path / "run")
 

@@ -15,7 +15,7 @@ import torch
 from lasagna.priors.base import Condition, NoiseSchedule, Prior
 from lasagna.priors.ddim import ddim_sample, ddim_timesteps
 from lasagna.priors.unet import UNetPrior
-from tests.priors.test_unet import randomize, tiny_config
+from tests.priors.test_unet import randomize, toy_config
 
 SHAPE = (1, 2, 2)
 
@@ -146,7 +146,7 @@ class TestDDIMBehaviour:
             ddim_sample(prior, Condition("a"), steps=2, eta=-1.0)
 
     def test_unet_prior_smoke(self):
-        prior = randomize(UNetPrior(tiny_config()), scale=0.05).eval()
+        prior = randomize(UNetPrior(toy_config()), scale=0.05).eval()
         out = ddim_sample(
             prior,
             Condition(["left", "right"], image=torch.rand(2, 3, 8, 8)),

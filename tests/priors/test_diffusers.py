@@ -1,5 +1,5 @@
-"""DiffusersPrior on TINY Stable-Diffusion-style models built here from small configs (nothing is
-downloaded; ``tests.tinydiffusers``). References are diffusers/transformers called by hand and numpy
+"""DiffusersPrior on toy Stable-Diffusion-style models built here from small configs (nothing is
+downloaded; ``tests.support.toydiffusers``). References are diffusers/transformers called by hand and numpy
 float64 schedules.
 """
 
@@ -23,7 +23,7 @@ from lasagna.errors import ConditionError, LasagnaError  # noqa: E402
 from lasagna.priors.base import Condition  # noqa: E402
 from lasagna.priors.ddim import ddim_sample  # noqa: E402
 from lasagna.priors.diffusers import DEFAULT_TEMPLATE, DiffusersPrior, schedule_from_diffusers  # noqa: E402
-from tests.tinydiffusers import SD_SCHED, controlnet_for, save_controlnet, save_pipeline, sd_parts, sdxl_parts  # noqa: E402
+from tests.support.toydiffusers import SD_SCHED, controlnet_for, save_controlnet, save_pipeline, sd_parts, sdxl_parts  # noqa: E402
 
 VOCAB = ("left", "right")
 

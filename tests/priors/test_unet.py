@@ -1,4 +1,4 @@
-"""UNetPrior and its building blocks (lasagna.priors.nn) on tiny random instances.
+"""UNetPrior and its building blocks (lasagna.priors.nn) on toy random instances.
 
 References are independent: numpy float64 for the embeddings and the schedule, and the closed form
 of the untrained (zero-output) v-prior, x̂₀ = √ᾱ z_t.
@@ -23,7 +23,7 @@ from lasagna.priors.unet import ScheduleConfig, UNetConfig, UNetPrior
 VOCAB = ("left", "right", "top")
 
 
-def tiny_config(**kw) -> UNetConfig:
+def toy_config(**kw) -> UNetConfig:
     base = dict(channels=(8, 16), resolution=8, norm_groups=4, vocabulary=VOCAB, cond_channels=3)
     base.update(kw)
     return UNetConfig(**base)
@@ -51,7 +51,7 @@ _SHARED: dict[str, UNetPrior] = {}
 
 def shared_prior(prediction="v") -> UNetPrior:
     if prediction not in _SHARED:
-        _SHARED[prediction] = randomize(UNetPrior(tiny_config(prediction=prediction))).eval()
+        _SHARED[prediction] = randomize(UNetPrior(toy_config(prediction=prediction))).eval()
     return _SHARED[prediction]
 
 
@@ -98,7 +98,7 @@ class TestUNetConfig:
     )
     def test_invalid(self, kw, match):
         with pytest.raises(ValidationError, match=match):
-            tiny_config(**kw)
+            toy_config(**kw)
 
 
 class TestUNetPrior:
@@ -148,9 +148,7 @@ class TestUNetPrior:
 
     def test_untrained_v_prior_closed_form(self):
         """The zero-initialised output predicts v = 0, so x̂₀ = √ᾱ z_t exactly (numpy float64 ᾱ)."""
-        prior = UNetPrior(
-            tiny_config(schedule=ScheduleConfig(kind="scaled_linear", beta_start=0.00085, beta_end=0.012))
-        )
+        prior = UNetPrior(toy_config(schedule=ScheduleConfig(kind="scaled_linear", beta_start=0.00085, beta_end=0.012)))
         z, t = torch.randn(2, 3, 8, 8), torch.tensor([5, 900])
         with torch.no_grad():
             eps = prior._eps(z, t, torch.tensor([0, 3]), torch.rand(2, 3, 8, 8))
@@ -169,7 +167,7 @@ class TestUNetPrior:
             prior.predict(z, t, Condition("left", image=torch.rand(1, 3, 4, 4)))
         with pytest.raises(ConditionError, match="z_t has shape"):
             prior.predict(torch.randn(1, 3, 4, 4), t, Condition("left", image=torch.rand(1, 3, 8, 8)))
-        no_image = UNetPrior(tiny_config(cond_channels=0))
+        no_image = UNetPrior(toy_config(cond_channels=0))
         with pytest.raises(ConditionError, match="takes no conditioning image"):
             no_image.predict(z, t, Condition("left", image=torch.rand(1, 3, 8, 8)))
 
@@ -182,7 +180,7 @@ class TestUNetPrior:
         assert torch.isfinite(eps[1]).all()  # … and does not leak across the batch (GroupNorm is per sample)
 
     def test_dtypes(self):
-        prior = UNetPrior(tiny_config(prediction="epsilon"))
+        prior = UNetPrior(toy_config(prediction="epsilon"))
         randomize(prior)
         out32 = prior._eps(
             torch.randn(1, 3, 8, 8, dtype=torch.float64), torch.tensor([3]), torch.tensor([0]), torch.rand(1, 3, 8, 8)
@@ -194,7 +192,7 @@ class TestUNetPrior:
 
     @pytest.mark.parametrize("attention", [False, True])
     def test_gradcheck_float64(self, attention):
-        prior = randomize(UNetPrior(tiny_config(resolution=4, attention=attention)), scale=0.3).double()
+        prior = randomize(UNetPrior(toy_config(resolution=4, attention=attention)), scale=0.3).double()
         z = torch.randn(1, 3, 4, 4, dtype=torch.float64, requires_grad=True)
         img = torch.rand(1, 3, 4, 4, dtype=torch.float64)
         assert torch.autograd.gradcheck(
@@ -218,7 +216,7 @@ class TestUNetPrior:
 
 class TestTrainingLoss:
     def test_finite_and_seeded(self):
-        prior = randomize(UNetPrior(tiny_config()))
+        prior = randomize(UNetPrior(toy_config()))
         x0 = torch.rand(4, 3, 8, 8) * 2 - 1
         lab, img = torch.tensor([0, 1, 2, 0]), torch.rand(4, 3, 8, 8)
         a = prior.training_loss(x0, lab, img, torch.Generator().manual_seed(1))
@@ -230,7 +228,7 @@ class TestTrainingLoss:
         assert all(g is not None and torch.isfinite(g).all() for g in grads)
 
     def test_p_uncond_routes_labels_to_null(self):
-        prior = UNetPrior(tiny_config())
+        prior = UNetPrior(toy_config())
         seen = []
         handle = prior.net.label_emb.register_forward_hook(lambda m, args, out: seen.append(args[0].clone()))
         x0, lab, img = torch.zeros(6, 3, 8, 8), torch.tensor([0, 1, 2, 0, 1, 2]), torch.rand(6, 3, 8, 8)
@@ -246,7 +244,7 @@ class TestTrainingLoss:
         """The untrained network outputs 0, so the loss is mean(target²). Replaying the generator's
         draws (t, then ε) and building the target in numpy float64 — ε, or v = √ᾱ ε − √(1−ᾱ) x₀
         (Salimans & Ho 2022) — gives the value independently."""
-        prior = UNetPrior(tiny_config(prediction=prediction))
+        prior = UNetPrior(toy_config(prediction=prediction))
         x0 = torch.rand(5, 3, 8, 8) * 2 - 1
         lab, img = torch.zeros(5, dtype=torch.long), torch.rand(5, 3, 8, 8)
         loss = prior.training_loss(x0, lab, img, torch.Generator().manual_seed(7))
@@ -259,7 +257,7 @@ class TestTrainingLoss:
 
     def test_overfits_one_batch(self):
         torch.manual_seed(0)
-        prior = UNetPrior(tiny_config())
+        prior = UNetPrior(toy_config())
         x0 = (torch.rand(8, 3, 8, 8) > 0.5).float() * 2 - 1
         lab, img = torch.randint(0, 3, (8,)), torch.rand(8, 3, 8, 8)
         opt = torch.optim.Adam(prior.parameters(), lr=3e-3)

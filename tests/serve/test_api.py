@@ -30,15 +30,10 @@ from lasagna.io.stack import load_stack  # noqa: E402
 from lasagna.serve import STACK_SUFFIX, allowed_hosts, open_target  # noqa: E402
 from lasagna.serve.app import MAX_JSON_BYTES, create_app  # noqa: E402
 from lasagna.serve.session import EditSession  # noqa: E402
-from tests.tinylayers import ROOT, tiny_catalogue  # noqa: E402
+from tests.support.tinylayers import ROOT  # noqa: E402
 
 TOKEN = "test-token"
 H = {"X-Lasagna-Token": TOKEN}
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return tiny_catalogue(tmp_path_factory.mktemp("serve") / "layers")
 
 
 @pytest.fixture

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.tinylayers import ROOT, tiny_catalogue
+from tests.support.tinylayers import ROOT
 
 pytestmark = pytest.mark.browser
 
@@ -74,11 +74,6 @@ class Server:
     def stop(self) -> None:
         self.server.should_exit = True
         self.thread.join(timeout=10)
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    return tiny_catalogue(tmp_path_factory.mktemp("browser") / "layers")
 
 
 @pytest.fixture

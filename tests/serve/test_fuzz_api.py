@@ -22,17 +22,17 @@ from starlette.testclient import TestClient  # noqa: E402
 from lasagna.serve.app import create_app  # noqa: E402
 from lasagna.serve.bodies import CHANGES  # noqa: E402
 from lasagna.serve.session import EditSession  # noqa: E402
-from tests.tinylayers import ROOT, tiny_catalogue  # noqa: E402
+from tests.support.tinylayers import ROOT  # noqa: E402
 
 TOKEN = "test-token"
 H = {"X-Lasagna-Token": TOKEN}
 
 
 @pytest.fixture(scope="module")
-def client(tmp_path_factory):
+def client(tmp_path_factory, tiny):
     root = tmp_path_factory.mktemp("fuzz-api")
     mp = pytest.MonkeyPatch()
-    mp.setenv("LASAGNA_LAYERS", str(tiny_catalogue(root / "layers")))
+    mp.setenv("LASAGNA_LAYERS", str(tiny))
     folder = root / "basic"
     shutil.copytree(ROOT / "examples" / "stacks" / "basic", folder)
     yield TestClient(create_app(EditSession(folder), TOKEN, ["testserver"]), raise_server_exceptions=False)

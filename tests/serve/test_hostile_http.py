@@ -26,7 +26,7 @@ from lasagna.serve import allowed_hosts  # noqa: E402
 from lasagna.serve.app import HttpLimits, create_app  # noqa: E402
 from lasagna.serve.server import bind, serve, server_config  # noqa: E402
 from lasagna.serve.session import EditSession  # noqa: E402
-from tests.tinylayers import ROOT  # noqa: E402
+from tests.support.tinylayers import ROOT  # noqa: E402
 
 TOKEN = "hostile-token"
 LIVENESS_S = 30.0

@@ -32,7 +32,7 @@ from lasagna.io.stack import Stack, load_stack  # noqa: E402
 from lasagna.limits import memory_budget_scope  # noqa: E402
 from lasagna.serve.app import create_app  # noqa: E402
 from lasagna.serve.session import EditSession  # noqa: E402
-from tests.tinylayers import ROOT  # noqa: E402
+from tests.support.tinylayers import ROOT  # noqa: E402
 
 TOKEN = "test-token"
 H = {"X-Lasagna-Token": TOKEN}
@@ -192,7 +192,7 @@ def test_a_range_float32_cannot_hold_is_refused_and_none_turns_a_layer_nan(tmp_p
     for bad in ([0, 1e-300], [-1e308, 1e308]):
         line = _refused(_change(client, op="set", id="shade", changes={"range": bad}), 400)
         assert "range" in line and "float32" in line
-    _ok(_change(client, op="set", id="shade", changes={"range": [0, 1e-30]}))  # tiny, and still a float32 span
+    _ok(_change(client, op="set", id="shade", changes={"range": [0, 1e-30]}))  # minute, and still a float32 span
     _ok(_change(client, op="set", id="shade", changes={"range": [0, 2]}))
     back = session.stack.tensors["shade"].color
     assert bool(torch.isfinite(back).all())

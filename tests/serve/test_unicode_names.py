@@ -22,7 +22,7 @@ from lasagna.document.types import check_id  # noqa: E402
 from lasagna.io.stack import load_stack  # noqa: E402
 from lasagna.serve.app import create_app  # noqa: E402
 from lasagna.serve.session import EditSession  # noqa: E402
-from tests.tinylayers import ROOT  # noqa: E402
+from tests.support.tinylayers import ROOT  # noqa: E402
 
 TOKEN = "test-token"
 H = {"X-Lasagna-Token": TOKEN}

@@ -1,4 +1,4 @@
-"""Amortised training on tiny world batches: the score falls, a killed run resumes to the same weights,
+"""Amortised training on toy world batches: the score falls, a killed run resumes to the same weights,
 the supervised ceiling learns the true layer, and a 2-process torchrun equals the 1-process run."""
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[2]
 GEN = LayerGeneratorConfig(layer=SHADING, vocabulary=tuple(VOCABULARY), channels=(8, 16), blocks=1)
 
 
-def tiny(**kw) -> AmortisedConfig:
+def toy(**kw) -> AmortisedConfig:
     base = dict(
         generator=GEN,
         loss="sds",
@@ -106,7 +106,7 @@ class TestTaskBatch:
 
 class TestTrain:
     def test_score_falls_and_generator_is_saved(self, tmp_path):
-        result = train_layer_generator(tiny(steps=40), tmp_path, prior=gray_prior())
+        result = train_layer_generator(toy(steps=40), tmp_path, prior=gray_prior())
         log = read_log(tmp_path)
         first = sum(r["score"] for r in log[:8]) / 8
         last = sum(r["score"] for r in log[-8:]) / 8
@@ -117,7 +117,7 @@ class TestTrain:
         metrics = json.loads((tmp_path / "metrics.json").read_text())
         assert metrics["step"] == 40 and metrics["supervised"] is False and "layer_psnr" in metrics
         saved = AmortisedConfig.model_validate_json((tmp_path / "train_config.json").read_text())
-        assert saved == tiny(steps=40)
+        assert saved == toy(steps=40)
 
     def test_resume_after_kill_equals_uninterrupted(self, tmp_path):
         class Killer(GaussianPrior):
@@ -130,7 +130,7 @@ class TestTrain:
                 return super().predict_many(*args, **kwargs)
 
         g, killer = gray_prior(), gray_prior(Killer)
-        cfg = tiny(steps=24, weights=Weights.lmc_network(12), ema_decay=0.9)
+        cfg = toy(steps=24, weights=Weights.lmc_network(12), ema_decay=0.9)
         full = train_layer_generator(cfg, tmp_path / "full", prior=g)
         with pytest.raises(KeyboardInterrupt):
             train_layer_generator(cfg, tmp_path / "killed", prior=killer)
@@ -141,7 +141,7 @@ class TestTrain:
         assert [r["loss"] for r in read_log(tmp_path / "full")] == [r["loss"] for r in read_log(tmp_path / "killed")]
 
     def test_supervised_learns_the_true_layer(self, tmp_path):
-        result = train_layer_generator(tiny(supervised=True, steps=60, eval_count=16), tmp_path)
+        result = train_layer_generator(toy(supervised=True, steps=60, eval_count=16), tmp_path)
         m = result.metrics
         assert m["supervised"] is True and m["layer_mse"] < 0.3 * m["identity_mse"]
         log = read_log(tmp_path)
@@ -149,15 +149,15 @@ class TestTrain:
 
     def test_needs_a_prior_unless_supervised(self, tmp_path):
         with pytest.raises(LasagnaError, match="no prior"):
-            train_layer_generator(tiny(), tmp_path)
+            train_layer_generator(toy(), tmp_path)
 
     def test_chunking(self):
-        assert chunking(tiny(batch_size=8), 2) == (4, 2)
-        assert chunking(tiny(batch_size=8, micro_batch=2), 2) == (2, 4)
+        assert chunking(toy(batch_size=8), 2) == (4, 2)
+        assert chunking(toy(batch_size=8, micro_batch=2), 2) == (2, 4)
         with pytest.raises(LasagnaError, match="do not split over 3"):
-            chunking(tiny(batch_size=8, micro_batch=4), 3)
+            chunking(toy(batch_size=8, micro_batch=4), 3)
         with pytest.raises(ValueError, match="multiple of micro_batch"):
-            tiny(batch_size=8, micro_batch=3)
+            toy(batch_size=8, micro_batch=3)
 
 
 def test_two_processes_equal_one(tmp_path):
@@ -170,7 +170,7 @@ def test_two_processes_equal_one(tmp_path):
     Corrective(CorrectiveConfig(channels=3, resolution=8, filters=(8, 16), num_timesteps=1000)).save_pretrained(
         tmp_path / "bhat"
     )
-    cfg = tiny(
+    cfg = toy(
         loss="lmc-sds",
         prior=str(tmp_path / "prior"),
         corrective=str(tmp_path / "bhat"),

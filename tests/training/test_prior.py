@@ -1,4 +1,4 @@
-"""The prior trainer on a tiny config: the loss falls, a resumed run equals an uninterrupted one,
+"""The prior trainer on a toy config: the loss falls, a resumed run equals an uninterrupted one,
 and the evaluation helpers measure what they claim (against closed forms)."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from lasagna.training.prior import PriorTrainConfig, prior_batch, train_prior, u
 from lasagna.world import VOCABULARY, generate
 
 
-def tiny(task="relight", **kw) -> PriorTrainConfig:
+def toy(task="relight", **kw) -> PriorTrainConfig:
     base = dict(
         task=task,
         unet=unet_config_for(task, resolution=8, channels=(8, 16)),
@@ -95,7 +95,7 @@ class TestTaskData:
 
 class TestTrainPrior:
     def test_loss_falls_and_weights_are_saved(self, tmp_path):
-        train_prior(tiny(steps=60), tmp_path)
+        train_prior(toy(steps=60), tmp_path)
         log = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
         first = sum(r["loss"] for r in log[:5]) / 5
         last = sum(r["loss"] for r in log[-5:]) / 5
@@ -104,16 +104,16 @@ class TestTrainPrior:
         assert prior.vocabulary == tuple(VOCABULARY)
 
     def test_resumed_run_equals_uninterrupted(self, tmp_path):
-        full = train_prior(tiny(steps=20), tmp_path / "full")
-        train_prior(tiny(steps=10), tmp_path / "split")  # stops at step 10 (a checkpoint) ...
-        resumed = train_prior(tiny(steps=20), tmp_path / "split")  # ... and continues to 20
+        full = train_prior(toy(steps=20), tmp_path / "full")
+        train_prior(toy(steps=10), tmp_path / "split")  # stops at step 10 (a checkpoint) ...
+        resumed = train_prior(toy(steps=20), tmp_path / "split")  # ... and continues to 20
         for (k, a), (_, b) in zip(full.state_dict().items(), resumed.state_dict().items()):
             assert torch.equal(a, b), k
 
     def test_other_config_refuses_to_resume(self, tmp_path):
-        train_prior(tiny(steps=2), tmp_path)
+        train_prior(toy(steps=2), tmp_path)
         with pytest.raises(Exception, match="different"):
-            train_prior(tiny(steps=2, batch_size=4), tmp_path)
+            train_prior(toy(steps=2, batch_size=4), tmp_path)
 
 
 class TestEvaluate:
@@ -135,32 +135,32 @@ class TestSchedulesAndStages:
     def test_cosine_lr_closed_form(self):
         import math
 
-        cfg = tiny(steps=101, lr=2e-3, warmup_steps=0, lr_schedule="cosine", lr_min_ratio=0.1)
+        cfg = toy(steps=101, lr=2e-3, warmup_steps=0, lr_schedule="cosine", lr_min_ratio=0.1)
         for step in (0, 25, 50, 100):
             frac = step / 100
             want = 2e-3 * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * frac)))
             assert cfg.lr_at(step) == pytest.approx(want, rel=1e-12)
         lrs = [cfg.lr_at(s) for s in range(101)]
         assert all(a >= b for a, b in zip(lrs, lrs[1:]))  # never rises after warm-up
-        warm = tiny(steps=101, lr=2e-3, warmup_steps=10, lr_schedule="cosine")
+        warm = toy(steps=101, lr=2e-3, warmup_steps=10, lr_schedule="cosine")
         assert warm.lr_at(0) == pytest.approx(2e-4 * (0.5 * (1 + math.cos(0.0))))
-        assert tiny(steps=50, lr=1e-3, warmup_steps=0).lr_at(49) == 1e-3  # the default "step" schedule: constant
+        assert toy(steps=50, lr=1e-3, warmup_steps=0).lr_at(49) == 1e-3  # the default "step" schedule: constant
 
     def test_init_from_starts_at_those_weights(self, tmp_path):
-        first = train_prior(tiny(steps=5), tmp_path / "one")
+        first = train_prior(toy(steps=5), tmp_path / "one")
         # lr so small that one step cannot move the weights visibly: the second stage starts where the first ended.
         second = train_prior(
-            tiny(steps=1, lr=1e-12, warmup_steps=0, ema_decay=None, init_from=str(tmp_path / "one" / "prior")),
+            toy(steps=1, lr=1e-12, warmup_steps=0, ema_decay=None, init_from=str(tmp_path / "one" / "prior")),
             tmp_path / "two",
         )
         for (k, a), (_, b) in zip(first.state_dict().items(), second.state_dict().items()):
             torch.testing.assert_close(a, b, atol=1e-8, rtol=0, msg=k)
-        fresh = train_prior(tiny(steps=1, lr=1e-12, warmup_steps=0, ema_decay=None), tmp_path / "three")
+        fresh = train_prior(toy(steps=1, lr=1e-12, warmup_steps=0, ema_decay=None), tmp_path / "three")
         assert any(not torch.allclose(a, b) for a, b in zip(first.state_dict().values(), fresh.state_dict().values()))
 
     def test_init_from_another_architecture_is_refused(self, tmp_path):
-        train_prior(tiny(steps=1), tmp_path / "one")
-        other = tiny(
+        train_prior(toy(steps=1), tmp_path / "one")
+        other = toy(
             steps=1,
             unet=unet_config_for("relight", resolution=8, channels=(8, 8)),
             init_from=str(tmp_path / "one" / "prior"),
@@ -169,8 +169,8 @@ class TestSchedulesAndStages:
             train_prior(other, tmp_path / "two")
 
     def test_fresh_labels_start_another_task_from_the_old_unconditional_model(self, tmp_path):
-        first = train_prior(tiny(steps=5), tmp_path / "relight")
-        light = tiny(
+        first = train_prior(toy(steps=5), tmp_path / "relight")
+        light = toy(
             task="light",
             steps=1,
             lr=1e-12,
@@ -190,12 +190,12 @@ class TestSchedulesAndStages:
         for row in emb:  # every label starts as relight's null label
             torch.testing.assert_close(row, old["net.label_emb.weight"][-1], atol=1e-8, rtol=0)
         with pytest.raises(Exception, match="UNet config differs"):  # without "fresh" the vocabularies must agree
-            train_prior(tiny(task="light", steps=1, init_from=str(tmp_path / "relight" / "prior")), tmp_path / "keep")
+            train_prior(toy(task="light", steps=1, init_from=str(tmp_path / "relight" / "prior")), tmp_path / "keep")
 
     def test_cli_fresh_labels_need_the_same_conditioning_channels(self, tmp_path, capsys):
         from lasagna.cli import main
 
-        train_prior(tiny(task="colorize", steps=1), tmp_path / "colour")
+        train_prior(toy(task="colorize", steps=1), tmp_path / "colour")
         code = main(
             [
                 "train-prior",
@@ -217,7 +217,7 @@ class TestSchedulesAndStages:
     def test_cli_refuses_a_prior_of_another_task(self, tmp_path, capsys):
         from lasagna.cli import main
 
-        train_prior(tiny(task="colorize", steps=1), tmp_path / "colour")
+        train_prior(toy(task="colorize", steps=1), tmp_path / "colour")
         code = main(
             [
                 "train-prior",
@@ -272,7 +272,7 @@ class TestDirectionTraining:
         label_prior = UNetPrior(unet_config_for("relight", resolution=8, channels=(8, 16)))
         label_prior.save_pretrained(start)
         unet = unet_config_for("relit", resolution=8, channels=(8, 16), directions=True)
-        out = train_prior(tiny("relit", unet=unet, steps=1, lr=1e-12, init_from=str(start)), tmp_path / "run")
+        out = train_prior(toy("relit", unet=unet, steps=1, lr=1e-12, init_from=str(start)), tmp_path / "run")
         assert out.config.directions
         old, new = label_prior.state_dict(), out.state_dict()
         assert torch.allclose(new["net.null_emb"], old["net.label_emb.weight"][-1], atol=1e-6)

@@ -1,4 +1,4 @@
-"""Training the surface estimator on tiny world batches: the multi-light error falls, a killed run resumes to
+"""Training the surface estimator on toy world batches: the multi-light error falls, a killed run resumes to
 the same weights, held-out splits at the benchmarks' seed are refused, and the estimate is made at the working
 size."""
 
@@ -21,7 +21,7 @@ from lasagna.training.surface import (
 from lasagna.world import generate
 
 
-def tiny(**kw) -> SurfaceTrainConfig:
+def toy(**kw) -> SurfaceTrainConfig:
     base = dict(
         net=SurfaceConfig(input="lit", channels=(8, 16), blocks=1, working_size=16),
         batch_size=8,
@@ -39,7 +39,7 @@ def test_one_batch_is_fitted_under_every_light():
     """The loss, the renderer and the light fit are wired so that Adam fits a fixed batch: the multi-light
     shading error and the source light's error both fall by half (learning across fresh batches takes
     thousands of steps: the committed run's card measures that)."""
-    config = tiny()
+    config = toy()
     torch.manual_seed(0)
     net = SurfaceEstimator(config.net)
     scene = generate("val", 4, 1, 16)
@@ -59,7 +59,7 @@ def test_one_batch_is_fitted_under_every_light():
 
 
 def test_a_run_writes_its_estimator(tmp_path):
-    net = train_surface(tiny(steps=3), tmp_path / "run")
+    net = train_surface(toy(steps=3), tmp_path / "run")
     assert [r["step"] for r in read_log(tmp_path / "run")] == [1, 2, 3]
     back = SurfaceEstimator.from_pretrained(tmp_path / "run" / "surface")
     snap, step = estimator_from_checkpoint(tmp_path / "run" / "checkpoint.safetensors")
@@ -68,10 +68,10 @@ def test_a_run_writes_its_estimator(tmp_path):
 
 
 def test_a_killed_run_resumes_to_the_same_weights(tmp_path):
-    whole = train_surface(tiny(steps=20), tmp_path / "a")
-    train_surface(tiny(steps=20, max_minutes=1e-9), tmp_path / "b")  # stops at once, checkpointed at step 0/1
-    train_surface(tiny(steps=10), tmp_path / "b")
-    resumed = train_surface(tiny(steps=20), tmp_path / "b")
+    whole = train_surface(toy(steps=20), tmp_path / "a")
+    train_surface(toy(steps=20, max_minutes=1e-9), tmp_path / "b")  # stops at once, checkpointed at step 0/1
+    train_surface(toy(steps=10), tmp_path / "b")
+    resumed = train_surface(toy(steps=20), tmp_path / "b")
     for (k, v), w in zip(whole.state_dict().items(), resumed.state_dict().values()):
         assert torch.equal(v, w), k
 
@@ -79,7 +79,7 @@ def test_a_killed_run_resumes_to_the_same_weights(tmp_path):
 @pytest.mark.parametrize("split", ["select", "heldout", "far"])
 def test_held_out_splits_at_the_benchmarks_seed_are_refused(tmp_path, split):
     with pytest.raises(LasagnaError, match="world_seed: training on .* would train on the benchmarks' own scenes"):
-        train_surface(tiny(split=split, world_seed=0), tmp_path / "x")
+        train_surface(toy(split=split, world_seed=0), tmp_path / "x")
 
 
 def test_estimate_at_the_working_size():

@@ -13,7 +13,7 @@ from lasagna.errors import LasagnaError
 from lasagna.world.export import TASKS, write_world_stacks
 from lasagna.world.lighting import LIGHTS
 from lasagna.world.scene import generate
-from tests.reference import composite_reference, read_png64
+from tests.support.reference import composite_reference, read_png64
 
 RES, COUNT, SEED = 16, 2, 4
 

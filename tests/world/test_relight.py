@@ -30,7 +30,7 @@ from lasagna.world.params import sample_scenes
 from lasagna.world.scene import generate, render, with_light
 from lasagna.world.splits import STREAM_VERSION, scene_rng
 from lasagna.world.tasks import RELIGHT_ELEVATION, relight_sources, relighting
-from tests.reference import read_png64
+from tests.support.reference import read_png64
 
 EL = st.floats(0.0, 90.0, exclude_max=True)
 AZ = st.floats(-720.0, 720.0, allow_nan=False)

@@ -1,4 +1,4 @@
-"""TINY Stable-Diffusion-style pipelines for tests, built here from small configs (nothing is downloaded).
+"""Toy Stable-Diffusion-style pipelines for tests, built here from small configs (nothing is downloaded).
 
 ``sd_parts()`` / ``sdxl_parts()``: a UNet2DConditionModel, a ControlNetModel (its zero convolutions given
 weights, else the conditioning image could not matter), an AutoencoderKL, CLIP text encoder(s) and a

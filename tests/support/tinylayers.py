@@ -19,16 +19,21 @@
 
 The names are the bundled ones, so a folder put first in ``LASAGNA_LAYERS`` shadows the real catalogue.
 The weights are random but not the identity (every parameter gets noise), so outputs depend on input.
+
+"Tiny" in the tests means this catalogue and nothing else. tests/conftest.py builds it once per session
+(the ``tiny`` fixture); a module that needs a variant copies it (``tiny_variant``) and rewrites a preset
+(``write_preset``), never changing the shared one.
 """
 
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PRIOR_RES = 8
 STEPS = 4
 
@@ -41,7 +46,8 @@ def _jitter(module: torch.nn.Module, seed: int, scale: float = 0.05) -> torch.nn
     return module
 
 
-def _preset(folder: Path, name: str, **changes) -> dict:
+def write_preset(folder: Path, name: str, **changes) -> dict:
+    """The bundled preset ``name`` with a short distill (``STEPS``) and ``changes``, written under ``folder``."""
     data = json.loads((ROOT / "layers" / name / "preset.json").read_text(encoding="utf-8"))
     data["distill"]["steps"] = STEPS
     data.update(changes)
@@ -50,7 +56,7 @@ def _preset(folder: Path, name: str, **changes) -> dict:
     return data
 
 
-def tiny_prior(cond_channels: int, vocabulary: tuple[str, ...], seed: int, directions: bool = False):
+def _prior(cond_channels: int, vocabulary: tuple[str, ...], seed: int, directions: bool = False):
     from lasagna.priors.unet import UNetConfig, UNetPrior
 
     config = UNetConfig(
@@ -66,7 +72,7 @@ def tiny_prior(cond_channels: int, vocabulary: tuple[str, ...], seed: int, direc
     return _jitter(UNetPrior(config), seed).eval()
 
 
-def tiny_spectral(seed: int):
+def _spectral(seed: int):
     """A spectral corrective at the tiny priors' size with random gains near the identity."""
     from lasagna.losses.spectral import SpectralCorrective, SpectralCorrectiveConfig
 
@@ -86,10 +92,10 @@ def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool =
     folder = Path(folder)
     # method None: the tiny shading keeps the amortised default, so the generator paths are what the
     # default runs here; the method and refine_steps fields are tested on their own (test_edit).
-    shading = _preset(folder, "shading", method=None)
-    _preset(folder, "color")
-    _preset(folder, "light")
-    _preset(folder, "relight")
+    shading = write_preset(folder, "shading", method=None)
+    write_preset(folder, "color")
+    write_preset(folder, "light")
+    write_preset(folder, "relight")
     if generator:
         cfg = LayerGeneratorConfig(
             layer=LayerSpec(blend="multiply", channels=1, range=tuple(shading["range"])),
@@ -99,20 +105,20 @@ def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool =
         torch.manual_seed(1)
         _jitter(LayerGenerator(cfg), 1, 0.2).save_pretrained(folder / "shading" / "generator")
     if priors:
-        tiny_prior(3, tuple(VOCABULARY), 2).save_pretrained(folder / "relight-32")
-        tiny_prior(1, ("natural",), 3).save_pretrained(folder / "recolor-32")
-        tiny_prior(3, tuple(GLOW_VOCABULARY), 7).save_pretrained(folder / "light-32")
-        tiny_prior(3, tuple(VOCABULARY), 9, directions=True).save_pretrained(folder / "relit-32")
+        _prior(3, tuple(VOCABULARY), 2).save_pretrained(folder / "relight-32")
+        _prior(1, ("natural",), 3).save_pretrained(folder / "recolor-32")
+        _prior(3, tuple(GLOW_VOCABULARY), 7).save_pretrained(folder / "light-32")
+        _prior(3, tuple(VOCABULARY), 9, directions=True).save_pretrained(folder / "relit-32")
         torch.manual_seed(4)
         corrective = Corrective(CorrectiveConfig(channels=3, resolution=PRIOR_RES, filters=(4, 8)))
         _jitter(corrective, 4).save_pretrained(folder / "relight-32-bhat")
         for seed, name in ((5, "relight-32-spectral"), (6, "recolor-32-spectral"), (8, "light-32-spectral")):
-            tiny_spectral(seed).save_pretrained(folder / name)
-    tiny_estimators(folder)
+            _spectral(seed).save_pretrained(folder / name)
+    _estimators(folder)
     return folder
 
 
-def tiny_estimators(folder: Path) -> None:
+def _estimators(folder: Path) -> None:
     """Random surface estimators under the bundled names: surface-albedo-32 (reads the unlit base) and
     surface-lit-32 (reads a lit image, fits its source light)."""
     from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
@@ -121,3 +127,18 @@ def tiny_estimators(folder: Path) -> None:
         torch.manual_seed(seed)
         net = SurfaceEstimator(SurfaceConfig(input=kind, channels=(4, 8), blocks=1, working_size=16))
         _jitter(net, seed, 0.1).save_pretrained(folder / name)
+
+
+def tiny_variant(tiny: Path, folder: str | Path, *, generator: bool = True) -> Path:
+    """A copy of the shared tiny catalogue ``tiny`` at ``folder`` (without the shading generator if
+    ``generator`` is false), for a module to change; the shared one stays as built."""
+    folder = Path(shutil.copytree(tiny, folder))
+    if not generator:
+        shutil.rmtree(folder / "shading" / "generator")
+    return folder
+
+
+def fingerprint(folder: Path) -> dict[str, int]:
+    """Every file under ``folder`` and a hash of its bytes: the shared catalogue's, compared at the end of the
+    session so a test that changed it fails instead of changing what later tests see."""
+    return {str(p.relative_to(folder)): hash(p.read_bytes()) for p in sorted(folder.rglob("*")) if p.is_file()}

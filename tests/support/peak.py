@@ -9,7 +9,7 @@ import sys
 import zlib
 from pathlib import Path
 
-from tests import pngcraft
+from tests.support import pngcraft
 
 # The peak is the child's VmHWM, not ru_maxrss: Linux keeps ru_maxrss across exec, so a child of a large
 # pytest process would report at least the parent's resident size; VmHWM belongs to the new image.
