@@ -49,6 +49,7 @@ space its prior never scored.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 import warnings
@@ -69,13 +70,21 @@ from lasagna.errors import (
     PathError,
 )
 from lasagna.io.folder import SharedFiles, check_output_folder, stage_stack_folder, write_stack_folder
-from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
+from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS, check_edit_memory
 from lasagna.io.stack import Stack, load_stack, resolve_inside
 from lasagna.learned import LayerRun, as_stored, check_device, conditioning_input, make_layer
 from lasagna.recipe import EditRequest, Recipe
 from lasagna.version import __version__
 
 META_KEY = "lasagna.edit"  # document metadata: per learned layer, the tool version, time, timing
+
+# ``phase(what, bar=False)``: a context manager entered around each phase of an edit or a save (decoding, making
+# the layer, encoding, …), so a caller can report progress; ``bar``: the phase draws a progress bar of its own.
+Phase = Callable[..., contextlib.AbstractContextManager]
+
+
+def _no_phase(what: str, bar: bool = False) -> contextlib.AbstractContextManager:
+    return contextlib.nullcontext()
 
 
 @dataclass
@@ -100,12 +109,16 @@ class EditResult:
         force: bool = False,
         ora: bool = True,
         warn: Callable[[str], None] | None = None,
+        phase: Phase | None = None,
     ) -> Path:
         """Write the stack folder ``out``, all or nothing (``lasagna.io.folder.write_stack_folder``): stack.json,
         layers/, generators/, composite.png and (``ora``) stack.ora; returns it. With ``force`` a stack
-        folder already there is replaced."""
+        folder already there is replaced. ``phase(what)`` is entered around each phase (``Phase``)."""
+        phase = phase or _no_phase
         check_output_folder(out, force=force)  # before any work
-        return write_stack_folder(self.stack, out, **self._contents(ora, warn), force=force)
+        contents = self._contents(ora, warn, phase)
+        with phase("writing the layers and stack.json"):
+            return write_stack_folder(self.stack, out, **contents, force=force)
 
     def stage(
         self,
@@ -121,15 +134,18 @@ class EditResult:
         store its large files (the generator's weights) are hard-linked from (``SharedFiles``)."""
         return stage_stack_folder(self.stack, out, **self._contents(ora, warn), force=force, shared=shared)
 
-    def _contents(self, ora: bool, warn) -> dict[str, Any]:
+    def _contents(self, ora: bool, warn, phase: Phase | None = None) -> dict[str, Any]:
         from lasagna.export.ora import encode_ora
         from lasagna.io.render import encode_composite
 
-        result = self.stack.render()
-        composite_png = encode_composite(result)  # composite.png, and the ORA's merged image: encoded once
+        phase = phase or _no_phase
+        with phase("encoding composite.png"):
+            result = self.stack.render()
+            composite_png = encode_composite(result)  # composite.png, and the ORA's merged image: encoded once
         files = dict(self.files)
         if ora:
-            files["stack.ora"] = encode_ora(self.stack, composite=result.image, merged_png=composite_png, warn=warn)
+            with phase("encoding stack.ora"):
+                files["stack.ora"] = encode_ora(self.stack, composite=result.image, merged_png=composite_png, warn=warn)
         return {"files": files, "result": result, "composite_png": composite_png}
 
 
@@ -169,6 +185,7 @@ def input_stack(image, max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> Stack:
             f"of {max_pixels}; expected at most {max_pixels} pixels (raise --max-pixels if intended)",
             "image",
         )
+    check_edit_memory(stack.width, stack.height, "image")
     if stack.document.blend_space != "srgb":
         raise DocumentError(
             f"blend_space is {stack.document.blend_space!r}; learned layers are distilled on stored "
@@ -209,6 +226,7 @@ def edit(
     max_pixels: int = DEFAULT_EDIT_MAX_PIXELS,
     device: str | torch.device = "cpu",
     progress: bool = False,
+    phase: Phase | None = None,
     **options: Any,
 ) -> EditResult:
     """Add a learned layer of ``preset`` for ``condition`` on top of ``image`` (module docstring).
@@ -234,9 +252,13 @@ def edit(
             raise TypeError(f"edit() got unexpected keyword argument(s) {', '.join(unknown)}")
         request = EditRequest(preset=preset, condition=condition, **options)
     check_device(device)
-    plan = plan_edit(image, request, catalogue_dirs=catalogue_dirs, max_pixels=max_pixels)
-    run = make_layer(plan.recipe, plan.conditioning, plan.layer_id, device=device, progress=progress)
-    return plan.finish(run, time.monotonic() - start)
+    phase = phase or _no_phase
+    with phase(f"reading {Path(image).name}" if isinstance(image, (str, os.PathLike)) else "reading the image"):
+        plan = plan_edit(image, request, catalogue_dirs=catalogue_dirs, max_pixels=max_pixels)
+    with phase(f"making the layer {plan.layer_id!r}", bar=progress and plan.recipe.distill is not None):
+        run = make_layer(plan.recipe, plan.conditioning, plan.layer_id, device=device, progress=progress)
+    with phase("compositing"):
+        return plan.finish(run, time.monotonic() - start)
 
 
 @dataclass(frozen=True)

@@ -62,7 +62,7 @@ from lasagna.cli import (
     validate,
     world,
 )
-from lasagna.cli.common import PROG, add_command, one_line, warn
+from lasagna.cli.common import COMPUTING, PROG, add_command, one_line, set_progress, set_threads, warn
 from lasagna.errors import LasagnaError, describe_validation_error
 from lasagna.limits import is_out_of_memory, memory_budget_scope, out_of_memory
 from lasagna.version import __version__
@@ -139,6 +139,9 @@ def _run(args: argparse.Namespace) -> int:
         with warnings.catch_warnings(), memory_budget_scope(getattr(args, "memory_budget", None)):
             warnings.simplefilter("default")
             warnings.showwarning = lambda message, *a, **k: warn(one_line(str(message)))  # type: ignore[assignment]
+            set_progress(getattr(args, "progress", False))
+            if args.command in COMPUTING:  # before any torch work: torch's default oversubscribes a busy CPU
+                set_threads(getattr(args, "threads", None))
             return args.run(args)
     except KeyboardInterrupt:
         return 130

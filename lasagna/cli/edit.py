@@ -32,7 +32,7 @@ import os
 import sys
 from pathlib import Path
 
-from lasagna.cli.common import PROG, distill_arguments, progress, warn
+from lasagna.cli.common import PROG, distill_arguments, phase, progress, warn
 from lasagna.errors import LasagnaError, PathError, printable
 
 HELP = "add a learned layer (relight, colourise, …) to an image or stack; writes a stack folder"
@@ -114,7 +114,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=DEFAULT_EDIT_MAX_PIXELS,
         metavar="N",
-        help=f"refuse images with more than N pixels (default {DEFAULT_EDIT_MAX_PIXELS})",
+        help=f"refuse images with more than N pixels (default {DEFAULT_EDIT_MAX_PIXELS}: what refuses a photo is "
+        "the memory budget, ~24 MP at the default 8G)",
     )
 
 
@@ -280,7 +281,7 @@ def run_many(args: argparse.Namespace) -> int:
 
 def run_one(args: argparse.Namespace) -> int:
     from lasagna.io.folder import check_output_folder
-    from lasagna.io.image import probe_image_file
+    from lasagna.io.image import check_edit_memory, probe_image_file
     from lasagna.io.survey import survey_stack
 
     out = check_output_folder(args.output, force=args.force)
@@ -289,16 +290,21 @@ def run_one(args: argparse.Namespace) -> int:
     if image.is_dir() or image.suffix.lower() == ".json":
         survey_stack(image, max_pixels=args.max_pixels)
     elif image.exists():
-        probe_image_file(image, max_pixels=args.max_pixels)
+        check_edit_memory(*probe_image_file(image, max_pixels=args.max_pixels), str(image))
 
     from lasagna.editing import edit
 
     if Path(args.image).resolve() == out.resolve() and not args.force:
         raise PathError("is the input stack; expected another folder (or --force to replace it)", str(out))
     result = edit(
-        args.image, request=_request(args), max_pixels=args.max_pixels, device=args.device, progress=progress()
+        args.image,
+        request=_request(args),
+        max_pixels=args.max_pixels,
+        device=args.device,
+        progress=progress(),
+        phase=phase,
     )
-    result.save(out, force=args.force, ora=not args.no_ora, warn=warn)
+    result.save(out, force=args.force, ora=not args.no_ora, warn=warn, phase=phase)
     s = result.settings
     how = (
         "amortised generator, one forward pass"

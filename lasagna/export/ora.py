@@ -36,9 +36,7 @@ from PIL import Image
 from lasagna.atomic import write_output
 from lasagna.document.blend import BLEND_MODES
 from lasagna.errors import ExportError
-from lasagna.io.png import (
-    encode_png,
-)
+from lasagna.io.png import encode_codes
 
 if TYPE_CHECKING:  # torch and the rasters (which import it) are loaded by the functions that write
     import torch
@@ -194,8 +192,7 @@ def encode_ora(
     tree = krita_clip_stacks(layers)
     entries: list[tuple[str, bytes]] = [("stack.xml", _stack_xml(stack.width, stack.height, tree).encode("utf-8"))]
     for layer in leaves(layers):
-        rgba = layer.rgba_uint8().transpose(2, 0, 1) / 255.0
-        entries.append((f"data/{layer.key}.png", encode_png(rgba[:3], rgba[3:], where=layer.key)))
+        entries.append((f"data/{layer.key}.png", encode_codes(layer.rgba_uint8(), where=layer.key)))
     if merged_png is None:
         buf = io.BytesIO()
         Image.fromarray(merged).save(buf, format="PNG")

@@ -27,7 +27,7 @@ import numpy as np
 
 from lasagna.atomic import open_regular
 from lasagna.errors import ImageError, LasagnaError
-from lasagna.io.png import PNG_SIGNATURE, check_size, read_png, read_png_header
+from lasagna.io.png import DEFAULT_MAX_PIXELS, PNG_SIGNATURE, check_size, read_png, read_png_header
 from lasagna.io.png import decode_bytes as png_decode_bytes
 from lasagna.limits import check_memory, raster_bytes
 
@@ -35,11 +35,16 @@ from lasagna.limits import check_memory, raster_bytes
 PILLOW_FORMATS: tuple[str, ...] = ("JPEG", "WEBP", "BMP", "TIFF")  # JPEG also opens MPO, what phones write
 READABLE = "PNG, JPEG, WebP, BMP or TIFF (8/16-bit)"
 
-# The largest image ``lasagna edit`` accepts by default. A generator at full resolution holds 16 channels ×
-# 4 bytes × 4.2 M pixels = 268 MB per activation at 2048², a few GB in all: what a CPU session can still
-# afford (layers are made at a working size now, but a per-image run at full size is still possible).
-# Larger images need max_pixels raised on purpose.
-DEFAULT_EDIT_MAX_PIXELS = 2048 * 2048
+# ``lasagna edit``'s pixel limit by default: the decoders' bomb guard (``lasagna.io.png.DEFAULT_MAX_PIXELS``,
+# 2^28) and no lower, so what refuses a photograph is the memory budget (``edit_bytes``), not a side. A layer
+# is made at its preset's working size and only enlarged to the image's (``lasagna.compose.resample``), so an
+# edit's cost grows with the pixels it decodes, composites and encodes: a 24 MP photo fits the default 8 GiB.
+DEFAULT_EDIT_MAX_PIXELS = DEFAULT_MAX_PIXELS
+
+# Peak bytes per pixel of an edit of an RGB photo (decoded, composited, written with its ORA), over what the
+# process holds before: 12 MP through ``lasagna edit --layer shading`` peaked at 3.2 GB resident (its ORA
+# export's float64 rasters, ``lasagna.export.rasters``), ~270 bytes a pixel; rounded up for a 4-channel input.
+EDIT_BYTES_PER_PIXEL = 288
 
 # Samples per pixel an image may have: gray, gray + alpha, RGB, RGBA (CMYK is converted to RGB).
 MAX_SAMPLES = 4
@@ -83,6 +88,16 @@ def decode_bytes(w: int, h: int, samples: int, sample_bytes: int) -> int:
     pixels = int(w) * int(h)
     decoded = pixels * max(int(samples), 4) * max(int(sample_bytes), 1)
     return 2 * decoded + raster_bytes(w, h, samples) + raster_bytes(w, h, 4)
+
+
+def edit_bytes(width: int, height: int) -> int:
+    """Estimated peak bytes of ``lasagna edit`` on a ``width`` × ``height`` image (``EDIT_BYTES_PER_PIXEL``)."""
+    return int(width) * int(height) * EDIT_BYTES_PER_PIXEL
+
+
+def check_edit_memory(width: int, height: int, where: str) -> None:
+    """Refuse, before anything is decoded, an edit of a ``width`` × ``height`` image over the memory budget."""
+    check_memory(edit_bytes(width, height), f"editing a {width}x{height} image", where)
 
 
 def _check_pixels(w: int, h: int, max_pixels: int, where: str, samples: int = 4, sample_bytes: int = 1) -> None:
@@ -320,10 +335,13 @@ def read_image_file(path: str | os.PathLike, *, max_pixels: int) -> RasterImage:
 
 __all__ = [
     "DEFAULT_EDIT_MAX_PIXELS",
+    "EDIT_BYTES_PER_PIXEL",
     "PILLOW_FORMATS",
     "READABLE",
     "RasterImage",
+    "check_edit_memory",
     "decode_bytes",
+    "edit_bytes",
     "probe_image_file",
     "read_image_file",
 ]

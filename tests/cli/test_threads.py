@@ -1,0 +1,68 @@
+"""The CLI's thread policy (``lasagna.cli.common.thread_count``) and ``--threads`` on every computing command."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from lasagna.cli import COMMANDS, build_parser, main
+from lasagna.cli.common import COMPUTING, thread_count
+
+BASIC = Path(__file__).resolve().parents[2] / "examples" / "stacks" / "basic"
+AFFINITY = len(os.sched_getaffinity(0))
+
+
+@pytest.fixture
+def keep_threads():
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+def test_default_is_the_affinity_count():
+    assert thread_count(None, {}) == AFFINITY
+
+
+def test_omp_num_threads_caps_the_default():
+    assert thread_count(None, {"OMP_NUM_THREADS": "1"}) == 1
+    assert thread_count(None, {"OMP_NUM_THREADS": str(AFFINITY + 8)}) == AFFINITY  # a cap, never a raise
+    assert thread_count(None, {"OMP_NUM_THREADS": "junk"}) == AFFINITY  # not a number: torch ignores it too
+
+
+def test_requested_wins():
+    assert thread_count(3, {"OMP_NUM_THREADS": "1"}) == 3
+
+
+def test_every_computing_command_takes_threads():
+    assert COMPUTING <= set(COMMANDS)
+    for name in COMMANDS:
+        p = build_parser([name])
+        sub = next(a for a in p._subparsers._group_actions).choices[name]
+        flags = {o for a in sub._actions for o in a.option_strings}
+        assert ("--threads" in flags) == (name in COMPUTING), name
+
+
+def test_threads_is_set_before_the_command(tmp_path, capsys, keep_threads):
+    folder = shutil.copytree(BASIC, tmp_path / "basic")
+    torch.set_num_threads(AFFINITY)
+    assert main(["composite", str(folder), "--threads", "1"]) == 0
+    assert torch.get_num_threads() == 1
+
+
+def test_default_follows_omp_num_threads(tmp_path, capsys, keep_threads, monkeypatch):
+    folder = shutil.copytree(BASIC, tmp_path / "basic")
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    torch.set_num_threads(AFFINITY + 1)
+    assert main(["composite", str(folder)]) == 0
+    assert torch.get_num_threads() == 1
+
+
+@pytest.mark.parametrize("bad", ["0", "-2", "two"])
+def test_threads_must_be_positive(capsys, bad):
+    assert main(["composite", str(BASIC), "--threads", bad]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--threads" in err and "expected a positive integer" in err
