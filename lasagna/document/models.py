@@ -256,6 +256,11 @@ class SurfaceLayer(_Common):
         AMBIENT, ge=0.0, lt=1.0, allow_inf_nan=False, description="Ambient term a of a + (1 − a)·max(0, n·l)."
     )
     mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
+    made_by: dict[str, JsonValue] = Field(
+        default_factory=dict,
+        description="How the surface was made (preset, estimator and its SHA-256, the layer it was estimated from, "
+        "refinement): a record; the render reads only the map and the light.",
+    )
 
     @property
     def range(self) -> tuple[float, float]:
