@@ -19,6 +19,7 @@ made from them saves them losslessly.
 
 from __future__ import annotations
 
+import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -239,7 +240,7 @@ def _tiff_size(path: Path, where: str) -> tuple[int, int, int, int]:
 
 
 def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
-    from PIL import ImageOps, UnidentifiedImageError
+    from PIL import UnidentifiedImageError
 
     Image = _pillow()
     try:
@@ -259,7 +260,7 @@ def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
                     return RasterImage(*_as_rgb(_unit(np.asarray(im), where), where), bit_depth=16)
                 if im.mode == "I":
                     raise _refuse(where, "a 32-bit integer TIFF")
-            im = ImageOps.exif_transpose(im)
+            im = as_seen(im, where)
             has_alpha = im.mode in ("RGBA", "LA", "PA") or "transparency" in im.info
             im = im.convert("RGBA" if has_alpha else "RGB")
             codes = np.asarray(im)
@@ -270,6 +271,62 @@ def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
             return _read_tiff_wide(path, where, max_pixels)  # a float or other wide TIFF Pillow cannot open
         raise _pillow_error(exc, where) from None
     return RasterImage(*_as_rgb(_unit(codes, where), where), bit_depth=8)
+
+
+# The rendering intent of a tagged image's conversion to sRGB: perceptual, what viewers and Photoshop's "convert to
+# profile" use, so colours outside sRGB are compressed, not clipped where a matrix profile has a table for it.
+ICC_INTENT = "perceptual"
+
+
+def _profile_name(profile) -> str:
+    from PIL import ImageCms
+
+    try:
+        return " ".join(ImageCms.getProfileDescription(profile).split()) or "unnamed"
+    except (ImageCms.PyCMSError, OSError, ValueError):
+        return "unnamed"
+
+
+def as_seen(im, where: str):
+    """A Pillow image as a viewer shows it: its EXIF orientation applied (``ImageOps.exif_transpose``) and, when it
+    carries an ICC profile, converted to sRGB (LittleCMS through ``PIL.ImageCms``, intent ``ICC_INTENT``), alpha
+    kept. Every image, read from a file or given to the API (``Stack.from_image``), passes through here, so a path
+    and its opened image give the same pixels. A profile that cannot be converted (a broken profile, a 16-bit or
+    float image, a colour space that is not the image's) is one warning, and the codes are read as sRGB."""
+    import warnings
+
+    from PIL import ImageCms, ImageOps
+
+    im = ImageOps.exif_transpose(im)
+    icc = im.info.get("icc_profile")
+    if not icc:
+        return im
+    try:
+        src = ImageCms.ImageCmsProfile(io.BytesIO(icc))
+    except (ImageCms.PyCMSError, OSError, ValueError) as exc:
+        warnings.warn(f"{where}: cannot read its ICC profile ({' '.join(str(exc).split())[:80]}); read as sRGB")
+        return im
+    name = _profile_name(src)
+    if im.mode == "P":
+        im = im.convert("RGBA" if "transparency" in im.info else "RGB")
+    if im.mode not in ("RGB", "RGBA", "L", "CMYK"):
+        warnings.warn(f"{where}: cannot convert its ICC profile {name!r} for a {im.mode} image; read as sRGB")
+        return im
+    intent = ImageCms.Intent[ICC_INTENT.upper()]
+    try:
+        out = ImageCms.profileToProfile(
+            im,
+            src,
+            ImageCms.createProfile("sRGB"),
+            renderingIntent=intent,
+            outputMode="RGBA" if im.mode == "RGBA" else "RGB",
+        )
+    except (ImageCms.PyCMSError, OSError, ValueError) as exc:
+        why = " ".join(str(exc).split())[:80]
+        warnings.warn(f"{where}: cannot convert its ICC profile {name!r} to sRGB ({why}); read as sRGB")
+        return im
+    out.info.pop("icc_profile", None)
+    return out
 
 
 def _magic(p: Path, where: str) -> bytes:
@@ -337,8 +394,10 @@ __all__ = [
     "DEFAULT_EDIT_MAX_PIXELS",
     "EDIT_BYTES_PER_PIXEL",
     "PILLOW_FORMATS",
+    "ICC_INTENT",
     "READABLE",
     "RasterImage",
+    "as_seen",
     "check_edit_memory",
     "decode_bytes",
     "edit_bytes",

@@ -477,12 +477,21 @@ def _filter_rows(rows: np.ndarray, above: np.ndarray) -> np.ndarray:
     return out
 
 
+# The sRGB chunk's rendering intent (PNG spec 11.3.3.5): 0, perceptual, as tagged inputs are converted.
+SRGB_INTENT = 0
+
+
 def encode_rgb8_bands(bands, width: int, height: int) -> bytes:
     """An 8-bit RGB PNG from ``bands``, an iterable of (rows, width, 3) uint8 arrays from the top, encoded
     as they come: the memory is the compressed output and one band, never a copy of the whole image
-    (what ``write_composite`` uses for canvases of any size)."""
+    (what ``write_composite`` uses for canvases of any size). The file says its colours are sRGB (an ``sRGB``
+    chunk, ``SRGB_INTENT``): every composite is (tagged inputs are converted on reading, ``lasagna.io.image``)."""
     deflate = zlib.compressobj(6)
-    parts = [PNG_SIGNATURE, _chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))]
+    parts = [
+        PNG_SIGNATURE,
+        _chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)),
+        _chunk(b"sRGB", bytes([SRGB_INTENT])),
+    ]
     above = np.zeros(width * 3, dtype=np.uint8)
     rows_seen = 0
     pending: list[bytes] = []

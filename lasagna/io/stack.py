@@ -333,7 +333,11 @@ def _layer_dict(
 
 
 def _pil_to_codes(image) -> np.ndarray:
-    """A PIL image as (C, h, w) float64 stored codes v in [0, 1]."""
+    """A PIL image as (C, h, w) float64 stored codes v in [0, 1], as a viewer shows it (EXIF orientation applied,
+    an ICC-tagged image converted to sRGB: ``lasagna.io.image.as_seen``, as for an image file)."""
+    from lasagna.io.image import as_seen
+
+    image = as_seen(image, "image")
     mode = image.mode
     if mode in ("I;16", "I;16B", "I;16L"):
         arr = np.asarray(image, dtype=np.float64)[None] / 65535.0
