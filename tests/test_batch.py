@@ -25,6 +25,7 @@ from lasagna.batch import collect_inputs, edit_many, is_complete, output_names, 
 from lasagna.cli import main
 from lasagna.editing import edit
 from lasagna.errors import LasagnaError, PathError
+from tests.support.bounded import HANG_SECONDS
 from tests.support.tinylayers import ROOT
 
 
@@ -316,7 +317,12 @@ def test_two_processes_equal_one(tmp_path, tiny, capsys, how):
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT), "LASAGNA_LAYERS": str(tiny)}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2", "--standalone", "-m", "lasagna.cli"]
     done = subprocess.run(
-        [*cmd, *argv, "-o", str(tmp_path / "two")], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=180
+        [*cmd, *argv, "-o", str(tmp_path / "two")],
+        env=env,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=HANG_SECONDS,
     )
     assert done.returncode == 0, done.stderr[-3000:]
     assert done.stdout.strip().splitlines()[-1].startswith(f"{tmp_path / 'two'}/ (2 processes): edited 5, skipped 0")

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.support.bounded import HANG_SECONDS
+
 ROOT = Path(__file__).resolve().parents[1]
 
 CHECK = r"""
@@ -52,7 +54,7 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
         [*pip, "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp / "dist"), str(src)],
         capture_output=True,
         text=True,
-        timeout=240,
+        timeout=HANG_SECONDS,
         env=env,
     )
     assert build.returncode == 0, build.stderr[-2000:]
@@ -62,7 +64,7 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
         [*pip, "install", "--no-deps", "-q", "--target", str(target), str(wheel)],
         capture_output=True,
         text=True,
-        timeout=240,
+        timeout=HANG_SECONDS,
         env=env,
     )
     assert inst.returncode == 0, inst.stderr[-2000:]
@@ -90,7 +92,7 @@ def test_presets_resolve_from_the_installed_package(installed, tmp_path):
     env = {k: v for k, v in os.environ.items() if k not in ("LASAGNA_LAYERS", "PYTHONPATH")}
     env["PYTHONPATH"] = str(target)
     proc = subprocess.run(
-        [sys.executable, "-c", CHECK], cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env
+        [sys.executable, "-c", CHECK], cwd=tmp_path, capture_output=True, text=True, timeout=HANG_SECONDS, env=env
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     got = json.loads(proc.stdout)

@@ -18,6 +18,7 @@ from PIL import Image
 from lasagna.cli import main
 from lasagna.export.ora_import import MAX_GROUP_DEPTH
 from tests.support import pngcraft
+from tests.support.bounded import HANG_SECONDS
 from tests.support.reference import composite_reference, to_uint8
 from tests.support.stackcraft import random_stack, write_png8, write_stack
 
@@ -397,7 +398,9 @@ def test_console_script_runs():
     exe = Path(sys.executable).with_name("lasagna")
     if not exe.exists():
         pytest.skip("lasagna console script not installed in this environment")
-    proc = subprocess.run([str(exe), "validate", "/nonexistent/stack"], capture_output=True, text=True, timeout=60)
+    proc = subprocess.run(
+        [str(exe), "validate", "/nonexistent/stack"], capture_output=True, text=True, timeout=HANG_SECONDS
+    )
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
 
 

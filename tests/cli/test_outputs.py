@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from lasagna.cli import main
+from tests.support.bounded import HANG_SECONDS
 from tests.support.tinylayers import ROOT
 
 BASIC = ROOT / "examples" / "stacks" / "basic"
@@ -189,7 +190,7 @@ def test_sigterm_during_export_exits_143_and_leaves_nothing(tmp_path):
     proc, _ = start_slow(tmp_path, "export", BASIC, "--ora", keep, "--layers", tmp_path / "L")
     assert litter(tmp_path), "the child was stopped before writing its temporary"
     proc.send_signal(signal.SIGTERM)
-    out, err = proc.communicate(timeout=60)
+    out, err = proc.communicate(timeout=HANG_SECONDS)
     assert proc.returncode == 143, err
     assert "Traceback" not in err and out == ""
     assert keep.read_bytes() == b"the user's file" and not (tmp_path / "L").exists() and litter(tmp_path) == []
@@ -200,7 +201,7 @@ def test_sigkill_litter_is_swept_by_the_next_export(tmp_path, capsys):
     keep.write_bytes(b"the user's file")
     proc, _ = start_slow(tmp_path, "export", BASIC, "--ora", keep)
     proc.kill()
-    proc.communicate(timeout=60)
+    proc.communicate(timeout=HANG_SECONDS)
     left = litter(tmp_path)
     assert len(left) == 1 and f".lasagna-{proc.pid}-" in left[0] and keep.read_bytes() == b"the user's file"
     assert run(capsys, "export", BASIC, "--ora", keep)[0] == 0
@@ -213,7 +214,7 @@ def test_killed_edit(tmp_path, capsys, monkeypatch, tiny, how):
     proc, _ = start_slow(tmp_path, "edit", PHOTO, "--condition", "left", "-o", out, env={"LASAGNA_LAYERS": str(tiny)})
     assert any(name.endswith(".tmp") for name in litter(tmp_path))  # the finished folder, not renamed in yet
     proc.send_signal(getattr(signal, how))
-    _, err = proc.communicate(timeout=60)
+    _, err = proc.communicate(timeout=HANG_SECONDS)
     assert not out.exists()
     if how == "SIGTERM":
         assert proc.returncode == 143 and "Traceback" not in err and litter(tmp_path) == []
@@ -238,7 +239,7 @@ def test_racing_imports_into_one_folder(tmp_path, capsys):
         out = tmp_path / f"out{attempt}"
         argv = [sys.executable, "-m", "lasagna.cli", "import-ora", str(tmp_path / "b.ora"), "-o", str(out)]
         procs = [subprocess.Popen(argv, env=env, stderr=subprocess.PIPE, text=True) for _ in range(2)]
-        results = sorted((p.wait(timeout=120), p.stderr.read()) for p in procs)
+        results = sorted((p.wait(timeout=HANG_SECONDS), p.stderr.read()) for p in procs)
         assert [code for code, _ in results] == [0, 2], results
         assert one_error_line(2, results[1][1]) and f"{out}: is not empty" in results[1][1]
         assert (out / "stack.json").is_file() and litter(tmp_path) == []

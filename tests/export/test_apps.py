@@ -27,6 +27,7 @@ from PIL import Image
 
 from lasagna.cli import main
 from lasagna.io.stack import Stack
+from tests.support.bounded import HANG_SECONDS
 from tests.support.reference import composite_reference, to_uint8
 
 KRITA, GIMP, XVFB = shutil.which("krita"), shutil.which("gimp"), shutil.which("xvfb-run")
@@ -84,7 +85,7 @@ def test_krita_flattens_our_ora(tmp_path):
         ],
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=HANG_SECONDS,
     )
     assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
     worst, mean, pair = _compare(tmp_path / "flat.png", folder, "Krita vs reference")
@@ -102,7 +103,10 @@ def test_gimp_flattens_our_psd(tmp_path):
         f' (file-png-save-defaults RUN-NONINTERACTIVE image layer "{tmp_path / "flat.png"}" "flat.png"))'
     )
     proc = subprocess.run(
-        [GIMP, "-i", "-d", "-f", "-b", script, "-b", "(gimp-quit 0)"], capture_output=True, text=True, timeout=300
+        [GIMP, "-i", "-d", "-f", "-b", script, "-b", "(gimp-quit 0)"],
+        capture_output=True,
+        text=True,
+        timeout=HANG_SECONDS,
     )
     assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
     worst, mean, pair = _compare(tmp_path / "flat.png", folder, "GIMP vs reference")
@@ -197,7 +201,7 @@ def _krita_flatten(ora: Path, out: Path) -> subprocess.CompletedProcess:
         [XVFB, "-a", KRITA, "--nosplash", "--export", "--export-filename", str(out), str(ora)],
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=HANG_SECONDS,
     )
 
 
@@ -208,7 +212,10 @@ def _gimp_flatten(psd: Path, out: Path) -> subprocess.CompletedProcess:
         f' (file-png-save-defaults RUN-NONINTERACTIVE image layer "{out}" "flat.png"))'
     )
     return subprocess.run(
-        [GIMP, "-i", "-d", "-f", "-b", script, "-b", "(gimp-quit 0)"], capture_output=True, text=True, timeout=300
+        [GIMP, "-i", "-d", "-f", "-b", script, "-b", "(gimp-quit 0)"],
+        capture_output=True,
+        text=True,
+        timeout=HANG_SECONDS,
     )
 
 
@@ -306,7 +313,7 @@ def test_krita_flattens_our_nested_groups(tmp_path):
         + [str(tmp_path / "in.ora")],
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=HANG_SECONDS,
     )
     assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
     with Image.open(tmp_path / "flat.png") as im:
@@ -333,7 +340,10 @@ def test_gimp_flattens_our_nested_groups(tmp_path):
         f' (file-png-save-defaults RUN-NONINTERACTIVE image layer "{tmp_path / "flat.png"}" "flat.png"))'
     )
     proc = subprocess.run(
-        [GIMP, "-i", "-d", "-f", "-b", script, "-b", "(gimp-quit 0)"], capture_output=True, text=True, timeout=300
+        [GIMP, "-i", "-d", "-f", "-b", script, "-b", "(gimp-quit 0)"],
+        capture_output=True,
+        text=True,
+        timeout=HANG_SECONDS,
     )
     assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
     with Image.open(tmp_path / "flat.png") as im:

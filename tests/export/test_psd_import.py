@@ -29,7 +29,7 @@ from lasagna.export.psd import psd_blend_modes  # noqa: E402
 from lasagna.export.psd_import import read_psd  # noqa: E402
 from lasagna.io.render import render_stack  # noqa: E402
 from lasagna.io.stack import load_stack  # noqa: E402
-from tests.export.bounded import within  # noqa: E402
+from tests.support.bounded import within  # noqa: E402
 
 MODES = psd_blend_modes(BlendMode)
 # Every mode psd-tools composites as Photoshop does (plus is written as LINEAR_DODGE, read back as linear-dodge;

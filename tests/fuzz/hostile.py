@@ -1,12 +1,12 @@
 """Hostile inputs for the fuzz suite (tests/fuzz/test_hostile.py, benchmarks/hostile.py): hypothesis
 strategies for stack folders, PNG files and .ora archives (valid ones, then mutated), and a forked
-worker that runs the real CLI on each under a memory ceiling and a wall-clock limit.
+worker that runs the real CLI on each under a memory ceiling and a CPU-time limit.
 
 A case is ``(files, commands)``: ``files`` maps a relative path to bytes (written to a fresh folder),
 ``commands`` are argv lists for ``lasagna.cli.main`` in which ``{d}`` stands for that folder. The
 contract checked for every command (``check``): exit status 0 or 2, at most one error line, never
-"internal error" or "Traceback", and an answer within ``CASE_SECONDS``. (Warnings, one line each,
-may precede the error line.)
+"internal error" or "Traceback", and an answer within ``CASE_CPU_SECONDS`` of CPU time per command.
+(Warnings, one line each, may precede the error line.)
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import json
 import multiprocessing
 import os
 import resource
+import signal
 import struct
 import sys
 import tempfile
@@ -28,11 +29,17 @@ import numpy as np
 from hypothesis import strategies as st
 from PIL import Image
 
+from tests.support import bounded
+
 # Per case: the child may grow its address space this far past what the fork inherited (the budget
 # of lasagna.limits is 8 GiB, so any large allocation must have been refused before it is tried), and
-# must answer within this many seconds.
+# may use this many seconds of CPU time per command (RLIMIT_CPU, not the wall clock: a loaded 2-core
+# machine stretched a PNG case past a 60 s wall-clock limit; the slowest command here, a tiny-catalogue
+# edit, uses about a second of CPU).
 HEADROOM_BYTES = 3 * 2**29  # 1.5 GiB
-CASE_SECONDS = 20.0
+CASE_CPU_SECONDS = 20
+# A case that has not answered after this many wall-clock seconds is hung without spending CPU (a deadlock).
+HANG_SECONDS = bounded.HANG_SECONDS
 
 Case = tuple[dict[str, bytes], list[list[str]]]
 
@@ -51,6 +58,9 @@ def _child(conn, folder: str, commands: list[list[str]], env: dict[str, str]) ->
     try:
         limit = _vm_size() + HEADROOM_BYTES
         resource.setrlimit(resource.RLIMIT_AS, (limit, resource.getrlimit(resource.RLIMIT_AS)[1]))
+        cpu = CASE_CPU_SECONDS * len(commands)  # a forked child starts at zero CPU time
+        resource.setrlimit(resource.RLIMIT_CORE, (0, 0))  # SIGXCPU's default action dumps core
+        resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 1))  # SIGXCPU, then SIGKILL a second later
         os.environ.update(env)
         from lasagna.cli import main
 
@@ -84,12 +94,15 @@ def run_case(files: dict[str, bytes], commands: list[list[str]], env: dict[str, 
         proc.start()
         send.close()
         try:
-            if not receive.poll(CASE_SECONDS * len(commands)):
-                raise AssertionError(f"no answer within {CASE_SECONDS * len(commands):.0f} s (a hang): {commands}")
+            if not receive.poll(HANG_SECONDS):
+                raise AssertionError(f"no answer within {HANG_SECONDS} s (a hang): {commands}")
             try:
                 results = receive.recv()
             except EOFError:
                 proc.join(5)
+                if proc.exitcode in (-signal.SIGXCPU, -signal.SIGKILL):
+                    cpu = CASE_CPU_SECONDS * len(commands)
+                    raise AssertionError(f"no answer within {cpu} CPU seconds (a hang): {commands}") from None
                 raise AssertionError(f"the worker died (exit {proc.exitcode}): {commands}") from None
         finally:
             if proc.is_alive():
@@ -534,4 +547,13 @@ def ora_cases(draw, bases: list[dict[str, bytes]]) -> Case:
     return {"x.ora": draw(ora_files(bases))}, [["import-ora", "{d}/x.ora", "-o", "{d}/imported"]]
 
 
-__all__ = ["CASE_SECONDS", "check", "ora_cases", "png_cases", "run_case", "stack_cases", "base_oras"]
+__all__ = [
+    "CASE_CPU_SECONDS",
+    "HANG_SECONDS",
+    "check",
+    "ora_cases",
+    "png_cases",
+    "run_case",
+    "stack_cases",
+    "base_oras",
+]

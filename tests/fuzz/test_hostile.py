@@ -90,13 +90,19 @@ def test_the_worker_enforces_memory_and_time(monkeypatch):
 
     import lasagna.cli.validate as validate_command
 
+    def spin(args):
+        while True:
+            pass
+
     # The child is a fork: what is patched here is what it runs.
     monkeypatch.setattr(validate_command, "run", lambda args: bytearray(4 * 2**30) and 0)
     [(_, code, _, err)] = hostile.run_case({}, [["validate", "{d}"]])
     assert code == 2 and "out of memory (MemoryError" in err  # the ceiling held: 4 GiB was refused
-    monkeypatch.setattr(hostile, "CASE_SECONDS", 1.0)
-    monkeypatch.setattr(validate_command, "run", lambda args: time.sleep(30))
-    start = time.perf_counter()
-    with pytest.raises(AssertionError, match="a hang"):
+    monkeypatch.setattr(hostile, "CASE_CPU_SECONDS", 1)
+    monkeypatch.setattr(validate_command, "run", spin)  # a loop: stopped by its CPU time, however loaded
+    with pytest.raises(AssertionError, match="within 1 CPU seconds \\(a hang\\)"):
         hostile.run_case({}, [["validate", "{d}"]])
-    assert time.perf_counter() - start < 10
+    monkeypatch.setattr(hostile, "HANG_SECONDS", 1)
+    monkeypatch.setattr(validate_command, "run", lambda args: time.sleep(600))  # a wait that spends no CPU
+    with pytest.raises(AssertionError, match="within 1 s \\(a hang\\)"):
+        hostile.run_case({}, [["validate", "{d}"]])

@@ -22,6 +22,7 @@ from lasagna.io.folder import (
     write_stack_folder,
 )
 from lasagna.io.stack import Stack, load_stack
+from tests.support.bounded import HANG_SECONDS
 
 BASIC = Path(__file__).resolve().parents[2] / "examples" / "stacks" / "basic"
 
@@ -37,7 +38,7 @@ def _leftovers(parent: Path) -> list[str]:
 def _race(monkeypatch, out: Path, *, force: bool, writers: int = 2) -> list[BaseException | None]:
     """``writers`` threads write a stack folder to ``out``, released together just before the swap (the
     window the early check cannot close); returns each one's exception (None for success)."""
-    barrier = threading.Barrier(writers, timeout=30)
+    barrier = threading.Barrier(writers, timeout=HANG_SECONDS)
     real = folder_module.swap_in
 
     def swap_after_barrier(tmp, target, **kw):

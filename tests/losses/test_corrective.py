@@ -38,6 +38,7 @@ from lasagna.losses.corrective import (
 from lasagna.priors.base import NoiseSchedule, Prior
 from lasagna.priors.unet import UNetConfig, UNetPrior
 from lasagna.training import corrective as ct
+from tests.support.bounded import HANG_SECONDS
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -394,7 +395,9 @@ class TestKillAndResume:
         assert 0 < killed_at < steps and killed_at % 20 == 0
         assert not (out / "metrics.json").exists()
 
-        done = subprocess.run(self._cmd(prior_dir, out, steps), cwd=ROOT, env=env, capture_output=True, timeout=120)
+        done = subprocess.run(
+            self._cmd(prior_dir, out, steps), cwd=ROOT, env=env, capture_output=True, timeout=HANG_SECONDS
+        )
         assert done.returncode == 0, done.stderr.decode()[-2000:]
         summary = json.loads(done.stdout.decode().strip().splitlines()[-1])
         assert summary["step"] == steps and summary["stopped"] == "done"

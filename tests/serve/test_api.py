@@ -30,6 +30,7 @@ from lasagna.io.stack import load_stack  # noqa: E402
 from lasagna.serve import STACK_SUFFIX, allowed_hosts, open_target  # noqa: E402
 from lasagna.serve.app import MAX_JSON_BYTES, create_app  # noqa: E402
 from lasagna.serve.session import EditSession  # noqa: E402
+from tests.support.bounded import HANG_SECONDS  # noqa: E402
 from tests.support.tinylayers import ROOT  # noqa: E402
 
 TOKEN = "test-token"
@@ -92,7 +93,10 @@ def engine_codes(folder: Path) -> np.ndarray:
 
 def validate(folder: Path) -> str:
     r = subprocess.run(
-        [sys.executable, "-m", "lasagna.cli", "validate", str(folder)], capture_output=True, text=True, timeout=120
+        [sys.executable, "-m", "lasagna.cli", "validate", str(folder)],
+        capture_output=True,
+        text=True,
+        timeout=HANG_SECONDS,
     )
     assert r.returncode == 0, r.stderr
     return r.stdout
@@ -508,7 +512,7 @@ def test_a_cancelled_job_changes_nothing(client, session, monkeypatch):
     busy = client.post("/api/change", headers=H, json={"op": "undo", "version": v})
     assert "job is running" in refused(busy, 409)
     assert client.post(f"/api/jobs/{job['id']}/cancel", headers=H, json={}).status_code == 200
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + HANG_SECONDS
     while session.jobs[job["id"]].state == "running" and time.monotonic() < deadline:
         time.sleep(0.05)
     assert session.jobs[job["id"]].state == "cancelled"
@@ -636,7 +640,7 @@ def test_bad_targets_are_one_line(tmp_path):
         open_target(tmp_path / "empty")
 
 
-def cli(*args, timeout=60):
+def cli(*args, timeout=HANG_SECONDS):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     return subprocess.run(
         [sys.executable, "-m", "lasagna.cli", *args], capture_output=True, text=True, timeout=timeout, env=env
@@ -666,26 +670,25 @@ def test_serve_prints_a_tokened_url_serves_it_and_stops_on_ctrl_c(folder):
     )
     try:
         url = None
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + HANG_SECONDS
         while url is None and time.monotonic() < deadline:
             line = p.stdout.readline()
             if "?token=" in line:
                 url = line.strip()
         assert url and url.startswith("http://127.0.0.1:")
-        for _ in range(100):  # the URL is printed just before uvicorn binds
+        while True:  # the URL is printed just before uvicorn binds
             try:
-                with urllib.request.urlopen(url.replace("/?", "/api/state?"), timeout=5) as r:
+                with urllib.request.urlopen(url.replace("/?", "/api/state?"), timeout=HANG_SECONDS) as r:
                     assert json.load(r)["folder"] == "basic"
                 break
             except OSError:
+                assert time.monotonic() < deadline, "the server never answered"
                 time.sleep(0.1)
-        else:
-            pytest.fail("the server never answered")
         with pytest.raises(urllib.error.HTTPError) as err:
-            urllib.request.urlopen(url.split("?")[0] + "api/state", timeout=5)
+            urllib.request.urlopen(url.split("?")[0] + "api/state", timeout=HANG_SECONDS)
         assert err.value.code == 403
     finally:
         p.send_signal(signal.SIGINT)
-        rc = p.wait(timeout=30)
+        rc = p.wait(timeout=HANG_SECONDS)
     assert rc == 0
     assert "Traceback" not in p.stderr.read()

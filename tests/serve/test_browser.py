@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.support.bounded import HANG_SECONDS
 from tests.support.tinylayers import ROOT
 
 pytestmark = pytest.mark.browser
@@ -73,7 +74,7 @@ class Server:
 
     def stop(self) -> None:
         self.server.should_exit = True
-        self.thread.join(timeout=10)
+        self.thread.join(timeout=HANG_SECONDS)
 
 
 @pytest.fixture
@@ -271,7 +272,7 @@ def test_a_per_image_layer_shows_progress_and_can_be_cancelled(browser, server, 
     v = version(page)
     assert page.is_disabled("#add-learned")  # light has no generator
     page.click("#add-per-image")  # the layer is added, then made by a job with a progress bar
-    page.wait_for_function(f"window.lasagna.state.version >= {v + 2}", timeout=60_000)
+    page.wait_for_function(f"window.lasagna.state.version >= {v + 2}", timeout=HANG_SECONDS * 1000)
     settle(page)
     top = page.evaluate("window.lasagna.state.document.layers.at(-1)")
     assert top["kind"] == "learned" and page.evaluate("window.lasagna.state.not_rendered") == {}
@@ -284,9 +285,11 @@ def test_a_per_image_layer_shows_progress_and_can_be_cancelled(browser, server, 
     # The previous job's "done" and full bar are gone at once, and cancel waits for the new job's id: a cancel
     # clicked earlier went to the finished job, and the refine (early-stopped after ~100 steps) ran on.
     assert "done" not in page.inner_text("#job-text")
-    page.wait_for_function("!document.getElementById('job-cancel').disabled", timeout=60_000)
+    page.wait_for_function("!document.getElementById('job-cancel').disabled", timeout=HANG_SECONDS * 1000)
     page.click("#job-cancel")
-    page.wait_for_function("document.getElementById('job-text').textContent.includes('cancelled')", timeout=60_000)
+    page.wait_for_function(
+        "document.getElementById('job-text').textContent.includes('cancelled')", timeout=HANG_SECONDS * 1000
+    )
     assert version(page) == v
     assert page.errors == []
     page.close()

@@ -10,6 +10,7 @@ import zlib
 from pathlib import Path
 
 from tests.support import pngcraft
+from tests.support.bounded import HANG_SECONDS
 
 # The peak is the child's VmHWM, not ru_maxrss: Linux keeps ru_maxrss across exec, so a child of a large
 # pytest process would report at least the parent's resident size; VmHWM belongs to the new image.
@@ -32,7 +33,7 @@ sys.exit(code)
 )
 
 
-def run_cli(*argv, timeout: float = 300) -> tuple[int, str, str, float]:
+def run_cli(*argv, timeout: float = HANG_SECONDS) -> tuple[int, str, str, float]:
     """``lasagna ARGV`` in a child process: (exit status, stdout without the peak line, stderr, peak MB)."""
     proc = subprocess.run(
         [sys.executable, "-c", _CHILD, *map(str, argv)],
@@ -45,7 +46,7 @@ def run_cli(*argv, timeout: float = 300) -> tuple[int, str, str, float]:
     return proc.returncode, "\n".join(lines[:-1]), proc.stderr, int(lines[-1].split()[1]) / 1024
 
 
-def run_python(code: str, timeout: float = 300) -> tuple[int, str, str, float]:
+def run_python(code: str, timeout: float = HANG_SECONDS) -> tuple[int, str, str, float]:
     """``python -c CODE``: (exit status, stdout, stderr, peak MB of the child)."""
     wrapped = _PEAK + code + "\nprint('PEAK_KB', _peak_kb())\n"
     proc = subprocess.run([sys.executable, "-c", wrapped], capture_output=True, text=True, timeout=timeout)

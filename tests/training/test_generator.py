@@ -22,6 +22,7 @@ from lasagna.training import AmortisedConfig, read_log, task_batch, train_layer_
 from lasagna.training.generator import chunking
 from lasagna.world import VOCABULARY
 from tests.distill.conftest import SHADING
+from tests.support.bounded import HANG_SECONDS
 
 ROOT = Path(__file__).resolve().parents[2]
 GEN = LayerGeneratorConfig(layer=SHADING, vocabulary=tuple(VOCABULARY), channels=(8, 16), blocks=1)
@@ -198,7 +199,7 @@ def test_two_processes_equal_one(tmp_path):
         "--out",
         str(tmp_path / "two"),
     ]
-    done = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    done = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=HANG_SECONDS)
     assert done.returncode == 0, done.stderr[-3000:]
     assert json.loads(done.stdout.strip().splitlines()[-1])["processes"] == 2
     two = LayerGenerator.from_pretrained(tmp_path / "two" / "generator")
