@@ -56,7 +56,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--condition",
         metavar="LABEL",
-        help="a label of the preset's vocabulary, e.g. left (required unless --prompt gives free text)",
+        help="a label of the preset's vocabulary, e.g. left (default: the preset's first label, shading's 'left'; "
+        "with --prompt, the prompt's own label); required with many inputs",
     )
     p.add_argument(
         "-o",
@@ -279,8 +280,17 @@ def run_many(args: argparse.Namespace) -> int:
     return 0 if report.ok else 2
 
 
+# Names that say "a file" where OUT must be a stack folder: images and the interchange formats.
+FILE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".tif", ".tiff", ".bmp", ".ora", ".psd", ".json")
+
+
 def run_one(args: argparse.Namespace) -> int:
     from lasagna.io.folder import check_output_folder
+
+    if Path(args.output).suffix.lower() in FILE_SUFFIXES:
+        raise PathError(
+            f"OUT is a stack folder; expected a folder name, e.g. -o {Path(args.output).with_suffix('')}", args.output
+        )
     from lasagna.io.image import check_edit_memory, probe_image_file
     from lasagna.io.survey import survey_stack
 

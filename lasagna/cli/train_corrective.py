@@ -17,7 +17,7 @@ import argparse
 import importlib
 import json
 
-from lasagna.cli.common import device_argument
+from lasagna.cli.common import device_argument, progress
 from lasagna.errors import LasagnaError
 
 HELP = "train the LMC-SDS manifold corrective b̂ of a prior (resumable)"
@@ -193,7 +193,7 @@ def run(args: argparse.Namespace) -> int:
         eval_batches=args.eval_batches,
         max_minutes=args.max_minutes,
         seed=args.seed,
-        progress=not args.no_progress,
+        progress=progress() and not args.no_progress,  # bars only for a person watching (or --progress)
     )
     result = train_corrective(prior, source, config, args.out, device=args.device)
     print(

@@ -7,6 +7,8 @@ import argparse
 import json
 from pathlib import Path
 
+from lasagna.cli.common import progress
+
 HELP = "train a bundled conditional prior on the procedural world (resumable)"
 
 
@@ -86,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
         grad_clip=args.grad_clip,
         checkpoint_every=args.checkpoint_every,
         seed=args.seed,
-        progress=not args.no_progress,
+        progress=progress() and not args.no_progress,  # bars only for a person watching (or --progress)
     )
     train_prior(config, args.out)
     print(json.dumps({"out": str(Path(args.out) / "prior"), "task": args.task}))

@@ -7,6 +7,8 @@ import argparse
 import json
 from pathlib import Path
 
+from lasagna.cli.common import progress
+
 HELP = "train a surface estimator (height field from an image) on the procedural world (resumable)"
 
 
@@ -54,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
         grad_clip=args.grad_clip,
         world_seed=args.world_seed,
         seed=args.seed,
-        progress=not args.no_progress,
+        progress=progress() and not args.no_progress,  # bars only for a person watching (or --progress)
     )
     train_surface(config, args.out)
     print(json.dumps({"out": str(Path(args.out) / "surface"), "input": args.input}))

@@ -51,13 +51,15 @@ def _check_place(path: Path, where: str) -> None:
 
 def check_writable(path: str | os.PathLike, *, folder: bool = False) -> Path:
     """Refuse an output path that cannot be written, before anything is written: a file path (``folder``
-    false) must not be a folder and must lie in a writable place; a folder to write into must not be a
+    false) must not be a folder and must lie in an existing writable folder; a folder to write into must not be a
     file and must be writable (or creatable)."""
     path = Path(path)
     if not folder and path.is_dir():
         raise PathError("is a folder; expected a file path to write", str(path))
     if folder and path.exists() and not path.is_dir():
         raise PathError("exists and is not a folder; expected a folder to write into", str(path))
+    if not folder and not path.parent.exists():  # a mistyped folder is refused, not created
+        raise PathError(f"folder {path.parent} does not exist; expected a file in an existing folder", str(path))
     _check_place(path if folder else path.parent, str(path))
     return path
 

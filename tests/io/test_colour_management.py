@@ -16,7 +16,7 @@ from lasagna.cli import main
 from lasagna.io.image import read_image_file
 from lasagna.io.png import read_png
 from lasagna.io.stack import Stack
-from tests.icc import display_p3_profile, p3_to_srgb_codes
+from tests.support.icc import display_p3_profile, p3_to_srgb_codes
 
 
 def _photo(h: int = 48, w: int = 64) -> np.ndarray:
