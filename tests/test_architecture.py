@@ -35,7 +35,15 @@ TIERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("training", ("lasagna.training",)),
     (
         "user API",
-        ("lasagna.learned", "lasagna.recipe", "lasagna.editing", "lasagna.batch", "lasagna.demo", "lasagna.api"),
+        (
+            "lasagna.learned",
+            "lasagna.recipe",
+            "lasagna.editing",
+            "lasagna.batch_records",
+            "lasagna.batch",
+            "lasagna.demo",
+            "lasagna.api",
+        ),
     ),
     ("editor", ("lasagna.serve",)),
     ("cli", ("lasagna.cli",)),
