@@ -373,7 +373,8 @@ def resolve(
 
 def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | None = None) -> dict[str, object]:
     """Whether ``preset`` can make layers here, read from configs only (no weights, no torch):
-    ``{"usable": bool, "method": "amortised" | "per-image" | None, "amortised": bool, "why": str}``.
+    ``{"usable": bool, "method": "surface" | "amortised" | "per-image" | None, "amortised": bool, "why": str}``
+    (``surface``: the preset's default layer is a surface from its estimator).
 
     Usable means: an amortised generator is installed, or the prior is found and knows every label
     of the preset's vocabulary (and the corrective is found when the default loss is LMC-SDS). ``method``
@@ -386,6 +387,11 @@ def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | Non
         return {"usable": False, "method": None, "amortised": False, "why": str(err)}
     p = parts.preset
     has_generator = parts.generator is not None
+    if p.layer_kind == "surface":  # the choice recipe.layer_kind makes for a request that names no other
+        if parts.estimator is None:
+            why = f"its surface estimator {p.surface.estimator!r} is not in the catalogue"
+            return {"usable": False, "method": None, "amortised": has_generator, "why": why}
+        return {"usable": True, "method": "surface", "amortised": has_generator, "why": f"estimator {parts.estimator}"}
     if has_generator and p.method != "per-image":  # the choice learned.choose_method makes
         return {"usable": True, "method": "amortised", "amortised": True, "why": f"generator {parts.generator}"}
     if parts.prior is None:
@@ -573,6 +579,8 @@ def add_prior(
         prior=name,
         corrective=f"{name}-corrective" if corrective is not None else None,
         method="per-image",  # no amortised generator was trained for this prior
+        layer_kind="free",  # a free layer scored by this prior (the template's surface estimator is not this prior's)
+        surface=None,
         diffusers=(options or base.diffusers or DiffusersOptions()).model_dump(mode="json"),
     )
     data["distill"] = {**data["distill"], "loss": "lmc-sds" if corrective is not None else "sds"}

@@ -309,7 +309,7 @@ class Recipe:
             refs = {"prior": own[0], "corrective": own[2], "controlnets": own[1]} if own else {}
             resolved = cat.resolve(request.preset, stack.folder, catalogue_dirs, need_prior=False, **refs)
         p = resolved.preset
-        if (request.layer_kind or p.layer_kind) == "surface":
+        if layer_kind(request, p) == "surface":
             return _surface_recipe(resolved, request)
         if request.source_light is not None:
             raise LasagnaError(
@@ -462,6 +462,16 @@ def _made(
         control=control,
         **scoring,
     )
+
+
+def layer_kind(request: EditRequest, preset: Preset) -> str:
+    """The layer kind of a new edit: the one asked for; else free when the request names what only a free layer
+    uses (a method — ``--generator`` — a prior of one's own, a prompt); else the preset's ``layer_kind``."""
+    if request.layer_kind is not None:
+        return request.layer_kind
+    if request.generator is not None or request.own_scored:
+        return "free"
+    return preset.layer_kind
 
 
 def _surface_recipe(resolved: cat.Resolved, request: EditRequest) -> Recipe:

@@ -248,17 +248,24 @@ def test_preset_status(tmp_path, tiny):
     colour = cat.preset_status("color", catalogue_dirs=[tiny])
     assert colour["usable"] and colour["method"] == "per-image"
     other = shutil.copytree(tiny, tmp_path / "layers")
-    _preset_copy(other, method="per-image")  # a preset that asks for per-image keeps it, generator or not
+    _preset_copy(other, method="per-image", layer_kind="free")  # asks for per-image: keeps it, generator or not
     st = cat.preset_status("shading", catalogue_dirs=[other])
     assert (other / "shading" / "generator").is_dir() and st["method"] == "per-image"
     assert st["amortised"]  # the generator stays one click away (the editor's "Add (amortised)")
     assert st["method"] == choose_method(cat.resolve("shading", catalogue_dirs=[other]), None)
     shutil.rmtree(other / "shading" / "generator")
     assert not cat.preset_status("shading", catalogue_dirs=[other])["amortised"]
-    _preset_copy(other, vocabulary=["left", "warm"])  # a label the prior was never trained on
+    _preset_copy(other, vocabulary=["left", "warm"], layer_kind="free")  # a label the prior was never trained on
     st = cat.preset_status("shading", catalogue_dirs=[other])
     assert not st["usable"] and "was not trained on warm" in st["why"] and "\n" not in st["why"]
-    _preset_copy(other, prior="missing-prior")
+    # The shipped shading preset's default is a surface: usable when its estimator is there, and said so.
+    _preset_copy(other)
+    st = cat.preset_status("shading", catalogue_dirs=[other])
+    assert st["usable"] and st["method"] == "surface" and "surface-albedo-32" in st["why"]
+    shutil.rmtree(other / "surface-albedo-32")
+    st = cat.preset_status("shading", catalogue_dirs=[other])
+    assert not st["usable"] and "surface estimator 'surface-albedo-32' is not in the catalogue" in st["why"]
+    _preset_copy(other, prior="missing-prior", layer_kind="free")
     assert (
         cat.preset_status("shading", catalogue_dirs=[other])["why"]
         == "its prior 'missing-prior' is not in the catalogue"
@@ -269,10 +276,10 @@ def test_preset_status(tmp_path, tiny):
         "loss": "lmc-sds",
         "guidance": 3.0,
     }
-    _preset_copy(other, distill=lmc)  # LMC-SDS needs its corrective
+    _preset_copy(other, distill=lmc, layer_kind="free")  # LMC-SDS needs its corrective
     st = cat.preset_status("shading", catalogue_dirs=[other])
     assert not st["usable"] and "corrective 'relight-32-spectral' is not in the catalogue" in st["why"]
-    _preset_copy(other, distill={**lmc, "loss": "sds", "guidance": 1.0})  # SDS does not
+    _preset_copy(other, distill={**lmc, "loss": "sds", "guidance": 1.0}, layer_kind="free")  # SDS does not
     assert cat.preset_status("shading", catalogue_dirs=[other])["usable"]
     assert cat.preset_status("nope", catalogue_dirs=[other])["usable"] is False
 

@@ -316,8 +316,15 @@ def run_one(args: argparse.Namespace) -> int:
     )
     result.save(out, force=args.force, ora=not args.no_ora, warn=warn, phase=phase)
     s = result.settings
+    layer = result.stack.document.layer(result.layer_id)
     how = (
-        "amortised generator, one forward pass"
+        f"a surface lit from {layer.light}"
+        + (f", source light {layer.source_light}" if layer.source_light else "")
+        + f" (estimated at {s['working_size']}²"
+        + (f", {s['optimize']} multi-light steps" if s["optimize"] else "")
+        + ")"
+        if layer.kind == "surface"
+        else "amortised generator, one forward pass"
         if s["method"] == "amortised" and not s["optimize"]
         else (
             f"amortised generator + {s['optimize']} per-image steps"

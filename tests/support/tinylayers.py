@@ -47,9 +47,14 @@ def _jitter(module: torch.nn.Module, seed: int, scale: float = 0.05) -> torch.nn
 
 
 def write_preset(folder: Path, name: str, **changes) -> dict:
-    """The bundled preset ``name`` with a short distill (``STEPS``) and ``changes``, written under ``folder``."""
+    """The bundled preset ``name`` with a short distill (``STEPS``) and ``changes``, written under ``folder``.
+
+    The free per-pixel layer is the tiny presets' layer kind unless ``changes`` say otherwise: the shipped shading
+    preset makes a surface, and the tests of the free layer's paths (generators, methods, refinement) need it;
+    the surface route is tested with ``layer_kind="surface"`` (tests/test_surface_edit.py)."""
     data = json.loads((ROOT / "layers" / name / "preset.json").read_text(encoding="utf-8"))
     data["distill"]["steps"] = STEPS
+    data["layer_kind"] = "free"
     data.update(changes)
     (folder / name).mkdir(parents=True, exist_ok=True)
     (folder / name / "preset.json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
