@@ -174,7 +174,10 @@ def _gray(image: Tensor) -> Tensor:
 
 def _how(result) -> str:
     s = result.settings
-    if s["method"] == "amortised":
+    layer = result.stack.document.layer(result.layer_id)
+    if layer.kind == "surface":
+        how = "surface" + (f", from {layer.source_light}" if layer.source_light else "")
+    elif s["method"] == "amortised":
         how = "amortised generator" + (f" + {s['optimize']} steps" if s["optimize"] else ", one pass")
     else:
         d = s["distill"]
@@ -241,7 +244,8 @@ def run_demo(
 
 
 def runnable_presets(catalogue_dirs=None) -> tuple[dict[str, str], list[str]]:
-    """({preset: "amortised" | "per-image"} of the demo's presets that can run, [why each other cannot])."""
+    """({preset: "surface" | "amortised" | "per-image"} of the demo's presets that can run, [why each other
+    cannot]): what ``lasagna edit`` makes by default (the preset's layer kind, then its method)."""
     runnable: dict[str, str] = {}
     missing: list[str] = []
     for preset in ("shading", "color", "light", "relight"):
@@ -249,6 +253,9 @@ def runnable_presets(catalogue_dirs=None) -> tuple[dict[str, str], list[str]]:
             parts = cat.resolve(preset, catalogue_dirs=catalogue_dirs, need_prior=False)
         except LasagnaError as err:
             missing.append(f"{preset}: {err}")
+            continue
+        if parts.preset.layer_kind == "surface" and parts.estimator is not None:
+            runnable[preset] = "surface"
             continue
         method = choose_method(parts, None)  # lasagna edit's default for the preset
         if method == "amortised":
@@ -281,15 +288,19 @@ class _Edits:
         from lasagna.editing import conditioning_input, edit
 
         method = self.runnable[preset]
-        optimize = self.refine if method == "amortised" else self.steps
-        generator = "free" if method == "per-image" else "amortised"
-        result = edit(
-            image, preset, label, on=on, catalogue_dirs=self.catalogue_dirs, generator=generator, optimize=optimize
-        )
+        options = {}
+        if method != "surface":  # a surface is the preset's own default: nothing to choose
+            options = {
+                "generator": "free" if method == "per-image" else "amortised",
+                "optimize": self.refine if method == "amortised" else self.steps,
+            }
+        result = edit(image, preset, label, on=on, catalogue_dirs=self.catalogue_dirs, **options)
         # force: replaces a previous run's stack
         self.written.append(result.save(self.out / "stacks" / name, force=True, warn=self.warn))
         layer = result.stack.document.layer(result.layer_id)
-        seen = conditioning_input(result.stack, layer.conditioned_on)  # what the generator saw
+        # What the generator (or a surface's estimator) saw.
+        below = layer.made_by["conditioned_on"] if layer.kind == "surface" else layer.conditioned_on
+        seen = conditioning_input(result.stack, below)
         self.rows.append(Row(title, _how(result), seen, layer_view(result.layer, layer.range), result.composite, truth))
 
     def world_scene(self, scene: Path, glow: str) -> None:
