@@ -1,0 +1,170 @@
+"""Install a trained surface estimator into the catalogue with its model card.
+
+    OMP_NUM_THREADS=1 python benchmarks/surface_card.py --run runs/surface-lit-32 --name surface-lit-32 \
+        --measured docs/surface.json
+
+Copies ``RUN/surface`` (config.json, model.safetensors) to ``layers/NAME/`` and writes ``layers/NAME/MODEL.md``:
+what it reads, the architecture and its size, the data (the world's training split and the splits it never saw),
+the training (steps, minutes, the exact command from the run's train_config.json), its loss curve (loss.png) and
+the quality measured by benchmarks/surface.py (the rows of ``--measured`` for this estimator, with the oracle and
+headroom rows beside them). Ends with one JSON line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _common import print_json_line  # noqa: E402
+
+from lasagna.generators.surface import SurfaceEstimator  # noqa: E402
+from lasagna.training.loop import read_log  # noqa: E402
+from lasagna.world.splits import SPLITS  # noqa: E402
+
+ROWS = {
+    "albedo": ("shading", "surface estimator (albedo)"),
+    "lit": ("relight", "surface estimator (lit), its source light"),
+}
+
+
+def command(cfg: dict, run: Path) -> str:
+    net = cfg["net"]
+    return (
+        f"lasagna train-surface --input {net['input']} --out {run} --working-size {net['working_size']} "
+        f"--channels {','.join(map(str, net['channels']))} --blocks {net['blocks']} --lights {cfg['lights']} "
+        f"--batch-size {cfg['batch_size']} --lr {cfg['lr']} --minutes {cfg['max_minutes']:g}"
+    )
+
+
+def quality(measured: dict, kind: str) -> list[str]:
+    task, method = ROWS[kind]
+    keep = {method, "oracle: true outlines inflated", "oracle: true outlines inflated, true source light"}
+    keep |= {m for m in (r["method"] for r in measured.get(task, [])) if m.startswith("truth at working size")}
+    keep |= {m for m in (r["method"] for r in measured.get(task, [])) if m.startswith("lasagna edit")}
+    out = [
+        "| split | size | method | dB over "
+        + ("the best constant" if task == "shading" else "the input")
+        + " (all / objects) |",
+        "|---|---|---|---|",
+    ]
+    for r in measured.get(task, []):
+        if r["method"] in keep:
+            out.append(
+                f"| {r['split']} | {r['size']}² | {r['method']} | {r['gain_db']:+.2f} / {r['gain_obj_db']:+.2f} |"
+            )
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run", type=Path, required=True)
+    ap.add_argument("--name", required=True)
+    ap.add_argument("--measured", type=Path, default=None, help="benchmarks/surface.py --json-out of this estimator")
+    args = ap.parse_args(argv)
+    folder = ROOT / "layers" / args.name
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in ("config.json", "model.safetensors"):
+        shutil.copyfile(args.run / "surface" / name, folder / name)
+    net = SurfaceEstimator.from_pretrained(folder)
+    params = sum(p.numel() for p in net.parameters())
+    cfg = json.loads((args.run / "train_config.json").read_text(encoding="utf-8"))
+    log = read_log(args.run)
+    steps, minutes = log[-1]["step"], log[-1]["elapsed_s"] / 60
+    kind = net.config.input
+    train = SPLITS[cfg["split"]]
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6, 3))
+        ax.plot([r["step"] for r in log], [r["shading_mse"] for r in log], lw=0.6, label="multi-light shading MSE")
+        if kind == "lit":
+            ax.plot([r["step"] for r in log], [r["light_cos_err"] for r in log], lw=0.6, label="source light 1 − cos")
+        ax.set_yscale("log")
+        ax.set_xlabel("step")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(folder / "loss.png", dpi=100)
+    except ImportError:
+        pass
+    reads = (
+        "the unlit base (albedo): geometry from outlines and paint"
+        if kind == "albedo"
+        else ("an image already lit by an unknown light: geometry from its shading, and that light fitted to it")
+    )
+    measured = json.loads(args.measured.read_text(encoding="utf-8")) if args.measured else {}
+    lines = [
+        f"# {args.name}: a surface estimator ({kind} input)",
+        "",
+        f"A `SurfaceEstimator` (`lasagna.generators.surface`, {params / 1e6:.2f} M parameters, channels "
+        f"{list(net.config.channels)}, {net.config.blocks} conv blocks per level, no normalisation) that reads "
+        f"{reads}, and outputs a height field at working size {net.config.working_size} (canvas units). Its "
+        "normals, rendered by Lambert with ambient 0.25 (`lasagna.compose.surface`), are a shading layer under "
+        "any light"
+        + (
+            ": the lit estimator also outputs the source light's shading, and the source light is the least-squares "
+            "fit of the normals to it (`fit_light`)."
+            if kind == "lit"
+            else "."
+        ),
+        "",
+        "## Data",
+        f"Fresh batches of {cfg['batch_size']} scenes of the world's `{cfg['split']}` split (world seed "
+        f"{cfg['world_seed']}) every step: shapes {', '.join(train.shapes)}; textures "
+        f"{', '.join(sorted(train.textures))}; wall relief {', '.join(train.reliefs) or 'none'}. Supervised by the "
+        f"world's true normals, rendered under {cfg['lights']} random lights per scene and step (azimuth uniform, "
+        "elevation 0–75°): one geometry must shade right under all of them"
+        + (
+            "; each scene is lit by a random source light (elevation 30–75°) before the estimator reads it."
+            if kind == "lit"
+            else "."
+        ),
+        "`select`, `heldout` and `far` (families training never uses) are never seen; every choice is made on "
+        "`select`.",
+        "",
+        "## Training",
+        f"{steps} steps in {minutes:.1f} minutes on this 2-core CPU (one thread), Adam lr {cfg['lr']} after "
+        f"{cfg['warmup_steps']} warm-up steps, EMA {cfg['ema_decay']} (ramped), gradient clip {cfg['grad_clip']}. "
+        "Reproduce (resumable; the same command continues a killed run bit for bit):",
+        "",
+        "```sh",
+        command(cfg, Path("runs") / args.name),
+        f"OMP_NUM_THREADS=1 python benchmarks/surface.py --splits select heldout far --sizes 64 256 --count 16 "
+        f"--{'albedo' if kind == 'albedo' else 'lit'} layers/{args.name} --json-out {args.measured}",
+        f"python benchmarks/surface_card.py --run runs/{args.name} --name {args.name} --measured {args.measured}",
+        "```",
+        "",
+        "![loss](loss.png)",
+        "",
+        "## Quality",
+        "Measured by `benchmarks/surface.py` on 16 scenes per split (world seed 0), beside the outline-inflation "
+        "oracle (the true outlines inflated into domes) and the headroom of any layer made at the working size "
+        "(the truth reduced and enlarged back):",
+        "",
+        *quality(measured, kind),
+        "",
+        "Texture leak on walls alone (the scenes' objects removed: the true shading is one constant; the layer's "
+        "PSNR against its own mean, ∞ for a flat surface): "
+        + ", ".join(
+            f"{r['split']} {r['size']}² {r[f'leak_db_{kind}']:.1f} dB"
+            for r in measured.get("leak", [])
+            if f"leak_db_{kind}" in r
+        )
+        + ".",
+        "",
+    ]
+    (folder / "MODEL.md").write_text("\n".join(lines), encoding="utf-8")
+    print_json_line({"name": args.name, "params": params, "steps": steps, "minutes": round(minutes, 1)})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
