@@ -18,7 +18,6 @@ from lasagna.document.models import (
     VERSION,
     AdjustmentLayer,
     Canvas,
-    clip_chains,
     Condition,
     Document,
     GeneratorRef,
@@ -30,6 +29,7 @@ from lasagna.document.models import (
     Size,
     SolidLayer,
     SurfaceLayer,
+    clip_chains,
 )
 from lasagna.document.preset import (
     LOSS_NAMES,

@@ -141,7 +141,6 @@ class _Common(StrictModel):
         "the chain as one.",
     )
 
-
     @model_serializer(mode="wrap")
     def _clip_written_when_set(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
         # The one field written only when set: a stack without clipping masks keeps the bytes it had before

@@ -159,7 +159,9 @@ class TestGradients:
         base_a = torch.rand(1, 3, 3, generator=g, dtype=torch.float64) * 0.8 + 0.1
 
         def f(c):
-            base = RenderLayerSpec(id="b", tensors=LayerTensors(torch.full((3, 3, 3), 0.3, dtype=torch.float64), base_a))
+            base = RenderLayerSpec(
+                id="b", tensors=LayerTensors(torch.full((3, 3, 3), 0.3, dtype=torch.float64), base_a)
+            )
             top = RenderLayerSpec(id="t", tensors=LayerTensors(c, alpha), blend="overlay")
             return render(chains([base, top], [False, True]), canvas=(3, 3), clamp="output").image
 

@@ -485,7 +485,13 @@ def _chain_stack(group_base: bool = False) -> Stack:
     layers = [layer.model_dump() for layer in stack.document.layers]
     layers[2]["clip"] = True
     if group_base:
-        layers[1] = {"id": "g", "kind": "group", "isolated": True, "opacity": 0.8, "layers": [layers[1] | {"opacity": 1.0}]}
+        layers[1] = {
+            "id": "g",
+            "kind": "group",
+            "isolated": True,
+            "opacity": 0.8,
+            "layers": [layers[1] | {"opacity": 1.0}],
+        }
     stack.document = stack.document.with_layers(layers)
     return stack
 
