@@ -593,6 +593,8 @@ def test_demo_falls_back_without_priors(tmp_path, capsys, monkeypatch):
         (empty / name).mkdir(parents=True)
         preset = json.loads((ROOT / "layers" / name / "preset.json").read_text())
         preset["prior"] = "missing-prior"
+        if preset.get("surface"):  # a surface preset's estimator is missing too: nothing learned can run
+            preset["surface"]["estimator"] = "missing-estimator"
         (empty / name / "preset.json").write_text(json.dumps(preset))
     monkeypatch.setenv("LASAGNA_LAYERS", str(empty))
     code, stdout, err = run(capsys, "demo", "-o", tmp_path / "demo")
