@@ -47,6 +47,7 @@ from lasagna.document.preset import (
 )
 from lasagna.document.preset import load_preset as _load_preset_file
 from lasagna.errors import DocumentError, LasagnaError
+from lasagna.version import install_hint, missing_extra
 
 Kind = Literal["preset", "prior", "corrective", "generator", "estimator"]
 KINDS: tuple[str, ...] = ("preset", "prior", "corrective", "generator", "estimator")
@@ -396,6 +397,9 @@ def preset_status(preset: str, catalogue_dirs: Sequence[str | os.PathLike] | Non
         return {"usable": True, "method": "amortised", "amortised": True, "why": f"generator {parts.generator}"}
     if parts.prior is None:
         why = f"its prior {p.prior!r} is not in the catalogue"
+        return {"usable": False, "method": None, "amortised": has_generator, "why": why}
+    if parts.source is not None and parts.source.kind == "diffusers" and missing_extra("diffusers") is not None:
+        why = f"its prior {p.prior!r} is a diffusers folder and needs the diffusers extra ({install_hint('diffusers')})"
         return {"usable": False, "method": None, "amortised": has_generator, "why": why}
     config = config_doc(parts.prior).get("config")
     vocabulary = config.get("vocabulary") if isinstance(config, dict) else None

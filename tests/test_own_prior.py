@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -214,3 +215,51 @@ def test_letterbox_keeps_the_aspect():
     y.sum().backward()
     assert torch.allclose(x.grad, torch.full_like(x.grad, 0.25))  # area-averaged 2×2: every pixel counts once
     assert os.environ.get("HF_HUB_OFFLINE") == "1"
+
+
+class TestWithoutTheDiffusersExtra:
+    """Without diffusers installed, every way to a diffusers prior is one line naming the extra (issue 27)."""
+
+    @pytest.fixture(autouse=True)
+    def no_diffusers(self, monkeypatch):
+        for module in ("diffusers", "transformers"):  # None in sys.modules: find_spec gives None, import fails
+            monkeypatch.setitem(sys.modules, module, None)
+
+    @staticmethod
+    def names_the_extra(code: int, err: str) -> bool:
+        return code == 2 and "pip install 'lasagna-layers[diffusers]'" in err and err.count("\n") == 1
+
+    def test_edit_prior(self, disk, tmp_path, capsys):
+        out = tmp_path / "o"
+        code, _, err = run(capsys, "edit", disk["photo"], "--prior", disk["sd"], "--optimize", "1", "-o", out)
+        assert self.names_the_extra(code, err), err
+        assert "internal error" not in err and not out.exists()
+
+    def test_added_preset_is_not_ready_and_edit_names_the_extra(self, disk, tmp_path, capsys, monkeypatch):
+        monkeypatch.setenv("LASAGNA_LAYERS", str(tmp_path / "cat"))
+        code, _, err = run(capsys, "prior", "add", disk["sd"], "--name", "my-sd")
+        assert code == 0, err
+        code, stdout, err = run(capsys, "layers")
+        assert code == 0, err
+        line = next(line for line in stdout.splitlines() if line.strip().startswith("my-sd:"))
+        assert "not usable" in line and "lasagna-layers[diffusers]" in line
+        code, _, err = run(capsys, "edit", disk["photo"], "--layer", "my-sd", "--condition", "left",
+                           "--optimize", "1", "-o", tmp_path / "o")  # fmt: skip
+        assert self.names_the_extra(code, err), err
+
+    def test_train_corrective_prior(self, disk, tmp_path, capsys):
+        code, _, err = run(
+            capsys, "train-corrective", "--kind", "spectral", "--prior", disk["sd"], "--images", disk["photos"],
+            "--out", tmp_path / "b", "--batches", "1", "--buckets", "2", "--batch-size", "2",
+        )  # fmt: skip
+        assert self.names_the_extra(code, err), err
+
+    def test_status_looks_without_importing(self, disk, tmp_path, monkeypatch):
+        from lasagna import catalogue
+
+        catalogue.add_prior(disk["sd"], name="mine", catalogue=tmp_path / "cat")
+        status = catalogue.preset_status("mine", catalogue_dirs=[tmp_path / "cat"])
+        assert not status["usable"] and "diffusers extra" in status["why"]
+        monkeypatch.delitem(sys.modules, "diffusers")
+        monkeypatch.setattr("importlib.util.find_spec", lambda name, package=None: object())  # installed after all
+        assert catalogue.preset_status("mine", catalogue_dirs=[tmp_path / "cat"])["usable"]

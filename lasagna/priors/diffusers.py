@@ -62,6 +62,7 @@ from torch import nn
 from lasagna.errors import ConditionError, LasagnaError
 from lasagna.priors.base import NoiseSchedule, Prior
 from lasagna.priors.nn import randn
+from lasagna.version import install_hint, missing_extra
 
 DEFAULT_TEMPLATE = "A photo of an object with {label} lighting"
 
@@ -424,6 +425,7 @@ class DiffusersPrior(Prior):
         slices (less memory, a little slower); ``channels_last`` stores the UNet's and ControlNets'
         activations NHWC (faster convolutions on recent GPUs).
         """
+        require_diffusers()
         with _quiet():
             return cls._from_local(
                 path,
@@ -569,6 +571,18 @@ class DiffusersPrior(Prior):
                 prior.pooled_embeds = prior.pooled_embeds.to(execution)
         del text_encoder, text_encoder_2  # the prompts are encoded; the text encoders are not kept
         return prior
+
+
+def require_diffusers() -> None:
+    """A ``LasagnaError`` naming the extra to install when diffusers or transformers is not installed (a
+    ModuleNotFoundError deep in a load would read as a bug)."""
+    missing = missing_extra("diffusers")
+    if missing is not None:
+        raise LasagnaError(
+            f"a diffusers prior needs the {missing} package, which is not installed; "
+            f"expected the diffusers extra: {install_hint('diffusers')}",
+            "prior",
+        )
 
 
 @contextlib.contextmanager
