@@ -102,7 +102,7 @@ def from_tensors(layers, **kwargs: Any) -> Stack:
 
 
 def export_psd(stack: Stack, path: str | os.PathLike, **kwargs: Any) -> Path:
-    """Write a layered PSD (needs ``pip install 'lasagna[psd]'``)."""
+    """Write a layered PSD (needs ``pip install 'lasagna-layers[psd]'``)."""
     from lasagna.export.psd import export_psd as _export_psd
 
     return _export_psd(stack, path, **kwargs)

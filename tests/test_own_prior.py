@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-pytest.importorskip("diffusers", reason="diffusers is not installed (optional extra lasagna[diffusers])")
+pytest.importorskip("diffusers", reason="diffusers is not installed (optional extra lasagna-layers[diffusers])")
 
 from lasagna.cli import main  # noqa: E402
 from lasagna.io.png import write_png  # noqa: E402

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from lasagna.version import DISTRIBUTION, __version__, install_hint
 from tests.support.bounded import HANG_SECONDS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,7 +60,7 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
         env=env,
     )
     assert build.returncode == 0, build.stderr[-2000:]
-    (wheel,) = (tmp / "dist").glob("lasagna-*.whl")
+    (wheel,) = (tmp / "dist").glob("lasagna_layers-*.whl")  # the distribution lasagna-layers
     target = tmp / "site"
     inst = subprocess.run(
         [*pip, "install", "--no-deps", "-q", "--target", str(target), str(wheel)],
@@ -85,6 +87,22 @@ def test_wheel_holds_every_catalogue_file(installed):
     assert page and page <= names  # the editor's page works from an installed package, offline
     assert "lasagna/py.typed" in names  # PEP 561: type checkers read the package's annotations
     assert any(n.endswith("LICENSE") and ".dist-info/" in n for n in names)
+    assert f"lasagna_layers-{__version__}.dist-info/METADATA" in names  # the distribution lasagna-layers
+
+
+def test_the_distribution_name_is_one_and_every_install_hint_names_it():
+    """``lasagna`` on the package index is another project: pyproject, ``DISTRIBUTION`` and every ``pip install``
+    hint in the package, README and docs name ``lasagna-layers`` (issue 27)."""
+    pyproject = (ROOT / "pyproject.toml").read_text(encoding="utf-8")
+    assert re.search(r'^name = "([^"]+)"', pyproject, re.M).group(1) == DISTRIBUTION == "lasagna-layers"
+    assert install_hint("serve") == "pip install 'lasagna-layers[serve]'"
+    texts = [*(ROOT / "lasagna").rglob("*.py"), ROOT / "README.md", *(ROOT / "docs").rglob("*.md")]
+    wrong = [
+        f"{path.relative_to(ROOT)}: {hint}"
+        for path in texts
+        for hint in re.findall(r"pip install ['\"]?lasagna(?!-layers)\b\S*", path.read_text(encoding="utf-8"))
+    ]
+    assert wrong == []
 
 
 def test_presets_resolve_from_the_installed_package(installed, tmp_path):

@@ -10,7 +10,7 @@
     lasagna render STACK [--all]                  render learned layers from their stored settings
     lasagna layers                                list the learned-layer catalogue
     lasagna prior add PATH --name N               register your own prior (a diffusers folder) as --layer N
-    lasagna serve STACK|IMAGE [--port N]          the layer editor in the browser (lasagna[serve])
+    lasagna serve STACK|IMAGE [--port N]          the layer editor in the browser (lasagna-layers[serve])
     lasagna demo -o DIR                           relight, colourise and light the bundled examples
     lasagna world -o DIR --split S --count N      procedural scenes as stack folders (lasagna.world)
     lasagna train-prior --task T --out DIR        train a conditional prior on the world (resumable)

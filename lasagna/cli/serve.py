@@ -17,6 +17,7 @@ import sys
 
 from lasagna.cli.common import PROG, device_argument, max_pixels_argument, warn
 from lasagna.errors import LasagnaError
+from lasagna.version import install_hint
 
 HELP = "open the layer editor in the browser on a stack folder or an image"
 
@@ -36,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
         import uvicorn
     except ImportError:
         raise LasagnaError(
-            "the editor needs Starlette and uvicorn; expected them installed: pip install 'lasagna[serve]'", "serve"
+            f"the editor needs Starlette and uvicorn; expected them installed: {install_hint('serve')}", "serve"
         ) from None
     from lasagna.heap import tune_heap
     from lasagna.serve import LOOPBACK, allowed_hosts, new_token, open_target

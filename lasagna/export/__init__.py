@@ -2,7 +2,7 @@
 
 png.py      export_layer_pngs: each layer's stored values, never normalised, 16-bit when ranged
 ora.py      export_ora / encode_ora; ora_import.py: import_ora / read_ora (zip-slip and bomb safe)
-psd.py      export_psd / encode_psd (optional extra: pip install 'lasagna[psd]')
+psd.py      export_psd / encode_psd (optional extra: pip install 'lasagna-layers[psd]')
 rasters.py  the layers as paint programs see them (dodge pairs, baked alpha, exact-composite layer)
 
 Names are imported lazily: ``import lasagna.export.ora`` to read an OpenRaster file loads no torch.

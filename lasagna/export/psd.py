@@ -1,4 +1,4 @@
-"""Layered PSD export through psd-tools (the optional extra ``lasagna[psd]``).
+"""Layered PSD export through psd-tools (the optional extra ``lasagna-layers[psd]``).
 
 Each layer of :func:`lasagna.export.rasters.export_layers` becomes an 8-bit RGBA pixel layer made
 with ``create_pixel_layer(..., blend_mode=...)`` (``PixelLayer.frompil`` ignores blend mode and
@@ -34,8 +34,9 @@ from lasagna.document.blend import BLEND_MODES
 from lasagna.errors import ExportError
 from lasagna.export.ora import composite_uint8
 from lasagna.export.rasters import ExportGroup, export_layers
+from lasagna.version import install_hint
 
-INSTALL_HINT = "pip install 'lasagna[psd]'"
+INSTALL_HINT = install_hint("psd")
 
 
 def require_psd_tools():

@@ -1,4 +1,4 @@
-"""``DiffusersPrior``: a Stable-Diffusion-style prior from 🤗 diffusers (optional extra ``lasagna[diffusers]``).
+"""``DiffusersPrior``: a Stable-Diffusion-style prior from 🤗 diffusers (optional extra ``lasagna-layers[diffusers]``).
 
 It wraps a ``UNet2DConditionModel`` (SD 1.x, 2.x or SDXL), any number of ControlNets (``ControlNetModel``; the
 Lasagna paper's prior is a ControlNet conditioned on the input image and a lighting prompt "A photo of

@@ -1,4 +1,4 @@
-"""``lasagna serve``: the layer editor in the browser (needs ``pip install 'lasagna[serve]'``).
+"""``lasagna serve``: the layer editor in the browser (needs ``pip install 'lasagna-layers[serve]'``).
 
 ``open_target(path)`` turns what the user named into a stack folder (an image gets a new stack folder
 beside it), ``EditSession`` (``session``) is the open stack, ``create_app`` (``app``) its HTTP face,

@@ -44,6 +44,7 @@ from lasagna.errors import ConflictError, LasagnaError
 from lasagna.limits import BudgetError
 from lasagna.serve.bodies import Empty, RequestError, StartJob, parse_body, parse_change, parse_request_json
 from lasagna.serve.session import EditSession
+from lasagna.version import install_hint
 
 TOKEN_HEADER = "x-lasagna-token"
 TOKEN_COOKIE = "lasagna_token"
@@ -401,7 +402,7 @@ def _response_for(exc: Exception) -> Response:
     if isinstance(exc, LasagnaError):
         return _error(400, str(exc))
     if isinstance(exc, ImportError):
-        return _error(501, f"{exc}; expected the optional dependency installed (pip install 'lasagna[psd]')")
+        return _error(501, f"{exc}; expected the optional dependency installed ({install_hint('psd')})")
     return _error(500, f"internal error: {type(exc).__name__}: {exc}; please report it")
 
 
