@@ -635,6 +635,74 @@ def add_prior(
     return root / name / "preset.json"
 
 
+def install_generator(
+    generator: str | os.PathLike,
+    preset: str,
+    *,
+    catalogue: str | os.PathLike | None = None,
+    force: bool = False,
+) -> Path:
+    """Install a trained generator folder (``model.safetensors`` + ``config.json``) as preset ``preset``'s
+    amortised generator; returns ``<catalogue>/<preset>/generator``.
+
+    ``catalogue`` defaults to ``writable_catalogue()`` (``$LASAGNA_LAYERS``'s first folder, else the user's), so
+    an install never writes inside the package. Where the preset's folder is elsewhere (the checkout's or the
+    package's ``layers/``), a copy of its preset.json — references with '/' made absolute — goes beside the
+    generator, and, searched first, shadows it. A generator the preset already has (there or in the catalogue
+    it was found in) is replaced only with ``force``. The folder is built beside its place and renamed in.
+    """
+    import shutil
+
+    from lasagna.atomic import folder_lock, make_temp_folder, temp_path
+
+    parts = resolve(preset, need_prior=False)
+    p = parts.preset
+    root = Path(catalogue) if catalogue is not None else writable_catalogue()
+    if parts.generator is not None and not force:
+        raise LasagnaError(
+            f"preset {p.name!r} already has a generator at {parts.generator}; expected --force to replace it "
+            f"(installed in {root / p.name})",
+            "--install",
+        )
+    source = Path(generator)
+    if format_of(source) != "lasagna.layer_generator":
+        raise LasagnaError("is not a trained generator; expected model.safetensors + config.json", str(source))
+    target = root / p.name
+    own_folder = target.resolve() == parts.preset_file.parent.resolve()
+    if target.exists() and not own_folder:
+        raise LasagnaError(
+            f"exists and is not preset {p.name!r}'s folder; expected it free (or the preset's own)", str(target)
+        )
+    root.mkdir(parents=True, exist_ok=True)
+    place = target / PRESET_GENERATOR if own_folder else target
+    tmp = make_temp_folder(place)
+    try:
+        folder = tmp if own_folder else tmp / PRESET_GENERATOR
+        folder.mkdir(exist_ok=True)
+        for name in ("model.safetensors", "config.json"):  # the generator; a run folder's other files stay there
+            shutil.copyfile(source / name, folder / name)
+        if not own_folder:  # the preset beside its generator, its relative references kept pointing where they did
+            data = p.model_dump(mode="json")
+            here = parts.preset_file.parent.resolve()
+            for key in ("prior", "corrective"):
+                if data.get(key) and "/" in data[key]:
+                    data[key] = str(here / data[key])
+            if data.get("surface") and "/" in data["surface"]["estimator"]:
+                data["surface"]["estimator"] = str(here / data["surface"]["estimator"])
+            (tmp / "preset.json").write_text(Preset.from_dict(data, "preset.json").to_json(), encoding="utf-8")
+        with folder_lock(place.parent):
+            if place.exists():  # the preset's own earlier generator (checked above): moved aside, then removed
+                aside = temp_path(place, "old")
+                os.rename(place, aside)
+                os.rename(tmp, place)
+                shutil.rmtree(aside, ignore_errors=True)
+            else:
+                os.rename(tmp, place)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return target / PRESET_GENERATOR
+
+
 def _resolved(path: str | os.PathLike) -> Path:
     """``path`` made absolute, its links followed; a link loop is one line."""
     try:

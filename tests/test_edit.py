@@ -487,6 +487,38 @@ def test_train_layer_and_install(tmp_path, capsys, tiny, monkeypatch):
     assert result.settings["method"] == "amortised"
 
 
+def test_train_layer_install_goes_to_the_users_catalogue(tmp_path, capsys, tiny, monkeypatch):
+    """``--install`` never writes into the catalogue the preset came from (the package's, in a wheel): the
+    generator and a copy of the preset go to the user's catalogue, and one there or shipped is replaced only
+    with ``--force`` (issue 27)."""
+    from lasagna import catalogue as cat
+    from lasagna.document.preset import user_catalogue
+    from tests.support.tinylayers import fingerprint
+
+    package = shutil.copytree(tiny, tmp_path / "site-packages" / "lasagna" / "_layers")
+    assert (package / "shading" / "generator" / "config.json").is_file()  # a shipped generator
+    before = fingerprint(package)
+    monkeypatch.delenv("LASAGNA_LAYERS", raising=False)
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    monkeypatch.setattr(cat, "default_catalogues", lambda: [user_catalogue(), package])
+    train = ["train-layer", "--preset", "shading", "--steps", "1", "--batch-size", "2", "--channels", "4,8"]
+
+    code, _, err = run(capsys, *train, "--out", tmp_path / "run", "--install")
+    assert code == 2 and "already has a generator" in err and "--force" in err and err.count("\n") == 1
+    assert not (tmp_path / "run").exists()  # refused before training
+
+    code, stdout, err = run(capsys, *train, "--out", tmp_path / "run", "--install", "--force")
+    assert code == 0, err
+    user = user_catalogue() / "shading"
+    assert json.loads(stdout.strip().splitlines()[-1])["installed"] == str(user / "generator")
+    assert fingerprint(package) == before  # the package's catalogue untouched
+    assert (user / "preset.json").is_file() and cat.resolve("shading").generator == user / "generator"
+    assert edit(PHOTO, "shading", "left").settings["method"] == "amortised"
+
+    code, _, err = run(capsys, *train, "--out", tmp_path / "run2", "--install")
+    assert code == 2 and str(user / "generator") in err  # the user's own generator is kept too
+
+
 @pytest.mark.parametrize("supervised", [False, True])
 def test_train_layer_trains_on_the_presets_task(tmp_path, capsys, tiny, supervised):
     """The relight preset's layer is a ratio onto an image already lit (``"task": "relit"``), not the shading

@@ -1,5 +1,6 @@
 """``lasagna train-layer``: train a preset's amortised layer generator on the world (resumable;
-``lasagna.training.generator``), with ``--install`` into the preset's catalogue folder."""
+``lasagna.training.generator``), with ``--install`` into the user's catalogue (``lasagna.catalogue.install_generator``:
+never inside the package; an existing generator is replaced only with ``--force``)."""
 
 from __future__ import annotations
 
@@ -71,8 +72,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--install",
         action="store_true",
-        help="copy the trained generator into the preset's catalogue folder (<catalogue>/<preset>/generator/)",
+        help="install the trained generator as the preset's in your catalogue ($LASAGNA_LAYERS's first folder, "
+        "else ~/.local/share/lasagna/layers), never inside the package",
     )
+    p.add_argument("--force", action="store_true", help="with --install: replace the generator the preset has")
     device_argument(p, default=None, help="torch device (default cuda if available, else cpu)")
 
 
@@ -80,11 +83,16 @@ def run(args: argparse.Namespace) -> int:
     from lasagna import catalogue as cat
     from lasagna.distill import Weights, prior_image_size
     from lasagna.generators.unet import LayerGeneratorConfig
-    from lasagna.training import AmortisedConfig, install_generator, train_layer_generator
+    from lasagna.training import AmortisedConfig, train_layer_generator
     from lasagna.world.splits import HELD_SPLITS, SPLIT_NAMES, check_seed
 
     resolved = cat.resolve(args.preset, need_prior=not args.supervised)
     preset = resolved.preset
+    if args.install and resolved.generator is not None and not args.force:  # before training, not after
+        raise LasagnaError(
+            f"preset {preset.name!r} already has a generator at {resolved.generator}; expected --force to replace it",
+            "--install",
+        )
     try:
         widths = tuple(int(c) for c in str(args.channels).split(","))
     except ValueError:
@@ -146,6 +154,6 @@ def run(args: argparse.Namespace) -> int:
         **{k: v for k, v in result.metrics.items() if k.endswith("psnr")},
     }
     if args.install:
-        line["installed"] = str(install_generator(out / "generator", resolved.preset_file.parent))
+        line["installed"] = str(cat.install_generator(out / "generator", args.preset, force=args.force))
     print(json.dumps(line))
     return 0

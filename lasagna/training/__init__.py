@@ -12,7 +12,7 @@ Checkpoints and run folders are written in ``lasagna.io.checkpoint``'s formats.
 
 from lasagna.document.preset import TASK_FOR_BLEND
 from lasagna.training.corrective import CorrectiveTrainConfig, fit_spectral, train_corrective
-from lasagna.training.generator import AmortisedConfig, AmortisedResult, install_generator, train_layer_generator
+from lasagna.training.generator import AmortisedConfig, AmortisedResult, train_layer_generator
 from lasagna.training.loop import LoopConfig, LoopResult, cumulative_seconds, read_log, train_loop
 from lasagna.training.prior import PriorTrainConfig, train_prior
 from lasagna.training.tasks import TASKS, Task, task_batch
@@ -29,7 +29,6 @@ __all__ = [
     "Task",
     "cumulative_seconds",
     "fit_spectral",
-    "install_generator",
     "read_log",
     "task_batch",
     "train_corrective",

@@ -41,7 +41,7 @@ import torch
 import torch.nn.functional as F
 from pydantic import ConfigDict, Field, model_validator
 
-from lasagna.atomic import atomic_write_bytes, atomic_write_text
+from lasagna.atomic import atomic_write_text
 from lasagna.distill.objective import ConditionImage, ScoreObjective, build_loss
 from lasagna.distill.schedules import Weights
 from lasagna.distill.settings import LossName
@@ -272,12 +272,3 @@ def _load_corrective(path: str | None, device: torch.device):
     from lasagna.catalogue import load_corrective  # a network or a spectral b̂, by its config's format
 
     return load_corrective(Path(path), device=device)
-
-
-def install_generator(source: Path, preset_dir: Path) -> Path:
-    """Copy a trained generator (model.safetensors + config.json) into ``preset_dir/generator/``, each file
-    atomically."""
-    target = preset_dir / "generator"
-    for name in ("model.safetensors", "config.json"):  # the weights first: a config.json marks a complete folder
-        atomic_write_bytes(target / name, (source / name).read_bytes())
-    return target
