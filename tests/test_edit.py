@@ -275,12 +275,28 @@ def test_render_all_and_nothing_to_render(tmp_path, capsys):
     out = tmp_path / "out"
     assert run(capsys, "edit", PHOTO, "--condition", "left", "-o", out)[0] == 0
     code, stdout, _ = run(capsys, "render", out)
-    assert code == 0 and "no learned layer to render" in stdout
+    assert code == 0 and "nothing to render: every learned layer (shading-left) has its pixels; --all re-renders" in stdout
     before = (out / "layers" / "shading-left.png").read_bytes()
     code, stdout, _ = run(capsys, "render", out, "--all")
     assert code == 0 and "rendered shading-left" in stdout
     assert (out / "layers" / "shading-left.png").read_bytes() == before
     assert "rendered" in _stack_json(out)["metadata"]["lasagna.edit"]["shading-left"]
+
+
+def test_render_makes_a_learned_layer_whose_png_is_missing(tmp_path, capsys):
+    """Without --all, ``render`` makes the learned layers not rendered yet: a PNG deleted (or never written) is
+    one of them, not an error (issue 27); a pixels layer's missing PNG still is."""
+    out = tmp_path / "out"
+    assert run(capsys, "edit", PHOTO, "--condition", "left", "-o", out)[0] == 0
+    png = out / "layers" / "shading-left.png"
+    before = png.read_bytes()
+    png.unlink()
+    code, stdout, err = run(capsys, "render", out)
+    assert code == 0 and "rendered shading-left" in stdout, err
+    assert png.read_bytes() == before
+    (out / "layers" / "base.png").unlink()
+    code, _, err = run(capsys, "render", out)
+    assert code == 2 and "base.png' does not exist" in err
 
 
 @pytest.mark.parametrize(

@@ -7,7 +7,7 @@
     lasagna import-ora IN.ora -o FOLDER           an OpenRaster file as a stack folder
     lasagna import-psd IN.psd -o FOLDER           a layered PSD as a stack folder (groups, masks, modes)
     lasagna edit IMAGE --layer P --condition L -o OUT   add a learned layer; writes a stack folder
-    lasagna render STACK [--all]                  render learned layers from their stored settings
+    lasagna render STACK [--all]                  render the learned layers not rendered yet (--all: every one)
     lasagna layers                                list the learned-layer catalogue
     lasagna prior add PATH --name N               register your own prior (a diffusers folder) as --layer N
     lasagna serve STACK|IMAGE [--port N]          the layer editor in the browser (lasagna-layers[serve])

@@ -88,9 +88,12 @@ class _Raster:
         return f"{self.loc}.{self.field} ({self.rel})"
 
 
-def _plan_rasters(file: Path, doc: Document, max_pixels: int, max_total_pixels: int) -> list[_Raster]:
+def _plan_rasters(
+    file: Path, doc: Document, max_pixels: int, max_total_pixels: int, unrendered: bool = False
+) -> list[_Raster]:
     """Resolve every path a document names and read every PNG header (cheap) before decoding anything:
-    sizes per image and in total, masks the size of their source (a group's mask may have any size)."""
+    sizes per image and in total, masks the size of their source (a group's mask may have any size).
+    ``unrendered``: a learned layer's missing source is skipped (``survey_stack``)."""
     folder = file.parent
     planned: list[_Raster] = []
     sources: dict[str, Any] = {}
@@ -98,6 +101,8 @@ def _plan_rasters(file: Path, doc: Document, max_pixels: int, max_total_pixels: 
     for loc, layer, fieldname, rel in _rasters(doc):
         where = f"{file}: {loc}.{fieldname}"
         target = resolve_inside(folder, rel, where)
+        if unrendered and isinstance(layer, LearnedLayer) and fieldname == "source" and not target.exists():
+            continue
         if not target.is_file():
             what = "is not a file" if target.exists() else "does not exist"
             raise ImageError(f"{rel!r} {what} (looked for {target}); expected a PNG file", where=where)
@@ -183,13 +188,16 @@ def survey_stack(
     max_total_pixels: int = DEFAULT_MAX_TOTAL_PIXELS,
     composite: bool = False,
     copies: int = 0,
+    unrendered: bool = False,
 ) -> Survey:
     """Survey a stack folder (or its stack.json) and check that decoding it fits the memory budget, with
     room for rendering and writing its canvas (``composite``, ``composite_bytes``) and for ``copies`` more
-    of the decoded layers (what an exporter makes of them). ``lasagna.io.stack.load_surveyed`` decodes it."""
+    of the decoded layers (what an exporter makes of them). ``lasagna.io.stack.load_surveyed`` decodes it.
+    ``unrendered``: a learned layer whose PNG is missing is not rendered yet (left without pixels, for
+    ``lasagna render`` to make) rather than refused."""
     file = stack_file(path)
     doc = load_document(path)
-    planned = _plan_rasters(file, doc, max_pixels, max_total_pixels)
+    planned = _plan_rasters(file, doc, max_pixels, max_total_pixels, unrendered)
     parts = [f"decoding the stack's {len(planned)} PNGs"] if planned else []
     parts += [f"rendering its {doc.canvas.width}x{doc.canvas.height} canvas"] if composite else []
     what = " and ".join(parts) or "loading the stack"
