@@ -194,10 +194,23 @@ def memory_budget_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
+def example_epilog(example: str | tuple[str, ...]) -> str:
+    """A help text's closing lines: ``example:`` and each command line of ``example`` indented below it."""
+    lines = (example,) if isinstance(example, str) else example
+    return "example:\n" + "\n".join(f"  {line}" for line in lines)
+
+
 def add_command(subparsers, name: str, command, *, arguments: bool = True) -> argparse.ArgumentParser:
-    """Register the command module ``command`` (``HELP``, ``add_arguments``, ``run``) as ``name``; with
-    ``arguments`` false only its name and help are listed (its arguments may import its tier)."""
-    p = subparsers.add_parser(name, help=command.HELP, description=command.HELP)
+    """Register the command module ``command`` (``HELP``, ``EXAMPLE``, ``add_arguments``, ``run``) as ``name``;
+    with ``arguments`` false only its name and help are listed (its arguments may import its tier). ``--help``
+    ends with the example (its lines kept as written)."""
+    p = subparsers.add_parser(
+        name,
+        help=command.HELP,
+        description=command.HELP,
+        epilog=example_epilog(command.EXAMPLE),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     if arguments:
         command.add_arguments(p)
         memory_budget_argument(p)

@@ -8,6 +8,7 @@ from pathlib import Path
 from lasagna.cli.common import max_pixels_argument
 
 HELP = "render a stack's composite PNG"
+EXAMPLE = "lasagna composite examples/stacks/basic -o out.png -v   # -v lists skipped layers and why"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

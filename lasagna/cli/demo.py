@@ -9,6 +9,7 @@ from lasagna.cli.common import warn
 from lasagna.errors import LasagnaError
 
 HELP = "relight, colourise and light the bundled examples; writes stacks and one sheet to look at"
+EXAMPLE = "lasagna demo -o out/demo"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

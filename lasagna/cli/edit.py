@@ -36,6 +36,10 @@ from lasagna.cli.common import PROG, distill_arguments, phase, progress, warn
 from lasagna.errors import LasagnaError, PathError, printable
 
 HELP = "add a learned layer (relight, colourise, …) to an image or stack; writes a stack folder"
+EXAMPLE = (
+    "lasagna edit examples/photos/chelsea.png --layer shading --condition left -o out/chelsea-left",
+    "lasagna edit 'shots/**/*.jpg' --condition top -o out/top   # many: out/top/<stem>/ each",
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -10,6 +10,10 @@ from lasagna.cli.common import max_pixels_argument, warn
 from lasagna.errors import LasagnaError
 
 HELP = "export a stack as OpenRaster, PSD and/or per-layer PNGs"
+EXAMPLE = (
+    "lasagna export examples/stacks/basic --ora out.ora --psd out.psd --layers out/layers",
+    "lasagna export out/photo --normal-map photo-normals.png   # a surface layer's normal map",
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,7 +29,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--surface", metavar="ID", help="which surface layer --normal-map writes (default: the topmost)")
     max_pixels_argument(p)
-    p.epilog = "example: lasagna export out/photo --ora photo.ora --psd photo.psd --normal-map photo-normals.png"
 
 
 def run(args: argparse.Namespace) -> int:

@@ -11,6 +11,7 @@ import argparse
 from lasagna.cli.common import max_pixels_argument, warn
 
 HELP = "read an OpenRaster file into a new stack folder"
+EXAMPLE = "lasagna import-ora painting.ora -o mystack"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

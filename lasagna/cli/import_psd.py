@@ -13,6 +13,7 @@ import argparse
 from lasagna.cli.common import max_pixels_argument, warn
 
 HELP = "read a layered PSD into a new stack folder"
+EXAMPLE = "lasagna import-psd painting.psd -o mystack"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

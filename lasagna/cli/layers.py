@@ -7,6 +7,7 @@ import argparse
 import json
 
 HELP = "list the learned-layer catalogue: presets, priors, correctives, generators"
+EXAMPLE = "lasagna layers --json"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -16,9 +16,14 @@ from __future__ import annotations
 
 import argparse
 
+from lasagna.cli.common import example_epilog
 from lasagna.errors import LasagnaError
 
 HELP = "register your own prior (a diffusers folder) in the catalogue: lasagna prior add PATH --name N"
+EXAMPLE = (
+    "lasagna prior add /models/sd15 --name my-sd --controlnet /models/cn-depth",
+    "lasagna edit photo.png --layer my-sd --condition left -o out/left",
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -26,7 +31,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     sub = p.add_subparsers(dest="action", metavar="ACTION", parser_class=type(p))
     sub.required = True
-    a = sub.add_parser("add", help="write a catalogue entry and a preset for a diffusers folder", description=HELP)
+    a = sub.add_parser(
+        "add",
+        help="write a catalogue entry and a preset for a diffusers folder",
+        description=HELP,
+        epilog=example_epilog(EXAMPLE),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     a.add_argument("path", help="the diffusers folder (written by save_pretrained: unet/ scheduler/ text_encoder/ …)")
     a.add_argument("--name", required=True, help="the entry's name: then lasagna edit --layer NAME")
     a.add_argument("--like", default="shading", metavar="PRESET", help="the preset whose layer it makes (shading)")

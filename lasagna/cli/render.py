@@ -11,6 +11,10 @@ from lasagna.cli.common import device_argument, progress, warn
 from lasagna.errors import PathError
 
 HELP = "render a stack's learned layers from their stored generator and settings"
+EXAMPLE = (
+    "lasagna render out/chelsea-free         # the learned layers not rendered yet",
+    "lasagna render out/chelsea-free --all   # every learned layer, from its stored settings",
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

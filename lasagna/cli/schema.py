@@ -6,6 +6,10 @@ import argparse
 import sys
 
 HELP = "print or write the JSON Schemas"
+EXAMPLE = (
+    "lasagna schema preset            # print the preset schema",
+    "lasagna schema --out schemas     # write every schema",
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

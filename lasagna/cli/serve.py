@@ -20,6 +20,7 @@ from lasagna.errors import LasagnaError
 from lasagna.version import install_hint
 
 HELP = "open the layer editor in the browser on a stack folder or an image"
+EXAMPLE = "lasagna serve photo.jpg --no-browser   # a new stack folder photo.stack/ beside it; prints the URL"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -21,6 +21,7 @@ from lasagna.cli.common import device_argument, progress
 from lasagna.errors import LasagnaError
 
 HELP = "train the LMC-SDS manifold corrective b̂ of a prior (resumable)"
+EXAMPLE = "lasagna train-corrective --kind spectral --prior relight-32 --task relight --out runs/relight-32-spectral"
 
 
 def _import_callable(spec: str):

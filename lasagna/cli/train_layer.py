@@ -12,6 +12,7 @@ from lasagna.cli.common import device_argument, loss_argument, progress
 from lasagna.errors import LasagnaError
 
 HELP = "train a preset's amortised layer generator on the world (resumable)"
+EXAMPLE = "lasagna train-layer --preset shading --minutes 15 --install --force   # into your catalogue"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

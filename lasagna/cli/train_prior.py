@@ -10,6 +10,7 @@ from pathlib import Path
 from lasagna.cli.common import progress
 
 HELP = "train a bundled conditional prior on the procedural world (resumable)"
+EXAMPLE = "lasagna train-prior --task relight --out runs/relight-32 --minutes 40   # run again to resume"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -10,6 +10,10 @@ from pathlib import Path
 from lasagna.cli.common import progress
 
 HELP = "train a surface estimator (height field from an image) on the procedural world (resumable)"
+EXAMPLE = (
+    "lasagna train-surface --input albedo --out runs/surface-albedo-32 --minutes 30   # run again to resume",
+    "lasagna train-surface --input lit --out runs/surface-lit-32 --minutes 30",
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -29,7 +33,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--world-seed", type=int, default=7, help="seed of the training split's scenes")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
-    p.epilog = "example: lasagna train-surface --input lit --out runs/surface-lit-32 --minutes 30"
 
 
 def run(args: argparse.Namespace) -> int:

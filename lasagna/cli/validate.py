@@ -7,6 +7,7 @@ import argparse
 from lasagna.cli.common import max_pixels_argument
 
 HELP = "check a stack's document and every PNG it names"
+EXAMPLE = 'lasagna validate examples/stacks/basic   # "ok: 5 layers", or one line saying what is wrong'
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -13,6 +13,7 @@ from lasagna.cli.common import add_command
 from lasagna.errors import LasagnaError
 
 HELP = "write procedural scenes with ground truth as layer-stack folders"
+EXAMPLE = "lasagna world -o out/world --split heldout --count 8 --seed 0"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from lasagna.cli import main
+from lasagna.cli import COMMANDS, main
 from lasagna.export.ora_import import MAX_GROUP_DEPTH
 from tests.support import pngcraft
 from tests.support.bounded import HANG_SECONDS
@@ -409,3 +409,12 @@ def test_help_lists_every_subcommand(capsys):
     out = capsys.readouterr().out
     for name in ("composite", "export", "validate", "schema", "import-ora", "demo", "world"):
         assert name in out
+
+
+@pytest.mark.parametrize("argv", [[name] for name in COMMANDS] + [["prior", "add"]], ids=" ".join)
+def test_every_subcommands_help_ends_with_an_example(capsys, argv):
+    """Each ``--help`` closes with ``example:`` and a command line of that very subcommand (issue 27)."""
+    assert main([*argv, "--help"]) == 0
+    out = capsys.readouterr().out
+    example = out.split("\nexample:\n", 1)[-1] if "\nexample:\n" in out else ""
+    assert example.startswith(f"  lasagna {' '.join(argv)} "), out[-400:]
