@@ -101,6 +101,17 @@ class LoopResult:
     stopped: Literal["done", "time"]
 
 
+def expected_stop(steps: int, first: int, step: int, elapsed_s: float, max_minutes: float | None) -> int:
+    """The step a run is expected to stop at: ``steps``, or sooner where ``max_minutes`` runs out first at the
+    rate so far (``step - first`` steps in ``elapsed_s``). The progress bar's total, so that its ETA is the
+    budget's: with the total at ``steps`` a 40-minute run of 20 000 slow steps showed an ETA of 158 hours."""
+    if max_minutes is None or step <= first or elapsed_s <= 0:
+        return steps
+    remaining_s = max(0.0, max_minutes * 60 - elapsed_s)
+    # The loop starts a step while time is left, so the step in progress when the budget ends is the last one.
+    return min(steps, step + math.ceil(remaining_s * (step - first) / elapsed_s))
+
+
 def trim_log(path: Path, step: int) -> None:
     """Keep only log lines up to the checkpointed step (a killed run may have logged past it; a
     half-written last line is dropped)."""
@@ -258,7 +269,8 @@ def train_loop(
     elif info.is_main and log_path.exists():
         log_path.unlink()
 
-    start, saved_at, stopped = time.monotonic(), step, "done"
+    start, saved_at, stopped, first = time.monotonic(), step, "done", step
+    postfix: dict[str, str] = {}
     saved_time = start
     bar = tqdm(
         total=loop.steps, initial=step, desc=desc, disable=not (loop.progress and info.is_main), dynamic_ncols=True
@@ -287,6 +299,12 @@ def train_loop(
                     for k, v in model.state_dict().items():
                         ema[k].mul_(decay).add_(v.detach(), alpha=1 - decay)
             step += 1
+            if loop.max_minutes is not None:  # the budget may stop the run first: the bar's total and ETA follow it
+                total = expected_stop(loop.steps, first, step, time.monotonic() - start, loop.max_minutes)
+                if total != bar.total:
+                    bar.total = total
+                    postfix["stops"] = f"{loop.max_minutes:g} min" if total < loop.steps else f"step {loop.steps}"
+                    bar.set_postfix(postfix, refresh=False)
             bar.update(1)
             if step % loop.log_every == 0:
                 values = _mean_over_processes({"loss": float(loss.detach()), **metrics}, device)
@@ -297,7 +315,8 @@ def train_loop(
                     "lr": lr,
                     "elapsed_s": round(time.monotonic() - start, 3),
                 }
-                bar.set_postfix(loss=f"{rec['loss']:.4f}")
+                postfix["loss"] = f"{rec['loss']:.4f}"
+                bar.set_postfix(postfix)
                 if log is not None:
                     log.write(json.dumps(rec) + "\n")
                     log.flush()

@@ -111,3 +111,54 @@ def test_a_run_killed_before_its_first_checkpoint_takes_another_config(tmp_path)
     assert [r["step"] for r in read_log(tmp_path)] == [10]  # the killed run's log (steps 2, 4) is gone
     with pytest.raises(Exception, match="different seed"):  # once trained, the folder is that run's
         _train(tmp_path, checkpoint_minutes=None, seed=3)
+
+
+def test_expected_stop_follows_the_budget_that_stops_first():
+    from lasagna.training.loop import expected_stop
+
+    # train-prior --minutes 40 at 0.5 s a step of 20 000: the budget stops it at step 4 800, not 20 000 (issue 27)
+    assert expected_stop(20_000, 0, 100, 50.0, 40) == 100 + 4_700
+    assert expected_stop(20_000, 0, 100, 50.0, None) == 20_000  # no budget: the steps
+    assert expected_stop(300, 0, 100, 50.0, 40) == 300  # the steps stop it first
+    assert expected_stop(20_000, 1_000, 1_000, 0.0, 40) == 20_000  # no rate yet (a resumed run's first step)
+    assert expected_stop(20_000, 1_000, 1_100, 50.0, 40) == 1_100 + 4_700  # the rate of this invocation only
+
+
+def test_progress_bar_total_and_postfix_follow_max_minutes(tmp_path, monkeypatch):
+    """With a budget that stops the run first, the bar's total (hence tqdm's ETA) is the budget's last step."""
+    import types
+
+    import lasagna.training.loop as loop_module
+
+    clock = types.SimpleNamespace(t=0.0)
+    monkeypatch.setattr(loop_module, "time", types.SimpleNamespace(monotonic=lambda: clock.t))
+    bars = []
+
+    class Bar:  # records what the loop tells tqdm
+        def __init__(self, total, initial, **kw):
+            self.total, self.n, self.postfix = total, initial, {}
+            bars.append(self)
+
+        def update(self, n):
+            self.n += n
+
+        def set_postfix(self, postfix=None, refresh=True, **kw):
+            self.postfix = dict(postfix or {}, **kw)
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(loop_module, "tqdm", Bar)
+    torch.manual_seed(0)
+    model = torch.nn.Linear(1, 1, bias=False)
+
+    def step_fn(net, rng, step):
+        clock.t += 2.0  # two seconds a step
+        return net.weight.sum(), {}
+
+    loop = LoopConfig(steps=20_000, lr=0.01, checkpoint_every=1000, log_every=1, max_minutes=0.5, progress=True)
+    result = train_loop(model, step_fn, loop, loop, tmp_path, checkpoint_format="test")
+    (bar,) = bars
+    assert result.stopped == "time" and result.step == 16  # 30 s: steps start at 0, 2, …, 30 s
+    assert bar.total == result.step == bar.n  # the ETA ran out when the run did
+    assert bar.postfix["stops"] == "0.5 min" and "loss" in bar.postfix
