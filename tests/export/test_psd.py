@@ -88,7 +88,7 @@ def test_basic_example_with_dodge_pair(tmp_path):
 
 def test_missing_psd_tools_says_how_to_install(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "psd_tools", None)
-    with pytest.raises(ExportError, match=r"pip install 'lasagna\[psd\]'"):
+    with pytest.raises(ExportError, match=r"pip install 'lasagna-layers\[psd\]'"):
         export_psd(Stack.from_image(torch.rand(3, 2, 2)), tmp_path / "x.psd")
     assert not (tmp_path / "x.psd").exists()
 
