@@ -115,7 +115,7 @@ a uniformly drawn light colour); nothing on disk. {m["step"]} steps in {minutes}
 2-vCPU box (Adam lr {cfg["lr"]}, EMA {cfg["ema_decay"]} with the warm-up ramp, seed {cfg["seed"]}). Reproduce:
 
 ```sh
-lasagna train-layer --preset light --out runs/light-generator --steps {m["step"]} --ema-warmup --install   # ≈ {minutes} min here
+LASAGNA_LAYERS=layers lasagna train-layer --preset light --out runs/light-generator --steps {m["step"]} --ema-warmup --install --force   # ≈ {minutes} min here
 OMP_NUM_THREADS=2 python benchmarks/distill_accuracy.py --sections light && python benchmarks/generator_card.py --preset light
 ```
 
@@ -201,7 +201,7 @@ light; nothing on disk. {m["step"]} steps in {minutes} minutes on two threads of
 {minutes_c} minutes on the world's true ratio (MSE), {mc["step"]} steps. Reproduce:
 
 ```sh
-OMP_NUM_THREADS=2 lasagna train-layer --preset relight --out runs/relight-generator --steps {m["step"]} --ema-warmup --install
+OMP_NUM_THREADS=2 LASAGNA_LAYERS=layers lasagna train-layer --preset relight --out runs/relight-generator --steps {m["step"]} --ema-warmup --install --force
 OMP_NUM_THREADS=2 lasagna train-layer --preset relight --supervised --out runs/relight-supervised --minutes {minutes_c} --ema-warmup
 OMP_NUM_THREADS=2 python benchmarks/relight.py --threads 2 --methods 0 20 --supervised runs/relight-supervised/generator
 python benchmarks/generator_card.py --preset relight --run runs/relight-generator --ceiling runs/relight-supervised \\
@@ -298,7 +298,7 @@ uniformly drawn light direction); nothing on disk. {m["step"]} steps in {minutes
 trained for the same {round(cumulative_minutes(log_c)[-1], 1)} minutes on the true shading (MSE), {mc["step"]} steps. Reproduce:
 
 ```sh
-lasagna train-layer --preset shading --out runs/shading-generator --steps {m["step"]} --install   # ≈ {minutes} min here; resumable
+LASAGNA_LAYERS=layers lasagna train-layer --preset shading --out runs/shading-generator --steps {m["step"]} --install --force   # ≈ {minutes} min here; resumable
 lasagna train-layer --preset shading --supervised --out runs/shading-supervised --steps {mc["step"]}
 python benchmarks/distill_accuracy.py && python benchmarks/generator_card.py
 ```
