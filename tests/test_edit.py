@@ -275,7 +275,8 @@ def test_render_all_and_nothing_to_render(tmp_path, capsys):
     out = tmp_path / "out"
     assert run(capsys, "edit", PHOTO, "--condition", "left", "-o", out)[0] == 0
     code, stdout, _ = run(capsys, "render", out)
-    assert code == 0 and "nothing to render: every learned layer (shading-left) has its pixels; --all re-renders" in stdout
+    said = "nothing to render: every learned layer (shading-left) has its pixels; --all re-renders"
+    assert code == 0 and said in stdout
     before = (out / "layers" / "shading-left.png").read_bytes()
     code, stdout, _ = run(capsys, "render", out, "--all")
     assert code == 0 and "rendered shading-left" in stdout

@@ -12,7 +12,9 @@ import pytest
 import torch
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
-diffusers = pytest.importorskip("diffusers", reason="diffusers is not installed (optional extra lasagna-layers[diffusers])")
+diffusers = pytest.importorskip(
+    "diffusers", reason="diffusers is not installed (optional extra lasagna-layers[diffusers])"
+)
 transformers = pytest.importorskip(
     "transformers", reason="transformers is not installed (optional extra lasagna-layers[diffusers])"
 )
