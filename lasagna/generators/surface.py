@@ -29,14 +29,13 @@ from __future__ import annotations
 from typing import Literal
 
 import torch
-import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from torch import Tensor, nn
 
 from lasagna.compose.surface import fit_light, normals_from_height
 from lasagna.document.condition import AMBIENT
 from lasagna.errors import LasagnaError
-from lasagna.generators.unet import _convs
+from lasagna.generators.unet import pad_to_levels, run_unet, unet_body
 from lasagna.io.checkpoint import Pretrained
 from lasagna.limits import MAX_GENERATOR_BLOCKS, MAX_GENERATOR_LEVELS, MAX_GENERATOR_WIDTH
 
@@ -73,12 +72,7 @@ class SurfaceEstimator(Pretrained, nn.Module):
         super().__init__()
         self.config = config
         ch = config.channels
-        self.enc = nn.ModuleList()
-        prev = 3
-        for c in ch:
-            self.enc.append(_convs(prev, c, config.blocks))
-            prev = c
-        self.dec = nn.ModuleList(_convs(ch[i + 1] + ch[i], ch[i], config.blocks) for i in reversed(range(len(ch) - 1)))
+        self.enc, self.dec = unet_body(3, ch, config.blocks)
         # Height, and for a lit input its source shading's logit; zero-initialised: the flat surface, lit at the
         # midpoint a + (1 − a)/2 of the shading's range (module docstring).
         self.head = nn.Conv2d(ch[0], 2 if config.input == "lit" else 1, 1)
@@ -90,22 +84,8 @@ class SurfaceEstimator(Pretrained, nn.Module):
         if not isinstance(image, Tensor) or image.dim() != 4 or image.shape[1] != 3:
             got = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
             raise LasagnaError(f"image has shape {got}; expected (B, 3, H, W) in [0, 1]", "image")
-        b, _, h, w = image.shape
-        factor = 2 ** (len(self.config.channels) - 1)
-        ph, pw = (-h) % factor, (-w) % factor
-        x = image.to(self.head.weight.dtype) * 2 - 1
-        if ph or pw:
-            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
-        skips = []
-        for i, block in enumerate(self.enc):
-            x = block(x)
-            if i < len(self.enc) - 1:
-                skips.append(x)
-                x = F.avg_pool2d(x, 2)
-        for block in self.dec:
-            x = F.interpolate(x, scale_factor=2.0, mode="nearest")
-            x = block(torch.cat([x, skips.pop()], dim=1))
-        return self.head(x)[:, :, :h, :w]
+        x, h, w = pad_to_levels(image.to(self.head.weight.dtype) * 2 - 1, len(self.config.channels))
+        return self.head(run_unet(self.enc, self.dec, x))[:, :, :h, :w]
 
     def forward(self, image: Tensor) -> Tensor:
         """The height field (B, 1, H, W) in canvas units."""

@@ -100,6 +100,41 @@ def _convs(in_ch: int, out_ch: int, blocks: int) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def unet_body(in_channels: int, channels: Sequence[int], blocks: int) -> tuple[nn.ModuleList, nn.ModuleList]:
+    """The encoder and decoder of the module docstring's U-Net: per level ``blocks`` × (Conv3×3 → SiLU), the last
+    level the bottleneck; a decoder level per skip (the layer generator's and the surface estimator's)."""
+    enc, prev = nn.ModuleList(), in_channels
+    for c in channels:
+        enc.append(_convs(prev, c, blocks))
+        prev = c
+    ch = channels
+    dec = nn.ModuleList(_convs(ch[i + 1] + ch[i], ch[i], blocks) for i in reversed(range(len(ch) - 1)))
+    return enc, dec
+
+
+def run_unet(enc: nn.ModuleList, dec: nn.ModuleList, x: Tensor) -> Tensor:
+    """The U-Net's features at the input's size: encode with 2×2 average pooling between levels (every input pixel
+    gets a gradient), decode with nearest ×2 and the level's skip concatenated. H, W: multiples of 2^(levels − 1)."""
+    skips = []
+    for i, block in enumerate(enc):
+        x = block(x)
+        if i < len(enc) - 1:
+            skips.append(x)
+            x = F.avg_pool2d(x, 2)
+    for block in dec:
+        x = F.interpolate(x, scale_factor=2.0, mode="nearest")
+        x = block(torch.cat([x, skips.pop()], dim=1))
+    return x
+
+
+def pad_to_levels(x: Tensor, levels: int) -> tuple[Tensor, int, int]:
+    """``x`` replicate-padded on the bottom and right to multiples of 2^(levels − 1), and its own (h, w)."""
+    h, w = x.shape[-2:]
+    factor = 2 ** (levels - 1)
+    ph, pw = (-h) % factor, (-w) % factor
+    return (F.pad(x, (0, pw, 0, ph), mode="replicate") if ph or pw else x), h, w
+
+
 class LayerGenerator(Pretrained, nn.Module):
     """G(x, label) → edit layer (B, C, H, W) in the layer's range (see the module docstring)."""
 
@@ -113,12 +148,7 @@ class LayerGenerator(Pretrained, nn.Module):
         self.label_emb = (
             nn.Embedding(len(config.vocabulary), config.label_dim) if config.condition == "embedding" else None
         )
-        self.enc = nn.ModuleList()
-        prev = config.base_channels + config.condition_dim
-        for c in ch:
-            self.enc.append(_convs(prev, c, config.blocks))
-            prev = c
-        self.dec = nn.ModuleList(_convs(ch[i + 1] + ch[i], ch[i], config.blocks) for i in reversed(range(len(ch) - 1)))
+        self.enc, self.dec = unet_body(config.base_channels + config.condition_dim, ch, config.blocks)
         self.head = nn.Conv2d(ch[0], config.layer.channels, 1)
         with torch.no_grad():  # the identity edit for every input (module docstring)
             self.head.weight.zero_()
@@ -166,24 +196,12 @@ class LayerGenerator(Pretrained, nn.Module):
             got = tuple(base.shape) if isinstance(base, Tensor) else type(base).__name__
             raise LasagnaError(f"base has shape {got}; expected (B, {cfg.base_channels}, H, W) in [0, 1]", "base")
         dtype = self.head.weight.dtype
-        b, _, h, w = base.shape
+        b = base.shape[0]
         idx = self.label_index(labels, b).to(self.head.weight.device)
-        factor = 2 ** (len(cfg.channels) - 1)
-        ph, pw = (-h) % factor, (-w) % factor
-        x = base.to(dtype) * 2 - 1
-        if ph or pw:  # fully convolutional at any size: pad to a multiple of 2^(levels−1), crop back
-            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
-        cond = self.encode_condition(idx, dtype)[:, :, None, None].expand(-1, -1, h + ph, w + pw)
-        x = torch.cat([x, cond], dim=1)
-        skips = []
-        for i, block in enumerate(self.enc):
-            x = block(x)
-            if i < len(self.enc) - 1:
-                skips.append(x)
-                x = F.avg_pool2d(x, 2)
-        for block in self.dec:
-            x = F.interpolate(x, scale_factor=2.0, mode="nearest")
-            x = block(torch.cat([x, skips.pop()], dim=1))
+        # Fully convolutional at any size: padded to a multiple of 2^(levels−1), cropped back.
+        x, h, w = pad_to_levels(base.to(dtype) * 2 - 1, len(cfg.channels))
+        cond = self.encode_condition(idx, dtype)[:, :, None, None].expand(-1, -1, *x.shape[-2:])
+        x = run_unet(self.enc, self.dec, torch.cat([x, cond], dim=1))
         return self.head(x)[:, :, :h, :w]
 
     def forward(self, base: Tensor, labels: Tensor | Sequence[str] | str) -> Tensor:
