@@ -338,3 +338,19 @@ def train_loop(
     if ema is not None:
         final.load_state_dict(ema)
     return LoopResult(model=final, step=step, stopped=stopped)
+
+
+def network_from_checkpoint(path: str | Path, fmt: str, config_model: type[BaseModel], build, ema: bool = True):
+    """(network, step, run config) from a training checkpoint of format ``fmt``: ``build(config)`` made from the
+    run's config (``config_model``), loaded with the EMA weights (or the raw ones), in eval mode. Lets a run be
+    measured while it trains, and snapshots of a run be measured afterwards."""
+    from lasagna.io.checkpoint import load_state_strict, load_tensors
+
+    tensors, meta = load_tensors(path)
+    if meta.get("format") != fmt:
+        raise LasagnaError(f"format is {meta.get('format')!r}; expected {fmt!r}", str(path))
+    config = config_model.model_validate_json(meta["config"])
+    prefix = "ema." if ema and any(k.startswith("ema.") for k in tensors) else "model."
+    net = build(config)
+    load_state_strict(net, {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}, str(path))
+    return net.eval(), int(meta["step"]), config

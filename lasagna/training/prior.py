@@ -31,9 +31,9 @@ import torch
 from pydantic import ConfigDict, Field
 
 from lasagna.errors import LasagnaError
-from lasagna.io.checkpoint import load_state_strict, load_tensors, read_config
+from lasagna.io.checkpoint import read_config
 from lasagna.priors.unet import UNetConfig, UNetPrior
-from lasagna.training.loop import LoopConfig, train_loop
+from lasagna.training.loop import LoopConfig, network_from_checkpoint, train_loop
 from lasagna.training.tasks import SCENE_RANGE, Task
 
 CHECKPOINT_FORMAT = "lasagna.prior_checkpoint"
@@ -234,14 +234,10 @@ def prior_from_checkpoint(path: str | Path, ema: bool = True) -> tuple[UNetPrior
 
     Lets a run be measured while it trains, and snapshots of a run be measured afterwards.
     """
-    tensors, meta = load_tensors(path)
-    if meta.get("format") != CHECKPOINT_FORMAT:
-        raise LasagnaError(f"format is {meta.get('format')!r}; expected {CHECKPOINT_FORMAT!r}", str(path))
-    config = PriorTrainConfig.model_validate_json(meta["config"])
-    prefix = "ema." if ema and any(k.startswith("ema.") for k in tensors) else "model."
-    prior = UNetPrior(config.unet)
-    load_state_strict(prior, {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}, str(path))
-    return prior.eval(), int(meta["step"])
+    prior, step, _ = network_from_checkpoint(
+        path, CHECKPOINT_FORMAT, PriorTrainConfig, lambda c: UNetPrior(c.unet), ema
+    )
+    return prior, step
 
 
 def run_unet_config(

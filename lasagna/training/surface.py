@@ -30,8 +30,7 @@ from lasagna.compose.resample import downsample, working_size
 from lasagna.compose.surface import fit_light, lambert, normals_from_height
 from lasagna.errors import LasagnaError
 from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
-from lasagna.io.checkpoint import load_state_strict, load_tensors
-from lasagna.training.loop import LoopConfig, train_loop
+from lasagna.training.loop import LoopConfig, network_from_checkpoint, train_loop
 from lasagna.training.tasks import SCENE_RANGE
 from lasagna.world import generate
 from lasagna.world.scene import with_light
@@ -140,14 +139,10 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
 def estimator_from_checkpoint(path: str | Path, ema: bool = True) -> tuple[SurfaceEstimator, int]:
     """(estimator, step) from a training checkpoint: its EMA weights (or the raw ones), in eval mode — so a
     run can be measured while it trains."""
-    tensors, meta = load_tensors(path)
-    if meta.get("format") != CHECKPOINT_FORMAT:
-        raise LasagnaError(f"format is {meta.get('format')!r}; expected {CHECKPOINT_FORMAT!r}", str(path))
-    config = SurfaceTrainConfig.model_validate_json(meta["config"])
-    prefix = "ema." if ema and any(k.startswith("ema.") for k in tensors) else "model."
-    net = SurfaceEstimator(config.net)
-    load_state_strict(net, {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}, str(path))
-    return net.eval(), int(meta["step"])
+    net, step, _ = network_from_checkpoint(
+        path, CHECKPOINT_FORMAT, SurfaceTrainConfig, lambda c: SurfaceEstimator(c.net), ema
+    )
+    return net, step
 
 
 @torch.no_grad()
