@@ -351,3 +351,66 @@ def test_gimp_flattens_our_nested_groups(tmp_path):
     err = np.abs(flat - to_uint8(composite_reference(folder)).astype(int))
     print(f"\nGIMP, nested groups vs reference: max {err.max()}/255, mean {err.mean():.3f}/255")
     assert err.max() <= 3 and err.mean() <= 0.5
+
+
+# ---- a surface layer: the rendered multiplier (a ratio up to 1/a: the dodge pair) and its hidden normal map ------
+
+
+def _surface_stack(folder: Path) -> tuple[Path, np.ndarray]:
+    """A photograph-like base and a relight-ratio surface layer (values in [a, 1/a]); with the composite a float64
+    numpy reading of the saved normal map gives (pypng, n = 2v − 1 renormalised, Lambert with ambient 0.25)."""
+    import png
+
+    from lasagna.compose.surface import normals_from_height
+
+    torch.manual_seed(5)
+    base = (torch.rand(3, 32, 48) * 200 + 40).to(torch.uint8)
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, 32), torch.linspace(-1.5, 1.5, 48), indexing="ij")
+    height = (0.6 * torch.exp(-(xx**2 + yy**2) * 2))[None, None]
+    stack = Stack.from_image(base)
+    stack.add_surface("shape", normals_from_height(height)[0], "az=10,el=55", source_light="left")
+    stack.save(folder)
+    w, h, rows, _ = png.Reader(filename=str(folder / "layers" / "shape.png")).read()
+    v = np.array([list(r) for r in rows], dtype=np.float64).reshape(h, w, 3).transpose(2, 0, 1) / 65535
+    n = 2 * v - 1
+    n /= np.linalg.norm(n, axis=0, keepdims=True)
+
+    def shade(az, el):
+        a, e = np.radians(az), np.radians(el)
+        return 0.25 + 0.75 * np.maximum(
+            0, np.einsum("chw,c->hw", n, [np.sin(e) * np.cos(a), np.sin(e) * np.sin(a), np.cos(e)])
+        )
+
+    ratio = shade(10, 55) / shade(180, 60)
+    expected = np.clip(base.double().numpy() / 255 * ratio[None], 0, 1)
+    return folder, np.rint(expected.transpose(1, 2, 0) * 255).astype(int)
+
+
+@pytest.mark.krita
+@pytest.mark.skipif(
+    not (KRITA and XVFB), reason="krita and xvfb-run are not installed (apt-get install krita xvfb xauth)"
+)
+def test_krita_flattens_a_surface_layer(tmp_path):
+    folder, expected = _surface_stack(tmp_path / "stack")
+    assert main(["export", str(folder), "--ora", str(tmp_path / "in.ora")]) == 0
+    proc = _krita_flatten(tmp_path / "in.ora", tmp_path / "flat.png")
+    assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
+    with Image.open(tmp_path / "flat.png") as im:
+        flat = np.asarray(im.convert("RGB")).astype(int)
+    err = np.abs(flat - expected)
+    print(f"\nKrita, surface layer (ratio up to {1 / 0.25:g}, hidden normal map): max {err.max()}/255")
+    assert err.max() <= 3  # the hidden normal map does not show; the multiply + dodge pair is the ratio
+
+
+@pytest.mark.gimp
+@pytest.mark.skipif(not GIMP, reason="gimp is not installed (apt-get install gimp)")
+def test_gimp_flattens_a_surface_layer(tmp_path):
+    folder, expected = _surface_stack(tmp_path / "stack")
+    assert main(["export", str(folder), "--psd", str(tmp_path / "in.psd")]) == 0
+    proc = _gimp_flatten(tmp_path / "in.psd", tmp_path / "flat.png")
+    assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
+    with Image.open(tmp_path / "flat.png") as im:
+        flat = np.asarray(im.convert("RGB")).astype(int)
+    err = np.abs(flat - expected)
+    print(f"\nGIMP, surface layer: max {err.max()}/255")
+    assert err.max() <= 3
