@@ -55,8 +55,9 @@ def test_heap_thresholds_keep_band_temporaries_resident(tmp_path):
         runs[heap] = (tuned == "True", int(faults), int(pages))
     assert runs["lasagna"][0] and not runs["system"][0]
     pages = runs["system"][2]
-    # The premise: with glibc's defaults, five renders fault in several canvases' worth of temporaries.
-    assert runs["system"][1] > 5 * pages
+    # The premise: with glibc's defaults, five renders fault in more than a canvas's worth of temporaries (3–50
+    # canvases' worth seen: glibc's adaptive mmap threshold makes how many vary from run to run).
+    assert runs["system"][1] > pages
     # Tuned, the temporaries stay mapped: 0 in most runs; the heap may still grow once by a few temporaries
     # when a render's allocation order differs (up to ~5000 pages seen, against ~167 000 untuned).
     assert runs["lasagna"][1] < runs["system"][1] / 10
