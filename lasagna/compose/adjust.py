@@ -2,12 +2,17 @@
 
 Every function takes the backdrop's (unpremultiplied, sRGB-encoded) colour and the adjustment's parameters (the
 document's ``adjustment`` as a plain dict: numbers, or tensors that may require grad) and returns the adjusted
-colour in [0, 1]; ``ADJUSTMENTS`` is the table, keyed by the document's ``type``. The formulas are the ones
-psd-tools pins against Photoshop's merged images (``psd_tools/composite/adjustments.py``), in continuous form:
+colour in [0, 1]; ``ADJUSTMENTS`` is the table, keyed by the document's ``type``. The formulas of levels, curves,
+hue/saturation (colour ranges included), brightness/contrast, exposure, invert, posterize and threshold are the ones
+psd-tools pins against Photoshop's merged images (``psd_tools/composite/adjustments.py``); psd-tools renders none
+of channel mixer, color balance, vibrance, black & white, gradient map and photo filter, whose formulas are each
+function's docstring's (Photoshop's dialog where it states the arithmetic, GIMP's C code where GIMP mirrors the
+dialog, else a stated model). Tone curves are in continuous form:
 psd-tools (and Photoshop) first quantise the input to the document's codes and read a 256- or 65536-entry table;
 here a tone curve is a ``LUT_SIZE``-entry table read with linear interpolation, so it is differentiable in the
 colour and in every parameter that moves it (levels' points and gamma, curve points, brightness, contrast,
-exposure). Posterize and threshold are step functions: their gradient is 0.
+exposure; a gradient map's stops). Posterize and threshold are step functions: their gradient is 0; the others are
+differentiable in every parameter (black & white and colour ranges piecewise, at their sector and trapezoid kinks).
 
 ``Adjustment(type, params)`` checks the parameters once and builds what a render reuses (the tone tables);
 ``adjustment(C)`` applies it. How an adjustment layer composes (its blend, mask and opacity, the backdrop's alpha
@@ -24,6 +29,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from lasagna.compose.blend import _set_lum  # the spec's SetLum (with ClipColor), kept in one place
 from lasagna.errors import LasagnaError
 from lasagna.limits import MAX_CURVE_POINTS
 from lasagna.numerics import ADJUST_POW_EPS
@@ -275,13 +281,189 @@ def hue_saturation(C: Tensor, p: Params) -> Tensor:
     hue, s, lightness = _number(p["hue"]) / 360.0, _number(p["saturation"]) / 100.0, _number(p["lightness"]) / 100.0
     C = _lighten(C, lightness)
     H, S, L = rgb_to_hsl(C)
-    H = torch.remainder(H + hue, 1.0)
-    if isinstance(s, Tensor) or s != 0:
-        more = S / (1.0 - s + _SATURATION_SLACK)
-        less = S * (1.0 + s)
-        up = s > 0 if isinstance(s, Tensor) else torch.tensor(s > 0)
-        S = torch.where(up.to(C.device), more, less).clamp(0.0, 1.0)
+    ranges = [r for r in p.get("ranges") or () if any(_nonzero(r[k]) for k in ("hue", "saturation", "lightness"))]
+    if not ranges:
+        return hsl_to_rgb(torch.remainder(H + hue, 1.0), _saturate(S, s), L).clamp(0.0, 1.0)
+    r_hue, r_sat, r_light = _range_shifts(H, ranges)
+    # A range's lightness acts in HSV (psd-tools' _huesaturation): V darkened by l·S_V for l < 0, S_V reduced for
+    # l > 0 (towards white), then back to HSL for the hue and saturation.
+    V = L + S * torch.minimum(L, 1.0 - L)
+    Sv = torch.where(V > ADJUST_POW_EPS, 2.0 * (1.0 - L / V.clamp_min(ADJUST_POW_EPS)), torch.zeros_like(V))
+    V = torch.where(r_light >= 0, V, V * (1.0 + r_light * Sv)).clamp(0.0, 1.0)
+    inv = 1.0 / (Sv + _RANGE_SAT_EPS)
+    Sv = torch.where(
+        r_light >= 0, Sv * (1.0 - r_light), 1.0 + (inv - 1.0) / (r_light.abs() - inv + _RANGE_SAT_EPS)
+    ).clamp(0.0, 1.0)
+    L = V * (1.0 - 0.5 * Sv)
+    den = torch.minimum(L, 1.0 - L)
+    S = torch.where(den > ADJUST_POW_EPS, (V - L) / den.clamp_min(ADJUST_POW_EPS), torch.zeros_like(L))
+    H = torch.remainder(H + r_hue + hue, 1.0)
+    return hsl_to_rgb(H, _saturate(_saturate(S, s), r_sat), L).clamp(0.0, 1.0)
+
+
+# psd-tools' _correct_saturation's guard against 1/0 (an unsaturated pixel under a darkening range).
+_RANGE_SAT_EPS = 1e-3
+
+
+def _nonzero(x: Any) -> bool:
+    return isinstance(x, Tensor) or x != 0
+
+
+def _range_mask(H: Tensor, corners: Any) -> Tensor:
+    """psd-tools' ``_get_huesaturation_range_mask``: the trapezoid [begin, full_begin, full_end, end] (degrees,
+    read on the circle from ``begin``) at hue ``H`` in [0, 1): 0 outside, rising, 1, falling."""
+    bl, tl, tr, br = (_number(c) / 360.0 for c in corners)
+    x = torch.remainder(H - bl, 1.0)
+    left, center, right = (tl - bl) % 1.0, (tr - bl) % 1.0, (br - bl) % 1.0
+    rise = x / max(left, ADJUST_POW_EPS) if not isinstance(left, Tensor) else x / left.clamp_min(ADJUST_POW_EPS)
+    fall_den = right - center
+    fall = (right - x) / (fall_den if isinstance(fall_den, Tensor) else max(fall_den, ADJUST_POW_EPS))
+    one = torch.ones_like(x)
+    zero = torch.zeros_like(x)
+    return torch.where(
+        (x >= left) & (x <= center), one, torch.where(x < left, rise, torch.where(x <= right, fall, zero))
+    ).clamp(0.0, 1.0)
+
+
+def _range_shifts(H: Tensor, ranges: list) -> tuple[Tensor, Tensor, Tensor]:
+    """Per pixel, the colour ranges' hue, saturation and lightness shifts (in order; psd-tools'
+    ``_get_colorrange_hsl_values``): each scaled by the range's mask, a positive saturation by
+    1 − (1 − mask)^(1.5/(1 − s⁴ + 0.05)). Where two ranges that change saturation overlap, psd-tools combines them
+    through an empirical 21×21 grid fitted to Photoshop; here they add (clamped to [−1, 1]), which is exact where at
+    most one of them is non-zero (the grid's f(0, y) = y)."""
+    zero = torch.zeros_like(H)
+    r_hue, r_sat, r_light = zero, zero, zero
+    for r in ranges:
+        m = _range_mask(H, r["range"])
+        h, sat, light = _number(r["hue"]) / 360.0, _number(r["saturation"]) / 100.0, _number(r["lightness"]) / 100.0
+        r_hue = r_hue + h * m
+        r_light = (r_light + light * m).clamp(-1.0, 1.0)
+        if _nonzero(sat):
+            pos = sat * (1.0 - (1.0 - m) ** (1.5 / (1.0 - sat**4 + 0.05)))
+            up = sat > 0 if isinstance(sat, Tensor) else torch.tensor(sat > 0)
+            r_sat = (r_sat + torch.where(up.to(H.device), pos, sat * m)).clamp(-1.0, 1.0)
+    return r_hue, r_sat, r_light
+
+
+def _saturate(S: Tensor, s: Tensor | float) -> Tensor:
+    """psd-tools' ``_apply_saturation``: S/(1 − s + slack) for s > 0, S·(1 + s) for s ≤ 0 (s in [−1, 1])."""
+    if not isinstance(s, Tensor) and s == 0:
+        return S
+    more = S / (1.0 - s + _SATURATION_SLACK)
+    less = S * (1.0 + s)
+    up = s > 0 if isinstance(s, Tensor) else torch.tensor(s > 0)
+    return torch.where(up.to(S.device), more, less).clamp(0.0, 1.0)
+
+
+def _vector(values: Any, like: Tensor, scale: float = 1.0) -> Tensor:
+    """A parameter list (numbers or tensors, or one tensor) as a float tensor of ``like``'s dtype, times ``scale``."""
+    if isinstance(values, Tensor):
+        return values.to(like.dtype) * scale
+    parts = [v.to(like.dtype) if isinstance(v, Tensor) else torch.tensor(float(v), dtype=like.dtype) for v in values]
+    return torch.stack(parts).to(like.device) * scale
+
+
+def _per_channel(v: Tensor) -> Tensor:
+    """A (3,) vector shaped to broadcast over ``(..., 3, h, w)``."""
+    return v.view(3, 1, 1)
+
+
+def channel_mixer(C: Tensor, p: Params) -> Tensor:
+    """Channel mixer (Photoshop's dialog, Adobe's "Mix color channels"): output channel c is Σ_k w_ck/100 · C_k +
+    constant_c/100, clamped; with ``gray`` ("Monochrome") the one row is every channel's. Linear: exact."""
+    rows = [p["gray"]] * 3 if p.get("gray") is not None else [p["red"], p["green"], p["blue"]]
+    M = torch.stack([_vector(r, C, 0.01) for r in rows])  # (3, 4): weights of R, G, B and the constant
+    out = torch.einsum("ck,...khw->...chw", M[:, :3], C) + _per_channel(M[:, 3])
+    return out.clamp(0.0, 1.0)
+
+
+# GIMP's colour balance masks (app/operations/gimpoperationcolorbalance.c): ramps of width a at lightness b and 1 − b,
+# each range's shift scaled by 0.7; the three masks sum to 0.7 everywhere.
+_BALANCE_A, _BALANCE_B, _BALANCE_SCALE = 0.25, 0.333, 0.7
+
+
+def color_balance(C: Tensor, p: Params) -> Tensor:
+    """Color balance as GIMP 2.10 computes it (``gimp_operation_color_balance_map``; Photoshop's formula is not
+    published, GIMP's and Krita's dialogs mirror its controls): C + Σ_range shift/100 · mask_range(L), clamped, L the
+    HSL lightness; ``preserve_luminosity`` puts the result's HSL hue and saturation at the input's lightness."""
+    L = 0.5 * (C.amax(dim=-3, keepdim=True) + C.amin(dim=-3, keepdim=True))
+    a, b, k = _BALANCE_A, _BALANCE_B, _BALANCE_SCALE
+    shadows = ((L - b) / -a + 0.5).clamp(0.0, 1.0) * k
+    midtones = ((L - b) / a + 0.5).clamp(0.0, 1.0) * ((L + b - 1.0) / -a + 0.5).clamp(0.0, 1.0) * k
+    highlights = ((L + b - 1.0) / a + 0.5).clamp(0.0, 1.0) * k
+    out = C
+    for name, w in (("shadows", shadows), ("midtones", midtones), ("highlights", highlights)):
+        out = out + _per_channel(_vector(p[name], C, 0.01)) * w
+    out = out.clamp(0.0, 1.0)
+    if p.get("preserve_luminosity", True):
+        H, S, _ = rgb_to_hsl(out)
+        out = hsl_to_rgb(H, S, L).clamp(0.0, 1.0)
+    return out
+
+
+def vibrance(C: Tensor, p: Params) -> Tensor:
+    """Vibrance: in HSL, ``saturation`` as hue/saturation's (``_saturate``), then S + v·S·(1 − S), v = vibrance/100:
+    the mid-saturated colours move most, gray and full colours stay. Photoshop's formula is not published; this is
+    the saturation-weighted gain that vibrance names (it does not model Photoshop's protection of skin tones)."""
+    v, s = _number(p["vibrance"]) / 100.0, _number(p["saturation"]) / 100.0
+    H, S, L = rgb_to_hsl(C)
+    S = _saturate(S, s)
+    S = (S + v * S * (1.0 - S)).clamp(0.0, 1.0)
     return hsl_to_rgb(H, S, L).clamp(0.0, 1.0)
+
+
+def black_and_white(C: Tensor, p: Params) -> Tensor:
+    """Black & white (Photoshop's six-slider conversion, as Photopea and the PSD format's six weights describe it):
+    with a pixel's channels sorted max ≥ mid ≥ min, gray = min + (max − mid)·w_primary + (mid − min)·w_secondary,
+    the primary the max channel's (reds, greens, blues) and the secondary the pair max+mid's (yellows = R+G, cyans
+    = G+B, magentas = R+B); with the defaults a pure red is 40 % gray, a yellow 60 %. ``tint``: the gray takes the
+    tint's hue and saturation at its luminosity (W3C SetLum, the color blend mode)."""
+    srt, idx = torch.sort(C, dim=-3, descending=True)
+    mx, mid, mn = srt[..., 0:1, :, :], srt[..., 1:2, :, :], srt[..., 2:3, :, :]
+    primary = _vector([p["reds"], p["greens"], p["blues"]], C, 0.01)
+    secondary = _vector([p["cyans"], p["magentas"], p["yellows"]], C, 0.01)  # indexed by the min channel
+    gray = mn + (mx - mid) * primary[idx[..., 0:1, :, :]] + (mid - mn) * secondary[idx[..., 2:3, :, :]]
+    gray = gray.clamp(0.0, 1.0)
+    if p.get("tint") is None:
+        return gray.expand_as(C)
+    tint = _per_channel(_vector(p["tint"], C)).expand_as(C)
+    return _set_lum(tint, gray).clamp(0.0, 1.0)
+
+
+def gradient_map_lut(t: Tensor, p: Params) -> Tensor:
+    """Gradient map's (3, N) table over luminosity: between stops i and i+1 the fraction u of the way is bent so
+    that the midpoint m gives ½ — 0.5·u/m below it, 0.5 + 0.5·(u − m)/(1 − m) above (GIMP's linear segment,
+    ``gimp_gradient_calc_linear_factor``; Photoshop's stop midpoints mean the same) — and the colours are mixed by
+    it; end colours beyond the end stops; ``reverse`` reads it from 1 down."""
+    stops = p["stops"]
+    xs = _vector([s["location"] for s in stops], t)
+    cs = torch.stack([_vector(s["color"], t) for s in stops], dim=1)  # (3, n)
+    ms = _vector([s.get("midpoint", 0.5) for s in stops], t)
+    if p.get("reverse"):
+        t = 1.0 - t
+    tc = t.clamp(xs[0], xs[-1])
+    k = torch.searchsorted(xs[1:-1].detach().contiguous(), tc.detach().contiguous(), right=True)
+    x0, x1, m = xs[k], xs[k + 1], ms[k]
+    u = ((tc - x0) / (x1 - x0).clamp_min(ADJUST_POW_EPS)).clamp(0.0, 1.0)
+    f = torch.where(u <= m, 0.5 * u / m, 0.5 + 0.5 * (u - m) / (1.0 - m))
+    return cs[:, k] + f * (cs[:, k + 1] - cs[:, k])
+
+
+def gradient_map(C: Tensor, p: Params) -> Tensor:
+    """Gradient map: Lum(C) (0.3R + 0.59G + 0.11B) through ``gradient_map_lut``'s table."""
+    return apply_lut(luminosity(C).expand_as(C), gradient_map_lut(_ramp(C), p))
+
+
+def photo_filter(C: Tensor, p: Params) -> Tensor:
+    """Photo filter: the colour multiplied by the filter's at ``density`` (C + d·(C·F − C), Photoshop's "simulates a
+    colored filter in front of the lens"; its exact formula is not published), then, with ``preserve_luminosity``,
+    moved back to the input's luminosity (W3C SetLum with ClipColor)."""
+    F = _per_channel(_vector(p["color"], C))
+    d = _number(p["density"]) / 100.0
+    out = C + d * (C * F - C)
+    if p.get("preserve_luminosity", True):
+        out = _set_lum(out, luminosity(C))
+    return out.clamp(0.0, 1.0)
 
 
 ADJUSTMENTS: dict[str, Callable[[Tensor, Params], Tensor]] = {
@@ -293,6 +475,12 @@ ADJUSTMENTS: dict[str, Callable[[Tensor, Params], Tensor]] = {
     "invert": invert,
     "posterize": posterize,
     "threshold": threshold,
+    "channel-mixer": channel_mixer,
+    "color-balance": color_balance,
+    "vibrance": vibrance,
+    "black-and-white": black_and_white,
+    "gradient-map": gradient_map,
+    "photo-filter": photo_filter,
 }
 
 

@@ -9,11 +9,11 @@ lightness percent, exposure stops), so a number read off Photoshop's panel is th
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, StrictInt, model_validator
 
-from lasagna.document.types import FiniteFloat, StrictModel, Unit
+from lasagna.document.types import FiniteFloat, OpaqueColour, StrictModel, Unit
 from lasagna.document.validation import RuleError
 from lasagna.limits import MAX_CURVE_POINTS
 
@@ -102,9 +102,30 @@ class Colorize(StrictModel):
     )
 
 
+HueDegrees = Annotated[float, Field(ge=-360.0, le=720.0, strict=True, allow_inf_nan=False)]
+
+
+class HueRange(StrictModel):
+    """One of hue/saturation's colour ranges (Photoshop's Reds, Yellows, … entries): a shift that applies to the
+    hues inside a trapezoid on the hue circle, fully between its inner points, fading to 0 at its outer ones."""
+
+    range: tuple[HueDegrees, HueDegrees, HueDegrees, HueDegrees] = Field(
+        description="[begin, full_begin, full_end, end] hue in degrees, counter-clockwise, read modulo 360 (the "
+        "reds' default is [315, 345, 15, 45])."
+    )
+    hue: float = Field(0.0, ge=-180.0, le=180.0, strict=True, allow_inf_nan=False, description="Hue shift, degrees.")
+    saturation: float = Field(
+        0.0, ge=-100.0, le=100.0, strict=True, allow_inf_nan=False, description="Saturation change in percent."
+    )
+    lightness: float = Field(
+        0.0, ge=-100.0, le=100.0, strict=True, allow_inf_nan=False, description="Lightness change in percent."
+    )
+
+
 class HueSaturation(StrictModel):
-    """Hue/saturation (the master channel): lightness towards white or black, then hue rotated and saturation
-    scaled in HSL; with ``colorize`` every pixel takes its hue and saturation instead."""
+    """Hue/saturation: the master channel's lightness towards white or black, then hue rotated and saturation
+    scaled in HSL, with the colour ranges' shifts where a pixel's hue lies in them; with ``colorize`` every pixel
+    takes its hue and saturation instead."""
 
     type: Literal["hue-saturation"] = Field("hue-saturation", description="Adjustment: hue/saturation.")
     hue: float = Field(0.0, ge=-180.0, le=180.0, strict=True, allow_inf_nan=False, description="Hue shift, degrees.")
@@ -115,6 +136,9 @@ class HueSaturation(StrictModel):
         0.0, ge=-100.0, le=100.0, strict=True, allow_inf_nan=False, description="Lightness change in percent."
     )
     colorize: Colorize | None = Field(None, description="If set, colorize (hue, saturation, lightness) instead.")
+    ranges: tuple[HueRange, ...] = Field(
+        (), max_length=6, description="Up to six colour ranges, applied in order after the master channel."
+    )
 
 
 class BrightnessContrast(StrictModel):
@@ -180,11 +204,147 @@ class Threshold(StrictModel):
     )
 
 
+def _percent(lo: float, hi: float, default: float, description: str) -> Any:
+    return Field(default, ge=lo, le=hi, strict=True, allow_inf_nan=False, description=description)
+
+
+MixerWeight = Annotated[float, Field(ge=-200.0, le=200.0, strict=True, allow_inf_nan=False)]
+MixerRow = tuple[MixerWeight, MixerWeight, MixerWeight, MixerWeight]
+
+
+class ChannelMixer(StrictModel):
+    """Channel mixer: each output channel Σ (weight/100)·(R, G, B) + constant/100, clamped to [0, 1] (Photoshop's
+    dialog: source channels and a constant in percent, −200…200); with ``gray`` (Photoshop's "Monochrome") every
+    channel is that row's gray."""
+
+    type: Literal["channel-mixer"] = Field("channel-mixer", description="Adjustment: channel mixer.")
+    red: MixerRow = Field((100.0, 0.0, 0.0, 0.0), description="Red output: [red, green, blue, constant] percent.")
+    green: MixerRow = Field((0.0, 100.0, 0.0, 0.0), description="Green output: [red, green, blue, constant] percent.")
+    blue: MixerRow = Field((0.0, 0.0, 100.0, 0.0), description="Blue output: [red, green, blue, constant] percent.")
+    gray: MixerRow | None = Field(
+        None, description="Monochrome: every channel is this row's output (red, green, blue rows unused)."
+    )
+
+
+BalanceShift = Annotated[float, Field(ge=-100.0, le=100.0, strict=True, allow_inf_nan=False)]
+Balance = tuple[BalanceShift, BalanceShift, BalanceShift]
+
+
+class ColorBalance(StrictModel):
+    """Color balance: a shift along cyan–red, magenta–green and yellow–blue (−100…100 each) in each of the
+    shadows, midtones and highlights, weighted by the pixel's HSL lightness; ``preserve_luminosity`` keeps that
+    lightness."""
+
+    type: Literal["color-balance"] = Field("color-balance", description="Adjustment: color balance.")
+    shadows: Balance = Field((0.0, 0.0, 0.0), description="[cyan–red, magenta–green, yellow–blue] in the shadows.")
+    midtones: Balance = Field((0.0, 0.0, 0.0), description="[cyan–red, magenta–green, yellow–blue] in the midtones.")
+    highlights: Balance = Field((0.0, 0.0, 0.0), description="[cyan–red, magenta–green, yellow–blue], highlights.")
+    preserve_luminosity: bool = Field(True, strict=True, description="Keep each pixel's HSL lightness.")
+
+
+class Vibrance(StrictModel):
+    """Vibrance: ``saturation`` as hue/saturation's, then ``vibrance`` raises (or lowers) the saturation of the
+    less saturated colours most."""
+
+    type: Literal["vibrance"] = Field("vibrance", description="Adjustment: vibrance.")
+    vibrance: float = _percent(-100.0, 100.0, 0.0, "Vibrance, −100…100.")
+    saturation: float = _percent(-100.0, 100.0, 0.0, "Saturation, −100…100.")
+
+
+class BlackAndWhite(StrictModel):
+    """Black & white: a gray from the weights of the six hue sectors (percent, −200…300, Photoshop's defaults),
+    optionally tinted."""
+
+    type: Literal["black-and-white"] = Field("black-and-white", description="Adjustment: black & white.")
+    reds: float = _percent(-200.0, 300.0, 40.0, "Weight of reds, percent.")
+    yellows: float = _percent(-200.0, 300.0, 60.0, "Weight of yellows, percent.")
+    greens: float = _percent(-200.0, 300.0, 40.0, "Weight of greens, percent.")
+    cyans: float = _percent(-200.0, 300.0, 60.0, "Weight of cyans, percent.")
+    blues: float = _percent(-200.0, 300.0, 20.0, "Weight of blues, percent.")
+    magentas: float = _percent(-200.0, 300.0, 80.0, "Weight of magentas, percent.")
+    tint: OpaqueColour | None = Field(None, description="If set, the gray is tinted with this RGB colour.")
+
+
+class GradientStop(StrictModel):
+    """A colour stop of a gradient: where it is, its colour, and where the blend to the next stop is half-way."""
+
+    location: Unit = Field(description="Position in [0, 1].")
+    color: OpaqueColour = Field(description="RGB in [0, 1].")
+    midpoint: float = Field(
+        0.5,
+        ge=0.05,
+        le=0.95,
+        strict=True,
+        allow_inf_nan=False,
+        description="Where, between this stop and the next (fraction of the way), the colour is half of each: "
+        "0.05…0.95 (Photoshop's 5…95 %).",
+    )
+
+
+def _check_stops(stops: tuple[GradientStop, ...], name: str) -> None:
+    xs = [s.location for s in stops]
+    if any(b < a for a, b in zip(xs, xs[1:])):
+        raise RuleError(f"{name} locations {xs} are not sorted; expected stops in increasing location", loc=(name,))
+
+
+_STOPS = dict(min_length=2, max_length=MAX_CURVE_POINTS)
+
+
+class GradientMap(StrictModel):
+    """Gradient map: each pixel's luminosity picks a colour of the gradient."""
+
+    type: Literal["gradient-map"] = Field("gradient-map", description="Adjustment: gradient map.")
+    stops: tuple[GradientStop, ...] = Field(
+        **_STOPS, description=f"Colour stops, 2 to {MAX_CURVE_POINTS}, in increasing location."
+    )
+    reverse: bool = Field(False, strict=True, description="Run the gradient from its last stop to its first.")
+
+    @model_validator(mode="after")
+    def _sorted(self) -> GradientMap:
+        _check_stops(self.stops, "stops")
+        return self
+
+
+class PhotoFilter(StrictModel):
+    """Photo filter: the colour seen through a filter of ``color`` at ``density``, optionally keeping luminosity."""
+
+    type: Literal["photo-filter"] = Field("photo-filter", description="Adjustment: photo filter.")
+    color: OpaqueColour = Field((0.925, 0.541, 0.0), description="The filter's RGB (default: Warming Filter (85)).")
+    density: float = _percent(0.0, 100.0, 25.0, "Density in percent, 0…100.")
+    preserve_luminosity: bool = Field(True, strict=True, description="Keep each pixel's luminosity.")
+
+
+_ADJUSTMENTS = (
+    Levels,
+    Curves,
+    HueSaturation,
+    BrightnessContrast,
+    Exposure,
+    Invert,
+    Posterize,
+    Threshold,
+    ChannelMixer,
+    ColorBalance,
+    Vibrance,
+    BlackAndWhite,
+    GradientMap,
+    PhotoFilter,
+)
 Adjustment = Annotated[
-    Levels | Curves | HueSaturation | BrightnessContrast | Exposure | Invert | Posterize | Threshold,
+    Levels
+    | Curves
+    | HueSaturation
+    | BrightnessContrast
+    | Exposure
+    | Invert
+    | Posterize
+    | Threshold
+    | ChannelMixer
+    | ColorBalance
+    | Vibrance
+    | BlackAndWhite
+    | GradientMap
+    | PhotoFilter,
     Field(discriminator="type"),
 ]
-ADJUSTMENT_TYPES: tuple[str, ...] = tuple(
-    m.model_fields["type"].default
-    for m in (Levels, Curves, HueSaturation, BrightnessContrast, Exposure, Invert, Posterize, Threshold)
-)
+ADJUSTMENT_TYPES: tuple[str, ...] = tuple(m.model_fields["type"].default for m in _ADJUSTMENTS)

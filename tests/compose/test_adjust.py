@@ -36,6 +36,16 @@ CASES = {
     },
     "hue-saturation": {"type": "hue-saturation", "hue": 40.0, "saturation": -30.0, "lightness": 12.0},
     "hue-saturation+": {"type": "hue-saturation", "hue": -70.0, "saturation": 45.0, "lightness": -20.0},
+    "hue-ranges": {
+        "type": "hue-saturation",
+        "hue": 10.0,
+        "saturation": 15.0,
+        "ranges": [
+            {"range": [315.0, 345.0, 15.0, 45.0], "hue": 25.0, "saturation": 40.0, "lightness": -30.0},
+            {"range": [75.0, 105.0, 135.0, 165.0], "hue": -40.0, "saturation": -60.0, "lightness": 20.0},
+            {"range": [195.0, 225.0, 255.0, 285.0], "lightness": 0.0},
+        ],
+    },
     "colorize": {"type": "hue-saturation", "colorize": {"hue": 210.0, "saturation": 60.0, "lightness": -15.0}},
     "brightness-contrast": {"type": "brightness-contrast", "brightness": 40.0, "contrast": 30.0},
     "brightness-contrast-": {"type": "brightness-contrast", "brightness": -90.0, "contrast": -40.0},
@@ -44,6 +54,39 @@ CASES = {
     "invert": {"type": "invert"},
     "posterize": {"type": "posterize", "levels": 5},
     "threshold": {"type": "threshold", "level": 0.45},
+    "channel-mixer": {
+        "type": "channel-mixer",
+        "red": [80.0, 30.0, -20.0, 5.0],
+        "green": [-10.0, 120.0, 0.0, -8.0],
+        "blue": [25.0, 25.0, 60.0, 0.0],
+    },
+    "mixer-gray": {"type": "channel-mixer", "gray": [40.0, 40.0, 20.0, 3.0]},
+    "color-balance": {
+        "type": "color-balance",
+        "shadows": [30.0, -20.0, 10.0],
+        "midtones": [-40.0, 15.0, 55.0],
+        "highlights": [10.0, 35.0, -25.0],
+    },
+    "color-balance-free": {"type": "color-balance", "midtones": [60.0, -30.0, 0.0], "preserve_luminosity": False},
+    "vibrance": {"type": "vibrance", "vibrance": 60.0, "saturation": -15.0},
+    "vibrance-": {"type": "vibrance", "vibrance": -45.0, "saturation": 25.0},
+    "black-and-white": {"type": "black-and-white", "reds": 120.0, "yellows": -30.0, "blues": 200.0},
+    "tinted": {"type": "black-and-white", "tint": [0.8, 0.6, 0.3]},
+    "gradient-map": {
+        "type": "gradient-map",
+        "stops": [
+            {"location": 0.05, "color": [0.1, 0.0, 0.3]},
+            {"location": 0.5, "color": [0.9, 0.2, 0.1], "midpoint": 0.3},
+            {"location": 0.9, "color": [1.0, 0.95, 0.6], "midpoint": 0.7},
+        ],
+    },
+    "gradient-map-reversed": {
+        "type": "gradient-map",
+        "stops": [{"location": 0.0, "color": [0.0, 0.0, 0.0]}, {"location": 1.0, "color": [1.0, 0.5, 0.2]}],
+        "reverse": True,
+    },
+    "photo-filter": {"type": "photo-filter", "color": [0.0, 0.43, 1.0], "density": 60.0},
+    "photo-filter-free": {"type": "photo-filter", "density": 35.0, "preserve_luminosity": False},
 }
 # Tables are read by linear interpolation (LUT_SIZE entries): within this of the per-pixel formulas, except where
 # a gamma's t^(1/γ) bends fastest (first table interval), which the inputs below keep clear of.
@@ -73,9 +116,8 @@ class TestAdjustments:
         if case["type"] in ("posterize", "threshold"):  # steps: compare away from the edges
             assert np.mean(np.abs(got - want) > 1e-9) < 0.01
         else:
-            np.testing.assert_allclose(
-                got, want, atol=TABLE_TOL if case["type"] not in ("invert", "hue-saturation") else 1e-9
-            )
+            tabled = case["type"] in ("levels", "curves", "brightness-contrast", "exposure", "gradient-map")
+            np.testing.assert_allclose(got, want, atol=TABLE_TOL if tabled else 1e-9)
 
     @pytest.mark.parametrize("name", CASES)
     def test_shapes_and_range(self, name):
@@ -107,6 +149,72 @@ class TestAdjustments:
         g = torch.tensor(1.3, dtype=torch.float64, requires_grad=True)
         C = colours(1, 3, 4).requires_grad_(True)
         torch.autograd.gradcheck(lambda g, C: Adjustment(kind, make(g))(C), (g, C), atol=1e-5)
+
+    @pytest.mark.parametrize(
+        "kind, make",
+        [
+            (
+                "channel-mixer",
+                lambda g: {
+                    "red": [80 * g, 20.0, -10.0, 5 * g],
+                    "green": [0.0, 100.0, 0.0, 0.0],
+                    "blue": [10.0, -20 * g, 90.0, 0.0],
+                },
+            ),
+            (
+                "color-balance",
+                lambda g: {
+                    "shadows": [20 * g, 0.0, -10.0],
+                    "midtones": [-30 * g, 10.0, 20 * g],
+                    "highlights": [5.0, 5 * g, 0.0],
+                    "preserve_luminosity": True,
+                },
+            ),
+            ("vibrance", lambda g: {"vibrance": 40 * g, "saturation": -20 * g}),
+            (
+                "black-and-white",
+                lambda g: {
+                    "reds": 40 * g,
+                    "yellows": 60.0,
+                    "greens": 40 * g,
+                    "cyans": 60.0,
+                    "blues": 20 * g,
+                    "magentas": 80.0,
+                    "tint": [0.7, 0.5 * g, 0.3],
+                },
+            ),
+            (
+                "gradient-map",
+                lambda g: {
+                    "stops": [
+                        {"location": 0.0, "color": [0.1 * g, 0.0, 0.3]},
+                        {"location": 0.4 * g, "color": [0.9, 0.2, 0.1], "midpoint": 0.4},
+                        {"location": 1.0, "color": [1.0, 0.9 * g, 0.6]},
+                    ],
+                    "reverse": False,
+                },
+            ),
+            ("photo-filter", lambda g: {"color": [0.9, 0.5 * g, 0.1], "density": 40 * g, "preserve_luminosity": True}),
+        ],
+    )
+    def test_gradcheck_new_adjustments(self, kind, make):  # hue ranges: see test_gradcheck_hue_ranges
+        g = torch.tensor(0.9, dtype=torch.float64, requires_grad=True)
+        C = colours(3, 3, 4).requires_grad_(True)
+        torch.autograd.gradcheck(lambda g, C: Adjustment(kind, make(g))(C), (g, C), atol=1e-5)
+
+    def test_gradcheck_hue_ranges(self):
+        def f(g, C):
+            ranges = [
+                {"range": [300.0, 340.0, 20.0, 60.0], "hue": 20 * g, "saturation": 30 * g, "lightness": -25 * g},
+                {"range": [90.0, 120.0, 180.0, 230.0], "hue": -10.0, "saturation": -40 * g, "lightness": 15 * g},
+            ]
+            return Adjustment(
+                "hue-saturation", {"hue": 0.0, "saturation": 0.0, "lightness": 0.0, "colorize": None, "ranges": ranges}
+            )(C)
+
+        g = torch.tensor(0.8, dtype=torch.float64, requires_grad=True)
+        C = colours(4, 3, 4).requires_grad_(True)
+        torch.autograd.gradcheck(f, (g, C), atol=1e-5)
 
     def test_gradcheck_curve_points(self):
         pts = torch.tensor(
@@ -144,6 +252,23 @@ def doc(adjustment: dict, **layer) -> dict:
         ({"type": "sharpen"}, "expected one of 'levels'"),
         ({"type": "brightness-contrast", "brightness": 120.0, "legacy": True}, "within ±100"),
         ({"type": "posterize", "levels": 1}, "greater than or equal to 2|expected"),
+        ({"type": "channel-mixer", "red": [300.0, 0.0, 0.0, 0.0]}, "less than or equal to 200"),
+        ({"type": "color-balance", "shadows": [0.0, float("nan"), 0.0]}, "finite"),
+        ({"type": "vibrance", "vibrance": 150.0}, "less than or equal to 100"),
+        ({"type": "black-and-white", "tint": [0.5, 0.5]}, "tint\\[2\\]: required field is missing"),
+        (
+            {
+                "type": "gradient-map",
+                "stops": [{"location": 0.8, "color": [0, 0, 0]}, {"location": 0.2, "color": [1, 1, 1]}],
+            },
+            "not sorted|valid number",
+        ),
+        ({"type": "gradient-map", "stops": [{"location": 0.0, "color": [0.0, 0.0, 0.0]}] * 100}, "at most 64"),
+        ({"type": "photo-filter", "density": -1.0}, "greater than or equal to 0"),
+        (
+            {"type": "hue-saturation", "ranges": [{"range": [0.0, 10.0, 20.0, 30.0], "hue": 200.0}]},
+            "less than or equal to 180",
+        ),
     ],
 )
 def test_bad_parameters_are_one_line(adjustment, message):
