@@ -14,10 +14,11 @@ What each PSD thing becomes:
   ``clip: true`` (a clipping chain), when psd-tools would read each as it is; a clipping layer that clips to
   nothing (the bottom of its list, or above a clipped group: psd-tools and Photoshop draw none) is left out with
   a warning line;
-* an adjustment layer of a kind the compositor has (levels, curves, hue/saturation and its colorize, brightness/
-  contrast new and legacy, exposure, invert, posterize, threshold) → an ``adjustment`` layer with its parameters
-  (``adjustment_params``), its blend, opacity × fill and its mask on the canvas (the mask's background colour
-  outside its data); hue/saturation's six colour ranges are not modelled (one warning line when one is set);
+* an adjustment layer of a kind the compositor has (levels, curves, hue/saturation with its colour ranges and its
+  colorize, brightness/contrast new and legacy, exposure, invert, posterize, threshold; channel mixer, color
+  balance, vibrance, black & white, gradient map, photo filter: ``psd_adjust.py``) → an ``adjustment`` layer with
+  its parameters (``adjustment_params``), its blend, opacity × fill and its mask on the canvas (the mask's
+  background colour outside its data);
 * a fill layer → a ``pixels`` layer of the fill Photoshop stored in its channels, with its mask (psd-tools'
   rendering when none is stored);
 * layers psd-tools can draw but a stack cannot hold as such — type, shape and smart-object layers, a layer with
@@ -47,6 +48,7 @@ import numpy as np
 from lasagna.document.types import sanitise_name, unique_id
 from lasagna.errors import ExportError, ImageError
 from lasagna.export.psd import INSTALL_HINT, psd_blend_modes
+from lasagna.export.psd_adjust import READERS, hue_ranges
 from lasagna.io.png import DEFAULT_MAX_PIXELS
 from lasagna.limits import MAX_GROUP_DEPTH, check_memory
 
@@ -141,10 +143,9 @@ def adjustment_params(layer, warn: Callable[[str], None], what: str, depth: int 
             gamma=min(max(float(layer.gamma or 1.0), 0.01), 9.99),
         )
     if kind == "huesaturation":
-        if any(tuple(hsl) != (0, 0, 0) for _, hsl in (layer.data or [])):
-            warn(f"{what}: hue/saturation colour ranges cannot be represented; only the master channel is imported")
         h, sat, light = layer.master or (0, 0, 0)
         out = dict(type="hue-saturation", hue=float(h), saturation=float(sat), lightness=float(light))
+        out["ranges"] = hue_ranges(layer.data)
         if layer.enable_colorization:
             ch, cs, cl = layer.colorization or (0, 25, 0)
             out["colorize"] = dict(hue=float(ch % 360), saturation=float(cs), lightness=float(cl))
@@ -157,6 +158,8 @@ def adjustment_params(layer, warn: Callable[[str], None], what: str, depth: int 
         # Photoshop compares the luminosity's codes with the level: half a code below it is met.
         code = min(max(int(layer.threshold or 128), 1), 255) / 255.0
         return dict(type="threshold", level=code - (0.5 / 255.0 if depth <= 8 else 0.5 / 65535.0))
+    if kind in READERS:
+        return READERS[kind](layer, warn, what)
     warn(f"{what}: {kind} adjustment layer cannot be represented in a stack; left out")
     return None
 

@@ -515,3 +515,84 @@ def test_adjustment_layers_written_by_psd_tools_import_with_their_parameters(tmp
     with Image.open(tmp_path / "c.png") as im:
         got = np.asarray(im.convert("RGB")).astype(int)
     assert np.abs(got - to_uint8(composite_reference(out)).astype(int)).max() <= 3
+
+
+def test_colour_adjustments_written_by_psd_tools_import_with_their_parameters(tmp_path):
+    # Channel mixer, color balance, vibrance, black & white (tinted), gradient map, photo filter and hue/saturation's
+    # colour ranges, as psd-tools writes their records (psd-tools composites none of them): each read with its
+    # parameters, and the imported stack within 3/255 of tests/support/reference.py's float64 composite of it.
+    import struct
+
+    from psd_tools.constants import Tag
+    from psd_tools.psd.adjustments import ColorStop, TransparencyStop
+    from psd_tools.psd.descriptor import Bool, Descriptor, Double, Integer
+    from psd_tools.psd.tagged_blocks import DescriptorBlock, TaggedBlock
+
+    from tests.support.reference import composite_reference, to_uint8
+
+    rng = np.random.default_rng(7)
+    psd = PSDImage.new("RGBA", (W, H))
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    empty = Image.fromarray(np.zeros((H, W, 4), dtype=np.uint8))
+
+    def adjustment(layer_name, tag, *data, **fields):
+        layer = psd.create_pixel_layer(empty, name=layer_name)
+        layer.tagged_blocks.set_data(tag, *data, **fields)
+        layer.opacity = 200
+        return layer
+
+    def descriptor(name, tag, values):
+        layer = psd.create_pixel_layer(empty, name=name)
+        block = DescriptorBlock()
+        for key, value in values.items():
+            block[key] = value
+        layer.tagged_blocks[tag] = TaggedBlock(key=tag, data=block)
+        return layer
+
+    rest = struct.pack(">10h", -10, 120, 0, 0, -8, 25, 25, 60, 0, 0) + bytes(12)
+    adjustment("mixer", Tag.CHANNEL_MIXER, version=1, monochrome=0, data=[80, 30, -20, 0, 5], unknown=rest)
+    adjustment("balance", Tag.COLOR_BALANCE, (30, -20, 10), (-40, 15, 55), (10, 35, -25), 1)
+    descriptor("vibrance", Tag.VIBRANCE, {b"vibrance": Integer(60), b"Strt": Integer(-15)})
+    tint = Descriptor(classID=b"RGBC")
+    tint[b"Rd  "], tint[b"Grn "], tint[b"Bl  "] = Double(204.0), Double(153.0), Double(76.5)
+    bw = {b"Rd  ": Integer(120), b"Yllw": Integer(-30), b"Grn ": Integer(40), b"Cyn ": Integer(60)}
+    bw |= {b"Bl  ": Integer(200), b"Mgnt": Integer(80), b"useTint": Bool(True), b"tintColor": tint}
+    descriptor("bw", Tag.BLACK_AND_WHITE, bw).opacity = 90
+    stops = [ColorStop(200, 50, 0, (6553, 0, 19660, 0)), ColorStop(2048, 30, 0, (58981, 13107, 6553, 0))]
+    stops.append(ColorStop(3700, 70, 0, (65535, 62258, 39321, 0)))
+    opaque = [TransparencyStop(0, 50, 100), TransparencyStop(4096, 50, 100)]
+    adjustment(
+        "gmap", Tag.GRADIENT_MAP, version=1, is_reversed=0, is_dithered=0, name="g", color_stops=stops,
+        transparency_stops=opaque, minimum_color=[0] * 4, maximum_color=[0] * 4,
+    )  # fmt: skip
+    adjustment("filter", Tag.PHOTO_FILTER, version=2, xyz=None, color_space=0, color_components=(0, 28180, 65535, 0),
+               density=60, luminosity=1)  # fmt: skip
+    items = [[(315, 345, 15, 45), (25, 40, -30)], [(75, 105, 135, 165), (-40, -60, 20)]] + [
+        [(0, 0, 0, 0), (0, 0, 0)]
+    ] * 4
+    adjustment(
+        "hues", Tag.HUE_SATURATION, version=2, enable=0, colorization=(0, 25, 0), master=(10, 15, 0), items=items
+    )
+    path = tmp_path / "colour.psd"
+    psd.save(path)
+    out = tmp_path / "stack"
+    assert main(["import-psd", str(path), "-o", str(out)]) == 0
+    doc = load_stack(out).document
+    got = {layer.id: layer.adjustment for _, layer in doc.walk() if layer.kind == "adjustment"}
+    assert [a.type for a in got.values()] == [
+        "channel-mixer", "color-balance", "vibrance", "black-and-white", "gradient-map", "photo-filter",
+        "hue-saturation",
+    ]  # fmt: skip
+    assert got["mixer"].green == (-10.0, 120.0, 0.0, -8.0) and got["mixer"].gray is None
+    assert got["balance"].highlights == (10.0, 35.0, -25.0) and got["balance"].preserve_luminosity
+    assert (got["vibrance"].vibrance, got["vibrance"].saturation) == (60.0, -15.0)
+    assert got["bw"].reds == 120.0 and got["bw"].tint == pytest.approx((0.8, 0.6, 0.3))
+    gmap = got["gmap"].stops
+    assert [s.location for s in gmap] == pytest.approx([200 / 4096, 0.5, 3700 / 4096])
+    assert [s.midpoint for s in gmap[:2]] == [0.3, 0.7]  # a PSD stop's midpoint is of the segment ending at it
+    assert got["filter"].color == pytest.approx((0.0, 28180 / 65535, 1.0)) and got["filter"].density == 60.0
+    assert [r.hue for r in got["hues"].ranges] == [25.0, -40.0] and got["hues"].hue == 10.0
+    assert main(["composite", str(out), "-o", str(tmp_path / "c.png")]) == 0
+    with Image.open(tmp_path / "c.png") as im:
+        flat = np.asarray(im.convert("RGB")).astype(int)
+    assert np.abs(flat - to_uint8(composite_reference(out)).astype(int)).max() <= 3
