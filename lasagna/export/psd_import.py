@@ -19,7 +19,8 @@ What each PSD thing becomes:
   balance, vibrance, black & white, gradient map, photo filter: ``psd_adjust.py``) → an ``adjustment`` layer with
   its parameters (``adjustment_params``), its blend, opacity × fill and its mask on the canvas (the mask's
   background colour outside its data);
-* a fill layer → a ``pixels`` layer of the fill Photoshop stored in its channels, with its mask (psd-tools'
+* a solid colour fill layer without a mask, vector mask or effects → a ``solid`` layer of its colour (canvas size);
+  another fill layer → a ``pixels`` layer of the fill Photoshop stored in its channels, with its mask (psd-tools'
   rendering when none is stored);
 * layers psd-tools can draw but a stack cannot hold as such — type, shape and smart-object layers, a layer with
   effects, a clipping base whose chain holds one of those — → a ``pixels`` layer of psd-tools' rendering of it
@@ -48,7 +49,7 @@ import numpy as np
 from lasagna.document.types import sanitise_name, unique_id
 from lasagna.errors import ExportError, ImageError
 from lasagna.export.psd import INSTALL_HINT, psd_blend_modes
-from lasagna.export.psd_adjust import READERS, hue_ranges
+from lasagna.export.psd_adjust import READERS, descriptor_color, hue_ranges
 from lasagna.io.png import DEFAULT_MAX_PIXELS
 from lasagna.limits import MAX_GROUP_DEPTH, check_memory
 
@@ -290,6 +291,11 @@ class _Reader:
 
                 self.tensors[lid] = group_mask_tensors(_tensor(mask))
             return entry
+        solid = self._solid_fill(layer, what)
+        if solid is not None:  # a solid colour fill over the canvas, no mask: a solid layer (its colour, any size)
+            entry.update(kind="solid", color=solid, blend=self._blend(layer, what))
+            entry["opacity"] *= layer.fill_opacity / 255.0
+            return entry
         rgba, bbox, baked = self._raster(layer, what)
         if rgba is None:
             self.warn(f"{what}: {layer.kind} layer has no pixels; left out")
@@ -316,6 +322,16 @@ class _Reader:
 
         self.tensors[lid] = LayerTensors(color, alpha, None if mask is None else _tensor(mask))
         return entry
+
+    def _solid_fill(self, layer, what: str) -> list[float] | None:
+        """A solid colour fill layer's RGB when a ``solid`` layer holds it exactly (no mask, vector mask or effects;
+        psd-tools' ``draw_solid_color_fill`` covers the canvas); None otherwise (its stored pixels are read)."""
+        if layer.kind != "solidcolorfill" or layer.has_effects() or layer.has_vector_mask() or layer.has_clip_layers():
+            return None
+        if layer.has_mask() and layer.mask is not None and not layer.mask.disabled:
+            return None
+        rgb = descriptor_color(layer.data, self.warn, what)
+        return None if rgb is None else list(rgb)
 
     def _raster(self, layer, what: str) -> tuple[np.ndarray | None, tuple[int, int, int, int], bool]:
         """(RGBA (4, h, w) float64, bbox, baked): the stored pixels, or psd-tools' rendering of the layer

@@ -596,3 +596,29 @@ def test_colour_adjustments_written_by_psd_tools_import_with_their_parameters(tm
     with Image.open(tmp_path / "c.png") as im:
         flat = np.asarray(im.convert("RGB")).astype(int)
     assert np.abs(flat - to_uint8(composite_reference(out)).astype(int)).max() <= 3
+
+
+def test_a_solid_colour_fill_is_imported_as_a_solid_layer(tmp_path):
+    # A solid colour fill (no mask) over a base, of multiply at opacity 200: a solid layer of its colour, and the
+    # stack flattens as psd-tools' own composite of the file over white (which draws the fill from its setting).
+    from psd_tools.constants import Tag
+    from psd_tools.psd.descriptor import Descriptor, Double
+    from psd_tools.psd.tagged_blocks import DescriptorBlock, TaggedBlock
+
+    rng = np.random.default_rng(11)
+    psd = PSDImage.new("RGBA", (W, H))
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    fill = psd.create_pixel_layer(Image.fromarray(np.zeros((H, W, 4), dtype=np.uint8)), name="fill")
+    color = Descriptor(classID=b"RGBC")
+    color[b"Rd  "], color[b"Grn "], color[b"Bl  "] = Double(51.0), Double(153.0), Double(204.0)
+    block = DescriptorBlock()
+    block[b"Clr "] = color
+    fill.tagged_blocks[Tag.SOLID_COLOR_SHEET_SETTING] = TaggedBlock(key=Tag.SOLID_COLOR_SHEET_SETTING, data=block)
+    fill.blend_mode, fill.opacity = BlendMode.MULTIPLY, 200
+    path = tmp_path / "fill.psd"
+    psd.save(path)
+    stack = read_psd(path)
+    (layer,) = [lay for lay in stack.document.layers if lay.id == "fill"]
+    assert layer.kind == "solid" and layer.color == pytest.approx((0.2, 0.6, 0.8)) and layer.blend == "multiply"
+    got = np.rint(render_stack(stack, dtype=torch.float64).image.numpy().transpose(1, 2, 0) * 255.0)
+    assert np.abs(got - psd_tools_flat(path)).max() <= 1
