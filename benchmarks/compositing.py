@@ -34,6 +34,11 @@ modes_vs_pillow_fused the same stack with ``set_fused(True)`` (``lasagna.compose
                       compiled by torch.compile), steady state; ``mode_compile_s_fused`` gives each mode's
                       first call (the compile; inductor's on-disk cache makes repeats fast) apart, and
                       ``mode_ms_fused`` its cost over the base
+adjust10_vs_normal10  a stack of the base and ten full-canvas adjustment layers (levels, curves, hue/saturation,
+                      brightness/contrast, exposure, channel mixer, color balance, vibrance, gradient map, photo
+                      filter; opacity 0.8, blend normal) vs the base and ten full-canvas RGB normal layers of
+                      opacity 0.8, both rendered into a preallocated ``out=``; ``adjust_ms`` gives each
+                      adjustment's cost over the base
 fresh_modes_vs_heap_system  a fresh Python process rendering base + overlay + soft-light + hue with
                       lasagna's heap thresholds (``lasagna.heap``) vs with glibc's defaults
                       (``LASAGNA_HEAP=system``): what one ``lasagna composite`` call sees
@@ -526,6 +531,58 @@ def measure_modes(size: int, reps: int, res: dict, fused: bool = True) -> None:
         measure_modes_fused(plan, mode_planes, t_base, out, t_pil, reps, res)
 
 
+# One of each adjustment the ten-layer row stacks (document units, lasagna/document/adjustment.py), away from identity.
+ADJUSTMENT_STACK = {
+    "levels": {"rgb": {"in_black": 0.1, "in_white": 0.85, "gamma": 1.4, "out_black": 0.05, "out_white": 0.95}},
+    "curves": {"rgb": [[0.0, 0.1], [0.3, 0.5], [0.8, 0.7], [1.0, 1.0]]},
+    "hue-saturation": {"hue": 40.0, "saturation": -30.0, "lightness": 12.0},
+    "brightness-contrast": {"brightness": 40.0, "contrast": 30.0},
+    "exposure": {"exposure": 0.8, "offset": 0.02, "gamma": 1.2},
+    "channel-mixer": {
+        "red": [80.0, 30.0, -20.0, 5.0],
+        "green": [-10.0, 120.0, 0.0, -8.0],
+        "blue": [25.0, 25.0, 60.0, 0],
+    },
+    "color-balance": {"shadows": [30.0, -20.0, 10.0], "midtones": [-40.0, 15.0, 55.0], "highlights": [10.0, 35.0, 0]},
+    "vibrance": {"vibrance": 60.0, "saturation": -15.0},
+    "gradient-map": {
+        "stops": [{"location": 0.0, "color": [0.1, 0.0, 0.3]}, {"location": 1.0, "color": [1.0, 0.95, 0.6]}]
+    },
+    "photo-filter": {"color": [0.0, 0.43, 1.0], "density": 60.0},
+}
+
+
+def measure_adjustments(size: int, reps: int, res: dict) -> None:
+    """Ten adjustment layers against ten normal layers over the same base (``adjust10_vs_normal10``)."""
+    from pydantic import TypeAdapter
+
+    from lasagna.compose.adjust import Adjustment
+    from lasagna.compose.plan import adjustment_tensors
+    from lasagna.document.adjustment import Adjustment as Model
+
+    g = torch.Generator().manual_seed(25)
+    base = RenderLayerSpec(id="base", tensors=LayerTensors(grid(g, 3, size, size)))
+    out = torch.empty(3, size, size)
+    t_base = median_time(lambda: render([base], canvas=(size, size), out=out), reps)
+    adjust, adjust_ms = [], {}
+    for kind, values in ADJUSTMENT_STACK.items():
+        p = TypeAdapter(Model).validate_python({"type": kind, **values}).model_dump(exclude={"type"})
+        spec = RenderLayerSpec(
+            id=kind, tensors=adjustment_tensors(None, size, size), adjust=Adjustment(kind, p), opacity=0.8
+        )
+        adjust.append(spec)
+        one = compile_plan([base, spec], (size, size))
+        adjust_ms[kind] = round((median_time(lambda: render(one, out=out), reps) - t_base) * 1e3, 2)  # noqa: B023
+    normal = [RenderLayerSpec(id=f"n{i}", tensors=LayerTensors(grid(g, 3, size, size)), opacity=0.8) for i in range(10)]
+    plan_a = compile_plan([base, *adjust], (size, size))
+    plan_n = compile_plan([base, *normal], (size, size))
+    t_a = median_time(lambda: render(plan_a, out=out), reps)
+    t_n = median_time(lambda: render(plan_n, out=out), reps)
+    res.update(adjust10_s=t_a, normal10_s=t_n, adjust10_vs_normal10=t_a / t_n, adjust_ms=adjust_ms)
+    log(f"[adjust] ten adjustment layers: {t_a * 1e3:.1f} ms, ten normal layers: {t_n * 1e3:.1f} ms")
+    log(f"[adjust] cost over the base, ms: {adjust_ms}")
+
+
 def measure_modes_fused(
     plan: object, mode_planes: dict, t_base: float, out: torch.Tensor, t_pil: float, reps: int, res: dict
 ) -> None:
@@ -647,6 +704,7 @@ def main() -> None:
     measure_autograd(layers, size, reps, res)
     measure_top_edit32(size, reps, res)
     measure_modes(size, reps, res, fused=not args.no_fused)
+    measure_adjustments(size, reps, res)
     measure_fresh_process(size, reps, torch.get_num_threads(), res)
 
     prec_reps = max(1, min(reps, 3))
