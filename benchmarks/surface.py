@@ -39,12 +39,11 @@ from lasagna.compose.resample import downsample, upsample  # noqa: E402
 from lasagna.compose.surface import (  # noqa: E402
     inflated_normals,
     lambert,
-    light_vector,  # noqa: E402
-    normals_from_height,
+    light_vector,
 )
 from lasagna.document.condition import parse_direction  # noqa: E402
 from lasagna.generators.surface import SurfaceEstimator  # noqa: E402
-from lasagna.training.surface import estimate_at, estimator_from_checkpoint  # noqa: E402
+from lasagna.training.surface import estimator_from_checkpoint  # noqa: E402
 from lasagna.world import VOCABULARY, render, sample_scenes  # noqa: E402
 from lasagna.world.tasks import relight_sources, relighting  # noqa: E402
 
@@ -107,8 +106,8 @@ def shading_rows(scene, labels, albedo_net, edits: list[str]) -> list[dict]:
     ]
     if albedo_net is not None:
         t0 = time.perf_counter()
-        height, _ = estimate_at(albedo_net, scene.albedo)
-        y = lambert(normals_from_height(height), light)
+        n, _ = albedo_net.estimate_at(scene.albedo)
+        y = lambert(n, light)
         secs = (time.perf_counter() - t0) / len(labels)
         rows.append(gain_row("surface estimator (albedo)", y, truth, mask, cdb, secs))
     for kind in edits:
@@ -148,8 +147,7 @@ def relight_rows(scene, labels, lit_net, edits: list[str]) -> list[dict]:
     ]
     if lit_net is not None:
         t0 = time.perf_counter()
-        height, light = estimate_at(lit_net, base)
-        n = normals_from_height(height)
+        n, light = lit_net.estimate_at(base)
         ratio = lambert(n, tgt) / lambert(n, light)
         secs = (time.perf_counter() - t0) / len(labels)
         rows.append(gain_row("surface estimator (lit), its source light", comp(ratio), target, mask, bdb, secs))
@@ -174,8 +172,8 @@ def leak_row(args, split: str, size: int, albedo_net, lit_net) -> dict:
             continue
         if image is None:
             image = relighting(walls, relight_sources(walls.params)).base
-        height, _ = estimate_at(net, image)
-        y = lambert(normals_from_height(height), lights_of(labels)).double()
+        n, _ = net.estimate_at(image)
+        y = lambert(n, lights_of(labels)).double()
         flat = y.mean(dim=(1, 2, 3), keepdim=True).expand_as(y)
         out[f"leak_db_{name}"] = round(psnr(y, flat), 2)
     return out
@@ -216,8 +214,7 @@ def photo_rows(lit_net, folder: Path, sheet: Path | None) -> list[dict]:
     for file in sorted(folder.glob("*.jpg")):
         image = read_photo(file)
         t0 = time.perf_counter()
-        height, source = estimate_at(lit_net, image)
-        n = normals_from_height(height)
+        n, source = lit_net.estimate_at(image)
         seconds = time.perf_counter() - t0
         row = {"photo": file.stem, "size": list(image.shape[-2:]), "estimate_seconds": round(seconds, 3)}
         composites = {}

@@ -180,13 +180,14 @@ def make_layer(
 
 
 def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
-    """A surface layer (``recipe.kind == "surface"``): the estimator's height field at the working size, refined by
-    ``recipe.steps`` multi-light score-distillation steps when asked, enlarged bicubically to the base's size; its
-    normals, its source light (a lit input's: given, else fitted) and the multiplier they render to under the
-    condition's light — through the 16-bit map the stack will store, so it is what the stack renders."""
+    """A surface layer (``recipe.kind == "surface"``): the estimator's surface (height or normals) at the working
+    size, refined by ``recipe.steps`` multi-light score-distillation steps when asked, enlarged bicubically to the
+    base's size; its normals, its source light (a lit input's: given, else fitted) and the multiplier they render
+    to under the condition's light — through the 16-bit map the stack will store, so it is what the stack
+    renders."""
     from lasagna.components import load_prior
     from lasagna.compose.layer import LayerTensors
-    from lasagna.compose.surface import encode_normal_map, normals_from_height, surface_tensors
+    from lasagna.compose.surface import encode_normal_map, enlarge_surface, surface_normals, surface_tensors
     from lasagna.distill.surface import distill_surface
     from lasagna.document.condition import AMBIENT, parse_direction
     from lasagna.generators.surface import SurfaceEstimator
@@ -196,7 +197,7 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
     net = SurfaceEstimator.from_pretrained(recipe.estimator, device=device)
     x = working_input(base, recipe.working_size, device)  # (1, 3, h, w)
     with torch.no_grad():
-        height, fitted = net.estimate(x)
+        surface, fitted = net.estimate(x)
     source = None
     if net.config.input == "lit":
         source = recipe.source_light or light_condition(fitted[0])
@@ -215,7 +216,7 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         fit = distill_surface(
             x,
             prior,
-            init_height=height,
+            init_surface=surface,
             lights=list(recipe.preset.vocabulary),
             source=src,
             steps=recipe.steps,
@@ -229,10 +230,9 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
             seed=ds.seed,
             aspect=ds.aspect,
         )
-        height, history = fit.height, fit.history
+        surface, history = fit.surface, fit.history
         made_by.update(refine_steps=recipe.steps, prior=recipe.prior_ref, prior_sha256=recipe.prior_sha256)
-    full = torch.nn.functional.interpolate(height, size=tuple(base.shape[-2:]), mode="bicubic", align_corners=False)
-    normals = normals_from_height(full)[0].cpu()
+    normals = surface_normals(enlarge_surface(surface, tuple(base.shape[-2:])))[0].cpu()
     stored = LayerTensors(stored_map(encode_normal_map(normals[None].double())[0].numpy()))
     layer = surface_tensors(stored, recipe.label, source, AMBIENT).color
     settings = LayerSettings(method=recipe.method, optimize=recipe.steps, working_size=recipe.working_size)

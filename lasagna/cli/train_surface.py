@@ -7,7 +7,7 @@ import argparse
 import json
 from pathlib import Path
 
-from lasagna.cli.common import progress
+from lasagna.cli.common import device_argument, progress
 
 HELP = "train a surface estimator (height field from an image) on the procedural world (resumable)"
 EXAMPLE = (
@@ -18,6 +18,12 @@ EXAMPLE = (
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--input", choices=("albedo", "lit"), required=True, help="what it reads: unlit base or lit image")
+    p.add_argument(
+        "--output",
+        choices=("height", "normals"),
+        default="height",
+        help="what the estimator outputs: a height field, or unit normals directly",
+    )
     p.add_argument("--out", required=True, help="run folder; run again with the same folder to resume")
     p.add_argument("--working-size", type=int, default=32, help="the side it trains (and later works) at")
     p.add_argument("--channels", default="32,64,128", help="feature channels per level")
@@ -33,6 +39,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--world-seed", type=int, default=7, help="seed of the training split's scenes")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument(
+        "--render-on",
+        choices=("device", "cpu"),
+        default="device",
+        help="where the training scenes are rendered (cpu: the same bits whatever the device)",
+    )
+    device_argument(p, default=None, help="torch device (default cuda if available, else cpu)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,7 +60,9 @@ def run(args: argparse.Namespace) -> int:
             f"{args.channels!r} is not a comma-separated list of integers; expected e.g. 32,64,128", "--channels"
         ) from None
     config = SurfaceTrainConfig(
-        net=SurfaceConfig(input=args.input, channels=channels, blocks=args.blocks, working_size=args.working_size),
+        net=SurfaceConfig(
+            input=args.input, output=args.output, channels=channels, blocks=args.blocks, working_size=args.working_size
+        ),
         lights=args.lights,
         steps=args.steps,
         max_minutes=args.minutes,
@@ -58,9 +73,10 @@ def run(args: argparse.Namespace) -> int:
         ema_warmup=True,
         grad_clip=args.grad_clip,
         world_seed=args.world_seed,
+        render_on=args.render_on,
         seed=args.seed,
         progress=progress() and not args.no_progress,  # bars only for a person watching (or --progress)
     )
-    train_surface(config, args.out)
+    train_surface(config, args.out, device=args.device)
     print(json.dumps({"out": str(Path(args.out) / "surface"), "input": args.input}))
     return 0

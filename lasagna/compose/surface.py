@@ -116,6 +116,36 @@ def normals_from_height(height: Tensor) -> Tensor:
     return n * torch.rsqrt((n * n).sum(1, keepdim=True))
 
 
+# Bicubic overshoot (or a refining step) can push a normal's z below 0 beside a silhouette; it is kept facing the
+# viewer.
+NORMAL_Z_MIN = 1e-3
+
+
+def enlarge_surface(surface: Tensor, size: tuple[int, int]) -> Tensor:
+    """A height field (B, 1, h, w) or unit normals (B, 3, h, w) enlarged to ``size`` bicubically (normals
+    renormalised, kept facing the viewer). Bicubic, not bilinear: normals are a height's slopes, and a bilinear
+    height has piecewise-constant slopes (shading in blocks of the working size's pixels), a bicubic one
+    continuous slopes. Heights are in canvas units, so normals do not depend on the size they are sampled at."""
+    size = (int(size[0]), int(size[1]))
+    if tuple(surface.shape[-2:]) == size:
+        return surface
+    out = torch.nn.functional.interpolate(surface, size=size, mode="bicubic", align_corners=False)
+    return out if surface.shape[1] == 1 else facing_normals(out)
+
+
+def facing_normals(vectors: Tensor) -> Tensor:
+    """Unit normals (B, 3, H, W) of vectors that nearly are: z kept at least ``NORMAL_Z_MIN`` (facing the viewer,
+    as every height field's normal does), then normalised."""
+    out = torch.cat([vectors[:, :2], vectors[:, 2:3].clamp_min(NORMAL_Z_MIN)], 1)
+    return out * torch.rsqrt((out * out).sum(1, keepdim=True))
+
+
+def surface_normals(surface: Tensor) -> Tensor:
+    """Unit normals (B, 3, H, W) of a surface: a height field (B, 1, H, W) by ``normals_from_height``, or normal
+    vectors (B, 3, H, W) by ``facing_normals``."""
+    return normals_from_height(surface) if surface.shape[1] == 1 else facing_normals(surface)
+
+
 def encode_normal_map(normals: Tensor) -> Tensor:
     """Tangent-space RGB in [0, 1] of unit normals (B, 3, H, W): (n + 1)/2, +Y up (OpenGL convention)."""
     return ((normals + 1.0) * 0.5).clamp(0.0, 1.0)

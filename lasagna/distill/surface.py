@@ -1,12 +1,14 @@
-"""Multi-light score distillation of a surface: one height field, scored under several lights per step.
+"""Multi-light score distillation of a surface: one height field (or normal field), scored under several lights per
+step.
 
 A free per-pixel multiplier must rediscover the geometry for every light from the prior's score. A surface
 (`lasagna.compose.surface`) is lit by every light for free, so one geometry must look right under all of them:
 multi-light distillation is to a surface what multi-view SDS (DreamFusion) is to a NeRF. Each step:
 
 1. draw ``lights_per_step`` conditions per image from ``lights`` (named lights or ``az=…,el=…``);
-2. render the surface h (a height field at the working size, in canvas units) under each: the shading
-   S(n(h), l_k) — or, for a relight of a lit image, the ratio S(l_k)/S(l_src) with the source light given;
+2. render the surface h (a height field at the working size, in canvas units, or a field of normal vectors as a
+   normals estimator outputs) under each: the shading S(n(h), l_k) — or, for a relight of a lit image, the
+   ratio S(l_k)/S(l_src) with the source light given;
 3. compose base × layer for the B·K views and score them with the prior in one batched pass (SDS or LMC-SDS
    through `lasagna.distill.objective.ScoreObjective`, conditioned on each view's light);
 4. an anchor λ‖h − h₀‖² keeps the surface near its start (the estimator's, `lasagna.training.surface`), so the
@@ -24,7 +26,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from lasagna.compose.surface import lambert, light_vector, normals_from_height, relight_ratio, surface_range
+from lasagna.compose.surface import lambert, light_vector, relight_ratio, surface_normals, surface_range
 from lasagna.distill.objective import ScoreObjective, build_loss
 from lasagna.distill.schedules import Weights, cosine_lr
 from lasagna.document.condition import AMBIENT, parse_direction
@@ -35,9 +37,10 @@ from lasagna.priors.base import Prior
 
 @dataclass
 class SurfaceFit:
-    """The distilled height field (B, 1, h, w), its normals, and one record per step."""
+    """The distilled surface (height (B, 1, h, w) or normals (B, 3, h, w), as its start), its unit normals, and one
+    record per step."""
 
-    height: Tensor
+    surface: Tensor
     normals: Tensor
     history: list[dict[str, float]] = field(default_factory=list)
 
@@ -46,7 +49,7 @@ def distill_surface(
     base: Tensor,
     prior: Prior,
     *,
-    init_height: Tensor,
+    init_surface: Tensor,
     lights: Sequence[str],
     source: Tensor | None = None,
     steps: int = 60,
@@ -62,16 +65,24 @@ def distill_surface(
     ambient: float = AMBIENT,
     aspect: str = "letterbox",
 ) -> SurfaceFit:
-    """Refine ``init_height`` (B, 1, h, w) of the bases ``base`` (B, 3, h, w) by multi-light score distillation
-    (module docstring). ``source`` (B, 3): the lit bases' source lights (a relight: the layer is a ratio);
-    None: the bases are unlit (albedo) and the layer is the shading."""
+    """Refine ``init_surface`` — a height field (B, 1, h, w) or unit normals (B, 3, h, w) — of the bases ``base``
+    (B, 3, h, w) by multi-light score distillation (module docstring). ``source`` (B, 3): the lit bases' source
+    lights (a relight: the layer is a ratio); None: the bases are unlit (albedo) and the layer is the shading."""
     if base.dim() != 4 or base.shape[1] != 3:
         raise LasagnaError(f"base has shape {tuple(base.shape)}; expected (B, 3, H, W)", "base")
-    if init_height.shape != (base.shape[0], 1, *base.shape[-2:]):
+    if (
+        init_surface.dim() != 4
+        or (init_surface.shape[0], *init_surface.shape[2:])
+        != (
+            base.shape[0],
+            *base.shape[-2:],
+        )
+        or init_surface.shape[1] not in (1, 3)
+    ):
         raise LasagnaError(
-            f"init_height has shape {tuple(init_height.shape)}; expected ({base.shape[0]}, 1, "
+            f"init_surface has shape {tuple(init_surface.shape)}; expected ({base.shape[0]}, 1 or 3, "
             f"{base.shape[-2]}, {base.shape[-1]})",
-            "init_height",
+            "init_surface",
         )
     if not lights or lights_per_step < 1:
         raise LasagnaError("expected at least one light and lights_per_step ≥ 1", "lights")
@@ -87,7 +98,7 @@ def distill_surface(
         aspect=aspect,
     )
     b, k = base.shape[0], lights_per_step
-    h0 = init_height.detach()
+    h0 = init_surface.detach()
     height = h0.clone().requires_grad_()
     opt = torch.optim.Adam([height], lr=lr)
     rng = torch.Generator().manual_seed(seed)
@@ -98,7 +109,7 @@ def distill_surface(
         for group in opt.param_groups:
             group["lr"] = cosine_lr(lr, step, steps, 0.1)
         pick = torch.randint(0, len(lights), (b * k,), generator=rng)
-        normals = normals_from_height(height).repeat_interleave(k, dim=0)
+        normals = surface_normals(height).repeat_interleave(k, dim=0)
         if src is None:
             layer = lambert(normals, vectors[pick], ambient)
         else:
@@ -111,4 +122,4 @@ def distill_surface(
         opt.step()
         history.append({"step": step, "score": out.score, "anchor": float(pull.detach()), **out.summary()})
     final = height.detach()
-    return SurfaceFit(height=final, normals=normals_from_height(final), history=history)
+    return SurfaceFit(surface=final, normals=surface_normals(final), history=history)

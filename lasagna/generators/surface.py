@@ -26,13 +26,15 @@ returns the flat surface h = 0 (n = +z everywhere), whose shading is the wall's,
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from torch import Tensor, nn
 
-from lasagna.compose.surface import fit_light, normals_from_height
+from lasagna.compose.resample import downsample, working_size
+from lasagna.compose.surface import enlarge_surface, fit_light, surface_normals
 from lasagna.document.condition import AMBIENT
 from lasagna.errors import LasagnaError
 from lasagna.generators.unet import pad_to_levels, run_unet, unet_body
@@ -41,6 +43,17 @@ from lasagna.limits import MAX_GENERATOR_BLOCKS, MAX_GENERATOR_LEVELS, MAX_GENER
 
 FORMAT = "lasagna.surface_estimator"
 
+# softplus(FLAT_Z) = 1: a zero head output is the flat normal +z (an untrained estimator's wall).
+FLAT_Z = math.log(math.e - 1.0)
+
+
+def normals_from_head(out: Tensor) -> Tensor:
+    """Unit normals (B, 3, H, W) of a normals head's output (a, b, c): (a, b, softplus(c + FLAT_Z)) normalised, so
+    n_z > 0 (every normal faces the viewer, as a height field's do) and a zero output is +z."""
+    z = torch.nn.functional.softplus(out[:, 2:3] + FLAT_Z)
+    n = torch.cat([out[:, :2], z], 1)
+    return n * torch.rsqrt((n * n).sum(1, keepdim=True))
+
 
 class SurfaceConfig(BaseModel):
     """Everything that rebuilds a ``SurfaceEstimator`` (saved as config.json beside the weights)."""
@@ -48,6 +61,10 @@ class SurfaceConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     input: Literal["albedo", "lit"] = Field(description="What it reads: the unlit base, or an image already lit.")
+    output: Literal["height", "normals"] = Field(
+        "height",
+        description="What its head outputs: a height field (normals by differences) or the unit normals directly.",
+    )
     channels: tuple[int, ...] = Field(
         (32, 64, 128), min_length=1, max_length=MAX_GENERATOR_LEVELS, description="Feature widths per level."
     )
@@ -75,7 +92,8 @@ class SurfaceEstimator(Pretrained, nn.Module):
         self.enc, self.dec = unet_body(3, ch, config.blocks)
         # Height, and for a lit input its source shading's logit; zero-initialised: the flat surface, lit at the
         # midpoint a + (1 − a)/2 of the shading's range (module docstring).
-        self.head = nn.Conv2d(ch[0], 2 if config.input == "lit" else 1, 1)
+        self.surface_channels = 1 if config.output == "height" else 3
+        self.head = nn.Conv2d(ch[0], self.surface_channels + (config.input == "lit"), 1)
         with torch.no_grad():
             self.head.weight.zero_()
             self.head.bias.zero_()
@@ -88,20 +106,38 @@ class SurfaceEstimator(Pretrained, nn.Module):
         return self.head(run_unet(self.enc, self.dec, x))[:, :, :h, :w]
 
     def forward(self, image: Tensor) -> Tensor:
-        """The height field (B, 1, H, W) in canvas units."""
-        return self._features(image)[:, :1]
+        """The surface: the height field (B, 1, H, W) in canvas units, or the unit normals (B, 3, H, W)."""
+        return self.decompose(image)[0]
 
     def decompose(self, image: Tensor) -> tuple[Tensor, Tensor | None]:
-        """(height (B, 1, H, W), the source light's shading (B, 1, H, W) in [a, 1], or None for albedo input)."""
+        """(the surface — height (B, 1, H, W) or unit normals (B, 3, H, W), per ``config.output`` — and the source
+        light's shading (B, 1, H, W) in [a, 1], or None for albedo input)."""
         out = self._features(image)
-        if out.shape[1] == 1:
-            return out, None
-        return out[:, :1], AMBIENT + (1.0 - AMBIENT) * torch.sigmoid(out[:, 1:2])
+        k = self.surface_channels
+        surface = out[:, :1] if k == 1 else normals_from_head(out[:, :k])
+        if out.shape[1] == k:
+            return surface, None
+        return surface, AMBIENT + (1.0 - AMBIENT) * torch.sigmoid(out[:, k : k + 1])
+
+    def normals(self, surface: Tensor) -> Tensor:
+        """Unit normals (B, 3, H, W) of a surface this estimator output (a height field's by differences)."""
+        return surface_normals(surface)
 
     def estimate(self, image: Tensor) -> tuple[Tensor, Tensor | None]:
-        """(height (B, 1, H, W), source light (B, 3) or None for albedo input): the light is the fit of the
-        height's normals to the estimated source shading (module docstring)."""
-        height, shading = self.decompose(image)
+        """(surface — height or normals, as ``decompose`` — and the source light (B, 3), or None for albedo
+        input): the light is the fit of the surface's normals to the estimated source shading (module
+        docstring)."""
+        surface, shading = self.decompose(image)
         if shading is None:
-            return height, None
-        return height, fit_light(normals_from_height(height), shading)
+            return surface, None
+        return surface, fit_light(self.normals(surface), shading)
+
+    @torch.no_grad()
+    def estimate_at(self, image: Tensor) -> tuple[Tensor, Tensor | None]:
+        """(unit normals (B, 3, H, W), source light (B, 3) or None) of ``image`` (B, 3, H, W) in [0, 1]: estimated
+        at the working size (`lasagna.compose.resample.working_size`), the surface enlarged back to (H, W)
+        (`lasagna.compose.surface.enlarge_surface`)."""
+        full = tuple(image.shape[-2:])
+        small = downsample(image, working_size(*full, self.config.working_size))
+        surface, light = self.estimate(small)
+        return self.normals(enlarge_surface(surface, full)), light

@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Literal
 
 import torch
 from pydantic import ConfigDict, Field
 
-from lasagna.compose.resample import downsample, working_size
-from lasagna.compose.surface import fit_light, lambert, normals_from_height
+from lasagna.compose.surface import fit_light, lambert
 from lasagna.errors import LasagnaError
 from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
 from lasagna.training.loop import LoopConfig, network_from_checkpoint, train_loop
@@ -55,6 +55,11 @@ class SurfaceTrainConfig(LoopConfig):
     light_weight: float = Field(0.1, ge=0.0, description="λ_l: weight of the source light's cosine error (lit)")
     split: str = Field("train", description="world split the training scenes come from")
     world_seed: int = Field(7, description="seed of the world split (scenes are (split, seed, index))")
+    render_on: Literal["device", "cpu"] = Field(
+        "device",
+        description="where the scenes are rendered: the training device (a GPU renders a batch faster than the "
+        "CPU feeds it) or the CPU (the same bits as a CPU run's, whatever the device)",
+    )
 
 
 def random_lights(count: int, rng: torch.Generator, el_range: tuple[float, float]) -> torch.Tensor:
@@ -85,8 +90,8 @@ def surface_loss(
     """The module docstring's L on one batch: ``scene`` (B scenes), ``source`` (B, 3) their source lights (lit
     input), ``lights`` (K·B, 3) the lights their estimate and truth are compared under (K per scene)."""
     b = len(scene)
-    height, source_shading = net.decompose(estimator_input(config.net, scene, source).to(device))
-    normals, truth = normals_from_height(height), scene.normals.to(device)
+    surface, source_shading = net.decompose(estimator_input(config.net, scene, source).to(device))
+    normals, truth = net.normals(surface), scene.normals.to(device)
     groups = lights.to(device).split(b)
     shading = sum(torch.nn.functional.mse_loss(lambert(normals, lk), lambert(truth, lk)) for lk in groups)
     shading = shading / len(groups)
@@ -101,8 +106,11 @@ def surface_loss(
     return loss, metrics
 
 
-def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str | torch.device = "cpu"):
-    """Train (or resume) the estimator in ``out_dir``; the final EMA weights go to ``out_dir/surface``."""
+def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str | torch.device | None = "cpu"):
+    """Train (or resume) the estimator in ``out_dir`` on ``device`` (None: CUDA where there is one); the final EMA
+    weights go to ``out_dir/surface``."""
+    if device is None:
+        device = "cuda" if torch.cuda.is_available() else "cpu"
     if config.split in HELD_SPLITS and config.world_seed == 0:
         raise LasagnaError(
             f"training on {config.split} scenes of world seed 0 would train on the benchmarks' own scenes; "
@@ -116,7 +124,8 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
 
     def step_fn(net: SurfaceEstimator, rng: torch.Generator, step: int):
         start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
-        scene = generate(config.split, config.batch_size, config.world_seed, side, start=start)
+        where = device if config.render_on == "device" else "cpu"
+        scene = generate(config.split, config.batch_size, config.world_seed, side, start=start, device=where)
         source = random_lights(config.batch_size, rng, RELIGHT_ELEVATION) if config.net.input == "lit" else None
         lights = random_lights(config.batch_size * config.lights, rng, (0.0, MAX_TRAIN_ELEVATION))
         return surface_loss(net, config, scene, source, lights, device)
@@ -143,18 +152,3 @@ def estimator_from_checkpoint(path: str | Path, ema: bool = True) -> tuple[Surfa
         path, CHECKPOINT_FORMAT, SurfaceTrainConfig, lambda c: SurfaceEstimator(c.net), ema
     )
     return net, step
-
-
-@torch.no_grad()
-def estimate_at(estimator: SurfaceEstimator, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """The estimate for ``image`` (B, 3, H, W) made at the estimator's working size, its height enlarged back to
-    (H, W) bicubically: the normals are the height's slopes, and a bilinear height has piecewise-constant slopes
-    (shading in blocks of the working size's pixels), a bicubic one continuous slopes. Heights are in canvas
-    units, so normals do not depend on the size the height is sampled at."""
-
-    full = tuple(image.shape[-2:])
-    small = downsample(image, working_size(*full, estimator.config.working_size))
-    height, light = estimator.estimate(small)
-    if tuple(height.shape[-2:]) != full:
-        height = torch.nn.functional.interpolate(height, size=full, mode="bicubic", align_corners=False)
-    return height, light

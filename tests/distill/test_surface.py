@@ -48,7 +48,7 @@ def test_multi_light_sds_moves_a_flat_surface_toward_the_true_one():
     fit = distill_surface(
         base,
         prior,
-        init_height=flat,
+        init_surface=flat,
         lights=LIGHTS,
         steps=150,
         lights_per_step=4,
@@ -58,7 +58,7 @@ def test_multi_light_sds_moves_a_flat_surface_toward_the_true_one():
         t_max=0.5,
         seed=0,
     )
-    assert shading_error(fit.height, truth) < 0.5 * shading_error(flat, truth)
+    assert shading_error(fit.surface, truth) < 0.5 * shading_error(flat, truth)
     assert len(fit.history) == 150 and fit.normals.shape == (1, 3, SIDE, SIDE)
 
 
@@ -67,18 +67,18 @@ def test_the_anchor_holds_the_start_and_the_seed_repeats():
     truth = dome()
     prior = problem(base, truth)
     start = 0.5 * truth
-    kw = dict(init_height=start, lights=LIGHTS, steps=20, lights_per_step=2, lr=0.02, seed=3)
+    kw = dict(init_surface=start, lights=LIGHTS, steps=20, lights_per_step=2, lr=0.02, seed=3)
     held = distill_surface(base, prior, anchor=1e6, **kw)
     a, b = distill_surface(base, prior, anchor=0.0, **kw), distill_surface(base, prior, anchor=0.0, **kw)
     # Adam scales steps to about lr whatever the gradient: a strong anchor turns them back toward the start.
-    assert float((held.height - start).abs().max()) < 0.2 * float((a.height - start).abs().max())
-    assert torch.equal(a.height, b.height)
+    assert float((held.surface - start).abs().max()) < 0.2 * float((a.surface - start).abs().max())
+    assert torch.equal(a.surface, b.surface)
 
 
 def test_refusals():
     base = torch.full((1, 3, SIDE, SIDE), 0.8)
     prior = problem(base, dome())
-    with pytest.raises(LasagnaError, match=r"init_height: init_height has shape \(1, 1, 4, 4\)"):
-        distill_surface(base, prior, init_height=torch.zeros(1, 1, 4, 4), lights=LIGHTS)
+    with pytest.raises(LasagnaError, match=r"init_surface: init_surface has shape \(1, 1, 4, 4\)"):
+        distill_surface(base, prior, init_surface=torch.zeros(1, 1, 4, 4), lights=LIGHTS)
     with pytest.raises(LasagnaError, match="expected at least one light"):
-        distill_surface(base, prior, init_height=torch.zeros(1, 1, SIDE, SIDE), lights=())
+        distill_surface(base, prior, init_surface=torch.zeros(1, 1, SIDE, SIDE), lights=())

@@ -61,3 +61,27 @@ def test_bad_input():
     net = SurfaceEstimator(SurfaceConfig(input="albedo", **TOY))
     with pytest.raises(LasagnaError, match=r"image: image has shape \(1, 1, 8, 8\); expected \(B, 3, H, W\)"):
         net(torch.rand(1, 1, 8, 8))
+
+
+@pytest.mark.parametrize("kind", ["albedo", "lit"])
+def test_a_normals_head_starts_flat_and_always_faces_the_viewer(kind):
+    net = SurfaceEstimator(SurfaceConfig(input=kind, output="normals", **TOY))
+    n = net(torch.rand(2, 3, 9, 13))
+    assert n.shape == (2, 3, 9, 13)
+    torch.testing.assert_close(n, torch.tensor([0.0, 0.0, 1.0]).view(1, 3, 1, 1).expand_as(n), atol=1e-6, rtol=0)
+    torch.manual_seed(3)
+    torch.nn.init.normal_(net.head.weight, std=5.0)  # extreme outputs: still unit normals with n_z > 0
+    n = net(torch.rand(4, 3, 8, 8))
+    torch.testing.assert_close(n.norm(dim=1), torch.ones(4, 8, 8), atol=1e-5, rtol=0)
+    assert n[:, 2].min() > 0
+    torch.testing.assert_close(net.normals(n), n, atol=1e-6, rtol=0)  # already unit: unchanged
+
+
+def test_estimate_at_enlarges_normals_to_unit_normals_facing_the_viewer():
+    torch.manual_seed(4)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", output="normals", **TOY))
+    torch.nn.init.normal_(net.head.weight, std=2.0)
+    n, light = net.estimate_at(torch.rand(2, 3, 24, 40))
+    assert n.shape == (2, 3, 24, 40) and light.shape == (2, 3)
+    torch.testing.assert_close(n.norm(dim=1), torch.ones(2, 24, 40), atol=1e-5, rtol=0)
+    assert n[:, 2].min() > 0

@@ -12,7 +12,6 @@ from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
 from lasagna.training.loop import read_log
 from lasagna.training.surface import (
     SurfaceTrainConfig,
-    estimate_at,
     estimator_from_checkpoint,
     random_lights,
     surface_loss,
@@ -86,8 +85,9 @@ def test_estimate_at_the_working_size():
     net = SurfaceEstimator(SurfaceConfig(input="albedo", channels=(4,), blocks=1, working_size=8))
     torch.nn.init.normal_(net.head.weight)
     torch.nn.init.normal_(net.head.bias)
-    height, light = estimate_at(net, torch.rand(2, 3, 32, 48))
-    assert height.shape == (2, 1, 32, 48) and light is None
+    normals, light = net.estimate_at(torch.rand(2, 3, 32, 48))
+    assert normals.shape == (2, 3, 32, 48) and light is None
+    assert torch.allclose(normals.norm(dim=1), torch.ones(2, 32, 48), atol=1e-5)
     # Made at 6×8 (the aspect kept, long side 8): enlarged bilinearly, so it is smooth at full size.
     small = net(torch.nn.functional.interpolate(torch.rand(2, 3, 32, 48), size=(5, 8), mode="bilinear"))
     assert small.shape[-2:] == (5, 8)
