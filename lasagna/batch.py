@@ -205,6 +205,7 @@ def edit_many(
     batch_size: int = 1,
     force: bool = False,
     ora: bool = True,
+    depth: int = 8,
     progress: bool | Callable[[Outcome], None] = False,
     on: str | None = None,
     id: str | None = None,
@@ -250,7 +251,7 @@ def edit_many(
     names = assign_names(items, roots, out_dir)
     mine = shard(len(items), batch_size, rank, world)
     run = _Run(request, items, roots, names, out_dir, generators, catalogue_dirs, max_pixels, device)
-    run.force, run.ora, run.warn = force, ora, warn
+    run.force, run.ora, run.warn, run.depth = force, ora, warn, depth
     run.start_progress(progress, rank, sum(map(len, mine)))
     try:
         for chunk in mine:
@@ -296,7 +297,7 @@ class _Run:
             max_pixels,
             device,
         )
-        self.force, self.ora, self.warn = False, True, None
+        self.force, self.ora, self.warn, self.depth = False, True, None, 8
         self.asked = request_record(request)
         self.labels = [os.fspath(x) if isinstance(x, (str, os.PathLike)) else n for x, n in zip(items, names)]
         self.outputs = [out_dir / name for name in names]
@@ -372,7 +373,9 @@ class _Run:
                 result = with_record(plan.finish(run, time.monotonic() - t0), self.records[i])
                 force = self.force or i in self.notes
                 with unsynced():  # made durable together by commit()
-                    tmp = result.stage(self.outputs[i], force=force, ora=self.ora, warn=self.warn, shared=self.shared)
+                    tmp = result.stage(
+                        self.outputs[i], force=force, ora=self.ora, warn=self.warn, shared=self.shared, depth=self.depth
+                    )
                     self.staged.append((i, tmp, t0, self.notes.get(i)))
             except Exception as exc:  # noqa: BLE001
                 self.failed(i, exc, t0)

@@ -71,6 +71,7 @@ from lasagna.errors import (
 )
 from lasagna.io.folder import SharedFiles, check_output_folder, stage_stack_folder, write_stack_folder
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS, check_edit_memory
+from lasagna.io.render import check_depth
 from lasagna.io.stack import Stack, load_stack, resolve_inside
 from lasagna.learned import LayerRun, as_stored, check_device, conditioning_input, make_layer
 from lasagna.recipe import EditRequest, Recipe
@@ -110,13 +111,16 @@ class EditResult:
         ora: bool = True,
         warn: Callable[[str], None] | None = None,
         phase: Phase | None = None,
+        depth: int = 8,
     ) -> Path:
         """Write the stack folder ``out``, all or nothing (``lasagna.io.folder.write_stack_folder``): stack.json,
-        layers/, generators/, composite.png and (``ora``) stack.ora; returns it. With ``force`` a stack
-        folder already there is replaced. ``phase(what)`` is entered around each phase (``Phase``)."""
+        layers/, generators/, composite.png (``depth`` 8 or 16 bits; RGBA for a transparent document) and
+        (``ora``) stack.ora; returns it. With ``force`` a stack folder already there is replaced. ``phase(what)``
+        is entered around each phase (``Phase``)."""
         phase = phase or _no_phase
+        check_depth(depth)
         check_output_folder(out, force=force)  # before any work
-        contents = self._contents(ora, warn, phase)
+        contents = self._contents(ora, warn, phase, depth)
         with phase("writing the layers and stack.json"):
             return write_stack_folder(self.stack, out, **contents, force=force)
 
@@ -128,24 +132,29 @@ class EditResult:
         ora: bool = True,
         warn: Callable[[str], None] | None = None,
         shared: SharedFiles | None = None,
+        depth: int = 8,
     ) -> Path:
         """``save`` up to the rename: the stack folder written into a temporary sibling of ``out``, returned
         (``lasagna.io.folder.stage_stack_folder``; ``swap_in`` renames it into place). ``shared``: a batch's
         store its large files (the generator's weights) are hard-linked from (``SharedFiles``)."""
-        return stage_stack_folder(self.stack, out, **self._contents(ora, warn), force=force, shared=shared)
+        contents = self._contents(ora, warn, None, depth)
+        return stage_stack_folder(self.stack, out, **contents, force=force, shared=shared)
 
-    def _contents(self, ora: bool, warn, phase: Phase | None = None) -> dict[str, Any]:
+    def _contents(self, ora: bool, warn, phase: Phase | None = None, depth: int = 8) -> dict[str, Any]:
         from lasagna.export.ora import encode_ora
         from lasagna.io.render import encode_composite
 
         phase = phase or _no_phase
         with phase("encoding composite.png"):
             result = self.stack.render()
-            composite_png = encode_composite(result)  # composite.png, and the ORA's merged image: encoded once
+            composite_png = encode_composite(result, depth=depth)  # type: ignore[arg-type]
         files = dict(self.files)
         if ora:
+            # The ORA's merged image is composite.png's bytes when 8-bit (encoded once); OpenRaster readers
+            # expect 8-bit layers, so a 16-bit composite.png is not reused there.
+            merged = composite_png if depth == 8 else None
             with phase("encoding stack.ora"):
-                files["stack.ora"] = encode_ora(self.stack, composite=result.image, merged_png=composite_png, warn=warn)
+                files["stack.ora"] = encode_ora(self.stack, composite=result, merged_png=merged, warn=warn)
         return {"files": files, "result": result, "composite_png": composite_png}
 
 
@@ -320,11 +329,16 @@ def plan_edit(
 
 def place_layer(stack: Stack, layer_id: str, recipe: Recipe, on: str, run: LayerRun) -> None:
     """Add (or update) the learned layer ``layer_id`` with ``run``'s pixels, settings and generator (a surface
-    run: the surface layer of its normals, lit by the recipe's condition)."""
+    run: the surface layer of its normals, lit by the recipe's condition). In a transparent document a new layer
+    is clipped to the one below (Photoshop's clipping mask): over transparency a multiply or normal layer would
+    paint where the image has no pixels (W3C section 10: Cr = Cs where αb = 0); clipped, the edit keeps the
+    image's alpha."""
+    new = layer_id not in stack.ids
     if run.normals is not None:
         name = layer_fields(layer_id, recipe, on)["name"]
         stack.add_surface(layer_id, run.normals, recipe.label, source_light=run.source_light, name=name)
         stack.document = stack.document.replace_layer(layer_id, made_by={**run.made_by, "conditioned_on": on})
+        _clip_if_transparent(stack, layer_id, new)
         return
     settings = run.settings.to_json()
     if layer_id in stack.ids:
@@ -336,6 +350,12 @@ def place_layer(stack: Stack, layer_id: str, recipe: Recipe, on: str, run: Layer
         )
     stack.set_pixels(layer_id, run.layer, bit_depth=16)
     as_stored(stack, [layer_id])
+    _clip_if_transparent(stack, layer_id, new)
+
+
+def _clip_if_transparent(stack: Stack, layer_id: str, new: bool) -> None:
+    if new and stack.document.canvas.background is None and stack.document.layers[0].id != layer_id:
+        stack.document = stack.document.replace_layer(layer_id, clip=True)
 
 
 def layer_fields(layer_id: str, recipe: Recipe, on: str) -> dict[str, Any]:
@@ -482,7 +502,7 @@ def _write_back(stack: Stack, files: dict[str, bytes], warn) -> None:
     result = stack.render()
     writes.append((folder / "composite.png", encode_composite(result, str(folder / "composite.png"))))
     if (folder / "stack.ora").is_file():
-        writes.append((folder / "stack.ora", encode_ora(stack, composite=result.image, warn=warn)))
+        writes.append((folder / "stack.ora", encode_ora(stack, composite=result, warn=warn)))
     with folder_lock(folder):
         atomic_write_all(writes)
 

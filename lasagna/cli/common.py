@@ -148,6 +148,17 @@ def max_pixels_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
+def depth_argument(p: argparse.ArgumentParser, what: str) -> None:
+    """``--depth 8|16``: the bits a channel of ``what`` (a composite PNG, a PSD)."""
+    p.add_argument(
+        "--depth",
+        type=int,
+        choices=(8, 16),
+        default=8,
+        help=f"bits a channel of {what} (default 8; 16 keeps 16-bit inputs and smooth gradients)",
+    )
+
+
 def loss_argument(p: argparse.ArgumentParser, help: str) -> None:
     """``--loss`` with the registered loss names (``lasagna.document.preset.LOSS_NAMES``) as its choices."""
     from lasagna.document.preset import LOSS_NAMES

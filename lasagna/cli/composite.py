@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from lasagna.cli.common import max_pixels_argument
+from lasagna.cli.common import depth_argument, max_pixels_argument
 
 HELP = "render a stack's composite PNG"
 EXAMPLE = "lasagna composite examples/stacks/basic -o out.png -v   # -v lists skipped layers and why"
@@ -15,6 +15,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("stack", help="stack folder or its stack.json")
     p.add_argument("-o", "--output", help="PNG to write (default: STACK/composite.png)")
     p.add_argument("-v", "--verbose", action="store_true", help="list evaluated and skipped layers")
+    depth_argument(p, "the PNG (RGBA for a transparent document)")
     max_pixels_argument(p)
 
 
@@ -34,9 +35,10 @@ def run(args: argparse.Namespace) -> int:
     stack = load_surveyed(survey)
     check_not_input([out], stack)
     result = render_stack(stack)
-    write_composite(result, out)
+    write_composite(result, out, depth=args.depth)
     total = len(stack.document.all_ids)
-    print(f"wrote {out} ({stack.width}x{stack.height}, {len(result.evaluated)} of {total} layers composed)")
+    kind = f"{'RGBA' if result.alpha is not None else 'RGB'}, {args.depth}-bit"
+    print(f"wrote {out} ({stack.width}x{stack.height} {kind}, {len(result.evaluated)} of {total} layers composed)")
     if args.verbose:
         print(f"composed: {', '.join(result.evaluated) or '(none)'}")
         for id, reason in result.skipped.items():

@@ -32,7 +32,7 @@ import os
 import sys
 from pathlib import Path
 
-from lasagna.cli.common import PROG, distill_arguments, phase, progress, warn
+from lasagna.cli.common import PROG, depth_argument, distill_arguments, phase, progress, warn
 from lasagna.errors import LasagnaError, PathError, printable
 
 HELP = "add a learned layer (relight, colourise, …) to an image or stack; writes a stack folder"
@@ -101,6 +101,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     distill_arguments(p)
     own_prior_arguments(p)
     p.add_argument("--no-ora", action="store_true", help="do not write stack.ora")
+    depth_argument(p, "composite.png (RGBA where the input has alpha)")
     p.add_argument(
         "--force",
         action="store_true",
@@ -266,6 +267,7 @@ def run_many(args: argparse.Namespace) -> int:
             batch_size=args.batch_size,
             force=args.force,
             ora=not args.no_ora,
+            depth=args.depth,
             progress=progress(),
             warn=warn,
             max_pixels=args.max_pixels,
@@ -318,7 +320,7 @@ def run_one(args: argparse.Namespace) -> int:
         progress=progress(),
         phase=phase,
     )
-    result.save(out, force=args.force, ora=not args.no_ora, warn=warn, phase=phase)
+    result.save(out, force=args.force, ora=not args.no_ora, warn=warn, phase=phase, depth=args.depth)
     s = result.settings
     layer = result.stack.document.layer(result.layer_id)
     how = (

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from lasagna.cli.common import max_pixels_argument, warn
+from lasagna.cli.common import depth_argument, max_pixels_argument, warn
 from lasagna.errors import LasagnaError
 
 HELP = "export a stack as OpenRaster, PSD and/or per-layer PNGs"
@@ -28,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "Blender, Krita and Godot), on the canvas, for a game or 2D-lighting engine",
     )
     p.add_argument("--surface", metavar="ID", help="which surface layer --normal-map writes (default: the topmost)")
+    depth_argument(p, "the PSD")
     max_pixels_argument(p)
 
 
@@ -60,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.io.stack import load_surveyed
 
     stack = load_surveyed(survey)
-    composite = render_stack(stack).image
+    composite = render_stack(stack)
     # Encode everything in memory first, then write all outputs or none (lasagna.atomic.atomic_write_all).
     outputs: list[tuple[Path, bytes]] = []
     if args.ora:
@@ -70,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     if args.psd:
         from lasagna.export.psd import encode_psd
 
-        outputs.append((Path(args.psd), encode_psd(stack, composite=composite, warn=warn)))
+        outputs.append((Path(args.psd), encode_psd(stack, composite=composite, warn=warn, depth=args.depth)))
     if args.layers:
         folder = Path(args.layers)
         layer_files, meta = layer_pngs(stack)

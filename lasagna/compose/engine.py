@@ -9,6 +9,9 @@
 ``run_functional``  pure functions from ``blend.py`` (autograd records every step). A layer covering
                     only part of the canvas writes its result into a fresh clone of the canvas — the
                     previous canvas may be saved for backward, so it is never modified in place.
+``run_transparent`` a plan without a background (a transparent document): the steps composited onto a
+                    transparent canvas as an isolated group's children are (``group.py``, W3C Compositing
+                    Level 1, section 8.2), in bands without autograd, whole with it; colour and alpha out.
 
 The banded backward (``backward.py``) pairs ``run_fast``'s forward with closed-form derivatives.
 """
@@ -23,9 +26,10 @@ from torch import Tensor
 from lasagna.compose.blend import KERNELS
 from lasagna.compose.color import linear_to_srgb, srgb_to_linear
 from lasagna.compose.fused import kernel_inplace
-from lasagna.compose.group import apply_group
+from lasagna.compose.group import _children, apply_group, unpremultiply
 from lasagna.compose.plan import RenderPlan
 from lasagna.compose.step import _adjusted, _alpha, _clamp, _clamp_, _color
+from lasagna.errors import LasagnaError
 from lasagna.heap import tune_heap
 
 # Canvas pixels (times batch entries) per band of the fast path. 2^18 float32 RGB pixels are 3 MB:
@@ -42,6 +46,8 @@ def canvas_shape(plan: RenderPlan) -> tuple[int, ...]:
 
 def background_tensor(plan: RenderPlan, dtype: torch.dtype) -> Tensor:
     """The background as a ``(3, 1, 1)`` tensor, decoded to linear light in the linear blend space."""
+    if plan.background is None:
+        raise LasagnaError("the plan has no background (a transparent canvas); expected run_transparent", "render")
     bg = torch.tensor(plan.background, dtype=torch.float64).view(3, 1, 1)
     if plan.blend_space == "linear":
         bg = srgb_to_linear(bg)
@@ -183,3 +189,49 @@ def run_functional(
     if canvas.shape != shape:
         canvas = canvas.expand(shape)
     return canvas.contiguous()
+
+
+# ---- transparent canvas --------------------------------------------------------------------------
+
+
+def run_transparent(
+    plan: RenderPlan, dtype: torch.dtype, grad: bool, out: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """Composite ``plan.steps`` onto a transparent canvas: ``(colour (..., 3, H, W), alpha (..., 1, H, W))``.
+
+    The canvas is ``group.py``'s premultiplied ``(c, α)``, starting at ``(0, 0)`` as an isolated group's does;
+    the colour returned is straight, c / α (0 where α = 0), clamped to [0, 1] for ``clamp="output"`` and encoded
+    to sRGB in the linear blend space, as ``run_fast``'s opaque canvas is. ``grad``: one recorded pass over the
+    whole canvas (autograd keeps its intermediates); else bands of ``TILE_PIXELS`` without autograd, written
+    into ``out`` when given."""
+    tune_heap()
+    H, W = plan.canvas
+    batch = tuple(plan.batch_shape)
+    if grad:
+        empty = (
+            torch.zeros((*batch, 3, H, W), dtype=dtype, device=plan.device),
+            torch.zeros((*batch, 1, H, W), dtype=dtype, device=plan.device),
+        )
+        c, a = _children(plan.steps, empty, (0, H, 0, W), dtype, True)
+        return _straight(plan, c, a)
+    image = out if out is not None else torch.empty((*batch, 3, H, W), dtype=dtype, device=plan.device)
+    alpha = torch.empty((*batch, 1, H, W), dtype=dtype, device=plan.device)
+    rows = rows_per_band(plan, TILE_PIXELS)
+    with torch.no_grad():
+        for r0 in range(0, H, rows):
+            r1 = min(H, r0 + rows)
+            empty = (image.new_zeros((*batch, 3, r1 - r0, W)), image.new_zeros((*batch, 1, r1 - r0, W)))
+            c, a = _straight(plan, *_children(plan.steps, empty, (r0, r1, 0, W), dtype, False))
+            image[..., r0:r1, :].copy_(c)
+            alpha[..., r0:r1, :].copy_(a)
+    return image, alpha
+
+
+def _straight(plan: RenderPlan, c: Tensor, a: Tensor) -> tuple[Tensor, Tensor]:
+    """A premultiplied canvas as straight colour and alpha, after the output clamp and sRGB encoding."""
+    C = unpremultiply(c, a)
+    if plan.clamp == "output":
+        C = C.clamp(0.0, 1.0)
+    if plan.blend_space == "linear":
+        C = linear_to_srgb(C)
+    return C, a

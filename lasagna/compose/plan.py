@@ -292,7 +292,7 @@ class RenderPlan:
 
     layers: tuple[RenderLayerSpec, ...]
     canvas: tuple[int, int]  # (H, W)
-    background: tuple[float, float, float]
+    background: tuple[float, float, float] | None  # None: a transparent canvas (the render carries alpha)
     blend_space: BlendSpace
     clamp: ClampPolicy
     cull: bool
@@ -332,13 +332,14 @@ def _check_config(canvas: object, background: object, blend_space: object, clamp
         or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in canvas)
     ):
         raise LasagnaError(f"canvas is {canvas!r}; expected (height, width), positive integers", where="compile_plan")
-    if (
+    if background is not None and (
         not isinstance(background, (tuple, list))
         or len(background) != 3
         or not all(_number(v) and 0.0 <= v <= 1.0 for v in background)
     ):
         raise LasagnaError(
-            f"background is {background!r}; expected opaque RGB, three numbers in [0, 1]", where="compile_plan"
+            f"background is {background!r}; expected opaque RGB, three numbers in [0, 1], or None (transparent)",
+            where="compile_plan",
         )
     if blend_space not in ("srgb", "linear"):
         raise LasagnaError(f"blend_space is {blend_space!r}; expected 'srgb' or 'linear'", where="compile_plan")
@@ -349,21 +350,22 @@ def _check_config(canvas: object, background: object, blend_space: object, clamp
 def compile_plan(
     layers: Sequence[RenderSpec],
     canvas: tuple[int, int],
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    background: tuple[float, float, float] | None = (0.0, 0.0, 0.0),
     blend_space: BlendSpace = "srgb",
     clamp: ClampPolicy = "layer",
     *,
     cull: bool = True,
 ) -> RenderPlan:
     """Compile bottom-to-top ``layers`` (and groups) on a ``canvas = (H, W)`` into a ``RenderPlan`` (module
-    docstring). The plan's ``layers`` are the top-level entries after inlining, with canvas offsets."""
+    docstring). The plan's ``layers`` are the top-level entries after inlining, with canvas offsets.
+    ``background=None``: a transparent canvas, composited as an isolated group is (culled by its rules)."""
     _check_config(canvas, background, blend_space, clamp)
     layers = tuple(layers)
     _check_ids(layers, {}, "layers")
     H, W = canvas
     skipped: dict[str, SkipReason] = {}
     entries = _inline(layers, (0, 0))
-    steps, reasons = _compile_level(entries, canvas, blend_space, clamp, cull, True, skipped)
+    steps, reasons = _compile_level(entries, canvas, blend_space, clamp, cull, background is not None, skipped)
 
     batch: torch.Size = torch.Size()
     dtypes: list[torch.dtype] = []
@@ -397,7 +399,7 @@ def compile_plan(
     return RenderPlan(
         entries,
         (H, W),
-        tuple(float(v) for v in background),
+        None if background is None else tuple(float(v) for v in background),
         blend_space,
         clamp,
         cull,  # type: ignore[arg-type]
@@ -677,7 +679,8 @@ def plan_from_document(
     """
     width, height = int(doc.canvas.width), int(doc.canvas.height)
     specs = _document_specs(doc.layers, tensors, width, height, dtype, "layers")
-    background = tuple(float(v) for v in doc.canvas.background)
+    bg = doc.canvas.background
+    background = None if bg is None else tuple(float(v) for v in bg)
     return compile_plan(specs, (height, width), background, doc.blend_space, doc.clamp, cull=cull)  # type: ignore[arg-type]
 
 

@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from lasagna.compose.backward import BandedGrad, grad_inputs
-from lasagna.compose.engine import canvas_shape, first_grad_step, run_fast, run_functional
+from lasagna.compose.engine import canvas_shape, first_grad_step, run_fast, run_functional, run_transparent
 from lasagna.compose.plan import BlendSpace, ClampPolicy, RenderLayerSpec, RenderPlan, compile_plan
 from lasagna.errors import LasagnaError
 
@@ -62,11 +62,14 @@ def half_precision_bound(dtype: torch.dtype, live_layers: int) -> float:
 
 @dataclass(frozen=True)
 class RenderResult:
-    """The composite ``image (..., 3, H, W)``, the skip reason of each culled layer, the live layer ids."""
+    """The composite ``image (..., 3, H, W)``, the skip reason of each culled layer, the live layer ids, and for a
+    plan without a background (a transparent canvas) the composite's ``alpha (..., 1, H, W)``; ``image`` is then
+    straight (not premultiplied) colour, 0 where alpha is 0."""
 
     image: Tensor
     skipped: dict[str, str]
     evaluated: list[str]
+    alpha: Tensor | None = None
 
 
 LayersOrPlan = RenderPlan | Sequence[RenderLayerSpec]
@@ -75,7 +78,7 @@ LayersOrPlan = RenderPlan | Sequence[RenderLayerSpec]
 def as_plan(
     plan_or_layers: LayersOrPlan,
     canvas: tuple[int, int] | None = None,
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    background: tuple[float, float, float] | None = (0.0, 0.0, 0.0),
     blend_space: BlendSpace = "srgb",
     clamp: ClampPolicy = "layer",
     cull: bool = True,
@@ -110,7 +113,7 @@ def render(
     plan_or_layers: LayersOrPlan,
     *,
     canvas: tuple[int, int] | None = None,
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    background: tuple[float, float, float] | None = (0.0, 0.0, 0.0),
     blend_space: BlendSpace = "srgb",
     clamp: ClampPolicy = "layer",
     cull: bool = True,
@@ -121,7 +124,8 @@ def render(
     """Composite a ``RenderPlan`` (or bottom-to-top layers on ``canvas``) into ``(..., 3, H, W)``.
 
     ``cull=False`` blends zero-opacity, occluded and identity layers too (the result is the same;
-    see ``plan.py``). ``dtype`` overrides the compute dtype. ``out`` receives the image when no
+    see ``plan.py``). ``background=None`` composites onto a transparent canvas: the result then has ``alpha``
+    (``engine.run_transparent``). ``dtype`` overrides the compute dtype. ``out`` receives the image when no
     gradient is needed (it saves allocating ``H·W·3`` values per call in a loop). ``grad_engine``
     chooses how gradients are computed (module docstring).
     """
@@ -131,6 +135,14 @@ def render(
     shape = canvas_shape(plan)
     n = len(plan.steps)
     g = first_grad_step(plan)
+    if plan.background is None:  # a transparent canvas: colour and alpha (engine.run_transparent)
+        grad = g < n
+        if out is not None:
+            if grad:
+                raise LasagnaError("out= was given but the render needs gradients; expected out=None", where="render")
+            check_out(out, shape, dtype, plan)
+        image, alpha = run_transparent(plan, dtype, grad, out)
+        return RenderResult(image, dict(plan.skipped), plan.evaluated, alpha)
     if g == n:
         if out is not None:
             check_out(out, shape, dtype, plan)

@@ -61,12 +61,16 @@ VERSION = 1
 
 
 class Canvas(StrictModel):
-    """The output image: its size and the opaque colour the composite starts from."""
+    """The output image: its size and what the composite starts from — an opaque colour, or nothing (a transparent
+    document, whose composite carries alpha)."""
 
     width: Pixels = Field(description="Width in pixels, an integer in [1, 32768].")
     height: Pixels = Field(description="Height in pixels, an integer in [1, 32768].")
-    background: OpaqueColour = Field(
-        (0.0, 0.0, 0.0), description="Opaque RGB background in [0, 1]; every blend composes over it."
+    background: OpaqueColour | None = Field(
+        (0.0, 0.0, 0.0),
+        description="Opaque RGB background in [0, 1]; every blend composes over it. null: no background (a "
+        "transparent document): the layers are composited onto transparency, as an isolated group's are, and the "
+        "composite carries alpha (an RGBA PNG).",
     )
 
 

@@ -9,8 +9,10 @@ map to ``svg:src-over`` (normal), ``svg:plus``, ``svg:<name>`` for every W3C mod
 names (``svg:multiply``, ``svg:overlay``, …, ``svg:luminosity``) and Krita's ``krita:<id>`` for exclusion
 and Photoshop's modes (``KRITA_OPS``: what Krita writes and reads; it reads ``svg:exclusion`` as normal);
 values a reader cannot blend directly are expressed as in :mod:`lasagna.export.rasters` (multiplier y > 1 as
-a multiply + ``svg:color-dodge`` pair). A bottom background layer makes the file flatten to our opaque composite.
-Alpha × mask is baked into each PNG's alpha, opacity into ``opacity``.
+a multiply + ``svg:color-dodge`` pair). A bottom background layer makes the file flatten to our opaque composite;
+a transparent document (``canvas.background`` null) has none, and its merged image and thumbnail are RGBA.
+Alpha × mask is baked into each PNG's alpha, opacity into ``opacity``. Layers are encoded a band of rows at a
+time (``ExportLayer.bands``), so no layer is held as floats beside its own pixels.
 
 Groups are nested ``<stack>`` elements (``isolation="isolate"`` for an isolated group with its
 composite-op and opacity, ``"auto"`` for a pass-through one), their layers at canvas offsets, as Krita
@@ -36,11 +38,12 @@ from PIL import Image
 from lasagna.atomic import write_output
 from lasagna.document.blend import BLEND_MODES
 from lasagna.errors import ExportError
-from lasagna.io.png import encode_codes
+from lasagna.io.png import encode_bands
 
 if TYPE_CHECKING:  # torch and the rasters (which import it) are loaded by the functions that write
     import torch
 
+    from lasagna.compose.render import RenderResult
     from lasagna.export.rasters import ExportLayer
 
 MIMETYPE = b"image/openraster"
@@ -81,7 +84,8 @@ DODGE_PREFIX = "data/_dodge/"  # the src of the colour-dodge half of a multiplie
 
 def _thumbnail(composite_hwc: np.ndarray) -> bytes:
     im = Image.fromarray(composite_hwc)
-    im.thumbnail((THUMBNAIL_MAX, THUMBNAIL_MAX), Image.Resampling.LANCZOS)
+    # Halve by box filtering first (reducing_gap): a 12 MP composite is then not resampled by LANCZOS whole.
+    im.thumbnail((THUMBNAIL_MAX, THUMBNAIL_MAX), Image.Resampling.LANCZOS, reducing_gap=3.0)
     buf = io.BytesIO()
     im.save(buf, format="PNG")
     return buf.getvalue()
@@ -166,41 +170,47 @@ def composite_uint8(image: torch.Tensor) -> np.ndarray:
     return (image.detach().cpu().double().clamp(0.0, 1.0) * 255.0).round().to(torch.uint8).permute(1, 2, 0).numpy()
 
 
+def composite_result(stack, composite) -> RenderResult:
+    """``composite`` as a ``RenderResult``: itself, a render's image (3, H, W) — for a transparent document, whose
+    alpha an image does not carry, the stack is rendered again —, or (None) the stack rendered."""
+    from lasagna.compose.render import RenderResult
+    from lasagna.io.render import render_stack
+
+    if isinstance(composite, RenderResult):
+        return composite
+    if composite is None or stack.document.canvas.background is None:
+        return render_stack(stack)
+    return RenderResult(composite, {}, [])
+
+
 def encode_ora(
     stack,
     *,
-    composite: torch.Tensor | None = None,
+    composite: torch.Tensor | RenderResult | None = None,
     merged_png: bytes | None = None,
     warn: Callable[[str], None] | None = None,
 ) -> bytes:
     """The OpenRaster file of ``stack`` as bytes (see the module docstring).
 
-    ``composite`` (3, H, W) is the exact composite for ``mergedimage.png``; rendered if not given.
-    ``merged_png``: that composite already encoded as an 8-bit RGB PNG (``lasagna.io.render.encode_composite``,
-    the same codes as ``composite_uint8``), used as is rather than encoded again.
+    ``composite`` is the exact composite for ``mergedimage.png`` (a ``RenderResult``, or its image (3, H, W));
+    rendered if not given. ``merged_png``: that composite already encoded as an 8-bit PNG
+    (``lasagna.io.render.encode_composite``), used as is rather than encoded again.
     """
-    if composite is None:
-        from lasagna.io.render import render_stack
-
-        composite = render_stack(stack).image
-    merged = composite_uint8(composite)
     from lasagna.export.rasters import export_layers, leaves
+    from lasagna.io.render import composite_hwc, encode_composite
 
-    layers = export_layers(
-        stack, composite.detach().cpu().double().numpy(), target="OpenRaster", warn=warn, groups=True
-    )
+    result = composite_result(stack, composite)
+    layers = export_layers(stack, result.image, target="OpenRaster", warn=warn, groups=True, alpha=result.alpha)
     tree = krita_clip_stacks(layers)
     entries: list[tuple[str, bytes]] = [("stack.xml", _stack_xml(stack.width, stack.height, tree).encode("utf-8"))]
     for layer in leaves(layers):
-        entries.append((f"data/{layer.key}.png", encode_codes(layer.rgba_uint8(), where=layer.key)))
+        entries.append((f"data/{layer.key}.png", encode_bands(layer.bands(8), layer.width, layer.height)))
     if merged_png is None:
-        buf = io.BytesIO()
-        Image.fromarray(merged).save(buf, format="PNG")
-        merged_png = buf.getvalue()
+        merged_png = encode_composite(result, "mergedimage.png")
     entries.append(("mergedimage.png", merged_png))
     # A canvas that fits the thumbnail is its own thumbnail (Pillow's ``thumbnail`` never enlarges).
     small = max(stack.width, stack.height) <= THUMBNAIL_MAX
-    entries.append(("Thumbnails/thumbnail.png", merged_png if small else _thumbnail(merged)))
+    entries.append(("Thumbnails/thumbnail.png", merged_png if small else _thumbnail(composite_hwc(result))))
     out = io.BytesIO()
     with zipfile.ZipFile(out, "w") as zf:
         # The spec: mimetype first, stored (not deflated), no extra field, so that the bytes
@@ -214,7 +224,11 @@ def encode_ora(
 
 
 def export_ora(
-    stack, path: str | os.PathLike, *, composite: torch.Tensor | None = None, warn: Callable[[str], None] | None = None
+    stack,
+    path: str | os.PathLike,
+    *,
+    composite: torch.Tensor | RenderResult | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> Path:
     """Write ``stack`` as an OpenRaster file at ``path`` (atomically); returns the path."""
     data = encode_ora(stack, composite=composite, warn=warn)

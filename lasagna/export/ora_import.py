@@ -316,14 +316,16 @@ def import_ora(
     opacity and alpha) is merged back into one multiply layer y = m/(1 − d) with range [0, ⌈max y⌉];
     any other ``svg:color-dodge`` layer is a colour-dodge layer. The background layer
     :func:`export_ora` adds becomes the canvas background, and its "Composite (exact)" top layer, if
-    any, is dropped (the stack is re-composed from its layers). ``warn`` receives one line per name changed
-    to fit the document's name rule (default: ``warnings.warn``).
+    any, is dropped (the stack is re-composed from its layers). Without that background the document is
+    transparent (``canvas.background`` null: the composite carries alpha, as the file's does) unless its bottom
+    visible layer is an opaque, full-canvas ``svg:src-over`` one (nothing shows through it). ``warn`` receives one
+    line per name changed to fit the document's name rule (default: ``warnings.warn``).
     """
     import warnings
 
     warn = warn or (lambda message: warnings.warn(message, stacklevel=2))
     width, height, layers = read_ora(path, max_pixels=max_pixels, max_uncompressed=max_uncompressed)
-    background = (0.0, 0.0, 0.0)
+    background: tuple[float, ...] | None = None
     if layers and layers[-1].get("src") == "data/_composite.png":
         layers = layers[:-1]  # the exact composite export_ora adds when layers cannot express the stack
     if layers and layers[0].get("src") == "data/_background.png":
@@ -340,6 +342,8 @@ def import_ora(
         ):
             background = tuple(float(v) for v in c[:, 0, 0])
             layers = layers[1:]
+    if background is None and _opaque_base(layers, width, height):
+        background = (0.0, 0.0, 0.0)  # covered by its base: an opaque document, whatever the colour
     merged = _merge_dodges(layers)
     if not any(True for _ in _walk_leaves(merged)):
         raise ImageError("the file has no layers besides the background; expected at least one layer", where=str(path))
@@ -439,6 +443,25 @@ def import_ora(
     if out_folder is not None:
         stack.save(out_folder)
     return stack
+
+
+def _opaque_base(layers: list[dict], width: int, height: int) -> bool:
+    """Whether the bottom visible layer covers the canvas opaquely with blend normal (no group, no clip)."""
+    for layer in layers:
+        if not layer["visible"]:
+            continue
+        img = layer.get("image")
+        return (
+            layer.get("kind") != "group"
+            and img is not None
+            and layer["blend"] == "normal"
+            and not layer["clip"]
+            and layer["opacity"] == 1.0
+            and layer["x"] == layer["y"] == 0
+            and (img.width, img.height) == (width, height)
+            and (img.alpha is None or bool((img.alpha == 1.0).all()))
+        )
+    return False
 
 
 def _merge_dodges(layers: list[dict]) -> list[dict]:

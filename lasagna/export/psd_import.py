@@ -28,13 +28,14 @@ What each PSD thing becomes:
 * what cannot be represented at all — other adjustment layers, a group's fill opacity, knockout — one warning
   line each; nothing is dropped without one.
 
-The PSD's top level is composited over transparency, and a stack over an opaque background (white: W3C
-section 8.3, the page group's backdrop): unless the bottom visible layer is an opaque, full-canvas normal one,
-the layers are wrapped in one isolated group, so the stack flattens exactly as psd-tools' composite laid
-over white. Refused in one line: a file psd-tools cannot read, a colour mode other than RGB or grayscale, a
-canvas, layer or mask over the pixel limit, decoding over the memory budget, groups nested deeper than a stack
-may hold (``lasagna.limits``; the wrapping group counts). A name with control characters is imported with each
-replaced by U+FFFD, with a warning line (the document's name rule, ``lasagna.document.types.check_name``).
+The PSD's top level is composited over transparency, and so is a transparent document's (``canvas.background``
+null): unless the bottom visible layer is an opaque, full-canvas normal one, the stack is transparent and its
+composite carries the PSD's alpha (psd-tools' composite, not laid over anything); with such a base nothing shows
+through, and the background is white (W3C section 8.3, the page group's backdrop). Refused in one line: a file psd-
+tools cannot read, a colour mode other than RGB or grayscale, a canvas, layer or mask over the pixel limit, decoding
+over the memory budget, groups nested deeper than a stack may hold (``lasagna.limits``). A name with control
+characters is imported with each replaced by U+FFFD, with a warning line (the document's name rule,
+``lasagna.document.types.check_name``).
 """
 
 from __future__ import annotations
@@ -526,15 +527,8 @@ def read_psd(
         raise ImageError(f"psd-tools cannot decode a layer ({_first_line(exc)}); expected a valid PSD", where) from None
     if not layers:
         raise ImageError("has no layer a stack can hold; expected at least one pixel layer or group", where=where)
-    if not _opaque_base(layers, reader.tensors, psd.width, psd.height):
-        if nesting == MAX_GROUP_DEPTH:
-            raise ImageError(
-                f"groups nest {nesting} deep, and the layers need one more (an isolated group, as the PSD is not over "
-                f"an opaque base layer); expected at most {MAX_GROUP_DEPTH - 1} levels, or an opaque bottom layer",
-                where,
-            )
-        group_id = unique_id(Path(where).stem or "psd", reader.taken)
-        layers = [{"id": group_id, "name": Path(where).name, "kind": "group", "isolated": True, "layers": layers}]
+    # Not over an opaque base: a transparent document, composited over transparency as the PSD is.
+    background = list(PAGE_BACKGROUND) if _opaque_base(layers, reader.tensors, psd.width, psd.height) else None
     from lasagna.document import Document
     from lasagna.io.stack import Stack
 
@@ -542,7 +536,7 @@ def read_psd(
         {
             "format": "lasagna.stack",
             "version": 1,
-            "canvas": {"width": psd.width, "height": psd.height, "background": list(PAGE_BACKGROUND)},
+            "canvas": {"width": psd.width, "height": psd.height, "background": background},
             "layers": layers,
             "metadata": {"imported_from": Path(where).name},
         },

@@ -42,7 +42,13 @@ target cannot express exactly:
   layers are listed flat: exact for a pass-through group of opacity 1 without a mask (W3C Compositing
   Level 1, section 8.1, group invariance), else not.
 
-Every raster is cropped to the canvas (layers may lie partly outside), with its offset adjusted.
+Every raster is cropped to the canvas (layers may lie partly outside), with its offset adjusted. A transparent
+document (``canvas.background`` null) gets no background layer, and its exact-composite layer carries the
+composite's alpha: the file is as transparent as the document.
+
+Memory: an ``ExportLayer`` holds views of the layer's own pixels (float32, not copied) and, where the file stores
+something else (baked alpha, dodge codes, the parts of a plus layer), the function that computes it; its codes
+are made a band of rows at a time (``ExportLayer.bands``, 8- or 16-bit), so a 12 MP layer never exists as float64.
 """
 
 from __future__ import annotations
@@ -58,35 +64,72 @@ from lasagna.compose.blend import dissolve_pattern
 from lasagna.compose.surface import surface_tensors
 from lasagna.document import LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
+from lasagna.io.png import BitDepth, quantize_band
 
 # ORA/PSD blend names for our blends and the helper layers.
 Op = str
 COMPOSITE_NAME = "Composite (exact)"  # "normal" | "multiply" | "plus" | "screen" | "color-dodge"
 
 
+# Rows of a raster turned into codes at a time: 64 rows of an 8192-wide layer are 16 MiB of float64 RGBA.
+BAND_ROWS = 64
+
+# What a file stores of a band of a layer's values y (C, rows, w) and alpha × mask α (1, rows, w), float64, when it
+# is not the values themselves (baked alpha, dodge codes, a plus layer's parts); clamped to [0, 1] afterwards.
+Values = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
 @dataclass
 class ExportLayer:
-    """One layer of an interchange file: RGBA in [0, 1] on a canvas rectangle."""
+    """One layer of an interchange file: RGBA in [0, 1] on a canvas rectangle, made a band at a time."""
 
     name: str
     key: str  # unique, file-name safe: "<id>", "_dodge/<id>", "_plus1/<id>", "_background"
     op: Op
     x: int
     y: int
-    color: np.ndarray  # (3, h, w) float64 in [0, 1]
-    alpha: np.ndarray  # (1, h, w) float64 in [0, 1]: layer alpha × mask (not opacity)
+    color: np.ndarray  # (C, h, w), C ∈ {1, 3} (1: written as gray in RGB): the values, a view (float32 or float64)
+    alpha: np.ndarray | None  # (1, h, w) in [0, 1]: layer alpha × mask (not opacity); None: opaque
     opacity: float
     visible: bool
     source: str = ""  # id of the document layer it comes from ("" for the background)
     clip: bool = False  # clipped to the item below (Photoshop's clipping mask; the document's ``clip``)
+    values: Values | None = None  # what the file stores of (color, alpha), per band; None: those, clamped
+
+    @property
+    def height(self) -> int:
+        return int(self.color.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.color.shape[2])
+
+    def rgba(self, r0: int = 0, r1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Rows ``r0:r1`` as the file stores them: (colour (3, rows, w), alpha (1, rows, w)) float64 in [0, 1]."""
+        r1 = self.height if r1 is None else r1
+        c = np.asarray(self.color[:, r0:r1], dtype=np.float64)
+        a = np.ones((1, *c.shape[1:])) if self.alpha is None else np.asarray(self.alpha[:, r0:r1], dtype=np.float64)
+        if self.values is not None:
+            c, a = self.values(c, a)
+        c = np.broadcast_to(c, (3, *c.shape[1:]))
+        return np.clip(c, 0.0, 1.0), np.clip(a, 0.0, 1.0)
+
+    def bands(self, depth: BitDepth = 8, rows: int = BAND_ROWS):
+        """(rows, w, 4) codes from the top: uint8, or uint16 for ``depth`` 16 (rounded to nearest)."""
+        for r0 in range(0, self.height, rows):
+            c, a = self.rgba(r0, min(self.height, r0 + rows))
+            yield quantize_band(np.concatenate([c, a]).transpose(1, 2, 0), depth)
+
+    def rgba_codes(self, depth: BitDepth = 8) -> np.ndarray:
+        """(h, w, 4) codes of the whole layer, uint8 or (``depth`` 16) uint16, filled a band at a time."""
+        out = np.empty((self.height, self.width, 4), dtype=np.uint16 if depth == 16 else np.uint8)
+        for r0, band in zip(range(0, self.height, BAND_ROWS), self.bands(depth)):
+            out[r0 : r0 + band.shape[0]] = band
+        return out
 
     def rgba_uint8(self) -> np.ndarray:
-        """(h, w, 4) uint8, rounded to nearest (a plane at a time: a 12 MP layer's float64 RGBA is 384 MB a copy)."""
-        planes = [*self.color, *self.alpha]
-        out = np.empty(planes[0].shape + (4,), dtype=np.uint8)
-        for i, plane in enumerate(planes):
-            out[:, :, i] = np.rint(np.clip(plane, 0.0, 1.0) * 255.0)
-        return out
+        """(h, w, 4) uint8, rounded to nearest."""
+        return self.rgba_codes(8)
 
 
 @dataclass
@@ -120,32 +163,40 @@ def _warn(warn: Callable[[str], None] | None, message: str) -> None:
         warnings.warn(message, stacklevel=3)
 
 
-def _layer_raster(stack, layer) -> tuple[np.ndarray, np.ndarray] | None:
-    """(color (C, h, w), alpha (1, h, w)) float64 values y of a layer, or None if it has no pixels."""
+def _layer_raster(stack, layer) -> tuple[np.ndarray, np.ndarray | None] | None:
+    """(color (C, h, w), alpha × mask (1, h, w) or None: opaque) values y of a layer, views of its tensors where
+    they are float32 on the CPU (no float64 copy), or None if it has no pixels."""
     if isinstance(layer, SolidLayer):
         rgba = list(layer.color)
         size = layer.size
         w, h = (size.width, size.height) if size else (stack.width, stack.height)
         lo, hi = layer.range
-        color = np.empty((3, h, w))
-        color[:] = (lo + (hi - lo) * np.asarray(rgba[:3], dtype=np.float64))[:, None, None]
-        return color, np.full((1, h, w), rgba[3] if len(rgba) == 4 else 1.0)
+        rgb = lo + (hi - lo) * np.asarray(rgba[:3], dtype=np.float64)
+        color = np.broadcast_to(rgb[:, None, None], (3, h, w))  # zero-stride: a solid layer costs no memory
+        a = rgba[3] if len(rgba) == 4 else 1.0
+        return color, None if a == 1.0 else np.broadcast_to(np.float64(a), (1, h, w))
     t = stack.tensors.get(layer.id)
     if t is None:
         return None
     if isinstance(layer, SurfaceLayer):  # the multiplier its normal map renders to, as the compositor blends it
         t = surface_tensors(t, layer.light, layer.source_light, float(layer.ambient))
-    color = t.color.detach().cpu().double().numpy()
+    color = _numpy(t.color)
     if color.ndim != 3:
         raise ExportError(
             f"colour has shape {tuple(color.shape)}; expected (C, h, w) (no batch) to export",
             where=f"layer {layer.id!r}",
         )
     h, w = color.shape[1:]
-    alpha = np.ones((1, h, w)) if t.alpha is None else t.alpha.detach().cpu().double().numpy().reshape(1, h, w)
+    alpha = None if t.alpha is None else _numpy(t.alpha).reshape(1, h, w)
     if t.mask is not None:
-        alpha = alpha * t.mask.detach().cpu().double().numpy().reshape(1, h, w)
+        mask = _numpy(t.mask).reshape(1, h, w)
+        alpha = mask if alpha is None else alpha * mask
     return color, alpha
+
+
+def _numpy(t: torch.Tensor) -> np.ndarray:
+    """A tensor's values as numpy without a copy where they are on the CPU (float32 stays float32)."""
+    return t.detach().cpu().numpy()
 
 
 def _crop(color, alpha, x, y, W, H):
@@ -154,7 +205,7 @@ def _crop(color, alpha, x, y, W, H):
     if x0 >= x1 or y0 >= y1:
         return None
     sl = (slice(None), slice(y0 - y, y1 - y), slice(x0 - x, x1 - x))
-    return color[sl], alpha[sl], x0, y0
+    return color[sl], None if alpha is None else alpha[sl], x0, y0
 
 
 def dodge_codes(y: np.ndarray) -> np.ndarray:
@@ -166,26 +217,42 @@ def dodge_codes(y: np.ndarray) -> np.ndarray:
     return q / 255.0
 
 
-def background_layer(stack) -> ExportLayer:
-    """An opaque canvas-size layer of the background colour (files flatten to our opaque composite)."""
+def background_layer(stack) -> ExportLayer | None:
+    """An opaque canvas-size layer of the background colour (files flatten to our opaque composite); None for a
+    transparent document, which has no background."""
+    background = stack.document.canvas.background
+    if background is None:
+        return None
     W, H = stack.width, stack.height
-    color = np.empty((3, H, W))
-    color[:] = np.asarray(stack.document.canvas.background, dtype=np.float64)[:, None, None]
-    return ExportLayer("Background", "_background", "normal", 0, 0, color, np.ones((1, H, W)), 1.0, True)
+    color = np.broadcast_to(np.asarray(background, dtype=np.float64)[:, None, None], (3, H, W))
+    return ExportLayer("Background", "_background", "normal", 0, 0, color, None, 1.0, True)
 
 
-def composite_layer(composite: np.ndarray) -> ExportLayer:
-    """The exact composite (3, H, W) in [0, 1] as an opaque top layer."""
-    color = np.clip(np.asarray(composite, dtype=np.float64), 0.0, 1.0)
-    H, W = color.shape[1:]
-    return ExportLayer(COMPOSITE_NAME, "_composite", "normal", 0, 0, color, np.ones((1, H, W)), 1.0, True)
+def composite_layer(composite, alpha=None) -> ExportLayer:
+    """The exact composite (3, H, W) in [0, 1] as a top layer: opaque, or of ``alpha`` (1, H, W) for a
+    transparent document's."""
+    color = _as_array(composite)
+    return ExportLayer(
+        COMPOSITE_NAME, "_composite", "normal", 0, 0, color, None if alpha is None else _as_array(alpha), 1.0, True
+    )
+
+
+def _as_array(x) -> np.ndarray:
+    return _numpy(x) if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
 def export_layers(
-    stack, composite, *, target: str, warn: Callable[[str], None] | None = None, groups: bool = False
+    stack,
+    composite,
+    *,
+    target: str,
+    warn: Callable[[str], None] | None = None,
+    groups: bool = False,
+    alpha=None,
 ) -> list:
-    """The stack's layers as interchange layers, bottom to top: background first, and on top, when
-    the layers cannot reproduce it, the exact ``composite`` (3, H, W) (see the module docstring).
+    """The stack's layers as interchange layers, bottom to top: background first (none for a transparent
+    document), and on top, when the layers cannot reproduce it, the exact ``composite`` (3, H, W) with its
+    ``alpha`` (1, H, W) for a transparent document (see the module docstring).
 
     ``target`` names the format in warnings ("OpenRaster", "PSD"). ``groups``: groups become ``ExportGroup``
     entries (nested); otherwise their layers are listed flat in their place.
@@ -199,7 +266,7 @@ def export_layers(
             f"{target} cannot express {'; '.join(inexact)}: the layers are written as they are, and a top layer "
             f"{COMPOSITE_NAME!r} holds the exact composite so the file flattens to it (hide it to edit the layers)",
         )
-        layers.append(composite_layer(np.asarray(composite, dtype=np.float64)))
+        layers.append(composite_layer(composite, alpha))
     return layers
 
 
@@ -210,7 +277,7 @@ def _clamp_matters(stack, composite) -> bool:
 
     interop = Stack(stack.document.replace(clamp="layer"), stack.folder, stack.tensors, stack.bit_depths)
     codes = lambda img: np.rint(np.clip(np.asarray(img, dtype=np.float64), 0, 1) * 255)  # noqa: E731
-    return bool((codes(render_stack(interop, dtype=torch.float64).image.numpy()) != codes(composite)).any())
+    return bool((codes(render_stack(interop, dtype=torch.float64).image.numpy()) != codes(_as_array(composite))).any())
 
 
 class _Walk:
@@ -223,7 +290,8 @@ class _Walk:
 
     def items(self, layers, origin: tuple[int, int], shown: bool, isolated_in: bool) -> list:
         """Export items of ``layers`` (bottom to top) whose offsets are relative to ``origin``; ``shown``: every
-        enclosing group is visible (flat export only); ``isolated_in``: inside an isolated group."""
+        enclosing group is visible (flat export only); ``isolated_in``: over transparency (inside an isolated
+        group, or a transparent document's top level)."""
         out: list = []
         for i, layer in enumerate(layers):
             if layer.kind == "group":
@@ -291,76 +359,77 @@ class _Walk:
                 _warn(self.warn, why)
             return []
         color, alpha = raster
-        bad = int((~np.isfinite(color)).sum() + (~np.isfinite(alpha)).sum())
+        bad = int((~np.isfinite(color)).sum()) + (0 if alpha is None else int((~np.isfinite(alpha)).sum()))
         if bad:
             raise ExportError(
                 f"{bad} values are NaN or infinite; expected finite values to export", where=f"layer {layer.id!r}"
             )
-        if color.shape[0] == 1:
-            color = np.repeat(color, 3, axis=0)  # a 1-channel multiplier is written as gray in RGB
         dissolved = layer.blend == "dissolve"
         if dissolved:
             # Every reader draws its own dissolve pattern: bake ours (α ∈ {0, 1}, opacity 1), on which they agree.
-            h, w = alpha.shape[1:]
+            h, w = color.shape[1:]
             u = dissolve_pattern(torch.arange(h)[:, None], torch.arange(w)[None]).numpy()[None]
-            alpha = (u < alpha * float(layer.opacity)).astype(np.float64)
+            alpha = (u < (1.0 if alpha is None else alpha) * float(layer.opacity)).astype(np.float64)
         cropped = _crop(color, alpha, layer.offset.x + origin[0], layer.offset.y + origin[1], W, H)
         if cropped is None:
             return []  # entirely outside the canvas: contributes nothing
         color, alpha, x, y = cropped
-        if float(color.min(initial=0.0)) < 0.0:
-            self.inexact.append(f"the negative values of layer {layer.id!r} (min {color.min():.4g}; written as 0)")
-        color = np.maximum(color, 0.0)
-        common = dict(
-            x=x,
-            y=y,
-            alpha=alpha,
-            opacity=1.0 if dissolved else float(layer.opacity),
-            visible=shown and layer.visible,
-            source=layer.id,
-        )
-        a = alpha * common["opacity"]
-        fractional = not bool(np.isin(a, (0.0, 1.0)).all())
+        lo, hi = (float(v) for v in (color.min(initial=0.0), color.max(initial=0.0)))
+        if lo < 0.0:  # written as 0: the codes are clamped to [0, 1] (ExportLayer.rgba)
+            self.inexact.append(f"the negative values of layer {layer.id!r} (min {lo:.4g}; written as 0)")
+        opacity = 1.0 if dissolved else float(layer.opacity)
+        common = dict(x=x, y=y, opacity=opacity, visible=shown and layer.visible, source=layer.id)
+        fractional = _fractional(alpha, opacity)
         out: list[ExportLayer] = []
         if layer.blend == "multiply":
-            above_one = float(color.max(initial=0.0)) > 1.0
+            above_one = hi > 1.0
             if above_one and isolated_in:
-                self.inexact.append(f"multiplier values above 1 of layer {layer.id!r} inside an isolated group")
+                self.inexact.append(
+                    f"multiplier values above 1 of layer {layer.id!r} over transparency (isolated group, no background)"
+                )
+            gain, dodge = None, _dodge
             if above_one and fractional:
                 # Over an opaque backdrop a multiply with alpha is a multiply by the gain
                 # g = 1 + α(y − 1): bake α into the values, so the pair is exact for any α.
-                color = 1.0 + a * (color - 1.0)
-                common.update(alpha=np.ones_like(alpha), opacity=1.0)
-            out.append(ExportLayer(layer.name, layer.id, "multiply", color=np.minimum(color, 1.0), **common))
+                gain = _gain(opacity)
+                dodge = _gain(opacity, dodge_codes)
+                common.update(opacity=1.0)
+            out.append(ExportLayer(layer.name, layer.id, "multiply", color=color, alpha=alpha, values=gain, **common))
             if above_one:
                 out.append(
                     ExportLayer(
                         f"{layer.name} (colour dodge: values above 1)",
                         f"_dodge/{layer.id}",
                         "color-dodge",
-                        color=dodge_codes(color),
+                        color=color,
+                        alpha=alpha,
+                        values=dodge,
                         **common,
                     )
                 )
         elif layer.blend == "plus":
+            top = hi
             if fractional:
                 if isolated_in:
-                    self.inexact.append(f"the partial alpha of plus layer {layer.id!r} inside an isolated group")
+                    self.inexact.append(
+                        f"partial alpha of plus layer {layer.id!r} over transparency (isolated group, no background)"
+                    )
                 # Paint programs clamp inside the blend, Cb + α(min(1, Cb + Cs) − Cb), where the
                 # W3C plus is min(1, Cb + α·Cs); with α baked in (Cs' = α·Cs, opaque) both agree.
-                color = a * color
-                common.update(alpha=np.ones_like(alpha), opacity=1.0)
-            parts = max(1, int(np.ceil(float(color.max(initial=0.0)) - 1e-12)))
+                top = _baked_max(color, alpha, opacity)
+                common.update(opacity=1.0)
+            parts = max(1, int(np.ceil(max(top, 0.0) - 1e-12)))
             for k in range(parts):
                 name = layer.name if k == 0 else f"{layer.name} (part {k + 1})"
                 key = layer.id if k == 0 else f"_plus{k + 1}/{layer.id}"
-                out.append(ExportLayer(name, key, "plus", color=np.clip(color - k, 0.0, 1.0), **common))
+                values = _plus_part(k, opacity if fractional else None)
+                out.append(ExportLayer(name, key, "plus", color=color, alpha=alpha, values=values, **common))
         else:
-            if float(color.max(initial=0.0)) > 1.0:
+            if hi > 1.0:
                 self.inexact.append(
-                    f"the values above 1 of {layer.blend} layer {layer.id!r} (max {color.max():.4g}; written as 1)"
+                    f"the values above 1 of {layer.blend} layer {layer.id!r} (max {hi:.4g}; written as 1)"
                 )
-            out.append(ExportLayer(layer.name, layer.id, layer.blend, color=np.minimum(color, 1.0), **common))
+            out.append(ExportLayer(layer.name, layer.id, layer.blend, color=color, alpha=alpha, **common))
         if isinstance(layer, SurfaceLayer):
             out.insert(0, self.normal_map(layer, origin))
         return out
@@ -368,11 +437,9 @@ class _Walk:
     def normal_map(self, layer, origin) -> ExportLayer:
         """A surface layer's normal map as a hidden normal layer (tangent space, +Y up) below its rendered
         multiplier: a reader flattens the file as we do, and an artist can show or reuse the map."""
-        t = self.stack.tensors[layer.id]
-        color = t.color.detach().cpu().double().numpy()
-        h, w = color.shape[1:]
+        color = _numpy(self.stack.tensors[layer.id].color)
         x0, y0 = layer.offset.x + origin[0], layer.offset.y + origin[1]
-        cropped = _crop(color, np.ones((1, h, w)), x0, y0, self.W, self.H)
+        cropped = _crop(color, None, x0, y0, self.W, self.H)
         color, alpha, x, y = cropped if cropped is not None else (color[:, :1, :1], np.zeros((1, 1, 1)), 0, 0)
         return ExportLayer(
             f"{layer.name} (normal map)",
@@ -388,9 +455,60 @@ class _Walk:
         )
 
 
+def _fractional(alpha: np.ndarray | None, opacity: float) -> bool:
+    """Whether alpha × mask × opacity takes a value strictly between 0 and 1 somewhere."""
+    if opacity == 0.0:
+        return False
+    if alpha is None:
+        return opacity != 1.0
+    if opacity != 1.0:
+        return bool((alpha != 0).any())
+    return not bool(np.isin(alpha, (0.0, 1.0)).all())
+
+
+def _gain(opacity: float, then: Callable[[np.ndarray], np.ndarray] | None = None) -> Values:
+    """A multiply layer's values with its α = alpha × mask × opacity baked in: the gain g = 1 + α(y − 1), opaque
+    (``then`` maps g, e.g. to its dodge codes)."""
+
+    def values(c: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        g = 1.0 + (a * opacity) * (c - 1.0)
+        return (g if then is None else then(g)), np.ones_like(a)
+
+    return values
+
+
+def _dodge(c: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return dodge_codes(c), a
+
+
+def _plus_part(k: int, baked: float | None) -> Values:
+    """Part k of a plus layer, min(max(y − k, 0), 1); ``baked``: the opacity, with α baked in (y' = α·y, opaque)."""
+
+    def values(c: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if baked is None:
+            return c - k, a
+        return (a * baked) * c - k, np.ones_like(a)
+
+    return values
+
+
+def _baked_max(color: np.ndarray, alpha: np.ndarray | None, opacity: float) -> float:
+    """max of α·y (α = alpha × mask × opacity) in float64, a band of rows at a time."""
+    top = 0.0
+    for r0 in range(0, color.shape[1], BAND_ROWS):
+        c = np.asarray(color[:, r0 : r0 + BAND_ROWS], dtype=np.float64)
+        a = 1.0 if alpha is None else np.asarray(alpha[:, r0 : r0 + BAND_ROWS], dtype=np.float64)
+        top = max(top, float(((a * opacity) * c).max(initial=0.0)))
+    return top
+
+
 def _layers(stack, target: str, warn, groups: bool = False) -> tuple[list, list[str]]:
     walk = _Walk(stack, target, warn, groups)
     if stack.document.blend_space == "linear":
         walk.inexact.append("blend_space='linear' (paint programs blend sRGB-encoded values)")
-    out = [background_layer(stack), *walk.items(stack.document.layers, (0, 0), True, False)]
+    background = background_layer(stack)
+    # A transparent document's top level is composited over transparency, as an isolated group's layers are: the
+    # helper layers that assume an opaque backdrop (dodge pairs, baked alpha) are not exact there either.
+    top = walk.items(stack.document.layers, (0, 0), True, background is None)
+    out = [*([background] if background is not None else []), *top]
     return out, walk.inexact

@@ -453,12 +453,11 @@ def _chunk(ctype: bytes, body: bytes) -> bytes:
     return struct.pack(">I", len(body)) + ctype + body + struct.pack(">I", zlib.crc32(ctype + body))
 
 
-def _filter_rows(rows: np.ndarray, above: np.ndarray) -> np.ndarray:
-    """PNG-filter a band of raw rows (n, stride) uint8, ``above`` the row before it (zeros at the top):
-    each row takes the filter of least sum of absolute signed values (PNG spec 12.8's heuristic, as
-    libpng and Pillow do). Returns (n, 1 + stride) with the filter byte first."""
+def _filter_rows(rows: np.ndarray, above: np.ndarray, bpp: int) -> np.ndarray:
+    """PNG-filter a band of raw rows (n, stride) uint8, ``above`` the row before it (zeros at the top), ``bpp``
+    bytes a pixel: each row takes the filter of least sum of absolute signed values (PNG spec 12.8's heuristic,
+    as libpng and Pillow do). Returns (n, 1 + stride) with the filter byte first."""
     n, stride = rows.shape
-    bpp = 3  # bytes a pixel: 8-bit RGB, the only kind streamed
     x = rows.astype(np.int16)
     b = np.concatenate([above[None].astype(np.int16), x[:-1]], axis=0)  # the row above each row
     a = np.zeros_like(x)
@@ -480,35 +479,64 @@ def _filter_rows(rows: np.ndarray, above: np.ndarray) -> np.ndarray:
 # The sRGB chunk's rendering intent (PNG spec 11.3.3.5): 0, perceptual, as tagged inputs are converted.
 SRGB_INTENT = 0
 
+# PNG colour type (PNG spec, 11.2.2) of samples per pixel: gray, gray + alpha, RGB, RGBA.
+_COLOR_TYPE_OF = {1: 0, 2: 4, 3: 2, 4: 6}
 
-def encode_rgb8_bands(bands, width: int, height: int) -> bytes:
-    """An 8-bit RGB PNG from ``bands``, an iterable of (rows, width, 3) uint8 arrays from the top, encoded
-    as they come: the memory is the compressed output and one band, never a copy of the whole image
-    (what ``write_composite`` uses for canvases of any size). The file says its colours are sRGB (an ``sRGB``
-    chunk, ``SRGB_INTENT``): every composite is (tagged inputs are converted on reading, ``lasagna.io.image``)."""
+
+def quantize_band(values: np.ndarray, bit_depth: BitDepth) -> np.ndarray:
+    """Codes of a band of values (float, already checked finite): clamped to [0, 1], then 2^d − 1 times the value
+    rounded half to even (``quantize`` with ``clip``, without its checks and copies of the whole image)."""
+    v = np.clip(np.asarray(values, dtype=np.float64), 0.0, 1.0)
+    v *= 2**bit_depth - 1
+    return np.rint(v, out=v).astype(np.uint16 if bit_depth == 16 else np.uint8)
+
+
+def encode_bands(bands, width: int, height: int, *, bit_depth: BitDepth = 8, srgb: bool = False) -> bytes:
+    """A PNG from ``bands``, an iterable of (rows, width, C) code arrays from the top (C = 1 gray, 2 gray + alpha,
+    3 RGB, 4 RGBA; uint8 for ``bit_depth`` 8, uint16 for 16), encoded as they come: the memory is the compressed
+    output and one band, never a copy of the whole image (what composites, layer PNGs and the rasters of ORA
+    files use for canvases of any size). ``srgb``: an ``sRGB`` chunk (``SRGB_INTENT``) says the colours are sRGB,
+    as every composite's are (tagged inputs are converted on reading, ``lasagna.io.image``)."""
+    if bit_depth not in (8, 16):
+        raise ImageError(f"bit depth {bit_depth!r}; expected 8 or 16", where="png")
     deflate = zlib.compressobj(6)
-    parts = [
-        PNG_SIGNATURE,
-        _chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)),
-        _chunk(b"sRGB", bytes([SRGB_INTENT])),
-    ]
-    above = np.zeros(width * 3, dtype=np.uint8)
+    parts = [PNG_SIGNATURE]
+    above = None
     rows_seen = 0
     pending: list[bytes] = []
+    channels = 0
     for band in bands:
-        raw = np.ascontiguousarray(band, dtype=np.uint8).reshape(band.shape[0], width * 3)
-        pending.append(deflate.compress(_filter_rows(raw, above).tobytes()))
+        band = np.asarray(band)
+        if band.ndim != 3 or band.shape[1] != width or band.shape[2] not in _COLOR_TYPE_OF:
+            raise ImageError(f"band has shape {band.shape}; expected (rows, {width}, 1 to 4)", where="png")
+        if above is None:
+            channels = band.shape[2]
+            header = struct.pack(">IIBBBBB", width, height, bit_depth, _COLOR_TYPE_OF[channels], 0, 0, 0)
+            parts.append(_chunk(b"IHDR", header))
+            if srgb:
+                parts.append(_chunk(b"sRGB", bytes([SRGB_INTENT])))
+            above = np.zeros(width * channels * bit_depth // 8, dtype=np.uint8)
+        elif band.shape[2] != channels:
+            raise ImageError(f"band has {band.shape[2]} channels; expected {channels} as the first", where="png")
+        codes = band.astype(">u2" if bit_depth == 16 else np.uint8, copy=False)  # PNG samples are big-endian
+        raw = np.ascontiguousarray(codes).view(np.uint8).reshape(band.shape[0], -1)
+        pending.append(deflate.compress(_filter_rows(raw, above, channels * bit_depth // 8).tobytes()))
         above = raw[-1].copy()
         rows_seen += raw.shape[0]
         if sum(map(len, pending)) >= 1 << 20:  # IDAT chunks of about 1 MiB
             parts.append(_chunk(b"IDAT", b"".join(pending)))
             pending = []
-    if rows_seen != height:
+    if rows_seen != height or above is None:
         raise ImageError(f"got {rows_seen} rows; expected {height}", where="png")
     pending.append(deflate.flush())
     parts.append(_chunk(b"IDAT", b"".join(pending)))
     parts.append(_chunk(b"IEND", b""))
     return b"".join(parts)
+
+
+def encode_rgb8_bands(bands, width: int, height: int) -> bytes:
+    """An 8-bit RGB PNG tagged sRGB from (rows, width, 3) uint8 ``bands`` (``encode_bands``)."""
+    return encode_bands(bands, width, height, bit_depth=8, srgb=True)
 
 
 def write_png(path: str | os.PathLike, color, alpha=None, *, bit_depth: BitDepth = 8, clip: bool = False) -> None:

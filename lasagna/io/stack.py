@@ -18,7 +18,7 @@ import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -41,8 +41,8 @@ from lasagna.errors import DocumentError, ImageError, PathError
 from lasagna.io.png import (
     DEFAULT_MAX_PIXELS,
     PngImage,
-    encode_png,
-    quantize,
+    encode_bands,
+    quantize_band,
     read_png,
 )
 from lasagna.io.render import render_stack
@@ -120,7 +120,7 @@ class Stack:
         alpha=None,
         mask=None,
         bit_depth: int | None = None,
-        background: Sequence[float] = (0.0, 0.0, 0.0),
+        background: Sequence[float] | None | Literal["auto"] = "auto",
         blend_space: str = "srgb",
         clamp: str = "layer",
         metadata: Mapping[str, Any] | None = None,
@@ -128,16 +128,26 @@ class Stack:
     ) -> Stack:
         """A stack whose canvas is ``image``'s size, with ``image`` as its bottom pixels layer ``id``.
 
-        ``fields`` are the layer's document fields, as for :meth:`add_layer`.
+        ``fields`` are the layer's document fields, as for :meth:`add_layer`. ``background``: RGB, None (a
+        transparent document) or ``"auto"``: transparent when the image has alpha (an RGBA or gray + alpha image,
+        or ``alpha`` given), so its composite keeps that alpha; else black.
         """
         range_ = tuple(fields.get("range", (0.0, 1.0)))
         color, a = image_to_tensors(image, range_, where=f"layer {id!r}", alpha=alpha)
         h, w = color.shape[-2:]
+        if isinstance(background, str):
+            if background != "auto":
+                raise DocumentError(f"background is {background!r}; expected RGB, None or 'auto'", "Stack.from_image")
+            background = None if a is not None else (0.0, 0.0, 0.0)
         doc = Document.from_dict(
             {
                 "format": "lasagna.stack",
                 "version": 1,
-                "canvas": {"width": int(w), "height": int(h), "background": [float(c) for c in background]},
+                "canvas": {
+                    "width": int(w),
+                    "height": int(h),
+                    "background": None if background is None else [float(c) for c in background],
+                },
                 "blend_space": blend_space,
                 "clamp": clamp,
                 "layers": [_layer_dict(id, "pixels", fields, has_mask=mask is not None)],
@@ -427,13 +437,14 @@ def stack_from_tensors(
     *,
     width: int | None = None,
     height: int | None = None,
-    background: Sequence[float] = (0.0, 0.0, 0.0),
+    background: Sequence[float] | None = (0.0, 0.0, 0.0),
     blend_space: str = "srgb",
     clamp: str = "layer",
     metadata: Mapping[str, Any] | None = None,
 ) -> Stack:
     """Build a stack from images, bottom first: ``(id, image)`` pairs or dicts with ``id``, ``image``
-    (or ``color`` for a solid layer) and layer fields. The canvas defaults to the first image's size.
+    (or ``color`` for a solid layer) and layer fields. The canvas defaults to the first image's size;
+    ``background=None`` makes a transparent document.
     """
     if not layers:
         raise DocumentError("no layers given; expected at least one", where="stack_from_tensors")
@@ -446,7 +457,8 @@ def stack_from_tensors(
         fimage, id=fid, background=background, blend_space=blend_space, clamp=clamp, metadata=metadata, **first
     )
     if width is not None or height is not None:
-        canvas = {"width": width or stack.width, "height": height or stack.height, "background": list(background)}
+        bg = None if background is None else list(background)
+        canvas = {"width": width or stack.width, "height": height or stack.height, "background": bg}
         stack.document = stack.document.replace(canvas=canvas)
     for spec in specs[1:]:
         lid = spec.pop("id")
@@ -541,32 +553,54 @@ def layer_tensors(img, value_range, mask_img=None, mask_where: str = "mask"):
 # ---- saving --------------------------------------------------------------------------------------
 
 
-def _stored_codes(values: torch.Tensor, lo: float, hi: float, where: str, clip: bool) -> np.ndarray:
-    """v = (y − lo)/(hi − lo) as float64; values outside [lo, hi] are an error unless ``clip``."""
-    y = values.detach().cpu().double().numpy()
-    if not np.isfinite(y).all():
+# Rows of a layer quantised at a time when it is saved: 64 rows of an 8192-wide RGBA layer are 16 MiB of float64.
+SAVE_BAND_ROWS = 64
+
+# A plane of stored values: the tensor (c, h, w), and the [lo, hi] its PNG codes v = (y − lo)/(hi − lo) span.
+Plane = tuple[torch.Tensor, float, float]
+
+
+def _check_stored(values: torch.Tensor, lo: float, hi: float, where: str, clip: bool) -> None:
+    """Values must be finite, and inside [lo, hi] (within ``RANGE_SAVE_TOLERANCE`` of v) unless ``clip``: checked
+    on the tensor as it is (no copy), before any band is quantised."""
+    y = values.detach()
+    finite = torch.isfinite(y)
+    if not bool(finite.all()):
+        raise ImageError(f"{int((~finite).sum())} values are NaN or infinite; expected finite values", where=where)
+    if clip or not y.numel():
+        return
+    y_lo, y_hi = (float(v) for v in torch.aminmax(y))
+    v_lo, v_hi = (y_lo - lo) / (hi - lo), (y_hi - lo) / (hi - lo)
+    if v_lo < -RANGE_SAVE_TOLERANCE or v_hi > 1 + RANGE_SAVE_TOLERANCE:
         raise ImageError(
-            f"{int((~np.isfinite(y)).sum())} values are NaN or infinite; expected finite values", where=where
+            f"values span [{y_lo:.6g}, {y_hi:.6g}], outside the layer's range [{lo:g}, {hi:g}]; "
+            "expected values inside the range (widen `range`, or save with clip=True to clamp)",
+            where=where,
         )
-    v = (y - lo) / (hi - lo)
-    if not clip and v.size:
-        vmin, vmax = float(v.min()), float(v.max())
-        if vmin < -RANGE_SAVE_TOLERANCE or vmax > 1 + RANGE_SAVE_TOLERANCE:
-            raise ImageError(
-                f"values span [{y.min():.6g}, {y.max():.6g}], outside the layer's range [{lo:g}, {hi:g}]; "
-                "expected values inside the range (widen `range`, or save with clip=True to clamp)",
-                where=where,
-            )
-    return np.clip(v, 0.0, 1.0)
 
 
-def _unit(values, where: str, clip: bool) -> np.ndarray:
-    return _stored_codes(values, 0.0, 1.0, where, clip)
+def _band_codes(planes: list[Plane], depth: int, r0: int, r1: int) -> np.ndarray:
+    """Rows ``r0:r1`` of ``planes`` as (rows, w, channels) codes: v = (y − lo)/(hi − lo) in float64, clamped to
+    [0, 1], rounded half to even at (2^depth − 1)·v (what a PNG of ``depth`` bits stores)."""
+    parts = []
+    for t, lo, hi in planes:
+        y = t.detach()[:, r0:r1].to("cpu", torch.float64).numpy()
+        parts.append(y if (lo, hi) == (0.0, 1.0) else (y - lo) / (hi - lo))
+    return quantize_band(np.concatenate(parts).transpose(1, 2, 0), depth)  # type: ignore[arg-type]
 
 
-def _layer_codes(stack: Stack, id: str, clip: bool):
-    """Layer ``id``'s stored codes v as float64 arrays (colour, alpha or None, mask or None) and the bit depth
-    its PNGs are written at: 16 for a range other than [0, 1] and for learned layers, never less than read."""
+def _encode_planes(planes: list[Plane], depth: int) -> bytes:
+    """A PNG of ``planes`` (1 or 3 colour channels, then alpha when there is one), quantised and encoded band by
+    band: a layer of any size costs one band of float64 beside its compressed bytes."""
+    h, w = planes[0][0].shape[-2:]
+    bands = (_band_codes(planes, depth, r, min(h, r + SAVE_BAND_ROWS)) for r in range(0, h, SAVE_BAND_ROWS))
+    return encode_bands(bands, w, h, bit_depth=depth)  # type: ignore[arg-type]
+
+
+def _layer_planes(stack: Stack, id: str, clip: bool) -> tuple[list[Plane], list[Plane] | None, int]:
+    """Layer ``id``'s stored planes (colour range-mapped, then alpha), its mask's, checked (``_check_stored``), and
+    the bit depth its PNGs are written at: 16 for a range other than [0, 1] and for learned layers, never less
+    than read."""
     layer = stack.document.layer(id)
     t = stack.tensors[id]
     where = f"layer {id!r}"
@@ -576,19 +610,22 @@ def _layer_codes(stack: Stack, id: str, clip: bool):
     depth = max(depth, stack.bit_depths.get(id, 8))
     if t.color.ndim != 3:
         raise ImageError(f"colour has shape {tuple(t.color.shape)}; expected (C, h, w) to save (no batch)", where=where)
-    color = _stored_codes(t.color, lo, hi, where, clip)
-    alpha = _unit(t.alpha, f"{where} alpha", clip) if t.alpha is not None else None
-    mask = _unit(t.mask, f"{where} mask", clip) if t.mask is not None else None
-    return color, alpha, mask, depth
+    _check_stored(t.color, lo, hi, where, clip)
+    planes: list[Plane] = [(t.color, float(lo), float(hi))]
+    if t.alpha is not None:
+        _check_stored(t.alpha, 0.0, 1.0, f"{where} alpha", clip)
+        planes.append((t.alpha.reshape(1, *t.color.shape[-2:]), 0.0, 1.0))
+    mask = None
+    if t.mask is not None:
+        _check_stored(t.mask, 0.0, 1.0, f"{where} mask", clip)
+        mask = [(t.mask.reshape(1, *t.mask.shape[-2:]), 0.0, 1.0)]
+    return planes, mask, depth
 
 
 def encode_layer(stack: Stack, id: str, *, clip: bool = False) -> tuple[bytes, bytes | None]:
     """PNG bytes of layer ``id``'s source and of its mask (None without one)."""
-    where = f"layer {id!r}"
-    color, alpha, mask, depth = _layer_codes(stack, id, clip)
-    data = encode_png(color, alpha, bit_depth=depth, where=where)
-    mask_data = None if mask is None else encode_png(mask, bit_depth=depth, where=f"{where} mask")
-    return data, mask_data
+    planes, mask, depth = _layer_planes(stack, id, clip)
+    return _encode_planes(planes, depth), None if mask is None else _encode_planes(mask, depth)
 
 
 def encode_group_mask(stack: Stack, id: str, where: str, *, clip: bool = False) -> bytes:
@@ -596,8 +633,8 @@ def encode_group_mask(stack: Stack, id: str, where: str, *, clip: bool = False) 
     t = stack.tensors[id]
     if t.mask is None or t.mask.ndim != 3:
         raise ImageError("group mask tensor missing or batched; expected (1, h, w)", where=f"{where}.mask")
-    depth = stack.bit_depths.get(id, 8)
-    return encode_png(_unit(t.mask, f"group {id!r} mask", clip), bit_depth=depth, where=where)
+    _check_stored(t.mask, 0.0, 1.0, f"group {id!r} mask", clip)
+    return _encode_planes([(t.mask, 0.0, 1.0)], stack.bit_depths.get(id, 8))
 
 
 @dataclass
@@ -608,17 +645,24 @@ class _Planes:
     alpha: np.ndarray | None = None
 
 
-def _decoded(v: np.ndarray, depth: int, where: str) -> np.ndarray:
-    # The codes a PNG of this depth holds (encode_png's quantize), read back as decode_png reads them:
-    # float32 codes divided by the float32 maximum code.
-    codes = quantize(v, depth, where)
-    return np.divide(codes, np.float32(2**depth - 1), dtype=np.float32)
+def _decoded(planes: list[Plane], depth: int) -> np.ndarray:
+    """The values ``planes`` read back from their PNG of ``depth`` bits, (channels, h, w) float32: the codes
+    (``_band_codes``) divided by the float32 maximum code, as ``decode_png`` reads them; band by band."""
+    h, w = planes[0][0].shape[-2:]
+    out = np.empty((sum(t.shape[0] for t, _, _ in planes), h, w), dtype=np.float32)
+    for r in range(0, h, SAVE_BAND_ROWS):
+        codes = _band_codes(planes, depth, r, min(h, r + SAVE_BAND_ROWS)).transpose(2, 0, 1)
+        np.divide(codes, np.float32(2**depth - 1), out=out[:, r : r + SAVE_BAND_ROWS], dtype=np.float32)
+    return out
 
 
-def stored_map(values: np.ndarray, where: str = "normal map") -> torch.Tensor:
+def stored_map(values, where: str = "normal map") -> torch.Tensor:
     """A normal map's values (3, h, w) in [0, 1] as its 16-bit PNG gives them back (float32): what a surface
     layer holds from the start, so it renders the same bits before saving and after loading."""
-    return torch.from_numpy(_decoded(values, 16, where))
+    t = torch.as_tensor(values)
+    if not bool(torch.isfinite(t).all()) or (t.numel() and (float(t.min()) < 0.0 or float(t.max()) > 1.0)):
+        raise ImageError("values are NaN or outside [0, 1]; expected a normal map's values in [0, 1]", where=where)
+    return torch.from_numpy(_decoded([(t, 0.0, 1.0)], 16))
 
 
 def stored_tensors(stack: Stack, id: str) -> tuple[LayerTensors, int]:
@@ -628,9 +672,11 @@ def stored_tensors(stack: Stack, id: str) -> tuple[LayerTensors, int]:
     them until they or the layer's range change."""
     layer = stack.document.layer(id)
     where = f"layer {id!r}"
-    color, alpha, mask, depth = _layer_codes(stack, id, clip=False)
-    img = _Planes(_decoded(color, depth, where), None if alpha is None else _decoded(alpha, depth, f"{where} alpha"))
-    mask_img = None if mask is None else _Planes(_decoded(mask, depth, f"{where} mask"))
+    planes, mask, depth = _layer_planes(stack, id, clip=False)
+    values = _decoded(planes, depth)
+    c = planes[0][0].shape[0]
+    img = _Planes(values[:c], values[c:] if len(planes) > 1 else None)
+    mask_img = None if mask is None else _Planes(_decoded(mask, depth))
     tensors = layer_tensors(img, layer.range, mask_img, f"{where} mask")
     tensors.note("stored", tuple(layer.range))
     return tensors, depth

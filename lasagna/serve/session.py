@@ -442,7 +442,7 @@ class EditSession(SessionViews, SessionJobs):
 
         def extra(stack: Stack, result) -> dict[str, bytes]:
             if (self.folder / "stack.ora").is_file():  # a `lasagna edit` folder keeps its OpenRaster current
-                return {"stack.ora": encode_ora(stack, composite=result.image)}
+                return {"stack.ora": encode_ora(stack, composite=result)}
             return {}
 
         with self._guard():

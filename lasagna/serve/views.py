@@ -29,6 +29,7 @@ import torch.nn.functional as F
 
 from lasagna.compose.layer import LayerTensors
 from lasagna.compose.plan import plan_from_document, solid_tensors
+from lasagna.compose.render import render
 from lasagna.compose.renderer import Renderer
 from lasagna.document import Document
 from lasagna.document.condition import parse_direction
@@ -92,11 +93,11 @@ class SessionViews:
         if kind == "ora":
             from lasagna.export.ora import encode_ora
 
-            return encode_ora(stack, composite=result.image), f"{name}.ora", "image/openraster"
+            return encode_ora(stack, composite=result), f"{name}.ora", "image/openraster"
         if kind == "psd":
             from lasagna.export.psd import encode_psd
 
-            return encode_psd(stack, composite=result.image), f"{name}.psd", "image/vnd.adobe.photoshop"
+            return encode_psd(stack, composite=result), f"{name}.psd", "image/vnd.adobe.photoshop"
         return encode_composite(result), f"{name}.png", "image/png"
 
     def _render_bytes(self, *, encode_layers: bool) -> int:
@@ -210,18 +211,26 @@ class SessionViews:
             tensors = self._level_tensors(doc, level)
             f = 2**level
             specs = plan_from_document(_Scaled(doc, layers, w, h, f), tensors, cull=True, dtype=torch.float32).layers
-            key = (w, h, tuple(doc.canvas.background), doc.blend_space, doc.clamp)
-            lv = self.levels.get(level)
-            if lv is None or lv.key != key:
-                lv = _Level(Renderer((h, w), tuple(doc.canvas.background), doc.blend_space, doc.clamp), key)
-                self.levels[level] = lv
-            image = lv.renderer.render(specs).image
+            alpha = None
+            if doc.canvas.background is None:  # a transparent document: its alpha shows the page's checkerboard
+                # (the prefix-cache Renderer composites onto an opaque canvas only; this view renders whole)
+                result = render(specs, canvas=(h, w), background=None, blend_space=doc.blend_space, clamp=doc.clamp)
+                image, alpha = result.image, result.alpha
+            else:
+                key = (w, h, tuple(doc.canvas.background), doc.blend_space, doc.clamp)
+                lv = self.levels.get(level)
+                if lv is None or lv.key != key:
+                    lv = _Level(Renderer((h, w), tuple(doc.canvas.background), doc.blend_space, doc.clamp), key)
+                    self.levels[level] = lv
+                image = lv.renderer.render(specs).image
             rgba = np.empty((h, w, 4), np.uint8)
             rgba[..., 3] = 255
             for y in range(0, h, BAND_ROWS):  # a band at a time: no canvas-sized float64 copy
-                band = image[:, y : y + BAND_ROWS]
-                codes = composite_codes(band) if level == 0 else (band.clamp(0.0, 1.0) * 255.0).round().to(torch.uint8)
-                rgba[y : y + BAND_ROWS, :, :3] = codes.permute(1, 2, 0).numpy()
+                planes = image[:, y : y + BAND_ROWS]
+                if alpha is not None:
+                    planes = torch.cat([planes, alpha[:, y : y + BAND_ROWS]])
+                codes = composite_codes(planes) if level == 0 else (planes.clamp(0, 1) * 255.0).round().to(torch.uint8)
+                rgba[y : y + BAND_ROWS, :, : codes.shape[0]] = codes.permute(1, 2, 0).numpy()
             return rgba.tobytes(), w, h
 
     def normal_map(self, id: str, level: int = 0) -> tuple[bytes, int, int]:

@@ -134,3 +134,14 @@ def composite(specs, canvas, background=(0.0, 0.0, 0.0), blend_space="srgb", cla
     if clamp == "output":
         C = np.clip(C, 0, 1)
     return encode(C) if linear else C
+
+
+def composite_rgba(specs, canvas, blend_space="srgb", clamp="layer") -> tuple[np.ndarray, np.ndarray]:
+    """(straight colour (3, H, W), alpha (1, H, W)) float64 of unbatched specs on a transparent canvas (a document
+    without a background: the top level composited as an isolated group's children are, section 8.2)."""
+    H, W = canvas
+    linear = blend_space == "linear"
+    C, A = _composite(specs, np.zeros((3, H, W)), np.zeros((1, H, W)), (0, 0), (H, W, linear, clamp))
+    if clamp == "output":
+        C = np.clip(C, 0, 1)
+    return (encode(C) if linear else C), A

@@ -54,9 +54,14 @@ def psd_tools_flat(path: Path) -> np.ndarray:
 
 
 def ours(path: Path, warnings: list[str] | None = None) -> np.ndarray:
+    """Our composite of the imported stack, a transparent document's laid over white as psd-tools' is."""
     stack = read_psd(path, warn=(warnings.append if warnings is not None else lambda m: None))
-    image = render_stack(stack, dtype=torch.float64).image.numpy().transpose(1, 2, 0)
-    return np.rint(np.clip(image, 0.0, 1.0) * 255.0)
+    result = render_stack(stack, dtype=torch.float64)
+    image = np.clip(result.image.numpy().transpose(1, 2, 0), 0.0, 1.0)
+    if result.alpha is not None:
+        a = result.alpha.numpy().transpose(1, 2, 0)
+        image = image * a + 1.0 - a
+    return np.rint(image * 255.0)
 
 
 def err(path: Path) -> float:
@@ -197,21 +202,37 @@ def test_what_cannot_be_represented_is_reported_one_line_each(tmp_path):
     assert err(path2) <= 1
 
 
-def test_transparent_documents_are_wrapped_in_an_isolated_group(tmp_path):
+def test_a_psd_not_covering_its_canvas_imports_as_a_transparent_document(tmp_path):
+    """Layers that do not cover the canvas: ``background`` null, and the composite's colour and alpha are
+    psd-tools' own (not laid over anything) within 1/255; an opaque full-canvas base keeps the document opaque."""
     rng = np.random.default_rng(6)
     psd = new_psd()
     psd.create_pixel_layer(rgba(rng, 10, 12), name="a", top=2, left=3)
     psd.create_pixel_layer(rgba(rng, 10, 12), name="b", top=4, left=5, blend_mode=BlendMode.SCREEN)
     path = tmp_path / "open.psd"
     psd.save(path)
-    doc = read_psd(path).document
-    assert [layer.kind for layer in doc.layers] == ["group"] and doc.layers[0].isolated
+    stack = read_psd(path)
+    assert stack.document.canvas.background is None and stack.document.ids == ("a", "b")
     assert err(path) <= 1
+    theirs = np.asarray(PSDImage.open(path).composite(force=True).convert("RGBA"), dtype=np.float64)
+    result = render_stack(stack, dtype=torch.float64)
+    alpha = np.rint(result.alpha.numpy()[0] * 255.0)
+    assert np.abs(alpha - theirs[..., 3]).max() <= 1
+    assert alpha.min() == 0 and (alpha == 0).sum() > 0  # the corners stay transparent
+    seen = theirs[..., 3] >= 32  # colour is defined where there is alpha (8-bit premultiplied rounding below)
+    color = np.rint(np.clip(result.image.numpy().transpose(1, 2, 0), 0, 1) * 255.0)
+    assert np.abs(color[seen] - theirs[..., :3][seen]).max() <= 2
+    out = tmp_path / "stack"
+    assert main(["import-psd", str(path), "-o", str(out)]) == 0
+    assert main(["composite", str(out)]) == 0
+    with Image.open(out / "composite.png") as im:
+        assert im.mode == "RGBA" and np.abs(np.asarray(im)[..., 3] - alpha).max() == 0
     psd = new_psd()
     psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="bg")
     path = tmp_path / "closed.psd"
     psd.save(path)
-    assert read_psd(path).document.ids == ("bg",)
+    closed = read_psd(path).document
+    assert closed.ids == ("bg",) and closed.canvas.background is not None
 
 
 def test_cli_import_then_composite(tmp_path, capsys):
@@ -367,7 +388,7 @@ def test_groups_nested_as_deep_as_a_stack_allows_import_and_validate(tmp_path, c
     assert main(["validate", str(tmp_path / "out")]) == 0, capsys.readouterr().err
 
 
-@pytest.mark.parametrize("depth, opaque_base", [(31, True), (40, True), (30, False)])
+@pytest.mark.parametrize("depth, opaque_base", [(31, True), (40, True), (31, False)])
 def test_groups_nested_deeper_than_a_stack_allows_are_one_line(tmp_path, capsys, depth, opaque_base):
     path = _nested_psd(tmp_path / "deep.psd", depth, opaque_base)
     code = main(["import-psd", str(path), "-o", str(tmp_path / "out")])

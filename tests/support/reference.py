@@ -85,6 +85,23 @@ def composite_reference(folder: str | Path) -> np.ndarray:
     return np.clip(out, 0.0, 1.0)
 
 
+def composite_reference_rgba(folder: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(straight colour (3, H, W), alpha (1, H, W)) float64 of a stack folder; a document without a background
+    (``background`` null) starts from transparency (colour 0, alpha 0) and keeps its alpha, any other is opaque."""
+    folder = Path(folder)
+    doc = json.loads((folder / "stack.json").read_text())
+    if doc["canvas"].get("background", [0.0, 0.0, 0.0]) is not None:
+        out = composite_reference(folder)
+        return out, np.ones((1, *out.shape[1:]))
+    W, H = doc["canvas"]["width"], doc["canvas"]["height"]
+    linear = doc.get("blend_space", "srgb") == "linear"
+    ctx = (folder, W, H, linear, doc.get("clamp", "layer") == "layer")
+    out, A = _compose(doc["layers"], np.zeros((3, H, W)), np.zeros((1, H, W)), (0, 0), ctx)
+    if linear:
+        out = linear_to_srgb(np.clip(out, 0.0, 1.0))
+    return np.clip(out, 0.0, 1.0), A
+
+
 def _offset(layer: dict, origin: tuple[int, int]) -> tuple[int, int]:
     off = layer.get("offset", {})
     return off.get("x", 0) + origin[0], off.get("y", 0) + origin[1]
