@@ -187,11 +187,11 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
     renders."""
     from lasagna.components import load_prior
     from lasagna.compose.layer import LayerTensors
-    from lasagna.compose.surface import encode_normal_map, enlarge_surface, surface_normals, surface_tensors
+    from lasagna.compose.surface import enlarge_surface, surface_normals, surface_tensors
     from lasagna.distill.surface import distill_surface
     from lasagna.document.condition import AMBIENT, parse_direction
     from lasagna.generators.surface import SurfaceEstimator
-    from lasagna.io.stack import stored_map
+    from lasagna.io.stack import stored_normals
 
     start = time.monotonic()
     net = SurfaceEstimator.from_pretrained(recipe.estimator, device=device)
@@ -233,7 +233,7 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         surface, history = fit.surface, fit.history
         made_by.update(refine_steps=recipe.steps, prior=recipe.prior_ref, prior_sha256=recipe.prior_sha256)
     normals = surface_normals(enlarge_surface(surface, tuple(base.shape[-2:])))[0].cpu()
-    stored = LayerTensors(stored_map(encode_normal_map(normals[None].double())[0].numpy()))
+    stored = LayerTensors(stored_normals(normals))  # what the 16-bit map gives back, made a band at a time
     layer = surface_tensors(stored, recipe.label, source, AMBIENT).color
     settings = LayerSettings(method=recipe.method, optimize=recipe.steps, working_size=recipe.working_size)
     return LayerRun(

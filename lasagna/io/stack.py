@@ -243,7 +243,9 @@ class Stack:
         if not isinstance(normals, torch.Tensor) or normals.ndim != 3 or normals.shape[0] != 3:
             got = tuple(normals.shape) if isinstance(normals, torch.Tensor) else type(normals).__name__
             raise ImageError(f"normals have shape {got}; expected (3, h, w) unit vectors", where=f"layer {id!r}")
-        color = stored_map(encode_normal_map(normals[None].double())[0].numpy(), f"layer {id!r}")
+        if not bool(torch.isfinite(normals).all()):
+            raise ImageError("normals hold NaN or infinite values; expected unit vectors", where=f"layer {id!r}")
+        color = stored_normals(normals)
         tensors = _make_tensors(id, color, None, mask, 16)
         existing = self.document.layer(id) if id in self.document.all_ids else None
         if existing is not None and not isinstance(existing, SurfaceLayer):
@@ -663,6 +665,17 @@ def stored_map(values, where: str = "normal map") -> torch.Tensor:
     if not bool(torch.isfinite(t).all()) or (t.numel() and (float(t.min()) < 0.0 or float(t.max()) > 1.0)):
         raise ImageError("values are NaN or outside [0, 1]; expected a normal map's values in [0, 1]", where=where)
     return torch.from_numpy(_decoded([(t, 0.0, 1.0)], 16))
+
+
+def stored_normals(normals: torch.Tensor) -> torch.Tensor:
+    """Unit normals (3, h, w) as the values of their 16-bit normal map (float32): ``stored_map`` of
+    ``encode_normal_map`` computed in float64 a band of rows at a time, so a 12 MP map never exists as float64."""
+    h, w = normals.shape[-2:]
+    out = torch.empty((3, h, w), dtype=torch.float32)
+    for r in range(0, h, SAVE_BAND_ROWS):
+        band = encode_normal_map(normals[None, :, r : r + SAVE_BAND_ROWS].detach().cpu().double())[0]
+        out[:, r : r + SAVE_BAND_ROWS] = stored_map(band)
+    return out
 
 
 def stored_tensors(stack: Stack, id: str) -> tuple[LayerTensors, int]:
