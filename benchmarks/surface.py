@@ -42,12 +42,16 @@ from lasagna.compose.surface import (  # noqa: E402
     light_vector,
 )
 from lasagna.document.condition import parse_direction  # noqa: E402
-from lasagna.generators.surface import SurfaceEstimator  # noqa: E402
+from lasagna.generators.surface import DomePrior, SurfaceEstimator  # noqa: E402
 from lasagna.training.surface import estimator_from_checkpoint  # noqa: E402
 from lasagna.world import VOCABULARY, render, sample_scenes  # noqa: E402
 from lasagna.world.tasks import relight_sources, relighting  # noqa: E402
 
 WORKING = 32
+
+
+def dome_label(dome) -> str:
+    return "" if dome is None or dome.weight == 0 else f" + domes (weight {dome.weight:g}, height {dome.height:g})"
 
 
 def lights_of(conditions: list[str]) -> torch.Tensor:
@@ -85,7 +89,7 @@ def edit_layers(images: torch.Tensor, preset: str, labels: list[str], **options)
     return torch.stack(layers), (time.perf_counter() - t0) / images.shape[0]
 
 
-def shading_rows(scene, labels, albedo_net, edits: list[str]) -> list[dict]:
+def shading_rows(scene, labels, albedo_net, edits: list[str], dome=None) -> list[dict]:
     truth, mask = scene.shading, scene.mask
     const = truth.mean(dim=(1, 2, 3), keepdim=True).expand_as(truth)
     cdb = (psnr(const, truth), psnr(const, truth, mask))
@@ -106,17 +110,17 @@ def shading_rows(scene, labels, albedo_net, edits: list[str]) -> list[dict]:
     ]
     if albedo_net is not None:
         t0 = time.perf_counter()
-        n, _ = albedo_net.estimate_at(scene.albedo)
+        n, _ = albedo_net.estimate_at(scene.albedo, dome)
         y = lambert(n, light)
         secs = (time.perf_counter() - t0) / len(labels)
-        rows.append(gain_row("surface estimator (albedo)", y, truth, mask, cdb, secs))
+        rows.append(gain_row(f"surface estimator (albedo){dome_label(dome)}", y, truth, mask, cdb, secs))
     for kind in edits:
         y, secs = edit_layers(scene.albedo, "shading", labels, layer_kind=kind)
         rows.append(gain_row(f"lasagna edit --layer shading --layer-kind {kind}", y, truth, mask, cdb, secs))
     return rows
 
 
-def relight_rows(scene, labels, lit_net, edits: list[str]) -> list[dict]:
+def relight_rows(scene, labels, lit_net, edits: list[str], dome=None) -> list[dict]:
     sources = relight_sources(scene.params)
     rel = relighting(scene, sources)
     base, target, mask = rel.base, rel.target.clamp(0, 1), scene.mask
@@ -147,10 +151,11 @@ def relight_rows(scene, labels, lit_net, edits: list[str]) -> list[dict]:
     ]
     if lit_net is not None:
         t0 = time.perf_counter()
-        n, light = lit_net.estimate_at(base)
+        n, light = lit_net.estimate_at(base, dome)
         ratio = lambert(n, tgt) / lambert(n, light)
         secs = (time.perf_counter() - t0) / len(labels)
-        rows.append(gain_row("surface estimator (lit), its source light", comp(ratio), target, mask, bdb, secs))
+        method = f"surface estimator (lit){dome_label(dome)}, its source light"
+        rows.append(gain_row(method, comp(ratio), target, mask, bdb, secs))
         rows.append(
             gain_row(
                 "surface estimator (lit), true source light", comp(lambert(n, tgt) / lambert(n, src)), target, mask, bdb
@@ -164,7 +169,7 @@ def relight_rows(scene, labels, lit_net, edits: list[str]) -> list[dict]:
     return rows
 
 
-def leak_row(args, split: str, size: int, albedo_net, lit_net) -> dict:
+def leak_row(args, split: str, size: int, albedo_net, lit_net, dome=None) -> dict:
     walls, labels = scenes(split, args.count, args.seed, size, walls=True)
     out = {"split": split, "size": size}
     for name, net, image in (("albedo", albedo_net, walls.albedo), ("lit", lit_net, None)):
@@ -172,7 +177,7 @@ def leak_row(args, split: str, size: int, albedo_net, lit_net) -> dict:
             continue
         if image is None:
             image = relighting(walls, relight_sources(walls.params)).base
-        n, _ = net.estimate_at(image)
+        n, _ = net.estimate_at(image, dome)
         y = lambert(n, lights_of(labels)).double()
         flat = y.mean(dim=(1, 2, 3), keepdim=True).expand_as(y)
         out[f"leak_db_{name}"] = round(psnr(y, flat), 2)
@@ -205,7 +210,7 @@ def read_photo(path: Path, side: int = 512) -> torch.Tensor:
         return torch.from_numpy(__import__("numpy").asarray(im, dtype="float32") / 255.0).permute(2, 0, 1)[None]
 
 
-def photo_rows(lit_net, folder: Path, sheet: Path | None) -> list[dict]:
+def photo_rows(lit_net, folder: Path, sheet: Path | None, dome=None) -> list[dict]:
     """Relight each photograph toward opposite lights; the swing of composite/input between the thirds nearest and
     farthest from the light, summed over the two edits of an axis (≥ 0.10 per photo and axis is the target)."""
     from PIL import Image
@@ -214,7 +219,7 @@ def photo_rows(lit_net, folder: Path, sheet: Path | None) -> list[dict]:
     for file in sorted(folder.glob("*.jpg")):
         image = read_photo(file)
         t0 = time.perf_counter()
-        n, source = lit_net.estimate_at(image)
+        n, source = lit_net.estimate_at(image, dome)
         seconds = time.perf_counter() - t0
         row = {"photo": file.stem, "size": list(image.shape[-2:]), "estimate_seconds": round(seconds, 3)}
         composites = {}
@@ -256,6 +261,12 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--albedo", default=None, help="an albedo-input surface estimator folder")
     p.add_argument("--lit", default=None, help="a lit-input surface estimator folder")
+    p.add_argument(
+        "--dome",
+        default=None,
+        metavar="WEIGHT,HEIGHT",
+        help="mix the dome prior into the estimators' normals (needs a silhouette head), e.g. 0.5,0.5",
+    )
     p.add_argument("--json-out", type=Path, default=None)
     p.add_argument(
         "--edits",
@@ -268,21 +279,25 @@ def main(argv=None) -> int:
     p.add_argument("--sheet", type=Path, default=None, help="photo sheet: input | normals | shading | left | right")
     args = p.parse_args(argv)
     albedo_net, lit_net = load(args.albedo), load(args.lit)
+    dome = None
+    if args.dome:
+        weight, height = (float(v) for v in args.dome.split(","))
+        dome = DomePrior(weight=weight, height=height)
     result = {"machine": machine_info(), "command": " ".join(sys.argv), "shading": [], "relight": [], "leak": []}
     if lit_net is not None and args.photos.is_dir():
-        result["photos"] = photo_rows(lit_net, args.photos, args.sheet)
+        result["photos"] = photo_rows(lit_net, args.photos, args.sheet, dome)
     for split in args.splits:
         for size in args.sizes:
             scene, labels = scenes(split, args.count, args.seed, size)
             for task, rows in (
-                ("shading", shading_rows(scene, labels, albedo_net, args.edits)),
-                ("relight", relight_rows(scene, labels, lit_net, args.edits)),
+                ("shading", shading_rows(scene, labels, albedo_net, args.edits, dome)),
+                ("relight", relight_rows(scene, labels, lit_net, args.edits, dome)),
             ):
                 for r in rows:
                     r.update(split=split, size=size)
                     print(json.dumps({task: r}), flush=True)
                     result[task].append(r)
-            leak = leak_row(args, split, size, albedo_net, lit_net)
+            leak = leak_row(args, split, size, albedo_net, lit_net, dome)
             print(json.dumps({"leak": leak}), flush=True)
             result["leak"].append(leak)
     if args.json_out is not None:
@@ -295,9 +310,11 @@ def main(argv=None) -> int:
     print_json_line(
         {
             "split": args.splits[0],
-            "shading_gain_obj_db": best("shading", "surface estimator (albedo)", "gain_obj_db"),
+            "shading_gain_obj_db": best("shading", f"surface estimator (albedo){dome_label(dome)}", "gain_obj_db"),
             "shading_oracle_obj_db": best("shading", "oracle: true outlines inflated", "gain_obj_db"),
-            "relight_gain_obj_db": best("relight", "surface estimator (lit), its source light", "gain_obj_db"),
+            "relight_gain_obj_db": best(
+                "relight", f"surface estimator (lit){dome_label(dome)}, its source light", "gain_obj_db"
+            ),
             "relight_oracle_obj_db": best(
                 "relight", "oracle: true outlines inflated, true source light", "gain_obj_db"
             ),

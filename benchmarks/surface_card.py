@@ -39,12 +39,15 @@ def command(cfg: dict, run: Path) -> str:
         f"lasagna train-surface --input {net['input']} --out {run} --working-size {net['working_size']} "
         f"--channels {','.join(map(str, net['channels']))} --blocks {net['blocks']} --lights {cfg['lights']} "
         f"--batch-size {cfg['batch_size']} --lr {cfg['lr']} --minutes {cfg['max_minutes']:g}"
+        + (f" --output {net['output']}" if net.get("output", "height") != "height" else "")
+        + (" --silhouette" if net.get("silhouette") else "")
     )
 
 
 def quality(measured: dict, kind: str) -> list[str]:
     task, method = ROWS[kind]
-    keep = {method, "oracle: true outlines inflated", "oracle: true outlines inflated, true source light"}
+    keep = {m for m in (r["method"] for r in measured.get(task, [])) if m.startswith(method.split(",")[0])}
+    keep |= {"oracle: true outlines inflated", "oracle: true outlines inflated, true source light"}
     keep |= {m for m in (r["method"] for r in measured.get(task, [])) if m.startswith("truth at working size")}
     keep |= {m for m in (r["method"] for r in measured.get(task, [])) if m.startswith("lasagna edit")}
     out = [

@@ -190,14 +190,16 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
     from lasagna.compose.surface import enlarge_surface, surface_normals, surface_tensors
     from lasagna.distill.surface import distill_surface
     from lasagna.document.condition import AMBIENT, parse_direction
-    from lasagna.generators.surface import SurfaceEstimator
+    from lasagna.generators.surface import DomePrior, SurfaceEstimator
     from lasagna.io.stack import stored_normals
 
     start = time.monotonic()
     net = SurfaceEstimator.from_pretrained(recipe.estimator, device=device)
     x = working_input(base, recipe.working_size, device)  # (1, 3, h, w)
+    sd = recipe.surface
+    dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
     with torch.no_grad():
-        surface, fitted = net.estimate(x)
+        surface, fitted = net.estimate(x, dome)
     source = None
     if net.config.input == "lit":
         source = recipe.source_light or light_condition(fitted[0])
@@ -207,6 +209,8 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         "estimator_sha256": recipe.estimator_sha256,
         "working_size": recipe.working_size,
     }
+    if dome.weight > 0:
+        made_by.update(dome_weight=dome.weight, dome_height=dome.height)
     if recipe.distill is not None:
         from lasagna.compose.surface import light_vector
 

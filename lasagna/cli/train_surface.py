@@ -24,6 +24,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="height",
         help="what the estimator outputs: a height field, or unit normals directly",
     )
+    p.add_argument(
+        "--silhouette",
+        action="store_true",
+        help="also learn where the objects are (a silhouette head, for the dome prior)",
+    )
     p.add_argument("--out", required=True, help="run folder; run again with the same folder to resume")
     p.add_argument("--working-size", type=int, default=32, help="the side it trains (and later works) at")
     p.add_argument("--channels", default="32,64,128", help="feature channels per level")
@@ -61,7 +66,12 @@ def run(args: argparse.Namespace) -> int:
         ) from None
     config = SurfaceTrainConfig(
         net=SurfaceConfig(
-            input=args.input, output=args.output, channels=channels, blocks=args.blocks, working_size=args.working_size
+            input=args.input,
+            output=args.output,
+            silhouette=args.silhouette,
+            channels=channels,
+            blocks=args.blocks,
+            working_size=args.working_size,
         ),
         lights=args.lights,
         steps=args.steps,

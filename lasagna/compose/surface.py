@@ -265,7 +265,43 @@ def inflated_normals(index: Tensor) -> Tensor:
     """Unit normals (B, 3, H, W) of ``inflate_regions(index)``, flat (+z) outside every region: the normals of
     the outline-inflation oracle, which knows where the outlines are, so no slope bleeds onto the background
     beside them (central differences of the height would tilt the first background pixel)."""
-    n = normals_from_height(inflate_regions(index))
+    return dome_normals(index, 1.0)
+
+
+def dome_normals(index: Tensor, height: float = 1.0) -> Tensor:
+    """Unit normals (B, 3, H, W) of every labelled region of ``index`` inflated into a dome (``inflate_regions``)
+    whose height is ``height`` times the round dome's, flat (+z) outside every region."""
+    n = normals_from_height(inflate_regions(index) * height)
     flat = torch.zeros_like(n)
     flat[:, 2] = 1.0
     return torch.where(index >= 0, n, flat)
+
+
+def label_regions(mask: Tensor) -> Tensor:
+    """The connected regions (8-neighbours) of a boolean ``mask`` (B, 1, H, W), labelled 0, 1, … per image
+    (int64), −1 outside: each pixel takes the largest pixel number of its region, spread by 3×3 maxima until
+    nothing changes (at most the region's pixel count of rounds; a blob's diameter in practice)."""
+    if mask.ndim != 4 or mask.shape[1] != 1:
+        raise LasagnaError(f"got shape {tuple(mask.shape)}; expected (B, 1, H, W)", where="mask")
+    mask = mask.bool().cpu()
+    b, _, h, w = mask.shape
+    ids = torch.arange(1, h * w + 1, dtype=torch.float64).view(1, 1, h, w).expand(b, 1, h, w)
+    zero = torch.zeros((), dtype=torch.float64)
+    label = torch.where(mask, ids, zero)
+    for _ in range(h * w):
+        spread = torch.where(mask, torch.nn.functional.max_pool2d(label, 3, 1, 1), zero)
+        if torch.equal(spread, label):
+            break
+        label = spread
+    out = torch.full((b, 1, h, w), -1, dtype=torch.int64)
+    for i in range(b):
+        values, inverse = torch.unique(label[i], return_inverse=True)
+        # values[0] is 0 (the outside) wherever some pixel is outside; the regions are numbered after it.
+        first = 1 if float(values[0]) == 0.0 else 0
+        out[i] = torch.where(mask[i], inverse - first, out[i])
+    return out
+
+
+def mix_normals(normals: Tensor, other: Tensor, weight: float) -> Tensor:
+    """Unit normals (1 − weight)·``normals`` + weight·``other``, renormalised and kept facing the viewer."""
+    return facing_normals((1.0 - weight) * normals + weight * other)

@@ -168,6 +168,16 @@ class SurfaceDefaults(StrictModel):
         1.0, ge=0, description="Weight of ‖h − h₀‖², which keeps the refinement near the estimate."
     )
     working_size: int = Field(32, ge=8, le=4096, strict=True, description="The long side the surface is estimated at.")
+    dome_weight: FiniteFloat = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="Weight of the dome prior (the estimated silhouettes inflated into domes) mixed into the "
+        "estimated normals; 0: the estimate alone. Needs an estimator with a silhouette head.",
+    )
+    dome_height: FiniteFloat = Field(
+        1.0, gt=0, le=4, description="The domes' height as a fraction of a round dome's (a disc inflates to a sphere)."
+    )
 
 
 class Preset(StrictModel):

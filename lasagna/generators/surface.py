@@ -27,14 +27,21 @@ returns the flat surface h = 0 (n = +z everywhere), whose shading is the wall's,
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import torch
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from torch import Tensor, nn
 
 from lasagna.compose.resample import downsample, working_size
-from lasagna.compose.surface import enlarge_surface, fit_light, surface_normals
+from lasagna.compose.surface import (
+    dome_normals,
+    enlarge_surface,
+    fit_light,
+    label_regions,
+    mix_normals,
+    surface_normals,
+)
 from lasagna.document.condition import AMBIENT
 from lasagna.errors import LasagnaError
 from lasagna.generators.unet import pad_to_levels, run_unet, unet_body
@@ -69,6 +76,11 @@ class SurfaceConfig(BaseModel):
         (32, 64, 128), min_length=1, max_length=MAX_GENERATOR_LEVELS, description="Feature widths per level."
     )
     blocks: int = Field(2, ge=1, le=MAX_GENERATOR_BLOCKS, description="Conv3×3+SiLU blocks per level.")
+    silhouette: bool = Field(
+        False,
+        description="Also output each pixel's probability of lying on an object (the silhouettes the dome prior "
+        "inflates: `lasagna.compose.surface.dome_normals`).",
+    )
     working_size: int = Field(32, ge=8, le=1024, description="The side it was trained at (and is applied at).")
 
     @field_validator("channels")
@@ -77,6 +89,33 @@ class SurfaceConfig(BaseModel):
         if any(c < 1 or c > MAX_GENERATOR_WIDTH for c in v):
             raise ValueError(f"widths must lie in [1, {MAX_GENERATOR_WIDTH}]; got {list(v)}")
         return v
+
+
+class SurfaceOutputs(NamedTuple):
+    """What the estimator's head gives for a batch: the surface (height (B, 1, H, W) or unit normals (B, 3, H, W)),
+    a lit input's source shading (B, 1, H, W) in [a, 1] (else None), and the silhouette logits (B, 1, H, W) of an
+    estimator with a silhouette head (else None)."""
+
+    surface: Tensor
+    shading: Tensor | None
+    silhouette: Tensor | None
+
+
+class DomePrior(BaseModel):
+    """The shape prior "silhouettes bound volumes": the estimated silhouettes inflated into domes
+    (`lasagna.compose.surface.dome_normals`, ``height`` their height as a fraction of the round dome's) and mixed
+    into the estimated normals with ``weight`` (0: the estimate alone; 1: the domes alone)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    weight: float = Field(0.0, ge=0.0, le=1.0)
+    height: float = Field(1.0, gt=0.0, le=4.0)
+
+    def apply(self, normals: Tensor, silhouette_logit: Tensor) -> Tensor:
+        """Unit normals: ``normals`` (B, 3, H, W) mixed with the domes of the pixels whose silhouette probability
+        is above one half."""
+        domes = dome_normals(label_regions(silhouette_logit > 0), self.height).to(normals.dtype)
+        return mix_normals(normals, domes, self.weight)
 
 
 class SurfaceEstimator(Pretrained, nn.Module):
@@ -93,7 +132,7 @@ class SurfaceEstimator(Pretrained, nn.Module):
         # Height, and for a lit input its source shading's logit; zero-initialised: the flat surface, lit at the
         # midpoint a + (1 − a)/2 of the shading's range (module docstring).
         self.surface_channels = 1 if config.output == "height" else 3
-        self.head = nn.Conv2d(ch[0], self.surface_channels + (config.input == "lit"), 1)
+        self.head = nn.Conv2d(ch[0], self.surface_channels + (config.input == "lit") + config.silhouette, 1)
         with torch.no_grad():
             self.head.weight.zero_()
             self.head.bias.zero_()
@@ -109,35 +148,51 @@ class SurfaceEstimator(Pretrained, nn.Module):
         """The surface: the height field (B, 1, H, W) in canvas units, or the unit normals (B, 3, H, W)."""
         return self.decompose(image)[0]
 
-    def decompose(self, image: Tensor) -> tuple[Tensor, Tensor | None]:
-        """(the surface — height (B, 1, H, W) or unit normals (B, 3, H, W), per ``config.output`` — and the source
-        light's shading (B, 1, H, W) in [a, 1], or None for albedo input)."""
+    def outputs(self, image: Tensor) -> SurfaceOutputs:
+        """Every output of the head for ``image`` (B, 3, H, W) in [0, 1] (``SurfaceOutputs``)."""
         out = self._features(image)
         k = self.surface_channels
         surface = out[:, :1] if k == 1 else normals_from_head(out[:, :k])
-        if out.shape[1] == k:
-            return surface, None
-        return surface, AMBIENT + (1.0 - AMBIENT) * torch.sigmoid(out[:, k : k + 1])
+        shading = None
+        if self.config.input == "lit":
+            shading = AMBIENT + (1.0 - AMBIENT) * torch.sigmoid(out[:, k : k + 1])
+            k += 1
+        silhouette = out[:, k : k + 1] if self.config.silhouette else None
+        return SurfaceOutputs(surface, shading, silhouette)
+
+    def decompose(self, image: Tensor) -> tuple[Tensor, Tensor | None]:
+        """(the surface — height (B, 1, H, W) or unit normals (B, 3, H, W), per ``config.output`` — and the source
+        light's shading (B, 1, H, W) in [a, 1], or None for albedo input)."""
+        out = self.outputs(image)
+        return out.surface, out.shading
 
     def normals(self, surface: Tensor) -> Tensor:
         """Unit normals (B, 3, H, W) of a surface this estimator output (a height field's by differences)."""
         return surface_normals(surface)
 
-    def estimate(self, image: Tensor) -> tuple[Tensor, Tensor | None]:
-        """(surface — height or normals, as ``decompose`` — and the source light (B, 3), or None for albedo
-        input): the light is the fit of the surface's normals to the estimated source shading (module
-        docstring)."""
-        surface, shading = self.decompose(image)
-        if shading is None:
+    def estimate(self, image: Tensor, dome: DomePrior | None = None) -> tuple[Tensor, Tensor | None]:
+        """(surface — height or normals, as ``decompose``; unit normals where ``dome`` mixes in the dome prior —
+        and the source light (B, 3), or None for albedo input): the light is the fit of the surface's normals to the
+        estimated source shading (module docstring)."""
+        out = self.outputs(image)
+        surface = out.surface
+        if dome is not None and dome.weight > 0:
+            if out.silhouette is None:
+                raise LasagnaError(
+                    "this estimator has no silhouette head; the dome prior needs one (train-surface --silhouette)",
+                    "dome",
+                )
+            surface = dome.apply(self.normals(surface), out.silhouette)
+        if out.shading is None:
             return surface, None
-        return surface, fit_light(self.normals(surface), shading)
+        return surface, fit_light(self.normals(surface), out.shading)
 
     @torch.no_grad()
-    def estimate_at(self, image: Tensor) -> tuple[Tensor, Tensor | None]:
+    def estimate_at(self, image: Tensor, dome: DomePrior | None = None) -> tuple[Tensor, Tensor | None]:
         """(unit normals (B, 3, H, W), source light (B, 3) or None) of ``image`` (B, 3, H, W) in [0, 1]: estimated
         at the working size (`lasagna.compose.resample.working_size`), the surface enlarged back to (H, W)
         (`lasagna.compose.surface.enlarge_surface`)."""
         full = tuple(image.shape[-2:])
         small = downsample(image, working_size(*full, self.config.working_size))
-        surface, light = self.estimate(small)
+        surface, light = self.estimate(small, dome)
         return self.normals(enlarge_surface(surface, full)), light

@@ -6,6 +6,7 @@ supervision: one geometry must shade right under all of them, as multi-view supe
 every view), compared with the true shading under the same lights::
 
     L = mean_k ‖S(n̂, l_k) − S(n, l_k)‖²  +  λ_n‖n̂ − n‖²  (+ ‖Ŝ_src − S(n, l_src)‖² + λ_l (1 − l̂_src·l_src) lit)
+        (+ λ_s BCE(ŝ, mask), an estimator with a silhouette head: where the objects are, for the dome prior)
 
 S = a + (1 − a)·max(0, n·l) (`lasagna.compose.surface.lambert`); lights l_k uniform in azimuth, elevation in
 [0°, ``MAX_TRAIN_ELEVATION``]. A ``"lit"`` estimator reads each scene lit by its own random source light
@@ -53,6 +54,9 @@ class SurfaceTrainConfig(LoopConfig):
     lights: int = Field(3, ge=1, le=16, description="random lights per scene and step (multi-light supervision)")
     normal_weight: float = Field(0.5, ge=0.0, description="λ_n: weight of the normals' own squared error")
     light_weight: float = Field(0.1, ge=0.0, description="λ_l: weight of the source light's cosine error (lit)")
+    silhouette_weight: float = Field(
+        0.1, ge=0.0, description="λ_s: weight of the silhouette head's cross-entropy against the objects' mask"
+    )
     split: str = Field("train", description="world split the training scenes come from")
     world_seed: int = Field(7, description="seed of the world split (scenes are (split, seed, index))")
     render_on: Literal["device", "cpu"] = Field(
@@ -90,13 +94,18 @@ def surface_loss(
     """The module docstring's L on one batch: ``scene`` (B scenes), ``source`` (B, 3) their source lights (lit
     input), ``lights`` (K·B, 3) the lights their estimate and truth are compared under (K per scene)."""
     b = len(scene)
-    surface, source_shading = net.decompose(estimator_input(config.net, scene, source).to(device))
+    out = net.outputs(estimator_input(config.net, scene, source).to(device))
+    surface, source_shading = out.surface, out.shading
     normals, truth = net.normals(surface), scene.normals.to(device)
     groups = lights.to(device).split(b)
     shading = sum(torch.nn.functional.mse_loss(lambert(normals, lk), lambert(truth, lk)) for lk in groups)
     shading = shading / len(groups)
     loss = shading + config.normal_weight * torch.nn.functional.mse_loss(normals, truth)
     metrics = {"shading_mse": float(shading.detach())}
+    if out.silhouette is not None:
+        bce = torch.nn.functional.binary_cross_entropy_with_logits(out.silhouette, scene.mask.to(device))
+        loss = loss + config.silhouette_weight * bce
+        metrics["silhouette_bce"] = float(bce.detach())
     if source_shading is not None and source is not None:
         src = source.to(device)
         source_mse = torch.nn.functional.mse_loss(source_shading, lambert(truth, src))

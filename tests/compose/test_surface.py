@@ -201,3 +201,71 @@ class TestFitLight:
         n = torch.from_numpy(random_normals(rng, b=1, h=4, w=4))
         s = lambert(n, light_vector(30, 40, dtype=F64)[None]).requires_grad_()
         assert torch.autograd.gradcheck(lambda t: fit_light(n, t), (s,))
+
+
+def bfs_regions(mask: np.ndarray) -> list[set]:
+    """The 8-connected regions of a 2-D boolean array, by breadth-first flood fill (the reference)."""
+    seen, regions = np.zeros_like(mask, dtype=bool), []
+    h, w = mask.shape
+    for r0 in range(h):
+        for c0 in range(w):
+            if not mask[r0, c0] or seen[r0, c0]:
+                continue
+            region, queue = set(), [(r0, c0)]
+            seen[r0, c0] = True
+            while queue:
+                r, c = queue.pop()
+                region.add((r, c))
+                for dr in (-1, 0, 1):
+                    for dc in (-1, 0, 1):
+                        rr, cc = r + dr, c + dc
+                        if 0 <= rr < h and 0 <= cc < w and mask[rr, cc] and not seen[rr, cc]:
+                            seen[rr, cc] = True
+                            queue.append((rr, cc))
+            regions.append(region)
+    return regions
+
+
+class TestDomePrior:
+    @settings(max_examples=40, deadline=None)
+    @given(st.integers(0, 2**31 - 1), st.floats(0.2, 0.8))
+    def test_regions_are_the_flood_fill_regions(self, seed, density):
+        from lasagna.compose.surface import label_regions
+
+        mask = np.random.default_rng(seed).random((2, 1, 9, 11)) < density
+        index = label_regions(torch.from_numpy(mask)).numpy()
+        for b in range(2):
+            want = bfs_regions(mask[b, 0])
+            got = [set(zip(*np.nonzero(index[b, 0] == k), strict=True)) for k in range(index[b, 0].max() + 1)]
+            assert sorted(map(sorted, got)) == sorted(map(sorted, want))
+            assert (index[b, 0][~mask[b, 0]] == -1).all()
+
+    def test_a_spiral_is_one_region(self):
+        from lasagna.compose.surface import label_regions
+
+        mask = np.zeros((9, 9), dtype=bool)
+        mask[0, :] = mask[:, 8] = mask[8, :] = mask[2:, 0] = mask[2, :7] = mask[2:7, 6] = mask[6, 2:7] = True
+        index = label_regions(torch.from_numpy(mask)[None, None])
+        assert index.max() == 0 and (index[0, 0][torch.from_numpy(mask)] == 0).all()
+
+    def test_domes_scale_the_height_and_stay_flat_outside(self):
+        from lasagna.compose.surface import dome_normals, inflate_regions, inflated_normals
+
+        yy, xx = np.mgrid[:21, :21]
+        index = torch.from_numpy(np.where((yy - 10) ** 2 + (xx - 10) ** 2 <= 49, 0, -1))[None, None]
+        torch.testing.assert_close(dome_normals(index, 1.0), inflated_normals(index), atol=0, rtol=0)
+        half = dome_normals(index, 0.5)
+        inside = index[0, 0] >= 0
+        want = normals_from_height(inflate_regions(index) * 0.5)
+        torch.testing.assert_close(half[..., inside], want[..., inside], atol=1e-12, rtol=0)
+        assert (half[0, 2][~inside] == 1).all()
+
+    def test_mixing_normals(self):
+        from lasagna.compose.surface import mix_normals
+
+        rng = np.random.default_rng(5)
+        a, b = (torch.from_numpy(random_normals(rng)) for _ in range(2))
+        torch.testing.assert_close(mix_normals(a, b, 0.0), a, atol=1e-12, rtol=0)
+        torch.testing.assert_close(mix_normals(a, b, 1.0), b, atol=1e-12, rtol=0)
+        half = (a + b).numpy()
+        torch.testing.assert_close(mix_normals(a, b, 0.5).numpy(), half / np.linalg.norm(half, axis=1, keepdims=True))

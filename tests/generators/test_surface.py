@@ -85,3 +85,27 @@ def test_estimate_at_enlarges_normals_to_unit_normals_facing_the_viewer():
     assert n.shape == (2, 3, 24, 40) and light.shape == (2, 3)
     torch.testing.assert_close(n.norm(dim=1), torch.ones(2, 24, 40), atol=1e-5, rtol=0)
     assert n[:, 2].min() > 0
+
+
+def test_the_dome_prior_needs_a_silhouette_head_and_mixes_in_domes():
+    from lasagna.generators.surface import DomePrior
+
+    plain = SurfaceEstimator(SurfaceConfig(input="albedo", **TOY))
+    with pytest.raises(LasagnaError, match="dome: this estimator has no silhouette head"):
+        plain.estimate(torch.rand(1, 3, 8, 8), DomePrior(weight=0.5))
+    assert plain.estimate(torch.rand(1, 3, 8, 8), DomePrior(weight=0.0))[0].shape == (1, 1, 8, 8)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", silhouette=True, **TOY))
+    out = net.outputs(torch.rand(2, 3, 8, 8))
+    assert out.silhouette.shape == (2, 1, 8, 8) and out.shading.shape == (2, 1, 8, 8)
+    _, light = net.estimate(torch.rand(1, 3, 8, 8), DomePrior(weight=0.5, height=1.0))
+    assert light.shape == (1, 3)
+    # A disc of positive logits: the flat estimate mixed half and half with its dome.
+    yy, xx = torch.meshgrid(torch.arange(15.0), torch.arange(15.0), indexing="ij")
+    logit = 5.0 - ((yy - 7) ** 2 + (xx - 7) ** 2).sqrt()
+    flat = torch.zeros(1, 3, 15, 15)
+    flat[:, 2] = 1.0
+    n = DomePrior(weight=0.5, height=1.0).apply(flat, logit[None, None])
+    torch.testing.assert_close(n.norm(dim=1), torch.ones(1, 15, 15), atol=1e-6, rtol=0)
+    assert n[0, 0, 7, 3] < -0.1 and n[0, 0, 7, 11] > 0.1  # the disc's left side leans left, its right side right
+    assert n[0, 1, 3, 7] > 0.1 and n[0, 1, 11, 7] < -0.1  # its top leans up (+y), its bottom down
+    assert torch.equal(n[0, :, 0, 0], torch.tensor([0.0, 0.0, 1.0]))  # outside: the estimate (flat)

@@ -91,3 +91,27 @@ def test_estimate_at_the_working_size():
     # Made at 6×8 (the aspect kept, long side 8): enlarged bilinearly, so it is smooth at full size.
     small = net(torch.nn.functional.interpolate(torch.rand(2, 3, 32, 48), size=(5, 8), mode="bilinear"))
     assert small.shape[-2:] == (5, 8)
+
+
+def test_a_silhouette_head_learns_where_the_objects_are():
+    """With ``silhouette=True`` the loss adds the head's cross-entropy against the objects' mask: on a fixed batch
+    Adam halves it, and the head's probabilities separate object pixels from wall pixels."""
+    config = toy(net=SurfaceConfig(input="albedo", silhouette=True, channels=(8, 16), blocks=1, working_size=16))
+    torch.manual_seed(0)
+    net = SurfaceEstimator(config.net)
+    scene = generate("val", 4, 1, 16)
+    rng = torch.Generator().manual_seed(0)
+    lights = random_lights(4 * config.lights, rng, (0.0, 75.0))
+    opt = torch.optim.Adam(net.parameters(), 3e-3)
+    first = None
+    for _ in range(200):
+        loss, metrics = surface_loss(net, config, scene, None, lights)
+        first = first or metrics["silhouette_bce"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert metrics["silhouette_bce"] < 0.5 * first
+    with torch.no_grad():
+        p = torch.sigmoid(net.outputs(scene.albedo).silhouette)
+    on, off = scene.mask > 0.5, scene.mask < 0.5
+    assert float(p[on].mean()) > float(p[off].mean()) + 0.3
