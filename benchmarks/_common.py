@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from lasagna.distill.objective import REC709
+from lasagna.compose.color import REC709
 from lasagna.document.condition import format_direction, named_direction
 from lasagna.priors.evaluate import psnr_db
 from lasagna.world import GLOW_VOCABULARY, VOCABULARY, render, sample_scenes
@@ -85,6 +85,17 @@ def psnr(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor | None = None) -> 
 def luma(x: torch.Tensor) -> torch.Tensor:
     r, g, b = REC709
     return r * x[:, 0:1] + g * x[:, 1:2] + b * x[:, 2:3]
+
+
+def colourfulness(x: torch.Tensor) -> float:
+    """Hasler & Süsstrunk's colourfulness M (2003) on 0–255 values, mean over images: 0 for a gray image,
+    ~15 "slightly", ~33 "moderately", ~45 "averagely colourful". PSNR cannot tell a colourisation from
+    leaving the image gray; this can."""
+    x = 255.0 * x.double()
+    rg, yb = x[:, 0] - x[:, 1], 0.5 * (x[:, 0] + x[:, 1]) - x[:, 2]
+    std = (rg.flatten(1).var(1, unbiased=False) + yb.flatten(1).var(1, unbiased=False)).sqrt()
+    mean = (rg.flatten(1).mean(1) ** 2 + yb.flatten(1).mean(1) ** 2).sqrt()
+    return float((std + 0.3 * mean).mean())
 
 
 def implied_shading(out: torch.Tensor, base: torch.Tensor) -> torch.Tensor:

@@ -51,6 +51,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _common import (  # noqa: E402
     add_labels,
+    colourfulness,
     darkening,
     glow_colour_error,
     implied_shading,
@@ -246,17 +247,6 @@ def refined(scene, preset, prior, corrective, folder: Path | None, steps: int) -
         scene,
         seconds,
     )
-
-
-def colourfulness(x: torch.Tensor) -> float:
-    """Hasler & Süsstrunk's colourfulness M (2003) on 0–255 values, mean over images: 0 for a gray image,
-    ~15 "slightly", ~33 "moderately", ~45 "averagely colourful". PSNR cannot tell a colourisation from
-    leaving the image gray; this can."""
-    x = 255.0 * x.double()
-    rg, yb = x[:, 0] - x[:, 1], 0.5 * (x[:, 0] + x[:, 1]) - x[:, 2]
-    std = (rg.flatten(1).var(1, unbiased=False) + yb.flatten(1).var(1, unbiased=False)).sqrt()
-    mean = (rg.flatten(1).mean(1) ** 2 + yb.flatten(1).mean(1) ** 2).sqrt()
-    return float((std + 0.3 * mean).mean())
 
 
 def color_run(method: str, omega: float, col, preset, prior, corrective, steps: int, seed: int) -> dict:

@@ -77,7 +77,7 @@ from lasagna.editing import EditPlan, plan_edit
 from lasagna.errors import LasagnaError, PathError, printable
 from lasagna.io.folder import SharedFiles, check_writable, swap_in
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
-from lasagna.learned import choose_method, make_layer, working_input
+from lasagna.learned import choose_method, layer_input, make_layer
 from lasagna.recipe import EditRequest, amortised_generator
 
 Status = Literal["done", "skipped", "failed"]
@@ -421,7 +421,7 @@ def _forward(todo, generators: dict[Path, LoadedGenerator], device) -> dict[int,
         try:
             if gen_dir not in generators:
                 generators[gen_dir] = LoadedGenerator.read(gen_dir, recipe.preset, device)
-            x = working_input(plan.conditioning, recipe.working_size, device)
+            x = layer_input(recipe, plan.conditioning, device)
         except Exception as exc:  # noqa: BLE001 - reported as that input's failure
             out[i] = (None, exc)
             continue

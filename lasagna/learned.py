@@ -115,6 +115,18 @@ def working_input(base: Tensor, side: int | None, device: str | torch.device = "
     return downsample(base.to(device)[None], working_size(*base.shape[-2:], side))
 
 
+def layer_input(recipe: Recipe, base: Tensor, device: str | torch.device = "cpu") -> Tensor:
+    """(1, 3, h, w): what ``recipe``'s layer is made from — ``base`` (3, H, W) at the working size, or, for a colour
+    over luminance (``LayerSpec.luminance`` "base"), its Rec. 709 luma as a gray image (the colorize task's input:
+    a colour photograph and its grayscale get the same layer)."""
+    from lasagna.compose.color import luma
+
+    x = working_input(base, recipe.working_size, device)
+    if _luminance(recipe) == "base":
+        x = luma(x).expand(-1, 3, -1, -1).contiguous()
+    return x
+
+
 def make_layer(
     recipe: Recipe,
     base: Tensor,
@@ -131,16 +143,18 @@ def make_layer(
     enlarged to the base's size (``lasagna.compose.resample``). Nothing is decided here.
 
     ``loaded`` is the recipe's generator already loaded (``LoadedGenerator.read``), and ``initial`` its output
-    (1, C, h, w) for this base at the working size (``working_input``), computed by the caller in a batch
+    (1, C, h, w) for this base at the working size (``layer_input``), computed by the caller in a batch
     (``lasagna.batch``); without them the generator is loaded and run here. ``callback(step, layer)`` is
     called before every per-image step (``lasagna.distill.distill_image``): a progress report for the editor
     (``lasagna.serve``), which cancels a run by raising from it."""
-    from lasagna.compose.resample import upsample
+    from lasagna.compose.color import luma
+    from lasagna.compose.resample import upsample, upsample_colour
 
     if recipe.kind == "surface":
         return _make_surface(recipe, base, device, callback)
     start = time.monotonic()
-    x = working_input(base, recipe.working_size, device)  # (1, 3, h, w)
+    x = layer_input(recipe, base, device)  # (1, 3, h, w)
+    over_luminance = _luminance(recipe) == "base"
     files: dict[str, bytes] = {}
     gen_ref = dict(recipe.stored) if recipe.stored is not None else None
     layer = None
@@ -167,7 +181,10 @@ def make_layer(
         layer, history, stopped = run.layer.float(), run.history, run.stopped_reason
     if layer is None:  # unreachable: an amortised run has its forward pass, a per-image run its optimisation
         raise LasagnaError(f"no layer was made (method {recipe.method!r}, steps {recipe.steps})", "make_layer")
-    layer = upsample(layer.detach(), tuple(base.shape[-2:]))  # a convex combination of in-range values: in range
+    if over_luminance:  # the colour follows the base's edges and carries its luma at full size
+        layer = upsample_colour(layer.detach(), luma(base.to(layer.device)[None].float()))
+    else:
+        layer = upsample(layer.detach(), tuple(base.shape[-2:]))  # a convex combination of in-range values: in range
     return LayerRun(
         layer=layer[0].cpu(),
         settings=settings,
@@ -177,6 +194,14 @@ def make_layer(
         history=history,
         stopped=stopped,
     )
+
+
+def _luminance(recipe: Recipe) -> str:
+    """Where the layer's luminance comes from (``LayerSpec.luminance``): the distillation settings' (recorded with a
+    layer, so a layer made before colour over luminance re-renders as it was made), else the preset's."""
+    if recipe.distill is not None:
+        return recipe.distill.layer.luminance
+    return recipe.preset.luminance
 
 
 def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
@@ -342,5 +367,6 @@ __all__ = [
     "conditioning_input",
     "default_steps",
     "make_layer",
+    "layer_input",
     "working_input",
 ]

@@ -42,6 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from lasagna.compose.color import luma
 from lasagna.distill.schedules import Weights
 from lasagna.errors import ConditionError, LasagnaError
 from lasagna.generators.layer import LayerSpec, composite
@@ -49,7 +50,6 @@ from lasagna.losses import DDS, LMCSDS, Diagnostics, ScoreLoss, get_loss
 from lasagna.priors.base import Condition, Prior
 
 ConditionImage = Literal["auto", "base", "luma", "none"]
-REC709 = (0.2126, 0.7152, 0.0722)  # the luma the colourisation prior is conditioned on (lasagna.world.tasks)
 # The letterbox bars: mid-gray, the value farthest from both ends of [0, 1], so the prior reads them as a
 # flat neutral border rather than as black or white content. They are constants: no gradient reaches them.
 LETTERBOX_FILL = 0.5
@@ -127,8 +127,7 @@ def conditioning_image(
     if mode == "none":
         return None
     if mode == "luma":
-        r, g, b = REC709
-        return (r * base_view[:, 0:1] + g * base_view[:, 1:2] + b * base_view[:, 2:3]).detach()
+        return luma(base_view).detach()
     return base_view.detach()
 
 

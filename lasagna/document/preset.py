@@ -53,6 +53,10 @@ METHODS: tuple[str, ...] = get_args(Method)
 Aspect = Literal["letterbox", "stretch"]
 ASPECTS: tuple[str, ...] = get_args(Aspect)
 
+# Where a layer's luminance comes from: its own values (``free``) or the base's Rec. 709 luma (``base``: colour over
+# luminance, the colour preset's; ``lasagna.generators.layer.composite`` and ``lasagna.compose.resample``).
+Luminance = Literal["free", "base"]
+
 # Floating-point types a diffusers prior may run in ("auto": float16 on CUDA, float32 elsewhere).
 TorchDtype = Literal["auto", "float32", "float16", "bfloat16"]
 TORCH_DTYPES: tuple[str, ...] = get_args(TorchDtype)
@@ -233,6 +237,13 @@ class Preset(StrictModel):
         "the image's resolution. None: made at the image's own size.",
     )
 
+    luminance: Luminance = Field(
+        "free",
+        description="'base': colour over luminance — the layer is made from the base's Rec. 709 luma (a gray image, as "
+        "the colorize task trains) and its colour carries that luma, so the composite keeps the input's luminance "
+        "and only its colour changes (blend normal only). 'free': the layer's values are its own.",
+    )
+
     layer_kind: LayerKind = Field(
         "free",
         description="The layer `lasagna edit` makes when not told: 'free' (a per-pixel multiplier) or 'surface' (a "
@@ -275,6 +286,12 @@ class Preset(StrictModel):
                 f"a surface renders a 1-channel multiplier; preset {self.name!r} has blend {self.blend!r} and "
                 f"{self.channels} channel(s): expected blend multiply, channels 1 for `surface`",
                 loc=("surface",),
+            )
+        if self.luminance == "base" and self.blend not in ("normal", "alpha-linear"):
+            raise RuleError(
+                f"luminance 'base' lays colour over the base's luminance with alpha-linear blending; preset "
+                f"{self.name!r} has blend {self.blend!r}: expected blend normal",
+                loc=("luminance",),
             )
         if self.layer_kind == "surface" and self.surface is None:
             raise RuleError("layer_kind 'surface' needs `surface` (its estimator); name one", loc=("surface",))

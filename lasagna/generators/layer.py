@@ -26,6 +26,11 @@ channel the colour starts at the middle of its range (sigmoid(0) = 0.5): at α =
 gradient, and α's first gradient is ∝ blend(Cb, Cs) − Cb, which would vanish if the colour started at
 the blend's own identity (a per-pixel dead lock; it remains only where the base equals the mid colour).
 
+**Colour over luminance** (``luminance="base"``, the colour preset's): the layer's colour is set to the base's
+Rec. 709 luma before it is blended (``lasagna.compose.color.set_luma``), so an alpha-linear layer changes only
+the composite's colour: Lum(Cb + α(C − Cb)) = Lum(Cb) for any α, as in the world's colorize task, whose true
+layer is the colour image over its own gray. Only its chroma (two degrees of freedom a pixel) is learned.
+
 **Composite.** ``composite(base, layer, spec)`` calls the compositor's blend function
 (``lasagna.compose.blend.BLEND_FUNC``) with no clamp: the graph stays differentiable everywhere (a
 clamp would zero the gradient of every saturated pixel, so a multiplier that overshoots could never
@@ -38,10 +43,11 @@ import math
 from typing import Literal
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_serializer, model_validator
 from torch import Tensor
 
 from lasagna.compose.blend import BLEND_FUNC
+from lasagna.compose.color import luma, set_luma
 from lasagna.document.blend import RANGED_BLENDS, BlendMode
 from lasagna.errors import LasagnaError
 from lasagna.numerics import IDENTITY_LOGIT, LOGIT_EPS
@@ -65,6 +71,17 @@ class LayerSpec(BaseModel):
     squash: Squash = Field(
         "auto", description="sigmoid, clamp (inward-gradient clamp) or auto (see the module docstring)."
     )
+    luminance: Literal["free", "base"] = Field(
+        "free", description="base: the colour is set to the base's luma (colour over luminance; blend normal only)."
+    )
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # "free" is every layer's before colour over luminance: left out, so settings recorded before it read the same.
+        data = handler(self)
+        if data.get("luminance") == "free":
+            del data["luminance"]
+        return data
 
     @model_validator(mode="after")
     def _rules(self) -> LayerSpec:
@@ -75,6 +92,10 @@ class LayerSpec(BaseModel):
             raise ValueError(
                 f"range [{lo}, {hi}] with blend {self.blend!r}: a range other than [0, 1] is allowed only for "
                 "multiply and plus"
+            )
+        if self.luminance == "base" and self.blend != "normal":
+            raise ValueError(
+                f"luminance 'base' with blend {self.blend!r}: expected blend normal (colour over luminance)"
             )
         if self.channels != 4:
             if self.blend == "normal":
@@ -93,7 +114,13 @@ class LayerSpec(BaseModel):
     @classmethod
     def from_preset(cls, preset, squash: Squash = "auto") -> LayerSpec:
         """The spec of a ``lasagna.document.Preset`` (blend, channels, range)."""
-        return cls(blend=preset.blend, channels=preset.channels, range=tuple(preset.range), squash=squash)
+        return cls(
+            blend=preset.blend,
+            channels=preset.channels,
+            range=tuple(preset.range),
+            squash=squash,
+            luminance=preset.luminance,
+        )
 
     @property
     def colour_channels(self) -> int:
@@ -224,6 +251,9 @@ def split(layer: Tensor, spec: LayerSpec) -> tuple[Tensor, Tensor | None]:
 
 
 def composite(base: Tensor, layer: Tensor, spec: LayerSpec) -> Tensor:
-    """The base (B, 3, H, W) with the layer blended over it, unclamped and differentiable in both."""
+    """The base (B, 3, H, W) with the layer blended over it, unclamped and differentiable in both (a colour over
+    luminance first set to the base's luma: module docstring)."""
     colour, alpha = split(layer, spec)
+    if spec.luminance == "base":
+        colour = set_luma(colour, luma(base))
     return BLEND_FUNC[spec.blend](base, colour, alpha)

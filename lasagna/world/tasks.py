@@ -46,6 +46,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
+from lasagna.compose.color import luma
 from lasagna.errors import LasagnaError
 from lasagna.world.lighting import format_direction
 from lasagna.world.params import SceneParams
@@ -54,8 +55,6 @@ from lasagna.world.splits import scene_rng
 
 Tensor = torch.Tensor
 
-REC709 = (0.2126, 0.7152, 0.0722)
-"""Rec. ITU-R BT.709 luma weights, applied to stored (sRGB-encoded) values as image editors do."""
 GLOW_FALLOFF = 1.0
 """d₀ of the point light's 1/(1 + (d/d₀)²) fall-off, in world units (the canvas is 2 units wide)."""
 
@@ -100,12 +99,6 @@ class Relighting:
     layer: Tensor
     scene: Scene
     source: Scene
-
-
-def luma(image: Tensor) -> Tensor:
-    """Rec. 709 luma (B, 1, H, W) of stored RGB values (B, 3, H, W)."""
-    r, g, b = REC709
-    return r * image[:, 0:1] + g * image[:, 1:2] + b * image[:, 2:3]
 
 
 def colorization(scene: Scene) -> Colorization:

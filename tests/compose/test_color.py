@@ -96,3 +96,30 @@ def test_derivatives_match_autograd():
     for f, df in ((srgb_to_linear, srgb_to_linear_derivative), (linear_to_srgb, linear_to_srgb_derivative)):
         (g,) = torch.autograd.grad(f(x).sum(), x)
         assert torch.allclose(df(x.detach()), g, rtol=1e-12, atol=0)
+
+
+def _set_luma_ref(c: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """W3C Compositing Level 1 SetLum/ClipColor (section 10.3) per pixel in float64, Rec. 709 weights."""
+    w = np.array([0.2126, 0.7152, 0.0722])
+    out = np.empty_like(c)
+    for i in range(c.shape[0]):
+        col = c[i] + (y[i] - w @ c[i])
+        lum, n, x = w @ col, col.min(), col.max()
+        if n < 0:
+            col = lum + (col - lum) * lum / (lum - n)
+        if x > 1:
+            col = lum + (col - lum) * (1 - lum) / (x - lum)
+        out[i] = col
+    return out
+
+
+def test_set_luma_is_setlum_with_rec709_weights():
+    from lasagna.compose.color import luma, set_luma
+
+    rng = np.random.default_rng(5)
+    c = rng.uniform(-0.5, 1.5, (500, 3))
+    y = rng.uniform(0.0, 1.0, 500)
+    got = set_luma(torch.from_numpy(c.T.reshape(3, 1, 500)), torch.from_numpy(y.reshape(1, 1, 500)))
+    np.testing.assert_allclose(got[:, 0].numpy().T, _set_luma_ref(c, y), atol=1e-12)
+    np.testing.assert_allclose(luma(got)[0, 0].numpy(), y, atol=1e-12)  # the luma asked for, exactly
+    assert float(got.min()) >= -1e-12 and float(got.max()) <= 1 + 1e-12  # in gamut

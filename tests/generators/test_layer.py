@@ -38,7 +38,8 @@ def np_composite(base: np.ndarray, layer: np.ndarray, blend: str) -> np.ndarray:
 class TestSpec:
     def test_from_presets(self):
         specs = {name: LayerSpec.from_preset(load_preset(LAYERS / name)) for name in PRESETS}
-        assert specs["shading"] == SHADING and specs["color"] == COLOR and specs["light"] == LIGHT
+        assert specs["shading"] == SHADING and specs["light"] == LIGHT
+        assert specs["color"] == COLOR.model_copy(update={"luminance": "base"})  # colour over luminance
 
     @pytest.mark.parametrize(
         "kwargs, match",
@@ -189,3 +190,25 @@ class TestComposite:
         v = torch.tensor([[[[0.2]], [[0.4]], [[0.6]], [[alpha]]]], requires_grad=True)
         composite(base, activate(v, COLOR), COLOR).sum().backward()
         assert torch.isfinite(v.grad).all()
+
+
+def test_colour_over_luminance_keeps_the_base_luma_for_any_alpha():
+    # Lum(Cb + α(SetLum(C, Lum(Cb)) − Cb)) = Lum(Cb): luma is linear and the colour carries the base's (float64).
+    spec = LayerSpec(blend="normal", channels=4, luminance="base")
+    rng = np.random.default_rng(7)
+    base = torch.from_numpy(rng.random((2, 3, 9, 7)))
+    layer = torch.from_numpy(rng.random((2, 4, 9, 7)))
+    out = composite(base, layer, spec)
+    w = torch.tensor([0.2126, 0.7152, 0.0722], dtype=torch.float64).view(1, 3, 1, 1)
+    torch.testing.assert_close((out * w).sum(1), (base * w).sum(1), atol=1e-12, rtol=0)
+    assert float((out - base).abs().max()) > 0.1  # the colour did change
+    free = composite(base, layer, LayerSpec(blend="normal", channels=4))
+    assert float(((free - base) * w).sum(1).abs().max()) > 0.1  # a free layer's luma is its own
+
+
+def test_colour_over_luminance_needs_normal_and_is_left_out_of_dumps_when_free():
+    with pytest.raises(ValueError, match="expected blend normal"):
+        LayerSpec(blend="multiply", channels=1, range=(0.0, 2.0), luminance="base")
+    assert "luminance" not in LayerSpec(blend="normal", channels=4).model_dump()  # settings recorded before read alike
+    assert LayerSpec(blend="normal", channels=4, luminance="base").model_dump()["luminance"] == "base"
+    assert LayerSpec.from_preset(load_preset(Path("layers/color"))).luminance == "base"
