@@ -5,8 +5,9 @@ Read: PNG (``lasagna.io.png``: 8/16-bit, bomb guards before decoding), JPEG (and
 phones write), WebP, BMP and TIFF. TIFF is read at its depth: 8-bit by Pillow, 16-bit gray by Pillow
 (exact), 16-bit RGB(A) and float by ``tifffile`` (Pillow keeps only the high byte of 16-bit RGB and
 reads float colour not at all); float values must lie in [0, 1] (a linear HDR TIFF is refused, not
-clipped). Every other format is refused unopened: Pillow is only ever asked for these plugins, so an
-EPS or PDF never reaches Ghostscript, whatever its file name says.
+clipped). A tagged image (an ICC profile: JPEG's APP2, PNG's iCCP, TIFF's InterColorProfile) is converted to
+sRGB at any depth (``lasagna.io.icc``). Every other format is refused unopened: Pillow is only ever asked for
+these plugins, so an EPS or PDF never reaches Ghostscript, whatever its file name says.
 
 Before any pixel is decoded the size is checked against ``max_pixels`` and the memory budget
 (``lasagna.limits``), from the header alone: width, height, samples per pixel and bytes per sample
@@ -19,7 +20,6 @@ made from them saves them losslessly.
 
 from __future__ import annotations
 
-import io
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +28,7 @@ import numpy as np
 
 from lasagna.atomic import open_regular
 from lasagna.errors import ImageError, LasagnaError
+from lasagna.io.icc import ICC_INTENT, codes_to_srgb, pil_to_srgb, png_icc_profile, wide_to_srgb
 from lasagna.io.png import DEFAULT_MAX_PIXELS, PNG_SIGNATURE, check_size, read_png, read_png_header
 from lasagna.io.png import decode_bytes as png_decode_bytes
 from lasagna.limits import check_memory, raster_bytes
@@ -186,6 +187,8 @@ def _read_tiff_wide(path: Path, where: str, max_pixels: int) -> RasterImage:
             _check_pixels(w, h, max_pixels, where, samples, sample_bytes)
             values = page.asarray()
             axes = page.axes
+            icc_tag = page.tags.get(34675)  # InterColorProfile
+            icc = bytes(icc_tag.value) if icc_tag is not None else None
     except LasagnaError:  # the size and budget refusals, as they are
         raise
     except Exception as exc:  # tifffile raises ValueError, TiffFileError, KeyError, … on files it cannot decode
@@ -193,7 +196,10 @@ def _read_tiff_wide(path: Path, where: str, max_pixels: int) -> RasterImage:
     if axes.startswith("S"):  # planar configuration: samples first
         values = np.moveaxis(values, 0, -1)
     bit_depth = 16 if values.dtype in (np.uint16, np.float32, np.float64) else 8
-    return RasterImage(*_as_rgb(_unit(values, where), where), bit_depth=bit_depth)
+    color, alpha = _as_rgb(_unit(values, where), where)
+    if icc:
+        color = wide_to_srgb(color, icc, where) if bit_depth == 16 else codes_to_srgb(color, icc, where)
+    return RasterImage(color, alpha, bit_depth=bit_depth)
 
 
 def _pillow():
@@ -273,60 +279,18 @@ def _read_pillow(path: Path, where: str, max_pixels: int) -> RasterImage:
     return RasterImage(*_as_rgb(_unit(codes, where), where), bit_depth=8)
 
 
-# The rendering intent of a tagged image's conversion to sRGB: perceptual, what viewers and Photoshop's "convert to
-# profile" use, so colours outside sRGB are compressed, not clipped where a matrix profile has a table for it.
-ICC_INTENT = "perceptual"
-
-
-def _profile_name(profile) -> str:
-    from PIL import ImageCms
-
-    try:
-        return " ".join(ImageCms.getProfileDescription(profile).split()) or "unnamed"
-    except (ImageCms.PyCMSError, OSError, ValueError):
-        return "unnamed"
-
-
 def as_seen(im, where: str):
     """A Pillow image as a viewer shows it: its EXIF orientation applied (``ImageOps.exif_transpose``) and, when it
-    carries an ICC profile, converted to sRGB (LittleCMS through ``PIL.ImageCms``, intent ``ICC_INTENT``), alpha
-    kept. Every image, read from a file or given to the API (``Stack.from_image``), passes through here, so a path
-    and its opened image give the same pixels. A profile that cannot be converted (a broken profile, a 16-bit or
-    float image, a colour space that is not the image's) is one warning, and the codes are read as sRGB."""
-    import warnings
-
-    from PIL import ImageCms, ImageOps
+    carries an ICC profile, converted to sRGB (``lasagna.io.icc.pil_to_srgb``: LittleCMS through ``PIL.ImageCms``,
+    intent ``ICC_INTENT``), alpha kept. Every image, read from a file or given to the API (``Stack.from_image``),
+    passes through here, so a path and its opened image give the same pixels. A profile that cannot be converted (a
+    broken profile, a 16-bit or float image, a colour space that is not the image's) is one warning, and the codes
+    are read as sRGB."""
+    from PIL import ImageOps
 
     im = ImageOps.exif_transpose(im)
     icc = im.info.get("icc_profile")
-    if not icc:
-        return im
-    try:
-        src = ImageCms.ImageCmsProfile(io.BytesIO(icc))
-    except (ImageCms.PyCMSError, OSError, ValueError) as exc:
-        warnings.warn(f"{where}: cannot read its ICC profile ({' '.join(str(exc).split())[:80]}); read as sRGB")
-        return im
-    name = _profile_name(src)
-    if im.mode == "P":
-        im = im.convert("RGBA" if "transparency" in im.info else "RGB")
-    if im.mode not in ("RGB", "RGBA", "L", "CMYK"):
-        warnings.warn(f"{where}: cannot convert its ICC profile {name!r} for a {im.mode} image; read as sRGB")
-        return im
-    intent = ImageCms.Intent[ICC_INTENT.upper()]
-    try:
-        out = ImageCms.profileToProfile(
-            im,
-            src,
-            ImageCms.createProfile("sRGB"),
-            renderingIntent=intent,
-            outputMode="RGBA" if im.mode == "RGBA" else "RGB",
-        )
-    except (ImageCms.PyCMSError, OSError, ValueError) as exc:
-        why = " ".join(str(exc).split())[:80]
-        warnings.warn(f"{where}: cannot convert its ICC profile {name!r} to sRGB ({why}); read as sRGB")
-        return im
-    out.info.pop("icc_profile", None)
-    return out
+    return pil_to_srgb(im, icc, where) if icc else im
 
 
 def _magic(p: Path, where: str) -> bytes:
@@ -383,7 +347,12 @@ def read_image_file(path: str | os.PathLike, *, max_pixels: int) -> RasterImage:
         if header.pixels <= max_pixels:
             check_memory(sum(png_decode_bytes(header)), f"decoding a {header.width}x{header.height} PNG", where)
         png = read_png(p, max_pixels=max_pixels)  # gray stays one channel, as stored
-        return RasterImage(png.color, png.alpha, 16 if png.header.bit_depth == 16 else 8)
+        depth = 16 if png.header.bit_depth == 16 else 8
+        icc = png_icc_profile(p, where)
+        if not icc:
+            return RasterImage(png.color, png.alpha, depth)
+        color = wide_to_srgb(png.color, icc, where) if depth == 16 else codes_to_srgb(png.color, icc, where)
+        return RasterImage(color, png.alpha, depth)
     if magic[:4] in _TIFF_MAGIC:  # tifffile's header first: Pillow would print to stderr on many samples
         w, h, samples, sample_bytes = _tiff_size(p, where)
         _check_pixels(w, h, max_pixels, where, samples, sample_bytes)
