@@ -109,15 +109,17 @@ def export_psd(stack: Stack, path: str | os.PathLike, **kwargs: Any) -> Path:
 
 
 def to_numpy(image):
-    """The composite as (H, W, 3) uint8 sRGB codes, clamped and rounded exactly as ``composite.png`` is
-    (``lasagna.io.render.composite_codes``). ``image``: a ``RenderResult``, an ``EditResult``, a ``Stack`` or
-    stack folder (rendered), or a (3, H, W) / (1, H, W) tensor of values in [0, 1]."""
+    """The composite as (H, W, 3) uint8 sRGB codes — (H, W, 4) for a transparent document's, with its alpha —
+    clamped and rounded exactly as ``composite.png`` is (``lasagna.io.render.composite_codes``). ``image``: a
+    ``RenderResult``, an ``EditResult``, a ``Stack`` or stack folder (rendered), or a (3, H, W) / (1, H, W)
+    tensor of values in [0, 1]."""
     if isinstance(image, (Stack, str, os.PathLike)):
         image = render(image)
+    if isinstance(image, EditResult):
+        image = image.composite if image.stack.document.canvas.background is not None else image._render()
+    alpha = None
     if isinstance(image, RenderResult):
-        image = image.image
-    elif isinstance(image, EditResult):
-        image = image.composite
+        image, alpha = image.image, image.alpha
     if not isinstance(image, torch.Tensor) or image.ndim != 3 or image.shape[0] not in (1, 3):
         got = tuple(image.shape) if isinstance(image, torch.Tensor) else type(image).__name__
         raise ImageError(
@@ -125,11 +127,15 @@ def to_numpy(image):
         )
     if bool(torch.isnan(image.detach()).any()):
         raise ImageError("the image contains NaN; expected finite values", where="to_pil")
-    return composite_codes(image.expand(3, *image.shape[-2:])).permute(1, 2, 0).contiguous().numpy()
+    planes = image.expand(3, *image.shape[-2:])
+    if alpha is not None and alpha.ndim == 3:
+        planes = torch.cat([planes, alpha])
+    return composite_codes(planes).permute(1, 2, 0).contiguous().numpy()
 
 
 def to_pil(image):
-    """The composite as an 8-bit RGB PIL image (``to_numpy``'s codes)."""
+    """The composite as an 8-bit RGB PIL image, RGBA for a transparent document's (``to_numpy``'s codes)."""
     from PIL import Image
 
-    return Image.fromarray(to_numpy(image), "RGB")
+    codes = to_numpy(image)
+    return Image.fromarray(codes, "RGBA" if codes.shape[2] == 4 else "RGB")

@@ -11,7 +11,8 @@ target cannot express exactly:
   would not compose to one, so alpha × mask × opacity is first baked into the values: over an
   opaque backdrop Cb + α(Cb·y − Cb) = Cb·g with g = 1 + α(y − 1), written as an opaque pair of g
   (exact for any α; the price is that the file's opacity slider no longer scales that layer).
-  d is chosen per pixel as the 8-bit code whose 1/(1 − d) is nearest y, not the code nearest d.
+  d is chosen per pixel as the code of the file's depth (8 or 16 bits) whose 1/(1 − d) is nearest y, not the code
+  nearest d.
 * Paint programs blend "plus" (Krita's Addition, Photoshop's Linear Dodge) as
   Cb + α(min(1, Cb + Cs) − Cb), clamping inside the blend; the W3C plus is min(1, Cb + α·Cs). The
   two differ where Cb + Cs > 1 and 0 < α < 1, so a plus layer with fractional alpha × mask ×
@@ -74,9 +75,10 @@ COMPOSITE_NAME = "Composite (exact)"  # "normal" | "multiply" | "plus" | "screen
 # Rows of a raster turned into codes at a time: 64 rows of an 8192-wide layer are 16 MiB of float64 RGBA.
 BAND_ROWS = 64
 
-# What a file stores of a band of a layer's values y (C, rows, w) and alpha × mask α (1, rows, w), float64, when it
-# is not the values themselves (baked alpha, dodge codes, a plus layer's parts); clamped to [0, 1] afterwards.
-Values = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+# What a file of ``depth`` bits stores of a band of a layer's values y (C, rows, w) and alpha × mask α (1, rows, w),
+# float64, when it is not the values themselves (baked alpha, dodge codes, a plus layer's parts); clamped to [0, 1]
+# afterwards.
+Values = Callable[[np.ndarray, np.ndarray, int], tuple[np.ndarray, np.ndarray]]
 
 
 @dataclass
@@ -104,20 +106,21 @@ class ExportLayer:
     def width(self) -> int:
         return int(self.color.shape[2])
 
-    def rgba(self, r0: int = 0, r1: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Rows ``r0:r1`` as the file stores them: (colour (3, rows, w), alpha (1, rows, w)) float64 in [0, 1]."""
+    def rgba(self, r0: int = 0, r1: int | None = None, depth: BitDepth = 8) -> tuple[np.ndarray, np.ndarray]:
+        """Rows ``r0:r1`` as a file of ``depth`` bits stores them: (colour (3, rows, w), alpha (1, rows, w)) float64
+        in [0, 1]."""
         r1 = self.height if r1 is None else r1
         c = np.asarray(self.color[:, r0:r1], dtype=np.float64)
         a = np.ones((1, *c.shape[1:])) if self.alpha is None else np.asarray(self.alpha[:, r0:r1], dtype=np.float64)
         if self.values is not None:
-            c, a = self.values(c, a)
+            c, a = self.values(c, a, depth)
         c = np.broadcast_to(c, (3, *c.shape[1:]))
         return np.clip(c, 0.0, 1.0), np.clip(a, 0.0, 1.0)
 
     def bands(self, depth: BitDepth = 8, rows: int = BAND_ROWS):
         """(rows, w, 4) codes from the top: uint8, or uint16 for ``depth`` 16 (rounded to nearest)."""
         for r0 in range(0, self.height, rows):
-            c, a = self.rgba(r0, min(self.height, r0 + rows))
+            c, a = self.rgba(r0, min(self.height, r0 + rows), depth)
             yield quantize_band(np.concatenate([c, a]).transpose(1, 2, 0), depth)
 
     def rgba_codes(self, depth: BitDepth = 8) -> np.ndarray:
@@ -208,13 +211,14 @@ def _crop(color, alpha, x, y, W, H):
     return color[sl], None if alpha is None else alpha[sl], x0, y0
 
 
-def dodge_codes(y: np.ndarray) -> np.ndarray:
-    """Colour-dodge values d (multiples of 1/255) whose 255/(255 − 255d) is nearest y ≥ 1."""
+def dodge_codes(y: np.ndarray, depth: int = 8) -> np.ndarray:
+    """Colour-dodge values d (multiples of 1/m, m = 2^depth − 1) whose m/(m − m·d) is nearest y ≥ 1."""
+    m = float(2**depth - 1)
     y = np.maximum(y, 1.0)
-    q0 = np.clip(np.floor(255.0 * (1.0 - 1.0 / y)), 0, 253)
-    gain = lambda q: 255.0 / (255.0 - q)  # noqa: E731
+    q0 = np.clip(np.floor(m * (1.0 - 1.0 / y)), 0, m - 2)
+    gain = lambda q: m / (m - q)  # noqa: E731
     q = np.where(np.abs(gain(q0 + 1) - y) < np.abs(gain(q0) - y), q0 + 1, q0)
-    return q / 255.0
+    return q / m
 
 
 def background_layer(stack) -> ExportLayer | None:
@@ -392,7 +396,7 @@ class _Walk:
                 # Over an opaque backdrop a multiply with alpha is a multiply by the gain
                 # g = 1 + α(y − 1): bake α into the values, so the pair is exact for any α.
                 gain = _gain(opacity)
-                dodge = _gain(opacity, dodge_codes)
+                dodge = _gain(opacity, dodge=True)
                 common.update(opacity=1.0)
             out.append(ExportLayer(layer.name, layer.id, "multiply", color=color, alpha=alpha, values=gain, **common))
             if above_one:
@@ -466,25 +470,25 @@ def _fractional(alpha: np.ndarray | None, opacity: float) -> bool:
     return not bool(np.isin(alpha, (0.0, 1.0)).all())
 
 
-def _gain(opacity: float, then: Callable[[np.ndarray], np.ndarray] | None = None) -> Values:
+def _gain(opacity: float, dodge: bool = False) -> Values:
     """A multiply layer's values with its α = alpha × mask × opacity baked in: the gain g = 1 + α(y − 1), opaque
-    (``then`` maps g, e.g. to its dodge codes)."""
+    (``dodge``: g's colour-dodge codes)."""
 
-    def values(c: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def values(c: np.ndarray, a: np.ndarray, depth: int) -> tuple[np.ndarray, np.ndarray]:
         g = 1.0 + (a * opacity) * (c - 1.0)
-        return (g if then is None else then(g)), np.ones_like(a)
+        return (dodge_codes(g, depth) if dodge else g), np.ones_like(a)
 
     return values
 
 
-def _dodge(c: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return dodge_codes(c), a
+def _dodge(c: np.ndarray, a: np.ndarray, depth: int) -> tuple[np.ndarray, np.ndarray]:
+    return dodge_codes(c, depth), a
 
 
 def _plus_part(k: int, baked: float | None) -> Values:
     """Part k of a plus layer, min(max(y − k, 0), 1); ``baked``: the opacity, with α baked in (y' = α·y, opaque)."""
 
-    def values(c: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def values(c: np.ndarray, a: np.ndarray, depth: int) -> tuple[np.ndarray, np.ndarray]:
         if baked is None:
             return c - k, a
         return (a * baked) * c - k, np.ones_like(a)

@@ -414,3 +414,61 @@ def test_gimp_flattens_a_surface_layer(tmp_path):
     err = np.abs(flat - expected)
     print(f"\nGIMP, surface layer: max {err.max()}/255")
     assert err.max() <= 3
+
+
+# ---- transparent documents and 16-bit PSDs ----------------------------------------------------------------
+
+
+def _transparent_stack(folder: Path) -> Path:
+    """A transparent document: a base with a soft alpha and a hole, a normal layer with alpha, a screen layer."""
+    g = torch.Generator().manual_seed(21)
+    H, W = 48, 64
+    codes = lambda *shape: torch.randint(0, 256, shape, generator=g) / 255.0  # noqa: E731
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, H), torch.linspace(-1, 1, W), indexing="ij")
+    alpha = (1.3 - (xx**2 + yy**2).sqrt()).clamp(0, 1)[None]
+    stack = Stack.from_image(codes(3, H, W), id="base", alpha=torch.round(alpha * 255) / 255)
+    assert stack.document.canvas.background is None
+    stack.add_layer("paint", codes(4, 20, 30), opacity=0.8, offset=(30, 4))
+    stack.add_layer("haze", codes(3, 16, 20) * 0.6, blend="screen", offset=(8, 26))
+    stack.save(folder)
+    return folder
+
+
+@pytest.mark.krita
+@pytest.mark.skipif(
+    not (KRITA and XVFB), reason="krita and xvfb-run are not installed (apt-get install krita xvfb xauth)"
+)
+def test_krita_flattens_the_ora_of_a_transparent_document_with_its_alpha(tmp_path):
+    from tests.support.reference import composite_reference_rgba
+
+    folder = _transparent_stack(tmp_path / "stack")
+    assert main(["export", str(folder), "--ora", str(tmp_path / "in.ora")]) == 0
+    proc = _krita_flatten(tmp_path / "in.ora", tmp_path / "flat.png")
+    assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
+    with Image.open(tmp_path / "flat.png") as im:
+        flat = np.asarray(im.convert("RGBA")).astype(float)
+    color, alpha = composite_reference_rgba(folder)
+    # Premultiplied codes: the colour of a pixel counts as much as its alpha (Krita stores straight colour too).
+    ours = np.dstack([color.transpose(1, 2, 0) * alpha[0][..., None], alpha[0]]) * 255
+    theirs = np.dstack([flat[..., :3] * flat[..., 3:] / 255, flat[..., 3]])
+    err = np.abs(theirs - ours)
+    print(f"\nKrita, transparent document: max {err.max():.1f}/255 (premultiplied), alpha max {err[..., 3].max():.1f}")
+    assert err[..., 3].max() <= 1 and err.max() <= 3
+    assert (flat[0, 0, 3] == 0) and (flat[24, 32, 3] == 255)
+
+
+@pytest.mark.gimp
+@pytest.mark.skipif(not GIMP, reason="gimp is not installed (apt-get install gimp)")
+def test_gimp_flattens_our_16_bit_psd(tmp_path):
+    folder = _app_stack(tmp_path / "stack")
+    assert main(["export", str(folder), "--psd", str(tmp_path / "in.psd"), "--depth", "16"]) == 0
+    proc = _gimp_flatten(tmp_path / "in.psd", tmp_path / "flat.png")
+    assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
+    import png as pypng  # GIMP keeps the image's precision: a 16-bit PNG, read exactly (Pillow drops the low byte)
+
+    w, h, rows, info = pypng.Reader(filename=str(tmp_path / "flat.png")).asRGB()
+    flat = np.vstack([np.asarray(r, dtype=np.float64) for r in rows]).reshape(h, w, 3) / (2 ** info["bitdepth"] - 1)
+    assert info["bitdepth"] == 16
+    err = np.abs(flat - composite_reference(folder).transpose(1, 2, 0)) * 255
+    print(f"\nGIMP vs reference, 16-bit PSD: max {err.max():.2f}/255, dodge-pair region {err[:, :48].max():.2f}/255")
+    assert err.max() <= 3 and err[:, :48].max() <= 1

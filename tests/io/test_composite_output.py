@@ -117,3 +117,14 @@ class TestTransparentDocument:
         assert result.alpha is None
         codes, _ = read_codes(encode_composite(result))
         assert codes.shape[2] == 3
+
+
+def test_the_api_gives_a_transparent_composite_as_rgba_codes():
+    """``lasagna.to_numpy`` / ``to_pil`` of a transparent document's render: the codes composite.png holds."""
+    from lasagna.api import to_numpy, to_pil
+
+    result = render_stack(shaded_stack(True))
+    codes, _ = read_codes(encode_composite(result))
+    got = to_numpy(result)
+    assert got.shape == (H, W, 4) and np.array_equal(got.astype(np.int64), codes)
+    assert to_pil(result).mode == "RGBA" and to_pil(render_stack(shaded_stack(False))).mode == "RGB"
