@@ -42,7 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--init-from",
         default=None,
-        help="start from this saved prior's weights (its architecture replaces --channels etc.)",
+        help="start from this saved prior's weights (its architecture replaces --channels etc.): a prior folder or "
+        "a catalogue name (e.g. relight-32)",
     )
     p.add_argument(
         "--init-labels",
@@ -72,6 +73,10 @@ def run(args: argparse.Namespace) -> int:
     unet = unet_config_for(
         args.task, args.resolution, channels, args.res_blocks, args.attention, args.prediction, args.directions
     )
+    if args.init_from is not None and "/" not in args.init_from and not Path(args.init_from).is_dir():
+        from lasagna.catalogue import find
+
+        args.init_from = str(find(args.init_from, "prior"))  # a catalogue name: its folder (outside a checkout too)
     unet = run_unet_config(args.task, unet, args.init_from, args.init_labels)
     config = PriorTrainConfig(
         task=args.task,
