@@ -576,10 +576,28 @@ def measure_adjustments(size: int, reps: int, res: dict) -> None:
     normal = [RenderLayerSpec(id=f"n{i}", tensors=LayerTensors(grid(g, 3, size, size)), opacity=0.8) for i in range(10)]
     plan_a = compile_plan([base, *adjust], (size, size))
     plan_n = compile_plan([base, *normal], (size, size))
+    from lasagna.compose import lut
+
+    lut._cache.clear()
+    t0 = time.perf_counter()
+    render(plan_a, out=out)  # the first render bakes and checks the lattices (compose/lut.py), then they are cached
+    t_first = time.perf_counter() - t0
+    runs = {
+        plan_a.steps[j].spec.id: plan_a.steps[k - 1].spec.id
+        for j, (k, _) in lut.lattice_runs(plan_a, 0, len(plan_a.steps), torch.float32).items()
+    }
     t_a = median_time(lambda: render(plan_a, out=out), reps)
     t_n = median_time(lambda: render(plan_n, out=out), reps)
-    res.update(adjust10_s=t_a, normal10_s=t_n, adjust10_vs_normal10=t_a / t_n, adjust_ms=adjust_ms)
+    res.update(
+        adjust10_s=t_a,
+        normal10_s=t_n,
+        adjust10_vs_normal10=t_a / t_n,
+        adjust_ms=adjust_ms,
+        adjust10_first_s=t_first,
+        adjust10_lattice_runs=runs,
+    )
     log(f"[adjust] ten adjustment layers: {t_a * 1e3:.1f} ms, ten normal layers: {t_n * 1e3:.1f} ms")
+    log(f"[adjust] first render (bakes the lattices) {t_first:.2f} s; runs read from a lattice: {runs}")
     log(f"[adjust] cost over the base, ms: {adjust_ms}")
 
 

@@ -27,6 +27,7 @@ from lasagna.compose.blend import KERNELS
 from lasagna.compose.color import linear_to_srgb, srgb_to_linear
 from lasagna.compose.fused import kernel_inplace
 from lasagna.compose.group import _children, apply_group, unpremultiply
+from lasagna.compose.lut import apply_lattice, lattice_runs
 from lasagna.compose.plan import RenderPlan
 from lasagna.compose.step import _adjusted, _alpha, _clamp, _clamp_, _color
 from lasagna.errors import LasagnaError
@@ -90,7 +91,8 @@ def run_fast(
     ``begin``) or, when ``source`` is None, the background. Before step ``switch_at[k]`` the band is
     copied into ``buffers[k + 1]`` and compositing continues there, so each earlier buffer keeps the
     canvas as it was before that step (the prefix cache's snapshots). ``post`` applies the output
-    clamp and sRGB encoding to the last buffer.
+    clamp and sRGB encoding to the last buffer. A run of adjustment layers that ``lut.lattice_runs`` bakes is read
+    from its lattice, once per band.
     """
     tune_heap()  # band-sized temporaries stay on the heap (lasagna/heap.py: up to 10× per W3C mode)
     steps = plan.steps[begin:end]
@@ -107,10 +109,12 @@ def run_fast(
         and (not switch_at or switch_at[0] > begin)
     )
     rows = rows_per_band(plan, TILE_PIXELS)
+    lattices = lattice_runs(plan, begin, end, dtype, switch_at)
     with torch.no_grad():
         for r0 in range(0, H, rows):
             r1 = min(H, r0 + rows)
             k = 0
+            after = begin  # the step after a lattice run being skipped
             cur = buffers[0][..., r0:r1, :]
             if source is not None:
                 cur.copy_(source[..., r0:r1, :])
@@ -120,6 +124,13 @@ def run_fast(
                 while k < len(switch_at) and switch_at[k] == j:
                     k += 1
                     cur = buffers[k][..., r0:r1, :].copy_(cur)
+                if j < after:
+                    continue
+                if j in lattices:  # full-canvas steps: the whole band through the run's lattice (lut.py)
+                    after, atlas = lattices[j]
+                    for c in cur.view(-1, *cur.shape[-3:]):
+                        c.copy_(apply_lattice(atlas, c))
+                    continue
                 if step.y0 >= r1 or step.y1 <= r0:
                     continue
                 a0, a1 = max(step.y0, r0), min(step.y1, r1)
