@@ -1,18 +1,19 @@
 """OpenRaster (.ora) export (the import half is ``lasagna.export.ora_import``).
 
-The file (OpenRaster spec, https://www.openraster.org/baseline/file-layout-spec.html) is a zip whose
-*first* entry is ``mimetype``, stored uncompressed, reading exactly ``image/openraster``; then
-``stack.xml`` (``<image w h><stack>`` with layers **topmost first**, each ``<layer name src x y
-opacity visibility composite-op>``), ``data/*.png`` (8-bit RGBA, what every reader supports),
-``mergedimage.png`` (our exact composite) and ``Thumbnails/thumbnail.png`` (at most 256×256). Blends
-map to ``svg:src-over`` (normal), ``svg:plus``, ``svg:<name>`` for every W3C mode the OpenRaster spec
-names (``svg:multiply``, ``svg:overlay``, …, ``svg:luminosity``) and Krita's ``krita:<id>`` for exclusion
-and Photoshop's modes (``KRITA_OPS``: what Krita writes and reads; it reads ``svg:exclusion`` as normal);
-values a reader cannot blend directly are expressed as in :mod:`lasagna.export.rasters` (multiplier y > 1 as
-a multiply + ``svg:color-dodge`` pair). A bottom background layer makes the file flatten to our opaque composite;
-a transparent document (``canvas.background`` null) has none, and its merged image and thumbnail are RGBA.
-Alpha × mask is baked into each PNG's alpha, opacity into ``opacity``. Layers are encoded a band of rows at a
-time (``ExportLayer.bands``), so no layer is held as floats beside its own pixels.
+The file (OpenRaster spec, https://www.openraster.org/baseline/file-layout-spec.html) is a zip whose *first* entry
+is ``mimetype``, stored uncompressed, reading exactly ``image/openraster``; then ``stack.xml`` (``<image w
+h><stack>`` with layers **topmost first**, each ``<layer name src x y opacity visibility composite-op>``),
+``data/*.png`` (8-bit, in the fewest channels that hold the layer: gray for a multiplier, RGB for an opaque layer,
+else with alpha; every reader opens any PNG), ``mergedimage.png`` (our exact composite) and
+``Thumbnails/thumbnail.png`` (at most 256×256). Blends map to ``svg:src-over`` (normal), ``svg:plus``,
+``svg:<name>`` for every W3C mode the OpenRaster spec names (``svg:multiply``, ``svg:overlay``, …,
+``svg:luminosity``) and Krita's ``krita:<id>`` for exclusion and Photoshop's modes (``KRITA_OPS``: what Krita writes
+and reads; it reads ``svg:exclusion`` as normal); values a reader cannot blend directly are expressed as in
+:mod:`lasagna.export.rasters` (multiplier y > 1 as a multiply + ``svg:color-dodge`` pair). A bottom background layer
+makes the file flatten to our opaque composite; a transparent document (``canvas.background`` null) has none, and
+its merged image and thumbnail are RGBA. Alpha × mask is baked into each PNG's alpha, opacity into ``opacity``.
+Layers are encoded a band of rows at a time (``ExportLayer.bands``), so no layer is held as floats beside its own
+pixels.
 
 Groups are nested ``<stack>`` elements (``isolation="isolate"`` for an isolated group with its
 composite-op and opacity, ``"auto"`` for a pass-through one), their layers at canvas offsets, as Krita
@@ -204,7 +205,10 @@ def encode_ora(
     tree = krita_clip_stacks(layers)
     entries: list[tuple[str, bytes]] = [("stack.xml", _stack_xml(stack.width, stack.height, tree).encode("utf-8"))]
     for layer in leaves(layers):
-        entries.append((f"data/{layer.key}.png", encode_bands(layer.bands(8), layer.width, layer.height)))
+        # The fewest channels that hold the layer (gray for a multiplier, no alpha where it has none): every
+        # OpenRaster reader opens any PNG, and a 12 MP multiplier is then 12 MB to deflate instead of 48.
+        data = encode_bands(layer.bands(8, fit=True), layer.width, layer.height)
+        entries.append((f"data/{layer.key}.png", data))
     if merged_png is None:
         merged_png = encode_composite(result, "mergedimage.png")
     entries.append(("mergedimage.png", merged_png))

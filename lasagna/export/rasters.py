@@ -117,11 +117,23 @@ class ExportLayer:
         c = np.broadcast_to(c, (3, *c.shape[1:]))
         return np.clip(c, 0.0, 1.0), np.clip(a, 0.0, 1.0)
 
-    def bands(self, depth: BitDepth = 8, rows: int = BAND_ROWS):
-        """(rows, w, 4) codes from the top: uint8, or uint16 for ``depth`` 16 (rounded to nearest)."""
+    @property
+    def channels(self) -> int:
+        """The fewest PNG channels that hold the layer exactly: gray for a 1-channel multiplier (its transforms are
+        per element), RGB for colour, and alpha unless the layer has none (then every value's alpha is 1)."""
+        return (1 if self.color.shape[0] == 1 else 3) + (0 if self.alpha is None else 1)
+
+    def bands(self, depth: BitDepth = 8, rows: int = BAND_ROWS, *, fit: bool = False):
+        """(rows, w, 4) codes from the top: uint8, or uint16 for ``depth`` 16 (rounded to nearest); ``fit``:
+        (rows, w, ``channels``) instead, the same values in fewer channels (what an OpenRaster layer PNG holds)."""
         for r0 in range(0, self.height, rows):
             c, a = self.rgba(r0, min(self.height, r0 + rows), depth)
-            yield quantize_band(np.concatenate([c, a]).transpose(1, 2, 0), depth)
+            if fit:
+                c = c[:1] if self.color.shape[0] == 1 else c
+                planes = c if self.alpha is None else np.concatenate([c, a])
+            else:
+                planes = np.concatenate([c, a])
+            yield quantize_band(planes.transpose(1, 2, 0), depth)
 
     def rgba_codes(self, depth: BitDepth = 8) -> np.ndarray:
         """(h, w, 4) codes of the whole layer, uint8 or (``depth`` 16) uint16, filled a band at a time."""
