@@ -88,3 +88,29 @@ def test_cli_edit_surface_and_from(catalogue, tmp_path, capsys, monkeypatch):
     assert doc["layers"][-1]["kind"] == "surface" and doc["layers"][-1]["source_light"] == "left"
     assert main([*argv, "--from", "left", "-o", str(tmp_path / "out2")]) == 2
     assert "expected --layer-kind surface" in capsys.readouterr().err
+
+
+def test_a_dome_preset_mixes_in_the_silhouettes_domes(tiny, tmp_path_factory):
+    """A preset with ``dome_weight`` > 0 and an estimator with a silhouette head: the layer records the prior, its
+    surface differs from the estimate alone, and an estimator without the head is refused in one line."""
+    from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
+
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("dome") / "layers")
+    torch.manual_seed(12)
+    net = SurfaceEstimator(SurfaceConfig(input="albedo", silhouette=True, channels=(4, 8), blocks=1, working_size=16))
+    with torch.no_grad():
+        net.head.weight.normal_(0.0, 0.3)
+        net.head.bias[-1] = 0.5  # most pixels on an object: regions to inflate
+    net.save_pretrained(folder / "surface-dome-16")
+    plain = {**SURFACE, "estimator": "surface-dome-16"}
+    write_preset(folder, "shading", surface=plain, layer_kind="surface")
+    alone = edit(image(), "shading", "left", catalogue_dirs=[folder])
+    write_preset(folder, "shading", surface={**plain, "dome_weight": 0.5, "dome_height": 0.5}, layer_kind="surface")
+    domed = edit(image(), "shading", "left", catalogue_dirs=[folder])
+    made_by = domed.stack.document.layer(domed.layer_id).made_by
+    assert (made_by["dome_weight"], made_by["dome_height"]) == (0.5, 0.5)
+    assert "dome_weight" not in alone.stack.document.layer(alone.layer_id).made_by
+    assert float((domed.layer - alone.layer).abs().max()) > 0.01
+    write_preset(folder, "shading", surface={**SURFACE, "dome_weight": 0.5}, layer_kind="surface")
+    with pytest.raises(LasagnaError, match="dome: this estimator has no silhouette head"):
+        edit(image(), "shading", "left", catalogue_dirs=[folder])
