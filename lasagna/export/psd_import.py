@@ -469,7 +469,7 @@ def _tensor(x: np.ndarray):
 
 def _opaque_base(layers: list[dict], stack_tensors: dict, width: int, height: int) -> bool:
     """Whether the bottom visible layer covers the canvas opaquely with blend normal (the canvas is then
-    opaque from it on, as a stack's is, and no wrapping group is needed)."""
+    opaque from it on: the document keeps an opaque background; otherwise it is a transparent document)."""
     for entry in layers:
         if not entry["visible"]:
             continue
