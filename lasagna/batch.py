@@ -409,12 +409,12 @@ class _Run:
 def _forward(todo, generators: dict[Path, LoadedGenerator], device) -> dict[int, tuple[Any, Any]]:
     """The amortised generator's outputs at the working size for the planned inputs of one chunk, one
     forward pass per (generator, label, shape) group: index → (loaded generator, (1, C, h, w)); (None, None)
-    for a per-image plan; (None, the exception) for an input whose generator could not be loaded."""
+    for a per-image plan or a surface; (None, the exception) for an input whose generator could not be loaded."""
     out: dict[int, tuple[Any, Any]] = {}
     groups: dict[tuple, list[tuple[int, torch.Tensor]]] = {}
     for i, plan, _ in todo:
         recipe = plan.recipe
-        if recipe.method != "amortised":
+        if recipe.method != "amortised" or recipe.kind == "surface":  # a surface is its estimator's (make_layer)
             out[i] = (None, None)
             continue
         gen_dir = recipe.generator

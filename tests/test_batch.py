@@ -25,6 +25,7 @@ from lasagna.batch import collect_inputs, edit_many, is_complete, output_names, 
 from lasagna.cli import main
 from lasagna.editing import edit
 from lasagna.errors import LasagnaError, PathError
+from lasagna.recipe import EditRequest
 from tests.support.bounded import HANG_SECONDS
 from tests.support.tinylayers import ROOT
 
@@ -224,7 +225,15 @@ def test_refusals_before_any_work(tmp_path):
 # ---- equal to one at a time -----------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("options", [dict(generator="amortised"), dict(generator="free", optimize=2)])
+# A surface layer (the shading preset's default kind) is made by its estimator, never the generator's batched pass.
+@pytest.mark.parametrize(
+    "options",
+    [
+        dict(generator="amortised"),
+        dict(generator="free", optimize=2),
+        dict(request=EditRequest(preset="shading", condition="top", layer_kind="surface")),
+    ],
+)
 def test_equals_edit_one_at_a_time(tmp_path, options):
     images = _images(tmp_path / "in", 3) + _images(tmp_path / "other", 1, size=(20, 9))
     report = edit_many(images, "shading", "top", tmp_path / "many", **options)
