@@ -1,9 +1,10 @@
 """The learned-layer catalogue ships in the wheel: build it, install it apart from the checkout, load presets.
 
-The wheel is built from a copy of the sources (pyproject.toml, README.md, LICENSE, lasagna/, layers/) so the
-checkout gets no build/ or egg-info; it is installed with ``pip install --no-deps --target`` and
-imported from a temporary folder in a fresh interpreter, with ``LASAGNA_LAYERS`` unset — the checkout
-is not importable there, so the presets can only come from the installed package (``lasagna/_layers``).
+The wheel is built from a copy of the sources (``tests.support.wheel.build_wheel``); it is installed with
+``pip install --no-deps --target`` and imported from a temporary folder in a fresh interpreter, with
+``LASAGNA_LAYERS`` unset — the checkout is not importable there, so the presets can only come from the
+installed package (``lasagna/_layers``). Every README command run from the wheel installed by name into a fresh
+venv is ``tests/test_readme_installed.py`` (slow).
 """
 
 from __future__ import annotations
@@ -11,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
 import subprocess
 import sys
 import zipfile
@@ -21,8 +21,7 @@ import pytest
 
 from lasagna.version import DISTRIBUTION, __version__, install_hint
 from tests.support.bounded import HANG_SECONDS
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.support.wheel import ROOT, build_wheel, declared_data, required_data
 
 CHECK = r"""
 import json, sys
@@ -43,24 +42,9 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
     if subprocess.run([sys.executable, "-m", "pip", "--version"], capture_output=True).returncode != 0:
         pytest.skip("pip is not available to this interpreter")
     tmp = tmp_path_factory.mktemp("wheel")
-    src = tmp / "src"
-    src.mkdir()
-    for name in ("pyproject.toml", "README.md", "LICENSE"):
-        shutil.copy2(ROOT / name, src / name)
-    ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
-    for name in ("lasagna", "layers"):
-        shutil.copytree(ROOT / name, src / name, ignore=ignore)
+    wheel = build_wheel(tmp)
     env = {**os.environ, "PIP_NO_INDEX": "1", "PIP_DISABLE_PIP_VERSION_CHECK": "1"}
     pip = [sys.executable, "-m", "pip"]
-    build = subprocess.run(
-        [*pip, "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp / "dist"), str(src)],
-        capture_output=True,
-        text=True,
-        timeout=HANG_SECONDS,
-        env=env,
-    )
-    assert build.returncode == 0, build.stderr[-2000:]
-    (wheel,) = (tmp / "dist").glob("lasagna_layers-*.whl")  # the distribution lasagna-layers
     target = tmp / "site"
     inst = subprocess.run(
         [*pip, "install", "--no-deps", "-q", "--target", str(target), str(wheel)],
@@ -76,18 +60,23 @@ def installed(tmp_path_factory) -> tuple[Path, Path]:
 def test_wheel_holds_every_catalogue_file(installed):
     wheel, _ = installed
     names = set(zipfile.ZipFile(wheel).namelist())
-    expected = {
-        f"lasagna/_layers/{p.relative_to(ROOT / 'layers').as_posix()}"
-        for p in (ROOT / "layers").rglob("*")
-        if p.is_file() and "__pycache__" not in p.parts
-    }
-    assert expected and expected <= names
+    assert required_data() <= names  # the catalogue, the editor's page, the world's paint, py.typed
     assert "lasagna/catalogue.py" in names and "lasagna/_layers/PACKAGING.md" in names
     page = {f"lasagna/serve/static/{p.name}" for p in (ROOT / "lasagna" / "serve" / "static").iterdir()}
     assert page and page <= names  # the editor's page works from an installed package, offline
     assert "lasagna/py.typed" in names  # PEP 561: type checkers read the package's annotations
     assert any(n.endswith("LICENSE") and ".dist-info/" in n for n in names)
     assert f"lasagna_layers-{__version__}.dist-info/METADATA" in names  # the distribution lasagna-layers
+
+
+def test_every_data_file_is_declared_package_data():
+    """Without building: every non-Python file under lasagna/ and layers/ (the catalogue a CLI command reads
+    outside a checkout, the editor's page, the world's paint) is picked by pyproject.toml's package-data globs,
+    so a file added there cannot silently stay out of the wheel."""
+    required = required_data()
+    assert {"lasagna/_layers/shading/preset.json", "lasagna/serve/static/index.html", "lasagna/py.typed"} <= required
+    missing = sorted(required - declared_data())
+    assert not missing, f"not in [tool.setuptools.package-data] of pyproject.toml: {missing}"
 
 
 def test_the_distribution_name_is_one_and_every_install_hint_names_it():
