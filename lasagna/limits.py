@@ -61,6 +61,9 @@ MAX_VOCABULARY = 1024
 # Points of one curve of a curves adjustment: Photoshop's dialog takes at most 16 per channel; 64 leaves room for
 # other writers while a hostile document's spline (a dense solve, n² values) stays a few kB.
 MAX_CURVE_POINTS = 64
+# Colour (and opacity) stops of one gradient (a gradient fill, a gradient map): Photoshop's editor holds a few dozen;
+# each pixel of a fill searches them, so a hostile document's 10⁶ stops are refused, not searched.
+MAX_GRADIENT_STOPS = 64
 # A folder copied into the catalogue (``prior add --corrective``: b̂ is a config.json and a few MB of weights):
 # links are never followed, and the copy stops at these, so a crafted folder cannot fill the disk.
 MAX_COPY_BYTES = 2**30

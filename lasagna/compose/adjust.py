@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from lasagna.compose.blend import _set_lum  # the spec's SetLum (with ClipColor), kept in one place
+from lasagna.compose.gradient import interpolate_stops
 from lasagna.errors import LasagnaError
 from lasagna.limits import MAX_CURVE_POINTS
 from lasagna.numerics import ADJUST_POW_EPS
@@ -431,22 +432,15 @@ def black_and_white(C: Tensor, p: Params) -> Tensor:
 
 
 def gradient_map_lut(t: Tensor, p: Params) -> Tensor:
-    """Gradient map's (3, N) table over luminosity: between stops i and i+1 the fraction u of the way is bent so
-    that the midpoint m gives ½ — 0.5·u/m below it, 0.5 + 0.5·(u − m)/(1 − m) above (GIMP's linear segment,
-    ``gimp_gradient_calc_linear_factor``; Photoshop's stop midpoints mean the same) — and the colours are mixed by
-    it; end colours beyond the end stops; ``reverse`` reads it from 1 down."""
+    """Gradient map's (3, N) table over luminosity: the colour stops read at ``t`` with their midpoints
+    (``gradient.interpolate_stops``, the one reading of a gradient's stops); ``reverse`` reads it from 1 down."""
     stops = p["stops"]
     xs = _vector([s["location"] for s in stops], t)
     cs = torch.stack([_vector(s["color"], t) for s in stops], dim=1)  # (3, n)
     ms = _vector([s.get("midpoint", 0.5) for s in stops], t)
     if p.get("reverse"):
         t = 1.0 - t
-    tc = t.clamp(xs[0], xs[-1])
-    k = torch.searchsorted(xs[1:-1].detach().contiguous(), tc.detach().contiguous(), right=True)
-    x0, x1, m = xs[k], xs[k + 1], ms[k]
-    u = ((tc - x0) / (x1 - x0).clamp_min(ADJUST_POW_EPS)).clamp(0.0, 1.0)
-    f = torch.where(u <= m, 0.5 * u / m, 0.5 + 0.5 * (u - m) / (1.0 - m))
-    return cs[:, k] + f * (cs[:, k + 1] - cs[:, k])
+    return interpolate_stops(t, xs, cs, ms)
 
 
 def gradient_map(C: Tensor, p: Params) -> Tensor:

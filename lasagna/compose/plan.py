@@ -64,6 +64,7 @@ from torch import Tensor
 from lasagna.compose.adjust import Adjustment
 from lasagna.compose.blend import BLEND_MODES, broadcast_shape, check_blend_name, clamp_needed
 from lasagna.compose.color import srgb_to_linear
+from lasagna.compose.gradient import gradient_fill
 from lasagna.compose.layer import LayerTensors
 from lasagna.compose.surface import surface_range, surface_tensors
 from lasagna.document.types import range_problem
@@ -656,6 +657,31 @@ def solid_tensors(
     return LayerTensors(color, alpha)
 
 
+def gradient_tensors(
+    layer: Any,
+    width: int,
+    height: int,
+    origin: tuple[int, int] = (0, 0),
+    mask: Tensor | None = None,
+    where: str = "layer",
+    dtype: torch.dtype | None = None,
+) -> LayerTensors:
+    """A gradient layer's ``LayerTensors`` on a ``width`` × ``height`` canvas: its fill (``gradient.gradient_fill``)
+    over its rectangle (its ``size``, else the canvas; at ``origin`` plus its offset: ``origin`` is where its
+    enclosing groups put it), laid out on that rectangle (``gradient.align``) or on the canvas, and its ``mask``."""
+    size = getattr(layer, "size", None)
+    h, w = (size.height, size.width) if size is not None else (height, width)
+    x0, y0 = origin[0] + int(layer.offset.x), origin[1] + int(layer.offset.y)
+    rect = (x0, y0, x0 + w, y0 + h)
+    box = rect if layer.gradient.align else (0, 0, width, height)
+    if mask is not None and tuple(mask.shape[-2:]) != (h, w):
+        raise LasagnaError(
+            f"mask is {mask.shape[-1]}x{mask.shape[-2]}; expected the layer's size {w}x{h}", where=f"{where}.mask"
+        )
+    color, alpha = gradient_fill(layer.gradient.model_dump(), box, rect, dtype)
+    return LayerTensors(color, alpha, mask)
+
+
 def adjustment_tensors(mask: Tensor | None, width: int, height: int, dtype: torch.dtype | None = None) -> LayerTensors:
     """An adjustment layer's ``LayerTensors``: its ``mask`` (``(..., 1, h, w)``, or None: the canvas), and a
     zero-stride colour of that size (an adjustment has no pixels; its colour is computed from the backdrop)."""
@@ -678,7 +704,7 @@ def plan_from_document(
     (docs/ARCHITECTURE.md): the compositor imports nothing of the document tier but its blend names.
     """
     width, height = int(doc.canvas.width), int(doc.canvas.height)
-    specs = _document_specs(doc.layers, tensors, width, height, dtype, "layers")
+    specs = _document_specs(doc.layers, tensors, width, height, dtype, "layers", (0, 0))
     bg = doc.canvas.background
     background = None if bg is None else tuple(float(v) for v in bg)
     return compile_plan(specs, (height, width), background, doc.blend_space, doc.clamp, cull=cull)  # type: ignore[arg-type]
@@ -691,9 +717,11 @@ def _document_specs(
     height: int,
     dtype: torch.dtype | None,
     where: str,
+    origin: tuple[int, int],
 ) -> list[RenderSpec]:
-    """The compositor's specs of one layer list of a document (recursively for groups); each clipping chain (a
-    base and the layers with ``clip`` above it) becomes one ``clip_chain``."""
+    """The compositor's specs of one layer list of a document (recursively for groups; ``origin``: the canvas
+    position its offsets are relative to); each clipping chain (a base and the layers with ``clip`` above it)
+    becomes one ``clip_chain``."""
     specs: list[RenderSpec] = []
     clips: list[bool] = []  # per spec: the layer is clipped to the one below
     for i, layer in enumerate(layers):
@@ -721,9 +749,15 @@ def _document_specs(
             specs.append(RenderLayerSpec(tensors=lt, adjust=adjust, **common))
             continue
         if layer.kind == "group":
-            children = _document_specs(layer.layers, tensors, width, height, dtype, f"{here}.layers")
+            inner = (origin[0] + int(layer.offset.x), origin[1] + int(layer.offset.y))
+            children = _document_specs(layer.layers, tensors, width, height, dtype, f"{here}.layers", inner)
             mask = lt.mask if mask_name is not None and lt is not None else None
             specs.append(RenderGroupSpec(children=tuple(children), isolated=bool(layer.isolated), mask=mask, **common))
+            continue
+        if layer.kind == "gradient":  # drawn from its record; its tensors, when it has a mask, hold only the mask
+            mask = lt.mask if mask_name is not None and lt is not None else None
+            lt = gradient_tensors(layer, width, height, origin, mask, here, dtype)
+            specs.append(RenderLayerSpec(tensors=lt, range=(0.0, 1.0), encoded=True, **common))
             continue
         rng = layer.range
         lo, hi = (rng.lo, rng.hi) if hasattr(rng, "lo") else tuple(rng)
@@ -814,6 +848,7 @@ __all__ = [
     "compile_plan",
     "plan_from_document",
     "solid_tensors",
+    "gradient_tensors",
     "adjustment_tensors",
     "clip_chain",
     "BLEND_MODES",

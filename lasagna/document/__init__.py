@@ -12,6 +12,7 @@ from lasagna.document.blend import (
     canonical_blend,
 )
 from lasagna.document.files import STACK_FILE, load_document, save_document, stack_file
+from lasagna.document.gradient import GRADIENT_STYLES, GradientFill, GradientStop, OpacityStop
 from lasagna.document.models import (
     FORMAT,
     LAYER_KINDS,
@@ -21,6 +22,7 @@ from lasagna.document.models import (
     Condition,
     Document,
     GeneratorRef,
+    GradientLayer,
     GroupLayer,
     Layer,
     LearnedLayer,
@@ -48,6 +50,10 @@ from lasagna.document.validation import RuleError, format_validation_error, pars
 
 __all__ = [
     "ADJUSTMENT_TYPES",
+    "GRADIENT_STYLES",
+    "GradientFill",
+    "GradientStop",
+    "OpacityStop",
     "Adjustment",
     "AdjustmentLayer",
     "ACCEPTED_BLEND_NAMES",
@@ -68,6 +74,7 @@ __all__ = [
     "Condition",
     "Document",
     "GeneratorRef",
+    "GradientLayer",
     "GroupLayer",
     "Layer",
     "LearnedLayer",

@@ -13,9 +13,10 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, StrictInt, model_validator
 
+from lasagna.document.gradient import STOPS, GradientStop, check_stops
 from lasagna.document.types import FiniteFloat, OpaqueColour, StrictModel, Unit
 from lasagna.document.validation import RuleError
-from lasagna.limits import MAX_CURVE_POINTS
+from lasagna.limits import MAX_CURVE_POINTS, MAX_GRADIENT_STOPS
 
 # Photoshop's levels and exposure dialogs take a gamma in [0.01, 9.99] (psd-tools clamps a stored one there).
 GAMMA_MIN, GAMMA_MAX = 0.01, 9.99
@@ -265,43 +266,18 @@ class BlackAndWhite(StrictModel):
     tint: OpaqueColour | None = Field(None, description="If set, the gray is tinted with this RGB colour.")
 
 
-class GradientStop(StrictModel):
-    """A colour stop of a gradient: where it is, its colour, and where the blend to the next stop is half-way."""
-
-    location: Unit = Field(description="Position in [0, 1].")
-    color: OpaqueColour = Field(description="RGB in [0, 1].")
-    midpoint: float = Field(
-        0.5,
-        ge=0.05,
-        le=0.95,
-        strict=True,
-        allow_inf_nan=False,
-        description="Where, between this stop and the next (fraction of the way), the colour is half of each: "
-        "0.05…0.95 (Photoshop's 5…95 %).",
-    )
-
-
-def _check_stops(stops: tuple[GradientStop, ...], name: str) -> None:
-    xs = [s.location for s in stops]
-    if any(b < a for a, b in zip(xs, xs[1:])):
-        raise RuleError(f"{name} locations {xs} are not sorted; expected stops in increasing location", loc=(name,))
-
-
-_STOPS = dict(min_length=2, max_length=MAX_CURVE_POINTS)
-
-
 class GradientMap(StrictModel):
     """Gradient map: each pixel's luminosity picks a colour of the gradient."""
 
     type: Literal["gradient-map"] = Field("gradient-map", description="Adjustment: gradient map.")
     stops: tuple[GradientStop, ...] = Field(
-        **_STOPS, description=f"Colour stops, 2 to {MAX_CURVE_POINTS}, in increasing location."
+        **STOPS, description=f"Colour stops, 2 to {MAX_GRADIENT_STOPS}, in increasing location."
     )
     reverse: bool = Field(False, strict=True, description="Run the gradient from its last stop to its first.")
 
     @model_validator(mode="after")
     def _sorted(self) -> GradientMap:
-        _check_stops(self.stops, "stops")
+        check_stops(self.stops, "stops")
         return self
 
 

@@ -34,6 +34,7 @@ from pydantic import (
 
 from lasagna.document.adjustment import Adjustment
 from lasagna.document.condition import AMBIENT, DIRECTION_PATTERN, parse_direction
+from lasagna.document.gradient import GradientFill
 from lasagna.document.types import (
     RANGE_FOR_BLEND_SCHEMA,
     UNIT_RANGE,
@@ -82,7 +83,7 @@ class Offset(StrictModel):
 
 
 class Size(StrictModel):
-    """Size of a solid layer's rectangle."""
+    """Size of a solid or gradient layer's rectangle."""
 
     width: Pixels = Field(description="Width in pixels, an integer in [1, 32768].")
     height: Pixels = Field(description="Height in pixels, an integer in [1, 32768].")
@@ -184,6 +185,25 @@ class SolidLayer(_LayerBase):
     kind: Literal["solid"] = Field("solid", description="Layer kind: one colour.")
     color: Colour = Field(description="RGB or RGBA floats in [0, 1] (alpha multiplies opacity).")
     size: Size | None = Field(None, description="Rectangle size; null means the canvas size.")
+
+
+class GradientLayer(_Common):
+    """A gradient fill (Photoshop's gradient fill layer): a ramp through colour and opacity stops over a rectangle.
+
+    ``gradient`` holds the ramp and its stops (``lasagna.document.gradient``); ``lasagna.compose.gradient`` renders
+    them as psd-tools' ``draw_gradient_fill`` does, relative to the layer's rectangle (``gradient.align``) or the
+    canvas. Its colour is a colour (the unit range); opacity stops are its alpha.
+    """
+
+    kind: Literal["gradient"] = Field("gradient", description="Layer kind: a gradient fill.")
+    gradient: GradientFill = Field(description="The ramp (style, angle, scale, …) and its colour and opacity stops.")
+    size: Size | None = Field(None, description="Rectangle size; null means the canvas size.")
+    mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
+
+    @property
+    def range(self) -> tuple[float, float]:
+        """A gradient's colour is a colour: the unit range."""
+        return UNIT_RANGE
 
 
 class LearnedLayer(_LayerBase):
@@ -368,12 +388,13 @@ class GroupLayer(_Common):
 
 
 Layer = Annotated[
-    PixelsLayer | SolidLayer | LearnedLayer | SurfaceLayer | AdjustmentLayer | GroupLayer, Field(discriminator="kind")
+    PixelsLayer | SolidLayer | LearnedLayer | SurfaceLayer | AdjustmentLayer | GroupLayer | GradientLayer,
+    Field(discriminator="kind"),
 ]
 GroupLayer.model_rebuild()
 LAYER_KINDS: tuple[str, ...] = tuple(
     m.model_fields["kind"].default
-    for m in (PixelsLayer, SolidLayer, LearnedLayer, SurfaceLayer, AdjustmentLayer, GroupLayer)
+    for m in (PixelsLayer, SolidLayer, LearnedLayer, SurfaceLayer, AdjustmentLayer, GroupLayer, GradientLayer)
 )
 LayerPath = tuple[str | int, ...]  # JSON path of a layer: ("layers", 2, "layers", 0)
 

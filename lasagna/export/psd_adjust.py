@@ -150,14 +150,16 @@ def black_and_white(layer, warn: Warn, what: str) -> dict:
     return out
 
 
-def gradient_stops(locations, midpoints, colors) -> list[dict]:
-    """Stops as the document's: a PSD stop's midpoint (percent) is of the segment that ends at it, the document's of
-    the one that starts at it; a location before the previous stop's is read as that one's (the order is kept)."""
+def gradient_stops(locations, midpoints, values, key: str = "color") -> list[dict]:
+    """Stops as the document's (``key``: "color" for colour stops, "opacity" for opacity stops): a PSD stop's
+    midpoint (percent) is of the segment that ends at it, the document's of the one that starts at it; a location
+    before the previous stop's is read as that one's (the order is kept)."""
     stops: list[dict] = []
-    for i, (loc, color) in enumerate(zip(locations, colors)):
+    for i, (loc, value) in enumerate(zip(locations, values)):
         if stops:
             stops[-1]["midpoint"] = _clamp(midpoints[i] / 100.0, 0.05, 0.95)
-        stops.append({"location": max(_unit(loc), stops[-1]["location"] if stops else 0.0), "color": list(color)})
+        value = list(value) if key == "color" else _unit(value)
+        stops.append({"location": max(_unit(loc), stops[-1]["location"] if stops else 0.0), key: value})
         stops[-1]["midpoint"] = 0.5
     if len(stops) == 1:
         stops = [{**stops[0], "location": 0.0}, {**stops[0], "location": 1.0}]
@@ -185,6 +187,63 @@ def gradient_map(layer, warn: Warn, what: str) -> dict | None:
             "between stops)"
         )
     return dict(type="gradient-map", stops=gradient_stops(locations, midpoints, colors), reverse=bool(layer.reversed))
+
+
+# Photoshop's gradient fill styles (the descriptor's 'Type' enum) → the document's.
+GRADIENT_STYLES = {b"Lnr ": "linear", b"Rdl ": "radial", b"Angl": "angle", b"Rflc": "reflected", b"Dmnd": "diamond"}
+
+
+def _value(desc, key: bytes, default: Any = None) -> Any:
+    v = desc.get(key, default) if desc is not None else default
+    return getattr(v, "value", v)
+
+
+def gradient_fill(desc, warn: Warn, what: str) -> dict | None:
+    """A gradient fill layer's 'GdFl' descriptor (Type, Angl, Scl, Rvrs, Algn, Ofst {Hrzn, Vrtc} percent, Grad:
+    GrdF custom stops, Clrs [Clr, Lctn 0…4096, Mdpn percent], Trns [Opct percent, Lctn, Mdpn], Intr smoothness)
+    as the document's ``gradient``, or None (a noise gradient; read as its stored pixels, with a warning)."""
+    grad = desc.get(b"Grad")
+    style = GRADIENT_STYLES.get(bytes(getattr(desc.get(b"Type"), "enum", b"") or b""))
+    form = bytes(getattr(grad.get(b"GrdF"), "enum", b"CstS") or b"") if grad is not None else b""
+    if grad is None or style is None or form != b"CstS":
+        why = "a noise gradient" if style is not None and grad is not None else "a gradient style a stack lacks"
+        warn(f"{what}: {why} cannot be represented as a gradient layer; the fill's pixels are imported")
+        return None
+    colors, locations, midpoints = [], [], []
+    for stop in grad.get(b"Clrs", []):
+        rgb = descriptor_color(stop.get(b"Clr "), warn, f"{what}: gradient stop")
+        if rgb is None:
+            return None
+        colors.append(rgb)
+        locations.append(float(_value(stop, b"Lctn", 0)) / 4096.0)
+        midpoints.append(float(_value(stop, b"Mdpn", 50)))
+    if not colors:
+        warn(f"{what}: gradient fill has no colour stops; its pixels kept")
+        return None
+    out: dict[str, Any] = dict(
+        style=style,
+        angle=_clamp(_value(desc, b"Angl", 90.0), -360.0, 360.0),
+        scale=_clamp(_value(desc, b"Scl ", 100.0), 10.0, 1000.0),
+        reverse=bool(_value(desc, b"Rvrs", False)),
+        align=bool(_value(desc, b"Algn", True)),
+        stops=gradient_stops(locations, midpoints, colors),
+    )
+    offset = desc.get(b"Ofst")
+    if offset is not None:
+        out["shift"] = [_clamp(_value(offset, k, 0.0), -1000.0, 1000.0) for k in (b"Hrzn", b"Vrtc")]
+    alphas = [
+        (float(_value(t, b"Lctn", 0)) / 4096.0, float(_value(t, b"Mdpn", 50)), float(_value(t, b"Opct", 100.0)) / 100.0)
+        for t in grad.get(b"Trns", [])
+    ]
+    if alphas and any(a < 1.0 for _, _, a in alphas):
+        out["opacity_stops"] = gradient_stops(*zip(*alphas), key="opacity")
+    smooth = float(_value(grad, b"Intr", 0.0))
+    if smooth:
+        warn(
+            f"{what}: gradient smoothness {round(smooth / 40.96)} % read as 0 % (colours mix linearly between stops, "
+            "as psd-tools renders)"
+        )
+    return out
 
 
 def photo_filter(layer, warn: Warn, what: str) -> dict | None:

@@ -20,8 +20,10 @@ What each PSD thing becomes:
   its parameters (``adjustment_params``), its blend, opacity × fill and its mask on the canvas (the mask's
   background colour outside its data);
 * a solid colour fill layer without a mask, vector mask or effects → a ``solid`` layer of its colour (canvas size);
-  another fill layer → a ``pixels`` layer of the fill Photoshop stored in its channels, with its mask (psd-tools'
-  rendering when none is stored);
+* a gradient fill layer (custom stops) without a vector mask, effects or clipping layers → a ``gradient`` layer of
+  its settings (``psd_adjust.gradient_fill``) over the layer's rectangle (the canvas when it has none), with its mask;
+* another fill layer → a ``pixels`` layer of the fill Photoshop stored in its channels, with its mask (psd-tools'
+  rendering when none is stored); a pattern fill so imported is one warning line (a stack has no live pattern);
 * layers psd-tools can draw but a stack cannot hold as such — type, shape and smart-object layers, a layer with
   effects, a clipping base whose chain holds one of those — → a ``pixels`` layer of psd-tools' rendering of it
   (``Layer.composite``), one warning line each saying what was rasterised;
@@ -50,7 +52,7 @@ import numpy as np
 from lasagna.document.types import sanitise_name, unique_id
 from lasagna.errors import ExportError, ImageError
 from lasagna.export.psd import INSTALL_HINT, psd_blend_modes
-from lasagna.export.psd_adjust import READERS, descriptor_color, hue_ranges
+from lasagna.export.psd_adjust import READERS, descriptor_color, gradient_fill, hue_ranges
 from lasagna.io.png import DEFAULT_MAX_PIXELS
 from lasagna.limits import MAX_GROUP_DEPTH, check_memory
 
@@ -297,6 +299,23 @@ class _Reader:
             entry.update(kind="solid", color=solid, blend=self._blend(layer, what))
             entry["opacity"] *= layer.fill_opacity / 255.0
             return entry
+        gradient = self._gradient_fill(layer, what)
+        if gradient is not None:  # a live gradient over the layer's rectangle (the canvas if it has none), its mask
+            rect = layer.bbox if _area(layer.bbox) else (0, 0, self.psd.width, self.psd.height)
+            entry.update(kind="gradient", gradient=gradient, blend=self._blend(layer, what))
+            entry["opacity"] *= layer.fill_opacity / 255.0
+            if tuple(rect) != (0, 0, self.psd.width, self.psd.height):
+                entry.update(offset={"x": int(rect[0]), "y": int(rect[1])})
+                entry.update(size={"width": int(rect[2] - rect[0]), "height": int(rect[3] - rect[1])})
+            mask = self._mask(layer, rect, what)
+            if mask is not None:
+                from lasagna.io.stack import group_mask_tensors
+
+                entry["mask"] = f"masks/{lid}.png"
+                self.tensors[lid] = group_mask_tensors(_tensor(mask))
+            return entry
+        if layer.kind == "patternfill":
+            self.warn(f"{what}: a pattern fill is imported as its pixels (a stack has no live pattern fill)")
         rgba, bbox, baked = self._raster(layer, what)
         if rgba is None:
             self.warn(f"{what}: {layer.kind} layer has no pixels; left out")
@@ -333,6 +352,13 @@ class _Reader:
             return None
         rgb = descriptor_color(layer.data, self.warn, what)
         return None if rgb is None else list(rgb)
+
+    def _gradient_fill(self, layer, what: str) -> dict | None:
+        """A gradient fill layer's ``gradient`` when a ``gradient`` layer holds it (no vector mask, effects or clipping
+        layers); None otherwise (its stored pixels are read)."""
+        if layer.kind != "gradientfill" or layer.has_effects() or layer.has_vector_mask() or layer.has_clip_layers():
+            return None
+        return gradient_fill(layer._data, self.warn, what)
 
     def _raster(self, layer, what: str) -> tuple[np.ndarray | None, tuple[int, int, int, int], bool]:
         """(RGBA (4, h, w) float64, bbox, baked): the stored pixels, or psd-tools' rendering of the layer

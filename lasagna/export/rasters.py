@@ -62,6 +62,7 @@ import numpy as np
 import torch
 
 from lasagna.compose.blend import dissolve_pattern
+from lasagna.compose.plan import gradient_tensors
 from lasagna.compose.surface import surface_tensors
 from lasagna.document import LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
@@ -178,9 +179,10 @@ def _warn(warn: Callable[[str], None] | None, message: str) -> None:
         warnings.warn(message, stacklevel=3)
 
 
-def _layer_raster(stack, layer) -> tuple[np.ndarray, np.ndarray | None] | None:
+def _layer_raster(stack, layer, origin: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray | None] | None:
     """(color (C, h, w), alpha × mask (1, h, w) or None: opaque) values y of a layer, views of its tensors where
-    they are float32 on the CPU (no float64 copy), or None if it has no pixels."""
+    they are float32 on the CPU (no float64 copy), or None if it has no pixels. ``origin``: where the enclosing
+    groups put the layer (a gradient laid out on the canvas needs it)."""
     if isinstance(layer, SolidLayer):
         rgba = list(layer.color)
         size = layer.size
@@ -191,6 +193,8 @@ def _layer_raster(stack, layer) -> tuple[np.ndarray, np.ndarray | None] | None:
         a = rgba[3] if len(rgba) == 4 else 1.0
         return color, None if a == 1.0 else np.broadcast_to(np.float64(a), (1, h, w))
     t = stack.tensors.get(layer.id)
+    if layer.kind == "gradient":  # its fill drawn as the compositor draws it (a masked one's tensors hold the mask)
+        t = gradient_tensors(layer, stack.width, stack.height, origin, None if t is None else t.mask, "layer")
     if t is None:
         return None
     if isinstance(layer, SurfaceLayer):  # the multiplier its normal map renders to, as the compositor blends it
@@ -303,6 +307,7 @@ class _Walk:
         self.stack, self.target, self.warn, self.groups = stack, target, warn, groups
         self.W, self.H = stack.width, stack.height
         self.inexact: list[str] = []
+        self.fills: list[str] = []  # gradient layers, written as their pixels
 
     def items(self, layers, origin: tuple[int, int], shown: bool, isolated_in: bool) -> list:
         """Export items of ``layers`` (bottom to top) whose offsets are relative to ``origin``; ``shown``: every
@@ -368,7 +373,9 @@ class _Walk:
 
     def leaf(self, layer, origin, shown, isolated_in) -> list[ExportLayer]:
         stack, target, W, H = self.stack, self.target, self.W, self.H
-        raster = _layer_raster(stack, layer)
+        raster = _layer_raster(stack, layer, origin)
+        if layer.kind == "gradient":
+            self.fills.append(layer.id)
         if raster is None:
             if isinstance(layer, LearnedLayer):
                 why = f"layer {layer.id!r} is not rendered (run `lasagna render`); left out of the {target} file"
@@ -526,5 +533,8 @@ def _layers(stack, target: str, warn, groups: bool = False) -> tuple[list, list[
     # A transparent document's top level is composited over transparency, as an isolated group's layers are: the
     # helper layers that assume an opaque backdrop (dodge pairs, baked alpha) are not exact there either.
     top = walk.items(stack.document.layers, (0, 0), True, background is None)
+    if walk.fills:
+        _warn(warn, f"gradient layer(s) {', '.join(map(repr, walk.fills))} written to {target} as their pixels (the "
+              "live gradient fill is not written)")  # fmt: skip
     out = [*([background] if background is not None else []), *top]
     return out, walk.inexact

@@ -374,7 +374,7 @@ def save_in_place(
                 ckpt = f"{renamed[parent]}/{Path(generator.checkpoint).name}"
                 changes["generator"] = {**generator.model_dump(mode="json"), "checkpoint": ckpt}
         tensors = stack.tensors.get(layer.id)
-        if tensors is not None and layer.kind in ("group", "adjustment"):
+        if tensors is not None and layer.kind in ("group", "adjustment", "gradient"):
             if layer.mask is not None and not (unchanged.get(layer.id) is tensors and (folder / layer.mask).is_file()):
                 data = encode_group_mask(stack, layer.id, loc)
                 if not _holds(folder, layer.mask, data):

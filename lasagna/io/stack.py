@@ -29,6 +29,7 @@ from lasagna.compose.surface import encode_normal_map
 from lasagna.document import (
     AdjustmentLayer,
     Document,
+    GradientLayer,
     GroupLayer,
     LearnedLayer,
     PixelsLayer,
@@ -68,9 +69,9 @@ class Stack:
     """A document, the folder it was loaded from (or None), and the tensors of its raster layers.
 
     ``tensors[id]`` is a ``LayerTensors(color, alpha, mask)`` of values y (range-mapped) for every
-    pixels layer and every learned layer that has a ``source``; solid layers need none (the
-    compositor draws them from the document); a group with a mask has ``LayerTensors`` whose ``mask`` is
-    it (``group_mask_tensors``). ``bit_depths[id]`` is the depth a layer was read at,
+    pixels layer and every learned layer that has a ``source``; solid and gradient layers need none (the
+    compositor draws them from the document); a group, adjustment or gradient with a mask has ``LayerTensors``
+    whose ``mask`` is it (``group_mask_tensors``). ``bit_depths[id]`` is the depth a layer was read at,
     so saving never loses precision it had.
     """
 
@@ -205,6 +206,30 @@ class Stack:
         self.tensors.pop(id, None)
         return self
 
+    def add_gradient(
+        self, id: str, gradient: Mapping[str, Any], *, index: int | None = None, mask=None, **fields: Any
+    ) -> Stack:
+        """Add (on top, or at ``index``) or replace the gradient fill layer ``id``: ``gradient`` is the document's
+        ``gradient`` record (style, angle, scale, reverse, align, shift, stops, opacity_stops); optional ``size``
+        {width, height} and a ``mask`` of that size (default the canvas)."""
+        layer = _layer_dict(id, "gradient", fields, has_mask=mask is not None)
+        layer["gradient"] = dict(gradient)
+        if fields.get("size") is not None:
+            size = fields["size"]
+            layer["size"] = size if isinstance(size, Mapping) else {"width": int(size[0]), "height": int(size[1])}
+        m = None
+        if mask is not None:
+            m = mask_to_tensor(mask, where=f"layer {id!r} mask")
+            w, h = (layer["size"]["width"], layer["size"]["height"]) if "size" in layer else (self.width, self.height)
+            if tuple(m.shape[-2:]) != (h, w):
+                got = f"{m.shape[-1]}x{m.shape[-2]}"
+                raise ImageError(f"mask is {got}; expected the layer's size {w}x{h}", f"layer {id!r}")
+        self.document = self.document.with_layer(layer, index if id not in self.ids else None)
+        self.tensors.pop(id, None)
+        if m is not None:
+            self.tensors[id] = group_mask_tensors(m)
+        return self
+
     def set_pixels(self, id: str, image, *, alpha=None, mask=None, bit_depth: int | None = None) -> Stack:
         """Give the existing pixels or learned layer ``id`` new pixels (a learned layer gets a ``source``)."""
         layer = self.document.layer(id)
@@ -318,7 +343,9 @@ def _make_tensors(id: str, color: torch.Tensor, alpha, mask, bit_depth: int | No
 def _layer_dict(
     id: str, kind: str, fields: Mapping[str, Any], *, has_mask: bool, source: str | None = None
 ) -> dict[str, Any]:
-    allowed = {"name", "blend", "opacity", "visible", "offset", "range"} | ({"size"} if kind == "solid" else set())
+    allowed = {"name", "blend", "opacity", "visible", "offset"}
+    allowed |= {"size"} if kind in ("solid", "gradient") else set()
+    allowed |= {"range"} if kind != "gradient" else set()
     unknown = set(fields) - allowed
     if unknown:
         raise DocumentError(
@@ -334,7 +361,7 @@ def _layer_dict(
         out["offset"] = dict(off) if isinstance(off, Mapping) else {"x": int(off[0]), "y": int(off[1])}
     if fields.get("range") is not None:
         out["range"] = [float(v) for v in fields["range"]]
-    if kind != "solid":
+    if kind not in ("solid", "gradient"):
         out["source"] = source or f"layers/{id}.png"
     if has_mask:
         out["mask"] = f"masks/{id}.png"
@@ -509,7 +536,7 @@ def load_surveyed(survey: Survey) -> Stack:
     stack = Stack(doc, file.parent)
     for r in planned:
         layer = r.layer
-        if isinstance(layer, (GroupLayer, AdjustmentLayer)):  # a group's or adjustment's mask: no source beside it
+        if isinstance(layer, (GroupLayer, AdjustmentLayer, GradientLayer)):  # a mask with no source beside it
             stack.tensors[layer.id] = group_mask_tensors(images.pop((r.loc, "mask")), f"{file}: {r.where}")
             continue
         if r.field != "source":
@@ -714,8 +741,8 @@ def stack_files(stack: Stack, folder: str | os.PathLike, *, clip: bool = False) 
     for loc, layer in doc.walk():
         if layer.id not in stack.tensors or isinstance(layer, SolidLayer):
             continue
-        if isinstance(layer, (GroupLayer, AdjustmentLayer)):
-            if layer.mask is not None:  # a group's or adjustment's tensors hold its mask only (group_mask_tensors)
+        if isinstance(layer, (GroupLayer, AdjustmentLayer, GradientLayer)):
+            if layer.mask is not None:  # a group's, adjustment's or gradient's tensors hold its mask only
                 data = encode_group_mask(stack, layer.id, loc, clip=clip)
                 writes.append((entry_inside(folder, layer.mask, f"{loc}.mask"), data))
             continue

@@ -16,6 +16,7 @@ from typing import Any
 from lasagna.document import (
     AdjustmentLayer,
     Document,
+    GradientLayer,
     GroupLayer,
     LearnedLayer,
     PixelsLayer,
@@ -68,7 +69,7 @@ def _rasters(doc: Document) -> Iterable[tuple[str, Any, str, str]]:
             yield loc, layer, "source", layer.source
             if layer.mask is not None:
                 yield loc, layer, "mask", layer.mask
-        elif isinstance(layer, (GroupLayer, AdjustmentLayer)) and layer.mask is not None:
+        elif isinstance(layer, (GroupLayer, AdjustmentLayer, GradientLayer)) and layer.mask is not None:
             yield loc, layer, "mask", layer.mask
 
 
@@ -117,6 +118,14 @@ def _plan_rasters(
                 f"the stack's PNGs hold more than {max_total_pixels} pixels in total; expected at most that many",
                 where=where,
             )
+        if isinstance(layer, GradientLayer):  # no source: its mask is the size of its rectangle
+            size = layer.size or doc.canvas
+            if (header.width, header.height) != (size.width, size.height):
+                raise ImageError(
+                    f"mask is {header.width}x{header.height}; expected the gradient layer's size "
+                    f"{size.width}x{size.height}",
+                    where=f"{where} ({rel})",
+                )
         if fieldname == "source":
             sources[loc] = header
         elif loc in sources:

@@ -643,3 +643,71 @@ def test_a_solid_colour_fill_is_imported_as_a_solid_layer(tmp_path):
     assert layer.kind == "solid" and layer.color == pytest.approx((0.2, 0.6, 0.8)) and layer.blend == "multiply"
     got = np.rint(render_stack(stack, dtype=torch.float64).image.numpy().transpose(1, 2, 0) * 255.0)
     assert np.abs(got - psd_tools_flat(path)).max() <= 1
+
+
+def _gradient_fill_block(style: bytes, angle: float, scale: float, reverse: bool, stops, opacities):
+    """A 'GdFl' descriptor as Photoshop writes one (psd-tools has no constructor for fill layers): Type, Angl, Scl,
+    Rvrs, Dthr, Algn, and Grad (custom stops: Clrs of colour, Lctn 0…4096 and Mdpn percent; Trns of Opct)."""
+    from psd_tools.psd.descriptor import Bool, Descriptor, Double, Enumerated, Integer, List, String, UnitFloat
+    from psd_tools.psd.tagged_blocks import DescriptorBlock
+    from psd_tools.terminology import Unit
+
+    def stop(kind: bytes, location: int, **values):
+        d = Descriptor(classID=kind)
+        for key, value in values.items():
+            d[key.encode().ljust(4)] = value
+        d[b"Lctn"], d[b"Mdpn"] = Integer(location), Integer(50)
+        return d
+
+    colors = []
+    for location, (r, g, b) in stops:
+        c = Descriptor(classID=b"RGBC")
+        c[b"Rd  "], c[b"Grn "], c[b"Bl  "] = Double(r), Double(g), Double(b)
+        colors.append(stop(b"Clrt", location, Clr=c, Type=Enumerated(b"Clry", b"UsrS")))
+    grad = Descriptor(classID=b"Grdn")
+    grad[b"Nm  "], grad[b"GrdF"] = String("Custom"), Enumerated(b"GrdF", b"CstS")
+    grad[b"Intr"], grad[b"Clrs"] = Double(0.0), List(colors)
+    grad[b"Trns"] = List([stop(b"TrnS", loc, Opct=UnitFloat(unit=Unit.Percent, value=o)) for loc, o in opacities])
+    block = DescriptorBlock()
+    block[b"Type"] = Enumerated(b"GrdT", style)
+    block[b"Angl"] = UnitFloat(unit=Unit.Angle, value=angle)
+    block[b"Scl "] = UnitFloat(unit=Unit.Percent, value=scale)
+    block[b"Rvrs"], block[b"Dthr"], block[b"Algn"] = Bool(reverse), Bool(False), Bool(True)
+    block[b"Grad"] = grad
+    return block
+
+
+@pytest.mark.parametrize(
+    "style,angle,scale,reverse",
+    [(b"Lnr ", 30.0, 100.0, False), (b"Rdl ", 90.0, 80.0, True), (b"Angl", -45.0, 100.0, False),
+     (b"Rflc", 120.0, 150.0, False), (b"Dmnd", 10.0, 60.0, True)],
+)  # fmt: skip
+def test_a_gradient_fill_is_imported_as_a_gradient_layer(tmp_path, style, angle, scale, reverse):
+    # A gradient fill of each style (three colour stops, two opacity stops) over a base, one at full canvas and one
+    # masked on a smaller rectangle, written by psd-tools' low-level API: imported as gradient layers, and the stack
+    # composites within 3/255 of psd-tools' own composite of the file (which draws the fills from their settings).
+    from psd_tools.constants import Tag
+    from psd_tools.psd.tagged_blocks import TaggedBlock
+
+    rng = np.random.default_rng(13)
+    psd = PSDImage.new("RGBA", (W, H))
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    stops = [(0, (230.0, 20.0, 40.0)), (1500, (20.0, 200.0, 60.0)), (4096, (30.0, 60.0, 240.0))]
+    for name, box, mode in (("fill", (0, 0, W, H), BlendMode.NORMAL), ("small", (3, 2, 15, 12), BlendMode.MULTIPLY)):
+        pixels = Image.fromarray(np.zeros((box[3] - box[1], box[2] - box[0], 4), dtype=np.uint8))
+        layer = psd.create_pixel_layer(pixels, name=name, left=box[0], top=box[1])
+        block = _gradient_fill_block(style, angle, scale, reverse, stops, [(0, 100.0), (4096, 35.0)])
+        layer.tagged_blocks[Tag.GRADIENT_FILL_SETTING] = TaggedBlock(key=Tag.GRADIENT_FILL_SETTING, data=block)
+        layer.blend_mode, layer.opacity = mode, 220
+    path = tmp_path / "gradient.psd"
+    psd.save(path)
+    warnings: list[str] = []
+    stack = read_psd(path, warn=warnings.append)
+    fills = [lay for lay in stack.document.layers if lay.kind == "gradient"]
+    assert [f.id for f in fills] == ["fill", "small"] and not warnings
+    g = fills[0].gradient
+    assert (g.angle, g.scale, g.reverse, len(g.stops)) == (angle, scale, reverse, 3)
+    assert g.stops[1].location == pytest.approx(1500 / 4096) and g.opacity_stops[1].opacity == pytest.approx(0.35)
+    assert fills[1].size.width == 12 and (fills[1].offset.x, fills[1].offset.y) == (3, 2)
+    got = ours(path)
+    assert np.abs(got - psd_tools_flat(path)).max() <= 3
