@@ -360,13 +360,17 @@ class _Scaled:
 
 class _ScaledLayer:
     """A layer whose offset is divided by ``f`` (its other attributes are the layer's; a group's children
-    are scaled too)."""
+    are scaled too, and a gradient's rectangle)."""
 
     def __init__(self, layer, f: int):
         self._layer = layer
         self.offset = type("Offset", (), {"x": layer.offset.x // f, "y": layer.offset.y // f})()
         if layer.kind == "group":
             self.layers = [_ScaledLayer(child, f) for child in layer.layers]
+        if layer.kind == "gradient" and layer.size is not None:  # its rectangle, the size its reduced mask has
+            level = f.bit_length() - 1
+            w, h = _reduced_side(layer.size.width, level), _reduced_side(layer.size.height, level)
+            self.size = type("Size", (), {"width": w, "height": h})()
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._layer, name)
