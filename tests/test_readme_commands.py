@@ -2,8 +2,8 @@
 in the checkout (examples, layers, …) or is a catalogue name, so the command also runs outside the checkout from an
 installed wheel — where ``layers/<name>`` does not exist but the name ``<name>`` resolves (``lasagna.catalogue``).
 
-The fast part, here: parse the commands and check their read paths. Running them all from a wheel installed in a
-fresh venv is ``tests/test_wheel.py``'s job (left to a slow test: see the issue).
+The fast part, here: parse the commands, check their read paths and that no two write one output. Running them all
+from the wheel installed by name in a fresh venv, outside the checkout, is ``tests/test_readme_installed.py`` (slow).
 """
 
 from __future__ import annotations
@@ -61,3 +61,17 @@ def test_every_path_a_readme_command_reads_is_in_the_checkout_and_no_catalogue_e
             elif not (ROOT / path).exists():
                 bad.append(f"{' '.join(args)}: {path} does not exist in the checkout")
     assert not bad, "\n".join(bad)
+
+
+def test_no_two_readme_commands_write_one_output():
+    """Run in order, as tests/test_readme_installed.py runs them, a second command writing the folder or file an
+    earlier one wrote is refused ("is not empty; expected a new or empty folder")."""
+    seen: dict[str, str] = {}
+    repeated = []
+    for args in readme_commands():
+        for prev, arg in zip(args, args[1:]):
+            if prev in ("-o", "--output", "--out"):
+                if arg in seen:
+                    repeated.append(f"{' '.join(args)}: {arg} (also written by: {seen[arg]})")
+                seen[arg] = " ".join(args)
+    assert not repeated, "\n".join(repeated)
