@@ -244,6 +244,25 @@ def photo_rows(lit_net, folder: Path, sheet: Path | None, dome=None) -> list[dic
     return rows
 
 
+def albedo_photo_sheet(albedo_net, folder: Path, sheet: Path, dome=None) -> None:
+    """The shading preset's surface on each photograph (512²): input | normal map | the input shaded from the left |
+    from the right — to look at: the shading should follow shape, not paint."""
+    from PIL import Image
+
+    tiles = []
+    for file in sorted(folder.glob("*.jpg")):
+        image = read_photo(file)
+        n, _ = albedo_net.estimate_at(image, dome)
+        shaded = [image * lambert(n, lights_of([light])) for light in ("left", "right")]
+        tiles.append(torch.cat([image, (n + 1) / 2, *shaded], -1))
+    w = max(t.shape[-1] for t in tiles)
+    tiles = [torch.nn.functional.pad(t, (0, w - t.shape[-1])) for t in tiles]
+    grid = torch.cat(tiles, -2)[0].clamp(0, 1).permute(1, 2, 0).numpy()
+    sheet.parent.mkdir(parents=True, exist_ok=True)
+    im = Image.fromarray((grid * 255 + 0.5).astype("uint8"))
+    im.resize((im.width // 2, im.height // 2), Image.LANCZOS).save(sheet)  # half size: a sheet to look at
+
+
 def load(path: str | None) -> SurfaceEstimator | None:
     """A saved estimator folder, or a run's checkpoint.safetensors (its EMA weights: a run measured mid-way)."""
     if path is None:
@@ -277,6 +296,9 @@ def main(argv=None) -> int:
     )
     p.add_argument("--photos", type=Path, default=ROOT / "examples" / "photos" / "large", help="512² photographs")
     p.add_argument("--sheet", type=Path, default=None, help="photo sheet: input | normals | shading | left | right")
+    p.add_argument(
+        "--albedo-sheet", type=Path, default=None, help="albedo estimator photo sheet: input | normals | left | right"
+    )
     args = p.parse_args(argv)
     albedo_net, lit_net = load(args.albedo), load(args.lit)
     dome = None
@@ -284,6 +306,8 @@ def main(argv=None) -> int:
         weight, height = (float(v) for v in args.dome.split(","))
         dome = DomePrior(weight=weight, height=height)
     result = {"machine": machine_info(), "command": " ".join(sys.argv), "shading": [], "relight": [], "leak": []}
+    if albedo_net is not None and args.albedo_sheet is not None and args.photos.is_dir():
+        albedo_photo_sheet(albedo_net, args.photos, args.albedo_sheet, dome)
     if lit_net is not None and args.photos.is_dir():
         result["photos"] = photo_rows(lit_net, args.photos, args.sheet, dome)
     for split in args.splits:

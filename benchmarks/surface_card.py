@@ -69,6 +69,7 @@ def main(argv=None) -> int:
     ap.add_argument("--run", type=Path, required=True)
     ap.add_argument("--name", required=True)
     ap.add_argument("--measured", type=Path, default=None, help="benchmarks/surface.py --json-out of this estimator")
+    ap.add_argument("--dome", default=None, metavar="WEIGHT,HEIGHT", help="the dome prior the preset uses with it")
     args = ap.parse_args(argv)
     folder = ROOT / "layers" / args.name
     folder.mkdir(parents=True, exist_ok=True)
@@ -109,7 +110,9 @@ def main(argv=None) -> int:
         "",
         f"A `SurfaceEstimator` (`lasagna.generators.surface`, {params / 1e6:.2f} M parameters, channels "
         f"{list(net.config.channels)}, {net.config.blocks} conv blocks per level, no normalisation) that reads "
-        f"{reads}, and outputs a height field at working size {net.config.working_size} (canvas units). Its "
+        f"{reads}, and outputs "
+        + ("a height field (canvas units)" if net.config.output == "height" else "unit normals")
+        + f" at working size {net.config.working_size}. Its "
         "normals, rendered by Lambert with ambient 0.25 (`lasagna.compose.surface`), are a shading layer under "
         "any light"
         + (
@@ -117,6 +120,19 @@ def main(argv=None) -> int:
             "fit of the normals to it (`fit_light`)."
             if kind == "lit"
             else "."
+        )
+        + (
+            " It also outputs each pixel's probability of lying on an object (a silhouette head, trained by "
+            "cross-entropy against the objects' mask): the dome prior inflates those silhouettes into domes and mixes "
+            "them into the normals"
+            + (
+                f" (weight {args.dome.split(',')[0]}, height {args.dome.split(',')[1]}: the preset's "
+                "`surface.dome_weight` and `dome_height`, chosen on `select`)."
+                if args.dome
+                else "."
+            )
+            if net.config.silhouette
+            else ""
         ),
         "",
         "## Data",
@@ -141,8 +157,11 @@ def main(argv=None) -> int:
         "```sh",
         command(cfg, Path("runs") / args.name),
         f"OMP_NUM_THREADS=1 python benchmarks/surface.py --splits select heldout far --sizes 64 256 --count 16 "
-        f"--{'albedo' if kind == 'albedo' else 'lit'} layers/{args.name} --json-out {args.measured}",
-        f"python benchmarks/surface_card.py --run runs/{args.name} --name {args.name} --measured {args.measured}",
+        f"--{'albedo' if kind == 'albedo' else 'lit'} layers/{args.name}"
+        + (f" --dome {args.dome}" if args.dome else "")
+        + f" --json-out {args.measured}",
+        f"python benchmarks/surface_card.py --run runs/{args.name} --name {args.name} --measured {args.measured}"
+        + (f" --dome {args.dome}" if args.dome else ""),
         "```",
         "",
         "![loss](loss.png)",

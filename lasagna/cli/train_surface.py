@@ -11,7 +11,7 @@ from lasagna.cli.common import device_argument, progress
 
 HELP = "train a surface estimator (height field from an image) on the procedural world (resumable)"
 EXAMPLE = (
-    "lasagna train-surface --input albedo --out runs/surface-albedo-32 --minutes 30   # run again to resume",
+    "lasagna train-surface --input albedo --silhouette --out runs/surface-albedo-32 --minutes 30  # resumable",
     "lasagna train-surface --input lit --out runs/surface-lit-32 --minutes 30",
 )
 
