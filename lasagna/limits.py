@@ -64,6 +64,10 @@ MAX_CURVE_POINTS = 64
 # Colour (and opacity) stops of one gradient (a gradient fill, a gradient map): Photoshop's editor holds a few dozen;
 # each pixel of a fill searches them, so a hostile document's 10⁶ stops are refused, not searched.
 MAX_GRADIENT_STOPS = 64
+# Pixels of a pattern layer's tile, as stored and as resampled at its scale: Photoshop's patterns are at most a few
+# thousand pixels a side; 4096² bounds the tile (and the float64 copy its resampling holds, 0.5 GB at RGBA) so that a
+# hostile 1000 % scale of a large tile is refused from the PNG's header, not allocated.
+MAX_PATTERN_PIXELS = 4096 * 4096
 # A folder copied into the catalogue (``prior add --corrective``: b̂ is a config.json and a few MB of weights):
 # links are never followed, and the copy stops at these, so a crafted folder cannot fill the disk.
 MAX_COPY_BYTES = 2**30

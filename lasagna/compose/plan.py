@@ -66,6 +66,7 @@ from lasagna.compose.blend import BLEND_MODES, broadcast_shape, check_blend_name
 from lasagna.compose.color import srgb_to_linear
 from lasagna.compose.gradient import gradient_fill
 from lasagna.compose.layer import LayerTensors
+from lasagna.compose.pattern import pattern_fill
 from lasagna.compose.surface import surface_range, surface_tensors
 from lasagna.document.types import range_problem
 from lasagna.errors import LasagnaError
@@ -682,6 +683,34 @@ def gradient_tensors(
     return LayerTensors(color, alpha, mask)
 
 
+def pattern_tensors(
+    layer: Any,
+    tile: LayerTensors,
+    width: int,
+    height: int,
+    origin: tuple[int, int] = (0, 0),
+    where: str = "layer",
+    dtype: torch.dtype | None = None,
+) -> LayerTensors:
+    """A pattern layer's ``LayerTensors`` on a ``width`` × ``height`` canvas: its ``tile`` (the stack's tensors of
+    it: the tile's colour and alpha, and the mask of the layer's rectangle) repeated over its rectangle (its ``size``,
+    else the canvas; at ``origin`` plus its offset) from that rectangle's corner (``pattern.align``) or the canvas's
+    (``pattern.pattern_fill``), and the mask."""
+    size = getattr(layer, "size", None)
+    h, w = (size.height, size.width) if size is not None else (height, width)
+    x0, y0 = origin[0] + int(layer.offset.x), origin[1] + int(layer.offset.y)
+    rect = (x0, y0, x0 + w, y0 + h)
+    anchor = rect if layer.pattern.align else (0, 0, width, height)
+    mask = tile.mask
+    if mask is not None and tuple(mask.shape[-2:]) != (h, w):
+        raise LasagnaError(
+            f"mask is {mask.shape[-1]}x{mask.shape[-2]}; expected the layer's size {w}x{h}", where=f"{where}.mask"
+        )
+    p = layer.pattern
+    color, alpha = pattern_fill(tile.color, tile.alpha, p.scale, p.phase, anchor, rect, dtype)
+    return LayerTensors(color, alpha, mask)
+
+
 def adjustment_tensors(mask: Tensor | None, width: int, height: int, dtype: torch.dtype | None = None) -> LayerTensors:
     """An adjustment layer's ``LayerTensors``: its ``mask`` (``(..., 1, h, w)``, or None: the canvas), and a
     zero-stride colour of that size (an adjustment has no pixels; its colour is computed from the backdrop)."""
@@ -757,6 +786,10 @@ def _document_specs(
         if layer.kind == "gradient":  # drawn from its record; its tensors, when it has a mask, hold only the mask
             mask = lt.mask if mask_name is not None and lt is not None else None
             lt = gradient_tensors(layer, width, height, origin, mask, here, dtype)
+            specs.append(RenderLayerSpec(tensors=lt, range=(0.0, 1.0), encoded=True, **common))
+            continue
+        if layer.kind == "pattern" and lt is not None:  # its tensors hold the tile (and its rectangle's mask)
+            lt = pattern_tensors(layer, lt, width, height, origin, here, dtype)
             specs.append(RenderLayerSpec(tensors=lt, range=(0.0, 1.0), encoded=True, **common))
             continue
         rng = layer.range
@@ -849,6 +882,7 @@ __all__ = [
     "plan_from_document",
     "solid_tensors",
     "gradient_tensors",
+    "pattern_tensors",
     "adjustment_tensors",
     "clip_chain",
     "BLEND_MODES",

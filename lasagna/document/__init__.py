@@ -27,12 +27,14 @@ from lasagna.document.models import (
     Layer,
     LearnedLayer,
     Offset,
+    PatternLayer,
     PixelsLayer,
     Size,
     SolidLayer,
     SurfaceLayer,
     clip_chains,
 )
+from lasagna.document.pattern import PatternFill
 from lasagna.document.preset import (
     LOSS_NAMES,
     ControlNetRef,
@@ -54,6 +56,8 @@ __all__ = [
     "GradientFill",
     "GradientStop",
     "OpacityStop",
+    "PatternFill",
+    "PatternLayer",
     "Adjustment",
     "AdjustmentLayer",
     "ACCEPTED_BLEND_NAMES",

@@ -35,6 +35,7 @@ from pydantic import (
 from lasagna.document.adjustment import Adjustment
 from lasagna.document.condition import AMBIENT, DIRECTION_PATTERN, parse_direction
 from lasagna.document.gradient import GradientFill
+from lasagna.document.pattern import PatternFill
 from lasagna.document.types import (
     RANGE_FOR_BLEND_SCHEMA,
     UNIT_RANGE,
@@ -83,7 +84,7 @@ class Offset(StrictModel):
 
 
 class Size(StrictModel):
-    """Size of a solid or gradient layer's rectangle."""
+    """Size of a solid, gradient or pattern layer's rectangle."""
 
     width: Pixels = Field(description="Width in pixels, an integer in [1, 32768].")
     height: Pixels = Field(description="Height in pixels, an integer in [1, 32768].")
@@ -203,6 +204,27 @@ class GradientLayer(_Common):
     @property
     def range(self) -> tuple[float, float]:
         """A gradient's colour is a colour: the unit range."""
+        return UNIT_RANGE
+
+
+class PatternLayer(_Common):
+    """A pattern fill (Photoshop's pattern fill layer): a tile repeated over a rectangle.
+
+    ``source`` is the tile (RGB or RGBA PNG, 8 or 16 bits); ``pattern`` its scale, phase and alignment
+    (``lasagna.document.pattern``); ``lasagna.compose.pattern`` tiles it over the layer's rectangle from the
+    rectangle's corner (``pattern.align``) or the canvas's, as psd-tools' ``draw_pattern_fill`` does. Its colour is a
+    colour (the unit range); the tile's alpha is its alpha.
+    """
+
+    kind: Literal["pattern"] = Field("pattern", description="Layer kind: a pattern fill.")
+    source: RelativePath = Field(description="The tile: an RGB or RGBA PNG (8 or 16 bits), e.g. layers/<id>.png.")
+    pattern: PatternFill = Field(PatternFill(), description="How the tile is laid: scale, phase, align.")
+    size: Size | None = Field(None, description="Rectangle size; null means the canvas size.")
+    mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
+
+    @property
+    def range(self) -> tuple[float, float]:
+        """A pattern's colour is a colour: the unit range."""
         return UNIT_RANGE
 
 
@@ -388,13 +410,29 @@ class GroupLayer(_Common):
 
 
 Layer = Annotated[
-    PixelsLayer | SolidLayer | LearnedLayer | SurfaceLayer | AdjustmentLayer | GroupLayer | GradientLayer,
+    PixelsLayer
+    | SolidLayer
+    | LearnedLayer
+    | SurfaceLayer
+    | AdjustmentLayer
+    | GroupLayer
+    | GradientLayer
+    | PatternLayer,
     Field(discriminator="kind"),
 ]
 GroupLayer.model_rebuild()
 LAYER_KINDS: tuple[str, ...] = tuple(
     m.model_fields["kind"].default
-    for m in (PixelsLayer, SolidLayer, LearnedLayer, SurfaceLayer, AdjustmentLayer, GroupLayer, GradientLayer)
+    for m in (
+        PixelsLayer,
+        SolidLayer,
+        LearnedLayer,
+        SurfaceLayer,
+        AdjustmentLayer,
+        GroupLayer,
+        GradientLayer,
+        PatternLayer,
+    )
 )
 LayerPath = tuple[str | int, ...]  # JSON path of a layer: ("layers", 2, "layers", 0)
 

@@ -5,8 +5,8 @@ Never min–max normalised: a pixel stores v = (y − lo)/(hi − lo) for the la
 within 1/65535 of its range), alpha in the PNG's alpha. ``DIR/<id>.png`` per layer, ``DIR/masks/<id>.png``
 per mask, and ``DIR/layers.json`` listing, bottom to top, each file with what is needed to read the
 values back: blend, range, offset, bit depth. Solid layers are written as rectangles of their colour, gradient
-layers as their fill's pixels (16-bit; the index keeps the ``gradient`` record); learned layers not rendered yet are
-listed without a file.
+and pattern layers as their fill's pixels (16-bit; the index keeps the ``gradient`` or ``pattern`` record); learned
+layers not rendered yet are listed without a file.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from lasagna.atomic import atomic_write_all
-from lasagna.compose.plan import gradient_tensors
+from lasagna.compose.plan import gradient_tensors, pattern_tensors
 from lasagna.document import AdjustmentLayer, GroupLayer, LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
 from lasagna.io.png import encode_png
@@ -73,14 +73,19 @@ def layer_pngs(stack, *, clip: bool = False) -> tuple[dict[str, bytes], dict]:
             depth = 8 if tuple(layer.range) == (0.0, 1.0) else 16
             files[f"{layer.id}.png"] = encode_png(color, alpha, bit_depth=depth, where=f"layer {layer.id!r}")
             entry.update(file=f"{layer.id}.png", bit_depth=depth)
-        elif layer.kind == "gradient":
+        elif layer.kind in ("gradient", "pattern") and (layer.kind == "gradient" or layer.id in stack.tensors):
             t = stack.tensors.get(layer.id)
             mask = None if t is None else t.mask
-            g = gradient_tensors(layer, stack.width, stack.height, origins[layer.id], mask, path)
+            if layer.kind == "gradient":
+                g = gradient_tensors(layer, stack.width, stack.height, origins[layer.id], mask, path)
+                entry["gradient"] = layer.gradient.model_dump(mode="json")
+            else:
+                g = pattern_tensors(layer, t, stack.width, stack.height, origins[layer.id], path)
+                entry["pattern"] = layer.pattern.model_dump(mode="json")
             color = g.color.detach().double().numpy()
             alpha = None if g.alpha is None else g.alpha.detach().double().numpy()
             files[f"{layer.id}.png"] = encode_png(color, alpha, bit_depth=16, where=f"layer {layer.id!r}")
-            entry.update(file=f"{layer.id}.png", bit_depth=16, gradient=layer.gradient.model_dump(mode="json"))
+            entry.update(file=f"{layer.id}.png", bit_depth=16)
             if mask is not None:
                 m = np.clip(mask.detach().double().numpy().reshape(1, *mask.shape[-2:]), 0.0, 1.0)
                 files[f"masks/{layer.id}.png"] = encode_png(m, bit_depth=8, where=f"layer {layer.id!r} mask")

@@ -246,6 +246,33 @@ def gradient_fill(desc, warn: Warn, what: str) -> dict | None:
     return out
 
 
+def pattern_fill(desc, warn: Warn, what: str) -> tuple[str, dict] | None:
+    """A pattern fill layer's 'PtFl' descriptor (Ptrn {Nm, Idnt}, Scl percent, Algn, phase {Hrzn, Vrtc} pixels, Angl)
+    as (the pattern's id, the document's ``pattern``), or None (a scale outside 1…1000 %; its pixels are read, with a
+    warning). A phase is rounded to whole pixels and an angle read as 0° (psd-tools renders neither), each warned."""
+    ref = desc.get(b"Ptrn")
+    ident = str(_value(ref, b"Idnt", "") or "").rstrip("\x00")
+    if not ident:
+        warn(f"{what}: pattern fill names no pattern; the fill's pixels are imported")
+        return None
+    scale = float(_value(desc, b"Scl ", 100.0))
+    if not 1.0 <= scale <= 1000.0:
+        warn(f"{what}: pattern scale {scale:g} % is outside 1…1000 %; the fill's pixels are imported")
+        return None
+    phase_desc = desc.get(b"phase")
+    raw = [float(_value(phase_desc, k, 0.0)) for k in (b"Hrzn", b"Vrtc")]
+    phase = [int(round(v)) for v in raw]
+    if any(abs(v) > 32768 for v in phase):
+        warn(f"{what}: pattern phase {raw} is beyond ±32768 pixels; the fill's pixels are imported")
+        return None
+    if raw != [float(v) for v in phase]:
+        warn(f"{what}: pattern phase {raw} rounded to whole pixels {phase}")
+    angle = float(_value(desc, b"Angl", 0.0))
+    if angle % 360.0:
+        warn(f"{what}: pattern angle {angle:g}° read as 0° (the tile is not rotated, as psd-tools renders)")
+    return ident, dict(scale=scale, phase=phase, align=bool(_value(desc, b"Algn", True)))
+
+
 def photo_filter(layer, warn: Warn, what: str) -> dict | None:
     """'phfl': version 2 holds a colour record, version 3 three 32-bit Lab values (read ×1/100, as ag-psd reads them:
     unverified against Photoshop), then density (percent) and the luminosity flag."""

@@ -22,8 +22,11 @@ What each PSD thing becomes:
 * a solid colour fill layer without a mask, vector mask or effects → a ``solid`` layer of its colour (canvas size);
 * a gradient fill layer (custom stops) without a vector mask, effects or clipping layers → a ``gradient`` layer of
   its settings (``psd_adjust.gradient_fill``) over the layer's rectangle (the canvas when it has none), with its mask;
+* a pattern fill layer whose RGB pattern is in the file, without a vector mask, effects or clipping layers → a
+  ``pattern`` layer (``psd_adjust.pattern_fill``: scale, phase, align; its tile the pattern's pixels) over the
+  layer's rectangle, with its mask; one whose pattern is missing or not RGB is one warning line;
 * another fill layer → a ``pixels`` layer of the fill Photoshop stored in its channels, with its mask (psd-tools'
-  rendering when none is stored); a pattern fill so imported is one warning line (a stack has no live pattern);
+  rendering when none is stored);
 * layers psd-tools can draw but a stack cannot hold as such — type, shape and smart-object layers, a layer with
   effects, a clipping base whose chain holds one of those — → a ``pixels`` layer of psd-tools' rendering of it
   (``Layer.composite``), one warning line each saying what was rasterised;
@@ -49,10 +52,11 @@ from typing import Any
 
 import numpy as np
 
+from lasagna.document.pattern import tile_problem
 from lasagna.document.types import sanitise_name, unique_id
 from lasagna.errors import ExportError, ImageError
 from lasagna.export.psd import INSTALL_HINT, psd_blend_modes
-from lasagna.export.psd_adjust import READERS, descriptor_color, gradient_fill, hue_ranges
+from lasagna.export.psd_adjust import READERS, descriptor_color, gradient_fill, hue_ranges, pattern_fill
 from lasagna.io.png import DEFAULT_MAX_PIXELS
 from lasagna.limits import MAX_GROUP_DEPTH, check_memory
 
@@ -189,7 +193,7 @@ class _Reader:
     """One PSD's layers → document dicts and tensors (module docstring), with its warnings."""
 
     def __init__(self, psd, where: str, max_pixels: int, warn: Callable[[str], None]):
-        _, self.BlendMode, _, self.AdjustmentLayer, self.FillLayer = _require()
+        _, self.BlendMode, self.ColorMode, self.AdjustmentLayer, self.FillLayer = _require()
         self.psd, self.where, self.max_pixels, self.warn = psd, where, max_pixels, warn
         self.modes = {mode: name for name, mode in psd_blend_modes(self.BlendMode).items()}
         self.taken: set[str] = set()
@@ -314,8 +318,23 @@ class _Reader:
                 entry["mask"] = f"masks/{lid}.png"
                 self.tensors[lid] = group_mask_tensors(_tensor(mask))
             return entry
-        if layer.kind == "patternfill":
-            self.warn(f"{what}: a pattern fill is imported as its pixels (a stack has no live pattern fill)")
+        pattern = self._pattern_fill(layer, what)
+        if pattern is not None:  # a live pattern over the layer's rectangle (the canvas if it has none), its mask
+            settings, color, alpha = pattern
+            rect = layer.bbox if _area(layer.bbox) else (0, 0, self.psd.width, self.psd.height)
+            entry.update(kind="pattern", source=f"layers/{lid}.png", pattern=settings, blend=self._blend(layer, what))
+            entry["opacity"] *= layer.fill_opacity / 255.0
+            if tuple(rect) != (0, 0, self.psd.width, self.psd.height):
+                entry.update(offset={"x": int(rect[0]), "y": int(rect[1])})
+                entry.update(size={"width": int(rect[2] - rect[0]), "height": int(rect[3] - rect[1])})
+            mask = self._mask(layer, rect, what)
+            if mask is not None:
+                entry["mask"] = f"masks/{lid}.png"
+            from lasagna.compose.pattern import TileTensors
+
+            alpha_t = None if alpha is None else _tensor(alpha)
+            self.tensors[lid] = TileTensors(_tensor(color), alpha_t, None if mask is None else _tensor(mask))
+            return entry
         rgba, bbox, baked = self._raster(layer, what)
         if rgba is None:
             self.warn(f"{what}: {layer.kind} layer has no pixels; left out")
@@ -359,6 +378,37 @@ class _Reader:
         if layer.kind != "gradientfill" or layer.has_effects() or layer.has_vector_mask() or layer.has_clip_layers():
             return None
         return gradient_fill(layer._data, self.warn, what)
+
+    def _pattern_fill(self, layer, what: str) -> tuple[dict, np.ndarray, np.ndarray | None] | None:
+        """A pattern fill layer's (``pattern``, tile colour (3, th, tw), tile alpha (1, th, tw) or None) when a
+        ``pattern`` layer holds it (no vector mask, effects or clipping layers; its pattern in the file, RGB, within
+        ``MAX_PATTERN_PIXELS``); None otherwise (its stored pixels are read, with one warning saying why)."""
+        if layer.kind != "patternfill" or layer.has_effects() or layer.has_vector_mask() or layer.has_clip_layers():
+            return None
+        read = pattern_fill(layer._data, self.warn, what)
+        if read is None:
+            return None
+        ident, settings = read
+        pattern = self.psd._get_pattern(ident)
+        why = None
+        if pattern is None:
+            why = f"its pattern {ident!r} is not in the file"
+        elif pattern.image_mode != self.ColorMode.RGB:
+            why = f"its pattern is {pattern.image_mode.name} (a pattern layer's tile is RGB or RGBA)"
+        else:
+            top, left, bottom, right = pattern.data.rectangle
+            why = tile_problem(bottom - top, right - left, settings["scale"])
+        if why is not None:
+            self.warn(f"{what}: a pattern fill is imported as its pixels: {why}")
+            return None
+        from psd_tools.api import numpy_io
+
+        tile = numpy_io.get_pattern(pattern).transpose(2, 0, 1)  # (C, th, tw) in [0, 1], colour then alpha
+        channels = numpy_io.get_pattern_color_channels(pattern)
+        if channels != 3:
+            self.warn(f"{what}: a pattern fill is imported as its pixels: its tile has {channels} colour channels")
+            return None
+        return settings, tile[:3], tile[3:4] if tile.shape[0] > 3 else None
 
     def _raster(self, layer, what: str) -> tuple[np.ndarray | None, tuple[int, int, int, int], bool]:
         """(RGBA (4, h, w) float64, bbox, baked): the stored pixels, or psd-tools' rendering of the layer

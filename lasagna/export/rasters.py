@@ -62,7 +62,7 @@ import numpy as np
 import torch
 
 from lasagna.compose.blend import dissolve_pattern
-from lasagna.compose.plan import gradient_tensors
+from lasagna.compose.plan import gradient_tensors, pattern_tensors
 from lasagna.compose.surface import surface_tensors
 from lasagna.document import LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
@@ -182,7 +182,7 @@ def _warn(warn: Callable[[str], None] | None, message: str) -> None:
 def _layer_raster(stack, layer, origin: tuple[int, int] = (0, 0)) -> tuple[np.ndarray, np.ndarray | None] | None:
     """(color (C, h, w), alpha × mask (1, h, w) or None: opaque) values y of a layer, views of its tensors where
     they are float32 on the CPU (no float64 copy), or None if it has no pixels. ``origin``: where the enclosing
-    groups put the layer (a gradient laid out on the canvas needs it)."""
+    groups put the layer (a gradient or pattern laid out on the canvas needs it)."""
     if isinstance(layer, SolidLayer):
         rgba = list(layer.color)
         size = layer.size
@@ -195,6 +195,8 @@ def _layer_raster(stack, layer, origin: tuple[int, int] = (0, 0)) -> tuple[np.nd
     t = stack.tensors.get(layer.id)
     if layer.kind == "gradient":  # its fill drawn as the compositor draws it (a masked one's tensors hold the mask)
         t = gradient_tensors(layer, stack.width, stack.height, origin, None if t is None else t.mask, "layer")
+    elif layer.kind == "pattern" and t is not None:  # its tile repeated over its rectangle, as the compositor does
+        t = pattern_tensors(layer, t, stack.width, stack.height, origin, "layer")
     if t is None:
         return None
     if isinstance(layer, SurfaceLayer):  # the multiplier its normal map renders to, as the compositor blends it
@@ -307,7 +309,7 @@ class _Walk:
         self.stack, self.target, self.warn, self.groups = stack, target, warn, groups
         self.W, self.H = stack.width, stack.height
         self.inexact: list[str] = []
-        self.fills: list[str] = []  # gradient layers, written as their pixels
+        self.fills: dict[str, list[str]] = {}  # fill layers (gradient, pattern) by kind, written as their pixels
 
     def items(self, layers, origin: tuple[int, int], shown: bool, isolated_in: bool) -> list:
         """Export items of ``layers`` (bottom to top) whose offsets are relative to ``origin``; ``shown``: every
@@ -374,8 +376,8 @@ class _Walk:
     def leaf(self, layer, origin, shown, isolated_in) -> list[ExportLayer]:
         stack, target, W, H = self.stack, self.target, self.W, self.H
         raster = _layer_raster(stack, layer, origin)
-        if layer.kind == "gradient":
-            self.fills.append(layer.id)
+        if layer.kind in ("gradient", "pattern"):
+            self.fills.setdefault(layer.kind, []).append(layer.id)
         if raster is None:
             if isinstance(layer, LearnedLayer):
                 why = f"layer {layer.id!r} is not rendered (run `lasagna render`); left out of the {target} file"
@@ -533,8 +535,8 @@ def _layers(stack, target: str, warn, groups: bool = False) -> tuple[list, list[
     # A transparent document's top level is composited over transparency, as an isolated group's layers are: the
     # helper layers that assume an opaque backdrop (dodge pairs, baked alpha) are not exact there either.
     top = walk.items(stack.document.layers, (0, 0), True, background is None)
-    if walk.fills:
-        _warn(warn, f"gradient layer(s) {', '.join(map(repr, walk.fills))} written to {target} as their pixels (the "
-              "live gradient fill is not written)")  # fmt: skip
+    for kind, ids in walk.fills.items():
+        _warn(warn, f"{kind} layer(s) {', '.join(map(repr, ids))} written to {target} as their pixels (the "
+              f"live {kind} fill is not written)")  # fmt: skip
     out = [*([background] if background is not None else []), *top]
     return out, walk.inexact

@@ -25,6 +25,7 @@ import torch
 
 from lasagna.atomic import atomic_write_all
 from lasagna.compose.layer import LayerTensors
+from lasagna.compose.pattern import TileTensors
 from lasagna.compose.surface import encode_normal_map
 from lasagna.document import (
     AdjustmentLayer,
@@ -32,12 +33,14 @@ from lasagna.document import (
     GradientLayer,
     GroupLayer,
     LearnedLayer,
+    PatternLayer,
     PixelsLayer,
     SolidLayer,
     SurfaceLayer,
     stack_file,
 )
 from lasagna.document.condition import AMBIENT
+from lasagna.document.pattern import tile_problem
 from lasagna.errors import DocumentError, ImageError, PathError
 from lasagna.io.png import (
     DEFAULT_MAX_PIXELS,
@@ -71,7 +74,8 @@ class Stack:
     ``tensors[id]`` is a ``LayerTensors(color, alpha, mask)`` of values y (range-mapped) for every
     pixels layer and every learned layer that has a ``source``; solid and gradient layers need none (the
     compositor draws them from the document); a group, adjustment or gradient with a mask has ``LayerTensors``
-    whose ``mask`` is it (``group_mask_tensors``). ``bit_depths[id]`` is the depth a layer was read at,
+    whose ``mask`` is it (``group_mask_tensors``); a pattern layer has ``TileTensors``: its tile's colour and alpha,
+    and the mask of its rectangle. ``bit_depths[id]`` is the depth a layer was read at,
     so saving never loses precision it had.
     """
 
@@ -230,6 +234,53 @@ class Stack:
             self.tensors[id] = group_mask_tensors(m)
         return self
 
+    def add_pattern(
+        self,
+        id: str,
+        tile,
+        pattern: Mapping[str, Any] | None = None,
+        *,
+        index: int | None = None,
+        mask=None,
+        bit_depth: int = 8,
+        **fields: Any,
+    ) -> Stack:
+        """Add (on top, or at ``index``) or replace the pattern fill layer ``id``: ``tile`` an RGB or RGBA image (see
+        the module docstring), kept as its PNG of ``bit_depth`` bits gives it back (so the stack renders the same
+        bits before saving and after loading); ``pattern`` the document's ``pattern`` record (scale, phase, align);
+        optional ``size`` {width, height} and a ``mask`` of that size (default the canvas)."""
+        where = f"layer {id!r}"
+        color, a = image_to_tensors(tile, (0.0, 1.0), where=where)
+        if color.shape[0] != 3:
+            raise ImageError(f"tile has {color.shape[0]} colour channel(s); expected an RGB or RGBA tile", where)
+        if bit_depth not in (8, 16):
+            raise ImageError(f"bit_depth {bit_depth!r}; expected 8 or 16", where=where)
+        existing = self.document.layer(id) if id in self.document.all_ids else None
+        if existing is not None and not isinstance(existing, PatternLayer):
+            raise DocumentError(f"layer {id!r} is a {existing.kind} layer; expected a new id", where="add_pattern")
+        layer = _layer_dict(id, "pattern", fields, has_mask=mask is not None)
+        layer["pattern"] = dict(pattern or {})
+        if fields.get("size") is not None:
+            size = fields["size"]
+            layer["size"] = size if isinstance(size, Mapping) else {"width": int(size[0]), "height": int(size[1])}
+        problem = tile_problem(color.shape[-2], color.shape[-1], float(layer["pattern"].get("scale", 100.0)))
+        if problem is not None:
+            raise ImageError(problem, where)
+        planes: list[Plane] = [(color, 0.0, 1.0)] + ([] if a is None else [(a, 0.0, 1.0)])
+        for t, _, _ in planes:
+            _check_stored(t, 0.0, 1.0, where, clip=False)
+        values = torch.from_numpy(_decoded(planes, bit_depth))
+        m = None
+        if mask is not None:
+            m = mask_to_tensor(mask, where=f"{where} mask")
+            w, h = (layer["size"]["width"], layer["size"]["height"]) if "size" in layer else (self.width, self.height)
+            if tuple(m.shape[-2:]) != (h, w):
+                raise ImageError(f"mask is {m.shape[-1]}x{m.shape[-2]}; expected the layer's size {w}x{h}", where)
+        tensors = TileTensors(values[:3], values[3:] if a is not None else None, m)
+        self.document = self.document.with_layer(layer, index if existing is None else None)
+        self._store(id, tensors, bit_depth)
+        return self
+
     def set_pixels(self, id: str, image, *, alpha=None, mask=None, bit_depth: int | None = None) -> Stack:
         """Give the existing pixels or learned layer ``id`` new pixels (a learned layer gets a ``source``)."""
         layer = self.document.layer(id)
@@ -344,8 +395,8 @@ def _layer_dict(
     id: str, kind: str, fields: Mapping[str, Any], *, has_mask: bool, source: str | None = None
 ) -> dict[str, Any]:
     allowed = {"name", "blend", "opacity", "visible", "offset"}
-    allowed |= {"size"} if kind in ("solid", "gradient") else set()
-    allowed |= {"range"} if kind != "gradient" else set()
+    allowed |= {"size"} if kind in ("solid", "gradient", "pattern") else set()
+    allowed |= {"range"} if kind not in ("gradient", "pattern") else set()
     unknown = set(fields) - allowed
     if unknown:
         raise DocumentError(
@@ -540,6 +591,14 @@ def load_surveyed(survey: Survey) -> Stack:
             stack.tensors[layer.id] = group_mask_tensors(images.pop((r.loc, "mask")), f"{file}: {r.where}")
             continue
         if r.field != "source":
+            continue
+        if isinstance(layer, PatternLayer):  # the tile, and the mask of the layer's rectangle (its own size)
+            img = images.pop((r.loc, "source"))
+            mask = images.pop((r.loc, "mask")) if layer.mask is not None else None
+            mask_t = None if mask is None else _mask_array(mask, f"{file}: {r.loc}.mask ({layer.mask})")
+            alpha = None if img.alpha is None else torch.from_numpy(img.alpha)
+            stack.tensors[layer.id] = TileTensors(torch.from_numpy(img.color), alpha, mask_t)
+            stack.bit_depths[layer.id] = img.header.bit_depth if img.header.bit_depth == 16 else 8
             continue
         img = images.pop((r.loc, "source"))
         mask_img = images.pop((r.loc, "mask")) if layer.mask is not None else None

@@ -19,11 +19,13 @@ from lasagna.document import (
     GradientLayer,
     GroupLayer,
     LearnedLayer,
+    PatternLayer,
     PixelsLayer,
     SurfaceLayer,
     load_document,
     stack_file,
 )
+from lasagna.document.pattern import tile_problem
 from lasagna.errors import ImageError, PathError
 from lasagna.io.png import DEFAULT_MAX_PIXELS, check_size, decode_bytes, read_png_header, verify_png
 from lasagna.limits import check_memory
@@ -65,7 +67,7 @@ def _rasters(doc: Document) -> Iterable[tuple[str, Any, str, str]]:
     """(JSON path, layer, field, relative path) for every PNG the document names, groups' layers and masks
     included (``layers[2].layers[0]``, depth first)."""
     for loc, layer in doc.walk():
-        if isinstance(layer, (PixelsLayer, LearnedLayer, SurfaceLayer)) and layer.source is not None:
+        if isinstance(layer, (PixelsLayer, LearnedLayer, SurfaceLayer, PatternLayer)) and layer.source is not None:
             yield loc, layer, "source", layer.source
             if layer.mask is not None:
                 yield loc, layer, "mask", layer.mask
@@ -126,6 +128,10 @@ def _plan_rasters(
                     f"{size.width}x{size.height}",
                     where=f"{where} ({rel})",
                 )
+        if isinstance(layer, PatternLayer):  # a tile (RGB or RGBA, bounded as resampled) and its rectangle's mask
+            _check_pattern(layer, doc, fieldname, header, f"{where} ({rel})")
+            planned.append(_Raster(loc, layer, fieldname, rel, target, header))
+            continue
         if fieldname == "source":
             sources[loc] = header
         elif loc in sources:
@@ -138,6 +144,24 @@ def _plan_rasters(
                 )
         planned.append(_Raster(loc, layer, fieldname, rel, target, header))
     return planned
+
+
+def _check_pattern(layer: PatternLayer, doc: Document, fieldname: str, header: Any, where: str) -> None:
+    """A pattern layer's PNGs, from their headers: the tile RGB or RGBA and within ``tile_problem``'s bound at the
+    layer's scale; the mask the size of the layer's rectangle."""
+    if fieldname == "source":
+        if header.kind not in ("rgb", "rgba"):
+            raise ImageError(f"tile is a {header.kind} PNG; expected an RGB or RGBA PNG", where=where)
+        problem = tile_problem(header.height, header.width, layer.pattern.scale)
+        if problem is not None:
+            raise ImageError(problem, where=where)
+        return
+    size = layer.size or doc.canvas
+    if (header.width, header.height) != (size.width, size.height):
+        raise ImageError(
+            f"mask is {header.width}x{header.height}; expected the pattern layer's size {size.width}x{size.height}",
+            where=where,
+        )
 
 
 def load_bytes(rasters: Iterable[Any], copies: int = 0) -> int:

@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from lasagna.compose.layer import LayerTensors
+from lasagna.compose.pattern import TileTensors
 from lasagna.compose.plan import plan_from_document, solid_tensors
 from lasagna.compose.render import render
 from lasagna.compose.renderer import Renderer
@@ -152,6 +153,19 @@ class SessionViews:
             if layer.kind == "group":
                 size = (_reduced_side(t.mask.shape[-2], level), _reduced_side(t.mask.shape[-1], level))
                 hit = (t, group_mask_tensors(_reduce(t.mask, size)))
+            elif layer.kind == "pattern":  # the tile and its rectangle's mask, each reduced on its own
+                tile = (_reduced_side(t.color.shape[-2], level), _reduced_side(t.color.shape[-1], level))
+                mask = (
+                    None
+                    if t.mask is None
+                    else (_reduced_side(t.mask.shape[-2], level), _reduced_side(t.mask.shape[-1], level))
+                )
+                reduced = (
+                    _reduce(t.color, tile),
+                    _reduce(t.alpha, tile),
+                    None if mask is None else _reduce(t.mask, mask),
+                )
+                hit = (t, TileTensors(*reduced))
             else:
                 size = (_reduced_side(t.color.shape[-2], level), _reduced_side(t.color.shape[-1], level))
                 hit = (t, LayerTensors(_reduce(t.color, size), _reduce(t.alpha, size), _reduce(t.mask, size)))
@@ -367,7 +381,9 @@ class _ScaledLayer:
         self.offset = type("Offset", (), {"x": layer.offset.x // f, "y": layer.offset.y // f})()
         if layer.kind == "group":
             self.layers = [_ScaledLayer(child, f) for child in layer.layers]
-        if layer.kind == "gradient" and layer.size is not None:  # its rectangle, the size its reduced mask has
+        if layer.kind == "pattern":  # its phase in reduced pixels (its tile is reduced with the view)
+            self.pattern = layer.pattern.model_copy(update={"phase": tuple(v // f for v in layer.pattern.phase)})
+        if layer.kind in ("gradient", "pattern") and layer.size is not None:  # its rectangle, its reduced mask's size
             level = f.bit_length() - 1
             w, h = _reduced_side(layer.size.width, level), _reduced_side(layer.size.height, level)
             self.size = type("Size", (), {"width": w, "height": h})()

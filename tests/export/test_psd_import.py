@@ -711,3 +711,99 @@ def test_a_gradient_fill_is_imported_as_a_gradient_layer(tmp_path, style, angle,
     assert fills[1].size.width == 12 and (fills[1].offset.x, fills[1].offset.y) == (3, 2)
     got = ours(path)
     assert np.abs(got - psd_tools_flat(path)).max() <= 3
+
+
+def _pattern(ident: str, tile: np.ndarray, alpha: bool = True):
+    """A 'Patt' pattern record as Photoshop writes one (psd-tools' low-level classes): RGB channel slots, an unused
+    slot, then the transparency slot; 8-bit raw planes."""
+    from psd_tools.constants import ColorMode
+    from psd_tools.psd.patterns import Pattern, VirtualMemoryArray, VirtualMemoryArrayList
+
+    th, tw = tile.shape[:2]
+
+    def plane(values):
+        v = VirtualMemoryArray()
+        v.set_data((tw, th), np.ascontiguousarray(values).tobytes(), 8)
+        return v
+
+    slots = [plane(tile[..., c]) for c in range(3)] + [VirtualMemoryArray()]
+    slots.append(plane(tile[..., 3]) if alpha else VirtualMemoryArray())
+    data = VirtualMemoryArrayList(rectangle=(0, 0, th, tw), channels=slots)
+    return Pattern(image_mode=ColorMode.RGB, point=(th, tw), name="tile", pattern_id=ident, data=data)
+
+
+def _pattern_fill_block(ident: str, scale: float, phase=(0.0, 0.0), angle: float | None = None):
+    """A 'PtFl' descriptor as Photoshop writes one: Ptrn {Nm, Idnt}, Scl, Algn, phase {Hrzn, Vrtc} (and Angl)."""
+    from psd_tools.psd.descriptor import Bool, Descriptor, Double, String, UnitFloat
+    from psd_tools.psd.tagged_blocks import DescriptorBlock
+    from psd_tools.terminology import Unit
+
+    ref = Descriptor(classID=b"Ptrn")
+    ref[b"Nm  "], ref[b"Idnt"] = String("tile\x00"), String(ident + "\x00")
+    point = Descriptor(classID=b"Pnt ")
+    point[b"Hrzn"], point[b"Vrtc"] = Double(phase[0]), Double(phase[1])
+    block = DescriptorBlock()
+    block[b"Ptrn"], block[b"Scl "], block[b"Algn"], block[b"phase"] = (
+        ref, UnitFloat(unit=Unit.Percent, value=scale), Bool(True), point)  # fmt: skip
+    if angle is not None:
+        block[b"Angl"] = UnitFloat(unit=Unit.Angle, value=angle)
+    return block
+
+
+@pytest.mark.parametrize("scale,alpha", [(100.0, True), (170.0, True), (63.0, False)])
+def test_a_pattern_fill_is_imported_as_a_pattern_layer(tmp_path, scale, alpha):
+    # A pattern fill over a base, one at full canvas and one masked (multiply) on a smaller rectangle, its pattern in
+    # the file's 'Patt' block, written by psd-tools' low-level API: imported as pattern layers with their tile, and
+    # the stack composites within 3/255 of psd-tools' own composite of the file (which tiles the pattern itself).
+    from psd_tools.constants import Tag
+    from psd_tools.psd.patterns import Patterns
+    from psd_tools.psd.tagged_blocks import TaggedBlock
+
+    rng = np.random.default_rng(17)
+    psd = PSDImage.new("RGBA", (W, H))
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    tile = rng.integers(0, 256, (5, 7, 4), dtype=np.uint8)
+    for name, box, mode in (("fill", (0, 0, W, H), BlendMode.NORMAL), ("small", (3, 2, 15, 12), BlendMode.MULTIPLY)):
+        pixels = Image.fromarray(np.zeros((box[3] - box[1], box[2] - box[0], 4), dtype=np.uint8))
+        layer = psd.create_pixel_layer(pixels, name=name, left=box[0], top=box[1])
+        block = _pattern_fill_block("5e1713ab-e968", scale)
+        layer.tagged_blocks[Tag.PATTERN_FILL_SETTING] = TaggedBlock(key=Tag.PATTERN_FILL_SETTING, data=block)
+        layer.blend_mode, layer.opacity = mode, 220
+    psd.tagged_blocks.set_data(Tag.PATTERNS1, Patterns([_pattern("5e1713ab-e968", tile, alpha)]))
+    path = tmp_path / "pattern.psd"
+    psd.save(path)
+    warnings: list[str] = []
+    stack = read_psd(path, warn=warnings.append)
+    fills = [lay for lay in stack.document.layers if lay.kind == "pattern"]
+    assert [f.id for f in fills] == ["fill", "small"] and not warnings
+    assert (
+        fills[0].pattern.scale == scale
+        and fills[1].size.width == 12
+        and (fills[1].offset.x, fills[1].offset.y) == (3, 2)
+    )
+    t = stack.tensors["fill"]
+    assert t.color.shape == (3, 5, 7) and (t.alpha is not None) == alpha
+    assert np.array_equal(np.rint(t.color.numpy() * 255).astype(np.uint8), tile[..., :3].transpose(2, 0, 1))
+    assert np.abs(ours(path) - psd_tools_flat(path)).max() <= 3
+    stack.save(tmp_path / "s")  # the tile is the stack's own file, and renders the same from it
+    assert (tmp_path / "s" / "layers" / "fill.png").is_file()
+    loaded = render_stack(load_stack(tmp_path / "s"), dtype=torch.float64).image
+    assert torch.equal(loaded, render_stack(stack, dtype=torch.float64).image)
+
+
+def test_a_pattern_fill_without_its_pattern_keeps_its_pixels_with_one_warning(tmp_path):
+    from psd_tools.constants import Tag
+    from psd_tools.psd.tagged_blocks import TaggedBlock
+
+    rng = np.random.default_rng(19)
+    psd = PSDImage.new("RGBA", (W, H))
+    psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="base")
+    layer = psd.create_pixel_layer(rgba(rng, H, W, "opaque"), name="fill")
+    block = _pattern_fill_block("missing", 100.0, phase=(2.5, 0.0), angle=30.0)
+    layer.tagged_blocks[Tag.PATTERN_FILL_SETTING] = TaggedBlock(key=Tag.PATTERN_FILL_SETTING, data=block)
+    path = tmp_path / "pattern.psd"
+    psd.save(path)
+    warnings: list[str] = []
+    stack = read_psd(path, warn=warnings.append)
+    assert stack.document.layer("fill").kind == "pixels"
+    assert [w for w in warnings if "pattern 'missing' is not in the file" in w] and all("\n" not in w for w in warnings)
