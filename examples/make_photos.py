@@ -4,16 +4,22 @@
     python examples/make_photos.py    # writes examples/photos/<name>.png (96x96 RGB, 8-bit)
                                       # and examples/photos/large/<name>.jpg (512x512, the benchmarks' sheet)
 
+The demo's photographs (``lasagna.demo.PHOTOS``) are also copied into the package
+(``lasagna/_data/photos``), so that ``lasagna demo`` runs from an installed wheel.
+
 Each crop is a square box of the original image, resized with Pillow's Lanczos filter. The images
 are in the public domain or CC0 (see examples/photos/README.md, which credits each one).
 """
 
 from __future__ import annotations
 
+import shutil
 import sys
 from pathlib import Path
 
 from PIL import Image
+
+from lasagna.demo import PACKAGED_PHOTOS, PHOTOS
 
 SIZE = 96
 # name -> (scikit-image loader, (left, top, side) of the square box in the original's pixels)
@@ -47,6 +53,9 @@ def main(out: Path) -> None:
         crop = image.crop(box).resize((SIZE, SIZE), Image.Resampling.LANCZOS)
         crop.save(out / f"{name}.png", optimize=True)
         print(f"wrote {out / f'{name}.png'} ({loader}, box {box})")
+    for name in PHOTOS:  # the demo's, shipped in the wheel
+        shutil.copyfile(out / f"{name}.png", PACKAGED_PHOTOS / f"{name}.png")
+        print(f"copied {name}.png to {PACKAGED_PHOTOS}")
     (out / "large").mkdir(exist_ok=True)
     for name, (loader, (left, top, side)) in LARGE_CROPS.items():
         image = Image.fromarray(getattr(skimage.data, loader)()).convert("RGB")

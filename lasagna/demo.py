@@ -1,8 +1,10 @@
 """``lasagna demo``: relight, colourise and add light to the bundled examples, and draw one sheet a person can look at.
 
 Inputs (a checkout's ``examples/``): held-out world scenes (``examples/world/``, made by
-``examples/make_world.py``) and small real photographs (``examples/photos/``, crops of
-scikit-image's CC0 / public-domain samples). For each:
+``examples/make_world.py`` with ``write_world``) and small real photographs (``examples/photos/``, crops of
+scikit-image's CC0 / public-domain samples). Outside a checkout (an installed wheel) the same inputs come from
+the package alone (``packaged_examples``): the world scenes rendered again — the world is procedural, so they
+are the committed files bit for bit — and the photographs the package ships (``lasagna/_data/photos``). For each:
 
 * **relight** (preset ``shading``) in several directions: a world scene's albedo, or a photograph,
   gets a learned multiply layer; the world's true shading stays in the stack, hidden, and the truth
@@ -29,8 +31,11 @@ nothing can run, the demo composites and exports the example stack instead (``fa
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,7 +44,7 @@ from torch import Tensor
 
 from lasagna import catalogue as cat
 from lasagna.atomic import atomic_write_bytes
-from lasagna.errors import LasagnaError, PathError
+from lasagna.errors import LasagnaError
 from lasagna.learned import choose_method
 
 DIRECTIONS = ("left", "right", "top", "bottom")  # relighting directions shown for every input
@@ -55,6 +60,11 @@ DEMO_STEPS: int | None = None
 # Per-image steps after an amortised generator's pass (``lasagna edit --optimize``). None: the preset's
 # refine_steps — the demo shows what ``lasagna edit`` does by default.
 DEMO_REFINE: int | None = None
+# The world scenes: examples/make_world.py writes them into examples/world/, and the demo renders the same bits
+# where there is no checkout (a world scene is its split, seed, index and resolution: lasagna.world is procedural).
+WORLD_SPLIT, WORLD_COUNT, WORLD_SEED, WORLD_RESOLUTION = "heldout", 4, 0, 64
+# The demo's photographs shipped in the package (examples/make_photos.py copies them there from examples/photos).
+PACKAGED_PHOTOS = Path(__file__).resolve().parent / "_data" / "photos"
 CELL = 128  # pixels per image cell in the sheet (64² scenes and 96² photos, enlarged without smoothing)
 LABEL_WIDTH = 200
 
@@ -69,16 +79,51 @@ class Row:
     truth: Tensor | None
 
 
-def examples_root() -> Path:
-    """The ``examples`` folder of a checkout (beside the package), or under the current folder."""
+def examples_root() -> Path | None:
+    """The ``examples`` folder of a checkout (beside the package), or under the current folder; None outside one."""
     for root in (Path(__file__).resolve().parents[1], Path.cwd()):
         if (root / "examples" / "photos").is_dir() and (root / "examples" / "world").is_dir():
             return root / "examples"
-    raise PathError(
-        "examples/photos and examples/world not found; expected to run in a checkout of lasagna "
-        "(the demo's images are not in the wheel)",
-        "demo",
-    )
+    return None
+
+
+def write_world(out: str | Path) -> list[Path]:
+    """Write the demo's world scenes (``WORLD_*``) as stack folders under ``out``, and ``world.json``: what
+    ``examples/make_world.py`` commits to ``examples/world/``."""
+    from lasagna.world.export import write_world_stacks
+
+    return write_world_stacks(out, WORLD_SPLIT, WORLD_COUNT, WORLD_SEED, WORLD_RESOLUTION, "shading")
+
+
+def packaged_examples(folder: str | Path) -> Path:
+    """An ``examples`` folder made from the package alone, for an install without a checkout: ``folder/world``
+    rendered by ``write_world`` (the checkout's ``examples/world`` bit for bit) and ``folder/photos`` the
+    photographs the package ships (``PACKAGED_PHOTOS``, the checkout's ``examples/photos`` files). Returns
+    ``folder``."""
+    folder = Path(folder)
+    write_world(folder / "world")
+    (folder / "photos").mkdir(parents=True, exist_ok=True)
+    for name in PHOTOS:
+        shutil.copyfile(PACKAGED_PHOTOS / f"{name}.png", folder / "photos" / f"{name}.png")
+    return folder
+
+
+@contextmanager
+def demo_examples(examples: Path | None = None, say: Callable[[str], None] | None = None) -> Iterator[Path]:
+    """The examples folder the demo reads: ``examples`` if given, else a checkout's (``examples_root``), else
+    ``packaged_examples`` in a temporary folder removed afterwards (a stack written from it records only file
+    names, never that folder)."""
+    found = examples or examples_root()
+    if found is not None:
+        yield found
+        return
+    with tempfile.TemporaryDirectory(prefix="lasagna-demo-") as tmp:
+        if say is not None:
+            say(
+                f"demo: no examples/ here (not a checkout): rendering the world scenes ({WORLD_SPLIT}, seed "
+                f"{WORLD_SEED}) and using the photographs shipped in {PACKAGED_PHOTOS}"
+            )
+        yield packaged_examples(tmp)
 
 
 # ---- drawing -----------------------------------------------------------------------------------------
@@ -200,12 +245,12 @@ def run_demo(
     """Run the demo into ``out``; returns the sheet's path (None when it fell back to the example stack).
 
     ``say`` receives the lines a person should read (what ran, what was skipped, where things are); the
-    CLI prints them. ``warn`` receives export warnings.
+    CLI prints them. ``warn`` receives export warnings. ``examples``: the folder of ``world/`` and ``photos/``
+    (default ``demo_examples``': a checkout's, else made from the package).
     """
     say = say or (lambda line: None)
     out = Path(out)
     start = time.monotonic()
-    ex = examples or examples_root()
     runnable, missing = runnable_presets(catalogue_dirs)
     places = ", ".join(map(str, cat.catalogues() if catalogue_dirs is None else catalogue_dirs)) or "no catalogue"
     if not runnable:
@@ -213,18 +258,21 @@ def run_demo(
             f"demo: no learned layer can run ({'; '.join(missing)}; looked in {places}); "
             "compositing and exporting the example stack instead"
         )
-        fallback(ex, out, say, warn)
+        with demo_examples(examples, say) as ex:
+            fallback(ex, out, say, warn)
         return None
     for reason in missing:
         say(f"demo: skipping {reason} (looked in {places})")
 
     edits = _Edits(out, runnable, catalogue_dirs, steps, refine, warn)
-    scenes = sorted(p for p in (ex / "world").iterdir() if (p / "stack.json").is_file())[:WORLD_SCENES]
-    for k, scene in enumerate(scenes):
-        edits.world_scene(scene, GLOWS[k % len(GLOWS)])
-    photos = [ex / "photos" / f"{name}.png" for name in PHOTOS if (ex / "photos" / f"{name}.png").is_file()]
-    for k, photo in enumerate(photos):
-        edits.photo(photo, colourise=k < COLOURISED_PHOTOS, glow=GLOWS[k % len(GLOWS)] if k < LIT_PHOTOS else None)
+    with demo_examples(examples, say) as ex:
+        scenes = sorted(p for p in (ex / "world").iterdir() if (p / "stack.json").is_file())[:WORLD_SCENES]
+        for k, scene in enumerate(scenes):
+            edits.world_scene(scene, GLOWS[k % len(GLOWS)])
+        photos = [ex / "photos" / f"{name}.png" for name in PHOTOS if (ex / "photos" / f"{name}.png").is_file()]
+        for k, photo in enumerate(photos):
+            glow = GLOWS[k % len(GLOWS)] if k < LIT_PHOTOS else None
+            edits.photo(photo, colourise=k < COLOURISED_PHOTOS, glow=glow)
 
     seconds = time.monotonic() - start
     made = ", ".join(f"{k}: {v}" for k, v in runnable.items())
@@ -384,23 +432,26 @@ def _has_prior(parts, catalogue_dirs) -> bool:
 
 
 def fallback(examples: Path, out: Path, say: Callable[[str], None], warn) -> None:
-    """Composite and export the example stack (what the demo did before learned layers existed)."""
+    """Composite and export the example stack (what the demo did before learned layers existed): a checkout's
+    ``examples/stacks/basic``, else (the package alone) the first world scene, albedo × its true shading."""
     from lasagna.export.ora import export_ora
     from lasagna.export.png import export_layer_pngs
     from lasagna.io.render import render_stack, write_composite
     from lasagna.io.stack import load_stack
 
     source = examples / "stacks" / "basic"
+    if not source.is_dir():
+        source = sorted(p for p in (examples / "world").iterdir() if (p / "stack.json").is_file())[0]
     stack = load_stack(source)
     result = render_stack(stack)
     written = [
         write_composite(result, out / "composite.png"),
-        export_ora(stack, out / "basic.ora", composite=result.image, warn=warn),
+        export_ora(stack, out / f"{source.name}.ora", composite=result.image, warn=warn),
     ]
     try:
         from lasagna.export.psd import export_psd
 
-        written.append(export_psd(stack, out / "basic.psd", composite=result.image, warn=warn))
+        written.append(export_psd(stack, out / f"{source.name}.psd", composite=result.image, warn=warn))
     except LasagnaError as err:  # psd-tools missing: the rest of the demo still stands
         say(f"demo: {err}")
     export_layer_pngs(stack, out / "layers")

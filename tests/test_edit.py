@@ -636,7 +636,53 @@ def test_demo_end_to_end(tmp_path, capsys):
     assert code == 0, err
 
 
-def test_demo_falls_back_without_priors(tmp_path, capsys, monkeypatch):
+def test_the_demo_s_inputs_from_the_package_alone_are_the_checkout_s_bit_for_bit(tmp_path):
+    """Outside a checkout the demo renders its world scenes and copies the photographs the package ships
+    (``lasagna.demo.packaged_examples``): every file it reads is the committed ``examples/`` file, byte for byte."""
+    from lasagna.demo import PACKAGED_PHOTOS, PHOTOS, packaged_examples
+
+    made = packaged_examples(tmp_path / "examples")
+
+    def files(folder: Path) -> dict[str, bytes]:
+        return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+    committed = {k: v for k, v in files(ROOT / "examples" / "world").items() if k != "README.md"}
+    assert files(made / "world") == committed and len(committed) == 4 * 6 + 1  # 4 scenes of 6 files, world.json
+    for name in PHOTOS:
+        shipped = (ROOT / "examples" / "photos" / f"{name}.png").read_bytes()
+        assert (
+            (made / "photos" / f"{name}.png").read_bytes() == (PACKAGED_PHOTOS / f"{name}.png").read_bytes() == shipped
+        )
+    # under lasagna/, so in the wheel (tests/test_wheel.py checks every data file there is declared package data)
+    assert PACKAGED_PHOTOS.is_relative_to(ROOT / "lasagna")
+
+
+def test_demo_runs_without_a_checkout(tmp_path, capsys, monkeypatch):
+    """An installed wheel has no examples/: the demo makes its inputs from the package in a temporary folder,
+    writes what it writes in a checkout, and leaves no temporary folder behind."""
+    import tempfile
+
+    import lasagna.demo
+
+    monkeypatch.setattr(lasagna.demo, "examples_root", lambda: None)  # what an install outside a checkout finds
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    code, stdout, err = run(capsys, "demo", "-o", "out")
+    assert code == 0, err
+    assert stdout.startswith("demo: no examples/ here (not a checkout): rendering the world scenes")
+    stacks = sorted(p.name for p in (tmp_path / "out" / "stacks").iterdir())
+    assert len(stacks) == 38 and {"coffee-left", "helmet-cool-light", "heldout-s0-000001-relit-right"} <= set(stacks)
+    assert (tmp_path / "out" / "sheet.png").is_file() and list((tmp_path / "tmp").iterdir()) == []
+
+
+@pytest.mark.parametrize("checkout", [True, False])
+def test_demo_falls_back_without_priors(tmp_path, capsys, monkeypatch, checkout):
+    """In a checkout the fallback exports examples/stacks/basic; from the package alone, the first world scene."""
+    if not checkout:
+        import lasagna.demo
+
+        monkeypatch.setattr(lasagna.demo, "examples_root", lambda: None)
     empty = tmp_path / "layers"
     for name in ("shading", "color", "light", "relight"):
         (empty / name).mkdir(parents=True)
@@ -653,7 +699,8 @@ def test_demo_falls_back_without_priors(tmp_path, capsys, monkeypatch):
         "demo: no learned layer can run (shading: its prior 'missing-prior' is not in the catalogue"
     )
     assert "compositing and exporting the example stack instead" in first and "Traceback" not in stdout + err
-    for name in ("composite.png", "basic.ora", "layers/layers.json", "stack/stack.json"):
+    stack = "basic" if checkout else "heldout-s0-000000"
+    for name in ("composite.png", f"{stack}.ora", "layers/layers.json", "stack/stack.json"):
         assert (tmp_path / "demo" / name).is_file(), name
 
 

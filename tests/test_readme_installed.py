@@ -21,6 +21,8 @@ Changed from the README's text, and why (each says so in ``plan``):
 - ``serve`` runs until stopped: it is started, its printed URL is fetched, and it is stopped with Ctrl-C.
 - skipped: the commands naming ``/models/…`` (a diffusers model of one's own; the adapter is tested with a tiny
   pipeline in ``tests/priors``) and the entry ``prior add`` registers from it.
+- added: ``lasagna demo`` from a folder with no ``examples/`` (the README: installed, it is ``make demo`` without a
+  checkout), so its inputs can only come from the package.
 """
 
 from __future__ import annotations
@@ -219,6 +221,20 @@ def test_every_readme_command_runs_from_the_wheel_installed_by_name_outside_the_
             assert tree_hashes(site / "lasagna") == package, f"{line} changed the installed package"
             generator = home / ".local" / "share" / "lasagna" / "layers" / argv[argv.index("--preset") + 1]
             assert (generator / "generator" / "model.safetensors").is_file(), f"{line} installed nothing in {generator}"
+    # `lasagna demo` where there is no examples/: the world scenes rendered, the photographs the package's own.
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    t0 = time.monotonic()
+    proc = subprocess.run(
+        [lasagna, "demo", "-o", "out/demo"], cwd=bare, env=env, capture_output=True, text=True, timeout=HANG_SECONDS
+    )
+    line = f"lasagna demo -o out/demo  ({time.monotonic() - t0:.1f} s; from a folder with no examples/)"
+    ran.append(line)
+    stacks = list((bare / "out" / "demo" / "stacks").glob("*/stack.json"))
+    if proc.returncode != 0 or "no examples/ here" not in proc.stdout or len(stacks) != 38:
+        failed.append(
+            f"{line}: exit {proc.returncode}, {len(stacks)} stacks\n{proc.stdout[-1500:]}{proc.stderr[-1500:]}"
+        )
     print("\n".join(["ran:", *ran, "skipped:", *skipped]))
     assert not failed, "\n\n".join(failed)
     assert tree_hashes(site / "lasagna") == package, "the README's commands changed the installed package"

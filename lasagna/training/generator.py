@@ -64,8 +64,14 @@ class AmortisedConfig(LoopConfig):
 
     generator: LayerGeneratorConfig
     task: Task = Field("relight", description="World data: relight (albedo → shading), colorize, light.")
-    prior: str | None = Field(None, description="Folder of the UNetPrior; None = passed to train_layer_generator.")
-    corrective: str | None = Field(None, description="Folder of the LMC-SDS corrective b̂ (loss lmc-sds).")
+    prior: str | None = Field(
+        None,
+        description="The prior: a catalogue name (relight-32) or a folder (a path with '/'); "
+        "None = passed to train_layer_generator.",
+    )
+    corrective: str | None = Field(
+        None, description="The LMC-SDS corrective b̂ (loss lmc-sds): a catalogue name or a folder (a path with '/')."
+    )
     supervised: bool = Field(False, description="Train on the true layer (MSE) instead of the prior: the ceiling.")
     loss: LossName = "lmc-sds"
     loss_options: dict[str, Any] = Field(default_factory=dict)
@@ -256,19 +262,20 @@ def _psnr(mse: float) -> float | None:
 def _load_prior(path: str | None, device: torch.device) -> Prior:
     if path is None:
         raise LasagnaError(
-            "no prior: pass prior= or set config.prior to a UNetPrior folder (or set supervised=true)", "prior"
+            "no prior: pass prior= or set config.prior to a catalogue name or a folder (or set supervised=true)",
+            "prior",
         )
-    from lasagna.priors.unet import UNetPrior
+    from lasagna.catalogue import load_prior  # a name as `lasagna train-layer` takes it, or a folder
 
-    return UNetPrior.from_pretrained(path, device=device)
+    return load_prior(path, device=device)
 
 
 def _load_corrective(path: str | None, device: torch.device):
     if path is None:
         raise LasagnaError(
-            "loss 'lmc-sds' needs the corrective b̂: pass corrective= or set config.corrective to its folder",
+            "loss 'lmc-sds' needs the corrective b̂: pass corrective= or set config.corrective to its name or folder",
             "corrective",
         )
     from lasagna.catalogue import load_corrective  # a network or a spectral b̂, by its config's format
 
-    return load_corrective(Path(path), device=device)
+    return load_corrective(path, device=device)

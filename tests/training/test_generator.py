@@ -209,3 +209,29 @@ def test_two_processes_equal_one(tmp_path):
     log1, log2 = read_log(tmp_path / "one"), read_log(tmp_path / "two")
     assert len(log1) == len(log2) == 4
     assert all(abs(a["loss"] - b["loss"]) <= 1e-5 * max(1.0, abs(a["loss"])) for a, b in zip(log1, log2))
+
+
+def test_the_example_config_validates_and_every_field_is_documented():
+    """``examples/gen.json``, the README's torchrun config: an ``AmortisedConfig`` naming catalogue entries that
+    exist (so the command runs as written, in a checkout or from a wheel), the shading preset's layer; and
+    docs/ARCHITECTURE.md's table names every field of the model and of the models nested in it."""
+    import re
+
+    from lasagna import catalogue
+    from lasagna.distill.schedules import Ramp
+    from lasagna.generators.layer import LayerSpec
+    from lasagna.training.loop import LoopConfig
+
+    config = AmortisedConfig.model_validate_json((ROOT / "examples" / "gen.json").read_text(encoding="utf-8"))
+    assert catalogue.find(config.prior, "prior").is_dir() and catalogue.find(config.corrective, "corrective").is_dir()
+    assert config.generator == LayerGeneratorConfig.for_preset(catalogue.load_preset("shading"))
+    assert "--config examples/gen.json" in (ROOT / "README.md").read_text(encoding="utf-8")
+    docs = (ROOT / "docs" / "ARCHITECTURE.md").read_text(encoding="utf-8")
+    section = docs[docs.index("### A generator's config (`gen.json`)") :]
+    named = set(re.findall(r"`([a-z_]+)`", section))
+    fields = {
+        f
+        for model in (AmortisedConfig, LoopConfig, LayerGeneratorConfig, LayerSpec, Weights, Ramp)
+        for f in model.model_fields
+    }
+    assert sorted(fields - named) == []
