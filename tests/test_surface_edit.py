@@ -111,6 +111,14 @@ def test_a_dome_preset_mixes_in_the_silhouettes_domes(tiny, tmp_path_factory):
     assert (made_by["dome_weight"], made_by["dome_height"]) == (0.5, 0.5)
     assert "dome_weight" not in alone.stack.document.layer(alone.layer_id).made_by
     assert float((domed.layer - alone.layer).abs().max()) > 0.01
-    write_preset(folder, "shading", surface={**SURFACE, "dome_weight": 0.5}, layer_kind="surface")
+    SurfaceEstimator(SurfaceConfig(input="albedo", channels=(4, 8), blocks=1, working_size=16)).save_pretrained(
+        folder / "surface-plain-16"
+    )
+    write_preset(
+        folder,
+        "shading",
+        surface={**SURFACE, "estimator": "surface-plain-16", "dome_weight": 0.5},
+        layer_kind="surface",
+    )
     with pytest.raises(LasagnaError, match="dome: this estimator has no silhouette head"):
         edit(image(), "shading", "left", catalogue_dirs=[folder])
