@@ -240,7 +240,8 @@ def photo_rows(lit_net, folder: Path, sheet: Path | None, dome=None) -> list[dic
         tiles = [torch.nn.functional.pad(t, (0, w - t.shape[-1])) for t in tiles]
         grid = torch.cat(tiles, -2)[0].clamp(0, 1).permute(1, 2, 0).numpy()
         sheet.parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray((grid * 255 + 0.5).astype("uint8")).save(sheet)
+        im = Image.fromarray((grid * 255 + 0.5).astype("uint8"))
+        im.resize((im.width // 2, im.height // 2), Image.LANCZOS).save(sheet)  # half size: a sheet to look at
     return rows
 
 

@@ -124,14 +124,14 @@ def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool =
 
 
 def _estimators(folder: Path) -> None:
-    """Random surface estimators under the bundled names: surface-albedo-32 (reads the unlit base; with a silhouette
-    head) and surface-lit-32 (reads a lit image, fits its source light)."""
+    """Random surface estimators under the bundled names, each with a silhouette head: surface-albedo-32 (reads the
+    unlit base) and surface-lit-32 (reads a lit image, fits its source light)."""
     from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
 
     for seed, name, kind in ((10, "surface-albedo-32", "albedo"), (11, "surface-lit-32", "lit")):
         torch.manual_seed(seed)
-        # The albedo estimator has a silhouette head, as the bundled one does (the shading preset's dome prior).
-        config = SurfaceConfig(input=kind, silhouette=kind == "albedo", channels=(4, 8), blocks=1, working_size=16)
+        # Both have a silhouette head, as the bundled ones do (the shading and relight presets' dome prior).
+        config = SurfaceConfig(input=kind, silhouette=True, channels=(4, 8), blocks=1, working_size=16)
         net = SurfaceEstimator(config)
         _jitter(net, seed, 0.1).save_pretrained(folder / name)
 
