@@ -213,8 +213,6 @@ def read_photo(path: Path, side: int = 512) -> torch.Tensor:
 def photo_rows(lit_net, folder: Path, sheet: Path | None, dome=None) -> list[dict]:
     """Relight each photograph toward opposite lights; the swing of composite/input between the thirds nearest and
     farthest from the light, summed over the two edits of an axis (≥ 0.10 per photo and axis is the target)."""
-    from PIL import Image
-
     rows, tiles = [], []
     for file in sorted(folder.glob("*.jpg")):
         image = read_photo(file)
@@ -236,32 +234,33 @@ def photo_rows(lit_net, folder: Path, sheet: Path | None, dome=None) -> list[dic
         shading = lambert(n, lights_of(["top-left"])).expand(-1, 3, -1, -1)
         tiles.append(torch.cat([image, (n + 1) / 2, shading, composites["left"], composites["right"]], -1))
     if sheet is not None and tiles:
-        w = max(t.shape[-1] for t in tiles)
-        tiles = [torch.nn.functional.pad(t, (0, w - t.shape[-1])) for t in tiles]
-        grid = torch.cat(tiles, -2)[0].clamp(0, 1).permute(1, 2, 0).numpy()
-        sheet.parent.mkdir(parents=True, exist_ok=True)
-        im = Image.fromarray((grid * 255 + 0.5).astype("uint8"))
-        im.resize((im.width // 2, im.height // 2), Image.LANCZOS).save(sheet)  # half size: a sheet to look at
+        save_sheet(tiles, sheet)
     return rows
 
 
 def albedo_photo_sheet(albedo_net, folder: Path, sheet: Path, dome=None) -> None:
     """The shading preset's surface on each photograph (512²): input | normal map | the input shaded from the left |
     from the right — to look at: the shading should follow shape, not paint."""
-    from PIL import Image
-
     tiles = []
     for file in sorted(folder.glob("*.jpg")):
         image = read_photo(file)
         n, _ = albedo_net.estimate_at(image, dome)
         shaded = [image * lambert(n, lights_of([light])) for light in ("left", "right")]
         tiles.append(torch.cat([image, (n + 1) / 2, *shaded], -1))
-    w = max(t.shape[-1] for t in tiles)
-    tiles = [torch.nn.functional.pad(t, (0, w - t.shape[-1])) for t in tiles]
-    grid = torch.cat(tiles, -2)[0].clamp(0, 1).permute(1, 2, 0).numpy()
+    save_sheet(tiles, sheet)
+
+
+def save_sheet(rows: list[torch.Tensor], sheet: Path) -> None:
+    """Rows (1, 3, h, w) of tiles stacked top to bottom (narrower rows padded black), saved at half size: a sheet to
+    look at, not a measurement."""
+    from PIL import Image
+
+    w = max(t.shape[-1] for t in rows)
+    rows = [torch.nn.functional.pad(t, (0, w - t.shape[-1])) for t in rows]
+    grid = torch.cat(rows, -2)[0].clamp(0, 1).permute(1, 2, 0).numpy()
     sheet.parent.mkdir(parents=True, exist_ok=True)
     im = Image.fromarray((grid * 255 + 0.5).astype("uint8"))
-    im.resize((im.width // 2, im.height // 2), Image.LANCZOS).save(sheet)  # half size: a sheet to look at
+    im.resize((im.width // 2, im.height // 2), Image.LANCZOS).save(sheet)
 
 
 def load(path: str | None) -> SurfaceEstimator | None:
