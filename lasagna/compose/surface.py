@@ -169,6 +169,14 @@ def decode_normal_map(rgb: Tensor, *, convention: str = "opengl") -> Tensor:
     return torch.where(length > NORMAL_EPS, n / length.clamp_min(NORMAL_EPS), flat)
 
 
+INFLATE_CHUNK = 4096
+"""Inside pixels per distance block of ``inflate_regions``: a block holds this many × a region's outline pixels."""
+DOME_MAX_SIDE = 128
+"""The longest side the dome prior inflates silhouettes at (`lasagna.generators.surface.DomePrior`): a larger
+estimate's silhouettes are reduced to it and the domes' normals enlarged back (inflation costs inside × outline
+pixels per region)."""
+
+
 def inflate_regions(index: Tensor) -> Tensor:
     """A height field (B, 1, H, W) in canvas units that inflates every labelled region into a round dome.
 
@@ -194,7 +202,9 @@ def inflate_regions(index: Tensor) -> Tensor:
             edge = (torch.nn.functional.max_pool2d(region, 3, 1, 1) - region).reshape(-1) > 0
             inside = region.reshape(-1) > 0
             if edge.any():
-                d = torch.cdist(pts[inside], pts[edge]).min(dim=1).values
+                # In chunks of rows: the distance matrix of a large region (inside × edge pixels) would not fit.
+                inner, rim = pts[inside], pts[edge]
+                d = torch.cat([torch.cdist(c, rim).min(dim=1).values for c in inner.split(INFLATE_CHUNK)])
             else:  # the region fills the image
                 d = torch.zeros(int(inside.sum()), dtype=torch.float64)
             r = d.max() + 0.5

@@ -35,6 +35,7 @@ from torch import Tensor, nn
 
 from lasagna.compose.resample import downsample, working_size
 from lasagna.compose.surface import (
+    DOME_MAX_SIDE,
     dome_normals,
     enlarge_surface,
     fit_light,
@@ -113,9 +114,12 @@ class DomePrior(BaseModel):
 
     def apply(self, normals: Tensor, silhouette_logit: Tensor) -> Tensor:
         """Unit normals: ``normals`` (B, 3, H, W) mixed with the domes of the pixels whose silhouette probability
-        is above one half."""
-        domes = dome_normals(label_regions(silhouette_logit > 0), self.height).to(normals.dtype)
-        return mix_normals(normals, domes, self.weight)
+        is above one half (inflated at most ``DOME_MAX_SIDE`` pixels on the long side)."""
+        size = tuple(silhouette_logit.shape[-2:])
+        small = working_size(*size, DOME_MAX_SIDE)
+        logit = silhouette_logit if small == size else downsample(silhouette_logit, small)
+        domes = dome_normals(label_regions(logit > 0), self.height).to(normals.dtype)
+        return mix_normals(normals, enlarge_surface(domes, size), self.weight)
 
 
 class SurfaceEstimator(Pretrained, nn.Module):

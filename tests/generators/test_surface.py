@@ -109,3 +109,25 @@ def test_the_dome_prior_needs_a_silhouette_head_and_mixes_in_domes():
     assert n[0, 0, 7, 3] < -0.1 and n[0, 0, 7, 11] > 0.1  # the disc's left side leans left, its right side right
     assert n[0, 1, 3, 7] > 0.1 and n[0, 1, 11, 7] < -0.1  # its top leans up (+y), its bottom down
     assert torch.equal(n[0, :, 0, 0], torch.tensor([0.0, 0.0, 1.0]))  # outside: the estimate (flat)
+
+
+def test_the_dome_prior_inflates_large_estimates_at_a_bounded_side():
+    """A silhouette larger than ``DOME_MAX_SIDE`` is inflated reduced and its domes enlarged back: a disc still
+    becomes the hemisphere (against the closed form, as closely as inflating it whole), with no distance matrix
+    of the whole region."""
+    from lasagna.compose.surface import DOME_MAX_SIDE, dome_normals, label_regions
+    from lasagna.generators.surface import DomePrior
+
+    side, radius = 2 * DOME_MAX_SIDE, 2 * DOME_MAX_SIDE / 3
+    yy, xx = torch.meshgrid(torch.arange(float(side)), torch.arange(float(side)), indexing="ij")
+    dx, dy = xx - (side - 1) / 2, (side - 1) / 2 - yy  # y up
+    logit = (radius - (dx**2 + dy**2).sqrt())[None, None]
+    sphere = torch.stack([dx / radius, dy / radius, (1 - (dx**2 + dy**2) / radius**2).clamp_min(0).sqrt()])[None]
+    flat = torch.zeros(1, 3, side, side)
+    flat[:, 2] = 1.0
+    reduced = DomePrior(weight=1.0, height=1.0).apply(flat, logit)
+    whole = dome_normals(label_regions(logit > 0), 1.0).float()
+    core = (logit > radius / 4).expand(-1, 3, -1, -1)  # away from the outline, where the dome's slope is infinite
+    err_reduced = float((reduced - sphere)[core].abs().mean())
+    err_whole = float((whole - sphere)[core].abs().mean())
+    assert err_reduced < 0.05 and err_reduced < 2 * err_whole + 0.01
