@@ -228,7 +228,7 @@ def _how(result) -> str:
         d = s["distill"]
         how = f"per-image {d['loss']}, {len(result.history)} steps, w={d['guidance']:g}"
         if d.get("particles", 1) > 1:
-            how += f" ×{d['particles']}"  # particles averaged (lasagna.distill.per_image)
+            how += f", {d['particles']} particles"  # averaged (lasagna.distill.per_image); the sheet's font has no ×
     return f"{how}; {result.seconds:.2f} s"
 
 
