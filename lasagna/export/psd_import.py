@@ -385,8 +385,13 @@ class _Reader:
         ``MAX_PATTERN_PIXELS``); None otherwise (its stored pixels are read, with one warning saying why)."""
         if layer.kind != "patternfill" or layer.has_effects() or layer.has_vector_mask() or layer.has_clip_layers():
             return None
-        read = pattern_fill(layer._data, self.warn, what)
+        # The reading's notes (a rounded phase, an angle read as 0°) matter only if the live layer is kept: a fill
+        # imported as its pixels gets the one line that says why, not those as well.
+        notes: list[str] = []
+        read = pattern_fill(layer._data, notes.append, what)
         if read is None:
+            for note in notes:  # the reason its pixels are read
+                self.warn(note)
             return None
         ident, settings = read
         pattern = self.psd._get_pattern(ident)
@@ -408,6 +413,8 @@ class _Reader:
         if channels != 3:
             self.warn(f"{what}: a pattern fill is imported as its pixels: its tile has {channels} colour channels")
             return None
+        for note in notes:
+            self.warn(note)
         return settings, tile[:3], tile[3:4] if tile.shape[0] > 3 else None
 
     def _raster(self, layer, what: str) -> tuple[np.ndarray | None, tuple[int, int, int, int], bool]:
