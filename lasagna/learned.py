@@ -173,6 +173,8 @@ def make_layer(
                 "config_sha256": loaded.config_sha256,
             }
         layer = initial
+    if layer is None and recipe.distill is not None and recipe.distill.start == "surface":
+        layer = _surface_start(recipe, x, device)
     settings = LayerSettings(method=recipe.method, optimize=recipe.steps, working_size=recipe.working_size)
     history: list[dict[str, Any]] = []
     stopped = None
@@ -194,6 +196,25 @@ def make_layer(
         history=history,
         stopped=stopped,
     )
+
+
+@torch.no_grad()
+def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
+    """The start (1, 1, h, w) of a free layer that refines a surface (``distill.start == "surface"``): the preset's
+    surface estimate of ``x`` (the working input) with its dome prior, rendered under the condition's light —
+    S(l) for an unlit base, S(l)/S(l_src) for a lit one (the source light fitted) — clamped to the layer's range.
+    The free layer's per-pixel steps then correct what one surface cannot say (a free residual on a surface)."""
+    from lasagna.compose.surface import lambert, light_vector
+    from lasagna.document.condition import parse_direction
+    from lasagna.generators.surface import DomePrior, SurfaceEstimator
+
+    net = SurfaceEstimator.from_pretrained(recipe.estimator, device=device)
+    sd = recipe.surface
+    normals, source = net.estimate_at(x.float(), DomePrior(weight=sd.dome_weight, height=sd.dome_height))
+    target = light_vector(*parse_direction(recipe.label), device=normals.device)[None]
+    layer = lambert(normals, target) if source is None else lambert(normals, target) / lambert(normals, source)
+    lo, hi = recipe.distill.layer.range
+    return layer.clamp(lo, hi)
 
 
 def _luminance(recipe: Recipe) -> str:

@@ -447,6 +447,20 @@ def _made(
     scoring: dict[str, Any] = {}
     if distill is not None:
         scoring = _scoring(resolved, distill.loss, options, user=user)
+    start: dict[str, Any] = {}
+    if distill is not None and distill.start == "surface" and method == "per-image":
+        # A free layer that starts from the preset's surface estimate (lasagna.learned._surface_start).
+        if p.surface is None or resolved.estimator is None:
+            raise resolved.missing.get("estimator") or LasagnaError(
+                f"the free layer starts from a surface, and preset {p.name!r} names no surface estimator; expected "
+                "a preset with `surface`",
+                "distill.start",
+            )
+        start = dict(
+            estimator=resolved.estimator,
+            estimator_sha256=file_sha256(resolved.estimator / "model.safetensors"),
+            surface=p.surface,
+        )
     return Recipe(
         preset=p,
         label=label,
@@ -461,6 +475,7 @@ def _made(
         distill=distill,
         control=control,
         **scoring,
+        **start,
     )
 
 

@@ -122,3 +122,34 @@ def test_a_dome_preset_mixes_in_the_silhouettes_domes(tiny, tmp_path_factory):
     )
     with pytest.raises(LasagnaError, match="dome: this estimator has no silhouette head"):
         edit(image(), "shading", "left", catalogue_dirs=[folder])
+
+
+def test_a_free_layer_can_start_from_the_surface(tiny, tmp_path_factory):
+    """``distill.start: surface``: a free per-image layer starts from the preset's surface estimate under the
+    condition (a free residual on a surface): recorded with the layer, it differs from the identity start, a
+    re-render from the record makes the same layer, and a preset without ``surface`` is refused in one line."""
+    from pydantic import ValidationError
+
+    from lasagna.document.preset import Preset
+    from lasagna.editing import conditioning_input
+    from lasagna.learned import make_layer
+    from lasagna.recipe import Recipe
+
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("start") / "layers")
+    preset = json.loads((folder / "relight" / "preset.json").read_text())
+    relight_surface = {**SURFACE, "estimator": "surface-lit-32"}
+    distill = {**preset["distill"], "steps": 2, "particles": 1, "start": "surface"}
+    write_preset(folder, "relight", distill={**distill, "start": "identity"}, surface=relight_surface)
+    plain = edit(image(), "relight", "left", catalogue_dirs=[folder])
+    assert "start" not in plain.stack.document.layer(plain.layer_id).settings["distill"]  # the default, left out
+    write_preset(folder, "relight", distill=distill, surface=relight_surface)
+    res = edit(image(), "relight", "left", catalogue_dirs=[folder])
+    layer = res.stack.document.layer(res.layer_id)
+    assert layer.kind == "learned" and layer.settings["distill"]["start"] == "surface"
+    assert float((res.layer - plain.layer).abs().max()) > 1e-3
+    base = conditioning_input(res.stack, layer.conditioned_on)
+    again = make_layer(Recipe.from_layer(res.stack, layer, catalogue_dirs=[folder]), base, "again")
+    # The same start and steps from the record; the edit's layer is as stored (16-bit codes of its range).
+    torch.testing.assert_close(again.layer, res.layer, atol=2 * 4.0 / 65535, rtol=0)
+    with pytest.raises(ValidationError, match="distill.start 'surface'.* names no surface estimator"):
+        Preset.model_validate({**preset, "distill": distill, "surface": None})

@@ -25,11 +25,11 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_serializer, model_validator
 
 from lasagna.distill.objective import ConditionImage
 from lasagna.distill.schedules import Ramp, Weights
-from lasagna.document.preset import Aspect, LossName
+from lasagna.document.preset import Aspect, FreeStart, LossName
 from lasagna.errors import describe_validation_error
 from lasagna.generators.layer import LayerSpec
 from lasagna.limits import MAX_CROPS_PER_STEP, MAX_DISTILL_STEPS, MAX_PARTICLES
@@ -99,6 +99,19 @@ class DistillSettings(BaseModel):
     checkpoint_every: int = Field(
         50, ge=1, le=MAX_DISTILL_STEPS, description="Steps between checkpoints when a checkpoint folder is given."
     )
+    start: FreeStart = Field(
+        "identity",
+        description="Where a free layer starts: the identity edit, or the preset's surface estimate under the "
+        "condition (lasagna.learned: a free residual on a surface).",
+    )
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # "identity" is every free layer's start before surfaces: left out, so settings recorded before read the same.
+        data = handler(self)
+        if data.get("start") == "identity":
+            del data["start"]
+        return data
 
     @model_validator(mode="after")
     def _check(self) -> DistillSettings:
@@ -125,6 +138,7 @@ class DistillSettings(BaseModel):
             "particles": d.particles,
             "patches": PatchConfig(whole_fraction=d.whole_fraction),
             "aspect": d.aspect,
+            "start": d.start,
         }
         return cls.parse({**data, **{k: v for k, v in overrides.items() if v is not None}})
 

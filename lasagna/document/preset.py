@@ -62,6 +62,10 @@ TorchDtype = Literal["auto", "float32", "float16", "bfloat16"]
 TORCH_DTYPES: tuple[str, ...] = get_args(TorchDtype)
 
 
+FreeStart = Literal["identity", "surface"]
+"""Where a per-image free layer starts (``DistillDefaults.start``, recorded in ``DistillSettings.start``)."""
+
+
 class DistillDefaults(StrictModel):
     """Default settings of a per-image distillation run (overridable per layer via ``settings``)."""
 
@@ -94,6 +98,12 @@ class DistillDefaults(StrictModel):
         "letterbox",
         description="An image of another aspect than the prior's: 'letterbox' scales it to fit and fills the rest "
         "(the aspect is kept), 'stretch' resizes it to the prior's shape.",
+    )
+    start: FreeStart = Field(
+        "identity",
+        description="Where a per-image free layer starts: 'identity' (the unchanged image), or 'surface' — the "
+        "preset's surface estimate rendered under the condition (a relight: S(l)/S(l_src), the source light fitted), "
+        "which the distillation then refines per pixel. Needs the preset's `surface`.",
     )
 
     @model_validator(mode="after")
@@ -286,6 +296,12 @@ class Preset(StrictModel):
                 f"a surface renders a 1-channel multiplier; preset {self.name!r} has blend {self.blend!r} and "
                 f"{self.channels} channel(s): expected blend multiply, channels 1 for `surface`",
                 loc=("surface",),
+            )
+        if self.distill.start == "surface" and self.surface is None:
+            raise RuleError(
+                f"preset {self.name!r} starts its free layer from a surface (distill.start 'surface') but names no "
+                "surface estimator: expected `surface`",
+                loc=("distill", "start"),
             )
         if self.luminance == "base" and self.blend not in ("normal", "alpha-linear"):
             raise RuleError(
