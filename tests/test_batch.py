@@ -420,3 +420,20 @@ def test_a_folder_without_a_record_is_never_taken(tmp_path, capsys):
     assert code == 0, err
     assert (out / image.stem / "notes.txt").read_text() == "mine"
     assert _record(out / f"{image.stem}-2")["source"]["path"] == image.name
+
+
+def test_json_reports_every_input_and_a_summary_last(tmp_path, capsys):
+    """``--json``: one object per input (its input, output folder, status, seconds) then the summary object, every
+    line JSON; a second run reports the inputs as skipped; one input with --json is refused in one line."""
+    images = _images(tmp_path / "in", 3)
+    out = tmp_path / "out"
+    code, stdout, err = run(capsys, "edit", tmp_path / "in", "--condition", "left", "-o", out, "--json")
+    assert code == 0, err
+    lines = [json.loads(line) for line in stdout.strip().splitlines()]
+    assert [(Path(o["input"]).name, o["status"]) for o in lines[:-1]] == [(p.name, "done") for p in images]
+    assert all(Path(o["output"]) == out / Path(o["input"]).stem and o["seconds"] >= 0 for o in lines[:-1])
+    assert lines[-1]["done"] == 3 and lines[-1]["failed"] == 0 and "edited 3" in lines[-1]["summary"]
+    code, stdout, _ = run(capsys, "edit", tmp_path / "in", "--condition", "left", "-o", out, "--json")
+    assert [json.loads(line)["status"] for line in stdout.strip().splitlines()[:-1]] == ["skipped"] * 3
+    code, _, err = run(capsys, "edit", images[0], "--condition", "left", "-o", tmp_path / "one", "--json")
+    assert code == 2 and "--json: --json reports a batch" in err and len(err.strip().splitlines()) == 1

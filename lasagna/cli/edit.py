@@ -27,7 +27,9 @@ the last line on stdout is ``edited N, skipped K (complete), failed F``; exit st
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import glob
+import json
 import os
 import sys
 from pathlib import Path
@@ -106,6 +108,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--force",
         action="store_true",
         help="replace OUT if it already holds a stack (many inputs: redo the complete ones too)",
+    )
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="many inputs: one JSON object per input (input, output, status, seconds, note, error) and a summary "
+        "object last, on stdout — for machines",
     )
     p.add_argument(
         "--batch-size",
@@ -275,7 +283,12 @@ def run_many(args: argparse.Namespace) -> int:
         )
     finally:
         shutdown_distributed(info)
-    if info.is_main:
+    if info.is_main and args.json:
+        for o in report.outcomes:
+            print(json.dumps(dataclasses.asdict(o), ensure_ascii=False))
+        counts = {"done": len(report.done), "skipped": len(report.skipped), "failed": len(report.failed)}
+        print(json.dumps({"summary": report.summary(), **counts, "seconds": round(report.seconds, 3)}))
+    elif info.is_main:
         for o in report.outcomes:  # what was done to a file beyond editing it: a stale output redone
             if o.note:
                 print(f"{printable(o.input)}: {o.note} ({o.output})")
@@ -292,6 +305,9 @@ FILE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".tif", ".tiff", ".bmp", ".or
 
 def run_one(args: argparse.Namespace) -> int:
     from lasagna.io.folder import check_output_folder
+
+    if args.json:
+        raise LasagnaError("--json reports a batch; expected several inputs, a folder or a glob", "--json")
 
     if Path(args.output).suffix.lower() in FILE_SUFFIXES:
         raise PathError(
