@@ -9,7 +9,9 @@ Rows per split and size (``--count`` scenes of world seed 0, the light cycling t
   the best constant; *oracle: true outlines inflated* (each object's true silhouette inflated into a dome,
   `lasagna.compose.surface.inflate_regions`, Lambert-shaded under the scene's light — what a model that knows
   the outlines and assumes round shapes reaches); *truth at working size 32* (the true shading reduced to the
-  working size and enlarged back: the headroom of any layer made at that size); the albedo estimator's surface.
+  working size and enlarged back: the headroom of any layer made at that size); *truth on the objects, the wall
+  flat* (the headroom of any layer made from the albedo: the wall's relief is not in the paint); the albedo
+  estimator's surface.
 * **relight** (the base is the scene lit by its own random source light; the layer is S(target)/S(source);
   dB of the clamped composite over the unchanged input): the oracle with the true source light; truth at
   working size; the lit estimator with its own source-light estimate, and with the true one (a diagnostic of
@@ -71,6 +73,14 @@ def oracle_normals(scene) -> torch.Tensor:
     return inflated_normals(scene.object_index)
 
 
+def objects_only(scene) -> torch.Tensor:
+    """The true normals on the objects and a flat wall: the headroom of any layer made from the albedo, where the
+    wall's relief is not in the paint (no method reading the albedo can see it)."""
+    flat = torch.zeros_like(scene.normals)
+    flat[:, 2] = 1.0
+    return torch.where(scene.mask.bool().expand_as(flat), scene.normals, flat)
+
+
 def gain_row(method: str, y: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, base_db, seconds=None) -> dict:
     a, o = psnr(y, truth), psnr(y, truth, mask)
     row = {"method": method, "gain_db": round(a - base_db[0], 2), "gain_obj_db": round(o - base_db[1], 2)}
@@ -107,6 +117,7 @@ def shading_rows(scene, labels, albedo_net, edits: list[str], dome=None) -> list
         gain_row(
             f"truth at working size {WORKING}", upsample(downsample(truth, (WORKING, WORKING)), size), truth, mask, cdb
         ),
+        gain_row("truth on the objects, the wall flat", lambert(objects_only(scene), light), truth, mask, cdb),
     ]
     if albedo_net is not None:
         t0 = time.perf_counter()

@@ -42,6 +42,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ema", type=float, default=0.998)
     p.add_argument("--grad-clip", type=float, default=1.0)
     p.add_argument("--world-seed", type=int, default=7, help="seed of the training split's scenes")
+    p.add_argument(
+        "--split",
+        default="train",
+        help="world split of the training scenes (wide: train's families and the generic gem and blob shapes)",
+    )
+    p.add_argument(
+        "--init-from",
+        default=None,
+        help="a saved estimator folder (a run's surface/) of the same architecture whose weights start this run",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
     p.add_argument(
@@ -83,6 +93,8 @@ def run(args: argparse.Namespace) -> int:
         ema_warmup=True,
         grad_clip=args.grad_clip,
         world_seed=args.world_seed,
+        split=args.split,
+        init_from=args.init_from,
         render_on=args.render_on,
         seed=args.seed,
         progress=progress() and not args.no_progress,  # bars only for a person watching (or --progress)

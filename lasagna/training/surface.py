@@ -58,6 +58,11 @@ class SurfaceTrainConfig(LoopConfig):
         0.1, ge=0.0, description="λ_s: weight of the silhouette head's cross-entropy against the objects' mask"
     )
     split: str = Field("train", description="world split the training scenes come from")
+    init_from: str | None = Field(
+        None,
+        description="a saved surface estimator (folder) of this run's architecture whose weights start this run: "
+        "a second stage, e.g. the shipped estimator continued on the ``wide`` split's generic shapes",
+    )
     world_seed: int = Field(7, description="seed of the world split (scenes are (split, seed, index))")
     render_on: Literal["device", "cpu"] = Field(
         "device",
@@ -129,6 +134,13 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         estimator = SurfaceEstimator(config.net)
+    if config.init_from is not None:
+        start = SurfaceEstimator.from_pretrained(config.init_from)
+        if start.config != config.net:
+            raise LasagnaError(
+                f"its estimator config differs from this run's ({start.config} vs {config.net})", config.init_from
+            )
+        estimator.load_state_dict(start.state_dict())
     side = config.net.working_size
 
     def step_fn(net: SurfaceEstimator, rng: torch.Generator, step: int):

@@ -44,6 +44,11 @@ bicone        rim radius s0 (y = 0), apexes y = ±s1   sphere tracing of a dista
                                                      normals in closed form
 lens          rim radius s0 in xy, half-thickness s1  sphere tracing of two spheres' bound;
               along z (two spherical caps)            radial normals
+gem           bounding radius s0; codes s1, s2 fix    Cyrus–Beck clipping by the ten planes,
+              a cube's six tilted, moved faces and
+              four cut corners (a random crystal)     then the bounding sphere
+blob          bounding radius s0; codes s1, s2 fix    sphere tracing of a smooth minimum of
+              three spheres (centres and radii)       three spheres' distances
 ============  =====================================  ===========================================
 """
 
@@ -393,6 +398,116 @@ def lens(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
     return t, normalize((p[0], p[1], p[2] - cz))
 
 
+def _code(u: Tensor, a: float, b: float = 0.0) -> Tensor:
+    """A number in [−1, 1) that a shape code u ∈ [0, 1) fixes: 2·frac(a·u + b) − 1.
+
+    The generic families (gem, blob) draw their many free parameters from one or two such codes. Only
+    multiplies, adds and floors: exactly rounded elementwise, so an object renders to the same bits alone or in
+    any batch (a transcendental's vectorised and scalar paths may differ in the last bit). Distinct large
+    multipliers make the numbers of one code look independent of each other.
+    """
+    x = u * a + b
+    return 2.0 * (x - torch.floor(x)) - 1.0
+
+
+# The gem: a cube's six face planes, each tilted and moved by the codes, with four alternate corners cut
+# (the tetrahedral ones: all eight would make an octahedron's faces), inside the bounding sphere.
+_GEM_TILT = 0.45  # largest tangent component of a face normal's tilt (≤ 32.5° per face)
+_GEM_FACE = (0.38, 0.52)  # face plane distances, fractions of the bounding radius
+_GEM_CUT = (0.6, 0.8)  # corner cut distances, fractions of the bounding radius
+_CUBE_FACES = ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0), (2, 1.0), (2, -1.0))
+_TETRA_CORNERS = ((1.0, 1.0, 1.0), (1.0, -1.0, -1.0), (-1.0, 1.0, -1.0), (-1.0, -1.0, 1.0))
+
+
+def _gem_planes(s: Vec) -> list[tuple[Vec, Tensor]]:
+    """The gem's planes (unit normal n, distance d: n·p ≤ d inside) from its size (R, code u, code v)."""
+    big_r, u, v = s
+    planes: list[tuple[Vec, Tensor]] = []
+    for k, (axis, sign) in enumerate(_CUBE_FACES):
+        n = [torch.zeros_like(u), torch.zeros_like(u), torch.zeros_like(u)]
+        n[axis] = torch.full_like(u, sign)
+        n[(axis + 1) % 3] = _GEM_TILT * _code(u, 97.0 + 31.0 * k, 0.37 * k)
+        n[(axis + 2) % 3] = _GEM_TILT * _code(v, 89.0 + 37.0 * k, 0.61 * k)
+        frac = 0.5 * (_code(u + v, 53.0 + 17.0 * k, 0.13 * k) + 1.0)
+        planes.append((normalize((n[0], n[1], n[2])), big_r * (_GEM_FACE[0] + (_GEM_FACE[1] - _GEM_FACE[0]) * frac)))
+    for k, c in enumerate(_TETRA_CORNERS):
+        jit = [0.25 * _code(v if j % 2 else u, 71.0 + 13.0 * (3 * k + j), 0.29 * j) for j in range(3)]
+        n = normalize(tuple(c[j] + jit[j] for j in range(3)))  # type: ignore[arg-type]
+        frac = 0.5 * (_code(u - v, 43.0 + 19.0 * k, 0.71 * k) + 1.0)
+        planes.append((n, big_r * (_GEM_CUT[0] + (_GEM_CUT[1] - _GEM_CUT[0]) * frac)))
+    return planes
+
+
+def gem(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    """Cyrus–Beck clipping (Cyrus & Beck 1978): the ray enters the last of the planes it enters and leaves at the
+    first it leaves, then the bounding sphere clips both; exact, no tracing (a polytope's plane bound makes sphere
+    tracing crawl along grazing faces). The entry's normal is the entering plane's (or the sphere's)."""
+    planes = _gem_planes(s)
+    big_r = s[0]
+    s1, s2 = _sphere(o, d, 0.0, big_r)  # NaN where the sphere is missed: every comparison below is then False
+    t_near, t_far = s1, s2
+    which = torch.full_like(s1, -1.0)  # −1: the sphere; k: plane k
+    for k, (n, dist) in enumerate(planes):
+        den = dot(n, d)
+        den = torch.where(den == 0, torch.full_like(den, _DIR_EPS), den)
+        tk = (dist - dot(n, o)) / den
+        entering = den < 0
+        later = entering & (tk > t_near)
+        t_near = torch.where(later, tk, t_near)
+        which = torch.where(later, torch.full_like(which, float(k)), which)
+        t_far = torch.where(~entering & (tk < t_far), tk, t_far)
+    hit = t_near <= t_far
+    t, pick = _first(t_min, (t_near, hit), (t_far, hit))
+    p = _at(o, d, t)
+    sphere = normalize(p)
+    out = [sphere[0], sphere[1], sphere[2]]
+    for k, (n, _) in enumerate(planes):
+        on = (which == k) & (pick == 0)
+        out = [torch.where(on, n[j], out[j]) for j in range(3)]
+    # Leaving from inside (t_min inside the gem): the exit's normal is not tracked; the sphere's radial direction
+    # stands in for it (only a ray starting inside an object meets it; the renderer's rays start at the camera).
+    return t, (out[0], out[1], out[2])
+
+
+# The blob: three spheres inside the bounding sphere (one at the centre, two at directions the codes fix), joined
+# by a smooth minimum: an organic, rounded, non-convex shape.
+_BLOB_SMOOTH = 0.2  # the smooth minimum's width k, a fraction of the bounding radius
+_BLOB_LIPSCHITZ = 0.9  # the step's safety factor: the blended field may be slightly steeper than 1 near the seam
+
+
+def _blob_spheres(s: Vec) -> list[tuple[Vec, Tensor]]:
+    big_r, u, v = s
+    zero = torch.zeros_like(u)
+    spheres: list[tuple[Vec, Tensor]] = [((zero, zero, zero), big_r * (0.38 + 0.12 * _code(u + v, 61.0)))]
+    for k, w in enumerate((u, v)):
+        direction = normalize(tuple(_code(w, 113.0 + 29.0 * (3 * k + j), 0.23 * j) for j in range(3)))  # type: ignore
+        offset = big_r * (0.4 + 0.12 * _code(w, 47.0 + 11.0 * k))
+        radius = big_r * (0.3 + 0.1 * _code(w, 83.0 + 7.0 * k, 0.5))
+        spheres.append((tuple(offset * c for c in direction), radius))  # type: ignore[arg-type]
+    return spheres  # every |centre| + radius ≤ 0.92 R; the blend adds at most k/4 = 0.05 R
+
+
+def _blob_sdf(p: Vec, spheres: list[tuple[Vec, Tensor]], big_r: Tensor) -> Tensor:
+    k = _BLOB_SMOOTH * big_r
+    dist = None
+    for c, r in spheres:
+        q = (p[0] - c[0], p[1] - c[1], p[2] - c[2])
+        di = torch.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]) - r
+        if dist is None:
+            dist = di
+        else:  # Quilez's polynomial smooth minimum: min(a, b) − h²k/4, h = max(k − |a − b|, 0)/k
+            h = torch.clamp_min(k - (dist - di).abs(), 0.0) / k
+            dist = torch.minimum(dist, di) - h * h * k * 0.25
+    assert dist is not None
+    return dist * _BLOB_LIPSCHITZ
+
+
+def blob(o: Vec, d: Vec, s: Vec, t_min: float) -> tuple[Tensor, Vec]:
+    spheres = _blob_spheres(s)
+    t, p = _trace(o, d, lambda q: _blob_sdf(q, spheres, s[0]), s[0], t_min)
+    return t, _sdf_normal(lambda q: _blob_sdf(q, spheres, s[0]), p, d, 1e-4 * s[0])
+
+
 @dataclass(frozen=True)
 class ShapeFamily:
     """One analytic family: its exact intersection, bounding radius and size distribution."""
@@ -498,6 +613,10 @@ SHAPES: dict[str, ShapeFamily] = {
             lambda s: float(s[0]),
             lambda u: (_lerp(u[0], 0.25, 0.5), _lerp(u[1], 0.08, 0.2), 0.0),
         ),
+        # The generic families of the training-only ``wide`` split (lasagna.world.splits): size (bounding radius R,
+        # code u, code v); the codes fix every other parameter (``_code``).
+        ShapeFamily("gem", gem, lambda s: float(s[0]), lambda u: (_lerp(u[0], 0.3, 0.5), float(u[1]), float(u[2]))),
+        ShapeFamily("blob", blob, lambda s: float(s[0]), lambda u: (_lerp(u[0], 0.3, 0.5), float(u[1]), float(u[2]))),
     )
 }
 SHAPE_NAMES: tuple[str, ...] = tuple(SHAPES)

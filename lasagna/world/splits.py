@@ -21,7 +21,14 @@ far        octahedron, hexprism,        hexagons, zigzag, naturephoto       hexa
            triprism (1–5)                                                   naturephoto          (p = 0.25)
 select     pyramid, bicone, lens (1–5)  plaid, scales, weave                the same 3           ripples
                                                                                                  (p = 0.25)
+wide       train's 5 + gem, blob (1–5)  train's 9                           train's 9            train's
 =========  ===========================  ==================================  ===================  ==============
+
+``wide`` is for training only: ``train``'s families and two generic ones, ``gem`` (a random faceted crystal: a
+cube's faces tilted and moved, four alternate corners cut) and ``blob`` (three spheres smoothly joined), whose
+codes draw a new shape for every object instead of one shape at new sizes. They are cousins of no held family in
+particular (the gem cuts only four corners, never an octahedron's eight; it has no apex, no prism axis), so an
+estimator trained on ``wide`` meets faceted and organic shapes without meeting any held family.
 
 In train/val, far and select half of the surfaces are painted between two free colours (``two_tone``), the
 rest in one colour and its shade, as every surface of heldout.
@@ -47,9 +54,10 @@ from lasagna.world.textures import TEXTURES
 
 MAX_OBJECTS = 5
 """Object slots per scene (the first world had 3; ``heldout`` still draws 1–3)."""
-WORLD_VERSION = 3
+WORLD_VERSION = 4
 """The families and layout: 1 was the first world (train: 3 shapes, 3 + 2 textures); 2 broadened train/val
-and added ``far``; 3 added ``select`` (new families appended to the registries, so every scene of 2 is unchanged).
+and added ``far``; 3 added ``select`` (new families appended to the registries, so every scene of 2 is unchanged);
+4 added the training-only ``wide`` (two generic shapes appended; every earlier scene unchanged).
 ``heldout``'s scenes are bit-identical in all (new draws are appended to its stream)."""
 
 
@@ -116,6 +124,7 @@ SPLITS: dict[str, Split] = {
         reliefs=("ripples",),
         **_BROAD,
     ),
+    "wide": Split("wide", **{**_TRAIN_FAMILIES, "shapes": (*_TRAIN_FAMILIES["shapes"], "gem", "blob")}),
 }
 SPLIT_NAMES: tuple[str, ...] = tuple(SPLITS)
 HELD_SPLITS: tuple[str, ...] = ("heldout", "far", "select")
@@ -131,6 +140,9 @@ for _a, _b in (
     ("select", "train"),
     ("select", "heldout"),
     ("select", "far"),
+    ("heldout", "wide"),
+    ("far", "wide"),
+    ("select", "wide"),
 ):
     assert not set(SPLITS[_a].shapes) & set(SPLITS[_b].shapes)
     assert not SPLITS[_a].textures & SPLITS[_b].textures

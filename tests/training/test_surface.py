@@ -115,3 +115,18 @@ def test_a_silhouette_head_learns_where_the_objects_are():
         p = torch.sigmoid(net.outputs(scene.albedo).silhouette)
     on, off = scene.mask > 0.5, scene.mask < 0.5
     assert float(p[on].mean()) > float(p[off].mean()) + 0.3
+
+
+def test_init_from_starts_at_the_saved_estimator(tmp_path):
+    """A run started from a saved estimator (``init_from``) begins at its weights (step 0 would reproduce it) and
+    trains from there on another split; an estimator of another architecture is refused."""
+    first = train_surface(toy(steps=3), tmp_path / "a")
+    config = toy(steps=1, lr=1e-12, warmup_steps=0, split="wide", init_from=str(tmp_path / "a" / "surface"))
+    second = train_surface(config, tmp_path / "b")
+    x = torch.rand(1, 3, 16, 16)
+    torch.testing.assert_close(second(x), first(x), atol=1e-6, rtol=0)  # one step of lr 1e-12 moves nothing visible
+    fresh = train_surface(toy(steps=1, lr=1e-12, warmup_steps=0, split="wide"), tmp_path / "c")
+    assert not torch.allclose(fresh(x), first(x), atol=1e-4)
+    other = toy(net=SurfaceConfig(input="lit", channels=(8, 8), blocks=1, working_size=16))
+    with pytest.raises(LasagnaError, match="its estimator config differs from this run's"):
+        train_surface(other.model_copy(update={"init_from": str(tmp_path / "a" / "surface")}), tmp_path / "d")

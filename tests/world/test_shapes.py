@@ -256,3 +256,104 @@ class TestSelectFamilies:
         np.testing.assert_allclose(t[hit], 2.0 - z, atol=1e-5)
         ref = np.stack([xy[hit, 0], xy[hit, 1], z + off], 1) / big_r
         np.testing.assert_allclose(n[hit], ref, atol=2e-5)  # the traced hit is within 1e-5·size of the sphere
+
+
+class TestWideFamilies:
+    """The training-only generic families against independent float64 references (random rays)."""
+
+    @staticmethod
+    def _rays(n, seed):
+        rng = np.random.default_rng(seed)
+        d = rng.normal(size=(n, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        o = rng.uniform(-0.3, 0.3, size=(n, 3)) - 2.0 * d
+        return o, d
+
+    @pytest.mark.parametrize("codes", [(0.0, 0.0), (0.13, 0.71), (0.5, 0.25), (0.93, 0.4)])
+    def test_gem_is_the_clipped_polytope(self, codes):
+        # Cyrus–Beck clipping of each ray by the gem's half-spaces (n·p ≤ d), then the bounding sphere, in float64:
+        # the entry point and the entering plane's normal (or the sphere's) are the hit and its normal.
+        from lasagna.world.shapes import _gem_planes
+
+        big_r = 0.4
+        o, d = self._rays(400, 3)
+        t, n = cast("gem", o.tolist(), d.tolist(), (big_r, *codes))
+        s = sizes(1, (big_r, *codes))
+        planes = [(np.array([float(c[0]) for c in pn]), float(pd[0])) for pn, pd in _gem_planes(s)]
+        checked = 0
+        for i in range(len(o)):
+            lo, hi, normal = -np.inf, np.inf, None
+            for pn, pd in planes:
+                den, num = pn @ d[i], pd - pn @ o[i]
+                if abs(den) < 1e-12:
+                    if num < 0:
+                        lo, hi = np.inf, -np.inf
+                    continue
+                ti = num / den
+                if den < 0 and ti > lo:
+                    lo, normal = ti, pn
+                elif den > 0:
+                    hi = min(hi, ti)
+            b = o[i] @ d[i]
+            disc = b * b - (o[i] @ o[i] - big_r * big_r)
+            if disc <= 0:
+                lo, hi = np.inf, -np.inf
+            else:
+                s1, s2 = -b - math.sqrt(disc), -b + math.sqrt(disc)
+                if s1 > lo:
+                    lo, normal = s1, (o[i] + s1 * d[i]) / big_r
+                hi = min(hi, s2)
+            margin = hi - lo
+            if lo < hi and margin > 1e-3:  # a clear hit, not grazing an edge
+                assert t[i] == pytest.approx(lo, abs=1e-4)
+                np.testing.assert_allclose(n[i], normal, atol=2e-3)
+                checked += 1
+            elif lo > hi + 1e-3 or not np.isfinite(lo):
+                assert np.isinf(t[i])
+        assert checked > 50
+
+    def test_gem_faces_are_tilted_but_bounded(self):
+        # The codes move the cube's faces: different codes, different normals; every plane keeps the origin inside.
+        from lasagna.world.shapes import _gem_planes
+
+        a = _gem_planes(sizes(1, (0.4, 0.1, 0.2)))
+        b = _gem_planes(sizes(1, (0.4, 0.6, 0.9)))
+        assert any(abs(float(pa[0][0][0]) - float(pb[0][0][0])) > 1e-3 for pa, pb in zip(a, b))
+        for _, dist in a + b:
+            assert 0.38 * 0.4 - 1e-12 <= float(dist[0]) <= 0.8 * 0.4 + 1e-12
+
+    @pytest.mark.parametrize("codes", [(0.2, 0.8), (0.55, 0.05)])
+    def test_blob_hits_lie_on_its_smooth_union(self, codes):
+        # Reference in float64 with numpy: the smooth minimum of the three spheres' distances (Quilez) is zero at
+        # each hit, and the normal is its gradient by central differences.
+        from lasagna.world.shapes import _BLOB_SMOOTH, _blob_spheres
+
+        big_r = 0.45
+        spheres = [
+            (np.array([float(c[0]) for c in centre]), float(radius[0]))
+            for centre, radius in _blob_spheres(sizes(1, (big_r, *codes)))
+        ]
+        assert all(np.linalg.norm(c) + r <= 0.921 * big_r for c, r in spheres)
+
+        def field(p):
+            k = _BLOB_SMOOTH * big_r
+            dist = None
+            for c, r in spheres:
+                di = np.linalg.norm(p - c, axis=-1) - r
+                if dist is None:
+                    dist = di
+                else:
+                    h = np.maximum(k - np.abs(dist - di), 0.0) / k
+                    dist = np.minimum(dist, di) - h * h * k / 4
+            return dist
+
+        o, d = self._rays(300, 5)
+        t, n = cast("blob", o.tolist(), d.tolist(), (big_r, *codes))
+        hit = np.isfinite(t)
+        assert hit.sum() > 30
+        p = o[hit] + t[hit, None] * d[hit]
+        assert np.abs(field(p)).max() < 1e-4
+        eps = 1e-6
+        grad = np.stack([field(p + eps * e) - field(p - eps * e) for e in np.eye(3)], 1)
+        grad /= np.linalg.norm(grad, axis=1, keepdims=True)
+        assert np.median(np.abs(n[hit] - grad).max(1)) < 1e-3

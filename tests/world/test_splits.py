@@ -27,7 +27,7 @@ def _fingerprints(p) -> set[bytes]:
 
 class TestTable:
     def test_names(self):
-        assert SPLIT_NAMES == ("train", "val", "heldout", "far", "select")
+        assert SPLIT_NAMES == ("train", "val", "heldout", "far", "select", "wide")
 
     def test_val_shares_train_families(self):
         t, v = SPLITS["train"], SPLITS["val"]
@@ -74,7 +74,7 @@ class TestSampledScenes:
     @pytest.mark.parametrize("held", ["heldout", "far", "select"])
     def test_held_families_never_in_train(self, params, held):
         held = SPLITS[held]
-        for name in ("train", "val"):
+        for name in ("train", "val", "wide"):
             p = params[name]
             assert not {SHAPE_NAMES[i] for i in p.shape[p.present].tolist()} & set(held.shapes)
             used = {TEXTURE_NAMES[i] for i in p.texture[p.present].tolist() + p.wall_texture.tolist()}
