@@ -48,6 +48,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="world split of the training scenes (wide: train's families and the generic gem and blob shapes)",
     )
     p.add_argument(
+        "--zoom",
+        type=float,
+        default=1.0,
+        help="close-ups: render at zoom × the working size and crop windows of 1 to zoom working sizes around "
+        "object pixels (objects that fill the frame, as in photographs; 1: off)",
+    )
+    p.add_argument(
         "--init-from",
         default=None,
         help="a saved estimator folder (a run's surface/) of the same architecture whose weights start this run",
@@ -95,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
         world_seed=args.world_seed,
         split=args.split,
         init_from=args.init_from,
+        zoom=args.zoom,
         render_on=args.render_on,
         seed=args.seed,
         progress=progress() and not args.no_progress,  # bars only for a person watching (or --progress)

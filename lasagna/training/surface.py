@@ -22,19 +22,21 @@ the benchmarks' seed; every random draw of a step comes from the loop's generato
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Literal
 
 import torch
 from pydantic import ConfigDict, Field
 
+from lasagna.compose.resample import downsample
 from lasagna.compose.surface import fit_light, lambert
 from lasagna.errors import LasagnaError
 from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
 from lasagna.training.loop import LoopConfig, network_from_checkpoint, train_loop
 from lasagna.training.tasks import SCENE_RANGE
 from lasagna.world import generate
-from lasagna.world.scene import with_light
+from lasagna.world.scene import Scene, with_light
 from lasagna.world.splits import HELD_SPLITS
 from lasagna.world.tasks import RELIGHT_ELEVATION
 
@@ -64,6 +66,14 @@ class SurfaceTrainConfig(LoopConfig):
         "a second stage, e.g. the shipped estimator continued on the ``wide`` split's generic shapes",
     )
     world_seed: int = Field(7, description="seed of the world split (scenes are (split, seed, index))")
+    zoom: float = Field(
+        1.0,
+        ge=1.0,
+        le=4.0,
+        description="close-ups: each scene is rendered at zoom × the working size and a square window of 1 to zoom "
+        "working sizes around one of its object pixels is reduced to the working size, so objects may fill the frame "
+        "as in photographs (1: the whole scene, as rendered)",
+    )
     render_on: Literal["device", "cpu"] = Field(
         "device",
         description="where the scenes are rendered: the training device (a GPU renders a batch faster than the "
@@ -77,6 +87,36 @@ def random_lights(count: int, rng: torch.Generator, el_range: tuple[float, float
     lo, hi = (math.radians(e) for e in el_range)
     el = lo + (hi - lo) * torch.rand(count, generator=rng, dtype=torch.float64)
     return torch.stack([el.sin() * az.cos(), el.sin() * az.sin(), el.cos()], 1).float()
+
+
+def close_ups(scene: Scene, side: int, rng: torch.Generator) -> Scene:
+    """``scene`` (rendered at a side Z·``side``) as close-ups at ``side``: per scene a square window of a side drawn
+    uniformly in [``side``, Z·``side``] pixels, centred on one of its object pixels drawn uniformly (any pixel where
+    it has none) and kept inside the image, reduced to ``side`` (antialiased; the normals renormalised; the object
+    index by nearest pixel). Every draw comes from ``rng``, so a resumed run sees the same windows."""
+    big = int(scene.image.shape[-1])
+    out: dict[str, list[torch.Tensor]] = {k: [] for k in _CROPPED}
+    for i in range(len(scene)):
+        win = int(torch.randint(side, big + 1, (1,), generator=rng))
+        pixels = scene.mask[i, 0].flatten().nonzero()[:, 0]
+        pick = int(torch.randint(0, max(1, pixels.numel()), (1,), generator=rng))
+        at = int(pixels[pick]) if pixels.numel() else int(torch.randint(0, big * big, (1,), generator=rng))
+        top = min(max(at // big - win // 2, 0), big - win)
+        left = min(max(at % big - win // 2, 0), big - win)
+        for name in _CROPPED:
+            x = getattr(scene, name)[i : i + 1, :, top : top + win, left : left + win]
+            if name == "object_index":
+                x = torch.nn.functional.interpolate(x.double(), size=(side, side), mode="nearest").long()
+            else:
+                x = downsample(x, (side, side))
+            out[name].append(x)
+    cropped = {k: torch.cat(v) for k, v in out.items()}
+    cropped["normals"] = torch.nn.functional.normalize(cropped["normals"], dim=1)
+    cropped["mask"] = (cropped["mask"] > 0.5).to(cropped["mask"].dtype)
+    return replace(scene, **cropped)
+
+
+_CROPPED = ("albedo", "normals", "shading", "image", "mask", "depth", "object_index")
 
 
 def estimator_input(net: SurfaceConfig, scene, source: torch.Tensor | None) -> torch.Tensor:
@@ -146,7 +186,10 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
     def step_fn(net: SurfaceEstimator, rng: torch.Generator, step: int):
         start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
         where = device if config.render_on == "device" else "cpu"
-        scene = generate(config.split, config.batch_size, config.world_seed, side, start=start, device=where)
+        big = int(round(side * config.zoom))
+        scene = generate(config.split, config.batch_size, config.world_seed, big, start=start, device=where)
+        if big != side:
+            scene = close_ups(scene, side, rng)
         source = random_lights(config.batch_size, rng, RELIGHT_ELEVATION) if config.net.input == "lit" else None
         lights = random_lights(config.batch_size * config.lights, rng, (0.0, MAX_TRAIN_ELEVATION))
         return surface_loss(net, config, scene, source, lights, device)

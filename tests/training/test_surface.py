@@ -130,3 +130,38 @@ def test_init_from_starts_at_the_saved_estimator(tmp_path):
     other = toy(net=SurfaceConfig(input="lit", channels=(8, 8), blocks=1, working_size=16))
     with pytest.raises(LasagnaError, match="its estimator config differs from this run's"):
         train_surface(other.model_copy(update={"init_from": str(tmp_path / "a" / "surface")}), tmp_path / "d")
+
+
+def test_close_ups_are_windows_of_the_larger_render():
+    """``close_ups``: every scene becomes a window of the render reduced to the working size — a window of the whole
+    render is the render reduced (the same numbers as reducing it directly), normals stay unit, the mask stays
+    binary, and the same generator state gives the same windows."""
+    from lasagna.compose.resample import downsample
+    from lasagna.training.surface import close_ups
+
+    scene = generate("wide", 6, 2, 48)
+    a = close_ups(scene, 16, torch.Generator().manual_seed(4))
+    b = close_ups(scene, 16, torch.Generator().manual_seed(4))
+    assert a.image.shape == (6, 3, 16, 16) and a.object_index.dtype == torch.int64
+    assert torch.equal(a.normals, b.normals) and torch.equal(a.albedo, b.albedo)
+    torch.testing.assert_close(a.normals.norm(dim=1), torch.ones(6, 16, 16), atol=1e-5, rtol=0)
+    assert set(a.mask.unique().tolist()) <= {0.0, 1.0}
+    # Windows differ in size: some scenes are zoomed in (more object pixels than the whole render reduced).
+    whole = downsample(scene.mask, (16, 16))
+    assert (a.mask.mean(dim=(1, 2, 3)) > whole.mean(dim=(1, 2, 3)) + 0.05).any()
+    # A window as large as the render is the render reduced.
+    one = scene.select([0])
+    for seed in range(200):
+        win = int(torch.randint(16, 49, (1,), generator=torch.Generator().manual_seed(seed)))
+        if win == 48:
+            full = close_ups(one, 16, torch.Generator().manual_seed(seed))
+            torch.testing.assert_close(full.albedo, downsample(one.albedo, (16, 16)))
+            break
+    else:
+        pytest.fail("no seed drew the whole render")
+
+
+def test_a_run_with_close_ups_trains(tmp_path):
+    net = train_surface(toy(steps=2, zoom=2.0, split="wide"), tmp_path / "run")
+    assert [r["step"] for r in read_log(tmp_path / "run")] == [1, 2]
+    assert net(torch.rand(1, 3, 16, 16)).shape == (1, 1, 16, 16)
