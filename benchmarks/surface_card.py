@@ -41,6 +41,21 @@ def command(cfg: dict, run: Path) -> str:
         f"--batch-size {cfg['batch_size']} --lr {cfg['lr']} --minutes {cfg['max_minutes']:g}"
         + (f" --output {net['output']}" if net.get("output", "height") != "height" else "")
         + (" --silhouette" if net.get("silhouette") else "")
+        + (f" --split {cfg['split']}" if cfg.get("split", "train") != "train" else "")
+        + (f" --world-seed {cfg['world_seed']}" if cfg.get("world_seed", 7) != 7 else "")
+        + (f" --zoom {cfg['zoom']:g}" if cfg.get("zoom", 1.0) != 1.0 else "")
+        + (f" --init-from {cfg['init_from']}" if cfg.get("init_from") else "")
+    )
+
+
+def stage_line(k: int, run: Path, where: str) -> str:
+    """One earlier stage of a run that started from another's weights: its steps, minutes, machine and command."""
+    cfg = json.loads((run / "train_config.json").read_text(encoding="utf-8"))
+    log = read_log(run)
+    return (
+        f"{k}. {log[-1]['step']} steps in {log[-1]['elapsed_s'] / 60:.1f} minutes ({where}, batch {cfg['batch_size']}"
+        + (f", close-ups to zoom {cfg['zoom']:g}" if cfg.get("zoom", 1.0) != 1.0 else "")
+        + f"): `{command(cfg, run)}`"
     )
 
 
@@ -70,6 +85,14 @@ def main(argv=None) -> int:
     ap.add_argument("--name", required=True)
     ap.add_argument("--measured", type=Path, default=None, help="benchmarks/surface.py --json-out of this estimator")
     ap.add_argument("--dome", default=None, metavar="WEIGHT,HEIGHT", help="the dome prior the preset uses with it")
+    ap.add_argument(
+        "--stages",
+        nargs="*",
+        default=[],
+        metavar="RUN=WHERE",
+        help="earlier stages of a run that started from another's weights (--init-from), oldest first: each run "
+        "folder and the machine it ran on, e.g. runs/surface-lit-32='this CPU, one thread'",
+    )
     args = ap.parse_args(argv)
     folder = ROOT / "layers" / args.name
     folder.mkdir(parents=True, exist_ok=True)
@@ -105,6 +128,7 @@ def main(argv=None) -> int:
         else ("an image already lit by an unknown light: geometry from its shading, and that light fitted to it")
     )
     measured = json.loads(args.measured.read_text(encoding="utf-8")) if args.measured else {}
+    stages = [tuple(st.split("=", 1)) if "=" in st else (st, "this CPU, one thread") for st in args.stages]
     lines = [
         f"# {args.name}: a surface estimator ({kind} input)",
         "",
@@ -142,6 +166,13 @@ def main(argv=None) -> int:
         f"world's true normals, rendered under {cfg['lights']} random lights per scene and step (azimuth uniform, "
         "elevation 0–75°): one geometry must shade right under all of them"
         + (
+            f"; close-ups: each scene rendered at {cfg['zoom']:g}× the working size and a square window of 1 to "
+            f"{cfg['zoom']:g} working sizes around one of its object pixels reduced to the working size, so objects "
+            "fill the frame as in photographs"
+            if cfg.get("zoom", 1.0) != 1.0
+            else ""
+        )
+        + (
             "; each scene is lit by a random source light (elevation 30–75°) before the estimator reads it."
             if kind == "lit"
             else "."
@@ -150,17 +181,28 @@ def main(argv=None) -> int:
         "`select`.",
         "",
         "## Training",
+        *(
+            [
+                "In stages, each started from the previous one's final EMA weights (`--init-from`):",
+                "",
+                *(stage_line(k + 1, Path(run), where) for k, (run, where) in enumerate(stages)),
+                f"{len(args.stages) + 1}. the last stage, below.",
+                "",
+            ]
+            if args.stages
+            else []
+        ),
         f"{steps} steps in {minutes:.1f} minutes on this 2-core CPU (one thread), Adam lr {cfg['lr']} after "
         f"{cfg['warmup_steps']} warm-up steps, EMA {cfg['ema_decay']} (ramped), gradient clip {cfg['grad_clip']}. "
         "Reproduce (resumable; the same command continues a killed run bit for bit):",
         "",
         "```sh",
-        command(cfg, Path("runs") / args.name),
+        command(cfg, args.run),
         f"OMP_NUM_THREADS=1 python benchmarks/surface.py --splits select heldout far --sizes 64 256 --count 16 "
         f"--{'albedo' if kind == 'albedo' else 'lit'} layers/{args.name}"
         + (f" --dome {args.dome}" if args.dome else "")
         + f" --json-out {args.measured}",
-        f"python benchmarks/surface_card.py --run runs/{args.name} --name {args.name} --measured {args.measured}"
+        f"python benchmarks/surface_card.py --run {args.run} --name {args.name} --measured {args.measured}"
         + (f" --dome {args.dome}" if args.dome else ""),
         "```",
         "",

@@ -5,7 +5,9 @@
 # shipped ones. SET picks the round:
 #   wide  on the `wide` split (train's families and the generic gem and blob shapes, `lasagna.world.splits`) beside
 #         the same continuation on `train` (the control: as many steps and scenes, no new shapes)
-#   zoom  on `train` with close-ups (--zoom 3: windows of 1 to 3 working sizes around object pixels)
+#   zoom  on `train` with close-ups (--zoom 3: windows of 1 to 3 working sizes around object pixels), from
+#         $INIT_ALBEDO / $INIT_LIT (default: the catalogue's estimators; the round of 2026-11-26 started from the
+#         first runs' weights, runs/surface-albedo-32/surface and runs/surface-lit-32/surface)
 #
 #   SET=wide OUT=out/surface-wide MINUTES=7.5 bash layers/surface-continue.sh
 set -u
@@ -26,8 +28,8 @@ wide)
   ) ;;
 zoom)
   runs=(
-    "albedo-zoom  --input albedo --split train --zoom 3 --init-from layers/surface-albedo-32"
-    "lit-zoom     --input lit    --split train --zoom 3 --init-from layers/surface-lit-32"
+    "albedo-zoom  --input albedo --split train --zoom 3 --init-from ${INIT_ALBEDO:-layers/surface-albedo-32}"
+    "lit-zoom     --input lit    --split train --zoom 3 --init-from ${INIT_LIT:-layers/surface-lit-32}"
   ) ;;
 *) echo "SET must be wide or zoom, got $SET" >&2; exit 2 ;;
 esac
