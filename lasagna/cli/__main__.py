@@ -1,7 +1,5 @@
 """``python -m lasagna.cli …`` is ``lasagna …``."""
 
-import sys
+from lasagna.cli import main, process_exit
 
-from lasagna.cli import main
-
-sys.exit(main())
+process_exit(main())

@@ -418,3 +418,20 @@ def test_every_subcommands_help_ends_with_an_example(capsys, argv):
     out = capsys.readouterr().out
     example = out.split("\nexample:\n", 1)[-1] if "\nexample:\n" in out else ""
     assert example.startswith(f"  lasagna {' '.join(argv)} "), out[-400:]
+
+
+@pytest.mark.parametrize("torchrun", [False, True])
+def test_process_exit_flushes_and_keeps_the_status(torchrun):
+    """``process_exit`` (the end of ``python -m lasagna.cli`` and of the ``lasagna`` script): the status is the
+    process's, and what was printed reaches a pipe also where a torchrun worker ends by ``os._exit`` (which skips
+    interpreter teardown, and with it the flush of block-buffered output)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("WORLD_SIZE", "TORCHELASTIC_RUN_ID")}
+    if torchrun:
+        env.update(WORLD_SIZE="2", TORCHELASTIC_RUN_ID="test")
+    code = "import sys; from lasagna.cli import process_exit; print('out'); print('err', file=sys.stderr); "
+    code += "process_exit(3)"
+    root = Path(__file__).parents[2]
+    done = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=HANG_SECONDS, cwd=root
+    )
+    assert (done.returncode, done.stdout, done.stderr.strip().splitlines()[-1]) == (3, "out\n", "err")
