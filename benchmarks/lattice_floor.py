@@ -111,7 +111,8 @@ template <class F> static double best_ms(F f, int repeats) {
 int main(int argc, char **argv) {
   int size = atoi(argv[1]), repeats = atoi(argv[2]); N = size * size;
   srand(25);
-  img.resize(3 * (size_t)N); out.resize(3 * (size_t)N); lut.resize(3 * (size_t)L * L * L); layers.resize(30 * (size_t)N);
+  img.resize(3 * (size_t)N); out.resize(3 * (size_t)N);
+  lut.resize(3 * (size_t)L * L * L); layers.resize(30 * (size_t)N);
   for (auto &v : img) v = (rand() % 256) / 255.f;
   for (auto &v : lut) v = (rand() % 256) / 255.f;
   for (auto &v : layers) v = (rand() % 256) / 255.f;
