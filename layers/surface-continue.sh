@@ -9,7 +9,11 @@
 #         $INIT_ALBEDO / $INIT_LIT (default: the catalogue's estimators; the round of 2026-11-26 started from the
 #         first runs' weights, runs/surface-albedo-32/surface and runs/surface-lit-32/surface)
 #
+#   zoom2 the lit estimator only, for photographs (the round of 2026-11-26 (3)): the first close-up run continued
+#         ($INIT_LIT_ZOOM, default runs/zoom/lit-zoom/surface) with --zoom 3, and the shipped one with --zoom 2 and 4
+#
 #   SET=wide OUT=out/surface-wide MINUTES=7.5 bash layers/surface-continue.sh
+# WORLD_SEED (default 11) picks the training scenes; a continuation takes another seed than the run it continues.
 set -u
 OUT=${OUT:-out/surface-wide}
 MINUTES=${MINUTES:-7.5}
@@ -31,7 +35,13 @@ zoom)
     "albedo-zoom  --input albedo --split train --zoom 3 --init-from ${INIT_ALBEDO:-layers/surface-albedo-32}"
     "lit-zoom     --input lit    --split train --zoom 3 --init-from ${INIT_LIT:-layers/surface-lit-32}"
   ) ;;
-*) echo "SET must be wide or zoom, got $SET" >&2; exit 2 ;;
+zoom2)
+  runs=(
+    "lit-zoom3-more --input lit --split train --zoom 3 --init-from ${INIT_LIT_ZOOM:-runs/zoom/lit-zoom/surface}"
+    "lit-zoom2      --input lit --split train --zoom 2 --init-from ${INIT_LIT:-layers/surface-lit-32}"
+    "lit-zoom4      --input lit --split train --zoom 4 --init-from ${INIT_LIT:-layers/surface-lit-32}"
+  ) ;;
+*) echo "SET must be wide, zoom or zoom2, got $SET" >&2; exit 2 ;;
 esac
 declare -A pids
 for r in "${runs[@]}"; do
@@ -39,7 +49,7 @@ for r in "${runs[@]}"; do
   name=$1
   shift
   OMP_NUM_THREADS=2 PYTHONUNBUFFERED=1 $PY -m lasagna train-surface "$@" --out "$RUNS/$name" --silhouette \
-    --channels 32,64,128 --blocks 2 --lights 3 --lr 0.001 --batch-size "$BATCH" --world-seed 11 \
+    --channels 32,64,128 --blocks 2 --lights 3 --lr 0.001 --batch-size "$BATCH" --world-seed "${WORLD_SEED:-11}" \
     --minutes "$MINUTES" --no-progress >"$RUNS/$name.log" 2>&1 &
   pids[$name]=$!
   sleep 1
