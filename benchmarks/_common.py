@@ -191,3 +191,38 @@ def row(rel, method: str, ratio: torch.Tensor, seconds: float | None = None) -> 
     if seconds is not None:
         r["seconds_per_image"] = round(seconds / rel.base.shape[0], 3)
     return r
+
+
+# ---- photographs: the relight swing toward opposite lights (issue #24) ----
+
+# The two axes of opposite lights a photograph is relit along.
+PHOTO_AXES = {"left-right": ("left", "right"), "top-bottom": ("top", "bottom")}
+
+
+def thirds(ratio: torch.Tensor, light: str) -> float:
+    """Mean of ``ratio`` (1, H, W) over the third of the image nearest ``light`` minus over the farthest third."""
+    h, w = ratio.shape[-2:]
+    cols, rows = w // 3, h // 3
+    near, far = {
+        "left": (ratio[..., :cols], ratio[..., w - cols :]),
+        "right": (ratio[..., w - cols :], ratio[..., :cols]),
+        "top": (ratio[..., :rows, :], ratio[..., h - rows :, :]),
+        "bottom": (ratio[..., h - rows :, :], ratio[..., :rows, :]),
+    }[light]
+    return float(near.double().mean() - far.double().mean())
+
+
+def read_photo(path: Path, side: int = 512) -> torch.Tensor:
+    """A photograph (1, 3, H, W) in [0, 1], its long side resized to ``side`` (Lanczos)."""
+    with Image.open(path) as im:
+        im = im.convert("RGB")
+        scale = side / max(im.size)
+        im = im.resize((round(im.width * scale), round(im.height * scale)), Image.LANCZOS)
+        return torch.from_numpy(np.asarray(im, dtype="float32") / 255.0).permute(2, 0, 1)[None]
+
+
+def swing(image: torch.Tensor, composite: torch.Tensor, light: str) -> float:
+    """How much an edit toward ``light`` brightens the side the light comes from: ``thirds`` of composite/input
+    (the mean over the colour channels; input floored at 1e-3). Summed over the two opposite edits of an axis it
+    is issue #24's photograph swing (≥ 0.10 per photograph and axis, never negative)."""
+    return thirds((composite / image.clamp_min(1e-3)).mean(-3, keepdim=True).reshape(1, *image.shape[-2:]), light)

@@ -35,7 +35,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _common import machine_info, print_json_line, psnr  # noqa: E402
+from _common import PHOTO_AXES, machine_info, print_json_line, psnr, read_photo  # noqa: E402
+from _common import swing as photo_swing  # noqa: E402
 
 from lasagna.compose.resample import downsample, upsample  # noqa: E402
 from lasagna.compose.surface import (  # noqa: E402
@@ -195,32 +196,6 @@ def leak_row(args, split: str, size: int, albedo_net, lit_net, dome=None) -> dic
     return out
 
 
-PHOTO_AXES = {"left-right": ("left", "right"), "top-bottom": ("top", "bottom")}
-
-
-def thirds(ratio: torch.Tensor, light: str) -> float:
-    """Mean of ``ratio`` (1, H, W) over the third of the image nearest ``light`` minus over the farthest third."""
-    h, w = ratio.shape[-2:]
-    cols, rows = w // 3, h // 3
-    near, far = {
-        "left": (ratio[..., :cols], ratio[..., w - cols :]),
-        "right": (ratio[..., w - cols :], ratio[..., :cols]),
-        "top": (ratio[..., :rows, :], ratio[..., h - rows :, :]),
-        "bottom": (ratio[..., h - rows :, :], ratio[..., :rows, :]),
-    }[light]
-    return float(near.double().mean() - far.double().mean())
-
-
-def read_photo(path: Path, side: int = 512) -> torch.Tensor:
-    from PIL import Image
-
-    with Image.open(path) as im:
-        im = im.convert("RGB")
-        scale = side / max(im.size)
-        im = im.resize((round(im.width * scale), round(im.height * scale)), Image.LANCZOS)
-        return torch.from_numpy(__import__("numpy").asarray(im, dtype="float32") / 255.0).permute(2, 0, 1)[None]
-
-
 def photo_rows(lit_net, folder: Path, sheet: Path | None, dome=None) -> list[dict]:
     """Relight each photograph toward opposite lights; the swing of composite/input between the thirds nearest and
     farthest from the light, summed over the two edits of an axis (≥ 0.10 per photo and axis is the target)."""
@@ -237,7 +212,7 @@ def photo_rows(lit_net, folder: Path, sheet: Path | None, dome=None) -> list[dic
             for light in pair:
                 ratio = lambert(n, lights_of([light])) / lambert(n, source)
                 comp = (image * ratio).clamp(0, 1)
-                swing += thirds((comp / image.clamp_min(1e-3)).mean(1, keepdim=True)[0], light)
+                swing += photo_swing(image, comp, light)
                 composites[light] = comp
             row[f"swing_{axis}"] = round(swing, 4)
         rows.append(row)

@@ -1,8 +1,9 @@
 """Write the small real photographs the demo edits: square crops of scikit-image's sample images.
 
     pip install scikit-image          # only to run this script once; not a dependency of lasagna
-    python examples/make_photos.py    # writes examples/photos/<name>.png (96x96 RGB, 8-bit)
-                                      # and examples/photos/large/<name>.jpg (512x512, the benchmarks' sheet)
+    python examples/make_photos.py    # writes examples/photos/<name>.png (96x96 RGB, 8-bit),
+                                      # examples/photos/large/<name>.jpg (512x512, the benchmarks' sheet)
+                                      # and examples/photos/select/<name>.jpg (512x512, the photo selection set)
 
 The demo's photographs (``lasagna.demo.PHOTOS``) are also copied into the package
 (``lasagna/_data/photos``), so that ``lasagna demo`` runs from an installed wheel.
@@ -41,6 +42,28 @@ LARGE_CROPS = {
 }
 
 
+# name -> (loader, (left, top, side)): the photograph selection set (issue #24) — other photographs than the four
+# above, on which choices for photographs are made (``benchmarks/photo_swing.py``), so that ``large`` stays a report.
+# Loaders are scikit-image's, except ``grace_hopper`` (matplotlib's sample data, a US Navy photograph).
+SELECT_CROPS = {
+    "grace_hopper": ("grace_hopper", (0, 44, 512)),  # a portrait in uniform; native 512 wide
+    "camera": ("camera", (0, 0, 512)),  # the cameraman and his tripod, grey; native 512²
+    "coins": ("coins", (40, 0, 303)),  # Greek coins in rows, grey; enlarged 1.69×
+    "retina": ("retina", (0, 0, 1411)),  # a fundus photograph: the eye's back, a lit disc; reduced 2.76×
+}
+
+
+def _select_image(loader: str) -> Image.Image:
+    if loader == "grace_hopper":
+        from matplotlib import cbook
+
+        with cbook.get_sample_data("grace_hopper.jpg") as f:
+            return Image.open(f).convert("RGB")
+    import skimage.data
+
+    return Image.fromarray(getattr(skimage.data, loader)()).convert("RGB")
+
+
 def main(out: Path) -> None:
     import skimage.data
 
@@ -62,6 +85,12 @@ def main(out: Path) -> None:
         crop = image.crop((left, top, left + side, top + side)).resize((LARGE, LARGE), Image.Resampling.LANCZOS)
         crop.save(out / "large" / f"{name}.jpg", quality=92)
         print(f"wrote {out / 'large' / f'{name}.jpg'} ({loader}, box {(left, top, side)})")
+    (out / "select").mkdir(exist_ok=True)
+    for name, (loader, (left, top, side)) in SELECT_CROPS.items():
+        image = _select_image(loader)
+        crop = image.crop((left, top, left + side, top + side)).resize((LARGE, LARGE), Image.Resampling.LANCZOS)
+        crop.save(out / "select" / f"{name}.jpg", quality=92)
+        print(f"wrote {out / 'select' / f'{name}.jpg'} ({loader}, box {(left, top, side)})")
 
 
 if __name__ == "__main__":

@@ -179,8 +179,13 @@ def make_layer(
     history: list[dict[str, Any]] = []
     stopped = None
     if recipe.distill is not None:
+        start_layer = layer
         run, settings = _optimise(recipe, x, layer, layer_id, files, device, progress, callback)
         layer, history, stopped = run.layer.float(), run.history, run.stopped_reason
+        if recipe.distill.lock == "planar":
+            lo, hi = recipe.distill.layer.range
+            start_layer = torch.ones_like(layer) if start_layer is None else start_layer.to(layer)
+            layer = planar_lock(layer, start_layer).clamp(lo, hi)
     if layer is None:  # unreachable: an amortised run has its forward pass, a per-image run its optimisation
         raise LasagnaError(f"no layer was made (method {recipe.method!r}, steps {recipe.steps})", "make_layer")
     if over_luminance:  # the colour follows the base's edges and carries its luma at full size
@@ -215,6 +220,32 @@ def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
     layer = lambert(normals, target) if source is None else lambert(normals, target) / lambert(normals, source)
     lo, hi = recipe.distill.layer.range
     return layer.clamp(lo, hi)
+
+
+# The floor of a layer and its start before their logarithms (``planar_lock``): a multiplier of 0 (black) is
+# read as 1e-4, a 80 dB attenuation, far below an 8-bit code; such pixels keep their place in the fit without
+# an infinite weight.
+LOCK_EPS = 1e-4
+
+
+def planar_lock(layer: Tensor, start: Tensor) -> Tensor:
+    """``layer`` (N, C, h, w) with the planar trend of its correction to ``start`` removed (``distill.lock`` 'planar').
+
+    With r = log(max(layer, ε) / max(start, ε)) and its least-squares plane a + b·u + c·v over each channel's pixels
+    (u, v the column and row in [−1, 1], solved in float64), the result is start · exp(r − b·u − c·v): the level a
+    and what no plane explains of the correction are kept, its tilt across the image is not — so the distillation may
+    brighten, darken and reshape a surface's relight but cannot turn its light toward another side."""
+    n, c, h, w = layer.shape
+    r = (layer.clamp_min(LOCK_EPS).double() / start.clamp_min(LOCK_EPS).double()).log()
+    v, u = torch.meshgrid(
+        torch.linspace(-1.0, 1.0, h, dtype=torch.float64, device=layer.device),
+        torch.linspace(-1.0, 1.0, w, dtype=torch.float64, device=layer.device),
+        indexing="ij",
+    )
+    design = torch.stack([torch.ones_like(u), u, v], -1).reshape(h * w, 3)
+    coef = torch.linalg.lstsq(design, r.reshape(n * c, h * w).T).solution  # (3, n·c)
+    tilt = (design[:, 1:] @ coef[1:]).T.reshape(n, c, h, w)
+    return (start.clamp_min(LOCK_EPS).double() * (r - tilt).exp()).to(layer.dtype)
 
 
 def _luminance(recipe: Recipe) -> str:
@@ -389,5 +420,6 @@ __all__ = [
     "default_steps",
     "make_layer",
     "layer_input",
+    "planar_lock",
     "working_input",
 ]

@@ -153,3 +153,69 @@ def test_a_free_layer_can_start_from_the_surface(tiny, tmp_path_factory):
     torch.testing.assert_close(again.layer, res.layer, atol=2 * 4.0 / 65535, rtol=0)
     with pytest.raises(ValidationError, match="distill.start 'surface'.* names no surface estimator"):
         Preset.model_validate({**preset, "distill": distill, "surface": None})
+
+
+def test_the_planar_lock_removes_the_tilt_of_the_correction_and_nothing_else():
+    """``planar_lock`` against a float64 numpy least-squares fit: the plane of log(layer/start) is removed, the level
+    and the rest of the correction kept; a correction that is a plane alone gives the start times its level."""
+    import numpy as np
+
+    from lasagna.learned import LOCK_EPS, planar_lock
+
+    g = torch.Generator().manual_seed(3)
+    n, c, h, w = 2, 1, 11, 17
+    start = torch.rand(n, c, h, w, generator=g) * 2 + 0.1
+    layer = torch.rand(n, c, h, w, generator=g) * 3
+    layer[0, 0, 0, 0] = 0.0  # a black pixel: floored at LOCK_EPS, not an infinite weight
+    out = planar_lock(layer, start).double().numpy()
+    v, u = np.meshgrid(np.linspace(-1, 1, h), np.linspace(-1, 1, w), indexing="ij")
+    a = np.stack([np.ones(h * w), u.ravel(), v.ravel()], 1)
+    for k in range(n):
+        s0 = np.maximum(start[k, 0].double().numpy(), LOCK_EPS)
+        r = np.log(np.maximum(layer[k, 0].double().numpy(), LOCK_EPS) / s0)
+        coef = np.linalg.lstsq(a, r.ravel(), rcond=None)[0]
+        want = s0 * np.exp(r - coef[1] * u - coef[2] * v)
+        np.testing.assert_allclose(out[k, 0], want, rtol=2e-6, atol=1e-6)
+        # What is left has no tilt: its own plane is flat.
+        left = np.log(np.maximum(out[k, 0], LOCK_EPS) / s0)
+        assert np.abs(np.linalg.lstsq(a, left.ravel(), rcond=None)[0][1:]).max() < 1e-5
+    plane = start * torch.exp(0.3 + 0.8 * torch.linspace(-1, 1, w) + 0.0 * torch.zeros(h, 1))
+    torch.testing.assert_close(planar_lock(plane, start), start * float(np.exp(0.3)), rtol=1e-5, atol=1e-6)
+
+
+def test_a_locked_free_layer_keeps_the_direction_of_its_surface(tiny, tmp_path_factory, monkeypatch):
+    """``distill.lock: planar`` on a free layer started from the surface: recorded with the layer (left out when
+    'none'); the locked layer is the unlocked one (the same steps and seed) with ``planar_lock`` applied against the
+    surface start at the working size; a re-render from the record makes the same layer."""
+    import lasagna.compose.resample as resample
+    from lasagna.editing import conditioning_input
+    from lasagna.learned import _surface_start, layer_input, make_layer, planar_lock
+    from lasagna.recipe import Recipe
+
+    small: list[torch.Tensor] = []
+    enlarge = resample.upsample
+
+    def spy(layer, size, *args, **kwargs):  # the layer at the working size, before it is enlarged
+        small.append(layer.detach().clone())
+        return enlarge(layer, size, *args, **kwargs)
+
+    monkeypatch.setattr(resample, "upsample", spy)
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("lock") / "layers")
+    preset = json.loads((folder / "relight" / "preset.json").read_text())
+    relight_surface = {**SURFACE, "estimator": "surface-lit-32"}
+    distill = {**preset["distill"], "steps": 3, "particles": 1, "start": "surface"}
+    write_preset(folder, "relight", distill=distill, surface=relight_surface)
+    free = edit(image(), "relight", "left", catalogue_dirs=[folder])
+    assert "lock" not in free.stack.document.layer(free.layer_id).settings["distill"]  # the default, left out
+    write_preset(folder, "relight", distill={**distill, "lock": "planar"}, surface=relight_surface)
+    res = edit(image(), "relight", "left", catalogue_dirs=[folder])
+    layer = res.stack.document.layer(res.layer_id)
+    assert layer.settings["distill"]["lock"] == "planar"
+    recipe = Recipe.from_layer(res.stack, layer, catalogue_dirs=[folder])
+    base = conditioning_input(res.stack, layer.conditioned_on)
+    start = _surface_start(recipe, layer_input(recipe, base, "cpu"), "cpu")
+    unlocked, locked = small[-2], small[-1]
+    assert float((locked - unlocked).abs().max()) > 1e-4
+    torch.testing.assert_close(locked, planar_lock(unlocked, start).clamp(0.0, 4.0), rtol=1e-5, atol=1e-6)
+    again = make_layer(recipe, base, "again")
+    torch.testing.assert_close(again.layer, res.layer, atol=2 * 4.0 / 65535, rtol=0)

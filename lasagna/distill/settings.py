@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_serial
 
 from lasagna.distill.objective import ConditionImage
 from lasagna.distill.schedules import Ramp, Weights
-from lasagna.document.preset import Aspect, FreeStart, LossName
+from lasagna.document.preset import Aspect, FreeLock, FreeStart, LossName
 from lasagna.errors import describe_validation_error
 from lasagna.generators.layer import LayerSpec
 from lasagna.limits import MAX_CROPS_PER_STEP, MAX_DISTILL_STEPS, MAX_PARTICLES
@@ -104,6 +104,11 @@ class DistillSettings(BaseModel):
         description="Where a free layer starts: the identity edit, or the preset's surface estimate under the "
         "condition (lasagna.learned: a free residual on a surface).",
     )
+    lock: FreeLock = Field(
+        "none",
+        description="What of its start a free layer keeps after the steps: nothing, or its planar trend "
+        "(lasagna.learned.planar_lock).",
+    )
 
     @model_serializer(mode="wrap")
     def _dump(self, handler):
@@ -111,6 +116,8 @@ class DistillSettings(BaseModel):
         data = handler(self)
         if data.get("start") == "identity":
             del data["start"]
+        if data.get("lock") == "none":  # likewise: no lock is every layer's before locks
+            del data["lock"]
         return data
 
     @model_validator(mode="after")
@@ -139,6 +146,7 @@ class DistillSettings(BaseModel):
             "patches": PatchConfig(whole_fraction=d.whole_fraction),
             "aspect": d.aspect,
             "start": d.start,
+            "lock": d.lock,
         }
         return cls.parse({**data, **{k: v for k, v in overrides.items() if v is not None}})
 

@@ -65,6 +65,12 @@ TORCH_DTYPES: tuple[str, ...] = get_args(TorchDtype)
 FreeStart = Literal["identity", "surface"]
 """Where a per-image free layer starts (``DistillDefaults.start``, recorded in ``DistillSettings.start``)."""
 
+FreeLock = Literal["none", "planar"]
+"""What of its start a per-image free layer keeps (``DistillDefaults.lock``, recorded in ``DistillSettings.lock``):
+nothing, or the start's planar trend — the least-squares plane of log(layer / start) is removed after the steps
+(``lasagna.learned.planar_lock``), so the distillation may correct the start's level and every curved part but not
+tilt it: a relight started from a surface keeps the surface's direction."""
+
 
 class DistillDefaults(StrictModel):
     """Default settings of a per-image distillation run (overridable per layer via ``settings``)."""
@@ -104,6 +110,12 @@ class DistillDefaults(StrictModel):
         description="Where a per-image free layer starts: 'identity' (the unchanged image), or 'surface' — the "
         "preset's surface estimate rendered under the condition (a relight: S(l)/S(l_src), the source light fitted), "
         "which the distillation then refines per pixel. Needs the preset's `surface`.",
+    )
+    lock: FreeLock = Field(
+        "none",
+        description="What of its start a free layer keeps: 'none', or 'planar' — the least-squares plane of "
+        "log(layer / start) is removed after the steps, so the distillation corrects the start's level and curved "
+        "parts but cannot tilt it (a relight started from a surface keeps the surface's light direction).",
     )
 
     @model_validator(mode="after")

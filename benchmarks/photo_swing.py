@@ -1,0 +1,94 @@
+"""Relighting photographs toward opposite lights through the library call: does the light move? (issue #24)
+
+    OMP_NUM_THREADS=2 python benchmarks/photo_swing.py                              # the selection set
+    OMP_NUM_THREADS=2 python benchmarks/photo_swing.py --photos examples/photos/large   # the issue's four: a report
+
+Each photograph (its long side at 512) is edited by ``lasagna.edit(image, PRESET, light)`` — the default
+``lasagna edit --layer relight``, every preset field as shipped — toward ``left``, ``right``, ``top`` and
+``bottom``. The swing of an edit is the mean of composite/input over the third of the image nearest the light
+minus the farthest third (``_common.swing``); an axis's swing is the sum over its two edits. Issue #24's target
+is ≥ 0.10 on every photograph and axis, ≥ 0.20 on average and never negative; a relight that cannot tell left
+from right swings ~0.
+
+``examples/photos/select`` (four photographs other than the issue's, examples/photos/README.md) is where choices
+for photographs are made; ``examples/photos/large`` is reported, never chosen on. A candidate (another estimator,
+another preset field) is measured by a catalogue put first with ``LASAGNA_LAYERS`` (lasagna.catalogue: the first
+entry of a name wins), e.g. a folder holding ``relight/preset.json`` and ``surface-lit-32`` (a link to the
+candidate estimator). ``--sheet`` writes input | toward left | toward right | toward top | toward bottom per
+photograph. Ends with one JSON line: per photograph and axis, the mean, the smallest and the count of wrong signs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _common import PHOTO_AXES, machine_info, print_json_line, read_photo, save_sheet, swing  # noqa: E402
+
+import lasagna  # noqa: E402
+
+
+def measure(folder: Path, preset: str, sheet: Path | None) -> dict:
+    rows, tiles, seconds = [], [], []
+    for file in sorted(folder.glob("*.jpg")):
+        image = read_photo(file)[0]
+        row: dict = {"photo": file.stem}
+        composites = {}
+        for axis, pair in PHOTO_AXES.items():
+            total = 0.0
+            for light in pair:
+                t0 = time.perf_counter()
+                result = lasagna.edit(image, preset, light)
+                seconds.append(time.perf_counter() - t0)
+                composites[light] = result.composite
+                total += swing(image, result.composite, light)
+            row[axis] = round(total, 4)
+        rows.append(row)
+        print(row, flush=True)
+        row_tiles = [image, *(composites[light] for light in ("left", "right", "top", "bottom"))]
+        tiles.append([F.interpolate(t[None], scale_factor=0.5, mode="area")[0] for t in row_tiles])  # half size
+    if sheet is not None and tiles:
+        save_sheet([list(column) for column in zip(*tiles)], sheet)
+    values = [r[axis] for r in rows for axis in PHOTO_AXES]
+    return {
+        "photos": rows,
+        "swing_mean": round(sum(values) / len(values), 4),
+        "swing_min": round(min(values), 4),
+        "wrong_signs": sum(v < 0 for v in values),
+        "below_0.10": sum(v < 0.10 for v in values),
+        "seconds_per_edit_median": round(sorted(seconds)[len(seconds) // 2], 3),
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--photos", type=Path, default=ROOT / "examples" / "photos" / "select")
+    p.add_argument("--preset", default="relight")
+    p.add_argument("--sheet", type=Path, default=None, help="input | left | right | top | bottom, one row per photo")
+    p.add_argument("--label", default="", help="a name for this candidate in the JSON line")
+    args = p.parse_args(argv)
+    torch.manual_seed(0)
+    record = {
+        "benchmark": "photo_swing",
+        "machine": machine_info(),
+        "photos_folder": str(args.photos),
+        "preset": args.preset,
+        "catalogue_first": os.environ.get("LASAGNA_LAYERS", ""),
+        "label": args.label,
+        **measure(args.photos, args.preset, args.sheet),
+    }
+    print_json_line(record)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
