@@ -33,6 +33,10 @@ ROWS = {
 }
 
 
+# Where a run's last stage ran unless ``--where`` says otherwise.
+WHERE = "on this 2-core CPU (one thread)"
+
+
 def command(cfg: dict, run: Path) -> str:
     net = cfg["net"]
     return (
@@ -93,6 +97,11 @@ def main(argv=None) -> int:
         help="earlier stages of a run that started from another's weights (--init-from), oldest first: each run "
         "folder and the machine it ran on, e.g. runs/surface-lit-32='this CPU, one thread'",
     )
+    ap.add_argument(
+        "--where",
+        default=WHERE,
+        help="where the last stage ran, as the card says it, e.g. 'on a lent H200 (three processes sharing it)'",
+    )
     args = ap.parse_args(argv)
     folder = ROOT / "layers" / args.name
     folder.mkdir(parents=True, exist_ok=True)
@@ -128,6 +137,8 @@ def main(argv=None) -> int:
         else ("an image already lit by an unknown light: geometry from its shading, and that light fitted to it")
     )
     measured = json.loads(args.measured.read_text(encoding="utf-8")) if args.measured else {}
+    # The measurement's own command (benchmarks/surface.py records it), else the usual one.
+    measured_command = f"OMP_NUM_THREADS=1 python {measured['command']}" if measured.get("command") else None
     stages = [tuple(st.split("=", 1)) if "=" in st else (st, "this CPU, one thread") for st in args.stages]
     lines = [
         f"# {args.name}: a surface estimator ({kind} input)",
@@ -192,18 +203,21 @@ def main(argv=None) -> int:
             if args.stages
             else []
         ),
-        f"{steps} steps in {minutes:.1f} minutes on this 2-core CPU (one thread), Adam lr {cfg['lr']} after "
+        f"{steps} steps in {minutes:.1f} minutes {args.where}, Adam lr {cfg['lr']} after "
         f"{cfg['warmup_steps']} warm-up steps, EMA {cfg['ema_decay']} (ramped), gradient clip {cfg['grad_clip']}. "
         "Reproduce (resumable; the same command continues a killed run bit for bit):",
         "",
         "```sh",
         command(cfg, args.run),
-        f"OMP_NUM_THREADS=1 python benchmarks/surface.py --splits select heldout far --sizes 64 256 --count 16 "
+        measured_command
+        or f"OMP_NUM_THREADS=1 python benchmarks/surface.py --splits select heldout far --sizes 64 256 --count 16 "
         f"--{'albedo' if kind == 'albedo' else 'lit'} layers/{args.name}"
         + (f" --dome {args.dome}" if args.dome else "")
         + f" --json-out {args.measured}",
         f"python benchmarks/surface_card.py --run {args.run} --name {args.name} --measured {args.measured}"
-        + (f" --dome {args.dome}" if args.dome else ""),
+        + (f" --dome {args.dome}" if args.dome else "")
+        + "".join(f" --stages '{st}'" if k == 0 else f" '{st}'" for k, st in enumerate(args.stages))
+        + (f" --where '{args.where}'" if args.where != WHERE else ""),
         "```",
         "",
         "![loss](loss.png)",

@@ -203,7 +203,7 @@ def test_a_locked_free_layer_keeps_the_direction_of_its_surface(tiny, tmp_path_f
     folder = tiny_variant(tiny, tmp_path_factory.mktemp("lock") / "layers")
     preset = json.loads((folder / "relight" / "preset.json").read_text())
     relight_surface = {**SURFACE, "estimator": "surface-lit-32"}
-    distill = {**preset["distill"], "steps": 3, "particles": 1, "start": "surface"}
+    distill = {**preset["distill"], "steps": 3, "particles": 1, "start": "surface", "lock": "none"}
     write_preset(folder, "relight", distill=distill, surface=relight_surface)
     free = edit(image(), "relight", "left", catalogue_dirs=[folder])
     assert "lock" not in free.stack.document.layer(free.layer_id).settings["distill"]  # the default, left out
