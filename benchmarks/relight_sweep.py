@@ -1,8 +1,15 @@
-"""The sweep that chose the relight preset's per-image settings, on heldout only (issue #11; defaults are
-never chosen on far). Plain script; one JSON row per setting, then one JSON line.
+"""The sweeps that chose the relight preset's per-image settings. Plain script; one JSON row per setting, then one
+JSON line. Defaults are never chosen on far.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/relight_sweep.py            # 16 scenes at 64² (~20 min)
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/relight_sweep.py            # issue #11's, heldout 64² (~20 min)
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/relight_sweep.py --count 2 --only default "particles 4"
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/relight_sweep.py --split select --size 256   # issue #24's re-choice
+
+``--split heldout`` (the default) runs issue #11's settings, which chose particles 4 and t_min 0.1 when heldout
+was where choices were made. ``--split select`` runs issue #24's re-choice of every field on the selection split:
+each row changes one field of the preset as shipped (``SELECT_SETTINGS``; a field edit cannot override — the working
+size — is a variant of the preset in a temporary catalogue put first), so its rows are relative to the current
+preset.
 
 Each setting runs ``lasagna.editing.edit(image, "relight", label, **overrides)`` on the scenes of
 ``benchmarks/relight.py`` (each lit by its own source light A, relit to a named light B) and reports the
@@ -18,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -60,18 +68,52 @@ SETTINGS: dict[str, list[dict]] = {
 }
 
 
+# Issue #24: every field of the relight preset re-chosen on select, one field at a time from the preset as shipped.
+# A "preset" entry is written into a temporary catalogue's copy of the preset; the rest are edit() overrides.
+SELECT_SETTINGS: dict[str, list[dict]] = {
+    "default": [{}],
+    "working size 32": [{"preset": {"working_size": 32}}],
+    "working size 48": [{"preset": {"working_size": 48}}],
+    "working size 96": [{"preset": {"working_size": 96}}],
+    "60 steps": [{"optimize": 60}],
+    "300 steps": [{"optimize": 300}],
+    "ω 0.5": [{"guidance": 0.5}],
+    "ω 2": [{"guidance": 2.0}],
+    "particles 1": [{"particles": 1}],
+    "particles 8": [{"particles": 8}],
+    "lr 0.015": [{"lr": 0.015}],
+    "lr 0.06": [{"lr": 0.06}],
+    "t_min 0.02": [{"t_min": 0.02}],
+}
+
+
+def preset_variant(fields: dict, folder: Path) -> list[Path]:
+    """A catalogue at ``folder`` holding the shipped relight preset with ``fields`` changed (its other names still
+    resolve through the usual catalogues): the ``catalogue_dirs`` of an edit that uses it."""
+    from lasagna.catalogue import catalogues, load_preset
+    from lasagna.document.preset import Preset
+
+    shipped = load_preset("relight")
+    variant = Preset.model_validate({**shipped.model_dump(mode="json"), **fields})
+    (folder / "relight").mkdir(parents=True, exist_ok=True)
+    (folder / "relight" / "preset.json").write_text(variant.to_json(), encoding="utf-8")
+    return catalogues([folder])
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--count", type=int, default=16)
     ap.add_argument("--size", type=int, default=64)
     ap.add_argument("--seed", type=int, default=0, help="world seed")
     ap.add_argument("--only", nargs="*", default=None, help="settings to run (names as in the rows)")
+    ap.add_argument("--split", choices=("heldout", "select"), default="heldout")
     args = ap.parse_args(argv)
-    rel, labels = scenes("heldout", args.count, args.seed, args.size)
+    rel, labels = scenes(args.split, args.count, args.seed, args.size)
     images = rel.base.float()
     cache: dict[str, torch.Tensor] = {}
     rows = []
-    for name, runs in SETTINGS.items():
+    settings = SETTINGS if args.split == "heldout" else SELECT_SETTINGS
+    for name, runs in settings.items():
         if args.only is not None and name not in args.only:
             continue
         t0 = time.perf_counter()
@@ -79,15 +121,29 @@ def main(argv=None) -> int:
         for o in runs:
             key = json.dumps(o, sort_keys=True)
             if key not in cache:
-                cache[key] = torch.stack(
-                    [edit(images[i], "relight", labels[i], **o).layer for i in range(images.shape[0])]
-                ).double()
+                with tempfile.TemporaryDirectory() as tmp:
+                    o = dict(o)
+                    dirs = preset_variant(o.pop("preset"), Path(tmp)) if "preset" in o else None
+                    cache[key] = torch.stack(
+                        [
+                            edit(images[i], "relight", labels[i], catalogue_dirs=dirs, **o).layer
+                            for i in range(images.shape[0])
+                        ]
+                    ).double()
             layers.append(cache[key])
         r = row(rel, name, torch.stack(layers).mean(0), time.perf_counter() - t0)
-        r.update(split="heldout", size=args.size)
+        r.update(split=args.split, size=args.size)
         rows.append(r)
         print(json.dumps(r), flush=True)
-    print_json_line({"benchmark": "relight_sweep", "rows": rows, "count": args.count, "machine": machine_info()})
+    print_json_line(
+        {
+            "benchmark": "relight_sweep",
+            "split": args.split,
+            "rows": rows,
+            "count": args.count,
+            "machine": machine_info(),
+        }
+    )
     return 0
 
 
