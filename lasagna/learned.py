@@ -223,7 +223,7 @@ def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
 
 
 # The floor of a layer and its start before their logarithms (``planar_lock``): a multiplier of 0 (black) is
-# read as 1e-4, a 80 dB attenuation, far below an 8-bit code; such pixels keep their place in the fit without
+# read as 1e-4, an 80 dB attenuation, far below an 8-bit code; such pixels keep their place in the fit without
 # an infinite weight.
 LOCK_EPS = 1e-4
 
