@@ -84,6 +84,13 @@ SELECT_SETTINGS: dict[str, list[dict]] = {
     "lr 0.015": [{"lr": 0.015}],
     "lr 0.06": [{"lr": 0.06}],
     "t_min 0.02": [{"t_min": 0.02}],
+    # The second pass (2026-11-26): the fields that qualified in the first (ω 2, lr 0.06, particles 8) combined, and
+    # one step further along the best one.
+    "ω 2 + lr 0.06": [{"guidance": 2.0, "lr": 0.06}],
+    "ω 2 + particles 8": [{"guidance": 2.0, "particles": 8}],
+    "ω 2 + lr 0.06 + particles 8": [{"guidance": 2.0, "lr": 0.06, "particles": 8}],
+    "ω 3": [{"guidance": 3.0}],
+    "ω 3 + lr 0.06": [{"guidance": 3.0, "lr": 0.06}],
 }
 
 

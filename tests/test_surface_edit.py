@@ -139,7 +139,7 @@ def test_a_free_layer_can_start_from_the_surface(tiny, tmp_path_factory):
     preset = json.loads((folder / "relight" / "preset.json").read_text())
     relight_surface = {**SURFACE, "estimator": "surface-lit-32"}
     distill = {**preset["distill"], "steps": 2, "particles": 1, "start": "surface"}
-    write_preset(folder, "relight", distill={**distill, "start": "identity"}, surface=relight_surface)
+    write_preset(folder, "relight", distill={**distill, "start": "identity", "lock": "none"}, surface=relight_surface)
     plain = edit(image(), "relight", "left", catalogue_dirs=[folder])
     assert "start" not in plain.stack.document.layer(plain.layer_id).settings["distill"]  # the default, left out
     write_preset(folder, "relight", distill=distill, surface=relight_surface)
@@ -219,3 +219,12 @@ def test_a_locked_free_layer_keeps_the_direction_of_its_surface(tiny, tmp_path_f
     torch.testing.assert_close(locked, planar_lock(unlocked, start).clamp(0.0, 4.0), rtol=1e-5, atol=1e-6)
     again = make_layer(recipe, base, "again")
     torch.testing.assert_close(again.layer, res.layer, atol=2 * 4.0 / 65535, rtol=0)
+    # The lock belongs to a surface start: refused with the identity start, dropped after an amortised pass.
+    from pydantic import ValidationError
+
+    from lasagna.document.preset import Preset
+    from lasagna.recipe import refining
+
+    with pytest.raises(ValidationError, match="distill.lock 'planar'.*expected distill.start 'surface'"):
+        Preset.model_validate({**preset, "distill": {**distill, "start": "identity", "lock": "planar"}})
+    assert recipe.distill.lock == "planar" and refining(recipe.distill).lock == "none"

@@ -66,10 +66,11 @@ FreeStart = Literal["identity", "surface"]
 """Where a per-image free layer starts (``DistillDefaults.start``, recorded in ``DistillSettings.start``)."""
 
 FreeLock = Literal["none", "planar"]
-"""What of its start a per-image free layer keeps (``DistillDefaults.lock``, recorded in ``DistillSettings.lock``):
-nothing, or the start's planar trend — the least-squares plane of log(layer / start) is removed after the steps
-(``lasagna.learned.planar_lock``), so the distillation may correct the start's level and every curved part but not
-tilt it: a relight started from a surface keeps the surface's direction."""
+"""What of its surface start a per-image free layer keeps (``DistillDefaults.lock``, recorded in
+``DistillSettings.lock``; only with ``start`` 'surface', and not after an amortised pass): nothing, or its planar
+trend — the least-squares plane of log(layer / start) is removed after the steps (``lasagna.learned.planar_lock``),
+so the distillation may correct the start's level and shape but not tilt it: a relight started from a surface keeps
+the surface's direction."""
 
 
 class DistillDefaults(StrictModel):
@@ -314,6 +315,12 @@ class Preset(StrictModel):
                 f"preset {self.name!r} starts its free layer from a surface (distill.start 'surface') but names no "
                 "surface estimator: expected `surface`",
                 loc=("distill", "start"),
+            )
+        if self.distill.lock == "planar" and self.distill.start != "surface":
+            raise RuleError(
+                f"preset {self.name!r} locks its free layer's tilt (distill.lock 'planar') but starts it from the "
+                f"{self.distill.start}: the lock keeps a surface start's direction; expected distill.start 'surface'",
+                loc=("distill", "lock"),
             )
         if self.luminance == "base" and self.blend not in ("normal", "alpha-linear"):
             raise RuleError(
