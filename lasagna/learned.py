@@ -148,7 +148,7 @@ def make_layer(
     called before every per-image step (``lasagna.distill.distill_image``): a progress report for the editor
     (``lasagna.serve``), which cancels a run by raising from it."""
     from lasagna.compose.color import luma
-    from lasagna.compose.resample import upsample, upsample_colour
+    from lasagna.compose.resample import guided_upsample, upsample, upsample_colour
 
     if recipe.kind == "surface":
         return _make_surface(recipe, base, device, callback)
@@ -190,6 +190,11 @@ def make_layer(
         raise LasagnaError(f"no layer was made (method {recipe.method!r}, steps {recipe.steps})", "make_layer")
     if over_luminance:  # the colour follows the base's edges and carries its luma at full size
         layer = upsample_colour(layer.detach(), luma(base.to(layer.device)[None].float()))
+    elif _enlarge(recipe) == "guided" and tuple(layer.shape[-2:]) != tuple(base.shape[-2:]):
+        # The layer's edges follow the image's (the fast guided filter, the base's luma as guide): an affine map of
+        # the guide per window may step outside the layer's range, so it is clamped back into it.
+        lo, hi = recipe.distill.layer.range if recipe.distill is not None else recipe.preset.range
+        layer = guided_upsample(layer.detach(), luma(base.to(layer.device)[None].float())).clamp(lo, hi)
     else:
         layer = upsample(layer.detach(), tuple(base.shape[-2:]))  # a convex combination of in-range values: in range
     return LayerRun(
@@ -246,6 +251,14 @@ def planar_lock(layer: Tensor, start: Tensor) -> Tensor:
     coef = torch.linalg.lstsq(design, r.reshape(n * c, h * w).T).solution  # (3, n·c)
     tilt = (design[:, 1:] @ coef[1:]).T.reshape(n, c, h, w)
     return (start.clamp_min(LOCK_EPS).double() * (r - tilt).exp()).to(layer.dtype)
+
+
+def _enlarge(recipe: Recipe) -> str:
+    """How the layer is enlarged from the working size (``LayerSpec.enlarge``): the distillation settings' (recorded
+    with a layer, so a layer made before the guided enlargement re-renders as it was made), else the preset's."""
+    if recipe.distill is not None:
+        return recipe.distill.layer.enlarge
+    return recipe.preset.enlarge
 
 
 def _luminance(recipe: Recipe) -> str:

@@ -228,3 +228,48 @@ def test_a_locked_free_layer_keeps_the_direction_of_its_surface(tiny, tmp_path_f
     with pytest.raises(ValidationError, match="distill.lock 'planar'.*expected distill.start 'surface'"):
         Preset.model_validate({**preset, "distill": {**distill, "start": "identity", "lock": "planar"}})
     assert recipe.distill.lock == "planar" and refining(recipe.distill).lock == "none"
+
+
+def test_a_guided_enlargement_follows_the_image_and_is_recorded(tiny, tmp_path_factory, monkeypatch):
+    """``enlarge: guided``: the layer made at the working size is enlarged by ``guided_upsample`` with the base's
+    full-size luma as guide, clamped to the layer's range; recorded with the layer (left out when 'bilinear'), a
+    re-render from the record is the same layer, and it differs from the bilinear enlargement. A colour-over-luminance
+    preset cannot ask for it."""
+    from pydantic import ValidationError
+
+    import lasagna.compose.resample as resample
+    from lasagna.compose.color import luma
+    from lasagna.document.preset import Preset
+    from lasagna.editing import conditioning_input
+    from lasagna.learned import make_layer
+    from lasagna.recipe import Recipe
+
+    seen: list[tuple[torch.Tensor, torch.Tensor]] = []
+    guided = resample.guided_upsample
+
+    def spy(y, guide, *args, **kwargs):
+        seen.append((y.detach().clone(), guide.detach().clone()))
+        return guided(y, guide, *args, **kwargs)
+
+    monkeypatch.setattr(resample, "guided_upsample", spy)
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("enlarge") / "layers")
+    write_preset(folder, "relight", working_size=16)
+    plain = edit(image(), "relight", "left", catalogue_dirs=[folder])
+    assert "enlarge" not in plain.stack.document.layer(plain.layer_id).settings["distill"]["layer"]
+    assert seen == []  # bilinear: no guided filter
+    write_preset(folder, "relight", working_size=16, enlarge="guided")
+    res = edit(image(), "relight", "left", catalogue_dirs=[folder])
+    layer = res.stack.document.layer(res.layer_id)
+    assert layer.settings["distill"]["layer"]["enlarge"] == "guided"
+    small, guide = seen[-1]
+    assert small.shape[-2:] == (10, 16) and guide.shape[-2:] == (24, 40)
+    torch.testing.assert_close(guide[0], luma(conditioning_input(res.stack, "base")[None])[0], rtol=0, atol=1e-6)
+    want = guided(small, guide).clamp(0.0, 4.0)[0]
+    torch.testing.assert_close(res.layer, want, atol=2 * 4.0 / 65535, rtol=0)  # stored as 16-bit codes of [0, 4]
+    assert float((res.layer - plain.layer).abs().max()) > 1e-3
+    recipe = Recipe.from_layer(res.stack, layer, catalogue_dirs=[folder])
+    again = make_layer(recipe, conditioning_input(res.stack, layer.conditioned_on), "again")
+    torch.testing.assert_close(again.layer, res.layer, atol=2 * 4.0 / 65535, rtol=0)
+    colour = json.loads((folder / "color" / "preset.json").read_text())
+    with pytest.raises(ValidationError, match="luminance 'base'.*expected enlarge 'bilinear'"):
+        Preset.model_validate({**colour, "enlarge": "guided"})

@@ -57,6 +57,11 @@ ASPECTS: tuple[str, ...] = get_args(Aspect)
 # luminance, the colour preset's; ``lasagna.generators.layer.composite`` and ``lasagna.compose.resample``).
 Luminance = Literal["free", "base"]
 
+# How a layer made at the working size is enlarged to the image's: ``bilinear``, or ``guided`` — the fast guided filter
+# (``lasagna.compose.resample.guided_upsample``) with the base's full-size Rec. 709 luma as guide, so the layer's
+# edges follow the image's. (A colour-over-luminance layer has its own guided rule, ``upsample_colour``.)
+Enlarge = Literal["bilinear", "guided"]
+
 # Floating-point types a diffusers prior may run in ("auto": float16 on CUDA, float32 elsewhere).
 TorchDtype = Literal["auto", "float32", "float16", "bfloat16"]
 TORCH_DTYPES: tuple[str, ...] = get_args(TorchDtype)
@@ -267,6 +272,13 @@ class Preset(StrictModel):
         "and only its colour changes (blend normal only). 'free': the layer's values are its own.",
     )
 
+    enlarge: Enlarge = Field(
+        "bilinear",
+        description="How the layer made at the working size is enlarged to the image's: 'bilinear', or 'guided' — the "
+        "fast guided filter with the base's full-size luma as guide (radius and ε of lasagna.compose.resample), so "
+        "its edges follow the image's. For luminance 'free' layers (a colour-over-luminance layer has its own rule).",
+    )
+
     layer_kind: LayerKind = Field(
         "free",
         description="The layer `lasagna edit` makes when not told: 'free' (a per-pixel multiplier) or 'surface' (a "
@@ -327,6 +339,12 @@ class Preset(StrictModel):
                 f"luminance 'base' lays colour over the base's luminance with alpha-linear blending; preset "
                 f"{self.name!r} has blend {self.blend!r}: expected blend normal",
                 loc=("luminance",),
+            )
+        if self.enlarge == "guided" and self.luminance == "base":
+            raise RuleError(
+                f"preset {self.name!r} has luminance 'base', whose colour is enlarged by its own guided rule; "
+                "expected enlarge 'bilinear' (the default) with it",
+                loc=("enlarge",),
             )
         if self.layer_kind == "surface" and self.surface is None:
             raise RuleError("layer_kind 'surface' needs `surface` (its estimator); name one", loc=("surface",))

@@ -49,6 +49,7 @@ from torch import Tensor
 from lasagna.compose.blend import BLEND_FUNC
 from lasagna.compose.color import luma, set_luma
 from lasagna.document.blend import RANGED_BLENDS, BlendMode
+from lasagna.document.preset import Enlarge
 from lasagna.errors import LasagnaError
 from lasagna.numerics import IDENTITY_LOGIT, LOGIT_EPS
 
@@ -74,6 +75,9 @@ class LayerSpec(BaseModel):
     luminance: Literal["free", "base"] = Field(
         "free", description="base: the colour is set to the base's luma (colour over luminance; blend normal only)."
     )
+    enlarge: Enlarge = Field(
+        "bilinear", description="How the layer is enlarged from the working size: bilinear, or guided by the luma."
+    )
 
     @model_serializer(mode="wrap")
     def _dump(self, handler):
@@ -81,6 +85,8 @@ class LayerSpec(BaseModel):
         data = handler(self)
         if data.get("luminance") == "free":
             del data["luminance"]
+        if data.get("enlarge") == "bilinear":  # likewise: every layer's enlargement before the guided one
+            del data["enlarge"]
         return data
 
     @model_validator(mode="after")
@@ -120,6 +126,7 @@ class LayerSpec(BaseModel):
             range=tuple(preset.range),
             squash=squash,
             luminance=preset.luminance,
+            enlarge=preset.enlarge,
         )
 
     @property
