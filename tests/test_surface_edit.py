@@ -253,7 +253,7 @@ def test_a_guided_enlargement_follows_the_image_and_is_recorded(tiny, tmp_path_f
 
     monkeypatch.setattr(resample, "guided_upsample", spy)
     folder = tiny_variant(tiny, tmp_path_factory.mktemp("enlarge") / "layers")
-    write_preset(folder, "relight", working_size=16)
+    write_preset(folder, "relight", working_size=16, enlarge="bilinear")
     plain = edit(image(), "relight", "left", catalogue_dirs=[folder])
     assert "enlarge" not in plain.stack.document.layer(plain.layer_id).settings["distill"]["layer"]
     assert seen == []  # bilinear: no guided filter
