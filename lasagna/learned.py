@@ -211,7 +211,7 @@ def make_layer(
 @torch.no_grad()
 def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
     """The start (1, 1, h, w) of a free layer that refines a surface (``distill.start == "surface"``): the preset's
-    surface estimate of ``x`` (the working input) with its dome prior, rendered under the condition's light —
+    surface estimate of ``x`` (the working input) at the surface's working size with its dome prior, rendered under the condition's light —
     S(l) for an unlit base, S(l)/S(l_src) for a lit one (the source light fitted) — clamped to the layer's range.
     The free layer's per-pixel steps then correct what one surface cannot say (a free residual on a surface)."""
     from lasagna.compose.surface import lambert, light_vector
@@ -220,7 +220,8 @@ def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
 
     net = SurfaceEstimator.from_pretrained(recipe.estimator, device=device)
     sd = recipe.surface
-    normals, source = net.estimate_at(x.float(), DomePrior(weight=sd.dome_weight, height=sd.dome_height))
+    dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
+    normals, source = net.estimate_at(x.float(), dome, side=sd.working_size)
     target = light_vector(*parse_direction(recipe.label), device=normals.device)[None]
     layer = lambert(normals, target) if source is None else lambert(normals, target) / lambert(normals, source)
     lo, hi = recipe.distill.layer.range

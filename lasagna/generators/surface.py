@@ -192,11 +192,13 @@ class SurfaceEstimator(Pretrained, nn.Module):
         return surface, fit_light(self.normals(surface), out.shading)
 
     @torch.no_grad()
-    def estimate_at(self, image: Tensor, dome: DomePrior | None = None) -> tuple[Tensor, Tensor | None]:
+    def estimate_at(
+        self, image: Tensor, dome: DomePrior | None = None, side: int | None = None
+    ) -> tuple[Tensor, Tensor | None]:
         """(unit normals (B, 3, H, W), source light (B, 3) or None) of ``image`` (B, 3, H, W) in [0, 1]: estimated
-        at the working size (`lasagna.compose.resample.working_size`), the surface enlarged back to (H, W)
-        (`lasagna.compose.surface.enlarge_surface`)."""
+        at the working size ``side`` (None: the one it was trained at; `lasagna.compose.resample.working_size`),
+        the surface enlarged back to (H, W) (`lasagna.compose.surface.enlarge_surface`)."""
         full = tuple(image.shape[-2:])
-        small = downsample(image, working_size(*full, self.config.working_size))
+        small = downsample(image, working_size(*full, side or self.config.working_size))
         surface, light = self.estimate(small, dome)
         return self.normals(enlarge_surface(surface, full)), light

@@ -62,8 +62,9 @@ class SurfaceTrainConfig(LoopConfig):
     split: str = Field("train", description="world split the training scenes come from")
     init_from: str | None = Field(
         None,
-        description="a saved surface estimator (folder) of this run's architecture whose weights start this run: "
-        "a second stage, e.g. the shipped estimator continued on the ``wide`` split's generic shapes",
+        description="a saved surface estimator (folder) of this run's architecture (at any working size: heights are "
+        "in canvas units) whose weights start this run: a second stage, e.g. the shipped estimator continued on the "
+        "``wide`` split's generic shapes, or at a larger working size",
     )
     world_seed: int = Field(7, description="seed of the world split (scenes are (split, seed, index))")
     zoom: float = Field(
@@ -176,7 +177,9 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
         estimator = SurfaceEstimator(config.net)
     if config.init_from is not None:
         start = SurfaceEstimator.from_pretrained(config.init_from)
-        if start.config != config.net:
+        # The working size is not the architecture: heights are in canvas units, so an estimator trained at one
+        # size may be continued at another (a fully convolutional net, the same weights).
+        if start.config.model_copy(update={"working_size": config.net.working_size}) != config.net:
             raise LasagnaError(
                 f"its estimator config differs from this run's ({start.config} vs {config.net})", config.init_from
             )

@@ -87,6 +87,26 @@ def test_estimate_at_enlarges_normals_to_unit_normals_facing_the_viewer():
     assert n[:, 2].min() > 0
 
 
+def test_estimate_at_another_working_size_reads_the_image_reduced_to_it():
+    """``side`` overrides the size the estimator was trained at: the estimate is the one of the image reduced to
+    that size (antialiased), enlarged back — the same numbers as doing those steps by hand."""
+    from lasagna.compose.resample import downsample, working_size
+    from lasagna.compose.surface import enlarge_surface
+
+    torch.manual_seed(5)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
+    torch.nn.init.normal_(net.head.weight, std=0.5)
+    image = torch.rand(1, 3, 48, 32)
+    own = net.config.working_size
+    for side in (None, 12, 2 * own):
+        n, light = net.estimate_at(image, side=side)
+        small = downsample(image, working_size(48, 32, side or own))
+        surface, expected_light = net.estimate(small)
+        torch.testing.assert_close(n, net.normals(enlarge_surface(surface, (48, 32))))
+        torch.testing.assert_close(light, expected_light)
+    assert not torch.allclose(net.estimate_at(image, side=12)[0], net.estimate_at(image)[0], atol=1e-4)
+
+
 def test_the_dome_prior_needs_a_silhouette_head_and_mixes_in_domes():
     from lasagna.generators.surface import DomePrior
 

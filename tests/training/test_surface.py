@@ -127,6 +127,11 @@ def test_init_from_starts_at_the_saved_estimator(tmp_path):
     torch.testing.assert_close(second(x), first(x), atol=1e-6, rtol=0)  # one step of lr 1e-12 moves nothing visible
     fresh = train_surface(toy(steps=1, lr=1e-12, warmup_steps=0, split="wide"), tmp_path / "c")
     assert not torch.allclose(fresh(x), first(x), atol=1e-4)
+    larger = toy(steps=1, lr=1e-12, warmup_steps=0, init_from=str(tmp_path / "a" / "surface"))
+    larger = larger.model_copy(update={"net": larger.net.model_copy(update={"working_size": 24})})
+    third = train_surface(larger, tmp_path / "e")  # another working size: the same weights, continued there
+    assert third.config.working_size == 24
+    torch.testing.assert_close(third(x), first(x), atol=1e-6, rtol=0)
     other = toy(net=SurfaceConfig(input="lit", channels=(8, 8), blocks=1, working_size=16))
     with pytest.raises(LasagnaError, match="its estimator config differs from this run's"):
         train_surface(other.model_copy(update={"init_from": str(tmp_path / "a" / "surface")}), tmp_path / "d")
