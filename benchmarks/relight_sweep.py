@@ -91,6 +91,11 @@ SELECT_SETTINGS: dict[str, list[dict]] = {
     "ω 2 + lr 0.06 + particles 8": [{"guidance": 2.0, "lr": 0.06, "particles": 8}],
     "ω 3": [{"guidance": 3.0}],
     "ω 3 + lr 0.06": [{"guidance": 3.0, "lr": 0.06}],
+    # The round of 2026-11-26 (4): the step between ω 1 and the vetoed ω 2, and the surface start estimated at 64
+    # (the close-up estimator, trained at 32, read at 64: `surface.working_size`, which the start now honours).
+    "ω 1.5": [{"guidance": 1.5}],
+    "surface working size 64": [{"preset": {"surface": {"working_size": 64}}}],
+    "surface working size 64 + ω 1.5": [{"preset": {"surface": {"working_size": 64}}, "guidance": 1.5}],
 }
 
 
@@ -100,8 +105,13 @@ def preset_variant(fields: dict, folder: Path) -> list[Path]:
     from lasagna.catalogue import catalogues, load_preset
     from lasagna.document.preset import Preset
 
-    shipped = load_preset("relight")
-    variant = Preset.model_validate({**shipped.model_dump(mode="json"), **fields})
+    shipped = load_preset("relight").model_dump(mode="json")
+    # A nested field (``surface``) is merged into the shipped one, so a variant names only what it changes.
+    merged = {
+        k: {**shipped[k], **v} if isinstance(v, dict) and isinstance(shipped.get(k), dict) else v
+        for k, v in fields.items()
+    }
+    variant = Preset.model_validate({**shipped, **merged})
     (folder / "relight").mkdir(parents=True, exist_ok=True)
     (folder / "relight" / "preset.json").write_text(variant.to_json(), encoding="utf-8")
     return catalogues([folder])

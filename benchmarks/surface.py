@@ -51,6 +51,8 @@ from lasagna.world import VOCABULARY, render, sample_scenes  # noqa: E402
 from lasagna.world.tasks import relight_sources, relighting  # noqa: E402
 
 WORKING = 32
+# The size the estimators read their input at (``--estimate-at``; None: the size each was trained at).
+ESTIMATE_AT: int | None = None
 
 
 def dome_label(dome) -> str:
@@ -122,7 +124,7 @@ def shading_rows(scene, labels, albedo_net, edits: list[str], dome=None) -> list
     ]
     if albedo_net is not None:
         t0 = time.perf_counter()
-        n, _ = albedo_net.estimate_at(scene.albedo, dome)
+        n, _ = albedo_net.estimate_at(scene.albedo, dome, side=ESTIMATE_AT)
         y = lambert(n, light)
         secs = (time.perf_counter() - t0) / len(labels)
         rows.append(gain_row(f"surface estimator (albedo){dome_label(dome)}", y, truth, mask, cdb, secs))
@@ -163,7 +165,7 @@ def relight_rows(scene, labels, lit_net, edits: list[str], dome=None) -> list[di
     ]
     if lit_net is not None:
         t0 = time.perf_counter()
-        n, light = lit_net.estimate_at(base, dome)
+        n, light = lit_net.estimate_at(base, dome, side=ESTIMATE_AT)
         ratio = lambert(n, tgt) / lambert(n, light)
         secs = (time.perf_counter() - t0) / len(labels)
         method = f"surface estimator (lit){dome_label(dome)}, its source light"
@@ -189,7 +191,7 @@ def leak_row(args, split: str, size: int, albedo_net, lit_net, dome=None) -> dic
             continue
         if image is None:
             image = relighting(walls, relight_sources(walls.params)).base
-        n, _ = net.estimate_at(image, dome)
+        n, _ = net.estimate_at(image, dome, side=ESTIMATE_AT)
         y = lambert(n, lights_of(labels)).double()
         flat = y.mean(dim=(1, 2, 3), keepdim=True).expand_as(y)
         out[f"leak_db_{name}"] = round(psnr(y, flat), 2)
@@ -203,7 +205,7 @@ def photo_rows(lit_net, folder: Path, sheet: Path | None, dome=None) -> list[dic
     for file in sorted(folder.glob("*.jpg")):
         image = read_photo(file)
         t0 = time.perf_counter()
-        n, source = lit_net.estimate_at(image, dome)
+        n, source = lit_net.estimate_at(image, dome, side=ESTIMATE_AT)
         seconds = time.perf_counter() - t0
         row = {"photo": file.stem, "size": list(image.shape[-2:]), "estimate_seconds": round(seconds, 3)}
         composites = {}
@@ -230,7 +232,7 @@ def albedo_photo_sheet(albedo_net, folder: Path, sheet: Path, dome=None) -> None
     tiles = []
     for file in sorted(folder.glob("*.jpg")):
         image = read_photo(file)
-        n, _ = albedo_net.estimate_at(image, dome)
+        n, _ = albedo_net.estimate_at(image, dome, side=ESTIMATE_AT)
         shaded = [image * lambert(n, lights_of([light])) for light in ("left", "right")]
         tiles.append(torch.cat([image, (n + 1) / 2, *shaded], -1))
     save_sheet(tiles, sheet)
@@ -285,7 +287,16 @@ def main(argv=None) -> int:
     p.add_argument(
         "--albedo-sheet", type=Path, default=None, help="albedo estimator photo sheet: input | normals | left | right"
     )
+    p.add_argument(
+        "--estimate-at",
+        type=int,
+        default=None,
+        metavar="SIDE",
+        help="read the estimators' inputs at this working size instead of their own (a diagnostic)",
+    )
     args = p.parse_args(argv)
+    global ESTIMATE_AT
+    ESTIMATE_AT = args.estimate_at
     albedo_net, lit_net = load(args.albedo), load(args.lit)
     dome = None
     if args.dome:

@@ -211,9 +211,10 @@ def make_layer(
 @torch.no_grad()
 def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
     """The start (1, 1, h, w) of a free layer that refines a surface (``distill.start == "surface"``): the preset's
-    surface estimate of ``x`` (the working input) at the surface's working size with its dome prior, rendered under the condition's light —
-    S(l) for an unlit base, S(l)/S(l_src) for a lit one (the source light fitted) — clamped to the layer's range.
-    The free layer's per-pixel steps then correct what one surface cannot say (a free residual on a surface)."""
+    surface estimate of ``x`` (the working input) at ``surface.working_size`` with its dome prior, rendered under
+    the condition's light — S(l) for an unlit base, S(l)/S(l_src) for a lit one (the source light fitted) — clamped
+    to the layer's range. The free layer's per-pixel steps then correct what one surface cannot say (a free residual
+    on a surface)."""
     from lasagna.compose.surface import lambert, light_vector
     from lasagna.document.condition import parse_direction
     from lasagna.generators.surface import DomePrior, SurfaceEstimator

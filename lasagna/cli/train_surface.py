@@ -57,7 +57,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--init-from",
         default=None,
-        help="a saved estimator folder (a run's surface/) of the same architecture whose weights start this run",
+        help="a saved estimator folder (a run's surface/) of the same architecture (any working size) whose weights "
+        "start this run",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
