@@ -96,6 +96,11 @@ SELECT_SETTINGS: dict[str, list[dict]] = {
     "ω 1.5": [{"guidance": 1.5}],
     "surface working size 64": [{"preset": {"surface": {"working_size": 64}}}],
     "surface working size 64 + ω 1.5": [{"preset": {"surface": {"working_size": 64}}, "guidance": 1.5}],
+    # The dome prior's fields re-checked by the photograph selection set's rule (they shape the surface start).
+    "domes 0.3 / 0.5": [{"preset": {"surface": {"dome_weight": 0.3, "dome_height": 0.5}}}],
+    "domes 0.5 / 0.5": [{"preset": {"surface": {"dome_weight": 0.5, "dome_height": 0.5}}}],
+    "domes 0.3 / 1": [{"preset": {"surface": {"dome_weight": 0.3, "dome_height": 1.0}}}],
+    "domes 0.5 / 1": [{"preset": {"surface": {"dome_weight": 0.5, "dome_height": 1.0}}}],
 }
 
 
