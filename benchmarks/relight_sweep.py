@@ -101,6 +101,13 @@ SELECT_SETTINGS: dict[str, list[dict]] = {
     "domes 0.5 / 0.5": [{"preset": {"surface": {"dome_weight": 0.5, "dome_height": 0.5}}}],
     "domes 0.3 / 1": [{"preset": {"surface": {"dome_weight": 0.3, "dome_height": 1.0}}}],
     "domes 0.5 / 1": [{"preset": {"surface": {"dome_weight": 0.5, "dome_height": 1.0}}}],
+    # The round of 2026-11-26 (5): the learned manifold corrective (the preset's `relit-32-spectral`), which removes
+    # the part of the score the prior's denoiser cannot tell from its own error, at the ω that painted under SDS.
+    "LMC-SDS ω 1": [{"loss": "lmc-sds"}],
+    "LMC-SDS ω 2": [{"loss": "lmc-sds", "guidance": 2.0}],
+    "LMC-SDS ω 3": [{"loss": "lmc-sds", "guidance": 3.0}],
+    "LMC-SDS ω 4": [{"loss": "lmc-sds", "guidance": 4.0}],
+    "LMC-SDS ω 6": [{"loss": "lmc-sds", "guidance": 6.0}],
 }
 
 

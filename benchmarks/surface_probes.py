@@ -1,0 +1,323 @@
+"""Four probes of issue #24's gap, each a way to more relief or better shape without more training (round 5).
+
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe gain-fit     # ~2 min
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe gain-fit --default   # ~4 min
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe srgb         # ~1 min
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe profile      # ~3 min
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe sirfs        # ~6 min
+
+* **gain-fit** — a relief gain chosen per image: the lit estimator's heights times g, g on a fixed grid, the g whose
+  normals (dome prior applied) under their own fitted light best give the estimator's source shading Ŝ_src (least
+  squares). A lit image says how deep its relief is only through its shading, so the depth is read from the head
+  that estimates it. Rows: the relight surface route on `select` (16 scenes, 64², dB over the unchanged input, all /
+  objects) at g = 1 and fitted, and the surface route's photograph swings (`examples/photos/select`, chosen on;
+  `examples/photos/large`, reported). ``--default`` instead patches the estimator for the whole edit path and
+  measures the default relight (`relight_sweep.py`'s "default" row at 64² and 256², `photo_swing.py` on the
+  selection set): what the estimator rule judges.
+* **srgb** — photographs read in linear light: a photograph's stored values are sRGB-encoded, so its shading is
+  seen compressed (≈ S^(1/2.2)), while the world's images are defined on stored values. Here the photograph is
+  decoded, the surface estimated and the ratio applied in linear light, and the result encoded again; the stored
+  multiplier is then encode(decode(x)·r)/x. The world cannot choose this (it has no encoding to undo), so only
+  the photograph selection set can. Rows: the surface route's swings on both photograph sets, stored and linear.
+* **profile** — the outline-inflation profile for shading: round domes √(R² − (R − d)²), roofs d (the straight
+  skeleton's facets, a pyramid's or a prism's from above) and parabolas d(2R − d)/R, each at several heights,
+  as the oracle (true outlines) and as the albedo estimator's dome prior (weights 0.25 and 0.5), on `select`'s
+  shading (16 scenes, 64², dB over the best constant).
+* **sirfs** — a per-image shape-from-shading refinement with an albedo prior, after SIRFS (Barron & Malik 2015):
+  the lit estimator's height h₀ + δ and its light refined by Adam so that the log-albedo log Y − log S(n, l) has
+  sparse gradients (Charbonnier), with an anchor λ_a‖δ‖² and a smoothness λ_s‖∇²h‖² (both per canvas unit). Rows:
+  the relight surface route on `select` (64²) for each (steps, λ_a, λ_s, Charbonnier ε).
+
+Ends with one JSON line. None of these changes a preset; they are diagnostics (BENCHMARKS, round of 2026-11-26 (5)).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import sys
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import photo_swing  # noqa: E402
+import relight_sweep  # noqa: E402
+import surface  # noqa: E402
+from _common import PHOTO_AXES, machine_info, print_json_line, psnr, read_photo  # noqa: E402
+from _common import swing as photo_swing_of  # noqa: E402
+from relief_gain import last_json  # noqa: E402
+
+import lasagna.compose.surface as cs  # noqa: E402
+from lasagna.compose.color import linear_to_srgb, luma, srgb_to_linear  # noqa: E402
+from lasagna.compose.resample import downsample, working_size  # noqa: E402
+from lasagna.generators.surface import DomePrior, SurfaceEstimator  # noqa: E402
+from lasagna.world.tasks import relight_sources, relighting  # noqa: E402
+
+LAYERS = ROOT / "layers"
+LIT = LAYERS / "surface-lit-closeup-32"
+LIT_DOME = DomePrior(weight=0.15, height=0.5)
+GAINS = (0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0)
+PHOTO_SETS = {"select": ROOT / "examples" / "photos" / "select", "large": ROOT / "examples" / "photos" / "large"}
+COUNT = 16
+SIDE = 64
+
+
+def fitted_gain(net: SurfaceEstimator, out, dome: DomePrior) -> tuple[float, torch.Tensor, torch.Tensor]:
+    """(g, normals, light) of the grid's gain whose normals under their fitted light best give Ŝ_src."""
+    best = None
+    for g in GAINS:
+        n = dome.apply(net.normals(out.surface * g), out.silhouette)
+        light = cs.fit_light(n, out.shading)
+        err = float(((cs.lambert(n, light) - out.shading) ** 2).mean())
+        if best is None or err < best[0]:
+            best = (err, g, n, light)
+    return best[1], best[2], best[3]
+
+
+@torch.no_grad()
+def lit_estimate(net: SurfaceEstimator, image: torch.Tensor, gain: str) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """(normals at the image's size, source light, g) of the close-up estimator at its working size; ``gain`` 'fit'
+    chooses g per image, else g = 1 (the shipped estimate)."""
+    full = tuple(image.shape[-2:])
+    small = downsample(image, working_size(*full, net.config.working_size))
+    if gain == "fit":
+        g, n, light = fitted_gain(net, net.outputs(small), LIT_DOME)
+    else:
+        (n, light), g = net.estimate(small, LIT_DOME), 1.0
+    return net.normals(cs.enlarge_surface(n, full)), light, g
+
+
+def world_relight(estimate) -> dict:
+    """The relight surface route on select's 16 scenes at 64² with ``estimate(image) -> (normals, light)``."""
+    scene, labels = surface.scenes("select", COUNT, 0, SIDE)
+    rel = relighting(scene, relight_sources(scene.params))
+    base, target, mask = rel.base, rel.target.clamp(0, 1), scene.mask
+    targets = surface.lights_of(labels)
+    comps = []
+    for i in range(COUNT):
+        n, light = estimate(base[i : i + 1])[:2]
+        comps.append((base[i : i + 1] * cs.lambert(n, targets[i : i + 1]) / cs.lambert(n, light)).clamp(0, 1))
+    c = torch.cat(comps)
+    b_all, b_obj = psnr(base.clamp(0, 1), target), psnr(base.clamp(0, 1), target, mask)
+    return {"gain_db": round(psnr(c, target) - b_all, 2), "gain_obj_db": round(psnr(c, target, mask) - b_obj, 2)}
+
+
+def photo_swings(relit) -> dict:
+    """The surface route's swings per photograph set with ``relit(image, light) -> composite``."""
+    out = {}
+    for name, folder in PHOTO_SETS.items():
+        values, rows = [], {}
+        for file in sorted(folder.glob("*.jpg")):
+            image = read_photo(file)
+            row = []
+            for pair in PHOTO_AXES.values():
+                row.append(round(sum(photo_swing_of(image[0], relit(image, light)[0], light) for light in pair), 4))
+            rows[file.stem] = row
+            values += row
+        out[name] = {
+            "photos": rows,
+            "mean": round(sum(values) / len(values), 4),
+            "at_least_0.10": sum(v >= 0.10 for v in values),
+            "wrong_signs": sum(v < 0 for v in values),
+        }
+    return out
+
+
+def probe_gain_fit(default: bool) -> dict:
+    if default:
+        return gain_fit_default()
+    net = SurfaceEstimator.from_pretrained(LIT)
+    out = {}
+    for gain in ("1", "fit"):
+        gains = []
+
+        def estimate(image, gain=gain, gains=gains):
+            n, light, g = lit_estimate(net, image, gain)
+            gains.append(g)
+            return n, light
+
+        row = world_relight(estimate)
+        row["gains"] = list(gains)
+
+        def relit(image, light, gain=gain):
+            n, source, _ = lit_estimate(net, image, gain)
+            return (image * cs.lambert(n, surface.lights_of([light])) / cs.lambert(n, source)).clamp(0, 1)
+
+        out[f"g {gain}"] = {"select_64": row, **photo_swings(relit)}
+    return out
+
+
+@contextlib.contextmanager
+def gain_fitted_estimators():
+    """Every lit height estimator's ``estimate`` chooses its gain per image inside the block."""
+    shipped = SurfaceEstimator.estimate
+
+    def estimate(self, image, dome=None):
+        out = self.outputs(image)
+        if out.shading is None or self.config.output != "height":
+            return shipped(self, image, dome)
+        _, n, light = fitted_gain(self, out, dome or DomePrior())
+        return n, light
+
+    SurfaceEstimator.estimate = estimate
+    try:
+        yield
+    finally:
+        SurfaceEstimator.estimate = shipped
+
+
+def gain_fit_default() -> dict:
+    out = {}
+    with gain_fitted_estimators():
+        for size in (64, 256):
+            run = last_json(relight_sweep.main, ["--split", "select", "--size", str(size), "--only", "default"])
+            row = run["last"]["rows"][0]
+            out[f"default_select_{size}"] = [row["composite_psnr"], row["object_psnr"]]
+        swing = last_json(photo_swing.main, ["--label", "gain fit"])["last"]
+        out["photo_select"] = {k: swing[k] for k in ("swing_mean", "wrong_signs", "below_0.10", "photos")}
+    return out
+
+
+def probe_srgb() -> dict:
+    net = SurfaceEstimator.from_pretrained(LIT)
+    out = {}
+    for space in ("stored", "linear"):
+
+        def relit(image, light, space=space):
+            x = srgb_to_linear(image) if space == "linear" else image
+            n, source, _ = lit_estimate(net, x, "1")
+            y = x * cs.lambert(n, surface.lights_of([light])) / cs.lambert(n, source)
+            return linear_to_srgb(y.clamp(0, 1)) if space == "linear" else y.clamp(0, 1)
+
+        out[space] = photo_swings(relit)
+    return out
+
+
+PROFILES = {
+    "dome": lambda d, r: (r**2 - (r - d) ** 2).clamp_min(0).sqrt(),
+    "roof": lambda d, r: d,
+    "parabola": lambda d, r: d * (2 * r - d) / r,
+}
+
+
+@contextlib.contextmanager
+def inflation_profile(profile):
+    """``inflate_regions`` with its round profile replaced by ``profile(d, R)`` inside the block."""
+    shipped = cs.inflate_regions
+
+    def inflate(index):
+        dome = shipped(index) * (index.shape[-1] / 2.0)  # back to pixels: √(R² − (R − d)²)
+        out = torch.zeros_like(dome)
+        for b in range(index.shape[0]):
+            for k in index[b, 0].unique().tolist():
+                if k < 0:
+                    continue
+                inside = index[b, 0] == k
+                h = dome[b, 0][inside]
+                r = (h.max() ** 2 + 0.25).sqrt()  # R = max d + ½, so the top is √(R² − ¼)
+                d = r - (r * r - h * h).clamp_min(0).sqrt()  # inverted: the distance to the outline
+                out[b, 0][inside] = profile(d, r)
+        return out * (2.0 / index.shape[-1])
+
+    cs.inflate_regions = inflate
+    try:
+        yield
+    finally:
+        cs.inflate_regions = shipped
+
+
+def probe_profile() -> dict:
+    scene, labels = surface.scenes("select", COUNT, 0, SIDE)
+    truth, mask = scene.shading, scene.mask
+    const = truth.mean(dim=(1, 2, 3), keepdim=True).expand_as(truth)
+    c_all, c_obj = psnr(const, truth), psnr(const, truth, mask)
+    light = surface.lights_of(labels)
+    net = SurfaceEstimator.from_pretrained(LAYERS / "surface-albedo-32")
+
+    def gain(y):
+        return [round(psnr(y, truth) - c_all, 2), round(psnr(y, truth, mask) - c_obj, 2)]
+
+    out = {}
+    for name, profile in PROFILES.items():
+        with inflation_profile(profile):
+            for height in (0.25, 0.5, 1.0):
+                row = {"oracle": gain(cs.lambert(cs.dome_normals(scene.object_index, height), light))}
+                for weight in (0.25, 0.5):
+                    n, _ = net.estimate_at(scene.albedo, DomePrior(weight=weight, height=height))
+                    row[f"estimator + prior {weight:g}"] = gain(cs.lambert(n, light))
+                out[f"{name} {height:g}"] = row
+    return out
+
+
+def charbonnier(x: torch.Tensor, eps: float) -> torch.Tensor:
+    return (x * x + eps * eps).sqrt() - eps
+
+
+def sirfs(net: SurfaceEstimator, image: torch.Tensor, steps: int, anchor: float, smooth: float, eps: float):
+    """(normals, light) of the close-up estimate refined by the albedo-sparsity objective (module docstring)."""
+    full = tuple(image.shape[-2:])
+    small = downsample(image, working_size(*full, net.config.working_size))
+    with torch.no_grad():
+        out = net.outputs(small)
+        n0 = LIT_DOME.apply(net.normals(out.surface), out.silhouette)
+        l0 = cs.fit_light(n0, out.shading)
+    h0 = out.surface
+    delta = torch.zeros_like(h0, requires_grad=True)
+    lp = l0.clone().requires_grad_(True)
+    log_y = torch.log(luma(small).clamp_min(1e-3))
+    opt = torch.optim.Adam([delta, lp], lr=0.01)
+    unit = h0.shape[-1] / 2.0  # pixels per canvas unit
+    for _ in range(steps):
+        h = h0 + delta
+        n = LIT_DOME.apply(cs.normals_from_height(h), out.silhouette)
+        r = log_y - torch.log(cs.lambert(n, lp / lp.norm(dim=1, keepdim=True)))
+        lap = h[..., 1:-1, 2:] + h[..., 1:-1, :-2] + h[..., 2:, 1:-1] + h[..., :-2, 1:-1] - 4 * h[..., 1:-1, 1:-1]
+        loss = (
+            charbonnier(r[..., :, 1:] - r[..., :, :-1], eps).mean()
+            + charbonnier(r[..., 1:, :] - r[..., :-1, :], eps).mean()
+            + anchor * (delta * delta).mean() * unit**2
+            + smooth * (lap * lap).mean() * unit**4
+        )
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        n = LIT_DOME.apply(cs.normals_from_height(h0 + delta), out.silhouette)
+        return net.normals(cs.enlarge_surface(n, full)), lp / lp.norm(dim=1, keepdim=True)
+
+
+SIRFS_SETTINGS = ((0, 0.0, 0.0, 0.01), (100, 0.1, 0.1, 0.01), (100, 1.0, 0.1, 0.01), (100, 10.0, 1.0, 0.01),
+                  (100, 100.0, 1.0, 0.01), (50, 30.0, 10.0, 0.05))  # fmt: skip
+
+
+def probe_sirfs() -> dict:
+    net = SurfaceEstimator.from_pretrained(LIT)
+    return {
+        f"steps {s}, anchor {a:g}, smooth {m:g}, eps {e:g}": world_relight(
+            lambda image, s=s, a=a, m=m, e=e: sirfs(net, image, s, a, m, e)
+        )
+        for s, a, m, e in SIRFS_SETTINGS
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--probe", choices=("gain-fit", "srgb", "profile", "sirfs"), required=True)
+    p.add_argument("--default", action="store_true", help="gain-fit: measure the default relight instead")
+    args = p.parse_args(argv)
+    torch.manual_seed(0)
+    if args.probe == "gain-fit":
+        rows = probe_gain_fit(args.default)
+    else:
+        rows = {"srgb": probe_srgb, "profile": probe_profile, "sirfs": probe_sirfs}[args.probe]()
+    record = {"benchmark": "surface_probes", "probe": args.probe, "default": args.default, "rows": rows}
+    print_json_line({**record, "machine": machine_info()})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
