@@ -10,7 +10,7 @@ minus the farthest third (``_common.swing``); an axis's swing is the sum over it
 is ≥ 0.10 on every photograph and axis, ≥ 0.20 on average and never negative; a relight that cannot tell left
 from right swings ~0.
 
-``examples/photos/select`` (four photographs other than the issue's, examples/photos/README.md) is where choices
+``examples/photos/select`` (seven photographs other than the issue's, examples/photos/README.md) is where choices
 for photographs are made; ``examples/photos/large`` is reported, never chosen on. A candidate (another estimator,
 another preset field) is measured by a catalogue put first with ``LASAGNA_LAYERS`` (lasagna.catalogue: the first
 entry of a name wins), e.g. a folder holding ``relight/preset.json`` and ``surface-lit-32`` (a link to the

@@ -44,16 +44,26 @@ LARGE_CROPS = {
 
 # name -> (loader, (left, top, side)): the photograph selection set (issue #24) — other photographs than the four
 # above, on which choices for photographs are made (``benchmarks/photo_swing.py``), so that ``large`` stays a report.
-# Loaders are scikit-image's, except ``grace_hopper`` (matplotlib's sample data, a US Navy photograph).
+# Loaders are scikit-image's, except ``grace_hopper`` (matplotlib's sample data, a US Navy photograph) and the two
+# ``sklearn:`` ones (scikit-learn's bundled sample images, read as files: scikit-learn is not imported). The last
+# three were added on 2026-11-26, before anything was measured on them: four photographs were too few to agree.
 SELECT_CROPS = {
     "grace_hopper": ("grace_hopper", (0, 44, 512)),  # a portrait in uniform; native 512 wide
     "camera": ("camera", (0, 0, 512)),  # the cameraman and his tripod, grey; native 512²
     "coins": ("coins", (40, 0, 303)),  # Greek coins in rows, grey; enlarged 1.69×
     "retina": ("retina", (0, 0, 1411)),  # a fundus photograph: the eye's back, a lit disc; reduced 2.76×
+    "flower": ("sklearn:flower.jpg", (95, 0, 427)),  # a dahlia in sunlight, the leaves dark; enlarged 1.2×
+    "china": ("sklearn:china.jpg", (0, 0, 427)),  # a pagoda on a hill above a lake; enlarged 1.2×
+    "clock": ("clock", (61, 0, 300)),  # a wall clock, the camera moving (motion blur), grey; enlarged 1.71×
 }
 
 
 def _select_image(loader: str) -> Image.Image:
+    if loader.startswith("sklearn:"):
+        import importlib.util
+
+        package = Path(importlib.util.find_spec("sklearn").origin).parent  # found, not imported
+        return Image.open(package / "datasets" / "images" / loader.removeprefix("sklearn:")).convert("RGB")
     if loader == "grace_hopper":
         from matplotlib import cbook
 
