@@ -5,6 +5,8 @@
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe srgb         # ~1 min
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe profile      # ~3 min
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe sirfs        # ~6 min
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe ensemble \
+        --members layers/surface-lit-32 layers/surface-lit-closeup-32                   # ~1 min
 
 * **gain-fit** — a relief gain chosen per image: the lit estimator's heights times g, g on a fixed grid, the g whose
   normals (dome prior applied) under their own fitted light best give the estimator's source shading Ŝ_src (least
@@ -27,6 +29,10 @@
   the lit estimator's height h₀ + δ and its light refined by Adam so that the log-albedo log Y − log S(n, l) has
   sparse gradients (Charbonnier), with an anchor λ_a‖δ‖² and a smoothness λ_s‖∇²h‖² (both per canvas unit). Rows:
   the relight surface route on `select` (64²) for each (steps, λ_a, λ_s, Charbonnier ε).
+
+* **ensemble** — the lit estimators of ``--members`` (each with the relight's dome prior) averaged: their normals
+  (renormalised) and their source shadings, the light fitted to the averages. Rows: the relight surface route on
+  `select` at 64² and 256² for each member alone and for the ensemble.
 
 Ends with one JSON line. None of these changes a preset; they are diagnostics (BENCHMARKS, round of 2026-11-26 (5)).
 """
@@ -304,14 +310,49 @@ def probe_sirfs() -> dict:
     }
 
 
+@torch.no_grad()
+def ensemble_estimate(nets: list[SurfaceEstimator], image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    full = tuple(image.shape[-2:])
+    small = downsample(image, working_size(*full, nets[0].config.working_size))
+    normals, shadings = [], []
+    for net in nets:
+        out = net.outputs(small)
+        normals.append(LIT_DOME.apply(net.normals(out.surface), out.silhouette))
+        shadings.append(out.shading)
+    n = cs.facing_normals(torch.stack(normals).mean(0))
+    light = cs.fit_light(n, torch.stack(shadings).mean(0))
+    return cs.facing_normals(cs.enlarge_surface(n, full)), light
+
+
+def probe_ensemble(members: list[Path]) -> dict:
+    nets = {str(m): SurfaceEstimator.from_pretrained(m) for m in members}
+    groups = {name: [net] for name, net in nets.items()}
+    groups["ensemble of all"] = list(nets.values())
+    out = {}
+    for size in (64, 256):
+        global SIDE
+        SIDE, shipped = size, SIDE
+        try:
+            for name, group in groups.items():
+                out.setdefault(name, {})[f"select_{size}"] = world_relight(
+                    lambda image, group=group: ensemble_estimate(group, image)
+                )
+        finally:
+            SIDE = shipped
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--probe", choices=("gain-fit", "srgb", "profile", "sirfs"), required=True)
+    p.add_argument("--probe", choices=("gain-fit", "srgb", "profile", "sirfs", "ensemble"), required=True)
+    p.add_argument("--members", nargs="+", type=Path, default=[LAYERS / "surface-lit-32", LIT], help="ensemble")
     p.add_argument("--default", action="store_true", help="gain-fit: measure the default relight instead")
     args = p.parse_args(argv)
     torch.manual_seed(0)
     if args.probe == "gain-fit":
         rows = probe_gain_fit(args.default)
+    elif args.probe == "ensemble":
+        rows = probe_ensemble(args.members)
     else:
         rows = {"srgb": probe_srgb, "profile": probe_profile, "sirfs": probe_sirfs}[args.probe]()
     record = {"benchmark": "surface_probes", "probe": args.probe, "default": args.default, "rows": rows}
