@@ -210,6 +210,12 @@ class SurfaceDefaults(StrictModel):
     dome_height: FiniteFloat = Field(
         1.0, gt=0, le=4, description="The domes' height as a fraction of a round dome's (a disc inflates to a sphere)."
     )
+    flips: bool = Field(
+        False,
+        strict=True,
+        description="Average the estimates of the image and its three mirror images, each mirrored back (the "
+        "estimator's mirror ensemble: `SurfaceEstimator.estimate`); false: one estimate.",
+    )
 
 
 class Preset(StrictModel):

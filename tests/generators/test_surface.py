@@ -151,3 +151,55 @@ def test_the_dome_prior_inflates_large_estimates_at_a_bounded_side():
     err_reduced = float((reduced - sphere)[core].abs().mean())
     err_whole = float((whole - sphere)[core].abs().mean())
     assert err_reduced < 0.05 and err_reduced < 2 * err_whole + 0.01
+
+
+@pytest.mark.parametrize("kind", ["albedo", "lit"])
+def test_the_mirror_ensemble_is_mirror_equivariant_and_averages_four_passes(kind):
+    """``flips=True``: the estimate of a mirrored image is the mirrored estimate — pixels mirrored, the normals' x
+    (left-right) or y (top-bottom) negated, the fitted light likewise — which one pass of an untrained-at-random
+    convolutional estimator is not; and it is the renormalised mean of the four passes' normals, mirrored back by
+    hand here."""
+    from lasagna.compose.surface import facing_normals
+    from lasagna.generators.surface import MIRRORS, DomePrior
+
+    torch.manual_seed(6)
+    net = SurfaceEstimator(SurfaceConfig(input=kind, silhouette=True, **TOY))
+    torch.nn.init.normal_(net.head.weight, std=0.5)
+    dome = DomePrior(weight=0.3, height=0.5)
+    image = torch.rand(1, 3, 16, 12)
+    n, light = net.estimate(image, dome, flips=True)
+    assert n.shape == (1, 3, 16, 12)
+    torch.testing.assert_close(n.norm(dim=1), torch.ones(1, 16, 12), atol=1e-5, rtol=0)
+    for dims, sign in (((-1,), (-1.0, 1.0, 1.0)), ((-2,), (1.0, -1.0, 1.0)), ((-2, -1), (-1.0, -1.0, 1.0))):
+        s = torch.tensor(sign)
+        m, mirrored_light = net.estimate(image.flip(dims), dome, flips=True)
+        torch.testing.assert_close(m, n.flip(dims) * s.view(1, 3, 1, 1), atol=1e-5, rtol=0)
+        one, _ = net.estimate(image.flip(dims), dome)
+        assert not torch.allclose(one, n.flip(dims) * s.view(1, 3, 1, 1), atol=1e-3)  # one pass is not
+        if kind == "lit":
+            torch.testing.assert_close(mirrored_light, light * s, atol=1e-5, rtol=0)
+        else:
+            assert light is None and mirrored_light is None
+    # By hand: each mirror's pass, mirrored back, averaged and renormalised.
+    passes = []
+    for dims, sign in MIRRORS:
+        one, _ = net.estimate(image.flip(dims) if dims else image, dome)
+        passes.append((one.flip(dims) if dims else one) * torch.tensor(sign).view(1, 3, 1, 1))
+    torch.testing.assert_close(n, facing_normals(torch.stack(passes).mean(0)), atol=1e-6, rtol=0)
+
+
+def test_the_mirror_ensemble_reaches_estimate_at_and_the_preset_field():
+    from lasagna.catalogue import load_preset
+    from lasagna.compose.resample import downsample
+    from lasagna.compose.surface import enlarge_surface
+
+    torch.manual_seed(7)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
+    torch.nn.init.normal_(net.head.weight, std=0.5)
+    image = torch.rand(1, 3, 32, 32)
+    n, light = net.estimate_at(image, side=16, flips=True)
+    surface, expected = net.estimate(downsample(image, (16, 16)), flips=True)
+    torch.testing.assert_close(n, net.normals(enlarge_surface(surface, (32, 32))))
+    torch.testing.assert_close(light, expected)
+    # Chosen per preset on select (docs/BENCHMARKS.md, round 5): the relight's surface uses it, the shading's not.
+    assert load_preset("relight").surface.flips and not load_preset("shading").surface.flips
