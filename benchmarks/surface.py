@@ -45,6 +45,7 @@ from lasagna.compose.surface import (  # noqa: E402
     light_vector,
 )
 from lasagna.document.condition import parse_direction  # noqa: E402
+from lasagna.document.preset import SYMMETRIES  # noqa: E402
 from lasagna.generators.surface import DomePrior, SurfaceEstimator  # noqa: E402
 from lasagna.training.surface import estimator_from_checkpoint  # noqa: E402
 from lasagna.world import VOCABULARY, render, sample_scenes  # noqa: E402
@@ -53,8 +54,8 @@ from lasagna.world.tasks import relight_sources, relighting  # noqa: E402
 WORKING = 32
 # The size the estimators read their input at (``--estimate-at``; None: the size each was trained at).
 ESTIMATE_AT: int | None = None
-# Whether the estimators answer with their mirror ensemble (``--flips``: `SurfaceEstimator.estimate`'s ``flips``).
-FLIPS = False
+# The estimators' symmetry ensemble (``--symmetry``: `SurfaceEstimator.estimate`'s ``symmetry``).
+SYMMETRY = "none"
 
 
 def dome_label(dome) -> str:
@@ -126,7 +127,7 @@ def shading_rows(scene, labels, albedo_net, edits: list[str], dome=None) -> list
     ]
     if albedo_net is not None:
         t0 = time.perf_counter()
-        n, _ = albedo_net.estimate_at(scene.albedo, dome, side=ESTIMATE_AT, flips=FLIPS)
+        n, _ = albedo_net.estimate_at(scene.albedo, dome, side=ESTIMATE_AT, symmetry=SYMMETRY)
         y = lambert(n, light)
         secs = (time.perf_counter() - t0) / len(labels)
         rows.append(gain_row(f"surface estimator (albedo){dome_label(dome)}", y, truth, mask, cdb, secs))
@@ -167,7 +168,7 @@ def relight_rows(scene, labels, lit_net, edits: list[str], dome=None) -> list[di
     ]
     if lit_net is not None:
         t0 = time.perf_counter()
-        n, light = lit_net.estimate_at(base, dome, side=ESTIMATE_AT, flips=FLIPS)
+        n, light = lit_net.estimate_at(base, dome, side=ESTIMATE_AT, symmetry=SYMMETRY)
         ratio = lambert(n, tgt) / lambert(n, light)
         secs = (time.perf_counter() - t0) / len(labels)
         method = f"surface estimator (lit){dome_label(dome)}, its source light"
@@ -193,7 +194,7 @@ def leak_row(args, split: str, size: int, albedo_net, lit_net, dome=None) -> dic
             continue
         if image is None:
             image = relighting(walls, relight_sources(walls.params)).base
-        n, _ = net.estimate_at(image, dome, side=ESTIMATE_AT, flips=FLIPS)
+        n, _ = net.estimate_at(image, dome, side=ESTIMATE_AT, symmetry=SYMMETRY)
         y = lambert(n, lights_of(labels)).double()
         flat = y.mean(dim=(1, 2, 3), keepdim=True).expand_as(y)
         out[f"leak_db_{name}"] = round(psnr(y, flat), 2)
@@ -207,7 +208,7 @@ def photo_rows(lit_net, folder: Path, sheet: Path | None, dome=None) -> list[dic
     for file in sorted(folder.glob("*.jpg")):
         image = read_photo(file)
         t0 = time.perf_counter()
-        n, source = lit_net.estimate_at(image, dome, side=ESTIMATE_AT, flips=FLIPS)
+        n, source = lit_net.estimate_at(image, dome, side=ESTIMATE_AT, symmetry=SYMMETRY)
         seconds = time.perf_counter() - t0
         row = {"photo": file.stem, "size": list(image.shape[-2:]), "estimate_seconds": round(seconds, 3)}
         composites = {}
@@ -234,7 +235,7 @@ def albedo_photo_sheet(albedo_net, folder: Path, sheet: Path, dome=None) -> None
     tiles = []
     for file in sorted(folder.glob("*.jpg")):
         image = read_photo(file)
-        n, _ = albedo_net.estimate_at(image, dome, side=ESTIMATE_AT, flips=FLIPS)
+        n, _ = albedo_net.estimate_at(image, dome, side=ESTIMATE_AT, symmetry=SYMMETRY)
         shaded = [image * lambert(n, lights_of([light])) for light in ("left", "right")]
         tiles.append(torch.cat([image, (n + 1) / 2, *shaded], -1))
     save_sheet(tiles, sheet)
@@ -296,10 +297,15 @@ def main(argv=None) -> int:
         metavar="SIDE",
         help="read the estimators' inputs at this working size instead of their own (a diagnostic)",
     )
-    p.add_argument("--flips", action="store_true", help="the estimators' mirror ensemble (a preset's surface.flips)")
+    p.add_argument(
+        "--symmetry",
+        choices=SYMMETRIES,
+        default="none",
+        help="the estimators' symmetry ensemble (a preset's surface.symmetry)",
+    )
     args = p.parse_args(argv)
-    global ESTIMATE_AT, FLIPS
-    ESTIMATE_AT, FLIPS = args.estimate_at, args.flips
+    global ESTIMATE_AT, SYMMETRY
+    ESTIMATE_AT, SYMMETRY = args.estimate_at, args.symmetry
     albedo_net, lit_net = load(args.albedo), load(args.lit)
     dome = None
     if args.dome:

@@ -222,7 +222,7 @@ def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
     net = SurfaceEstimator.from_pretrained(recipe.estimator, device=device)
     sd = recipe.surface
     dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
-    normals, source = net.estimate_at(x.float(), dome, side=sd.working_size, flips=sd.flips)
+    normals, source = net.estimate_at(x.float(), dome, side=sd.working_size, symmetry=sd.symmetry)
     target = light_vector(*parse_direction(recipe.label), device=normals.device)[None]
     layer = lambert(normals, target) if source is None else lambert(normals, target) / lambert(normals, source)
     lo, hi = recipe.distill.layer.range
@@ -291,7 +291,7 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
     sd = recipe.surface
     dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
     with torch.no_grad():
-        surface, fitted = net.estimate(x, dome, flips=sd.flips)
+        surface, fitted = net.estimate(x, dome, symmetry=sd.symmetry)
     source = None
     if net.config.input == "lit":
         source = recipe.source_light or light_condition(fitted[0])
@@ -303,8 +303,8 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
     }
     if dome.weight > 0:
         made_by.update(dome_weight=dome.weight, dome_height=dome.height)
-    if sd.flips:
-        made_by.update(flips=True)
+    if sd.symmetry != "none":
+        made_by.update(symmetry=sd.symmetry)
     if recipe.distill is not None:
         from lasagna.compose.surface import light_vector
 

@@ -275,12 +275,12 @@ def test_a_guided_enlargement_follows_the_image_and_is_recorded(tiny, tmp_path_f
         Preset.model_validate({**colour, "enlarge": "guided"})
 
 
-def test_a_flips_preset_edits_with_the_mirror_ensemble(tiny, tmp_path_factory):
-    """``surface.flips``: the surface layer and the free relight's surface start are the mirror ensemble's — a
-    mirrored input gives the mirrored layer (which one pass does not) — and the layer records it."""
+def test_a_symmetry_preset_edits_with_the_ensemble(tiny, tmp_path_factory):
+    """``surface.symmetry``: the surface layer is the ensemble's — a mirrored input gives the mirrored layer (which one
+    pass does not) — and the layer records it."""
     from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
 
-    folder = tiny_variant(tiny, tmp_path_factory.mktemp("flips") / "layers")
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("symmetry") / "layers")
     torch.manual_seed(13)
     net = SurfaceEstimator(SurfaceConfig(input="albedo", channels=(4, 8), blocks=1, working_size=16))
     with torch.no_grad():
@@ -288,12 +288,12 @@ def test_a_flips_preset_edits_with_the_mirror_ensemble(tiny, tmp_path_factory):
     net.save_pretrained(folder / "surface-toy-16")
     surface = {**SURFACE, "estimator": "surface-toy-16"}
     x = torch.rand(3, 16, 16)
-    for flips in (False, True):
-        write_preset(folder, "shading", surface={**surface, "flips": flips}, layer_kind="surface")
+    for symmetry in ("none", "mirrors", "dihedral"):
+        write_preset(folder, "shading", surface={**surface, "symmetry": symmetry}, layer_kind="surface")
         # Under a light from the viewer (el 0) the shading n_z is itself mirror-symmetric: a mirrored input must give
-        # the mirrored layer.
+        # the mirrored layer (to the 16-bit normal map's codes).
         res = edit(x, "shading", "az=0,el=0", catalogue_dirs=[folder])
         mirrored = edit(x.flip(-1), "shading", "az=0,el=0", catalogue_dirs=[folder])
-        close = torch.allclose(mirrored.layer, res.layer.flip(-1), atol=2e-3)
-        assert close == flips
-        assert res.stack.document.layer(res.layer_id).made_by.get("flips", False) == flips
+        assert torch.allclose(mirrored.layer, res.layer.flip(-1), atol=2e-3) == (symmetry != "none")
+        recorded = res.stack.document.layer(res.layer_id).made_by.get("symmetry", "none")
+        assert recorded == symmetry

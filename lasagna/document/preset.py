@@ -179,6 +179,11 @@ LayerKind = Literal["free", "surface"]
 ``surface`` — a surface (a height field's normals) rendered under the light (`lasagna.compose.surface`)."""
 PRESET_LAYER_KINDS: tuple[str, ...] = ("free", "surface")
 
+Symmetry = Literal["none", "mirrors", "dihedral"]
+"""A surface estimator's symmetry ensemble (`lasagna.generators.surface`): one pass; the image and its three mirror
+images, each estimate mapped back and averaged; those and their transposes (all eight symmetries of the square)."""
+SYMMETRIES: tuple[str, ...] = get_args(Symmetry)
+
 
 class SurfaceDefaults(StrictModel):
     """How a preset makes a surface layer: its estimator, and the multi-light score distillation after it."""
@@ -210,11 +215,11 @@ class SurfaceDefaults(StrictModel):
     dome_height: FiniteFloat = Field(
         1.0, gt=0, le=4, description="The domes' height as a fraction of a round dome's (a disc inflates to a sphere)."
     )
-    flips: bool = Field(
-        False,
-        strict=True,
-        description="Average the estimates of the image and its three mirror images, each mirrored back (the "
-        "estimator's mirror ensemble: `SurfaceEstimator.estimate`); false: one estimate.",
+    symmetry: Symmetry = Field(
+        "none",
+        description="The estimator's symmetry ensemble (`SurfaceEstimator.estimate`): 'none', one estimate; "
+        "'mirrors', the image and its three mirror images estimated, each mapped back, averaged; 'dihedral', those "
+        "and their transposes (all eight symmetries of the square).",
     )
 
 

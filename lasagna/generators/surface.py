@@ -23,14 +23,17 @@ depend on the batch or on far-away pixels' statistics); any H, W (replicate-padd
 2^(levels − 1), cropped back). The height head is a zero-initialised 1×1 convolution: an untrained estimator
 returns the flat surface h = 0 (n = +z everywhere), whose shading is the wall's, a + (1 − a)·cos el.
 
-**The mirror ensemble** (``estimate(..., flips=True)``): the image and its three mirror images (left-right,
-top-bottom, both) are estimated, each estimate is mirrored back (its pixels, and the sign of the normals' x or y
-component), and the four are averaged — normals renormalised, source shadings averaged — before the light is fitted.
-A convolutional estimator is not mirror-equivariant; its answer to a mirrored image is a second opinion on the same
-surface, and the average is equivariant (estimating a mirrored image gives the mirrored estimate, up to the rounding of
-the sum's order). It is
-test-time augmentation (Krizhevsky et al. 2012) applied where the symmetry is known exactly: a mirror of the image
-mirrors the surface and its light. Four passes at the working size (32²: milliseconds).
+**The symmetry ensemble** (``estimate(..., symmetry=...)``): a mirror or a quarter turn of the image mirrors or
+turns its surface and its light, but a convolutional estimator is not equivariant to them: its answer to a
+transformed image is a second opinion on the same surface. ``"mirrors"`` estimates the image and its three mirror
+images (left-right, top-bottom, both: a half turn); ``"dihedral"`` adds their transposes (the reflection across
+the diagonal and its compositions: all eight symmetries of the square, the dihedral group D4). Each estimate is
+mapped back — its pixels, and its normals' (x, y) components (negated by a mirror, swapped and negated by the
+transpose, since rows run down while y runs up) — and they are averaged: normals renormalised, source shadings
+averaged, the light fitted to the averages. The average is equivariant under the group (estimating a transformed
+image gives the transformed estimate, up to the rounding of the sum's order). It is test-time augmentation
+(Krizhevsky et al. 2012) where the symmetry is known exactly. Four or eight passes at the working size (32²:
+milliseconds).
 """
 
 from __future__ import annotations
@@ -54,6 +57,7 @@ from lasagna.compose.surface import (
     surface_normals,
 )
 from lasagna.document.condition import AMBIENT
+from lasagna.document.preset import SYMMETRIES, Symmetry
 from lasagna.errors import LasagnaError
 from lasagna.generators.unet import pad_to_levels, run_unet, unet_body
 from lasagna.io.checkpoint import Pretrained
@@ -132,7 +136,7 @@ class DomePrior(BaseModel):
         return mix_normals(normals, enlarge_surface(domes, size), self.weight)
 
 
-# The mirror images of the ensemble: the flipped tensor dimensions, and which normal components change sign.
+# The mirror images of the symmetry ensemble: the flipped tensor dimensions, and which normal components change sign.
 # Columns (dim −1) are x; rows (dim −2) run down while y runs up, so a top-bottom mirror negates n_y.
 MIRRORS: tuple[tuple[tuple[int, ...], tuple[float, float, float]], ...] = (
     ((), (1.0, 1.0, 1.0)),
@@ -140,6 +144,13 @@ MIRRORS: tuple[tuple[tuple[int, ...], tuple[float, float, float]], ...] = (
     ((-2,), (1.0, -1.0, 1.0)),
     ((-2, -1), (-1.0, -1.0, 1.0)),
 )
+
+
+def _transpose_normals(n: Tensor) -> Tensor:
+    """Normals (B, 3, H, W) of a surface transposed (rows ↔ columns): pixels transposed, (n_x, n_y) → (−n_y, −n_x)
+    (x runs along columns, y against rows). An involution: it maps an estimate of the transposed image back too."""
+    n = n.transpose(-1, -2)
+    return torch.cat([-n[:, 1:2], -n[:, 0:1], n[:, 2:3]], 1)
 
 
 class SurfaceEstimator(Pretrained, nn.Module):
@@ -195,23 +206,30 @@ class SurfaceEstimator(Pretrained, nn.Module):
         return surface_normals(surface)
 
     def estimate(
-        self, image: Tensor, dome: DomePrior | None = None, flips: bool = False
+        self, image: Tensor, dome: DomePrior | None = None, symmetry: Symmetry = "none"
     ) -> tuple[Tensor, Tensor | None]:
         """(surface — height or normals, as ``decompose``; unit normals where ``dome`` mixes in the dome prior or
-        ``flips`` averages the mirror ensemble — and the source light (B, 3), or None for albedo input): the light is
-        the fit of the surface's normals to the estimated source shading (module docstring)."""
-        if not flips:
+        ``symmetry`` averages an ensemble — and the source light (B, 3), or None for albedo input): the light is the
+        fit of the surface's normals to the estimated source shading (module docstring)."""
+        if symmetry not in SYMMETRIES:
+            raise LasagnaError(f"got {symmetry!r}; expected one of {', '.join(SYMMETRIES)}", "symmetry")
+        if symmetry == "none":
             surface, shading = self._one_estimate(image, dome)
         else:
             normals, shadings = [], []
-            for dims, sign in MIRRORS:
-                surface, shading = self._one_estimate(image.flip(dims) if dims else image, dome)
-                n = self.normals(surface)
-                if dims:
-                    n = n.flip(dims) * n.new_tensor(sign).view(1, 3, 1, 1)
-                    shading = None if shading is None else shading.flip(dims)
-                normals.append(n)
-                shadings.append(shading)
+            for transpose in (False, True) if symmetry == "dihedral" else (False,):
+                seen = image.transpose(-1, -2) if transpose else image
+                for dims, sign in MIRRORS:
+                    surface, shading = self._one_estimate(seen.flip(dims) if dims else seen, dome)
+                    n = self.normals(surface)
+                    if dims:
+                        n = n.flip(dims) * n.new_tensor(sign).view(1, 3, 1, 1)
+                        shading = None if shading is None else shading.flip(dims)
+                    if transpose:
+                        n = _transpose_normals(n)
+                        shading = None if shading is None else shading.transpose(-1, -2)
+                    normals.append(n)
+                    shadings.append(shading)
             surface = facing_normals(torch.stack(normals).mean(0))
             shading = None if shadings[0] is None else torch.stack(shadings).mean(0)
         if shading is None:
@@ -233,12 +251,12 @@ class SurfaceEstimator(Pretrained, nn.Module):
 
     @torch.no_grad()
     def estimate_at(
-        self, image: Tensor, dome: DomePrior | None = None, side: int | None = None, flips: bool = False
+        self, image: Tensor, dome: DomePrior | None = None, side: int | None = None, symmetry: Symmetry = "none"
     ) -> tuple[Tensor, Tensor | None]:
         """(unit normals (B, 3, H, W), source light (B, 3) or None) of ``image`` (B, 3, H, W) in [0, 1]: estimated
         at the working size ``side`` (None: the one it was trained at; `lasagna.compose.resample.working_size`),
         the surface enlarged back to (H, W) (`lasagna.compose.surface.enlarge_surface`)."""
         full = tuple(image.shape[-2:])
         small = downsample(image, working_size(*full, side or self.config.working_size))
-        surface, light = self.estimate(small, dome, flips)
+        surface, light = self.estimate(small, dome, symmetry)
         return self.normals(enlarge_surface(surface, full)), light

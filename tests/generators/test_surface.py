@@ -153,12 +153,23 @@ def test_the_dome_prior_inflates_large_estimates_at_a_bounded_side():
     assert err_reduced < 0.05 and err_reduced < 2 * err_whole + 0.01
 
 
+def _mirrored(n: torch.Tensor, dims: tuple[int, ...], sign: tuple[float, float, float]) -> torch.Tensor:
+    return (n.flip(dims) if dims else n) * torch.tensor(sign).view(1, 3, 1, 1)
+
+
+def _transposed(n: torch.Tensor) -> torch.Tensor:
+    """Normals of a surface transposed, by hand: h'(r, c) = h(c, r), so ∂h'/∂x = ∂h/∂row = −∂h/∂y and likewise."""
+    t = n.transpose(-1, -2)
+    return torch.stack([-t[:, 1], -t[:, 0], t[:, 2]], 1)
+
+
 @pytest.mark.parametrize("kind", ["albedo", "lit"])
-def test_the_mirror_ensemble_is_mirror_equivariant_and_averages_four_passes(kind):
-    """``flips=True``: the estimate of a mirrored image is the mirrored estimate — pixels mirrored, the normals' x
-    (left-right) or y (top-bottom) negated, the fitted light likewise — which one pass of an untrained-at-random
-    convolutional estimator is not; and it is the renormalised mean of the four passes' normals, mirrored back by
-    hand here."""
+@pytest.mark.parametrize("symmetry", ["mirrors", "dihedral"])
+def test_the_symmetry_ensemble_is_equivariant_and_averages_its_passes(kind, symmetry):
+    """``symmetry``: the estimate of a mirrored (or, for 'dihedral', transposed) image is the mirrored (transposed)
+    estimate — pixels moved, the normals' x or y negated (swapped and negated) — and the fitted light likewise,
+    which one pass of a random convolutional estimator is not; and it is the renormalised mean of its passes'
+    normals, mapped back by hand here."""
     from lasagna.compose.surface import facing_normals
     from lasagna.generators.surface import MIRRORS, DomePrior
 
@@ -167,28 +178,34 @@ def test_the_mirror_ensemble_is_mirror_equivariant_and_averages_four_passes(kind
     torch.nn.init.normal_(net.head.weight, std=0.5)
     dome = DomePrior(weight=0.3, height=0.5)
     image = torch.rand(1, 3, 16, 12)
-    n, light = net.estimate(image, dome, flips=True)
+    n, light = net.estimate(image, dome, symmetry=symmetry)
     assert n.shape == (1, 3, 16, 12)
     torch.testing.assert_close(n.norm(dim=1), torch.ones(1, 16, 12), atol=1e-5, rtol=0)
-    for dims, sign in (((-1,), (-1.0, 1.0, 1.0)), ((-2,), (1.0, -1.0, 1.0)), ((-2, -1), (-1.0, -1.0, 1.0))):
-        s = torch.tensor(sign)
-        m, mirrored_light = net.estimate(image.flip(dims), dome, flips=True)
-        torch.testing.assert_close(m, n.flip(dims) * s.view(1, 3, 1, 1), atol=1e-5, rtol=0)
+    for dims, sign in MIRRORS[1:]:
+        m, mirrored_light = net.estimate(image.flip(dims), dome, symmetry=symmetry)
+        torch.testing.assert_close(m, _mirrored(n, dims, sign), atol=1e-5, rtol=0)
         one, _ = net.estimate(image.flip(dims), dome)
-        assert not torch.allclose(one, n.flip(dims) * s.view(1, 3, 1, 1), atol=1e-3)  # one pass is not
+        assert not torch.allclose(one, _mirrored(n, dims, sign), atol=1e-3)  # one pass is not
         if kind == "lit":
-            torch.testing.assert_close(mirrored_light, light * s, atol=1e-5, rtol=0)
+            torch.testing.assert_close(mirrored_light, light * torch.tensor(sign), atol=1e-5, rtol=0)
         else:
             assert light is None and mirrored_light is None
-    # By hand: each mirror's pass, mirrored back, averaged and renormalised.
+    t, transposed_light = net.estimate(image.transpose(-1, -2), dome, symmetry=symmetry)
+    assert torch.allclose(t, _transposed(n), atol=1e-5) == (symmetry == "dihedral")
+    if kind == "lit" and symmetry == "dihedral":
+        torch.testing.assert_close(transposed_light, torch.stack([-light[:, 1], -light[:, 0], light[:, 2]], 1))
+    # By hand: each pass, mapped back, averaged and renormalised.
     passes = []
-    for dims, sign in MIRRORS:
-        one, _ = net.estimate(image.flip(dims) if dims else image, dome)
-        passes.append((one.flip(dims) if dims else one) * torch.tensor(sign).view(1, 3, 1, 1))
+    for transpose in (False, True) if symmetry == "dihedral" else (False,):
+        seen = image.transpose(-1, -2) if transpose else image
+        for dims, sign in MIRRORS:
+            one, _ = net.estimate(seen.flip(dims) if dims else seen, dome)
+            one = _mirrored(one, dims, sign)
+            passes.append(_transposed(one) if transpose else one)
     torch.testing.assert_close(n, facing_normals(torch.stack(passes).mean(0)), atol=1e-6, rtol=0)
 
 
-def test_the_mirror_ensemble_reaches_estimate_at_and_the_preset_field():
+def test_the_symmetry_ensemble_reaches_estimate_at_and_the_preset_field():
     from lasagna.catalogue import load_preset
     from lasagna.compose.resample import downsample
     from lasagna.compose.surface import enlarge_surface
@@ -197,9 +214,11 @@ def test_the_mirror_ensemble_reaches_estimate_at_and_the_preset_field():
     net = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
     torch.nn.init.normal_(net.head.weight, std=0.5)
     image = torch.rand(1, 3, 32, 32)
-    n, light = net.estimate_at(image, side=16, flips=True)
-    surface, expected = net.estimate(downsample(image, (16, 16)), flips=True)
+    n, light = net.estimate_at(image, side=16, symmetry="dihedral")
+    surface, expected = net.estimate(downsample(image, (16, 16)), symmetry="dihedral")
     torch.testing.assert_close(n, net.normals(enlarge_surface(surface, (32, 32))))
     torch.testing.assert_close(light, expected)
+    with pytest.raises(LasagnaError, match="symmetry: got 'rotations'; expected one of none, mirrors, dihedral"):
+        net.estimate(image, symmetry="rotations")
     # Chosen per preset on select (docs/BENCHMARKS.md, round 5): the relight's surface uses it, the shading's not.
-    assert load_preset("relight").surface.flips and not load_preset("shading").surface.flips
+    assert load_preset("relight").surface.symmetry == "dihedral" and load_preset("shading").surface.symmetry == "none"
