@@ -5,6 +5,7 @@
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe srgb         # ~1 min
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe profile      # ~3 min
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe sirfs        # ~6 min
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe symmetric-particles   # ~10 min
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe ensemble \
         --members layers/surface-lit-32 layers/surface-lit-closeup-32                   # ~1 min
 
@@ -33,6 +34,12 @@
 * **ensemble** — the lit estimators of ``--members`` (each with the relight's dome prior) averaged: their normals
   (renormalised) and their source shadings, the light fitted to the averages. Rows: the relight surface route on
   `select` at 64² and 256² for each member alone and for the ensemble.
+
+* **symmetric-particles** — the default relight's distillation, its four particles given the image's four mirror
+  images (each toward the mirrored light: left ↔ right, top ↔ bottom) instead of four noise draws of the image, each
+  layer mirrored back and averaged: four whole edits at one particle each (`lasagna.edit(..., particles=1)`). The
+  relight prior is not mirror-equivariant either. Rows: `relight_sweep.py`'s composite PSNR on select at 64² and
+  256², and the swings on the photograph selection set.
 
 Ends with one JSON line. None of these changes a preset; they are diagnostics (BENCHMARKS, round of 2026-11-26 (5)).
 """
@@ -342,9 +349,81 @@ def probe_ensemble(members: list[Path]) -> dict:
     return out
 
 
+# Each mirror of the image, and what it does to a named light (the vocabulary's eight).
+_LEFT_RIGHT = {
+    "left": "right",
+    "right": "left",
+    "top-left": "top-right",
+    "top-right": "top-left",
+    "bottom-left": "bottom-right",
+    "bottom-right": "bottom-left",
+    "top": "top",
+    "bottom": "bottom",
+}
+_TOP_BOTTOM = {
+    "top": "bottom",
+    "bottom": "top",
+    "top-left": "bottom-left",
+    "bottom-left": "top-left",
+    "top-right": "bottom-right",
+    "bottom-right": "top-right",
+    "left": "left",
+    "right": "right",
+}
+LIGHT_MIRRORS = (
+    ((), lambda light: light),
+    ((-1,), lambda light: _LEFT_RIGHT[light]),
+    ((-2,), lambda light: _TOP_BOTTOM[light]),
+    ((-2, -1), lambda light: _TOP_BOTTOM[_LEFT_RIGHT[light]]),
+)
+
+
+def symmetric_layer(image: torch.Tensor, light: str) -> torch.Tensor:
+    """The default relight of ``image`` (3, H, W) toward ``light`` from its four mirror images, one particle each."""
+    from lasagna.editing import edit
+
+    layers = []
+    for dims, mirror in LIGHT_MIRRORS:
+        layer = edit(image.flip(dims) if dims else image, "relight", mirror(light), particles=1).layer
+        layers.append(layer.flip(dims) if dims else layer)
+    return torch.stack(layers).mean(0)
+
+
+def probe_symmetric_particles() -> dict:
+    from _common import row, scenes
+
+    out = {}
+    for size in (64, 256):
+        rel, labels = scenes("select", COUNT, 0, size)
+        images = rel.base.float()
+        layers = torch.stack([symmetric_layer(images[i], labels[i]) for i in range(COUNT)]).double()
+        r = row(rel, "symmetric particles", layers)
+        out[f"select_{size}"] = [r["composite_psnr"], r["object_psnr"]]
+    values, photos = [], {}
+    for file in sorted(PHOTO_SETS["select"].glob("*.jpg")):
+        image = read_photo(file)[0]
+        axes = []
+        for pair in PHOTO_AXES.values():
+            total = 0.0
+            for light in pair:
+                total += photo_swing_of(image, (image * symmetric_layer(image, light)).clamp(0, 1), light)
+            axes.append(round(total, 4))
+        photos[file.stem] = axes
+        values += axes
+    out["photo_select"] = {
+        "photos": photos,
+        "mean": round(sum(values) / len(values), 4),
+        "at_least_0.10": sum(v >= 0.10 for v in values),
+        "wrong_signs": sum(v < 0 for v in values),
+    }
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--probe", choices=("gain-fit", "srgb", "profile", "sirfs", "ensemble"), required=True)
+    p.add_argument(
+        "--probe", choices=("gain-fit", "srgb", "profile", "sirfs", "ensemble", "symmetric-particles"), required=True
+    )
     p.add_argument("--members", nargs="+", type=Path, default=[LAYERS / "surface-lit-32", LIT], help="ensemble")
     p.add_argument("--default", action="store_true", help="gain-fit: measure the default relight instead")
     args = p.parse_args(argv)
@@ -354,7 +433,8 @@ def main(argv=None) -> int:
     elif args.probe == "ensemble":
         rows = probe_ensemble(args.members)
     else:
-        rows = {"srgb": probe_srgb, "profile": probe_profile, "sirfs": probe_sirfs}[args.probe]()
+        probes = {"srgb": probe_srgb, "profile": probe_profile, "sirfs": probe_sirfs}
+        rows = {**probes, "symmetric-particles": probe_symmetric_particles}[args.probe]()
     record = {"benchmark": "surface_probes", "probe": args.probe, "default": args.default, "rows": rows}
     print_json_line({**record, "machine": machine_info()})
     return 0
