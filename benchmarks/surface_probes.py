@@ -419,11 +419,45 @@ def probe_symmetric_particles() -> dict:
     return out
 
 
+@contextlib.contextmanager
+def start_relief(gain: float):
+    """Every ``SurfaceEstimator.estimate_at`` inside the block deepens its estimate by ``gain`` (``relief``): in the
+    default relight's path that is only the free ratio's surface start."""
+    shipped = SurfaceEstimator.estimate_at
+
+    def estimate_at(self, image, dome=None, side=None, symmetry="none", relief=1.0):
+        return shipped(self, image, dome, side, symmetry, relief * gain)
+
+    SurfaceEstimator.estimate_at = estimate_at
+    try:
+        yield
+    finally:
+        SurfaceEstimator.estimate_at = shipped
+
+
+def probe_start_relief(gains: list[float]) -> dict:
+    out = {}
+    for gain in gains:
+        row = {}
+        with start_relief(gain):
+            for size in (64, 256):
+                run = last_json(relight_sweep.main, ["--split", "select", "--size", str(size), "--only", "default"])
+                r = run["last"]["rows"][0]
+                row[f"default_select_{size}"] = [r["composite_psnr"], r["object_psnr"]]
+            swing = last_json(photo_swing.main, ["--label", f"start relief {gain:g}"])["last"]
+            row["photo_select"] = {k: swing[k] for k in ("swing_mean", "wrong_signs", "below_0.10", "photos")}
+        out[f"g {gain:g}"] = row
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument(
-        "--probe", choices=("gain-fit", "srgb", "profile", "sirfs", "ensemble", "symmetric-particles"), required=True
+        "--probe",
+        choices=("gain-fit", "srgb", "profile", "sirfs", "ensemble", "symmetric-particles", "start-relief"),
+        required=True,
     )
+    p.add_argument("--gains", nargs="+", type=float, default=[1.0, 1.5, 2.0, 3.0], help="start-relief")
     p.add_argument("--members", nargs="+", type=Path, default=[LAYERS / "surface-lit-32", LIT], help="ensemble")
     p.add_argument("--default", action="store_true", help="gain-fit: measure the default relight instead")
     args = p.parse_args(argv)
@@ -432,6 +466,8 @@ def main(argv=None) -> int:
         rows = probe_gain_fit(args.default)
     elif args.probe == "ensemble":
         rows = probe_ensemble(args.members)
+    elif args.probe == "start-relief":
+        rows = probe_start_relief(args.gains)
     else:
         probes = {"srgb": probe_srgb, "profile": probe_profile, "sirfs": probe_sirfs}
         rows = {**probes, "symmetric-particles": probe_symmetric_particles}[args.probe]()

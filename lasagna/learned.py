@@ -211,7 +211,9 @@ def make_layer(
 @torch.no_grad()
 def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
     """The start (1, 1, h, w) of a free layer that refines a surface (``distill.start == "surface"``): the preset's
-    surface estimate of ``x`` (the working input) at ``surface.working_size`` with its dome prior, rendered under
+    surface estimate of ``x`` (the working input) at ``surface.working_size`` with its dome prior and symmetry
+    ensemble, deepened by ``surface.start_relief`` (an estimator's regression to the mean makes it shallow where it is
+    unsure; the distillation's start wants the relief, a surface layer the estimate as it is), rendered under
     the condition's light — S(l) for an unlit base, S(l)/S(l_src) for a lit one (the source light fitted) — clamped
     to the layer's range. The free layer's per-pixel steps then correct what one surface cannot say (a free residual
     on a surface)."""
@@ -222,7 +224,9 @@ def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
     net = SurfaceEstimator.from_pretrained(recipe.estimator, device=device)
     sd = recipe.surface
     dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
-    normals, source = net.estimate_at(x.float(), dome, side=sd.working_size, symmetry=sd.symmetry)
+    normals, source = net.estimate_at(
+        x.float(), dome, side=sd.working_size, symmetry=sd.symmetry, relief=sd.start_relief
+    )
     target = light_vector(*parse_direction(recipe.label), device=normals.device)[None]
     layer = lambert(normals, target) if source is None else lambert(normals, target) / lambert(normals, source)
     lo, hi = recipe.distill.layer.range

@@ -297,3 +297,40 @@ def test_a_symmetry_preset_edits_with_the_ensemble(tiny, tmp_path_factory):
         assert torch.allclose(mirrored.layer, res.layer.flip(-1), atol=2e-3) == (symmetry != "none")
         recorded = res.stack.document.layer(res.layer_id).made_by.get("symmetry", "none")
         assert recorded == symmetry
+
+
+def test_the_start_relief_deepens_only_a_free_layers_surface_start(tiny, tmp_path_factory):
+    """``surface.start_relief`` g: a free layer's surface start is S(l)/S(l_src) of the estimate deepened by g (its
+    source light fitted to the deepened surface, `SurfaceEstimator.estimate_at`'s ``relief``), which differs from
+    g = 1; a surface layer of the same preset renders the estimate as it is, whatever g says."""
+    from lasagna.compose.surface import lambert, light_vector
+    from lasagna.document.condition import parse_direction
+    from lasagna.editing import conditioning_input
+    from lasagna.generators.surface import DomePrior, SurfaceEstimator
+    from lasagna.learned import _surface_start, layer_input
+    from lasagna.recipe import Recipe
+
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("relief") / "layers")
+    preset = json.loads((folder / "relight" / "preset.json").read_text())
+    distill = {**preset["distill"], "steps": 1, "particles": 1, "start": "surface"}
+    starts, surfaces = {}, {}
+    for g in (1.0, 3.0):
+        surface = {**SURFACE, "estimator": "surface-lit-32", "start_relief": g}
+        write_preset(folder, "relight", distill=distill, surface=surface)
+        res = edit(image(), "relight", "left", catalogue_dirs=[folder])
+        layer = res.stack.document.layer(res.layer_id)
+        recipe = Recipe.from_layer(res.stack, layer, catalogue_dirs=[folder])
+        x = layer_input(recipe, conditioning_input(res.stack, layer.conditioned_on), "cpu")
+        starts[g] = _surface_start(recipe, x, "cpu")
+        net = SurfaceEstimator.from_pretrained(recipe.estimator)
+        n, source = net.estimate_at(x.float(), DomePrior(), side=SURFACE["working_size"], relief=g)
+        target = light_vector(*parse_direction("left"))[None]
+        torch.testing.assert_close(starts[g], (lambert(n, target) / lambert(n, source)).clamp(0.0, 4.0))
+        write_preset(folder, "relight", surface=surface, layer_kind="surface")
+        surfaces[g] = edit(image(), "relight", "left", catalogue_dirs=[folder]).layer
+    assert float((starts[3.0] - starts[1.0]).abs().max()) > 1e-3
+    torch.testing.assert_close(surfaces[3.0], surfaces[1.0], atol=0, rtol=0)
+    # Chosen by the estimator rule on the photograph selection set (docs/BENCHMARKS.md, round 6): the relight's start.
+    from lasagna.catalogue import load_preset
+
+    assert load_preset("relight").surface.start_relief == 3.0 and load_preset("shading").surface.start_relief == 1.0

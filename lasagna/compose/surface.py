@@ -312,6 +312,15 @@ def label_regions(mask: Tensor) -> Tensor:
     return out
 
 
+def deepen_normals(normals: Tensor, gain: float) -> Tensor:
+    """Unit normals (B, 3, H, W) of the same surface with its relief times ``gain``: (g·n_x, g·n_y, n_z)
+    renormalised. For a height field's normals n ∝ (−∂h/∂x, −∂h/∂y, 1) this is exactly the normals of g·h (the same
+    outlines, slopes times g); gain 1 returns ``normals`` unchanged."""
+    if gain == 1.0:
+        return normals
+    return facing_normals(torch.cat([normals[:, :2] * gain, normals[:, 2:3]], 1))
+
+
 def mix_normals(normals: Tensor, other: Tensor, weight: float) -> Tensor:
     """Unit normals (1 − weight)·``normals`` + weight·``other``, renormalised and kept facing the viewer."""
     return facing_normals((1.0 - weight) * normals + weight * other)

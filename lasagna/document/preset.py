@@ -221,6 +221,14 @@ class SurfaceDefaults(StrictModel):
         "'mirrors', the image and its three mirror images estimated, each mapped back, averaged; 'dihedral', those "
         "and their transposes (all eight symmetries of the square).",
     )
+    start_relief: FiniteFloat = Field(
+        1.0,
+        gt=0,
+        le=8,
+        description="The relief gain of a free layer's surface start (`distill.start` 'surface'): the estimate's "
+        "slopes times this (`lasagna.compose.surface.deepen_normals`), its source light fitted to the deepened "
+        "surface. A surface layer (`layer_kind` 'surface') renders the estimate as it is.",
+    )
 
 
 class Preset(StrictModel):

@@ -48,6 +48,7 @@ from torch import Tensor, nn
 from lasagna.compose.resample import downsample, working_size
 from lasagna.compose.surface import (
     DOME_MAX_SIDE,
+    deepen_normals,
     dome_normals,
     enlarge_surface,
     facing_normals,
@@ -206,11 +207,12 @@ class SurfaceEstimator(Pretrained, nn.Module):
         return surface_normals(surface)
 
     def estimate(
-        self, image: Tensor, dome: DomePrior | None = None, symmetry: Symmetry = "none"
+        self, image: Tensor, dome: DomePrior | None = None, symmetry: Symmetry = "none", relief: float = 1.0
     ) -> tuple[Tensor, Tensor | None]:
-        """(surface — height or normals, as ``decompose``; unit normals where ``dome`` mixes in the dome prior or
-        ``symmetry`` averages an ensemble — and the source light (B, 3), or None for albedo input): the light is the
-        fit of the surface's normals to the estimated source shading (module docstring)."""
+        """(surface — height or normals, as ``decompose``; unit normals where ``dome`` mixes in the dome prior,
+        ``symmetry`` averages an ensemble or ``relief`` ≠ 1 deepens the estimate (`deepen_normals`: slopes times
+        ``relief``) — and the source light (B, 3), or None for albedo input): the light is the fit of the final
+        surface's normals to the estimated source shading (module docstring)."""
         if symmetry not in SYMMETRIES:
             raise LasagnaError(f"got {symmetry!r}; expected one of {', '.join(SYMMETRIES)}", "symmetry")
         if symmetry == "none":
@@ -232,6 +234,8 @@ class SurfaceEstimator(Pretrained, nn.Module):
                     shadings.append(shading)
             surface = facing_normals(torch.stack(normals).mean(0))
             shading = None if shadings[0] is None else torch.stack(shadings).mean(0)
+        if relief != 1.0:
+            surface = deepen_normals(self.normals(surface), relief)
         if shading is None:
             return surface, None
         return surface, fit_light(self.normals(surface), shading)
@@ -251,12 +255,17 @@ class SurfaceEstimator(Pretrained, nn.Module):
 
     @torch.no_grad()
     def estimate_at(
-        self, image: Tensor, dome: DomePrior | None = None, side: int | None = None, symmetry: Symmetry = "none"
+        self,
+        image: Tensor,
+        dome: DomePrior | None = None,
+        side: int | None = None,
+        symmetry: Symmetry = "none",
+        relief: float = 1.0,
     ) -> tuple[Tensor, Tensor | None]:
         """(unit normals (B, 3, H, W), source light (B, 3) or None) of ``image`` (B, 3, H, W) in [0, 1]: estimated
         at the working size ``side`` (None: the one it was trained at; `lasagna.compose.resample.working_size`),
         the surface enlarged back to (H, W) (`lasagna.compose.surface.enlarge_surface`)."""
         full = tuple(image.shape[-2:])
         small = downsample(image, working_size(*full, side or self.config.working_size))
-        surface, light = self.estimate(small, dome, symmetry)
+        surface, light = self.estimate(small, dome, symmetry, relief)
         return self.normals(enlarge_surface(surface, full)), light

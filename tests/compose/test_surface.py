@@ -260,6 +260,28 @@ class TestDomePrior:
         torch.testing.assert_close(half[..., inside], want[..., inside], atol=1e-12, rtol=0)
         assert (half[0, 2][~inside] == 1).all()
 
+    def test_deepening_normals_scales_a_height_fields_slopes(self):
+        """``deepen_normals(n(h), g)`` is n(g·h): checked on a random quadratic surface, whose normals are known in
+        closed form (float64 numpy: n ∝ (−∂h/∂x, −∂h/∂y, 1))."""
+        from lasagna.compose.surface import deepen_normals
+
+        rng = np.random.default_rng(9)
+        a, b, c, d = rng.normal(size=4)
+        y, x = np.mgrid[-1:1:17j, -1:1:23j]
+        hx, hy = 2 * a * x + c * y + d, 2 * b * y + c * x  # h = a x² + b y² + c x y + d x
+
+        def closed(g):
+            v = np.stack([-g * hx, -g * hy, np.ones_like(x)])[None]
+            return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+        n = torch.from_numpy(closed(1.0))
+        for g in (0.5, 2.0, 3.0):
+            torch.testing.assert_close(deepen_normals(n, g).numpy(), closed(g), atol=1e-12, rtol=0)
+        assert deepen_normals(n, 1.0) is n
+        flat = torch.zeros(1, 3, 2, 2, dtype=torch.float64)
+        flat[:, 2] = 1
+        torch.testing.assert_close(deepen_normals(flat, 4.0), flat)  # the flat wall stays flat
+
     def test_mixing_normals(self):
         from lasagna.compose.surface import mix_normals
 

@@ -222,3 +222,28 @@ def test_the_symmetry_ensemble_reaches_estimate_at_and_the_preset_field():
         net.estimate(image, symmetry="rotations")
     # Chosen per preset on select (docs/BENCHMARKS.md, round 5): the relight's surface uses it, the shading's not.
     assert load_preset("relight").surface.symmetry == "dihedral" and load_preset("shading").surface.symmetry == "none"
+
+
+@pytest.mark.parametrize("symmetry", ["none", "dihedral"])
+def test_relief_deepens_the_estimate_and_the_light_is_fitted_to_the_deepened_surface(symmetry):
+    """``relief`` g: the normals are the estimate's deepened by g (`deepen_normals`), and a lit estimate's source
+    light is the fit of those normals to the same source shading (`fit_light`), not the undeepened surface's."""
+    from lasagna.compose.surface import deepen_normals, fit_light
+
+    torch.manual_seed(8)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
+    torch.nn.init.normal_(net.head.weight, std=0.5)
+    image = torch.rand(2, 3, 16, 16)
+    flat_n, flat_light = net.estimate(image, symmetry=symmetry)
+    deep_n, deep_light = net.estimate(image, symmetry=symmetry, relief=2.5)
+    torch.testing.assert_close(deep_n, deepen_normals(net.normals(flat_n), 2.5), atol=1e-6, rtol=0)
+    assert (deep_n[:, 2] < net.normals(flat_n)[:, 2] + 1e-6).all()  # steeper everywhere, never flatter
+    shading = net.outputs(image).shading if symmetry == "none" else None
+    if shading is not None:
+        torch.testing.assert_close(deep_light, fit_light(deep_n, shading))
+    assert not torch.allclose(deep_light, flat_light, atol=1e-4)
+    same_n, same_light = net.estimate(image, symmetry=symmetry, relief=1.0)
+    torch.testing.assert_close(same_n, flat_n, atol=0, rtol=0)
+    n_at, light_at = net.estimate_at(image, side=16, symmetry=symmetry, relief=2.5)
+    torch.testing.assert_close(n_at, deep_n, atol=1e-6, rtol=0)
+    torch.testing.assert_close(light_at, deep_light)
