@@ -108,6 +108,9 @@ SELECT_SETTINGS: dict[str, list[dict]] = {
     "LMC-SDS ω 3": [{"loss": "lmc-sds", "guidance": 3.0}],
     "LMC-SDS ω 4": [{"loss": "lmc-sds", "guidance": 4.0}],
     "LMC-SDS ω 6": [{"loss": "lmc-sds", "guidance": 6.0}],
+    # The round of 2026-11-26 (6): the guided enlargement judged where it acts (above the working size), with the
+    # deepened start.
+    "guided enlargement": [{"preset": {"enlarge": "guided"}}],
 }
 
 
