@@ -15,7 +15,10 @@ for photographs are made; ``examples/photos/large`` is reported, never chosen on
 another preset field) is measured by a catalogue put first with ``LASAGNA_LAYERS`` (lasagna.catalogue: the first
 entry of a name wins), e.g. a folder holding ``relight/preset.json`` and ``surface-lit-32`` (a link to the
 candidate estimator). ``--sheet`` writes input | toward left | toward right | toward top | toward bottom per
-photograph. Ends with one JSON line: per photograph and axis, the mean, the smallest and the count of wrong signs.
+photograph; ``--layer-sheet`` the layers toward the left: input | the surface alone (``layer_kind="surface"``) |
+the edit's layer | its composite (layers shown at half their value, so 1 is mid-grey): what the distillation adds
+to the surface, paint included, is seen there. Ends with one JSON line: per photograph and axis, the mean, the
+smallest and the count of wrong signs.
 """
 
 from __future__ import annotations
@@ -37,8 +40,17 @@ from _common import PHOTO_AXES, machine_info, print_json_line, read_photo, save_
 import lasagna  # noqa: E402
 
 
-def measure(folder: Path, preset: str, sheet: Path | None) -> dict:
-    rows, tiles, seconds = [], [], []
+def half(t: torch.Tensor) -> torch.Tensor:
+    return F.interpolate(t[None], scale_factor=0.5, mode="area")[0]
+
+
+def layer_tile(layer: torch.Tensor) -> torch.Tensor:
+    """A multiplier layer (1, H, W) as a grey tile at half its value (1 → mid-grey), clamped."""
+    return (layer[:1] / 2).clamp(0, 1).expand(3, -1, -1)
+
+
+def measure(folder: Path, preset: str, sheet: Path | None, layer_sheet: Path | None = None) -> dict:
+    rows, tiles, layer_tiles, seconds = [], [], [], []
     for file in sorted(folder.glob("*.jpg")):
         image = read_photo(file)[0]
         row: dict = {"photo": file.stem}
@@ -50,14 +62,20 @@ def measure(folder: Path, preset: str, sheet: Path | None) -> dict:
                 result = lasagna.edit(image, preset, light)
                 seconds.append(time.perf_counter() - t0)
                 composites[light] = result.composite
+                if light == "left" and layer_sheet is not None:
+                    surface = lasagna.edit(image, preset, light, layer_kind="surface").layer
+                    shown = (image, layer_tile(surface), layer_tile(result.layer), result.composite)
+                    layer_tiles.append([half(t) for t in shown])
                 total += swing(image, result.composite, light)
             row[axis] = round(total, 4)
         rows.append(row)
         print(row, flush=True)
         row_tiles = [image, *(composites[light] for light in ("left", "right", "top", "bottom"))]
-        tiles.append([F.interpolate(t[None], scale_factor=0.5, mode="area")[0] for t in row_tiles])  # half size
+        tiles.append([half(t) for t in row_tiles])
     if sheet is not None and tiles:
         save_sheet([list(column) for column in zip(*tiles)], sheet)
+    if layer_sheet is not None and layer_tiles:
+        save_sheet([list(column) for column in zip(*layer_tiles)], layer_sheet)
     values = [r[axis] for r in rows for axis in PHOTO_AXES]
     return {
         "photos": rows,
@@ -74,6 +92,9 @@ def main(argv=None) -> int:
     p.add_argument("--photos", type=Path, default=ROOT / "examples" / "photos" / "select")
     p.add_argument("--preset", default="relight")
     p.add_argument("--sheet", type=Path, default=None, help="input | left | right | top | bottom, one row per photo")
+    p.add_argument(
+        "--layer-sheet", type=Path, default=None, help="toward the left: input | surface alone | layer | composite"
+    )
     p.add_argument("--label", default="", help="a name for this candidate in the JSON line")
     args = p.parse_args(argv)
     torch.manual_seed(0)
@@ -84,7 +105,7 @@ def main(argv=None) -> int:
         "preset": args.preset,
         "catalogue_first": os.environ.get("LASAGNA_LAYERS", ""),
         "label": args.label,
-        **measure(args.photos, args.preset, args.sheet),
+        **measure(args.photos, args.preset, args.sheet, args.layer_sheet),
     }
     print_json_line(record)
     return 0
