@@ -355,6 +355,7 @@ class Recipe:
             negative_prompt=request.negative_prompt,
             options=diffusers_options(p, request.diffusers),
             control=None if control is None else _as_stored_control(control),
+            catalogue_dirs=catalogue_dirs,
         )
 
     @classmethod
@@ -410,6 +411,7 @@ class Recipe:
             options=s.diffusers or p.diffusers or DiffusersOptions(),
             control=_stored_control(stack, s.control_image, where),
             stored=None if catalogue_generator else _stored_generator(stack, layer, chosen, where),
+            catalogue_dirs=catalogue_dirs,
         )
         _warn_changed(recipe, s, where)
         return recipe
@@ -433,8 +435,10 @@ def _made(
     options: DiffusersOptions,
     control: Tensor | None,
     stored: tuple[Path, dict[str, str]] | None = None,
+    catalogue_dirs=None,
 ) -> Recipe:
-    """The recipe of these choices, its generator and (with ``distill``) its prior and corrective checked."""
+    """The recipe of these choices, its generator and (with ``distill``) its prior and corrective checked;
+    ``catalogue_dirs`` where a recorded surface start's estimator is looked for."""
     p = resolved.preset
     generator, generator_sha, record = None, None, None
     if method == "amortised":
@@ -449,17 +453,24 @@ def _made(
         scoring = _scoring(resolved, distill.loss, options, user=user)
     start: dict[str, Any] = {}
     if distill is not None and distill.start == "surface" and method == "per-image":
-        # A free layer that starts from the preset's surface estimate (lasagna.learned._surface_start).
-        if p.surface is None or resolved.estimator is None:
+        # A free layer that starts from a surface estimate (lasagna.learned._surface_start): made as its settings
+        # record (``start_surface``), else as the preset says (settings recorded before the start was recorded).
+        surface = distill.start_surface or p.surface
+        if surface is None or (resolved.estimator is None and surface is p.surface):
             raise resolved.missing.get("estimator") or LasagnaError(
                 f"the free layer starts from a surface, and preset {p.name!r} names no surface estimator; expected "
                 "a preset with `surface`",
                 "distill.start",
             )
+        estimator = resolved.estimator
+        if p.surface is None or surface.estimator != p.surface.estimator or estimator is None:
+            # The layer was made with another estimator than the preset names now: that one, found by its name.
+            relative = resolved.preset_file.parent if "/" in surface.estimator else None
+            estimator = cat.find(surface.estimator, "estimator", catalogue_dirs=catalogue_dirs, relative_to=relative)
         start = dict(
-            estimator=resolved.estimator,
-            estimator_sha256=file_sha256(resolved.estimator / "model.safetensors"),
-            surface=p.surface,
+            estimator=estimator,
+            estimator_sha256=file_sha256(estimator / "model.safetensors"),
+            surface=surface,
         )
     return Recipe(
         preset=p,

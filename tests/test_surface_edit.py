@@ -334,3 +334,37 @@ def test_the_start_relief_deepens_only_a_free_layers_surface_start(tiny, tmp_pat
     from lasagna.catalogue import load_preset
 
     assert load_preset("relight").surface.start_relief == 3.0 and load_preset("shading").surface.start_relief == 1.0
+
+
+def test_a_surface_start_is_made_again_from_its_record_not_from_a_changed_preset(tiny, tmp_path_factory):
+    """A free layer started from a surface records how the start was made (``distill.start_surface``: the preset's
+    `surface` fields then). Made again after the preset changed (another start relief and symmetry), it is the same
+    layer; settings recorded before the start was recorded (no ``start_surface``) take the preset's fields."""
+    from lasagna.editing import conditioning_input
+    from lasagna.learned import make_layer
+    from lasagna.recipe import Recipe
+
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("record") / "layers")
+    preset = json.loads((folder / "relight" / "preset.json").read_text())
+    distill = {**preset["distill"], "steps": 2, "particles": 1, "start": "surface"}
+    made_with = {**SURFACE, "estimator": "surface-lit-32", "start_relief": 3.0}
+    write_preset(folder, "relight", distill=distill, surface=made_with)
+    res = edit(image(), "relight", "left", catalogue_dirs=[folder])
+    layer = res.stack.document.layer(res.layer_id)
+    recorded = layer.settings["distill"]["start_surface"]
+    assert recorded["start_relief"] == 3.0 and recorded["estimator"] == "surface-lit-32"
+    base = conditioning_input(res.stack, layer.conditioned_on)
+    write_preset(folder, "relight", distill=distill, surface={**made_with, "start_relief": 1.0, "symmetry": "mirrors"})
+    again = make_layer(Recipe.from_layer(res.stack, layer, catalogue_dirs=[folder]), base, "again")
+    torch.testing.assert_close(again.layer, res.layer, atol=2 * 4.0 / 65535, rtol=0)
+    now = edit(image(), "relight", "left", catalogue_dirs=[folder]).layer  # what the changed preset makes
+    assert float((now - res.layer).abs().max()) > 1e-3
+    # Settings from before the record: the preset's fields, i.e. the changed preset's layer.
+    del layer.settings["distill"]["start_surface"]
+    older = make_layer(Recipe.from_layer(res.stack, layer, catalogue_dirs=[folder]), base, "older")
+    torch.testing.assert_close(older.layer, now, atol=2 * 4.0 / 65535, rtol=0)
+    # Made with another estimator than the preset names now: the recorded one, found by its name.
+    write_preset(folder, "relight", distill=distill, surface={**made_with, "estimator": "surface-albedo-32"})
+    layer.settings["distill"]["start_surface"] = recorded
+    other = make_layer(Recipe.from_layer(res.stack, layer, catalogue_dirs=[folder]), base, "other")
+    torch.testing.assert_close(other.layer, res.layer, atol=2 * 4.0 / 65535, rtol=0)

@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_serial
 
 from lasagna.distill.objective import ConditionImage
 from lasagna.distill.schedules import Ramp, Weights
-from lasagna.document.preset import Aspect, FreeLock, FreeStart, LossName
+from lasagna.document.preset import Aspect, FreeLock, FreeStart, LossName, SurfaceDefaults
 from lasagna.errors import describe_validation_error
 from lasagna.generators.layer import LayerSpec
 from lasagna.limits import MAX_CROPS_PER_STEP, MAX_DISTILL_STEPS, MAX_PARTICLES
@@ -109,6 +109,12 @@ class DistillSettings(BaseModel):
         description="What of its start a free layer keeps after the steps: nothing, or its planar trend "
         "(lasagna.learned.planar_lock).",
     )
+    start_surface: SurfaceDefaults | None = Field(
+        None,
+        description="How a surface start was made (``start`` 'surface'): the preset's `surface` fields when the layer "
+        "was made — estimator, working size, dome prior, symmetry ensemble, start relief — so the layer is made again "
+        "from its record, not from a preset changed since. None: the preset's (settings recorded before).",
+    )
 
     @model_serializer(mode="wrap")
     def _dump(self, handler):
@@ -118,6 +124,8 @@ class DistillSettings(BaseModel):
             del data["start"]
         if data.get("lock") == "none":  # likewise: no lock is every layer's before locks
             del data["lock"]
+        if data.get("start_surface") is None:  # likewise: settings recorded before surface starts were recorded
+            data.pop("start_surface", None)
         return data
 
     @model_validator(mode="after")
@@ -147,6 +155,7 @@ class DistillSettings(BaseModel):
             "aspect": d.aspect,
             "start": d.start,
             "lock": d.lock,
+            "start_surface": preset.surface if d.start == "surface" else None,
         }
         return cls.parse({**data, **{k: v for k, v in overrides.items() if v is not None}})
 
