@@ -111,6 +111,46 @@ SELECT_SETTINGS: dict[str, list[dict]] = {
     # The round of 2026-11-26 (6): the guided enlargement judged where it acts (above the working size), with the
     # deepened start.
     "guided enlargement": [{"preset": {"enlarge": "guided"}}],
+    # The round of 2026-11-26 (7): the surface route (`--layer-kind surface`), and its surface refined by multi-light
+    # score distillation (`surface.refine_steps`: every step renders the one surface under `lights_per_step` lights
+    # and the prior scores them all; `lasagna.distill.surface`).
+    "surface route": [{"layer_kind": "surface"}],
+    **{
+        f"surface refined {n}, anchor {a:g}, lr {lr:g}": [
+            {"layer_kind": "surface", "preset": {"surface": {"refine_steps": n, "anchor": a, "lr": lr}}}
+        ]
+        for n in (60, 150)
+        for a in (1.0, 0.1)
+        for lr in (0.01, 0.03)
+    },
+    # One step further along the axis that won (the anchor), at 60 steps.
+    **{
+        f"surface refined 60, anchor {a:g}, lr {lr:g}": [
+            {"layer_kind": "surface", "preset": {"surface": {"refine_steps": 60, "anchor": a, "lr": lr}}}
+        ]
+        for a in (0.01, 0.0)
+        for lr in (0.01, 0.03)
+    },
+    # The fitted source light refined with the surface (`surface.refine_light`).
+    **{
+        f"surface refined 60, anchor {a:g}, lr 0.03, light refined": [
+            {
+                "layer_kind": "surface",
+                "preset": {"surface": {"refine_steps": 60, "anchor": a, "lr": 0.03, "refine_light": True}},
+            }
+        ]
+        for a in (0.01, 0.0)
+    },
+    # The refinement's correction without its low frequencies (`surface.refine_lock`, σ a fraction of the side).
+    **{
+        f"surface refined 60, anchor 0.01, lr 0.03, lock {sigma:g}": [
+            {
+                "layer_kind": "surface",
+                "preset": {"surface": {"refine_steps": 60, "anchor": 0.01, "lr": 0.03, "refine_lock": sigma}},
+            }
+        ]
+        for sigma in (0.05, 0.1, 0.2, 0.4)
+    },
 }
 
 

@@ -198,6 +198,13 @@ def leak_row(args, split: str, size: int, albedo_net, lit_net, dome=None) -> dic
         y = lambert(n, lights_of(labels)).double()
         flat = y.mean(dim=(1, 2, 3), keepdim=True).expand_as(y)
         out[f"leak_db_{name}"] = round(psnr(y, flat), 2)
+    if args.edit_leak:  # the edits' own layers on the walls (shading: the albedo; relight: lit), every --edits kind
+        lit = relighting(walls, relight_sources(walls.params)).base.float()
+        for kind in args.edits:
+            for preset, image in (("shading", walls.albedo.float()), ("relight", lit)):
+                y = edit_layers(image, preset, labels, layer_kind=kind)[0].double()
+                flat = y.mean(dim=(1, 2, 3), keepdim=True).expand_as(y)
+                out[f"leak_db_{preset}_{kind}"] = round(psnr(y, flat), 2)
     return out
 
 
@@ -284,6 +291,11 @@ def main(argv=None) -> int:
         default=[],
         choices=("free", "surface"),
         help="also measure `lasagna edit` with these --layer-kind (the catalogue's presets: free is today's layer)",
+    )
+    p.add_argument(
+        "--edit-leak",
+        action="store_true",
+        help="also measure the wall leak of `lasagna edit --layer shading` and `--layer relight`, each --edits kind",
     )
     p.add_argument("--photos", type=Path, default=ROOT / "examples" / "photos" / "large", help="512² photographs")
     p.add_argument("--sheet", type=Path, default=None, help="photo sheet: input | normals | shading | left | right")

@@ -331,9 +331,24 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
             t_max=ds.t_max,
             seed=ds.seed,
             aspect=ds.aspect,
+            refine_source=sd.refine_light and recipe.source_light is None,
+            lock_sigma=sd.refine_lock,
+            callback=callback,
         )
         surface, history = fit.surface, fit.history
-        made_by.update(refine_steps=recipe.steps, prior=recipe.prior_ref, prior_sha256=recipe.prior_sha256)
+        made_by.update(
+            refine_steps=recipe.steps,
+            lights_per_step=sd.lights_per_step,
+            refine_lr=sd.lr,
+            anchor=sd.anchor,
+            prior=recipe.prior_ref,
+            prior_sha256=recipe.prior_sha256,
+        )
+        if sd.refine_lock > 0:
+            made_by.update(refine_lock=sd.refine_lock)
+        if sd.refine_light and recipe.source_light is None and fit.source is not None:
+            source = light_condition(fit.source[0])  # the refined light, as the stack stores and renders it
+            made_by.update(refine_light=True)
     normals = surface_normals(enlarge_surface(surface, tuple(base.shape[-2:])))[0].cpu()
     stored = LayerTensors(stored_normals(normals))  # what the 16-bit map gives back, made a band at a time
     layer = surface_tensors(stored, recipe.label, source, AMBIENT).color

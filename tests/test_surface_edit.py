@@ -368,3 +368,29 @@ def test_a_surface_start_is_made_again_from_its_record_not_from_a_changed_preset
     layer.settings["distill"]["start_surface"] = recorded
     other = make_layer(Recipe.from_layer(res.stack, layer, catalogue_dirs=[folder]), base, "other")
     torch.testing.assert_close(other.layer, res.layer, atol=2 * 4.0 / 65535, rtol=0)
+
+
+def test_a_refined_relight_surface_records_its_refinement_and_renders_from_its_map(tiny, tmp_path_factory, tmp_path):
+    """``surface.refine_steps`` > 0 for a relight: the surface is refined by multi-light score distillation, the
+    layer records how (steps, lights per step, lr, anchor, lock, a refined light), the saved stack renders the same
+    bits; ``refine_light`` steps a fitted source light but keeps a light given with --from; the lock changes the
+    surface."""
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("refine") / "layers")
+    lit = {**SURFACE, "estimator": "surface-lit-32", "refine_steps": 3, "lr": 0.03, "anchor": 0.01}
+    write_preset(folder, "relight", surface=lit)
+    plain = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=[folder])
+    write_preset(folder, "relight", surface={**lit, "refine_lock": 0.2, "refine_light": True})
+    res = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=[folder])
+    layer = res.stack.document.layer(res.layer_id)
+    made = layer.made_by
+    assert (made["refine_steps"], made["lights_per_step"], made["refine_lr"], made["anchor"]) == (3, 4, 0.03, 0.01)
+    assert made["refine_lock"] == 0.2 and made["refine_light"] is True
+    assert "refine_lock" not in plain.stack.document.layer(plain.layer_id).made_by
+    fitted = plain.stack.document.layer(plain.layer_id).source_light
+    assert layer.source_light.startswith("az=") and layer.source_light != fitted
+    assert not torch.equal(res.layer, plain.layer)
+    res.stack.save(tmp_path / "s")
+    assert torch.equal(load_stack(tmp_path / "s").render().image, res.stack.render().image)
+    given = edit(image(), "relight", "right", layer_kind="surface", source_light="top", catalogue_dirs=[folder])
+    kept = given.stack.document.layer(given.layer_id)
+    assert kept.source_light == "top" and "refine_light" not in kept.made_by

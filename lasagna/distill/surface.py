@@ -12,7 +12,10 @@ multi-light distillation is to a surface what multi-view SDS (DreamFusion) is to
 3. compose base × layer for the B·K views and score them with the prior in one batched pass (SDS or LMC-SDS
    through `lasagna.distill.objective.ScoreObjective`, conditioned on each view's light);
 4. an anchor λ‖h − h₀‖² keeps the surface near its start (the estimator's, `lasagna.training.surface`), so the
-   prior refines a shape rather than inventing one, and Adam steps h.
+   prior refines a shape rather than inventing one, and Adam steps h — and, for a relight whose source light was
+   fitted rather than given (``refine_source``), that light too: the fit is made to the estimator's own surface and
+   is typically 15° off (docs/BENCHMARKS.md, "Relight through a surface"), which sets the level of every flat
+   region's ratio, S(l)/S(l_src) at n = +z; the prior, which sees the composite under every light, can say so.
 
 Every random draw (lights, t, ε) comes from one generator seeded with ``seed``: the same inputs give the same
 surface.
@@ -20,13 +23,21 @@ surface.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
-from lasagna.compose.surface import lambert, light_vector, relight_ratio, surface_normals, surface_range
+from lasagna.compose.surface import (
+    MAX_FIT_ELEVATION,
+    lambert,
+    light_vector,
+    relight_ratio,
+    surface_normals,
+    surface_range,
+)
 from lasagna.distill.objective import ScoreObjective, build_loss
 from lasagna.distill.schedules import Weights, cosine_lr
 from lasagna.document.condition import AMBIENT, parse_direction
@@ -37,11 +48,12 @@ from lasagna.priors.base import Prior
 
 @dataclass
 class SurfaceFit:
-    """The distilled surface (height (B, 1, h, w) or normals (B, 3, h, w), as its start), its unit normals, and one
-    record per step."""
+    """The distilled surface (height (B, 1, h, w) or normals (B, 3, h, w), as its start), its unit normals, the source
+    lights (B, 3) of a relight (refined or as given; None for an unlit base), and one record per step."""
 
     surface: Tensor
     normals: Tensor
+    source: Tensor | None = None
     history: list[dict[str, float]] = field(default_factory=list)
 
 
@@ -64,10 +76,19 @@ def distill_surface(
     seed: int = 0,
     ambient: float = AMBIENT,
     aspect: str = "letterbox",
+    refine_source: bool = False,
+    lock_sigma: float = 0.0,
+    callback: Callable[[int, Tensor], None] | None = None,
 ) -> SurfaceFit:
     """Refine ``init_surface`` — a height field (B, 1, h, w) or unit normals (B, 3, h, w) — of the bases ``base``
     (B, 3, h, w) by multi-light score distillation (module docstring). ``source`` (B, 3): the lit bases' source
-    lights (a relight: the layer is a ratio); None: the bases are unlit (albedo) and the layer is the shading."""
+    lights (a relight: the layer is a ratio); None: the bases are unlit (albedo) and the layer is the shading.
+    ``refine_source``: the source lights are stepped with the surface (unit vectors, the elevation kept below
+    `lasagna.compose.surface.MAX_FIT_ELEVATION`) and returned in ``SurfaceFit.source``. ``lock_sigma`` > 0: the
+    correction h − h₀ is kept without its low frequencies (a Gaussian of that width, a fraction of the long side,
+    removed from it): the start's large shape — what gives a photograph's relight its direction — stays the
+    estimator's, and the prior refines the rest. ``callback(step, layer)``, if given, sees each step's first view
+    (detached, before the update): the editor's progress, which cancels a run by raising from it."""
     if base.dim() != 4 or base.shape[1] != 3:
         raise LasagnaError(f"base has shape {tuple(base.shape)}; expected (B, 3, H, W)", "base")
     if (
@@ -100,20 +121,27 @@ def distill_surface(
     b, k = base.shape[0], lights_per_step
     h0 = init_surface.detach()
     height = h0.clone().requires_grad_()
-    opt = torch.optim.Adam([height], lr=lr)
+    params = [height]
+    light = None if source is None else source.detach().to(base.dtype).clone()
+    if refine_source and light is not None:
+        light.requires_grad_()
+        params.append(light)
+    opt = torch.optim.Adam(params, lr=lr)
     rng = torch.Generator().manual_seed(seed)
     views = base.repeat_interleave(k, dim=0)
-    src = None if source is None else source.to(base.dtype).repeat_interleave(k, dim=0)
     history: list[dict[str, float]] = []
     for step in range(steps):
         for group in opt.param_groups:
             group["lr"] = cosine_lr(lr, step, steps, 0.1)
         pick = torch.randint(0, len(lights), (b * k,), generator=rng)
-        normals = surface_normals(height).repeat_interleave(k, dim=0)
-        if src is None:
+        normals = surface_normals(_locked(height, h0, lock_sigma)).repeat_interleave(k, dim=0)
+        if light is None:
             layer = lambert(normals, vectors[pick], ambient)
         else:
+            src = _unit_light(light).repeat_interleave(k, dim=0)
             layer = relight_ratio(normals, vectors[pick], src, ambient)
+        if callback is not None:
+            callback(step, layer[:1].detach())
         out = objective(views, layer, [lights[int(i)] for i in pick], rng=rng, step=step)
         pull = anchor * (height - h0).pow(2).mean()
         total = out.total + pull
@@ -121,5 +149,44 @@ def distill_surface(
         total.backward()
         opt.step()
         history.append({"step": step, "score": out.score, "anchor": float(pull.detach()), **out.summary()})
-    final = height.detach()
-    return SurfaceFit(surface=final, normals=surface_normals(final), history=history)
+    final = _locked(height, h0, lock_sigma).detach()
+    lit = None if light is None else _unit_light(light.detach())
+    return SurfaceFit(surface=final, normals=surface_normals(final), source=lit, history=history)
+
+
+def _locked(height: Tensor, h0: Tensor, sigma: float) -> Tensor:
+    """h₀ + (δ − G_σ ∗ δ) with δ = h − h₀: the refinement's correction without its low frequencies (σ a fraction of
+    the long side; 0: the correction as it is), so the start's large shape is kept."""
+    if sigma <= 0:
+        return height
+    delta = height - h0
+    return h0 + delta - _blur(delta, sigma * max(height.shape[-2:]))
+
+
+def _blur(x: Tensor, sigma: float) -> Tensor:
+    """A separable Gaussian blur of ``x`` (B, C, H, W), σ in pixels, edges mirrored (radius 3σ, at most a side − 1)."""
+    c = x.shape[1]
+    for dim in (-1, -2):
+        r = max(1, min(int(math.ceil(3 * sigma)), x.shape[dim] - 1))
+        t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
+        k = torch.exp(-0.5 * (t / sigma) ** 2)
+        k = (k / k.sum()).repeat(c, 1, 1)
+        if dim == -1:
+            x = torch.nn.functional.conv2d(
+                torch.nn.functional.pad(x, (r, r, 0, 0), mode="reflect"), k[:, :, None, :], groups=c
+            )
+        else:
+            x = torch.nn.functional.conv2d(
+                torch.nn.functional.pad(x, (0, 0, r, r), mode="reflect"), k[:, :, :, None], groups=c
+            )
+    return x
+
+
+def _unit_light(v: Tensor) -> Tensor:
+    """Unit lights (B, 3) from free vectors, the elevation kept below ``MAX_FIT_ELEVATION`` (as a fitted light's:
+    l_z ≥ cos 85°, so S(l_src) never rests on the ambient floor over a flat region)."""
+    u = v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    z_min = math.cos(math.radians(MAX_FIT_ELEVATION))
+    z = u[:, 2:].clamp_min(z_min)
+    xy = u[:, :2] * ((1.0 - z.pow(2)).clamp_min(0.0).sqrt() / u[:, :2].norm(dim=-1, keepdim=True).clamp_min(1e-12))
+    return torch.cat([xy, z], -1)

@@ -204,6 +204,20 @@ class SurfaceDefaults(StrictModel):
     anchor: FiniteFloat = Field(
         1.0, ge=0, description="Weight of ‖h − h₀‖², which keeps the refinement near the estimate."
     )
+    refine_lock: FiniteFloat = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="The refinement's correction to the estimate without its low frequencies: a Gaussian of this "
+        "width (a fraction of the working size's long side) removed from it, so the estimate's large shape is kept "
+        "(`lasagna.distill.surface`); 0: the correction as it is.",
+    )
+    refine_light: bool = Field(
+        False,
+        strict=True,
+        description="Refine a lit input's fitted source light with the surface (`refine_steps` > 0; a light the "
+        "user gives with --from is kept as given).",
+    )
     working_size: int = Field(32, ge=8, le=4096, strict=True, description="The long side the surface is estimated at.")
     dome_weight: FiniteFloat = Field(
         0.0,

@@ -69,7 +69,10 @@ def test_the_anchor_holds_the_start_and_the_seed_repeats():
     start = 0.5 * truth
     kw = dict(init_surface=start, lights=LIGHTS, steps=20, lights_per_step=2, lr=0.02, seed=3)
     held = distill_surface(base, prior, anchor=1e6, **kw)
-    a, b = distill_surface(base, prior, anchor=0.0, **kw), distill_surface(base, prior, anchor=0.0, **kw)
+    seen: list[int] = []
+    a = distill_surface(base, prior, anchor=0.0, callback=lambda step, layer: seen.append(step), **kw)
+    b = distill_surface(base, prior, anchor=0.0, **kw)
+    assert seen == list(range(20))  # the editor's progress and cancel: once per step, before it
     # Adam scales steps to about lr whatever the gradient: a strong anchor turns them back toward the start.
     assert float((held.surface - start).abs().max()) < 0.2 * float((a.surface - start).abs().max())
     assert torch.equal(a.surface, b.surface)
@@ -82,3 +85,58 @@ def test_refusals():
         distill_surface(base, prior, init_surface=torch.zeros(1, 1, 4, 4), lights=LIGHTS)
     with pytest.raises(LasagnaError, match="expected at least one light"):
         distill_surface(base, prior, init_surface=torch.zeros(1, 1, SIDE, SIDE), lights=())
+
+
+def test_a_relights_source_light_refined_with_the_surface_moves_toward_the_true_one():
+    """A lit base A·S(n, l_src) and a prior whose label l has mean A·S(n, l) (the relit truth): from the true surface
+    held by a strong anchor and a source light 25° off, stepping the light (``refine_source``) brings it closer; without
+    it the light is returned as given."""
+    truth = dome()
+    n = normals_from_height(truth)
+    true_src = light_vector(200.0, 30.0)[None]
+    albedo = torch.full((1, 3, SIDE, SIDE), 0.7)
+    base = albedo * lambert(n, true_src)
+    prior = problem(albedo, truth)  # label l: A·S(n, l), what the relit composite base·S(l)/S(l_src) should be
+    wrong = light_vector(200.0, 55.0)[None]
+    kw = dict(init_surface=truth, lights=LIGHTS, steps=120, lights_per_step=4, lr=0.02, anchor=1e6, t_min=0.02)
+    kw.update(t_max=0.5, seed=0, source=wrong)
+    fit = distill_surface(base, prior, refine_source=True, **kw)
+    kept = distill_surface(base, prior, **kw)
+
+    def angle(a, b):
+        return float(torch.rad2deg(torch.acos((a * b).sum().clamp(-1, 1))))
+
+    assert angle(fit.source, true_src) < 0.5 * angle(wrong, true_src)
+    assert torch.allclose(fit.source.norm(dim=-1), torch.ones(1), atol=1e-6)
+    assert torch.allclose(kept.source, wrong)
+
+
+def test_the_lock_removes_a_corrections_low_frequencies_and_keeps_its_detail():
+    """``lock_sigma``: h₀ + (δ − G_σ∗δ). A constant correction is removed exactly (the mirrored, normalised Gaussian
+    keeps a constant), a one-pixel checkerboard is kept to within its Gaussian's residue, and σ 0 is the identity."""
+    from lasagna.distill.surface import _locked
+
+    h0 = dome()
+    board = ((torch.arange(SIDE)[:, None] + torch.arange(SIDE)[None]) % 2 * 2 - 1).float()[None, None] * 0.01
+    assert torch.allclose(_locked(h0 + 0.3, h0, 0.2), h0, atol=1e-6)
+    kept = _locked(h0 + board, h0, 0.2) - h0
+    assert float((kept - board).abs().max()) < 0.1 * float(board.abs().max())
+    assert torch.equal(_locked(h0 + board, h0, 0.0), h0 + board)
+
+
+def test_a_locked_refinement_keeps_the_starts_large_shape():
+    """From a start that is the true dome plus a broad tilt, the locked refinement keeps the tilt (its correction has
+    no low frequencies to undo it with), while the unlocked one is free to remove it."""
+    from lasagna.distill.surface import _blur
+
+    base = torch.full((1, 3, SIDE, SIDE), 0.8)
+    truth = dome()
+    prior = problem(base, truth)
+    tilt = torch.linspace(-0.5, 0.5, SIDE)[None, None, None, :].expand_as(truth)
+    start = truth + tilt
+    kw = dict(init_surface=start, lights=LIGHTS, steps=150, lights_per_step=4, lr=0.02, anchor=0.0, t_min=0.02)
+    kw.update(t_max=0.5, seed=0)
+    free, locked = distill_surface(base, prior, **kw), distill_surface(base, prior, lock_sigma=0.3, **kw)
+    sigma = 0.3 * SIDE
+    broad = [float(_blur(fit.surface - start, sigma).abs().mean()) for fit in (free, locked)]
+    assert broad[1] < 0.5 * broad[0]
