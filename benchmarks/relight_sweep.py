@@ -151,6 +151,16 @@ SELECT_SETTINGS: dict[str, list[dict]] = {
         ]
         for sigma in (0.05, 0.1, 0.2, 0.4)
     },
+    # The adopted refinement made at working size 64 (`surface.refine_size`): whole image, then native crops.
+    **{
+        f"surface refined {n} at 64, anchor 0.01, lr 0.03, lock 0.2": [
+            {
+                "layer_kind": "surface",
+                "preset": {"surface": {"refine_steps": n, "refine_size": 64}},
+            }
+        ]
+        for n in (60, 150)
+    },
 }
 
 

@@ -315,6 +315,14 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         prior = load_prior(recipe.prior, preset=recipe.preset, device=device)
         ds, sd = recipe.distill, recipe.surface
         src = None if source is None else light_vector(*parse_direction(source), device=device)[None]
+        whole = 1.0
+        if sd.refine_size is not None and sd.refine_size != recipe.working_size:
+            # Refined at another size: the estimate enlarged to it (heights in canvas units), scored like a free
+            # layer at that size — the whole image first, then crops at native resolution.
+            x = working_input(base, sd.refine_size, device)
+            surface = enlarge_surface(surface, tuple(x.shape[-2:]))
+            whole = ds.patches.whole_fraction
+            made_by.update(refine_size=sd.refine_size)
         fit = distill_surface(
             x,
             prior,
@@ -334,6 +342,7 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
             refine_source=sd.refine_light and recipe.source_light is None,
             lock_sigma=sd.refine_lock,
             callback=callback,
+            whole_fraction=whole,
         )
         surface, history = fit.surface, fit.history
         made_by.update(

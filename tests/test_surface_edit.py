@@ -394,3 +394,8 @@ def test_a_refined_relight_surface_records_its_refinement_and_renders_from_its_m
     given = edit(image(), "relight", "right", layer_kind="surface", source_light="top", catalogue_dirs=[folder])
     kept = given.stack.document.layer(given.layer_id)
     assert kept.source_light == "top" and "refine_light" not in kept.made_by
+    # Refined at another size than the estimate's: recorded, and the map is still the base's size.
+    write_preset(folder, "relight", surface={**lit, "refine_size": 32})
+    larger = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=[folder])
+    assert larger.stack.document.layer(larger.layer_id).made_by["refine_size"] == 32
+    assert larger.layer.shape == (1, 24, 40) and not torch.equal(larger.layer, plain.layer)

@@ -38,7 +38,7 @@ from lasagna.compose.surface import (
     surface_normals,
     surface_range,
 )
-from lasagna.distill.objective import ScoreObjective, build_loss
+from lasagna.distill.objective import ScoreObjective, build_loss, draw_patches, prior_image_size
 from lasagna.distill.schedules import Weights, cosine_lr
 from lasagna.document.condition import AMBIENT, parse_direction
 from lasagna.errors import LasagnaError
@@ -79,6 +79,7 @@ def distill_surface(
     refine_source: bool = False,
     lock_sigma: float = 0.0,
     callback: Callable[[int, Tensor], None] | None = None,
+    whole_fraction: float = 1.0,
 ) -> SurfaceFit:
     """Refine ``init_surface`` — a height field (B, 1, h, w) or unit normals (B, 3, h, w) — of the bases ``base``
     (B, 3, h, w) by multi-light score distillation (module docstring). ``source`` (B, 3): the lit bases' source
@@ -88,7 +89,10 @@ def distill_surface(
     correction h − h₀ is kept without its low frequencies (a Gaussian of that width, a fraction of the long side,
     removed from it): the start's large shape — what gives a photograph's relight its direction — stays the
     estimator's, and the prior refines the rest. ``callback(step, layer)``, if given, sees each step's first view
-    (detached, before the update): the editor's progress, which cancels a run by raising from it."""
+    (detached, before the update): the editor's progress, which cancels a run by raising from it.
+    ``whole_fraction`` < 1 on a base larger than the prior: the rest of the steps score random crops of the prior's
+    size at native resolution (one per view), as the free layer's per-image distillation does (LMC-SDS Sec. 5), so
+    the prior sees the surface's detail at the working size."""
     if base.dim() != 4 or base.shape[1] != 3:
         raise LasagnaError(f"base has shape {tuple(base.shape)}; expected (B, 3, H, W)", "base")
     if (
@@ -130,6 +134,10 @@ def distill_surface(
     rng = torch.Generator().manual_seed(seed)
     views = base.repeat_interleave(k, dim=0)
     history: list[dict[str, float]] = []
+    size = prior_image_size(prior)
+    h, w = base.shape[-2:]
+    patchable = h >= size[0] and w >= size[1] and (h, w) != tuple(size)
+    whole_steps = round(whole_fraction * steps) if patchable else steps
     for step in range(steps):
         for group in opt.param_groups:
             group["lr"] = cosine_lr(lr, step, steps, 0.1)
@@ -142,7 +150,8 @@ def distill_surface(
             layer = relight_ratio(normals, vectors[pick], src, ambient)
         if callback is not None:
             callback(step, layer[:1].detach())
-        out = objective(views, layer, [lights[int(i)] for i in pick], rng=rng, step=step)
+        rows = None if step < whole_steps else draw_patches(b * k, (h, w), size, 1, rng)
+        out = objective(views, layer, [lights[int(i)] for i in pick], rng=rng, step=step, patches=rows)
         pull = anchor * (height - h0).pow(2).mean()
         total = out.total + pull
         opt.zero_grad(set_to_none=True)

@@ -204,6 +204,15 @@ class SurfaceDefaults(StrictModel):
     anchor: FiniteFloat = Field(
         1.0, ge=0, description="Weight of ‖h − h₀‖², which keeps the refinement near the estimate."
     )
+    refine_size: int | None = Field(
+        None,
+        ge=8,
+        le=4096,
+        strict=True,
+        description="The long side the refinement works at: the estimate enlarged to it, scored on the whole image "
+        "for `distill.whole_fraction` of the steps and on crops of the prior's size at native resolution after; "
+        "None: the estimate's working size.",
+    )
     refine_lock: FiniteFloat = Field(
         0.0,
         ge=0,

@@ -140,3 +140,21 @@ def test_a_locked_refinement_keeps_the_starts_large_shape():
     sigma = 0.3 * SIDE
     broad = [float(_blur(fit.surface - start, sigma).abs().mean()) for fit in (free, locked)]
     assert broad[1] < 0.5 * broad[0]
+
+
+def test_crops_at_native_resolution_after_the_whole_fraction():
+    """``whole_fraction`` < 1 on a base larger than the prior: the later steps score crops of the prior's size (the
+    result differs from scoring the whole image throughout, and repeats by seed); on a base of the prior's own size
+    there is nothing to crop and the field changes nothing."""
+    truth = dome()
+    small = torch.full((1, 3, SIDE, SIDE), 0.8)
+    prior = problem(small, truth)  # a prior of SIDE² images
+    big = torch.nn.functional.interpolate(small, scale_factor=2, mode="nearest")
+    start = torch.nn.functional.interpolate(0.5 * truth, scale_factor=2, mode="bicubic", align_corners=False)
+    kw = dict(lights=LIGHTS, steps=12, lights_per_step=2, lr=0.02, anchor=0.0, seed=5)
+    whole = distill_surface(big, prior, init_surface=start, **kw)
+    crops = distill_surface(big, prior, init_surface=start, whole_fraction=0.5, **kw)
+    again = distill_surface(big, prior, init_surface=start, whole_fraction=0.5, **kw)
+    assert not torch.equal(whole.surface, crops.surface) and torch.equal(crops.surface, again.surface)
+    same = [distill_surface(small, prior, init_surface=0.5 * truth, whole_fraction=f, **kw) for f in (1.0, 0.5)]
+    assert torch.equal(same[0].surface, same[1].surface)
