@@ -225,7 +225,12 @@ def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
     sd = recipe.surface
     dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
     normals, source = net.estimate_at(
-        x.float(), dome, side=sd.working_size, symmetry=sd.symmetry, relief=sd.start_relief
+        x.float(),
+        dome,
+        side=sd.working_size,
+        symmetry=sd.symmetry,
+        relief=sd.start_relief,
+        elevation=sd.light_calibration,
     )
     target = light_vector(*parse_direction(recipe.label), device=normals.device)[None]
     layer = lambert(normals, target) if source is None else lambert(normals, target) / lambert(normals, source)
@@ -295,7 +300,7 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
     sd = recipe.surface
     dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
     with torch.no_grad():
-        surface, fitted = net.estimate(x, dome, symmetry=sd.symmetry)
+        surface, fitted = net.estimate(x, dome, symmetry=sd.symmetry, elevation=sd.light_calibration)
     source = None
     if net.config.input == "lit":
         source = recipe.source_light or light_condition(fitted[0])
@@ -309,6 +314,8 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         made_by.update(dome_weight=dome.weight, dome_height=dome.height)
     if sd.symmetry != "none":
         made_by.update(symmetry=sd.symmetry)
+    if net.config.input == "lit" and recipe.source_light is None and sd.light_calibration is not None:
+        made_by.update(light_calibration=list(sd.light_calibration))
     if recipe.distill is not None:
         from lasagna.compose.surface import light_vector
 
@@ -323,6 +330,13 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
             surface = enlarge_surface(surface, tuple(x.shape[-2:]))
             whole = ds.patches.whole_fraction
             made_by.update(refine_size=sd.refine_size)
+        weight = None
+        if sd.refine_objects:  # the walls keep the estimate: the correction weighted by the silhouette probability
+            with torch.no_grad():
+                weight = net.silhouette(working_input(base, recipe.working_size, device), sd.symmetry)
+            if tuple(weight.shape[-2:]) != tuple(x.shape[-2:]):
+                weight = torch.nn.functional.interpolate(weight, size=tuple(x.shape[-2:]), mode="bilinear")
+            made_by.update(refine_objects=True)
         fit = distill_surface(
             x,
             prior,
@@ -343,6 +357,7 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
             lock_sigma=sd.refine_lock,
             callback=callback,
             whole_fraction=whole,
+            weight=weight,
         )
         surface, history = fit.surface, fit.history
         made_by.update(

@@ -394,6 +394,17 @@ def test_a_refined_relight_surface_records_its_refinement_and_renders_from_its_m
     given = edit(image(), "relight", "right", layer_kind="surface", source_light="top", catalogue_dirs=[folder])
     kept = given.stack.document.layer(given.layer_id)
     assert kept.source_light == "top" and "refine_light" not in kept.made_by
+    # Refined on the objects only (the correction weighted by the silhouette head), the fitted light calibrated:
+    # both recorded, and the source light is the calibrated one (10° further from the view axis).
+    write_preset(folder, "relight", surface={**lit, "refine_objects": True, "light_calibration": [10.0, 1.0]})
+    masked = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=[folder])
+    record = masked.stack.document.layer(masked.layer_id).made_by
+    assert record["refine_objects"] is True and record["light_calibration"] == [10.0, 1.0]
+    from lasagna.document.condition import parse_direction
+
+    az, el = parse_direction(masked.stack.document.layer(masked.layer_id).source_light)
+    fit_az, fit_el = parse_direction(fitted)  # the same estimate's light, as fitted (texts rounded to 0.01°)
+    assert abs(el - min(fit_el + 10.0, 85.0)) < 0.02 and abs((az - fit_az + 180) % 360 - 180) < 0.02
     # Refined at another size than the estimate's: recorded, and the map is still the base's size.
     write_preset(folder, "relight", surface={**lit, "refine_size": 32})
     larger = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=[folder])

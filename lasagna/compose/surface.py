@@ -98,6 +98,22 @@ def fit_light(normals: Tensor, shading: Tensor, ambient: float = AMBIENT) -> Ten
     return torch.where(low, grazing, light)
 
 
+def calibrate_elevation(light: Tensor, offset: float, gain: float) -> Tensor:
+    """Unit lights (B, 3) with their elevation θ (degrees from the view axis) mapped to offset + gain·θ, clamped to
+    [0, ``MAX_FIT_ELEVATION``]; the azimuth kept (a light on the view axis keeps azimuth 0). A fitted light's
+    calibration: the fit through an estimated surface is drawn toward the view axis where the estimate is shallow,
+    and a line fitted on training scenes (el_true on el_fit, least squares) undoes the drift on average."""
+    el = torch.rad2deg(torch.acos(light[:, 2].clamp(-1.0, 1.0)))
+    el = (offset + gain * el).clamp(0.0, MAX_FIT_ELEVATION)
+    xy = light[:, :2]
+    norm = xy.norm(dim=1, keepdim=True)
+    along = torch.where(
+        norm > 1e-9, xy / norm.clamp_min(1e-12), torch.tensor([1.0, 0.0], dtype=light.dtype, device=light.device)
+    )
+    r = torch.deg2rad(el)[:, None]
+    return torch.cat([along * torch.sin(r), torch.cos(r)], 1)
+
+
 def normals_from_height(height: Tensor) -> Tensor:
     """Unit normals (B, 3, H, W) of a height field (B, 1, H, W) in canvas units (the canvas is 2 units wide).
 

@@ -80,6 +80,7 @@ def distill_surface(
     lock_sigma: float = 0.0,
     callback: Callable[[int, Tensor], None] | None = None,
     whole_fraction: float = 1.0,
+    weight: Tensor | None = None,
 ) -> SurfaceFit:
     """Refine ``init_surface`` — a height field (B, 1, h, w) or unit normals (B, 3, h, w) — of the bases ``base``
     (B, 3, h, w) by multi-light score distillation (module docstring). ``source`` (B, 3): the lit bases' source
@@ -142,7 +143,7 @@ def distill_surface(
         for group in opt.param_groups:
             group["lr"] = cosine_lr(lr, step, steps, 0.1)
         pick = torch.randint(0, len(lights), (b * k,), generator=rng)
-        normals = surface_normals(_locked(height, h0, lock_sigma)).repeat_interleave(k, dim=0)
+        normals = surface_normals(_locked(height, h0, lock_sigma, weight)).repeat_interleave(k, dim=0)
         if light is None:
             layer = lambert(normals, vectors[pick], ambient)
         else:
@@ -158,18 +159,21 @@ def distill_surface(
         total.backward()
         opt.step()
         history.append({"step": step, "score": out.score, "anchor": float(pull.detach()), **out.summary()})
-    final = _locked(height, h0, lock_sigma).detach()
+    final = _locked(height, h0, lock_sigma, weight).detach()
     lit = None if light is None else _unit_light(light.detach())
     return SurfaceFit(surface=final, normals=surface_normals(final), source=lit, history=history)
 
 
-def _locked(height: Tensor, h0: Tensor, sigma: float) -> Tensor:
-    """h₀ + (δ − G_σ ∗ δ) with δ = h − h₀: the refinement's correction without its low frequencies (σ a fraction of
-    the long side; 0: the correction as it is), so the start's large shape is kept."""
-    if sigma <= 0:
+def _locked(height: Tensor, h0: Tensor, sigma: float, weight: Tensor | None = None) -> Tensor:
+    """h₀ + w·(δ − G_σ ∗ δ) with δ = h − h₀: the refinement's correction without its low frequencies (σ a fraction of
+    the long side; 0: the correction as it is), so the start's large shape is kept; ``weight`` w (B, 1, h, w) in
+    [0, 1] (None: 1) says where it may act at all."""
+    if sigma <= 0 and weight is None:
         return height
     delta = height - h0
-    return h0 + delta - _blur(delta, sigma * max(height.shape[-2:]))
+    if sigma > 0:
+        delta = delta - _blur(delta, sigma * max(height.shape[-2:]))
+    return h0 + (delta if weight is None else weight * delta)
 
 
 def _blur(x: Tensor, sigma: float) -> Tensor:

@@ -221,6 +221,18 @@ class SurfaceDefaults(StrictModel):
         "width (a fraction of the working size's long side) removed from it, so the estimate's large shape is kept "
         "(`lasagna.distill.surface`); 0: the correction as it is.",
     )
+    refine_objects: bool = Field(
+        False,
+        strict=True,
+        description="The refinement acts on the objects only: its correction weighted by the estimator's silhouette "
+        "probability (walls keep the estimate). Needs an estimator with a silhouette head.",
+    )
+    light_calibration: tuple[FiniteFloat, FiniteFloat] | None = Field(
+        None,
+        description="(offset, gain): a lit estimator's fitted source light's elevation θ (degrees) mapped to "
+        "offset + gain·θ (`lasagna.compose.surface.calibrate_elevation`), the line fitted on `train` by "
+        "benchmarks/light_calibration.py; None: as fitted. A light given with --from is used as given.",
+    )
     refine_light: bool = Field(
         False,
         strict=True,

@@ -48,6 +48,7 @@ from torch import Tensor, nn
 from lasagna.compose.resample import downsample, working_size
 from lasagna.compose.surface import (
     DOME_MAX_SIDE,
+    calibrate_elevation,
     deepen_normals,
     dome_normals,
     enlarge_surface,
@@ -207,12 +208,18 @@ class SurfaceEstimator(Pretrained, nn.Module):
         return surface_normals(surface)
 
     def estimate(
-        self, image: Tensor, dome: DomePrior | None = None, symmetry: Symmetry = "none", relief: float = 1.0
+        self,
+        image: Tensor,
+        dome: DomePrior | None = None,
+        symmetry: Symmetry = "none",
+        relief: float = 1.0,
+        elevation: tuple[float, float] | None = None,
     ) -> tuple[Tensor, Tensor | None]:
         """(surface — height or normals, as ``decompose``; unit normals where ``dome`` mixes in the dome prior,
         ``symmetry`` averages an ensemble or ``relief`` ≠ 1 deepens the estimate (`deepen_normals`: slopes times
         ``relief``) — and the source light (B, 3), or None for albedo input): the light is the fit of the final
-        surface's normals to the estimated source shading (module docstring)."""
+        surface's normals to the estimated source shading (module docstring), its elevation mapped by ``elevation``
+        (offset, gain) when given (`lasagna.compose.surface.calibrate_elevation`)."""
         if symmetry not in SYMMETRIES:
             raise LasagnaError(f"got {symmetry!r}; expected one of {', '.join(SYMMETRIES)}", "symmetry")
         if symmetry == "none":
@@ -238,7 +245,27 @@ class SurfaceEstimator(Pretrained, nn.Module):
             surface = deepen_normals(self.normals(surface), relief)
         if shading is None:
             return surface, None
-        return surface, fit_light(self.normals(surface), shading)
+        light = fit_light(self.normals(surface), shading)
+        return surface, light if elevation is None else calibrate_elevation(light, *elevation)
+
+    @torch.no_grad()
+    def silhouette(self, image: Tensor, symmetry: Symmetry = "none") -> Tensor:
+        """The probability (B, 1, H, W) that each pixel of ``image`` lies on an object, by the silhouette head (its
+        sigmoid), averaged over ``symmetry``'s ensemble as ``estimate`` averages the surface."""
+        if not self.config.silhouette:
+            raise LasagnaError(
+                "this estimator has no silhouette head (train-surface --silhouette); expected one", "silhouette"
+            )
+        if symmetry not in SYMMETRIES:
+            raise LasagnaError(f"got {symmetry!r}; expected one of {', '.join(SYMMETRIES)}", "symmetry")
+        views = []
+        for transpose in (False, True) if symmetry == "dihedral" else (False,):
+            seen = image.transpose(-1, -2) if transpose else image
+            for dims, _ in MIRRORS if symmetry != "none" else ((None, None),):
+                p = torch.sigmoid(self.outputs(seen.flip(dims) if dims else seen).silhouette)
+                p = p.flip(dims) if dims else p
+                views.append(p.transpose(-1, -2) if transpose else p)
+        return torch.stack(views).mean(0)
 
     def _one_estimate(self, image: Tensor, dome: DomePrior | None) -> tuple[Tensor, Tensor | None]:
         """(surface, with the dome prior mixed in where asked; the source shading or None) of one pass."""
@@ -261,11 +288,12 @@ class SurfaceEstimator(Pretrained, nn.Module):
         side: int | None = None,
         symmetry: Symmetry = "none",
         relief: float = 1.0,
+        elevation: tuple[float, float] | None = None,
     ) -> tuple[Tensor, Tensor | None]:
         """(unit normals (B, 3, H, W), source light (B, 3) or None) of ``image`` (B, 3, H, W) in [0, 1]: estimated
         at the working size ``side`` (None: the one it was trained at; `lasagna.compose.resample.working_size`),
         the surface enlarged back to (H, W) (`lasagna.compose.surface.enlarge_surface`)."""
         full = tuple(image.shape[-2:])
         small = downsample(image, working_size(*full, side or self.config.working_size))
-        surface, light = self.estimate(small, dome, symmetry, relief)
+        surface, light = self.estimate(small, dome, symmetry, relief, elevation)
         return self.normals(enlarge_surface(surface, full)), light

@@ -247,3 +247,55 @@ def test_relief_deepens_the_estimate_and_the_light_is_fitted_to_the_deepened_sur
     n_at, light_at = net.estimate_at(image, side=16, symmetry=symmetry, relief=2.5)
     torch.testing.assert_close(n_at, deep_n, atol=1e-6, rtol=0)
     torch.testing.assert_close(light_at, deep_light)
+
+
+@pytest.mark.parametrize("symmetry", ["none", "mirrors", "dihedral"])
+def test_the_silhouette_is_the_heads_probability_averaged_over_the_ensemble(symmetry):
+    """``silhouette``: the sigmoid of the silhouette head, in [0, 1], the mean of its passes mapped back (by hand
+    here); under the ensemble a mirrored image gives the mirrored map; no head is a one-line refusal."""
+    from lasagna.generators.surface import MIRRORS
+
+    torch.manual_seed(9)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", silhouette=True, **TOY))
+    torch.nn.init.normal_(net.head.weight, std=0.5)
+    image = torch.rand(1, 3, 12, 12)
+    p = net.silhouette(image, symmetry)
+    assert p.shape == (1, 1, 12, 12) and float(p.min()) >= 0.0 and float(p.max()) <= 1.0
+    passes = []
+    for transpose in (False, True) if symmetry == "dihedral" else (False,):
+        seen = image.transpose(-1, -2) if transpose else image
+        for dims, _ in MIRRORS if symmetry != "none" else ((None, None),):
+            one = torch.sigmoid(net.outputs(seen.flip(dims) if dims else seen).silhouette)
+            one = one.flip(dims) if dims else one
+            passes.append(one.transpose(-1, -2) if transpose else one)
+    torch.testing.assert_close(p, torch.stack(passes).mean(0))
+    if symmetry != "none":
+        torch.testing.assert_close(net.silhouette(image.flip(-1), symmetry), p.flip(-1), atol=1e-6, rtol=0)
+    plain = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
+    with pytest.raises(LasagnaError, match="silhouette: this estimator has no silhouette head"):
+        plain.silhouette(image)
+
+
+def test_a_calibrated_elevation_maps_the_fitted_lights_elevation_and_keeps_its_azimuth():
+    """``estimate(..., elevation=(offset, gain))``: the fitted light's elevation θ becomes offset + gain·θ (float64
+    closed form), its azimuth and unit length kept, clamped at ``MAX_FIT_ELEVATION``; a light on the view axis keeps
+    azimuth 0; (0, 1) is the identity."""
+    from lasagna.compose.surface import calibrate_elevation
+
+    torch.manual_seed(10)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
+    torch.nn.init.normal_(net.head.weight, std=0.5)
+    image = torch.rand(2, 3, 8, 8)
+    _, light = net.estimate(image)
+    _, moved = net.estimate(image, elevation=(26.43, 0.59))
+    el = torch.rad2deg(torch.acos(light[:, 2].double()))
+    want = (26.43 + 0.59 * el).clamp(0, MAX_FIT_ELEVATION)
+    torch.testing.assert_close(torch.rad2deg(torch.acos(moved[:, 2].double())), want, atol=1e-3, rtol=0)
+    torch.testing.assert_close(torch.atan2(moved[:, 1], moved[:, 0]), torch.atan2(light[:, 1], light[:, 0]))
+    torch.testing.assert_close(moved.norm(dim=1), torch.ones(2), atol=1e-6, rtol=0)
+    # float32 acos then cos near the view axis (θ of a few degrees): a few 1e-6 of round trip.
+    torch.testing.assert_close(calibrate_elevation(light, 0.0, 1.0), light, atol=2e-5, rtol=0)
+    up = torch.tensor([[0.0, 0.0, 1.0]])
+    torch.testing.assert_close(calibrate_elevation(up, 30.0, 1.0), torch.tensor([[0.5, 0.0, math.sqrt(3) / 2]]))
+    steep = calibrate_elevation(torch.tensor([[1.0, 0.0, 0.0]]), 0.0, 2.0)
+    assert abs(math.degrees(math.acos(float(steep[0, 2]))) - MAX_FIT_ELEVATION) < 1e-4
