@@ -129,9 +129,10 @@ class AddLearned(_Body):
     condition: Text
     on: Text | None = None
     method: Literal["amortised", "per-image"] = "amortised"
+    kind: Literal["free", "surface"] | None = None
 
     def call(self, session):
-        return session.add_learned(self.version, self.preset, self.condition, self.on, self.method)
+        return session.add_learned(self.version, self.preset, self.condition, self.on, self.method, self.kind)
 
 
 class SetLight(_Body):

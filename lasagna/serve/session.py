@@ -373,11 +373,19 @@ class EditSession(SessionViews, SessionJobs):
             )
 
     def add_learned(
-        self, version: Any, preset: Any, condition: Any, on: Any = None, method: Any = "amortised"
+        self,
+        version: Any,
+        preset: Any,
+        condition: Any,
+        on: Any = None,
+        method: Any = "amortised",
+        kind: Any = None,
     ) -> dict[str, Any]:
         """A learned layer of catalogue preset ``preset`` for ``condition`` on top, by ``lasagna edit``'s recipe
         (``lasagna.editing.plan_edit``). ``amortised``: made now (one forward pass). ``per-image``: added without
-        pixels, its settings saying how to make it, for a ``rerender`` job to make with progress."""
+        pixels, its settings saying how to make it, for a ``rerender`` job to make with progress. ``kind``
+        "surface": a surface layer (``--layer-kind surface``), made now — the preset's estimator and its refinement
+        steps, if any (about a second for ``relight``) — whose light the page then drags."""
         from lasagna.editing import layer_fields, plan_edit
         from lasagna.learned import make_layer
         from lasagna.recipe import EditRequest
@@ -388,9 +396,12 @@ class EditSession(SessionViews, SessionJobs):
             self._check_version(version)
             self._check_idle("add learned layer")
             start = time.monotonic()
-            request = EditRequest(preset=preset, condition=condition, on=on, generator=method)
+            if kind == "surface":
+                request = EditRequest(preset=preset, condition=condition, on=on, layer_kind="surface")
+            else:
+                request = EditRequest(preset=preset, condition=condition, on=on, generator=method, layer_kind=kind)
             plan = plan_edit(self.stack, request, catalogue_dirs=self.catalogue_dirs)
-            if plan.recipe.method == "per-image":
+            if plan.recipe.method == "per-image" and plan.recipe.kind != "surface":
                 fields = {
                     **layer_fields(plan.layer_id, plan.recipe, plan.on),
                     "settings": plan.recipe.pending_settings(),
@@ -468,7 +479,11 @@ class EditSession(SessionViews, SessionJobs):
             try:
                 p = cat.load_preset(name, self.folder, self.catalogue_dirs)
                 entry.update(
-                    vocabulary=list(p.vocabulary), blend=p.blend, description=p.description, channels=p.channels
+                    vocabulary=list(p.vocabulary),
+                    blend=p.blend,
+                    description=p.description,
+                    channels=p.channels,
+                    surface=p.surface is not None,
                 )
             except LasagnaError as exc:
                 entry.update(ready=False, why=str(exc))

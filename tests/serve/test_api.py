@@ -433,6 +433,32 @@ def test_presets_are_listed_ready_or_why_not(client):
     assert presets["shading"]["ready"] and presets["shading"]["method"] == "amortised"
     assert presets["shading"]["amortised"] and not presets["color"]["amortised"]
     assert presets["light"]["vocabulary"] == ["warm", "cool", "white"]
+    assert presets["shading"]["surface"] and presets["relight"]["surface"] and not presets["color"]["surface"]
+
+
+@pytest.mark.parametrize("preset, source", [("shading", False), ("relight", True)])
+def test_a_surface_layer_is_added_with_its_light_and_re_lit_by_dragging(client, preset, source):
+    """``kind: surface``: the preset's surface layer, made at once (relight: refined, its source light fitted),
+    whose light the page then drags (``op: light``) — the same layer under the new light, re-rendered from its map."""
+    s = change(client, op="learned", preset=preset, condition="left", kind="surface")
+    layer = s["document"]["layers"][-1]
+    assert layer["kind"] == "surface" and layer["light"] == "left"
+    assert (layer.get("source_light") is not None) == source
+    before = view(client, level=0)
+    change(client, op="light", id=layer["id"], light="az=0,el=60")
+    assert not np.array_equal(view(client, level=0), before)
+    r = client.post(
+        "/api/change",
+        headers=H,
+        json={
+            "op": "learned",
+            "preset": "color",
+            "condition": "red",
+            "kind": "surface",
+            "version": state(client)["version"],
+        },
+    )
+    assert "names no surface estimator" in refused(r, 400)
 
 
 def test_the_light_picker_gets_the_named_lights_from_the_server(client):

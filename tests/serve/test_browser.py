@@ -295,6 +295,20 @@ def test_a_per_image_layer_shows_progress_and_can_be_cancelled(browser, server, 
     page.close()
 
 
+def test_add_surface_makes_a_surface_layer_under_the_picked_light(browser, server, folder):
+    page = open_page(browser, server)
+    page.select_option("#preset", "color")
+    assert page.is_disabled("#add-surface")  # color has no surface estimator
+    page.select_option("#preset", "shading")
+    page.click('#picker button[data-condition="top-left"]')
+    v = version(page)
+    page.click("#add-surface")
+    settle(page, v + 1)
+    top = page.evaluate("window.lasagna.state.document.layers.at(-1)")
+    assert top["kind"] == "surface" and top["light"] == "top-left" and top.get("source_light") is None
+    save_and_check(page, folder)
+
+
 def test_two_tabs_never_overwrite_each_other(browser, server, folder):
     a, b = open_page(browser, server), open_page(browser, server)
     v = version(a)

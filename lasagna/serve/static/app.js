@@ -376,6 +376,7 @@ function drawPicker() {
   $("preset-why").textContent = p && !p.ready ? p.why : "";
   $("add-learned").disabled = !p || !p.amortised;  // a generator is installed (whatever the preset's default)
   $("add-per-image").disabled = !p || !p.ready;
+  $("add-surface").disabled = !p || !p.surface;
   if (!p || !p.vocabulary) return;
   if (!p.vocabulary.includes(ui.condition)) ui.condition = p.vocabulary[0];
   const compass = p.vocabulary.every((v) => v in ui.lights);
@@ -581,11 +582,13 @@ function wire() {
   $("split").onchange = (e) => { ui.split = e.target.checked; paint(); };
   $("split-pos").oninput = () => draw();
   $("preset").onchange = drawPicker;
-  const addLearned = async (method) => {
+  const addLearned = async (method, kind) => {
     const p = ui.presets.find((x) => x.name === $("preset").value);
-    status("adding a learned layer…");
+    status(kind === "surface" ? "estimating a surface…" : "adding a learned layer…");
     const before = new Set(ui.state.document.layers.map((l) => l.id));
-    if (!(await change({ op: "learned", preset: p.name, condition: ui.condition, method }))) return;
+    const body = { op: "learned", preset: p.name, condition: ui.condition, method };
+    if (kind) body.kind = kind;
+    if (!(await change(body))) return;
     const added = ui.state.document.layers.find((l) => !before.has(l.id));
     if (added) ui.selected = added.id;
     drawLayers(); drawProps();
@@ -593,6 +596,7 @@ function wire() {
   };
   $("add-learned").onclick = () => addLearned("amortised");
   $("add-per-image").onclick = () => addLearned("per-image");
+  $("add-surface").onclick = () => addLearned("amortised", "surface");
   $("add-solid").onclick = () => {
     const hex = $("solid-color").value;
     const rgb = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
