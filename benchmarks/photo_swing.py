@@ -17,8 +17,9 @@ entry of a name wins), e.g. a folder holding ``relight/preset.json`` and ``surfa
 candidate estimator). ``--sheet`` writes input | toward left | toward right | toward top | toward bottom per
 photograph; ``--layer-sheet`` the layers toward the left: input | the surface alone (``layer_kind="surface"``) |
 the edit's layer | its composite (layers shown at half their value, so 1 is mid-grey): what the distillation adds
-to the surface, paint included, is seen there. Ends with one JSON line: per photograph and axis, the mean, the
-smallest and the count of wrong signs.
+to the surface, paint included, is seen there. ``--surface-sheet`` shows the surface layer itself (issue #24's
+sheet): input | its normal map | its shading from the top-left | toward the left | toward the right. Ends with one
+JSON line: per photograph and axis, the mean, the smallest and the count of wrong signs.
 """
 
 from __future__ import annotations
@@ -47,6 +48,25 @@ def half(t: torch.Tensor) -> torch.Tensor:
 def layer_tile(layer: torch.Tensor) -> torch.Tensor:
     """A multiplier layer (1, H, W) as a grey tile at half its value (1 → mid-grey), clamped."""
     return (layer[:1] / 2).clamp(0, 1).expand(3, -1, -1)
+
+
+def surface_sheet(folder: Path, preset: str, path: Path) -> None:
+    """Issue #24's sheet of the surface layer (``layer_kind="surface"``, as `lasagna edit --layer-kind surface`
+    makes it): input | its stored normal map | its shading from the top-left | composite toward the left | toward
+    the right, one row per photograph, at half size."""
+    from lasagna.compose.surface import decode_normal_map, lambert, light_vector
+    from lasagna.document.condition import parse_direction
+
+    rows = []
+    for file in sorted(folder.glob("*.jpg")):
+        image = read_photo(file)[0]
+        left = lasagna.edit(image, preset, "left", layer_kind="surface")
+        right = lasagna.edit(image, preset, "right", layer_kind="surface")
+        rgb = left.stack.tensors[left.layer_id].color  # the 16-bit tangent-space map, +Y up
+        shading = lambert(decode_normal_map(rgb[None].float()), light_vector(*parse_direction("top-left"))[None])[0]
+        shown = (image, rgb, shading.clamp(0, 1).expand(3, -1, -1), left.composite, right.composite)
+        rows.append([half(t) for t in shown])
+    save_sheet([list(column) for column in zip(*rows)], path)
 
 
 def measure(folder: Path, preset: str, sheet: Path | None, layer_sheet: Path | None = None) -> dict:
@@ -95,9 +115,17 @@ def main(argv=None) -> int:
     p.add_argument(
         "--layer-sheet", type=Path, default=None, help="toward the left: input | surface alone | layer | composite"
     )
+    p.add_argument(
+        "--surface-sheet",
+        type=Path,
+        default=None,
+        help="the surface layer: input | normal map | shading from the top-left | toward left | toward right",
+    )
     p.add_argument("--label", default="", help="a name for this candidate in the JSON line")
     args = p.parse_args(argv)
     torch.manual_seed(0)
+    if args.surface_sheet is not None:
+        surface_sheet(args.photos, args.preset, args.surface_sheet)
     record = {
         "benchmark": "photo_swing",
         "machine": machine_info(),
