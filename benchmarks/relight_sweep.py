@@ -161,6 +161,25 @@ SELECT_SETTINGS: dict[str, list[dict]] = {
         ]
         for n in (60, 150)
     },
+    # Round 8: the surface layer's fitted source light calibrated (round 7's line, fitted on train by
+    # benchmarks/light_calibration.py), alone and refined on the objects only (C′, adopted: the shipped preset since);
+    # then its correction kept as a band without the working size's finest relief (D, on top of C′).
+    "surface refined, calibrated": [
+        {"layer_kind": "surface", "preset": {"surface": {"light_calibration": [26.43, 0.590]}}},
+    ],
+    "surface refined, calibrated, objects": [
+        {
+            "layer_kind": "surface",
+            "preset": {"surface": {"light_calibration": [26.43, 0.590], "refine_objects": True}},
+        },
+    ],
+    # Round 8's E: the default's four particles as a mirror ensemble (`distill.particle_mirrors`).
+    "mirror particles": [{"preset": {"distill": {"particle_mirrors": True}}}],
+    "surface refined, guided": [{"layer_kind": "surface", "preset": {"surface": {"enlarge": "guided"}}}],
+    **{
+        f"surface refined, smooth {s:g}": [{"layer_kind": "surface", "preset": {"surface": {"refine_smooth": s}}}]
+        for s in (0.5, 1.0)
+    },
 }
 
 

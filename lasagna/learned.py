@@ -214,8 +214,10 @@ def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
     surface estimate of ``x`` (the working input) at ``surface.working_size`` with its dome prior and symmetry
     ensemble, deepened by ``surface.start_relief`` (an estimator's regression to the mean makes it shallow where it is
     unsure; the distillation's start wants the relief, a surface layer the estimate as it is), rendered under
-    the condition's light — S(l) for an unlit base, S(l)/S(l_src) for a lit one (the source light fitted) — clamped
-    to the layer's range. The free layer's per-pixel steps then correct what one surface cannot say (a free residual
+    the condition's light — S(l) for an unlit base, S(l)/S(l_src) for a lit one (the source light as fitted:
+    ``surface.light_calibration`` is the surface layer's, since a calibrated, steeper source light makes S(l_src)
+    small on surfaces facing away from it and the free layer's correction paints glows there) — clamped to the
+    layer's range. The free layer's per-pixel steps then correct what one surface cannot say (a free residual
     on a surface)."""
     from lasagna.compose.surface import lambert, light_vector
     from lasagna.document.condition import parse_direction
@@ -230,7 +232,6 @@ def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
         side=sd.working_size,
         symmetry=sd.symmetry,
         relief=sd.start_relief,
-        elevation=sd.light_calibration,
     )
     target = light_vector(*parse_direction(recipe.label), device=normals.device)[None]
     layer = lambert(normals, target) if source is None else lambert(normals, target) / lambert(normals, source)
@@ -355,6 +356,7 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
             aspect=ds.aspect,
             refine_source=sd.refine_light and recipe.source_light is None,
             lock_sigma=sd.refine_lock,
+            smooth_sigma=sd.refine_smooth,
             callback=callback,
             whole_fraction=whole,
             weight=weight,
@@ -370,10 +372,24 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         )
         if sd.refine_lock > 0:
             made_by.update(refine_lock=sd.refine_lock)
+        if sd.refine_smooth > 0:
+            made_by.update(refine_smooth=sd.refine_smooth)
         if sd.refine_light and recipe.source_light is None and fit.source is not None:
             source = light_condition(fit.source[0])  # the refined light, as the stack stores and renders it
             made_by.update(refine_light=True)
-    normals = surface_normals(enlarge_surface(surface, tuple(base.shape[-2:])))[0].cpu()
+    size = tuple(base.shape[-2:])
+    if recipe.surface.enlarge == "guided" and tuple(surface.shape[-2:]) != size:
+        # The relief's edges follow the image's, not the working size's pixel grid (a 32² normal map enlarged 16×
+        # bicubically shows it as a staircase): the fast guided filter of the normals, the base's luma as guide.
+        from lasagna.compose.color import luma
+        from lasagna.compose.resample import guided_upsample
+        from lasagna.compose.surface import facing_normals
+
+        guide = luma(base.to(surface.device)[None].float())
+        normals = facing_normals(guided_upsample(surface_normals(surface), guide))[0].cpu()
+        made_by.update(enlarge="guided")
+    else:
+        normals = surface_normals(enlarge_surface(surface, size))[0].cpu()
     stored = LayerTensors(stored_normals(normals))  # what the 16-bit map gives back, made a band at a time
     layer = surface_tensors(stored, recipe.label, source, AMBIENT).color
     settings = LayerSettings(method=recipe.method, optimize=recipe.steps, working_size=recipe.working_size)

@@ -336,6 +336,40 @@ def test_the_start_relief_deepens_only_a_free_layers_surface_start(tiny, tmp_pat
     assert load_preset("relight").surface.start_relief == 3.0 and load_preset("shading").surface.start_relief == 1.0
 
 
+def test_the_light_calibration_is_the_surface_layers_not_the_free_starts(tiny, tmp_path_factory):
+    """``surface.light_calibration`` moves a surface layer's fitted source light (its elevation by the offset) but
+    not a free layer's surface start, which keeps the light as fitted: a calibrated start makes the free layer's
+    correction paint glows (docs/BENCHMARKS.md, round 7's M2). The shipped relight preset calibrates its surface
+    layer, refined on the objects only (round 8's C′)."""
+    from lasagna.document.condition import parse_direction
+    from lasagna.editing import conditioning_input
+    from lasagna.learned import _surface_start, layer_input
+    from lasagna.recipe import Recipe
+
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("calibration") / "layers")
+    preset = json.loads((folder / "relight" / "preset.json").read_text())
+    distill = {**preset["distill"], "steps": 1, "particles": 1, "start": "surface"}
+    starts, sources = {}, {}
+    for calibration in (None, [10.0, 1.0]):
+        surface = {**SURFACE, "estimator": "surface-lit-32", "light_calibration": calibration}
+        write_preset(folder, "relight", distill=distill, surface=surface)
+        res = edit(image(), "relight", "left", catalogue_dirs=[folder])
+        layer = res.stack.document.layer(res.layer_id)
+        recipe = Recipe.from_layer(res.stack, layer, catalogue_dirs=[folder])
+        x = layer_input(recipe, conditioning_input(res.stack, layer.conditioned_on), "cpu")
+        starts[calibration is None] = _surface_start(recipe, x, "cpu")
+        write_preset(folder, "relight", surface=surface, layer_kind="surface")
+        surfaced = edit(image(), "relight", "left", catalogue_dirs=[folder])
+        sources[calibration is None] = parse_direction(surfaced.stack.document.layer(surfaced.layer_id).source_light)
+    torch.testing.assert_close(starts[False], starts[True], atol=0, rtol=0)
+    assert abs(sources[False][1] - min(sources[True][1] + 10.0, 85.0)) < 0.02
+    from lasagna.catalogue import load_preset
+
+    shipped = load_preset("relight").surface
+    assert shipped.light_calibration is not None and shipped.refine_objects is True
+    assert load_preset("shading").surface.light_calibration is None
+
+
 def test_a_surface_start_is_made_again_from_its_record_not_from_a_changed_preset(tiny, tmp_path_factory):
     """A free layer started from a surface records how the start was made (``distill.start_surface``: the preset's
     `surface` fields then). Made again after the preset changed (another start relief and symmetry), it is the same
@@ -410,3 +444,16 @@ def test_a_refined_relight_surface_records_its_refinement_and_renders_from_its_m
     larger = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=[folder])
     assert larger.stack.document.layer(larger.layer_id).made_by["refine_size"] == 32
     assert larger.layer.shape == (1, 24, 40) and not torch.equal(larger.layer, plain.layer)
+    # The correction kept as a band (its finest relief removed) and the normals enlarged along the image's edges:
+    # both recorded, both change the layer, and the saved stack renders the guided map's bits.
+    write_preset(folder, "relight", surface={**lit, "refine_smooth": 1.0})
+    smooth = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=[folder])
+    assert smooth.stack.document.layer(smooth.layer_id).made_by["refine_smooth"] == 1.0
+    assert not torch.equal(smooth.layer, plain.layer)
+    write_preset(folder, "relight", surface={**lit, "enlarge": "guided"})
+    guided = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=[folder])
+    assert guided.stack.document.layer(guided.layer_id).made_by["enlarge"] == "guided"
+    assert "enlarge" not in plain.stack.document.layer(plain.layer_id).made_by
+    assert guided.layer.shape == plain.layer.shape and not torch.equal(guided.layer, plain.layer)
+    guided.stack.save(tmp_path / "g")
+    assert torch.equal(load_stack(tmp_path / "g").render().image, guided.stack.render().image)

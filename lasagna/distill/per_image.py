@@ -182,16 +182,26 @@ def distill_image(
     # is their mean (``_mean_particles``), so the score's noise averages out over the copies.
     k = settings.particles
     images = base
+    mirrors = settings.particle_mirrors and k > 1
     if k > 1:
         base = base.repeat_interleave(k, dim=0)
         labels = [label for label in labels for _ in range(k)]
         neg = None if neg is None else [label for label in neg for _ in range(k)]
-        if control is not None and control.shape[0] > 1:
-            control = control.repeat_interleave(k, dim=0)
+        if control is not None:
+            control = control.expand(images.shape[0], -1, -1, -1).repeat_interleave(k, dim=0)
+    if mirrors:  # each particle sees the image, its control and its light mirrored (the module docstring)
+        base = _mirror_particles(base, k)
+        labels = _mirror_labels(labels, k)
+        neg = None if neg is None else _mirror_labels(neg, k)
+        control = None if control is None else _mirror_particles(control, k)
     b, _, h, w = base.shape
     model = _make_model(generator, settings, base)
     if k > 1 and isinstance(model, FreeLayer) and model.config.batch == b // k:
-        model = _tile_free(model, k)  # a given start (a refinement): every particle starts from it
+        model = _tile_free(model, k, mirrors)  # a given start (a refinement): every particle starts from it
+
+    def mean_layer(layer: Tensor) -> Tensor:
+        """The particles' layers, each mirrored back, averaged per image."""
+        return _mean_particles(_mirror_particles(layer, k) if mirrors else layer, k)
 
     spec = settings.layer
     weights = settings.resolved_weights()
@@ -240,14 +250,14 @@ def distill_image(
         if settings.grad_clip is not None:
             torch.nn.utils.clip_grad_norm_(model.parameters(), settings.grad_clip)
         opt.step()
-        return _mean_particles(layer.detach(), k), out
+        return mean_layer(layer.detach()), out
 
     model.train()
     _step_loop(run, settings, whole_steps, step_fn, save=save, progress=progress, callback=callback)
 
     model.eval()
     with torch.no_grad():
-        final = _mean_particles(model(base, model_in).detach(), k)
+        final = mean_layer(model(base, model_in).detach())
         comp = composite(images, final, spec).clamp(0.0, 1.0)
     seconds = run.history[-1]["time_s"] if run.history else 0.0
     return DistillResult(
@@ -403,12 +413,45 @@ def _make_model(generator, settings: DistillSettings, base: Tensor) -> nn.Module
     return copy.deepcopy(generator).to(base.device)
 
 
-def _tile_free(model: FreeLayer, k: int) -> FreeLayer:
-    """A free layer of k× the batch whose particles (each image's k contiguous entries) all start at ``model``'s."""
+def _tile_free(model: FreeLayer, k: int, mirrors: bool = False) -> FreeLayer:
+    """A free layer of k× the batch whose particles (each image's k contiguous entries) all start at ``model``'s
+    (``mirrors``: each mirrored as its particle's image is)."""
     tiled = FreeLayer(model.config.model_copy(update={"batch": model.config.batch * k})).to(model.u.device)
     with torch.no_grad():
-        tiled.u.copy_(model.u.repeat_interleave(k, dim=0))
+        u = model.u.repeat_interleave(k, dim=0)
+        tiled.u.copy_(_mirror_particles(u, k) if mirrors else u)
     return tiled
+
+
+PARTICLE_MIRRORS: tuple[tuple[bool, bool], ...] = ((False, False), (True, False), (False, True), (True, True))
+"""(left-right, top-bottom) mirror of particle j (``j % 4``) of a mirror ensemble (``settings.particle_mirrors``)."""
+
+
+def _mirror_particles(x: Tensor, k: int) -> Tensor:
+    """(B·k, C, H, W) with each image's k particles contiguous: particle j mirrored by ``PARTICLE_MIRRORS[j % 4]``
+    (an involution, so the same call maps a particle's layer back to its image)."""
+    out = []
+    for i in range(x.shape[0]):
+        lr, tb = PARTICLE_MIRRORS[(i % k) % len(PARTICLE_MIRRORS)]
+        dims = [d for d, on in ((-1, lr), (-2, tb)) if on]
+        out.append(x[i].flip(dims) if dims else x[i])
+    return torch.stack(out)
+
+
+def _mirror_labels(labels: list[str], k: int) -> list[str]:
+    """Each particle's light condition mirrored as its image is (`lasagna.document.condition.mirror_direction`)."""
+    from lasagna.document.condition import mirror_direction
+
+    out = []
+    for i, label in enumerate(labels):
+        lr, tb = PARTICLE_MIRRORS[(i % k) % len(PARTICLE_MIRRORS)]
+        try:
+            out.append(mirror_direction(label, lr, tb) if lr or tb else label)
+        except LasagnaError as e:
+            raise LasagnaError(
+                f"particle_mirrors needs light conditions; {label!r} is not one", where="particle_mirrors"
+            ) from e
+    return out
 
 
 def _mean_particles(layer: Tensor, k: int) -> Tensor:

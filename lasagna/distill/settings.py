@@ -89,6 +89,9 @@ class DistillSettings(BaseModel):
         le=MAX_PARTICLES,
         description="Layers per image with their own noise draws, averaged at the end (per_image.py).",
     )
+    particle_mirrors: bool = Field(
+        False, description="Particle j sees the image and its light mirrored by PARTICLE_MIRRORS[j % 4] (per_image.py)."
+    )
     weights: Weights | None = Field(None, description="Objective weights; None = per_image_weights(steps).")
     patches: PatchConfig = PatchConfig()
     early_stop: EarlyStop | None = EarlyStop()
@@ -151,6 +154,7 @@ class DistillSettings(BaseModel):
             "t_max": d.t_max,
             "seed": d.seed,
             "particles": d.particles,
+            "particle_mirrors": d.particle_mirrors,
             "patches": PatchConfig(whole_fraction=d.whole_fraction),
             "aspect": d.aspect,
             "start": d.start,

@@ -81,6 +81,7 @@ def distill_surface(
     callback: Callable[[int, Tensor], None] | None = None,
     whole_fraction: float = 1.0,
     weight: Tensor | None = None,
+    smooth_sigma: float = 0.0,
 ) -> SurfaceFit:
     """Refine ``init_surface`` — a height field (B, 1, h, w) or unit normals (B, 3, h, w) — of the bases ``base``
     (B, 3, h, w) by multi-light score distillation (module docstring). ``source`` (B, 3): the lit bases' source
@@ -93,7 +94,9 @@ def distill_surface(
     (detached, before the update): the editor's progress, which cancels a run by raising from it.
     ``whole_fraction`` < 1 on a base larger than the prior: the rest of the steps score random crops of the prior's
     size at native resolution (one per view), as the free layer's per-image distillation does (LMC-SDS Sec. 5), so
-    the prior sees the surface's detail at the working size."""
+    the prior sees the surface's detail at the working size. ``smooth_sigma`` > 0: the correction is also blurred
+    by a Gaussian of that width in pixels (kept as a band, G_f∗δ − G_σ∗δ), so no relief finer than the working
+    size's pixels is made: a 32² height field enlarged to a photograph's size shows such relief as blocks."""
     if base.dim() != 4 or base.shape[1] != 3:
         raise LasagnaError(f"base has shape {tuple(base.shape)}; expected (B, 3, H, W)", "base")
     if (
@@ -143,7 +146,7 @@ def distill_surface(
         for group in opt.param_groups:
             group["lr"] = cosine_lr(lr, step, steps, 0.1)
         pick = torch.randint(0, len(lights), (b * k,), generator=rng)
-        normals = surface_normals(_locked(height, h0, lock_sigma, weight)).repeat_interleave(k, dim=0)
+        normals = surface_normals(_locked(height, h0, lock_sigma, weight, smooth_sigma)).repeat_interleave(k, dim=0)
         if light is None:
             layer = lambert(normals, vectors[pick], ambient)
         else:
@@ -159,21 +162,23 @@ def distill_surface(
         total.backward()
         opt.step()
         history.append({"step": step, "score": out.score, "anchor": float(pull.detach()), **out.summary()})
-    final = _locked(height, h0, lock_sigma, weight).detach()
+    final = _locked(height, h0, lock_sigma, weight, smooth_sigma).detach()
     lit = None if light is None else _unit_light(light.detach())
     return SurfaceFit(surface=final, normals=surface_normals(final), source=lit, history=history)
 
 
-def _locked(height: Tensor, h0: Tensor, sigma: float, weight: Tensor | None = None) -> Tensor:
-    """h₀ + w·(δ − G_σ ∗ δ) with δ = h − h₀: the refinement's correction without its low frequencies (σ a fraction of
-    the long side; 0: the correction as it is), so the start's large shape is kept; ``weight`` w (B, 1, h, w) in
-    [0, 1] (None: 1) says where it may act at all."""
-    if sigma <= 0 and weight is None:
+def _locked(height: Tensor, h0: Tensor, sigma: float, weight: Tensor | None = None, smooth: float = 0.0) -> Tensor:
+    """h₀ + w·(G_f ∗ δ − G_σ ∗ δ) with δ = h − h₀: the refinement's correction without its low frequencies (σ a
+    fraction of the long side; 0: none removed), so the start's large shape is kept, and without its finest (G_f a
+    Gaussian of ``smooth`` pixels; 0: none removed); ``weight`` w (B, 1, h, w) in [0, 1] (None: 1) says where it may
+    act at all."""
+    if sigma <= 0 and smooth <= 0 and weight is None:
         return height
     delta = height - h0
+    kept = _blur(delta, smooth) if smooth > 0 else delta
     if sigma > 0:
-        delta = delta - _blur(delta, sigma * max(height.shape[-2:]))
-    return h0 + (delta if weight is None else weight * delta)
+        kept = kept - _blur(delta, sigma * max(height.shape[-2:]))
+    return h0 + (kept if weight is None else weight * kept)
 
 
 def _blur(x: Tensor, sigma: float) -> Tensor:

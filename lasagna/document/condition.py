@@ -136,6 +136,17 @@ def unit_vector(az: float, el: float) -> tuple[float, float, float]:
     return (math.sin(e) * math.cos(a), math.sin(e) * math.sin(a), math.cos(e))
 
 
+def mirror_direction(text: str, left_right: bool, top_bottom: bool) -> str:
+    """The canonical condition of the light ``text`` in the image mirrored left-right (x → −x: az → 180° − az) and/or
+    top-bottom (y → −y: az → −az); the elevation is kept."""
+    az, el = parse_direction(text)
+    if left_right:
+        az = 180.0 - az
+    if top_bottom:
+        az = -az
+    return canonical_condition(format_direction(wrap_azimuth(az), el))
+
+
 def check_ambient(ambient: float) -> float:
     """Ambient must lie in [0, 1): at 1 the light would have no effect."""
     if not (0.0 <= ambient < 1.0) or math.isnan(ambient):

@@ -61,6 +61,9 @@ Luminance = Literal["free", "base"]
 # (``lasagna.compose.resample.guided_upsample``) with the base's full-size Rec. 709 luma as guide, so the layer's
 # edges follow the image's. (A colour-over-luminance layer has its own guided rule, ``upsample_colour``.)
 Enlarge = Literal["bilinear", "guided"]
+# How a surface layer's normals are enlarged (``SurfaceDefaults.enlarge``): ``bicubic`` (continuous slopes), or
+# ``guided`` by the image's luma as above.
+SurfaceEnlarge = Literal["bicubic", "guided"]
 
 # Floating-point types a diffusers prior may run in ("auto": float16 on CUDA, float32 elsewhere).
 TorchDtype = Literal["auto", "float32", "float16", "bfloat16"]
@@ -99,6 +102,13 @@ class DistillDefaults(StrictModel):
         strict=True,
         description="Free layers optimised per image, each with its own noise draws, averaged at the end: "
         "an ensemble that averages out the score's noise (costs about as many network passes).",
+    )
+    particle_mirrors: bool = Field(
+        False,
+        strict=True,
+        description="The particles as a mirror ensemble: particle j scores the image mirrored by the j-th of (none, "
+        "left-right, top-bottom, both), its light condition mirrored with it, and its layer is mirrored back before "
+        "the mean, so the prior's direction-specific errors average out as its noise does. Light conditions only.",
     )
     whole_fraction: Unit = Field(
         0.4,
@@ -221,6 +231,14 @@ class SurfaceDefaults(StrictModel):
         "width (a fraction of the working size's long side) removed from it, so the estimate's large shape is kept "
         "(`lasagna.distill.surface`); 0: the correction as it is.",
     )
+    refine_smooth: FiniteFloat = Field(
+        0.0,
+        ge=0,
+        le=4,
+        description="The refinement's correction also blurred by a Gaussian of this width in the pixels it works at "
+        "(`lasagna.distill.surface`), so no relief finer than those pixels is made (enlarged to a photograph's "
+        "size, it shows as blocks); 0: none removed.",
+    )
     refine_objects: bool = Field(
         False,
         strict=True,
@@ -231,7 +249,8 @@ class SurfaceDefaults(StrictModel):
         None,
         description="(offset, gain): a lit estimator's fitted source light's elevation θ (degrees) mapped to "
         "offset + gain·θ (`lasagna.compose.surface.calibrate_elevation`), the line fitted on `train` by "
-        "benchmarks/light_calibration.py; None: as fitted. A light given with --from is used as given.",
+        "benchmarks/light_calibration.py; None: as fitted. It applies to the surface layer (the free layer's "
+        "surface start keeps the light as fitted); a light given with --from is used as given.",
     )
     refine_light: bool = Field(
         False,
@@ -263,6 +282,13 @@ class SurfaceDefaults(StrictModel):
         description="The relief gain of a free layer's surface start (`distill.start` 'surface'): the estimate's "
         "slopes times this (`lasagna.compose.surface.deepen_normals`), its source light fitted to the deepened "
         "surface. A surface layer (`layer_kind` 'surface') renders the estimate as it is.",
+    )
+    enlarge: SurfaceEnlarge = Field(
+        "bicubic",
+        description="How a surface layer's normals are enlarged from the working size to the image's: 'bicubic' "
+        "(continuous slopes, `lasagna.compose.surface.enlarge_surface`); 'guided', the fast guided filter with the "
+        "image's luma as guide (`lasagna.compose.resample.guided_upsample`), so the relief's edges follow the image's "
+        "instead of the working size's pixel grid.",
     )
 
 

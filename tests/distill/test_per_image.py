@@ -334,6 +334,30 @@ class TestParticles:
             errs[k] = float((r.layer[0] - shading).pow(2).mean())
         assert errs[8] < errs[1]
 
+    def test_a_mirror_ensemble_mirrors_each_particle_and_maps_it_back(self, shading_problem):
+        """``particle_mirrors``: particle j sees the image mirrored by PARTICLE_MIRRORS[j % 4] and its light mirrored
+        with it (left ↔ right, top-left ↔ bottom-right); mirroring is an involution, so the same map brings a
+        particle's layer back; the layer is the mean of the particles mapped back; a condition that is not a light is
+        refused in one line."""
+        from lasagna.distill.per_image import PARTICLE_MIRRORS, _mirror_labels, _mirror_particles
+
+        x = torch.rand(8, 1, 3, 5, generator=torch.Generator().manual_seed(1))
+        once = _mirror_particles(x, 4)
+        assert torch.equal(once[1], x[1].flip(-1)) and torch.equal(once[2], x[2].flip(-2))
+        assert torch.equal(once[7], x[7].flip(-1, -2)) and torch.equal(once[4], x[4])
+        assert torch.equal(_mirror_particles(once, 4), x)
+        assert _mirror_labels(["top-left"] * 4, 4) == ["top-left", "top-right", "bottom-left", "bottom-right"]
+        assert PARTICLE_MIRRORS[0] == (False, False)
+        base, shading, _ = shading_problem
+        prior = gaussian_for(base * shading, labels=("x", "left", "right"))
+        settings = PLAIN.with_overrides(particle_mirrors=True)
+        r = distill_image(base, settings, prior, condition="left", steps=6, lr=0.05, seed=3, particles=4)
+        with torch.no_grad():
+            every = r.model(base.expand(1, -1, -1, -1).repeat_interleave(4, dim=0))
+        torch.testing.assert_close(r.layer, _mirror_particles(every, 4).mean(0, keepdim=True))
+        with pytest.raises(LasagnaError, match="particle_mirrors"):
+            distill_image(base, settings, prior, condition="x", steps=1, particles=4)
+
     @pytest.mark.parametrize("bad", [0, 17])
     def test_out_of_range_is_one_line(self, bad):
         with pytest.raises(LasagnaError, match="particles"):

@@ -124,6 +124,27 @@ def test_the_lock_removes_a_corrections_low_frequencies_and_keeps_its_detail():
     assert torch.equal(_locked(h0 + board, h0, 0.0), h0 + board)
 
 
+def test_the_smooth_band_removes_a_corrections_finest_relief_and_keeps_its_middle():
+    """``smooth_sigma`` σ_f: h₀ + (G_f∗δ − G_σ∗δ). A one-pixel checkerboard (the finest relief a grid holds) is all
+    but removed by σ_f 1 px; a correction of a middle wavelength (8 px) keeps most of its amplitude, against its
+    closed-form Gaussian response exp(−2π²σ²/λ²); σ_f 0 keeps the board (the lock alone)."""
+    import math
+
+    from lasagna.distill.surface import _locked
+
+    h0 = dome()
+    board = ((torch.arange(SIDE)[:, None] + torch.arange(SIDE)[None]) % 2 * 2 - 1).float()[None, None] * 0.01
+    assert float((_locked(h0 + board, h0, 0.0, None, 1.0) - h0).abs().max()) < 0.01 * float(board.abs().max())
+    assert torch.allclose(_locked(h0 + board, h0, 0.0, None, 0.0), h0 + board)
+    wave = (
+        torch.cos(2 * math.pi * torch.arange(SIDE).float() / 8.0)[None, None, None, :].expand(1, 1, SIDE, SIDE) * 0.01
+    )
+    kept = (_locked(h0 + wave, h0, 0.0, None, 1.0) - h0)[..., SIDE // 2, SIDE // 4 : 3 * SIDE // 4]
+    gain = math.exp(-2 * math.pi**2 / 8.0**2)  # a Gaussian of σ 1 px on a cosine of wavelength 8 px
+    ref = wave[..., SIDE // 2, SIDE // 4 : 3 * SIDE // 4] * gain
+    assert float((kept - ref).abs().max()) < 0.02 * 0.01  # the sampled kernel against the continuous response
+
+
 def test_a_locked_refinement_keeps_the_starts_large_shape():
     """From a start that is the true dome plus a broad tilt, the locked refinement keeps the tilt (its correction has
     no low frequencies to undo it with), while the unlocked one is free to remove it."""

@@ -13,8 +13,10 @@ from lasagna.document.condition import (
     canonical_condition,
     direction_label,
     format_direction,
+    mirror_direction,
     named_direction,
     parse_direction,
+    unit_vector,
     wrap_azimuth,
 )
 from lasagna.errors import ConditionError
@@ -105,3 +107,16 @@ def test_elevation_bounds(el):
     else:
         with pytest.raises(ConditionError, match="is outside \\[0, 90\\)"):
             format_direction(10.0, el)
+
+
+@settings(max_examples=200, deadline=None)
+@given(az=st.floats(0.0, 359.99), el=st.floats(0.0, 89.9), lr=st.booleans(), tb=st.booleans())
+def test_a_mirrored_light_is_the_mirrored_vector(az, el, lr, tb):
+    """A light in an image mirrored left-right has its x negated, top-bottom its y; the elevation is kept, and
+    mirroring twice gives the light back (float64 closed form, `unit_vector`)."""
+    x, y, z = unit_vector(az, el)
+    mx, my, mz = unit_vector(*parse_direction(mirror_direction(format_direction(az, el), lr, tb)))
+    assert math.isclose(mx, -x if lr else x, abs_tol=1e-9) and math.isclose(my, -y if tb else y, abs_tol=1e-9)
+    assert math.isclose(mz, z, abs_tol=1e-12)
+    back = unit_vector(*parse_direction(mirror_direction(mirror_direction(format_direction(az, el), lr, tb), lr, tb)))
+    assert all(math.isclose(a, b, abs_tol=1e-9) for a, b in zip(back, (x, y, z), strict=True))
