@@ -221,16 +221,18 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
                 sep = ""
             if not sep:
                 raise RequestError(f"opacity is {item!r}; expected LAYER:VALUE", "opacity")
-        light: dict[str, str] = {}
-        for item in q.getlist("light"):  # a light's text holds no ':' (nor does an id)
-            id, sep, text = item.partition(":")
-            if not sep:
-                raise RequestError(f"light is {item!r}; expected LAYER:LIGHT (az=A,el=E or a named light)", "light")
-            light[id] = text
+        lights: dict[str, dict[str, str]] = {"light": {}, "source": {}}
+        for name, given in lights.items():
+            for item in q.getlist(name):  # a light's text holds no ':' (nor does an id)
+                id, sep, text = item.partition(":")
+                if not sep:
+                    raise RequestError(f"{name} is {item!r}; expected LAYER:LIGHT (az=A,el=E or a named light)", name)
+                given[id] = text
         return {
             "level": level,
             "opacity": opacity,
-            "light": light,
+            "light": lights["light"],
+            "source": lights["source"],
             "solo": q.get("solo") or None,
             "upto": q.get("upto") or None,
         }

@@ -493,7 +493,7 @@ class EditSession(SessionViews, SessionJobs):
 
 def _surfaces(doc: Document) -> dict[str, dict[str, Any]]:
     """Each surface layer's light as the page draws its control: the texts, the light's (az, el) in degrees
-    (``parse_direction``: a named light resolved) and the ambient term."""
+    (``parse_direction``: a named light resolved), a relight's source light's as ``source``, and the ambient term."""
     out = {}
     for _, layer in doc.walk():
         if layer.kind == "surface":
@@ -503,6 +503,7 @@ def _surfaces(doc: Document) -> dict[str, dict[str, Any]]:
                 "az": az,
                 "el": el,
                 "source_light": layer.source_light,
+                "source": None if layer.source_light is None else list(parse_direction(layer.source_light)),
                 "ambient": float(layer.ambient),
             }
     return out

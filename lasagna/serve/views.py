@@ -197,16 +197,25 @@ class SessionViews:
         solo: str | None = None,
         upto: str | None = None,
         light: dict[str, str] | None = None,
+        source: dict[str, str] | None = None,
     ) -> tuple[bytes, int, int]:
         """The composite at reduction ``level`` as RGBA8 bytes (row-major), with transient overrides that are
         not changes (``opacity`` while a slider is dragged; ``light`` of a surface layer while its light is
-        dragged: the stored map drawn under it, as ``set_light`` would; ``solo`` one layer alone; ``upto`` a
+        dragged: the stored map drawn under it, as ``set_light`` would; ``source`` likewise, a relight surface
+        layer's source light while it is dragged; ``solo`` one layer alone; ``upto`` a
         layer: the stack up to and including it, the "before" of a before/after split). Layers are named at
         any depth: a soloed layer inside a group shows with the groups that hold it."""
         self._check_level(level)
         with self._guard():
             doc = self.stack.document
-            for id in [*(opacity or {}), *(light or {}), *([solo] if solo else []), *([upto] if upto else [])]:
+            named = [
+                *(opacity or {}),
+                *(light or {}),
+                *(source or {}),
+                *([solo] if solo else []),
+                *([upto] if upto else []),
+            ]
+            for id in named:
                 doc.layer(id)  # DocumentError naming the ids
             for id, v in (opacity or {}).items():
                 if not (isinstance(v, (int, float)) and 0.0 <= float(v) <= 1.0):
@@ -216,7 +225,11 @@ class SessionViews:
                 if kind != "surface":
                     raise LasagnaError(f"layer {id!r} is a {kind} layer; expected a surface layer", "light")
                 parse_direction(text)  # a ConditionError naming what a light is
-            layers = _overridden(doc, opacity or {}, solo, upto, light or {})
+            for id, text in (source or {}).items():
+                if doc.layer(id).kind != "surface" or doc.layer(id).source_light is None:
+                    raise LasagnaError(f"layer {id!r} has no source light; expected a relight surface layer", "source")
+                parse_direction(text)
+            layers = _overridden(doc, opacity or {}, solo, upto, light or {}, source or {})
             w, h = _reduced_side(self.stack.width, level), _reduced_side(self.stack.height, level)
             # The layers reduced to this level, the canvas and the renderer's snapshot below the top layer
             # (``lasagna.compose.renderer``), and the RGBA8 bytes returned.
@@ -311,12 +324,17 @@ class SessionViews:
 
 
 def _overridden(
-    doc: Document, opacity: dict[str, float], solo: str | None, upto: str | None, light: dict[str, str]
+    doc: Document,
+    opacity: dict[str, float],
+    solo: str | None,
+    upto: str | None,
+    light: dict[str, str],
+    source: dict[str, str] | None = None,
 ) -> list:
     """``doc``'s layer tree with a view's transient overrides (``EditSession.view``), layers named at any depth:
-    ``opacity`` per layer; ``light`` per surface layer; ``solo``: that layer (with what it holds) alone, the
-    groups holding it shown; ``upto``: every layer after it in the tree's order (depth first, a group before
-    its layers) hidden, except its own layers."""
+    ``opacity`` per layer; ``light`` (and ``source``, a relight's source light) per surface layer; ``solo``: that
+    layer (with what it holds) alone, the groups holding it shown; ``upto``: every layer after it in the tree's
+    order (depth first, a group before its layers) hidden, except its own layers."""
     order = [layer.id for _, layer in doc.walk()]
     inside: dict[str, set[str]] = {}  # group id → ids of every layer it holds, at any depth
     holders: dict[str, list[str]] = {}  # layer id → ids of the groups holding it, outermost first
@@ -347,6 +365,8 @@ def _overridden(
                 changes["opacity"] = float(opacity[layer.id])
             if layer.id in light:
                 changes["light"] = light[layer.id]
+            if source and layer.id in source:
+                changes["source_light"] = source[layer.id]
             if shown is not None and layer.id == solo:
                 changes["visible"] = True
             elif shown is not None and layer.id not in shown:

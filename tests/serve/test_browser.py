@@ -403,3 +403,32 @@ def test_dragging_a_surface_layers_light_repaints_live_and_commits_one_step(brow
     settle(page)
     assert np.array_equal(page_pixels(page), left)
     assert page.errors == []
+
+
+def test_a_relight_surface_layers_source_light_is_dragged_too(browser, surface_server):
+    """A relight surface layer (it has a source light): the "Drag" choice moves the source light instead — the view
+    repaints live, the release commits one step that changes the source light and keeps the light, the saved stack
+    renders what the page shows; a shading surface layer (no source light) offers no choice."""
+    folder, session = surface_server.session.folder, surface_server.session
+    page = open_page(browser, surface_server)
+    row(page, "shape").locator(".name").click()
+    page.wait_for_selector("#light-sphere")
+    assert page.locator("#light-which").count() == 0  # no source light: nothing to choose
+    page.close()
+    session.set_light(session.state()["version"], "shape", "right", source_light="left")
+    page = open_page(browser, surface_server)
+    row(page, "shape").locator(".name").click()
+    page.wait_for_selector("#light-which")
+    page.select_option("#light-which", "source")
+    assert page.inner_text("#light-readout") == "left"
+    before, v = page_pixels(page), version(page)
+    paints = page.evaluate("window.lasagna.paints.count")
+    drag_light(page, 0.0, 0.5)  # the source light toward the top, 30° from the view axis
+    settle(page, v + 1)
+    assert page.evaluate("window.lasagna.paints.count") - paints >= 3
+    lit = page.evaluate("window.lasagna.state.surfaces.shape")
+    assert lit["light"] == "right" and abs(lit["source"][0] - 90) < 2 and abs(lit["source"][1] - 30) < 2
+    assert page.input_value("#light-which") == "source" and page.inner_text("#light-readout") == lit["source_light"]
+    assert not np.array_equal(page_pixels(page), before)
+    save_and_check(page, folder)
+    assert page.errors == []

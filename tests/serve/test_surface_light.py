@@ -87,7 +87,9 @@ def relit_codes(folder, light: str, **fields) -> np.ndarray:
 def test_state_gives_each_surface_layers_light(client):
     s = state(client)["surfaces"]
     az, el = NAMED_DIRECTIONS["top-left"]
-    assert s == {"shape": {"light": "top-left", "az": az, "el": el, "source_light": None, "ambient": 0.25}}
+    assert s == {
+        "shape": {"light": "top-left", "az": az, "el": el, "source_light": None, "source": None, "ambient": 0.25}
+    }
 
 
 # ---- the change ----------------------------------------------------------------------------------
@@ -121,7 +123,14 @@ def test_undo_restores_the_light_and_the_pixels_redo_again(client):
 def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
     s = ok(post(client, op="light", id="shape", light="right", source_light="left", ambient=0.4))
     el = NAMED_DIRECTIONS["right"][1]
-    assert s["surfaces"]["shape"] == {"light": "right", "az": 0.0, "el": el, "source_light": "left", "ambient": 0.4}
+    assert s["surfaces"]["shape"] == {
+        "light": "right",
+        "az": 0.0,
+        "el": el,
+        "source_light": "left",
+        "source": [180.0, el],
+        "ambient": 0.4,
+    }
     assert np.array_equal(
         view(client, level=0)[..., :3], relit_codes(folder, "right", source_light="left", ambient=0.4)
     )
@@ -143,6 +152,24 @@ def test_a_preview_is_the_view_the_change_gives_and_changes_nothing(client, leve
     assert s["version"] == v and s["undo"] is None and s["surfaces"]["shape"]["light"] == "top-left"
     ok(post(client, op="light", id="shape", light="az=180,el=50"))
     assert np.array_equal(view(client, level=level), previews[1])
+
+
+def test_a_source_light_preview_is_the_view_its_change_gives(client, folder):
+    """A relight surface layer's source light dragged (``/api/view?source=LAYER:LIGHT``): a preview that changes
+    nothing, and, released (``op: light`` with ``source_light``), exactly the engine's re-lit stack."""
+    ok(post(client, op="light", id="shape", light="right", source_light="left"))
+    v = state(client)["version"]
+    previews = [view(client, level=0, source=f"shape:az={az},el=30") for az in (0, 180, 0)]
+    assert not np.array_equal(previews[0], previews[1]) and np.array_equal(previews[0], previews[2])
+    s = state(client)
+    assert s["version"] == v and s["surfaces"]["shape"]["source_light"] == "left"
+    ok(post(client, op="light", id="shape", light="right", source_light="az=180,el=30"))
+    assert np.array_equal(view(client, level=0), previews[1])
+    assert np.array_equal(view(client, level=0)[..., :3], relit_codes(folder, "right", source_light="az=180,el=30"))
+    # Both lights previewed at once: the target's and the source's overrides together.
+    both = view(client, level=0, light="shape:left", source="shape:right")
+    ok(post(client, op="light", id="shape", light="left", source_light="right"))
+    assert np.array_equal(view(client, level=0), both)
 
 
 def test_re_lit_normals_are_kept_and_accounted(session):
@@ -208,6 +235,9 @@ def test_a_bad_light_change_is_a_one_line_4xx_and_changes_nothing(client, body, 
         ({"light": "shape:up"}, "'az=A,el=E'"),
         ({"light": "shape"}, "expected LAYER:LIGHT"),
         ({"light": "nope:left"}, "nope"),
+        ({"source": "shape:left"}, "has no source light; expected a relight surface layer"),
+        ({"source": "base:left"}, "has no source light"),
+        ({"source": "shape"}, "expected LAYER:LIGHT"),
     ],
 )
 def test_a_bad_preview_is_a_one_line_400(client, params, words):

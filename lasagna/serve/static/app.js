@@ -15,7 +15,8 @@ const ui = {
   solo: null,
   split: false,
   drag: null,           // {id, value} while an opacity slider is dragged (a transient view, not a change)
-  light: null,          // {id, text} while a surface layer's light is dragged (a transient view, not a change)
+  light: null,          // {id, text, source} while a surface layer's light (or source light) is dragged (a view)
+  lightWhich: {},       // per relight surface layer: which light its sphere moves, "light" or "source"
   normals: null,        // a surface layer's id while the view shows its stored normal map
   lightProxy: true,     // a light drag previews at the drag proxy's level (dragLevel); false: at the view's level
   condition: null,
@@ -304,7 +305,26 @@ function lightControl(layer) {
   info.className = "hint";
   info.textContent = (lit.source_light ? `relight from ${lit.source_light} · ` : "") + `ambient ${lit.ambient}`;
   box.append(sphere, readout, info, field("Show normal map", show));
-  drawSphere(sphere, lit.az, lit.el, lit.ambient);
+  // A relight's sphere moves either light: the target, or the source the ratio divides by (fitted to the image,
+  // and off where the estimate was: a source light too frontal makes the whole relight too dark).
+  // The choice is kept per layer across the control's rebuilds (every change rebuilds the panel).
+  let moving = lit.source_light ? (ui.lightWhich[layer.id] || "light") : "light";
+  const shown = () => (moving === "source" ? lit.source : [lit.az, lit.el]);
+  if (lit.source_light) {
+    const which = document.createElement("select");
+    which.id = "light-which";
+    which.add(new Option("the light", "light"));
+    which.add(new Option("the source light", "source"));
+    which.value = moving;
+    which.addEventListener("change", () => {
+      moving = ui.lightWhich[layer.id] = which.value;
+      readout.textContent = moving === "source" ? lit.source_light : lit.light;
+      drawSphere(sphere, ...shown(), lit.ambient);
+    });
+    box.append(field("Drag", which));
+  }
+  readout.textContent = moving === "source" ? lit.source_light : lit.light;
+  drawSphere(sphere, ...shown(), lit.ambient);
 
   let at = null, frame = 0, dragging = false;
   const direction = () => {  // the pointer's place on the disc → (az, el) in degrees
@@ -319,7 +339,7 @@ function lightControl(layer) {
   const step = () => {
     frame = 0;
     const [az, el] = direction();
-    ui.light = { id: layer.id, text: lightText(az, el) };
+    ui.light = { id: layer.id, text: lightText(az, el), source: moving === "source" };
     readout.textContent = ui.light.text;
     drawSphere(sphere, az, el, lit.ambient);
     paint();
@@ -341,8 +361,10 @@ function lightControl(layer) {
     if (frame) { cancelAnimationFrame(frame); frame = 0; }
     at = { x: e.clientX, y: e.clientY };
     const [az, el] = direction();
-    ui.light = { id: layer.id, text: lightText(az, el) };
-    await change({ op: "light", id: layer.id, light: ui.light.text });
+    ui.light = { id: layer.id, text: lightText(az, el), source: moving === "source" };
+    await change(moving === "source"
+      ? { op: "light", id: layer.id, light: lit.light, source_light: ui.light.text }
+      : { op: "light", id: layer.id, light: ui.light.text });
     ui.light = null;
     paint();
   };
@@ -454,7 +476,7 @@ async function fetchView(params) {
   if (params.drag) q.append("opacity", `${params.drag.id}:${params.drag.value}`);
   if (params.solo) q.set("solo", params.solo);
   if (params.upto) q.set("upto", params.upto);
-  if (params.light) q.append("light", `${params.light.id}:${params.light.text}`);
+  if (params.light) q.append(params.light.source ? "source" : "light", `${params.light.id}:${params.light.text}`);
   const path = params.normals ? `api/layers/${encodeURIComponent(params.normals)}/normals?level=${params.level}` : `api/view?${q}`;
   const response = await api(path);
   const w = parseInt(response.headers.get("X-Width"), 10), h = parseInt(response.headers.get("X-Height"), 10);
