@@ -175,6 +175,17 @@ SELECT_SETTINGS: dict[str, list[dict]] = {
     ],
     # Round 8's E: the default's four particles as a mirror ensemble (`distill.particle_mirrors`).
     "mirror particles": [{"preset": {"distill": {"particle_mirrors": True}}}],
+    # Round 8's H: the source elevation from the shading head's level on the walls, as it is (H1) and mapped by the
+    # line fitted on train (H2); both replace C′'s calibration of the fit.
+    "surface, walls' elevation": [
+        {"layer_kind": "surface", "preset": {"surface": {"source_elevation": "walls", "light_calibration": None}}}
+    ],
+    "surface, walls' elevation calibrated": [
+        {
+            "layer_kind": "surface",
+            "preset": {"surface": {"source_elevation": "walls", "light_calibration": [-7.17, 1.097]}},
+        }
+    ],
     "surface refined, guided": [{"layer_kind": "surface", "preset": {"surface": {"enlarge": "guided"}}}],
     **{
         f"surface refined, smooth {s:g}": [{"layer_kind": "surface", "preset": {"surface": {"refine_smooth": s}}}]

@@ -301,7 +301,9 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
     sd = recipe.surface
     dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
     with torch.no_grad():
-        surface, fitted = net.estimate(x, dome, symmetry=sd.symmetry, elevation=sd.light_calibration)
+        surface, fitted = net.estimate(
+            x, dome, symmetry=sd.symmetry, elevation=sd.light_calibration, source_elevation=sd.source_elevation
+        )
     source = None
     if net.config.input == "lit":
         source = recipe.source_light or light_condition(fitted[0])
@@ -315,6 +317,8 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         made_by.update(dome_weight=dome.weight, dome_height=dome.height)
     if sd.symmetry != "none":
         made_by.update(symmetry=sd.symmetry)
+    if net.config.input == "lit" and recipe.source_light is None and sd.source_elevation != "fit":
+        made_by.update(source_elevation=sd.source_elevation)
     if net.config.input == "lit" and recipe.source_light is None and sd.light_calibration is not None:
         made_by.update(light_calibration=list(sd.light_calibration))
     if recipe.distill is not None:

@@ -404,6 +404,10 @@ def test_a_surface_start_is_made_again_from_its_record_not_from_a_changed_preset
     torch.testing.assert_close(other.layer, res.layer, atol=2 * 4.0 / 65535, rtol=0)
 
 
+def plain_made(res) -> dict:
+    return res.stack.document.layer(res.layer_id).made_by
+
+
 def test_a_refined_relight_surface_records_its_refinement_and_renders_from_its_map(tiny, tmp_path_factory, tmp_path):
     """``surface.refine_steps`` > 0 for a relight: the surface is refined by multi-light score distillation, the
     layer records how (steps, lights per step, lr, anchor, lock, a refined light), the saved stack renders the same
@@ -455,5 +459,12 @@ def test_a_refined_relight_surface_records_its_refinement_and_renders_from_its_m
     assert guided.stack.document.layer(guided.layer_id).made_by["enlarge"] == "guided"
     assert "enlarge" not in plain.stack.document.layer(plain.layer_id).made_by
     assert guided.layer.shape == plain.layer.shape and not torch.equal(guided.layer, plain.layer)
+    # The source elevation from the walls' level: recorded; the light's azimuth is the fit's, its elevation not.
+    write_preset(folder, "relight", surface={**lit, "source_elevation": "walls"})
+    walled = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=[folder])
+    w_layer = walled.stack.document.layer(walled.layer_id)
+    assert w_layer.made_by["source_elevation"] == "walls" and "source_elevation" not in plain_made(plain)
+    (w_az, w_el), (f_az, f_el) = parse_direction(w_layer.source_light), parse_direction(fitted)
+    assert abs((w_az - f_az + 180) % 360 - 180) < 0.02 and abs(w_el - f_el) > 0.01
     guided.stack.save(tmp_path / "g")
     assert torch.equal(load_stack(tmp_path / "g").render().image, guided.stack.render().image)

@@ -104,7 +104,27 @@ def calibrate_elevation(light: Tensor, offset: float, gain: float) -> Tensor:
     calibration: the fit through an estimated surface is drawn toward the view axis where the estimate is shallow,
     and a line fitted on training scenes (el_true on el_fit, least squares) undoes the drift on average."""
     el = torch.rad2deg(torch.acos(light[:, 2].clamp(-1.0, 1.0)))
-    el = (offset + gain * el).clamp(0.0, MAX_FIT_ELEVATION)
+    return _with_elevation(light, (offset + gain * el).clamp(0.0, MAX_FIT_ELEVATION))
+
+
+WALL_WEIGHT_EPS = 1e-6
+"""Floor of the summed wall weight in ``wall_elevation`` (an image the silhouette calls all object)."""
+
+
+def wall_elevation(light: Tensor, shading: Tensor, walls: Tensor, ambient: float = AMBIENT) -> Tensor:
+    """Unit lights (B, 3) with the azimuth of ``light`` and the elevation at which a flat wall (n = +z) is lit to
+    L, the mean of the estimated source shading ``shading`` (B, 1, H, W) over the walls, each pixel weighted by
+    ``walls`` (B, 1, H, W) in [0, 1]: a + (1 − a)·cos el = L, clamped to [0, ``MAX_FIT_ELEVATION``]. The level of
+    the walls is what sets a relight's brightness there (S(l)/S(l_src) on n = +z), and the estimator's shading head
+    reads it more surely than the fit through its own surface does (docs/BENCHMARKS.md, round 8's H)."""
+    level = (shading * walls).sum((1, 2, 3)) / walls.sum((1, 2, 3)).clamp_min(WALL_WEIGHT_EPS)
+    cos_el = ((level - ambient) / (1.0 - ambient)).clamp(math.cos(math.radians(MAX_FIT_ELEVATION)), 1.0)
+    return _with_elevation(light, torch.rad2deg(torch.acos(cos_el)))
+
+
+def _with_elevation(light: Tensor, el: Tensor) -> Tensor:
+    """Unit lights (B, 3): the azimuth of ``light`` (azimuth 0 for a light on the view axis), elevation ``el`` (B,)
+    in degrees."""
     xy = light[:, :2]
     norm = xy.norm(dim=1, keepdim=True)
     along = torch.where(

@@ -194,6 +194,10 @@ Symmetry = Literal["none", "mirrors", "dihedral"]
 images, each estimate mapped back and averaged; those and their transposes (all eight symmetries of the square)."""
 SYMMETRIES: tuple[str, ...] = get_args(Symmetry)
 
+SourceElevation = Literal["fit", "walls"]
+"""Where a lit estimate's source light's elevation comes from (``SurfaceDefaults.source_elevation``): the fit of the
+surface's normals to the estimated source shading, or the estimated source shading's level on the walls."""
+
 
 class SurfaceDefaults(StrictModel):
     """How a preset makes a surface layer: its estimator, and the multi-light score distillation after it."""
@@ -251,6 +255,13 @@ class SurfaceDefaults(StrictModel):
         "offset + gain·θ (`lasagna.compose.surface.calibrate_elevation`), the line fitted on `train` by "
         "benchmarks/light_calibration.py; None: as fitted. It applies to the surface layer (the free layer's "
         "surface start keeps the light as fitted); a light given with --from is used as given.",
+    )
+    source_elevation: SourceElevation = Field(
+        "fit",
+        description="The surface layer's fitted source light's elevation: 'fit', as the least-squares fit through "
+        "the surface gives it; 'walls', the elevation that lights a flat wall to the estimated source shading's mean "
+        "over the walls (pixels weighted by 1 − the silhouette probability; needs a silhouette head), the azimuth "
+        "the fit's. `light_calibration` then maps it. The free layer's surface start keeps the fit.",
     )
     refine_light: bool = Field(
         False,

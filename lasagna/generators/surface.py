@@ -57,9 +57,10 @@ from lasagna.compose.surface import (
     label_regions,
     mix_normals,
     surface_normals,
+    wall_elevation,
 )
 from lasagna.document.condition import AMBIENT
-from lasagna.document.preset import SYMMETRIES, Symmetry
+from lasagna.document.preset import SYMMETRIES, SourceElevation, Symmetry
 from lasagna.errors import LasagnaError
 from lasagna.generators.unet import pad_to_levels, run_unet, unet_body
 from lasagna.io.checkpoint import Pretrained
@@ -214,38 +215,51 @@ class SurfaceEstimator(Pretrained, nn.Module):
         symmetry: Symmetry = "none",
         relief: float = 1.0,
         elevation: tuple[float, float] | None = None,
+        source_elevation: SourceElevation = "fit",
     ) -> tuple[Tensor, Tensor | None]:
         """(surface — height or normals, as ``decompose``; unit normals where ``dome`` mixes in the dome prior,
         ``symmetry`` averages an ensemble or ``relief`` ≠ 1 deepens the estimate (`deepen_normals`: slopes times
         ``relief``) — and the source light (B, 3), or None for albedo input): the light is the fit of the final
-        surface's normals to the estimated source shading (module docstring), its elevation mapped by ``elevation``
+        surface's normals to the estimated source shading (module docstring); with ``source_elevation`` "walls" its
+        elevation is the one that lights a flat wall to the estimated shading's mean over the walls (weighted by
+        1 − the silhouette probability, `lasagna.compose.surface.wall_elevation`); then mapped by ``elevation``
         (offset, gain) when given (`lasagna.compose.surface.calibrate_elevation`)."""
         if symmetry not in SYMMETRIES:
             raise LasagnaError(f"got {symmetry!r}; expected one of {', '.join(SYMMETRIES)}", "symmetry")
         if symmetry == "none":
-            surface, shading = self._one_estimate(image, dome)
+            surface, shading, objects = self._one_estimate(image, dome)
         else:
-            normals, shadings = [], []
+            normals, shadings, probs = [], [], []
             for transpose in (False, True) if symmetry == "dihedral" else (False,):
                 seen = image.transpose(-1, -2) if transpose else image
                 for dims, sign in MIRRORS:
-                    surface, shading = self._one_estimate(seen.flip(dims) if dims else seen, dome)
+                    surface, shading, p = self._one_estimate(seen.flip(dims) if dims else seen, dome)
                     n = self.normals(surface)
+                    maps = [shading, p]
                     if dims:
                         n = n.flip(dims) * n.new_tensor(sign).view(1, 3, 1, 1)
-                        shading = None if shading is None else shading.flip(dims)
+                        maps = [None if m is None else m.flip(dims) for m in maps]
                     if transpose:
                         n = _transpose_normals(n)
-                        shading = None if shading is None else shading.transpose(-1, -2)
+                        maps = [None if m is None else m.transpose(-1, -2) for m in maps]
                     normals.append(n)
-                    shadings.append(shading)
+                    shadings.append(maps[0])
+                    probs.append(maps[1])
             surface = facing_normals(torch.stack(normals).mean(0))
             shading = None if shadings[0] is None else torch.stack(shadings).mean(0)
+            objects = None if probs[0] is None else torch.stack(probs).mean(0)
         if relief != 1.0:
             surface = deepen_normals(self.normals(surface), relief)
         if shading is None:
             return surface, None
         light = fit_light(self.normals(surface), shading)
+        if source_elevation == "walls":
+            if objects is None:
+                raise LasagnaError(
+                    "the source elevation from the walls needs a silhouette head (train-surface --silhouette)",
+                    "source_elevation",
+                )
+            light = wall_elevation(light, shading, 1.0 - objects)
         return surface, light if elevation is None else calibrate_elevation(light, *elevation)
 
     @torch.no_grad()
@@ -267,8 +281,9 @@ class SurfaceEstimator(Pretrained, nn.Module):
                 views.append(p.transpose(-1, -2) if transpose else p)
         return torch.stack(views).mean(0)
 
-    def _one_estimate(self, image: Tensor, dome: DomePrior | None) -> tuple[Tensor, Tensor | None]:
-        """(surface, with the dome prior mixed in where asked; the source shading or None) of one pass."""
+    def _one_estimate(self, image: Tensor, dome: DomePrior | None) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """(surface, with the dome prior mixed in where asked; the source shading or None; the silhouette
+        probability or None) of one pass."""
         out = self.outputs(image)
         surface = out.surface
         if dome is not None and dome.weight > 0:
@@ -278,7 +293,8 @@ class SurfaceEstimator(Pretrained, nn.Module):
                     "dome",
                 )
             surface = dome.apply(self.normals(surface), out.silhouette)
-        return surface, out.shading
+        prob = None if out.silhouette is None else torch.sigmoid(out.silhouette)
+        return surface, out.shading, prob
 
     @torch.no_grad()
     def estimate_at(
@@ -289,11 +305,12 @@ class SurfaceEstimator(Pretrained, nn.Module):
         symmetry: Symmetry = "none",
         relief: float = 1.0,
         elevation: tuple[float, float] | None = None,
+        source_elevation: SourceElevation = "fit",
     ) -> tuple[Tensor, Tensor | None]:
         """(unit normals (B, 3, H, W), source light (B, 3) or None) of ``image`` (B, 3, H, W) in [0, 1]: estimated
         at the working size ``side`` (None: the one it was trained at; `lasagna.compose.resample.working_size`),
         the surface enlarged back to (H, W) (`lasagna.compose.surface.enlarge_surface`)."""
         full = tuple(image.shape[-2:])
         small = downsample(image, working_size(*full, side or self.config.working_size))
-        surface, light = self.estimate(small, dome, symmetry, relief, elevation)
+        surface, light = self.estimate(small, dome, symmetry, relief, elevation, source_elevation)
         return self.normals(enlarge_surface(surface, full)), light

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from lasagna.compose.surface import MAX_FIT_ELEVATION, normals_from_height
+from lasagna.document.condition import AMBIENT
 from lasagna.errors import LasagnaError
 from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
 
@@ -299,3 +300,33 @@ def test_a_calibrated_elevation_maps_the_fitted_lights_elevation_and_keeps_its_a
     torch.testing.assert_close(calibrate_elevation(up, 30.0, 1.0), torch.tensor([[0.5, 0.0, math.sqrt(3) / 2]]))
     steep = calibrate_elevation(torch.tensor([[1.0, 0.0, 0.0]]), 0.0, 2.0)
     assert abs(math.degrees(math.acos(float(steep[0, 2]))) - MAX_FIT_ELEVATION) < 1e-4
+
+
+def test_the_walls_elevation_lights_a_flat_wall_to_the_shadings_level_on_the_walls():
+    """``estimate(..., source_elevation="walls")``: the source light's elevation is the one whose Lambert shading of
+    a flat wall, a + (1 − a)·cos θ, equals the estimated source shading's mean over the walls weighted by
+    1 − the silhouette probability (the ensemble's averages, by hand in float64); the azimuth is the fit's; an
+    estimator without a silhouette head refuses in one line. `wall_elevation` against its closed form."""
+    from lasagna.compose.surface import wall_elevation
+
+    torch.manual_seed(11)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", silhouette=True, **TOY))
+    torch.nn.init.normal_(net.head.weight, std=0.5)
+    image = torch.rand(2, 3, 8, 8)
+    _, fitted = net.estimate(image)
+    _, light = net.estimate(image, source_elevation="walls")
+    out = net.outputs(image)
+    walls = 1.0 - torch.sigmoid(out.silhouette.double())
+    level = (out.shading.double() * walls).sum((1, 2, 3)) / walls.sum((1, 2, 3))
+    want = torch.rad2deg(torch.acos((level - AMBIENT) / (1 - AMBIENT)))
+    torch.testing.assert_close(torch.rad2deg(torch.acos(light[:, 2].double())), want, atol=1e-3, rtol=0)
+    torch.testing.assert_close(torch.atan2(light[:, 1], light[:, 0]), torch.atan2(fitted[:, 1], fitted[:, 0]))
+    shading = torch.full((1, 1, 4, 4), AMBIENT + (1 - AMBIENT) * 0.5)  # a wall lit at 60°
+    shading[..., :2, :] = 0.9  # an object, weighted out
+    walls = torch.ones(1, 1, 4, 4)
+    walls[..., :2, :] = 0.0
+    got = wall_elevation(torch.tensor([[0.0, 1.0, 0.0]]), shading, walls)
+    torch.testing.assert_close(got, torch.tensor([[0.0, math.sqrt(3) / 2, 0.5]]))
+    plain = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
+    with pytest.raises(LasagnaError, match="source_elevation: .*needs a silhouette head"):
+        plain.estimate(image, source_elevation="walls")
