@@ -238,6 +238,7 @@ def test_a_bad_light_change_is_a_one_line_4xx_and_changes_nothing(client, body, 
         ({"source": "shape:left"}, "has no source light; expected a relight surface layer"),
         ({"source": "base:left"}, "has no source light"),
         ({"source": "shape"}, "expected LAYER:LIGHT"),
+        ({"source": "nope:left"}, "nope"),
     ],
 )
 def test_a_bad_preview_is_a_one_line_400(client, params, words):
