@@ -6,6 +6,7 @@
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe profile      # ~3 min
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe sirfs        # ~6 min
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe symmetric-particles   # ~10 min
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe wall-level   # ~2 min (round 8)
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe ensemble \
         --members layers/surface-lit-32 layers/surface-lit-closeup-32                   # ~1 min
 
@@ -40,6 +41,13 @@
   layer mirrored back and averaged: four whole edits at one particle each (`lasagna.edit(..., particles=1)`). The
   relight prior is not mirror-equivariant either. Rows: `relight_sweep.py`'s composite PSNR on select at 64² and
   256², and the swings on the photograph selection set.
+
+* **wall-level** (round 8) — where the relight surface layer loses to the free default on `select` (16 scenes, 64²):
+  per scene, the composite PSNR of the surface layer as shipped, of the free default, and of the surface layer with
+  its source elevation solved (bisection, the azimuth kept) so that its mean log ratio over the true walls equals a
+  reference's: the truth's (an oracle of the level alone), the free default's, and a short free run's (40 steps,
+  2 particles); and each route's wall-level error, the mean |log| of its walls' level against the truth's, on all
+  scenes and on the flat-wall ones. Per-scene means, not the pooled PSNR of `relight_sweep.py`.
 
 Ends with one JSON line. None of these changes a preset; they are diagnostics (BENCHMARKS, round of 2026-11-26 (5)).
 """
@@ -419,6 +427,84 @@ def probe_symmetric_particles() -> dict:
     return out
 
 
+def wall_level(y: torch.Tensor, walls: torch.Tensor) -> float:
+    """The mean log of a ratio ``y`` (1, 1, H, W) over the wall pixels ``walls`` (bool, same shape)."""
+    return float(y.double().clamp_min(1e-4).log()[walls].mean())
+
+
+def level_matched(normals, target, light, walls, level: float) -> torch.Tensor:
+    """The ratio S(target)/S(source) of ``normals`` with the source light's elevation solved (bisection over
+    [0, MAX_FIT_ELEVATION], its azimuth kept) so that its wall level (``wall_level``) is ``level``: a higher source
+    elevation darkens a flat wall's S(source), so the level rises with it."""
+    lo, hi = 0.0, cs.MAX_FIT_ELEVATION
+    for _ in range(40):
+        mid = (lo + hi) / 2
+        source = cs._with_elevation(light, torch.tensor([mid], dtype=light.dtype))
+        if wall_level(cs.relight_ratio(normals, target, source), walls) < level:
+            lo = mid
+        else:
+            hi = mid
+    return cs.relight_ratio(
+        normals, target, cs._with_elevation(light, torch.tensor([(lo + hi) / 2], dtype=light.dtype))
+    )
+
+
+def probe_wall_level() -> dict:
+    from lasagna import edit
+    from lasagna.document.condition import parse_direction
+
+    scene, labels = surface.scenes("select", COUNT, 0, SIDE)
+    rel = relighting(scene, relight_sources(scene.params))
+    base, target, truth = rel.base, rel.target.clamp(0, 1), rel.layer.double()
+    flat = (scene.params.relief < 0).tolist()
+    psnrs: dict[str, list[float]] = {}
+    errors: dict[str, list[float]] = {}
+    for i in range(COUNT):
+        x, walls = base[i].float(), scene.mask[i : i + 1] < 0.5
+        made = edit(x, "relight", labels[i], layer_kind="surface")
+        layer = made.stack.document.layer(made.layer_id)
+        normals = cs.decode_normal_map(made.stack.tensors[made.layer_id].color[None].double())
+        source = cs.light_vector(*parse_direction(layer.source_light), dtype=torch.float64)[None]
+        tgt = cs.light_vector(*parse_direction(labels[i]), dtype=torch.float64)[None]
+        ratios = {
+            "surface layer": made.layer[:1][None].double(),
+            "free default": edit(x, "relight", labels[i], layer_kind="free").layer[:1][None].double(),
+            "short free run": edit(x, "relight", labels[i], layer_kind="free", optimize=40, particles=2)
+            .layer[:1][None]
+            .double(),
+            "amortised generator": edit(x, "relight", labels[i], layer_kind="free", generator="amortised")
+            .layer[:1][None]
+            .double(),
+        }
+        refs = {
+            "truth": truth[i : i + 1],
+            "free default": ratios["free default"],
+            "short free run": ratios["short free run"],
+        }
+        for name, ref in refs.items():
+            ratios[f"surface layer, level of the {name}"] = level_matched(
+                normals, tgt, source, walls, wall_level(ref, walls)
+            )
+        true_level = wall_level(truth[i : i + 1], walls)
+        for name, y in ratios.items():
+            psnrs.setdefault(name, []).append(psnr((base[i : i + 1] * y).clamp(0, 1), target[i : i + 1]))
+            errors.setdefault(name, []).append(abs(wall_level(y, walls) - true_level))
+
+    def mean(v: list[float], pick=None) -> float:
+        v = [x for k, x in enumerate(v) if pick is None or pick[k]]
+        return round(sum(v) / len(v), 3)
+
+    return {
+        name: {
+            "psnr_mean": mean(psnrs[name], None),
+            "psnr_mean_flat_walls": mean(psnrs[name], flat),
+            "wall_level_abs_log_err": mean(errors[name], None),
+            "wall_level_abs_log_err_flat": mean(errors[name], flat),
+        }
+        for name in psnrs
+    }
+
+
 @contextlib.contextmanager
 def start_relief(gain: float):
     """Every ``SurfaceEstimator.estimate_at`` inside the block deepens its estimate by ``gain`` (``relief``): in the
@@ -454,7 +540,16 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument(
         "--probe",
-        choices=("gain-fit", "srgb", "profile", "sirfs", "ensemble", "symmetric-particles", "start-relief"),
+        choices=(
+            "gain-fit",
+            "srgb",
+            "profile",
+            "sirfs",
+            "ensemble",
+            "symmetric-particles",
+            "start-relief",
+            "wall-level",
+        ),
         required=True,
     )
     p.add_argument("--gains", nargs="+", type=float, default=[1.0, 1.5, 2.0, 3.0], help="start-relief")
@@ -470,7 +565,8 @@ def main(argv=None) -> int:
         rows = probe_start_relief(args.gains)
     else:
         probes = {"srgb": probe_srgb, "profile": probe_profile, "sirfs": probe_sirfs}
-        rows = {**probes, "symmetric-particles": probe_symmetric_particles}[args.probe]()
+        probes.update({"symmetric-particles": probe_symmetric_particles, "wall-level": probe_wall_level})
+        rows = probes[args.probe]()
     record = {"benchmark": "surface_probes", "probe": args.probe, "default": args.default, "rows": rows}
     print_json_line({**record, "machine": machine_info()})
     return 0
