@@ -191,6 +191,13 @@ SELECT_SETTINGS: dict[str, list[dict]] = {
         f"surface refined, smooth {s:g}": [{"layer_kind": "surface", "preset": {"surface": {"refine_smooth": s}}}]
         for s in (0.5, 1.0)
     },
+    # Round 9's K: the walls' large-scale tilt removed from the estimate (`surface.flat_walls`, σ a fraction of the
+    # working size's long side), for the default's surface start and for the surface layer.
+    **{f"flat walls {s:g}": [{"preset": {"surface": {"flat_walls": s}}}] for s in (0.125, 0.25)},
+    **{
+        f"surface, flat walls {s:g}": [{"layer_kind": "surface", "preset": {"surface": {"flat_walls": s}}}]
+        for s in (0.125, 0.25)
+    },
 }
 
 

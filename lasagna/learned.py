@@ -232,6 +232,7 @@ def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
         side=sd.working_size,
         symmetry=sd.symmetry,
         relief=sd.start_relief,
+        flat_walls=sd.flat_walls,
     )
     target = light_vector(*parse_direction(recipe.label), device=normals.device)[None]
     layer = lambert(normals, target) if source is None else lambert(normals, target) / lambert(normals, source)
@@ -302,7 +303,12 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
     dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
     with torch.no_grad():
         surface, fitted = net.estimate(
-            x, dome, symmetry=sd.symmetry, elevation=sd.light_calibration, source_elevation=sd.source_elevation
+            x,
+            dome,
+            symmetry=sd.symmetry,
+            elevation=sd.light_calibration,
+            source_elevation=sd.source_elevation,
+            flat_walls=sd.flat_walls,
         )
     source = None
     if net.config.input == "lit":
@@ -317,6 +323,8 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         made_by.update(dome_weight=dome.weight, dome_height=dome.height)
     if sd.symmetry != "none":
         made_by.update(symmetry=sd.symmetry)
+    if sd.flat_walls > 0:
+        made_by.update(flat_walls=sd.flat_walls)
     if net.config.input == "lit" and recipe.source_light is None and sd.source_elevation != "fit":
         made_by.update(source_elevation=sd.source_elevation)
     if net.config.input == "lit" and recipe.source_light is None and sd.light_calibration is not None:

@@ -25,6 +25,8 @@ at 8× its training size sees every edge as a feature of its receptive field: an
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -101,3 +103,18 @@ def upsample_colour(layer: Tensor, y: Tensor) -> Tensor:
     if layer.shape[1] == 3:
         return colour
     return torch.cat([colour, upsample(layer[:, 3:], tuple(y.shape[-2:])).clamp(0.0, 1.0)], dim=1)
+
+
+def gaussian_blur(x: Tensor, sigma: float) -> Tensor:
+    """A separable Gaussian blur of ``x`` (B, C, H, W), σ in pixels, edges mirrored (radius 3σ, at most a side − 1)."""
+    c = x.shape[1]
+    for dim in (-1, -2):
+        r = max(1, min(int(math.ceil(3 * sigma)), x.shape[dim] - 1))
+        t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
+        k = torch.exp(-0.5 * (t / sigma) ** 2)
+        k = (k / k.sum()).repeat(c, 1, 1)
+        if dim == -1:
+            x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="reflect"), k[:, :, None, :], groups=c)
+        else:
+            x = F.conv2d(F.pad(x, (0, 0, r, r), mode="reflect"), k[:, :, :, None], groups=c)
+    return x

@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from lasagna.compose.layer import LayerTensors
+from lasagna.compose.resample import gaussian_blur
 from lasagna.document.condition import AMBIENT, check_ambient, parse_direction, unit_vector
 from lasagna.errors import LasagnaError
 
@@ -360,3 +361,24 @@ def deepen_normals(normals: Tensor, gain: float) -> Tensor:
 def mix_normals(normals: Tensor, other: Tensor, weight: float) -> Tensor:
     """Unit normals (1 − weight)·``normals`` + weight·``other``, renormalised and kept facing the viewer."""
     return facing_normals((1.0 - weight) * normals + weight * other)
+
+
+WALL_WEIGHT_FLOOR = 1e-3
+"""Floor of the blurred wall weight in ``flatten_walls`` (a neighbourhood the silhouette calls all object: its
+slopes are left as they are, since the weight there is ~0 anyway)."""
+
+
+def flatten_walls(normals: Tensor, walls: Tensor, sigma: float) -> Tensor:
+    """Unit normals (B, 3, H, W) with the walls' large-scale tilt removed: the slopes p = (n_x, n_y)/n_z less
+    w·(G∗(w·p))/(G∗w), their wall-weighted Gaussian mean (σ = ``sigma`` pixels, `compose.resample.gaussian_blur`),
+    w = ``walls`` (B, 1, H, W) in [0, 1] (1 − the silhouette probability). The shape prior "a wall is a plane facing
+    the camera": a painted gradient read as relief (a night sky's glow, a vignette) tilts a whole region, while a
+    wall's relief (bumps, grooves, ripples shorter than σ) averages to no tilt and is kept (a cosine of wavelength λ
+    keeps 1 − exp(−2π²σ²/λ²) of its amplitude). ``sigma`` 0 returns ``normals`` unchanged."""
+    if sigma <= 0:
+        return normals
+    slopes = normals[:, :2] / normals[:, 2:3].clamp_min(NORMAL_Z_MIN)
+    w = walls.to(normals.dtype)
+    tilt = gaussian_blur(w * slopes, sigma) / gaussian_blur(w, sigma).clamp_min(WALL_WEIGHT_FLOOR)
+    flat = slopes - w * tilt
+    return facing_normals(torch.cat([flat, torch.ones_like(normals[:, 2:3])], 1))

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from lasagna.compose.resample import gaussian_blur
 from lasagna.compose.surface import (
     MAX_FIT_ELEVATION,
     lambert,
@@ -175,29 +176,10 @@ def _locked(height: Tensor, h0: Tensor, sigma: float, weight: Tensor | None = No
     if sigma <= 0 and smooth <= 0 and weight is None:
         return height
     delta = height - h0
-    kept = _blur(delta, smooth) if smooth > 0 else delta
+    kept = gaussian_blur(delta, smooth) if smooth > 0 else delta
     if sigma > 0:
-        kept = kept - _blur(delta, sigma * max(height.shape[-2:]))
+        kept = kept - gaussian_blur(delta, sigma * max(height.shape[-2:]))
     return h0 + (kept if weight is None else weight * kept)
-
-
-def _blur(x: Tensor, sigma: float) -> Tensor:
-    """A separable Gaussian blur of ``x`` (B, C, H, W), σ in pixels, edges mirrored (radius 3σ, at most a side − 1)."""
-    c = x.shape[1]
-    for dim in (-1, -2):
-        r = max(1, min(int(math.ceil(3 * sigma)), x.shape[dim] - 1))
-        t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
-        k = torch.exp(-0.5 * (t / sigma) ** 2)
-        k = (k / k.sum()).repeat(c, 1, 1)
-        if dim == -1:
-            x = torch.nn.functional.conv2d(
-                torch.nn.functional.pad(x, (r, r, 0, 0), mode="reflect"), k[:, :, None, :], groups=c
-            )
-        else:
-            x = torch.nn.functional.conv2d(
-                torch.nn.functional.pad(x, (0, 0, r, r), mode="reflect"), k[:, :, :, None], groups=c
-            )
-    return x
 
 
 def _unit_light(v: Tensor) -> Tensor:

@@ -286,6 +286,16 @@ class SurfaceDefaults(StrictModel):
         "'mirrors', the image and its three mirror images estimated, each mapped back, averaged; 'dihedral', those "
         "and their transposes (all eight symmetries of the square).",
     )
+    flat_walls: FiniteFloat = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="The walls' large-scale tilt removed from the estimate (`lasagna.compose.surface.flatten_walls`): "
+        "the slopes less their wall-weighted Gaussian mean of this width (a fraction of the working size's long side), "
+        "walls weighted by 1 − the silhouette probability, so a painted gradient is not read as a tilted wall; 0: the "
+        "estimate as it is. Applies to the surface layer and to a free layer's surface start. Needs an estimator with "
+        "a silhouette head.",
+    )
     start_relief: FiniteFloat = Field(
         1.0,
         gt=0,

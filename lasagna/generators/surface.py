@@ -54,6 +54,7 @@ from lasagna.compose.surface import (
     enlarge_surface,
     facing_normals,
     fit_light,
+    flatten_walls,
     label_regions,
     mix_normals,
     surface_normals,
@@ -216,11 +217,14 @@ class SurfaceEstimator(Pretrained, nn.Module):
         relief: float = 1.0,
         elevation: tuple[float, float] | None = None,
         source_elevation: SourceElevation = "fit",
+        flat_walls: float = 0.0,
     ) -> tuple[Tensor, Tensor | None]:
         """(surface — height or normals, as ``decompose``; unit normals where ``dome`` mixes in the dome prior,
-        ``symmetry`` averages an ensemble or ``relief`` ≠ 1 deepens the estimate (`deepen_normals`: slopes times
-        ``relief``) — and the source light (B, 3), or None for albedo input): the light is the fit of the final
-        surface's normals to the estimated source shading (module docstring); with ``source_elevation`` "walls" its
+        ``symmetry`` averages an ensemble, ``flat_walls`` > 0 removes the walls' large-scale tilt (`flatten_walls`,
+        σ that fraction of the long side, walls weighted by 1 − the silhouette probability) or ``relief`` ≠ 1
+        deepens the estimate (`deepen_normals`: slopes times ``relief``) — and the source light (B, 3), or None for
+        albedo input): the light is the fit of the final surface's normals to the estimated source shading (module
+        docstring); with ``source_elevation`` "walls" its
         elevation is the one that lights a flat wall to the estimated shading's mean over the walls (weighted by
         1 − the silhouette probability, `lasagna.compose.surface.wall_elevation`); then mapped by ``elevation``
         (offset, gain) when given (`lasagna.compose.surface.calibrate_elevation`)."""
@@ -248,6 +252,13 @@ class SurfaceEstimator(Pretrained, nn.Module):
             surface = facing_normals(torch.stack(normals).mean(0))
             shading = None if shadings[0] is None else torch.stack(shadings).mean(0)
             objects = None if probs[0] is None else torch.stack(probs).mean(0)
+        if flat_walls > 0:
+            if objects is None:
+                raise LasagnaError(
+                    "flat walls need a silhouette head (train-surface --silhouette); this estimator has none",
+                    "flat_walls",
+                )
+            surface = flatten_walls(self.normals(surface), 1.0 - objects, flat_walls * max(surface.shape[-2:]))
         if relief != 1.0:
             surface = deepen_normals(self.normals(surface), relief)
         if shading is None:
@@ -306,11 +317,12 @@ class SurfaceEstimator(Pretrained, nn.Module):
         relief: float = 1.0,
         elevation: tuple[float, float] | None = None,
         source_elevation: SourceElevation = "fit",
+        flat_walls: float = 0.0,
     ) -> tuple[Tensor, Tensor | None]:
         """(unit normals (B, 3, H, W), source light (B, 3) or None) of ``image`` (B, 3, H, W) in [0, 1]: estimated
         at the working size ``side`` (None: the one it was trained at; `lasagna.compose.resample.working_size`),
         the surface enlarged back to (H, W) (`lasagna.compose.surface.enlarge_surface`)."""
         full = tuple(image.shape[-2:])
         small = downsample(image, working_size(*full, side or self.config.working_size))
-        surface, light = self.estimate(small, dome, symmetry, relief, elevation, source_elevation)
+        surface, light = self.estimate(small, dome, symmetry, relief, elevation, source_elevation, flat_walls)
         return self.normals(enlarge_surface(surface, full)), light

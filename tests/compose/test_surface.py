@@ -291,3 +291,48 @@ class TestDomePrior:
         torch.testing.assert_close(mix_normals(a, b, 1.0), b, atol=1e-12, rtol=0)
         half = (a + b).numpy()
         torch.testing.assert_close(mix_normals(a, b, 0.5).numpy(), half / np.linalg.norm(half, axis=1, keepdims=True))
+
+
+class TestFlatWalls:
+    """``flatten_walls``: the walls' large-scale tilt removed, their relief and the objects kept (closed forms in
+    float64 numpy)."""
+
+    @staticmethod
+    def normals(hx: np.ndarray, hy: np.ndarray) -> torch.Tensor:
+        v = np.stack([-hx, -hy, np.ones_like(hx)])[None]
+        return torch.from_numpy(v / np.linalg.norm(v, axis=1, keepdims=True))
+
+    def test_a_tilted_wall_becomes_flat_and_a_ripple_keeps_its_closed_form_share(self):
+        from lasagna.compose.surface import flatten_walls
+
+        rng = np.random.default_rng(4)
+        p, q = rng.normal(size=2) * 0.3
+        y, x = np.mgrid[0:48, 0:48].astype(np.float64)
+        walls = torch.ones(1, 1, 48, 48, dtype=F64)
+        tilted = self.normals(np.full_like(x, p), np.full_like(x, q))  # a plane: constant slopes
+        flat = flatten_walls(tilted, walls, 6.0)
+        torch.testing.assert_close(flat[:, :2], torch.zeros_like(flat[:, :2]), atol=1e-12, rtol=0)
+        # A ripple of wavelength λ on the tilt: its slope 2πA/λ·cos(2πx/λ) keeps 1 − exp(−2π²σ²/λ²) of itself
+        # (the Gaussian's response to a cosine), away from the mirrored borders.
+        lam, amp, sigma = 12.0, 0.4, 3.0
+        ripple = 2 * math.pi * amp / lam * np.cos(2 * math.pi * x / lam)
+        got = flatten_walls(self.normals(p + ripple, np.full_like(x, q)), walls, sigma)
+        slope = (got[0, 0] / got[0, 2]).numpy()
+        keep = 1 - math.exp(-2 * math.pi**2 * sigma**2 / lam**2)
+        inner = (slice(12, 36), slice(12, 36))
+        np.testing.assert_allclose(-slope[inner], keep * ripple[inner], atol=2e-3)
+        assert flatten_walls(tilted, walls, 0.0) is tilted
+
+    def test_the_objects_keep_their_slopes_and_the_wall_around_them_is_flattened(self):
+        from lasagna.compose.surface import flatten_walls
+
+        y, x = np.mgrid[0:32, 0:32].astype(np.float64)
+        inside = (y - 16) ** 2 + (x - 16) ** 2 < 36
+        hx = np.where(inside, (x - 16) / 6, 0.2)  # an object on a wall tilted by 0.2
+        n = self.normals(hx, np.zeros_like(x))
+        walls = torch.from_numpy(np.where(inside, 0.0, 1.0))[None, None]
+        got = flatten_walls(n, walls, 8.0)
+        torch.testing.assert_close(got[..., torch.from_numpy(inside)], n[..., torch.from_numpy(inside)])
+        # the wall's mean is taken over the walls alone, so the object's slopes do not leak into it
+        torch.testing.assert_close(got[0, 0][~torch.from_numpy(inside)], torch.zeros(int((~inside).sum()), dtype=F64))
+        torch.testing.assert_close(got.norm(dim=1), torch.ones(1, 32, 32, dtype=F64))

@@ -148,7 +148,7 @@ def test_the_smooth_band_removes_a_corrections_finest_relief_and_keeps_its_middl
 def test_a_locked_refinement_keeps_the_starts_large_shape():
     """From a start that is the true dome plus a broad tilt, the locked refinement keeps the tilt (its correction has
     no low frequencies to undo it with), while the unlocked one is free to remove it."""
-    from lasagna.distill.surface import _blur
+    from lasagna.compose.resample import gaussian_blur
 
     base = torch.full((1, 3, SIDE, SIDE), 0.8)
     truth = dome()
@@ -159,7 +159,7 @@ def test_a_locked_refinement_keeps_the_starts_large_shape():
     kw.update(t_max=0.5, seed=0)
     free, locked = distill_surface(base, prior, **kw), distill_surface(base, prior, lock_sigma=0.3, **kw)
     sigma = 0.3 * SIDE
-    broad = [float(_blur(fit.surface - start, sigma).abs().mean()) for fit in (free, locked)]
+    broad = [float(gaussian_blur(fit.surface - start, sigma).abs().mean()) for fit in (free, locked)]
     assert broad[1] < 0.5 * broad[0]
 
 

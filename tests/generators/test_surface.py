@@ -330,3 +330,26 @@ def test_the_walls_elevation_lights_a_flat_wall_to_the_shadings_level_on_the_wal
     plain = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
     with pytest.raises(LasagnaError, match="source_elevation: .*needs a silhouette head"):
         plain.estimate(image, source_elevation="walls")
+
+
+def test_flat_walls_remove_the_walls_tilt_from_the_estimate_and_need_a_silhouette_head():
+    """``estimate(..., flat_walls=s)`` is ``flatten_walls`` of the ensemble's normals with the walls weighted by
+    1 − its silhouette probability and σ = s × the long side, applied before the relief gain and the light fit;
+    an estimator without a silhouette head refuses in one line."""
+    from lasagna.compose.surface import deepen_normals, flatten_walls
+
+    torch.manual_seed(12)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", silhouette=True, **TOY))
+    torch.nn.init.normal_(net.head.weight, std=0.5)
+    image = torch.rand(1, 3, 16, 12)
+    plain, _ = net.estimate(image, symmetry="mirrors")
+    got, _ = net.estimate(image, symmetry="mirrors", flat_walls=0.25)
+    walls = 1.0 - net.silhouette(image, "mirrors")
+    want = flatten_walls(net.normals(plain), walls, 0.25 * 16)
+    torch.testing.assert_close(got, want)
+    assert float((got - net.normals(plain)).abs().max().detach()) > 1e-3  # the random net's walls did tilt
+    deep, _ = net.estimate(image, symmetry="mirrors", flat_walls=0.25, relief=2.0)
+    torch.testing.assert_close(deep, deepen_normals(want, 2.0))
+    plain_net = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
+    with pytest.raises(LasagnaError, match="flat_walls: .*silhouette head"):
+        plain_net.estimate(image, flat_walls=0.25)
