@@ -19,7 +19,9 @@ photograph; ``--layer-sheet`` the layers toward the left: input | the surface al
 the edit's layer | its composite (layers shown at half their value, so 1 is mid-grey): what the distillation adds
 to the surface, paint included, is seen there. ``--surface-sheet`` shows the surface layer itself (issue #24's
 sheet): input | its normal map | its shading from the top-left | toward the left | toward the right. Ends with one
-JSON line: per photograph and axis, the mean, the smallest and the count of wrong signs.
+JSON line: per photograph and axis, the mean, the smallest and the count of wrong signs. ``--relief 1 2 3`` instead
+reports the surface layer re-lit by its stored map at each relief gain (the editor's Relief slider; a user's
+control, chosen by nobody here), with ``--relief-sheet``: input | left and right at each gain.
 """
 
 from __future__ import annotations
@@ -67,6 +69,47 @@ def surface_sheet(folder: Path, preset: str, path: Path) -> None:
         shown = (image, rgb, shading.clamp(0, 1).expand(3, -1, -1), left.composite, right.composite)
         rows.append([half(t) for t in shown])
     save_sheet([list(column) for column in zip(*rows)], path)
+
+
+def relief_report(folder: Path, preset: str, gains: list[float], sheet: Path | None) -> dict:
+    """The surface layer (``layer_kind="surface"``) of each photograph, made once toward the left, re-lit by the
+    stack itself (``Stack.set_light``: the stored map, no learning) toward each light of each axis at each relief
+    gain: the swings per gain (a user's control, not a default: nothing here chooses it), and a sheet input | left
+    and right at each gain."""
+    per_gain: dict[float, list[float]] = {g: [] for g in gains}
+    rows, tiles = [], []
+    for file in sorted(folder.glob("*.jpg")):
+        image = read_photo(file)[0]
+        made = lasagna.edit(image, preset, "left", layer_kind="surface")
+        stack, id = made.stack, made.layer_id
+        row: dict = {"photo": file.stem}
+        shown = [image]
+        for g in gains:
+            for axis, pair in PHOTO_AXES.items():
+                total = 0.0
+                for light in pair:
+                    composite = stack.set_light(id, light, relief=g).render().image
+                    total += swing(image, composite, light)
+                    if axis == "left-right":
+                        shown.append(composite)
+                row[f"{axis} x{g:g}"] = round(total, 4)
+                per_gain[g].append(total)
+        rows.append(row)
+        print(row, flush=True)
+        tiles.append([half(t) for t in shown])
+    if sheet is not None and tiles:
+        save_sheet([list(column) for column in zip(*tiles)], sheet)
+    return {
+        "relief_rows": rows,
+        "relief": {
+            f"x{g:g}": {
+                "swing_mean": round(sum(v) / len(v), 4),
+                "below_0.10": sum(x < 0.10 for x in v),
+                "wrong_signs": sum(x < 0 for x in v),
+            }
+            for g, v in per_gain.items()
+        },
+    }
 
 
 def measure(folder: Path, preset: str, sheet: Path | None, layer_sheet: Path | None = None) -> dict:
@@ -122,8 +165,27 @@ def main(argv=None) -> int:
         help="the surface layer: input | normal map | shading from the top-left | toward left | toward right",
     )
     p.add_argument("--label", default="", help="a name for this candidate in the JSON line")
+    p.add_argument(
+        "--relief",
+        nargs="+",
+        type=float,
+        default=None,
+        metavar="G",
+        help="instead: the surface layer re-lit at these relief gains (`relief` of the stack's surface layer)",
+    )
+    p.add_argument("--relief-sheet", type=Path, default=None, help="with --relief: input | left, right at each gain")
     args = p.parse_args(argv)
     torch.manual_seed(0)
+    if args.relief:
+        record = {
+            "benchmark": "photo_swing",
+            "machine": machine_info(),
+            "photos_folder": str(args.photos),
+            "preset": args.preset,
+            **relief_report(args.photos, args.preset, args.relief, args.relief_sheet),
+        }
+        print_json_line(record)
+        return 0
     if args.surface_sheet is not None:
         surface_sheet(args.photos, args.preset, args.surface_sheet)
     record = {

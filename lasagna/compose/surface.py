@@ -277,11 +277,14 @@ def surface_range(source_light: str | None, ambient: float) -> tuple[float, floa
     return (ambient, 1.0) if source_light is None else (ambient, 1.0 / ambient)
 
 
-def surface_tensors(stored: LayerTensors, light: str, source_light: str | None, ambient: float) -> LayerTensors:
+def surface_tensors(
+    stored: LayerTensors, light: str, source_light: str | None, ambient: float, relief: float = 1.0
+) -> LayerTensors:
     """A surface layer's tensors as the compositor blends them: its normal map ``stored.color`` (..., 3, h, w)
-    of values in [0, 1] (the PNG's codes) rendered to the multiplier (..., 1, h, w) — S(light), or
-    S(light)/S(source_light) — with the map's alpha and mask. ``light`` and ``source_light`` are condition
-    texts (a named light or ``az=…,el=…``). The same stored map and light always give the same bits.
+    of values in [0, 1] (the PNG's codes), its relief times ``relief`` (`deepen_normals`), rendered to the
+    multiplier (..., 1, h, w) — S(light), or S(light)/S(source_light) — with the map's alpha and mask. ``light``
+    and ``source_light`` are condition texts (a named light or ``az=…,el=…``). The same stored map, light and
+    relief always give the same bits.
     """
     color = stored.color
     if color.shape[-3] != 3:
@@ -289,7 +292,7 @@ def surface_tensors(stored: LayerTensors, light: str, source_light: str | None, 
             f"the normal map has {color.shape[-3]} channel(s); expected an RGB normal map", where="surface layer"
         )
     same_map = (id(color), color._version)
-    key = (*same_map, light, source_light, float(ambient))
+    key = (*same_map, light, source_light, float(ambient), float(relief))
     hit = _RENDERED.get(stored)
     if hit is not None and hit[0] == key:
         return hit[1]
@@ -297,12 +300,13 @@ def surface_tensors(stored: LayerTensors, light: str, source_light: str | None, 
     normals = hit[2] if relit else None
     if normals is None:
         normals = decode_normal_map(color.reshape(-1, *color.shape[-3:]))
+    lit = deepen_normals(normals, float(relief))
     target = light_vector(*parse_direction(light), dtype=normals.dtype, device=normals.device)
     if source_light is None:
-        y = lambert(normals, target, ambient)
+        y = lambert(lit, target, ambient)
     else:
         source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
-        y = relight_ratio(normals, target, source, ambient)
+        y = relight_ratio(lit, target, source, ambient)
     out = LayerTensors(y.reshape(*color.shape[:-3], 1, *color.shape[-2:]), stored.alpha, stored.mask)
     _RENDERED[stored] = (key, out, normals if relit else None)
     return out
@@ -382,3 +386,13 @@ def flatten_walls(normals: Tensor, walls: Tensor, sigma: float) -> Tensor:
     tilt = gaussian_blur(w * slopes, sigma) / gaussian_blur(w, sigma).clamp_min(WALL_WEIGHT_FLOOR)
     flat = slopes - w * tilt
     return facing_normals(torch.cat([flat, torch.ones_like(normals[:, 2:3])], 1))
+
+
+def relieved_map(color: Tensor, relief: float) -> Tensor:
+    """A stored normal map's codes (..., 3, h, w) in [0, 1] with its relief times ``relief`` (`deepen_normals`),
+    encoded again: the map a reader must light to see what the layer renders (a hidden normal layer, `lasagna
+    export --normal-map`). Relief 1 returns ``color`` itself, bit for bit."""
+    if float(relief) == 1.0:
+        return color
+    normals = decode_normal_map(color.reshape(-1, *color.shape[-3:]))
+    return encode_normal_map(deepen_normals(normals, float(relief))).reshape(color.shape)

@@ -276,14 +276,19 @@ def _surface_schema(schema: dict[str, Any]) -> None:
     schema["then"] = {"properties": {"ambient": {"exclusiveMinimum": 0}}}
 
 
+MAX_RELIEF = 16.0
+"""The largest relief gain a surface layer takes: slopes ×16 turn a 5° bump into a 54° one; beyond it every
+relief is a cliff and the map's 16-bit quantisation (slopes to 3e-5) starts to show."""
+
+
 class SurfaceLayer(_Common):
     """A surface — a tangent-space normal map — rendered to a luminosity multiplier under its light.
 
     The multiplier is Lambert with ambient, the world's contract (`lasagna.compose.surface`): the shading
     S(light) = a + (1 − a)·max(0, n·l) or, with ``source_light``, the relight ratio S(light)/S(source_light)
-    that turns an image lit from ``source_light`` into one lit from ``light``. Editing ``light`` in stack.json
-    re-lights the layer exactly, with no learning. Its blend is multiply: the multiplier scales the colour
-    below it, so the paint under it is kept.
+    that turns an image lit from ``source_light`` into one lit from ``light``, of the map's normals with their
+    relief times ``relief``. Editing ``light`` or ``relief`` in stack.json re-renders the layer exactly, with no
+    learning. Its blend is multiply: the multiplier scales the colour below it, so the paint under it is kept.
     """
 
     model_config = ConfigDict(json_schema_extra=_surface_schema)
@@ -299,6 +304,15 @@ class SurfaceLayer(_Common):
     )
     ambient: float = Field(
         AMBIENT, ge=0.0, lt=1.0, allow_inf_nan=False, description="Ambient term a of a + (1 − a)·max(0, n·l)."
+    )
+    relief: float = Field(
+        1.0,
+        strict=True,
+        gt=0.0,
+        le=MAX_RELIEF,
+        allow_inf_nan=False,
+        description="Relief gain: the map's slopes times this before it is lit, n ↦ (g·n_x, g·n_y, n_z) "
+        "renormalised (glTF's normalTexture.scale; the normals of the height field times g); 1: the map as stored.",
     )
     mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
     made_by: dict[str, JsonValue] = Field(

@@ -19,6 +19,7 @@ import numpy as np
 
 from lasagna.atomic import atomic_write_all
 from lasagna.compose.plan import gradient_tensors, pattern_tensors
+from lasagna.compose.surface import relieved_map
 from lasagna.document import AdjustmentLayer, GroupLayer, LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
 from lasagna.io.png import encode_png
@@ -125,7 +126,8 @@ def normal_map_png(stack, layer_id: str | None = None) -> bytes:
     """PNG bytes of surface layer ``layer_id``'s normal map (default: the topmost surface layer) on the canvas:
     16-bit RGB, tangent space, n ↦ (n + 1)/2 with +Y up (the OpenGL convention Blender, Krita's tangent-normal
     brush and Godot's ``CanvasTexture.normal_texture`` read; flip green for DirectX). Outside the layer, and
-    where its mask or alpha is 0, the map holds the flat normal (0.5, 0.5, 1.0)."""
+    where its mask or alpha is 0, the map holds the flat normal (0.5, 0.5, 1.0). The relief is the layer's
+    (``relief`` ≠ 1: the stored map deepened, `compose.surface.relieved_map`), so it lights as the layer renders."""
     surfaces = [layer for _, layer in stack.document.walk() if isinstance(layer, SurfaceLayer)]
     if not surfaces:
         raise ExportError("the stack has no surface layer; expected one to write its normal map", "normal map")
@@ -141,7 +143,7 @@ def normal_map_png(stack, layer_id: str | None = None) -> bytes:
     h_, w_ = stack.height, stack.width
     out = np.empty((3, h_, w_))
     out[:] = np.array([0.5, 0.5, 1.0])[:, None, None]
-    color = t.color.detach().cpu().double().numpy()
+    color = relieved_map(t.color.detach(), layer.relief).cpu().double().numpy()
     keep = np.ones(color.shape[1:], dtype=bool)
     for extra in (t.alpha, t.mask):
         if extra is not None:

@@ -63,7 +63,7 @@ import torch
 
 from lasagna.compose.blend import dissolve_pattern
 from lasagna.compose.plan import gradient_tensors, pattern_tensors
-from lasagna.compose.surface import surface_tensors
+from lasagna.compose.surface import relieved_map, surface_tensors
 from lasagna.document import LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
 from lasagna.io.png import BitDepth, quantize_band
@@ -200,7 +200,7 @@ def _layer_raster(stack, layer, origin: tuple[int, int] = (0, 0)) -> tuple[np.nd
     if t is None:
         return None
     if isinstance(layer, SurfaceLayer):  # the multiplier its normal map renders to, as the compositor blends it
-        t = surface_tensors(t, layer.light, layer.source_light, float(layer.ambient))
+        t = surface_tensors(t, layer.light, layer.source_light, float(layer.ambient), float(layer.relief))
     color = _numpy(t.color)
     if color.ndim != 3:
         raise ExportError(
@@ -461,8 +461,9 @@ class _Walk:
 
     def normal_map(self, layer, origin) -> ExportLayer:
         """A surface layer's normal map as a hidden normal layer (tangent space, +Y up) below its rendered
-        multiplier: a reader flattens the file as we do, and an artist can show or reuse the map."""
-        color = _numpy(self.stack.tensors[layer.id].color)
+        multiplier: a reader flattens the file as we do, and an artist can show or reuse the map (its relief times
+        the layer's ``relief``, so the map lights as the layer renders)."""
+        color = _numpy(relieved_map(self.stack.tensors[layer.id].color, layer.relief))
         x0, y0 = layer.offset.x + origin[0], layer.offset.y + origin[1]
         cropped = _crop(color, None, x0, y0, self.W, self.H)
         color, alpha, x, y = cropped if cropped is not None else (color[:, :1, :1], np.zeros((1, 1, 1)), 0, 0)

@@ -335,9 +335,17 @@ class Stack:
         self._store(id, tensors, 16)
         return self
 
-    def set_light(self, id: str, light: str, *, source_light: str | None = ..., ambient: float | None = None) -> Stack:
-        """Re-light the surface layer ``id``: a new ``light`` (and ``source_light`` / ``ambient`` when given). No
-        pixels change; the next render draws the stored surface under the new light."""
+    def set_light(
+        self,
+        id: str,
+        light: str,
+        *,
+        source_light: str | None = ...,
+        ambient: float | None = None,
+        relief: float | None = None,
+    ) -> Stack:
+        """Re-light the surface layer ``id``: a new ``light`` (and ``source_light`` / ``ambient`` / ``relief`` when
+        given). No pixels change; the next render draws the stored surface under the new light."""
         layer = self.document.layer(id)
         if not isinstance(layer, SurfaceLayer):
             raise DocumentError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", where="set_light")
@@ -346,6 +354,8 @@ class Stack:
             changes["source_light"] = source_light
         if ambient is not None:
             changes["ambient"] = float(ambient)
+        if relief is not None:
+            changes["relief"] = float(relief)
         self.document = self.document.replace_layer(id, **changes)
         return self
 

@@ -221,6 +221,15 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
                 sep = ""
             if not sep:
                 raise RequestError(f"opacity is {item!r}; expected LAYER:VALUE", "opacity")
+        relief: dict[str, float] = {}
+        for item in q.getlist("relief"):
+            id, sep, value = item.rpartition(":")
+            try:
+                relief[id] = float(value)
+            except ValueError:
+                sep = ""
+            if not sep:
+                raise RequestError(f"relief is {item!r}; expected LAYER:GAIN", "relief")
         lights: dict[str, dict[str, str]] = {"light": {}, "source": {}}
         for name, given in lights.items():
             for item in q.getlist(name):  # a light's text holds no ':' (nor does an id)
@@ -233,6 +242,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             "opacity": opacity,
             "light": lights["light"],
             "source": lights["source"],
+            "relief": relief,
             "solo": q.get("solo") or None,
             "upto": q.get("upto") or None,
         }

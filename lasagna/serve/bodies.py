@@ -18,6 +18,7 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PlainValidator, ValidationError
 
 from lasagna.document.condition import parse_direction
+from lasagna.document.models import MAX_RELIEF
 from lasagna.document.types import Blend, Colour
 from lasagna.document.validation import parse_json
 from lasagna.errors import ConditionError, DocumentError, LasagnaError, describe_validation_error
@@ -47,6 +48,7 @@ Count = Annotated[int, Field(strict=True)]
 Light = Annotated[str, Field(strict=True, max_length=MAX_TEXT), AfterValidator(_light)]
 """A light as the document writes it: a named light or ``az=A,el=E`` (``parse_direction``), kept as given."""
 Ambient = Annotated[float, Field(strict=True, ge=0.0, lt=1.0)]
+Relief = Annotated[float, Field(strict=True, gt=0.0, le=MAX_RELIEF, allow_inf_nan=False)]
 
 
 class RequestError(LasagnaError):
@@ -137,7 +139,7 @@ class AddLearned(_Body):
 
 class SetLight(_Body):
     """Re-light a surface layer (``EditSession.set_light``): ``light``, and ``source_light`` (null: plain
-    shading) and ``ambient`` when given; an absent field keeps the layer's value."""
+    shading), ``ambient`` and ``relief`` when given; an absent field keeps the layer's value."""
 
     op: Literal["light"]
     version: Version
@@ -145,11 +147,14 @@ class SetLight(_Body):
     light: Light
     source_light: Light | None = None
     ambient: Ambient | None = None
+    relief: Relief | None = None
 
     def call(self, session):
         keep = "source_light" not in self.model_fields_set  # absent keeps it; null removes it
         source = ... if keep else self.source_light
-        return session.set_light(self.version, self.id, self.light, source_light=source, ambient=self.ambient)
+        return session.set_light(
+            self.version, self.id, self.light, source_light=source, ambient=self.ambient, relief=self.relief
+        )
 
 
 class Undo(_Body):

@@ -284,13 +284,21 @@ class EditSession(SessionViews, SessionJobs):
         return self._change(version, f"{what} of {id}", apply)
 
     def set_light(
-        self, version: Any, id: str, light: str, *, source_light: str | None = ..., ambient: float | None = None
+        self,
+        version: Any,
+        id: str,
+        light: str,
+        *,
+        source_light: str | None = ...,
+        ambient: float | None = None,
+        relief: float | None = None,
     ) -> dict[str, Any]:
         """Re-light surface layer ``id`` (``Stack.set_light``): its stored normal map is drawn under ``light`` (and
-        ``source_light`` / ``ambient`` when given); no pixels change, nothing is learned. One undo step."""
+        ``source_light`` / ``ambient`` / ``relief`` when given); no pixels change, nothing is learned. One undo
+        step."""
 
         def apply() -> None:
-            self.stack.set_light(id, light, source_light=source_light, ambient=ambient)
+            self.stack.set_light(id, light, source_light=source_light, ambient=ambient, relief=relief)
 
         return self._change(version, f"light of {id}", apply)
 
@@ -493,7 +501,8 @@ class EditSession(SessionViews, SessionJobs):
 
 def _surfaces(doc: Document) -> dict[str, dict[str, Any]]:
     """Each surface layer's light as the page draws its control: the texts, the light's (az, el) in degrees
-    (``parse_direction``: a named light resolved), a relight's source light's as ``source``, and the ambient term."""
+    (``parse_direction``: a named light resolved), a relight's source light's as ``source``, the ambient term and the
+    relief gain."""
     out = {}
     for _, layer in doc.walk():
         if layer.kind == "surface":
@@ -505,6 +514,7 @@ def _surfaces(doc: Document) -> dict[str, dict[str, Any]]:
                 "source_light": layer.source_light,
                 "source": None if layer.source_light is None else list(parse_direction(layer.source_light)),
                 "ambient": float(layer.ambient),
+                "relief": float(layer.relief),
             }
     return out
 

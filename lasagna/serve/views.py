@@ -32,8 +32,10 @@ from lasagna.compose.pattern import TileTensors
 from lasagna.compose.plan import plan_from_document, solid_tensors
 from lasagna.compose.render import render
 from lasagna.compose.renderer import Renderer
+from lasagna.compose.surface import relieved_map
 from lasagna.document import Document
 from lasagna.document.condition import parse_direction
+from lasagna.document.models import MAX_RELIEF
 from lasagna.errors import LasagnaError
 from lasagna.io.render import BAND_ROWS, composite_codes, encode_composite, render_bytes, tensor_bytes
 from lasagna.io.stack import Stack, group_mask_tensors
@@ -198,11 +200,13 @@ class SessionViews:
         upto: str | None = None,
         light: dict[str, str] | None = None,
         source: dict[str, str] | None = None,
+        relief: dict[str, float] | None = None,
     ) -> tuple[bytes, int, int]:
         """The composite at reduction ``level`` as RGBA8 bytes (row-major), with transient overrides that are
         not changes (``opacity`` while a slider is dragged; ``light`` of a surface layer while its light is
         dragged: the stored map drawn under it, as ``set_light`` would; ``source`` likewise, a relight surface
-        layer's source light while it is dragged; ``solo`` one layer alone; ``upto`` a
+        layer's source light while it is dragged; ``relief`` a surface layer's relief gain while its slider is
+        dragged; ``solo`` one layer alone; ``upto`` a
         layer: the stack up to and including it, the "before" of a before/after split). Layers are named at
         any depth: a soloed layer inside a group shows with the groups that hold it."""
         self._check_level(level)
@@ -212,6 +216,7 @@ class SessionViews:
                 *(opacity or {}),
                 *(light or {}),
                 *(source or {}),
+                *(relief or {}),
                 *([solo] if solo else []),
                 *([upto] if upto else []),
             ]
@@ -229,7 +234,14 @@ class SessionViews:
                 if doc.layer(id).kind != "surface" or doc.layer(id).source_light is None:
                     raise LasagnaError(f"layer {id!r} has no source light; expected a relight surface layer", "source")
                 parse_direction(text)
-            layers = _overridden(doc, opacity or {}, solo, upto, light or {}, source or {})
+            for id, v in (relief or {}).items():
+                if doc.layer(id).kind != "surface":
+                    raise LasagnaError(
+                        f"layer {id!r} is a {doc.layer(id).kind} layer; expected a surface layer", "relief"
+                    )
+                if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 < float(v) <= MAX_RELIEF):
+                    raise LasagnaError(f"expected a relief gain in (0, {MAX_RELIEF:g}], got {v!r}", f"relief.{id}")
+            layers = _overridden(doc, opacity or {}, solo, upto, light or {}, source or {}, relief or {})
             w, h = _reduced_side(self.stack.width, level), _reduced_side(self.stack.height, level)
             # The layers reduced to this level, the canvas and the renderer's snapshot below the top layer
             # (``lasagna.compose.renderer``), and the RGBA8 bytes returned.
@@ -261,9 +273,9 @@ class SessionViews:
             return rgba.tobytes(), w, h
 
     def normal_map(self, id: str, level: int = 0) -> tuple[bytes, int, int]:
-        """Surface layer ``id``'s stored normal map at reduction ``level`` as RGBA8 bytes of the view's size (the
-        map's RGB codes where the layer lies, at its offset; transparent elsewhere): what the layer holds, not
-        how it is lit."""
+        """Surface layer ``id``'s normal map at reduction ``level`` as RGBA8 bytes of the view's size (the map's RGB
+        codes where the layer lies, at its offset; transparent elsewhere), its relief times the layer's ``relief``
+        as the exports write it (`compose.surface.relieved_map`): the surface the layer lights, not how it is lit."""
         self._check_level(level)
         with self._guard():
             layer = self.stack.document.layer(id)
@@ -279,7 +291,7 @@ class SessionViews:
         top, left = max(0, y0), max(0, x0)
         bottom, right = min(h, y0 + mh), min(w, x0 + mw)
         if bottom > top and right > left:
-            part = t.color[:, top - y0 : bottom - y0, left - x0 : right - x0]
+            part = relieved_map(t.color[:, top - y0 : bottom - y0, left - x0 : right - x0], layer.relief)
             rgba[top:bottom, left:right, :3] = (part.clamp(0, 1) * 255.0).round().to(torch.uint8).permute(1, 2, 0)
             rgba[top:bottom, left:right, 3] = 255
         return rgba.tobytes(), w, h
@@ -330,11 +342,12 @@ def _overridden(
     upto: str | None,
     light: dict[str, str],
     source: dict[str, str] | None = None,
+    relief: dict[str, float] | None = None,
 ) -> list:
     """``doc``'s layer tree with a view's transient overrides (``EditSession.view``), layers named at any depth:
-    ``opacity`` per layer; ``light`` (and ``source``, a relight's source light) per surface layer; ``solo``: that
-    layer (with what it holds) alone, the groups holding it shown; ``upto``: every layer after it in the tree's
-    order (depth first, a group before its layers) hidden, except its own layers."""
+    ``opacity`` per layer; ``light`` (and ``source``, a relight's source light, and ``relief``) per surface layer;
+    ``solo``: that layer (with what it holds) alone, the groups holding it shown; ``upto``: every layer after it
+    in the tree's order (depth first, a group before its layers) hidden, except its own layers."""
     order = [layer.id for _, layer in doc.walk()]
     inside: dict[str, set[str]] = {}  # group id → ids of every layer it holds, at any depth
     holders: dict[str, list[str]] = {}  # layer id → ids of the groups holding it, outermost first
@@ -367,6 +380,8 @@ def _overridden(
                 changes["light"] = light[layer.id]
             if source and layer.id in source:
                 changes["source_light"] = source[layer.id]
+            if relief and layer.id in relief:
+                changes["relief"] = float(relief[layer.id])
             if shown is not None and layer.id == solo:
                 changes["visible"] = True
             elif shown is not None and layer.id not in shown:

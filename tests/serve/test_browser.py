@@ -432,3 +432,35 @@ def test_a_relight_surface_layers_source_light_is_dragged_too(browser, surface_s
     assert not np.array_equal(page_pixels(page), before)
     save_and_check(page, folder)
     assert page.errors == []
+
+
+def test_the_relief_slider_previews_live_and_commits_one_step(browser, surface_server):
+    """A surface layer's "Relief" slider (log scale, ×1/4…×8): dragging repaints the view live with nothing changed
+    on the server; the release commits one step that sets the relief and keeps the light; the saved stack renders
+    what the page shows; undo restores the pixels."""
+    folder = surface_server.session.folder
+    page = open_page(browser, surface_server)
+    row(page, "shape").locator(".name").click()
+    page.wait_for_selector("#relief")
+    assert page.inner_text("#relief-value") == "×1.00"
+    before, v = page_pixels(page), version(page)
+    paints = page.evaluate("window.lasagna.paints.count")
+    page.evaluate(
+        """() => { const r = document.getElementById("relief");
+        for (const x of ["0.5", "1", "1.5"]) { r.value = x; r.dispatchEvent(new Event("input")); } }"""
+    )
+    page.wait_for_function(f"window.lasagna.paints.count > {paints}")
+    assert version(page) == v  # a preview, not a change
+    page.evaluate('() => document.getElementById("relief").dispatchEvent(new Event("change"))')
+    settle(page, v + 1)
+    s = page.evaluate("window.lasagna.state")
+    assert s["undo"] == "light of shape" and abs(s["surfaces"]["shape"]["relief"] - 2.828) < 1e-3
+    assert s["surfaces"]["shape"]["light"] == "top-left"
+    assert page.inner_text("#relief-value") == "×2.83"
+    deep = page_pixels(page)
+    assert not np.array_equal(deep, before)
+    save_and_check(page, folder)
+    page.click("#undo")
+    settle(page, v + 2)
+    assert np.array_equal(page_pixels(page), before)
+    assert page.errors == []

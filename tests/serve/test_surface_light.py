@@ -5,6 +5,7 @@ by ``render_stack`` (the CLI's composite), bit for bit; undo; one-line refusals.
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -88,7 +89,15 @@ def test_state_gives_each_surface_layers_light(client):
     s = state(client)["surfaces"]
     az, el = NAMED_DIRECTIONS["top-left"]
     assert s == {
-        "shape": {"light": "top-left", "az": az, "el": el, "source_light": None, "source": None, "ambient": 0.25}
+        "shape": {
+            "light": "top-left",
+            "az": az,
+            "el": el,
+            "source_light": None,
+            "source": None,
+            "ambient": 0.25,
+            "relief": 1.0,
+        }
     }
 
 
@@ -121,7 +130,7 @@ def test_undo_restores_the_light_and_the_pixels_redo_again(client):
 
 
 def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
-    s = ok(post(client, op="light", id="shape", light="right", source_light="left", ambient=0.4))
+    s = ok(post(client, op="light", id="shape", light="right", source_light="left", ambient=0.4, relief=2.5))
     el = NAMED_DIRECTIONS["right"][1]
     assert s["surfaces"]["shape"] == {
         "light": "right",
@@ -130,12 +139,14 @@ def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
         "source_light": "left",
         "source": [180.0, el],
         "ambient": 0.4,
+        "relief": 2.5,
     }
     assert np.array_equal(
-        view(client, level=0)[..., :3], relit_codes(folder, "right", source_light="left", ambient=0.4)
+        view(client, level=0)[..., :3], relit_codes(folder, "right", source_light="left", ambient=0.4, relief=2.5)
     )
     s = ok(post(client, op="light", id="shape", light="top"))
     assert s["surfaces"]["shape"]["source_light"] == "left" and s["surfaces"]["shape"]["ambient"] == 0.4
+    assert s["surfaces"]["shape"]["relief"] == 2.5
     s = ok(post(client, op="light", id="shape", light="top", source_light=None))
     assert s["surfaces"]["shape"]["source_light"] is None and s["surfaces"]["shape"]["ambient"] == 0.4
 
@@ -251,3 +262,53 @@ def test_a_bad_preview_is_a_one_line_400(client, params, words):
 )
 def test_a_bad_normal_map_request_is_a_one_line_4xx(client, id, params, words):
     assert words in one_line_4xx(client.get(f"/api/layers/{id}/normals", headers=H, params=params))
+
+
+# ---- the relief ----------------------------------------------------------------------------------
+
+
+def test_the_relief_preview_is_the_change_bit_for_bit_and_one_undo_step(client, folder):
+    """``/api/view?relief=LAYER:G`` (the slider while dragged) shows, bit for bit, what the change ``op: light``
+    with ``relief`` G then gives, and what the engine renders of the saved stack; the map's slopes times G make
+    the shading stronger (the lit side brighter, the far side darker than at relief 1)."""
+    before = view(client, level=0)
+    preview = view(client, level=0, relief="shape:3")
+    assert not np.array_equal(preview, before)
+    assert np.array_equal(view(client, level=0), before)  # a preview changes nothing on the server
+    s = ok(post(client, op="light", id="shape", light="top-left", relief=3.0))
+    assert s["surfaces"]["shape"]["relief"] == 3.0 and s["undo"] == "light of shape"
+    assert np.array_equal(view(client, level=0), preview)
+    assert np.array_equal(preview[..., :3], relit_codes(folder, "top-left", relief=3.0))
+    flat, deep = before[..., :3].astype(float), preview[..., :3].astype(float)
+    assert deep.std() > flat.std()  # deeper relief: more shading contrast
+    ok(post(client, op="save"))
+    assert json.loads((folder / "stack.json").read_text())["layers"][1]["relief"] == 3.0
+    fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
+    assert np.array_equal(preview[..., :3], fresh)
+    ok(post(client, op="undo"))
+    assert np.array_equal(view(client, level=0), before)
+
+
+@pytest.mark.parametrize(
+    "param, match",
+    [
+        ("shape:0", "relief.shape: expected a relief gain in \\(0, 16\\]"),
+        ("shape:17", "relief.shape: expected a relief gain"),
+        ("shape:nan", "relief.shape: expected a relief gain"),
+        ("shape:deep", "relief: relief is 'shape:deep'; expected LAYER:GAIN"),
+        ("nope:2", "no layer with id 'nope'"),
+    ],
+)
+def test_a_bad_relief_preview_is_one_line_400(client, param, match):
+    response = client.get("/api/view", headers=H, params={"level": 0, "relief": param})
+    assert response.status_code == 400
+    error = response.json()["error"]
+    assert "\n" not in error and re.search(match, error), error
+
+
+@pytest.mark.parametrize("relief", [0, -1, 17, "2"])
+def test_a_bad_relief_change_is_refused_and_changes_nothing(client, relief):
+    before = state(client)
+    response = post(client, op="light", id="shape", light="left", relief=relief)
+    assert response.status_code == 400 and "relief" in response.json()["error"]
+    assert state(client)["version"] == before["version"]

@@ -16,8 +16,9 @@ const ui = {
   split: false,
   drag: null,           // {id, value} while an opacity slider is dragged (a transient view, not a change)
   light: null,          // {id, text, source} while a surface layer's light (or source light) is dragged (a view)
+  relief: null,         // a surface layer's relief gain while its slider is dragged: { id, value }
   lightWhich: {},       // per relight surface layer: which light its sphere moves, "light" or "source"
-  normals: null,        // a surface layer's id while the view shows its stored normal map
+  normals: null,        // a surface layer's id while the view shows its normal map (its relief applied)
   lightProxy: true,     // a light drag previews at the drag proxy's level (dragLevel); false: at the view's level
   condition: null,
   image: null,          // the last view: {canvas, level, w, h}
@@ -304,7 +305,28 @@ function lightControl(layer) {
   const info = document.createElement("div");
   info.className = "hint";
   info.textContent = (lit.source_light ? `relight from ${lit.source_light} · ` : "") + `ambient ${lit.ambient}`;
-  box.append(sphere, readout, info, field("Show normal map", show));
+  // The relief gain (glTF's normalTexture.scale): the map's slopes times it before it is lit. A log slider, 1/4…8;
+  // dragging previews (/api/view?relief=…), releasing records one change.
+  const relief = document.createElement("input");
+  relief.type = "range"; relief.id = "relief"; relief.min = "-2"; relief.max = "3"; relief.step = "0.05";
+  relief.value = String(Math.log2(lit.relief));
+  const reliefValue = document.createElement("span");
+  reliefValue.id = "relief-value";
+  const gain = () => Math.round(2 ** parseFloat(relief.value) * 1000) / 1000;
+  reliefValue.textContent = `×${lit.relief.toFixed(2)}`;
+  relief.addEventListener("input", () => {
+    ui.relief = { id: layer.id, value: gain() };
+    reliefValue.textContent = `×${ui.relief.value.toFixed(2)}`;
+    paint();
+  });
+  relief.addEventListener("change", async () => {
+    await change({ op: "light", id: layer.id, light: lit.light, relief: gain() });
+    ui.relief = null;
+    paint();
+  });
+  const reliefField = field("Relief", relief);
+  reliefField.append(" ", reliefValue);
+  box.append(sphere, readout, info, reliefField, field("Show normal map", show));
   // A relight's sphere moves either light: the target, or the source the ratio divides by (fitted to the image,
   // and off where the estimate was: a source light too frontal makes the whole relight too dark).
   // The choice is kept per layer across the control's rebuilds (every change rebuilds the panel).
@@ -477,6 +499,7 @@ async function fetchView(params) {
   if (params.solo) q.set("solo", params.solo);
   if (params.upto) q.set("upto", params.upto);
   if (params.light) q.append(params.light.source ? "source" : "light", `${params.light.id}:${params.light.text}`);
+  if (params.relief) q.append("relief", `${params.relief.id}:${params.relief.value}`);
   const path = params.normals ? `api/layers/${encodeURIComponent(params.normals)}/normals?level=${params.level}` : `api/view?${q}`;
   const response = await api(path);
   const w = parseInt(response.headers.get("X-Width"), 10), h = parseInt(response.headers.get("X-Height"), 10);
@@ -503,8 +526,8 @@ function paint() {
   if (!ui.state) return;
   const level = levelFor(ui.zoom);
   wanted = {
-    level: ui.drag || (ui.light && ui.lightProxy) ? dragLevel(level) : level, drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split,
-    light: ui.light, normals: ui.normals,
+    level: ui.drag || ((ui.light || ui.relief) && ui.lightProxy) ? dragLevel(level) : level, drag: ui.drag, solo: ui.solo,
+    version: ui.state.version, split: ui.split, light: ui.light, relief: ui.relief, normals: ui.normals,
   };
   if (!inflight) paintLoop();
 }
