@@ -212,24 +212,17 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             level = int(q.get("level", "0"))
         except ValueError:
             raise RequestError(f"level is {q.get('level')!r}; expected an integer", "level") from None
-        opacity: dict[str, float] = {}
-        for item in q.getlist("opacity"):
-            id, sep, value = item.rpartition(":")
-            try:
-                opacity[id] = float(value)
-            except ValueError:
-                sep = ""
-            if not sep:
-                raise RequestError(f"opacity is {item!r}; expected LAYER:VALUE", "opacity")
-        relief: dict[str, float] = {}
-        for item in q.getlist("relief"):
-            id, sep, value = item.rpartition(":")
-            try:
-                relief[id] = float(value)
-            except ValueError:
-                sep = ""
-            if not sep:
-                raise RequestError(f"relief is {item!r}; expected LAYER:GAIN", "relief")
+        # Numeric overrides, LAYER:NUMBER each: an opacity slider's, a surface layer's relief or ambient slider's.
+        numbers: dict[str, dict[str, float]] = {"opacity": {}, "relief": {}, "ambient": {}}
+        for name, given in numbers.items():
+            for item in q.getlist(name):
+                id, sep, value = item.rpartition(":")
+                try:
+                    given[id] = float(value)
+                except ValueError:
+                    sep = ""
+                if not sep:
+                    raise RequestError(f"{name} is {item!r}; expected LAYER:NUMBER", name)
         lights: dict[str, dict[str, str]] = {"light": {}, "source": {}}
         for name, given in lights.items():
             for item in q.getlist(name):  # a light's text holds no ':' (nor does an id)
@@ -239,10 +232,11 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
                 given[id] = text
         return {
             "level": level,
-            "opacity": opacity,
+            "opacity": numbers["opacity"],
             "light": lights["light"],
             "source": lights["source"],
-            "relief": relief,
+            "relief": numbers["relief"],
+            "ambient": numbers["ambient"],
             "solo": q.get("solo") or None,
             "upto": q.get("upto") or None,
         }

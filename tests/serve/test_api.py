@@ -268,7 +268,7 @@ def test_views_composite_groups_as_the_engine_does(tmp_path, tiny, monkeypatch):
     "params, words",
     [
         ({"level": "x"}, "integer"),
-        ({"opacity": "glow"}, "LAYER:VALUE"),
+        ({"opacity": "glow"}, "LAYER:NUMBER"),
         ({"opacity": "glow:2"}, "opacity in [0, 1]"),
         ({"opacity": "nope:0.5"}, "no layer"),
         ({"solo": "nope"}, "no layer"),

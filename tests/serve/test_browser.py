@@ -464,3 +464,30 @@ def test_the_relief_slider_previews_live_and_commits_one_step(browser, surface_s
     settle(page, v + 2)
     assert np.array_equal(page_pixels(page), before)
     assert page.errors == []
+
+
+def test_the_ambient_slider_previews_live_and_commits_one_step(browser, surface_server):
+    """A surface layer's "Ambient" slider: dragging repaints the view live (nothing changes on the server), the
+    release commits one step that sets the ambient term and keeps the light and relief; a higher ambient darkens
+    less; the saved stack renders what the page shows."""
+    folder = surface_server.session.folder
+    page = open_page(browser, surface_server)
+    row(page, "shape").locator(".name").click()
+    page.wait_for_selector("#ambient")
+    assert page.inner_text("#ambient-value") == "0.25" and page.get_attribute("#ambient", "min") == "0"
+    before, v = page_pixels(page), version(page)
+    paints = page.evaluate("window.lasagna.paints.count")
+    page.evaluate(
+        """() => { const r = document.getElementById("ambient");
+        for (const x of ["0.4", "0.55", "0.7"]) { r.value = x; r.dispatchEvent(new Event("input")); } }"""
+    )
+    page.wait_for_function(f"window.lasagna.paints.count > {paints}")
+    assert version(page) == v
+    page.evaluate('() => document.getElementById("ambient").dispatchEvent(new Event("change"))')
+    settle(page, v + 1)
+    lit = page.evaluate("window.lasagna.state.surfaces.shape")
+    assert lit["ambient"] == 0.7 and lit["light"] == "top-left" and lit["relief"] == 1.0
+    after = page_pixels(page)
+    assert after[..., :3].astype(float).mean() > before[..., :3].astype(float).mean()
+    save_and_check(page, folder)
+    assert page.errors == []

@@ -292,10 +292,10 @@ def test_the_relief_preview_is_the_change_bit_for_bit_and_one_undo_step(client, 
 @pytest.mark.parametrize(
     "param, match",
     [
-        ("shape:0", "relief.shape: expected a relief gain in \\(0, 16\\]"),
+        ("shape:0", r"relief.shape: expected a relief gain in \(0, 16\]"),
         ("shape:17", "relief.shape: expected a relief gain"),
         ("shape:nan", "relief.shape: expected a relief gain"),
-        ("shape:deep", "relief: relief is 'shape:deep'; expected LAYER:GAIN"),
+        ("shape:deep", "relief: relief is 'shape:deep'; expected LAYER:NUMBER"),
         ("nope:2", "no layer with id 'nope'"),
     ],
 )
@@ -312,3 +312,46 @@ def test_a_bad_relief_change_is_refused_and_changes_nothing(client, relief):
     response = post(client, op="light", id="shape", light="left", relief=relief)
     assert response.status_code == 400 and "relief" in response.json()["error"]
     assert state(client)["version"] == before["version"]
+
+
+# ---- the ambient term ----------------------------------------------------------------------------
+
+
+def test_the_ambient_preview_is_the_change_bit_for_bit(client, folder):
+    """``/api/view?ambient=LAYER:A`` (the Ambient slider while dragged) shows, bit for bit, what ``op: light`` with
+    ``ambient`` A gives and what the engine renders of the saved stack; a higher ambient darkens less (the
+    composite's mean rises)."""
+    before = view(client, level=0)
+    preview = view(client, level=0, ambient="shape:0.6")
+    assert np.array_equal(view(client, level=0), before)  # nothing changed on the server
+    assert preview[..., :3].astype(float).mean() > before[..., :3].astype(float).mean()
+    s = ok(post(client, op="light", id="shape", light="top-left", ambient=0.6))
+    assert s["surfaces"]["shape"]["ambient"] == 0.6
+    assert np.array_equal(view(client, level=0), preview)
+    assert np.array_equal(preview[..., :3], relit_codes(folder, "top-left", ambient=0.6))
+    ok(post(client, op="save"))
+    fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
+    assert np.array_equal(preview[..., :3], fresh)
+
+
+@pytest.mark.parametrize(
+    "param, match",
+    [
+        ("shape:1", r"ambient.shape: expected an ambient term in \[0, 1\)"),
+        ("shape:-0.1", "ambient.shape: expected an ambient term"),
+        ("shape:inf", "ambient.shape: expected an ambient term"),
+        ("shape:dim", "ambient: ambient is 'shape:dim'; expected LAYER:NUMBER"),
+    ],
+)
+def test_a_bad_ambient_preview_is_one_line_400(client, param, match):
+    response = client.get("/api/view", headers=H, params={"level": 0, "ambient": param})
+    assert response.status_code == 400
+    error = response.json()["error"]
+    assert "\n" not in error and re.search(match, error), error
+
+
+def test_a_relight_ratios_ambient_preview_must_stay_above_zero(client, session):
+    ok(post(client, op="light", id="shape", light="right", source_light="left"))
+    response = client.get("/api/view", headers=H, params={"level": 0, "ambient": "shape:0"})
+    assert response.status_code == 400
+    assert "ambient.shape: expected an ambient term in (0, 1) (a relight ratio)" in response.json()["error"]

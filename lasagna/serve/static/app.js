@@ -17,6 +17,7 @@ const ui = {
   drag: null,           // {id, value} while an opacity slider is dragged (a transient view, not a change)
   light: null,          // {id, text, source} while a surface layer's light (or source light) is dragged (a view)
   relief: null,         // a surface layer's relief gain while its slider is dragged: { id, value }
+  ambient: null,        // a surface layer's ambient term while its slider is dragged: { id, value }
   lightWhich: {},       // per relight surface layer: which light its sphere moves, "light" or "source"
   normals: null,        // a surface layer's id while the view shows its normal map (its relief applied)
   lightProxy: true,     // a light drag previews at the drag proxy's level (dragLevel); false: at the view's level
@@ -304,7 +305,7 @@ function lightControl(layer) {
   show.addEventListener("change", () => { ui.normals = show.checked ? layer.id : null; paint(); });
   const info = document.createElement("div");
   info.className = "hint";
-  info.textContent = (lit.source_light ? `relight from ${lit.source_light} · ` : "") + `ambient ${lit.ambient}`;
+  info.textContent = lit.source_light ? `relight from ${lit.source_light}` : "shading";
   // The relief gain (glTF's normalTexture.scale): the map's slopes times it before it is lit. A log slider, 1/4…8;
   // dragging previews (/api/view?relief=…), releasing records one change.
   const relief = document.createElement("input");
@@ -326,7 +327,28 @@ function lightControl(layer) {
   });
   const reliefField = field("Relief", relief);
   reliefField.append(" ", reliefValue);
-  box.append(sphere, readout, info, reliefField, field("Show normal map", show));
+  // The ambient term a of a + (1 − a)·max(0, n·l) (Photoshop's Lighting Effects "Ambience"): how dark the side
+  // away from the light gets, and how much a shading layer darkens what it covers. A relight ratio needs a > 0.
+  const ambient = document.createElement("input");
+  ambient.type = "range"; ambient.id = "ambient"; ambient.max = "0.95"; ambient.step = "0.01";
+  ambient.min = lit.source_light ? "0.01" : "0";
+  ambient.value = String(lit.ambient);
+  const ambientValue = document.createElement("span");
+  ambientValue.id = "ambient-value";
+  ambientValue.textContent = lit.ambient.toFixed(2);
+  ambient.addEventListener("input", () => {
+    ui.ambient = { id: layer.id, value: parseFloat(ambient.value) };
+    ambientValue.textContent = ui.ambient.value.toFixed(2);
+    paint();
+  });
+  ambient.addEventListener("change", async () => {
+    await change({ op: "light", id: layer.id, light: lit.light, ambient: parseFloat(ambient.value) });
+    ui.ambient = null;
+    paint();
+  });
+  const ambientField = field("Ambient", ambient);
+  ambientField.append(" ", ambientValue);
+  box.append(sphere, readout, info, reliefField, ambientField, field("Show normal map", show));
   // A relight's sphere moves either light: the target, or the source the ratio divides by (fitted to the image,
   // and off where the estimate was: a source light too frontal makes the whole relight too dark).
   // The choice is kept per layer across the control's rebuilds (every change rebuilds the panel).
@@ -500,6 +522,7 @@ async function fetchView(params) {
   if (params.upto) q.set("upto", params.upto);
   if (params.light) q.append(params.light.source ? "source" : "light", `${params.light.id}:${params.light.text}`);
   if (params.relief) q.append("relief", `${params.relief.id}:${params.relief.value}`);
+  if (params.ambient) q.append("ambient", `${params.ambient.id}:${params.ambient.value}`);
   const path = params.normals ? `api/layers/${encodeURIComponent(params.normals)}/normals?level=${params.level}` : `api/view?${q}`;
   const response = await api(path);
   const w = parseInt(response.headers.get("X-Width"), 10), h = parseInt(response.headers.get("X-Height"), 10);
@@ -526,8 +549,9 @@ function paint() {
   if (!ui.state) return;
   const level = levelFor(ui.zoom);
   wanted = {
-    level: ui.drag || ((ui.light || ui.relief) && ui.lightProxy) ? dragLevel(level) : level, drag: ui.drag, solo: ui.solo,
-    version: ui.state.version, split: ui.split, light: ui.light, relief: ui.relief, normals: ui.normals,
+    level: ui.drag || ((ui.light || ui.relief || ui.ambient) && ui.lightProxy) ? dragLevel(level) : level,
+    drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split,
+    light: ui.light, relief: ui.relief, ambient: ui.ambient, normals: ui.normals,
   };
   if (!inflight) paintLoop();
 }
