@@ -8,6 +8,7 @@
     lasagna import-psd IN.psd -o FOLDER           a layered PSD as a stack folder (groups, masks, modes)
     lasagna edit IMAGE --layer P --condition L -o OUT   add a learned layer; writes a stack folder
     lasagna render STACK [--all]                  render the learned layers not rendered yet (--all: every one)
+    lasagna light STACK --light L [--relief G]    re-light a surface layer in place from its normal map
     lasagna layers                                list the learned-layer catalogue
     lasagna prior add PATH --name N               register your own prior (a diffusers folder) as --layer N
     lasagna serve STACK|IMAGE [--port N]          the layer editor in the browser (lasagna-layers[serve])
@@ -52,6 +53,7 @@ from lasagna.cli import (
     import_ora,
     import_psd,
     layers,
+    light,
     prior,
     render,
     schema,
@@ -78,6 +80,7 @@ COMMANDS: dict[str, ModuleType] = {
     "import-psd": import_psd,
     "edit": edit,
     "render": render,
+    "light": light,
     "layers": layers,
     "prior": prior,
     "serve": serve,

@@ -184,6 +184,17 @@ def composite_result(stack, composite) -> RenderResult:
     return RenderResult(composite, {}, [])
 
 
+def keep_ora_current(folder: str | os.PathLike) -> Callable:
+    """``save_in_place``'s ``extra`` for a stack folder: a folder that holds a stack.ora (one `lasagna edit` wrote)
+    gets it re-encoded from the saved stack and its composite, so it never goes stale; any other folder gets none."""
+    path = Path(folder) / "stack.ora"
+
+    def extra(stack, result) -> dict[str, bytes]:
+        return {"stack.ora": encode_ora(stack, composite=result)} if path.is_file() else {}
+
+    return extra
+
+
 def encode_ora(
     stack,
     *,

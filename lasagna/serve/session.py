@@ -457,13 +457,9 @@ class EditSession(SessionViews, SessionJobs):
     def save(self, version: Any) -> dict[str, Any]:
         """Write the stack into its folder (``save_in_place``); ``ConflictError`` if the tab is stale or the
         folder's stack.json changed since it was read."""
-        from lasagna.export.ora import encode_ora
+        from lasagna.export.ora import keep_ora_current
 
-        def extra(stack: Stack, result) -> dict[str, bytes]:
-            if (self.folder / "stack.ora").is_file():  # a `lasagna edit` folder keeps its OpenRaster current
-                return {"stack.ora": encode_ora(stack, composite=result)}
-            return {}
-
+        extra = keep_ora_current(self.folder)  # a `lasagna edit` folder keeps its OpenRaster current
         with self._guard():
             self._check_version(version)
             self._check_idle("save")

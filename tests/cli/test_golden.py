@@ -32,6 +32,7 @@ COMMANDS = (
     "import-ora",
     "edit",
     "render",
+    "light",
     "layers",
     "demo",
     "world",

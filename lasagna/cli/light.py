@@ -1,0 +1,78 @@
+"""``lasagna light``: re-light a stack's surface layer in place — its light, source light, ambient or relief —
+from its stored normal map, with no learning (what dragging the editor's light sphere or its sliders does).
+
+Only stack.json (the commit point), composite.png and a stack.ora the folder holds change: no layer PNG is
+written (``save_in_place`` with every layer unchanged), and a stack.json changed on disk since it was read is
+refused."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from lasagna.errors import LasagnaError
+
+HELP = "re-light a stack's surface layer in place (light, source light, ambient, relief); no learning"
+EXAMPLE = (
+    "lasagna light out/chelsea-surface --light az=30,el=45                  # the topmost surface layer",
+    "lasagna light out/coffee-sl --layer relight-left --from top --relief 2  # a relight's source light, deeper",
+)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("stack", help="stack folder or its stack.json")
+    p.add_argument("--layer", metavar="ID", help="the surface layer (default: the topmost)")
+    p.add_argument("--light", help="the light it is lit by: a named light or az=A,el=E (default: kept)")
+    p.add_argument(
+        "--from",
+        dest="source",
+        metavar="LIGHT",
+        help="a relight's source light (the ratio divides by it), or 'none' for plain shading (default: kept)",
+    )
+    p.add_argument("--ambient", type=float, help="the ambient term a of a + (1 − a)·max(0, n·l) (default: kept)")
+    p.add_argument("--relief", type=float, help="the relief gain: the map's slopes times this (default: kept)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from lasagna.document import stack_file
+    from lasagna.io.survey import survey_stack
+
+    if args.light is None and args.source is None and args.ambient is None and args.relief is None:
+        raise LasagnaError(
+            "nothing to change; expected at least one of --light, --from, --ambient, --relief", where="light"
+        )
+    survey = survey_stack(args.stack, composite=True)  # a refusal needs no torch
+
+    from lasagna.document import SurfaceLayer
+    from lasagna.export.ora import keep_ora_current
+    from lasagna.io.folder import check_writable, save_in_place, stack_sha256
+    from lasagna.io.stack import load_surveyed
+
+    folder = stack_file(args.stack).parent
+    check_writable(folder / "stack.json")
+    check_writable(folder / "composite.png")
+    sha = stack_sha256(folder)
+    stack = load_surveyed(survey)
+    surfaces = [layer for _, layer in stack.document.walk() if isinstance(layer, SurfaceLayer)]
+    if not surfaces:
+        raise LasagnaError("the stack has no surface layer; expected one to re-light", where=str(folder))
+    if args.layer is None:
+        layer = surfaces[-1]
+    else:
+        named = [layer for layer in surfaces if layer.id == args.layer]
+        if not named:
+            ids = ", ".join(layer.id for layer in surfaces)
+            raise LasagnaError(f"no surface layer {args.layer!r}; expected one of {ids}", where="--layer")
+        layer = named[0]
+    source = ... if args.source is None else (None if args.source.lower() == "none" else args.source)
+    unchanged = dict(stack.tensors)  # the PNGs on disk hold exactly these: none is written again
+    stack.set_light(layer.id, args.light or layer.light, source_light=source, ambient=args.ambient, relief=args.relief)
+    save_in_place(stack, unchanged=unchanged, expect_sha256=sha, extra=keep_ora_current(folder))
+    lit = stack.document.layer(layer.id)
+    said = [f"light {lit.light}"]
+    if lit.source_light is not None:
+        said.append(f"from {lit.source_light}")
+    said += [f"ambient {lit.ambient:g}", f"relief {lit.relief:g}"]
+    wrote = "stack.json, composite.png" + (" and stack.ora" if (folder / "stack.ora").is_file() else "")
+    print(f"re-lit {layer.id}: {', '.join(said)}; wrote {wrote} in {Path(folder)}")
+    return 0

@@ -1,0 +1,119 @@
+"""``lasagna light``: a surface layer re-lit in place from its stored map — the composite against numpy float64
+Lambert of the map read by pypng, the layer PNGs untouched, the folder's stack.ora kept current, and hostile input
+(one line, exit 2, nothing changed)."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import zipfile
+
+import numpy as np
+import png
+import pytest
+import torch
+from PIL import Image
+
+from lasagna.cli import main
+from lasagna.compose.surface import normals_from_height
+from lasagna.export.ora import encode_ora
+from lasagna.io.stack import Stack, load_stack
+
+
+def light(az: float, el: float) -> np.ndarray:
+    a, e = math.radians(az), math.radians(el)
+    return np.array([math.sin(e) * math.cos(a), math.sin(e) * math.sin(a), math.cos(e)])
+
+
+def read_normals(path) -> np.ndarray:
+    w, h, rows, _ = png.Reader(filename=str(path)).read()
+    v = np.array([list(r) for r in rows], dtype=np.float64).reshape(h, w, 3).transpose(2, 0, 1) / 65535.0
+    n = 2 * v - 1
+    return n / np.linalg.norm(n, axis=0, keepdims=True)
+
+
+def shading(n: np.ndarray, l_vec: np.ndarray, a: float = 0.25) -> np.ndarray:
+    return a + (1 - a) * np.maximum(0.0, np.einsum("chw,c->hw", n, l_vec))
+
+
+def codes(path) -> np.ndarray:
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB")).astype(int)
+
+
+@pytest.fixture
+def folder(tmp_path):
+    torch.manual_seed(3)
+    base = (torch.rand(3, 12, 16) * 255).to(torch.uint8)
+    s = Stack.from_image(base)
+    s.add_surface("shape", normals_from_height(0.1 * torch.randn(1, 1, 12, 16))[0], "left")
+    out = tmp_path / "s"
+    s.save(out)
+    (out / "stack.ora").write_bytes(encode_ora(load_stack(out)))  # as `lasagna edit` leaves a folder
+    return out
+
+
+def layer_bytes(folder) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted((folder / "layers").iterdir())}
+
+
+def test_light_relights_in_place_from_the_stored_map(folder, capsys):
+    pngs = layer_bytes(folder)
+    assert main(["light", str(folder), "--light", "az=30,el=45", "--relief", "2", "--ambient", "0.3"]) == 0
+    assert "re-lit shape: light az=30,el=45, ambient 0.3, relief 2" in capsys.readouterr().out
+    doc = json.loads((folder / "stack.json").read_text())["layers"][1]
+    assert (doc["light"], doc["ambient"], doc["relief"], doc["source_light"]) == ("az=30,el=45", 0.3, 2.0, None)
+    assert layer_bytes(folder) == pngs  # no pixels were written: the map is what it was
+    # composite.png against float64 numpy: the base times Lambert of the map's normals, slopes ×2.
+    n = read_normals(folder / "layers" / "shape.png")
+    deep = np.concatenate([2 * n[:2], n[2:]])
+    deep /= np.linalg.norm(deep, axis=0, keepdims=True)
+    base = codes(folder / "layers" / "base.png").transpose(2, 0, 1) / 255.0
+    want = np.clip(base * shading(deep, light(30, 45), 0.3)[None], 0, 1) * 255
+    np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), want, atol=0.51)
+    # the stack.ora the folder held now flattens to the new composite
+    with zipfile.ZipFile(folder / "stack.ora") as z:
+        merged = np.asarray(Image.open(io.BytesIO(z.read("mergedimage.png"))).convert("RGB")).astype(int)
+    np.testing.assert_array_equal(merged, codes(folder / "composite.png"))
+
+
+def test_from_makes_a_relight_ratio_and_none_makes_it_shading_again(folder):
+    assert main(["light", str(folder), "--light", "right", "--from", "left"]) == 0
+    n = read_normals(folder / "layers" / "shape.png")
+    base = codes(folder / "layers" / "base.png").transpose(2, 0, 1) / 255.0
+    ratio = shading(n, light(0, 60)) / shading(n, light(180, 60))
+    np.testing.assert_allclose(
+        codes(folder / "composite.png").transpose(2, 0, 1), np.clip(base * ratio[None], 0, 1) * 255, atol=0.51
+    )
+    assert main(["light", str(folder), "--relief", "1.5"]) == 0  # the light and source light kept
+    doc = json.loads((folder / "stack.json").read_text())["layers"][1]
+    assert (doc["light"], doc["source_light"], doc["relief"]) == ("right", "left", 1.5)
+    assert main(["light", str(folder), "--from", "none"]) == 0
+    assert json.loads((folder / "stack.json").read_text())["layers"][1]["source_light"] is None
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        ([], "light: nothing to change; expected at least one of --light, --from, --ambient, --relief"),
+        (["--light", "upward"], "layers[1].light: expected one of left"),
+        (["--relief", "0"], "layers[1].relief: got 0.0; expected greater than 0"),
+        (["--relief", "17"], "layers[1].relief"),
+        (["--ambient", "1"], "layers[1].ambient"),
+        (["--from", "left", "--ambient", "0"], "expected ambient > 0"),
+        (["--layer", "base", "--light", "left"], "--layer: no surface layer 'base'; expected one of shape"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2_and_changes_nothing(folder, capsys, argv, message):
+    before = {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+    assert main(["light", str(folder), *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and "Traceback" not in err
+    assert {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()} == before
+
+
+def test_a_stack_without_a_surface_layer_is_refused(tmp_path, capsys):
+    Stack.from_image((torch.rand(3, 4, 4) * 255).to(torch.uint8)).save(tmp_path / "plain")
+    assert main(["light", str(tmp_path / "plain"), "--light", "left"]) == 2
+    assert "the stack has no surface layer; expected one to re-light" in capsys.readouterr().err
