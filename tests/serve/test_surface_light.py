@@ -290,17 +290,21 @@ def test_the_relief_preview_is_the_change_bit_for_bit_and_one_undo_step(client, 
 
 
 @pytest.mark.parametrize(
-    "param, match",
+    "name, param, match",
     [
-        ("shape:0", r"relief.shape: expected a relief gain in \(0, 16\]"),
-        ("shape:17", "relief.shape: expected a relief gain"),
-        ("shape:nan", "relief.shape: expected a relief gain"),
-        ("shape:deep", "relief: relief is 'shape:deep'; expected LAYER:NUMBER"),
-        ("nope:2", "no layer with id 'nope'"),
+        ("relief", "shape:0", r"relief.shape: expected a relief gain in \(0, 16\]"),
+        ("relief", "shape:17", "relief.shape: expected a relief gain"),
+        ("relief", "shape:nan", "relief.shape: expected a relief gain"),
+        ("relief", "shape:deep", "relief: relief is 'shape:deep'; expected LAYER:NUMBER"),
+        ("relief", "nope:2", "no layer with id 'nope'"),
+        ("ambient", "shape:1", r"ambient.shape: expected an ambient term in \[0, 1\)"),
+        ("ambient", "shape:-0.1", "ambient.shape: expected an ambient term"),
+        ("ambient", "shape:inf", "ambient.shape: expected an ambient term"),
+        ("ambient", "shape:dim", "ambient: ambient is 'shape:dim'; expected LAYER:NUMBER"),
     ],
 )
-def test_a_bad_relief_preview_is_one_line_400(client, param, match):
-    response = client.get("/api/view", headers=H, params={"level": 0, "relief": param})
+def test_a_bad_slider_preview_is_one_line_400(client, name, param, match):
+    response = client.get("/api/view", headers=H, params={"level": 0, name: param})
     assert response.status_code == 400
     error = response.json()["error"]
     assert "\n" not in error and re.search(match, error), error
@@ -332,22 +336,6 @@ def test_the_ambient_preview_is_the_change_bit_for_bit(client, folder):
     ok(post(client, op="save"))
     fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
     assert np.array_equal(preview[..., :3], fresh)
-
-
-@pytest.mark.parametrize(
-    "param, match",
-    [
-        ("shape:1", r"ambient.shape: expected an ambient term in \[0, 1\)"),
-        ("shape:-0.1", "ambient.shape: expected an ambient term"),
-        ("shape:inf", "ambient.shape: expected an ambient term"),
-        ("shape:dim", "ambient: ambient is 'shape:dim'; expected LAYER:NUMBER"),
-    ],
-)
-def test_a_bad_ambient_preview_is_one_line_400(client, param, match):
-    response = client.get("/api/view", headers=H, params={"level": 0, "ambient": param})
-    assert response.status_code == 400
-    error = response.json()["error"]
-    assert "\n" not in error and re.search(match, error), error
 
 
 def test_a_relight_ratios_ambient_preview_must_stay_above_zero(client, session):
