@@ -19,7 +19,8 @@ the server composites the level-1 view; a 512² stack shows at 2×, level 0):
   pointer moves every animation frame (~60 Hz) between a real press and release: repaints drawn per second. Each is a
   preview view: the base from the level's cached prefix, the surface re-lit from its map. As the page does it, at the
   drag proxy's level (as an opacity drag: a 2048² stack fitted at ½ previews at 512², the release repaints at
-  1024²); ``light_drag_full_fps``: every preview at the view's level (1024²).
+  1024²); ``light_drag_full_fps``: every preview at the view's level (1024²); ``relief_drag_fps``: the layer's
+  Relief slider dragged as an opacity slider is (×1…×2), at the drag proxy's level.
 
 The baseline in the same run is what a server without the cache and the view levels would do per click:
 ``render_stack`` of the whole stack at full size (``baseline_render_ms``, median of 3), before any transfer
@@ -142,9 +143,9 @@ async (id) => {
 """.replace("__WAIT__", WAIT.strip())
 
 DRAG = """
-async ([id, seconds]) => {
+async ([selector, seconds]) => {
   const L = window.lasagna;
-  const slider = document.querySelector(`#layers li[data-id="${id}"] .opacity`);
+  const slider = document.querySelector(selector);
   const c = L.paints.count, t0 = performance.now();
   let k = 0;
   await new Promise((resolve) => {
@@ -230,6 +231,12 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
         page.evaluate("window.lasagna.lightProxy = false")
         drag(0.5)
         full_fps, _ = drag(seconds)
+        page.evaluate("window.lasagna.lightProxy = true")
+        # The Relief slider dragged the same way as an opacity slider (input events every frame, ×1…×2), then
+        # released (one change): each preview re-lights the stored map with its slopes times the gain.
+        v = page.evaluate("window.lasagna.state.version")
+        relief_fps, _ = page.evaluate(DRAG, ["#relief", seconds])
+        page.wait_for_function(f"window.lasagna.state.version > {v} && window.lasagna.settled()")
         level = page.evaluate(
             "(() => { const z = window.lasagna.zoom; return z >= 1 ? 0 : Math.floor(Math.log2(1 / z)); })()"
         )
@@ -237,6 +244,7 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
             "light_drag_fps": round(fps, 1),
             "light_drag_input_hz": round(input_hz, 1),
             "light_drag_full_fps": round(full_fps, 1),
+            "relief_drag_fps": round(relief_fps, 1),
             "light_view_level": level,
         }
     finally:
@@ -277,7 +285,7 @@ def measure(context, size: int, repeats: int, work: Path) -> dict:
         page.evaluate(TOGGLE, "glow")
         toggles = [page.evaluate(TOGGLE, "glow") for _ in range(repeats)]
         page.wait_for_function("window.lasagna.settled()")
-        drag_fps, input_hz = page.evaluate(DRAG, ["paint", 2.0])
+        drag_fps, input_hz = page.evaluate(DRAG, ['#layers li[data-id="paint"] .opacity', 2.0])
         page.wait_for_function("window.lasagna.settled()")
         page.select_option("#preset", "shading")
         learned = page.evaluate(LEARNED)
@@ -330,7 +338,15 @@ def main() -> None:
     finally:
         shutil.rmtree(work, ignore_errors=True)
     big = rows[0]
-    keys = ["toggle_ms", "drag_fps", "learned_ms", "baseline_render_ms", "light_drag_fps", "light_drag_full_fps"]
+    keys = [
+        "toggle_ms",
+        "drag_fps",
+        "learned_ms",
+        "baseline_render_ms",
+        "light_drag_fps",
+        "light_drag_full_fps",
+        "relief_drag_fps",
+    ]
     print_json_line(
         {
             "benchmark": "serve",
