@@ -1,4 +1,4 @@
-"""``lasagna light``: re-light a stack's surface layer in place — its light, source light, ambient or relief —
+"""``lasagna light``: re-light a stack's surface layer in place — its light, source light, ambient, relief or colour —
 from its stored normal map, with no learning (what dragging the editor's light sphere or its sliders does).
 
 Only stack.json (the commit point), composite.png and a stack.ora the folder holds change: no layer PNG is
@@ -12,7 +12,7 @@ from pathlib import Path
 
 from lasagna.errors import LasagnaError
 
-HELP = "re-light a stack's surface layer in place (light, source light, ambient, relief); no learning"
+HELP = "re-light a stack's surface layer in place (light, source light, ambient, relief, colour); no learning"
 EXAMPLE = (
     "lasagna light out/chelsea-surface --light az=30,el=45                  # the topmost surface layer",
     "lasagna light out/coffee-sl --layer relight-left --from top --relief 2  # a relight's source light, deeper",
@@ -31,16 +31,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--ambient", type=float, help="the ambient term a of a + (1 − a)·max(0, n·l) (default: kept)")
     p.add_argument("--relief", type=float, help="the relief gain: the map's slopes times this (default: kept)")
+    p.add_argument(
+        "--color",
+        metavar="R,G,B",
+        help="the light's colour, three numbers in [0, 1] or #rrggbb (its direct term; default: kept)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     from lasagna.document import stack_file
     from lasagna.io.survey import survey_stack
 
-    if args.light is None and args.source is None and args.ambient is None and args.relief is None:
+    if all(v is None for v in (args.light, args.source, args.ambient, args.relief, args.color)):
         raise LasagnaError(
-            "nothing to change; expected at least one of --light, --from, --ambient, --relief", where="light"
+            "nothing to change; expected at least one of --light, --from, --ambient, --relief, --color", where="light"
         )
+    colour = None if args.color is None else parse_colour(args.color)
     survey = survey_stack(args.stack, composite=True)  # a refusal needs no torch
 
     from lasagna.document import SurfaceLayer
@@ -66,13 +72,38 @@ def run(args: argparse.Namespace) -> int:
         layer = named[0]
     source = ... if args.source is None else (None if args.source.lower() == "none" else args.source)
     unchanged = dict(stack.tensors)  # the PNGs on disk hold exactly these: none is written again
-    stack.set_light(layer.id, args.light or layer.light, source_light=source, ambient=args.ambient, relief=args.relief)
+    stack.set_light(
+        layer.id,
+        args.light or layer.light,
+        source_light=source,
+        ambient=args.ambient,
+        relief=args.relief,
+        light_color=colour,
+    )
     save_in_place(stack, unchanged=unchanged, expect_sha256=sha, extra=keep_ora_current(folder))
     lit = stack.document.layer(layer.id)
     said = [f"light {lit.light}"]
     if lit.source_light is not None:
         said.append(f"from {lit.source_light}")
     said += [f"ambient {lit.ambient:g}", f"relief {lit.relief:g}"]
+    if tuple(lit.light_color) != (1.0, 1.0, 1.0):
+        said.append("colour " + ",".join(f"{c:.4g}" for c in lit.light_color))
     wrote = "stack.json, composite.png" + (" and stack.ora" if (folder / "stack.ora").is_file() else "")
     print(f"re-lit {layer.id}: {', '.join(said)}; wrote {wrote} in {Path(folder)}")
     return 0
+
+
+def parse_colour(text: str) -> tuple[float, float, float]:
+    """``--color``: ``#rrggbb`` or three comma-separated numbers (range-checked by the document model)."""
+    t = text.strip()
+    parts: list[float] = []
+    try:
+        if t.startswith("#") and len(t) == 7:
+            parts = [int(t[k : k + 2], 16) / 255.0 for k in (1, 3, 5)]
+        else:
+            parts = [float(v) for v in t.split(",")]
+    except ValueError:
+        parts = []
+    if len(parts) != 3:
+        raise LasagnaError(f"got {text!r}; expected #rrggbb or R,G,B (three numbers in [0, 1])", where="--color")
+    return parts[0], parts[1], parts[2]

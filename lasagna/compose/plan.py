@@ -807,7 +807,9 @@ def _document_specs(
                     where=here,
                 )
         if layer.kind == "surface":  # a normal map, rendered to its multiplier under the layer's light
-            lt = surface_tensors(lt, layer.light, layer.source_light, float(layer.ambient), float(layer.relief))
+            lt = surface_tensors(
+                lt, layer.light, layer.source_light, float(layer.ambient), float(layer.relief), layer.light_color
+            )
             lo, hi = surface_range(layer.source_light, float(layer.ambient))
         specs.append(RenderLayerSpec(tensors=lt, range=(float(lo), float(hi)), encoded=True, **common))
     chains: list[list[RenderSpec]] = []

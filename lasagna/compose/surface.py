@@ -278,13 +278,19 @@ def surface_range(source_light: str | None, ambient: float) -> tuple[float, floa
 
 
 def surface_tensors(
-    stored: LayerTensors, light: str, source_light: str | None, ambient: float, relief: float = 1.0
+    stored: LayerTensors,
+    light: str,
+    source_light: str | None,
+    ambient: float,
+    relief: float = 1.0,
+    light_color: tuple[float, float, float] = (1.0, 1.0, 1.0),
 ) -> LayerTensors:
     """A surface layer's tensors as the compositor blends them: its normal map ``stored.color`` (..., 3, h, w)
     of values in [0, 1] (the PNG's codes), its relief times ``relief`` (`deepen_normals`), rendered to the
     multiplier (..., 1, h, w) — S(light), or S(light)/S(source_light) — with the map's alpha and mask. ``light``
-    and ``source_light`` are condition texts (a named light or ``az=…,el=…``). The same stored map, light and
-    relief always give the same bits.
+    and ``source_light`` are condition texts (a named light or ``az=…,el=…``). A ``light_color`` c other than
+    white makes it (..., 3, h, w): each channel's direct term times c, a + (1 − a)·c·max(0, n·l) (`coloured`), the
+    source light staying white. The same stored map, light, relief and colour always give the same bits.
     """
     color = stored.color
     if color.shape[-3] != 3:
@@ -292,7 +298,8 @@ def surface_tensors(
             f"the normal map has {color.shape[-3]} channel(s); expected an RGB normal map", where="surface layer"
         )
     same_map = (id(color), color._version)
-    key = (*same_map, light, source_light, float(ambient), float(relief))
+    colour = tuple(float(c) for c in light_color)
+    key = (*same_map, light, source_light, float(ambient), float(relief), colour)
     hit = _RENDERED.get(stored)
     if hit is not None and hit[0] == key:
         return hit[1]
@@ -302,12 +309,20 @@ def surface_tensors(
         normals = decode_normal_map(color.reshape(-1, *color.shape[-3:]))
     lit = deepen_normals(normals, float(relief))
     target = light_vector(*parse_direction(light), dtype=normals.dtype, device=normals.device)
-    if source_light is None:
+    white = colour == (1.0, 1.0, 1.0)
+    if source_light is None and white:
         y = lambert(lit, target, ambient)
-    else:
+    elif white:
         source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
         y = relight_ratio(lit, target, source, ambient)
-    out = LayerTensors(y.reshape(*color.shape[:-3], 1, *color.shape[-2:]), stored.alpha, stored.mask)
+    else:
+        y = coloured(lambert(lit, target, ambient), colour, ambient)
+        if source_light is not None:
+            if check_ambient(ambient) <= 0.0:
+                raise LasagnaError("a relight ratio needs an ambient term a > 0 (S(source) ≥ a); got 0", "ambient")
+            source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
+            y = y / lambert(lit, source, ambient)
+    out = LayerTensors(y.reshape(*color.shape[:-3], y.shape[1], *color.shape[-2:]), stored.alpha, stored.mask)
     _RENDERED[stored] = (key, out, normals if relit else None)
     return out
 
@@ -386,6 +401,14 @@ def flatten_walls(normals: Tensor, walls: Tensor, sigma: float) -> Tensor:
     tilt = gaussian_blur(w * slopes, sigma) / gaussian_blur(w, sigma).clamp_min(WALL_WEIGHT_FLOOR)
     flat = slopes - w * tilt
     return facing_normals(torch.cat([flat, torch.ones_like(normals[:, 2:3])], 1))
+
+
+def coloured(shading: Tensor, colour: tuple[float, float, float], ambient: float = AMBIENT) -> Tensor:
+    """A white light's shading a + (1 − a)·max(0, n·l) (B, 1, H, W) under a light of colour c instead: (B, 3, H, W),
+    a + (S − a)·c per channel — the direct term coloured, the ambient white (Photoshop's Lighting Effects colours
+    its light the same way, its ambience apart)."""
+    c = torch.tensor(colour, dtype=shading.dtype, device=shading.device).view(1, 3, 1, 1)
+    return ambient + (shading - ambient) * c
 
 
 def relieved_map(color: Tensor, relief: float) -> Tensor:

@@ -276,6 +276,8 @@ def _surface_schema(schema: dict[str, Any]) -> None:
     schema["then"] = {"properties": {"ambient": {"exclusiveMinimum": 0}}}
 
 
+WHITE_LIGHT = (1.0, 1.0, 1.0)
+"""A surface layer's default light colour: the multiplier is one channel, the same on R, G and B."""
 MAX_RELIEF = 16.0
 """The largest relief gain a surface layer takes: slopes ×16 turn a 5° bump into a 54° one; beyond it every
 relief is a cliff and the map's 16-bit quantisation (slopes to 3e-5) starts to show."""
@@ -313,6 +315,11 @@ class SurfaceLayer(_Common):
         allow_inf_nan=False,
         description="Relief gain: the map's slopes times this before it is lit, n ↦ (g·n_x, g·n_y, n_z) "
         "renormalised (glTF's normalTexture.scale; the normals of the height field times g); 1: the map as stored.",
+    )
+    light_color: OpaqueColour = Field(
+        WHITE_LIGHT,
+        description="The light's colour, RGB in [0, 1]: each channel's direct term times it, a + (1 − a)·c·max(0, n·l) "
+        "(the ambient and a relight's source light stay white); white renders the one-channel multiplier.",
     )
     mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
     made_by: dict[str, JsonValue] = Field(

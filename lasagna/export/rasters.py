@@ -200,7 +200,9 @@ def _layer_raster(stack, layer, origin: tuple[int, int] = (0, 0)) -> tuple[np.nd
     if t is None:
         return None
     if isinstance(layer, SurfaceLayer):  # the multiplier its normal map renders to, as the compositor blends it
-        t = surface_tensors(t, layer.light, layer.source_light, float(layer.ambient), float(layer.relief))
+        t = surface_tensors(
+            t, layer.light, layer.source_light, float(layer.ambient), float(layer.relief), layer.light_color
+        )
     color = _numpy(t.color)
     if color.ndim != 3:
         raise ExportError(

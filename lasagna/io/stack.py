@@ -343,9 +343,11 @@ class Stack:
         source_light: str | None = ...,
         ambient: float | None = None,
         relief: float | None = None,
+        light_color: tuple[float, float, float] | None = None,
     ) -> Stack:
-        """Re-light the surface layer ``id``: a new ``light`` (and ``source_light`` / ``ambient`` / ``relief`` when
-        given). No pixels change; the next render draws the stored surface under the new light."""
+        """Re-light the surface layer ``id``: a new ``light`` (and ``source_light`` / ``ambient`` / ``relief`` /
+        ``light_color`` when given). No pixels change; the next render draws the stored surface under the new
+        light."""
         layer = self.document.layer(id)
         if not isinstance(layer, SurfaceLayer):
             raise DocumentError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", where="set_light")
@@ -356,6 +358,8 @@ class Stack:
             changes["ambient"] = float(ambient)
         if relief is not None:
             changes["relief"] = float(relief)
+        if light_color is not None:
+            changes["light_color"] = tuple(float(c) for c in light_color)
         self.document = self.document.replace_layer(id, **changes)
         return self
 

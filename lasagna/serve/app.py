@@ -223,6 +223,17 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
                     sep = ""
                 if not sep:
                     raise RequestError(f"{name} is {item!r}; expected LAYER:NUMBER", name)
+        colours: dict[str, tuple[float, float, float]] = {}
+        for item in q.getlist("color"):  # a surface layer's light colour while its picker is open: LAYER:#rrggbb
+            id, sep, value = item.rpartition(":")
+            if (
+                not sep
+                or len(value) != 7
+                or value[0] != "#"
+                or not all(c in "0123456789abcdef" for c in value[1:].lower())
+            ):
+                raise RequestError(f"color is {item!r}; expected LAYER:#rrggbb", "color")
+            colours[id] = tuple(int(value[k : k + 2], 16) / 255.0 for k in (1, 3, 5))
         lights: dict[str, dict[str, str]] = {"light": {}, "source": {}}
         for name, given in lights.items():
             for item in q.getlist(name):  # a light's text holds no ':' (nor does an id)
@@ -237,6 +248,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             "source": lights["source"],
             "relief": numbers["relief"],
             "ambient": numbers["ambient"],
+            "color": colours,
             "solo": q.get("solo") or None,
             "upto": q.get("upto") or None,
         }

@@ -19,7 +19,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PlainValidato
 
 from lasagna.document.condition import parse_direction
 from lasagna.document.models import MAX_RELIEF
-from lasagna.document.types import Blend, Colour
+from lasagna.document.types import Blend, Colour, OpaqueColour
 from lasagna.document.validation import parse_json
 from lasagna.errors import ConditionError, DocumentError, LasagnaError, describe_validation_error
 
@@ -139,7 +139,7 @@ class AddLearned(_Body):
 
 class SetLight(_Body):
     """Re-light a surface layer (``EditSession.set_light``): ``light``, and ``source_light`` (null: plain
-    shading), ``ambient`` and ``relief`` when given; an absent field keeps the layer's value."""
+    shading), ``ambient``, ``relief`` and ``light_color`` when given; an absent field keeps the layer's value."""
 
     op: Literal["light"]
     version: Version
@@ -148,12 +148,19 @@ class SetLight(_Body):
     source_light: Light | None = None
     ambient: Ambient | None = None
     relief: Relief | None = None
+    light_color: OpaqueColour | None = None
 
     def call(self, session):
         keep = "source_light" not in self.model_fields_set  # absent keeps it; null removes it
         source = ... if keep else self.source_light
         return session.set_light(
-            self.version, self.id, self.light, source_light=source, ambient=self.ambient, relief=self.relief
+            self.version,
+            self.id,
+            self.light,
+            source_light=source,
+            ambient=self.ambient,
+            relief=self.relief,
+            light_color=self.light_color,
         )
 
 

@@ -292,13 +292,16 @@ class EditSession(SessionViews, SessionJobs):
         source_light: str | None = ...,
         ambient: float | None = None,
         relief: float | None = None,
+        light_color: tuple[float, float, float] | None = None,
     ) -> dict[str, Any]:
         """Re-light surface layer ``id`` (``Stack.set_light``): its stored normal map is drawn under ``light`` (and
-        ``source_light`` / ``ambient`` / ``relief`` when given); no pixels change, nothing is learned. One undo
-        step."""
+        ``source_light`` / ``ambient`` / ``relief`` / ``light_color`` when given); no pixels change, nothing is
+        learned. One undo step."""
 
         def apply() -> None:
-            self.stack.set_light(id, light, source_light=source_light, ambient=ambient, relief=relief)
+            self.stack.set_light(
+                id, light, source_light=source_light, ambient=ambient, relief=relief, light_color=light_color
+            )
 
         return self._change(version, f"light of {id}", apply)
 
@@ -497,8 +500,8 @@ class EditSession(SessionViews, SessionJobs):
 
 def _surfaces(doc: Document) -> dict[str, dict[str, Any]]:
     """Each surface layer's light as the page draws its control: the texts, the light's (az, el) in degrees
-    (``parse_direction``: a named light resolved), a relight's source light's as ``source``, the ambient term and the
-    relief gain."""
+    (``parse_direction``: a named light resolved), a relight's source light's as ``source``, the ambient term, the
+    relief gain and the light's colour."""
     out = {}
     for _, layer in doc.walk():
         if layer.kind == "surface":
@@ -511,6 +514,7 @@ def _surfaces(doc: Document) -> dict[str, dict[str, Any]]:
                 "source": None if layer.source_light is None else list(parse_direction(layer.source_light)),
                 "ambient": float(layer.ambient),
                 "relief": float(layer.relief),
+                "light_color": [float(c) for c in layer.light_color],
             }
     return out
 

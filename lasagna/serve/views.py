@@ -202,12 +202,13 @@ class SessionViews:
         source: dict[str, str] | None = None,
         relief: dict[str, float] | None = None,
         ambient: dict[str, float] | None = None,
+        color: dict[str, tuple[float, float, float]] | None = None,
     ) -> tuple[bytes, int, int]:
         """The composite at reduction ``level`` as RGBA8 bytes (row-major), with transient overrides that are
         not changes (``opacity`` while a slider is dragged; ``light`` of a surface layer while its light is
         dragged: the stored map drawn under it, as ``set_light`` would; ``source`` likewise, a relight surface
-        layer's source light while it is dragged; ``relief`` and ``ambient`` a surface layer's relief gain and
-        ambient term while their sliders are dragged; ``solo`` one layer alone; ``upto`` a
+        layer's source light while it is dragged; ``relief``, ``ambient`` and ``color`` a surface layer's relief
+        gain, ambient term and light colour while their controls are moved; ``solo`` one layer alone; ``upto`` a
         layer: the stack up to and including it, the "before" of a before/after split). Layers are named at
         any depth: a soloed layer inside a group shows with the groups that hold it."""
         self._check_level(level)
@@ -219,6 +220,7 @@ class SessionViews:
                 *(source or {}),
                 *(relief or {}),
                 *(ambient or {}),
+                *(color or {}),
                 *([solo] if solo else []),
                 *([upto] if upto else []),
             ]
@@ -251,7 +253,14 @@ class SessionViews:
                 if not (isinstance(v, (int, float)) and math.isfinite(v) and low <= float(v) < 1.0):
                     bound = "[0, 1)" if layer.source_light is None else "(0, 1) (a relight ratio)"
                     raise LasagnaError(f"expected an ambient term in {bound}, got {v!r}", f"ambient.{id}")
-            layers = _overridden(doc, opacity or {}, solo, upto, light or {}, source or {}, relief or {}, ambient or {})
+            for id in color or {}:
+                if doc.layer(id).kind != "surface":
+                    raise LasagnaError(
+                        f"layer {id!r} is a {doc.layer(id).kind} layer; expected a surface layer", "color"
+                    )
+            layers = _overridden(
+                doc, opacity or {}, solo, upto, light or {}, source or {}, relief or {}, ambient or {}, color or {}
+            )
             w, h = _reduced_side(self.stack.width, level), _reduced_side(self.stack.height, level)
             # The layers reduced to this level, the canvas and the renderer's snapshot below the top layer
             # (``lasagna.compose.renderer``), and the RGBA8 bytes returned.
@@ -354,12 +363,12 @@ def _overridden(
     source: dict[str, str] | None = None,
     relief: dict[str, float] | None = None,
     ambient: dict[str, float] | None = None,
+    color: dict[str, tuple[float, float, float]] | None = None,
 ) -> list:
     """``doc``'s layer tree with a view's transient overrides (``EditSession.view``), layers named at any depth:
-    ``opacity`` per layer; ``light`` (and ``source``, a relight's source light, ``relief``, ``ambient``) per surface
-    layer;
-    ``solo``: that layer (with what it holds) alone, the groups holding it shown; ``upto``: every layer after it
-    in the tree's order (depth first, a group before its layers) hidden, except its own layers."""
+    ``opacity`` per layer; ``light`` (and ``source``, a relight's source light, ``relief``, ``ambient``, ``color``)
+    per surface layer; ``solo``: that layer (with what it holds) alone, the groups holding it shown; ``upto``: every
+    layer after it in the tree's order (depth first, a group before its layers) hidden, except its own layers."""
     order = [layer.id for _, layer in doc.walk()]
     inside: dict[str, set[str]] = {}  # group id → ids of every layer it holds, at any depth
     holders: dict[str, list[str]] = {}  # layer id → ids of the groups holding it, outermost first
@@ -396,6 +405,8 @@ def _overridden(
                 changes["relief"] = float(relief[layer.id])
             if ambient and layer.id in ambient:
                 changes["ambient"] = float(ambient[layer.id])
+            if color and layer.id in color:
+                changes["light_color"] = tuple(color[layer.id])
             if shown is not None and layer.id == solo:
                 changes["visible"] = True
             elif shown is not None and layer.id not in shown:

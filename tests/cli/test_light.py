@@ -96,7 +96,10 @@ def test_from_makes_a_relight_ratio_and_none_makes_it_shading_again(folder):
 @pytest.mark.parametrize(
     "argv, message",
     [
-        ([], "light: nothing to change; expected at least one of --light, --from, --ambient, --relief"),
+        ([], "light: nothing to change; expected at least one of --light, --from, --ambient, --relief, --color"),
+        (["--color", "red"], "--color: got 'red'; expected #rrggbb or R,G,B"),
+        (["--color", "1,0.5"], "--color: got '1,0.5'; expected #rrggbb or R,G,B"),
+        (["--color", "1,2,0"], "layers[1].light_color"),
         (["--light", "upward"], "layers[1].light: expected one of left"),
         (["--relief", "0"], "layers[1].relief: got 0.0; expected greater than 0"),
         (["--relief", "17"], "layers[1].relief"),
@@ -117,3 +120,17 @@ def test_a_stack_without_a_surface_layer_is_refused(tmp_path, capsys):
     Stack.from_image((torch.rand(3, 4, 4) * 255).to(torch.uint8)).save(tmp_path / "plain")
     assert main(["light", str(tmp_path / "plain"), "--light", "left"]) == 2
     assert "the stack has no surface layer; expected one to re-light" in capsys.readouterr().err
+
+
+def test_color_colours_the_lights_direct_term(folder, capsys):
+    assert main(["light", str(folder), "--light", "top", "--color", "#ff8000"]) == 0
+    assert "colour 1,0.502,0" in capsys.readouterr().out
+    c = np.array([1.0, 128 / 255, 0.0])
+    assert json.loads((folder / "stack.json").read_text())["layers"][1]["light_color"] == list(c)
+    n = read_normals(folder / "layers" / "shape.png")
+    base = codes(folder / "layers" / "base.png").transpose(2, 0, 1) / 255.0
+    direct = np.maximum(0.0, np.einsum("chw,c->hw", n, light(90, 60)))
+    want = np.clip(base * (0.25 + 0.75 * c[:, None, None] * direct[None]), 0, 1) * 255
+    np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), want, atol=0.51)
+    assert main(["light", str(folder), "--color", "1,1,1"]) == 0  # white again: the one-channel multiplier
+    assert json.loads((folder / "stack.json").read_text())["layers"][1]["light_color"] == [1.0, 1.0, 1.0]

@@ -491,3 +491,30 @@ def test_the_ambient_slider_previews_live_and_commits_one_step(browser, surface_
     assert after[..., :3].astype(float).mean() > before[..., :3].astype(float).mean()
     save_and_check(page, folder)
     assert page.errors == []
+
+
+def test_the_light_colour_input_previews_and_commits_one_step(browser, surface_server):
+    """A surface layer's "Colour" input (the light's colour): moving it repaints the view (nothing changes on the
+    server), closing it commits one step that sets ``light_color`` and keeps the light; the saved stack renders
+    what the page shows."""
+    folder = surface_server.session.folder
+    page = open_page(browser, surface_server)
+    row(page, "shape").locator(".name").click()
+    page.wait_for_selector("#light-color")
+    assert page.input_value("#light-color") == "#ffffff"
+    before, v = page_pixels(page), version(page)
+    paints = page.evaluate("window.lasagna.paints.count")
+    page.evaluate(
+        """() => { const c = document.getElementById("light-color");
+        c.value = "#ff8844"; c.dispatchEvent(new Event("input")); }"""
+    )
+    page.wait_for_function(f"window.lasagna.paints.count > {paints}")
+    assert version(page) == v
+    page.evaluate('() => document.getElementById("light-color").dispatchEvent(new Event("change"))')
+    settle(page, v + 1)
+    lit = page.evaluate("window.lasagna.state.surfaces.shape")
+    assert lit["light"] == "top-left" and np.allclose(lit["light_color"], [1.0, 0x88 / 255, 0x44 / 255])
+    after = page_pixels(page)
+    assert not np.array_equal(after, before) and np.array_equal(after[..., 0], before[..., 0])
+    save_and_check(page, folder)
+    assert page.errors == []

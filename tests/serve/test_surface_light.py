@@ -97,6 +97,7 @@ def test_state_gives_each_surface_layers_light(client):
             "source": None,
             "ambient": 0.25,
             "relief": 1.0,
+            "light_color": [1.0, 1.0, 1.0],
         }
     }
 
@@ -140,6 +141,7 @@ def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
         "source": [180.0, el],
         "ambient": 0.4,
         "relief": 2.5,
+        "light_color": [1.0, 1.0, 1.0],
     }
     assert np.array_equal(
         view(client, level=0)[..., :3], relit_codes(folder, "right", source_light="left", ambient=0.4, relief=2.5)
@@ -301,6 +303,10 @@ def test_the_relief_preview_is_the_change_bit_for_bit_and_one_undo_step(client, 
         ("ambient", "shape:-0.1", "ambient.shape: expected an ambient term"),
         ("ambient", "shape:inf", "ambient.shape: expected an ambient term"),
         ("ambient", "shape:dim", "ambient: ambient is 'shape:dim'; expected LAYER:NUMBER"),
+        ("color", "shape:#ffcc8", r"color: color is 'shape:#ffcc8'; expected LAYER:#rrggbb"),
+        ("color", "shape:ffcc88", "expected LAYER:#rrggbb"),
+        ("color", "shape:#ggcc88", "expected LAYER:#rrggbb"),
+        ("color", "base:#ffcc88", "layer 'base' is a pixels layer; expected a surface layer"),
     ],
 )
 def test_a_bad_slider_preview_is_one_line_400(client, name, param, match):
@@ -343,3 +349,23 @@ def test_a_relight_ratios_ambient_preview_must_stay_above_zero(client, session):
     response = client.get("/api/view", headers=H, params={"level": 0, "ambient": "shape:0"})
     assert response.status_code == 400
     assert "ambient.shape: expected an ambient term in (0, 1) (a relight ratio)" in response.json()["error"]
+
+
+def test_the_light_colour_preview_is_the_change_bit_for_bit(client, folder):
+    """``/api/view?color=LAYER:#rrggbb`` (the colour input while moved) shows, bit for bit, what ``op: light`` with
+    ``light_color`` (the same bytes / 255) gives and what the engine renders of the saved stack; a warm light leaves
+    the red channel and darkens blue where the light falls."""
+    before = view(client, level=0)
+    preview = view(client, level=0, color="shape:#ffcc88")
+    assert np.array_equal(view(client, level=0), before)
+    colour = [1.0, 0xCC / 255, 0x88 / 255]
+    s = ok(post(client, op="light", id="shape", light="top-left", light_color=colour))
+    assert s["surfaces"]["shape"]["light_color"] == colour
+    assert np.array_equal(view(client, level=0), preview)
+    assert np.array_equal(preview[..., :3], relit_codes(folder, "top-left", light_color=tuple(colour)))
+    assert np.array_equal(preview[..., 0], before[..., 0]) and (preview[..., 2] <= before[..., 2]).all()
+    assert (preview[..., 2] < before[..., 2]).any()
+    ok(post(client, op="save"))
+    assert json.loads((folder / "stack.json").read_text())["layers"][1]["light_color"] == colour
+    fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
+    assert np.array_equal(preview[..., :3], fresh)

@@ -18,6 +18,7 @@ const ui = {
   light: null,          // {id, text, source} while a surface layer's light (or source light) is dragged (a view)
   relief: null,         // a surface layer's relief gain while its slider is dragged: { id, value }
   ambient: null,        // a surface layer's ambient term while its slider is dragged: { id, value }
+  colour: null,         // a surface layer's light colour while its picker is moved: { id, value: "#rrggbb" }
   lightWhich: {},       // per relight surface layer: which light its sphere moves, "light" or "source"
   normals: null,        // a surface layer's id while the view shows its normal map (its relief applied)
   lightProxy: true,     // a light drag previews at the drag proxy's level (dragLevel); false: at the view's level
@@ -348,7 +349,21 @@ function lightControl(layer) {
   });
   const ambientField = field("Ambient", ambient);
   ambientField.append(" ", ambientValue);
-  box.append(sphere, readout, info, reliefField, ambientField, field("Show normal map", show));
+  box.append(sphere, readout, info, reliefField, ambientField);
+  // The light's colour (its direct term; the ambient stays white): a colour input, previewed while it is moved
+  // (/api/view?color=…), one change when it is closed.
+  const colour = document.createElement("input");
+  colour.type = "color"; colour.id = "light-color";
+  const hex = (c) => "#" + c.map((v) => Math.round(v * 255).toString(16).padStart(2, "0")).join("");
+  const rgb = (h) => [1, 3, 5].map((k) => parseInt(h.slice(k, k + 2), 16) / 255);
+  colour.value = hex(lit.light_color);
+  colour.addEventListener("input", () => { ui.colour = { id: layer.id, value: colour.value }; paint(); });
+  colour.addEventListener("change", async () => {
+    await change({ op: "light", id: layer.id, light: lit.light, light_color: rgb(colour.value) });
+    ui.colour = null;
+    paint();
+  });
+  box.append(field("Colour", colour), field("Show normal map", show));
   // A relight's sphere moves either light: the target, or the source the ratio divides by (fitted to the image,
   // and off where the estimate was: a source light too frontal makes the whole relight too dark).
   // The choice is kept per layer across the control's rebuilds (every change rebuilds the panel).
@@ -523,6 +538,7 @@ async function fetchView(params) {
   if (params.light) q.append(params.light.source ? "source" : "light", `${params.light.id}:${params.light.text}`);
   if (params.relief) q.append("relief", `${params.relief.id}:${params.relief.value}`);
   if (params.ambient) q.append("ambient", `${params.ambient.id}:${params.ambient.value}`);
+  if (params.colour) q.append("color", `${params.colour.id}:${params.colour.value}`);
   const path = params.normals ? `api/layers/${encodeURIComponent(params.normals)}/normals?level=${params.level}` : `api/view?${q}`;
   const response = await api(path);
   const w = parseInt(response.headers.get("X-Width"), 10), h = parseInt(response.headers.get("X-Height"), 10);
@@ -549,9 +565,9 @@ function paint() {
   if (!ui.state) return;
   const level = levelFor(ui.zoom);
   wanted = {
-    level: ui.drag || ((ui.light || ui.relief || ui.ambient) && ui.lightProxy) ? dragLevel(level) : level,
+    level: ui.drag || ((ui.light || ui.relief || ui.ambient || ui.colour) && ui.lightProxy) ? dragLevel(level) : level,
     drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split,
-    light: ui.light, relief: ui.relief, ambient: ui.ambient, normals: ui.normals,
+    light: ui.light, relief: ui.relief, ambient: ui.ambient, colour: ui.colour, normals: ui.normals,
   };
   if (!inflight) paintLoop();
 }
