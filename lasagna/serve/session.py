@@ -283,25 +283,13 @@ class EditSession(SessionViews, SessionJobs):
         what = ", ".join(sorted(changes))
         return self._change(version, f"{what} of {id}", apply)
 
-    def set_light(
-        self,
-        version: Any,
-        id: str,
-        light: str,
-        *,
-        source_light: str | None = ...,
-        ambient: float | None = None,
-        relief: float | None = None,
-        light_color: tuple[float, float, float] | None = None,
-    ) -> dict[str, Any]:
-        """Re-light surface layer ``id`` (``Stack.set_light``): its stored normal map is drawn under ``light`` (and
-        ``source_light`` / ``ambient`` / ``relief`` / ``light_color`` when given); no pixels change, nothing is
-        learned. One undo step."""
+    def set_light(self, version: Any, id: str, light: str, **fields: Any) -> dict[str, Any]:
+        """Re-light surface layer ``id`` (``Stack.set_light``): its stored normal map is drawn under ``light`` and
+        ``fields`` (``source_light``, ``ambient``, ``relief``, ``light_color``: ``Stack.set_light``'s keywords, an
+        absent one kept); no pixels change, nothing is learned. One undo step."""
 
         def apply() -> None:
-            self.stack.set_light(
-                id, light, source_light=source_light, ambient=ambient, relief=relief, light_color=light_color
-            )
+            self.stack.set_light(id, light, **fields)
 
         return self._change(version, f"light of {id}", apply)
 

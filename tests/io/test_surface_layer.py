@@ -246,11 +246,17 @@ def test_the_relief_gain_lights_the_maps_slopes_times_g_and_reads_back(stack, tm
     assert torch.equal(load_stack(tmp_path / "t").render().image, stack.render().image)
 
 
-@pytest.mark.parametrize("relief", [0, -1, 16.5, "2"])
-def test_a_bad_relief_is_refused_by_the_model_and_the_schema(relief):
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        *(("relief", v) for v in (0, -1, 16.5, "2")),
+        *(("light_color", v) for v in ([1, 1], [1, 1, 1.5], [-0.1, 1, 1], "white")),
+    ],
+)
+def test_a_bad_relief_or_light_colour_is_refused_by_the_model_and_the_schema(field, value):
     doc = json.loads(json.dumps(VALID))
-    doc["layers"][1]["relief"] = relief
-    with pytest.raises(DocumentError, match=r"layers\[1\]\.relief"):
+    doc["layers"][1][field] = value
+    with pytest.raises(DocumentError, match=rf"layers\[1\]\.{field}"):
         Document.from_dict(doc)
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate(doc, ROOT_SCHEMA)
@@ -315,13 +321,3 @@ def test_a_coloured_light_colours_the_direct_term_per_channel(stack, tmp_path):
         stack.render().image.double().numpy(),
         atol=1.5 / 255,
     )
-
-
-@pytest.mark.parametrize("colour", [[1, 1], [1, 1, 1.5], [-0.1, 1, 1], "white"])
-def test_a_bad_light_colour_is_refused_by_the_model_and_the_schema(colour):
-    doc = json.loads(json.dumps(VALID))
-    doc["layers"][1]["light_color"] = colour
-    with pytest.raises(DocumentError, match=r"layers\[1\]\.light_color"):
-        Document.from_dict(doc)
-    with pytest.raises(jsonschema.ValidationError):
-        jsonschema.validate(doc, ROOT_SCHEMA)
