@@ -315,9 +315,12 @@ def test_a_coloured_light_colours_the_direct_term_per_channel(stack, tmp_path):
 
     stack.set_light("shape", "az=60,el=50", source_light=None)  # coloured shading: every value ≤ 1, exact in ORA
     stack.save(tmp_path / "u")
-    assert main(["export", str(tmp_path / "u"), "--ora", str(tmp_path / "u.ora")]) == 0
-    np.testing.assert_allclose(
-        import_ora(tmp_path / "u.ora").render().image.double().numpy(),
-        stack.render().image.double().numpy(),
-        atol=1.5 / 255,
+    assert (
+        main(["export", str(tmp_path / "u"), "--ora", str(tmp_path / "u.ora"), "--psd", str(tmp_path / "u.psd")]) == 0
     )
+    ours = stack.render().image.double().numpy()
+    np.testing.assert_allclose(import_ora(tmp_path / "u.ora").render().image.double().numpy(), ours, atol=1.5 / 255)
+    from psd_tools import PSDImage  # an independent reader flattens the three-channel multiply layer as we do
+
+    flat = np.asarray(PSDImage.open(tmp_path / "u.psd").composite(force=True).convert("RGB"), dtype=np.float64)
+    np.testing.assert_allclose(flat.transpose(2, 0, 1) / 255, ours, atol=2.5 / 255)
