@@ -336,3 +336,25 @@ class TestFlatWalls:
         # the wall's mean is taken over the walls alone, so the object's slopes do not leak into it
         torch.testing.assert_close(got[0, 0][~torch.from_numpy(inside)], torch.zeros(int((~inside).sum()), dtype=F64))
         torch.testing.assert_close(got.norm(dim=1), torch.ones(1, 32, 32, dtype=F64))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    g1=st.floats(0.1, 8.0, allow_nan=False),
+    g2=st.floats(0.1, 8.0, allow_nan=False),
+    seed=st.integers(0, 2**16),
+)
+def test_relief_gains_compose_and_a_relieved_map_round_trips(g1, g2, seed):
+    """The relief gain is the normals of g·h, so gains compose: deepen(deepen(n, g1), g2) = deepen(n, g1·g2)
+    (float64), and a map deepened by ``relieved_map`` decodes to the deepened normals within its quantisation."""
+    from lasagna.compose.surface import deepen_normals, relieved_map
+
+    rng = np.random.default_rng(seed)
+    n = torch.from_numpy(random_normals(rng))
+    torch.testing.assert_close(
+        deepen_normals(deepen_normals(n, g1), g2), deepen_normals(n, g1 * g2), atol=1e-12, rtol=0
+    )
+    codes = encode_normal_map(n)
+    back = decode_normal_map(relieved_map(codes, g1))
+    torch.testing.assert_close(back, deepen_normals(decode_normal_map(codes), g1), atol=1e-9, rtol=0)
+    assert relieved_map(codes, 1.0) is codes
