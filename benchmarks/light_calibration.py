@@ -39,8 +39,9 @@ def elevations(
     net, split: str, count: int, seed: int, size: int, dome, symmetry: str, source: str = "fit", chunk: int = 64
 ):
     """(true, estimated) elevations in degrees, float64, of ``count`` scenes (``source``: where the estimate's
-    elevation comes from, `SurfaceEstimator.estimate`'s ``source_elevation``)."""
-    true, fitted = [], []
+    elevation comes from, `SurfaceEstimator.estimate`'s ``source_elevation``), and the estimated azimuth's signed
+    error in degrees, wrapped to (−180, 180]."""
+    true, fitted, azimuth = [], [], []
     for start in range(0, count, chunk):
         idx = range(start, min(count, start + chunk))
         scene = render(sample_scenes(split, seed, idx).with_labels([VOCABULARY[i % 8] for i in idx]), size)
@@ -52,7 +53,10 @@ def elevations(
         truth = torch.stack([light_vector(*parse_direction(t)) for t in sources]).double()
         true.append(torch.rad2deg(torch.acos(truth[:, 2])))
         fitted.append(torch.rad2deg(torch.acos(fit[:, 2].double().clamp(-1.0, 1.0))))
-    return torch.cat(true), torch.cat(fitted)
+        fit = fit.double()
+        turn = torch.atan2(fit[:, 1], fit[:, 0]) - torch.atan2(truth[:, 1], truth[:, 0])
+        azimuth.append(torch.rad2deg(torch.atan2(torch.sin(turn), torch.cos(turn))))
+    return torch.cat(true), torch.cat(fitted), torch.cat(azimuth)
 
 
 def main(argv=None) -> int:
@@ -71,7 +75,7 @@ def main(argv=None) -> int:
     resolved = cat.resolve(args.preset, None, None, need_prior=False)
     net = SurfaceEstimator.from_pretrained(resolved.estimator)
     dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
-    true, fitted = elevations(
+    true, fitted, azimuth = elevations(
         net, args.split, args.count, args.seed, args.size, dome, sd.symmetry, args.source_elevation
     )
     design = torch.stack([torch.ones_like(fitted), fitted], 1)
@@ -96,6 +100,12 @@ def main(argv=None) -> int:
                 "as_fitted": rms(true - fitted),
                 "shifted": rms(true - fitted - shift),
                 "line": rms(true - design @ torch.tensor([offset, gain], dtype=torch.float64)),
+            },
+            "azimuth_error_deg": {  # the fit's direction: reported, never fitted (the calibration is the elevation's)
+                "rms": rms(azimuth),
+                "median_abs": round(float(azimuth.abs().median()), 2),
+                "over_45": int((azimuth.abs() > 45).sum()),
+                "over_90": int((azimuth.abs() > 90).sum()),
             },
             "machine": machine_info(),
         }
