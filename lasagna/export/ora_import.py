@@ -353,6 +353,11 @@ def import_ora(
 
     taken: set[str] = set()
     specs: list[dict] = []
+    # Leaves first: their ids come from their files (our writer names each file by its layer's id), so a group
+    # whose name happens to sanitise to a leaf's id must yield — a group's id is made up on import, a leaf's is kept.
+    leaf_ids = {
+        id(leaf): unique_id(PurePosixPath(leaf["src"]).stem or leaf["name"], taken) for leaf in _walk_leaves(merged)
+    }
 
     def name_of(layer: dict) -> str:
         name = sanitise_name(layer["name"])
@@ -406,7 +411,7 @@ def import_ora(
             img = layer["image"]
             values = layer.get("values", img.color)
             hi = max(1.0, float(np.ceil(values.max()))) if layer.get("dodged") else 1.0
-            lid = unique_id(PurePosixPath(layer["src"]).stem or layer["name"], taken)
+            lid = leaf_ids[id(layer)]
             specs.append(
                 dict(
                     id=lid,

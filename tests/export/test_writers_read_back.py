@@ -177,3 +177,34 @@ def test_psd_reads_back_the_same_tree(tmp_path_factory, stack):
     # The PSD holds the canvas background as an opaque bottom layer, which import keeps as a layer.
     assert back[0].name == "Background" and back[0].kind == "pixels"
     assert tree(back[1:], ids="none", psd=True) == tree(stack.document.layers, ids="none", psd=True)
+
+
+def test_an_ora_group_named_as_a_leaf_does_not_take_its_id(tmp_path):
+    """A group's id is made from its name on import, a leaf's comes from its file (named by its id): a group named
+    ``l1`` (or ``¬?l1``, which sanitises to it) above the leaf ``l1`` must not push the leaf to ``l1-2`` (found by the
+    property test above)."""
+    import torch
+
+    doc = Document.from_dict(
+        {
+            "format": "lasagna.stack",
+            "version": 1,
+            "canvas": {"width": 2, "height": 2},
+            "layers": [
+                {"id": "base", "kind": "pixels", "source": "layers/base.png"},
+                {
+                    "id": "g",
+                    "kind": "group",
+                    "name": "¬?l1",
+                    "layers": [{"id": "l1", "kind": "pixels", "source": "layers/l1.png", "blend": "multiply"}],
+                },
+            ],
+        }
+    )
+    tensors = {k: LayerTensors(torch.rand(3, 2, 2), None, None) for k in ("base", "l1")}
+    stack = Stack(doc, None, tensors, {k: 8 for k in tensors})
+    path = tmp_path / "x.ora"
+    path.write_bytes(encode_ora(stack, warn=lambda m: None))
+    back = import_ora(path, warn=lambda m: pytest.fail(m))
+    assert [leaf.id for _, leaf in back.document.walk() if leaf.kind != "group"] == ["base", "l1"]
+    assert tree(back.document.layers) == tree(stack.document.layers)
