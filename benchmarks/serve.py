@@ -20,7 +20,9 @@ the server composites the level-1 view; a 512² stack shows at 2×, level 0):
   preview view: the base from the level's cached prefix, the surface re-lit from its map. As the page does it, at the
   drag proxy's level (as an opacity drag: a 2048² stack fitted at ½ previews at 512², the release repaints at
   1024²); ``light_drag_full_fps``: every preview at the view's level (1024²); ``relief_drag_fps``: the layer's
-  Relief slider dragged as an opacity slider is (×1…×2), at the drag proxy's level.
+  Relief slider dragged as an opacity slider is (×1…×2), at the drag proxy's level; ``point_drag_fps``: the light
+  made a point light ("Point light") and dragged round a circle on the image the same way (each preview lights every
+  pixel along its own vector to the point), at the drag proxy's level.
 
 The baseline in the same run is what a server without the cache and the view levels would do per click:
 ``render_stack`` of the whole stack at full size (``baseline_render_ms``, median of 3), before any transfer
@@ -180,8 +182,8 @@ async () => {
 
 
 DRAG_LIGHT = """
-async ([cx, cy, r, seconds]) => {
-  const L = window.lasagna, sphere = document.getElementById("light-sphere");
+async ([id, cx, cy, r, seconds]) => {
+  const L = window.lasagna, sphere = document.getElementById(id);
   const c = L.paints.count, t0 = performance.now();
   let k = 0;
   await new Promise((resolve) => {
@@ -216,12 +218,12 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
         box = page.locator("#light-sphere").bounding_box()
         cx, cy, r = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2, 0.6 * box["width"] / 2
 
-        def drag(duration: float) -> tuple[float, float]:
+        def drag(duration: float, on: str = "light-sphere") -> tuple[float, float]:
             # A real press (the control captures the pointer), moves dispatched once per animation frame in the
             # page (~60 Hz, as a mouse reports them), a real release (the one change).
             page.mouse.move(cx + r, cy)
             page.mouse.down()
-            fps, input_hz = page.evaluate(DRAG_LIGHT, [cx, cy, r, duration])
+            fps, input_hz = page.evaluate(DRAG_LIGHT, [on, cx, cy, r, duration])
             page.mouse.up()
             page.wait_for_function("window.lasagna.settled() && window.lasagna.light === null")
             return fps, input_hz
@@ -237,10 +239,20 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
         v = page.evaluate("window.lasagna.state.version")
         relief_fps, _ = page.evaluate(DRAG, ["#relief", seconds])
         page.wait_for_function(f"window.lasagna.state.version > {v} && window.lasagna.settled()")
+        # A point light (one change to make it one), then dragged round a circle on the image: each preview lights
+        # every pixel along its own vector to the point.
+        v = page.evaluate("window.lasagna.state.version")
+        page.check("#point-light")
+        page.wait_for_function(f"window.lasagna.state.version > {v} && window.lasagna.settled()")
+        box = page.locator("#canvas").bounding_box()
+        cx, cy, r = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2, 0.25 * min(box["width"], box["height"])
+        drag(0.5, "canvas")
+        point_fps, _ = drag(seconds, "canvas")
         level = page.evaluate(
             "(() => { const z = window.lasagna.zoom; return z >= 1 ? 0 : Math.floor(Math.log2(1 / z)); })()"
         )
         return {
+            "point_drag_fps": round(point_fps, 1),
             "light_drag_fps": round(fps, 1),
             "light_drag_input_hz": round(input_hz, 1),
             "light_drag_full_fps": round(full_fps, 1),
@@ -346,6 +358,7 @@ def main() -> None:
         "light_drag_fps",
         "light_drag_full_fps",
         "relief_drag_fps",
+        "point_drag_fps",
     ]
     print_json_line(
         {

@@ -16,13 +16,18 @@ HELP = "re-light a stack's surface layer in place (light, source light, ambient,
 EXAMPLE = (
     "lasagna light out/chelsea-surface --light az=30,el=45                  # the topmost surface layer",
     "lasagna light out/coffee-sl --layer relight-left --from top --relief 2  # a relight's source light, deeper",
+    "lasagna light out/chelsea-surface --light x=0.1,y=0.3,z=0.4            # a point light near the left edge",
 )
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("stack", help="stack folder or its stack.json")
     p.add_argument("--layer", metavar="ID", help="the surface layer (default: the topmost)")
-    p.add_argument("--light", help="the light it is lit by: a named light or az=A,el=E (default: kept)")
+    p.add_argument(
+        "--light",
+        help="the light it is lit by: a named light, az=A,el=E, or a point light x=X,y=Y,z=Z (x, y: fractions of the "
+        "layer from its top-left; z: height in units of its longer side) (default: kept)",
+    )
     p.add_argument(
         "--from",
         dest="source",

@@ -15,6 +15,13 @@ layers"). This module is that renderer, differentiable and batch-independent:
   tangent-normal brush and Godot's ``CanvasTexture.normal_texture`` read (a "DirectX" map flips the green
   channel). Decoding renormalises, since a quantised unit vector is not exactly unit; a 16-bit map stores each
   component to 1.5e-5, so S from a stored map is within 3e-5 of S from the exact normals.
+- **Point light** at (x, y, z) over a map of h × w pixels (x, y fractions of its width and height from the
+  top-left, z in units of its longer side L; `lasagna.document.condition.parse_point`): pixel (row i, column j)
+  at (u, v) = ((j + ½)/w, (i + ½)/h) sees the light along d = ((x − u)·w/L, (v − y)·h/L, z) (y up), l = d/|d|,
+  with inverse-square falloff normalised to 1 directly beneath it: S = a + (1 − a)·(z/|d|)²·max(0, n·l)
+  (`point_lambert`). Fractions keep a stack's light where it was at any size and view level. This is the point
+  light of Photoshop's Lighting Effects and of 2D engines that light normal maps (Godot's ``PointLight2D``
+  with its ``height``), with the falloff of a physical point source.
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ from torch import Tensor
 
 from lasagna.compose.layer import LayerTensors
 from lasagna.compose.resample import gaussian_blur
-from lasagna.document.condition import AMBIENT, check_ambient, parse_direction, unit_vector
+from lasagna.document.condition import AMBIENT, check_ambient, parse_direction, parse_point, unit_vector
 from lasagna.errors import LasagnaError
 
 # A normal decoded from a map whose three channels round to (0.5, 0.5, 0.5) — a zero vector, which no unit
@@ -54,15 +61,47 @@ def lambert(normals: Tensor, light: Tensor, ambient: float = AMBIENT) -> Tensor:
     return ambient + (1.0 - ambient) * ndotl.clamp_min(0.0)
 
 
+def point_light_field(
+    point: tuple[float, float, float], h: int, w: int, *, dtype: torch.dtype = torch.float32, device=None
+) -> tuple[Tensor, Tensor]:
+    """The unit light (1, 3, h, w) each pixel of an h × w map sees from the point light ``point`` = (x, y, z),
+    and its falloff (z/|d|)² (1, 1, h, w) — the module docstring's closed form, computed in float64."""
+    x, y, z = (float(c) for c in point)
+    long_side = float(max(h, w))
+    u = (torch.arange(w, dtype=torch.float64, device=device) + 0.5) / w
+    v = (torch.arange(h, dtype=torch.float64, device=device) + 0.5) / h
+    dx = ((x - u) * (w / long_side)).view(1, w).expand(h, w)
+    dy = ((v - y) * (h / long_side)).view(h, 1).expand(h, w)
+    dz = torch.full((h, w), z, dtype=torch.float64, device=device)
+    d2 = dx * dx + dy * dy + dz * dz
+    light = torch.stack([dx, dy, dz]) / d2.sqrt()
+    return light[None].to(dtype), (z * z / d2)[None, None].to(dtype)
+
+
+def point_lambert(normals: Tensor, point: tuple[float, float, float], ambient: float = AMBIENT) -> Tensor:
+    """Shading a + (1 − a)·(z/|d|)²·max(0, n·l) of unit ``normals`` (B, 3, H, W) under the point light ``point``
+    (the module docstring): (B, 1, H, W). Per pixel and per component, like `lambert`, so batch-independent."""
+    check_ambient(ambient)
+    light, falloff = point_light_field(point, *normals.shape[-2:], dtype=normals.dtype, device=normals.device)
+    ndotl = normals[:, 0:1] * light[:, 0:1] + normals[:, 1:2] * light[:, 1:2] + normals[:, 2:3] * light[:, 2:3]
+    return ambient + (1.0 - ambient) * falloff * ndotl.clamp_min(0.0)
+
+
 def relight_ratio(normals: Tensor, target: Tensor, source: Tensor, ambient: float = AMBIENT) -> Tensor:
     """S(target)/S(source) of one surface (B, 1, H, W): the multiplier that relights A·S(source) to A·S(target).
 
     Needs a > 0 (the denominator is then ≥ a; at a = 0 an unlit pixel would be 0/0, and nothing is known of
     its albedo): raises otherwise.
     """
+    return lambert(normals, target, ambient) / lambert(normals, source, check_ratio_ambient(ambient))
+
+
+def check_ratio_ambient(ambient: float) -> float:
+    """A relight ratio's ambient: in (0, 1) — with a > 0 its denominator S(source) is at least a; at a = 0 an
+    unlit pixel would be 0/0, and nothing is known of its albedo."""
     if check_ambient(ambient) <= 0.0:
         raise LasagnaError("a relight ratio needs an ambient term a > 0 (S(source) ≥ a); got 0", where="ambient")
-    return lambert(normals, target, ambient) / lambert(normals, source, ambient)
+    return float(ambient)
 
 
 # Lit pixels in a light fit: a shading at least this far above the ambient floor (in units of 1 − a) is taken
@@ -288,7 +327,8 @@ def surface_tensors(
     """A surface layer's tensors as the compositor blends them: its normal map ``stored.color`` (..., 3, h, w)
     of values in [0, 1] (the PNG's codes), its relief times ``relief`` (`deepen_normals`), rendered to the
     multiplier (..., 1, h, w) — S(light), or S(light)/S(source_light) — with the map's alpha and mask. ``light``
-    and ``source_light`` are condition texts (a named light or ``az=…,el=…``). A ``light_color`` c other than
+    and ``source_light`` are condition texts (a named light or ``az=…,el=…``; ``light`` may be a point light
+    ``x=…,y=…,z=…``, `point_lambert`, placed in fractions of this map's size). A ``light_color`` c other than
     white makes it (..., 3, h, w): each channel's direct term times c, a + (1 − a)·c·max(0, n·l) (`coloured`), the
     source light staying white. The same stored map, light, relief and colour always give the same bits.
     """
@@ -308,20 +348,28 @@ def surface_tensors(
     if normals is None:
         normals = decode_normal_map(color.reshape(-1, *color.shape[-3:]))
     lit = deepen_normals(normals, float(relief))
-    target = light_vector(*parse_direction(light), dtype=normals.dtype, device=normals.device)
+    point = parse_point(light)
     white = colour == (1.0, 1.0, 1.0)
-    if source_light is None and white:
+    if point is not None:  # a point light: S(point), coloured, over S(source) for a relight ratio
+        y = point_lambert(lit, point, ambient)
+        if not white:
+            y = coloured(y, colour, ambient)
+        if source_light is not None:
+            source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
+            y = y / lambert(lit, source, check_ratio_ambient(ambient))
+    elif source_light is None and white:
+        target = light_vector(*parse_direction(light), dtype=normals.dtype, device=normals.device)
         y = lambert(lit, target, ambient)
     elif white:
+        target = light_vector(*parse_direction(light), dtype=normals.dtype, device=normals.device)
         source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
         y = relight_ratio(lit, target, source, ambient)
     else:
+        target = light_vector(*parse_direction(light), dtype=normals.dtype, device=normals.device)
         y = coloured(lambert(lit, target, ambient), colour, ambient)
         if source_light is not None:
-            if check_ambient(ambient) <= 0.0:
-                raise LasagnaError("a relight ratio needs an ambient term a > 0 (S(source) ≥ a); got 0", "ambient")
             source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
-            y = y / lambert(lit, source, ambient)
+            y = y / lambert(lit, source, check_ratio_ambient(ambient))
     out = LayerTensors(y.reshape(*color.shape[:-3], y.shape[1], *color.shape[-2:]), stored.alpha, stored.mask)
     _RENDERED[stored] = (key, out, normals if relit else None)
     return out

@@ -1,5 +1,11 @@
 """Light-direction conditions as text: the eight named lights and ``az=…,el=…`` (no torch, no vectors).
 
+A surface layer's light may also be a **point light** ``x=…,y=…,z=…`` (`parse_point`): a position over its
+normal map, x and y fractions of the layer's width and height from its top-left corner (x right, y down, as a
+canvas offset; 0.5, 0.5 is the layer's centre), z its height above the image plane in units of the layer's
+longer side. Only a surface layer, rendered from its stored normals, can be lit by one; a learned edit's
+condition is a direction, which its prior was trained on.
+
 A condition names a directional light either by one of the eight labels of
 `lasagna.world.lighting` or by its angles in degrees, ``az=135,el=40`` (or ``el=40,az=135``):
 
@@ -54,6 +60,20 @@ DIRECTION_PATTERN = (
 )
 """What JSON Schema can say of a light's text: a named light or two ``key=number`` pairs (ECMA-262 regex).
 Which keys (az and el once each) and the elevation's range are checked by `parse_direction`."""
+MAX_POINT_OFFSET = 16.0
+"""A point light's x and y lie in [−MAX_POINT_OFFSET, 1 + MAX_POINT_OFFSET] (fractions of the layer): farther
+out it lights the layer as a directional light would."""
+MAX_POINT_HEIGHT = 64.0
+"""A point light's height z lies in (0, MAX_POINT_HEIGHT] (units of the layer's longer side)."""
+_POINT_PAIR = re.compile(rf"\s*([xyz])\s*=\s*({_NUMBER})\s*")
+POINT_PATTERN = rf"^\s*[xyz]\s*=\s*{_NUMBER}\s*,\s*[xyz]\s*=\s*{_NUMBER}\s*,\s*[xyz]\s*=\s*{_NUMBER}\s*$"
+"""What JSON Schema can say of a point light's text: three ``key=number`` pairs of x, y and z (ECMA-262 regex);
+each key once and the ranges are checked by `parse_point`."""
+_EXPECTED_POINT = (
+    "expected a point light 'x=X,y=Y,z=Z' (x, y: fractions of the layer's width and height from its top-left, "
+    f"in [{-MAX_POINT_OFFSET:g}, {1 + MAX_POINT_OFFSET:g}]; z: height in units of its longer side, in "
+    f"(0, {MAX_POINT_HEIGHT:g}])"
+)
 _EXPECTED = (
     f"expected one of {', '.join(NAMED_DIRECTIONS)} or 'az=A,el=E' in degrees "
     f"(azimuth from +x toward +y, elevation from the view axis in [0, {MAX_ELEVATION:g}))"
@@ -109,6 +129,58 @@ def parse_direction(text: str) -> tuple[float, float]:
     if set(values) != {"az", "el"}:
         raise _bad(text, " (give az and el once each)")
     return check_direction(values["az"], values["el"], text)
+
+
+def parse_point(text: object) -> tuple[float, float, float] | None:
+    """(x, y, z) of a point light ``x=…,y=…,z=…`` (the keys in any order; see the module docstring), or None
+    for a text that names no point (a direction: `parse_direction` reads it); `ConditionError` for a point light
+    whose text is malformed or out of range."""
+    if not isinstance(text, str) or text in NAMED_DIRECTIONS:
+        return None
+    parts = text.split(",")
+    matches = [_POINT_PAIR.fullmatch(p) for p in parts]
+    if not any(matches):
+        return None
+    if len(parts) != 3 or not all(matches):
+        raise ConditionError(f"{_EXPECTED_POINT}, got {text!r}", where="light")
+    values = {m.group(1): float(m.group(2)) for m in matches if m}
+    if set(values) != {"x", "y", "z"}:
+        raise ConditionError(f"{_EXPECTED_POINT}, got {text!r} (give x, y and z once each)", where="light")
+    x, y, z = values["x"], values["y"], values["z"]
+    if not all(math.isfinite(v) for v in (x, y, z)):
+        raise ConditionError(f"{_EXPECTED_POINT}, got {text!r} (numbers must be finite)", where="light")
+    if not all(-MAX_POINT_OFFSET <= v <= 1.0 + MAX_POINT_OFFSET for v in (x, y)) or not 0.0 < z <= MAX_POINT_HEIGHT:
+        raise ConditionError(f"{_EXPECTED_POINT}, got {text!r} (out of range)", where="light")
+    return x + 0.0, y + 0.0, z
+
+
+def parse_surface_light(text: object) -> tuple[float, float, float] | tuple[float, float]:
+    """A surface layer's light: (x, y, z) of a point light or (az, el) of a direction; `ConditionError` naming
+    both forms for anything else."""
+    point = parse_point(text)
+    if point is not None:
+        return point
+    try:
+        return parse_direction(text)  # type: ignore[arg-type]
+    except ConditionError as exc:
+        raise ConditionError(f"{exc.message}; or {_EXPECTED_POINT.removeprefix('expected ')}", where="light") from None
+
+
+def point_direction(point: tuple[float, float, float], w: int, h: int) -> tuple[float, float]:
+    """(az, el) in degrees of the direction from the centre of a w × h layer toward the point light ``point``
+    (the light a viewer's sphere shows for it; at the centre's zenith, az 0 and el 0)."""
+    x, y, z = point
+    long_side = float(max(w, h, 1))
+    dx, dy = (x - 0.5) * w / long_side, (0.5 - y) * h / long_side
+    az = wrap_azimuth(math.degrees(math.atan2(dy, dx))) if (dx or dy) else 0.0
+    return az, math.degrees(math.atan2(math.hypot(dx, dy), z))
+
+
+def format_point(x: float, y: float, z: float) -> str:
+    """``x=…,y=…,z=…`` text that `parse_point` reads back to exactly (x, y, z)."""
+    text = f"x={_number(float(x))},y={_number(float(y))},z={_number(float(z))}"
+    parse_point(text)
+    return text
 
 
 def _number(v: float) -> str:

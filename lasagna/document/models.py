@@ -33,7 +33,7 @@ from pydantic import (
 )
 
 from lasagna.document.adjustment import Adjustment
-from lasagna.document.condition import AMBIENT, DIRECTION_PATTERN, parse_direction
+from lasagna.document.condition import AMBIENT, DIRECTION_PATTERN, POINT_PATTERN, parse_direction, parse_surface_light
 from lasagna.document.gradient import GradientFill
 from lasagna.document.pattern import PatternFill
 from lasagna.document.types import (
@@ -283,6 +283,31 @@ MAX_RELIEF = 16.0
 relief is a cliff and the map's 16-bit quantisation (slopes to 3e-5) starts to show."""
 
 
+def _surface_light_text(value: str) -> str:
+    """Rule: a surface layer's light is a direction (as `LightText`) or a point light ``x=X,y=Y,z=Z`` over it."""
+    try:
+        parse_surface_light(value)
+    except ConditionError as exc:
+        raise RuleError(exc.message) from None
+    return value
+
+
+SurfaceLightText = Annotated[
+    str,
+    Strict(),
+    AfterValidator(_surface_light_text),
+    WithJsonSchema(
+        {
+            "type": "string",
+            "anyOf": [{"pattern": DIRECTION_PATTERN}, {"pattern": POINT_PATTERN}],
+            "description": "A named light (left, top-right, …), 'az=A,el=E' in degrees (el in [0, 90)), or a point "
+            "light 'x=X,y=Y,z=Z': x, y fractions of the layer's width and height from its top-left, z its height in "
+            "units of the layer's longer side.",
+        }
+    ),
+]
+
+
 class SurfaceLayer(_Common):
     """A surface — a tangent-space normal map — rendered to a luminosity multiplier under its light.
 
@@ -300,7 +325,10 @@ class SurfaceLayer(_Common):
         description="The normal map: a 16-bit RGB PNG, tangent space, n ↦ (n + 1)/2 with +Y up (the OpenGL "
         "convention of Blender, Krita and Godot)."
     )
-    light: LightText = Field(description="The light it is rendered under: a named light or 'az=A,el=E'.")
+    light: SurfaceLightText = Field(
+        description="The light it is rendered under: a named light, 'az=A,el=E', or a point light 'x=X,y=Y,z=Z' "
+        "(inverse-square falloff, 1 directly beneath it)."
+    )
     source_light: LightText | None = Field(
         None, description="If set, the layer is the relight ratio S(light)/S(source_light) of the surface."
     )

@@ -17,7 +17,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PlainValidator, ValidationError
 
-from lasagna.document.condition import parse_direction
+from lasagna.document.condition import parse_direction, parse_surface_light
 from lasagna.document.models import MAX_RELIEF
 from lasagna.document.types import Blend, Colour, OpaqueColour
 from lasagna.document.validation import parse_json
@@ -42,11 +42,21 @@ def _light(value: str) -> str:
     return value
 
 
+def _surface_light(value: str) -> str:
+    try:
+        parse_surface_light(value)
+    except ConditionError as exc:
+        raise ValueError(exc.message) from None
+    return value
+
+
 Version = Annotated[int, PlainValidator(_version)]
 Text = Annotated[str, Field(strict=True, max_length=MAX_TEXT)]
 Count = Annotated[int, Field(strict=True)]
 Light = Annotated[str, Field(strict=True, max_length=MAX_TEXT), AfterValidator(_light)]
 """A light as the document writes it: a named light or ``az=A,el=E`` (``parse_direction``), kept as given."""
+SurfaceLight = Annotated[str, Field(strict=True, max_length=MAX_TEXT), AfterValidator(_surface_light)]
+"""A surface layer's light: a `Light` or a point light ``x=X,y=Y,z=Z`` (``parse_surface_light``)."""
 Ambient = Annotated[float, Field(strict=True, ge=0.0, lt=1.0)]
 Relief = Annotated[float, Field(strict=True, gt=0.0, le=MAX_RELIEF, allow_inf_nan=False)]
 
@@ -144,7 +154,7 @@ class SetLight(_Body):
     op: Literal["light"]
     version: Version
     id: Text
-    light: Light
+    light: SurfaceLight
     source_light: Light | None = None
     ambient: Ambient | None = None
     relief: Relief | None = None

@@ -42,7 +42,7 @@ from lasagna.compose.layer import LayerTensors
 from lasagna.compose.surface import memo_tensors
 from lasagna.document import Document
 from lasagna.document.blend import BLEND_MODES, RANGED_BLENDS
-from lasagna.document.condition import parse_direction
+from lasagna.document.condition import parse_direction, parse_point, point_direction
 from lasagna.document.types import unique_id
 from lasagna.errors import ConflictError, DocumentError, ImageError, LasagnaError
 from lasagna.heap import tune_heap
@@ -238,7 +238,7 @@ class EditSession(SessionViews, SessionJobs):
                 "levels": self.max_level() + 1,
                 "blends": list(BLEND_MODES),
                 "ranged_blends": sorted(RANGED_BLENDS),
-                "surfaces": _surfaces(doc),
+                "surfaces": _surfaces(doc, self.stack.tensors),
             }
 
     # ---- document changes ---------------------------------------------------------------------------
@@ -486,18 +486,25 @@ class EditSession(SessionViews, SessionJobs):
         return out
 
 
-def _surfaces(doc: Document) -> dict[str, dict[str, Any]]:
+def _surfaces(doc: Document, tensors: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Each surface layer's light as the page draws its control: the texts, the light's (az, el) in degrees
-    (``parse_direction``: a named light resolved), a relight's source light's as ``source``, the ambient term, the
-    relief gain and the light's colour."""
+    (``parse_direction``: a named light resolved; for a point light, the direction it has from the layer's
+    centre) and ``point`` (x, y, z, or None for a directional light), a relight's source light's as ``source``, the
+    ambient term, the relief gain, the light's colour, and ``rect``, the layer's [x, y, width, height] on the canvas
+    (where a point light's fractions are placed)."""
     out = {}
     for _, layer in doc.walk():
         if layer.kind == "surface":
-            az, el = parse_direction(layer.light)
+            point = parse_point(layer.light)
+            lt = tensors.get(layer.id)
+            w, h = (int(lt.color.shape[-1]), int(lt.color.shape[-2])) if lt is not None else (0, 0)
+            az, el = parse_direction(layer.light) if point is None else point_direction(point, w, h)
             out[layer.id] = {
                 "light": layer.light,
                 "az": az,
                 "el": el,
+                "point": None if point is None else list(point),
+                "rect": [layer.offset.x, layer.offset.y, w, h],
                 "source_light": layer.source_light,
                 "source": None if layer.source_light is None else list(parse_direction(layer.source_light)),
                 "ambient": float(layer.ambient),

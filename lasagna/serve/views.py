@@ -34,7 +34,7 @@ from lasagna.compose.render import render
 from lasagna.compose.renderer import Renderer
 from lasagna.compose.surface import relieved_map
 from lasagna.document import Document
-from lasagna.document.condition import parse_direction
+from lasagna.document.condition import parse_direction, parse_surface_light
 from lasagna.document.models import MAX_RELIEF
 from lasagna.errors import LasagnaError
 from lasagna.io.render import BAND_ROWS, composite_codes, encode_composite, render_bytes, tensor_bytes
@@ -233,7 +233,7 @@ class SessionViews:
                 kind = doc.layer(id).kind
                 if kind != "surface":
                     raise LasagnaError(f"layer {id!r} is a {kind} layer; expected a surface layer", "light")
-                parse_direction(text)  # a ConditionError naming what a light is
+                parse_surface_light(text)  # a ConditionError naming what a light is
             for id, text in (source or {}).items():
                 if doc.layer(id).kind != "surface" or doc.layer(id).source_light is None:
                     raise LasagnaError(f"layer {id!r} has no source light; expected a relight surface layer", "source")

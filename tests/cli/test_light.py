@@ -101,6 +101,8 @@ def test_from_makes_a_relight_ratio_and_none_makes_it_shading_again(folder):
         (["--color", "1,0.5"], "--color: got '1,0.5'; expected #rrggbb or R,G,B"),
         (["--color", "1,2,0"], "layers[1].light_color"),
         (["--light", "upward"], "layers[1].light: expected one of left"),
+        (["--light", "x=0.5,y=0.5,z=0"], "layers[1].light: expected a point light 'x=X,y=Y,z=Z'"),
+        (["--light", "x=0.5,y=0.5"], "layers[1].light: expected a point light 'x=X,y=Y,z=Z'"),
         (["--relief", "0"], "layers[1].relief: got 0.0; expected greater than 0"),
         (["--relief", "17"], "layers[1].relief"),
         (["--ambient", "1"], "layers[1].ambient"),
@@ -134,3 +136,19 @@ def test_color_colours_the_lights_direct_term(folder, capsys):
     np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), want, atol=0.51)
     assert main(["light", str(folder), "--color", "1,1,1"]) == 0  # white again: the one-channel multiplier
     assert json.loads((folder / "stack.json").read_text())["layers"][1]["light_color"] == [1.0, 1.0, 1.0]
+
+
+def test_a_point_light_lights_each_pixel_from_where_it_stands(folder, capsys):
+    """``--light x=…,y=…,z=…``: the composite against numpy float64 of a point light over the map read by pypng
+    (each pixel's own direction to the light, inverse-square falloff, 1 beneath it)."""
+    assert main(["light", str(folder), "--light", "x=0.1,y=0.3,z=0.4"]) == 0
+    assert "light x=0.1,y=0.3,z=0.4" in capsys.readouterr().out
+    n = read_normals(folder / "layers" / "shape.png")
+    _, h, w = n.shape
+    jj, ii = np.meshgrid(np.arange(w), np.arange(h))
+    d = np.stack([(0.1 - (jj + 0.5) / w) * w / 16, ((ii + 0.5) / h - 0.3) * h / 16, np.full((h, w), 0.4)])
+    r = np.linalg.norm(d, axis=0)
+    s = 0.25 + 0.75 * (0.4 / r) ** 2 * np.maximum(0.0, (n * d / r).sum(0))
+    base = codes(folder / "layers" / "base.png").transpose(2, 0, 1) / 255.0
+    want = np.clip(base * s[None], 0, 1) * 255
+    np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), want, atol=0.51)

@@ -518,3 +518,59 @@ def test_the_light_colour_input_previews_and_commits_one_step(browser, surface_s
     assert not np.array_equal(after, before) and np.array_equal(after[..., 0], before[..., 0])
     save_and_check(page, folder)
     assert page.errors == []
+
+
+def test_a_point_light_is_placed_by_dragging_on_the_image(browser, surface_server):
+    """ "Point light" turns a surface layer's light into a point over it; dragging on the canvas then moves the point
+    (live repaints, nothing changed on the server until the release, one step), the Height slider raises it (one
+    step), the saved stack renders what the page shows, and unchecking makes the light a direction again."""
+    folder = surface_server.session.folder
+    page = open_page(browser, surface_server)
+    row(page, "shape").locator(".name").click()
+    page.wait_for_selector("#point-light")
+    v, before = version(page), page_pixels(page)
+    page.check("#point-light")
+    settle(page, v + 1)
+    lit = page.evaluate("window.lasagna.state.surfaces.shape")
+    assert lit["light"].startswith("x=") and lit["point"] is not None and abs(lit["point"][2] - 0.5) < 1e-6
+    save_and_check(page, folder)
+
+    def at(fx: float, fy: float) -> tuple[float, float]:  # page coordinates of the layer's fractions (fx, fy)
+        box = page.locator("#canvas").bounding_box()
+        ui = page.evaluate("({x: window.lasagna.panX, y: window.lasagna.panY, z: window.lasagna.zoom})")
+        lx, ly, w, h = lit["rect"]
+        return box["x"] + ui["x"] + (lx + fx * w) * ui["z"], box["y"] + ui["y"] + (ly + fy * h) * ui["z"]
+
+    paints = page.evaluate("window.lasagna.paints.count")
+    page.mouse.move(*at(0.2, 0.5))
+    page.mouse.down()
+    for k in range(1, 11):
+        page.mouse.move(*at(0.2 + 0.06 * k, 0.5))
+        page.wait_for_timeout(25)
+    assert version(page) == v + 1  # previews only while dragging
+    page.mouse.up()
+    settle(page, v + 2)
+    assert page.evaluate("window.lasagna.paints.count") - paints >= 3
+    s = page.evaluate("window.lasagna.state")
+    point = s["surfaces"]["shape"]["point"]
+    assert s["undo"] == "light of shape" and abs(point[0] - 0.8) < 0.05 and abs(point[1] - 0.5) < 0.05
+    right = page_pixels(page)
+    assert not np.array_equal(right, before)
+    save_and_check(page, folder)
+
+    page.evaluate(
+        """() => { const r = document.getElementById("light-height");
+        for (const x of ["-1.5", "-2"]) { r.value = x; r.dispatchEvent(new Event("input")); }
+        r.dispatchEvent(new Event("change")); }"""
+    )
+    settle(page, v + 3)
+    assert abs(page.evaluate("window.lasagna.state.surfaces.shape.point[2]") - 0.25) < 1e-3
+    save_and_check(page, folder)
+    page.click("#undo")
+    settle(page, v + 4)
+    assert np.array_equal(page_pixels(page), right)
+    page.uncheck("#point-light")
+    settle(page, v + 5)
+    assert page.evaluate("window.lasagna.state.surfaces.shape.point") is None
+    save_and_check(page, folder)
+    assert page.errors == []

@@ -93,6 +93,8 @@ def test_state_gives_each_surface_layers_light(client):
             "light": "top-left",
             "az": az,
             "el": el,
+            "point": None,
+            "rect": [8, 8, 40, 32],  # the layer's offset and size on the canvas: where a point light's fractions lie
             "source_light": None,
             "source": None,
             "ambient": 0.25,
@@ -137,6 +139,8 @@ def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
         "light": "right",
         "az": 0.0,
         "el": el,
+        "point": None,
+        "rect": [8, 8, 40, 32],
         "source_light": "left",
         "source": [180.0, el],
         "ambient": 0.4,
@@ -231,6 +235,8 @@ def test_the_normal_map_view_is_the_stored_map_at_its_place(client, folder):
         ({"id": "shape", "light": "left", "ambient": True}, "ambient", "True"),
         ({"id": "shape", "light": "left", "source_light": "top", "ambient": 0}, "layers[1].ambient", "ambient > 0"),
         ({"id": "shape", "light": "left", "az": 10}, "az", "unknown field"),
+        ({"id": "shape", "light": "x=0.5,y=0.5,z=0"}, "light", "point light 'x=X,y=Y,z=Z'"),
+        ({"id": "shape", "light": "left", "source_light": "x=0.5,y=0.5,z=1"}, "source_light", "'az=A,el=E'"),
     ],
 )
 def test_a_bad_light_change_is_a_one_line_4xx_and_changes_nothing(client, body, field, words):
@@ -246,6 +252,8 @@ def test_a_bad_light_change_is_a_one_line_4xx_and_changes_nothing(client, body, 
     [
         ({"light": "base:left"}, "expected a surface layer"),
         ({"light": "shape:up"}, "'az=A,el=E'"),
+        ({"light": "shape:x=0.5,y=0.5,z=-2"}, "point light 'x=X,y=Y,z=Z'"),
+        ({"source": "shape:x=0.5,y=0.5,z=1"}, "has no source light"),
         ({"light": "shape"}, "expected LAYER:LIGHT"),
         ({"light": "nope:left"}, "nope"),
         ({"source": "shape:left"}, "has no source light; expected a relight surface layer"),
@@ -369,3 +377,24 @@ def test_the_light_colour_preview_is_the_change_bit_for_bit(client, folder):
     assert json.loads((folder / "stack.json").read_text())["layers"][1]["light_color"] == colour
     fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
     assert np.array_equal(preview[..., :3], fresh)
+
+
+# ---- a point light ----------------------------------------------------------------------------------
+
+
+def test_a_point_light_previews_commits_and_saves_bit_for_bit(client, folder):
+    """A point light ``x=…,y=…,z=…`` (the editor places it on the canvas): its preview is the view its change
+    gives, the state says where it is (``point``, and the direction from the layer's centre the sphere shows), and
+    the saved stack renders the same bits through the engine."""
+    v = state(client)["version"]
+    previews = [view(client, level=lv, light="shape:x=0.1,y=0.2,z=0.3") for lv in (0, 1)]
+    assert state(client)["version"] == v
+    s = ok(post(client, op="light", id="shape", light="x=0.1,y=0.2,z=0.3"))
+    lit = s["surfaces"]["shape"]
+    assert lit["point"] == [0.1, 0.2, 0.3] and lit["light"] == "x=0.1,y=0.2,z=0.3"
+    assert 90 < lit["az"] < 180 and 0 < lit["el"] < 90  # up and to the left of the layer's centre
+    assert np.array_equal(view(client, level=0), previews[0]) and np.array_equal(view(client, level=1), previews[1])
+    assert np.array_equal(previews[0][..., :3], relit_codes(folder, "x=0.1,y=0.2,z=0.3"))
+    ok(post(client, op="save"))
+    fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
+    assert np.array_equal(previews[0][..., :3], fresh)

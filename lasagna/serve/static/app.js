@@ -22,6 +22,7 @@ const ui = {
   lightWhich: {},       // per relight surface layer: which light its sphere moves, "light" or "source"
   normals: null,        // a surface layer's id while the view shows its normal map (its relief applied)
   lightProxy: true,     // a light drag previews at the drag proxy's level (dragLevel); false: at the view's level
+  placing: null,        // {id, rect, z, point} while a surface layer's point light is placed by dragging on the canvas
   condition: null,
   image: null,          // the last view: {canvas, level, w, h}
   before: null,
@@ -200,6 +201,7 @@ function numberInput(value, onChange, step = "any") {
 function drawProps() {
   const box = $("props");
   box.textContent = "";
+  ui.placing = null;  // a surface layer's light panel sets it again while its light is a point
   const layer = findLayer(ui.selected);
   if (!layer) { box.innerHTML = '<p class="hint">Select a layer.</p>'; return; }
   const set = (changes) => change({ op: "set", id: layer.id, changes });
@@ -364,6 +366,7 @@ function lightControl(layer) {
     paint();
   });
   box.append(field("Colour", colour), field("Show normal map", show));
+  box.append(pointControl(layer, lit));
   // A relight's sphere moves either light: the target, or the source the ratio divides by (fitted to the image,
   // and off where the estimate was: a source light too frontal makes the whole relight too dark).
   // The choice is kept per layer across the control's rebuilds (every change rebuilds the panel).
@@ -430,6 +433,105 @@ function lightControl(layer) {
   sphere.addEventListener("pointerup", release);
   sphere.addEventListener("pointercancel", release);
   return box;
+}
+
+// ---- a point light -------------------------------------------------------------------------------
+// A surface layer's light may be a point x=…,y=…,z=… (lasagna.document.condition): x, y fractions of the layer
+// from its top-left, z its height in units of the layer's longer side. "Point light" turns the light into the
+// point one unit from the layer's centre along the current direction (and back into that direction); while it is
+// on, dragging on the canvas moves the point (a preview per frame, one change on release, as the sphere does) and
+// the Height slider (log scale) raises or lowers it. The point is drawn on the canvas as a ring.
+
+function pointText(x, y, z) {
+  const r = (v) => String(Math.round(v * 1000) / 1000);
+  return `x=${r(x)},y=${r(y)},z=${r(z)}`;
+}
+
+function pointFromDirection(az, el, rect) {
+  const [, , w, h] = rect, L = Math.max(w, h, 1), a = (az * Math.PI) / 180, e = (el * Math.PI) / 180;
+  return [0.5 + (Math.sin(e) * Math.cos(a) * L) / w, 0.5 - (Math.sin(e) * Math.sin(a) * L) / h, Math.max(0.05, Math.cos(e))];
+}
+
+function pointControl(layer, lit) {
+  const box = document.createElement("div");
+  const on = document.createElement("input");
+  on.type = "checkbox"; on.id = "point-light"; on.checked = lit.point !== null;
+  on.addEventListener("change", async () => {
+    const light = on.checked ? pointText(...pointFromDirection(lit.az, lit.el, lit.rect)) : lightText(lit.az, lit.el);
+    await change({ op: "light", id: layer.id, light });
+    paint();
+  });
+  box.append(field("Point light", on));
+  if (lit.point === null) return box;
+  ui.placing = { id: layer.id, rect: lit.rect, point: lit.point.slice() };
+  const height = document.createElement("input");
+  height.type = "range"; height.id = "light-height"; height.min = "-4"; height.max = "3"; height.step = "0.05";
+  height.value = String(Math.log2(lit.point[2]));
+  const heightValue = document.createElement("span");
+  heightValue.id = "light-height-value";
+  heightValue.textContent = lit.point[2].toFixed(3);
+  const z = () => Math.round(2 ** parseFloat(height.value) * 1000) / 1000;
+  height.addEventListener("input", () => {
+    ui.light = { id: layer.id, text: pointText(lit.point[0], lit.point[1], z()), source: false };
+    heightValue.textContent = z().toFixed(3);
+    paint();
+  });
+  height.addEventListener("change", async () => {
+    await change({ op: "light", id: layer.id, light: pointText(lit.point[0], lit.point[1], z()) });
+    ui.light = null;
+    paint();
+  });
+  const f = field("Height", height);
+  f.append(" ", heightValue);
+  box.append(f);
+  const hint = document.createElement("div");
+  hint.className = "hint";
+  hint.textContent = "drag on the image to move the light";
+  box.append(hint);
+  return box;
+}
+
+// The canvas point under a pointer event → the placed layer's fractions (x, y), and back.
+function canvasToPoint(e) {
+  const r = $("canvas").getBoundingClientRect(), [lx, ly, w, h] = ui.placing.rect;
+  const ix = (e.clientX - r.left - ui.panX) / ui.zoom, iy = (e.clientY - r.top - ui.panY) / ui.zoom;
+  return [(ix - lx) / w, (iy - ly) / h];
+}
+
+function wirePlacing(canvas) {
+  let dragging = false, frame = 0, at = null;
+  const clampPoint = ([x, y]) => [Math.min(17, Math.max(-16, x)), Math.min(17, Math.max(-16, y))];
+  const step = () => {
+    frame = 0;
+    const [x, y] = clampPoint(canvasToPoint(at));
+    ui.placing.point = [x, y, ui.placing.point[2]];
+    ui.light = { id: ui.placing.id, text: pointText(x, y, ui.placing.point[2]), source: false };
+    paint();
+  };
+  canvas.addEventListener("pointerdown", (e) => {
+    if (!ui.placing) return;
+    e.preventDefault(); e.stopPropagation();
+    canvas.setPointerCapture(e.pointerId);
+    dragging = true; at = e;
+    frame = requestAnimationFrame(step);
+  });
+  canvas.addEventListener("pointermove", (e) => {
+    if (!dragging) return;
+    at = e;
+    if (!frame) frame = requestAnimationFrame(step);
+  });
+  const release = async (e) => {
+    if (!dragging) return;
+    dragging = false;
+    if (frame) { cancelAnimationFrame(frame); frame = 0; }
+    at = e;
+    step();
+    await change({ op: "light", id: ui.placing.id, light: ui.light.text });
+    ui.light = null;
+    paint();
+  };
+  canvas.addEventListener("pointerup", release);
+  canvas.addEventListener("pointercancel", release);
 }
 
 // ---- the catalogue and the light picker ---------------------------------------------------------
@@ -608,6 +710,15 @@ function draw() {
     ctx.restore();
     ctx.fillStyle = "#e0a030"; ctx.fillRect(cut, ui.panY, 1, H * ui.zoom);
   }
+  // The point light, where it is over the canvas: a ring above it (not drawn into the canvas's pixels).
+  const marker = $("light-marker");
+  marker.hidden = !ui.placing;
+  canvas.style.cursor = ui.placing ? "crosshair" : "";
+  if (ui.placing) {
+    const [lx, ly, w, h] = ui.placing.rect, [px, py] = ui.placing.point;
+    marker.style.left = `${ui.panX + (lx + px * w) * ui.zoom}px`;
+    marker.style.top = `${ui.panY + (ly + py * h) * ui.zoom}px`;
+  }
   ui.paints.count += 1;
   ui.paints.last = performance.now();
   $("zoom-label").textContent = `${Math.round(ui.zoom * 100)}%`;
@@ -696,7 +807,8 @@ function wire() {
   };
   const canvas = $("canvas");
   let panning = null;
-  canvas.addEventListener("mousedown", (e) => { panning = { x: e.clientX - ui.panX, y: e.clientY - ui.panY }; });
+  wirePlacing(canvas);  // while a point light is placed, a drag on the canvas moves it instead of the view
+  canvas.addEventListener("mousedown", (e) => { if (!ui.placing) panning = { x: e.clientX - ui.panX, y: e.clientY - ui.panY }; });
   window.addEventListener("mouseup", () => { panning = null; });
   window.addEventListener("mousemove", (e) => {
     if (!panning) return;
