@@ -21,7 +21,9 @@ to the surface, paint included, is seen there. ``--surface-sheet`` shows the sur
 sheet): input | its normal map | its shading from the top-left | toward the left | toward the right. Ends with one
 JSON line: per photograph and axis, the mean, the smallest and the count of wrong signs. ``--relief 1 2 3`` instead
 reports the surface layer re-lit by its stored map at each relief gain (the editor's Relief slider; a user's
-control, chosen by nobody here), with ``--relief-sheet``: input | left and right at each gain.
+control, chosen by nobody here), with ``--relief-sheet``: input | left and right at each gain. ``--point`` reports
+it re-lit by point lights beside each edge instead (``POINT_LIGHTS``; ``--point-sheet``: input | left and right by
+directions | by point lights).
 """
 
 from __future__ import annotations
@@ -112,6 +114,47 @@ def relief_report(folder: Path, preset: str, gains: list[float], sheet: Path | N
     }
 
 
+POINT_LIGHTS = {
+    "left": "x=-0.2,y=0.5,z=0.6",
+    "right": "x=1.2,y=0.5,z=0.6",
+    "top": "x=0.5,y=-0.2,z=0.6",
+    "bottom": "x=0.5,y=1.2,z=0.6",
+}
+"""Point lights beside each edge of the photograph, 0.7 of its longer side from its centre and 0.6 above it."""
+
+
+def point_report(folder: Path, preset: str, sheet: Path | None) -> dict:
+    """The surface layer (``layer_kind="surface"``) of each photograph, made once toward the left, re-lit by the
+    stack itself toward a point light beside each edge (``POINT_LIGHTS``: no learning): the swings, and a sheet
+    input | toward the left and the right by the directions | by the point lights. A user's light, chosen by nobody
+    here; the falloff brightens the near side whatever the surface says, so these swings are not the surface's."""
+    rows, tiles, values = [], [], []
+    for file in sorted(folder.glob("*.jpg")):
+        image = read_photo(file)[0]
+        made = lasagna.edit(image, preset, "left", layer_kind="surface")
+        stack, id = made.stack, made.layer_id
+        row: dict = {"photo": file.stem}
+        for axis, pair in PHOTO_AXES.items():
+            total = sum(swing(image, stack.set_light(id, POINT_LIGHTS[lt]).render().image, lt) for lt in pair)
+            row[axis] = round(total, 4)
+            values.append(total)
+        rows.append(row)
+        print(row, flush=True)
+        shown = [image, *(stack.set_light(id, lt).render().image for lt in ("left", "right"))]
+        shown += [stack.set_light(id, POINT_LIGHTS[lt]).render().image for lt in ("left", "right")]
+        tiles.append([half(t) for t in shown])
+    if sheet is not None and tiles:
+        save_sheet([list(column) for column in zip(*tiles)], sheet)
+    return {
+        "point_rows": rows,
+        "point": {
+            "swing_mean": round(sum(values) / len(values), 4),
+            "below_0.10": sum(v < 0.10 for v in values),
+            "wrong_signs": sum(v < 0 for v in values),
+        },
+    }
+
+
 def measure(folder: Path, preset: str, sheet: Path | None, layer_sheet: Path | None = None) -> dict:
     rows, tiles, layer_tiles, seconds = [], [], [], []
     for file in sorted(folder.glob("*.jpg")):
@@ -174,8 +217,26 @@ def main(argv=None) -> int:
         help="instead: the surface layer re-lit at these relief gains (`relief` of the stack's surface layer)",
     )
     p.add_argument("--relief-sheet", type=Path, default=None, help="with --relief: input | left, right at each gain")
+    p.add_argument(
+        "--point",
+        action="store_true",
+        help="instead: the surface layer re-lit by point lights beside each edge (POINT_LIGHTS; a user's light)",
+    )
+    p.add_argument(
+        "--point-sheet", type=Path, default=None, help="with --point: input | left, right by directions | by points"
+    )
     args = p.parse_args(argv)
     torch.manual_seed(0)
+    if args.point:
+        record = {
+            "benchmark": "photo_swing",
+            "machine": machine_info(),
+            "photos_folder": str(args.photos),
+            "preset": args.preset,
+            **point_report(args.photos, args.preset, args.point_sheet),
+        }
+        print_json_line(record)
+        return 0
     if args.relief:
         record = {
             "benchmark": "photo_swing",
