@@ -124,6 +124,12 @@ def parse_direction(text: str) -> tuple[float, float]:
     parts = text.split(",")
     matches = [_PAIR.fullmatch(p) for p in parts]
     if len(parts) != 2 or not all(matches):
+        if all(_POINT_PAIR.fullmatch(p) for p in parts):
+            raise _bad(
+                text,
+                " (a point light is only a surface layer's light: set it after the edit, by `lasagna light`, "
+                "the editor or stack.json)",
+            )
         raise _bad(text)
     values = {m.group(1): float(m.group(2)) for m in matches if m}
     if set(values) != {"az", "el"}:

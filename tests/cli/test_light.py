@@ -152,3 +152,14 @@ def test_a_point_light_lights_each_pixel_from_where_it_stands(folder, capsys):
     base = codes(folder / "layers" / "base.png").transpose(2, 0, 1) / 255.0
     want = np.clip(base * s[None], 0, 1) * 255
     np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), want, atol=0.51)
+
+
+def test_an_edit_toward_a_point_light_says_where_a_point_light_goes(tmp_path, capsys):
+    """A learned edit's condition is a direction (its prior was trained on directions): a point light there is
+    refused in one line, exit 2, saying that a point light is a surface layer's light, set after the edit."""
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(tmp_path / "a.png")
+    argv = ["edit", str(tmp_path / "a.png"), "--layer", "shading", "--condition", "x=0.1,y=0.5,z=0.4"]
+    assert main([*argv, "-o", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert "a point light is only a surface layer's light" in err and err.count("\n") == 1
+    assert not (tmp_path / "a").exists()
