@@ -20,7 +20,8 @@ the server composites the level-1 view; a 512² stack shows at 2×, level 0):
   preview view: the base from the level's cached prefix, the surface re-lit from its map. As the page does it, at the
   drag proxy's level (as an opacity drag: a 2048² stack fitted at ½ previews at 512², the release repaints at
   1024²); ``light_drag_full_fps``: every preview at the view's level (1024²); ``relief_drag_fps``: the layer's
-  Relief slider dragged as an opacity slider is (×1…×2), at the drag proxy's level; ``point_drag_fps``: the light
+  Relief slider dragged as an opacity slider is (×1…×2), at the drag proxy's level (``intensity_drag_fps``: its
+  Intensity slider, the same way); ``point_drag_fps``: the light
   made a point light ("Point light") and dragged round a circle on the image the same way (each preview lights every
   pixel along its own vector to the point), at the drag proxy's level.
 
@@ -239,6 +240,9 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
         v = page.evaluate("window.lasagna.state.version")
         relief_fps, _ = page.evaluate(DRAG, ["#relief", seconds])
         page.wait_for_function(f"window.lasagna.state.version > {v} && window.lasagna.settled()")
+        v = page.evaluate("window.lasagna.state.version")  # the Intensity slider likewise (×1…×2)
+        intensity_fps, _ = page.evaluate(DRAG, ["#intensity", seconds])
+        page.wait_for_function(f"window.lasagna.state.version > {v} && window.lasagna.settled()")
         # A point light (one change to make it one), then dragged round a circle on the image: each preview lights
         # every pixel along its own vector to the point.
         v = page.evaluate("window.lasagna.state.version")
@@ -257,6 +261,7 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
             "light_drag_input_hz": round(input_hz, 1),
             "light_drag_full_fps": round(full_fps, 1),
             "relief_drag_fps": round(relief_fps, 1),
+            "intensity_drag_fps": round(intensity_fps, 1),
             "light_view_level": level,
         }
     finally:
@@ -358,6 +363,7 @@ def main() -> None:
         "light_drag_fps",
         "light_drag_full_fps",
         "relief_drag_fps",
+        "intensity_drag_fps",
         "point_drag_fps",
     ]
     print_json_line(

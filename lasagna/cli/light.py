@@ -1,5 +1,5 @@
-"""``lasagna light``: re-light a stack's surface layer in place — its light, source light, ambient, relief or colour —
-from its stored normal map, with no learning (what dragging the editor's light sphere or its sliders does).
+"""``lasagna light``: re-light a stack's surface layer in place — its light, source light, ambient, relief, colour or
+intensity — from its stored normal map, with no learning (what dragging the editor's light sphere or its sliders does).
 
 Only stack.json (the commit point), composite.png and a stack.ora the folder holds change: no layer PNG is
 written (``save_in_place`` with every layer unchanged), and a stack.json changed on disk since it was read is
@@ -12,7 +12,9 @@ from pathlib import Path
 
 from lasagna.errors import LasagnaError
 
-HELP = "re-light a stack's surface layer in place (light, source light, ambient, relief, colour); no learning"
+HELP = (
+    "re-light a stack's surface layer in place (light, source light, ambient, relief, colour, intensity); no learning"
+)
 EXAMPLE = (
     "lasagna light out/chelsea-surface --light az=30,el=45                  # the topmost surface layer",
     "lasagna light out/coffee-sl --layer relight-left --from top --relief 2  # a relight's source light, deeper",
@@ -41,15 +43,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="R,G,B",
         help="the light's colour, three numbers in [0, 1] or #rrggbb (its direct term; default: kept)",
     )
+    p.add_argument(
+        "--intensity",
+        type=float,
+        help="the light's intensity k: its direct term times k; above 1 a shading layer brightens (default: kept)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     from lasagna.document import stack_file
     from lasagna.io.survey import survey_stack
 
-    if all(v is None for v in (args.light, args.source, args.ambient, args.relief, args.color)):
+    if all(v is None for v in (args.light, args.source, args.ambient, args.relief, args.color, args.intensity)):
         raise LasagnaError(
-            "nothing to change; expected at least one of --light, --from, --ambient, --relief, --color", where="light"
+            "nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, --intensity",
+            where="light",
         )
     colour = None if args.color is None else parse_colour(args.color)
     survey = survey_stack(args.stack, composite=True)  # a refusal needs no torch
@@ -84,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
         ambient=args.ambient,
         relief=args.relief,
         light_color=colour,
+        light_intensity=args.intensity,
     )
     save_in_place(stack, unchanged=unchanged, expect_sha256=sha, extra=keep_ora_current(folder))
     lit = stack.document.layer(layer.id)
@@ -93,6 +102,8 @@ def run(args: argparse.Namespace) -> int:
     said += [f"ambient {lit.ambient:g}", f"relief {lit.relief:g}"]
     if tuple(lit.light_color) != (1.0, 1.0, 1.0):
         said.append("colour " + ",".join(f"{c:.4g}" for c in lit.light_color))
+    if lit.light_intensity != 1.0:
+        said.append(f"intensity {lit.light_intensity:g}")
     wrote = "stack.json, composite.png" + (" and stack.ora" if (folder / "stack.ora").is_file() else "")
     print(f"re-lit {layer.id}: {', '.join(said)}; wrote {wrote} in {Path(folder)}")
     return 0

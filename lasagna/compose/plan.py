@@ -67,7 +67,7 @@ from lasagna.compose.color import srgb_to_linear
 from lasagna.compose.gradient import gradient_fill
 from lasagna.compose.layer import LayerTensors
 from lasagna.compose.pattern import pattern_fill
-from lasagna.compose.surface import surface_range, surface_tensors
+from lasagna.compose.surface import layer_surface_tensors
 from lasagna.document.types import range_problem
 from lasagna.errors import LasagnaError
 
@@ -807,10 +807,7 @@ def _document_specs(
                     where=here,
                 )
         if layer.kind == "surface":  # a normal map, rendered to its multiplier under the layer's light
-            lt = surface_tensors(
-                lt, layer.light, layer.source_light, float(layer.ambient), float(layer.relief), layer.light_color
-            )
-            lo, hi = surface_range(layer.source_light, float(layer.ambient))
+            lt, (lo, hi) = layer_surface_tensors(lt, layer)
         specs.append(RenderLayerSpec(tensors=lt, range=(float(lo), float(hi)), encoded=True, **common))
     chains: list[list[RenderSpec]] = []
     for spec, clipped in zip(specs, clips):

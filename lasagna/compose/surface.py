@@ -311,9 +311,22 @@ def memo_tensors() -> list[Tensor]:
     return out
 
 
-def surface_range(source_light: str | None, ambient: float) -> tuple[float, float]:
-    """The interval a surface layer's multiplier lies in: [a, 1] (shading) or [a, 1/a] (relight ratio)."""
-    return (ambient, 1.0) if source_light is None else (ambient, 1.0 / ambient)
+def surface_range(source_light: str | None, ambient: float, peak: float = 1.0) -> tuple[float, float]:
+    """The interval a surface layer's multiplier lies in: [a, 1] (shading) or [a, 1/a] (relight ratio), or with a
+    direct term's largest gain ``peak`` > 1 (a light's intensity times its colour's largest channel) [a, a + (1 − a)·
+    peak] and that over a."""
+    hi = ambient + (1.0 - ambient) * max(1.0, float(peak))
+    return (ambient, hi) if source_light is None else (ambient, hi / ambient)
+
+
+def layer_surface_tensors(stored: LayerTensors, layer) -> tuple[LayerTensors, tuple[float, float]]:
+    """A surface layer's multiplier and its range, from the layer's light fields (a `SurfaceLayer`: light, source
+    light, ambient, relief, colour, intensity) — the one place the compositor and the exports read them."""
+    ambient, intensity = float(layer.ambient), float(layer.light_intensity)
+    tensors = surface_tensors(
+        stored, layer.light, layer.source_light, ambient, float(layer.relief), layer.light_color, intensity
+    )
+    return tensors, surface_range(layer.source_light, ambient, intensity * max(layer.light_color))
 
 
 def surface_tensors(
@@ -323,6 +336,7 @@ def surface_tensors(
     ambient: float,
     relief: float = 1.0,
     light_color: tuple[float, float, float] = (1.0, 1.0, 1.0),
+    light_intensity: float = 1.0,
 ) -> LayerTensors:
     """A surface layer's tensors as the compositor blends them: its normal map ``stored.color`` (..., 3, h, w)
     of values in [0, 1] (the PNG's codes), its relief times ``relief`` (`deepen_normals`), rendered to the
@@ -330,7 +344,8 @@ def surface_tensors(
     and ``source_light`` are condition texts (a named light or ``az=…,el=…``; ``light`` may be a point light
     ``x=…,y=…,z=…``, `point_lambert`, placed in fractions of this map's size). A ``light_color`` c other than
     white makes it (..., 3, h, w): each channel's direct term times c, a + (1 − a)·c·max(0, n·l) (`coloured`), the
-    source light staying white. The same stored map, light, relief and colour always give the same bits.
+    source light staying white; ``light_intensity`` k multiplies the direct term too (its gain is k·c: one channel
+    while that is grey). The same stored map, light, relief, colour and intensity always give the same bits.
     """
     color = stored.color
     if color.shape[-3] != 3:
@@ -338,7 +353,7 @@ def surface_tensors(
             f"the normal map has {color.shape[-3]} channel(s); expected an RGB normal map", where="surface layer"
         )
     same_map = (id(color), color._version)
-    colour = tuple(float(c) for c in light_color)
+    colour = tuple(float(c) * float(light_intensity) for c in light_color)  # the direct term's gain per channel
     key = (*same_map, light, source_light, float(ambient), float(relief), colour)
     hit = _RENDERED.get(stored)
     if hit is not None and hit[0] == key:
@@ -353,7 +368,7 @@ def surface_tensors(
     if point is not None:  # a point light: S(point), coloured, over S(source) for a relight ratio
         y = point_lambert(lit, point, ambient)
         if not white:
-            y = coloured(y, colour, ambient)
+            y = tinted(y, colour, ambient)
         if source_light is not None:
             source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
             y = y / lambert(lit, source, check_ratio_ambient(ambient))
@@ -366,7 +381,7 @@ def surface_tensors(
         y = relight_ratio(lit, target, source, ambient)
     else:
         target = light_vector(*parse_direction(light), dtype=normals.dtype, device=normals.device)
-        y = coloured(lambert(lit, target, ambient), colour, ambient)
+        y = tinted(lambert(lit, target, ambient), colour, ambient)
         if source_light is not None:
             source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
             y = y / lambert(lit, source, check_ratio_ambient(ambient))
@@ -457,6 +472,14 @@ def coloured(shading: Tensor, colour: tuple[float, float, float], ambient: float
     its light the same way, its ambience apart)."""
     c = torch.tensor(colour, dtype=shading.dtype, device=shading.device).view(1, 3, 1, 1)
     return ambient + (shading - ambient) * c
+
+
+def tinted(shading: Tensor, gain: tuple[float, float, float], ambient: float = AMBIENT) -> Tensor:
+    """A white light's shading (B, 1, H, W) with its direct term times ``gain`` (a light's colour times its
+    intensity): one channel a + (S − a)·g while the three gains are equal, else `coloured` (three channels)."""
+    if gain[0] == gain[1] == gain[2]:
+        return ambient + (shading - ambient) * gain[0]
+    return coloured(shading, gain, ambient)
 
 
 def relieved_map(color: Tensor, relief: float) -> Tensor:

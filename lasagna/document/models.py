@@ -278,6 +278,8 @@ def _surface_schema(schema: dict[str, Any]) -> None:
 
 WHITE_LIGHT = (1.0, 1.0, 1.0)
 """A surface layer's default light colour: the multiplier is one channel, the same on R, G and B."""
+MAX_LIGHT_INTENSITY = 8.0
+"""The largest intensity a surface layer's light takes: ×8 turns the ambient floor 0.25 into a peak of 6.25."""
 MAX_RELIEF = 16.0
 """The largest relief gain a surface layer takes: slopes ×16 turn a 5° bump into a 54° one; beyond it every
 relief is a cliff and the map's 16-bit quantisation (slopes to 3e-5) starts to show."""
@@ -348,6 +350,15 @@ class SurfaceLayer(_Common):
         WHITE_LIGHT,
         description="The light's colour, RGB in [0, 1]: each channel's direct term times it, a + (1 − a)·c·max(0, n·l) "
         "(the ambient and a relight's source light stay white); white renders the one-channel multiplier.",
+    )
+    light_intensity: float = Field(
+        1.0,
+        strict=True,
+        gt=0.0,
+        le=MAX_LIGHT_INTENSITY,
+        allow_inf_nan=False,
+        description="The light's intensity k: the direct term times it, a + (1 − a)·k·c·max(0, n·l) (Photoshop's "
+        "Lighting Effects Intensity); above 1 a shading layer brightens where the light falls.",
     )
     mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
     made_by: dict[str, JsonValue] = Field(

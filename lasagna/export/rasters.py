@@ -63,7 +63,7 @@ import torch
 
 from lasagna.compose.blend import dissolve_pattern
 from lasagna.compose.plan import gradient_tensors, pattern_tensors
-from lasagna.compose.surface import relieved_map, surface_tensors
+from lasagna.compose.surface import layer_surface_tensors, relieved_map
 from lasagna.document import LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
 from lasagna.io.png import BitDepth, quantize_band
@@ -200,9 +200,7 @@ def _layer_raster(stack, layer, origin: tuple[int, int] = (0, 0)) -> tuple[np.nd
     if t is None:
         return None
     if isinstance(layer, SurfaceLayer):  # the multiplier its normal map renders to, as the compositor blends it
-        t = surface_tensors(
-            t, layer.light, layer.source_light, float(layer.ambient), float(layer.relief), layer.light_color
-        )
+        t = layer_surface_tensors(t, layer)[0]
     color = _numpy(t.color)
     if color.ndim != 3:
         raise ExportError(

@@ -344,10 +344,11 @@ class Stack:
         ambient: float | None = None,
         relief: float | None = None,
         light_color: tuple[float, float, float] | None = None,
+        light_intensity: float | None = None,
     ) -> Stack:
         """Re-light the surface layer ``id``: a new ``light`` (and ``source_light`` / ``ambient`` / ``relief`` /
-        ``light_color`` when given). No pixels change; the next render draws the stored surface under the new
-        light."""
+        ``light_color`` / ``light_intensity`` when given). No pixels change; the next render draws the stored
+        surface under the new light."""
         layer = self.document.layer(id)
         if not isinstance(layer, SurfaceLayer):
             raise DocumentError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", where="set_light")
@@ -360,6 +361,8 @@ class Stack:
             changes["relief"] = float(relief)
         if light_color is not None:
             changes["light_color"] = tuple(float(c) for c in light_color)
+        if light_intensity is not None:
+            changes["light_intensity"] = light_intensity
         self.document = self.document.replace_layer(id, **changes)
         return self
 

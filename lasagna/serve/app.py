@@ -212,8 +212,9 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             level = int(q.get("level", "0"))
         except ValueError:
             raise RequestError(f"level is {q.get('level')!r}; expected an integer", "level") from None
-        # Numeric overrides, LAYER:NUMBER each: an opacity slider's, a surface layer's relief or ambient slider's.
-        numbers: dict[str, dict[str, float]] = {"opacity": {}, "relief": {}, "ambient": {}}
+        # Numeric overrides, LAYER:NUMBER each: an opacity slider's, a surface layer's relief, ambient or intensity
+        # slider's.
+        numbers: dict[str, dict[str, float]] = {"opacity": {}, "relief": {}, "ambient": {}, "intensity": {}}
         for name, given in numbers.items():
             for item in q.getlist(name):
                 id, sep, value = item.rpartition(":")
@@ -239,7 +240,9 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             for item in q.getlist(name):  # a light's text holds no ':' (nor does an id)
                 id, sep, text = item.partition(":")
                 if not sep:
-                    raise RequestError(f"{name} is {item!r}; expected LAYER:LIGHT (az=A,el=E or a named light)", name)
+                    raise RequestError(
+                        f"{name} is {item!r}; expected LAYER:LIGHT (a named light, az=A,el=E or x=X,y=Y,z=Z)", name
+                    )
                 given[id] = text
         return {
             "level": level,
@@ -249,6 +252,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             "relief": numbers["relief"],
             "ambient": numbers["ambient"],
             "color": colours,
+            "intensity": numbers["intensity"],
             "solo": q.get("solo") or None,
             "upto": q.get("upto") or None,
         }

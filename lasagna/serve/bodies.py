@@ -18,7 +18,7 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PlainValidator, ValidationError
 
 from lasagna.document.condition import parse_direction, parse_surface_light
-from lasagna.document.models import MAX_RELIEF
+from lasagna.document.models import MAX_LIGHT_INTENSITY, MAX_RELIEF
 from lasagna.document.types import Blend, Colour, OpaqueColour
 from lasagna.document.validation import parse_json
 from lasagna.errors import ConditionError, DocumentError, LasagnaError, describe_validation_error
@@ -59,6 +59,7 @@ SurfaceLight = Annotated[str, Field(strict=True, max_length=MAX_TEXT), AfterVali
 """A surface layer's light: a `Light` or a point light ``x=X,y=Y,z=Z`` (``parse_surface_light``)."""
 Ambient = Annotated[float, Field(strict=True, ge=0.0, lt=1.0)]
 Relief = Annotated[float, Field(strict=True, gt=0.0, le=MAX_RELIEF, allow_inf_nan=False)]
+Intensity = Annotated[float, Field(strict=True, gt=0.0, le=MAX_LIGHT_INTENSITY, allow_inf_nan=False)]
 
 
 class RequestError(LasagnaError):
@@ -149,7 +150,8 @@ class AddLearned(_Body):
 
 class SetLight(_Body):
     """Re-light a surface layer (``EditSession.set_light``): ``light``, and ``source_light`` (null: plain
-    shading), ``ambient``, ``relief`` and ``light_color`` when given; an absent field keeps the layer's value."""
+    shading), ``ambient``, ``relief``, ``light_color`` and ``light_intensity`` when given; an absent field keeps the
+    layer's value."""
 
     op: Literal["light"]
     version: Version
@@ -159,6 +161,7 @@ class SetLight(_Body):
     ambient: Ambient | None = None
     relief: Relief | None = None
     light_color: OpaqueColour | None = None
+    light_intensity: Intensity | None = None
 
     def call(self, session):
         keep = "source_light" not in self.model_fields_set  # absent keeps it; null removes it
@@ -171,6 +174,7 @@ class SetLight(_Body):
             ambient=self.ambient,
             relief=self.relief,
             light_color=self.light_color,
+            light_intensity=self.light_intensity,
         )
 
 

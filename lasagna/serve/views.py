@@ -35,7 +35,7 @@ from lasagna.compose.renderer import Renderer
 from lasagna.compose.surface import relieved_map
 from lasagna.document import Document
 from lasagna.document.condition import parse_direction, parse_surface_light
-from lasagna.document.models import MAX_RELIEF
+from lasagna.document.models import MAX_LIGHT_INTENSITY, MAX_RELIEF
 from lasagna.errors import LasagnaError
 from lasagna.io.render import BAND_ROWS, composite_codes, encode_composite, render_bytes, tensor_bytes
 from lasagna.io.stack import Stack, group_mask_tensors
@@ -203,14 +203,15 @@ class SessionViews:
         relief: dict[str, float] | None = None,
         ambient: dict[str, float] | None = None,
         color: dict[str, tuple[float, float, float]] | None = None,
+        intensity: dict[str, float] | None = None,
     ) -> tuple[bytes, int, int]:
         """The composite at reduction ``level`` as RGBA8 bytes (row-major), with transient overrides that are
         not changes (``opacity`` while a slider is dragged; ``light`` of a surface layer while its light is
         dragged: the stored map drawn under it, as ``set_light`` would; ``source`` likewise, a relight surface
-        layer's source light while it is dragged; ``relief``, ``ambient`` and ``color`` a surface layer's relief
-        gain, ambient term and light colour while their controls are moved; ``solo`` one layer alone; ``upto`` a
-        layer: the stack up to and including it, the "before" of a before/after split). Layers are named at
-        any depth: a soloed layer inside a group shows with the groups that hold it."""
+        layer's source light while it is dragged; ``relief``, ``ambient``, ``color`` and ``intensity`` a surface
+        layer's relief gain, ambient term, light colour and intensity while their controls are moved; ``solo`` one
+        layer alone; ``upto`` a layer: the stack up to and including it, the "before" of a before/after split). Layers
+        are named at any depth: a soloed layer inside a group shows with the groups that hold it."""
         self._check_level(level)
         with self._guard():
             doc = self.stack.document
@@ -221,6 +222,7 @@ class SessionViews:
                 *(relief or {}),
                 *(ambient or {}),
                 *(color or {}),
+                *(intensity or {}),
                 *([solo] if solo else []),
                 *([upto] if upto else []),
             ]
@@ -245,6 +247,15 @@ class SessionViews:
                     )
                 if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 < float(v) <= MAX_RELIEF):
                     raise LasagnaError(f"expected a relief gain in (0, {MAX_RELIEF:g}], got {v!r}", f"relief.{id}")
+            for id, v in (intensity or {}).items():
+                if doc.layer(id).kind != "surface":
+                    raise LasagnaError(
+                        f"layer {id!r} is a {doc.layer(id).kind} layer; expected a surface layer", "intensity"
+                    )
+                if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 < float(v) <= MAX_LIGHT_INTENSITY):
+                    raise LasagnaError(
+                        f"expected a light intensity in (0, {MAX_LIGHT_INTENSITY:g}], got {v!r}", f"intensity.{id}"
+                    )
             for id, v in (ambient or {}).items():
                 layer = doc.layer(id)
                 if layer.kind != "surface":
@@ -259,7 +270,16 @@ class SessionViews:
                         f"layer {id!r} is a {doc.layer(id).kind} layer; expected a surface layer", "color"
                     )
             layers = _overridden(
-                doc, opacity or {}, solo, upto, light or {}, source or {}, relief or {}, ambient or {}, color or {}
+                doc,
+                opacity or {},
+                solo,
+                upto,
+                light or {},
+                source or {},
+                relief or {},
+                ambient or {},
+                color or {},
+                intensity or {},
             )
             w, h = _reduced_side(self.stack.width, level), _reduced_side(self.stack.height, level)
             # The layers reduced to this level, the canvas and the renderer's snapshot below the top layer
@@ -364,11 +384,13 @@ def _overridden(
     relief: dict[str, float] | None = None,
     ambient: dict[str, float] | None = None,
     color: dict[str, tuple[float, float, float]] | None = None,
+    intensity: dict[str, float] | None = None,
 ) -> list:
     """``doc``'s layer tree with a view's transient overrides (``EditSession.view``), layers named at any depth:
-    ``opacity`` per layer; ``light`` (and ``source``, a relight's source light, ``relief``, ``ambient``, ``color``)
-    per surface layer; ``solo``: that layer (with what it holds) alone, the groups holding it shown; ``upto``: every
-    layer after it in the tree's order (depth first, a group before its layers) hidden, except its own layers."""
+    ``opacity`` per layer; ``light`` (and ``source``, a relight's source light, ``relief``, ``ambient``, ``color``,
+    ``intensity``) per surface layer; ``solo``: that layer (with what it holds) alone, the groups holding it shown;
+    ``upto``: every layer after it in the tree's order (depth first, a group before its layers) hidden, except its own
+    layers."""
     order = [layer.id for _, layer in doc.walk()]
     inside: dict[str, set[str]] = {}  # group id → ids of every layer it holds, at any depth
     holders: dict[str, list[str]] = {}  # layer id → ids of the groups holding it, outermost first
@@ -407,6 +429,8 @@ def _overridden(
                 changes["ambient"] = float(ambient[layer.id])
             if color and layer.id in color:
                 changes["light_color"] = tuple(color[layer.id])
+            if intensity and layer.id in intensity:
+                changes["light_intensity"] = float(intensity[layer.id])
             if shown is not None and layer.id == solo:
                 changes["visible"] = True
             elif shown is not None and layer.id not in shown:

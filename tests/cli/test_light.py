@@ -96,7 +96,14 @@ def test_from_makes_a_relight_ratio_and_none_makes_it_shading_again(folder):
 @pytest.mark.parametrize(
     "argv, message",
     [
-        ([], "light: nothing to change; expected at least one of --light, --from, --ambient, --relief, --color"),
+        (
+            [],
+            "light: nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, "
+            "--intensity",
+        ),
+        (["--intensity", "0"], "layers[1].light_intensity: got 0.0; expected greater than 0"),
+        (["--intensity", "9"], "layers[1].light_intensity"),
+        (["--intensity", "nan"], "layers[1].light_intensity"),
         (["--color", "red"], "--color: got 'red'; expected #rrggbb or R,G,B"),
         (["--color", "1,0.5"], "--color: got '1,0.5'; expected #rrggbb or R,G,B"),
         (["--color", "1,2,0"], "layers[1].light_color"),
@@ -163,3 +170,21 @@ def test_an_edit_toward_a_point_light_says_where_a_point_light_goes(tmp_path, ca
     err = capsys.readouterr().err
     assert "a point light is only a surface layer's light" in err and err.count("\n") == 1
     assert not (tmp_path / "a").exists()
+
+
+def test_intensity_scales_the_lights_direct_term(folder, capsys):
+    """``--intensity k``: the composite against numpy float64, a + (1 − a)·k·max(0, n·l), brighter than the base where
+    the light falls (a shading layer above 1), clamped at 1; with a colour the gain is k·c per channel."""
+    assert main(["light", str(folder), "--light", "az=200,el=40", "--intensity", "2.5"]) == 0
+    assert "intensity 2.5" in capsys.readouterr().out
+    n = read_normals(folder / "layers" / "shape.png")
+    base = codes(folder / "layers" / "base.png").transpose(2, 0, 1) / 255.0
+    s = 0.25 + 0.75 * 2.5 * np.maximum(0.0, np.einsum("chw,c->hw", n, light(200, 40)))
+    assert s.max() > 1.5
+    want = np.clip(base * s[None], 0, 1) * 255
+    np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), want, atol=0.51)
+    assert main(["light", str(folder), "--color", "1,0.5,0.25"]) == 0  # the intensity kept, now coloured
+    c = 2.5 * np.array([1.0, 0.5, 0.25])
+    direct = np.maximum(0.0, np.einsum("chw,c->hw", n, light(200, 40)))
+    want = np.clip(base * (0.25 + 0.75 * c[:, None, None] * direct[None]), 0, 1) * 255
+    np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), want, atol=0.51)

@@ -419,3 +419,55 @@ def test_a_point_light_is_a_surface_layers_only():
         Document.from_dict(doc)
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate(doc, ROOT_SCHEMA)
+
+
+# ---- the light's intensity -----------------------------------------------------------------------
+
+
+def test_the_intensity_scales_the_direct_term_and_the_files_flatten_to_it(stack, tmp_path):
+    """``light_intensity`` k renders a + (1 − a)·k·c·max(0, n·l) (numpy float64 of the map read by pypng): 1 is the
+    layer as before bit for bit; above 1 the shading brightens (values above 1); a relight ratio scales its
+    target's direct term; stack.json round-trips it; the ORA (and the PSD, through its exact composite where a
+    multiplier exceeds 1) flatten to the composite."""
+    from lasagna.cli import main
+    from lasagna.export import import_ora
+
+    stack.save(tmp_path / "s")
+    n = read_normals(tmp_path / "s" / "layers" / "shape.png")
+    base = stack.tensors["base"].color.double().numpy()
+    plain = stack.render().image
+    stack.set_light("shape", "left", light_intensity=1.0)
+    assert torch.equal(stack.render().image, plain)
+    stack.set_light("shape", "az=60,el=50", light_intensity=1.8)
+    s = 0.25 + 0.75 * 1.8 * np.maximum(0.0, np.einsum("chw,c->hw", n, light(60, 50)))
+    assert s.max() > 1.2
+    np.testing.assert_allclose(stack.render().image.double().numpy(), np.clip(base * s[None], 0, 1), atol=2e-6)
+    stack.set_light("shape", "right", source_light="left", light_intensity=0.5)
+    ratio = (0.25 + 0.75 * 0.5 * np.maximum(0.0, np.einsum("chw,c->hw", n, light(0, 60)))) / shading(n, light(180, 60))
+    np.testing.assert_allclose(stack.render().image.double().numpy(), np.clip(base * ratio, 0, 1), atol=2e-6)
+    stack.set_light("shape", "az=60,el=50", source_light=None, light_intensity=1.8)
+    stack.save(tmp_path / "t")
+    assert json.loads((tmp_path / "t" / "stack.json").read_text())["layers"][1]["light_intensity"] == 1.8
+    ours = stack.render().image
+    assert torch.equal(load_stack(tmp_path / "t").render().image, ours)
+    assert (
+        main(["export", str(tmp_path / "t"), "--ora", str(tmp_path / "t.ora"), "--psd", str(tmp_path / "t.psd")]) == 0
+    )
+    np.testing.assert_allclose(
+        import_ora(tmp_path / "t.ora").render().image.double().numpy(), ours.double().numpy(), atol=1.5 / 255
+    )
+    from psd_tools import PSDImage
+
+    flat = np.asarray(PSDImage.open(tmp_path / "t.psd").composite(force=True).convert("RGB"), dtype=np.float64)
+    np.testing.assert_allclose(flat.transpose(2, 0, 1) / 255, ours.double().numpy(), atol=2.5 / 255)
+
+
+@pytest.mark.parametrize("value", [0, -1, 8.5, "2", float("nan")])
+def test_a_bad_intensity_is_refused_by_the_model_and_the_schema(value):
+    doc = json.loads(json.dumps(VALID))
+    doc["layers"][1]["light_intensity"] = value
+    with pytest.raises(DocumentError, match=r"layers\[1\]\.light_intensity"):
+        Document.from_dict(doc)
+    if value == value:  # NaN is not JSON: the schema never sees one
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(doc, ROOT_SCHEMA)

@@ -574,3 +574,31 @@ def test_a_point_light_is_placed_by_dragging_on_the_image(browser, surface_serve
     assert page.evaluate("window.lasagna.state.surfaces.shape.point") is None
     save_and_check(page, folder)
     assert page.errors == []
+
+
+def test_the_intensity_slider_previews_live_and_commits_one_step(browser, surface_server):
+    """A surface layer's "Intensity" slider (log scale, ×1/4…×8): dragging repaints the view live (nothing changes on
+    the server), the release commits one step that sets the intensity and keeps the light; a stronger light
+    brightens; the saved stack renders what the page shows."""
+    folder = surface_server.session.folder
+    page = open_page(browser, surface_server)
+    row(page, "shape").locator(".name").click()
+    page.wait_for_selector("#intensity")
+    assert page.inner_text("#intensity-value") == "×1.00"
+    before, v = page_pixels(page), version(page)
+    paints = page.evaluate("window.lasagna.paints.count")
+    page.evaluate(
+        """() => { const r = document.getElementById("intensity");
+        for (const x of ["0.5", "1", "1.5"]) { r.value = x; r.dispatchEvent(new Event("input")); } }"""
+    )
+    page.wait_for_function(f"window.lasagna.paints.count > {paints}")
+    assert version(page) == v
+    page.evaluate('() => document.getElementById("intensity").dispatchEvent(new Event("change"))')
+    settle(page, v + 1)
+    lit = page.evaluate("window.lasagna.state.surfaces.shape")
+    assert abs(lit["light_intensity"] - 2.828) < 1e-3 and lit["light"] == "top-left"
+    assert page.inner_text("#intensity-value") == "×2.83"
+    after = page_pixels(page)
+    assert after[..., :3].astype(float).mean() > before[..., :3].astype(float).mean()
+    save_and_check(page, folder)
+    assert page.errors == []

@@ -100,6 +100,7 @@ def test_state_gives_each_surface_layers_light(client):
             "ambient": 0.25,
             "relief": 1.0,
             "light_color": [1.0, 1.0, 1.0],
+            "light_intensity": 1.0,
         }
     }
 
@@ -146,6 +147,7 @@ def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
         "ambient": 0.4,
         "relief": 2.5,
         "light_color": [1.0, 1.0, 1.0],
+        "light_intensity": 1.0,
     }
     assert np.array_equal(
         view(client, level=0)[..., :3], relit_codes(folder, "right", source_light="left", ambient=0.4, relief=2.5)
@@ -315,6 +317,11 @@ def test_the_relief_preview_is_the_change_bit_for_bit_and_one_undo_step(client, 
         ("color", "shape:ffcc88", "expected LAYER:#rrggbb"),
         ("color", "shape:#ggcc88", "expected LAYER:#rrggbb"),
         ("color", "base:#ffcc88", "layer 'base' is a pixels layer; expected a surface layer"),
+        ("intensity", "shape:0", r"intensity.shape: expected a light intensity in \(0, 8\]"),
+        ("intensity", "shape:9", "intensity.shape: expected a light intensity"),
+        ("intensity", "shape:nan", "intensity.shape: expected a light intensity"),
+        ("intensity", "shape:bright", "intensity: intensity is 'shape:bright'; expected LAYER:NUMBER"),
+        ("intensity", "base:2", "layer 'base' is a pixels layer; expected a surface layer"),
     ],
 )
 def test_a_bad_slider_preview_is_one_line_400(client, name, param, match):
@@ -398,3 +405,23 @@ def test_a_point_light_previews_commits_and_saves_bit_for_bit(client, folder):
     ok(post(client, op="save"))
     fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
     assert np.array_equal(previews[0][..., :3], fresh)
+
+
+def test_the_intensity_preview_is_the_change_bit_for_bit(client, folder):
+    """``/api/view?intensity=LAYER:K`` (the Intensity slider while dragged) shows, bit for bit, what ``op: light``
+    with ``light_intensity`` K gives and what the engine renders of the saved stack; a stronger light brightens (the
+    composite's mean rises); a bad intensity change is refused in one line and changes nothing."""
+    before = view(client, level=0)
+    preview = view(client, level=0, intensity="shape:2.5")
+    assert np.array_equal(view(client, level=0), before)
+    assert preview[..., :3].astype(float).mean() > before[..., :3].astype(float).mean()
+    s = ok(post(client, op="light", id="shape", light="top-left", light_intensity=2.5))
+    assert s["surfaces"]["shape"]["light_intensity"] == 2.5
+    assert np.array_equal(view(client, level=0), preview)
+    assert np.array_equal(preview[..., :3], relit_codes(folder, "top-left", light_intensity=2.5))
+    ok(post(client, op="save"))
+    fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
+    assert np.array_equal(preview[..., :3], fresh)
+    v = state(client)["version"]
+    message = one_line_4xx(post(client, op="light", id="shape", light="top-left", light_intensity=0))
+    assert message.startswith("light_intensity") and state(client)["version"] == v

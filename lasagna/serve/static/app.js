@@ -19,6 +19,7 @@ const ui = {
   relief: null,         // a surface layer's relief gain while its slider is dragged: { id, value }
   ambient: null,        // a surface layer's ambient term while its slider is dragged: { id, value }
   colour: null,         // a surface layer's light colour while its picker is moved: { id, value: "#rrggbb" }
+  intensity: null,      // a surface layer's light intensity while its slider is dragged: { id, value }
   lightWhich: {},       // per relight surface layer: which light its sphere moves, "light" or "source"
   normals: null,        // a surface layer's id while the view shows its normal map (its relief applied)
   lightProxy: true,     // a light drag previews at the drag proxy's level (dragLevel); false: at the view's level
@@ -365,7 +366,28 @@ function lightControl(layer) {
     ui.colour = null;
     paint();
   });
-  box.append(field("Colour", colour), field("Show normal map", show));
+  // The light's intensity k (Photoshop's Lighting Effects "Intensity"): its direct term times k; above 1 a shading
+  // layer brightens where the light falls. A log slider, ×1/4…×8, previewed while dragged (/api/view?intensity=…).
+  const intensity = document.createElement("input");
+  intensity.type = "range"; intensity.id = "intensity"; intensity.min = "-2"; intensity.max = "3"; intensity.step = "0.05";
+  intensity.value = String(Math.log2(lit.light_intensity));
+  const intensityValue = document.createElement("span");
+  intensityValue.id = "intensity-value";
+  const strength = () => Math.round(2 ** parseFloat(intensity.value) * 1000) / 1000;
+  intensityValue.textContent = `×${lit.light_intensity.toFixed(2)}`;
+  intensity.addEventListener("input", () => {
+    ui.intensity = { id: layer.id, value: strength() };
+    intensityValue.textContent = `×${ui.intensity.value.toFixed(2)}`;
+    paint();
+  });
+  intensity.addEventListener("change", async () => {
+    await change({ op: "light", id: layer.id, light: lit.light, light_intensity: strength() });
+    ui.intensity = null;
+    paint();
+  });
+  const intensityField = field("Intensity", intensity);
+  intensityField.append(" ", intensityValue);
+  box.append(field("Colour", colour), intensityField, field("Show normal map", show));
   box.append(pointControl(layer, lit));
   // A relight's sphere moves either light: the target, or the source the ratio divides by (fitted to the image,
   // and off where the estimate was: a source light too frontal makes the whole relight too dark).
@@ -641,6 +663,7 @@ async function fetchView(params) {
   if (params.relief) q.append("relief", `${params.relief.id}:${params.relief.value}`);
   if (params.ambient) q.append("ambient", `${params.ambient.id}:${params.ambient.value}`);
   if (params.colour) q.append("color", `${params.colour.id}:${params.colour.value}`);
+  if (params.intensity) q.append("intensity", `${params.intensity.id}:${params.intensity.value}`);
   const path = params.normals ? `api/layers/${encodeURIComponent(params.normals)}/normals?level=${params.level}` : `api/view?${q}`;
   const response = await api(path);
   const w = parseInt(response.headers.get("X-Width"), 10), h = parseInt(response.headers.get("X-Height"), 10);
@@ -667,9 +690,9 @@ function paint() {
   if (!ui.state) return;
   const level = levelFor(ui.zoom);
   wanted = {
-    level: ui.drag || ((ui.light || ui.relief || ui.ambient || ui.colour) && ui.lightProxy) ? dragLevel(level) : level,
+    level: ui.drag || ((ui.light || ui.relief || ui.ambient || ui.colour || ui.intensity) && ui.lightProxy) ? dragLevel(level) : level,
     drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split,
-    light: ui.light, relief: ui.relief, ambient: ui.ambient, colour: ui.colour, normals: ui.normals,
+    light: ui.light, relief: ui.relief, ambient: ui.ambient, colour: ui.colour, intensity: ui.intensity, normals: ui.normals,
   };
   if (!inflight) paintLoop();
 }
