@@ -1,5 +1,6 @@
-"""``lasagna light``: re-light a stack's surface layer in place — its light, source light, ambient, relief, colour or
-intensity — from its stored normal map, with no learning (what dragging the editor's light sphere or its sliders does).
+"""``lasagna light``: re-light a stack's surface layer in place — its light, source light, ambient, relief, colour,
+intensity or extra lights — from its stored normal map, with no learning (what dragging the editor's light sphere
+or its sliders does).
 
 Only stack.json (the commit point), composite.png and a stack.ora the folder holds change: no layer PNG is
 written (``save_in_place`` with every layer unchanged), and a stack.json changed on disk since it was read is
@@ -13,12 +14,14 @@ from pathlib import Path
 from lasagna.errors import LasagnaError
 
 HELP = (
-    "re-light a stack's surface layer in place (light, source light, ambient, relief, colour, intensity); no learning"
+    "re-light a stack's surface layer in place (light, source light, ambient, relief, colour, intensity, more "
+    "lights); no learning"
 )
 EXAMPLE = (
     "lasagna light out/chelsea-surface --light az=30,el=45                  # the topmost surface layer",
     "lasagna light out/coffee-sl --layer relight-left --from top --relief 2  # a relight's source light, deeper",
     "lasagna light out/chelsea-surface --light x=0.1,y=0.3,z=0.4            # a point light near the left edge",
+    "lasagna light out/chelsea-surface --add-light 'right;#a0c0ff;0.5'      # and a blue fill light from the right",
 )
 
 
@@ -44,6 +47,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="the light's colour, three numbers in [0, 1] or #rrggbb (its direct term; default: kept)",
     )
     p.add_argument(
+        "--add-light",
+        action="append",
+        metavar="LIGHT[;COLOUR[;K]]",
+        help="one more light, added to the layer's (repeatable): a light as --light, then optionally its colour "
+        "(#rrggbb or R,G,B) and intensity, ';'-separated, e.g. 'x=0.9,y=0.2,z=0.5;#a0c0ff;0.6'",
+    )
+    p.add_argument("--clear-lights", action="store_true", help="remove the layer's extra lights (before --add-light)")
+    p.add_argument(
         "--intensity",
         type=float,
         help="the light's intensity k: its direct term times k; above 1 a shading layer brightens (default: kept)",
@@ -54,11 +65,14 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.document import stack_file
     from lasagna.io.survey import survey_stack
 
-    if all(v is None for v in (args.light, args.source, args.ambient, args.relief, args.color, args.intensity)):
+    fields = (args.light, args.source, args.ambient, args.relief, args.color, args.intensity, args.add_light)
+    if all(v is None for v in fields) and not args.clear_lights:
         raise LasagnaError(
-            "nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, --intensity",
+            "nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, --intensity, "
+            "--add-light, --clear-lights",
             where="light",
         )
+    added = [parse_extra_light(spec) for spec in args.add_light or ()]
     colour = None if args.color is None else parse_colour(args.color)
     survey = survey_stack(args.stack, composite=True)  # a refusal needs no torch
 
@@ -93,6 +107,9 @@ def run(args: argparse.Namespace) -> int:
         relief=args.relief,
         light_color=colour,
         light_intensity=args.intensity,
+        extra_lights=None
+        if not (added or args.clear_lights)
+        else [*(() if args.clear_lights else layer.extra_lights), *added],
     )
     save_in_place(stack, unchanged=unchanged, expect_sha256=sha, extra=keep_ora_current(folder))
     lit = stack.document.layer(layer.id)
@@ -104,12 +121,30 @@ def run(args: argparse.Namespace) -> int:
         said.append("colour " + ",".join(f"{c:.4g}" for c in lit.light_color))
     if lit.light_intensity != 1.0:
         said.append(f"intensity {lit.light_intensity:g}")
+    if lit.extra_lights:
+        said.append(f"{len(lit.extra_lights)} more light" + ("s" if len(lit.extra_lights) > 1 else ""))
     wrote = "stack.json, composite.png" + (" and stack.ora" if (folder / "stack.ora").is_file() else "")
     print(f"re-lit {layer.id}: {', '.join(said)}; wrote {wrote} in {Path(folder)}")
     return 0
 
 
-def parse_colour(text: str) -> tuple[float, float, float]:
+def parse_extra_light(spec: str) -> dict:
+    """``--add-light LIGHT[;COLOUR[;K]]``: the extra light's fields (each checked by the document model)."""
+    parts = spec.split(";")
+    if len(parts) > 3 or not parts[0].strip():
+        raise LasagnaError(f"got {spec!r}; expected LIGHT[;COLOUR[;INTENSITY]]", where="--add-light")
+    out: dict = {"light": parts[0].strip()}
+    if len(parts) > 1 and parts[1].strip():
+        out["color"] = parse_colour(parts[1], where="--add-light")
+    if len(parts) > 2:
+        try:
+            out["intensity"] = float(parts[2])
+        except ValueError:
+            raise LasagnaError(f"got {spec!r}; its intensity is not a number", where="--add-light") from None
+    return out
+
+
+def parse_colour(text: str, where: str = "--color") -> tuple[float, float, float]:
     """``--color``: ``#rrggbb`` or three comma-separated numbers (range-checked by the document model)."""
     t = text.strip()
     parts: list[float] = []
@@ -121,5 +156,5 @@ def parse_colour(text: str) -> tuple[float, float, float]:
     except ValueError:
         parts = []
     if len(parts) != 3:
-        raise LasagnaError(f"got {text!r}; expected #rrggbb or R,G,B (three numbers in [0, 1])", where="--color")
+        raise LasagnaError(f"got {text!r}; expected #rrggbb or R,G,B (three numbers in [0, 1])", where=where)
     return parts[0], parts[1], parts[2]

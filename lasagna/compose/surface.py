@@ -321,12 +321,15 @@ def surface_range(source_light: str | None, ambient: float, peak: float = 1.0) -
 
 def layer_surface_tensors(stored: LayerTensors, layer) -> tuple[LayerTensors, tuple[float, float]]:
     """A surface layer's multiplier and its range, from the layer's light fields (a `SurfaceLayer`: light, source
-    light, ambient, relief, colour, intensity) — the one place the compositor and the exports read them."""
+    light, ambient, relief, colour, intensity, extra lights) — the one place the compositor and the exports read
+    them."""
     ambient, intensity = float(layer.ambient), float(layer.light_intensity)
+    extras = tuple((e.light, tuple(e.color), float(e.intensity)) for e in layer.extra_lights)
     tensors = surface_tensors(
-        stored, layer.light, layer.source_light, ambient, float(layer.relief), layer.light_color, intensity
+        stored, layer.light, layer.source_light, ambient, float(layer.relief), layer.light_color, intensity, extras
     )
-    return tensors, surface_range(layer.source_light, ambient, intensity * max(layer.light_color))
+    peak = intensity * max(layer.light_color) + sum(k * max(c) for _, c, k in extras)
+    return tensors, surface_range(layer.source_light, ambient, peak)
 
 
 def surface_tensors(
@@ -337,6 +340,7 @@ def surface_tensors(
     relief: float = 1.0,
     light_color: tuple[float, float, float] = (1.0, 1.0, 1.0),
     light_intensity: float = 1.0,
+    extra_lights: tuple[tuple[str, tuple[float, float, float], float], ...] = (),
 ) -> LayerTensors:
     """A surface layer's tensors as the compositor blends them: its normal map ``stored.color`` (..., 3, h, w)
     of values in [0, 1] (the PNG's codes), its relief times ``relief`` (`deepen_normals`), rendered to the
@@ -345,7 +349,8 @@ def surface_tensors(
     ``x=…,y=…,z=…``, `point_lambert`, placed in fractions of this map's size). A ``light_color`` c other than
     white makes it (..., 3, h, w): each channel's direct term times c, a + (1 − a)·c·max(0, n·l) (`coloured`), the
     source light staying white; ``light_intensity`` k multiplies the direct term too (its gain is k·c: one channel
-    while that is grey). The same stored map, light, relief, colour and intensity always give the same bits.
+    while that is grey). ``extra_lights`` — (light text, colour, intensity) each — add their direct terms,
+    a + Σᵢ (Sᵢ − a)·kᵢ·cᵢ (`lit_by`). The same stored map and light fields always give the same bits.
     """
     color = stored.color
     if color.shape[-3] != 3:
@@ -354,7 +359,8 @@ def surface_tensors(
         )
     same_map = (id(color), color._version)
     colour = tuple(float(c) * float(light_intensity) for c in light_color)  # the direct term's gain per channel
-    key = (*same_map, light, source_light, float(ambient), float(relief), colour)
+    extras = tuple((text, tuple(float(c) * float(k) for c in col)) for text, col, k in extra_lights)
+    key = (*same_map, light, source_light, float(ambient), float(relief), colour, extras)
     hit = _RENDERED.get(stored)
     if hit is not None and hit[0] == key:
         return hit[1]
@@ -365,7 +371,12 @@ def surface_tensors(
     lit = deepen_normals(normals, float(relief))
     point = parse_point(light)
     white = colour == (1.0, 1.0, 1.0)
-    if point is not None:  # a point light: S(point), coloured, over S(source) for a relight ratio
+    if extras:  # several lights: their direct terms summed, over S(source) for a relight ratio
+        y = lit_by(lit, ((light, colour), *extras), ambient)
+        if source_light is not None:
+            source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
+            y = y / lambert(lit, source, check_ratio_ambient(ambient))
+    elif point is not None:  # a point light: S(point), coloured, over S(source) for a relight ratio
         y = point_lambert(lit, point, ambient)
         if not white:
             y = tinted(y, colour, ambient)
@@ -472,6 +483,26 @@ def coloured(shading: Tensor, colour: tuple[float, float, float], ambient: float
     its light the same way, its ambience apart)."""
     c = torch.tensor(colour, dtype=shading.dtype, device=shading.device).view(1, 3, 1, 1)
     return ambient + (shading - ambient) * c
+
+
+def lit_by(normals: Tensor, lights, ambient: float = AMBIENT) -> Tensor:
+    """a + Σᵢ (Sᵢ − a)·gᵢ of unit ``normals`` (B, 3, H, W) under ``lights`` — (light text, gain (3,)) each, a
+    direction or a point light (`point_lambert`), its gain its colour times its intensity: one channel while every
+    gain is grey, else three."""
+    check_ambient(ambient)
+    grey = all(g[0] == g[1] == g[2] for _, g in lights)
+    total = None
+    for text, gain in lights:
+        point = parse_point(text)
+        if point is None:
+            vector = light_vector(*parse_direction(text), dtype=normals.dtype, device=normals.device)
+            s = lambert(normals, vector, ambient)
+        else:
+            s = point_lambert(normals, point, ambient)
+        g = gain[0] if grey else torch.tensor(gain, dtype=normals.dtype, device=normals.device).view(1, 3, 1, 1)
+        term = (s - ambient) * g
+        total = term if total is None else total + term
+    return ambient + total
 
 
 def tinted(shading: Tensor, gain: tuple[float, float, float], ambient: float = AMBIENT) -> Tensor:

@@ -310,6 +310,26 @@ SurfaceLightText = Annotated[
 ]
 
 
+MAX_EXTRA_LIGHTS = 8
+"""The most lights a surface layer takes besides its own ``light`` (Photoshop's Lighting Effects takes 16 in all)."""
+
+
+class ExtraLight(StrictModel):
+    """One more light on a surface layer (Lighting Effects' several lights): its direct term is added to the layer's
+    own light's, a + (1 − a)·Σ kᵢ·cᵢ·fᵢ·max(0, n·lᵢ) (fᵢ a point light's falloff, 1 for a direction)."""
+
+    light: SurfaceLightText = Field(description="A named light, 'az=A,el=E', or a point light 'x=X,y=Y,z=Z'.")
+    color: OpaqueColour = Field(WHITE_LIGHT, description="Its colour, RGB in [0, 1] (its direct term times it).")
+    intensity: float = Field(
+        1.0,
+        strict=True,
+        gt=0.0,
+        le=MAX_LIGHT_INTENSITY,
+        allow_inf_nan=False,
+        description="Its intensity (its direct term times it).",
+    )
+
+
 class SurfaceLayer(_Common):
     """A surface — a tangent-space normal map — rendered to a luminosity multiplier under its light.
 
@@ -359,6 +379,12 @@ class SurfaceLayer(_Common):
         allow_inf_nan=False,
         description="The light's intensity k: the direct term times it, a + (1 − a)·k·c·max(0, n·l) (Photoshop's "
         "Lighting Effects Intensity); above 1 a shading layer brightens where the light falls.",
+    )
+    extra_lights: tuple[ExtraLight, ...] = Field(
+        (),
+        max_length=MAX_EXTRA_LIGHTS,
+        description="More lights, each added to the layer's own: S = a + (1 − a)·Σ kᵢ·cᵢ·fᵢ·max(0, n·lᵢ) over "
+        "``light`` and these (a fill or rim light beside the key); a relight ratio still divides by S(source_light).",
     )
     mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
     made_by: dict[str, JsonValue] = Field(

@@ -345,10 +345,11 @@ class Stack:
         relief: float | None = None,
         light_color: tuple[float, float, float] | None = None,
         light_intensity: float | None = None,
+        extra_lights: Sequence[Any] | None = None,
     ) -> Stack:
         """Re-light the surface layer ``id``: a new ``light`` (and ``source_light`` / ``ambient`` / ``relief`` /
-        ``light_color`` / ``light_intensity`` when given). No pixels change; the next render draws the stored
-        surface under the new light."""
+        ``light_color`` / ``light_intensity`` / ``extra_lights`` when given). No pixels change; the next render
+        draws the stored surface under the new light."""
         layer = self.document.layer(id)
         if not isinstance(layer, SurfaceLayer):
             raise DocumentError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", where="set_light")
@@ -363,6 +364,10 @@ class Stack:
             changes["light_color"] = tuple(float(c) for c in light_color)
         if light_intensity is not None:
             changes["light_intensity"] = light_intensity
+        if extra_lights is not None:  # ExtraLight models or their dicts; () removes them
+            changes["extra_lights"] = tuple(
+                e.model_dump() if hasattr(e, "model_dump") else dict(e) for e in extra_lights
+            )
         self.document = self.document.replace_layer(id, **changes)
         return self
 

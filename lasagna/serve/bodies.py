@@ -18,7 +18,7 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PlainValidator, ValidationError
 
 from lasagna.document.condition import parse_direction, parse_surface_light
-from lasagna.document.models import MAX_LIGHT_INTENSITY, MAX_RELIEF
+from lasagna.document.models import MAX_EXTRA_LIGHTS, MAX_LIGHT_INTENSITY, MAX_RELIEF, ExtraLight
 from lasagna.document.types import Blend, Colour, OpaqueColour
 from lasagna.document.validation import parse_json
 from lasagna.errors import ConditionError, DocumentError, LasagnaError, describe_validation_error
@@ -150,8 +150,8 @@ class AddLearned(_Body):
 
 class SetLight(_Body):
     """Re-light a surface layer (``EditSession.set_light``): ``light``, and ``source_light`` (null: plain
-    shading), ``ambient``, ``relief``, ``light_color`` and ``light_intensity`` when given; an absent field keeps the
-    layer's value."""
+    shading), ``ambient``, ``relief``, ``light_color``, ``light_intensity`` and ``extra_lights`` (the whole list; ``[]``
+    removes them) when given; an absent field keeps the layer's value."""
 
     op: Literal["light"]
     version: Version
@@ -162,6 +162,7 @@ class SetLight(_Body):
     relief: Relief | None = None
     light_color: OpaqueColour | None = None
     light_intensity: Intensity | None = None
+    extra_lights: Annotated[tuple[ExtraLight, ...], Field(max_length=MAX_EXTRA_LIGHTS)] | None = None
 
     def call(self, session):
         keep = "source_light" not in self.model_fields_set  # absent keeps it; null removes it
@@ -175,6 +176,7 @@ class SetLight(_Body):
             relief=self.relief,
             light_color=self.light_color,
             light_intensity=self.light_intensity,
+            extra_lights=self.extra_lights,
         )
 
 

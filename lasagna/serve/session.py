@@ -285,7 +285,7 @@ class EditSession(SessionViews, SessionJobs):
 
     def set_light(self, version: Any, id: str, light: str, **fields: Any) -> dict[str, Any]:
         """Re-light surface layer ``id`` (``Stack.set_light``): its stored normal map is drawn under ``light`` and
-        ``fields`` (``source_light``, ``ambient``, ``relief``, ``light_color``, ``light_intensity``:
+        ``fields`` (``source_light``, ``ambient``, ``relief``, ``light_color``, ``light_intensity``, ``extra_lights``:
         ``Stack.set_light``'s keywords, an absent one kept); no pixels change, nothing is learned. One undo step."""
 
         def apply() -> None:
@@ -490,8 +490,8 @@ def _surfaces(doc: Document, tensors: dict[str, Any]) -> dict[str, dict[str, Any
     """Each surface layer's light as the page draws its control: the texts, the light's (az, el) in degrees
     (``parse_direction``: a named light resolved; for a point light, the direction it has from the layer's
     centre) and ``point`` (x, y, z, or None for a directional light), a relight's source light's as ``source``, the
-    ambient term, the relief gain, the light's colour and intensity, and ``rect``, the layer's [x, y, width, height]
-    on the canvas (where a point light's fractions are placed)."""
+    ambient term, the relief gain, the light's colour and intensity, its extra lights, and ``rect``, the layer's
+    [x, y, width, height] on the canvas (where a point light's fractions are placed)."""
     out = {}
     for _, layer in doc.walk():
         if layer.kind == "surface":
@@ -511,6 +511,7 @@ def _surfaces(doc: Document, tensors: dict[str, Any]) -> dict[str, dict[str, Any
                 "relief": float(layer.relief),
                 "light_color": [float(c) for c in layer.light_color],
                 "light_intensity": float(layer.light_intensity),
+                "extra_lights": [e.model_dump(mode="json") for e in layer.extra_lights],
             }
     return out
 

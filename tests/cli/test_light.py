@@ -99,9 +99,19 @@ def test_from_makes_a_relight_ratio_and_none_makes_it_shading_again(folder):
         (
             [],
             "light: nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, "
-            "--intensity",
+            "--intensity, --add-light, --clear-lights",
         ),
         (["--intensity", "0"], "layers[1].light_intensity: got 0.0; expected greater than 0"),
+        (["--add-light", "up"], "layers[1].extra_lights[0].light: expected one of left"),
+        (["--add-light", "left;red"], "--add-light: got 'red'; expected #rrggbb or R,G,B"),
+        (["--add-light", "left;;x"], "--add-light: got 'left;;x'; its intensity is not a number"),
+        (["--add-light", "left;;0"], "layers[1].extra_lights[0].intensity"),
+        (
+            ["--add-light", "left;#ffffff;1;2"],
+            "--add-light: got 'left;#ffffff;1;2'; expected LIGHT[;COLOUR[;INTENSITY]]",
+        ),
+        (["--add-light", ";#ffffff"], "expected LIGHT[;COLOUR[;INTENSITY]]"),
+        (["--add-light", "left"] * 9, "layers[1].extra_lights"),
         (["--intensity", "9"], "layers[1].light_intensity"),
         (["--intensity", "nan"], "layers[1].light_intensity"),
         (["--color", "red"], "--color: got 'red'; expected #rrggbb or R,G,B"),
@@ -188,3 +198,31 @@ def test_intensity_scales_the_lights_direct_term(folder, capsys):
     direct = np.maximum(0.0, np.einsum("chw,c->hw", n, light(200, 40)))
     want = np.clip(base * (0.25 + 0.75 * c[:, None, None] * direct[None]), 0, 1) * 255
     np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), want, atol=0.51)
+
+
+def test_add_light_adds_a_direct_term_and_clear_lights_removes_it(folder, capsys):
+    """``--add-light 'LIGHT;COLOUR;K'`` (repeatable) adds lights to the layer's own, each direct term summed (the
+    composite against numpy float64); a second call appends; ``--clear-lights`` removes them all, the layer as
+    before."""
+    assert main(["light", str(folder), "--clear-lights"]) == 0  # none yet: the composite as the layer alone lights it
+    first = codes(folder / "composite.png")
+    assert main(["light", str(folder), "--add-light", "right;#8080ff;0.5"]) == 0
+    assert "1 more light" in capsys.readouterr().out
+    assert main(["light", str(folder), "--add-light", "x=0.5,y=0,z=0.5"]) == 0
+    extra = json.loads((folder / "stack.json").read_text())["layers"][1]["extra_lights"]
+    assert [(e["light"], e["intensity"]) for e in extra] == [("right", 0.5), ("x=0.5,y=0,z=0.5", 1.0)]
+    n = read_normals(folder / "layers" / "shape.png")
+    _, h, w = n.shape
+    jj, ii = np.meshgrid(np.arange(w), np.arange(h))
+    d = np.stack([(0.5 - (jj + 0.5) / w) * w / 16, ((ii + 0.5) / h - 0.0) * h / 16, np.full((h, w), 0.5)])
+    r = np.linalg.norm(d, axis=0)
+    top = (0.5 / r) ** 2 * np.maximum(0.0, (n * d / r).sum(0))
+    c = 0.5 * np.array([128 / 255, 128 / 255, 1.0])
+    direct = np.maximum(0.0, np.einsum("chw,c->hw", n, light(180, 60)))[None]
+    direct = direct + c[:, None, None] * np.maximum(0.0, np.einsum("chw,c->hw", n, light(0, 60)))[None] + top[None]
+    base = codes(folder / "layers" / "base.png").transpose(2, 0, 1) / 255.0
+    want = np.clip(base * (0.25 + 0.75 * direct), 0, 1) * 255
+    np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), want, atol=0.51)
+    assert main(["light", str(folder), "--clear-lights"]) == 0
+    assert json.loads((folder / "stack.json").read_text())["layers"][1]["extra_lights"] == []
+    np.testing.assert_array_equal(codes(folder / "composite.png"), first)

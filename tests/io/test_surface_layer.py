@@ -471,3 +471,69 @@ def test_a_bad_intensity_is_refused_by_the_model_and_the_schema(value):
     if value == value:  # NaN is not JSON: the schema never sees one
         with pytest.raises(jsonschema.ValidationError):
             jsonschema.validate(doc, ROOT_SCHEMA)
+
+
+# ---- several lights --------------------------------------------------------------------------------
+
+
+def test_extra_lights_add_their_direct_terms(stack, tmp_path):
+    """``extra_lights`` add each light's direct term to the layer's own: a + (1 − a)·Σ kᵢ·cᵢ·fᵢ·max(0, n·lᵢ) (numpy
+    float64 of the map read by pypng: a direction, a coloured point light, a relight ratio over its source); none is
+    the layer as before bit for bit; stack.json round-trips them; the ORA and the PSD flatten to the composite."""
+    from lasagna.cli import main
+    from lasagna.export import import_ora
+
+    stack.save(tmp_path / "s")
+    n = read_normals(tmp_path / "s" / "layers" / "shape.png")
+    base = stack.tensors["base"].color.double().numpy()
+    plain = stack.render().image
+    stack.set_light("shape", "left", extra_lights=())
+    assert torch.equal(stack.render().image, plain)
+    fill = {"light": "x=0.9,y=0.2,z=0.5", "color": (0.6, 0.7, 1.0), "intensity": 0.8}
+    stack.set_light("shape", "left", extra_lights=[{"light": "az=10,el=70", "intensity": 0.5}, fill])
+    key = np.maximum(0.0, np.einsum("chw,c->hw", n, light(180, 60)))
+    second = 0.5 * np.maximum(0.0, np.einsum("chw,c->hw", n, light(10, 70)))
+    third = 0.8 * np.array(fill["color"])[:, None, None] * ((point_shading(n, 0.9, 0.2, 0.5) - 0.25) / 0.75)[None]
+    s = 0.25 + 0.75 * (key + second)[None] + 0.75 * third
+    np.testing.assert_allclose(stack.render().image.double().numpy(), np.clip(base * s, 0, 1), atol=2e-6)
+    stack.set_light("shape", "right", source_light="top")
+    key = np.maximum(0.0, np.einsum("chw,c->hw", n, light(0, 60)))
+    ratio = (0.25 + 0.75 * (key + second)[None] + 0.75 * third) / shading(n, light(90, 60))[None]
+    np.testing.assert_allclose(stack.render().image.double().numpy(), np.clip(base * ratio, 0, 1), atol=2e-6)
+    stack.set_light("shape", "right", source_light=None)
+    stack.save(tmp_path / "t")
+    doc = json.loads((tmp_path / "t" / "stack.json").read_text())
+    assert [e["light"] for e in doc["layers"][1]["extra_lights"]] == ["az=10,el=70", "x=0.9,y=0.2,z=0.5"]
+    jsonschema.validate(doc, ROOT_SCHEMA)
+    ours = stack.render().image
+    assert torch.equal(load_stack(tmp_path / "t").render().image, ours)
+    assert (
+        main(["export", str(tmp_path / "t"), "--ora", str(tmp_path / "t.ora"), "--psd", str(tmp_path / "t.psd")]) == 0
+    )
+    np.testing.assert_allclose(
+        import_ora(tmp_path / "t.ora").render().image.double().numpy(), ours.double().numpy(), atol=1.5 / 255
+    )
+    from psd_tools import PSDImage
+
+    flat = np.asarray(PSDImage.open(tmp_path / "t.psd").composite(force=True).convert("RGB"), dtype=np.float64)
+    np.testing.assert_allclose(flat.transpose(2, 0, 1) / 255, ours.double().numpy(), atol=2.5 / 255)
+
+
+@pytest.mark.parametrize(
+    "extra, where",
+    [
+        ([{"light": "up"}], r"extra_lights\[0\]\.light"),
+        ([{"light": "left", "intensity": 0}], r"extra_lights\[0\]\.intensity"),
+        ([{"light": "left", "color": [1, 2, 0]}], r"extra_lights\[0\]\.color"),
+        ([{"light": "left", "gloss": 1}], r"extra_lights\[0\]\.gloss"),
+        ([{"light": "left"}] * 9, r"extra_lights"),
+        ("left", r"extra_lights"),
+    ],
+)
+def test_bad_extra_lights_are_refused_by_the_model_and_the_schema(extra, where):
+    doc = json.loads(json.dumps(VALID))
+    doc["layers"][1]["extra_lights"] = extra
+    with pytest.raises(DocumentError, match=rf"layers\[1\]\.{where}"):
+        Document.from_dict(doc)
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(doc, ROOT_SCHEMA)

@@ -602,3 +602,39 @@ def test_the_intensity_slider_previews_live_and_commits_one_step(browser, surfac
     assert after[..., :3].astype(float).mean() > before[..., :3].astype(float).mean()
     save_and_check(page, folder)
     assert page.errors == []
+
+
+def test_extra_lights_are_added_edited_and_removed_one_step_each(browser, surface_server):
+    """The "Add light" button adds the key light's opposite at half intensity (one step; the light is added: the
+    page brightens where it falls); editing its text and intensity commits the list (one step each); × removes it
+    (one step, the pixels as before); the saved stack renders what the page shows at each stage."""
+    folder = surface_server.session.folder
+    page = open_page(browser, surface_server)
+    row(page, "shape").locator(".name").click()
+    page.wait_for_selector("#add-light")
+    before, v = page_pixels(page), version(page)
+    page.click("#add-light")
+    settle(page, v + 1)
+    extra = page.evaluate("window.lasagna.state.surfaces.shape.extra_lights")
+    assert len(extra) == 1 and extra[0]["intensity"] == 0.5 and extra[0]["light"] == "az=315.0,el=60.0"
+    added = page_pixels(page)
+    assert added[..., :3].astype(float).mean() > before[..., :3].astype(float).mean()
+    save_and_check(page, folder)
+    page.fill(".extra-light-text", "x=0.8,y=0.8,z=0.3")
+    page.dispatch_event(".extra-light-text", "change")
+    settle(page, v + 2)
+    page.fill(".extra-light-intensity", "2")
+    page.dispatch_event(".extra-light-intensity", "change")
+    settle(page, v + 3)
+    extra = page.evaluate("window.lasagna.state.surfaces.shape.extra_lights")
+    assert extra == [{"light": "x=0.8,y=0.8,z=0.3", "color": [1.0, 1.0, 1.0], "intensity": 2.0}]
+    save_and_check(page, folder)
+    page.fill(".extra-light-text", "upward")  # refused: one line in the status, nothing changed
+    page.dispatch_event(".extra-light-text", "change")
+    page.wait_for_function("document.getElementById('status').textContent.includes('extra_lights')")
+    assert version(page) == v + 3
+    page.click(".extra-light-remove")
+    settle(page, v + 4)
+    assert page.evaluate("window.lasagna.state.surfaces.shape.extra_lights") == []
+    assert np.array_equal(page_pixels(page), before)
+    assert page.errors == []

@@ -101,6 +101,7 @@ def test_state_gives_each_surface_layers_light(client):
             "relief": 1.0,
             "light_color": [1.0, 1.0, 1.0],
             "light_intensity": 1.0,
+            "extra_lights": [],
         }
     }
 
@@ -148,6 +149,7 @@ def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
         "relief": 2.5,
         "light_color": [1.0, 1.0, 1.0],
         "light_intensity": 1.0,
+        "extra_lights": [],
     }
     assert np.array_equal(
         view(client, level=0)[..., :3], relit_codes(folder, "right", source_light="left", ambient=0.4, relief=2.5)
@@ -425,3 +427,26 @@ def test_the_intensity_preview_is_the_change_bit_for_bit(client, folder):
     v = state(client)["version"]
     message = one_line_4xx(post(client, op="light", id="shape", light="top-left", light_intensity=0))
     assert message.startswith("light_intensity") and state(client)["version"] == v
+
+
+def test_extra_lights_are_set_as_a_list_one_step_and_saved(client, folder):
+    """``op: light`` with ``extra_lights`` sets the whole list (one undo step), the state lists them, the view is what
+    the engine renders of the stack so re-lit, ``[]`` removes them, and a bad list is a one-line 4xx that changes
+    nothing."""
+    before = view(client, level=0)
+    extra = [{"light": "right", "color": [0.5, 0.6, 1.0], "intensity": 0.7}, {"light": "x=0.5,y=0,z=0.4"}]
+    s = ok(post(client, op="light", id="shape", light="top-left", extra_lights=extra))
+    got = s["surfaces"]["shape"]["extra_lights"]
+    assert [e["light"] for e in got] == ["right", "x=0.5,y=0,z=0.4"] and got[1]["intensity"] == 1.0
+    assert s["undo"] == "light of shape"
+    lit = view(client, level=0)
+    assert np.array_equal(lit[..., :3], relit_codes(folder, "top-left", extra_lights=extra))
+    ok(post(client, op="save"))
+    fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
+    assert np.array_equal(lit[..., :3], fresh)
+    v = state(client)["version"]
+    for bad in ([{"light": "up"}], [{"light": "left", "intensity": 0}], [{"light": "left"}] * 9, "left"):
+        message = one_line_4xx(post(client, op="light", id="shape", light="top-left", extra_lights=bad))
+        assert message.startswith("extra_lights") and state(client)["version"] == v, message
+    s = ok(post(client, op="light", id="shape", light="top-left", extra_lights=[]))
+    assert s["surfaces"]["shape"]["extra_lights"] == [] and np.array_equal(view(client, level=0), before)

@@ -389,6 +389,7 @@ function lightControl(layer) {
   intensityField.append(" ", intensityValue);
   box.append(field("Colour", colour), intensityField, field("Show normal map", show));
   box.append(pointControl(layer, lit));
+  box.append(extraLightsControl(layer, lit));
   // A relight's sphere moves either light: the target, or the source the ratio divides by (fitted to the image,
   // and off where the estimate was: a source light too frontal makes the whole relight too dark).
   // The choice is kept per layer across the control's rebuilds (every change rebuilds the panel).
@@ -454,6 +455,54 @@ function lightControl(layer) {
   };
   sphere.addEventListener("pointerup", release);
   sphere.addEventListener("pointercancel", release);
+  return box;
+}
+
+// ---- more lights -----------------------------------------------------------------------------------
+// A surface layer's extra lights (Lighting Effects' several lights): each one's direct term is added to the layer's
+// own. One row per light — its text (a named light, az=…,el=… or x=…,y=…,z=…), colour and intensity, and a remove
+// button; "Add light" adds the key light's opposite at half intensity (a fill). Every edit commits the whole list
+// as one "light" change, one undo step.
+
+function extraLightsControl(layer, lit) {
+  const box = document.createElement("div");
+  box.id = "extra-lights";
+  const hex = (c) => "#" + c.map((v) => Math.round(v * 255).toString(16).padStart(2, "0")).join("");
+  const rgb = (h) => [1, 3, 5].map((k) => parseInt(h.slice(k, k + 2), 16) / 255);
+  // Edits start from the current state (a rebuilt panel's old input may still send a change as it goes) and
+  // commit only what differs from it.
+  const current = () => ui.state.surfaces[layer.id].extra_lights;
+  const commit = (lights) => {
+    if (JSON.stringify(lights) === JSON.stringify(current())) return;
+    change({ op: "light", id: layer.id, light: lit.light, extra_lights: lights });
+  };
+  const edit = (i, fields) => current().map((x, j) => (j === i ? Object.assign({}, x, fields) : x));
+  lit.extra_lights.forEach((e, i) => {
+    const row = document.createElement("div");
+    row.className = "extra-light";
+    const text = document.createElement("input");
+    text.className = "extra-light-text"; text.value = e.light; text.size = 16;
+    const colour = document.createElement("input");
+    colour.type = "color"; colour.className = "extra-light-color"; colour.value = hex(e.color);
+    const k = numberInput(e.intensity, () => {}, "0.05");
+    k.className = "extra-light-intensity"; k.min = "0.05"; k.max = "8";
+    const remove = document.createElement("button");
+    remove.textContent = "×"; remove.className = "extra-light-remove"; remove.title = "Remove this light";
+    text.addEventListener("change", () => commit(edit(i, { light: text.value.trim() })));
+    colour.addEventListener("change", () => commit(edit(i, { color: rgb(colour.value) })));
+    k.addEventListener("change", () => commit(edit(i, { intensity: parseFloat(k.value) })));
+    remove.addEventListener("click", () => commit(current().filter((_, j) => j !== i)));
+    row.append(text, " ", colour, " ×", k, " ", remove);
+    box.append(row);
+  });
+  const add = document.createElement("button");
+  add.id = "add-light"; add.textContent = "Add light";
+  add.title = "One more light, added to this one's: the opposite direction at half intensity, to edit";
+  add.disabled = lit.extra_lights.length >= 8;
+  add.addEventListener("click", () => commit([
+    ...current(), { light: lightText((lit.az + 180) % 360, lit.el), color: [1, 1, 1], intensity: 0.5 },
+  ]));
+  box.append(add);
   return box;
 }
 
