@@ -227,37 +227,21 @@ def main(argv=None) -> int:
     )
     args = p.parse_args(argv)
     torch.manual_seed(0)
-    if args.point:
-        record = {
-            "benchmark": "photo_swing",
-            "machine": machine_info(),
-            "photos_folder": str(args.photos),
-            "preset": args.preset,
-            **point_report(args.photos, args.preset, args.point_sheet),
-        }
-        print_json_line(record)
-        return 0
-    if args.relief:
-        record = {
-            "benchmark": "photo_swing",
-            "machine": machine_info(),
-            "photos_folder": str(args.photos),
-            "preset": args.preset,
-            **relief_report(args.photos, args.preset, args.relief, args.relief_sheet),
-        }
-        print_json_line(record)
-        return 0
-    if args.surface_sheet is not None:
-        surface_sheet(args.photos, args.preset, args.surface_sheet)
     record = {
         "benchmark": "photo_swing",
         "machine": machine_info(),
         "photos_folder": str(args.photos),
         "preset": args.preset,
-        "catalogue_first": os.environ.get("LASAGNA_LAYERS", ""),
-        "label": args.label,
-        **measure(args.photos, args.preset, args.sheet, args.layer_sheet),
     }
+    if args.point:
+        record.update(point_report(args.photos, args.preset, args.point_sheet))
+    elif args.relief:
+        record.update(relief_report(args.photos, args.preset, args.relief, args.relief_sheet))
+    else:
+        if args.surface_sheet is not None:
+            surface_sheet(args.photos, args.preset, args.surface_sheet)
+        record.update(catalogue_first=os.environ.get("LASAGNA_LAYERS", ""), label=args.label)
+        record.update(measure(args.photos, args.preset, args.sheet, args.layer_sheet))
     print_json_line(record)
     return 0
 

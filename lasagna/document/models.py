@@ -15,7 +15,7 @@ when true, so that stacks without clipping masks keep their bytes.
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Annotated, Any, Literal
 
 from pydantic import (
@@ -245,19 +245,25 @@ class LearnedLayer(_LayerBase):
     )
 
 
-def _light_text(value: str) -> str:
-    """Rule: a light is a named direction (``left``, ``top-right``, …) or ``az=A,el=E`` in degrees, el in [0, 90)."""
-    try:
-        parse_direction(value)
-    except ConditionError as exc:
-        raise RuleError(exc.message) from None
-    return value
+def parses(parse: Callable[[str], object], error: type[Exception] = RuleError) -> Callable[[str], str]:
+    """A validator of a light's text: read by ``parse`` and kept as given; its `ConditionError` (which says what a
+    light is) raised again as ``error`` — a `RuleError` the model reports at the field, or the ``ValueError`` a
+    request body's model wants."""
+
+    def rule(value: str) -> str:
+        try:
+            parse(value)
+        except ConditionError as exc:
+            raise error(exc.message) from None
+        return value
+
+    return rule
 
 
 LightText = Annotated[
     str,
     Strict(),
-    AfterValidator(_light_text),
+    AfterValidator(parses(parse_direction)),  # a named direction or az=A,el=E in degrees, el in [0, 90)
     WithJsonSchema(
         {
             "type": "string",
@@ -280,24 +286,17 @@ WHITE_LIGHT = (1.0, 1.0, 1.0)
 """A surface layer's default light colour: the multiplier is one channel, the same on R, G and B."""
 MAX_LIGHT_INTENSITY = 8.0
 """The largest intensity a surface layer's light takes: ×8 turns the ambient floor 0.25 into a peak of 6.25."""
+LightIntensity = Annotated[float, Field(strict=True, gt=0.0, le=MAX_LIGHT_INTENSITY, allow_inf_nan=False)]
+"""A light's intensity k, in (0, MAX_LIGHT_INTENSITY]: its direct term times k."""
 MAX_RELIEF = 16.0
 """The largest relief gain a surface layer takes: slopes ×16 turn a 5° bump into a 54° one; beyond it every
 relief is a cliff and the map's 16-bit quantisation (slopes to 3e-5) starts to show."""
 
 
-def _surface_light_text(value: str) -> str:
-    """Rule: a surface layer's light is a direction (as `LightText`) or a point light ``x=X,y=Y,z=Z`` over it."""
-    try:
-        parse_surface_light(value)
-    except ConditionError as exc:
-        raise RuleError(exc.message) from None
-    return value
-
-
 SurfaceLightText = Annotated[
     str,
     Strict(),
-    AfterValidator(_surface_light_text),
+    AfterValidator(parses(parse_surface_light)),  # a direction (as LightText) or a point light x=X,y=Y,z=Z
     WithJsonSchema(
         {
             "type": "string",
@@ -320,14 +319,7 @@ class ExtraLight(StrictModel):
 
     light: SurfaceLightText = Field(description="A named light, 'az=A,el=E', or a point light 'x=X,y=Y,z=Z'.")
     color: OpaqueColour = Field(WHITE_LIGHT, description="Its colour, RGB in [0, 1] (its direct term times it).")
-    intensity: float = Field(
-        1.0,
-        strict=True,
-        gt=0.0,
-        le=MAX_LIGHT_INTENSITY,
-        allow_inf_nan=False,
-        description="Its intensity (its direct term times it).",
-    )
+    intensity: LightIntensity = Field(1.0, description="Its intensity (its direct term times it).")
 
 
 class SurfaceLayer(_Common):
@@ -371,12 +363,8 @@ class SurfaceLayer(_Common):
         description="The light's colour, RGB in [0, 1]: each channel's direct term times it, a + (1 − a)·c·max(0, n·l) "
         "(the ambient and a relight's source light stay white); white renders the one-channel multiplier.",
     )
-    light_intensity: float = Field(
+    light_intensity: LightIntensity = Field(
         1.0,
-        strict=True,
-        gt=0.0,
-        le=MAX_LIGHT_INTENSITY,
-        allow_inf_nan=False,
         description="The light's intensity k: the direct term times it, a + (1 − a)·k·c·max(0, n·l) (Photoshop's "
         "Lighting Effects Intensity); above 1 a shading layer brightens where the light falls.",
     )

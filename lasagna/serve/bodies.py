@@ -18,10 +18,10 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PlainValidator, ValidationError
 
 from lasagna.document.condition import parse_direction, parse_surface_light
-from lasagna.document.models import MAX_EXTRA_LIGHTS, MAX_LIGHT_INTENSITY, MAX_RELIEF, ExtraLight
+from lasagna.document.models import MAX_EXTRA_LIGHTS, MAX_RELIEF, ExtraLight, LightIntensity, parses
 from lasagna.document.types import Blend, Colour, OpaqueColour
 from lasagna.document.validation import parse_json
-from lasagna.errors import ConditionError, DocumentError, LasagnaError, describe_validation_error
+from lasagna.errors import DocumentError, LasagnaError, describe_validation_error
 
 MAX_TEXT = 1024
 """Longest name, id, preset or condition a request may carry (the document's ids are at most 64 characters;
@@ -34,32 +34,17 @@ def _version(value: Any) -> int:
     return value
 
 
-def _light(value: str) -> str:
-    try:
-        parse_direction(value)
-    except ConditionError as exc:
-        raise ValueError(exc.message) from None
-    return value
-
-
-def _surface_light(value: str) -> str:
-    try:
-        parse_surface_light(value)
-    except ConditionError as exc:
-        raise ValueError(exc.message) from None
-    return value
-
-
 Version = Annotated[int, PlainValidator(_version)]
 Text = Annotated[str, Field(strict=True, max_length=MAX_TEXT)]
 Count = Annotated[int, Field(strict=True)]
-Light = Annotated[str, Field(strict=True, max_length=MAX_TEXT), AfterValidator(_light)]
+Light = Annotated[str, Field(strict=True, max_length=MAX_TEXT), AfterValidator(parses(parse_direction, ValueError))]
 """A light as the document writes it: a named light or ``az=A,el=E`` (``parse_direction``), kept as given."""
-SurfaceLight = Annotated[str, Field(strict=True, max_length=MAX_TEXT), AfterValidator(_surface_light)]
+SurfaceLight = Annotated[
+    str, Field(strict=True, max_length=MAX_TEXT), AfterValidator(parses(parse_surface_light, ValueError))
+]
 """A surface layer's light: a `Light` or a point light ``x=X,y=Y,z=Z`` (``parse_surface_light``)."""
 Ambient = Annotated[float, Field(strict=True, ge=0.0, lt=1.0)]
 Relief = Annotated[float, Field(strict=True, gt=0.0, le=MAX_RELIEF, allow_inf_nan=False)]
-Intensity = Annotated[float, Field(strict=True, gt=0.0, le=MAX_LIGHT_INTENSITY, allow_inf_nan=False)]
 
 
 class RequestError(LasagnaError):
@@ -161,7 +146,7 @@ class SetLight(_Body):
     ambient: Ambient | None = None
     relief: Relief | None = None
     light_color: OpaqueColour | None = None
-    light_intensity: Intensity | None = None
+    light_intensity: LightIntensity | None = None
     extra_lights: Annotated[tuple[ExtraLight, ...], Field(max_length=MAX_EXTRA_LIGHTS)] | None = None
 
     def call(self, session):

@@ -38,6 +38,23 @@ def shading(n: np.ndarray, l_vec: np.ndarray, a: float = 0.25) -> np.ndarray:
     return a + (1 - a) * np.maximum(0.0, np.einsum("chw,c->hw", n, l_vec))
 
 
+def assert_files_flatten(stack, folder) -> None:
+    """``stack`` saved to ``folder`` and exported: our ORA reader (1.5/255) and psd-tools, an independent one
+    (2.5/255; where a multiplier exceeds 1, through the file's exact composite), flatten it to its composite."""
+    from psd_tools import PSDImage
+
+    from lasagna.cli import main
+    from lasagna.export import import_ora
+
+    stack.save(folder)
+    ora, psd = folder.with_suffix(".ora"), folder.with_suffix(".psd")
+    assert main(["export", str(folder), "--ora", str(ora), "--psd", str(psd)]) == 0
+    ours = stack.render().image.double().numpy()
+    np.testing.assert_allclose(import_ora(ora).render().image.double().numpy(), ours, atol=1.5 / 255)
+    flat = np.asarray(PSDImage.open(psd).composite(force=True).convert("RGB"), dtype=np.float64)
+    np.testing.assert_allclose(flat.transpose(2, 0, 1) / 255, ours, atol=2.5 / 255)
+
+
 @pytest.fixture
 def stack():
     torch.manual_seed(0)
@@ -291,7 +308,6 @@ def test_a_coloured_light_colours_the_direct_term_per_channel(stack, tmp_path):
     """``light_color`` c renders a + (1 − a)·c_k·max(0, n·l) per channel k (numpy float64 of the map read by pypng),
     the source light of a relight staying white; white is the one-channel multiplier bit for bit; saved and read
     back it renders the same bits; the ORA of the coloured shading flattens to it."""
-    from lasagna.export import import_ora
 
     stack.save(tmp_path / "s")
     n = read_normals(tmp_path / "s" / "layers" / "shape.png")
@@ -311,19 +327,9 @@ def test_a_coloured_light_colours_the_direct_term_per_channel(stack, tmp_path):
     stack.save(tmp_path / "t")
     assert json.loads((tmp_path / "t" / "stack.json").read_text())["layers"][1]["light_color"] == list(c)
     assert torch.equal(load_stack(tmp_path / "t").render().image, stack.render().image)
-    from lasagna.cli import main
 
     stack.set_light("shape", "az=60,el=50", source_light=None)  # coloured shading: every value ≤ 1, exact in ORA
-    stack.save(tmp_path / "u")
-    assert (
-        main(["export", str(tmp_path / "u"), "--ora", str(tmp_path / "u.ora"), "--psd", str(tmp_path / "u.psd")]) == 0
-    )
-    ours = stack.render().image.double().numpy()
-    np.testing.assert_allclose(import_ora(tmp_path / "u.ora").render().image.double().numpy(), ours, atol=1.5 / 255)
-    from psd_tools import PSDImage  # an independent reader flattens the three-channel multiply layer as we do
-
-    flat = np.asarray(PSDImage.open(tmp_path / "u.psd").composite(force=True).convert("RGB"), dtype=np.float64)
-    np.testing.assert_allclose(flat.transpose(2, 0, 1) / 255, ours, atol=2.5 / 255)
+    assert_files_flatten(stack, tmp_path / "u")  # psd-tools flattens the three-channel multiply layer as we do
 
 
 # ---- a point light ---------------------------------------------------------------------------------
@@ -344,8 +350,6 @@ def test_a_point_light_lights_each_pixel_from_where_it_stands(stack, tmp_path):
     """``light`` 'x=…,y=…,z=…' renders the module's closed form against numpy float64 of the map read by pypng,
     for shading, a coloured light and a relight ratio; a flat map under it is brightest beneath the light and falls
     off by (z/|d|)³; stack.json round-trips it bit for bit; the ORA and the PSD flatten to it."""
-    from lasagna.cli import main
-    from lasagna.export import import_ora
 
     stack.save(tmp_path / "s")
     n = read_normals(tmp_path / "s" / "layers" / "shape.png")
@@ -365,16 +369,7 @@ def test_a_point_light_lights_each_pixel_from_where_it_stands(stack, tmp_path):
     jsonschema.validate(doc, ROOT_SCHEMA)
     assert torch.equal(load_stack(tmp_path / "t").render().image, stack.render().image)
     stack.set_light("shape", "x=0.7,y=0.6,z=0.5", source_light=None, light_color=(1.0, 1.0, 1.0))
-    stack.save(tmp_path / "u")
-    ours = stack.render().image.double().numpy()
-    assert (
-        main(["export", str(tmp_path / "u"), "--ora", str(tmp_path / "u.ora"), "--psd", str(tmp_path / "u.psd")]) == 0
-    )
-    np.testing.assert_allclose(import_ora(tmp_path / "u.ora").render().image.double().numpy(), ours, atol=1.5 / 255)
-    from psd_tools import PSDImage
-
-    flat = np.asarray(PSDImage.open(tmp_path / "u.psd").composite(force=True).convert("RGB"), dtype=np.float64)
-    np.testing.assert_allclose(flat.transpose(2, 0, 1) / 255, ours, atol=2.5 / 255)
+    assert_files_flatten(stack, tmp_path / "u")
 
 
 def test_a_point_light_over_a_flat_map_falls_off_as_a_point_source():
@@ -429,8 +424,6 @@ def test_the_intensity_scales_the_direct_term_and_the_files_flatten_to_it(stack,
     layer as before bit for bit; above 1 the shading brightens (values above 1); a relight ratio scales its
     target's direct term; stack.json round-trips it; the ORA (and the PSD, through its exact composite where a
     multiplier exceeds 1) flatten to the composite."""
-    from lasagna.cli import main
-    from lasagna.export import import_ora
 
     stack.save(tmp_path / "s")
     n = read_normals(tmp_path / "s" / "layers" / "shape.png")
@@ -450,16 +443,7 @@ def test_the_intensity_scales_the_direct_term_and_the_files_flatten_to_it(stack,
     assert json.loads((tmp_path / "t" / "stack.json").read_text())["layers"][1]["light_intensity"] == 1.8
     ours = stack.render().image
     assert torch.equal(load_stack(tmp_path / "t").render().image, ours)
-    assert (
-        main(["export", str(tmp_path / "t"), "--ora", str(tmp_path / "t.ora"), "--psd", str(tmp_path / "t.psd")]) == 0
-    )
-    np.testing.assert_allclose(
-        import_ora(tmp_path / "t.ora").render().image.double().numpy(), ours.double().numpy(), atol=1.5 / 255
-    )
-    from psd_tools import PSDImage
-
-    flat = np.asarray(PSDImage.open(tmp_path / "t.psd").composite(force=True).convert("RGB"), dtype=np.float64)
-    np.testing.assert_allclose(flat.transpose(2, 0, 1) / 255, ours.double().numpy(), atol=2.5 / 255)
+    assert_files_flatten(stack, tmp_path / "t")
 
 
 @pytest.mark.parametrize("value", [0, -1, 8.5, "2", float("nan")])
@@ -480,8 +464,6 @@ def test_extra_lights_add_their_direct_terms(stack, tmp_path):
     """``extra_lights`` add each light's direct term to the layer's own: a + (1 − a)·Σ kᵢ·cᵢ·fᵢ·max(0, n·lᵢ) (numpy
     float64 of the map read by pypng: a direction, a coloured point light, a relight ratio over its source); none is
     the layer as before bit for bit; stack.json round-trips them; the ORA and the PSD flatten to the composite."""
-    from lasagna.cli import main
-    from lasagna.export import import_ora
 
     stack.save(tmp_path / "s")
     n = read_normals(tmp_path / "s" / "layers" / "shape.png")
@@ -507,16 +489,7 @@ def test_extra_lights_add_their_direct_terms(stack, tmp_path):
     jsonschema.validate(doc, ROOT_SCHEMA)
     ours = stack.render().image
     assert torch.equal(load_stack(tmp_path / "t").render().image, ours)
-    assert (
-        main(["export", str(tmp_path / "t"), "--ora", str(tmp_path / "t.ora"), "--psd", str(tmp_path / "t.psd")]) == 0
-    )
-    np.testing.assert_allclose(
-        import_ora(tmp_path / "t.ora").render().image.double().numpy(), ours.double().numpy(), atol=1.5 / 255
-    )
-    from psd_tools import PSDImage
-
-    flat = np.asarray(PSDImage.open(tmp_path / "t.psd").composite(force=True).convert("RGB"), dtype=np.float64)
-    np.testing.assert_allclose(flat.transpose(2, 0, 1) / 255, ours.double().numpy(), atol=2.5 / 255)
+    assert_files_flatten(stack, tmp_path / "t")
 
 
 @pytest.mark.parametrize(

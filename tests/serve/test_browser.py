@@ -434,6 +434,17 @@ def test_a_relight_surface_layers_source_light_is_dragged_too(browser, surface_s
     assert page.errors == []
 
 
+def slide(page, id: str, values: list[str], release: bool = False) -> None:
+    """Move the range input ``id`` through ``values`` as a drag does (an input event each), then, with ``release``,
+    let it go (a change event: the commit)."""
+    page.evaluate(
+        """([id, values, release]) => { const r = document.getElementById(id);
+        for (const x of values) { r.value = x; r.dispatchEvent(new Event("input")); }
+        if (release) r.dispatchEvent(new Event("change")); }""",
+        [id, values, release],
+    )
+
+
 def test_the_relief_slider_previews_live_and_commits_one_step(browser, surface_server):
     """A surface layer's "Relief" slider (log scale, ×1/4…×8): dragging repaints the view live with nothing changed
     on the server; the release commits one step that sets the relief and keeps the light; the saved stack renders
@@ -445,10 +456,7 @@ def test_the_relief_slider_previews_live_and_commits_one_step(browser, surface_s
     assert page.inner_text("#relief-value") == "×1.00"
     before, v = page_pixels(page), version(page)
     paints = page.evaluate("window.lasagna.paints.count")
-    page.evaluate(
-        """() => { const r = document.getElementById("relief");
-        for (const x of ["0.5", "1", "1.5"]) { r.value = x; r.dispatchEvent(new Event("input")); } }"""
-    )
+    slide(page, "relief", ["0.5", "1", "1.5"])
     page.wait_for_function(f"window.lasagna.paints.count > {paints}")
     assert version(page) == v  # a preview, not a change
     page.evaluate('() => document.getElementById("relief").dispatchEvent(new Event("change"))')
@@ -477,10 +485,7 @@ def test_the_ambient_slider_previews_live_and_commits_one_step(browser, surface_
     assert page.inner_text("#ambient-value") == "0.25" and page.get_attribute("#ambient", "min") == "0"
     before, v = page_pixels(page), version(page)
     paints = page.evaluate("window.lasagna.paints.count")
-    page.evaluate(
-        """() => { const r = document.getElementById("ambient");
-        for (const x of ["0.4", "0.55", "0.7"]) { r.value = x; r.dispatchEvent(new Event("input")); } }"""
-    )
+    slide(page, "ambient", ["0.4", "0.55", "0.7"])
     page.wait_for_function(f"window.lasagna.paints.count > {paints}")
     assert version(page) == v
     page.evaluate('() => document.getElementById("ambient").dispatchEvent(new Event("change"))')
@@ -558,11 +563,7 @@ def test_a_point_light_is_placed_by_dragging_on_the_image(browser, surface_serve
     assert not np.array_equal(right, before)
     save_and_check(page, folder)
 
-    page.evaluate(
-        """() => { const r = document.getElementById("light-height");
-        for (const x of ["-1.5", "-2"]) { r.value = x; r.dispatchEvent(new Event("input")); }
-        r.dispatchEvent(new Event("change")); }"""
-    )
+    slide(page, "light-height", ["-1.5", "-2"], release=True)
     settle(page, v + 3)
     assert abs(page.evaluate("window.lasagna.state.surfaces.shape.point[2]") - 0.25) < 1e-3
     save_and_check(page, folder)
@@ -587,10 +588,7 @@ def test_the_intensity_slider_previews_live_and_commits_one_step(browser, surfac
     assert page.inner_text("#intensity-value") == "×1.00"
     before, v = page_pixels(page), version(page)
     paints = page.evaluate("window.lasagna.paints.count")
-    page.evaluate(
-        """() => { const r = document.getElementById("intensity");
-        for (const x of ["0.5", "1", "1.5"]) { r.value = x; r.dispatchEvent(new Event("input")); } }"""
-    )
+    slide(page, "intensity", ["0.5", "1", "1.5"])
     page.wait_for_function(f"window.lasagna.paints.count > {paints}")
     assert version(page) == v
     page.evaluate('() => document.getElementById("intensity").dispatchEvent(new Event("change"))')

@@ -294,6 +294,31 @@ function drawSphere(canvas, az, el, ambient) {
   ctx.strokeStyle = "#e0a030"; ctx.lineWidth = 2; ctx.stroke();
 }
 
+// A surface layer's gain as a log slider, ×1/4…×8 (input #id, its value in #id-value): dragging previews it
+// (ui[id], sent as /api/view?id=LAYER:G), releasing records one "light" change of ``field``.
+function gainSlider(layer, lit, label, id, field_, value) {
+  const input = document.createElement("input");
+  input.type = "range"; input.id = id; input.min = "-2"; input.max = "3"; input.step = "0.05";
+  input.value = String(Math.log2(value));
+  const shown = document.createElement("span");
+  shown.id = `${id}-value`;
+  shown.textContent = `×${value.toFixed(2)}`;
+  const gain = () => Math.round(2 ** parseFloat(input.value) * 1000) / 1000;
+  input.addEventListener("input", () => {
+    ui[id] = { id: layer.id, value: gain() };
+    shown.textContent = `×${ui[id].value.toFixed(2)}`;
+    paint();
+  });
+  input.addEventListener("change", async () => {
+    await change({ op: "light", id: layer.id, light: lit.light, [field_]: gain() });
+    ui[id] = null;
+    paint();
+  });
+  const f = field(label, input);
+  f.append(" ", shown);
+  return f;
+}
+
 function lightControl(layer) {
   const lit = ui.state.surfaces[layer.id];
   const box = document.createElement("div");
@@ -310,27 +335,8 @@ function lightControl(layer) {
   const info = document.createElement("div");
   info.className = "hint";
   info.textContent = lit.source_light ? `relight from ${lit.source_light}` : "shading";
-  // The relief gain (glTF's normalTexture.scale): the map's slopes times it before it is lit. A log slider, 1/4…8;
-  // dragging previews (/api/view?relief=…), releasing records one change.
-  const relief = document.createElement("input");
-  relief.type = "range"; relief.id = "relief"; relief.min = "-2"; relief.max = "3"; relief.step = "0.05";
-  relief.value = String(Math.log2(lit.relief));
-  const reliefValue = document.createElement("span");
-  reliefValue.id = "relief-value";
-  const gain = () => Math.round(2 ** parseFloat(relief.value) * 1000) / 1000;
-  reliefValue.textContent = `×${lit.relief.toFixed(2)}`;
-  relief.addEventListener("input", () => {
-    ui.relief = { id: layer.id, value: gain() };
-    reliefValue.textContent = `×${ui.relief.value.toFixed(2)}`;
-    paint();
-  });
-  relief.addEventListener("change", async () => {
-    await change({ op: "light", id: layer.id, light: lit.light, relief: gain() });
-    ui.relief = null;
-    paint();
-  });
-  const reliefField = field("Relief", relief);
-  reliefField.append(" ", reliefValue);
+  // The relief gain (glTF's normalTexture.scale): the map's slopes times it before it is lit.
+  const reliefField = gainSlider(layer, lit, "Relief", "relief", "relief", lit.relief);
   // The ambient term a of a + (1 − a)·max(0, n·l) (Photoshop's Lighting Effects "Ambience"): how dark the side
   // away from the light gets, and how much a shading layer darkens what it covers. A relight ratio needs a > 0.
   const ambient = document.createElement("input");
@@ -367,26 +373,8 @@ function lightControl(layer) {
     paint();
   });
   // The light's intensity k (Photoshop's Lighting Effects "Intensity"): its direct term times k; above 1 a shading
-  // layer brightens where the light falls. A log slider, ×1/4…×8, previewed while dragged (/api/view?intensity=…).
-  const intensity = document.createElement("input");
-  intensity.type = "range"; intensity.id = "intensity"; intensity.min = "-2"; intensity.max = "3"; intensity.step = "0.05";
-  intensity.value = String(Math.log2(lit.light_intensity));
-  const intensityValue = document.createElement("span");
-  intensityValue.id = "intensity-value";
-  const strength = () => Math.round(2 ** parseFloat(intensity.value) * 1000) / 1000;
-  intensityValue.textContent = `×${lit.light_intensity.toFixed(2)}`;
-  intensity.addEventListener("input", () => {
-    ui.intensity = { id: layer.id, value: strength() };
-    intensityValue.textContent = `×${ui.intensity.value.toFixed(2)}`;
-    paint();
-  });
-  intensity.addEventListener("change", async () => {
-    await change({ op: "light", id: layer.id, light: lit.light, light_intensity: strength() });
-    ui.intensity = null;
-    paint();
-  });
-  const intensityField = field("Intensity", intensity);
-  intensityField.append(" ", intensityValue);
+  // layer brightens where the light falls.
+  const intensityField = gainSlider(layer, lit, "Intensity", "intensity", "light_intensity", lit.light_intensity);
   box.append(field("Colour", colour), intensityField, field("Show normal map", show));
   box.append(pointControl(layer, lit));
   box.append(extraLightsControl(layer, lit));
