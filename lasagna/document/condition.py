@@ -63,8 +63,11 @@ Which keys (az and el once each) and the elevation's range are checked by `parse
 MAX_POINT_OFFSET = 16.0
 """A point light's x and y lie in [−MAX_POINT_OFFSET, 1 + MAX_POINT_OFFSET] (fractions of the layer): farther
 out it lights the layer as a directional light would."""
+MIN_POINT_HEIGHT = 1e-3
 MAX_POINT_HEIGHT = 64.0
-"""A point light's height z lies in (0, MAX_POINT_HEIGHT] (units of the layer's longer side)."""
+"""A point light's height z lies in [MIN_POINT_HEIGHT, MAX_POINT_HEIGHT] (units of the layer's longer side): a
+thousandth of the layer is below a pixel of any layer we read, and a lower z would let the distance to a pixel
+directly beneath the light underflow (z² < 1e-308: 0/0)."""
 _POINT_PAIR = re.compile(rf"\s*([xyz])\s*=\s*({_NUMBER})\s*")
 POINT_PATTERN = rf"^\s*[xyz]\s*=\s*{_NUMBER}\s*,\s*[xyz]\s*=\s*{_NUMBER}\s*,\s*[xyz]\s*=\s*{_NUMBER}\s*$"
 """What JSON Schema can say of a point light's text: three ``key=number`` pairs of x, y and z (ECMA-262 regex);
@@ -72,7 +75,7 @@ each key once and the ranges are checked by `parse_point`."""
 _EXPECTED_POINT = (
     "expected a point light 'x=X,y=Y,z=Z' (x, y: fractions of the layer's width and height from its top-left, "
     f"in [{-MAX_POINT_OFFSET:g}, {1 + MAX_POINT_OFFSET:g}]; z: height in units of its longer side, in "
-    f"(0, {MAX_POINT_HEIGHT:g}])"
+    f"[{MIN_POINT_HEIGHT:g}, {MAX_POINT_HEIGHT:g}])"
 )
 _EXPECTED = (
     f"expected one of {', '.join(NAMED_DIRECTIONS)} or 'az=A,el=E' in degrees "
@@ -155,7 +158,10 @@ def parse_point(text: object) -> tuple[float, float, float] | None:
     x, y, z = values["x"], values["y"], values["z"]
     if not all(math.isfinite(v) for v in (x, y, z)):
         raise ConditionError(f"{_EXPECTED_POINT}, got {text!r} (numbers must be finite)", where="light")
-    if not all(-MAX_POINT_OFFSET <= v <= 1.0 + MAX_POINT_OFFSET for v in (x, y)) or not 0.0 < z <= MAX_POINT_HEIGHT:
+    if (
+        not all(-MAX_POINT_OFFSET <= v <= 1.0 + MAX_POINT_OFFSET for v in (x, y))
+        or not MIN_POINT_HEIGHT <= z <= MAX_POINT_HEIGHT
+    ):
         raise ConditionError(f"{_EXPECTED_POINT}, got {text!r} (out of range)", where="light")
     return x + 0.0, y + 0.0, z
 

@@ -358,3 +358,29 @@ def test_relief_gains_compose_and_a_relieved_map_round_trips(g1, g2, seed):
     back = decode_normal_map(relieved_map(codes, g1))
     torch.testing.assert_close(back, deepen_normals(decode_normal_map(codes), g1), atol=1e-9, rtol=0)
     assert relieved_map(codes, 1.0) is codes
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    x=st.floats(-16.0, 17.0),
+    y=st.floats(-16.0, 17.0),
+    z=st.floats(1e-3, 64.0),
+    h=st.integers(1, 9),
+    w=st.integers(1, 9),
+    seed=st.integers(0, 2**16),
+)
+def test_a_point_light_is_finite_bounded_and_its_closed_form(x, y, z, h, w, seed):
+    """Anywhere a point light may stand (`parse_point`'s ranges) and over any unit normals, `point_lambert` is
+    finite, in [a, 1] (its falloff is at most 1), and equals numpy float64 of the closed form — each pixel's own unit
+    vector to the light, (z/|d|)² falloff."""
+    from lasagna.compose.surface import point_lambert
+
+    n = random_normals(np.random.default_rng(seed), b=1, h=h, w=w)
+    got = point_lambert(torch.from_numpy(n), (x, y, z)).numpy()
+    side = max(h, w)
+    jj, ii = np.meshgrid(np.arange(w), np.arange(h))
+    d = np.stack([(x - (jj + 0.5) / w) * w / side, ((ii + 0.5) / h - y) * h / side, np.full((h, w), z)])
+    r = np.linalg.norm(d, axis=0)
+    ref = 0.25 + 0.75 * (z / r) ** 2 * np.maximum(0.0, (n[0] * d / r).sum(0))
+    assert np.isfinite(got).all() and got.min() >= 0.25 - 1e-12 and got.max() <= 1.0 + 1e-12
+    np.testing.assert_allclose(got[0, 0], ref, rtol=1e-12, atol=1e-12)
