@@ -9,6 +9,7 @@
     lasagna edit IMAGE --layer P --condition L -o OUT   add a learned layer; writes a stack folder
     lasagna render STACK [--all]                  render the learned layers not rendered yet (--all: every one)
     lasagna light STACK --light L [--relief G]    re-light a surface layer in place from its normal map
+    lasagna add-surface STACK MAP.png [--light L] a normal map of your own as a surface layer
     lasagna layers                                list the learned-layer catalogue
     lasagna prior add PATH --name N               register your own prior (a diffusers folder) as --layer N
     lasagna serve STACK|IMAGE [--port N]          the layer editor in the browser (lasagna-layers[serve])
@@ -46,6 +47,7 @@ from typing import NoReturn
 from pydantic import ValidationError
 
 from lasagna.cli import (
+    add_surface,
     composite,
     demo,
     edit,
@@ -81,6 +83,7 @@ COMMANDS: dict[str, ModuleType] = {
     "edit": edit,
     "render": render,
     "light": light,
+    "add-surface": add_surface,
     "layers": layers,
     "prior": prior,
     "serve": serve,

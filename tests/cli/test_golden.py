@@ -33,6 +33,7 @@ COMMANDS = (
     "edit",
     "render",
     "light",
+    "add-surface",
     "layers",
     "demo",
     "world",

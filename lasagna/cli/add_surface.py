@@ -1,0 +1,106 @@
+"""``lasagna add-surface``: a normal map of one's own — baked in Blender, painted with Krita's tangent-normal brush,
+made by a 2D-lighting tool — added to a stack as a surface layer and lit, with no learning.
+
+The map is a PNG, 8- or 16-bit RGB (an alpha channel is ignored), in tangent space, +Y up (the OpenGL convention of
+Blender, Krita and Godot) or, with ``--directx``, +Y down (green flipped: Unreal's and Substance's DirectX preset).
+Its codes are read as they are stored — a normal map is data, not colour, so a colour profile it carries is not
+applied. They are decoded to unit normals (`compose.surface.decode_normal_map`: renormalised, a zero vector read
+as the flat normal) and stored as the stack's 16-bit OpenGL map, so the layer renders and exports as every surface
+layer does; ``lasagna light`` re-lights it afterwards.
+
+The stack is written in place as ``lasagna light`` writes it (``save_in_place``): the new layer's PNG, stack.json
+(the commit point), composite.png and a stack.ora the folder holds; no other layer PNG is written, and a stack.json
+changed on disk since it was read is refused.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from lasagna.errors import LasagnaError
+
+HELP = "add a normal map of your own to a stack as a surface layer, lit by a light you choose; no learning"
+EXAMPLE = (
+    "lasagna add-surface out/chelsea-left bumps.png --light top-left         # an OpenGL (+Y up) map",
+    "lasagna add-surface out/chelsea-left unreal_n.png --directx --offset 32,16 --light x=0.2,y=0.3,z=0.5",
+)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("stack", help="stack folder or its stack.json")
+    p.add_argument("map", help="the normal map: an 8- or 16-bit RGB PNG, tangent space")
+    p.add_argument("--id", help="the new layer's id (default: made from the map's file name)")
+    p.add_argument("--name", help="the new layer's name (default: its id)")
+    p.add_argument(
+        "--light", default="top-left", help="its light: a named light, az=A,el=E or x=X,y=Y,z=Z (default top-left)"
+    )
+    p.add_argument("--from", dest="source", help="a relight's source light: the layer becomes S(light)/S(source)")
+    p.add_argument("--ambient", type=float, help="the ambient term a (default 0.25)")
+    p.add_argument("--offset", metavar="X,Y", help="its top-left corner on the canvas, integer pixels (default 0,0)")
+    p.add_argument("--directx", action="store_true", help="the map is +Y down (DirectX): its green is flipped")
+
+
+def parse_offset(text: str | None) -> tuple[int, int]:
+    """``--offset X,Y``: two integers (the document model bounds them)."""
+    if text is None:
+        return 0, 0
+    try:
+        x, y = (int(v) for v in text.split(","))
+    except ValueError:
+        raise LasagnaError(f"got {text!r}; expected X,Y in integer pixels", where="--offset") from None
+    return x, y
+
+
+def run(args: argparse.Namespace) -> int:
+    from lasagna.document import stack_file
+    from lasagna.io.survey import survey_stack
+
+    offset = parse_offset(args.offset)
+    map_path = Path(args.map)
+    survey = survey_stack(args.stack, composite=True)  # a refusal needs no torch
+
+    import torch
+
+    from lasagna.compose.surface import decode_normal_map
+    from lasagna.document.condition import AMBIENT
+    from lasagna.document.types import unique_id
+    from lasagna.export.ora import keep_ora_current
+    from lasagna.io.folder import check_writable, save_in_place, stack_sha256
+    from lasagna.io.png import PNG_SIGNATURE, read_png
+    from lasagna.io.stack import load_surveyed
+
+    with open(map_path, "rb") as f:
+        if f.read(8) != PNG_SIGNATURE:
+            raise LasagnaError("not a PNG; expected a normal map as an 8- or 16-bit RGB PNG", where=str(map_path))
+    folder = stack_file(args.stack).parent
+    check_writable(folder / "stack.json")
+    check_writable(folder / "composite.png")
+    sha = stack_sha256(folder)
+    stack = load_surveyed(survey)
+    png = read_png(map_path)  # the stored codes: no colour profile applied to data
+    if png.color.shape[0] != 3:
+        raise LasagnaError(
+            f"has {png.color.shape[0]} colour channel(s); expected an RGB normal map", where=str(map_path)
+        )
+    normals = decode_normal_map(
+        torch.from_numpy(png.color)[None].double(), convention="directx" if args.directx else "opengl"
+    )[0]
+    taken = {i.casefold() for i in stack.document.all_ids}
+    id = args.id if args.id is not None else unique_id(map_path.stem, set(taken))
+    if id.casefold() in taken:
+        raise LasagnaError(f"the stack already has a layer {id!r}; expected a new id", where="--id")
+    unchanged = dict(stack.tensors)  # the PNGs on disk hold exactly these: only the new layer's is written
+    stack.add_surface(
+        id,
+        normals.float(),
+        args.light,
+        source_light=args.source,
+        ambient=AMBIENT if args.ambient is None else args.ambient,
+        name=args.name,
+        offset=offset,
+    )
+    save_in_place(stack, unchanged=unchanged, expect_sha256=sha, extra=keep_ora_current(folder))
+    h, w = normals.shape[-2:]
+    print(f"added surface layer {id} ({w}x{h}, light {args.light}) to {folder}")
+    return 0
