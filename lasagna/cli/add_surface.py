@@ -60,32 +60,19 @@ def run(args: argparse.Namespace) -> int:
     map_path = Path(args.map)
     survey = survey_stack(args.stack, composite=True)  # a refusal needs no torch
 
-    import torch
-
-    from lasagna.compose.surface import decode_normal_map
     from lasagna.document.condition import AMBIENT
     from lasagna.document.types import unique_id
     from lasagna.export.ora import keep_ora_current
     from lasagna.io.folder import check_writable, save_in_place, stack_sha256
-    from lasagna.io.png import PNG_SIGNATURE, read_png
+    from lasagna.io.normal_map import normal_map_normals
     from lasagna.io.stack import load_surveyed
 
-    with open(map_path, "rb") as f:
-        if f.read(8) != PNG_SIGNATURE:
-            raise LasagnaError("not a PNG; expected a normal map as an 8- or 16-bit RGB PNG", where=str(map_path))
+    normals = normal_map_normals(map_path, directx=args.directx)  # refused before the stack is read
     folder = stack_file(args.stack).parent
     check_writable(folder / "stack.json")
     check_writable(folder / "composite.png")
     sha = stack_sha256(folder)
     stack = load_surveyed(survey)
-    png = read_png(map_path)  # the stored codes: no colour profile applied to data
-    if png.color.shape[0] != 3:
-        raise LasagnaError(
-            f"has {png.color.shape[0]} colour channel(s); expected an RGB normal map", where=str(map_path)
-        )
-    normals = decode_normal_map(
-        torch.from_numpy(png.color)[None].double(), convention="directx" if args.directx else "opengl"
-    )[0]
     taken = {i.casefold() for i in stack.document.all_ids}
     id = args.id if args.id is not None else unique_id(map_path.stem, set(taken))
     if id.casefold() in taken:
@@ -93,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     unchanged = dict(stack.tensors)  # the PNGs on disk hold exactly these: only the new layer's is written
     stack.add_surface(
         id,
-        normals.float(),
+        normals,
         args.light,
         source_light=args.source,
         ambient=AMBIENT if args.ambient is None else args.ambient,

@@ -296,6 +296,14 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
         data = await bodies.read(request, MAX_UPLOAD_BYTES)
         if not data:
             raise RequestError("the upload is empty; expected an image file's bytes as the body", "body")
+        kind = q.get("kind", "image")
+        if kind == "normal-map":  # a normal map of one's own: a surface layer (``?directx=1``: +Y down)
+            directx = q.get("directx", "0")
+            if directx not in ("0", "1"):
+                raise RequestError(f"directx is {directx!r}; expected 0 or 1", "directx")
+            return JSONResponse(await run(session.add_normal_map, version, data, q.get("name"), directx == "1"))
+        if kind != "image":
+            raise RequestError(f"kind is {kind!r}; expected image or normal-map", "kind")
         return JSONResponse(await run(session.add_image, version, data, q.get("name")))
 
     async def reload(request: Request) -> Response:

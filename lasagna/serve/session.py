@@ -371,6 +371,34 @@ class EditSession(SessionViews, SessionJobs):
                 lambda: self.stack.add_layer(id, color, alpha=alpha, bit_depth=img.bit_depth, name=stem),
             )
 
+    def add_normal_map(self, version: Any, data: bytes, name: Any = None, directx: bool = False) -> dict[str, Any]:
+        """A new surface layer on top from an uploaded normal-map PNG's bytes (``lasagna add-surface``'s reading,
+        `lasagna.io.normal_map`: its codes as stored; ``directx``: +Y down), lit from the top-left; its light is
+        then the page's to drag."""
+        from lasagna.io.normal_map import normal_map_normals
+        from lasagna.io.png import PNG_SIGNATURE, parse_header
+
+        name = name if isinstance(name, str) and name.strip() else "Normal map"
+        stem = Path(name).stem or "normal-map"
+        where = f"upload {name!r}"
+        with self._guard():
+            self._check_version(version)
+            if data[:8] == PNG_SIGNATURE:  # its decoded codes and float normals admitted before decoding
+                header = parse_header(data, where)
+                self._admit(
+                    raster_bytes(header.width, header.height, 4) * 3,
+                    f"the {header.width}x{header.height} normal map",
+                    where,
+                )
+            try:
+                normals = normal_map_normals(data=data, directx=bool(directx), max_pixels=self.max_pixels, where=where)
+            except BudgetError as exc:
+                raise exc.at(where) from None
+            id = self._new_id(stem.lower())
+            return self._change(
+                version, f"add {id}", lambda: self.stack.add_surface(id, normals, "top-left", name=stem)
+            )
+
     def add_learned(
         self,
         version: Any,

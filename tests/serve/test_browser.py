@@ -636,3 +636,31 @@ def test_extra_lights_are_added_edited_and_removed_one_step_each(browser, surfac
     assert page.evaluate("window.lasagna.state.surfaces.shape.extra_lights") == []
     assert np.array_equal(page_pixels(page), before)
     assert page.errors == []
+
+
+def test_a_normal_map_of_ones_own_is_added_and_lit(browser, surface_server, tmp_path):
+    """The "Add normal map" button, given a PNG of one's own, adds a surface layer (one step) whose light panel
+    opens when it is selected; dragging its light re-lights it; the saved stack renders what the page shows."""
+    from PIL import Image
+
+    yy, xx = np.mgrid[0:48, 0:64]
+    n = np.stack([np.sin(xx / 5.0) * 0.6, np.zeros((48, 64)), np.ones((48, 64))], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    Image.fromarray(np.round((n + 1) / 2 * 255).astype(np.uint8)).save(tmp_path / "ridges.png")
+    folder = surface_server.session.folder
+    page = open_page(browser, surface_server)
+    before, v = page_pixels(page), version(page)
+    page.set_input_files("#add-normal-map", str(tmp_path / "ridges.png"))
+    settle(page, v + 1)
+    layers = page.evaluate("window.lasagna.state.document.layers")
+    assert layers[-1]["id"] == "ridges" and layers[-1]["kind"] == "surface"
+    assert not np.array_equal(page_pixels(page), before)
+    save_and_check(page, folder)
+    row(page, "ridges").locator(".name").click()
+    page.wait_for_selector("#light-sphere")
+    lit = page_pixels(page)
+    drag_light(page, 0.9, 0.0)
+    settle(page, v + 2)
+    assert not np.array_equal(page_pixels(page), lit)
+    save_and_check(page, folder)
+    assert page.errors == []

@@ -450,3 +450,79 @@ def test_extra_lights_are_set_as_a_list_one_step_and_saved(client, folder):
         assert message.startswith("extra_lights") and state(client)["version"] == v, message
     s = ok(post(client, op="light", id="shape", light="top-left", extra_lights=[]))
     assert s["surfaces"]["shape"]["extra_lights"] == [] and np.array_equal(view(client, level=0), before)
+
+
+# ---- a normal map of one's own ------------------------------------------------------------------------
+
+
+def map_bytes(green_down: bool = False) -> tuple[bytes, np.ndarray]:
+    """An 8-bit RGB normal map (6 × 9) as PNG bytes, and its unit normals decoded +Y up from its codes."""
+    import io
+
+    from PIL import Image
+
+    yy, xx = np.mgrid[0:6, 0:9]
+    n = np.stack([(xx - 4.0) / 6, -(yy - 2.5) / 5, np.ones((6, 9))], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    c = np.round((n + 1) / 2 * 255).astype(np.uint8)
+    decoded = c.astype(np.float64) / 255 * 2 - 1
+    decoded /= np.linalg.norm(decoded, axis=-1, keepdims=True)
+    if green_down:
+        c[..., 1] = 255 - c[..., 1]
+    out = io.BytesIO()
+    Image.fromarray(c).save(out, format="PNG")
+    return out.getvalue(), decoded
+
+
+def test_an_uploaded_normal_map_is_a_surface_layer_as_its_codes_say(client, folder):
+    """``/api/upload?kind=normal-map`` (the page's "Add normal map") adds a surface layer of the map's own normals
+    (stored as the stack's 16-bit map: within its step of the codes' decoding), lit from the top-left, one undo step;
+    a DirectX map (``directx=1``) of the same normals adds the same map; the saved stack renders what the view shows."""
+    data, decoded = map_bytes()
+    v = state(client)["version"]
+    r = client.post(
+        "/api/upload", headers=H, params={"version": v, "name": "bumps.png", "kind": "normal-map"}, content=data
+    )
+    s = ok(r)
+    top = s["document"]["layers"][-1]
+    assert (top["kind"], top["id"], top["light"]) == ("surface", "bumps", "top-left") and s["undo"] == "add bumps"
+    ok(post(client, op="save"))
+    stored = load_stack(folder).tensors["bumps"].color.double().numpy().transpose(1, 2, 0) * 2 - 1
+    stored /= np.linalg.norm(stored, axis=-1, keepdims=True)
+    np.testing.assert_allclose(stored, decoded, atol=5e-5)
+    fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
+    assert np.array_equal(view(client, level=0)[..., :3], fresh)
+    dx, _ = map_bytes(green_down=True)
+    params = {"version": s["version"], "name": "dx.png", "kind": "normal-map", "directx": "1"}
+    ok(client.post("/api/upload", headers=H, params=params, content=dx))
+    ok(post(client, op="save"))
+    maps = load_stack(folder).tensors
+    assert (maps["bumps"].color - maps["dx"].color).abs().max() <= 1.5 / 65535
+
+
+@pytest.mark.parametrize(
+    "params, body, words",
+    [
+        ({"kind": "normal-map"}, b"GIF89a not a png", "not a PNG; expected a normal map"),
+        ({"kind": "normal-map"}, "GRAY", "has 1 colour channel(s); expected an RGB normal map"),
+        ({"kind": "normal-map", "directx": "yes"}, "MAP", "directx is 'yes'; expected 0 or 1"),
+        ({"kind": "bump"}, "MAP", "kind is 'bump'; expected image or normal-map"),
+    ],
+)
+def test_a_bad_normal_map_upload_is_a_one_line_400_and_changes_nothing(client, params, body, words):
+    import io
+
+    from PIL import Image
+
+    if body == "GRAY":
+        out = io.BytesIO()
+        Image.fromarray(np.zeros((4, 4), np.uint8)).save(out, format="PNG")
+        body = out.getvalue()
+    elif body == "MAP":
+        body = map_bytes()[0]
+    before = state(client)
+    r = client.post(
+        "/api/upload", headers=H, params={"version": before["version"], "name": "n.png", **params}, content=body
+    )
+    assert words in one_line_4xx(r)
+    assert state(client)["document"] == before["document"]

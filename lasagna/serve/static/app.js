@@ -858,6 +858,13 @@ function wire() {
     const rgb = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
     change({ op: "solid", color: rgb, name: `Solid ${hex}` });
   };
+  $("add-normal-map").onchange = async (e) => {
+    const file = e.target.files[0];
+    if (!file) return;
+    const q = new URLSearchParams({ version: ui.state.version, name: file.name, kind: "normal-map", directx: $("normal-map-directx").checked ? "1" : "0" });
+    await apply(() => api(`api/upload?${q}`, { method: "POST", body: file }));
+    e.target.value = "";
+  };
   $("add-image").onchange = async (e) => {
     const file = e.target.files[0];
     if (!file) return;

@@ -1,0 +1,48 @@
+"""A normal map of one's own read from a PNG file: its codes as stored, decoded to unit normals.
+
+A normal map — baked in Blender, painted with Krita's tangent-normal brush, made by a 2D-lighting tool — is an 8- or
+16-bit RGB PNG in tangent space, +Y up (the OpenGL convention of Blender, Krita and Godot) or +Y down (DirectX:
+green flipped, Unreal's and Substance's DirectX preset). It is data, not colour: its codes are read as stored, and a
+colour profile it carries is not applied (``read_png``, not the image policy of ``read_image_file``); an alpha
+channel is ignored. ``lasagna add-surface`` and the editor's "Add normal map" both read it here; the stack stores the
+normals as its own 16-bit OpenGL map (``Stack.add_surface``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from lasagna.compose.surface import decode_normal_map
+from lasagna.errors import ImageError
+from lasagna.io.png import DEFAULT_MAX_PIXELS, PNG_SIGNATURE, decode_png, read_png
+
+
+def normal_map_normals(
+    path: str | os.PathLike | None = None,
+    *,
+    data: bytes | None = None,
+    directx: bool = False,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    where: str | None = None,
+) -> torch.Tensor:
+    """Unit normals (3, h, w), float32, of the normal-map PNG at ``path`` (or its bytes ``data``), +Y up after
+    decoding (``directx``: the file's green is flipped); `ImageError` in one line for anything else."""
+    where = where or str(path)
+    if data is None:
+        with open(Path(path), "rb") as f:
+            head = f.read(8)
+    else:
+        head = data[:8]
+    if head != PNG_SIGNATURE:
+        raise ImageError("not a PNG; expected a normal map as an 8- or 16-bit RGB PNG", where=where)
+    png = read_png(path, max_pixels=max_pixels) if data is None else decode_png(data, where, max_pixels=max_pixels)
+    if png.color.shape[0] != 3:
+        raise ImageError(f"has {png.color.shape[0]} colour channel(s); expected an RGB normal map", where=where)
+    rgb = torch.from_numpy(png.color)[None].double()
+    return decode_normal_map(rgb, convention="directx" if directx else "opengl")[0].float()
+
+
+__all__ = ["normal_map_normals"]
