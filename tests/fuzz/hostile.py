@@ -62,6 +62,13 @@ def _child(conn, folder: str, commands: list[list[str]], env: dict[str, str]) ->
         resource.setrlimit(resource.RLIMIT_CORE, (0, 0))  # SIGXCPU's default action dumps core
         resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 1))  # SIGXCPU, then SIGKILL a second later
         os.environ.update(env)
+        # libgomp is not fork-safe: a child forked while the parent's OpenMP pool runs (any torch op on 2+ threads
+        # before the fork, e.g. `-m slow` at OMP_NUM_THREADS=2) deadlocks in its first parallel region. The child
+        # computes on one thread, whatever ``env`` says (the CLI's --threads default is at most $OMP_NUM_THREADS).
+        os.environ["OMP_NUM_THREADS"] = "1"
+        import torch
+
+        torch.set_num_threads(1)
         from lasagna.cli import main
 
         results = []

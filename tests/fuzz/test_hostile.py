@@ -68,6 +68,29 @@ def test_fuzz_long(kind, env, oras):
     _fuzz(_strategy(kind, oras), env, SLOW_EXAMPLES, derandomize=False)
 
 
+def test_a_case_forked_while_the_parents_openmp_pool_runs_does_not_deadlock(tmp_path):
+    """The harness forks: a child of a process whose OpenMP pool is running (torch on two threads before the fork)
+    would deadlock in its first parallel region (libgomp is not fork-safe) — it must compute on one thread and
+    answer. Found when ``-m slow`` ran at OMP_NUM_THREADS=2: fuzz_long[png] hung after the fused kernels' tests."""
+    import torch
+
+    from lasagna.io.stack import Stack
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        x = torch.rand(1500, 1500)
+        assert float((x @ x).sum()) > 0  # the parent's pool is up
+        Stack.from_image(torch.rand(3, 384, 384)).save(tmp_path / "s")
+        files = {
+            p.relative_to(tmp_path / "s").as_posix(): p.read_bytes() for p in (tmp_path / "s").rglob("*") if p.is_file()
+        }
+        results = hostile.run_case(files, [["composite", "{d}", "-o", "{d}/c.png"]], env={"OMP_NUM_THREADS": "2"})
+    finally:
+        torch.set_num_threads(before)
+    assert results[0][1] == 0, results
+
+
 def test_the_worker_reports_what_breaks_the_contract():
     """The harness itself: a hang, an internal error and a two-line stderr are caught (else the fuzz
     tests above could pass by checking nothing)."""
