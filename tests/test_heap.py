@@ -62,10 +62,14 @@ def test_heap_thresholds_keep_band_temporaries_resident(tmp_path):
     # process runs (1.2–14 canvases' worth per render seen: glibc's adaptive mmap threshold makes how many
     # vary from run to run).
     assert late["system"] > pages
-    # Tuned, the heap grows to hold the temporaries and then stops: the first few renders may grow it by a
-    # temporary or a few (768 pages each, up to ~7 000 pages in all seen, more under load), the last eight
-    # fault in less than a canvas's worth between them (0 in every run seen).
-    assert late["lasagna"] < pages
+    # Tuned, the heap grows to hold the temporaries and then mostly stops: the first few renders may grow it by a
+    # temporary or a few (768 pages each, up to ~7 000 pages in all seen, more under load); the last eight fault
+    # in 0 pages in most runs, but a late growth happens too (2026-11-26, a 3 072-page canvas: 8 runs gave 0 six
+    # times, 768 and 8 449 once each; two suite runs failed the old bound of one canvas with 3 073 and 8 450;
+    # glibc's defaults gave 137 000–340 000). So: under four canvases' worth, and under a tenth of what the
+    # defaults fault in the same renders.
+    assert late["lasagna"] < 4 * pages
+    assert late["lasagna"] * 10 < late["system"]
     assert sum(runs["lasagna"][2]) < sum(runs["system"][2])
 
 
