@@ -55,6 +55,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "object pixels (objects that fill the frame, as in photographs; 1: off)",
     )
     p.add_argument(
+        "--stray",
+        type=float,
+        default=0.0,
+        help="lit input: probability that a scene carries stray illumination (a sky's gradient, a vignette, a "
+        "spotlight's pool) the estimator must learn as paint (0: off)",
+    )
+    p.add_argument(
         "--init-from",
         default=None,
         help="a saved estimator folder (a run's surface/) of the same architecture (any working size) whose weights "
@@ -104,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
         split=args.split,
         init_from=args.init_from,
         zoom=args.zoom,
+        stray=args.stray,
         render_on=args.render_on,
         seed=args.seed,
         progress=progress() and not args.no_progress,  # bars only for a person watching (or --progress)

@@ -12,7 +12,8 @@ S = a + (1 − a)·max(0, n·l) (`lasagna.compose.surface.lambert`); lights l_k 
 [0°, ``MAX_TRAIN_ELEVATION``]. A ``"lit"`` estimator reads each scene lit by its own random source light
 (elevation in the relight range, `lasagna.world.tasks.RELIGHT_ELEVATION`) and also learns that light's shading
 Ŝ_src; the light l̂_src fitted to it through the surface (`lasagna.compose.surface.fit_light`) is trained end
-to end.
+to end. With ``stray`` > 0 a lit input may also carry stray illumination (`lasagna.world.stray`: a sky's
+gradient, a vignette, a spotlight's pool) that the truth does not: the estimator learns it as paint.
 
 Scenes come from one world split (``train`` by default) and never from ``select``, ``heldout`` or ``far`` at
 the benchmarks' seed; every random draw of a step comes from the loop's generator, so a run resumes bit for bit
@@ -38,6 +39,7 @@ from lasagna.training.tasks import SCENE_RANGE
 from lasagna.world import generate
 from lasagna.world.scene import Scene, with_light
 from lasagna.world.splits import HELD_SPLITS
+from lasagna.world.stray import stray_gain
 from lasagna.world.tasks import RELIGHT_ELEVATION
 
 CHECKPOINT_FORMAT = "lasagna.surface_run"
@@ -74,6 +76,14 @@ class SurfaceTrainConfig(LoopConfig):
         description="close-ups: each scene is rendered at zoom × the working size and a square window of 1 to zoom "
         "working sizes around one of its object pixels is reduced to the working size, so objects may fill the frame "
         "as in photographs (1: the whole scene, as rendered)",
+    )
+    stray: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="lit input: the probability that a scene's input carries stray illumination "
+        "(lasagna.world.stray: a sky's gradient, a vignette, a spotlight's pool), taught as paint — the truth stays "
+        "the scene's own (0: off)",
     )
     render_on: Literal["device", "cpu"] = Field(
         "device",
@@ -120,13 +130,17 @@ def close_ups(scene: Scene, side: int, rng: torch.Generator) -> Scene:
 _CROPPED = ("albedo", "normals", "shading", "image", "mask", "depth", "object_index")
 
 
-def estimator_input(net: SurfaceConfig, scene, source: torch.Tensor | None) -> torch.Tensor:
-    """What the estimator reads of ``scene``: its albedo, or the scene lit by ``source`` (B, 3)."""
+def estimator_input(
+    net: SurfaceConfig, scene, source: torch.Tensor | None, gain: torch.Tensor | None = None
+) -> torch.Tensor:
+    """What the estimator reads of ``scene``: its albedo, or the scene lit by ``source`` (B, 3), times the stray
+    illumination ``gain`` (B, 1, H, W; `lasagna.world.stray`) where given, clipped to [0, 1]."""
     if net.input == "albedo":
         return scene.albedo
     if source is None:
         raise LasagnaError("a lit-input estimator needs the source lights", "source")
-    return with_light(scene, source).image
+    image = with_light(scene, source).image
+    return image if gain is None else (image * gain).clamp(0.0, 1.0)
 
 
 def surface_loss(
@@ -136,11 +150,13 @@ def surface_loss(
     source: torch.Tensor | None,
     lights: torch.Tensor,
     device: str | torch.device = "cpu",
+    gain: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """The module docstring's L on one batch: ``scene`` (B scenes), ``source`` (B, 3) their source lights (lit
-    input), ``lights`` (K·B, 3) the lights their estimate and truth are compared under (K per scene)."""
+    input), ``lights`` (K·B, 3) the lights their estimate and truth are compared under (K per scene), ``gain`` the
+    stray illumination on the input (lit; the truth is unchanged by it)."""
     b = len(scene)
-    out = net.outputs(estimator_input(config.net, scene, source).to(device))
+    out = net.outputs(estimator_input(config.net, scene, source, gain).to(device))
     surface, source_shading = out.surface, out.shading
     normals, truth = net.normals(surface), scene.normals.to(device)
     groups = lights.to(device).split(b)
@@ -195,7 +211,8 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
             scene = close_ups(scene, side, rng)
         source = random_lights(config.batch_size, rng, RELIGHT_ELEVATION) if config.net.input == "lit" else None
         lights = random_lights(config.batch_size * config.lights, rng, (0.0, MAX_TRAIN_ELEVATION))
-        return surface_loss(net, config, scene, source, lights, device)
+        gain = stray_gain(scene.mask, rng, config.stray) if config.stray > 0 and source is not None else None
+        return surface_loss(net, config, scene, source, lights, device, gain)
 
     done = train_loop(
         estimator,

@@ -170,3 +170,26 @@ def test_a_run_with_close_ups_trains(tmp_path):
     net = train_surface(toy(steps=2, zoom=2.0, split="wide"), tmp_path / "run")
     assert [r["step"] for r in read_log(tmp_path / "run")] == [1, 2]
     assert net(torch.rand(1, 3, 16, 16)).shape == (1, 1, 16, 16)
+
+
+def test_stray_illumination_changes_the_input_not_the_truth():
+    """With a gain the estimator reads the lit image times it, clipped to [0, 1]; the loss's truth is the scene's
+    own, so the same estimate costs the same shading error with and without it."""
+    from lasagna.training.surface import estimator_input
+    from lasagna.world.scene import with_light
+
+    config = toy(stray=1.0)
+    scene = generate("val", 2, 1, 16)
+    source = random_lights(2, torch.Generator().manual_seed(0), (30.0, 75.0))
+    gain = torch.full((2, 1, 16, 16), 3.0)
+    lit = with_light(scene, source).image
+    assert torch.equal(estimator_input(config.net, scene, source, gain), (lit * 3).clamp(0, 1))
+    assert torch.equal(estimator_input(config.net, scene, source), lit)
+
+
+def test_a_run_with_stray_illumination_trains_and_resumes(tmp_path):
+    whole = train_surface(toy(steps=4, stray=0.5), tmp_path / "a")
+    train_surface(toy(steps=2, stray=0.5), tmp_path / "b")
+    resumed = train_surface(toy(steps=4, stray=0.5), tmp_path / "b")
+    for (k, v), w in zip(whole.state_dict().items(), resumed.state_dict().values()):
+        assert torch.equal(v, w), k
