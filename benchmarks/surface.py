@@ -19,7 +19,9 @@ Rows per split and size (``--count`` scenes of world seed 0, the light cycling t
 * **leak** on walls alone (every scene's objects removed: the true shading is one constant): the layer's PSNR
   against its own mean; ∞ for a flat surface.
 
-``far`` is the final measurement: pass it only then (``--splits far``). Ends with one JSON line.
+``--stray SEED`` multiplies every relight scene's input and truth by stray illumination (`lasagna.world.stray`:
+light that does not move with the key light; the true ratio is unchanged), a diagnostic of an estimator's reading
+of it. ``far`` is the final measurement: pass it only then (``--splits far``). Ends with one JSON line.
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ from lasagna.document.preset import SYMMETRIES  # noqa: E402
 from lasagna.generators.surface import DomePrior, SurfaceEstimator  # noqa: E402
 from lasagna.training.surface import estimator_from_checkpoint  # noqa: E402
 from lasagna.world import VOCABULARY, render, sample_scenes  # noqa: E402
+from lasagna.world.stray import stray_gain  # noqa: E402
 from lasagna.world.tasks import relight_sources, relighting  # noqa: E402
 
 WORKING = 32
@@ -137,10 +140,13 @@ def shading_rows(scene, labels, albedo_net, edits: list[str], dome=None) -> list
     return rows
 
 
-def relight_rows(scene, labels, lit_net, edits: list[str], dome=None) -> list[dict]:
+def relight_rows(scene, labels, lit_net, edits: list[str], dome=None, stray: int | None = None) -> list[dict]:
     sources = relight_sources(scene.params)
     rel = relighting(scene, sources)
     base, target, mask = rel.base, rel.target.clamp(0, 1), scene.mask
+    if stray is not None:  # light that is not relief, on input and truth alike: the true ratio is unchanged
+        gain = stray_gain(scene.mask, torch.Generator().manual_seed(stray)).to(base.dtype)
+        base, target = (base * gain).clamp(0, 1), (rel.target * gain).clamp(0, 1)
     bdb = (psnr(base.clamp(0, 1), target), psnr(base.clamp(0, 1), target, mask))
     size = tuple(base.shape[-2:])
     src, tgt = lights_of(sources), lights_of(labels)
@@ -315,6 +321,14 @@ def main(argv=None) -> int:
         default="none",
         help="the estimators' symmetry ensemble (a preset's surface.symmetry)",
     )
+    p.add_argument(
+        "--stray",
+        type=int,
+        default=None,
+        metavar="SEED",
+        help="a diagnostic: every relight scene's input and truth times a stray illumination gain "
+        "(lasagna.world.stray, drawn from SEED): a sky's gradient, a vignette or a pool that stays when relit",
+    )
     args = p.parse_args(argv)
     global ESTIMATE_AT, SYMMETRY
     ESTIMATE_AT, SYMMETRY = args.estimate_at, args.symmetry
@@ -333,7 +347,7 @@ def main(argv=None) -> int:
             scene, labels = scenes(split, args.count, args.seed, size)
             for task, rows in (
                 ("shading", shading_rows(scene, labels, albedo_net, args.edits, dome)),
-                ("relight", relight_rows(scene, labels, lit_net, args.edits, dome)),
+                ("relight", relight_rows(scene, labels, lit_net, args.edits, dome, args.stray)),
             ):
                 for r in rows:
                     r.update(split=split, size=size)
