@@ -21,6 +21,7 @@ EXAMPLE = (
     "lasagna light out/chelsea-surface --light az=30,el=45                  # the topmost surface layer",
     "lasagna light out/coffee-sl --layer relight-left --from top --relief 2  # a relight's source light, deeper",
     "lasagna light out/chelsea-surface --light x=0.1,y=0.3,z=0.4            # a point light near the left edge",
+    "lasagna light out/chelsea-surface --light x=0.2,y=0.1,z=0.3,cone=25,ax=0.5,ay=0.6  # a spot aimed at the eyes",
     "lasagna light out/chelsea-surface --add-light 'right;#a0c0ff;0.5'      # and a blue fill light from the right",
 )
 
@@ -31,7 +32,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--light",
         help="the light it is lit by: a named light, az=A,el=E, or a point light x=X,y=Y,z=Z (x, y: fractions of the "
-        "layer from its top-left; z: height in units of its longer side) (default: kept)",
+        "layer from its top-left; z: height in units of its longer side), a spot light with ',cone=C' (half-angle, "
+        "degrees) and optionally ',ax=X,ay=Y' (its aim; default the point beneath it) and ',blend=B' (edge softness "
+        "0–1, default 0.15) (default: kept)",
     )
     p.add_argument(
         "--from",

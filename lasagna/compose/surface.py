@@ -22,6 +22,10 @@ layers"). This module is that renderer, differentiable and batch-independent:
   (`point_lambert`). Fractions keep a stack's light where it was at any size and view level. This is the point
   light of Photoshop's Lighting Effects and of 2D engines that light normal maps (Godot's ``PointLight2D``
   with its ``height``), with the falloff of a physical point source.
+- **Spot light**: a point light with a cone of half-angle C aimed at (ax, ay) on the map (fractions as x, y):
+  its direct term also times m = smoothstep((cos θ − cos C)/(b·(1 − cos C))), θ the angle between the ray from
+  the light to the pixel and the axis from the light to the aim point, b the edge's softness (Blender's spot mask
+  and ``spot_blend``; a hard edge at b = 0) — Lighting Effects' Spot (`spot_cone`).
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from torch import Tensor
 
 from lasagna.compose.layer import LayerTensors
 from lasagna.compose.resample import gaussian_blur
-from lasagna.document.condition import AMBIENT, check_ambient, parse_direction, parse_point, unit_vector
+from lasagna.document.condition import AMBIENT, PointLight, check_ambient, parse_direction, parse_point, unit_vector
 from lasagna.errors import LasagnaError
 
 # A normal decoded from a map whose three channels round to (0.5, 0.5, 0.5) — a zero vector, which no unit
@@ -62,11 +66,12 @@ def lambert(normals: Tensor, light: Tensor, ambient: float = AMBIENT) -> Tensor:
 
 
 def point_light_field(
-    point: tuple[float, float, float], h: int, w: int, *, dtype: torch.dtype = torch.float32, device=None
+    point: tuple[float, ...], h: int, w: int, *, dtype: torch.dtype = torch.float32, device=None
 ) -> tuple[Tensor, Tensor]:
-    """The unit light (1, 3, h, w) each pixel of an h × w map sees from the point light ``point`` = (x, y, z),
-    and its falloff (z/|d|)² (1, 1, h, w) — the module docstring's closed form, computed in float64."""
-    x, y, z = (float(c) for c in point)
+    """The unit light (1, 3, h, w) each pixel of an h × w map sees from the point light ``point`` (a
+    `lasagna.document.condition.PointLight`, or (x, y, z)), and its falloff (1, 1, h, w): (z/|d|)², times a spot
+    light's cone (`spot_cone`) — the module docstring's closed forms, computed in float64."""
+    x, y, z = (float(c) for c in point[:3])
     long_side = float(max(h, w))
     u = (torch.arange(w, dtype=torch.float64, device=device) + 0.5) / w
     v = (torch.arange(h, dtype=torch.float64, device=device) + 0.5) / h
@@ -75,12 +80,32 @@ def point_light_field(
     dz = torch.full((h, w), z, dtype=torch.float64, device=device)
     d2 = dx * dx + dy * dy + dz * dz
     light = torch.stack([dx, dy, dz]) / d2.sqrt()
-    return light[None].to(dtype), (z * z / d2)[None, None].to(dtype)
+    falloff = z * z / d2
+    spot = PointLight(*point) if len(point) > 3 else None
+    if spot is not None and spot.cone is not None:
+        # The axis from the light toward its aim point (ax, ay, 0), as the pixels' d is: from the plane up to it.
+        aim = torch.tensor(
+            [(x - spot.ax) * w / long_side, (spot.ay - y) * h / long_side, z], dtype=torch.float64, device=device
+        )
+        falloff = falloff * spot_cone((light * (aim / aim.norm()).view(3, 1, 1)).sum(0), spot.cone, spot.blend)
+    return light[None].to(dtype), falloff[None, None].to(dtype)
 
 
-def point_lambert(normals: Tensor, point: tuple[float, float, float], ambient: float = AMBIENT) -> Tensor:
-    """Shading a + (1 − a)·(z/|d|)²·max(0, n·l) of unit ``normals`` (B, 3, H, W) under the point light ``point``
-    (the module docstring): (B, 1, H, W). Per pixel and per component, like `lambert`, so batch-independent."""
+def spot_cone(cos_angle: Tensor, cone: float, blend: float) -> Tensor:
+    """A spot light's mask of the cosine of each ray's angle to its axis: 1 inside the cone, 0 outside, its edge
+    a smoothstep over the fraction ``blend`` of the cone measured in cos θ — Blender's spot mask,
+    smoothstep((cos θ − cos C)/(blend·(1 − cos C))); a hard step at blend 0."""
+    edge = math.cos(math.radians(cone))
+    if blend <= 0.0:
+        return (cos_angle > edge).to(cos_angle.dtype)
+    t = ((cos_angle - edge) / (blend * (1.0 - edge))).clamp(0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def point_lambert(normals: Tensor, point: tuple[float, ...], ambient: float = AMBIENT) -> Tensor:
+    """Shading a + (1 − a)·(z/|d|)²·m·max(0, n·l) of unit ``normals`` (B, 3, H, W) under the point light ``point``
+    (the module docstring; m a spot light's cone, else 1): (B, 1, H, W). Per pixel and per component, like
+    `lambert`, so batch-independent."""
     check_ambient(ambient)
     light, falloff = point_light_field(point, *normals.shape[-2:], dtype=normals.dtype, device=normals.device)
     ndotl = normals[:, 0:1] * light[:, 0:1] + normals[:, 1:2] * light[:, 1:2] + normals[:, 2:3] * light[:, 2:3]

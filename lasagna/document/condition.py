@@ -4,7 +4,11 @@ A surface layer's light may also be a **point light** ``x=…,y=…,z=…`` (`pa
 normal map, x and y fractions of the layer's width and height from its top-left corner (x right, y down, as a
 canvas offset; 0.5, 0.5 is the layer's centre), z its height above the image plane in units of the layer's
 longer side. Only a surface layer, rendered from its stored normals, can be lit by one; a learned edit's
-condition is a direction, which its prior was trained on.
+condition is a direction, which its prior was trained on. A point light with ``cone=C`` is a **spot light**
+(Lighting Effects' Spot, Blender's Spot): it shines only within C degrees (its cone's half-angle, in (0, 90]) of
+its axis, from the light toward the aim point ``ax=…,ay=…`` on the layer (fractions as x and y; by default the
+point beneath it), its edge softened over the fraction ``blend`` of the cone (in [0, 1], default `SPOT_BLEND`,
+Blender's default; 0 is a hard edge): ``x=0.2,y=0.3,z=0.4,cone=25,ax=0.5,ay=0.6``.
 
 A condition names a directional light either by one of the eight labels of
 `lasagna.world.lighting` or by its angles in degrees, ``az=135,el=40`` (or ``el=40,az=135``):
@@ -26,6 +30,7 @@ from __future__ import annotations
 
 import math
 import re
+from typing import NamedTuple
 
 from lasagna.errors import ConditionError
 
@@ -68,15 +73,40 @@ MAX_POINT_HEIGHT = 64.0
 """A point light's height z lies in [MIN_POINT_HEIGHT, MAX_POINT_HEIGHT] (units of the layer's longer side): a
 thousandth of the layer is below a pixel of any layer we read, and a lower z would let the distance to a pixel
 directly beneath the light underflow (z² < 1e-308: 0/0)."""
-_POINT_PAIR = re.compile(rf"\s*([xyz])\s*=\s*({_NUMBER})\s*")
-POINT_PATTERN = rf"^\s*[xyz]\s*=\s*{_NUMBER}\s*,\s*[xyz]\s*=\s*{_NUMBER}\s*,\s*[xyz]\s*=\s*{_NUMBER}\s*$"
-"""What JSON Schema can say of a point light's text: three ``key=number`` pairs of x, y and z (ECMA-262 regex);
-each key once and the ranges are checked by `parse_point`."""
+MAX_SPOT_CONE = 90.0
+"""A spot light's cone half-angle lies in (0, MAX_SPOT_CONE] degrees: at 90° it lights the whole half-space below
+it, as a point light does."""
+SPOT_BLEND = 0.15
+"""A spot light's default softness: the fraction of its cone (in cos θ, as Blender's ``spot_blend``) over which its
+edge fades in."""
+_POINT_KEYS = ("x", "y", "z", "cone", "ax", "ay", "blend")
+_POINT_PAIR = re.compile(rf"\s*({'|'.join(_POINT_KEYS)})\s*=\s*({_NUMBER})\s*")
+_POINT_KEY = f"(?:{'|'.join(_POINT_KEYS)})"
+POINT_PATTERN = rf"^\s*{_POINT_KEY}\s*=\s*{_NUMBER}\s*(?:,\s*{_POINT_KEY}\s*=\s*{_NUMBER}\s*){{2,6}}$"
+"""What JSON Schema can say of a point or spot light's text: three to seven ``key=number`` pairs of x, y, z, cone,
+ax, ay and blend (ECMA-262 regex); which keys, each once, and the ranges are checked by `parse_point`."""
 _EXPECTED_POINT = (
     "expected a point light 'x=X,y=Y,z=Z' (x, y: fractions of the layer's width and height from its top-left, "
     f"in [{-MAX_POINT_OFFSET:g}, {1 + MAX_POINT_OFFSET:g}]; z: height in units of its longer side, in "
-    f"[{MIN_POINT_HEIGHT:g}, {MAX_POINT_HEIGHT:g}])"
+    f"[{MIN_POINT_HEIGHT:g}, {MAX_POINT_HEIGHT:g}]), or a spot light adding 'cone=C' (half-angle in degrees, "
+    f"in (0, {MAX_SPOT_CONE:g}]) and optionally 'ax=X,ay=Y' (where it aims, as x and y) and 'blend=B' (its edge's "
+    "softness, in [0, 1])"
 )
+
+
+class PointLight(NamedTuple):
+    """A point light (x, y, z) — or, with a ``cone``, a spot light aimed at (``ax``, ``ay``) with edge softness
+    ``blend`` — in the module docstring's units."""
+
+    x: float
+    y: float
+    z: float
+    cone: float | None = None
+    ax: float | None = None
+    ay: float | None = None
+    blend: float = SPOT_BLEND
+
+
 _EXPECTED = (
     f"expected one of {', '.join(NAMED_DIRECTIONS)} or 'az=A,el=E' in degrees "
     f"(azimuth from +x toward +y, elevation from the view axis in [0, {MAX_ELEVATION:g}))"
@@ -140,30 +170,42 @@ def parse_direction(text: str) -> tuple[float, float]:
     return check_direction(values["az"], values["el"], text)
 
 
-def parse_point(text: object) -> tuple[float, float, float] | None:
-    """(x, y, z) of a point light ``x=…,y=…,z=…`` (the keys in any order; see the module docstring), or None
-    for a text that names no point (a direction: `parse_direction` reads it); `ConditionError` for a point light
-    whose text is malformed or out of range."""
+def parse_point(text: object) -> PointLight | None:
+    """The point (or spot) light of a text ``x=…,y=…,z=…[,cone=…[,ax=…,ay=…][,blend=…]]`` (the keys in any order;
+    see the module docstring), a spot's aim defaulting to the point beneath it; None for a text that names no point
+    (a direction: `parse_direction` reads it); `ConditionError` for a point light whose text is malformed or out
+    of range."""
     if not isinstance(text, str) or text in NAMED_DIRECTIONS:
         return None
     parts = text.split(",")
     matches = [_POINT_PAIR.fullmatch(p) for p in parts]
     if not any(matches):
         return None
-    if len(parts) != 3 or not all(matches):
+    if not all(matches):
         raise ConditionError(f"{_EXPECTED_POINT}, got {text!r}", where="light")
+    keys = [m.group(1) for m in matches if m]
     values = {m.group(1): float(m.group(2)) for m in matches if m}
-    if set(values) != {"x", "y", "z"}:
-        raise ConditionError(f"{_EXPECTED_POINT}, got {text!r} (give x, y and z once each)", where="light")
-    x, y, z = values["x"], values["y"], values["z"]
-    if not all(math.isfinite(v) for v in (x, y, z)):
+    if len(keys) != len(values) or not {"x", "y", "z"} <= set(values):
+        raise ConditionError(f"{_EXPECTED_POINT}, got {text!r} (give x, y and z, each key once)", where="light")
+    if "cone" not in values and set(values) != {"x", "y", "z"}:
+        raise ConditionError(f"{_EXPECTED_POINT}, got {text!r} (ax, ay and blend belong to a spot's cone)", "light")
+    if ("ax" in values) != ("ay" in values):
+        raise ConditionError(f"{_EXPECTED_POINT}, got {text!r} (give ax and ay together)", where="light")
+    if not all(math.isfinite(v) for v in values.values()):
         raise ConditionError(f"{_EXPECTED_POINT}, got {text!r} (numbers must be finite)", where="light")
+    x, y, z = values["x"], values["y"], values["z"]
+    ax, ay = values.get("ax", x), values.get("ay", y)
+    cone, blend = values.get("cone"), values.get("blend", SPOT_BLEND)
     if (
-        not all(-MAX_POINT_OFFSET <= v <= 1.0 + MAX_POINT_OFFSET for v in (x, y))
+        not all(-MAX_POINT_OFFSET <= v <= 1.0 + MAX_POINT_OFFSET for v in (x, y, ax, ay))
         or not MIN_POINT_HEIGHT <= z <= MAX_POINT_HEIGHT
+        or (cone is not None and not 0.0 < cone <= MAX_SPOT_CONE)
+        or not 0.0 <= blend <= 1.0
     ):
         raise ConditionError(f"{_EXPECTED_POINT}, got {text!r} (out of range)", where="light")
-    return x + 0.0, y + 0.0, z
+    if cone is None:
+        return PointLight(x + 0.0, y + 0.0, z)
+    return PointLight(x + 0.0, y + 0.0, z, cone, ax + 0.0, ay + 0.0, blend + 0.0)
 
 
 def parse_surface_light(text: object) -> tuple[float, float, float] | tuple[float, float]:
@@ -178,19 +220,23 @@ def parse_surface_light(text: object) -> tuple[float, float, float] | tuple[floa
         raise ConditionError(f"{exc.message}; or {_EXPECTED_POINT.removeprefix('expected ')}", where="light") from None
 
 
-def point_direction(point: tuple[float, float, float], w: int, h: int) -> tuple[float, float]:
+def point_direction(point: tuple[float, ...], w: int, h: int) -> tuple[float, float]:
     """(az, el) in degrees of the direction from the centre of a w × h layer toward the point light ``point``
     (the light a viewer's sphere shows for it; at the centre's zenith, az 0 and el 0)."""
-    x, y, z = point
+    x, y, z = point[:3]
     long_side = float(max(w, h, 1))
     dx, dy = (x - 0.5) * w / long_side, (0.5 - y) * h / long_side
     az = wrap_azimuth(math.degrees(math.atan2(dy, dx))) if (dx or dy) else 0.0
     return az, math.degrees(math.atan2(math.hypot(dx, dy), z))
 
 
-def format_point(x: float, y: float, z: float) -> str:
-    """``x=…,y=…,z=…`` text that `parse_point` reads back to exactly (x, y, z)."""
+def format_point(x: float, y: float, z: float, *spot: float | None) -> str:
+    """``x=…,y=…,z=…`` text that `parse_point` reads back to exactly (x, y, z) — and with a spot's (cone, ax, ay,
+    blend) after them, as a `PointLight` holds them, ``…,cone=…,ax=…,ay=…,blend=…``."""
     text = f"x={_number(float(x))},y={_number(float(y))},z={_number(float(z))}"
+    if spot and spot[0] is not None:
+        cone, ax, ay, blend = (float(v) for v in spot)  # type: ignore[arg-type]
+        text += f",cone={_number(cone)},ax={_number(ax)},ay={_number(ay)},blend={_number(blend)}"
     parse_point(text)
     return text
 

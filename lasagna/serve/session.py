@@ -517,7 +517,8 @@ class EditSession(SessionViews, SessionJobs):
 def _surfaces(doc: Document, tensors: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Each surface layer's light as the page draws its control: the texts, the light's (az, el) in degrees
     (``parse_direction``: a named light resolved; for a point light, the direction it has from the layer's
-    centre) and ``point`` (x, y, z, or None for a directional light), a relight's source light's as ``source``, the
+    centre) and ``point`` (x, y, z, or None for a directional light) with ``spot`` (a spot light's cone, aim
+    [ax, ay] and blend, or None), a relight's source light's as ``source``, the
     ambient term, the relief gain, the light's colour and intensity, its extra lights, and ``rect``, the layer's
     [x, y, width, height] on the canvas (where a point light's fractions are placed)."""
     out = {}
@@ -531,7 +532,10 @@ def _surfaces(doc: Document, tensors: dict[str, Any]) -> dict[str, dict[str, Any
                 "light": layer.light,
                 "az": az,
                 "el": el,
-                "point": None if point is None else list(point),
+                "point": None if point is None else list(point[:3]),
+                "spot": None
+                if point is None or point.cone is None
+                else {"cone": point.cone, "aim": [point.ax, point.ay], "blend": point.blend},
                 "rect": [layer.offset.x, layer.offset.y, w, h],
                 "source_light": layer.source_light,
                 "source": None if layer.source_light is None else list(parse_direction(layer.source_light)),

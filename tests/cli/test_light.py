@@ -171,6 +171,25 @@ def test_a_point_light_lights_each_pixel_from_where_it_stands(folder, capsys):
     np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), want, atol=0.51)
 
 
+def test_a_spot_light_lights_its_cone(folder, capsys):
+    """``--light x=…,cone=…,ax=…,ay=…``: the composite against numpy float64 of the spot's closed form over the map
+    read by pypng; a bad cone is one line, exit 2, the stack unchanged."""
+    from tests.support.lights import spot_reference
+
+    text = "x=0.1,y=0.3,z=0.4,cone=35,ax=0.6,ay=0.5"
+    assert main(["light", str(folder), "--light", text]) == 0
+    assert f"light {text}" in capsys.readouterr().out
+    n = read_normals(folder / "layers" / "shape.png")
+    base = codes(folder / "layers" / "base.png").transpose(2, 0, 1) / 255.0
+    want = np.clip(base * spot_reference(n, 0.1, 0.3, 0.4, 35.0, 0.6, 0.5, 0.15)[None], 0, 1) * 255
+    np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), want, atol=0.51)
+    before = (folder / "stack.json").read_bytes()
+    assert main(["light", str(folder), "--light", "x=0.1,y=0.3,z=0.4,cone=120"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "cone=120" in err and "out of range" in err
+    assert (folder / "stack.json").read_bytes() == before
+
+
 def test_an_edit_toward_a_point_light_says_where_a_point_light_goes(tmp_path, capsys):
     """A learned edit's condition is a direction (its prior was trained on directions): a point light there is
     refused in one line, exit 2, saying that a point light is a surface layer's light, set after the edit."""

@@ -384,3 +384,56 @@ def test_a_point_light_is_finite_bounded_and_its_closed_form(x, y, z, h, w, seed
     ref = 0.25 + 0.75 * (z / r) ** 2 * np.maximum(0.0, (n[0] * d / r).sum(0))
     assert np.isfinite(got).all() and got.min() >= 0.25 - 1e-12 and got.max() <= 1.0 + 1e-12
     np.testing.assert_allclose(got[0, 0], ref, rtol=1e-12, atol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    x=st.floats(-2.0, 3.0),
+    y=st.floats(-2.0, 3.0),
+    z=st.floats(1e-2, 8.0),
+    cone=st.floats(0.5, 90.0),
+    ax=st.floats(-2.0, 3.0),
+    ay=st.floats(-2.0, 3.0),
+    blend=st.sampled_from([0.0, 0.15, 1.0]) | st.floats(0.01, 1.0),
+    seed=st.integers(0, 2**16),
+)
+def test_a_spot_light_is_the_point_light_times_blenders_spot_mask(x, y, z, cone, ax, ay, blend, seed):
+    """Any spot `parse_point` accepts renders numpy float64 of its closed form (`spot_reference`), finite and in
+    [a, 1]; no brighter anywhere than the same point light without a cone."""
+    from lasagna.compose.surface import point_lambert
+    from lasagna.document.condition import PointLight
+    from tests.support.lights import spot_reference
+
+    n = random_normals(np.random.default_rng(seed), b=1, h=7, w=5)
+    spot = PointLight(x, y, z, cone, ax, ay, blend)
+    got = point_lambert(torch.from_numpy(n), spot).numpy()
+    ref = spot_reference(n[0], x, y, z, cone, ax, ay, blend)
+    if blend == 0:  # a hard edge: a ray on the cone's edge to the last bits may fall either side
+        close = np.isclose(got[0, 0], ref, rtol=0, atol=1e-12)
+        assert close.mean() > 0.9
+    else:
+        np.testing.assert_allclose(got[0, 0], ref, rtol=1e-9, atol=1e-12)
+    assert np.isfinite(got).all() and got.min() >= 0.25 - 1e-12 and got.max() <= 1.0 + 1e-12
+    assert (got <= point_lambert(torch.from_numpy(n), (x, y, z)).numpy() + 1e-12).all()
+
+
+def test_a_spot_aimed_straight_down_lights_a_disc_of_its_cone():
+    """A hard-edged spot (blend 0) straight down over a flat map lights exactly the pixels within z·tan C of the
+    point beneath it, as a point light does there, and leaves the rest at the ambient; an aim to one side moves the
+    lit patch that way."""
+    from lasagna.compose.surface import point_lambert
+    from lasagna.document.condition import PointLight
+
+    flat = torch.zeros(1, 3, 41, 41, dtype=torch.float64)
+    flat[:, 2] = 1
+    got = point_lambert(flat, PointLight(0.5, 0.5, 0.25, 30.0, 0.5, 0.5, 0.0))[0, 0].numpy()
+    jj, ii = np.meshgrid(np.arange(41), np.arange(41))
+    rho = np.hypot((jj + 0.5) / 41 - 0.5, (ii + 0.5) / 41 - 0.5)
+    inside = rho < 0.25 * np.tan(np.radians(30.0)) - 1e-9
+    outside = rho > 0.25 * np.tan(np.radians(30.0)) + 1e-9
+    point = point_lambert(flat, (0.5, 0.5, 0.25))[0, 0].numpy()
+    np.testing.assert_allclose(got[inside], point[inside], rtol=0, atol=1e-12)
+    assert (got[outside] == 0.25).all() and inside.sum() > 50
+    right = point_lambert(flat, PointLight(0.5, 0.5, 0.25, 30.0, 0.8, 0.5, 0.0))[0, 0].numpy()
+    lit = np.argwhere(right > 0.25)
+    assert lit[:, 1].mean() > 25 and np.isclose(lit[:, 0].mean(), 20, atol=0.5)

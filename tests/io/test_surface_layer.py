@@ -399,6 +399,13 @@ def test_a_point_light_over_a_flat_map_falls_off_as_a_point_source():
         "x=0,y=0,z=100",
         "x=0.5,y=0.5,z=1e-300",  # beneath it, z² would underflow: 0/0
         "x=0,y=0,z=1,az=3",
+        "x=0,y=0,z=1,ax=0.5,ay=0.5",  # an aim without a cone
+        "x=0,y=0,z=1,cone=0",
+        "x=0,y=0,z=1,cone=91",
+        "x=0,y=0,z=1,cone=30,ax=0.5",
+        "x=0,y=0,z=1,cone=30,blend=1.5",
+        "x=0,y=0,z=1,cone=30,ax=40,ay=0",
+        "x=0,y=0,z=1,cone=30,cone=40",
     ],
 )
 def test_a_bad_point_light_is_refused_by_the_model(text):
@@ -406,6 +413,26 @@ def test_a_bad_point_light_is_refused_by_the_model(text):
     doc["layers"][1]["light"] = text
     with pytest.raises(DocumentError, match=r"layers\[1\]\.light: .*point light 'x=X,y=Y,z=Z'"):
         Document.from_dict(doc)
+
+
+def test_a_spot_light_renders_round_trips_and_flattens(stack, tmp_path):
+    """``light`` with a cone renders numpy float64 of the spot's closed form (tests/compose/test_surface.py) from
+    the map read by pypng; stack.json keeps the text and the schema accepts it; the ORA and the PSD flatten to it."""
+    from tests.support.lights import spot_reference
+
+    stack.save(tmp_path / "s")
+    n = read_normals(tmp_path / "s" / "layers" / "shape.png")
+    base = stack.tensors["base"].color.double().numpy()
+    text = "x=0.2,y=0.3,z=0.4,cone=25,ax=0.6,ay=0.7,blend=0.3"
+    stack.set_light("shape", text)
+    ref = np.clip(base * spot_reference(n, 0.2, 0.3, 0.4, 25.0, 0.6, 0.7, 0.3)[None], 0, 1)
+    np.testing.assert_allclose(stack.render().image.double().numpy(), ref, atol=2e-6)
+    stack.save(tmp_path / "t")
+    doc = json.loads((tmp_path / "t" / "stack.json").read_text())
+    assert doc["layers"][1]["light"] == text
+    jsonschema.validate(doc, ROOT_SCHEMA)
+    assert torch.equal(load_stack(tmp_path / "t").render().image, stack.render().image)
+    assert_files_flatten(stack, tmp_path / "u")
 
 
 def test_a_point_light_is_a_surface_layers_only():

@@ -577,6 +577,64 @@ def test_a_point_light_is_placed_by_dragging_on_the_image(browser, surface_serve
     assert page.errors == []
 
 
+def test_a_spot_light_is_aimed_by_shift_dragging_and_its_cone_set_by_sliders(browser, surface_server):
+    """With a point light, "Spot" gives it a cone aimed at the point beneath it (one step); the Cone slider sets the
+    half-angle (one step on release); a shift-drag moves the aim alone, a plain drag moves the light and the aim
+    together; the aim is marked on the canvas; the saved stack renders what the page shows; unchecking drops the
+    cone."""
+    folder = surface_server.session.folder
+    page = open_page(browser, surface_server)
+    row(page, "shape").locator(".name").click()
+    page.wait_for_selector("#point-light")
+    v = version(page)
+    page.check("#point-light")
+    settle(page, v + 1)
+    page.check("#spot-light")
+    settle(page, v + 2)
+    lit = page.evaluate("window.lasagna.state.surfaces.shape")
+    x, y, _ = lit["point"]
+    assert lit["spot"] == {"cone": 30.0, "aim": [x, y], "blend": 0.15}
+    assert page.is_visible("#aim-marker")
+    save_and_check(page, folder)
+    slide(page, "spot-cone", ["40", "50"], release=True)
+    settle(page, v + 3)
+    assert page.evaluate("window.lasagna.state.surfaces.shape.spot.cone") == 50.0
+
+    def at(fx: float, fy: float) -> tuple[float, float]:
+        box = page.locator("#canvas").bounding_box()
+        ui = page.evaluate("({x: window.lasagna.panX, y: window.lasagna.panY, z: window.lasagna.zoom})")
+        lx, ly, w, h = lit["rect"]
+        return box["x"] + ui["x"] + (lx + fx * w) * ui["z"], box["y"] + ui["y"] + (ly + fy * h) * ui["z"]
+
+    page.keyboard.down("Shift")
+    page.mouse.move(*at(0.5, 0.5))
+    page.mouse.down()
+    page.mouse.move(*at(0.7, 0.3), steps=5)
+    page.mouse.up()
+    page.keyboard.up("Shift")
+    settle(page, v + 4)
+    lit = page.evaluate("window.lasagna.state.surfaces.shape")
+    assert np.allclose(lit["point"][:2], [x, y], atol=1e-3)  # the light stayed
+    assert np.allclose(lit["spot"]["aim"], [0.7, 0.3], atol=0.05)
+    save_and_check(page, folder)
+    aim = lit["spot"]["aim"]
+    page.mouse.move(*at(0.5, 0.5))
+    page.mouse.down()
+    page.mouse.move(*at(0.4, 0.6), steps=5)
+    page.mouse.up()
+    settle(page, v + 5)
+    lit = page.evaluate("window.lasagna.state.surfaces.shape")
+    moved = np.subtract(lit["point"][:2], [x, y])
+    assert np.allclose(moved, [-0.1 + 0.5 - x, 0.1 + 0.5 - y], atol=0.05)  # the light went where it was dropped
+    assert np.allclose(np.subtract(lit["spot"]["aim"], aim), moved, atol=2e-3)  # and the aim with it
+    save_and_check(page, folder)
+    page.uncheck("#spot-light")
+    settle(page, v + 6)
+    assert page.evaluate("window.lasagna.state.surfaces.shape.spot") is None
+    assert not page.is_visible("#aim-marker")
+    assert page.errors == []
+
+
 def test_the_intensity_slider_previews_live_and_commits_one_step(browser, surface_server):
     """A surface layer's "Intensity" slider (log scale, ×1/4…×8): dragging repaints the view live (nothing changes on
     the server), the release commits one step that sets the intensity and keeps the light; a stronger light

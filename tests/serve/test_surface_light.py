@@ -94,6 +94,7 @@ def test_state_gives_each_surface_layers_light(client):
             "az": az,
             "el": el,
             "point": None,
+            "spot": None,
             "rect": [8, 8, 40, 32],  # the layer's offset and size on the canvas: where a point light's fractions lie
             "source_light": None,
             "source": None,
@@ -142,6 +143,7 @@ def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
         "az": 0.0,
         "el": el,
         "point": None,
+        "spot": None,
         "rect": [8, 8, 40, 32],
         "source_light": "left",
         "source": [180.0, el],
@@ -407,6 +409,25 @@ def test_a_point_light_previews_commits_and_saves_bit_for_bit(client, folder):
     ok(post(client, op="save"))
     fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
     assert np.array_equal(previews[0][..., :3], fresh)
+
+
+def test_a_spot_light_previews_commits_and_saves_bit_for_bit(client, folder):
+    """A spot light (a point with ``cone``): its preview is the view its change gives, the state gives the point and
+    the spot's cone, aim and softness (a point light's ``spot`` is None), and the saved stack renders the same bits;
+    a spot lights less of the layer than the same point light does."""
+    text = "x=0.3,y=0.4,z=0.3,cone=20,ax=0.6,ay=0.5,blend=0.25"
+    preview = view(client, level=0, light=f"shape:{text}")
+    s = ok(post(client, op="light", id="shape", light=text))
+    lit = s["surfaces"]["shape"]
+    assert lit["point"] == [0.3, 0.4, 0.3] and lit["spot"] == {"cone": 20.0, "aim": [0.6, 0.5], "blend": 0.25}
+    assert np.array_equal(view(client, level=0), preview)
+    assert np.array_equal(preview[..., :3], relit_codes(folder, text))
+    point = relit_codes(folder, "x=0.3,y=0.4,z=0.3").astype(int)
+    assert (preview[..., :3].astype(int) <= point + 1).all() and (preview[..., :3].astype(int) < point).any()
+    ok(post(client, op="save"))
+    fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
+    assert np.array_equal(preview[..., :3], fresh)
+    assert ok(post(client, op="light", id="shape", light="x=0.3,y=0.4,z=0.3"))["surfaces"]["shape"]["spot"] is None
 
 
 def test_the_intensity_preview_is_the_change_bit_for_bit(client, folder):

@@ -500,10 +500,22 @@ function extraLightsControl(layer, lit) {
 // point one unit from the layer's centre along the current direction (and back into that direction); while it is
 // on, dragging on the canvas moves the point (a preview per frame, one change on release, as the sphere does) and
 // the Height slider (log scale) raises or lowers it. The point is drawn on the canvas as a ring.
+// "Spot" gives the point a cone (…,cone=C,ax=…,ay=…,blend=B: a spot light aimed at (ax, ay), at first the point
+// beneath it): the Cone and Softness sliders set C and B; a drag moves the light and its aim together, a
+// shift-drag moves the aim alone (drawn as a cross).
 
-function pointText(x, y, z) {
+const SPOT_START = { cone: 30, blend: 0.15 };  // a new spot's cone half-angle (degrees) and softness
+
+function pointText(x, y, z, spot) {
   const r = (v) => String(Math.round(v * 1000) / 1000);
-  return `x=${r(x)},y=${r(y)},z=${r(z)}`;
+  const text = `x=${r(x)},y=${r(y)},z=${r(z)}`;
+  if (!spot) return text;
+  return `${text},cone=${r(spot.cone)},ax=${r(spot.aim[0])},ay=${r(spot.aim[1])},blend=${r(spot.blend)}`;
+}
+
+function placedText() {  // the placed light's text, as ui.placing holds it now
+  const [x, y, z] = ui.placing.point;
+  return pointText(x, y, z, ui.placing.spot);
 }
 
 function pointFromDirection(az, el, rect) {
@@ -522,7 +534,7 @@ function pointControl(layer, lit) {
   });
   box.append(field("Point light", on));
   if (lit.point === null) return box;
-  ui.placing = { id: layer.id, rect: lit.rect, point: lit.point.slice() };
+  ui.placing = { id: layer.id, rect: lit.rect, point: lit.point.slice(), spot: copySpot(lit.spot) };
   const height = document.createElement("input");
   height.type = "range"; height.id = "light-height"; height.min = "-4"; height.max = "3"; height.step = "0.05";
   height.value = String(Math.log2(lit.point[2]));
@@ -531,22 +543,75 @@ function pointControl(layer, lit) {
   heightValue.textContent = lit.point[2].toFixed(3);
   const z = () => Math.round(2 ** parseFloat(height.value) * 1000) / 1000;
   height.addEventListener("input", () => {
-    ui.light = { id: layer.id, text: pointText(lit.point[0], lit.point[1], z()), source: false };
+    ui.placing.point[2] = z();
+    ui.light = { id: layer.id, text: placedText(), source: false };
     heightValue.textContent = z().toFixed(3);
     paint();
   });
   height.addEventListener("change", async () => {
-    await change({ op: "light", id: layer.id, light: pointText(lit.point[0], lit.point[1], z()) });
+    ui.placing.point[2] = z();
+    await change({ op: "light", id: layer.id, light: placedText() });
     ui.light = null;
     paint();
   });
   const f = field("Height", height);
   f.append(" ", heightValue);
   box.append(f);
+  box.append(spotControl(layer, lit));
   const hint = document.createElement("div");
   hint.className = "hint";
-  hint.textContent = "drag on the image to move the light";
+  hint.textContent = lit.spot
+    ? "drag on the image to move the light; shift-drag to aim it"
+    : "drag on the image to move the light";
   box.append(hint);
+  return box;
+}
+
+function copySpot(spot) {
+  return spot ? { cone: spot.cone, aim: spot.aim.slice(), blend: spot.blend } : null;
+}
+
+// A point light's cone: the Spot box, and while it is on the Cone (half-angle, 1–90°) and Softness sliders, each
+// a preview while dragged and one change on release.
+function spotControl(layer, lit) {
+  const box = document.createElement("div");
+  const on = document.createElement("input");
+  on.type = "checkbox"; on.id = "spot-light"; on.checked = lit.spot !== null;
+  on.addEventListener("change", async () => {
+    const [x, y, z] = lit.point;
+    const spot = on.checked ? { ...SPOT_START, aim: [x, y] } : null;
+    await change({ op: "light", id: layer.id, light: pointText(x, y, z, spot) });
+    paint();
+  });
+  box.append(field("Spot", on));
+  if (lit.spot === null) return box;
+  const slider = (id, label, min, max, step, key) => {
+    const input = document.createElement("input");
+    input.type = "range"; input.id = id; input.min = min; input.max = max; input.step = step;
+    input.value = String(lit.spot[key]);
+    const shown = document.createElement("span");
+    shown.id = `${id}-value`; shown.textContent = String(lit.spot[key]);
+    const set = () => {
+      ui.placing.spot[key] = parseFloat(input.value);
+      shown.textContent = input.value;
+    };
+    input.addEventListener("input", () => {
+      set();
+      ui.light = { id: layer.id, text: placedText(), source: false };
+      paint();
+    });
+    input.addEventListener("change", async () => {
+      set();
+      await change({ op: "light", id: layer.id, light: placedText() });
+      ui.light = null;
+      paint();
+    });
+    const f = field(label, input);
+    f.append(" ", shown);
+    box.append(f);
+  };
+  slider("spot-cone", "Cone", "1", "90", "1", "cone");
+  slider("spot-blend", "Softness", "0", "1", "0.05", "blend");
   return box;
 }
 
@@ -558,13 +623,21 @@ function canvasToPoint(e) {
 }
 
 function wirePlacing(canvas) {
-  let dragging = false, frame = 0, at = null;
+  let dragging = false, frame = 0, at = null, aiming = false;
   const clampPoint = ([x, y]) => [Math.min(17, Math.max(-16, x)), Math.min(17, Math.max(-16, y))];
   const step = () => {
     frame = 0;
-    const [x, y] = clampPoint(canvasToPoint(at));
-    ui.placing.point = [x, y, ui.placing.point[2]];
-    ui.light = { id: ui.placing.id, text: pointText(x, y, ui.placing.point[2]), source: false };
+    const [x, y] = clampPoint(canvasToPoint(at)), spot = ui.placing.spot;
+    if (aiming) {
+      spot.aim = [x, y];
+    } else {
+      if (spot) {  // the aim moves with the light (clamped, as the light is)
+        const [px, py] = ui.placing.point;
+        spot.aim = clampPoint([spot.aim[0] + x - px, spot.aim[1] + y - py]);
+      }
+      ui.placing.point = [x, y, ui.placing.point[2]];
+    }
+    ui.light = { id: ui.placing.id, text: placedText(), source: false };
     paint();
   };
   canvas.addEventListener("pointerdown", (e) => {
@@ -572,6 +645,7 @@ function wirePlacing(canvas) {
     e.preventDefault(); e.stopPropagation();
     canvas.setPointerCapture(e.pointerId);
     dragging = true; at = e;
+    aiming = e.shiftKey && ui.placing.spot !== null;
     frame = requestAnimationFrame(step);
   });
   canvas.addEventListener("pointermove", (e) => {
@@ -771,14 +845,17 @@ function draw() {
     ctx.fillStyle = "#e0a030"; ctx.fillRect(cut, ui.panY, 1, H * ui.zoom);
   }
   // The point light, where it is over the canvas: a ring above it (not drawn into the canvas's pixels).
-  const marker = $("light-marker");
+  const marker = $("light-marker"), aim = $("aim-marker");
   marker.hidden = !ui.placing;
+  aim.hidden = !(ui.placing && ui.placing.spot);
   canvas.style.cursor = ui.placing ? "crosshair" : "";
-  if (ui.placing) {
-    const [lx, ly, w, h] = ui.placing.rect, [px, py] = ui.placing.point;
-    marker.style.left = `${ui.panX + (lx + px * w) * ui.zoom}px`;
-    marker.style.top = `${ui.panY + (ly + py * h) * ui.zoom}px`;
-  }
+  const place = (el, [px, py]) => {
+    const [lx, ly, w, h] = ui.placing.rect;
+    el.style.left = `${ui.panX + (lx + px * w) * ui.zoom}px`;
+    el.style.top = `${ui.panY + (ly + py * h) * ui.zoom}px`;
+  };
+  if (ui.placing) place(marker, ui.placing.point);
+  if (ui.placing && ui.placing.spot) place(aim, ui.placing.spot.aim);
   ui.paints.count += 1;
   ui.paints.last = performance.now();
   $("zoom-label").textContent = `${Math.round(ui.zoom * 100)}%`;
