@@ -142,9 +142,14 @@ def load_prior(
                 "--negative-prompt (free text needs a text-conditioned diffusers prior)",
                 str(source.folder),
             )
+        import torch
+
         from lasagna.priors.unet import UNetPrior
 
-        return UNetPrior.from_pretrained(source.folder, device=device)
+        prior = UNetPrior.from_pretrained(source.folder, device=device)
+        # Every caller holds the prior frozen (edits, and the generator's and corrective's training): on the CPU,
+        # NHWC is the faster layout for its convolutions.
+        return prior.channels_last() if torch.device(device).type == "cpu" else prior
     if preset is None:
         raise LasagnaError(
             "a diffusers prior needs the preset (its vocabulary and prompt); expected preset=", str(source.folder)

@@ -124,7 +124,7 @@ class Diagnostics:
     ``non_finite``: how many elements of the raw gradient were NaN/±inf (and injected as 0).
     ``clamped``: how many elements the clamp changed. ``components``: the method's named terms,
     scaled like ``grad`` (their sum is the gradient before nan_to_num and clamp), e.g. SDS's
-    {"cond", "proj"} (LMC-SDS eq. 6). ``noise``: the ε draws used, by name.
+    {"cond", "proj"} (LMC-SDS eq. 6; {"guided"} at ω = 1). ``noise``: the ε draws used, by name.
     """
 
     grad: torch.Tensor

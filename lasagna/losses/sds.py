@@ -12,7 +12,9 @@ The Jacobian of the denoiser is omitted (eq. 2 → 3) and ∂z_t/∂z = √ᾱ_t
 so ``grad = components["cond"] + components["proj"]``.
 
 Default weighting: w(t) = 1 − ᾱ_t (DreamFusion's σ_t²); "uniform" and √ᾱ_t(1 − ᾱ_t) are options.
-One batched prior pass per step (cond and uncond branches together).
+One batched prior pass per step (cond and uncond branches together). At ω = 1 the unconditional branch cancels
+(ε̂¹ = ε_c, eq. 5), so the pass is of the conditional branch alone — half the batch, the work a guidance of 1 does
+not need — and ``components`` holds the one term ``"guided"`` = w(t)(ε_c − ε) (the same gradient, to rounding).
 """
 
 from __future__ import annotations
@@ -40,5 +42,8 @@ class SDS(ScoreLoss):
     ) -> Terms:
         eps = randn(tuple(z.shape), rng, z.device, z.dtype)
         z_t = prior.schedule.add_noise(z, eps, t)
+        if omega == 1.0:  # ω(ε_c − ε_u) + (ε_u − ε) = ε_c − ε: no unconditional pass
+            (e_c,) = prior.predict_many([(z_t, "cond")], t, cond)
+            return Terms(components={"guided": e_c.to(z.dtype) - eps}, noise={"eps": eps})
         e_c, e_u = (e.to(z.dtype) for e in prior.predict_many([(z_t, "cond"), (z_t, "uncond")], t, cond))
         return Terms(components={"cond": omega * (e_c - e_u), "proj": e_u - eps}, noise={"eps": eps})

@@ -44,6 +44,39 @@ def test_gradient_is_cond_plus_proj_against_numpy(weighting, explicit_uncond, ga
     assert torch.equal(d.grad, d.components["cond"] + d.components["proj"])
 
 
+@pytest.mark.parametrize("explicit_uncond", [True, False])
+def test_guidance_one_is_one_conditional_pass_of_the_same_gradient(explicit_uncond, gauss_params, prior_u, prior_mix):
+    """At ω = 1 the gradient is w(t)(ε_c − ε) against numpy float64 (the unconditional branch cancels in eq. 6),
+    from one prior call of the conditional branch alone (half the batch of the ω ≠ 1 call); it equals the
+    two-branch formula to rounding."""
+    prior = prior_u if explicit_uncond else prior_mix
+    labels = ["a", "b", "b", "a"]
+    image = torch.rand(4, *SHAPE, generator=torch.Generator().manual_seed(2))
+    calls = []
+    real = prior.predict_many
+
+    def spy(queries, t, cond):
+        calls.append([br for _, br in queries])
+        return real(queries, t, cond)
+
+    prior.predict_many = spy
+    try:
+        d = SDS()(image, prior, Condition(labels), 1.0, rng=torch.Generator().manual_seed(3)).diagnostics
+        two = SDS()(image, prior, Condition(labels), 1.0 + 1e-12, rng=torch.Generator().manual_seed(3)).diagnostics
+    finally:
+        del prior.predict_many
+    assert calls == [["cond"], ["cond", "uncond"]]
+    t, eps = d.t.numpy(), d.noise["eps"].double().numpy()
+    ab = ref.alpha_bar()[t]
+    z = 2 * image.double().numpy() - 1
+    z_t = np.sqrt(ab)[:, None, None, None] * z + np.sqrt(1 - ab)[:, None, None, None] * eps
+    e_c = ref.batch_eps(z_t, ab, [components(gauss_params, lab, explicit_uncond) for lab in labels])
+    want = (1 - ab)[:, None, None, None] * (e_c - eps)
+    np.testing.assert_allclose(d.grad.numpy(), want, rtol=1e-4, atol=1e-5)
+    assert set(d.components) == {"guided"} and torch.equal(d.grad, d.components["guided"])
+    torch.testing.assert_close(d.grad, two.grad, rtol=1e-5, atol=1e-6)
+
+
 def test_derivative_wrt_composite(prior_u):
     """d(surrogate)/d(image) = Jᵀ_encode g = 2 g for a pixel prior (encode = 2x − 1), exactly."""
     image = torch.rand(4, *SHAPE, requires_grad=True)

@@ -341,3 +341,24 @@ class TestDirections:
 
         with pytest.raises(ConditionError, match="condition.labels.*az=A,el=E"):
             self._prior().label_tensor(["az=10,el=99"])
+
+
+def test_channels_last_is_the_same_network_to_rounding(tmp_path):
+    """`UNetPrior.channels_last` (NHWC weights and activations, what `load_prior` gives a frozen prior on the CPU)
+    predicts what the NCHW network does to float32 rounding, in the NCHW layout; `load_prior` lays a saved prior
+    out so."""
+    from lasagna.components import PriorSource, load_prior
+
+    prior = randomize(UNetPrior(toy_config()).eval())
+    g = torch.Generator().manual_seed(1)
+    z, image = torch.randn(5, 3, 8, 8, generator=g), torch.rand(5, 3, 8, 8, generator=g)
+    t, label = torch.randint(0, 1000, (5,), generator=g), prior.label_tensor(["left", "top", "right", "left", "top"])
+    with torch.inference_mode():
+        want = prior.raw(z, t, label, image)
+        got = prior.channels_last().raw(z, t, label, image)
+    assert prior.net.inp.weight.is_contiguous(memory_format=torch.channels_last)
+    assert got.is_contiguous() and got.shape == want.shape
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+    prior.save_pretrained(tmp_path / "p")
+    loaded = load_prior(PriorSource(kind="unet", folder=tmp_path / "p"))
+    assert loaded.net.inp.weight.is_contiguous(memory_format=torch.channels_last)
