@@ -189,7 +189,10 @@ def write_world_stacks(
         bar = tqdm(total=count, unit="scene", desc=f"world {split}")
     for first in range(start, start + count, _RENDER_BATCH):
         n = min(_RENDER_BATCH, start + count - first)
-        scene = generate(split, n, seed, resolution, start=first, shadows=shadows, ambient=ambient)
+        # Rendered in float64: float32's relief gradients differ between CPUs' vector maths by up to ~2e-4
+        # (tests/world/test_scene.py), a few 16-bit codes; float64's by ~1e-15, so the files are the same bits on
+        # every machine (the demo renders examples/world itself outside a checkout and must match it).
+        scene = generate(split, n, seed, resolution, start=first, shadows=shadows, ambient=ambient, dtype=torch.float64)
         for i in range(n):
             name = scene_folder_name(split, seed, first + i)
             folders.append(write_scene_stack(out / name, scene, i, task))

@@ -213,7 +213,13 @@ class TestDeterminism:
         same = a.object_index == b.object_index  # silhouettes may differ by a pixel through rounding
         assert same.float().mean() > 0.99
         diff = (a.shading.double() - b.shading)[same]
-        assert diff.abs().max() < 1e-4
+        # float32's bound, from the grooves' relief (the world's least well-conditioned gradient): their phase
+        # a = cos φ·x + sin φ·y + offset (|a| < 12) carries an error of a few ulp(12) ≈ 1e-6, divided by the
+        # groove's width w·P ≥ 0.03 into ξ (≈ 3e-5) and multiplied by the slope's 2π·1.2 into the normal (≈ 2.5e-4);
+        # S = a + (1 − a)·n·l moves by at most 0.75·|Δn| ≈ 2e-4. Which rounding a CPU's vector maths gives varies:
+        # below 1e-4 (this test's old bound) on the AMD EPYC boxes of earlier sessions, 1.09e-4 on an Intel Xeon
+        # (2026-11-27).
+        assert diff.abs().max() < 3e-4
 
     def test_relight_equals_render(self, train):
         again = relight(train, "bottom-left")
