@@ -23,7 +23,8 @@ the server composites the level-1 view; a 512² stack shows at 2×, level 0):
   Relief slider dragged as an opacity slider is (×1…×2), at the drag proxy's level (``intensity_drag_fps``: its
   Intensity slider, the same way); ``point_drag_fps``: the light
   made a point light ("Point light") and dragged round a circle on the image the same way (each preview lights every
-  pixel along its own vector to the point), at the drag proxy's level.
+  pixel along its own vector to the point), at the drag proxy's level; ``spot_drag_fps``: that point given a cone
+  ("Spot"), dragged the same way.
 
 The baseline in the same run is what a server without the cache and the view levels would do per click:
 ``render_stack`` of the whole stack at full size (``baseline_render_ms``, median of 3), before any transfer
@@ -252,11 +253,18 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
         cx, cy, r = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2, 0.25 * min(box["width"], box["height"])
         drag(0.5, "canvas")
         point_fps, _ = drag(seconds, "canvas")
+        # The same point given a cone ("Spot": one change), dragged the same way: light and aim move together.
+        v = page.evaluate("window.lasagna.state.version")
+        page.check("#spot-light")
+        page.wait_for_function(f"window.lasagna.state.version > {v} && window.lasagna.settled()")
+        drag(0.5, "canvas")
+        spot_fps, _ = drag(seconds, "canvas")
         level = page.evaluate(
             "(() => { const z = window.lasagna.zoom; return z >= 1 ? 0 : Math.floor(Math.log2(1 / z)); })()"
         )
         return {
             "point_drag_fps": round(point_fps, 1),
+            "spot_drag_fps": round(spot_fps, 1),
             "light_drag_fps": round(fps, 1),
             "light_drag_input_hz": round(input_hz, 1),
             "light_drag_full_fps": round(full_fps, 1),
@@ -365,6 +373,7 @@ def main() -> None:
         "relief_drag_fps",
         "intensity_drag_fps",
         "point_drag_fps",
+        "spot_drag_fps",
     ]
     print_json_line(
         {

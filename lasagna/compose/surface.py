@@ -65,30 +65,20 @@ def lambert(normals: Tensor, light: Tensor, ambient: float = AMBIENT) -> Tensor:
     return ambient + (1.0 - ambient) * ndotl.clamp_min(0.0)
 
 
-def point_light_field(
+def point_offsets(
     point: tuple[float, ...], h: int, w: int, *, dtype: torch.dtype = torch.float32, device=None
 ) -> tuple[Tensor, Tensor]:
-    """The unit light (1, 3, h, w) each pixel of an h × w map sees from the point light ``point`` (a
-    `lasagna.document.condition.PointLight`, or (x, y, z)), and its falloff (1, 1, h, w): (z/|d|)², times a spot
-    light's cone (`spot_cone`) — the module docstring's closed forms, computed in float64."""
-    x, y, z = (float(c) for c in point[:3])
+    """The vector from each pixel of an h × w map to the point light ``point`` (a
+    `lasagna.document.condition.PointLight`, or (x, y, z)), in units of the map's longer side, y up, by its
+    separable parts: dx (1, 1, 1, w) per column and dy (1, 1, h, 1) per row (d_z is the light's z everywhere) —
+    the module docstring's closed form, the offsets computed in float64 and rounded once to ``dtype``."""
+    x, y = float(point[0]), float(point[1])
     long_side = float(max(h, w))
     u = (torch.arange(w, dtype=torch.float64, device=device) + 0.5) / w
     v = (torch.arange(h, dtype=torch.float64, device=device) + 0.5) / h
-    dx = ((x - u) * (w / long_side)).view(1, w).expand(h, w)
-    dy = ((v - y) * (h / long_side)).view(h, 1).expand(h, w)
-    dz = torch.full((h, w), z, dtype=torch.float64, device=device)
-    d2 = dx * dx + dy * dy + dz * dz
-    light = torch.stack([dx, dy, dz]) / d2.sqrt()
-    falloff = z * z / d2
-    spot = PointLight(*point) if len(point) > 3 else None
-    if spot is not None and spot.cone is not None:
-        # The axis from the light toward its aim point (ax, ay, 0), as the pixels' d is: from the plane up to it.
-        aim = torch.tensor(
-            [(x - spot.ax) * w / long_side, (spot.ay - y) * h / long_side, z], dtype=torch.float64, device=device
-        )
-        falloff = falloff * spot_cone((light * (aim / aim.norm()).view(3, 1, 1)).sum(0), spot.cone, spot.blend)
-    return light[None].to(dtype), falloff[None, None].to(dtype)
+    dx = ((x - u) * (w / long_side)).view(1, 1, 1, w)
+    dy = ((v - y) * (h / long_side)).view(1, 1, h, 1)
+    return dx.to(dtype), dy.to(dtype)
 
 
 def spot_cone(cos_angle: Tensor, cone: float, blend: float) -> Tensor:
@@ -104,12 +94,27 @@ def spot_cone(cos_angle: Tensor, cone: float, blend: float) -> Tensor:
 
 def point_lambert(normals: Tensor, point: tuple[float, ...], ambient: float = AMBIENT) -> Tensor:
     """Shading a + (1 − a)·(z/|d|)²·m·max(0, n·l) of unit ``normals`` (B, 3, H, W) under the point light ``point``
-    (the module docstring; m a spot light's cone, else 1): (B, 1, H, W). Per pixel and per component, like
-    `lambert`, so batch-independent."""
+    (the module docstring; l = d/|d|, m a spot light's cone, else 1): (B, 1, H, W), in the normals' dtype. Per
+    pixel and per component, like `lambert`, so batch-independent; the light's field is never built as an image
+    (its offsets are separable: a row and a column), which keeps a point light's drag in the editor as cheap as a
+    direction's."""
     check_ambient(ambient)
-    light, falloff = point_light_field(point, *normals.shape[-2:], dtype=normals.dtype, device=normals.device)
-    ndotl = normals[:, 0:1] * light[:, 0:1] + normals[:, 1:2] * light[:, 1:2] + normals[:, 2:3] * light[:, 2:3]
-    return ambient + (1.0 - ambient) * falloff * ndotl.clamp_min(0.0)
+    h, w = normals.shape[-2:]
+    dx, dy = point_offsets(point, h, w, dtype=normals.dtype, device=normals.device)
+    z = float(point[2])
+    d2 = dx * dx + dy * dy + z * z  # (1, 1, h, w)
+    inv = d2.rsqrt()
+    cos = (normals[:, 0:1] * dx + normals[:, 1:2] * dy + normals[:, 2:3] * z) * inv
+    gain = (z * z) / d2
+    spot = PointLight(*point) if len(point) > 3 else None
+    if spot is not None and spot.cone is not None:
+        # The axis from the light toward its aim point (ax, ay, 0), as the pixels' d is: from the plane up to it.
+        long_side = float(max(h, w))
+        axis = ((float(point[0]) - spot.ax) * w / long_side, (spot.ay - float(point[1])) * h / long_side, z)
+        norm = math.sqrt(sum(c * c for c in axis))
+        ax, ay, az = (c / norm for c in axis)
+        gain = gain * spot_cone((dx * ax + dy * ay + z * az) * inv, spot.cone, spot.blend)
+    return ambient + (1.0 - ambient) * gain * cos.clamp_min(0.0)
 
 
 def relight_ratio(normals: Tensor, target: Tensor, source: Tensor, ambient: float = AMBIENT) -> Tensor:
