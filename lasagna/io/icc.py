@@ -28,10 +28,8 @@ import zlib
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from lasagna.atomic import open_regular
-from lasagna.compose.color import linear_to_srgb
 
 # The rendering intent of a tagged image's conversion to sRGB: perceptual, what viewers and Photoshop's "convert to
 # profile" use, so colours outside sRGB are compressed, not clipped where a profile has a table for it.
@@ -202,6 +200,12 @@ def matrix_shaper_to_srgb(color: np.ndarray, icc: bytes) -> np.ndarray:
     curves = (b"rTRC", b"gTRC", b"bTRC")
     linear = np.stack([_tone_curve(tags[t], color[i].astype(np.float64)) for i, t in enumerate(curves)])
     out = np.einsum("ij,jhw->ihw", m, linear).clip(0.0, 1.0)
+    # The one sRGB encoding (lasagna.compose.color), imported here: reading an image's header and refusing it
+    # needs no torch (a refused edit then costs no torch import, ~1.5 s).
+    import torch
+
+    from lasagna.compose.color import linear_to_srgb
+
     return linear_to_srgb(torch.from_numpy(out)).numpy().astype(np.float32)
 
 

@@ -61,6 +61,38 @@ def test_default_follows_omp_num_threads(tmp_path, capsys, keep_threads, monkeyp
     assert torch.get_num_threads() == 1
 
 
+def test_a_fresh_process_gets_its_threads_without_torch_before_the_command(tmp_path):
+    """In a fresh process torch is not imported until the command needs it: ``--threads`` reaches it through
+    ``OMP_NUM_THREADS`` (torch reads it at import), and a refusal before any tensor work (a broken stack.json, an
+    edit of a file that is no image) never imports torch (~1.5 s: `benchmarks/hostile.py`'s bombs' time bound)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, lasagna.cli as c\n"
+        "rc = c.main(sys.argv[1:])\n"
+        "t = sys.modules.get('torch')\n"
+        "print(rc, None if t is None else t.get_num_threads())\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+
+    def composite(folder: Path) -> list[str]:
+        argv = [sys.executable, "-c", code, "composite", str(folder), "--threads", "1"]
+        done = subprocess.run(argv, env=env, capture_output=True, text=True)
+        return done.stdout.splitlines()[-1].split()  # after the command's own output
+
+    assert composite(shutil.copytree(BASIC, tmp_path / "basic")) == ["0", "1"]
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "stack.json").write_text("{")
+    assert composite(bad) == ["2", "None"]
+    eps = tmp_path / "l.eps"
+    eps.write_bytes(b"%!PS-Adobe-3.0 EPSF-3.0\n")  # an edit of what is no image is refused before any tensor
+    argv = [sys.executable, "-c", code, "edit", str(eps), "--condition", "left", "-o", str(tmp_path / "o")]
+    done = subprocess.run(argv, env=env, capture_output=True, text=True)
+    assert done.stdout.split() == ["2", "None"] and "cannot decode" in done.stderr
+
+
 @pytest.mark.parametrize("bad", ["0", "-2", "two"])
 def test_threads_must_be_positive(capsys, bad):
     assert main(["composite", str(BASIC), "--threads", bad]) == 2
