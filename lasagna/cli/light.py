@@ -80,16 +80,9 @@ def run(args: argparse.Namespace) -> int:
     survey = survey_stack(args.stack, composite=True)  # a refusal needs no torch
 
     from lasagna.document import SurfaceLayer
-    from lasagna.export.ora import keep_ora_current
-    from lasagna.io.folder import check_writable, save_in_place, stack_sha256
-    from lasagna.io.stack import load_surveyed
 
     folder = stack_file(args.stack).parent
-    check_writable(folder / "stack.json")
-    check_writable(folder / "composite.png")
-    sha = stack_sha256(folder)
-    stack = load_surveyed(survey)
-    surfaces = [layer for _, layer in stack.document.walk() if isinstance(layer, SurfaceLayer)]
+    surfaces = [layer for _, layer in survey.document.walk() if isinstance(layer, SurfaceLayer)]
     if not surfaces:
         raise LasagnaError("the stack has no surface layer; expected one to re-light", where=str(folder))
     if args.layer is None:
@@ -101,10 +94,7 @@ def run(args: argparse.Namespace) -> int:
             raise LasagnaError(f"no surface layer {args.layer!r}; expected one of {ids}", where="--layer")
         layer = named[0]
     source = ... if args.source is None else (None if args.source.lower() == "none" else args.source)
-    unchanged = dict(stack.tensors)  # the PNGs on disk hold exactly these: none is written again
-    stack.set_light(
-        layer.id,
-        args.light or layer.light,
+    change = dict(
         source_light=source,
         ambient=args.ambient,
         relief=args.relief,
@@ -114,6 +104,19 @@ def run(args: argparse.Namespace) -> int:
         if not (added or args.clear_lights)
         else [*(() if args.clear_lights else layer.extra_lights), *added],
     )
+    # The re-lit layer checked by the document's model now, so a bad light is refused before any tensor is read.
+    survey.document.relit(layer.id, args.light or layer.light, **change)
+
+    from lasagna.export.ora import keep_ora_current
+    from lasagna.io.folder import check_writable, save_in_place, stack_sha256
+    from lasagna.io.stack import load_surveyed
+
+    check_writable(folder / "stack.json")
+    check_writable(folder / "composite.png")
+    sha = stack_sha256(folder)
+    stack = load_surveyed(survey)
+    unchanged = dict(stack.tensors)  # the PNGs on disk hold exactly these: none is written again
+    stack.set_light(layer.id, args.light or layer.light, **change)
     save_in_place(stack, unchanged=unchanged, expect_sha256=sha, extra=keep_ora_current(folder))
     lit = stack.document.layer(layer.id)
     said = [f"light {lit.light}"]

@@ -664,6 +664,41 @@ class Document(StrictModel):
         ``replace_layer("shade", opacity=0.5)``."""
         return self._edit_siblings(id, lambda layers, i: layers.__setitem__(i, {**layers[i], **changes}))
 
+    def relit(
+        self,
+        id: str,
+        light: str,
+        *,
+        source_light: str | None = ...,  # type: ignore[assignment]
+        ambient: float | None = None,
+        relief: float | None = None,
+        light_color: tuple[float, float, float] | None = None,
+        light_intensity: float | None = None,
+        extra_lights: Any = None,
+    ) -> Document:
+        """A copy where the surface layer ``id`` has a new ``light`` (and ``source_light`` — None for plain shading,
+        ``...`` kept — ``ambient``, ``relief``, ``light_color``, ``light_intensity`` and ``extra_lights``, ExtraLight
+        models or their dicts, ``()`` none, when given); every value checked by the layer's model. No pixels change."""
+        layer = self.layer(id)
+        if not isinstance(layer, SurfaceLayer):
+            raise DocumentError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", where="set_light")
+        changes: dict[str, Any] = {"light": light}
+        if source_light is not ...:
+            changes["source_light"] = source_light
+        if ambient is not None:
+            changes["ambient"] = float(ambient)
+        if relief is not None:
+            changes["relief"] = float(relief)
+        if light_color is not None:
+            changes["light_color"] = tuple(float(c) for c in light_color)
+        if light_intensity is not None:
+            changes["light_intensity"] = light_intensity
+        if extra_lights is not None:
+            changes["extra_lights"] = tuple(
+                e.model_dump() if hasattr(e, "model_dump") else dict(e) for e in extra_lights
+            )
+        return self.replace_layer(id, **changes)
+
     def without_layer(self, id: str) -> Document:
         """A copy without layer ``id`` (at any depth, a group with its layers; a learned layer conditioned on
         it makes this an error)."""

@@ -350,25 +350,16 @@ class Stack:
         """Re-light the surface layer ``id``: a new ``light`` (and ``source_light`` / ``ambient`` / ``relief`` /
         ``light_color`` / ``light_intensity`` / ``extra_lights`` when given). No pixels change; the next render
         draws the stored surface under the new light."""
-        layer = self.document.layer(id)
-        if not isinstance(layer, SurfaceLayer):
-            raise DocumentError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", where="set_light")
-        changes: dict[str, Any] = {"light": light}
-        if source_light is not ...:
-            changes["source_light"] = source_light
-        if ambient is not None:
-            changes["ambient"] = float(ambient)
-        if relief is not None:
-            changes["relief"] = float(relief)
-        if light_color is not None:
-            changes["light_color"] = tuple(float(c) for c in light_color)
-        if light_intensity is not None:
-            changes["light_intensity"] = light_intensity
-        if extra_lights is not None:  # ExtraLight models or their dicts; () removes them
-            changes["extra_lights"] = tuple(
-                e.model_dump() if hasattr(e, "model_dump") else dict(e) for e in extra_lights
-            )
-        self.document = self.document.replace_layer(id, **changes)
+        self.document = self.document.relit(
+            id,
+            light,
+            source_light=source_light,
+            ambient=ambient,
+            relief=relief,
+            light_color=light_color,
+            light_intensity=light_intensity,
+            extra_lights=extra_lights,
+        )
         return self
 
     def remove_layer(self, id: str) -> Stack:
