@@ -60,14 +60,16 @@ def run(args: argparse.Namespace) -> int:
     map_path = Path(args.map)
     survey = survey_stack(args.stack, composite=True)  # a refusal needs no torch
 
+    from lasagna.io.normal_map import normal_map_normals
+
+    normals = normal_map_normals(map_path, directx=args.directx)  # refused before the stack is read
+
     from lasagna.document.condition import AMBIENT
     from lasagna.document.types import unique_id
     from lasagna.export.ora import keep_ora_current
     from lasagna.io.folder import check_writable, save_in_place, stack_sha256
-    from lasagna.io.normal_map import normal_map_normals
     from lasagna.io.stack import load_surveyed
 
-    normals = normal_map_normals(map_path, directx=args.directx)  # refused before the stack is read
     folder = stack_file(args.stack).parent
     check_writable(folder / "stack.json")
     check_writable(folder / "composite.png")

@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import torch
-
-from lasagna.compose.surface import decode_normal_map
 from lasagna.errors import ImageError
 from lasagna.io.png import DEFAULT_MAX_PIXELS, PNG_SIGNATURE, decode_png, read_png
+
+if TYPE_CHECKING:
+    import torch
 
 
 def normal_map_normals(
@@ -41,6 +42,11 @@ def normal_map_normals(
     png = read_png(path, max_pixels=max_pixels) if data is None else decode_png(data, where, max_pixels=max_pixels)
     if png.color.shape[0] != 3:
         raise ImageError(f"has {png.color.shape[0]} colour channel(s); expected an RGB normal map", where=where)
+    # torch only now: a file refused above costs no torch import (~1.5 s), as the CLI's other refusals.
+    import torch
+
+    from lasagna.compose.surface import decode_normal_map
+
     rgb = torch.from_numpy(png.color)[None].double()
     return decode_normal_map(rgb, convention="directx" if directx else "opengl")[0].float()
 
