@@ -303,6 +303,13 @@ def run_many(args: argparse.Namespace) -> int:
 FILE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".tif", ".tiff", ".bmp", ".ora", ".psd", ".json")
 
 
+def _stack_folder(image: Path) -> Path | None:
+    """The stack folder an input names (its own ``layers/`` may hold the preset), None for an image."""
+    if image.is_dir():
+        return image
+    return image.parent if image.suffix.lower() == ".json" else None
+
+
 def run_one(args: argparse.Namespace) -> int:
     from lasagna.io.folder import check_output_folder
 
@@ -323,6 +330,10 @@ def run_one(args: argparse.Namespace) -> int:
         survey_stack(image, max_pixels=args.max_pixels)
     elif image.exists():
         check_edit_memory(*probe_image_file(image, max_pixels=args.max_pixels), str(image))
+    if "/" not in args.layer:  # an unknown preset refused before torch (a path: the request's own refusal)
+        from lasagna.catalogue import preset_path
+
+        preset_path(args.layer, _stack_folder(image))
 
     from lasagna.editing import edit
 

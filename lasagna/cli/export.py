@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     if args.layers:
         check_writable(args.layers, folder=True)
     if args.psd:
-        from lasagna.export.psd import require_psd_tools
+        from lasagna.export.psd_tools_api import require_psd_tools
 
         require_psd_tools()  # fail before any work if psd-tools is missing
     # Decoded layers, the canvas, and the encoders' copies of the layers (about one more set): refused

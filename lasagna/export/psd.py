@@ -31,26 +31,11 @@ import torch
 
 from lasagna.atomic import write_output
 from lasagna.compose.render import RenderResult
-from lasagna.document.blend import BLEND_MODES
 from lasagna.errors import ExportError
 from lasagna.export.ora import composite_result
+from lasagna.export.psd_tools_api import psd_blend_modes, require_psd_tools
 from lasagna.export.rasters import ExportGroup, export_layers
 from lasagna.io.render import composite_hwc
-from lasagna.version import install_hint
-
-INSTALL_HINT = install_hint("psd")
-
-
-def require_psd_tools():
-    """(PSDImage, BlendMode) of psd-tools; an ``ExportError`` saying how to install it when it is missing."""
-    try:
-        from psd_tools import PSDImage
-        from psd_tools.constants import BlendMode
-    except ImportError:
-        raise ExportError(
-            f"PSD export needs psd-tools, which is not installed; expected it: {INSTALL_HINT}", where="psd"
-        ) from None
-    return PSDImage, BlendMode
 
 
 def _set_merged_image(psd, merged) -> None:
@@ -97,14 +82,6 @@ def _create_layer(psd, codes: np.ndarray, name: str, **kwargs):
     layer = psd.create_pixel_layer_from_array(codes, name=pascal_name(name), **kwargs)
     layer._record.tagged_blocks.set_data(Tag.UNICODE_LAYER_NAME, name)  # the ``name`` setter refuses > 255
     return layer
-
-
-def psd_blend_modes(BlendMode) -> dict[str, object]:
-    """psd-tools' ``BlendMode`` of every blend: its own name in upper case (``color-dodge`` → ``COLOR_DODGE``,
-    ``linear-dodge`` → ``LINEAR_DODGE``), and plus too is LINEAR_DODGE ("Linear Dodge (Add)"): its partial alpha
-    is baked into its values on export (``lasagna.export.rasters``), on which the two agree. Read back,
-    LINEAR_DODGE is ``linear-dodge`` (the last of the two in this table)."""
-    return {m: BlendMode.LINEAR_DODGE if m == "plus" else BlendMode[m.upper().replace("-", "_")] for m in BLEND_MODES}
 
 
 PSD_DEPTHS = (8, 16)

@@ -55,8 +55,8 @@ import numpy as np
 from lasagna.document.pattern import tile_problem
 from lasagna.document.types import sanitise_name, unique_id
 from lasagna.errors import ExportError, ImageError
-from lasagna.export.psd import INSTALL_HINT, psd_blend_modes
 from lasagna.export.psd_adjust import READERS, descriptor_color, gradient_fill, hue_ranges, pattern_fill
+from lasagna.export.psd_tools_api import INSTALL_HINT, psd_blend_modes
 from lasagna.io.png import DEFAULT_MAX_PIXELS
 from lasagna.limits import MAX_GROUP_DEPTH, check_memory
 

@@ -127,7 +127,7 @@ def test_every_mode_has_its_psd_blend_mode(tmp_path):
     from psd_tools.constants import BlendMode
 
     from lasagna.document.blend import BLEND_MODES
-    from lasagna.export.psd import psd_blend_modes
+    from lasagna.export.psd_tools_api import psd_blend_modes
     from tests.export.test_ora import _every_mode_stack
 
     stack = _every_mode_stack(tmp_path / "s")

@@ -25,8 +25,8 @@ from psd_tools.constants import BlendMode  # noqa: E402
 from lasagna.cli import main  # noqa: E402
 from lasagna.document.blend import BLEND_MODES  # noqa: E402
 from lasagna.errors import ImageError  # noqa: E402
-from lasagna.export.psd import psd_blend_modes  # noqa: E402
 from lasagna.export.psd_import import read_psd  # noqa: E402
+from lasagna.export.psd_tools_api import psd_blend_modes  # noqa: E402
 from lasagna.io.render import render_stack  # noqa: E402
 from lasagna.io.stack import load_stack  # noqa: E402
 from tests.support.bounded import within  # noqa: E402
