@@ -67,6 +67,7 @@ from torch import Tensor, nn
 from tqdm.auto import tqdm
 
 from lasagna.atomic import atomic_write_text
+from lasagna.distill.adam import Adam
 from lasagna.distill.objective import ScoreObjective, build_loss, draw_patches, label_list, prior_image_size
 from lasagna.distill.schedules import cosine_lr
 from lasagna.distill.settings import DistillSettings, EarlyStop, PatchConfig
@@ -219,7 +220,7 @@ def distill_image(
     patchable = h >= size[0] and w >= size[1] and (h, w) != tuple(size)
     whole_steps = round(settings.patches.whole_fraction * settings.steps) if patchable else settings.steps
     model_in = labels if isinstance(model, LayerGenerator) else None
-    opt = torch.optim.Adam(model.parameters(), lr=settings.lr)
+    opt = Adam(model.parameters(), lr=settings.lr)
     rng = torch.Generator().manual_seed(settings.seed)
 
     run, save = _Progress(), None

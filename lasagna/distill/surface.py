@@ -39,6 +39,7 @@ from lasagna.compose.surface import (
     surface_normals,
     surface_range,
 )
+from lasagna.distill.adam import Adam
 from lasagna.distill.objective import ScoreObjective, build_loss, draw_patches, prior_image_size
 from lasagna.distill.schedules import Weights, cosine_lr
 from lasagna.document.condition import AMBIENT, parse_direction
@@ -135,7 +136,7 @@ def distill_surface(
     if refine_source and light is not None:
         light.requires_grad_()
         params.append(light)
-    opt = torch.optim.Adam(params, lr=lr)
+    opt = Adam(params, lr=lr)
     rng = torch.Generator().manual_seed(seed)
     views = base.repeat_interleave(k, dim=0)
     history: list[dict[str, float]] = []
