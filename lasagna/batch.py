@@ -78,7 +78,8 @@ from lasagna.errors import LasagnaError, PathError, printable
 from lasagna.io.folder import SharedFiles, check_writable, swap_in
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 from lasagna.learned import choose_method, layer_input, make_layer
-from lasagna.recipe import EditRequest, amortised_generator
+from lasagna.recipe import amortised_generator
+from lasagna.request import EditRequest
 
 Status = Literal["done", "skipped", "failed"]
 

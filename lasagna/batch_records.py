@@ -33,7 +33,7 @@ from typing import Any
 from lasagna.atomic import open_regular
 from lasagna.document import STACK_FILE
 from lasagna.errors import LasagnaError, PathError
-from lasagna.recipe import EditRequest
+from lasagna.request import EditRequest
 
 # The image files a folder or a glob contributes (``lasagna.io.image`` reads these; nothing else is opened).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff")

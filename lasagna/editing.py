@@ -74,7 +74,8 @@ from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS, check_edit_memory
 from lasagna.io.render import check_depth
 from lasagna.io.stack import Stack, load_stack, resolve_inside
 from lasagna.learned import LayerRun, as_stored, check_device, conditioning_input, make_layer
-from lasagna.recipe import EditRequest, Recipe
+from lasagna.recipe import Recipe
+from lasagna.request import EditRequest
 from lasagna.version import __version__
 
 META_KEY = "lasagna.edit"  # document metadata: per learned layer, the tool version, time, timing
@@ -251,7 +252,7 @@ def edit(
     """Add a learned layer of ``preset`` for ``condition`` on top of ``image`` (module docstring).
 
     ``image``: an image file, a stack folder, a ``Stack``, or a tensor/array/PIL image. The other keywords
-    are ``lasagna.recipe.EditRequest``'s fields (or give ``request``): ``on`` (the layer it is conditioned on,
+    are ``lasagna.request.EditRequest``'s fields (or give ``request``): ``on`` (the layer it is conditioned on,
     default the top layer), ``id``, ``generator`` (``"amortised"``, ``"per-image"`` or ``"free"``; default the
     preset's), ``optimize`` (per-image steps; ``steps`` is its deprecated second name), ``loss``,
     ``guidance``, ``seed``, ``lr``, ``t_min``, ``t_max``, ``aspect``, ``particles`` (over the preset's

@@ -22,7 +22,8 @@ from lasagna.components import LoadedGenerator
 from lasagna.document import LearnedLayer
 from lasagna.errors import ConditionError, LasagnaError
 from lasagna.io.stack import Stack
-from lasagna.recipe import METHODS, LayerSettings, Recipe, canonical_method, choose_method, default_steps
+from lasagna.recipe import METHODS, LayerSettings, Recipe, choose_method, default_steps
+from lasagna.request import canonical_method
 
 STACK_GENERATORS_DIR = "generators"  # <stack>/generators/<layer id>/: copies of the generators a stack uses
 CONTROLS_DIR = "controls"  # <stack>/controls/<layer id>.png: the user's conditioning image of a layer

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -32,38 +32,21 @@ from lasagna import catalogue as cat
 from lasagna.components import PriorSource, changed_weights, file_sha256, files_sha256, listing_sha256
 from lasagna.distill import DistillSettings
 from lasagna.document import LearnedLayer
-from lasagna.document.condition import parse_direction
 from lasagna.document.preset import (
     METHODS,
-    PRESET_LAYER_KINDS,
     ControlNetRef,
     DiffusersOptions,
     Method,
     Preset,
     SurfaceDefaults,
 )
-from lasagna.errors import ConditionError, DocumentError, ImageError, LasagnaError, PathError, describe_validation_error
+from lasagna.errors import DocumentError, ImageError, LasagnaError, PathError, describe_validation_error
 from lasagna.io.image import DEFAULT_EDIT_MAX_PIXELS
 from lasagna.io.stack import Stack, resolve_inside
 from lasagna.limits import MAX_DISTILL_STEPS
-
-PROMPT_LABEL = "prompt"  # the label of a layer asked for by free text alone (it names the prompt, no more)
-
+from lasagna.request import METHOD_ALIASES, EditRequest, canonical_method, check_request, layer_kind
 
 # ---- how a layer is made, as its stack records it ------------------------------------------------
-
-# How a learned layer is made (``lasagna.editing`` describes both; the names are the document tier's,
-# ``lasagna.document.preset.Method``). ``free`` — the CLI's ``--generator free``, "a free per-pixel
-# layer" — names the per-image method and is accepted wherever a method is read.
-METHOD_ALIASES: dict[str, str] = {"free": "per-image"}
-
-
-def canonical_method(name: object, where: str = "generator") -> Method:
-    """The method ``name`` names (``free`` is ``per-image``); a ``LasagnaError`` listing them otherwise."""
-    name = METHOD_ALIASES.get(name, name) if isinstance(name, str) else name
-    if name not in METHODS:
-        raise LasagnaError(f"method is {name!r}; expected one of {', '.join(METHODS)} (or 'free' for per-image)", where)
-    return name  # type: ignore[return-value]
 
 
 class LayerSettings(BaseModel):
@@ -146,111 +129,6 @@ def default_steps(resolved: cat.Resolved, method: Method) -> int:
     return preset.refine_steps if method == "amortised" else preset.distill.steps
 
 
-# ---- what a user asks -----------------------------------------------------------------------------------
-
-
-def check_steps(optimize: Any, steps: Any = None) -> int | None:
-    """The per-image steps asked for by ``optimize`` or its second name ``steps`` (the same number, or one of
-    them), a non-negative integer; None: the default. The one statement of their agreement."""
-    if optimize is not None and steps is not None and optimize != steps:
-        raise LasagnaError(
-            f"optimize {optimize} and steps {steps} differ; expected one of them (they are the same number)", "steps"
-        )
-    n = optimize if optimize is not None else steps
-    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 0):
-        raise LasagnaError(f"expected a non-negative integer, got {n!r}", "optimize")
-    return n
-
-
-def check_preset_name(preset: Any) -> str:
-    """``preset`` if it is a catalogue name; a one-line refusal of a ``Preset`` object or a path."""
-    if preset is not None and not isinstance(preset, (str, os.PathLike)):
-        # A Preset object has no folder: the layer's record could not name it for a later render.
-        raise LasagnaError(
-            f"got a {type(preset).__name__}; expected a catalogue name (write the preset with preset.to_json() "
-            "into <folder>/<name>/preset.json and add <folder> with catalogue_dirs= or LASAGNA_LAYERS)",
-            "preset",
-        )
-    if preset is None or "/" in str(preset) or isinstance(preset, os.PathLike):
-        raise LasagnaError(
-            f"preset {str(preset)!r} is not a name; expected a catalogue name (add a catalogue folder "
-            "with LASAGNA_LAYERS)",
-            "preset",
-        )
-    return preset
-
-
-@dataclass(frozen=True)
-class EditRequest:
-    """The options a user gives for a new learned layer, as given (``Recipe.for_edit`` resolves them): the one
-    request type of ``lasagna.edit``, ``edit_many``, ``lasagna edit`` and the editor's add.
-
-    ``generator``: the method (``amortised``, ``per-image`` or its alias ``free``; default the preset's);
-    ``optimize``: per-image steps (``steps`` is its second name); ``loss``, ``guidance``, ``seed``, ``lr``,
-    ``t_min``, ``t_max``, ``aspect``, ``particles``: over the preset's distillation defaults; ``prior``,
-    ``controlnets``, ``corrective``, ``control_image``, ``diffusers``: a prior of one's own; ``prompt`` and
-    ``negative_prompt``: free text (``lasagna.editing``'s module docstring)."""
-
-    preset: str = "shading"
-    condition: str | None = None
-    on: str | None = None
-    id: str | None = None
-    generator: str | None = None
-    optimize: int | None = None
-    steps: int | None = None
-    loss: str | None = None
-    guidance: float | None = None
-    seed: int | None = None
-    lr: float | None = None
-    t_min: float | None = None
-    t_max: float | None = None
-    aspect: str | None = None
-    particles: int | None = None
-    prior: str | os.PathLike | None = None
-    controlnets: Sequence[str | os.PathLike | tuple[str | os.PathLike, float]] = ()
-    corrective: str | os.PathLike | None = None
-    control_image: Any = None
-    prompt: str | None = None
-    negative_prompt: str | None = None
-    diffusers: DiffusersOptions | dict | None = None
-    layer_kind: str | None = None
-    source_light: str | None = None
-
-    def __post_init__(self) -> None:
-        check_preset_name(self.preset)
-        check_steps(self.optimize, self.steps)
-        if self.generator is not None:
-            canonical_method(self.generator)
-        for text, name in ((self.prompt, "prompt"), (self.negative_prompt, "negative_prompt")):
-            if text is not None and not (isinstance(text, str) and text.strip()):
-                raise ConditionError(f"got {text!r}; expected non-empty text", name)
-        if self.layer_kind is not None and self.layer_kind not in PRESET_LAYER_KINDS:
-            raise LasagnaError(
-                f"got {self.layer_kind!r}; expected one of {', '.join(PRESET_LAYER_KINDS)}", "layer_kind"
-            )
-        if self.source_light is not None:
-            parse_direction(self.source_light)  # ConditionError saying what a light is
-        if self.prior is None and (self.controlnets or self.corrective is not None):
-            raise LasagnaError(
-                "ControlNets and a corrective go with a prior of one's own; expected --prior PATH too", "prior"
-            )
-
-    @property
-    def asked_steps(self) -> int | None:
-        """The per-image steps asked for (``optimize`` or ``steps``), None for the default."""
-        return check_steps(self.optimize, self.steps)
-
-    @property
-    def own_scored(self) -> bool:
-        """Scored per image by something the amortised generator never saw: free text or one's own prior."""
-        return self.prompt is not None or self.prior is not None
-
-    def distill_overrides(self) -> dict[str, Any]:
-        """The ``DistillSettings`` fields given (over the preset's defaults), loss aside."""
-        names = ("guidance", "seed", "lr", "t_min", "t_max", "aspect", "particles")
-        return {k: getattr(self, k) for k in names if getattr(self, k) is not None}
-
-
 # ---- the recipe ------------------------------------------------------------------------------------------
 
 
@@ -309,23 +187,9 @@ class Recipe:
             refs = {"prior": own[0], "corrective": own[2], "controlnets": own[1]} if own else {}
             resolved = cat.resolve(request.preset, stack.folder, catalogue_dirs, need_prior=False, **refs)
         p = resolved.preset
+        label = check_request(request, p)
         if layer_kind(request, p) == "surface":
-            return _surface_recipe(resolved, request)
-        if request.source_light is not None:
-            raise LasagnaError(
-                "a source light is what a surface relight divides by; expected --layer-kind surface", "from"
-            )
-        label = request.condition
-        if label is None:
-            label = PROMPT_LABEL if request.prompt is not None else p.vocabulary[0]
-        if request.prompt is None:
-            p.prompt_for(label)  # ConditionError listing the vocabulary
-        if request.own_scored and request.generator is not None and canonical_method(request.generator) == "amortised":
-            raise LasagnaError(
-                "the amortised generator was trained with the preset's prior and labels; expected --generator free "
-                "with --prior or --prompt",
-                "generator",
-            )
+            return _surface_recipe(resolved, request, label)
         method = choose_method(resolved, "per-image" if request.own_scored else request.generator)
         steps = request.asked_steps
         if method == "per-image" and steps == 0:
@@ -490,37 +354,14 @@ def _made(
     )
 
 
-def layer_kind(request: EditRequest, preset: Preset) -> str:
-    """The layer kind of a new edit: the one asked for; else free when the request names what only a free layer
-    uses (a method — ``--generator`` — a prior of one's own, a prompt); else the preset's ``layer_kind``."""
-    if request.layer_kind is not None:
-        return request.layer_kind
-    if request.generator is not None or request.own_scored:
-        return "free"
-    return preset.layer_kind
-
-
-def _surface_recipe(resolved: cat.Resolved, request: EditRequest) -> Recipe:
-    """The recipe of a surface layer (``kind="surface"``): the preset's estimator at its working size, then
-    ``refine_steps`` multi-light score-distillation steps (``lasagna.distill.surface``) scored by its prior. The
-    condition is any light, named or ``az=…,el=…``: a surface is lit by every light alike."""
+def _surface_recipe(resolved: cat.Resolved, request: EditRequest, label: str) -> Recipe:
+    """The recipe of a surface layer (``kind="surface"``) lit by ``label`` (checked: ``check_request``): the
+    preset's estimator at its working size, then ``refine_steps`` multi-light score-distillation steps
+    (``lasagna.distill.surface``) scored by its prior. The condition is any light, named or ``az=…,el=…``: a
+    surface is lit by every light alike."""
     p = resolved.preset
-    if p.surface is None:
-        raise LasagnaError(
-            f"preset {p.name!r} names no surface estimator; expected a preset with `surface` (e.g. shading, "
-            "relight) or --layer-kind free",
-            "layer_kind",
-        )
     if resolved.estimator is None:
         raise resolved.missing.get("estimator") or LasagnaError(f"preset {p.name!r} names no estimator", "surface")
-    if request.own_scored or request.generator is not None:
-        raise LasagnaError(
-            "a surface layer is made by its estimator and the preset's prior; expected no --generator, --prior or "
-            "--prompt with --layer-kind surface",
-            "layer_kind",
-        )
-    label = request.condition if request.condition is not None else p.vocabulary[0]
-    parse_direction(label)  # ConditionError saying what a light is
     steps = request.asked_steps
     steps = p.surface.refine_steps if steps is None else steps
     distill = None
@@ -767,14 +608,9 @@ def _warn_changed(recipe: Recipe, s: LayerSettings, where: str) -> None:
 
 __all__ = [
     "METHODS",
-    "PROMPT_LABEL",
-    "EditRequest",
     "LayerSettings",
     "Recipe",
     "amortised_generator",
-    "check_preset_name",
-    "canonical_method",
-    "check_steps",
     "choose_method",
     "default_steps",
     "refining",

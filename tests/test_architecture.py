@@ -36,6 +36,7 @@ TIERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     (
         "user API",
         (
+            "lasagna.request",
             "lasagna.learned",
             "lasagna.recipe",
             "lasagna.editing",

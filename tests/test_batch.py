@@ -25,7 +25,7 @@ from lasagna.batch import collect_inputs, edit_many, is_complete, output_names, 
 from lasagna.cli import main
 from lasagna.editing import edit
 from lasagna.errors import LasagnaError, PathError
-from lasagna.recipe import EditRequest
+from lasagna.request import EditRequest
 from tests.support.bounded import HANG_SECONDS
 from tests.support.tinylayers import ROOT
 

@@ -10,7 +10,8 @@ from lasagna.compose.color import luma
 from lasagna.editing import edit
 from lasagna.io.stack import Stack
 from lasagna.learned import layer_input
-from lasagna.recipe import EditRequest, Recipe
+from lasagna.recipe import Recipe
+from lasagna.request import EditRequest
 
 
 def _photo(h: int = 64, w: int = 96) -> np.ndarray:

@@ -222,8 +222,8 @@ def many_inputs(images: list[str]) -> bool:
 
 
 def _request(args: argparse.Namespace):
-    """The ``EditRequest`` of the arguments (``lasagna.recipe``: checked there, as for every caller)."""
-    from lasagna.recipe import EditRequest
+    """The ``EditRequest`` of the arguments (``lasagna.request``: checked there, as for every caller)."""
+    from lasagna.request import EditRequest
 
     return EditRequest(
         preset=args.layer,
@@ -330,10 +330,13 @@ def run_one(args: argparse.Namespace) -> int:
         survey_stack(image, max_pixels=args.max_pixels)
     elif image.exists():
         check_edit_memory(*probe_image_file(image, max_pixels=args.max_pixels), str(image))
-    if "/" not in args.layer:  # an unknown preset refused before torch (a path: the request's own refusal)
-        from lasagna.catalogue import preset_path
+    request = _request(args)
+    if "/" not in args.layer:
+        # The preset and what the request asks of it, checked before torch (a path: the request's own refusal).
+        from lasagna.catalogue import load_preset
+        from lasagna.request import check_request
 
-        preset_path(args.layer, _stack_folder(image))
+        check_request(request, load_preset(args.layer, _stack_folder(image)))
 
     from lasagna.editing import edit
 
@@ -341,7 +344,7 @@ def run_one(args: argparse.Namespace) -> int:
         raise PathError("is the input stack; expected another folder (or --force to replace it)", str(out))
     result = edit(
         args.image,
-        request=_request(args),
+        request=request,
         max_pixels=args.max_pixels,
         device=args.device,
         progress=progress(),

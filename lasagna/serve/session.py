@@ -415,7 +415,7 @@ class EditSession(SessionViews, SessionJobs):
         steps, if any (about a second for ``relight``) — whose light the page then drags."""
         from lasagna.editing import layer_fields, plan_edit
         from lasagna.learned import make_layer
-        from lasagna.recipe import EditRequest
+        from lasagna.request import EditRequest
 
         if not isinstance(preset, str) or not isinstance(condition, str):
             raise LasagnaError("expected a preset name and a condition", "preset")
