@@ -33,6 +33,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # Refusals before the editor's imports (torch among them): a bad port, a stack or image that would not open.
+    if args.port is not None and not 0 < args.port < 65536:
+        raise LasagnaError(f"expected a port in [1, 65535], got {args.port}", "--port")
+    from lasagna.serve import survey_target
+
+    survey_target(args.stack, max_pixels=args.max_pixels)
     try:
         import starlette  # noqa: F401
         import uvicorn
@@ -48,8 +54,6 @@ def run(args: argparse.Namespace) -> int:
 
     tune_heap("server")  # before anything renders (lasagna/heap.py, the two profiles)
 
-    if args.port is not None and not 0 < args.port < 65536:
-        raise LasagnaError(f"expected a port in [1, 65535], got {args.port}", "--port")
     # Bound first: a busy port is one line before anything is made or printed (no URL that does not work).
     sock = bind(args.host, args.port or 0)
     with sock:

@@ -21,11 +21,9 @@ STACK_SUFFIX = ".stack"
 """An image ``photo.jpg`` opened by ``lasagna serve`` becomes the stack folder ``photo.stack/`` beside it."""
 
 
-def open_target(path: str | os.PathLike, *, max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> tuple[Path, bool]:
-    """The stack folder for ``path`` and whether it was made now: a stack folder (or its stack.json) is
-    itself; an image file gets ``<stem>.stack/`` beside it, made with the image as its base layer — or
-    opened again if an earlier ``serve`` made it."""
-    p = Path(path)
+def _target(p: Path) -> tuple[Path, bool]:
+    """(the stack folder ``p`` names, whether it is still to be made from the image ``p``): a stack folder (or its
+    stack.json) is itself; an image file's folder is ``<stem>.stack/`` beside it."""
     if p.is_dir() or p.suffix.lower() == ".json":
         folder = p if p.is_dir() else p.parent
         if not (folder / "stack.json").is_file():
@@ -34,7 +32,30 @@ def open_target(path: str | os.PathLike, *, max_pixels: int = DEFAULT_EDIT_MAX_P
     if not p.is_file():
         raise PathError("does not exist; expected a stack folder or an image file (PNG, JPEG, …)", str(p))
     folder = p.with_name(p.stem + STACK_SUFFIX)
-    if (folder / "stack.json").is_file():
+    return folder, not (folder / "stack.json").is_file()
+
+
+def survey_target(path: str | os.PathLike, *, max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> None:
+    """``open_target``'s and the session's refusals, read-only and without torch (``lasagna serve`` runs it before
+    the editor's imports): no stack and no image there, a stack that would not load (its document, sizes and
+    memory, as ``load_stack`` surveys them), an image that would not decode (its header)."""
+    from lasagna.io.image import probe_image_file
+    from lasagna.io.survey import survey_stack
+
+    folder, make = _target(Path(path))
+    if make:
+        probe_image_file(path, max_pixels=max_pixels)
+    else:
+        survey_stack(folder)
+
+
+def open_target(path: str | os.PathLike, *, max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> tuple[Path, bool]:
+    """The stack folder for ``path`` and whether it was made now: a stack folder (or its stack.json) is
+    itself; an image file gets ``<stem>.stack/`` beside it, made with the image as its base layer — or
+    opened again if an earlier ``serve`` made it."""
+    p = Path(path)
+    folder, make = _target(p)
+    if not make:
         return folder, False
     from lasagna.editing import read_image
     from lasagna.io.folder import write_stack_folder

@@ -65,8 +65,8 @@ def test_a_fresh_process_gets_its_threads_without_torch_before_the_command(tmp_p
     """In a fresh process torch is not imported until the command needs it: ``--threads`` reaches it through
     ``OMP_NUM_THREADS`` (torch reads it at import), and a refusal before any tensor work (a broken stack.json, an
     edit of a file that is no image, of an unknown preset or label, a re-light of a stack without a surface layer, a
-    normal map that is no PNG, a broken PSD) never imports torch (~1.5 s: `benchmarks/hostile.py`'s bombs' time
-    bound)."""
+    normal map that is no PNG, a broken PSD, an editor of a broken stack) never imports torch (~1.5 s:
+    `benchmarks/hostile.py`'s bombs' time bound)."""
     import importlib.util
     import subprocess
     import sys
@@ -108,6 +108,12 @@ def test_a_fresh_process_gets_its_threads_without_torch_before_the_command(tmp_p
     argv = [sys.executable, "-c", code, "edit", str(photo), "--condition", "sideways", "-o", str(tmp_path / "o")]
     done = subprocess.run(argv, env=env, capture_output=True, text=True)
     assert done.stdout.split() == ["2", "None"] and "got 'sideways'" in done.stderr
+    if importlib.util.find_spec("uvicorn") is not None:
+        for target in (bad, photo.with_name("missing.png")):  # a broken stack, no file: before the editor loads
+            done = subprocess.run(
+                [sys.executable, "-c", code, "serve", str(target)], env=env, capture_output=True, text=True
+            )
+            assert done.stdout.split() == ["2", "None"] and done.stderr.count("\n") == 1
     if importlib.util.find_spec("psd_tools") is not None:
         (tmp_path / "broken.psd").write_bytes(b"8BPS")
         argv = [sys.executable, "-c", code, "import-psd", str(tmp_path / "broken.psd"), "-o", str(tmp_path / "p")]
