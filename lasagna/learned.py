@@ -183,10 +183,13 @@ def make_layer(
         start_layer = layer
         run, settings = _optimise(recipe, x, layer, layer_id, files, device, progress, callback)
         layer, history, stopped = run.layer.float(), run.history, run.stopped_reason
+        lo, hi = recipe.distill.layer.range
         if recipe.distill.lock == "planar":
-            lo, hi = recipe.distill.layer.range
             start_layer = torch.ones_like(layer) if start_layer is None else start_layer.to(layer)
             layer = planar_lock(layer, start_layer).clamp(lo, hi)
+        if recipe.distill.objects_only:
+            layer = objects_lock(layer, start_layer.to(layer), _start_objects(recipe, x, device).to(layer))
+            layer = layer.clamp(lo, hi)
     if layer is None:  # unreachable: an amortised run has its forward pass, a per-image run its optimisation
         raise LasagnaError(f"no layer was made (method {recipe.method!r}, steps {recipe.steps})", "make_layer")
     if over_luminance:  # the colour follows the base's edges and carries its luma at full size
@@ -239,6 +242,29 @@ def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
     layer = lambert(normals, target) if source is None else lambert(normals, target) / lambert(normals, source)
     lo, hi = recipe.distill.layer.range
     return layer.clamp(lo, hi)
+
+
+def _start_objects(recipe: Recipe, x: Tensor, device) -> Tensor:
+    """The probability (1, 1, h, w) that each pixel of the working input ``x`` lies on an object: the surface
+    start's estimator's silhouette head, read as the start reads ``x`` (at ``surface.working_size``, its symmetry
+    ensemble), enlarged bilinearly to ``x``'s size."""
+    from lasagna.compose.resample import downsample, upsample, working_size
+    from lasagna.generators.surface import SurfaceEstimator
+
+    net = SurfaceEstimator.from_pretrained(recipe.estimator, device=device)
+    sd = recipe.surface
+    small = downsample(x.float(), working_size(*x.shape[-2:], sd.working_size))
+    return upsample(net.silhouette(small, sd.symmetry), tuple(x.shape[-2:])).clamp(0.0, 1.0)
+
+
+def objects_lock(layer: Tensor, start: Tensor, objects: Tensor) -> Tensor:
+    """``layer`` (N, C, h, w) with its correction to ``start`` kept on the objects only (``distill.objects_only``):
+    start · exp(p · log(layer / start)) = start · (layer / start)^p, p ∈ [0, 1] the silhouette probability (N, 1,
+    h, w), in float64 — a wall (p = 0) keeps the surface start (a flat painted wall stays flat), an object (p = 1)
+    the distilled layer; both floored at ``LOCK_EPS`` before the logarithm, as ``planar_lock``."""
+    s = start.clamp_min(LOCK_EPS).double()
+    r = (layer.clamp_min(LOCK_EPS).double() / s).log()
+    return (s * (objects.double() * r).exp()).to(layer.dtype)
 
 
 # The floor of a layer and its start before their logarithms (``planar_lock``): a multiplier of 0 (black) is
@@ -509,6 +535,7 @@ __all__ = [
     "default_steps",
     "make_layer",
     "layer_input",
+    "objects_lock",
     "planar_lock",
     "working_input",
 ]

@@ -442,10 +442,10 @@ def _scoring(resolved: cat.Resolved, loss: str, options: DiffusersOptions, *, us
 def refining(settings: DistillSettings) -> DistillSettings:
     """Settings for per-image steps after the amortised pass: they start from an edit, not the identity, so
     the L2 pull toward the input that eases a run out of the identity is off (score only), and no lock holds
-    them to a surface start they do not have (``distill.lock``)."""
+    them to a surface start they do not have (``distill.lock``, ``distill.objects_only``)."""
     from lasagna.distill.schedules import Weights
 
-    return settings.model_copy(update={"weights": Weights(), "lock": "none"})
+    return settings.model_copy(update={"weights": Weights(), "lock": "none", "objects_only": False})
 
 
 def _edit_loss(request: EditRequest, preset: Preset) -> str | None:

@@ -155,6 +155,80 @@ def test_a_free_layer_can_start_from_the_surface(tiny, tmp_path_factory):
         Preset.model_validate({**preset, "distill": distill, "surface": None})
 
 
+def test_the_objects_lock_keeps_the_correction_on_the_objects_only():
+    """``objects_lock`` against numpy float64: start · (layer/start)^p (both floored at LOCK_EPS); p = 0 gives the
+    start, p = 1 the layer, and a correction's logarithm scales with p."""
+    import numpy as np
+
+    from lasagna.learned import LOCK_EPS, objects_lock
+
+    g = torch.Generator().manual_seed(5)
+    start = torch.rand(2, 1, 9, 13, generator=g) * 2 + 0.1
+    layer = torch.rand(2, 1, 9, 13, generator=g) * 3
+    layer[1, 0, 2, 3] = 0.0
+    p = torch.rand(2, 1, 9, 13, generator=g)
+    s0 = np.maximum(start.double().numpy(), LOCK_EPS)
+    want = s0 * (np.maximum(layer.double().numpy(), LOCK_EPS) / s0) ** p.double().numpy()
+    np.testing.assert_allclose(objects_lock(layer, start, p).double().numpy(), want, rtol=2e-6, atol=1e-7)
+    torch.testing.assert_close(objects_lock(layer, start, torch.zeros_like(p)), start)
+    torch.testing.assert_close(objects_lock(layer, start, torch.ones_like(p)), layer.clamp_min(LOCK_EPS))
+    half = objects_lock(layer, start, torch.full_like(p, 0.5))
+    torch.testing.assert_close((half / start).log(), 0.5 * (layer.clamp_min(LOCK_EPS) / start).log(), atol=1e-5, rtol=0)
+
+
+def test_a_free_layer_corrects_its_surface_start_on_the_objects_only(tiny, tmp_path_factory, monkeypatch):
+    """``distill.objects_only``: recorded with the layer (left out when false); the layer is the planar-locked one
+    (the same steps and seed) passed through ``objects_lock`` with the estimator's silhouette probability; a
+    re-render from the record makes the same layer; refused without a surface start, dropped after an amortised
+    pass."""
+    import lasagna.compose.resample as resample
+    from lasagna.editing import conditioning_input
+    from lasagna.learned import _start_objects, _surface_start, layer_input, make_layer, objects_lock
+    from lasagna.recipe import Recipe
+
+    small: list[torch.Tensor] = []
+    enlarge = resample.upsample
+
+    def spy(layer, size, *args, **kwargs):  # the layer at the working size, before it is enlarged
+        small.append(layer.detach().clone())
+        return enlarge(layer, size, *args, **kwargs)
+
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("objects") / "layers")
+    preset = json.loads((folder / "shading" / "preset.json").read_text())
+    distill = {**preset["distill"], "steps": 3, "particles": 1, "start": "surface", "lock": "planar"}
+    write_preset(folder, "shading", distill=distill, surface=SURFACE, layer_kind="free")
+    monkeypatch.setattr(resample, "upsample", spy)
+    plain = edit(image(), "shading", "left", catalogue_dirs=[folder])
+    unmixed = small[-1]
+    assert "objects_only" not in plain.stack.document.layer(plain.layer_id).settings["distill"]
+    write_preset(folder, "shading", distill={**distill, "objects_only": True}, surface=SURFACE, layer_kind="free")
+    res = edit(image(), "shading", "left", catalogue_dirs=[folder])
+    layer = res.stack.document.layer(res.layer_id)
+    assert layer.settings["distill"]["objects_only"] is True
+    monkeypatch.setattr(resample, "upsample", enlarge)
+    recipe = Recipe.from_layer(res.stack, layer, catalogue_dirs=[folder])
+    x = layer_input(recipe, conditioning_input(res.stack, layer.conditioned_on), "cpu")
+    start, objects = _surface_start(recipe, x, "cpu"), _start_objects(recipe, x, "cpu")
+    assert 0.0 < float(objects.min()) < float(objects.max()) < 1.0  # a probability that varies: a real mix
+    mixed = small[-1]
+    torch.testing.assert_close(mixed, objects_lock(unmixed, start, objects).clamp(0.0, 2.0), rtol=1e-5, atol=1e-6)
+    assert float((mixed - unmixed).abs().max()) > 1e-4
+    again = make_layer(recipe, conditioning_input(res.stack, layer.conditioned_on), "again")
+    torch.testing.assert_close(again.layer, res.layer, atol=2 * 2.0 / 65535, rtol=0)
+    from pydantic import ValidationError
+
+    from lasagna.distill import DistillSettings
+    from lasagna.document.preset import Preset
+    from lasagna.recipe import refining
+
+    bad = {**distill, "start": "identity", "lock": "none", "objects_only": True}
+    with pytest.raises(ValidationError, match="distill.objects_only.*expected distill.start 'surface'"):
+        Preset.model_validate({**preset, "distill": bad})
+    with pytest.raises(LasagnaError, match="objects_only"):
+        DistillSettings.parse({**recipe.distill.model_dump(), "start": "identity"})
+    assert recipe.distill.objects_only and not refining(recipe.distill).objects_only
+
+
 def test_the_planar_lock_removes_the_tilt_of_the_correction_and_nothing_else():
     """``planar_lock`` against a float64 numpy least-squares fit: the plane of log(layer/start) is removed, the level
     and the rest of the correction kept; a correction that is a plane alone gives the start times its level."""

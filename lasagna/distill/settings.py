@@ -112,6 +112,11 @@ class DistillSettings(BaseModel):
         description="What of its start a free layer keeps after the steps: nothing, or its planar trend "
         "(lasagna.learned.planar_lock).",
     )
+    objects_only: bool = Field(
+        False,
+        description="A surface start's correction kept on the objects only (log(layer/start) times the estimator's "
+        "silhouette probability: lasagna.learned.objects_lock).",
+    )
     start_surface: SurfaceDefaults | None = Field(
         None,
         description="How a surface start was made (``start`` 'surface'): the preset's `surface` fields when the layer "
@@ -127,6 +132,8 @@ class DistillSettings(BaseModel):
             del data["start"]
         if data.get("lock") == "none":  # likewise: no lock is every layer's before locks
             del data["lock"]
+        if data.get("objects_only") is False:  # likewise: every layer's before the objects-only correction
+            del data["objects_only"]
         if data.get("start_surface") is None:  # likewise: settings recorded before surface starts were recorded
             data.pop("start_surface", None)
         return data
@@ -135,6 +142,8 @@ class DistillSettings(BaseModel):
     def _check(self) -> DistillSettings:
         if self.t_min > self.t_max:
             raise ValueError(f"t_min {self.t_min} > t_max {self.t_max}; expected t_min <= t_max")
+        if self.objects_only and self.start != "surface":
+            raise ValueError("objects_only keeps a surface start on the walls; expected start 'surface'")
         return self
 
     def resolved_weights(self) -> Weights:
@@ -159,6 +168,7 @@ class DistillSettings(BaseModel):
             "aspect": d.aspect,
             "start": d.start,
             "lock": d.lock,
+            "objects_only": d.objects_only,
             "start_surface": preset.surface if d.start == "surface" else None,
         }
         return cls.parse({**data, **{k: v for k, v in overrides.items() if v is not None}})

@@ -133,6 +133,13 @@ class DistillDefaults(StrictModel):
         "log(layer / start) is removed after the steps, so the distillation corrects the start's level and curved "
         "parts but cannot tilt it (a relight started from a surface keeps the surface's light direction).",
     )
+    objects_only: bool = Field(
+        False,
+        strict=True,
+        description="The free layer corrects its surface start on the objects only: log(layer / start) times the "
+        "surface estimator's silhouette probability (walls keep the start, so a flat painted wall stays flat). "
+        "Needs distill.start 'surface' and an estimator with a silhouette head.",
+    )
 
     @model_validator(mode="after")
     def _t_interval(self) -> DistillDefaults:
@@ -434,6 +441,13 @@ class Preset(StrictModel):
                 f"preset {self.name!r} locks its free layer's tilt (distill.lock 'planar') but starts it from the "
                 f"{self.distill.start}: the lock keeps a surface start's direction; expected distill.start 'surface'",
                 loc=("distill", "lock"),
+            )
+        if self.distill.objects_only and self.distill.start != "surface":
+            raise RuleError(
+                f"preset {self.name!r} keeps its free layer's correction to the objects (distill.objects_only) but "
+                f"starts it from the {self.distill.start}: walls keep a surface start; expected distill.start "
+                "'surface'",
+                loc=("distill", "objects_only"),
             )
         if self.luminance == "base" and self.blend not in ("normal", "alpha-linear"):
             raise RuleError(
