@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.distill import Weights, prior_image_size
     from lasagna.generators.unet import LayerGeneratorConfig
     from lasagna.training import AmortisedConfig, train_layer_generator
-    from lasagna.world.splits import HELD_SPLITS, SPLIT_NAMES, check_seed
+    from lasagna.world.splits import SPLIT_NAMES, check_seed, check_training_scenes
 
     resolved = cat.resolve(args.preset, need_prior=not args.supervised)
     preset = resolved.preset
@@ -104,12 +104,7 @@ def run(args: argparse.Namespace) -> int:
     for flag, name in (("--split", args.split), ("--eval-split", args.eval_split)):
         if name not in SPLIT_NAMES:
             raise LasagnaError(f"unknown split {name!r}; expected one of {', '.join(SPLIT_NAMES)}", flag)
-    if args.split in HELD_SPLITS and args.world_seed == 0:
-        raise LasagnaError(
-            f"training on {args.split} scenes of world seed 0 would train on the benchmarks' own scenes; "
-            "expected --world-seed other than 0",
-            "--world-seed",
-        )
+    check_training_scenes(args.split, args.world_seed, "--world-seed")
     loss = args.loss or preset.distill.loss
     prior = corrective = None
     resolution = args.resolution

@@ -63,6 +63,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--grad-clip", type=float, default=1.0)
     p.add_argument("--checkpoint-every", type=int, default=200)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--split",
+        default="train",
+        help="world split of the training scenes (wide: train's families and the generic gem and blob shapes)",
+    )
+    p.add_argument("--world-seed", type=int, default=0, help="seed of the training split's scenes")
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -94,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
         grad_clip=args.grad_clip,
         checkpoint_every=args.checkpoint_every,
         seed=args.seed,
+        split=args.split,
+        world_seed=args.world_seed,
         progress=progress() and not args.no_progress,  # bars only for a person watching (or --progress)
     )
     train_prior(config, args.out)

@@ -14,8 +14,9 @@ and classifier-free label dropout, on fresh world batches generated on the fly (
 
 The conditioning image is what Lasagna's base layer will be at distillation time. Every random draw
 (which scenes, t, ε, label dropout) comes from the loop's checkpointed ``rng``, so a killed run
-resumes bit for bit (``lasagna.training``). Scenes come from the ``train`` split only; ``val`` and
-``heldout`` stay unseen for evaluation.
+resumes bit for bit (``lasagna.training``). Scenes come from one split, ``train`` unless the config names
+another (``wide`` adds generic shapes); a held split's benchmark scenes (world seed 0) are refused
+(``lasagna.world.splits.check_training_scenes``), and ``val`` stays unseen for evaluation.
 
 The command line is ``lasagna train-prior`` (``lasagna.cli.train_prior``)::
 
@@ -35,6 +36,7 @@ from lasagna.io.checkpoint import read_config
 from lasagna.priors.unet import UNetConfig, UNetPrior
 from lasagna.training.loop import LoopConfig, network_from_checkpoint, train_loop
 from lasagna.training.tasks import SCENE_RANGE, Task
+from lasagna.world.splits import check_training_scenes
 
 CHECKPOINT_FORMAT = "lasagna.prior_checkpoint"
 
@@ -181,6 +183,7 @@ def world_source(
 
 def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | torch.device = "cpu") -> UNetPrior:
     """Train (or resume) the prior in ``out_dir``; the final EMA weights go to ``out_dir/prior``."""
+    check_training_scenes(config.split, config.world_seed, "world_seed")
     source = world_source(
         config.task, config.unet.resolution, config.split, config.world_seed, config.shadows, config.unet.directions
     )

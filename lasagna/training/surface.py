@@ -38,7 +38,7 @@ from lasagna.training.loop import LoopConfig, network_from_checkpoint, train_loo
 from lasagna.training.tasks import SCENE_RANGE
 from lasagna.world import generate
 from lasagna.world.scene import Scene, with_light
-from lasagna.world.splits import HELD_SPLITS
+from lasagna.world.splits import check_training_scenes
 from lasagna.world.stray import stray_gain
 from lasagna.world.tasks import RELIGHT_ELEVATION
 
@@ -182,12 +182,7 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
     weights go to ``out_dir/surface``."""
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
-    if config.split in HELD_SPLITS and config.world_seed == 0:
-        raise LasagnaError(
-            f"training on {config.split} scenes of world seed 0 would train on the benchmarks' own scenes; "
-            "expected another world seed",
-            "world_seed",
-        )
+    check_training_scenes(config.split, config.world_seed, "world_seed")
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         estimator = SurfaceEstimator(config.net)

@@ -168,6 +168,19 @@ def check_seed(seed: int, where: str = "seed") -> int:
     return int(seed)
 
 
+def check_training_scenes(split: str, world_seed: int, where: str = "split") -> None:
+    """Refuse training scenes a benchmark measures: an unknown split, or a held split (``HELD_SPLITS``) at world
+    seed 0, whose scenes are the benchmarks' own. The one statement of that rule for every trainer."""
+    get_split(split)
+    check_seed(world_seed, where=where)
+    if split in HELD_SPLITS and world_seed == 0:
+        raise LasagnaError(
+            f"training on {split} scenes of world seed 0 would train on the benchmarks' own scenes; "
+            "expected another world seed",
+            where,
+        )
+
+
 def scene_rng(split: str, seed: int, index: int, stream: str = "") -> np.random.Generator:
     """The random stream of scene ``index`` of ``split`` under ``seed``.
 

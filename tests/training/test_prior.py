@@ -116,6 +116,42 @@ class TestTrainPrior:
             train_prior(toy(steps=2, batch_size=4), tmp_path)
 
 
+class TestTrainingScenes:
+    def test_a_source_draws_the_named_split_s_scenes(self):
+        """The ``wide`` split's scenes are the world's own for that split (its generic shapes included), not
+        ``train``'s: the source renders exactly what ``generate`` renders for (split, seed, start)."""
+        from lasagna.training.tasks import SCENE_RANGE
+
+        rng = torch.Generator().manual_seed(7)
+        x0, _, cond = world_source("relight", 8, split="wide", seed=5)(3, rng)
+        start = int(torch.randint(0, SCENE_RANGE, (1,), generator=torch.Generator().manual_seed(7)))
+        scene = generate("wide", 3, 5, 8, start=start)
+        assert torch.equal(cond, scene.albedo) and torch.equal(x0, scene.albedo * scene.shading)
+        other = generate("train", 3, 5, 8, start=start)
+        assert not torch.equal(cond, other.albedo)
+
+    @pytest.mark.parametrize("split", ["select", "heldout", "far"])
+    def test_held_out_splits_at_the_benchmarks_seed_are_refused(self, tmp_path, split):
+        with pytest.raises(LasagnaError, match="world_seed: training on .* would train on the benchmarks' own"):
+            train_prior(toy(split=split, world_seed=0), tmp_path / "x")
+        assert not (tmp_path / "x").exists()
+
+    def test_cli_split_and_world_seed_reach_the_run(self, tmp_path, capsys):
+        from lasagna.cli import main
+
+        assert main(["train-prior", "--task", "relight", "--resolution", "8", "--channels", "8,16", "--steps", "1",
+                     "--batch-size", "2", "--split", "wide", "--world-seed", "5", "--out", str(tmp_path / "r"),
+                     "--no-progress"]) == 0  # fmt: skip
+        config = json.loads((tmp_path / "r" / "train_config.json").read_text())
+        assert (config["split"], config["world_seed"]) == ("wide", 5)
+        code = main(["train-prior", "--split", "far", "--out", str(tmp_path / "f"), "--no-progress"])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and err.count("\n") == 0 and "benchmarks' own scenes" in err
+        code = main(["train-prior", "--split", "nowhere", "--world-seed", "3", "--out", str(tmp_path / "n")])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and "unknown split 'nowhere'" in err
+
+
 class TestEvaluate:
     def test_psnr_closed_form(self):
         a = torch.zeros(2, 3, 4, 4)
