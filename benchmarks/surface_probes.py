@@ -7,6 +7,8 @@
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe sirfs        # ~6 min
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe symmetric-particles   # ~10 min
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe wall-level   # ~2 min (round 8)
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe truth-start  # ~3 min (round 13)
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe t-anneal     # ~15 min (round 13)
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe ensemble \
         --members layers/surface-lit-32 layers/surface-lit-closeup-32                   # ~1 min
 
@@ -49,6 +51,19 @@
   2 particles); and each route's wall-level error, the mean |log| of its walls' level against the truth's, on all
   scenes and on the flat-wall ones. Per-scene means, not the pooled PSNR of `relight_sweep.py`.
 
+* **truth-start** (round 13) — what the default relight's score-distillation correction does to a perfect start: the
+  default edit (`lasagna.edit(image, "relight", label)`) on `select`'s 16 scenes at 64² and 256², as shipped and with
+  its surface start replaced by the true ratio S_B/S_A reduced to the working size (`lasagna.learned._surface_start`
+  patched), beside the identity and the true ratio at the working size enlarged bilinearly (the headroom of any layer
+  made at 64). If the correction kept a perfect start, a better start would carry the default toward the headroom;
+  the distance from the truth's row to the headroom is what the prior's correction takes away. Composite PSNR, all /
+  object pixels (`_common.row`).
+
+* **t-anneal** (round 13) — the default relight with its timesteps annealed (DreamTime, Huang et al. 2023): t_max
+  falls linearly from 0.98 to each ``--finals`` value over the 150 steps, so the run ends on fine corrections.
+  Rows per setting (the shipped first): `relight_sweep.py`'s default row on select at 64² and 256², the default's
+  bare-wall leak there, and `photo_swing.py` on the photograph selection set.
+
 Ends with one JSON line. None of these changes a preset; they are diagnostics (BENCHMARKS, round of 2026-11-26 (5)).
 """
 
@@ -56,6 +71,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import sys
 from pathlib import Path
 
@@ -536,6 +552,89 @@ def probe_start_relief(gains: list[float]) -> dict:
     return out
 
 
+def probe_truth_start() -> dict:
+    from _common import row, scenes
+
+    import lasagna.learned as learned
+    from lasagna.compose.resample import upsample
+    from lasagna.editing import edit
+
+    shipped, out = learned._surface_start, {}
+    for size in (64, 256):
+        rel, labels = scenes("select", COUNT, 0, size)
+        ws = working_size(size, size, SIDE)
+        truth = [downsample(rel.layer[i][None].float(), ws) for i in range(COUNT)]
+        rows = [
+            row(rel, "identity", torch.ones_like(rel.layer).double()),
+            row(rel, "truth at 64, bilinear", torch.cat([upsample(t, (size, size)) for t in truth]).double()),
+        ]
+        for name, start in (("default", None), ("default from the true ratio", truth)):
+            layers = []
+            for i in range(COUNT):
+                if start is not None:
+                    learned._surface_start = lambda recipe, x, device, t=start[i]: t.clamp(*recipe.distill.layer.range)
+                try:
+                    layers.append(edit(rel.base[i].float(), "relight", labels[i]).layer)
+                finally:
+                    learned._surface_start = shipped
+            rows.append(row(rel, name, torch.stack(layers).double()))
+        out[f"select_{size}"] = rows
+    return out
+
+
+@contextlib.contextmanager
+def t_anneal(final: float | None):
+    """Every per-image distillation inside the block draws t ~ U(t_min, t_max(step)) with t_max annealed linearly from
+    the preset's t_max to ``final`` over the run's steps (``losses.core.TimestepOptions``; None: as shipped)."""
+    import lasagna.distill.per_image as per_image
+
+    shipped = per_image.build_loss
+
+    def build_loss(name, corrective=None, options=None, t_min=0.02, t_max=0.98):
+        timesteps = {"anneal": "linear", "t_max_final": final, "anneal_steps": ANNEAL_STEPS}
+        return shipped(name, corrective, {**(options or {}), "timesteps": timesteps}, t_min, t_max)
+
+    if final is not None:
+        per_image.build_loss = build_loss
+    try:
+        yield
+    finally:
+        per_image.build_loss = shipped
+
+
+ANNEAL_STEPS = 150  # the relight preset's steps: t_max reaches its final value at the last step
+
+
+def relight_leak(size: int) -> float:
+    """The default relight's layer on select's bare walls (every object removed, lit by their own source light, relit
+    toward the named lights): its PSNR against its own mean, pooled over the 16 scenes (∞ for a flat layer)."""
+    from _common import scenes as relight_scenes
+
+    from lasagna.editing import edit
+
+    rel, labels = relight_scenes("select", COUNT, 0, size, walls=True)
+    y = torch.stack([edit(rel.base[i].float(), "relight", labels[i]).layer for i in range(COUNT)]).double()
+    return round(psnr(y, y.mean(dim=(1, 2, 3), keepdim=True).expand_as(y)), 2)
+
+
+def probe_t_anneal(finals: list[float]) -> dict:
+    out = {}
+    for final in [None, *finals]:
+        row = {}
+        with t_anneal(final):
+            for size in (64, 256):
+                run = last_json(relight_sweep.main, ["--split", "select", "--size", str(size), "--only", "default"])
+                r = run["last"]["rows"][0]
+                row[f"default_select_{size}"] = [r["composite_psnr"], r["object_psnr"]]
+                row[f"leak_{size}"] = relight_leak(size)
+            swing = last_json(photo_swing.main, ["--label", f"t_max final {final}"])["last"]
+            row["photo_select"] = {k: swing[k] for k in ("swing_mean", "wrong_signs", "below_0.10", "photos")}
+        name = "shipped" if final is None else f"t_max 0.98 → {final:g}"
+        out[name] = row
+        print(json.dumps({name: row}), flush=True)
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument(
@@ -549,9 +648,12 @@ def main(argv=None) -> int:
             "symmetric-particles",
             "start-relief",
             "wall-level",
+            "truth-start",
+            "t-anneal",
         ),
         required=True,
     )
+    p.add_argument("--finals", nargs="+", type=float, default=[0.5, 0.3], help="t-anneal: t_max's final values")
     p.add_argument("--gains", nargs="+", type=float, default=[1.0, 1.5, 2.0, 3.0], help="start-relief")
     p.add_argument("--members", nargs="+", type=Path, default=[LAYERS / "surface-lit-32", LIT], help="ensemble")
     p.add_argument("--default", action="store_true", help="gain-fit: measure the default relight instead")
@@ -563,9 +665,12 @@ def main(argv=None) -> int:
         rows = probe_ensemble(args.members)
     elif args.probe == "start-relief":
         rows = probe_start_relief(args.gains)
+    elif args.probe == "t-anneal":
+        rows = probe_t_anneal(args.finals)
     else:
         probes = {"srgb": probe_srgb, "profile": probe_profile, "sirfs": probe_sirfs}
         probes.update({"symmetric-particles": probe_symmetric_particles, "wall-level": probe_wall_level})
+        probes["truth-start"] = probe_truth_start
         rows = probes[args.probe]()
     record = {"benchmark": "surface_probes", "probe": args.probe, "default": args.default, "rows": rows}
     print_json_line({**record, "machine": machine_info()})
