@@ -37,8 +37,9 @@ def _target(p: Path) -> tuple[Path, bool]:
 
 def survey_target(path: str | os.PathLike, *, max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> None:
     """``open_target``'s and the session's refusals, read-only and without torch (``lasagna serve`` runs it before
-    the editor's imports): no stack and no image there, a stack that would not load (its document, sizes and
-    memory, as ``load_stack`` surveys them), an image that would not decode (its header)."""
+    the editor's imports): no stack and no image there, a stack that would not load (its document, sizes against
+    ``max_pixels`` and memory, as the session's ``load_stack`` surveys them), an image that would not decode (its
+    header)."""
     from lasagna.io.image import probe_image_file
     from lasagna.io.survey import survey_stack
 
@@ -46,7 +47,7 @@ def survey_target(path: str | os.PathLike, *, max_pixels: int = DEFAULT_EDIT_MAX
     if make:
         probe_image_file(path, max_pixels=max_pixels)
     else:
-        survey_stack(folder)
+        survey_stack(folder, max_pixels=max_pixels)
 
 
 def open_target(path: str | os.PathLike, *, max_pixels: int = DEFAULT_EDIT_MAX_PIXELS) -> tuple[Path, bool]:

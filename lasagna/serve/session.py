@@ -101,7 +101,7 @@ class EditSession(SessionViews, SessionJobs):
 
     def _load(self) -> None:
         self.disk_sha = stack_sha256(self.folder)
-        self.stack = load_stack(self.folder)
+        self.stack = load_stack(self.folder, max_pixels=self.max_pixels)  # the CLI's --max-pixels: any PNG
         self.files: dict[str, bytes] = {}
         self.unchanged: dict[str, object] = dict(self.stack.tensors)  # what the PNGs on disk hold
         self.version = 1

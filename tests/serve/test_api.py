@@ -419,10 +419,29 @@ def test_bad_uploads_are_refused_with_the_clis_errors(client, monkeypatch):
 
 
 def test_an_upload_over_the_pixel_limit_is_refused(folder):
-    s = EditSession(folder, max_pixels=100)
+    s = EditSession(folder, max_pixels=64 * 48)  # the stack's largest PNG, its 64×48 canvas, fits exactly
     c = TestClient(create_app(s, TOKEN, ["testserver"]))
-    r = c.post("/api/upload", headers=H, params={"version": 1, "name": "big.png"}, content=png_bytes((20, 10)))
+    r = c.post("/api/upload", headers=H, params={"version": 1, "name": "big.png"}, content=png_bytes((70, 48)))
     assert "pixels" in refused(r, 400)
+
+
+def test_the_pixel_limit_covers_the_stack_s_own_pngs(folder, capsys):
+    """``--max-pixels`` refuses any PNG over it (the flag's help): the served stack's own too, in the survey the
+    command runs before the editor's imports, in the session, and from the command line in one line (exit 2)."""
+    from lasagna.cli import main
+    from lasagna.errors import LasagnaError
+    from lasagna.serve import survey_target
+
+    survey_target(folder, max_pixels=64 * 48)  # every PNG fits
+    with pytest.raises(LasagnaError, match="pixels"):
+        survey_target(folder, max_pixels=64 * 48 - 1)
+    with pytest.raises(LasagnaError, match="pixels"):
+        EditSession(folder, max_pixels=64 * 48 - 1)
+    before = sorted(p.name for p in folder.rglob("*"))
+    assert main(["serve", str(folder), "--max-pixels", str(64 * 48 - 1), "--no-browser"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "pixels" in err and "Traceback" not in err
+    assert sorted(p.name for p in folder.rglob("*")) == before
 
 
 # ---- learned layers and jobs --------------------------------------------------------------------------
