@@ -7,7 +7,7 @@ import argparse
 import json
 from pathlib import Path
 
-from lasagna.cli.common import progress
+from lasagna.cli.common import device_argument, progress
 
 HELP = "train a bundled conditional prior on the procedural world (resumable)"
 EXAMPLE = "lasagna train-prior --task relight --out runs/relight-32 --minutes 40   # run again to resume"
@@ -70,6 +70,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--world-seed", type=int, default=0, help="seed of the training split's scenes")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument(
+        "--render-on",
+        choices=("device", "cpu"),
+        default="device",
+        help="where the training scenes are rendered (cpu: the same bits whatever the device)",
+    )
+    device_argument(p, default=None, help="torch device (default cuda if available, else cpu)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -102,8 +109,9 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         split=args.split,
         world_seed=args.world_seed,
+        render_on=args.render_on,
         progress=progress() and not args.no_progress,  # bars only for a person watching (or --progress)
     )
-    train_prior(config, args.out)
+    train_prior(config, args.out, device=args.device)
     print(json.dumps({"out": str(Path(args.out) / "prior"), "task": args.task}))
     return 0

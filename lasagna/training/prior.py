@@ -53,6 +53,11 @@ class PriorTrainConfig(LoopConfig):
     split: str = Field("train", description="world split the training scenes come from")
     world_seed: int = Field(0, description="seed of the world split (scenes are (split, seed, index))")
     shadows: bool = Field(False, description="render cast shadows in the training scenes")
+    render_on: Literal["device", "cpu"] = Field(
+        "device",
+        description="where the scenes are rendered: the training device (a GPU renders a batch faster than the "
+        "CPU feeds it) or the CPU (the same bits as a CPU run's, whatever the device)",
+    )
     init_from: str | None = Field(
         None,
         description="a saved prior (folder) whose weights start this run: "
@@ -162,9 +167,15 @@ def direction_batch(task: Task, scene, rng: torch.Generator) -> tuple[torch.Tens
 
 
 def world_source(
-    task: Task, resolution: int, split: str = "train", seed: int = 0, shadows: bool = False, directions: bool = False
+    task: Task,
+    resolution: int,
+    split: str = "train",
+    seed: int = 0,
+    shadows: bool = False,
+    directions: bool = False,
+    device: str | torch.device = "cpu",
 ):
-    """``sample_batch(batch, rng) -> (images, label_idx, cond_image)`` drawing world scenes.
+    """``sample_batch(batch, rng) -> (images, label_idx, cond_image)`` drawing world scenes, rendered on ``device``.
 
     The data-source signature shared with the corrective's trainer; the scenes drawn depend only on
     ``rng``'s stream.
@@ -173,7 +184,7 @@ def world_source(
 
     def sample_batch(batch: int, rng: torch.Generator):
         start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
-        scene = generate(split, batch, seed, resolution, start=start, shadows=shadows)
+        scene = generate(split, batch, seed, resolution, start=start, shadows=shadows, device=device)
         if directions:
             return direction_batch(task, scene, rng)
         return prior_batch(task, scene)
@@ -181,11 +192,20 @@ def world_source(
     return sample_batch
 
 
-def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | torch.device = "cpu") -> UNetPrior:
-    """Train (or resume) the prior in ``out_dir``; the final EMA weights go to ``out_dir/prior``."""
+def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | torch.device | None = "cpu") -> UNetPrior:
+    """Train (or resume) the prior in ``out_dir`` on ``device`` (None: CUDA where there is one); the final EMA
+    weights go to ``out_dir/prior``."""
     check_training_scenes(config.split, config.world_seed, "world_seed")
+    if device is None:
+        device = "cuda" if torch.cuda.is_available() else "cpu"
     source = world_source(
-        config.task, config.unet.resolution, config.split, config.world_seed, config.shadows, config.unet.directions
+        config.task,
+        config.unet.resolution,
+        config.split,
+        config.world_seed,
+        config.shadows,
+        config.unet.directions,
+        device=device if config.render_on == "device" else "cpu",
     )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)

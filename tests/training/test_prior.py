@@ -130,6 +130,13 @@ class TestTrainingScenes:
         other = generate("train", 3, 5, 8, start=start)
         assert not torch.equal(cond, other.albedo)
 
+    def test_rendering_on_the_device_or_the_cpu_trains_the_same_weights_on_a_cpu(self, tmp_path):
+        """``render_on`` moves where the scenes are drawn, not which: on a CPU both settings are one run."""
+        a = train_prior(toy(steps=3, render_on="device"), tmp_path / "a", device="cpu")
+        b = train_prior(toy(steps=3, render_on="cpu"), tmp_path / "b", device="cpu")
+        for (k, v), w in zip(a.state_dict().items(), b.state_dict().values()):
+            assert torch.equal(v, w), k
+
     @pytest.mark.parametrize("split", ["select", "heldout", "far"])
     def test_held_out_splits_at_the_benchmarks_seed_are_refused(self, tmp_path, split):
         with pytest.raises(LasagnaError, match="world_seed: training on .* would train on the benchmarks' own"):
@@ -143,7 +150,7 @@ class TestTrainingScenes:
                      "--batch-size", "2", "--split", "wide", "--world-seed", "5", "--out", str(tmp_path / "r"),
                      "--no-progress"]) == 0  # fmt: skip
         config = json.loads((tmp_path / "r" / "train_config.json").read_text())
-        assert (config["split"], config["world_seed"]) == ("wide", 5)
+        assert (config["split"], config["world_seed"], config["render_on"]) == ("wide", 5, "device")
         code = main(["train-prior", "--split", "far", "--out", str(tmp_path / "f"), "--no-progress"])
         err = capsys.readouterr().err.strip()
         assert code == 2 and err.count("\n") == 0 and "benchmarks' own scenes" in err
