@@ -48,7 +48,7 @@ def _filters(text: str) -> tuple[int, ...]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from lasagna.document.preset import TORCH_DTYPES
-    from lasagna.training.tasks import TASKS
+    from lasagna.document.preset import WORLD_TASKS as TASKS  # torch-free: a typing mistake is refused at once
 
     p.add_argument(
         "--prior",

@@ -14,7 +14,7 @@ EXAMPLE = "lasagna train-prior --task relight --out runs/relight-32 --minutes 40
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from lasagna.training.tasks import TASKS
+    from lasagna.document.preset import WORLD_TASKS as TASKS  # torch-free: a typing mistake is refused at once
 
     p.add_argument("--task", choices=TASKS, default="relight")
     p.add_argument("--out", required=True, help="run folder; run again with the same folder to resume")

@@ -188,6 +188,7 @@ class PriorLink(StrictModel):
 # The world tasks a preset's generator (and a prior) is trained on (``lasagna.training.tasks``): what the base
 # layer is and what the true layer is. A preset that says none gets its blend's (``Preset.world_task``).
 WorldTask = Literal["relight", "colorize", "light", "relit"]
+WORLD_TASKS: tuple[str, ...] = get_args(WorldTask)  # the names, torch-free (the training commands' --task choices)
 TASK_FOR_BLEND: dict[str, str] = {"multiply": "relight", "normal": "colorize", "plus": "light"}
 
 

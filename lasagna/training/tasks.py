@@ -24,16 +24,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import get_args
 
 import torch
 from torch import Tensor
 
-from lasagna.document.preset import WorldTask
+from lasagna.document.preset import WORLD_TASKS, WorldTask
 from lasagna.errors import LasagnaError
 
 Task = WorldTask  # the world tasks priors and generators are trained on (a preset names its own: Preset.task)
-TASKS: tuple[str, ...] = get_args(Task)
+TASKS: tuple[str, ...] = WORLD_TASKS
 # The world's scene-index range batches are drawn from (the prior trainer's too): large enough that no batch
 # repeats in any run this CPU can afford (2**30 scenes), small enough for int32 seeds.
 SCENE_RANGE = 2**30

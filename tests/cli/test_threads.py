@@ -65,7 +65,8 @@ def test_a_fresh_process_gets_its_threads_without_torch_before_the_command(tmp_p
     """In a fresh process torch is not imported until the command needs it: ``--threads`` reaches it through
     ``OMP_NUM_THREADS`` (torch reads it at import), and a refusal before any tensor work (a broken stack.json, an
     edit of a file that is no image, of an unknown preset or label, a re-light of a stack without a surface layer, a
-    normal map that is no PNG, a broken PSD, an editor of a broken stack) never imports torch (~1.5 s:
+    normal map that is no PNG, a broken PSD, an editor of a broken stack, a training command's unknown task) never
+    imports torch (~1.5 s:
     `benchmarks/hostile.py`'s bombs' time bound)."""
     import importlib.util
     import subprocess
@@ -108,6 +109,12 @@ def test_a_fresh_process_gets_its_threads_without_torch_before_the_command(tmp_p
     argv = [sys.executable, "-c", code, "edit", str(photo), "--condition", "sideways", "-o", str(tmp_path / "o")]
     done = subprocess.run(argv, env=env, capture_output=True, text=True)
     assert done.stdout.split() == ["2", "None"] and "got 'sideways'" in done.stderr
+    for argv, needle in (  # the training commands' typing mistakes: their task table is read torch-free
+        (["train-prior", "--task", "nope", "--out", str(tmp_path / "t")], "invalid choice: 'nope'"),
+        (["train-corrective", "--prior", "x", "--task", "nope", "--out", str(tmp_path / "t")], "invalid choice"),
+    ):
+        done = subprocess.run([sys.executable, "-c", code, *argv], env=env, capture_output=True, text=True)
+        assert done.stdout.split() == ["2", "None"] and needle in done.stderr and not (tmp_path / "t").exists()
     if importlib.util.find_spec("uvicorn") is not None:
         for target in (bad, photo.with_name("missing.png")):  # a broken stack, no file: before the editor loads
             done = subprocess.run(
