@@ -46,6 +46,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "a catalogue name (e.g. relight-32)",
     )
     p.add_argument(
+        "--grow-res-blocks",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --init-from: N residual blocks per level (at least its own); the added blocks start as the "
+        "identity, so the grown prior starts where --init-from is",
+    )
+    p.add_argument(
         "--init-labels",
         choices=("keep", "fresh"),
         default="keep",
@@ -90,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
         from lasagna.catalogue import find
 
         args.init_from = str(find(args.init_from, "prior"))  # a catalogue name: its folder (outside a checkout too)
-    unet = run_unet_config(args.task, unet, args.init_from, args.init_labels)
+    unet = run_unet_config(args.task, unet, args.init_from, args.init_labels, args.grow_res_blocks)
     config = PriorTrainConfig(
         task=args.task,
         unet=unet,

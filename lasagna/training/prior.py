@@ -216,12 +216,15 @@ def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | tor
         if config.init_labels == "fresh":
             theirs = theirs.model_copy(update={"vocabulary": config.unet.vocabulary})
         to_directions = config.unet.directions and not theirs.directions
-        theirs = theirs.model_copy(update={"directions": config.unet.directions})
+        grown = config.unet.res_blocks > theirs.res_blocks
+        theirs = theirs.model_copy(update={"directions": config.unet.directions, "res_blocks": config.unet.res_blocks})
         if theirs != config.unet:
             raise LasagnaError(
                 f"its UNet config differs from this run's ({start.config} vs {config.unet})", config.init_from
             )
         state = start.state_dict()
+        if grown:  # the blocks init_from lacks keep this run's own initialisation: the identity (see grow_res_blocks)
+            state.update({k: v for k, v in prior.state_dict().items() if _added_block(k, start.config.res_blocks)})
         if config.init_labels == "fresh" and not to_directions:
             key = "net.label_emb.weight"
             state[key] = state[key][-1].expand(len(config.unet.vocabulary) + 1, -1).clone()
@@ -252,6 +255,12 @@ def train_prior(config: PriorTrainConfig, out_dir: str | Path, device: str | tor
     return final
 
 
+def _added_block(key: str, res_blocks: int) -> bool:
+    """Whether a state-dict key belongs to a residual block at index ≥ ``res_blocks`` of a level (a grown one)."""
+    parts = key.split(".")
+    return len(parts) > 4 and parts[1] in ("down", "up") and parts[3] == "blocks" and int(parts[4]) >= res_blocks
+
+
 def prior_from_checkpoint(path: str | Path, ema: bool = True) -> tuple[UNetPrior, int]:
     """(prior, step) from a training checkpoint: its EMA weights (or the raw ones), in eval mode.
 
@@ -264,15 +273,36 @@ def prior_from_checkpoint(path: str | Path, ema: bool = True) -> tuple[UNetPrior
 
 
 def run_unet_config(
-    task: Task, unet: UNetConfig, init_from: str | None, init_labels: Literal["keep", "fresh"]
+    task: Task,
+    unet: UNetConfig,
+    init_from: str | None,
+    init_labels: Literal["keep", "fresh"],
+    grow_res_blocks: int | None = None,
 ) -> UNetConfig:
     """The UNet config of a run: ``unet``, or with ``init_from`` that prior's own architecture — checked to
     be a ``task`` prior (or, with ``init_labels="fresh"``, one with the same conditioning channels, given
-    ``task``'s vocabulary)."""
+    ``task``'s vocabulary).
+
+    ``grow_res_blocks`` (with ``init_from``): the run's prior has that many residual blocks per level, at least
+    init_from's. The added blocks are ``ResBlock``s whose last convolution starts at zero, i.e. the identity,
+    and the skips are taken after a level's last block, so the grown prior starts computing exactly what
+    init_from computes — function-preserving growth (Net2Net's deeper network, Chen, Goodfellow & Shlens 2016)
+    — and training then has the added capacity to use.
+    """
     if init_from is None:
+        if grow_res_blocks is not None:
+            raise LasagnaError("it grows a saved prior; give --init-from too", "--grow-res-blocks")
         return unet
     directions = unet.directions
     unet = read_config(init_from, UNetPrior.FORMAT, UNetConfig).model_copy(update={"directions": directions})
+    if grow_res_blocks is not None:
+        if grow_res_blocks < unet.res_blocks:
+            raise LasagnaError(
+                f"{grow_res_blocks} residual blocks per level is fewer than the {unet.res_blocks} of {init_from}; "
+                "expected at least as many (a prior is grown, never cut)",
+                "--grow-res-blocks",
+            )
+        unet = UNetConfig.model_validate({**unet.model_dump(), "res_blocks": grow_res_blocks})
     want = unet_config_for(task)
     if init_labels == "fresh":
         if unet.cond_channels != want.cond_channels:

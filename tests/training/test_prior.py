@@ -12,7 +12,14 @@ import torch
 from lasagna.errors import LasagnaError
 from lasagna.priors.evaluate import denoising_error, psnr, sample_quality
 from lasagna.priors.unet import UNetPrior
-from lasagna.training.prior import PriorTrainConfig, prior_batch, train_prior, unet_config_for, world_source
+from lasagna.training.prior import (
+    PriorTrainConfig,
+    prior_batch,
+    run_unet_config,
+    train_prior,
+    unet_config_for,
+    world_source,
+)
 from lasagna.world import VOCABULARY, generate
 
 
@@ -200,6 +207,44 @@ class TestSchedulesAndStages:
             torch.testing.assert_close(a, b, atol=1e-8, rtol=0, msg=k)
         fresh = train_prior(toy(steps=1, lr=1e-12, warmup_steps=0, ema_decay=None), tmp_path / "three")
         assert any(not torch.allclose(a, b) for a, b in zip(first.state_dict().values(), fresh.state_dict().values()))
+
+    def test_a_grown_prior_starts_computing_what_it_grew_from(self, tmp_path):
+        first = train_prior(toy(steps=5), tmp_path / "one")
+        start = str(tmp_path / "one" / "prior")
+        unet = run_unet_config("relight", first.config, start, "keep", grow_res_blocks=3)
+        assert unet.res_blocks == 3 and unet.model_copy(update={"res_blocks": 1}) == first.config
+        grown = train_prior(
+            toy(steps=1, lr=1e-12, warmup_steps=0, ema_decay=None, unet=unet, init_from=start), tmp_path / "two"
+        )
+        assert len(grown.net.down[0]["blocks"]) == 3 and len(grown.net.up[1]["blocks"]) == 3
+        # The added blocks' first convolutions are random (they would change the output if the last were not
+        # zero); the output is init_from's to the size of one step at lr 1e-12.
+        assert grown.net.down[0]["blocks"][2].conv1.weight.abs().max() > 0.01
+        g = torch.Generator().manual_seed(0)
+        z, cond = torch.randn(4, 3, 8, 8, generator=g), torch.rand(4, 3, 8, 8, generator=g)
+        t, label = torch.tensor([10, 300, 700, 990]), torch.tensor([0, 3, 7, 8])
+        with torch.no_grad():
+            want, got = first.eval().raw(z, t, label, cond), grown.eval().raw(z, t, label, cond)
+        assert want.abs().max() > 0.01
+        torch.testing.assert_close(got, want, atol=1e-6, rtol=0)
+        fresh = UNetPrior(unet).eval()
+        with torch.no_grad():
+            assert (fresh.raw(z, t, label, cond) - want).abs().max() > 1e-3  # not a test that any prior passes
+
+    def test_growth_is_refused_where_it_would_cut_or_has_nothing_to_grow(self, tmp_path, capsys):
+        from lasagna.cli import main
+
+        train_prior(toy(steps=1, unet=unet_config_for("relight", resolution=8, channels=(8, 16), res_blocks=2)),
+                    tmp_path / "two")  # fmt: skip
+        base = ["train-prior", "--steps", "1", "--batch-size", "2", "--resolution", "8", "--no-progress"]
+        code = main([*base, "--init-from", str(tmp_path / "two" / "prior"), "--grow-res-blocks", "1",
+                     "--out", str(tmp_path / "cut")])  # fmt: skip
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and err.count("\n") == 0 and "fewer than the 2" in err and "--grow-res-blocks" in err
+        code = main([*base, "--grow-res-blocks", "2", "--out", str(tmp_path / "none")])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and err.count("\n") == 0 and "give --init-from too" in err
+        assert not (tmp_path / "cut").exists() and not (tmp_path / "none").exists()
 
     def test_init_from_another_architecture_is_refused(self, tmp_path):
         train_prior(toy(steps=1), tmp_path / "one")
