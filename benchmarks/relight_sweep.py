@@ -123,6 +123,12 @@ SELECT_SETTINGS: dict[str, list[dict]] = {
         for a in (1.0, 0.1)
         for lr in (0.01, 0.03)
     },
+    # The round of 2026-11-27 (14): the crop phase (`distill.whole_fraction`, the LMC-SDS paper's 0.4, never re-chosen
+    # on select): a prior trained on whole 32² scenes may read a native-resolution crop as a whole scene.
+    "whole fraction 0.7": [{"preset": {"distill": {"whole_fraction": 0.7}}}],
+    "whole image only": [{"preset": {"distill": {"whole_fraction": 1.0}}}],
+    "whole fraction 0.2": [{"preset": {"distill": {"whole_fraction": 0.2}}}],
+    "crops only": [{"preset": {"distill": {"whole_fraction": 0.0}}}],
     # One step further along the axis that won (the anchor), at 60 steps.
     **{
         f"surface refined 60, anchor {a:g}, lr {lr:g}": [

@@ -9,6 +9,8 @@
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe wall-level   # ~2 min (round 8)
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe truth-start  # ~3 min (round 13)
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe t-anneal     # ~15 min (round 13)
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe posterior-mean   # ~2 min (round 14)
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe denoise --prior runs/relit-grown/prior
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe ensemble \
         --members layers/surface-lit-32 layers/surface-lit-closeup-32                   # ~1 min
 
@@ -63,6 +65,17 @@
   falls linearly from 0.98 to each ``--finals`` value over the 150 steps, so the run ends on fine corrections.
   Rows per setting (the shipped first): `relight_sweep.py`'s default row on select at 64² and 256², the default's
   bare-wall leak there, and `photo_swing.py` on the photograph selection set.
+
+* **posterior-mean** (round 14) — the default relight's score-distillation correction replaced by the prior's
+  posterior mean of its start (SDEdit's mean, Meng et al. 2022): the start's composite in the prior's view noised to
+  t*, the conditional x̂₀ averaged over 8 noise draws, and the ratio of its luma to the start's luma the correction —
+  of the whole view (32², enlarged bilinearly to the working size), of the four 32² tiles of the 64² working input at
+  native resolution ("tiles"), or both in turn; then the default's planar lock and guided enlargement
+  (`lasagna.learned._optimise` patched). 8–16 prior passes against the default's 600. Rows: composite PSNR on
+  `select`'s 16 scenes at 64² for t* × mode (``--finals`` are the t* values, ``--modes`` the modes).
+
+* **denoise** (round 14) — the capacity question: the MSE of the conditional x̂₀ per t (128 scenes, 4 noise draws)
+  of `relit-32` and of ``--prior`` on `val` (training families, unseen scenes) and `select` (unseen families).
 
 Ends with one JSON line. None of these changes a preset; they are diagnostics (BENCHMARKS, round of 2026-11-26 (5)).
 """
@@ -635,6 +648,95 @@ def probe_t_anneal(finals: list[float]) -> dict:
     return out
 
 
+def _posterior_ratio(prior, comp: torch.Tensor, base: torch.Tensor, label: str, t_star: float, seed: int):
+    """luma(E[x̂₀ | z_t]) / luma(comp): the prior's mean over ``POSTERIOR_DRAWS`` noise draws of ``comp`` (1, 3, s, s)
+    noised to ``t_star``, conditioned on ``base`` (the lit input in the same view) and the target light."""
+    from lasagna.priors.base import Condition
+
+    k = POSTERIOR_DRAWS
+    g = torch.Generator().manual_seed(seed)
+    z0 = prior.encode(comp.clamp(0, 1)).expand(k, -1, -1, -1)
+    eps = torch.randn(z0.shape, generator=g)
+    t = prior.schedule.continuous_to_index(torch.full((k,), float(t_star)))
+    z_t = prior.schedule.add_noise(z0, eps, t)
+    cond = Condition([label] * k, image=base.expand(k, -1, -1, -1))
+    eps_hat = prior.predict(z_t, t, cond, branches=("cond",)).eps["cond"]
+    x0 = prior.decode(prior.schedule.x0_from_eps(z_t, eps_hat, t)).clamp(0, 1).mean(0, keepdim=True)
+    return luma(x0).clamp_min(POSTERIOR_EPS) / luma(comp).clamp_min(POSTERIOR_EPS)
+
+
+POSTERIOR_DRAWS = 8
+POSTERIOR_EPS = 1e-3  # a black pixel's ratio stays finite (the layer is clamped to its range after)
+
+
+def probe_posterior_mean(t_stars: list[float], modes: list[str]) -> dict:
+    import types
+
+    import torch.nn.functional as F
+    from _common import row, scenes
+
+    import lasagna.learned as learned
+    from lasagna.components import load_prior
+    from lasagna.distill.objective import resize
+    from lasagna.editing import edit
+    from lasagna.recipe import LayerSettings
+
+    cfg: dict = {}
+
+    @torch.no_grad()
+    def posterior_mean(recipe, x, initial, layer_id, files, device, progress, callback):
+        prior = load_prior(recipe.prior, preset=recipe.preset, device=device)
+        side = prior.config.resolution
+        lo, hi = recipe.distill.layer.range
+        r, (h, w) = initial.float(), x.shape[-2:]
+        if cfg["mode"] in ("whole", "both"):
+            view = (side, side)
+            c = _posterior_ratio(prior, resize(x * r, view), resize(x, view), recipe.label, cfg["t"], 0)
+            r = (r * F.interpolate(c, size=(h, w), mode="bilinear", align_corners=False)).clamp(lo, hi)
+        if cfg["mode"] in ("tiles", "both"):
+            out = r.clone()
+            for i in range(0, h - side + 1, side):
+                for j in range(0, w - side + 1, side):
+                    tile = (..., slice(i, i + side), slice(j, j + side))
+                    c = _posterior_ratio(prior, (x * r)[tile], x[tile], recipe.label, cfg["t"], 1 + i + j)
+                    out[tile] = (r[tile] * c).clamp(lo, hi)
+            r = out
+        settings = LayerSettings(method=recipe.method, optimize=recipe.steps, working_size=recipe.working_size)
+        return types.SimpleNamespace(layer=r, history=[], stopped_reason="steps"), settings
+
+    shipped, rows = learned._optimise, []
+    rel, labels = scenes("select", COUNT, 0, 64)
+    learned._optimise = posterior_mean
+    try:
+        for mode in modes:
+            for t_star in t_stars:
+                cfg.update(t=t_star, mode=mode)
+                layers = torch.stack([edit(rel.base[i].float(), "relight", labels[i]).layer for i in range(COUNT)])
+                rows.append(row(rel, f"posterior mean, t* {t_star:g}, {mode}", layers.double()))
+                print(json.dumps(rows[-1]), flush=True)
+    finally:
+        learned._optimise = shipped
+    return {"select_64": rows}
+
+
+def probe_denoise(candidate: Path) -> dict:
+    from prior_quality import heldout
+
+    from lasagna.priors.evaluate import denoising_error
+    from lasagna.priors.unet import UNetPrior
+
+    ts, out = (0.1, 0.25, 0.5, 0.75, 0.9, 0.98), {}
+    for split in ("val", "select"):
+        x0, labels, cond = heldout("relit", 128, 32, 1, split=split)
+        for name, path in (("relit-32", LAYERS / "relit-32"), ("candidate", candidate)):
+            prior = UNetPrior.from_pretrained(path).eval()
+            with torch.no_grad():
+                runs = [denoising_error(prior, x0, labels, cond, ts, seed=s) for s in range(4)]
+            out[f"{split}/{name}"] = {str(t): round(sum(r[t] for r in runs) / 4, 6) for t in ts}
+            print(json.dumps({f"{split}/{name}": out[f"{split}/{name}"]}), flush=True)
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument(
@@ -650,10 +752,20 @@ def main(argv=None) -> int:
             "wall-level",
             "truth-start",
             "t-anneal",
+            "posterior-mean",
+            "denoise",
         ),
         required=True,
     )
-    p.add_argument("--finals", nargs="+", type=float, default=[0.5, 0.3], help="t-anneal: t_max's final values")
+    p.add_argument("--modes", nargs="+", default=["whole", "tiles", "both"], help="posterior-mean: the corrections")
+    p.add_argument("--prior", type=Path, default=None, help="denoise: the candidate prior (a folder)")
+    p.add_argument(
+        "--finals",
+        nargs="+",
+        type=float,
+        default=None,
+        help="t-anneal: t_max's final values (0.5 0.3); posterior-mean: t* (0.2 … 0.9)",
+    )
     p.add_argument("--gains", nargs="+", type=float, default=[1.0, 1.5, 2.0, 3.0], help="start-relief")
     p.add_argument("--members", nargs="+", type=Path, default=[LAYERS / "surface-lit-32", LIT], help="ensemble")
     p.add_argument("--default", action="store_true", help="gain-fit: measure the default relight instead")
@@ -666,7 +778,13 @@ def main(argv=None) -> int:
     elif args.probe == "start-relief":
         rows = probe_start_relief(args.gains)
     elif args.probe == "t-anneal":
-        rows = probe_t_anneal(args.finals)
+        rows = probe_t_anneal(args.finals or [0.5, 0.3])
+    elif args.probe == "posterior-mean":
+        rows = probe_posterior_mean(args.finals or [0.2, 0.4, 0.6, 0.75, 0.9], args.modes)
+    elif args.probe == "denoise":
+        if args.prior is None:
+            p.error("--probe denoise needs --prior FOLDER")
+        rows = probe_denoise(args.prior)
     else:
         probes = {"srgb": probe_srgb, "profile": probe_profile, "sirfs": probe_sirfs}
         probes.update({"symmetric-particles": probe_symmetric_particles, "wall-level": probe_wall_level})
