@@ -72,7 +72,8 @@
   of the whole view (32², enlarged bilinearly to the working size), of the four 32² tiles of the 64² working input at
   native resolution ("tiles"), or both in turn; then the default's planar lock and guided enlargement
   (`lasagna.learned._optimise` patched). 8–16 prior passes against the default's 600. Rows: composite PSNR on
-  `select`'s 16 scenes at 64² for t* × mode (``--finals`` are the t* values, ``--modes`` the modes).
+  `select`'s 16 scenes at 64² for t* × mode (``--finals`` are the t* values, ``--modes`` the modes); ``--size 32``
+  makes the scenes at the prior's own size, the working size 32 (no enlargement, no crops).
 
 * **denoise** (round 14) — the capacity question: the MSE of the conditional x̂₀ per t (128 scenes, 4 noise draws)
   of `relit-32` and of ``--prior`` on `val` (training families, unseen scenes) and `select` (unseen families).
@@ -669,7 +670,8 @@ POSTERIOR_DRAWS = 8
 POSTERIOR_EPS = 1e-3  # a black pixel's ratio stays finite (the layer is clamped to its range after)
 
 
-def probe_posterior_mean(t_stars: list[float], modes: list[str]) -> dict:
+def probe_posterior_mean(t_stars: list[float], modes: list[str], size: int = 64) -> dict:
+    import tempfile
     import types
 
     import torch.nn.functional as F
@@ -705,18 +707,24 @@ def probe_posterior_mean(t_stars: list[float], modes: list[str]) -> dict:
         return types.SimpleNamespace(layer=r, history=[], stopped_reason="steps"), settings
 
     shipped, rows = learned._optimise, []
-    rel, labels = scenes("select", COUNT, 0, 64)
+    rel, labels = scenes("select", COUNT, 0, size)
     learned._optimise = posterior_mean
+    tmp = tempfile.TemporaryDirectory()
     try:
+        # Below the preset's working size (64), the scenes are made at their own size: at 32, the prior's own view.
+        dirs = relight_sweep.preset_variant({"working_size": size}, Path(tmp.name)) if size < 64 else None
         for mode in modes:
             for t_star in t_stars:
                 cfg.update(t=t_star, mode=mode)
-                layers = torch.stack([edit(rel.base[i].float(), "relight", labels[i]).layer for i in range(COUNT)])
-                rows.append(row(rel, f"posterior mean, t* {t_star:g}, {mode}", layers.double()))
+                layers = [edit(rel.base[i].float(), "relight", labels[i], catalogue_dirs=dirs) for i in range(COUNT)]
+                rows.append(
+                    row(rel, f"posterior mean, t* {t_star:g}, {mode}", torch.stack([e.layer for e in layers]).double())
+                )
                 print(json.dumps(rows[-1]), flush=True)
     finally:
         learned._optimise = shipped
-    return {"select_64": rows}
+        tmp.cleanup()
+    return {f"select_{size}": rows}
 
 
 def probe_denoise(candidate: Path) -> dict:
@@ -759,6 +767,7 @@ def main(argv=None) -> int:
     )
     p.add_argument("--modes", nargs="+", default=["whole", "tiles", "both"], help="posterior-mean: the corrections")
     p.add_argument("--prior", type=Path, default=None, help="denoise: the candidate prior (a folder)")
+    p.add_argument("--size", type=int, default=64, help="posterior-mean: the scenes' size (32: the prior's own)")
     p.add_argument(
         "--finals",
         nargs="+",
@@ -780,7 +789,7 @@ def main(argv=None) -> int:
     elif args.probe == "t-anneal":
         rows = probe_t_anneal(args.finals or [0.5, 0.3])
     elif args.probe == "posterior-mean":
-        rows = probe_posterior_mean(args.finals or [0.2, 0.4, 0.6, 0.75, 0.9], args.modes)
+        rows = probe_posterior_mean(args.finals or [0.2, 0.4, 0.6, 0.75, 0.9], args.modes, args.size)
     elif args.probe == "denoise":
         if args.prior is None:
             p.error("--probe denoise needs --prior FOLDER")
