@@ -18,9 +18,8 @@ EXAMPLE = "lasagna world -o out/world --split heldout --count 8 --seed 0"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """Add the ``world`` options to ``p``."""
-    from lasagna.world.export import TASKS
-    from lasagna.world.lighting import AMBIENT
-    from lasagna.world.splits import SPLIT_NAMES
+    from lasagna.document.condition import AMBIENT
+    from lasagna.world.names import SPLIT_NAMES, TASKS
 
     p.add_argument("-o", "--output", required=True, metavar="DIR", help="folder to write the stack folders into")
     p.add_argument("--split", required=True, choices=SPLIT_NAMES, help="which named split to draw scenes from")
@@ -55,16 +54,17 @@ def add_world_parser(subparsers) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Write the stacks; prints one summary line; returns the exit status 0 (errors raise LasagnaError)."""
-    from lasagna.io.folder import check_writable
-    from lasagna.world.export import MANIFEST, write_world_stacks
-    from lasagna.world.scene import check_resolution
-
-    out = check_writable(args.output, folder=True)
+    # The integers first: a mistyped number is refused before the renderer (and torch) is imported.
     if args.count < 1:
         raise LasagnaError(f"expected a positive integer, got {args.count}", where="--count")
     for name in ("seed", "start"):
         if getattr(args, name) < 0:
             raise LasagnaError(f"expected a non-negative integer, got {getattr(args, name)}", where=f"--{name}")
+    from lasagna.io.folder import check_writable
+    from lasagna.world.export import MANIFEST, write_world_stacks
+    from lasagna.world.scene import check_resolution
+
+    out = check_writable(args.output, folder=True)
     check_resolution(args.resolution)
     folders = write_world_stacks(
         out,

@@ -16,26 +16,59 @@ Modules: ``lighting`` (the vocabulary and shading formula), ``shapes``, ``textur
 families), ``splits`` (which split uses which families — ``train``/``val``, ``heldout`` for choosing,
 ``far`` untouched until the final measurement; per-scene random streams), ``params``
 (scene parameters and their sampling), ``scene`` (rendering), ``tasks`` (colourisation,
-additive-light and relighting data), ``export`` and ``cli`` (stack folders, ``lasagna world``).
+additive-light and relighting data), ``export`` and ``cli`` (stack folders, ``lasagna world``), ``names``
+(the split and task names, torch-free: a command's arguments need them before anything renders).
 """
 
-from lasagna.world.lighting import (
-    AMBIENT,
-    GLOW_VOCABULARY,
-    LIGHTS,
-    VOCABULARY,
-    WALL_SHADING,
-    condition_direction,
-    direction_vector,
-    lambert,
-    light_vectors,
-    named_direction,
-    parse_direction,
-)
-from lasagna.world.params import SceneParams, sample_scenes
-from lasagna.world.scene import Scene, batches, generate, relight, render, with_light
-from lasagna.world.splits import SPLIT_NAMES, SPLITS
-from lasagna.world.tasks import AdditiveLight, Colorization, Relighting, additive_light, colorization, relighting
+import importlib
+
+# Where each public name lives. The package is lazy (PEP 562's module ``__getattr__``): importing
+# ``lasagna.world.names`` — what a command's arguments need — must not load torch, which the renderer's
+# modules import, so a mistyped ``lasagna world`` is answered in a fraction of a second.
+_HOMES = {
+    "lasagna.world.lighting": (
+        "AMBIENT",
+        "GLOW_VOCABULARY",
+        "LIGHTS",
+        "VOCABULARY",
+        "WALL_SHADING",
+        "condition_direction",
+        "direction_vector",
+        "lambert",
+        "light_vectors",
+        "named_direction",
+        "parse_direction",
+    ),
+    "lasagna.world.params": ("SceneParams", "sample_scenes"),
+    "lasagna.world.scene": ("Scene", "batches", "generate", "relight", "render", "with_light"),
+    "lasagna.world.names": ("SPLIT_NAMES",),
+    "lasagna.world.splits": ("SPLITS",),
+    "lasagna.world.tasks": (
+        "AdditiveLight",
+        "Colorization",
+        "Relighting",
+        "additive_light",
+        "colorization",
+        "relighting",
+    ),
+}
+_HOME_OF = {name: module for module, names in _HOMES.items() for name in names}
+
+
+def __getattr__(name: str):
+    """Import a public name's module on first use (PEP 562)."""
+    try:
+        module = _HOME_OF[name]
+    except KeyError:
+        raise AttributeError(f"module 'lasagna.world' has no attribute {name!r}") from None
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_HOME_OF])
+
 
 __all__ = [
     "AMBIENT",

@@ -45,12 +45,12 @@ import torch
 from lasagna.atomic import atomic_write_text
 from lasagna.errors import LasagnaError, PathError
 from lasagna.world.lighting import AMBIENT, GLOW_VOCABULARY, LIGHTS, VOCABULARY
+from lasagna.world.names import TASKS
 from lasagna.world.scene import Scene, generate
 from lasagna.world.splits import STREAM_VERSION
 from lasagna.world.tasks import RELIGHT_RANGE, additive_light, colorization, luma, relight_sources, relighting
 
 Task = Literal["shading", "color", "light", "relight"]
-TASKS: tuple[str, ...] = ("shading", "color", "light", "relight")
 MANIFEST = "world.json"
 # Scenes rendered per batch while writing: large enough to amortise the renderer's per-call cost,
 # small enough to keep memory flat at 256² and above.

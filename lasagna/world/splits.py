@@ -48,6 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lasagna.errors import LasagnaError
+from lasagna.world.names import SPLIT_NAMES
 from lasagna.world.relief import RELIEFS
 from lasagna.world.shapes import SHAPES
 from lasagna.world.textures import TEXTURES
@@ -126,10 +127,10 @@ SPLITS: dict[str, Split] = {
     ),
     "wide": Split("wide", **{**_TRAIN_FAMILIES, "shapes": (*_TRAIN_FAMILIES["shapes"], "gem", "blob")}),
 }
-SPLIT_NAMES: tuple[str, ...] = tuple(SPLITS)
 HELD_SPLITS: tuple[str, ...] = ("heldout", "far", "select")
 """The splits of families training never sees; their scenes at world seed 0 are the benchmarks' own."""
 
+assert tuple(SPLITS) == SPLIT_NAMES, tuple(SPLITS)  # the names are declared once, in lasagna.world.names
 for _s in SPLITS.values():
     assert set(_s.shapes) <= set(SHAPES) and _s.textures <= set(TEXTURES) and set(_s.reliefs) <= set(RELIEFS), _s
     assert 1 <= _s.objects[0] <= _s.objects[1] <= MAX_OBJECTS, _s

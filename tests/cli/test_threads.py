@@ -65,7 +65,8 @@ def test_a_fresh_process_gets_its_threads_without_torch_before_the_command(tmp_p
     """In a fresh process torch is not imported until the command needs it: ``--threads`` reaches it through
     ``OMP_NUM_THREADS`` (torch reads it at import), and a refusal before any tensor work (a broken stack.json, an
     edit of a file that is no image, of an unknown preset or label, a re-light of a stack without a surface layer, a
-    normal map that is no PNG, a broken PSD, an editor of a broken stack, a training command's unknown task) never
+    normal map that is no PNG, a broken PSD, an editor of a broken stack, a training command's unknown task, a world
+    of an unknown split or task or no scenes) never
     imports torch (~1.5 s:
     `benchmarks/hostile.py`'s bombs' time bound)."""
     import importlib.util
@@ -112,6 +113,10 @@ def test_a_fresh_process_gets_its_threads_without_torch_before_the_command(tmp_p
     for argv, needle in (  # the training commands' typing mistakes: their task table is read torch-free
         (["train-prior", "--task", "nope", "--out", str(tmp_path / "t")], "invalid choice: 'nope'"),
         (["train-corrective", "--prior", "x", "--task", "nope", "--out", str(tmp_path / "t")], "invalid choice"),
+        # the world's typing mistakes: its split and task names are read torch-free (lasagna.world.names)
+        (["world", "-o", str(tmp_path / "t"), "--split", "nope", "--count", "1"], "invalid choice: 'nope'"),
+        (["world", "-o", str(tmp_path / "t"), "--split", "far", "--count", "1", "--task", "x"], "invalid choice"),
+        (["world", "-o", str(tmp_path / "t"), "--split", "far", "--count", "0"], "--count: expected a positive"),
     ):
         done = subprocess.run([sys.executable, "-c", code, *argv], env=env, capture_output=True, text=True)
         assert done.stdout.split() == ["2", "None"] and needle in done.stderr and not (tmp_path / "t").exists()
