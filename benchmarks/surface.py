@@ -8,7 +8,8 @@ Rows per split and size (``--count`` scenes of world seed 0, the light cycling t
 * **shading** (the base is the albedo; the layer multiplies it; dB over the best constant, all / object pixels):
   the best constant; *oracle: true outlines inflated* (each object's true silhouette inflated into a dome,
   `lasagna.compose.surface.inflate_regions`, Lambert-shaded under the scene's light — what a model that knows
-  the outlines and assumes round shapes reaches); *truth at working size 32* (the true shading reduced to the
+  the outlines and assumes round shapes reaches), and the same with the dome's height chosen per scene by the
+  truth from ``ORACLE_HEIGHTS`` (issue #24's own oracle); *truth at working size 32* (the true shading reduced to the
   working size and enlarged back: the headroom of any layer made at that size); *truth on the objects, the wall
   flat* (the headroom of any layer made from the albedo: the wall's relief is not in the paint); the albedo
   estimator's surface.
@@ -42,6 +43,7 @@ from _common import swing as photo_swing  # noqa: E402
 
 from lasagna.compose.resample import downsample, upsample  # noqa: E402
 from lasagna.compose.surface import (  # noqa: E402
+    dome_normals,
     inflated_normals,
     lambert,
     light_vector,
@@ -82,6 +84,18 @@ def oracle_normals(scene) -> torch.Tensor:
     return inflated_normals(scene.object_index)
 
 
+ORACLE_HEIGHTS = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0)
+"""The dome heights (× the round dome's) issue #24's oracle picks from, per scene, by the truth."""
+
+
+def best_per_scene(candidates: list[torch.Tensor], truth: torch.Tensor) -> torch.Tensor:
+    """For every scene, the candidate (each (B, C, H, W)) with the least squared error to ``truth`` over all its
+    pixels: an oracle that chooses by the truth, as issue #24's "best dome height per scene" does."""
+    err = torch.stack([(c.double() - truth.double()).pow(2).flatten(1).mean(1) for c in candidates])  # (K, B)
+    pick = err.argmin(0)
+    return torch.stack([candidates[int(k)][i] for i, k in enumerate(pick)])
+
+
 def objects_only(scene) -> torch.Tensor:
     """The true normals on the objects and a flat wall: the headroom of any layer made from the albedo, where the
     wall's relief is not in the paint (no method reading the albedo can see it)."""
@@ -98,13 +112,17 @@ def gain_row(method: str, y: torch.Tensor, truth: torch.Tensor, mask: torch.Tens
     return row
 
 
-def edit_layers(images: torch.Tensor, preset: str, labels: list[str], **options) -> tuple[torch.Tensor, float]:
-    """``lasagna edit``'s layer for every image (B, 3, H, W) with ``options`` (e.g. layer_kind), and seconds per
-    image: what a user gets, through the whole edit path."""
+def edit_layers(
+    images: torch.Tensor, preset: str, labels: list[str], sources: list[str] | None = None, **options
+) -> tuple[torch.Tensor, float]:
+    """``lasagna edit``'s layer for every image (B, 3, H, W) with ``options`` (e.g. layer_kind), each with its
+    source light given (``--from``) where ``sources`` is, and seconds per image: what a user gets, through the
+    whole edit path."""
     from lasagna import edit
 
     t0 = time.perf_counter()
-    layers = [edit(images[i], preset, labels[i], **options).layer[:1] for i in range(images.shape[0])]
+    given = [{} if sources is None else {"source_light": sources[i]} for i in range(images.shape[0])]
+    layers = [edit(images[i], preset, labels[i], **options, **given[i]).layer[:1] for i in range(images.shape[0])]
     return torch.stack(layers), (time.perf_counter() - t0) / images.shape[0]
 
 
@@ -119,6 +137,13 @@ def shading_rows(scene, labels, albedo_net, edits: list[str], dome=None) -> list
         gain_row(
             "oracle: true outlines inflated",
             lambert(oracle_normals(scene), light),
+            truth,
+            mask,
+            cdb,
+        ),
+        gain_row(
+            "oracle: true outlines inflated, best height per scene (the issue's)",
+            best_per_scene([lambert(dome_normals(scene.object_index, h), light) for h in ORACLE_HEIGHTS], truth),
             truth,
             mask,
             cdb,
@@ -140,7 +165,9 @@ def shading_rows(scene, labels, albedo_net, edits: list[str], dome=None) -> list
     return rows
 
 
-def relight_rows(scene, labels, lit_net, edits: list[str], dome=None, stray: int | None = None) -> list[dict]:
+def relight_rows(
+    scene, labels, lit_net, edits: list[str], dome=None, stray: int | None = None, given_source: bool = False
+) -> list[dict]:
     sources = relight_sources(scene.params)
     rel = relighting(scene, sources)
     base, target, mask = rel.base, rel.target.clamp(0, 1), scene.mask
@@ -160,6 +187,19 @@ def relight_rows(scene, labels, lit_net, edits: list[str], dome=None, stray: int
         gain_row(
             "oracle: true outlines inflated, true source light",
             comp(lambert(n_oracle, tgt) / lambert(n_oracle, src)),
+            target,
+            mask,
+            bdb,
+        ),
+        gain_row(
+            "oracle: true outlines inflated, true source light, best height per scene (the issue's)",
+            best_per_scene(
+                [
+                    comp(lambert(n, tgt) / lambert(n, src))
+                    for n in (dome_normals(scene.object_index, h) for h in ORACLE_HEIGHTS)
+                ],
+                target,
+            ),
             target,
             mask,
             bdb,
@@ -189,6 +229,10 @@ def relight_rows(scene, labels, lit_net, edits: list[str], dome=None, stray: int
     for kind in edits:
         ratio, secs = edit_layers(base.float(), "relight", labels, layer_kind=kind)
         rows.append(gain_row(f"lasagna edit --layer relight --layer-kind {kind}", comp(ratio), target, mask, bdb, secs))
+        if given_source and kind == "surface":  # told the true source light (--from), as a user who knows it would
+            ratio, secs = edit_layers(base.float(), "relight", labels, sources, layer_kind=kind)
+            method = f"lasagna edit --layer relight --layer-kind {kind} --from (the true source light)"
+            rows.append(gain_row(method, comp(ratio), target, mask, bdb, secs))
     return rows
 
 
@@ -299,6 +343,11 @@ def main(argv=None) -> int:
         help="also measure `lasagna edit` with these --layer-kind (the catalogue's presets: free is today's layer)",
     )
     p.add_argument(
+        "--given-source",
+        action="store_true",
+        help="also measure the relight surface layer (--edits surface) told the scene's true source light (--from)",
+    )
+    p.add_argument(
         "--edit-leak",
         action="store_true",
         help="also measure the wall leak of `lasagna edit --layer shading` and `--layer relight`, each --edits kind",
@@ -347,7 +396,7 @@ def main(argv=None) -> int:
             scene, labels = scenes(split, args.count, args.seed, size)
             for task, rows in (
                 ("shading", shading_rows(scene, labels, albedo_net, args.edits, dome)),
-                ("relight", relight_rows(scene, labels, lit_net, args.edits, dome, args.stray)),
+                ("relight", relight_rows(scene, labels, lit_net, args.edits, dome, args.stray, args.given_source)),
             ):
                 for r in rows:
                     r.update(split=split, size=size)

@@ -312,12 +312,19 @@ def _luminance(recipe: Recipe) -> str:
 def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
     """A surface layer (``recipe.kind == "surface"``): the estimator's surface (height or normals) at the working
     size, refined by ``recipe.steps`` multi-light score-distillation steps when asked, enlarged bicubically to the
-    base's size; its normals, its source light (a lit input's: given, else fitted) and the multiplier they render
+    base's size; its normals, its source light (a lit input's: fitted, or given — the estimate then turned to its
+    azimuth, ``turn_to_azimuth``) and the multiplier they render
     to under the condition's light — through the 16-bit map the stack will store, so it is what the stack
     renders."""
     from lasagna.components import load_prior
     from lasagna.compose.layer import LayerTensors
-    from lasagna.compose.surface import enlarge_surface, surface_normals, surface_tensors
+    from lasagna.compose.surface import (
+        enlarge_surface,
+        light_vector,
+        surface_normals,
+        surface_tensors,
+        turn_to_azimuth,
+    )
     from lasagna.distill.surface import distill_surface
     from lasagna.document.condition import AMBIENT, parse_direction
     from lasagna.generators.surface import DomePrior, SurfaceEstimator
@@ -338,8 +345,15 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
             flat_walls=sd.flat_walls,
         )
     source = None
+    turned = None
     if net.config.input == "lit":
         source = recipe.source_light or light_condition(fitted[0])
+        if recipe.source_light is not None:
+            # A given source light is adopted, not only divided by: the estimate turned about the view axis to its
+            # azimuth (turn_to_azimuth), so the relief the estimate found for the source shading moves with it.
+            given = light_vector(*parse_direction(source), device=fitted.device)[None]
+            surface = turn_to_azimuth(surface_normals(surface), fitted, given)
+            turned = light_condition(fitted[0])
     history: list[dict[str, Any]] = []
     made_by: dict[str, Any] = {
         "preset": recipe.preset.name,
@@ -352,13 +366,13 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         made_by.update(symmetry=sd.symmetry)
     if sd.flat_walls > 0:
         made_by.update(flat_walls=sd.flat_walls)
+    if turned is not None:
+        made_by.update(turned_from=turned)  # the fitted light the estimate was turned from to the given one
     if net.config.input == "lit" and recipe.source_light is None and sd.source_elevation != "fit":
         made_by.update(source_elevation=sd.source_elevation)
     if net.config.input == "lit" and recipe.source_light is None and sd.light_calibration is not None:
         made_by.update(light_calibration=list(sd.light_calibration))
     if recipe.distill is not None:
-        from lasagna.compose.surface import light_vector
-
         prior = load_prior(recipe.prior, preset=recipe.preset, device=device)
         ds, sd = recipe.distill, recipe.surface
         src = None if source is None else light_vector(*parse_direction(source), device=device)[None]

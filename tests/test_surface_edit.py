@@ -57,6 +57,37 @@ def test_relight_fits_the_source_light_or_takes_it(catalogue):
     assert not torch.equal(toward_left.layer, toward_right.layer)
 
 
+def test_a_given_source_light_turns_the_estimate_to_its_azimuth(tiny, tmp_path_factory):
+    """``--from`` adopts the given light (``turn_to_azimuth``): the layer's normals are the fitted layer's turned
+    about the view axis from the fitted light's azimuth to the given one's (to the 16-bit map's codes, in numpy
+    float64), the fitted light recorded as ``made_by.turned_from``; a fitted layer records no turn. The preset's
+    mirror ensemble makes the estimate normals (not a height) in both, so both are enlarged alike."""
+    import math
+
+    import numpy as np
+
+    from lasagna.compose.surface import decode_normal_map
+    from lasagna.document.condition import parse_direction
+
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("turn") / "layers")
+    write_preset(folder, "relight", surface={**SURFACE, "estimator": "surface-lit-32", "symmetry": "mirrors"})
+    catalogue = [folder]
+    fitted = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=catalogue)
+    given = edit(
+        image(), "relight", "right", layer_kind="surface", source_light="az=250,el=40", catalogue_dirs=catalogue
+    )
+    lf, lg = (r.stack.document.layer(r.layer_id) for r in (fitted, given))
+    assert "turned_from" not in lf.made_by and lg.made_by["turned_from"] == lf.source_light
+    assert lg.source_light == "az=250,el=40"
+    nf, ng = (decode_normal_map(r.stack.tensors[r.layer_id].color[None].double())[0] for r in (fitted, given))
+    a = math.radians(250.0 - parse_direction(lf.source_light)[0])
+    rot = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    want = np.einsum("ij,jhw->ihw", rot, nf.numpy())
+    assert abs(a) > 0.1  # a real turn
+    # 16-bit codes (1.5e-5) and the recorded azimuth rounded to 0.01° (8.7e-5 rad at most) bound the difference.
+    np.testing.assert_allclose(ng.numpy(), want, atol=3e-4)
+
+
 def test_free_stays_available(catalogue):
     res = edit(image(), "shading", "left", layer_kind="free", catalogue_dirs=catalogue)
     assert res.stack.document.layer(res.layer_id).kind == "learned"

@@ -204,6 +204,33 @@ def _with_elevation(light: Tensor, el: Tensor) -> Tensor:
     return torch.cat([along * torch.sin(r), torch.cos(r)], 1)
 
 
+# Below this length of a light's (x, y) part (sin el: 0.06° from the view axis) the light has no azimuth to turn
+# from or to: ``turn_to_azimuth`` leaves the normals as they are.
+AZIMUTH_EPS = 1e-3
+
+
+def turn_to_azimuth(normals: Tensor, fitted: Tensor, given: Tensor) -> Tensor:
+    """Unit ``normals`` (B, 3, H, W) estimated together with the light ``fitted`` (B, 3), turned about the view axis
+    by the azimuth from ``fitted`` to ``given`` (B, 3): how a source light the user gives is adopted by a surface
+    estimated from the lit image.
+
+    An estimate and the light fitted to it share their errors of azimuth (what lights a bump from one side is,
+    to a single image, much like what lights a turned bump from another), so dividing the estimate by the given
+    light puts the source shading where the estimate has no relief for it. Turning the normals instead keeps
+    n·l_fit = (R n)·(R l_fit) — the source shading the estimate explains — and moves the relief into the
+    given light's frame; a flat wall (n = +z) stays flat. The elevation is not adopted this way: relief scaled
+    to a new elevation (the bas-relief ambiguity's other freedom) measured worse on ``select``
+    (docs/BENCHMARKS.md, round 15). Computed in float64, returned in the normals' dtype; a light on the view axis
+    (|l_xy| < ``AZIMUTH_EPS``) turns nothing."""
+    n, f, g = normals.double(), fitted.double(), given.double().to(normals.device)
+    turn = torch.atan2(g[:, 1], g[:, 0]) - torch.atan2(f[:, 1], f[:, 0])
+    axial = (f[:, :2].norm(dim=1) < AZIMUTH_EPS) | (g[:, :2].norm(dim=1) < AZIMUTH_EPS)
+    turn = torch.where(axial, torch.zeros_like(turn), turn)
+    c, s = turn.cos().view(-1, 1, 1), turn.sin().view(-1, 1, 1)
+    x, y = n[:, 0], n[:, 1]
+    return torch.stack([c * x - s * y, s * x + c * y, n[:, 2]], 1).to(normals.dtype)
+
+
 def normals_from_height(height: Tensor) -> Tensor:
     """Unit normals (B, 3, H, W) of a height field (B, 1, H, W) in canvas units (the canvas is 2 units wide).
 

@@ -203,6 +203,40 @@ class TestFitLight:
         assert torch.autograd.gradcheck(lambda t: fit_light(n, t), (s,))
 
 
+class TestTurnToAzimuth:
+    """``turn_to_azimuth``: a given source light adopted by turning the estimate about the view axis."""
+
+    @settings(max_examples=25, deadline=None)
+    @given(st.floats(0, 360), st.floats(5, 80), st.floats(0, 360), st.floats(5, 80), st.integers(0, 2**31 - 1))
+    def test_keeps_the_source_shading_in_the_given_frame_and_walls_flat(self, az_f, el_f, az_g, el_g, seed):
+        from lasagna.compose.surface import turn_to_azimuth
+
+        rng = np.random.default_rng(seed)
+        n = random_normals(rng, b=1, h=6, w=5)
+        n[0, :, 0, 0] = (0.0, 0.0, 1.0)  # a flat wall's pixel
+        fit, give = light_vector(az_f, el_f, dtype=F64)[None], light_vector(az_g, el_g, dtype=F64)[None]
+        got = turn_to_azimuth(torch.from_numpy(n), fit, give)
+        # The reference: the rotation by the azimuth difference about z, in numpy float64.
+        a = math.radians(az_g - az_f)
+        rot = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        want = np.einsum("ij,bjhw->bihw", rot, n)
+        np.testing.assert_allclose(got.numpy(), want, atol=1e-12)
+        # n·l_fit is kept when the light is turned alike: the fitted light at the given azimuth.
+        turned_light = torch.from_numpy(np_light(az_g, el_f))[None]
+        torch.testing.assert_close(lambert(got, turned_light), lambert(torch.from_numpy(n), fit), atol=1e-12, rtol=0)
+        np.testing.assert_allclose(got[0, :, 0, 0].numpy(), (0.0, 0.0, 1.0), atol=1e-15)
+        np.testing.assert_allclose(np.linalg.norm(got.numpy(), axis=1), 1.0, atol=1e-12)
+
+    def test_a_light_on_the_view_axis_turns_nothing(self):
+        from lasagna.compose.surface import turn_to_azimuth
+
+        n = torch.from_numpy(random_normals(np.random.default_rng(3), b=2))
+        axis = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]], dtype=F64)
+        side = torch.stack([light_vector(90, 40, dtype=F64), light_vector(200, 30, dtype=F64)])
+        assert torch.equal(turn_to_azimuth(n, axis, side), n) and torch.equal(turn_to_azimuth(n, side, axis), n)
+        assert turn_to_azimuth(n.float(), side, side.flip(0)).dtype == torch.float32
+
+
 def bfs_regions(mask: np.ndarray) -> list[set]:
     """The 8-connected regions of a 2-D boolean array, by breadth-first flood fill (the reference)."""
     seen, regions = np.zeros_like(mask, dtype=bool), []
