@@ -255,6 +255,10 @@ def leak_row(args, split: str, size: int, albedo_net, lit_net, dome=None) -> dic
                 y = edit_layers(image, preset, labels, layer_kind=kind)[0].double()
                 flat = y.mean(dim=(1, 2, 3), keepdim=True).expand_as(y)
                 out[f"leak_db_{preset}_{kind}"] = round(psnr(y, flat), 2)
+            if args.given_source and kind == "surface":  # the surface relight told the true source light (--from)
+                y = edit_layers(lit, "relight", labels, relight_sources(walls.params), layer_kind=kind)[0].double()
+                flat = y.mean(dim=(1, 2, 3), keepdim=True).expand_as(y)
+                out[f"leak_db_relight_{kind}_given"] = round(psnr(y, flat), 2)
     return out
 
 

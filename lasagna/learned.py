@@ -335,6 +335,9 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
     x = working_input(base, recipe.working_size, device)  # (1, 3, h, w)
     sd = recipe.surface
     dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
+    given = None
+    if net.config.input == "lit" and recipe.source_light is not None:
+        given = light_vector(*parse_direction(recipe.source_light), device=x.device)[None]
     with torch.no_grad():
         surface, fitted = net.estimate(
             x,
@@ -343,16 +346,16 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
             elevation=sd.light_calibration,
             source_elevation=sd.source_elevation,
             flat_walls=sd.flat_walls,
+            light=given if net.config.light_input else None,  # an estimator that reads the light is told it
         )
     source = None
     turned = None
     if net.config.input == "lit":
         source = recipe.source_light or light_condition(fitted[0])
-        if recipe.source_light is not None:
+        if given is not None:
             # A given source light is adopted, not only divided by: the estimate turned about the view axis to its
             # azimuth (turn_to_azimuth), so the relief the estimate found for the source shading moves with it.
-            given = light_vector(*parse_direction(source), device=fitted.device)[None]
-            surface = turn_to_azimuth(surface_normals(surface), fitted, given)
+            surface = turn_to_azimuth(surface_normals(surface), fitted, given.to(fitted))
             turned = light_condition(fitted[0])
     history: list[dict[str, Any]] = []
     made_by: dict[str, Any] = {

@@ -88,6 +88,51 @@ def test_a_given_source_light_turns_the_estimate_to_its_azimuth(tiny, tmp_path_f
     np.testing.assert_allclose(ng.numpy(), want, atol=3e-4)
 
 
+def test_an_estimator_that_reads_the_light_is_told_the_given_one(tiny, tmp_path_factory, monkeypatch):
+    """A lit estimator with a light input reads ``--from``'s light (the given light's unit vector, through the
+    preset's symmetry ensemble); without ``--from`` it is told nothing and reads the image twice (alone, then with
+    the light fitted to that reading). A plain estimator is never handed a light."""
+    import math
+
+    from lasagna.compose.surface import light_vector
+    from lasagna.document.condition import parse_direction
+    from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
+
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("reads") / "layers")
+    torch.manual_seed(4)
+    net = SurfaceEstimator(
+        SurfaceConfig(input="lit", light_input=True, silhouette=True, channels=(4, 8), blocks=1, working_size=16)
+    )
+    torch.nn.init.normal_(net.head.weight, std=0.3)
+    net.save_pretrained(folder / "surface-lit-light")
+    write_preset(folder, "relight", surface={**SURFACE, "estimator": "surface-lit-light", "symmetry": "mirrors"})
+    told: list = []
+    real = SurfaceEstimator.estimate
+
+    def spy(self, *args, **kw):
+        told.append((self.config.light_input, kw.get("light")))
+        return real(self, *args, **kw)
+
+    monkeypatch.setattr(SurfaceEstimator, "estimate", spy)
+    given = edit(
+        image(), "relight", "right", layer_kind="surface", source_light="az=250,el=40", catalogue_dirs=[folder]
+    )
+    ((reads, light),) = told
+    want = light_vector(*parse_direction("az=250,el=40"))[None]
+    assert reads and light is not None
+    torch.testing.assert_close(light.double(), want.double(), atol=1e-6, rtol=0)
+    assert abs(math.degrees(math.atan2(float(light[0, 1]), float(light[0, 0]))) % 360 - 250) < 1e-3
+    told.clear()
+    fitted = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=[folder])
+    assert told == [(True, None)]  # told nothing: the estimator reads twice on its own
+    assert not torch.equal(fitted.layer, given.layer)
+    told.clear()
+    plain = tiny_variant(tiny, tmp_path_factory.mktemp("plain") / "layers")
+    write_preset(plain, "relight", surface={**SURFACE, "estimator": "surface-lit-32"})
+    edit(image(), "relight", "right", layer_kind="surface", source_light="left", catalogue_dirs=[plain])
+    assert told == [(False, None)]
+
+
 def test_free_stays_available(catalogue):
     res = edit(image(), "shading", "left", layer_kind="free", catalogue_dirs=catalogue)
     assert res.stack.document.layer(res.layer_id).kind == "learned"

@@ -29,6 +29,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="also learn where the objects are (a silhouette head, for the dome prior)",
     )
+    p.add_argument(
+        "--light-input",
+        action="store_true",
+        help="lit input: also read the source light when it is known (given to it on --light-given of the scenes, "
+        "jittered by --light-jitter degrees); at use it reads an image, fits the light, and reads it again",
+    )
+    p.add_argument("--light-given", type=float, default=0.75, help="probability that a scene's light is given")
+    p.add_argument("--light-jitter", type=float, default=10.0, help="noise on a given light, degrees per component")
     p.add_argument("--out", required=True, help="run folder; run again with the same folder to resume")
     p.add_argument("--working-size", type=int, default=32, help="the side it trains (and later works) at")
     p.add_argument("--channels", default="32,64,128", help="feature channels per level")
@@ -60,6 +68,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=0.0,
         help="lit input: probability that a scene carries stray illumination (a sky's gradient, a vignette, a "
         "spotlight's pool) the estimator must learn as paint (0: off)",
+    )
+    p.add_argument(
+        "--relief",
+        type=float,
+        default=0.0,
+        help="probability that a wall the split drew flat is given relief of one of the split's families instead "
+        "(more relief walls to learn from; 0: as drawn)",
     )
     p.add_argument(
         "--init-from",
@@ -97,7 +112,10 @@ def run(args: argparse.Namespace) -> int:
             channels=channels,
             blocks=args.blocks,
             working_size=args.working_size,
+            light_input=args.light_input,
         ),
+        light_given=args.light_given,
+        light_jitter=args.light_jitter,
         lights=args.lights,
         steps=args.steps,
         max_minutes=args.minutes,
@@ -112,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
         init_from=args.init_from,
         zoom=args.zoom,
         stray=args.stray,
+        relief=args.relief,
         render_on=args.render_on,
         seed=args.seed,
         progress=progress() and not args.no_progress,  # bars only for a person watching (or --progress)

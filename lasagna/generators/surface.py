@@ -72,6 +72,23 @@ FORMAT = "lasagna.surface_estimator"
 # softplus(FLAT_Z) = 1: a zero head output is the flat normal +z (an untrained estimator's wall).
 FLAT_Z = math.log(math.e - 1.0)
 
+LIGHT_CHANNELS = 4
+"""Constant input channels of an estimator with a light input: the source light's (x, y, z) and a flag, 1 where
+the light is given (a zero row: not known, all four channels 0)."""
+
+
+def light_channels(light: Tensor | None, like: Tensor) -> Tensor:
+    """(B, 4, H, W) constant maps of ``light`` (B, 3) — unit rows, or zero rows for "not known"; None: none known —
+    shaped and typed as ``like`` (B, C, H, W)."""
+    b, _, h, w = like.shape
+    if light is None:
+        return like.new_zeros(b, LIGHT_CHANNELS, h, w)
+    if light.shape != (b, 3):
+        raise LasagnaError(f"light has shape {tuple(light.shape)}; expected ({b}, 3)", "light")
+    light = light.to(like)
+    given = (light.norm(dim=1, keepdim=True) > 0.5).to(like)
+    return torch.cat([light * given, given], 1)[:, :, None, None].expand(b, LIGHT_CHANNELS, h, w)
+
 
 def normals_from_head(out: Tensor) -> Tensor:
     """Unit normals (B, 3, H, W) of a normals head's output (a, b, c): (a, b, softplus(c + FLAT_Z)) normalised, so
@@ -101,6 +118,19 @@ class SurfaceConfig(BaseModel):
         "inflates: `lasagna.compose.surface.dome_normals`).",
     )
     working_size: int = Field(32, ge=8, le=1024, description="The side it was trained at (and is applied at).")
+    light_input: bool = Field(
+        False,
+        description="A lit input's estimator also reads its source light, when one is known, as four constant "
+        "channels (l and a flag that it is given): relief shading is a derivative along the light, so a bump lit "
+        "from the left and a dent lit from the right look alike until the light is known (module docstring).",
+    )
+
+    @field_validator("light_input")
+    @classmethod
+    def _lit(cls, v: bool, info) -> bool:
+        if v and info.data.get("input") != "lit":
+            raise ValueError("a light input needs input 'lit' (an albedo has no source light)")
+        return v
 
     @field_validator("channels")
     @classmethod
@@ -157,6 +187,16 @@ def _transpose_normals(n: Tensor) -> Tensor:
     return torch.cat([-n[:, 1:2], -n[:, 0:1], n[:, 2:3]], 1)
 
 
+def _view_light(light: Tensor | None, dims: tuple[int, ...], sign: tuple[float, float, float], transpose: bool):
+    """``light`` (B, 3) as seen in a view of the symmetry ensemble: transposed (when ``transpose``), then mirrored
+    (``dims``, ``sign`` as in ``MIRRORS``) — the view's own map, applied to a vector; zero rows stay zero."""
+    if light is None:
+        return None
+    if transpose:
+        light = torch.stack([-light[:, 1], -light[:, 0], light[:, 2]], 1)
+    return light * light.new_tensor(sign) if dims else light
+
+
 class SurfaceEstimator(Pretrained, nn.Module):
     """image (B, 3, H, W) in [0, 1] → height (B, 1, H, W) and, for ``input="lit"``, the source light (B, 3)."""
 
@@ -167,7 +207,7 @@ class SurfaceEstimator(Pretrained, nn.Module):
         super().__init__()
         self.config = config
         ch = config.channels
-        self.enc, self.dec = unet_body(3, ch, config.blocks)
+        self.enc, self.dec = unet_body(3 + LIGHT_CHANNELS * config.light_input, ch, config.blocks)
         # Height, and for a lit input its source shading's logit; zero-initialised: the flat surface, lit at the
         # midpoint a + (1 − a)/2 of the shading's range (module docstring).
         self.surface_channels = 1 if config.output == "height" else 3
@@ -176,20 +216,26 @@ class SurfaceEstimator(Pretrained, nn.Module):
             self.head.weight.zero_()
             self.head.bias.zero_()
 
-    def _features(self, image: Tensor) -> Tensor:
+    def _features(self, image: Tensor, light: Tensor | None = None) -> Tensor:
         if not isinstance(image, Tensor) or image.dim() != 4 or image.shape[1] != 3:
             got = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
             raise LasagnaError(f"image has shape {got}; expected (B, 3, H, W) in [0, 1]", "image")
-        x, h, w = pad_to_levels(image.to(self.head.weight.dtype) * 2 - 1, len(self.config.channels))
+        x = image.to(self.head.weight.dtype) * 2 - 1
+        if self.config.light_input:
+            x = torch.cat([x, light_channels(light, x)], 1)
+        elif light is not None:
+            raise LasagnaError("this estimator reads no light (trained without --light-input)", "light")
+        x, h, w = pad_to_levels(x, len(self.config.channels))
         return self.head(run_unet(self.enc, self.dec, x))[:, :, :h, :w]
 
     def forward(self, image: Tensor) -> Tensor:
         """The surface: the height field (B, 1, H, W) in canvas units, or the unit normals (B, 3, H, W)."""
         return self.decompose(image)[0]
 
-    def outputs(self, image: Tensor) -> SurfaceOutputs:
-        """Every output of the head for ``image`` (B, 3, H, W) in [0, 1] (``SurfaceOutputs``)."""
-        out = self._features(image)
+    def outputs(self, image: Tensor, light: Tensor | None = None) -> SurfaceOutputs:
+        """Every output of the head for ``image`` (B, 3, H, W) in [0, 1] (``SurfaceOutputs``); ``light`` (B, 3) the
+        source lights of an estimator with a light input (a zero row, or None: not known)."""
+        out = self._features(image, light)
         k = self.surface_channels
         surface = out[:, :1] if k == 1 else normals_from_head(out[:, :k])
         shading = None
@@ -218,6 +264,8 @@ class SurfaceEstimator(Pretrained, nn.Module):
         elevation: tuple[float, float] | None = None,
         source_elevation: SourceElevation = "fit",
         flat_walls: float = 0.0,
+        light: Tensor | None = None,
+        readings: int = 2,
     ) -> tuple[Tensor, Tensor | None]:
         """(surface — height or normals, as ``decompose``; unit normals where ``dome`` mixes in the dome prior,
         ``symmetry`` averages an ensemble, ``flat_walls`` > 0 removes the walls' large-scale tilt (`flatten_walls`,
@@ -227,31 +275,20 @@ class SurfaceEstimator(Pretrained, nn.Module):
         docstring); with ``source_elevation`` "walls" its
         elevation is the one that lights a flat wall to the estimated shading's mean over the walls (weighted by
         1 − the silhouette probability, `lasagna.compose.surface.wall_elevation`); then mapped by ``elevation``
-        (offset, gain) when given (`lasagna.compose.surface.calibrate_elevation`)."""
+        (offset, gain) when given (`lasagna.compose.surface.calibrate_elevation`). An estimator with a light input
+        reads ``light`` (B, 3), the source light when it is known; when it is not, the image is read ``readings``
+        times: alone, then each time told the light fitted to the reading before."""
         if symmetry not in SYMMETRIES:
             raise LasagnaError(f"got {symmetry!r}; expected one of {', '.join(SYMMETRIES)}", "symmetry")
-        if symmetry == "none":
-            surface, shading, objects = self._one_estimate(image, dome)
-        else:
-            normals, shadings, probs = [], [], []
-            for transpose in (False, True) if symmetry == "dihedral" else (False,):
-                seen = image.transpose(-1, -2) if transpose else image
-                for dims, sign in MIRRORS:
-                    surface, shading, p = self._one_estimate(seen.flip(dims) if dims else seen, dome)
-                    n = self.normals(surface)
-                    maps = [shading, p]
-                    if dims:
-                        n = n.flip(dims) * n.new_tensor(sign).view(1, 3, 1, 1)
-                        maps = [None if m is None else m.flip(dims) for m in maps]
-                    if transpose:
-                        n = _transpose_normals(n)
-                        maps = [None if m is None else m.transpose(-1, -2) for m in maps]
-                    normals.append(n)
-                    shadings.append(maps[0])
-                    probs.append(maps[1])
-            surface = facing_normals(torch.stack(normals).mean(0))
-            shading = None if shadings[0] is None else torch.stack(shadings).mean(0)
-            objects = None if probs[0] is None else torch.stack(probs).mean(0)
+        if readings < 1:
+            raise LasagnaError(f"got {readings}; expected at least 1", "readings")
+        if self.config.light_input and light is None:
+            # The image alone, the light fitted to that estimate, then the image read with that light (readings
+            # in all, each told the light fitted to the reading before).
+            for _ in range(readings - 1):
+                first, first_shading, _ = self._views(image, dome, symmetry, light)
+                light = fit_light(self.normals(first), first_shading)
+        surface, shading, objects = self._views(image, dome, symmetry, light)
         if flat_walls > 0:
             if objects is None:
                 raise LasagnaError(
@@ -292,10 +329,42 @@ class SurfaceEstimator(Pretrained, nn.Module):
                 views.append(p.transpose(-1, -2) if transpose else p)
         return torch.stack(views).mean(0)
 
-    def _one_estimate(self, image: Tensor, dome: DomePrior | None) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    def _views(
+        self, image: Tensor, dome: DomePrior | None, symmetry: Symmetry, light: Tensor | None
+    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """(surface, source shading or None, silhouette probability or None) of ``image`` averaged over
+        ``symmetry``'s ensemble (module docstring); ``light`` (B, 3) is mapped into each view as its normals are."""
+        if symmetry == "none":
+            return self._one_estimate(image, dome, light)
+        normals, shadings, probs = [], [], []
+        for transpose in (False, True) if symmetry == "dihedral" else (False,):
+            seen = image.transpose(-1, -2) if transpose else image
+            for dims, sign in MIRRORS:
+                surface, shading, p = self._one_estimate(
+                    seen.flip(dims) if dims else seen, dome, _view_light(light, dims, sign, transpose)
+                )
+                n = self.normals(surface)
+                maps = [shading, p]
+                if dims:
+                    n = n.flip(dims) * n.new_tensor(sign).view(1, 3, 1, 1)
+                    maps = [None if m is None else m.flip(dims) for m in maps]
+                if transpose:
+                    n = _transpose_normals(n)
+                    maps = [None if m is None else m.transpose(-1, -2) for m in maps]
+                normals.append(n)
+                shadings.append(maps[0])
+                probs.append(maps[1])
+        surface = facing_normals(torch.stack(normals).mean(0))
+        shading = None if shadings[0] is None else torch.stack(shadings).mean(0)
+        objects = None if probs[0] is None else torch.stack(probs).mean(0)
+        return surface, shading, objects
+
+    def _one_estimate(
+        self, image: Tensor, dome: DomePrior | None, light: Tensor | None = None
+    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
         """(surface, with the dome prior mixed in where asked; the source shading or None; the silhouette
         probability or None) of one pass."""
-        out = self.outputs(image)
+        out = self.outputs(image, light)
         surface = out.surface
         if dome is not None and dome.weight > 0:
             if out.silhouette is None:
@@ -318,11 +387,12 @@ class SurfaceEstimator(Pretrained, nn.Module):
         elevation: tuple[float, float] | None = None,
         source_elevation: SourceElevation = "fit",
         flat_walls: float = 0.0,
+        light: Tensor | None = None,
     ) -> tuple[Tensor, Tensor | None]:
         """(unit normals (B, 3, H, W), source light (B, 3) or None) of ``image`` (B, 3, H, W) in [0, 1]: estimated
         at the working size ``side`` (None: the one it was trained at; `lasagna.compose.resample.working_size`),
         the surface enlarged back to (H, W) (`lasagna.compose.surface.enlarge_surface`)."""
         full = tuple(image.shape[-2:])
         small = downsample(image, working_size(*full, side or self.config.working_size))
-        surface, light = self.estimate(small, dome, symmetry, relief, elevation, source_elevation, flat_walls)
-        return self.normals(enlarge_surface(surface, full)), light
+        surface, fitted = self.estimate(small, dome, symmetry, relief, elevation, source_elevation, flat_walls, light)
+        return self.normals(enlarge_surface(surface, full)), fitted

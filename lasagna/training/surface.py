@@ -8,6 +8,10 @@ every view), compared with the true shading under the same lights::
     L = mean_k ‖S(n̂, l_k) − S(n, l_k)‖²  +  λ_n‖n̂ − n‖²  (+ ‖Ŝ_src − S(n, l_src)‖² + λ_l (1 − l̂_src·l_src) lit)
         (+ λ_s BCE(ŝ, mask), an estimator with a silhouette head: where the objects are, for the dome prior)
 
+An estimator with a light input (``SurfaceConfig.light_input``) is told its source light on a fraction of the
+scenes (``light_given``), jittered (``light_jitter``) as a light fitted to its own first reading would be, and
+nothing on the rest: at use it reads an image alone, fits the light, and reads it again with that light.
+
 S = a + (1 − a)·max(0, n·l) (`lasagna.compose.surface.lambert`); lights l_k uniform in azimuth, elevation in
 [0°, ``MAX_TRAIN_ELEVATION``]. A ``"lit"`` estimator reads each scene lit by its own random source light
 (elevation in the relight range, `lasagna.world.tasks.RELIGHT_ELEVATION`) and also learns that light's shading
@@ -36,9 +40,10 @@ from lasagna.errors import LasagnaError
 from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
 from lasagna.training.loop import LoopConfig, network_from_checkpoint, train_loop
 from lasagna.training.tasks import SCENE_RANGE
-from lasagna.world import generate
-from lasagna.world.scene import Scene, with_light
-from lasagna.world.splits import check_training_scenes
+from lasagna.world.params import SceneParams, sample_scenes
+from lasagna.world.relief import RELIEF_DRAWS, RELIEF_NAMES, RELIEFS
+from lasagna.world.scene import Scene, render, with_light
+from lasagna.world.splits import SPLITS, check_training_scenes
 from lasagna.world.stray import stray_gain
 from lasagna.world.tasks import RELIGHT_ELEVATION
 
@@ -85,6 +90,28 @@ class SurfaceTrainConfig(LoopConfig):
         "(lasagna.world.stray: a sky's gradient, a vignette, a spotlight's pool), taught as paint — the truth stays "
         "the scene's own (0: off)",
     )
+    light_given: float = Field(
+        0.75,
+        ge=0.0,
+        le=1.0,
+        description="an estimator with a light input: the probability that a scene's source light is given to it "
+        "(else a zero row, 'not known': the first of its two readings)",
+    )
+    light_jitter: float = Field(
+        10.0,
+        ge=0.0,
+        le=45.0,
+        description="an estimator with a light input: the given light is the true one plus Gaussian noise of this "
+        "many degrees per component, renormalised — so it learns to use a light fitted to its own first reading "
+        "(median 13° off on select) without trusting it more than such a light deserves",
+    )
+    relief: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="the probability that a scene whose wall the split drew flat is given relief of one of the "
+        "split's relief families instead (`with_relief`): more relief walls than the split draws (0: as drawn)",
+    )
     render_on: Literal["device", "cpu"] = Field(
         "device",
         description="where the scenes are rendered: the training device (a GPU renders a batch faster than the "
@@ -98,6 +125,35 @@ def random_lights(count: int, rng: torch.Generator, el_range: tuple[float, float
     lo, hi = (math.radians(e) for e in el_range)
     el = lo + (hi - lo) * torch.rand(count, generator=rng, dtype=torch.float64)
     return torch.stack([el.sin() * az.cos(), el.sin() * az.sin(), el.cos()], 1).float()
+
+
+def given_lights(source: torch.Tensor, rng: torch.Generator, given: float, jitter: float) -> torch.Tensor:
+    """(B, 3): what an estimator with a light input is told of the source lights ``source`` (B, 3) — each, with
+    probability ``given``, the light plus Gaussian noise of ``jitter`` degrees (radians of the unit vector's
+    components) renormalised, else a zero row ("not known")."""
+    noisy = source.double() + math.radians(jitter) * torch.randn(source.shape, generator=rng, dtype=torch.float64)
+    noisy = torch.nn.functional.normalize(noisy, dim=1)
+    keep = torch.rand(len(source), generator=rng, dtype=torch.float64) < given
+    return (noisy * keep[:, None]).to(source.dtype)
+
+
+def with_relief(params: SceneParams, rng: torch.Generator, probability: float, families: tuple[str, ...]):
+    """``params`` with each flat wall given, with ``probability``, relief of one of ``families`` (drawn uniformly,
+    its parameters from ``RELIEF_DRAWS`` uniforms of ``rng``, as the split's own sampler draws them); walls the
+    split gave relief keep it. Every draw comes from ``rng`` (a resumed run sees the same walls)."""
+    if not families:
+        raise LasagnaError("this split draws no relief; expected a split with relief families", "relief")
+    b = len(params.relief)
+    pick = torch.rand(b, generator=rng, dtype=torch.float64)
+    family = torch.randint(0, len(families), (b,), generator=rng)
+    uniforms = torch.rand(b, RELIEF_DRAWS, generator=rng, dtype=torch.float64).numpy()
+    relief, prm = params.relief.clone(), params.relief_params.clone()
+    for i in range(b):
+        if int(relief[i]) < 0 and float(pick[i]) < probability:
+            name = families[int(family[i])]
+            relief[i] = RELIEF_NAMES.index(name)
+            prm[i] = torch.as_tensor(RELIEFS[name].sample(uniforms[i]), dtype=prm.dtype)
+    return replace(params, relief=relief, relief_params=prm)
 
 
 def close_ups(scene: Scene, side: int, rng: torch.Generator) -> Scene:
@@ -151,12 +207,15 @@ def surface_loss(
     lights: torch.Tensor,
     device: str | torch.device = "cpu",
     gain: torch.Tensor | None = None,
+    given: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """The module docstring's L on one batch: ``scene`` (B scenes), ``source`` (B, 3) their source lights (lit
     input), ``lights`` (K·B, 3) the lights their estimate and truth are compared under (K per scene), ``gain`` the
-    stray illumination on the input (lit; the truth is unchanged by it)."""
+    stray illumination on the input (lit; the truth is unchanged by it), ``given`` (B, 3) the source lights an
+    estimator with a light input reads (zero rows: not known; `given_lights`)."""
     b = len(scene)
-    out = net.outputs(estimator_input(config.net, scene, source, gain).to(device))
+    image = estimator_input(config.net, scene, source, gain).to(device)
+    out = net.outputs(image, None if given is None else given.to(device))
     surface, source_shading = out.surface, out.shading
     normals, truth = net.normals(surface), scene.normals.to(device)
     groups = lights.to(device).split(b)
@@ -190,24 +249,32 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
         start = SurfaceEstimator.from_pretrained(config.init_from)
         # The working size is not the architecture: heights are in canvas units, so an estimator trained at one
         # size may be continued at another (a fully convolutional net, the same weights).
-        if start.config.model_copy(update={"working_size": config.net.working_size}) != config.net:
+        same = {"working_size": config.net.working_size, "light_input": config.net.light_input}
+        narrower = start.config.light_input and not config.net.light_input
+        if start.config.model_copy(update=same) != config.net or narrower:
             raise LasagnaError(
                 f"its estimator config differs from this run's ({start.config} vs {config.net})", config.init_from
             )
-        estimator.load_state_dict(start.state_dict())
+        estimator.load_state_dict(widened_state(start, estimator))
     side = config.net.working_size
 
     def step_fn(net: SurfaceEstimator, rng: torch.Generator, step: int):
         start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
         where = device if config.render_on == "device" else "cpu"
         big = int(round(side * config.zoom))
-        scene = generate(config.split, config.batch_size, config.world_seed, big, start=start, device=where)
+        params = sample_scenes(config.split, config.world_seed, range(start, start + config.batch_size))
+        if config.relief > 0:
+            params = with_relief(params, rng, config.relief, SPLITS[config.split].reliefs)
+        scene = render(params, big, device=where)
         if big != side:
             scene = close_ups(scene, side, rng)
         source = random_lights(config.batch_size, rng, RELIGHT_ELEVATION) if config.net.input == "lit" else None
         lights = random_lights(config.batch_size * config.lights, rng, (0.0, MAX_TRAIN_ELEVATION))
         gain = stray_gain(scene.mask, rng, config.stray) if config.stray > 0 and source is not None else None
-        return surface_loss(net, config, scene, source, lights, device, gain)
+        given = None
+        if config.net.light_input and source is not None:
+            given = given_lights(source, rng, config.light_given, config.light_jitter)
+        return surface_loss(net, config, scene, source, lights, device, gain, given)
 
     done = train_loop(
         estimator,
@@ -222,6 +289,20 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
     final: SurfaceEstimator = done.model  # type: ignore[assignment]
     final.save_pretrained(Path(out_dir) / "surface")
     return final
+
+
+def widened_state(start: SurfaceEstimator, target: SurfaceEstimator) -> dict[str, torch.Tensor]:
+    """``start``'s weights for ``target``, which may read a light besides (``light_input``): the first
+    convolution's new input channels start at zero, so the widened estimator answers exactly as ``start`` until
+    training teaches it to use the light."""
+    state = start.state_dict()
+    own = target.state_dict()
+    for name, value in state.items():
+        if value.shape != own[name].shape:  # only the first convolution's input width may differ
+            wide = torch.zeros_like(own[name])
+            wide[:, : value.shape[1]] = value
+            state[name] = wide
+    return state
 
 
 def estimator_from_checkpoint(path: str | Path, ema: bool = True) -> tuple[SurfaceEstimator, int]:

@@ -353,3 +353,83 @@ def test_flat_walls_remove_the_walls_tilt_from_the_estimate_and_need_a_silhouett
     plain_net = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
     with pytest.raises(LasagnaError, match="flat_walls: .*silhouette head"):
         plain_net.estimate(image, flat_walls=0.25)
+
+
+def _light_net(seed: int) -> SurfaceEstimator:
+    """A toy lit estimator with a light input whose head and light channels are random (not the zero start)."""
+    torch.manual_seed(seed)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", silhouette=True, light_input=True, **TOY))
+    torch.nn.init.normal_(net.head.weight, std=0.5)
+    return net
+
+
+def test_a_light_input_needs_a_lit_estimator_and_a_light_row_per_image():
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="a light input needs input 'lit'"):
+        SurfaceConfig(input="albedo", light_input=True, **TOY)
+    net = _light_net(0)
+    with pytest.raises(LasagnaError, match=r"light has shape \(1, 3\); expected \(2, 3\)"):
+        net.outputs(torch.rand(2, 3, 8, 8), torch.tensor([[0.0, 0.0, 1.0]]))
+    plain = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
+    with pytest.raises(LasagnaError, match="reads no light"):
+        plain.outputs(torch.rand(1, 3, 8, 8), torch.tensor([[0.0, 0.0, 1.0]]))
+
+
+def test_light_channels_are_the_light_and_a_given_flag_and_zero_when_not_known():
+    from lasagna.generators.surface import LIGHT_CHANNELS, light_channels
+
+    like = torch.zeros(3, 5, 4, 6, dtype=torch.float64)
+    light = torch.tensor([[0.6, 0.0, 0.8], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    maps = light_channels(light, like)
+    assert maps.shape == (3, LIGHT_CHANNELS, 4, 6) and maps.dtype == torch.float64
+    expected = torch.tensor([[0.6, 0.0, 0.8, 1.0], [0.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 1.0]], dtype=torch.float64)
+    torch.testing.assert_close(maps, expected[:, :, None, None].expand(3, 4, 4, 6), atol=1e-7, rtol=0)
+    assert torch.equal(light_channels(None, like), torch.zeros(3, LIGHT_CHANNELS, 4, 6, dtype=torch.float64))
+
+
+def test_the_light_changes_the_reading_and_an_unknown_light_is_read_twice():
+    """A light input is read (two lights, two estimates); told nothing, the estimator reads the image alone, fits
+    the light to that reading and reads the image again with it — reproduced here by hand."""
+    from lasagna.compose.surface import fit_light
+
+    net = _light_net(1)
+    image = torch.rand(1, 3, 8, 8)
+    left = net.estimate(image, light=torch.tensor([[-0.8, 0.0, 0.6]]))[0]
+    right = net.estimate(image, light=torch.tensor([[0.8, 0.0, 0.6]]))[0]
+    assert not torch.allclose(left, right, atol=1e-3)
+    alone = net.outputs(image)  # None: the first reading (a zero light row)
+    torch.testing.assert_close(alone.surface, net.outputs(image, torch.zeros(1, 3)).surface, atol=0, rtol=0)
+    first_light = fit_light(net.normals(alone.surface), alone.shading)
+    by_hand = net.estimate(image, light=first_light)
+    auto = net.estimate(image)
+    torch.testing.assert_close(auto[0], by_hand[0], atol=1e-6, rtol=0)
+    torch.testing.assert_close(auto[1], by_hand[1], atol=1e-6, rtol=0)
+    # readings=3: told the light fitted to the second reading; readings=1: the first reading alone.
+    third = net.estimate(image, light=fit_light(net.normals(by_hand[0]), net.outputs(image, first_light).shading))
+    torch.testing.assert_close(net.estimate(image, readings=3)[0], third[0], atol=1e-6, rtol=0)
+    torch.testing.assert_close(net.estimate(image, readings=1)[0], alone.surface, atol=1e-6, rtol=0)
+    with pytest.raises(LasagnaError, match="got 0; expected at least 1"):
+        net.estimate(image, readings=0)
+
+
+@pytest.mark.parametrize("symmetry", ["mirrors", "dihedral"])
+def test_the_symmetry_ensemble_maps_a_given_light_into_each_view(symmetry):
+    """With a light input, the ensemble stays equivariant when the light moves with the image: the estimate of the
+    mirrored image under the mirrored light is the mirrored estimate (a light left in place would not give it)."""
+    from lasagna.generators.surface import MIRRORS
+
+    net = _light_net(2)
+    image = torch.rand(1, 3, 12, 12)
+    light = torch.nn.functional.normalize(torch.tensor([[0.5, 0.3, 0.8]]), dim=1)
+    n, _ = net.estimate(image, symmetry=symmetry, light=light)
+    for dims, sign in MIRRORS[1:]:
+        mirrored_light = light * torch.tensor(sign)
+        m, _ = net.estimate(image.flip(dims), symmetry=symmetry, light=mirrored_light)
+        torch.testing.assert_close(m, _mirrored(n, dims, sign), atol=1e-5, rtol=0)
+        stale, _ = net.estimate(image.flip(dims), symmetry=symmetry, light=light)
+        assert not torch.allclose(stale, _mirrored(n, dims, sign), atol=1e-3)
+    if symmetry == "dihedral":
+        swapped = torch.stack([-light[:, 1], -light[:, 0], light[:, 2]], 1)
+        t, _ = net.estimate(image.transpose(-1, -2), symmetry=symmetry, light=swapped)
+        torch.testing.assert_close(t, _transposed(n), atol=1e-5, rtol=0)

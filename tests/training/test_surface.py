@@ -193,3 +193,65 @@ def test_a_run_with_stray_illumination_trains_and_resumes(tmp_path):
     resumed = train_surface(toy(steps=4, stray=0.5), tmp_path / "b")
     for (k, v), w in zip(whole.state_dict().items(), resumed.state_dict().values()):
         assert torch.equal(v, w), k
+
+
+def test_given_lights_are_jittered_unit_lights_or_zero_rows():
+    from lasagna.training.surface import given_lights
+
+    rng = torch.Generator().manual_seed(0)
+    source = random_lights(400, rng, (10.0, 60.0))
+    exact = given_lights(source, rng, 1.0, 0.0)
+    torch.testing.assert_close(exact, source, atol=1e-6, rtol=0)
+    assert torch.equal(given_lights(source, rng, 0.0, 10.0), torch.zeros_like(source))
+    some = given_lights(source, rng, 0.5, 10.0)
+    kept = some.norm(dim=1) > 0.5
+    assert 150 < int(kept.sum()) < 250  # about half given
+    torch.testing.assert_close(some[kept].norm(dim=1), torch.ones(int(kept.sum())), atol=1e-5, rtol=0)
+    angle = torch.rad2deg(torch.arccos((some[kept] * source[kept]).sum(1).clamp(-1, 1)))
+    assert 5.0 < float(angle.median()) < 25.0  # 10° per component: about 10·√2·0.83 ≈ 12° off
+
+
+def test_a_light_input_run_starts_at_the_estimator_it_widens(tmp_path):
+    """``init_from`` an estimator without a light input into one with it: the new channels start at zero, so the
+    widened estimator answers as the saved one whatever light it is told, then learns; the reverse is refused."""
+    first = train_surface(toy(steps=3), tmp_path / "a")
+    wide_net = toy().net.model_copy(update={"light_input": True})
+    config = toy(net=wide_net, steps=1, lr=1e-12, warmup_steps=0, init_from=str(tmp_path / "a" / "surface"))
+    wide = train_surface(config, tmp_path / "b")
+    x = torch.rand(2, 3, 16, 16)
+    told = torch.tensor([[0.6, 0.0, 0.8], [0.0, 0.0, 0.0]])
+    torch.testing.assert_close(wide.outputs(x, told).surface, first(x), atol=1e-6, rtol=0)
+    learnt = train_surface(toy(net=wide_net, steps=20, init_from=str(tmp_path / "a" / "surface")), tmp_path / "c")
+    assert not torch.allclose(learnt.outputs(x, told).surface, learnt.outputs(x).surface, atol=1e-5)
+    back = toy(steps=1, init_from=str(tmp_path / "b" / "surface"))
+    with pytest.raises(LasagnaError, match="its estimator config differs from this run's"):
+        train_surface(back, tmp_path / "d")
+
+
+def test_with_relief_gives_flat_walls_relief_of_the_splits_families():
+    """``relief``: a flat wall gets relief of one of the split's families with the given probability (all at 1,
+    none at 0); a wall the split gave relief keeps it; the rendered wall's normals then leave +z."""
+    from lasagna.training.surface import with_relief
+    from lasagna.world.params import sample_scenes
+    from lasagna.world.relief import RELIEF_NAMES
+    from lasagna.world.scene import render
+    from lasagna.world.splits import SPLITS
+
+    params = sample_scenes("train", 5, range(24))
+    families = SPLITS["train"].reliefs
+    drawn = params.relief >= 0
+    assert 0 < int(drawn.sum()) < 24  # the split draws some reliefs, not all
+    every = with_relief(params, torch.Generator().manual_seed(1), 1.0, families)
+    assert bool((every.relief >= 0).all())
+    assert torch.equal(every.relief[drawn], params.relief[drawn])
+    assert torch.equal(every.relief_params[drawn], params.relief_params[drawn])
+    assert {RELIEF_NAMES[int(r)] for r in every.relief[~drawn]} <= set(families)
+    none = with_relief(params, torch.Generator().manual_seed(1), 0.0, families)
+    assert torch.equal(none.relief, params.relief) and torch.equal(none.relief_params, params.relief_params)
+    flat = int((~drawn).nonzero()[0])
+    before, after = render(params, 32), render(every, 32)
+    wall = ~before.mask[flat, 0].bool()
+    assert float(before.normals[flat, 2][wall].min()) > 0.999  # drawn flat
+    assert float(after.normals[flat, 2][wall].min()) < 0.99  # the new relief bends the wall's normals
+    with pytest.raises(LasagnaError, match="draws no relief"):
+        with_relief(params, torch.Generator(), 0.5, ())
