@@ -77,6 +77,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(more relief walls to learn from; 0: as drawn)",
     )
     p.add_argument(
+        "--walls-only",
+        action="store_true",
+        help="train on the split's walls alone, objects removed (with --relief 1: every scene a painted wall with "
+        "relief)",
+    )
+    p.add_argument(
         "--init-from",
         default=None,
         help="a saved estimator folder (a run's surface/) of the same architecture (any working size) whose weights "
@@ -131,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
         zoom=args.zoom,
         stray=args.stray,
         relief=args.relief,
+        walls_only=args.walls_only,
         render_on=args.render_on,
         seed=args.seed,
         progress=progress() and not args.no_progress,  # bars only for a person watching (or --progress)

@@ -112,6 +112,12 @@ class SurfaceTrainConfig(LoopConfig):
         description="the probability that a scene whose wall the split drew flat is given relief of one of the "
         "split's relief families instead (`with_relief`): more relief walls than the split draws (0: as drawn)",
     )
+    walls_only: bool = Field(
+        False,
+        description="train on the split's walls alone (objects removed, `SceneParams.walls_only`): with `relief` 1 "
+        "every scene is one painted wall with relief, the part of the relight no estimator has learned "
+        "(docs/BENCHMARKS.md, round 16)",
+    )
     render_on: Literal["device", "cpu"] = Field(
         "device",
         description="where the scenes are rendered: the training device (a GPU renders a batch faster than the "
@@ -236,6 +242,18 @@ def surface_loss(
     return loss, metrics
 
 
+def training_scenes(config: SurfaceTrainConfig, rng: torch.Generator) -> SceneParams:
+    """One step's scenes: ``batch_size`` consecutive scenes of the split from a random start, their objects removed
+    (``walls_only``) and flat walls given relief (``relief``), every draw from ``rng``."""
+    start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
+    params = sample_scenes(config.split, config.world_seed, range(start, start + config.batch_size))
+    if config.walls_only:
+        params = params.walls_only()
+    if config.relief > 0:
+        params = with_relief(params, rng, config.relief, SPLITS[config.split].reliefs)
+    return params
+
+
 def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str | torch.device | None = "cpu"):
     """Train (or resume) the estimator in ``out_dir`` on ``device`` (None: CUDA where there is one); the final EMA
     weights go to ``out_dir/surface``."""
@@ -259,13 +277,9 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
     side = config.net.working_size
 
     def step_fn(net: SurfaceEstimator, rng: torch.Generator, step: int):
-        start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
         where = device if config.render_on == "device" else "cpu"
         big = int(round(side * config.zoom))
-        params = sample_scenes(config.split, config.world_seed, range(start, start + config.batch_size))
-        if config.relief > 0:
-            params = with_relief(params, rng, config.relief, SPLITS[config.split].reliefs)
-        scene = render(params, big, device=where)
+        scene = render(training_scenes(config, rng), big, device=where)
         if big != side:
             scene = close_ups(scene, side, rng)
         source = random_lights(config.batch_size, rng, RELIGHT_ELEVATION) if config.net.input == "lit" else None

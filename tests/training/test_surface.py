@@ -255,3 +255,27 @@ def test_with_relief_gives_flat_walls_relief_of_the_splits_families():
     assert float(after.normals[flat, 2][wall].min()) < 0.99  # the new relief bends the wall's normals
     with pytest.raises(LasagnaError, match="draws no relief"):
         with_relief(params, torch.Generator(), 0.5, ())
+
+
+def test_training_scenes_walls_only_with_relief_are_bare_walls_with_relief():
+    """``walls_only``: a step's scenes have no objects (an empty mask); with ``relief`` 1 every wall has relief of the
+    split's families; the draws are the run generator's (the same seed, the same scenes), and without either flag
+    the scenes are the split's as drawn."""
+    from lasagna.training.surface import training_scenes
+    from lasagna.world.relief import RELIEF_NAMES
+    from lasagna.world.scene import render
+    from lasagna.world.splits import SPLITS
+
+    base = toy(steps=1)
+    plain = training_scenes(base, torch.Generator().manual_seed(3))
+    assert bool(plain.present.any())  # the split's scenes have objects
+    walls = base.model_copy(update={"walls_only": True, "relief": 1.0})
+    a = training_scenes(walls, torch.Generator().manual_seed(3))
+    b = training_scenes(walls, torch.Generator().manual_seed(3))
+    assert not bool(a.present.any()) and torch.equal(a.relief, b.relief)
+    assert bool((a.relief >= 0).all()) and {RELIEF_NAMES[int(r)] for r in a.relief} <= set(SPLITS["train"].reliefs)
+    scene = render(a, 32)
+    assert float(scene.mask.max()) == 0.0
+    assert bool((scene.normals[:, 2].flatten(1).min(1).values < 0.99).all())  # every wall bent somewhere
+    bare = training_scenes(base.model_copy(update={"walls_only": True}), torch.Generator().manual_seed(3))
+    assert bool((bare.relief < 0).all())  # walls alone, no relief asked: flat
