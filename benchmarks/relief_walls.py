@@ -6,7 +6,8 @@
 Each scene of ``--splits`` (world seed ``--seed``, ``--count`` scenes at ``--size``²) is lit by its relight task's
 source light and relit toward its named light. The ratio S(l_tgt)/S(l_src) of the estimator's surface (the relight
 preset's dome prior and symmetry ensemble, at its working size, enlarged bicubically) is taken under the **true**
-source light, so the light's error is out of the measurement, and its composite's squared error is summed where it
+source light, so the light's error is out of the measurement (an estimator that reads its source light,
+``SurfaceConfig.light_input``, is told that true light too), and its composite's squared error is summed where it
 falls: objects, flat walls, relief walls (a wall whose true ratio varies). In the same run, as baselines:
 
 * **walls flat** — the same estimate with its wall pixels (by the true mask) replaced by +z: no relief at all;
@@ -44,7 +45,13 @@ RELIEF_STD = 1e-3
 
 def split_errors(scene, rel, normals: torch.Tensor, src: torch.Tensor, tgt: torch.Tensor) -> dict[str, float]:
     """Summed squared error of the composite of S(tgt)/S(src) of ``normals``, by objects / flat / relief walls."""
-    y = (rel.base * (lambert(normals, tgt) / lambert(normals, src))).clamp(0, 1)
+    return ratio_errors(scene, rel, lambert(normals, tgt) / lambert(normals, src))
+
+
+def ratio_errors(scene, rel, ratio: torch.Tensor) -> dict[str, float]:
+    """Summed squared error of the composite ``rel.base × ratio`` (clamped to [0, 1]) against the relit truth, by
+    where it falls: objects, flat walls, relief walls."""
+    y = (rel.base * ratio).clamp(0, 1)
     target = rel.target.clamp(0, 1)
     out = {"objects": 0.0, "flat_walls": 0.0, "relief_walls": 0.0}
     for i in range(len(y)):
@@ -70,7 +77,8 @@ def main(argv=None) -> int:
     folder = args.estimator or str(ROOT / "layers" / sd.estimator)
     net = SurfaceEstimator.from_pretrained(folder)
     dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
-    result: dict = {"estimator": folder, "size": args.size, "machine": machine_info()}
+    result: dict = {"estimator": folder, "size": args.size, "told_light": net.config.light_input}
+    result["machine"] = machine_info()
     for split in args.splits:
         scene, labels = scenes(split, args.count, args.seed, args.size)
         sources = relight_sources(scene.params)
@@ -79,7 +87,10 @@ def main(argv=None) -> int:
         tgt = lights_of(labels).float()
         full = (args.size, args.size)
         with torch.no_grad():
-            est, _ = net.estimate(downsample(rel.base.float(), (sd.working_size,) * 2), dome, symmetry=sd.symmetry)
+            small = downsample(rel.base.float(), (sd.working_size,) * 2)
+            # An estimator that reads its source light is told the true one, as the ratio below divides by it.
+            told = src if net.config.light_input else None
+            est, _ = net.estimate(small, dome, symmetry=sd.symmetry, light=told)
         normals = surface_normals(enlarge_surface(est, full))
         wall = (scene.mask < 0.5).expand_as(normals)
         flat = torch.zeros_like(normals)

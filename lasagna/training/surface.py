@@ -254,6 +254,27 @@ def training_scenes(config: SurfaceTrainConfig, rng: torch.Generator) -> ScenePa
     return params
 
 
+def step_scenes(config: SurfaceTrainConfig, rng: torch.Generator, device: str | torch.device) -> Scene:
+    """One training step's scenes, rendered (on ``device``, or the CPU by ``render_on``) at the working size — or at
+    ``zoom`` times it and cut to close-ups — every draw from ``rng``."""
+    side = config.net.working_size
+    big = int(round(side * config.zoom))
+    scene = render(training_scenes(config, rng), big, device=device if config.render_on == "device" else "cpu")
+    return close_ups(scene, side, rng) if big != side else scene
+
+
+def step_loss(net: SurfaceEstimator, config: SurfaceTrainConfig, scene: Scene, rng: torch.Generator, device):
+    """(loss, metrics) of one step on ``scene``: its source lights (lit input), the K supervising lights, stray
+    illumination and the lights told to a light-reading estimator drawn from ``rng`` (`surface_loss`)."""
+    source = random_lights(config.batch_size, rng, RELIGHT_ELEVATION) if config.net.input == "lit" else None
+    lights = random_lights(config.batch_size * config.lights, rng, (0.0, MAX_TRAIN_ELEVATION))
+    gain = stray_gain(scene.mask, rng, config.stray) if config.stray > 0 and source is not None else None
+    given = None
+    if config.net.light_input and source is not None:
+        given = given_lights(source, rng, config.light_given, config.light_jitter)
+    return surface_loss(net, config, scene, source, lights, device, gain, given)
+
+
 def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str | torch.device | None = "cpu"):
     """Train (or resume) the estimator in ``out_dir`` on ``device`` (None: CUDA where there is one); the final EMA
     weights go to ``out_dir/surface``."""
@@ -274,21 +295,9 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
                 f"its estimator config differs from this run's ({start.config} vs {config.net})", config.init_from
             )
         estimator.load_state_dict(widened_state(start, estimator))
-    side = config.net.working_size
 
     def step_fn(net: SurfaceEstimator, rng: torch.Generator, step: int):
-        where = device if config.render_on == "device" else "cpu"
-        big = int(round(side * config.zoom))
-        scene = render(training_scenes(config, rng), big, device=where)
-        if big != side:
-            scene = close_ups(scene, side, rng)
-        source = random_lights(config.batch_size, rng, RELIGHT_ELEVATION) if config.net.input == "lit" else None
-        lights = random_lights(config.batch_size * config.lights, rng, (0.0, MAX_TRAIN_ELEVATION))
-        gain = stray_gain(scene.mask, rng, config.stray) if config.stray > 0 and source is not None else None
-        given = None
-        if config.net.light_input and source is not None:
-            given = given_lights(source, rng, config.light_given, config.light_jitter)
-        return surface_loss(net, config, scene, source, lights, device, gain, given)
+        return step_loss(net, config, step_scenes(config, rng, device), rng, device)
 
     done = train_loop(
         estimator,

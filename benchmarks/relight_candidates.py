@@ -1,0 +1,157 @@
+"""Relight candidates against the shipped catalogue, in the same run (issue #24, rounds 16–17). Plain script; one
+JSON row per (candidate, split, size, kind), then one JSON line.
+
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/relight_candidates.py --estimator runs/g17/lit-relief-gpu/surface
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/relight_candidates.py --prior runs/g17/relit-big/prior --kinds free
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/relight_candidates.py --count 2 --sizes 64 --kinds surface given
+
+A candidate is a lit surface estimator (``--estimator``: the ``relight`` preset with ``surface.estimator`` this one)
+or a relit prior (``--prior``: put in place of the preset's ``prior``), each in a temporary catalogue put first
+(``lasagna.edit(..., catalogue_dirs=...)``), so every row runs the whole edit path a user runs. The shipped
+catalogue is measured in the same run as the baseline. Each scene of ``--splits`` (world seed ``--seed``) is lit by
+its relight task's source light and relit toward its named light (``benchmarks/relight.py``'s task); ``--kinds``:
+
+* ``free`` — ``lasagna edit --layer relight`` (the default: the free layer started from the estimator's surface);
+* ``surface`` — ``--layer-kind surface`` (the estimator's surface rendered S(target)/S(source), its light fitted);
+* ``given`` — ``--layer-kind surface --from`` the true source light.
+
+Per row: dB over the unchanged input (all pixels / objects), seconds per image, and the composite's summed squared
+error split by where it falls (objects, flat walls, relief walls: ``relief_walls.ratio_errors``) in units of a 64²
+image's pixels. The headroom row ("true at the working size": the true normals reduced to the preset's working size
+and enlarged, rendered under the true lights) says how far any surface layer at that size can go. The last line
+holds every row and, per candidate and kind, the mean over splits and sizes of the all-pixel and object gains
+against the shipped catalogue's (``delta``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _common import machine_info, psnr  # noqa: E402
+from relief_walls import ratio_errors  # noqa: E402
+from surface import lights_of, scenes  # noqa: E402
+
+from lasagna.catalogue import catalogues, load_preset  # noqa: E402
+from lasagna.compose.resample import downsample  # noqa: E402
+from lasagna.compose.surface import enlarge_surface, lambert, light_vector, surface_normals  # noqa: E402
+from lasagna.document.condition import parse_direction  # noqa: E402
+from lasagna.world.tasks import relight_sources, relighting  # noqa: E402
+
+PRESET = "relight"
+KINDS = ("free", "surface", "given")
+SHIPPED = "shipped"
+
+
+def candidate_catalogue(root: Path, estimator: str | None = None, prior: str | None = None) -> Path:
+    """A catalogue folder under ``root`` that, put first, makes ``PRESET`` use ``estimator`` (a lit estimator folder)
+    or ``prior`` (a prior folder, under the name the preset asks for)."""
+    preset = json.loads((ROOT / "layers" / PRESET / "preset.json").read_text())
+    if estimator is not None:
+        name = "candidate-estimator"
+        shutil.copytree(estimator, root / name)
+        preset["surface"]["estimator"] = name
+        (root / PRESET).mkdir(parents=True)
+        (root / PRESET / "preset.json").write_text(json.dumps(preset, indent=2))
+    if prior is not None:
+        shutil.copytree(prior, root / preset["prior"])
+    return root
+
+
+def kind_options(kind: str) -> dict:
+    return {"free": {"layer_kind": "free"}, "surface": {"layer_kind": "surface"}, "given": {"layer_kind": "surface"}}[
+        kind
+    ]
+
+
+def edit_ratios(base, labels, sources, kind: str, dirs: list[str] | None) -> tuple[torch.Tensor, float]:
+    """The relight layer of every image through ``lasagna.edit``, and seconds per image."""
+    from lasagna import edit
+
+    t0 = time.perf_counter()
+    out = []
+    for i in range(base.shape[0]):
+        given = {"source_light": sources[i]} if kind == "given" else {}
+        out.append(edit(base[i], PRESET, labels[i], catalogue_dirs=dirs, **kind_options(kind), **given).layer[:1])
+    return torch.stack(out), (time.perf_counter() - t0) / base.shape[0]
+
+
+def measure(name, scene, rel, ratio, seconds, size) -> dict:
+    base, target, mask = rel.base.clamp(0, 1), rel.target.clamp(0, 1), scene.mask
+    comp = (rel.base * ratio).clamp(0, 1)
+    unit = (size / 64) ** 2  # errors in units of a 64² image's pixels, so sizes compare
+    errors = {k: round(v / unit, 1) for k, v in ratio_errors(scene, rel, ratio).items()}
+    return {
+        "method": name,
+        "db_all": round(psnr(comp, target) - psnr(base, target), 3),
+        "db_objects": round(psnr(comp, target, mask) - psnr(base, target, mask), 3),
+        "seconds": None if seconds is None else round(seconds, 3),
+        **errors,
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--estimator", nargs="*", default=[], help="lit surface estimator folders to measure")
+    p.add_argument("--prior", nargs="*", default=[], help="relit prior folders to measure (in the preset's place)")
+    p.add_argument("--splits", nargs="+", default=["select"])
+    p.add_argument("--sizes", nargs="+", type=int, default=[64, 256])
+    p.add_argument("--kinds", nargs="+", choices=KINDS, default=["free", "surface"])
+    p.add_argument("--count", type=int, default=16)
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    sd = load_preset(PRESET).surface
+    rows: list[dict] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        # catalogue_dirs replaces the search path, so a candidate's folder goes before the default catalogues.
+        rest = [str(c) for c in catalogues()]
+        candidates: dict[str, list[str] | None] = {SHIPPED: None}
+        for i, folder in enumerate(args.estimator):
+            candidates[f"estimator:{folder}"] = [str(candidate_catalogue(Path(tmp) / f"e{i}", estimator=folder)), *rest]
+        for i, folder in enumerate(args.prior):
+            candidates[f"prior:{folder}"] = [str(candidate_catalogue(Path(tmp) / f"p{i}", prior=folder)), *rest]
+        for split in args.splits:
+            for size in args.sizes:
+                scene, labels = scenes(split, args.count, args.seed, size)
+                sources = relight_sources(scene.params)
+                rel = relighting(scene, sources)
+                src = torch.cat([light_vector(*parse_direction(s))[None] for s in sources]).float()
+                full, ws = (size, size), (sd.working_size, sd.working_size)
+                truth = surface_normals(enlarge_surface(downsample(scene.normals.float(), ws), full))
+                head = lambert(truth, lights_of(labels).float()) / lambert(truth, src)
+                found = [measure("true at the working size", scene, rel, head, None, size)]
+                for name, dirs in candidates.items():
+                    for kind in args.kinds:
+                        ratio, sec = edit_ratios(rel.base.float(), labels, sources, kind, dirs)
+                        found.append({"candidate": name, "kind": kind, **measure(kind, scene, rel, ratio, sec, size)})
+                for r in found:
+                    r.update(split=split, size=size)
+                    print(json.dumps(r), flush=True)
+                rows += found
+    delta: dict[str, dict] = {}
+    for name in candidates:
+        if name == SHIPPED:
+            continue
+        for kind in args.kinds:
+            mine = [r for r in rows if r.get("candidate") == name and r["kind"] == kind]
+            ref = [r for r in rows if r.get("candidate") == SHIPPED and r["kind"] == kind]
+            delta.setdefault(name, {})[kind] = {
+                key: round(sum(a[key] - b[key] for a, b in zip(mine, ref, strict=True)) / len(mine), 3)
+                for key in ("db_all", "db_objects")
+            }
+    print(json.dumps({"machine": machine_info(), "command": " ".join(sys.argv), "rows": rows, "delta": delta}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

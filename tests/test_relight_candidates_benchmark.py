@@ -1,0 +1,52 @@
+"""benchmarks/relight_candidates.py: a candidate catalogue holding the shipped estimator reproduces the shipped rows
+(delta 0), another estimator moves them, the headroom row (the true normals at the working size) is measured once,
+and a row's gains are the composite's PSNR over the input's in numpy float64."""
+
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import relight_candidates  # noqa: E402
+
+
+def test_candidates_are_measured_against_the_shipped_catalogue_in_the_same_run(capsys):
+    shipped = ROOT / "layers" / "surface-lit-closeup-32"
+    other = ROOT / "layers" / "surface-lit-32"
+    argv = ["--estimator", str(shipped), str(other), "--count", "2", "--sizes", "32", "--kinds", "surface", "given"]
+    assert relight_candidates.main(argv) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    same, moved = out["delta"][f"estimator:{shipped}"], out["delta"][f"estimator:{other}"]
+    for kind in ("surface", "given"):
+        assert abs(same[kind]["db_all"]) < 1e-6 and abs(same[kind]["db_objects"]) < 1e-6
+    assert abs(moved["surface"]["db_all"]) > 1e-3  # another estimator, another layer
+    rows = out["rows"]
+    assert len([r for r in rows if r["method"] == "true at the working size"]) == 1
+    assert {r["candidate"] for r in rows if "candidate" in r} == {"shipped", *out["delta"]}
+
+
+def test_a_rows_gains_are_the_composites_psnr_over_the_inputs_in_numpy_float64():
+    from types import SimpleNamespace
+
+    import numpy as np
+    import torch
+
+    g = torch.Generator().manual_seed(0)
+    base, target = torch.rand(2, 3, 8, 8, generator=g), torch.rand(2, 3, 8, 8, generator=g)
+    mask = (torch.rand(2, 1, 8, 8, generator=g) > 0.5).float()
+    ratio = 0.5 + torch.rand(2, 1, 8, 8, generator=g)
+    layer = torch.ones(2, 1, 8, 8)
+    row = relight_candidates.measure(
+        "x", SimpleNamespace(mask=mask), SimpleNamespace(base=base, target=target, layer=layer), ratio, 1.0, 8
+    )
+
+    def db(a, b, m=None):
+        d = (a - b) ** 2
+        mse = d.mean() if m is None else (d * m).sum() / (m.sum() * 3)
+        return -10 * np.log10(mse)
+
+    b, t, m = base.double().numpy(), target.double().numpy(), mask.double().numpy()
+    y = np.clip(b * ratio.double().numpy(), 0, 1)
+    assert abs(row["db_all"] - (db(y, t) - db(b, t))) < 2e-3  # rounded to 0.001
+    assert abs(row["db_objects"] - (db(y, t, m) - db(b, t, m))) < 2e-3
