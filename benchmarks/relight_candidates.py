@@ -17,7 +17,9 @@ its relight task's source light and relit toward its named light (``benchmarks/r
 
 Per row: dB over the unchanged input (all pixels / objects), seconds per image, and the composite's summed squared
 error split by where it falls (objects, flat walls, relief walls: ``relief_walls.ratio_errors``) in units of a 64²
-image's pixels. The headroom row ("true at the working size": the true normals reduced to the preset's working size
+image's pixels; with ``--leak``, the layer's texture leak on the same scenes' bare painted walls (objects removed,
+relief flat: the true ratio is one constant; the layer's PSNR against its own mean, ∞ for a flat layer). The headroom
+row ("true at the working size": the true normals reduced to the preset's working size
 and enlarged, rendered under the true lights) says how far any surface layer at that size can go. The last line
 holds every row and, per candidate and kind, the mean over splits and sizes of the all-pixel and object gains
 against the shipped catalogue's (``delta``).
@@ -109,6 +111,9 @@ def main(argv=None) -> int:
     p.add_argument("--kinds", nargs="+", choices=KINDS, default=["free", "surface"])
     p.add_argument("--count", type=int, default=16)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--leak", action="store_true", help="also each layer's texture leak on the split's bare painted walls (dB)"
+    )
     args = p.parse_args(argv)
     sd = load_preset(PRESET).surface
     rows: list[dict] = []
@@ -130,10 +135,18 @@ def main(argv=None) -> int:
                 truth = surface_normals(enlarge_surface(downsample(scene.normals.float(), ws), full))
                 head = lambert(truth, lights_of(labels).float()) / lambert(truth, src)
                 found = [measure("true at the working size", scene, rel, head, None, size)]
+                if args.leak:
+                    walls, wall_labels = scenes(split, args.count, args.seed, size, walls=True)
+                    wall_sources = relight_sources(walls.params)
+                    wall_base = relighting(walls, wall_sources).base.float()
                 for name, dirs in candidates.items():
                     for kind in args.kinds:
                         ratio, sec = edit_ratios(rel.base.float(), labels, sources, kind, dirs)
-                        found.append({"candidate": name, "kind": kind, **measure(kind, scene, rel, ratio, sec, size)})
+                        row = {"candidate": name, "kind": kind, **measure(kind, scene, rel, ratio, sec, size)}
+                        if args.leak:  # the layer on bare painted walls, whose true ratio is one constant
+                            y = edit_ratios(wall_base, wall_labels, wall_sources, kind, dirs)[0].double()
+                            row["leak_db"] = round(psnr(y, y.mean(dim=(1, 2, 3), keepdim=True).expand_as(y)), 2)
+                        found.append(row)
                 for r in found:
                     r.update(split=split, size=size)
                     print(json.dumps(r), flush=True)

@@ -9,7 +9,8 @@ Round 17's one GPU call drew 260 scenes a second at batch 512 with close-ups (zo
 without, three processes sharing an H200, against 51 and 114 on this project's CPU: a GPU's scale is set by what a
 step costs, so the next call sizes its batches by this table. Each setting times ``lasagna.training.surface``'s own
 ``step_scenes`` (the split's scenes drawn, rendered on the device — or on the CPU, ``--render-on cpu``, the baseline
-in the same run — and cut to close-ups) and ``step_loss`` with its backward pass, after one untimed warm-up; CUDA is
+in the same run — and cut to close-ups; with ``--bank N`` also drawn from a scene bank of N scenes rendered first,
+``train-surface --scene-bank``) and ``step_loss`` with its backward pass, after one untimed warm-up; CUDA is
 synchronised around each timed part.
 """
 
@@ -29,7 +30,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from _common import machine_info  # noqa: E402
 
 from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator  # noqa: E402
-from lasagna.training.surface import SurfaceTrainConfig, step_loss, step_scenes  # noqa: E402
+from lasagna.training.surface import SceneBank, SurfaceTrainConfig, step_loss, step_scenes  # noqa: E402
 
 
 def _sync(device: str) -> None:
@@ -45,20 +46,26 @@ def timed(fn, device: str):
     return out, time.perf_counter() - t0
 
 
-def measure(device: str, batch: int, zoom: float, render_on: str, repeats: int, channels: tuple[int, ...]) -> dict:
+def measure(
+    device: str, batch: int, zoom: float, render_on: str, repeats: int, channels: tuple[int, ...], bank: int = 0
+) -> dict:
+    """One setting's row; ``render_on`` "bank" draws the steps from a `SceneBank` of ``bank`` scenes rendered on the
+    device first (its build time reported apart)."""
     config = SurfaceTrainConfig(
         net=SurfaceConfig(input="lit", silhouette=True, channels=channels, blocks=2, working_size=32),
         batch_size=batch,
         zoom=zoom,
-        render_on=render_on,
+        render_on="device" if render_on == "bank" else render_on,
+        scene_bank=bank if render_on == "bank" else 0,
         world_seed=11,
         progress=False,
     )
     net = SurfaceEstimator(config.net).to(device)
     rng = torch.Generator().manual_seed(0)
+    scenes, built = (None, None) if not config.scene_bank else timed(lambda: SceneBank(config, device), device)
     render_s = net_s = 0.0
     for i in range(repeats + 1):  # the first is a warm-up
-        scene, t_render = timed(lambda: step_scenes(config, rng, device), device)
+        scene, t_render = timed(lambda: step_scenes(config, rng, device, scenes), device)
         (loss, _), t_loss = timed(lambda: step_loss(net, config, scene, rng, device), device)
         _, t_back = timed(loss.backward, device)
         if i:
@@ -71,6 +78,7 @@ def measure(device: str, batch: int, zoom: float, render_on: str, repeats: int, 
         "render_s": round(render_s, 4),
         "net_s": round(net_s, 4),
         "scenes_per_s": round(batch / (render_s + net_s), 1),
+        **({"bank": bank, "bank_build_s": round(built, 2)} if built is not None else {}),
     }
 
 
@@ -82,6 +90,7 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--channels", default="32,64,128")
     p.add_argument("--cpu-baseline-max", type=int, default=1024, help="largest batch also rendered on the CPU")
+    p.add_argument("--bank", type=int, default=0, help="also a row per setting drawn from a scene bank of this size")
     args = p.parse_args(argv)
     channels = tuple(int(c) for c in args.channels.split(","))
     rows = []
@@ -89,8 +98,8 @@ def main(argv=None) -> int:
         for batch in args.batches:
             # The CPU-rendered baseline beside a GPU's rows, up to a batch the CPU renders in seconds.
             places = ["device", "cpu"] if args.device != "cpu" and batch <= args.cpu_baseline_max else ["device"]
-            for where in places:
-                row = measure(args.device, batch, zoom, where, args.repeats, channels)
+            for where in places + ["bank"] * (args.bank > 0):
+                row = measure(args.device, batch, zoom, where, args.repeats, channels, args.bank)
                 print(json.dumps(row), flush=True)
                 rows.append(row)
     name = torch.cuda.get_device_name() if args.device.startswith("cuda") else "cpu"

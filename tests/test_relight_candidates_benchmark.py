@@ -1,6 +1,6 @@
 """benchmarks/relight_candidates.py: a candidate catalogue holding the shipped estimator reproduces the shipped rows
-(delta 0), another estimator moves them, the headroom row (the true normals at the working size) is measured once,
-and a row's gains are the composite's PSNR over the input's in numpy float64."""
+(delta 0, the same wall leak), another estimator moves them, the headroom row (the true normals at the working size)
+is measured once, and a row's gains are the composite's PSNR over the input's in numpy float64."""
 
 import json
 import sys
@@ -14,7 +14,19 @@ import relight_candidates  # noqa: E402
 def test_candidates_are_measured_against_the_shipped_catalogue_in_the_same_run(capsys):
     shipped = ROOT / "layers" / "surface-lit-closeup-32"
     other = ROOT / "layers" / "surface-lit-32"
-    argv = ["--estimator", str(shipped), str(other), "--count", "2", "--sizes", "32", "--kinds", "surface", "given"]
+    argv = [
+        "--estimator",
+        str(shipped),
+        str(other),
+        "--count",
+        "2",
+        "--sizes",
+        "32",
+        "--kinds",
+        "surface",
+        "given",
+        "--leak",
+    ]
     assert relight_candidates.main(argv) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     same, moved = out["delta"][f"estimator:{shipped}"], out["delta"][f"estimator:{other}"]
@@ -24,6 +36,10 @@ def test_candidates_are_measured_against_the_shipped_catalogue_in_the_same_run(c
     rows = out["rows"]
     assert len([r for r in rows if r["method"] == "true at the working size"]) == 1
     assert {r["candidate"] for r in rows if "candidate" in r} == {"shipped", *out["delta"]}
+    leak = {(r["candidate"], r["kind"]): r["leak_db"] for r in rows if "candidate" in r}
+    for kind in ("surface", "given"):  # the same estimator leaks the same; a layer is never exactly flat here
+        assert abs(leak[(f"estimator:{shipped}", kind)] - leak[("shipped", kind)]) < 1e-6
+        assert 10.0 < leak[("shipped", kind)] < 200.0
 
 
 def test_a_rows_gains_are_the_composites_psnr_over_the_inputs_in_numpy_float64():

@@ -78,9 +78,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--walls-only",
-        action="store_true",
-        help="train on the split's walls alone, objects removed (with --relief 1: every scene a painted wall with "
-        "relief)",
+        type=float,
+        nargs="?",
+        const=1.0,
+        default=0.0,
+        metavar="P",
+        help="make a scene its wall alone, objects removed, with probability P (alone: 1, every scene; with "
+        "--relief 1: every scene a painted wall with relief)",
+    )
+    p.add_argument(
+        "--scene-bank",
+        type=int,
+        default=0,
+        metavar="N",
+        help="render N scenes once and draw every step's batch from them, turned and lit anew (where rendering "
+        "bounds a step, a GPU's; 0: fresh scenes every step)",
     )
     p.add_argument(
         "--init-from",
@@ -138,6 +150,7 @@ def run(args: argparse.Namespace) -> int:
         stray=args.stray,
         relief=args.relief,
         walls_only=args.walls_only,
+        scene_bank=args.scene_bank,
         render_on=args.render_on,
         seed=args.seed,
         progress=progress() and not args.no_progress,  # bars only for a person watching (or --progress)

@@ -180,14 +180,14 @@ MIRRORS: tuple[tuple[tuple[int, ...], tuple[float, float, float]], ...] = (
 )
 
 
-def _transpose_normals(n: Tensor) -> Tensor:
+def transpose_normals(n: Tensor) -> Tensor:
     """Normals (B, 3, H, W) of a surface transposed (rows ↔ columns): pixels transposed, (n_x, n_y) → (−n_y, −n_x)
     (x runs along columns, y against rows). An involution: it maps an estimate of the transposed image back too."""
     n = n.transpose(-1, -2)
     return torch.cat([-n[:, 1:2], -n[:, 0:1], n[:, 2:3]], 1)
 
 
-def _view_light(light: Tensor | None, dims: tuple[int, ...], sign: tuple[float, float, float], transpose: bool):
+def view_light(light: Tensor | None, dims: tuple[int, ...], sign: tuple[float, float, float], transpose: bool):
     """``light`` (B, 3) as seen in a view of the symmetry ensemble: transposed (when ``transpose``), then mirrored
     (``dims``, ``sign`` as in ``MIRRORS``) — the view's own map, applied to a vector; zero rows stay zero."""
     if light is None:
@@ -341,7 +341,7 @@ class SurfaceEstimator(Pretrained, nn.Module):
             seen = image.transpose(-1, -2) if transpose else image
             for dims, sign in MIRRORS:
                 surface, shading, p = self._one_estimate(
-                    seen.flip(dims) if dims else seen, dome, _view_light(light, dims, sign, transpose)
+                    seen.flip(dims) if dims else seen, dome, view_light(light, dims, sign, transpose)
                 )
                 n = self.normals(surface)
                 maps = [shading, p]
@@ -349,7 +349,7 @@ class SurfaceEstimator(Pretrained, nn.Module):
                     n = n.flip(dims) * n.new_tensor(sign).view(1, 3, 1, 1)
                     maps = [None if m is None else m.flip(dims) for m in maps]
                 if transpose:
-                    n = _transpose_normals(n)
+                    n = transpose_normals(n)
                     maps = [None if m is None else m.transpose(-1, -2) for m in maps]
                 normals.append(n)
                 shadings.append(maps[0])

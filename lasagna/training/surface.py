@@ -37,7 +37,7 @@ from pydantic import ConfigDict, Field
 from lasagna.compose.resample import downsample
 from lasagna.compose.surface import fit_light, lambert
 from lasagna.errors import LasagnaError
-from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
+from lasagna.generators.surface import MIRRORS, SurfaceConfig, SurfaceEstimator, transpose_normals, view_light
 from lasagna.training.loop import LoopConfig, network_from_checkpoint, train_loop
 from lasagna.training.tasks import SCENE_RANGE
 from lasagna.world.params import SceneParams, sample_scenes
@@ -112,11 +112,22 @@ class SurfaceTrainConfig(LoopConfig):
         description="the probability that a scene whose wall the split drew flat is given relief of one of the "
         "split's relief families instead (`with_relief`): more relief walls than the split draws (0: as drawn)",
     )
-    walls_only: bool = Field(
-        False,
-        description="train on the split's walls alone (objects removed, `SceneParams.walls_only`): with `relief` 1 "
-        "every scene is one painted wall with relief, the part of the relight no estimator has learned "
-        "(docs/BENCHMARKS.md, round 16)",
+    walls_only: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="the probability that a scene is its wall alone (objects removed, relief flat before `relief` "
+        "applies: `bare_walls`); 1: every scene (with `relief` 1: every scene a painted wall with relief), the part "
+        "of the relight no estimator had learned (docs/BENCHMARKS.md, rounds 16–17)",
+    )
+    scene_bank: int = Field(
+        0,
+        ge=0,
+        description="render this many of the split's scenes once, at the start (at zoom × the working size, where "
+        "`render_on` says), and draw every step's batch from them, each turned by a random symmetry of the square "
+        "and lit anew (`SceneBank`); 0: fresh scenes every step. The renderer is 90–98 % of a step "
+        "(benchmarks/train_throughput.py), so a bank buys steps where rendering bounds them, at the price of fewer "
+        "distinct scenes",
     )
     render_on: Literal["device", "cpu"] = Field(
         "device",
@@ -243,24 +254,84 @@ def surface_loss(
 
 
 def training_scenes(config: SurfaceTrainConfig, rng: torch.Generator) -> SceneParams:
-    """One step's scenes: ``batch_size`` consecutive scenes of the split from a random start, their objects removed
-    (``walls_only``) and flat walls given relief (``relief``), every draw from ``rng``."""
+    """One step's scenes: ``batch_size`` consecutive scenes of the split from a random start, some or all made bare
+    walls (``walls_only``) and flat walls given relief (``relief``), every draw from ``rng``."""
     start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
     params = sample_scenes(config.split, config.world_seed, range(start, start + config.batch_size))
-    if config.walls_only:
+    if config.walls_only >= 1.0:
         params = params.walls_only()
+    elif config.walls_only > 0.0:
+        params = bare_walls(params, torch.rand(len(params), generator=rng) < config.walls_only)
     if config.relief > 0:
         params = with_relief(params, rng, config.relief, SPLITS[config.split].reliefs)
     return params
 
 
-def step_scenes(config: SurfaceTrainConfig, rng: torch.Generator, device: str | torch.device) -> Scene:
+def step_scenes(
+    config: SurfaceTrainConfig, rng: torch.Generator, device: str | torch.device, bank: SceneBank | None = None
+) -> Scene:
     """One training step's scenes, rendered (on ``device``, or the CPU by ``render_on``) at the working size — or at
-    ``zoom`` times it and cut to close-ups — every draw from ``rng``."""
+    ``zoom`` times it and cut to close-ups — or drawn from ``bank``; every draw from ``rng``."""
     side = config.net.working_size
     big = int(round(side * config.zoom))
-    scene = render(training_scenes(config, rng), big, device=device if config.render_on == "device" else "cpu")
+    if bank is not None:
+        scene = bank.draw(config.batch_size, rng)
+    else:
+        scene = render(training_scenes(config, rng), big, device=render_device(config, device))
     return close_ups(scene, side, rng) if big != side else scene
+
+
+def render_device(config: SurfaceTrainConfig, device: str | torch.device) -> str | torch.device:
+    return device if config.render_on == "device" else "cpu"
+
+
+def turned(scene: Scene, k: int) -> Scene:
+    """``scene`` seen through the ``k``-th symmetry of the square (0–7: ``k`` ≥ 4 transposed, then mirrored as
+    ``MIRRORS[k % 4]``, the estimator's own symmetry ensemble): every map moved as pixels, the normals and the light
+    turned with them (`transpose_normals`, `view_light`), so the shading stays Lambert's of the turned normals."""
+    dims, sign = MIRRORS[k % 4]
+    transpose = k >= 4
+
+    def pixels(x: torch.Tensor) -> torch.Tensor:
+        x = x.transpose(-1, -2) if transpose else x
+        return x.flip(dims) if dims else x
+
+    normals = transpose_normals(scene.normals) if transpose else scene.normals
+    normals = normals.flip(dims) * normals.new_tensor(sign).view(1, 3, 1, 1) if dims else normals
+    maps = {name: pixels(getattr(scene, name)) for name in _CROPPED if name != "normals"}
+    return replace(scene, **maps, normals=normals.contiguous(), light=view_light(scene.light, dims, sign, transpose))
+
+
+class SceneBank:
+    """``config.scene_bank`` scenes of the split rendered once (in chunks of ``batch_size``, at zoom × the working
+    size) from a generator of their own (seeded by the run's ``seed``: a resumed run renders the same bank), from
+    which each step draws its batch with replacement, turned by one random symmetry of the square (`turned`); the
+    step then lights it anew (`surface_loss`), so the light, the supervising lights and the close-up window are
+    fresh every step while the geometry and the paint repeat."""
+
+    def __init__(self, config: SurfaceTrainConfig, device: str | torch.device):
+        rng = torch.Generator().manual_seed(BANK_SEED + config.seed)
+        params = training_scenes(config.model_copy(update={"batch_size": config.scene_bank}), rng)
+        big = int(round(config.net.working_size * config.zoom))
+        where = render_device(config, device)
+        chunk = max(config.batch_size, 1)
+        parts = [render(params.select(slice(i, i + chunk)), big, device=where) for i in range(0, len(params), chunk)]
+        tensors = {name: torch.cat([getattr(p, name) for p in parts]) for name in (*_CROPPED, "light", "label_index")}
+        labels = [label for p in parts for label in p.label]
+        self.scenes = replace(parts[0], **tensors, label=labels, params=params)
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+    def draw(self, count: int, rng: torch.Generator) -> Scene:
+        """``count`` scenes drawn uniformly with replacement, turned by one symmetry drawn uniformly."""
+        idx = torch.randint(0, len(self), (count,), generator=rng)
+        k = int(torch.randint(0, 8, (1,), generator=rng))
+        return turned(self.scenes.select(idx.tolist()), k)
+
+
+BANK_SEED = 7919
+"""Offset of a scene bank's generator from the run's seed (a prime, so a bank's draws are not the run's)."""
 
 
 def step_loss(net: SurfaceEstimator, config: SurfaceTrainConfig, scene: Scene, rng: torch.Generator, device):
@@ -273,6 +344,15 @@ def step_loss(net: SurfaceEstimator, config: SurfaceTrainConfig, scene: Scene, r
     if config.net.light_input and source is not None:
         given = given_lights(source, rng, config.light_given, config.light_jitter)
     return surface_loss(net, config, scene, source, lights, device, gain, given)
+
+
+def bare_walls(params: SceneParams, pick: torch.Tensor) -> SceneParams:
+    """``params`` with the scenes where ``pick`` (B,) is true made their walls alone: no objects, a flat wall (as
+    `SceneParams.walls_only`, per scene)."""
+    present, relief = params.present.clone(), params.relief.clone()
+    present[pick] = False
+    relief[pick] = -1
+    return replace(params, present=present, relief=relief)
 
 
 def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str | torch.device | None = "cpu"):
@@ -296,8 +376,10 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
             )
         estimator.load_state_dict(widened_state(start, estimator))
 
+    bank = SceneBank(config, device) if config.scene_bank else None
+
     def step_fn(net: SurfaceEstimator, rng: torch.Generator, step: int):
-        return step_loss(net, config, step_scenes(config, rng, device), rng, device)
+        return step_loss(net, config, step_scenes(config, rng, device, bank), rng, device)
 
     done = train_loop(
         estimator,

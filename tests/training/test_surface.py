@@ -4,6 +4,7 @@ size."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -258,7 +259,7 @@ def test_with_relief_gives_flat_walls_relief_of_the_splits_families():
 
 
 def test_training_scenes_walls_only_with_relief_are_bare_walls_with_relief():
-    """``walls_only``: a step's scenes have no objects (an empty mask); with ``relief`` 1 every wall has relief of the
+    """``walls_only`` 1: a step's scenes have no objects (an empty mask); with ``relief`` 1 every wall has relief of the
     split's families; the draws are the run generator's (the same seed, the same scenes), and without either flag
     the scenes are the split's as drawn."""
     from lasagna.training.surface import training_scenes
@@ -269,7 +270,7 @@ def test_training_scenes_walls_only_with_relief_are_bare_walls_with_relief():
     base = toy(steps=1)
     plain = training_scenes(base, torch.Generator().manual_seed(3))
     assert bool(plain.present.any())  # the split's scenes have objects
-    walls = base.model_copy(update={"walls_only": True, "relief": 1.0})
+    walls = base.model_copy(update={"walls_only": 1.0, "relief": 1.0})
     a = training_scenes(walls, torch.Generator().manual_seed(3))
     b = training_scenes(walls, torch.Generator().manual_seed(3))
     assert not bool(a.present.any()) and torch.equal(a.relief, b.relief)
@@ -277,5 +278,76 @@ def test_training_scenes_walls_only_with_relief_are_bare_walls_with_relief():
     scene = render(a, 32)
     assert float(scene.mask.max()) == 0.0
     assert bool((scene.normals[:, 2].flatten(1).min(1).values < 0.99).all())  # every wall bent somewhere
-    bare = training_scenes(base.model_copy(update={"walls_only": True}), torch.Generator().manual_seed(3))
+    bare = training_scenes(base.model_copy(update={"walls_only": 1.0}), torch.Generator().manual_seed(3))
     assert bool((bare.relief < 0).all())  # walls alone, no relief asked: flat
+    # A fraction: the picked scenes are bare flat walls, the others the split's scenes as drawn.
+    some = training_scenes(toy(steps=1, batch_size=64, walls_only=0.5), torch.Generator().manual_seed(3))
+    drawn = training_scenes(toy(steps=1, batch_size=64), torch.Generator().manual_seed(3))
+    picked = ~some.present.any(1) & drawn.present.any(1)
+    assert 16 < int(picked.sum()) < 48
+    assert bool((some.relief[picked] < 0).all())
+    kept = some.present.any(1)
+    assert torch.equal(some.present[kept], drawn.present[kept]) and torch.equal(some.relief[kept], drawn.relief[kept])
+
+
+def _depth_normals(scene) -> np.ndarray:
+    """Unit normals from the scene's depth (camera z, toward the viewer) by central differences in numpy float64:
+    x along columns, y up (against rows), canvas units [−1, 1] — the world's truth, independent of its normals."""
+    z = scene.depth[:, 0].double().numpy()
+    step = 2.0 / z.shape[-1]
+    dzdx, dzdy = np.gradient(z, step, axis=2), -np.gradient(z, step, axis=1)
+    n = np.stack([-dzdx, -dzdy, np.ones_like(z)], 1)
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _inside(scene) -> np.ndarray:
+    m = scene.mask[:, 0].numpy() > 0.5
+    inner = np.zeros_like(m)
+    inner[:, 1:-1, 1:-1] = m[:, 1:-1, 1:-1] & m[:, :-2, 1:-1] & m[:, 2:, 1:-1] & m[:, 1:-1, :-2] & m[:, 1:-1, 2:]
+    return inner
+
+
+def test_a_turned_scene_is_a_scene_its_normals_agree_with_its_turned_depth_and_light():
+    """``turned``: each of the eight symmetries of the square moves every map as pixels and turns the normals and the
+    light with them: the normals agree with central differences of the turned depth (numpy float64) and the shading
+    is Lambert's of the turned normals under the turned light; moving the normals as pixels alone does not agree."""
+    from lasagna.compose.surface import lambert
+    from lasagna.generators.surface import MIRRORS
+    from lasagna.training.surface import turned
+    from lasagna.world.params import sample_scenes
+    from lasagna.world.scene import render
+
+    scene = render(sample_scenes("train", 5, range(8)), 48)
+    for k in range(8):
+        t = turned(scene, k)
+        inner = _inside(t)
+        assert inner.sum() > 500
+        cos = (_depth_normals(t) * t.normals.double().numpy()).sum(1)[inner]
+        assert float(np.median(cos)) > 0.999, k
+        assert torch.allclose(lambert(t.normals, t.light, scene.ambient), t.shading, atol=1e-5), k
+        if k:  # the pixels moved but the normals not turned: the depth disagrees
+            dims = MIRRORS[k % 4][0]
+            naive = scene.normals.transpose(-1, -2) if k >= 4 else scene.normals
+            pixels_only = naive.flip(dims) if dims else naive
+            bad = (_depth_normals(t) * pixels_only.double().numpy()).sum(1)[inner]
+            assert float(np.median(bad)) < 0.99, k
+
+
+def test_a_scene_bank_is_rendered_once_drawn_turned_and_resumes_to_the_same_weights(tmp_path):
+    """``scene_bank``: the bank is the same for the same seed (a resumed run renders it again), each step's scenes
+    are bank scenes turned by one symmetry, and a killed run with a bank resumes to the same weights."""
+    from lasagna.training.surface import SceneBank, turned
+
+    config = toy(steps=20, scene_bank=12)
+    a, b = SceneBank(config, "cpu"), SceneBank(config, "cpu")
+    assert len(a) == 12 and torch.equal(a.scenes.albedo, b.scenes.albedo)
+    drawn = a.draw(5, torch.Generator().manual_seed(2))
+    g = torch.Generator().manual_seed(2)
+    idx = torch.randint(0, 12, (5,), generator=g)
+    k = int(torch.randint(0, 8, (1,), generator=g))
+    assert torch.equal(drawn.albedo, turned(a.scenes.select(idx.tolist()), k).albedo)
+    whole = train_surface(config, tmp_path / "a")
+    train_surface(toy(steps=10, scene_bank=12), tmp_path / "b")
+    resumed = train_surface(config, tmp_path / "b")
+    for (name, v), w in zip(whole.state_dict().items(), resumed.state_dict().values()):
+        assert torch.equal(v, w), name
