@@ -23,23 +23,21 @@ def test_candidates_are_measured_against_the_shipped_catalogue_in_the_same_run(c
         "--sizes",
         "32",
         "--kinds",
-        "surface",
         "given",
         "--leak",
     ]
     assert relight_candidates.main(argv) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     same, moved = out["delta"][f"estimator:{shipped}"], out["delta"][f"estimator:{other}"]
-    for kind in ("surface", "given"):
-        assert abs(same[kind]["db_all"]) < 1e-6 and abs(same[kind]["db_objects"]) < 1e-6
-    assert abs(moved["surface"]["db_all"]) > 1e-3  # another estimator, another layer
+    assert abs(same["given"]["db_all"]) < 1e-6 and abs(same["given"]["db_objects"]) < 1e-6
+    assert abs(moved["given"]["db_all"]) > 1e-3  # another estimator, another layer
     rows = out["rows"]
     assert len([r for r in rows if r["method"] == "true at the working size"]) == 1
     assert {r["candidate"] for r in rows if "candidate" in r} == {"shipped", *out["delta"]}
     leak = {(r["candidate"], r["kind"]): r["leak_db"] for r in rows if "candidate" in r}
-    for kind in ("surface", "given"):  # the same estimator leaks the same; a layer is never exactly flat here
-        assert abs(leak[(f"estimator:{shipped}", kind)] - leak[("shipped", kind)]) < 1e-6
-        assert 10.0 < leak[("shipped", kind)] < 200.0
+    # The same estimator leaks the same; a layer is never exactly flat here.
+    assert abs(leak[(f"estimator:{shipped}", "given")] - leak[("shipped", "given")]) < 1e-6
+    assert 10.0 < leak[("shipped", "given")] < 200.0
 
 
 def test_a_rows_gains_are_the_composites_psnr_over_the_inputs_in_numpy_float64():
