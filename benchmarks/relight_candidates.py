@@ -4,12 +4,15 @@ JSON row per (candidate, split, size, kind), then one JSON line.
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/relight_candidates.py --estimator runs/g17/lit-relief-gpu/surface
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/relight_candidates.py --prior runs/g17/relit-big/prior --kinds free
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/relight_candidates.py --count 2 --sizes 64 --kinds surface given
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/relight_candidates.py --estimator @wall_relief=0.5 --kinds surface
 
 A candidate is a lit surface estimator (``--estimator``: the ``relight`` preset with ``surface.estimator`` this one)
 or a relit prior (``--prior``: put in place of the preset's ``prior``), each in a temporary catalogue put first
-(``lasagna.edit(..., catalogue_dirs=...)``), so every row runs the whole edit path a user runs. The shipped
-catalogue is measured in the same run as the baseline. Each scene of ``--splits`` (world seed ``--seed``) is lit by
-its relight task's source light and relit toward its named light (``benchmarks/relight.py``'s task); ``--kinds``:
+(``lasagna.edit(..., catalogue_dirs=...)``); an estimator may carry preset settings (``FOLDER@wall_relief=0.5``;
+``@wall_relief=0.5`` alone: the shipped estimator so set), so every row runs the whole edit path a user runs. The
+shipped catalogue is measured in the same run as the baseline. Each scene of ``--splits`` (world seed ``--seed``)
+is lit by its relight task's source light and relit toward its named light (``benchmarks/relight.py``'s task);
+``--kinds``:
 
 * ``free`` — ``lasagna edit --layer relight`` (the default: the free layer started from the estimator's surface);
 * ``surface`` — ``--layer-kind surface`` (the estimator's surface rendered S(target)/S(source), its light fitted);
@@ -55,19 +58,37 @@ KINDS = ("free", "surface", "given")
 SHIPPED = "shipped"
 
 
-def candidate_catalogue(root: Path, estimator: str | None = None, prior: str | None = None) -> Path:
-    """A catalogue folder under ``root`` that, put first, makes ``PRESET`` use ``estimator`` (a lit estimator folder)
-    or ``prior`` (a prior folder, under the name the preset asks for)."""
+def candidate_catalogue(
+    root: Path, estimator: str | None = None, prior: str | None = None, surface: dict | None = None
+) -> Path:
+    """A catalogue folder under ``root`` that, put first, makes ``PRESET`` use ``estimator`` (a lit estimator folder;
+    "" keeps the preset's own, a catalogue name found in the catalogues after this one) with its ``surface``
+    settings updated by ``surface``, or ``prior`` (a prior folder, under the name the preset asks for)."""
     preset = json.loads((ROOT / "layers" / PRESET / "preset.json").read_text())
     if estimator is not None:
-        name = "candidate-estimator"
-        shutil.copytree(estimator, root / name)
-        preset["surface"]["estimator"] = name
+        if estimator:
+            name = "candidate-estimator"
+            shutil.copytree(estimator, root / name)
+            preset["surface"]["estimator"] = name
+        preset["surface"].update(surface or {})
         (root / PRESET).mkdir(parents=True)
         (root / PRESET / "preset.json").write_text(json.dumps(preset, indent=2))
     if prior is not None:
         shutil.copytree(prior, root / preset["prior"])
     return root
+
+
+def estimator_spec(spec: str) -> tuple[str, dict]:
+    """``FOLDER[@key=value,...]`` → (folder, the preset's ``surface`` settings it changes, values read as JSON); an
+    empty folder keeps the preset's estimator: ``@wall_relief=0.5`` is the shipped estimator with that setting."""
+    folder, _, rest = spec.partition("@")
+    settings = {}
+    for item in filter(None, rest.split(",")):
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise SystemExit(f"--estimator {spec}: {item!r} is not key=value")
+        settings[key] = json.loads(value)
+    return folder, settings
 
 
 def kind_options(kind: str) -> dict:
@@ -104,7 +125,13 @@ def measure(name, scene, rel, ratio, seconds, size) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--estimator", nargs="*", default=[], help="lit surface estimator folders to measure")
+    p.add_argument(
+        "--estimator",
+        nargs="*",
+        default=[],
+        help="lit surface estimator folders to measure, each FOLDER[@key=value,...] with the preset's surface settings "
+        "it changes (an empty FOLDER: the shipped estimator)",
+    )
     p.add_argument("--prior", nargs="*", default=[], help="relit prior folders to measure (in the preset's place)")
     p.add_argument("--splits", nargs="+", default=["select"])
     p.add_argument("--sizes", nargs="+", type=int, default=[64, 256])
@@ -121,8 +148,10 @@ def main(argv=None) -> int:
         # catalogue_dirs replaces the search path, so a candidate's folder goes before the default catalogues.
         rest = [str(c) for c in catalogues()]
         candidates: dict[str, list[str] | None] = {SHIPPED: None}
-        for i, folder in enumerate(args.estimator):
-            candidates[f"estimator:{folder}"] = [str(candidate_catalogue(Path(tmp) / f"e{i}", estimator=folder)), *rest]
+        for i, spec in enumerate(args.estimator):
+            folder, settings = estimator_spec(spec)
+            cat = candidate_catalogue(Path(tmp) / f"e{i}", estimator=folder, surface=settings)
+            candidates[f"estimator:{spec}"] = [str(cat), *rest]
         for i, folder in enumerate(args.prior):
             candidates[f"prior:{folder}"] = [str(candidate_catalogue(Path(tmp) / f"p{i}", prior=folder)), *rest]
         for split in args.splits:

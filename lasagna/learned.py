@@ -347,6 +347,7 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
             source_elevation=sd.source_elevation,
             flat_walls=sd.flat_walls,
             light=given if net.config.light_input else None,  # an estimator that reads the light is told it
+            wall_relief=sd.wall_relief,
         )
     source = None
     turned = None
@@ -369,6 +370,8 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         made_by.update(symmetry=sd.symmetry)
     if sd.flat_walls > 0:
         made_by.update(flat_walls=sd.flat_walls)
+    if sd.wall_relief != 1.0:
+        made_by.update(wall_relief=sd.wall_relief)
     if turned is not None:
         made_by.update(turned_from=turned)  # the fitted light the estimate was turned from to the given one
     if net.config.input == "lit" and recipe.source_light is None and sd.source_elevation != "fit":

@@ -64,3 +64,22 @@ def test_a_rows_gains_are_the_composites_psnr_over_the_inputs_in_numpy_float64()
     y = np.clip(b * ratio.double().numpy(), 0, 1)
     assert abs(row["db_all"] - (db(y, t) - db(b, t))) < 2e-3  # rounded to 0.001
     assert abs(row["db_objects"] - (db(y, t, m) - db(b, t, m))) < 2e-3
+
+
+def test_an_estimator_spec_carries_preset_settings_and_an_empty_folder_keeps_the_shipped_estimator(tmp_path):
+    import pytest
+
+    from lasagna.catalogue import load_preset
+
+    assert relight_candidates.estimator_spec("runs/x/surface") == ("runs/x/surface", {})
+    assert relight_candidates.estimator_spec("@wall_relief=0.5,symmetry=\"none\"") == (
+        "",
+        {"wall_relief": 0.5, "symmetry": "none"},
+    )
+    with pytest.raises(SystemExit, match="not key=value"):
+        relight_candidates.estimator_spec("a@wall_relief")
+    root = relight_candidates.candidate_catalogue(tmp_path / "c", estimator="", surface={"wall_relief": 0.25})
+    got = load_preset(relight_candidates.PRESET, catalogue_dirs=[root])
+    shipped = load_preset(relight_candidates.PRESET)
+    assert got.surface.wall_relief == 0.25 and shipped.surface.wall_relief == 1.0
+    assert got.surface.model_copy(update={"wall_relief": 1.0}) == shipped.surface

@@ -499,13 +499,27 @@ def label_regions(mask: Tensor) -> Tensor:
     return out
 
 
-def deepen_normals(normals: Tensor, gain: float) -> Tensor:
+def deepen_normals(normals: Tensor, gain: float | Tensor) -> Tensor:
     """Unit normals (B, 3, H, W) of the same surface with its relief times ``gain``: (g·n_x, g·n_y, n_z)
     renormalised. For a height field's normals n ∝ (−∂h/∂x, −∂h/∂y, 1) this is exactly the normals of g·h (the same
-    outlines, slopes times g); gain 1 returns ``normals`` unchanged."""
-    if gain == 1.0:
+    outlines, slopes times g); gain 1 returns ``normals`` unchanged. ``gain`` may be a map (B, 1, H, W): each pixel's
+    slopes times its own gain (`calm_walls`)."""
+    if isinstance(gain, (int, float)) and gain == 1.0:
         return normals
     return facing_normals(torch.cat([normals[:, :2] * gain, normals[:, 2:3]], 1))
+
+
+def calm_walls(normals: Tensor, walls: Tensor, gain: float) -> Tensor:
+    """Unit normals (B, 3, H, W) with the walls' slopes times ``gain``: each pixel's slopes times
+    1 − w + ``gain``·w, w = ``walls`` (B, 1, H, W) in [0, 1] (1 − the silhouette probability). The shape prior "a
+    painted wall is flat" as a lit estimator told a light needs it: told a light, it reads some of a bare wall's paint
+    as relief (docs/BENCHMARKS.md, round 17), and a ratio S(target)/S(source) of relief a times the wall's is a
+    times as far from one, so the leak (the layer's PSNR against its mean) rises by about −20·log₁₀ ``gain`` dB
+    while the objects (w = 0) keep every slope. ``gain`` 1 returns ``normals`` unchanged."""
+    if gain == 1.0:
+        return normals
+    w = walls.to(normals.dtype)
+    return deepen_normals(normals, 1.0 - w + gain * w)
 
 
 def mix_normals(normals: Tensor, other: Tensor, weight: float) -> Tensor:

@@ -49,6 +49,7 @@ from lasagna.compose.resample import downsample, working_size
 from lasagna.compose.surface import (
     DOME_MAX_SIDE,
     calibrate_elevation,
+    calm_walls,
     deepen_normals,
     dome_normals,
     enlarge_surface,
@@ -266,10 +267,12 @@ class SurfaceEstimator(Pretrained, nn.Module):
         flat_walls: float = 0.0,
         light: Tensor | None = None,
         readings: int = 2,
+        wall_relief: float = 1.0,
     ) -> tuple[Tensor, Tensor | None]:
         """(surface — height or normals, as ``decompose``; unit normals where ``dome`` mixes in the dome prior,
         ``symmetry`` averages an ensemble, ``flat_walls`` > 0 removes the walls' large-scale tilt (`flatten_walls`,
-        σ that fraction of the long side, walls weighted by 1 − the silhouette probability) or ``relief`` ≠ 1
+        σ that fraction of the long side, walls weighted by 1 − the silhouette probability), ``wall_relief`` ≠ 1 scales
+        the walls' slopes (`calm_walls`, the same weights) or ``relief`` ≠ 1
         deepens the estimate (`deepen_normals`: slopes times ``relief``) — and the source light (B, 3), or None for
         albedo input): the light is the fit of the final surface's normals to the estimated source shading (module
         docstring); with ``source_elevation`` "walls" its
@@ -296,6 +299,13 @@ class SurfaceEstimator(Pretrained, nn.Module):
                     "flat_walls",
                 )
             surface = flatten_walls(self.normals(surface), 1.0 - objects, flat_walls * max(surface.shape[-2:]))
+        if wall_relief != 1.0:
+            if objects is None:
+                raise LasagnaError(
+                    "a wall relief gain needs a silhouette head (train-surface --silhouette); this estimator has none",
+                    "wall_relief",
+                )
+            surface = calm_walls(self.normals(surface), 1.0 - objects, wall_relief)
         if relief != 1.0:
             surface = deepen_normals(self.normals(surface), relief)
         if shading is None:

@@ -372,6 +372,45 @@ class TestFlatWalls:
         torch.testing.assert_close(got.norm(dim=1), torch.ones(1, 32, 32, dtype=F64))
 
 
+    @settings(max_examples=30, deadline=None)
+    @given(gain=st.floats(0.0, 1.0, allow_nan=False), seed=st.integers(0, 2**16))
+    def test_calm_walls_scale_each_pixels_slopes_by_its_wall_weight(self, gain, seed):
+        """``calm_walls``: slopes p = n_xy/n_z times 1 − w + g·w per pixel (numpy float64), the objects (w = 0)
+        untouched, a wall (w = 1) of gain 0 flat, and the ratio of a calmed wall under two lights a times as far
+        from its mean to first order: the leak's −20·log₁₀ g."""
+        from lasagna.compose.surface import calm_walls
+
+        rng = np.random.default_rng(seed)
+        hx, hy = rng.normal(size=(2, 12, 10)) * 0.4
+        w = rng.uniform(size=(12, 10))
+        w[:3] = 0.0  # objects
+        w[-3:] = 1.0  # walls
+        got = calm_walls(self.normals(hx, hy), torch.from_numpy(w)[None, None], gain)
+        want = self.normals(hx * (1 - w + gain * w), hy * (1 - w + gain * w))
+        torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
+        n = self.normals(hx, hy)
+        torch.testing.assert_close(got[..., :3, :], n[..., :3, :], atol=1e-12, rtol=0)
+        if gain == 0.0:
+            torch.testing.assert_close(got[0, :2, -3:], torch.zeros(2, 3, 10, dtype=F64), atol=1e-12, rtol=0)
+        assert calm_walls(n, torch.from_numpy(w)[None, None], 1.0) is n
+
+    def test_a_calmed_walls_ratio_leaks_twenty_log_gain_less(self):
+        from lasagna.compose.surface import calm_walls
+
+        rng = np.random.default_rng(3)
+        hx, hy = rng.normal(size=(2, 32, 32)) * 0.01  # paint read as faint relief
+        n, walls = self.normals(hx, hy), torch.ones(1, 1, 32, 32, dtype=F64)
+        src = torch.tensor([[0.5, 0.0, math.sqrt(0.75)]], dtype=F64)
+        tgt = torch.tensor([[-0.5, 0.3, math.sqrt(0.66)]], dtype=F64)
+
+        def leak(m):
+            r = lambert(m, tgt) / lambert(m, src)
+            return 10 * math.log10(1.0 / float(((r - r.mean()) ** 2).mean()))
+
+        for gain in (0.5, 0.25):
+            assert leak(calm_walls(n, walls, gain)) - leak(n) == pytest.approx(-20 * math.log10(gain), abs=0.05)
+
+
 @settings(max_examples=40, deadline=None)
 @given(
     g1=st.floats(0.1, 8.0, allow_nan=False),

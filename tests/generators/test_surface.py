@@ -355,6 +355,31 @@ def test_flat_walls_remove_the_walls_tilt_from_the_estimate_and_need_a_silhouett
         plain_net.estimate(image, flat_walls=0.25)
 
 
+def test_a_wall_relief_gain_calms_the_walls_by_the_silhouette_and_needs_its_head():
+    """``estimate(..., wall_relief=g)`` is ``calm_walls`` of the ensemble's normals with the walls weighted by
+    1 − its silhouette probability, before the relief gain and the light fit (the fit is of the calmed normals);
+    an estimator without a silhouette head refuses in one line."""
+    from lasagna.compose.surface import calm_walls, deepen_normals, fit_light
+
+    torch.manual_seed(13)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", silhouette=True, **TOY))
+    torch.nn.init.normal_(net.head.weight, std=0.5)
+    image = torch.rand(1, 3, 16, 12)
+    plain, _ = net.estimate(image, symmetry="mirrors")
+    walls = 1.0 - net.silhouette(image, "mirrors")
+    got, light = net.estimate(image, symmetry="mirrors", wall_relief=0.25)
+    want = calm_walls(net.normals(plain), walls, 0.25)
+    torch.testing.assert_close(got, want)
+    assert float((got - net.normals(plain)).abs().max().detach()) > 1e-3  # the random net's walls had relief
+    _, shading, _ = net._views(image, None, "mirrors", None)
+    torch.testing.assert_close(light, fit_light(want, shading))  # the light is fitted to the calmed normals
+    deep, _ = net.estimate(image, symmetry="mirrors", wall_relief=0.25, relief=2.0)
+    torch.testing.assert_close(deep, deepen_normals(want, 2.0))
+    plain_net = SurfaceEstimator(SurfaceConfig(input="lit", **TOY))
+    with pytest.raises(LasagnaError, match="wall_relief: .*silhouette head"):
+        plain_net.estimate(image, wall_relief=0.5)
+
+
 def _light_net(seed: int) -> SurfaceEstimator:
     """A toy lit estimator with a light input whose head and light channels are random (not the zero start)."""
     torch.manual_seed(seed)
