@@ -37,6 +37,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--light-given", type=float, default=0.75, help="probability that a scene's light is given")
     p.add_argument("--light-jitter", type=float, default=10.0, help="noise on a given light, degrees per component")
+    p.add_argument(
+        "--light-weight",
+        type=float,
+        default=0.1,
+        help="lit input: weight of the fitted source light's cosine error in the loss (λ_l)",
+    )
     p.add_argument("--out", required=True, help="run folder; run again with the same folder to resume")
     p.add_argument("--working-size", type=int, default=32, help="the side it trains (and later works) at")
     p.add_argument("--channels", default="32,64,128", help="feature channels per level")
@@ -134,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
         ),
         light_given=args.light_given,
         light_jitter=args.light_jitter,
+        light_weight=args.light_weight,
         lights=args.lights,
         steps=args.steps,
         max_minutes=args.minutes,

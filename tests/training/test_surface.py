@@ -351,3 +351,25 @@ def test_a_scene_bank_is_rendered_once_drawn_turned_and_resumes_to_the_same_weig
     resumed = train_surface(config, tmp_path / "b")
     for (name, v), w in zip(whole.state_dict().items(), resumed.state_dict().values()):
         assert torch.equal(v, w), name
+
+
+def test_the_light_weight_scales_the_fitted_lights_cosine_error_in_the_loss_and_the_cli_sets_it(tmp_path):
+    """λ_l (``light_weight``, ``train-surface --light-weight``): the loss moves by exactly Δλ_l times the logged cosine
+    error of the fitted light, all else equal; the CLI writes it into the run's config."""
+    import json
+
+    from lasagna.cli import main
+
+    scene = generate("val", 2, 1, 16)
+    rng = torch.Generator().manual_seed(1)
+    source, lights = random_lights(2, rng, (30.0, 75.0)), random_lights(6, rng, (0.0, 75.0))
+    torch.manual_seed(0)
+    net = SurfaceEstimator(toy().net)
+    low, metrics = surface_loss(net, toy(light_weight=0.1), scene, source, lights)
+    high, _ = surface_loss(net, toy(light_weight=1.0), scene, source, lights)
+    assert metrics["light_cos_err"] > 1e-4
+    assert float((high - low).detach()) == pytest.approx(0.9 * metrics["light_cos_err"], rel=1e-4)
+    argv = ["train-surface", "--input", "lit", "--out", str(tmp_path / "run"), "--working-size", "16"]
+    argv += ["--channels", "8,16", "--blocks", "1", "--batch-size", "2", "--steps", "1", "--light-weight", "0.7"]
+    assert main([*argv, "--no-progress"]) == 0
+    assert json.loads((tmp_path / "run" / "train_config.json").read_text())["light_weight"] == 0.7
