@@ -216,7 +216,8 @@ def make_layer(
 def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
     """The start (1, 1, h, w) of a free layer that refines a surface (``distill.start == "surface"``): the preset's
     surface estimate of ``x`` (the working input) at ``surface.working_size`` with its dome prior and symmetry
-    ensemble, deepened by ``surface.start_relief`` (an estimator's regression to the mean makes it shallow where it is
+    ensemble, its walls calmed by ``surface.start_wall_relief`` and the whole deepened by ``surface.start_relief`` (an
+    estimator's regression to the mean makes it shallow where it is
     unsure; the distillation's start wants the relief, a surface layer the estimate as it is), rendered under
     the condition's light — S(l) for an unlit base, S(l)/S(l_src) for a lit one (the source light as fitted:
     ``surface.light_calibration`` is the surface layer's, since a calibrated, steeper source light makes S(l_src)
@@ -237,6 +238,7 @@ def _surface_start(recipe: Recipe, x: Tensor, device) -> Tensor:
         symmetry=sd.symmetry,
         relief=sd.start_relief,
         flat_walls=sd.flat_walls,
+        wall_relief=sd.start_wall_relief,
     )
     target = light_vector(*parse_direction(recipe.label), device=normals.device)[None]
     layer = lambert(normals, target) if source is None else lambert(normals, target) / lambert(normals, source)

@@ -618,3 +618,47 @@ def test_a_refined_relight_surface_records_its_refinement_and_renders_from_its_m
     assert abs((w_az - f_az + 180) % 360 - 180) < 0.02 and abs(w_el - f_el) > 0.01
     guided.stack.save(tmp_path / "g")
     assert torch.equal(load_stack(tmp_path / "g").render().image, guided.stack.render().image)
+
+
+def test_wall_relief_calms_a_surface_layers_walls_and_start_wall_relief_a_free_layers_start(tiny, tmp_path_factory):
+    """``surface.wall_relief`` g scales a surface layer's wall slopes by the silhouette (`calm_walls`), recorded in
+    its ``made_by``; ``surface.start_wall_relief`` does the same to a free layer's surface start only: the start is
+    S(l)/S(l_src) of ``estimate_at(..., wall_relief=g)``, and each setting leaves the other's layer as it was."""
+    from lasagna.compose.surface import lambert, light_vector
+    from lasagna.document.condition import parse_direction
+    from lasagna.editing import conditioning_input
+    from lasagna.generators.surface import DomePrior, SurfaceConfig, SurfaceEstimator
+    from lasagna.learned import _surface_start, layer_input
+    from lasagna.recipe import Recipe
+
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("walls") / "layers")
+    torch.manual_seed(5)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", silhouette=True, channels=(4, 8), blocks=1, working_size=16))
+    torch.nn.init.normal_(net.head.weight, std=0.3)
+    net.save_pretrained(folder / "surface-lit-walls")
+    preset = json.loads((folder / "relight" / "preset.json").read_text())
+    distill = {**preset["distill"], "steps": 1, "particles": 1, "start": "surface"}
+    base = {**SURFACE, "estimator": "surface-lit-walls"}
+    starts, layers = {}, {}
+    for key, surface in {
+        "plain": base,
+        "walls": {**base, "wall_relief": 0.5},
+        "start": {**base, "start_wall_relief": 0.5},
+    }.items():
+        write_preset(folder, "relight", distill=distill, surface=surface)
+        res = edit(image(), "relight", "left", catalogue_dirs=[folder])
+        layer = res.stack.document.layer(res.layer_id)
+        recipe = Recipe.from_layer(res.stack, layer, catalogue_dirs=[folder])
+        x = layer_input(recipe, conditioning_input(res.stack, layer.conditioned_on), "cpu")
+        starts[key] = _surface_start(recipe, x, "cpu")
+        write_preset(folder, "relight", surface=surface, layer_kind="surface")
+        res = edit(image(), "relight", "left", catalogue_dirs=[folder])
+        layers[key] = res.layer
+        assert res.stack.document.layer(res.layer_id).made_by.get("wall_relief") == surface.get("wall_relief")
+    n, source = net.estimate_at(x.float(), DomePrior(), side=SURFACE["working_size"], wall_relief=0.5)
+    target = light_vector(*parse_direction("left"))[None]
+    torch.testing.assert_close(starts["start"], (lambert(n, target) / lambert(n, source)).clamp(0.0, 4.0))
+    assert float((starts["start"] - starts["plain"]).abs().max()) > 1e-3
+    assert float((layers["walls"] - layers["plain"]).abs().max()) > 1e-3
+    torch.testing.assert_close(starts["walls"], starts["plain"], atol=0, rtol=0)
+    torch.testing.assert_close(layers["start"], layers["plain"], atol=0, rtol=0)

@@ -313,6 +313,14 @@ class SurfaceDefaults(StrictModel):
         "nearly flat while the objects keep theirs; 1: the estimate as it is. Applies to the surface layer, not to a "
         "free layer's surface start. Needs an estimator with a silhouette head.",
     )
+    start_wall_relief: FiniteFloat = Field(
+        1.0,
+        ge=0,
+        le=1,
+        description="As `wall_relief`, for a free layer's surface start (`distill.start` 'surface'), before "
+        "`start_relief` deepens it: a sky's clouds or a wall's paint read as relief are not deepened into the start; "
+        "1: the estimate as it is. Needs an estimator with a silhouette head.",
+    )
     start_relief: FiniteFloat = Field(
         1.0,
         gt=0,

@@ -398,11 +398,14 @@ class SurfaceEstimator(Pretrained, nn.Module):
         source_elevation: SourceElevation = "fit",
         flat_walls: float = 0.0,
         light: Tensor | None = None,
+        wall_relief: float = 1.0,
     ) -> tuple[Tensor, Tensor | None]:
         """(unit normals (B, 3, H, W), source light (B, 3) or None) of ``image`` (B, 3, H, W) in [0, 1]: estimated
         at the working size ``side`` (None: the one it was trained at; `lasagna.compose.resample.working_size`),
         the surface enlarged back to (H, W) (`lasagna.compose.surface.enlarge_surface`)."""
         full = tuple(image.shape[-2:])
         small = downsample(image, working_size(*full, side or self.config.working_size))
-        surface, fitted = self.estimate(small, dome, symmetry, relief, elevation, source_elevation, flat_walls, light)
+        surface, fitted = self.estimate(
+            small, dome, symmetry, relief, elevation, source_elevation, flat_walls, light, wall_relief=wall_relief
+        )
         return self.normals(enlarge_surface(surface, full)), fitted
