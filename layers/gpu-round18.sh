@@ -9,6 +9,10 @@
 # logs and configs come back as tars in $OUT; judge them here by round 17's rule (docs/BENCHMARKS.md, WLS/M):
 #   OMP_NUM_THREADS=2 .venv/bin/python benchmarks/relight_candidates.py --estimator lit-bank/surface \
 #       lit-fresh/surface --kinds free surface given --leak
+# and, since round 18, its light (the surface layer's gap is its source elevation; a scale that reads the objects
+# better should show it there first):
+#   OMP_NUM_THREADS=2 .venv/bin/python benchmarks/source_light.py --estimator runs/lit-m/surface lit-bank/surface \
+#       lit-fresh/surface --count 32
 #
 #   OUT=out/gpu18 MINUTES=8 bash layers/gpu-round18.sh              # any machine; cuda where there is one
 set -u
