@@ -72,7 +72,7 @@ def test_an_estimator_spec_carries_preset_settings_and_an_empty_folder_keeps_the
     from lasagna.catalogue import load_preset
 
     assert relight_candidates.estimator_spec("runs/x/surface") == ("runs/x/surface", {})
-    assert relight_candidates.estimator_spec("@wall_relief=0.5,symmetry=\"none\"") == (
+    assert relight_candidates.estimator_spec('@wall_relief=0.5,symmetry="none"') == (
         "",
         {"wall_relief": 0.5, "symmetry": "none"},
     )

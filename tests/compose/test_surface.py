@@ -371,7 +371,6 @@ class TestFlatWalls:
         torch.testing.assert_close(got[0, 0][~torch.from_numpy(inside)], torch.zeros(int((~inside).sum()), dtype=F64))
         torch.testing.assert_close(got.norm(dim=1), torch.ones(1, 32, 32, dtype=F64))
 
-
     @settings(max_examples=30, deadline=None)
     @given(gain=st.floats(0.0, 1.0, allow_nan=False), seed=st.integers(0, 2**16))
     def test_calm_walls_scale_each_pixels_slopes_by_its_wall_weight(self, gain, seed):
