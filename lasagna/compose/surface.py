@@ -509,9 +509,15 @@ def deepen_normals(normals: Tensor, gain: float | Tensor) -> Tensor:
     return facing_normals(torch.cat([normals[:, :2] * gain, normals[:, 2:3]], 1))
 
 
-def calm_walls(normals: Tensor, walls: Tensor, gain: float) -> Tensor:
+WALL_MARGIN = 1
+"""Pixels by which `calm_walls` erodes the walls: a soft silhouette calls an object's rim half wall, and the rim's
+slopes are the object's (docs/BENCHMARKS.md, round 18: without a margin the gate cost the objects 0.04–0.11 dB)."""
+
+
+def calm_walls(normals: Tensor, walls: Tensor, gain: float, margin: int = WALL_MARGIN) -> Tensor:
     """Unit normals (B, 3, H, W) with the walls' slopes times ``gain``: each pixel's slopes times
-    1 − w + ``gain``·w, w = ``walls`` (B, 1, H, W) in [0, 1] (1 − the silhouette probability). The shape prior "a
+    1 − w + ``gain``·w, w = ``walls`` (B, 1, H, W) in [0, 1] (1 − the silhouette probability) eroded by ``margin``
+    pixels (the least w in each (2·margin + 1)² window), so an object's rim keeps its slopes. The shape prior "a
     painted wall is flat" as a lit estimator told a light needs it: told a light, it reads some of a bare wall's paint
     as relief (docs/BENCHMARKS.md, round 17), and a ratio S(target)/S(source) of relief a times the wall's is a
     times as far from one, so the leak (the layer's PSNR against its mean) rises by about −20·log₁₀ ``gain`` dB
@@ -519,6 +525,8 @@ def calm_walls(normals: Tensor, walls: Tensor, gain: float) -> Tensor:
     if gain == 1.0:
         return normals
     w = walls.to(normals.dtype)
+    if margin > 0:
+        w = -torch.nn.functional.max_pool2d(-w, 2 * margin + 1, stride=1, padding=margin)
     return deepen_normals(normals, 1.0 - w + gain * w)
 
 

@@ -372,25 +372,31 @@ class TestFlatWalls:
         torch.testing.assert_close(got.norm(dim=1), torch.ones(1, 32, 32, dtype=F64))
 
     @settings(max_examples=30, deadline=None)
-    @given(gain=st.floats(0.0, 1.0, allow_nan=False), seed=st.integers(0, 2**16))
-    def test_calm_walls_scale_each_pixels_slopes_by_its_wall_weight(self, gain, seed):
-        """``calm_walls``: slopes p = n_xy/n_z times 1 − w + g·w per pixel (numpy float64), the objects (w = 0)
-        untouched, a wall (w = 1) of gain 0 flat, and the ratio of a calmed wall under two lights a times as far
-        from its mean to first order: the leak's −20·log₁₀ g."""
+    @given(gain=st.floats(0.0, 1.0, allow_nan=False), seed=st.integers(0, 2**16), margin=st.sampled_from([0, 1, 2]))
+    def test_calm_walls_scale_each_pixels_slopes_by_its_eroded_wall_weight(self, gain, seed, margin):
+        """``calm_walls``: slopes p = n_xy/n_z times 1 − w + g·w per pixel, w the walls eroded by ``margin`` pixels
+        (the least in each window, numpy float64), the objects (w = 0) and their rims within the margin untouched, a
+        wall (w = 1) of gain 0 flat beyond the margin."""
         from lasagna.compose.surface import calm_walls
 
         rng = np.random.default_rng(seed)
         hx, hy = rng.normal(size=(2, 12, 10)) * 0.4
         w = rng.uniform(size=(12, 10))
         w[:3] = 0.0  # objects
-        w[-3:] = 1.0  # walls
-        got = calm_walls(self.normals(hx, hy), torch.from_numpy(w)[None, None], gain)
-        want = self.normals(hx * (1 - w + gain * w), hy * (1 - w + gain * w))
-        torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
+        w[-5:] = 1.0  # walls
+        padded = np.pad(w, margin, constant_values=np.inf)
+        eroded = np.min(
+            [padded[i : i + 12, j : j + 10] for i in range(2 * margin + 1) for j in range(2 * margin + 1)], axis=0
+        )
+        got = calm_walls(self.normals(hx, hy), torch.from_numpy(w)[None, None], gain, margin=margin)
+        k = 1 - eroded + gain * eroded
+        torch.testing.assert_close(got, self.normals(hx * k, hy * k), atol=1e-12, rtol=0)
         n = self.normals(hx, hy)
-        torch.testing.assert_close(got[..., :3, :], n[..., :3, :], atol=1e-12, rtol=0)
+        rim = 3 + margin  # the objects' rows and the rows the erosion reaches from them
+        torch.testing.assert_close(got[..., :rim, :], n[..., :rim, :], atol=1e-12, rtol=0)
         if gain == 0.0:
-            torch.testing.assert_close(got[0, :2, -3:], torch.zeros(2, 3, 10, dtype=F64), atol=1e-12, rtol=0)
+            flat = got[0, :2, -(5 - margin) :]
+            torch.testing.assert_close(flat, torch.zeros_like(flat), atol=1e-12, rtol=0)
         assert calm_walls(n, torch.from_numpy(w)[None, None], 1.0) is n
 
     def test_a_calmed_walls_ratio_leaks_twenty_log_gain_less(self):
