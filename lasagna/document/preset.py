@@ -309,7 +309,8 @@ class SurfaceDefaults(StrictModel):
         ge=0,
         le=1,
         description="A surface layer's walls' slopes times this (`lasagna.compose.surface.calm_walls`: each pixel's "
-        "slopes times 1 − w + this·w, w = 1 − the silhouette probability), so a painted wall read as relief stays "
+        "slopes times 1 − w + this·w, w = 1 − the silhouette probability eroded by one pixel so the objects' rims "
+        "keep theirs), so a painted wall read as relief stays "
         "nearly flat while the objects keep theirs; 1: the estimate as it is. Applies to the surface layer, not to a "
         "free layer's surface start. Needs an estimator with a silhouette head.",
     )
