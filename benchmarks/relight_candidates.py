@@ -16,7 +16,8 @@ is lit by its relight task's source light and relit toward its named light (``be
 
 * ``free`` — ``lasagna edit --layer relight`` (the default: the free layer started from the estimator's surface);
 * ``surface`` — ``--layer-kind surface`` (the estimator's surface rendered S(target)/S(source), its light fitted);
-* ``given`` — ``--layer-kind surface --from`` the true source light.
+* ``given`` — ``--layer-kind surface --from`` the true source light (the preset's ``surface.told`` estimator when it
+  names one; a candidate folder is read here too).
 
 Per row: dB over the unchanged input (all pixels / objects), seconds per image, and the composite's summed squared
 error split by where it falls (objects, flat walls, relief walls: ``relief_walls.ratio_errors``) in units of a 64²
@@ -61,15 +62,17 @@ SHIPPED = "shipped"
 def candidate_catalogue(
     root: Path, estimator: str | None = None, prior: str | None = None, surface: dict | None = None
 ) -> Path:
-    """A catalogue folder under ``root`` that, put first, makes ``PRESET`` use ``estimator`` (a lit estimator folder;
-    "" keeps the preset's own, a catalogue name found in the catalogues after this one) with its ``surface``
-    settings updated by ``surface``, or ``prior`` (a prior folder, under the name the preset asks for)."""
+    """A catalogue folder under ``root`` that, put first, makes ``PRESET`` use ``estimator`` (a lit estimator folder,
+    read whether or not the light is told: the preset's ``surface.told`` dropped; "" keeps the preset's own
+    estimators, catalogue names found in the catalogues after this one) with its ``surface`` settings updated by
+    ``surface``, or ``prior`` (a prior folder, under the name the preset asks for)."""
     preset = json.loads((ROOT / "layers" / PRESET / "preset.json").read_text())
     if estimator is not None:
         if estimator:
             name = "candidate-estimator"
             shutil.copytree(estimator, root / name)
             preset["surface"]["estimator"] = name
+            preset["surface"]["told"] = None  # a candidate estimator is read told the light as well as not
         preset["surface"].update(surface or {})
         (root / PRESET).mkdir(parents=True)
         (root / PRESET / "preset.json").write_text(json.dumps(preset, indent=2))

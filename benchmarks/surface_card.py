@@ -49,7 +49,27 @@ def command(cfg: dict, run: Path) -> str:
         + (f" --world-seed {cfg['world_seed']}" if cfg.get("world_seed", 7) != 7 else "")
         + (f" --zoom {cfg['zoom']:g}" if cfg.get("zoom", 1.0) != 1.0 else "")
         + (f" --init-from {cfg['init_from']}" if cfg.get("init_from") else "")
+        + "".join(
+            f" {flag} {cfg[key]:g}"
+            for key, flag, default in OPTIONAL_FLAGS
+            if key in cfg and cfg[key] != default and (key not in LIGHT_KEYS or net.get("light_input"))
+        )
+        + (" --light-input" if net.get("light_input") else "")
     )
+
+
+# train_config.json keys the command line names only where they differ from the CLI's default (key, flag, default).
+OPTIONAL_FLAGS = (
+    ("warmup_steps", "--warmup", 100),
+    ("light_given", "--light-given", 0.75),
+    ("light_jitter", "--light-jitter", 10.0),
+    ("light_weight", "--light-weight", 0.1),
+    ("walls_only", "--walls-only", 0.0),
+    ("relief", "--relief", 0.0),
+    ("stray", "--stray", 0.0),
+    ("scene_bank", "--scene-bank", 0),
+)
+LIGHT_KEYS = {"light_given", "light_jitter"}  # read only by an estimator told the light (--light-input)
 
 
 def stage_line(k: int, run: Path, where: str) -> str:
@@ -98,6 +118,13 @@ def main(argv=None) -> int:
         "folder and the machine it ran on, e.g. runs/surface-lit-32='this CPU, one thread'",
     )
     ap.add_argument(
+        "--quality",
+        type=Path,
+        default=None,
+        help="a Markdown file: the card's Quality section as it is (an estimator measured by another benchmark than "
+        "benchmarks/surface.py, e.g. a told-light estimator by relight_candidates.py)",
+    )
+    ap.add_argument(
         "--where",
         default=WHERE,
         help="where the last stage ran, as the card says it, e.g. 'on a lent H200 (three processes sharing it)'",
@@ -134,7 +161,15 @@ def main(argv=None) -> int:
     reads = (
         "the unlit base (albedo): geometry from outlines and paint"
         if kind == "albedo"
-        else ("an image already lit by an unknown light: geometry from its shading, and that light fitted to it")
+        else (
+            "an image already lit: geometry from its shading, and the source light fitted to it"
+            + (
+                " — or told it: the light (its vector and a 'given' flag) is four more input channels, so a light "
+                "the user knows (`--from`) is read with the image"
+                if net.config.light_input
+                else ""
+            )
+        )
     )
     measured = json.loads(args.measured.read_text(encoding="utf-8")) if args.measured else {}
     # The measurement's own command (benchmarks/surface.py records it), else the usual one.
@@ -187,6 +222,22 @@ def main(argv=None) -> int:
             "; each scene is lit by a random source light (elevation 30–75°) before the estimator reads it."
             if kind == "lit"
             else "."
+        )
+        + (
+            f" The light was given to the estimator on {cfg['light_given']:.0%} of the scenes, jittered by "
+            f"{cfg['light_jitter']:g}° per component (as a fitted light is off), and withheld (a zero row) on the rest."
+            if net.config.light_input
+            else ""
+        )
+        + (
+            f" A wall the split drew flat was given relief of one of its families with probability {cfg['relief']:g}."
+            if cfg.get("relief")
+            else ""
+        )
+        + (
+            f" A scene was its wall alone, objects removed, with probability {cfg['walls_only']:g}."
+            if cfg.get("walls_only")
+            else ""
         ),
         "`select`, `heldout` and `far` (families training never uses) are never seen; every choice is made on "
         "`select`.",
@@ -209,12 +260,20 @@ def main(argv=None) -> int:
         "",
         "```sh",
         command(cfg, args.run),
-        measured_command
-        or f"OMP_NUM_THREADS=1 python benchmarks/surface.py --splits select heldout far --sizes 64 256 --count 16 "
-        f"--{'albedo' if kind == 'albedo' else 'lit'} layers/{args.name}"
-        + (f" --dome {args.dome}" if args.dome else "")
-        + f" --json-out {args.measured}",
-        f"python benchmarks/surface_card.py --run {args.run} --name {args.name} --measured {args.measured}"
+        *(
+            []
+            if args.measured is None
+            else [
+                measured_command
+                or f"OMP_NUM_THREADS=1 python benchmarks/surface.py --splits select heldout far --sizes 64 256 "
+                f"--count 16 --{'albedo' if kind == 'albedo' else 'lit'} layers/{args.name}"
+                + (f" --dome {args.dome}" if args.dome else "")
+                + f" --json-out {args.measured}"
+            ]
+        ),
+        f"python benchmarks/surface_card.py --run {args.run} --name {args.name}"
+        + (f" --measured {args.measured}" if args.measured else "")
+        + (f" --quality {args.quality}" if args.quality else "")
         + (f" --dome {args.dome}" if args.dome else "")
         + "".join(f" --stages '{st}'" if k == 0 else f" '{st}'" for k, st in enumerate(args.stages))
         + (f" --where '{args.where}'" if args.where != WHERE else ""),
@@ -222,6 +281,18 @@ def main(argv=None) -> int:
         "",
         "![loss](loss.png)",
         "",
+        *([] if args.quality is None else ["## Quality", args.quality.read_text(encoding="utf-8").strip(), ""]),
+    ]
+    if args.quality is None:
+        lines += quality_section(measured, kind)
+    (folder / "MODEL.md").write_text("\n".join(lines), encoding="utf-8")
+    print_json_line({"name": args.name, "params": params, "steps": steps, "minutes": round(minutes, 1)})
+    return 0
+
+
+def quality_section(measured: dict, kind: str) -> list[str]:
+    """The Quality section from benchmarks/surface.py's measurement of the estimator."""
+    return [
         "## Quality",
         "Measured by `benchmarks/surface.py` on 16 scenes per split (world seed 0), beside the outline-inflation "
         "oracle (the true outlines inflated into domes) and the headroom of any layer made at the working size "
@@ -239,9 +310,6 @@ def main(argv=None) -> int:
         + ".",
         "",
     ]
-    (folder / "MODEL.md").write_text("\n".join(lines), encoding="utf-8")
-    print_json_line({"name": args.name, "params": params, "steps": steps, "minutes": round(minutes, 1)})
-    return 0
 
 
 if __name__ == "__main__":

@@ -282,7 +282,8 @@ PRESET = "<preset>"  # ``resolve``'s default for a component: the one the preset
 class Resolved:
     """A preset and what it names, each found once: ``prior`` (its folder; None when it is not found) and
     ``source`` (what kind of prior it is), ``corrective`` (None when none is named or it is not found) and the
-    amortised ``generator`` (None until one is trained and installed in the preset's folder).
+    amortised ``generator`` (None until one is trained and installed in the preset's folder), the surface
+    ``estimator`` and the ``told_estimator`` a surface layer told its source light reads (``surface.told``).
 
     ``prior_ref``/``corrective_ref`` are the references resolved (the preset's, or those asked for);
     ``missing`` holds, per component that was named but not found, the one-line error a caller that needs
@@ -294,6 +295,7 @@ class Resolved:
     corrective: Path | None
     generator: Path | None
     estimator: Path | None = None
+    told_estimator: Path | None = None
     prior_ref: str | None = None
     corrective_ref: str | None = None
     source: PriorSource | None = None
@@ -349,22 +351,25 @@ def resolve(
     generator = file.parent / PRESET_GENERATOR
     if format_of(generator) != "lasagna.layer_generator":
         generator = None
-    estimator = None
+    estimators: dict[str, Path | None] = {"estimator": None, "told_estimator": None}
     if p.surface is not None:
-        ref = p.surface.estimator
-        try:
-            estimator = find(
-                ref, "estimator", catalogue_dirs=catalogue_dirs, relative_to=file.parent if "/" in ref else None
-            )
-        except LasagnaError as err:
-            missing["estimator"] = err
+        refs_of = {"estimator": p.surface.estimator, "told_estimator": p.surface.told and p.surface.told.estimator}
+        for key, ref in refs_of.items():
+            if ref is None:
+                continue
+            try:
+                estimators[key] = find(
+                    ref, "estimator", catalogue_dirs=catalogue_dirs, relative_to=file.parent if "/" in ref else None
+                )
+            except LasagnaError as err:
+                missing[key] = err
     return Resolved(
         p,
         file,
         found["prior"],
         found["corrective"],
         generator,
-        estimator=estimator,
+        **estimators,
         prior_ref=None if refs["prior"] is None else str(refs["prior"]),
         corrective_ref=None if refs["corrective"] is None else str(refs["corrective"]),
         source=source,
@@ -687,8 +692,10 @@ def install_generator(
             for key in ("prior", "corrective"):
                 if data.get(key) and "/" in data[key]:
                     data[key] = str(here / data[key])
-            if data.get("surface") and "/" in data["surface"]["estimator"]:
-                data["surface"]["estimator"] = str(here / data["surface"]["estimator"])
+            surface = data.get("surface") or {}
+            for part in (surface, surface.get("told") or {}):
+                if "/" in part.get("estimator", ""):
+                    part["estimator"] = str(here / part["estimator"])
             (tmp / "preset.json").write_text(Preset.from_dict(data, "preset.json").to_json(), encoding="utf-8")
         with folder_lock(place.parent):
             if place.exists():  # the preset's own earlier generator (checked above): moved aside, then removed

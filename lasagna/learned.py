@@ -372,6 +372,8 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         made_by.update(symmetry=sd.symmetry)
     if sd.flat_walls > 0:
         made_by.update(flat_walls=sd.flat_walls)
+    if recipe.source_light is not None and recipe.preset.surface.told is not None:
+        made_by.update(told_estimator=sd.estimator)  # the estimator a told light reads (SurfaceDefaults.told)
     if sd.wall_relief != 1.0:
         made_by.update(wall_relief=sd.wall_relief)
     if turned is not None:

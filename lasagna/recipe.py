@@ -357,10 +357,19 @@ def _made(
 def _surface_recipe(resolved: cat.Resolved, request: EditRequest, label: str) -> Recipe:
     """The recipe of a surface layer (``kind="surface"``) lit by ``label`` (checked: ``check_request``): the
     preset's estimator at its working size, then ``refine_steps`` multi-light score-distillation steps
-    (``lasagna.distill.surface``) scored by its prior. The condition is any light, named or ``az=…,el=…``: a
-    surface is lit by every light alike."""
+    (``lasagna.distill.surface``) scored by its prior; told the source light (``request.source_light``), the
+    estimator and wall gate of ``surface.told`` when the preset names one. The condition is any light, named or
+    ``az=…,el=…``: a surface is lit by every light alike."""
     p = resolved.preset
-    if resolved.estimator is None:
+    surface, estimator = p.surface, resolved.estimator
+    if request.source_light is not None and p.surface.told is not None:
+        # Told its source light, the layer reads the estimator the preset names for a told light (SurfaceDefaults.told).
+        told = p.surface.told
+        surface = p.surface.model_copy(update={"estimator": told.estimator, "wall_relief": told.wall_relief})
+        estimator = resolved.told_estimator
+        if estimator is None:
+            raise resolved.missing["told_estimator"]
+    if estimator is None:
         raise resolved.missing.get("estimator") or LasagnaError(f"preset {p.name!r} names no estimator", "surface")
     steps = request.asked_steps
     steps = p.surface.refine_steps if steps is None else steps
@@ -376,9 +385,9 @@ def _surface_recipe(resolved: cat.Resolved, request: EditRequest, label: str) ->
         steps=steps,
         working_size=p.surface.working_size,
         kind="surface",
-        estimator=resolved.estimator,
-        estimator_sha256=file_sha256(resolved.estimator / "model.safetensors"),
-        surface=p.surface,
+        estimator=estimator,
+        estimator_sha256=file_sha256(estimator / "model.safetensors"),
+        surface=surface,
         source_light=request.source_light,
         distill=distill,
         **scoring,

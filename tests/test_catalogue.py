@@ -66,7 +66,7 @@ def test_available_lists_every_kind(tiny):
         "prior": ["light-32", "recolor-32", "relight-32", "relit-32"],
         "corrective": ["light-32-spectral", "recolor-32-spectral", "relight-32-bhat", "relight-32-spectral"],
         "generator": ["shading"],
-        "estimator": ["surface-albedo-32", "surface-lit-32", "surface-lit-closeup-32"],
+        "estimator": ["surface-albedo-32", "surface-lit-32", "surface-lit-closeup-32", "surface-lit-told-32"],
     }
 
 

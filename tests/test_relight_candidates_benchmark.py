@@ -12,11 +12,11 @@ import relight_candidates  # noqa: E402
 
 
 def test_candidates_are_measured_against_the_shipped_catalogue_in_the_same_run(capsys):
-    shipped = ROOT / "layers" / "surface-lit-closeup-32"
-    other = ROOT / "layers" / "surface-lit-32"
+    shipped = "@"  # the preset's own estimators (told the light: its surface.told), its settings as they are
+    other = ROOT / "layers" / "surface-lit-closeup-32"  # read told the light too: the shipped untold estimator
     argv = [
         "--estimator",
-        str(shipped),
+        shipped,
         str(other),
         "--count",
         "2",
@@ -83,3 +83,8 @@ def test_an_estimator_spec_carries_preset_settings_and_an_empty_folder_keeps_the
     shipped = load_preset(relight_candidates.PRESET)
     assert got.surface.wall_relief == 0.25 and shipped.surface.wall_relief == 1.0
     assert got.surface.model_copy(update={"wall_relief": 1.0}) == shipped.surface
+    # A candidate folder is read whether the light is told or not: the preset's told estimator is dropped.
+    folder = relight_candidates.candidate_catalogue(tmp_path / "f", estimator=str(ROOT / "layers" / "surface-lit-32"))
+    candidate = load_preset(relight_candidates.PRESET, catalogue_dirs=[folder])
+    assert shipped.surface.told is not None and candidate.surface.told is None
+    assert candidate.surface.estimator == "candidate-estimator"

@@ -662,3 +662,53 @@ def test_wall_relief_calms_a_surface_layers_walls_and_start_wall_relief_a_free_l
     assert float((layers["walls"] - layers["plain"]).abs().max()) > 1e-3
     torch.testing.assert_close(starts["walls"], starts["plain"], atol=0, rtol=0)
     torch.testing.assert_close(layers["start"], layers["plain"], atol=0, rtol=0)
+
+
+def test_a_told_light_reads_the_presets_told_estimator_and_an_untold_one_its_estimator(tiny, tmp_path_factory):
+    """``surface.told``: a surface layer told its source light (``--from``) is exactly the layer of a preset whose
+    ``estimator`` and ``wall_relief`` are the told ones (recorded: ``made_by.told_estimator``, the told estimator's
+    SHA-256); untold, exactly the layer of the preset without ``told``; the free layer's surface start reads the
+    untold estimator either way. The told layer re-lit by editing its light equals the edit's own render for that
+    light, bit for bit. A told estimator missing from the catalogue refuses told edits in one line, not untold ones."""
+    from lasagna.components import file_sha256
+
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("told") / "layers")
+    untold = {**SURFACE, "estimator": "surface-lit-32"}
+    told = {**untold, "told": {"estimator": "surface-lit-told-32", "wall_relief": 0.5}}
+    as_told = {**untold, "estimator": "surface-lit-told-32", "wall_relief": 0.5}
+
+    def layer_of(surface, **kw):
+        write_preset(folder, "relight", surface=surface, layer_kind="surface")
+        return edit(image(), "relight", "right", catalogue_dirs=[folder], **kw)
+
+    given = layer_of(told, source_light="az=150,el=40")
+    record = given.stack.document.layer(given.layer_id).made_by
+    assert record["told_estimator"] == "surface-lit-told-32" and record["wall_relief"] == 0.5
+    assert record["estimator_sha256"] == file_sha256(folder / "surface-lit-told-32" / "model.safetensors")
+    torch.testing.assert_close(given.layer, layer_of(as_told, source_light="az=150,el=40").layer, atol=0, rtol=0)
+    assert float((given.layer - layer_of(untold, source_light="az=150,el=40").layer).abs().max()) > 1e-3
+    fitted = layer_of(told)
+    assert "told_estimator" not in fitted.stack.document.layer(fitted.layer_id).made_by
+    torch.testing.assert_close(fitted.layer, layer_of(untold).layer, atol=0, rtol=0)
+    # Re-lit by its light in stack.json, the told layer is the told edit toward that light.
+    root = tmp_path_factory.mktemp("told-stack")
+    given.stack.save(root / "s")
+    doc = json.loads((root / "s" / "stack.json").read_text())
+    doc["layers"][1]["light"] = "left"
+    (root / "s" / "stack.json").write_text(json.dumps(doc))
+    write_preset(folder, "relight", surface=told, layer_kind="surface")
+    other = edit(image(), "relight", "left", source_light="az=150,el=40", catalogue_dirs=[folder])
+    assert torch.equal(load_stack(root / "s").render().image, other.stack.render().image)
+    # The free layer's start reads `estimator`, told or not.
+    write_preset(folder, "relight", surface=told, layer_kind="free")
+    free_told = edit(image(), "relight", "right", catalogue_dirs=[folder])
+    write_preset(folder, "relight", surface=untold, layer_kind="free")
+    torch.testing.assert_close(
+        free_told.layer, edit(image(), "relight", "right", catalogue_dirs=[folder]).layer, atol=0, rtol=0
+    )
+    missing = {**untold, "told": {"estimator": "surface-lit-nowhere"}}
+    write_preset(folder, "relight", surface=missing, layer_kind="surface")
+    edit(image(), "relight", "right", catalogue_dirs=[folder])  # untold: the told estimator is not needed
+    with pytest.raises(LasagnaError, match="surface-lit-nowhere") as err:
+        edit(image(), "relight", "right", source_light="left", catalogue_dirs=[folder])
+    assert "\n" not in str(err.value)

@@ -207,6 +207,25 @@ SourceElevation = Literal["fit", "walls"]
 surface's normals to the estimated source shading, or the estimated source shading's level on the walls."""
 
 
+class ToldSurface(StrictModel):
+    """What a surface layer reads when the user tells it the source light (``--from``): its own estimator (one
+    trained to read the light it is given, ``train-surface --light-input``) and that estimator's wall gate. A light
+    the user knows need not be fitted, so the estimator that reads best told it is not the one that reads best alone
+    (docs/BENCHMARKS.md, round 18: rules TL)."""
+
+    estimator: NameOrPath = Field(
+        description="The surface estimator a surface layer told its source light reads: a catalogue name, or a path "
+        "(with '/') relative to this preset's folder. It reads the image and the light it is told."
+    )
+    wall_relief: FiniteFloat = Field(
+        1.0,
+        ge=0,
+        le=1,
+        description="`wall_relief` for this estimator's surface layer (the preset's `surface.wall_relief` applies "
+        "when the light is not told).",
+    )
+
+
 class SurfaceDefaults(StrictModel):
     """How a preset makes a surface layer: its estimator, and the multi-light score distillation after it."""
 
@@ -313,6 +332,12 @@ class SurfaceDefaults(StrictModel):
         "keep theirs), so a painted wall read as relief stays "
         "nearly flat while the objects keep theirs; 1: the estimate as it is. Applies to the surface layer, not to a "
         "free layer's surface start. Needs an estimator with a silhouette head.",
+    )
+    told: ToldSurface | None = Field(
+        None,
+        description="The estimator (and its wall gate) a surface layer reads when told its source light (`--from`); "
+        "None: the same as when the light is fitted. The free layer's surface start and an untold surface layer read "
+        "`estimator`.",
     )
     start_wall_relief: FiniteFloat = Field(
         1.0,

@@ -16,7 +16,8 @@
     relight-32-spectral/, recolor-32-spectral/, light-32-spectral/
                                                random spectral correctives (the presets' b̂)
     surface-albedo-32/, surface-lit-32/,       random surface estimators (unlit and lit input), working size 16
-    surface-lit-closeup-32/
+    surface-lit-closeup-32/,                   (surface-lit-told-32 also reads a source light it is told)
+    surface-lit-told-32/
 
 The names are the bundled ones, so a folder put first in ``LASAGNA_LAYERS`` shadows the real catalogue.
 The weights are random but not the identity (every parameter gets noise), so outputs depend on input.
@@ -127,17 +128,22 @@ def tiny_catalogue(folder: str | Path, *, generator: bool = True, priors: bool =
 def _estimators(folder: Path) -> None:
     """Random surface estimators under the bundled names, each with a silhouette head: surface-albedo-32 (reads the
     unlit base), surface-lit-32 and surface-lit-closeup-32 (read a lit image, fit its source light; the second is
-    the relight preset's)."""
+    the relight preset's) and surface-lit-told-32 (reads a lit image and the source light it is told: the relight
+    preset's ``surface.told``)."""
     from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
 
     for seed, name, kind in (
         (10, "surface-albedo-32", "albedo"),
         (11, "surface-lit-32", "lit"),
         (12, "surface-lit-closeup-32", "lit"),
+        (13, "surface-lit-told-32", "lit"),
     ):
         torch.manual_seed(seed)
-        # Both have a silhouette head, as the bundled ones do (the shading and relight presets' dome prior).
-        config = SurfaceConfig(input=kind, silhouette=True, channels=(4, 8), blocks=1, working_size=16)
+        # Each has a silhouette head, as the bundled ones do (the shading and relight presets' dome prior).
+        told = name == "surface-lit-told-32"
+        config = SurfaceConfig(
+            input=kind, silhouette=True, channels=(4, 8), blocks=1, working_size=16, light_input=told
+        )
         net = SurfaceEstimator(config)
         _jitter(net, seed, 0.1).save_pretrained(folder / name)
 
