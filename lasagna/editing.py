@@ -63,7 +63,7 @@ import torch
 from torch import Tensor
 
 from lasagna import catalogue as cat
-from lasagna.document import LearnedLayer
+from lasagna.document import LearnedLayer, SurfaceLayer
 from lasagna.errors import (
     DocumentError,
     ImageError,
@@ -546,6 +546,49 @@ def remake_layer(
     return run
 
 
+def reread_surface(stack: Stack, layer_id: str, *, catalogue_dirs=None, device: str | torch.device = "cpu") -> LayerRun:
+    """The relight surface layer ``layer_id`` of ``stack`` read again from its image, told the source light it holds
+    now — fitted when it was made, or moved since (the editor's source-light drag, ``lasagna light --from``): the
+    recipe of ``lasagna edit --layer-kind surface --from`` that light, so the preset's ``surface.told`` estimator
+    when it names one. A moved source light alone only divides the old estimate by another light, which leaves its
+    relief where the fitted light put it (docs/BENCHMARKS.md, round 15); read again, the relief is found for the
+    light the user gave. Only the normal map and ``made_by`` change: the layer's lights, ambient, relief gain,
+    colour, name, opacity and mask are kept. Recorded as rendered (``metadata["lasagna.edit"]``).
+
+    One-line refusals: not a surface layer; plain shading (no source light to be told); a layer that records no
+    preset or conditioning layer (a normal map of one's own)."""
+    start = time.monotonic()
+    layer = stack.document.layer(layer_id)
+    where = f"layer {layer_id!r}"
+    if not isinstance(layer, SurfaceLayer):
+        raise DocumentError(f"is a {layer.kind} layer; expected a surface layer made by lasagna edit", where=where)
+    if layer.source_light is None:
+        raise DocumentError(
+            "is plain shading (no source light to be told); expected a relight surface layer", where=where
+        )
+    made = layer.made_by or {}
+    preset, on = made.get("preset"), made.get("conditioned_on")
+    if not isinstance(preset, str) or on not in stack.ids:
+        raise DocumentError(
+            "records no preset and layer it was read from (a normal map of one's own?); expected a layer made by "
+            "lasagna edit --layer-kind surface",
+            where=where,
+        )
+    request = EditRequest(
+        preset=preset, condition=layer.source_light, on=on, layer_kind="surface", source_light=layer.source_light
+    )  # the condition only names the recipe's light: a surface is lit by every light alike
+    recipe = Recipe.for_edit(stack, request, catalogue_dirs=catalogue_dirs)
+    run = make_layer(recipe, conditioning_input(stack, on), layer_id, device=device)
+    kept = layer.model_dump(mode="json")
+    mask = stack.tensors[layer_id].mask
+    stack.add_surface(
+        layer_id, run.normals, layer.light, source_light=layer.source_light, ambient=layer.ambient, mask=mask
+    )
+    stack.document = stack.document.with_layer({**kept, "made_by": {**run.made_by, "conditioned_on": on}})
+    _record(stack, layer_id, time.monotonic() - start, run, rendered=True)
+    return run
+
+
 __all__ = [
     "DEFAULT_EDIT_MAX_PIXELS",
     "EditPlan",
@@ -557,4 +600,5 @@ __all__ = [
     "read_image",
     "remake_layer",
     "render_learned",
+    "reread_surface",
 ]

@@ -712,3 +712,50 @@ def test_a_told_light_reads_the_presets_told_estimator_and_an_untold_one_its_est
     with pytest.raises(LasagnaError, match="surface-lit-nowhere") as err:
         edit(image(), "relight", "right", source_light="left", catalogue_dirs=[folder])
     assert "\n" not in str(err.value)
+
+
+def test_reread_surface_reads_a_relight_layer_again_told_its_moved_source_light(tiny, tmp_path_factory):
+    """``reread_surface``: a relight surface layer whose source light was moved (the editor's drag) is read again
+    told that light — its normal map exactly a fresh ``--from`` edit's (the told estimator, recorded), its lights,
+    ambient, relief, name, opacity and mask kept; the saved stack renders what the stack renders. Refused in one line:
+    plain shading, a pixel layer, a normal map of one's own."""
+    from lasagna.editing import reread_surface
+    from lasagna.errors import DocumentError
+    from tests.serve.surface_stack import dome_normals
+
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("reread") / "layers")
+    told = {**SURFACE, "estimator": "surface-lit-32", "told": {"estimator": "surface-lit-told-32"}}
+    write_preset(folder, "relight", surface=told, layer_kind="surface")
+    made = edit(image(), "relight", "right", catalogue_dirs=[folder])
+    stack, id = made.stack, made.layer_id
+    assert "told_estimator" not in stack.document.layer(id).made_by  # fitted: the untold estimator
+    from lasagna.compose.layer import LayerTensors
+
+    mask = (torch.rand(1, 24, 40, generator=torch.Generator().manual_seed(3)) * 255).round() / 255  # 8-bit codes
+    stack.tensors[id] = LayerTensors(stack.tensors[id].color, None, mask)  # a painted mask, as Krita gives back
+    stack.document = stack.document.replace_layer(id, mask=f"masks/{id}.png")
+    stack.set_light(id, "az=200,el=30", source_light="az=150,el=40", ambient=0.3, relief=2.0)
+    stack.document = stack.document.replace_layer(id, name="Mine", opacity=0.7)
+    before = stack.document.layer(id).model_dump(mode="json")
+    old_map = stack.tensors[id].color.clone()
+    reread_surface(stack, id, catalogue_dirs=[folder])
+    after = stack.document.layer(id)
+    fresh = edit(image(), "relight", "right", source_light="az=150,el=40", catalogue_dirs=[folder])
+    assert torch.equal(stack.tensors[id].color, fresh.stack.tensors[fresh.layer_id].color)
+    assert not torch.equal(stack.tensors[id].color, old_map)
+    assert after.made_by["told_estimator"] == "surface-lit-told-32" and after.made_by["conditioned_on"] == "base"
+    kept = {k: v for k, v in after.model_dump(mode="json").items() if k != "made_by"}
+    assert kept == {k: v for k, v in before.items() if k != "made_by"}
+    assert torch.equal(stack.tensors[id].mask, mask)
+    root = tmp_path_factory.mktemp("reread-stack")
+    stack.save(root / "s")
+    assert torch.equal(load_stack(root / "s").render().image, stack.render().image)
+    # Refusals, one line each.
+    shading = edit(image(), "relight", "right", catalogue_dirs=[folder]).stack
+    shading.set_light(id, "left", source_light=None)
+    shading.add_surface("own", dome_normals(40, 24).float(), "left", source_light="top")
+    shading.add_solid("tint", (1.0, 0.8, 0.4, 0.2))
+    for layer, says in ((id, "plain shading"), ("own", "normal map of one's own"), ("tint", "solid layer")):
+        with pytest.raises(DocumentError, match=says) as err:
+            reread_surface(shading, layer, catalogue_dirs=[folder])
+        assert "\n" not in str(err.value)

@@ -165,6 +165,17 @@ class SetLight(_Body):
         )
 
 
+class Reread(_Body):
+    """Read a relight surface layer again told its source light (``EditSession.reread_surface``)."""
+
+    op: Literal["reread"]
+    version: Version
+    id: Text
+
+    def call(self, session):
+        return session.reread_surface(self.version, self.id)
+
+
 class Undo(_Body):
     op: Literal["undo"]
     version: Version
@@ -198,6 +209,7 @@ CHANGES: dict[str, type[_Body]] = {
     "solid": AddSolid,
     "learned": AddLearned,
     "light": SetLight,
+    "reread": Reread,
     "undo": Undo,
     "redo": Redo,
     "save": Save,

@@ -293,6 +293,17 @@ class EditSession(SessionViews, SessionJobs):
 
         return self._change(version, f"light of {id}", apply)
 
+    def reread_surface(self, version: Any, id: str) -> dict[str, Any]:
+        """Read relight surface layer ``id`` again from its image, told the source light it holds now
+        (``lasagna.editing.reread_surface``: the preset's told estimator, about a second for ``relight``): what a
+        dragged source light becomes when the user asks. Its lights and look are kept. One undo step."""
+        from lasagna.editing import reread_surface
+
+        def apply() -> None:
+            reread_surface(self.stack, id, catalogue_dirs=self.catalogue_dirs, device=self.device)
+
+        return self._change(version, f"re-read {id}", apply)
+
     def move_layer(self, version: Any, id: str, index: Any) -> dict[str, Any]:
         """Move layer ``id`` to position ``index`` (0 = bottom) of the list it is in (top level, or its group)."""
         if isinstance(index, bool) or not isinstance(index, int):
@@ -520,7 +531,8 @@ def _surfaces(doc: Document, tensors: dict[str, Any]) -> dict[str, dict[str, Any
     centre) and ``point`` (x, y, z, or None for a directional light) with ``spot`` (a spot light's cone, aim
     [ax, ay] and blend, or None), a relight's source light's as ``source``, the
     ambient term, the relief gain, the light's colour and intensity, its extra lights, and ``rect``, the layer's
-    [x, y, width, height] on the canvas (where a point light's fractions are placed)."""
+    [x, y, width, height] on the canvas (where a point light's fractions are placed), and ``rereadable`` (a relight
+    made by a preset, which ``reread_surface`` can read again told its source light)."""
     out = {}
     for _, layer in doc.walk():
         if layer.kind == "surface":
@@ -539,6 +551,8 @@ def _surfaces(doc: Document, tensors: dict[str, Any]) -> dict[str, dict[str, Any
                 "rect": [layer.offset.x, layer.offset.y, w, h],
                 "source_light": layer.source_light,
                 "source": None if layer.source_light is None else list(parse_direction(layer.source_light)),
+                # A relight made by a preset can be read again told its source light (EditSession.reread_surface).
+                "rereadable": layer.source_light is not None and isinstance(layer.made_by.get("preset"), str),
                 "ambient": float(layer.ambient),
                 "relief": float(layer.relief),
                 "light_color": [float(c) for c in layer.light_color],

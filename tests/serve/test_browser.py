@@ -352,6 +352,7 @@ def surface_server(tmp_path):
 
 def drag_light(page, dx: float, dy: float) -> None:
     """Drag the light control from its centre to (dx, dy) in units of its radius (y up), in small moves."""
+    page.locator("#light-sphere").scroll_into_view_if_needed()  # a long panel (a relight's) puts it below the fold
     box = page.locator("#light-sphere").bounding_box()
     cx, cy, r = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2, box["width"] / 2 - 2
     page.mouse.move(cx, cy)
@@ -430,6 +431,33 @@ def test_a_relight_surface_layers_source_light_is_dragged_too(browser, surface_s
     assert lit["light"] == "right" and abs(lit["source"][0] - 90) < 2 and abs(lit["source"][1] - 30) < 2
     assert page.input_value("#light-which") == "source" and page.inner_text("#light-readout") == lit["source_light"]
     assert not np.array_equal(page_pixels(page), before)
+    save_and_check(page, folder)
+    assert page.errors == []
+
+
+def test_a_dragged_source_light_is_read_again_told(browser, server, folder):
+    """A relight surface layer added on the page (its source light fitted): its source light dragged, then "Read
+    again from this source light" — one step more, the layer read by the preset's told estimator with the dragged
+    light (recorded), its light kept, the view changed; the saved stack renders what the page shows."""
+    page = open_page(browser, server)
+    page.select_option("#preset", "relight")
+    page.click('#picker button[data-condition="right"]')
+    v = version(page)
+    page.click("#add-surface")
+    settle(page, v + 1)
+    top = page.evaluate("window.lasagna.state.document.layers.at(-1)")
+    assert top["kind"] == "surface" and top["source_light"] is not None and "told_estimator" not in top["made_by"]
+    page.wait_for_selector("#reread")
+    page.select_option("#light-which", "source")
+    drag_light(page, 0.0, 0.5)  # the source light toward the top, 30° from the view axis
+    settle(page, v + 2)
+    dragged, source = page_pixels(page), page.evaluate(f"window.lasagna.state.surfaces['{top['id']}'].source_light")
+    page.click("#reread")
+    settle(page, v + 3)
+    layer = page.evaluate("window.lasagna.state.document.layers.at(-1)")
+    assert layer["made_by"]["told_estimator"] == "surface-lit-told-32"
+    assert layer["source_light"] == source and layer["light"] == "right"
+    assert not np.array_equal(page_pixels(page), dragged)
     save_and_check(page, folder)
     assert page.errors == []
 

@@ -98,6 +98,7 @@ def test_state_gives_each_surface_layers_light(client):
             "rect": [8, 8, 40, 32],  # the layer's offset and size on the canvas: where a point light's fractions lie
             "source_light": None,
             "source": None,
+            "rereadable": False,  # plain shading, and a map of one's own: nothing to read again
             "ambient": 0.25,
             "relief": 1.0,
             "light_color": [1.0, 1.0, 1.0],
@@ -147,6 +148,7 @@ def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
         "rect": [8, 8, 40, 32],
         "source_light": "left",
         "source": [180.0, el],
+        "rereadable": False,  # a relight, but a map of one's own: no preset to read it again
         "ambient": 0.4,
         "relief": 2.5,
         "light_color": [1.0, 1.0, 1.0],
@@ -547,3 +549,44 @@ def test_a_bad_normal_map_upload_is_a_one_line_400_and_changes_nothing(client, p
     )
     assert words in one_line_4xx(r)
     assert state(client)["document"] == before["document"]
+
+
+def test_a_relight_surface_layer_is_read_again_told_its_dragged_source_light(tiny, tmp_path):
+    """The ``reread`` change (the editor's "Read again from this source light"): a relight surface layer added by the
+    page (its source light fitted), its source light then dragged, is read again told it — its normal map exactly a
+    fresh ``lasagna edit --layer-kind surface --from`` that light's (the preset's told estimator), one undo step that
+    gives the dragged layer back; a layer with nothing to be told, or none, is a one-line 4xx that changes nothing."""
+    from lasagna import edit
+    from lasagna.io.stack import Stack
+    from tests.support.tinylayers import tiny_variant, write_preset
+
+    catalogue = tiny_variant(tiny, tmp_path / "layers")
+    surface = {"estimator": "surface-lit-32", "refine_steps": 0, "working_size": 16}
+    write_preset(catalogue, "relight", surface={**surface, "told": {"estimator": "surface-lit-told-32"}})
+    torch.manual_seed(0)
+    picture = torch.rand(3, 24, 40)
+    Stack.from_image(picture).save(tmp_path / "s")
+    client = TestClient(
+        create_app(EditSession(tmp_path / "s", catalogue_dirs=[catalogue]), TOKEN, ["testserver"]),
+        raise_server_exceptions=False,
+    )
+    added = ok(post(client, op="learned", preset="relight", condition="right", kind="surface"))
+    id = added["document"]["layers"][-1]["id"]
+    assert added["surfaces"][id]["rereadable"]  # a relight made by a preset: its fitted source light can be told
+    ok(post(client, op="light", id=id, light="right", source_light="az=150,el=40"))
+    dragged = view(client, level=0)
+    got = ok(post(client, op="reread", id=id))
+    assert got["surfaces"][id]["source_light"] == "az=150,el=40" and got["surfaces"][id]["rereadable"]
+    layer = next(x for x in got["document"]["layers"] if x["id"] == id)
+    assert layer["made_by"]["told_estimator"] == "surface-lit-told-32" and got["undo"] == f"re-read {id}"
+    fresh = edit(
+        picture, "relight", "right", layer_kind="surface", source_light="az=150,el=40", catalogue_dirs=[catalogue]
+    )
+    assert np.array_equal(view(client, level=0)[..., :3], composite_codes(fresh.composite).permute(1, 2, 0).numpy())
+    ok(post(client, op="undo"))
+    assert np.array_equal(view(client, level=0), dragged)
+    before = state(client)
+    for body, words in (({"id": "base"}, "expected a surface layer"), ({"id": "nope"}, "nope")):
+        message = one_line_4xx(post(client, op="reread", **body))
+        assert words in message, message
+    assert state(client)["version"] == before["version"]

@@ -396,6 +396,21 @@ function lightControl(layer) {
     });
     box.append(field("Drag", which));
   }
+  // Moving the source light only divides the old surface by another light; read again told it, the surface's
+  // relief is found for the light the user gives (the preset's told estimator: lasagna edit --from). One step.
+  if (lit.rereadable) {
+    const reread = document.createElement("button");
+    reread.id = "reread";
+    reread.textContent = "Read again from this source light";
+    reread.title = "Estimate the surface again, told the source light as it is now (about a second)";
+    reread.addEventListener("click", async () => {
+      reread.disabled = true;
+      status("reading the surface again…");
+      await change({ op: "reread", id: layer.id });
+      reread.disabled = false;
+    });
+    box.append(reread);
+  }
   readout.textContent = moving === "source" ? lit.source_light : lit.light;
   drawSphere(sphere, ...shown(), lit.ambient);
 
