@@ -29,7 +29,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from torch import Tensor
 
 from lasagna import catalogue as cat
-from lasagna.components import PriorSource, changed_weights, file_sha256, files_sha256, listing_sha256
+from lasagna.components import (
+    PriorSource,
+    changed_weights,
+    config_doc,
+    file_sha256,
+    files_sha256,
+    listing_sha256,
+)
 from lasagna.distill import DistillSettings
 from lasagna.document import LearnedLayer
 from lasagna.document.preset import (
@@ -371,6 +378,14 @@ def _surface_recipe(resolved: cat.Resolved, request: EditRequest, label: str) ->
             raise resolved.missing["told_estimator"]
     if estimator is None:
         raise resolved.missing.get("estimator") or LasagnaError(f"preset {p.name!r} names no estimator", "surface")
+    reads = (config_doc(estimator).get("config") or {}).get("input")
+    if request.source_light is not None and reads != "lit":
+        # An estimator of the unlit base has no source light to be told (a shading layer is S(light) alone).
+        raise LasagnaError(
+            f"preset {p.name!r} reads an unlit image ({p.surface.estimator!r}), so there is no source light to give; "
+            "expected --from only with a relight (a lit image), e.g. --layer relight",
+            "from",
+        )
     steps = request.asked_steps
     steps = p.surface.refine_steps if steps is None else steps
     distill = None

@@ -142,11 +142,15 @@ class EditRequest:
 
 def layer_kind(request: EditRequest, preset: Preset) -> str:
     """The layer kind of a new edit: the one asked for; else free when the request names what only a free layer
-    uses (a method — ``--generator`` — a prior of one's own, a prompt); else the preset's ``layer_kind``."""
+    uses (a method — ``--generator`` — a prior of one's own, a prompt); else a surface when it gives a source light
+    (``--from``: what only a surface relight reads; docs/BENCHMARKS.md round 19, rule FK); else the preset's
+    ``layer_kind``."""
     if request.layer_kind is not None:
         return request.layer_kind
     if request.generator is not None or request.own_scored:
         return "free"
+    if request.source_light is not None and preset.surface is not None:
+        return "surface"
     return preset.layer_kind
 
 

@@ -53,6 +53,10 @@ def test_the_kind_and_its_light():
     relight = preset("relight")
     assert layer_kind(EditRequest(preset="relight"), relight) == relight.layer_kind
     assert layer_kind(EditRequest(preset="relight", prompt="x"), relight) == "free"  # only a free layer reads text
+    # a source light is only a surface relight's (rule FK): --from alone makes one; a free layer's method does not
+    assert layer_kind(EditRequest(preset="relight", source_light="top"), relight) == "surface"
+    assert layer_kind(EditRequest(preset="relight", source_light="top", generator="free"), relight) == "free"
+    assert layer_kind(EditRequest(preset="color", source_light="top"), preset("color")) == preset("color").layer_kind
     surface = EditRequest(preset="relight", layer_kind="surface", condition="az=30,el=40")
     assert check_request(surface, relight) == "az=30,el=40"  # any light, not only the vocabulary's
     with pytest.raises(ConditionError, match="az=A,el=E"):

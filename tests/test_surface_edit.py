@@ -162,7 +162,14 @@ def test_cli_edit_surface_and_from(catalogue, tmp_path, capsys, monkeypatch):
     assert main([*argv, "--layer-kind", "surface", "--from", "left", "-o", str(tmp_path / "out"), "--no-ora"]) == 0
     doc = json.loads((tmp_path / "out" / "stack.json").read_text())
     assert doc["layers"][-1]["kind"] == "surface" and doc["layers"][-1]["source_light"] == "left"
-    assert main([*argv, "--from", "left", "-o", str(tmp_path / "out2")]) == 2
+    # --from alone makes the surface layer too (rule FK): the same layer as with --layer-kind surface.
+    assert main([*argv, "--from", "left", "-o", str(tmp_path / "out2"), "--no-ora"]) == 0
+    assert json.loads((tmp_path / "out2" / "stack.json").read_text())["layers"][-1]["source_light"] == "left"
+    assert (tmp_path / "out2" / "layers").exists() and sorted(
+        p.read_bytes() for p in (tmp_path / "out2" / "layers").iterdir()
+    ) == sorted(p.read_bytes() for p in (tmp_path / "out" / "layers").iterdir())
+    capsys.readouterr()
+    assert main([*argv, "--from", "left", "--generator", "free", "-o", str(tmp_path / "out3")]) == 2
     assert "expected --layer-kind surface" in capsys.readouterr().err
 
 
@@ -759,3 +766,11 @@ def test_reread_surface_reads_a_relight_layer_again_told_its_moved_source_light(
         with pytest.raises(DocumentError, match=says) as err:
             reread_surface(shading, layer, catalogue_dirs=[folder])
         assert "\n" not in str(err.value)
+
+
+def test_a_source_light_for_a_layer_of_the_unlit_base_is_refused_in_one_line(catalogue):
+    """``--from`` names the light a lit image was lit by; a preset whose estimator reads the unlit base (shading)
+    has none to be told, so it is refused before any work instead of being dropped."""
+    with pytest.raises(LasagnaError, match="no source light to give") as err:
+        edit(image(), "shading", "left", layer_kind="surface", source_light="top", catalogue_dirs=catalogue)
+    assert "\n" not in str(err.value) and err.value.where == "from"

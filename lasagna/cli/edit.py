@@ -98,7 +98,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--from",
         dest="source_light",
         metavar="LIGHT",
-        help="a surface relight's source light (named or az=…,el=…), when you know it (default: estimated)",
+        help="a relight's source light (named or az=…,el=…), when you know it: the layer is then the surface read "
+        "told it (a surface layer; default: the light estimated)",
     )
     distill_arguments(p)
     own_prior_arguments(p)

@@ -4,7 +4,9 @@ or its sliders does).
 
 Only stack.json (the commit point), composite.png and a stack.ora the folder holds change: no layer PNG is
 written (``save_in_place`` with every layer unchanged), and a stack.json changed on disk since it was read is
-refused."""
+refused. ``--read-again`` is the one exception: a relight's surface is estimated again told its source light
+(``lasagna.editing.reread_surface``, the editor's "Read again from this source light"), so that layer's normal map
+is written too."""
 
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ HELP = (
 EXAMPLE = (
     "lasagna light out/chelsea-surface --light az=30,el=45                  # the topmost surface layer",
     "lasagna light out/coffee-sl --layer relight-left --from top --relief 2  # a relight's source light, deeper",
+    "lasagna light out/coffee-sl --from top --read-again                    # and its surface read again told it",
     "lasagna light out/chelsea-surface --light x=0.1,y=0.3,z=0.4            # a point light near the left edge",
     "lasagna light out/chelsea-surface --light x=0.2,y=0.1,z=0.3,cone=25,ax=0.5,ay=0.6  # a spot aimed at the eyes",
     "lasagna light out/chelsea-surface --add-light 'right;#a0c0ff;0.5'      # and a blue fill light from the right",
@@ -58,6 +61,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--clear-lights", action="store_true", help="remove the layer's extra lights (before --add-light)")
     p.add_argument(
+        "--read-again",
+        action="store_true",
+        help="a relight made by lasagna edit: estimate its surface again told its source light (--from, or the one it "
+        "has), as `lasagna edit --from` does — the preset's told estimator, about a second; its normal map is "
+        "rewritten (the other changes need no learning)",
+    )
+    p.add_argument(
         "--intensity",
         type=float,
         help="the light's intensity k: its direct term times k; above 1 a shading layer brightens (default: kept)",
@@ -69,10 +79,10 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.io.survey import survey_stack
 
     fields = (args.light, args.source, args.ambient, args.relief, args.color, args.intensity, args.add_light)
-    if all(v is None for v in fields) and not args.clear_lights:
+    if all(v is None for v in fields) and not (args.clear_lights or args.read_again):
         raise LasagnaError(
             "nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, --intensity, "
-            "--add-light, --clear-lights",
+            "--add-light, --clear-lights, --read-again",
             where="light",
         )
     added = [parse_extra_light(spec) for spec in args.add_light or ()]
@@ -117,9 +127,16 @@ def run(args: argparse.Namespace) -> int:
     stack = load_surveyed(survey)
     unchanged = dict(stack.tensors)  # the PNGs on disk hold exactly these: none is written again
     stack.set_light(layer.id, args.light or layer.light, **change)
+    said = []
+    if args.read_again:
+        from lasagna.editing import reread_surface
+
+        reread_surface(stack, layer.id)  # one-line refusals: plain shading, a map of one's own
+        unchanged.pop(layer.id)
+        said.append(f"read again by {stack.document.layer(layer.id).made_by.get('told_estimator', 'its estimator')}")
     save_in_place(stack, unchanged=unchanged, expect_sha256=sha, extra=keep_ora_current(folder))
     lit = stack.document.layer(layer.id)
-    said = [f"light {lit.light}"]
+    said.append(f"light {lit.light}")
     if lit.source_light is not None:
         said.append(f"from {lit.source_light}")
     said += [f"ambient {lit.ambient:g}", f"relief {lit.relief:g}"]
@@ -129,7 +146,8 @@ def run(args: argparse.Namespace) -> int:
         said.append(f"intensity {lit.light_intensity:g}")
     if lit.extra_lights:
         said.append(f"{len(lit.extra_lights)} more light" + ("s" if len(lit.extra_lights) > 1 else ""))
-    wrote = "stack.json, composite.png" + (" and stack.ora" if (folder / "stack.ora").is_file() else "")
+    wrote = "stack.json, composite.png" + (f", {lit.source}" if args.read_again else "")
+    wrote += " and stack.ora" if (folder / "stack.ora").is_file() else ""
     print(f"re-lit {layer.id}: {', '.join(said)}; wrote {wrote} in {Path(folder)}")
     return 0
 

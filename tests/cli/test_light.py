@@ -245,3 +245,44 @@ def test_add_light_adds_a_direct_term_and_clear_lights_removes_it(folder, capsys
     assert main(["light", str(folder), "--clear-lights"]) == 0
     assert json.loads((folder / "stack.json").read_text())["layers"][1]["extra_lights"] == []
     np.testing.assert_array_equal(codes(folder / "composite.png"), first)
+
+
+def test_read_again_estimates_a_relights_surface_told_its_source_light(tiny, tmp_path, monkeypatch, capsys):
+    """``--from L --read-again``: a relight surface layer made by ``lasagna edit`` is estimated again told L — its
+    normal map on disk exactly the map of ``lasagna edit --layer-kind surface --from L`` (the preset's told estimator,
+    recorded in ``made_by``), the folder's stack.ora kept current. A layer with nothing to read again (a map of
+    one's own) is refused in one line, exit 2, the folder unchanged."""
+    from lasagna import edit
+
+    monkeypatch.setenv("LASAGNA_LAYERS", str(tiny))
+    torch.manual_seed(4)
+    picture = (torch.rand(3, 12, 16) * 255).to(torch.uint8)
+    Image.fromarray(picture.permute(1, 2, 0).numpy()).save(tmp_path / "a.png")
+    out = tmp_path / "out"
+    argv = ["edit", str(tmp_path / "a.png"), "--layer", "relight", "--layer-kind", "surface", "--condition", "right"]
+    assert main([*argv, "-o", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["light", str(out), "--from", "az=150,el=40", "--read-again"]) == 0
+    said = capsys.readouterr().out
+    assert "read again by surface-lit-told-32" in said and "from az=150,el=40" in said
+    stack = load_stack(out)
+    layer = stack.document.layers[-1]
+    assert layer.source_light == "az=150,el=40" and layer.made_by["told_estimator"] == "surface-lit-told-32"
+    fresh = edit(tmp_path / "a.png", "relight", "right", layer_kind="surface", source_light="az=150,el=40")
+    assert np.array_equal(read_normals(out / layer.source), read_normals_of(fresh, tmp_path / "fresh"))
+    with zipfile.ZipFile(out / "stack.ora") as z:
+        merged = np.asarray(Image.open(io.BytesIO(z.read("mergedimage.png"))).convert("RGB")).astype(int)
+    assert np.array_equal(merged, codes(out / "composite.png"))
+
+
+def read_normals_of(result, folder) -> np.ndarray:
+    result.save(folder)
+    return read_normals(folder / result.stack.document.layer(result.layer_id).source)
+
+
+def test_read_again_refuses_a_map_of_ones_own_in_one_line(folder, capsys):
+    before = (folder / "stack.json").read_bytes(), layer_bytes(folder)
+    assert main(["light", str(folder), "--from", "top", "--read-again"]) == 2
+    err = capsys.readouterr().err
+    assert "normal map of one's own" in err and err.count("\n") == 1 and "Traceback" not in err
+    assert ((folder / "stack.json").read_bytes(), layer_bytes(folder)) == before
