@@ -23,7 +23,8 @@ JSON line: per photograph and axis, the mean, the smallest and the count of wron
 reports the surface layer re-lit by its stored map at each relief gain (the editor's Relief slider; a user's
 control, chosen by nobody here), with ``--relief-sheet``: input | left and right at each gain. ``--point`` reports
 it re-lit by point lights beside each edge instead (``POINT_LIGHTS``; ``--point-sheet``: input | left and right by
-directions | by point lights).
+directions | by point lights). ``--from PHOTO=LIGHT`` gives a photograph's source light as a person reads it: its
+edits are the surface layer told that light (`lasagna edit --from`), what a user who knows the light gets.
 """
 
 from __future__ import annotations
@@ -155,17 +156,29 @@ def point_report(folder: Path, preset: str, sheet: Path | None) -> dict:
     }
 
 
-def measure(folder: Path, preset: str, sheet: Path | None, layer_sheet: Path | None = None) -> dict:
+def measure(
+    folder: Path,
+    preset: str,
+    sheet: Path | None,
+    layer_sheet: Path | None = None,
+    sources: dict[str, str] | None = None,
+) -> dict:
+    """``sources``: per photograph (its stem), the source light a person gave (``--from``): its edits are
+    ``lasagna.edit(..., source_light=L)``, the surface layer told L, as `lasagna edit --from L` makes it."""
     rows, tiles, layer_tiles, seconds = [], [], [], []
+    sources = sources or {}
     for file in sorted(folder.glob("*.jpg")):
         image = read_photo(file)[0]
         row: dict = {"photo": file.stem}
+        told = {"source_light": sources[file.stem]} if file.stem in sources else {}
+        if told:
+            row["from"] = told["source_light"]
         composites = {}
         for axis, pair in PHOTO_AXES.items():
             total = 0.0
             for light in pair:
                 t0 = time.perf_counter()
-                result = lasagna.edit(image, preset, light)
+                result = lasagna.edit(image, preset, light, **told)
                 seconds.append(time.perf_counter() - t0)
                 composites[light] = result.composite
                 if light == "left" and layer_sheet is not None:
@@ -182,7 +195,7 @@ def measure(folder: Path, preset: str, sheet: Path | None, layer_sheet: Path | N
         save_sheet([list(column) for column in zip(*tiles)], sheet)
     if layer_sheet is not None and layer_tiles:
         save_sheet([list(column) for column in zip(*layer_tiles)], layer_sheet)
-    values = [r[axis] for r in rows for axis in PHOTO_AXES]
+    values = [r[axis] for r in rows for axis in PHOTO_AXES if axis in r]
     return {
         "photos": rows,
         "swing_mean": round(sum(values) / len(values), 4),
@@ -208,6 +221,15 @@ def main(argv=None) -> int:
         help="the surface layer: input | normal map | shading from the top-left | toward left | toward right",
     )
     p.add_argument("--label", default="", help="a name for this candidate in the JSON line")
+    p.add_argument(
+        "--from",
+        dest="sources",
+        nargs="+",
+        default=[],
+        metavar="PHOTO=LIGHT",
+        help="a source light a person gave for a photograph (its file's stem), e.g. coffee=az=120,el=45: its edits "
+        "are made told it (`lasagna edit --from`)",
+    )
     p.add_argument(
         "--relief",
         nargs="+",
@@ -241,7 +263,8 @@ def main(argv=None) -> int:
         if args.surface_sheet is not None:
             surface_sheet(args.photos, args.preset, args.surface_sheet)
         record.update(catalogue_first=os.environ.get("LASAGNA_LAYERS", ""), label=args.label)
-        record.update(measure(args.photos, args.preset, args.sheet, args.layer_sheet))
+        sources = dict(spec.split("=", 1) for spec in args.sources)
+        record.update(measure(args.photos, args.preset, args.sheet, args.layer_sheet, sources))
     print_json_line(record)
     return 0
 
