@@ -15,7 +15,10 @@
     result = lasagna.edit("photo.png", "shading", "left")  # EditResult: stack, layer, composite, settings
     result.save("out/relit")                               # the stack folder `lasagna edit` writes
     report = lasagna.edit_many(["photos/", "more/*.jpg"], "shading", "left", "out/")   # out/<stem>/ each; resumable
-    (lasagna.editing: edit, render_learned; lasagna.batch: edit_many)
+    lit = lasagna.edit("photo.png", "relight", "left", source_light="top")   # told its source light: a surface
+    lit.stack.set_light(lit.layer_id, "left", source_light="az=120,el=45")   # the source moved: no learning
+    lasagna.reread_surface(lit.stack, lit.layer_id)        # the surface read again told the moved light
+    (lasagna.editing: edit, render_learned, reread_surface; lasagna.batch: edit_many)
 
 Tensors and float arrays are layer values y (a [0, 2] multiplier is given in [0, 2]); PIL images and
 integer arrays are stored codes, mapped by the layer's range like a PNG in a stack folder. Tensors are
@@ -34,7 +37,7 @@ import torch
 
 from lasagna.batch import BatchReport, edit_many
 from lasagna.compose.render import RenderResult
-from lasagna.editing import EditResult, edit, render_learned
+from lasagna.editing import EditResult, edit, render_learned, reread_surface
 from lasagna.errors import ImageError
 from lasagna.export.ora import export_ora
 from lasagna.export.ora_import import import_ora
@@ -58,6 +61,7 @@ __all__ = [
     "EditResult",
     "edit",
     "render_learned",
+    "reread_surface",
     "BatchReport",
     "edit_many",
     "to_pil",
