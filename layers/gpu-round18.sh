@@ -5,13 +5,18 @@
 # docs/train_throughput_h200.json). Two runs side by side, each stopped by its --minutes budget:
 #   lit-bank   a scene bank of $BANK close-ups rendered once (train-surface --scene-bank), batch 1024
 #   lit-fresh  the control: fresh scenes every step, batch 512 (round 17's GPU rate, ~260 scenes a second)
-# both continuing $INIT (default runs/lit-m/surface: carry it, `run`'s carry names runs/lit-m/surface). The weights,
-# logs and configs come back as tars in $OUT; judge them here by round 17's rule (docs/BENCHMARKS.md, WLS/M):
+# both continuing $INIT (default layers/surface-lit-told-32: round 17's M, shipped in round 19 as the estimator a
+# surface layer reads when told its source light, so nothing needs carrying). The weights, logs and configs come
+# back as tars in $OUT. Since round 19 they are judged first as told estimators, against the shipped told route
+# (rule TL's bar: +0.10 dB all pixels on select, objects ≥ −0.05, leak ≥ 40 dB):
+#   OMP_NUM_THREADS=2 .venv/bin/python benchmarks/relight_candidates.py --estimator \
+#       lit-bank/surface@wall_relief=0.25 lit-fresh/surface@wall_relief=0.25 --kinds given --leak
+# and by round 17's rule (docs/BENCHMARKS.md, WLS/M) as the untold estimator:
 #   OMP_NUM_THREADS=2 .venv/bin/python benchmarks/relight_candidates.py --estimator lit-bank/surface \
-#       lit-fresh/surface --kinds free surface given --leak
+#       lit-fresh/surface --kinds free surface --leak
 # and, since round 18, its light (the surface layer's gap is its source elevation; a scale that reads the objects
 # better should show it there first):
-#   OMP_NUM_THREADS=2 .venv/bin/python benchmarks/source_light.py --estimator runs/lit-m/surface lit-bank/surface \
+#   OMP_NUM_THREADS=2 .venv/bin/python benchmarks/source_light.py --estimator layers/surface-lit-told-32 lit-bank/surface \
 #       lit-fresh/surface --count 32
 #
 #   OUT=out/gpu18 MINUTES=8 bash layers/gpu-round18.sh              # any machine; cuda where there is one
@@ -24,7 +29,7 @@ BANK=${BANK:-32768}
 # The bank is rendered before the run's clock starts (at ~400 close-ups a second on an H200: ~80 s for 32768).
 BANK_MINUTES=${BANK_MINUTES:-1.5}
 bank_minutes=$(awk "BEGIN{print $MINUTES - $BANK_MINUTES}")
-INIT=${INIT:-runs/lit-m/surface}
+INIT=${INIT:-layers/surface-lit-told-32}
 mkdir -p "$OUT" "$RUNS"
 (nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null || echo "no GPU") | tee "$OUT/round18.log"
 runs=(
