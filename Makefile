@@ -20,12 +20,13 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	OMP_NUM_THREADS=1 $(BIN)/lasagna demo -o out/demo
 
-# Lint and format checks first (ruff, configured in pyproject.toml), then the suite.
+# Lint and format checks first (ruff, configured in pyproject.toml), then the suite on two workers (pytest-xdist:
+# each worker builds its own tiny catalogue and Chromium; one torch thread each, so the two cores are used once).
 # pytest's exit code 5 ("no tests collected") is a failure, not a pass.
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
-	OMP_NUM_THREADS=1 $(BIN)/python -m pytest; rc=$$?; \
+	OMP_NUM_THREADS=1 $(BIN)/python -m pytest -n 2; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests"; exit 1; fi; exit $$rc
 
 # Fix what ruff can fix by itself (imports, formatting); `make test` then checks the rest.
