@@ -568,10 +568,16 @@ def reread_surface(stack: Stack, layer_id: str, *, catalogue_dirs=None, device: 
         )
     made = layer.made_by or {}
     preset, on = made.get("preset"), made.get("conditioned_on")
-    if not isinstance(preset, str) or on not in stack.ids:
+    if not isinstance(preset, str) or not isinstance(on, str):
         raise DocumentError(
             "records no preset and layer it was read from (a normal map of one's own?); expected a layer made by "
             "lasagna edit --layer-kind surface",
+            where=where,
+        )
+    if on not in stack.ids:
+        raise DocumentError(
+            f"was read from layer {on!r}, which the stack no longer has; expected that layer back (undo its deletion) "
+            "or a new edit",
             where=where,
         )
     request = EditRequest(

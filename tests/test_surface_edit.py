@@ -762,6 +762,10 @@ def test_reread_surface_reads_a_relight_layer_again_told_its_moved_source_light(
     shading.set_light(id, "left", source_light=None)
     shading.add_surface("own", dome_normals(40, 24).float(), "left", source_light="top")
     shading.add_solid("tint", (1.0, 0.8, 0.4, 0.2))
+    gone = edit(image(), "relight", "right", catalogue_dirs=[folder]).stack
+    gone.document = gone.document.replace_layer(id, made_by={**gone.document.layer(id).made_by, "conditioned_on": "x"})
+    with pytest.raises(DocumentError, match="layer 'x', which the stack no longer has"):
+        reread_surface(gone, id, catalogue_dirs=[folder])
     for layer, says in ((id, "plain shading"), ("own", "normal map of one's own"), ("tint", "solid layer")):
         with pytest.raises(DocumentError, match=says) as err:
             reread_surface(shading, layer, catalogue_dirs=[folder])
