@@ -26,7 +26,8 @@ relief flat: the true ratio is one constant; the layer's PSNR against its own me
 row ("true at the working size": the true normals reduced to the preset's working size
 and enlarged, rendered under the true lights) says how far any surface layer at that size can go. The last line
 holds every row and, per candidate and kind, the mean over splits and sizes of the all-pixel and object gains
-against the shipped catalogue's (``delta``).
+against the shipped catalogue's (``delta``). ``--sheet`` draws the first split and size's first four scenes: input |
+the truth relit | the true ratio | each candidate and kind's ratio, to look at what the numbers say.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _common import machine_info, psnr  # noqa: E402
+from _common import machine_info, psnr, save_sheet  # noqa: E402
 from relief_walls import ratio_errors  # noqa: E402
 from surface import lights_of, scenes  # noqa: E402
 
@@ -112,6 +113,11 @@ def edit_ratios(base, labels, sources, kind: str, dirs: list[str] | None) -> tup
     return torch.stack(out), (time.perf_counter() - t0) / base.shape[0]
 
 
+def ratio_tile(ratio: torch.Tensor) -> torch.Tensor:
+    """A relight ratio (1, H, W) as a grey tile at half its value (1 → mid-grey), clamped."""
+    return (ratio[:1].float() / 2).clamp(0, 1).expand(3, -1, -1)
+
+
 def measure(name, scene, rel, ratio, seconds, size) -> dict:
     base, target, mask = rel.base.clamp(0, 1), rel.target.clamp(0, 1), scene.mask
     comp = (rel.base * ratio).clamp(0, 1)
@@ -144,9 +150,17 @@ def main(argv=None) -> int:
     p.add_argument(
         "--leak", action="store_true", help="also each layer's texture leak on the split's bare painted walls (dB)"
     )
+    p.add_argument(
+        "--sheet",
+        type=Path,
+        default=None,
+        help="the first split and size's first four scenes: input | truth relit | the true ratio | each candidate and "
+        "kind's ratio (ratios at half their value: 1 is mid-grey), one row per scene",
+    )
     args = p.parse_args(argv)
     sd = load_preset(PRESET).surface
     rows: list[dict] = []
+    sheet: list[list[torch.Tensor]] = []  # columns of --sheet's grid
     with tempfile.TemporaryDirectory() as tmp:
         # catalogue_dirs replaces the search path, so a candidate's folder goes before the default catalogues.
         rest = [str(c) for c in catalogues()]
@@ -171,9 +185,15 @@ def main(argv=None) -> int:
                     walls, wall_labels = scenes(split, args.count, args.seed, size, walls=True)
                     wall_sources = relight_sources(walls.params)
                     wall_base = relighting(walls, wall_sources).base.float()
+                first = args.sheet is not None and not sheet
+                if first:
+                    sheet += [list(rel.base[:4].clamp(0, 1)), list(rel.target[:4].clamp(0, 1))]
+                    sheet.append([ratio_tile(r) for r in rel.layer[:4]])  # the true ratio S_target / S_source
                 for name, dirs in candidates.items():
                     for kind in args.kinds:
                         ratio, sec = edit_ratios(rel.base.float(), labels, sources, kind, dirs)
+                        if first:
+                            sheet.append([ratio_tile(r) for r in ratio[:4]])
                         row = {"candidate": name, "kind": kind, **measure(kind, scene, rel, ratio, sec, size)}
                         if args.leak:  # the layer on bare painted walls, whose true ratio is one constant
                             y = edit_ratios(wall_base, wall_labels, wall_sources, kind, dirs)[0].double()
@@ -183,6 +203,8 @@ def main(argv=None) -> int:
                     r.update(split=split, size=size)
                     print(json.dumps(r), flush=True)
                 rows += found
+    if sheet:
+        save_sheet(sheet, args.sheet)
     delta: dict[str, dict] = {}
     for name in candidates:
         if name == SHIPPED:

@@ -11,7 +11,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import relight_candidates  # noqa: E402
 
 
-def test_candidates_are_measured_against_the_shipped_catalogue_in_the_same_run(capsys):
+def test_candidates_are_measured_against_the_shipped_catalogue_in_the_same_run(capsys, tmp_path):
     shipped = "@"  # the preset's own estimators (told the light: its surface.told), its settings as they are
     other = ROOT / "layers" / "surface-lit-closeup-32"  # read told the light too: the shipped untold estimator
     argv = [
@@ -25,6 +25,8 @@ def test_candidates_are_measured_against_the_shipped_catalogue_in_the_same_run(c
         "--kinds",
         "given",
         "--leak",
+        "--sheet",
+        str(tmp_path / "sheet.png"),
     ]
     assert relight_candidates.main(argv) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
@@ -38,6 +40,11 @@ def test_candidates_are_measured_against_the_shipped_catalogue_in_the_same_run(c
     # The same estimator leaks the same; a layer is never exactly flat here.
     assert abs(leak[(f"estimator:{shipped}", "given")] - leak[("shipped", "given")]) < 1e-6
     assert 10.0 < leak[("shipped", "given")] < 200.0
+    # The sheet: input | truth relit | true ratio | one ratio per candidate (shipped, "@", the other), 32² tiles.
+    from PIL import Image
+
+    with Image.open(tmp_path / "sheet.png") as sheet:
+        assert sheet.width == 6 * 32 + 5 * 2
 
 
 def test_a_rows_gains_are_the_composites_psnr_over_the_inputs_in_numpy_float64():
