@@ -365,6 +365,7 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         "preset": recipe.preset.name,
         "estimator_sha256": recipe.estimator_sha256,
         "working_size": recipe.working_size,
+        "reads": net.config.input,  # "lit": a relight's estimator, which a source light can be told (reread_surface)
     }
     if dome.weight > 0:
         made_by.update(dome_weight=dome.weight, dome_height=dome.height)

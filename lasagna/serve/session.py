@@ -552,7 +552,9 @@ def _surfaces(doc: Document, tensors: dict[str, Any]) -> dict[str, dict[str, Any
                 "source_light": layer.source_light,
                 "source": None if layer.source_light is None else list(parse_direction(layer.source_light)),
                 # A relight made by a preset can be read again told its source light (EditSession.reread_surface).
-                "rereadable": layer.source_light is not None and isinstance(layer.made_by.get("preset"), str),
+                "rereadable": layer.source_light is not None
+                and isinstance(layer.made_by.get("preset"), str)
+                and layer.made_by.get("reads", "lit") == "lit",  # a shading layer made a relight later reads no light
                 "ambient": float(layer.ambient),
                 "relief": float(layer.relief),
                 "light_color": [float(c) for c in layer.light_color],

@@ -585,8 +585,17 @@ def test_a_relight_surface_layer_is_read_again_told_its_dragged_source_light(tin
     assert np.array_equal(view(client, level=0)[..., :3], composite_codes(fresh.composite).permute(1, 2, 0).numpy())
     ok(post(client, op="undo"))
     assert np.array_equal(view(client, level=0), dragged)
+    # A shading layer (its estimator reads the unlit base) made a relight later has no light to be told.
+    shaded = ok(post(client, op="learned", preset="shading", condition="left", kind="surface"))
+    sid = shaded["document"]["layers"][-1]["id"]
+    relit = ok(post(client, op="light", id=sid, light="left", source_light="top"))
+    assert relit["surfaces"][sid]["source_light"] == "top" and not relit["surfaces"][sid]["rereadable"]
     before = state(client)
-    for body, words in (({"id": "base"}, "expected a surface layer"), ({"id": "nope"}, "nope")):
+    for body, words in (
+        ({"id": "base"}, "expected a surface layer"),
+        ({"id": "nope"}, "nope"),
+        ({"id": sid}, "no source light to give"),
+    ):
         message = one_line_4xx(post(client, op="reread", **body))
         assert words in message, message
     assert state(client)["version"] == before["version"]
