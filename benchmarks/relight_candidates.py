@@ -82,12 +82,25 @@ def candidate_catalogue(
     return root
 
 
+def top_level_split(text: str, sep: str = ",") -> list[str]:
+    """``text`` split at each ``sep`` outside brackets and braces, so a JSON value may hold commas:
+    ``a=1,b={"x":1,"y":2}`` → ``['a=1', 'b={"x":1,"y":2}']``."""
+    parts, depth, start = [], 0, 0
+    for i, ch in enumerate(text):
+        depth += (ch in "[{") - (ch in "]}")
+        if ch == sep and depth == 0:
+            parts.append(text[start:i])
+            start = i + 1
+    parts.append(text[start:])
+    return parts
+
+
 def estimator_spec(spec: str) -> tuple[str, dict]:
     """``FOLDER[@key=value,...]`` → (folder, the preset's ``surface`` settings it changes, values read as JSON); an
     empty folder keeps the preset's estimator: ``@wall_relief=0.5`` is the shipped estimator with that setting."""
     folder, _, rest = spec.partition("@")
     settings = {}
-    for item in filter(None, rest.split(",")):
+    for item in filter(None, top_level_split(rest)):
         key, eq, value = item.partition("=")
         if not eq:
             raise SystemExit(f"--estimator {spec}: {item!r} is not key=value")

@@ -441,6 +441,9 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         if sd.refine_light and recipe.source_light is None and fit.source is not None:
             source = light_condition(fit.source[0])  # the refined light, as the stack stores and renders it
             made_by.update(refine_light=True)
+    if sd.closer_walls is not None:
+        surface = walls_read_closer(net, base, surface, sd, given, device)
+        made_by.update(closer_walls=sd.closer_walls.model_dump())
     size = tuple(base.shape[-2:])
     if recipe.surface.enlarge == "guided" and tuple(surface.shape[-2:]) != size:
         # The relief's edges follow the image's, not the working size's pixel grid (a 32² normal map enlarged 16×
@@ -468,6 +471,47 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         source_light=source,
         made_by=made_by,
     )
+
+
+@torch.no_grad()
+def walls_read_closer(net, base: Tensor, surface: Tensor, sd, light: Tensor | None, device) -> Tensor:
+    """Unit normals (1, 3, h, w) at ``sd.closer_walls.size``: ``surface`` (the working-size read, refined where
+    asked: a height field or normals) on the objects, the image read again at that size on the walls, mixed by
+    the working-size read's silhouette probability p (dilated by ``keep_rims`` working-size pixels) —
+    normalise(p·n_working + (1 − p)·n_closer) — as
+    ``SurfaceDefaults.closer_walls`` says. The closer read uses the same dome prior and symmetry ensemble, its walls
+    calmed by the closer read's own ``wall_relief``; told a source light (``light`` (1, 3)), it is told it too and
+    turned to its azimuth as the working-size read is (`turn_to_azimuth`). Measured in docs/BENCHMARKS.md, round
+    20 (rules OW, OW3)."""
+    from lasagna.compose.surface import enlarge_surface, facing_normals, surface_normals, turn_to_azimuth
+    from lasagna.generators.surface import DomePrior
+
+    closer = sd.closer_walls
+    if not net.config.silhouette:
+        raise LasagnaError(
+            "closer_walls needs an estimator with a silhouette head (train-surface --silhouette); this one has none",
+            "closer_walls",
+        )
+    dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
+    x = working_input(base, closer.size, device)
+    near, fitted = net.estimate(
+        x,
+        dome,
+        symmetry=sd.symmetry,
+        light=light if net.config.light_input else None,
+        wall_relief=closer.wall_relief,
+    )
+    near = surface_normals(near)
+    if light is not None and fitted is not None:
+        near = turn_to_azimuth(near, fitted, light.to(fitted))
+    size = tuple(near.shape[-2:])
+    objects = net.silhouette(working_input(base, sd.working_size, device), sd.symmetry)
+    if closer.keep_rims > 0:  # the objects' rims keep the working-size read (CloserWalls.keep_rims)
+        r = closer.keep_rims
+        objects = torch.nn.functional.max_pool2d(objects, 2 * r + 1, stride=1, padding=r)
+    p = torch.nn.functional.interpolate(objects, size=size, mode="bilinear").clamp(0.0, 1.0)
+    working = surface_normals(enlarge_surface(surface, size))
+    return facing_normals(working * p + near * (1.0 - p))
 
 
 def light_condition(light: Tensor) -> str:

@@ -372,7 +372,9 @@ def _surface_recipe(resolved: cat.Resolved, request: EditRequest, label: str) ->
     if request.source_light is not None and p.surface.told is not None:
         # Told its source light, the layer reads the estimator the preset names for a told light (SurfaceDefaults.told).
         told = p.surface.told
-        surface = p.surface.model_copy(update={"estimator": told.estimator, "wall_relief": told.wall_relief})
+        surface = p.surface.model_copy(
+            update={"estimator": told.estimator, "wall_relief": told.wall_relief, "closer_walls": told.closer_walls}
+        )
         estimator = resolved.told_estimator
         if estimator is None:
             raise resolved.missing["told_estimator"]

@@ -83,6 +83,11 @@ def test_an_estimator_spec_carries_preset_settings_and_an_empty_folder_keeps_the
         "",
         {"wall_relief": 0.5, "symmetry": "none"},
     )
+    # A JSON object's commas are inside braces: one setting, not three.
+    assert relight_candidates.estimator_spec('x@wall_relief=0.25,closer_walls={"size":64,"wall_relief":0.05}') == (
+        "x",
+        {"wall_relief": 0.25, "closer_walls": {"size": 64, "wall_relief": 0.05}},
+    )
     with pytest.raises(SystemExit, match="not key=value"):
         relight_candidates.estimator_spec("a@wall_relief")
     root = relight_candidates.candidate_catalogue(tmp_path / "c", estimator="", surface={"wall_relief": 0.25})

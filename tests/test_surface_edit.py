@@ -721,6 +721,76 @@ def test_a_told_light_reads_the_presets_told_estimator_and_an_untold_one_its_est
     assert "\n" not in str(err.value)
 
 
+@pytest.mark.parametrize("rims", [0, 1])
+def test_closer_walls_mixes_a_closer_read_of_the_walls_into_the_objects_read(tiny, tmp_path_factory, rims):
+    """``surface.closer_walls`` (and ``told.closer_walls`` when told): the layer's normals are the working-size read
+    on the objects and the image read again at ``size`` on the walls (its walls calmed by its own ``wall_relief``,
+    told and turned as the working read), mixed by the working read's silhouette probability p (dilated by
+    ``keep_rims`` working pixels) — checked against the two reads mixed in numpy float64, normalise(p·n_working +
+    (1 − p)·n_closer), to the 16-bit map's codes.
+    Told, ``told.closer_walls`` applies; untold, the preset's own. Recorded in ``made_by``; re-lit by editing its
+    light, the stack renders the told edit toward that light, bit for bit."""
+    import numpy as np
+
+    from lasagna.compose.resample import downsample, upsample
+    from lasagna.compose.surface import decode_normal_map, enlarge_surface, surface_normals, turn_to_azimuth
+    from lasagna.compose.surface import light_vector as vector
+    from lasagna.document.condition import parse_direction
+    from lasagna.generators.surface import DomePrior, SurfaceEstimator
+    from lasagna.learned import conditioning_input
+
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("closer") / "layers")
+    closer = {"size": 32, "wall_relief": 0.25, "keep_rims": rims}
+    untold = {**SURFACE, "estimator": "surface-lit-32"}
+    told = {**untold, "told": {"estimator": "surface-lit-told-32", "wall_relief": 0.5, "closer_walls": closer}}
+    torch.manual_seed(3)
+    picture = torch.rand(3, 32, 32)  # the closer read's size: no enlargement after the mix
+
+    def layer_of(surface, **kw):
+        write_preset(folder, "relight", surface=surface, layer_kind="surface")
+        return edit(picture, "relight", "right", catalogue_dirs=[folder], **kw)
+
+    given = layer_of(told, source_light="az=150,el=40")
+    record = given.stack.document.layer(given.layer_id).made_by
+    assert record["closer_walls"] == closer
+    got = decode_normal_map(given.stack.tensors[given.layer_id].color[None].double())[0].numpy()
+    net = SurfaceEstimator.from_pretrained(folder / "surface-lit-told-32")
+    light = vector(*parse_direction("az=150,el=40"))[None]
+    seen = conditioning_input(given.stack, given.stack.document.layers[0].id).float()  # the base as the edit read it
+    reads = []
+    with torch.no_grad():
+        for side, walls in ((16, 0.5), (32, 0.25)):
+            x = downsample(seen[None], (side, side))
+            n, fitted = net.estimate(x, DomePrior(), light=light, wall_relief=walls)
+            reads.append(surface_normals(enlarge_surface(turn_to_azimuth(surface_normals(n), fitted, light), (32, 32))))
+        p = net.silhouette(downsample(seen[None], (16, 16)))
+        if rims:  # a max over the (2r + 1)² window, in numpy, then enlarged as the layer's is
+            q = np.pad(p[0, 0].double().numpy(), rims, constant_values=-np.inf)
+            windows = np.lib.stride_tricks.sliding_window_view(q, (2 * rims + 1, 2 * rims + 1))
+            p = torch.from_numpy(windows.max(axis=(-2, -1)))[None, None].float()
+        p = upsample(p, (32, 32)).clamp(0, 1)
+    working, near, p = (t[0].double().numpy() for t in (*reads, p))
+    mix = p * working + (1 - p) * near
+    want = mix / np.sqrt((mix**2).sum(0, keepdims=True))
+    assert float(np.abs(near - working).max()) > 1e-2  # the two reads differ: the mix is a real one
+    np.testing.assert_allclose(got, want, atol=1e-4)  # 16-bit codes (1.5e-5) and float32 reads
+    # Untold: the preset's own closer_walls (none here), not the told one's.
+    fitted = layer_of(told)
+    assert "closer_walls" not in fitted.stack.document.layer(fitted.layer_id).made_by
+    mixed = layer_of({**untold, "closer_walls": closer})
+    assert mixed.stack.document.layer(mixed.layer_id).made_by["closer_walls"] == closer
+    assert float((mixed.layer - fitted.layer).abs().max()) > 1e-3
+    # Re-lit by its light in stack.json, the told layer is the told edit toward that light.
+    root = tmp_path_factory.mktemp("closer-stack")
+    given.stack.save(root / "s")
+    doc = json.loads((root / "s" / "stack.json").read_text())
+    doc["layers"][1]["light"] = "left"
+    (root / "s" / "stack.json").write_text(json.dumps(doc))
+    write_preset(folder, "relight", surface=told, layer_kind="surface")
+    other = edit(picture, "relight", "left", source_light="az=150,el=40", catalogue_dirs=[folder])
+    assert torch.equal(load_stack(root / "s").render().image, other.stack.render().image)
+
+
 def test_reread_surface_reads_a_relight_layer_again_told_its_moved_source_light(tiny, tmp_path_factory):
     """``reread_surface``: a relight surface layer whose source light was moved (the editor's drag) is read again
     told that light — its normal map exactly a fresh ``--from`` edit's (the told estimator, recorded), its lights,

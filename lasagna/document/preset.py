@@ -207,6 +207,32 @@ SourceElevation = Literal["fit", "walls"]
 surface's normals to the estimated source shading, or the estimated source shading's level on the walls."""
 
 
+class CloserWalls(StrictModel):
+    """A second read of the image, closer, for a surface layer's walls: the estimator reads the image at ``size`` as
+    well as at the working size, calms that read's walls by ``wall_relief``, and the layer's normals are the
+    working-size read on the objects and the closer read on the walls, mixed by the working-size read's silhouette
+    probability (`lasagna.learned.walls_read_closer`). Read closer, the told estimator finds a wall's relief (and
+    its paint, hence the small gain) and sharper rims, and reads the objects themselves worse; mixed, both gain
+    (docs/BENCHMARKS.md, round 20: rules OW, OW3)."""
+
+    size: int = Field(ge=8, le=4096, strict=True, description="The long side the walls are read at.")
+    wall_relief: FiniteFloat = Field(
+        ge=0,
+        le=1,
+        description="`wall_relief` of the closer read (`lasagna.compose.surface.calm_walls`): the walls' slopes times "
+        "this, so a painted wall read closer stays flat.",
+    )
+    keep_rims: int = Field(
+        0,
+        ge=0,
+        le=8,
+        strict=True,
+        description="The working-size read's silhouette probability dilated by this many working-size pixels (a "
+        "max over a (2r + 1)² window) before the mix, so the band round each object, where the closer read draws a "
+        "sharper rim on the wall's side of the outline too, keeps the working-size read; 0: the probability as read.",
+    )
+
+
 class ToldSurface(StrictModel):
     """What a surface layer reads when the user tells it the source light (``--from``): its own estimator (one
     trained to read the light it is given, ``train-surface --light-input``) and that estimator's wall gate. A light
@@ -222,6 +248,11 @@ class ToldSurface(StrictModel):
         ge=0,
         le=1,
         description="`wall_relief` for this estimator's surface layer (the preset's `surface.wall_relief` applies "
+        "when the light is not told).",
+    )
+    closer_walls: CloserWalls | None = Field(
+        None,
+        description="`closer_walls` for this estimator's surface layer (the preset's `surface.closer_walls` applies "
         "when the light is not told).",
     )
 
@@ -332,6 +363,12 @@ class SurfaceDefaults(StrictModel):
         "keep theirs), so a painted wall read as relief stays "
         "nearly flat while the objects keep theirs; 1: the estimate as it is. Applies to the surface layer, not to a "
         "free layer's surface start. Needs an estimator with a silhouette head.",
+    )
+    closer_walls: CloserWalls | None = Field(
+        None,
+        description="A second, closer read of the walls mixed into a surface layer's normals (`CloserWalls`); None: "
+        "the working-size read alone. Applies to the surface layer, not to a free layer's surface start. Needs an "
+        "estimator with a silhouette head.",
     )
     told: ToldSurface | None = Field(
         None,
