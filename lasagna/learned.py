@@ -477,12 +477,13 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
 def walls_read_closer(net, base: Tensor, surface: Tensor, sd, light: Tensor | None, device) -> Tensor:
     """Unit normals (1, 3, h, w) at ``sd.closer_walls.size``: ``surface`` (the working-size read, refined where
     asked: a height field or normals) on the objects, the image read again at that size on the walls, mixed by
-    the working-size read's silhouette probability p (dilated by ``keep_rims`` working-size pixels) —
+    the working-size read's silhouette probability p (dilated by ``keep_rims`` working-size pixels, where the
+    closer read sees a wall when ``rims_by_closer``) —
     normalise(p·n_working + (1 − p)·n_closer) — as
     ``SurfaceDefaults.closer_walls`` says. The closer read uses the same dome prior and symmetry ensemble, its walls
     calmed by the closer read's own ``wall_relief``; told a source light (``light`` (1, 3)), it is told it too and
     turned to its azimuth as the working-size read is (`turn_to_azimuth`). Measured in docs/BENCHMARKS.md, round
-    20 (rules OW, OW3)."""
+    20 (rules OW3–OW5)."""
     from lasagna.compose.surface import enlarge_surface, facing_normals, surface_normals, turn_to_azimuth
     from lasagna.generators.surface import DomePrior
 
@@ -506,12 +507,22 @@ def walls_read_closer(net, base: Tensor, surface: Tensor, sd, light: Tensor | No
         near = turn_to_azimuth(near, fitted, light.to(fitted))
     size = tuple(near.shape[-2:])
     objects = net.silhouette(working_input(base, sd.working_size, device), sd.symmetry)
+    p = torch.nn.functional.interpolate(objects, size=size, mode="bilinear").clamp(0.0, 1.0)
     if closer.keep_rims > 0:  # the objects' rims keep the working-size read (CloserWalls.keep_rims)
         r = closer.keep_rims
-        objects = torch.nn.functional.max_pool2d(objects, 2 * r + 1, stride=1, padding=r)
-    p = torch.nn.functional.interpolate(objects, size=size, mode="bilinear").clamp(0.0, 1.0)
+        kept = torch.nn.functional.max_pool2d(objects, 2 * r + 1, stride=1, padding=r)
+        kept = torch.nn.functional.interpolate(kept, size=size, mode="bilinear").clamp(0.0, 1.0)
+        if closer.rims_by_closer:  # where the closer read sees an object, its sharper rim (CloserWalls.rims_by_closer)
+            walls = net.silhouette(x, sd.symmetry) < RIM_OBJECT_PROBABILITY
+            kept = p + (kept - p) * walls.to(p.dtype)
+        p = kept
     working = surface_normals(enlarge_surface(surface, size))
     return facing_normals(working * p + near * (1.0 - p))
+
+
+RIM_OBJECT_PROBABILITY = 0.5
+"""The closer read's silhouette probability at and above which a pixel of the band round an object is the object's
+(``CloserWalls.rims_by_closer``): the silhouette head's decision threshold, its logit 0."""
 
 
 def light_condition(light: Tensor) -> str:

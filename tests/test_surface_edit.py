@@ -721,12 +721,13 @@ def test_a_told_light_reads_the_presets_told_estimator_and_an_untold_one_its_est
     assert "\n" not in str(err.value)
 
 
-@pytest.mark.parametrize("rims", [0, 1])
-def test_closer_walls_mixes_a_closer_read_of_the_walls_into_the_objects_read(tiny, tmp_path_factory, rims):
+@pytest.mark.parametrize(("rims", "by_closer"), [(0, False), (1, False), (1, True)])
+def test_closer_walls_mixes_a_closer_read_of_the_walls_into_the_objects_read(tiny, tmp_path_factory, rims, by_closer):
     """``surface.closer_walls`` (and ``told.closer_walls`` when told): the layer's normals are the working-size read
     on the objects and the image read again at ``size`` on the walls (its walls calmed by its own ``wall_relief``,
     told and turned as the working read), mixed by the working read's silhouette probability p (dilated by
-    ``keep_rims`` working pixels) — checked against the two reads mixed in numpy float64, normalise(p·n_working +
+    ``keep_rims`` working pixels; with ``rims_by_closer``, only where the closer read's own probability is below 1/2)
+    — checked against the two reads mixed in numpy float64, normalise(p·n_working +
     (1 − p)·n_closer), to the 16-bit map's codes.
     Told, ``told.closer_walls`` applies; untold, the preset's own. Recorded in ``made_by``; re-lit by editing its
     light, the stack renders the told edit toward that light, bit for bit."""
@@ -736,13 +737,20 @@ def test_closer_walls_mixes_a_closer_read_of_the_walls_into_the_objects_read(tin
     from lasagna.compose.surface import decode_normal_map, enlarge_surface, surface_normals, turn_to_azimuth
     from lasagna.compose.surface import light_vector as vector
     from lasagna.document.condition import parse_direction
-    from lasagna.generators.surface import DomePrior, SurfaceEstimator
+    from lasagna.generators.surface import DomePrior, SurfaceConfig, SurfaceEstimator
     from lasagna.learned import conditioning_input
 
     folder = tiny_variant(tiny, tmp_path_factory.mktemp("closer") / "layers")
-    closer = {"size": 32, "wall_relief": 0.25, "keep_rims": rims}
+    # A told estimator whose silhouette head says "object" on some pixels and "wall" on others at both reads.
+    torch.manual_seed(11)
+    net = SurfaceEstimator(
+        SurfaceConfig(input="lit", silhouette=True, light_input=True, channels=(4, 8), blocks=1, working_size=16)
+    )
+    torch.nn.init.normal_(net.head.weight, std=0.5)
+    net.save_pretrained(folder / "surface-lit-told-rand")
+    closer = {"size": 32, "wall_relief": 0.25, "keep_rims": rims, "rims_by_closer": by_closer}
     untold = {**SURFACE, "estimator": "surface-lit-32"}
-    told = {**untold, "told": {"estimator": "surface-lit-told-32", "wall_relief": 0.5, "closer_walls": closer}}
+    told = {**untold, "told": {"estimator": "surface-lit-told-rand", "wall_relief": 0.5, "closer_walls": closer}}
     torch.manual_seed(3)
     picture = torch.rand(3, 32, 32)  # the closer read's size: no enlargement after the mix
 
@@ -754,7 +762,7 @@ def test_closer_walls_mixes_a_closer_read_of_the_walls_into_the_objects_read(tin
     record = given.stack.document.layer(given.layer_id).made_by
     assert record["closer_walls"] == closer
     got = decode_normal_map(given.stack.tensors[given.layer_id].color[None].double())[0].numpy()
-    net = SurfaceEstimator.from_pretrained(folder / "surface-lit-told-32")
+    net = SurfaceEstimator.from_pretrained(folder / "surface-lit-told-rand")
     light = vector(*parse_direction("az=150,el=40"))[None]
     seen = conditioning_input(given.stack, given.stack.document.layers[0].id).float()  # the base as the edit read it
     reads = []
@@ -764,11 +772,16 @@ def test_closer_walls_mixes_a_closer_read_of_the_walls_into_the_objects_read(tin
             n, fitted = net.estimate(x, DomePrior(), light=light, wall_relief=walls)
             reads.append(surface_normals(enlarge_surface(turn_to_azimuth(surface_normals(n), fitted, light), (32, 32))))
         p = net.silhouette(downsample(seen[None], (16, 16)))
-        if rims:  # a max over the (2r + 1)² window, in numpy, then enlarged as the layer's is
-            q = np.pad(p[0, 0].double().numpy(), rims, constant_values=-np.inf)
-            windows = np.lib.stride_tricks.sliding_window_view(q, (2 * rims + 1, 2 * rims + 1))
-            p = torch.from_numpy(windows.max(axis=(-2, -1)))[None, None].float()
+        q = np.pad(p[0, 0].double().numpy(), rims, constant_values=-np.inf)
+        windows = np.lib.stride_tricks.sliding_window_view(q, (2 * rims + 1, 2 * rims + 1))
+        kept = upsample(torch.from_numpy(windows.max(axis=(-2, -1)))[None, None].float(), (32, 32)).clamp(0, 1)
         p = upsample(p, (32, 32)).clamp(0, 1)
+        if by_closer:  # the band kept only where the closer read sees a wall
+            walls = net.silhouette(downsample(seen[None], (32, 32))) < 0.5
+            band = kept - p > 1e-3
+            assert bool((band & walls).any()) and bool((band & ~walls).any())  # both sides of the rule are exercised
+            kept = torch.where(walls, kept, p)
+        p = kept
     working, near, p = (t[0].double().numpy() for t in (*reads, p))
     mix = p * working + (1 - p) * near
     want = mix / np.sqrt((mix**2).sum(0, keepdims=True))

@@ -231,6 +231,12 @@ class CloserWalls(StrictModel):
         "max over a (2r + 1)² window) before the mix, so the band round each object, where the closer read draws a "
         "sharper rim on the wall's side of the outline too, keeps the working-size read; 0: the probability as read.",
     )
+    rims_by_closer: bool = Field(
+        False,
+        description="Within that band (the dilated probability above the plain one), keep the working-size read only "
+        "where the closer read's own silhouette probability is below 1/2 (it sees a wall there), and take the closer "
+        "read's sharper rim where it sees an object; false: the whole band keeps the working-size read.",
+    )
 
 
 class ToldSurface(StrictModel):
