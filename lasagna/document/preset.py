@@ -213,7 +213,7 @@ class CloserWalls(StrictModel):
     working-size read on the objects and the closer read on the walls, mixed by the working-size read's silhouette
     probability (`lasagna.learned.walls_read_closer`). Read closer, the told estimator finds a wall's relief (and
     its paint, hence the small gain) and sharper rims, and reads the objects themselves worse; mixed, both gain
-    (docs/BENCHMARKS.md, round 20: rules OW, OW3)."""
+    (docs/BENCHMARKS.md, round 20: rules OW, OW3–OW5)."""
 
     size: int = Field(ge=8, le=4096, strict=True, description="The long side the walls are read at.")
     wall_relief: FiniteFloat = Field(
