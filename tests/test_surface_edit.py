@@ -25,6 +25,21 @@ def catalogue(tiny, tmp_path_factory):
     return [folder]
 
 
+def random_estimator(folder, seed: int, light_input: bool = False, std: float = 0.3):
+    """A tiny lit estimator with a silhouette head whose head weights are drawn N(0, std²) (seeded), saved to
+    ``folder``: its outputs vary over the image, so what a test reads from them is not a constant."""
+    from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
+
+    torch.manual_seed(seed)
+    config = SurfaceConfig(
+        input="lit", light_input=light_input, silhouette=True, channels=(4, 8), blocks=1, working_size=16
+    )
+    net = SurfaceEstimator(config)
+    torch.nn.init.normal_(net.head.weight, std=std)
+    net.save_pretrained(folder)
+    return net
+
+
 def image(seed=0):
     torch.manual_seed(seed)
     return torch.rand(3, 24, 40)
@@ -96,15 +111,10 @@ def test_an_estimator_that_reads_the_light_is_told_the_given_one(tiny, tmp_path_
 
     from lasagna.compose.surface import light_vector
     from lasagna.document.condition import parse_direction
-    from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
+    from lasagna.generators.surface import SurfaceEstimator
 
     folder = tiny_variant(tiny, tmp_path_factory.mktemp("reads") / "layers")
-    torch.manual_seed(4)
-    net = SurfaceEstimator(
-        SurfaceConfig(input="lit", light_input=True, silhouette=True, channels=(4, 8), blocks=1, working_size=16)
-    )
-    torch.nn.init.normal_(net.head.weight, std=0.3)
-    net.save_pretrained(folder / "surface-lit-light")
+    random_estimator(folder / "surface-lit-light", seed=4, light_input=True)
     write_preset(folder, "relight", surface={**SURFACE, "estimator": "surface-lit-light", "symmetry": "mirrors"})
     told: list = []
     real = SurfaceEstimator.estimate
@@ -634,15 +644,12 @@ def test_wall_relief_calms_a_surface_layers_walls_and_start_wall_relief_a_free_l
     from lasagna.compose.surface import lambert, light_vector
     from lasagna.document.condition import parse_direction
     from lasagna.editing import conditioning_input
-    from lasagna.generators.surface import DomePrior, SurfaceConfig, SurfaceEstimator
+    from lasagna.generators.surface import DomePrior
     from lasagna.learned import _surface_start, layer_input
     from lasagna.recipe import Recipe
 
     folder = tiny_variant(tiny, tmp_path_factory.mktemp("walls") / "layers")
-    torch.manual_seed(5)
-    net = SurfaceEstimator(SurfaceConfig(input="lit", silhouette=True, channels=(4, 8), blocks=1, working_size=16))
-    torch.nn.init.normal_(net.head.weight, std=0.3)
-    net.save_pretrained(folder / "surface-lit-walls")
+    net = random_estimator(folder / "surface-lit-walls", seed=5)
     preset = json.loads((folder / "relight" / "preset.json").read_text())
     distill = {**preset["distill"], "steps": 1, "particles": 1, "start": "surface"}
     base = {**SURFACE, "estimator": "surface-lit-walls"}
@@ -737,17 +744,12 @@ def test_closer_walls_mixes_a_closer_read_of_the_walls_into_the_objects_read(tin
     from lasagna.compose.surface import decode_normal_map, enlarge_surface, surface_normals, turn_to_azimuth
     from lasagna.compose.surface import light_vector as vector
     from lasagna.document.condition import parse_direction
-    from lasagna.generators.surface import DomePrior, SurfaceConfig, SurfaceEstimator
+    from lasagna.generators.surface import DomePrior, SurfaceEstimator
     from lasagna.learned import conditioning_input
 
     folder = tiny_variant(tiny, tmp_path_factory.mktemp("closer") / "layers")
     # A told estimator whose silhouette head says "object" on some pixels and "wall" on others at both reads.
-    torch.manual_seed(11)
-    net = SurfaceEstimator(
-        SurfaceConfig(input="lit", silhouette=True, light_input=True, channels=(4, 8), blocks=1, working_size=16)
-    )
-    torch.nn.init.normal_(net.head.weight, std=0.5)
-    net.save_pretrained(folder / "surface-lit-told-rand")
+    random_estimator(folder / "surface-lit-told-rand", seed=11, light_input=True, std=0.5)
     closer = {"size": 32, "wall_relief": 0.25, "keep_rims": rims, "rims_by_closer": by_closer}
     untold = {**SURFACE, "estimator": "surface-lit-32"}
     told = {**untold, "told": {"estimator": "surface-lit-told-rand", "wall_relief": 0.5, "closer_walls": closer}}
