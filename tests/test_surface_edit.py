@@ -863,3 +863,16 @@ def test_a_source_light_for_a_layer_of_the_unlit_base_is_refused_in_one_line(cat
     with pytest.raises(LasagnaError, match="no source light to give") as err:
         edit(image(), "shading", "left", layer_kind="surface", source_light="top", catalogue_dirs=catalogue)
     assert "\n" not in str(err.value) and err.value.where == "from"
+
+
+@pytest.mark.parametrize("shape", [(3, 1, 1), (3, 7, 300)])
+def test_a_relight_surface_layer_of_a_one_pixel_thin_image_is_made(shape):
+    """The shipped relight preset's surface layer, told its light or not, of an image whose working input is one
+    pixel thin (1×1; 7×300 → 1×32): the refinement's lock blurs a one-pixel side as the identity instead of failing
+    in a mirror pad (a bare RuntimeError before). The layer has the image's size and finite values."""
+    torch.manual_seed(2)
+    picture = torch.rand(*shape)
+    for told in ({}, {"source_light": "az=30,el=40"}):
+        res = edit(picture, "relight", "left", layer_kind="surface", **told)
+        assert tuple(res.layer.shape[-2:]) == shape[-2:]
+        assert bool(torch.isfinite(res.layer).all())

@@ -106,9 +106,12 @@ def upsample_colour(layer: Tensor, y: Tensor) -> Tensor:
 
 
 def gaussian_blur(x: Tensor, sigma: float) -> Tensor:
-    """A separable Gaussian blur of ``x`` (B, C, H, W), σ in pixels, edges mirrored (radius 3σ, at most a side − 1)."""
+    """A separable Gaussian blur of ``x`` (B, C, H, W), σ in pixels, edges mirrored (radius 3σ, at most a side − 1).
+    Along a side of one pixel it is the identity (one sample, mirrored, is itself; a mirror pad needs two)."""
     c = x.shape[1]
     for dim in (-1, -2):
+        if x.shape[dim] == 1:
+            continue
         r = max(1, min(int(math.ceil(3 * sigma)), x.shape[dim] - 1))
         t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
         k = torch.exp(-0.5 * (t / sigma) ** 2)

@@ -8,7 +8,14 @@ import torch
 from PIL import Image
 
 from lasagna.compose.color import luma
-from lasagna.compose.resample import downsample, guided_upsample, upsample, upsample_colour, working_size
+from lasagna.compose.resample import (
+    downsample,
+    gaussian_blur,
+    guided_upsample,
+    upsample,
+    upsample_colour,
+    working_size,
+)
 
 
 @pytest.mark.parametrize(
@@ -132,3 +139,28 @@ def test_upsample_colour_has_no_block_edges_and_follows_the_guide():
     rest = torch.cat([d[:12], d[13:]])
     boundaries = rest[[j for j in range(rest.numel()) if (j if j < 12 else j + 1) % 4 == 3]]
     assert float(boundaries.mean()) <= 1.5 * float(rest.mean())
+
+
+@pytest.mark.parametrize("shape", [(1, 2, 1, 1), (1, 2, 1, 9), (1, 2, 7, 1), (1, 2, 6, 9)])
+def test_gaussian_blur_matches_a_mirrored_float64_reference_and_keeps_a_one_pixel_side(shape):
+    """``gaussian_blur``: each side blurred by the normalised Gaussian of radius min(⌈3σ⌉, side − 1) ≥ 1 with edges
+    mirrored (numpy float64, ``np.pad(mode="reflect")``); a side of one pixel is left as it is (a 1×N or N×1 image,
+    such as a 7×300 photograph's working input, blurs along its long side only instead of failing)."""
+    import math
+
+    sigma = 0.8
+    x = torch.rand(*shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    want = x.numpy().copy()
+    for axis in (3, 2):
+        n = want.shape[axis]
+        if n == 1:
+            continue
+        r = max(1, min(math.ceil(3 * sigma), n - 1))
+        t = np.arange(-r, r + 1, dtype=np.float64)
+        k = np.exp(-0.5 * (t / sigma) ** 2)
+        k /= k.sum()
+        pad = [(0, 0)] * 4
+        pad[axis] = (r, r)
+        padded = np.pad(want, pad, mode="reflect")
+        want = sum(k[i] * np.take(padded, range(i, i + n), axis=axis) for i in range(2 * r + 1))
+    np.testing.assert_allclose(gaussian_blur(x, sigma).numpy(), want, rtol=0, atol=1e-12)
