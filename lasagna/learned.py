@@ -484,7 +484,7 @@ def walls_read_closer(net, base: Tensor, surface: Tensor, sd, light: Tensor | No
     calmed by the closer read's own ``wall_relief``; told a source light (``light`` (1, 3)), it is told it too and
     turned to its azimuth as the working-size read is (`turn_to_azimuth`). Measured in docs/BENCHMARKS.md, round
     20 (rules OW3–OW5)."""
-    from lasagna.compose.surface import enlarge_surface, facing_normals, surface_normals, turn_to_azimuth
+    from lasagna.compose.surface import calm_walls, enlarge_surface, facing_normals, surface_normals, turn_to_azimuth
     from lasagna.generators.surface import DomePrior
 
     closer = sd.closer_walls
@@ -495,12 +495,13 @@ def walls_read_closer(net, base: Tensor, surface: Tensor, sd, light: Tensor | No
         )
     dome = DomePrior(weight=sd.dome_weight, height=sd.dome_height)
     x = working_input(base, closer.size, device)
+    own = closer.gate == "own"
     near, fitted = net.estimate(
         x,
         dome,
         symmetry=sd.symmetry,
         light=light if net.config.light_input else None,
-        wall_relief=closer.wall_relief,
+        wall_relief=closer.wall_relief if own else 1.0,
     )
     near = surface_normals(near)
     if light is not None and fitted is not None:
@@ -508,6 +509,8 @@ def walls_read_closer(net, base: Tensor, surface: Tensor, sd, light: Tensor | No
     size = tuple(near.shape[-2:])
     objects = net.silhouette(working_input(base, sd.working_size, device), sd.symmetry)
     p = torch.nn.functional.interpolate(objects, size=size, mode="bilinear").clamp(0.0, 1.0)
+    if not own:  # the closer read's walls calmed where the working-size read sees a wall (CloserWalls.gate)
+        near = calm_walls(near, 1.0 - p, closer.wall_relief)
     if closer.keep_rims > 0:  # the objects' rims keep the working-size read (CloserWalls.keep_rims)
         r = closer.keep_rims
         kept = torch.nn.functional.max_pool2d(objects, 2 * r + 1, stride=1, padding=r)

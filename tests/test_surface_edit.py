@@ -728,16 +728,21 @@ def test_a_told_light_reads_the_presets_told_estimator_and_an_untold_one_its_est
     assert "\n" not in str(err.value)
 
 
-@pytest.mark.parametrize(("rims", "by_closer"), [(0, False), (1, False), (1, True)])
-def test_closer_walls_mixes_a_closer_read_of_the_walls_into_the_objects_read(tiny, tmp_path_factory, rims, by_closer):
+@pytest.mark.parametrize(
+    ("rims", "by_closer", "gate"), [(0, False, "own"), (1, False, "own"), (1, True, "own"), (1, True, "working")]
+)
+def test_closer_walls_mixes_a_closer_read_of_the_walls_into_the_objects_read(
+    tiny, tmp_path_factory, rims, by_closer, gate
+):
     """``surface.closer_walls`` (and ``told.closer_walls`` when told): the layer's normals are the working-size read
     on the objects and the image read again at ``size`` on the walls (its walls calmed by its own ``wall_relief``,
     told and turned as the working read), mixed by the working read's silhouette probability p (dilated by
-    ``keep_rims`` working pixels; with ``rims_by_closer``, only where the closer read's own probability is below 1/2)
-    — checked against the two reads mixed in numpy float64, normalise(p·n_working +
-    (1 − p)·n_closer), to the 16-bit map's codes.
-    Told, ``told.closer_walls`` applies; untold, the preset's own. Recorded in ``made_by``; re-lit by editing its
-    light, the stack renders the told edit toward that light, bit for bit."""
+    ``keep_rims`` working pixels; with ``rims_by_closer``, only where the closer read's own probability is below 1/2;
+    with ``gate`` "working", the closer read's walls calmed by the working read's silhouette instead of its own, the
+    calming done here in numpy: slopes times 1 − w + g·w, w = 1 − p eroded by one pixel) — checked against the two
+    reads mixed in numpy float64, normalise(p·n_working + (1 − p)·n_closer), to the 16-bit map's codes. Told,
+    ``told.closer_walls`` applies; untold, the preset's own. Recorded in ``made_by``; re-lit by editing its light, the
+    stack renders the told edit toward that light, bit for bit."""
     import numpy as np
 
     from lasagna.compose.resample import downsample, upsample
@@ -750,7 +755,7 @@ def test_closer_walls_mixes_a_closer_read_of_the_walls_into_the_objects_read(tin
     folder = tiny_variant(tiny, tmp_path_factory.mktemp("closer") / "layers")
     # A told estimator whose silhouette head says "object" on some pixels and "wall" on others at both reads.
     random_estimator(folder / "surface-lit-told-rand", seed=11, light_input=True, std=0.5)
-    closer = {"size": 32, "wall_relief": 0.25, "keep_rims": rims, "rims_by_closer": by_closer}
+    closer = {"size": 32, "wall_relief": 0.25, "keep_rims": rims, "rims_by_closer": by_closer, "gate": gate}
     untold = {**SURFACE, "estimator": "surface-lit-32"}
     told = {**untold, "told": {"estimator": "surface-lit-told-rand", "wall_relief": 0.5, "closer_walls": closer}}
     torch.manual_seed(3)
@@ -769,7 +774,7 @@ def test_closer_walls_mixes_a_closer_read_of_the_walls_into_the_objects_read(tin
     seen = conditioning_input(given.stack, given.stack.document.layers[0].id).float()  # the base as the edit read it
     reads = []
     with torch.no_grad():
-        for side, walls in ((16, 0.5), (32, 0.25)):
+        for side, walls in ((16, 0.5), (32, 0.25 if gate == "own" else 1.0)):
             x = downsample(seen[None], (side, side))
             n, fitted = net.estimate(x, DomePrior(), light=light, wall_relief=walls)
             reads.append(surface_normals(enlarge_surface(turn_to_azimuth(surface_normals(n), fitted, light), (32, 32))))
@@ -784,7 +789,13 @@ def test_closer_walls_mixes_a_closer_read_of_the_walls_into_the_objects_read(tin
             assert bool((band & walls).any()) and bool((band & ~walls).any())  # both sides of the rule are exercised
             kept = torch.where(walls, kept, p)
         p = kept
+        plain = upsample(net.silhouette(downsample(seen[None], (16, 16))), (32, 32)).clamp(0, 1)
     working, near, p = (t[0].double().numpy() for t in (*reads, p))
+    if gate == "working":  # the closer read's walls calmed by the working read's silhouette, in numpy float64
+        w = np.pad(1.0 - plain[0, 0].double().numpy(), 1, constant_values=np.inf)
+        w = np.lib.stride_tricks.sliding_window_view(w, (3, 3)).min(axis=(-2, -1))  # eroded by WALL_MARGIN = 1
+        calmed = np.concatenate([near[:2] * (1.0 - w + 0.25 * w), near[2:]])
+        near = calmed / np.sqrt((calmed**2).sum(0, keepdims=True))
     mix = p * working + (1 - p) * near
     want = mix / np.sqrt((mix**2).sum(0, keepdims=True))
     assert float(np.abs(near - working).max()) > 1e-2  # the two reads differ: the mix is a real one

@@ -231,6 +231,12 @@ class CloserWalls(StrictModel):
         "max over a (2r + 1)² window) before the mix, so the band round each object, where the closer read draws a "
         "sharper rim on the wall's side of the outline too, keeps the working-size read; 0: the probability as read.",
     )
+    gate: Literal["own", "working"] = Field(
+        "own",
+        description="Which silhouette calms the closer read's walls: 'own', the closer read's (as `wall_relief` gates "
+        "any read); 'working', the working-size read's, so what the closer read alone takes for an object (a sky "
+        "between thin structures, a lawn) is calmed where the working-size read sees a wall.",
+    )
     rims_by_closer: bool = Field(
         False,
         description="Within that band (the dilated probability above the plain one), keep the working-size read only "
