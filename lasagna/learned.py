@@ -445,16 +445,18 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         surface = walls_read_closer(net, base, surface, sd, given, device)
         made_by.update(closer_walls=sd.closer_walls.model_dump())
     size = tuple(base.shape[-2:])
-    if recipe.surface.enlarge == "guided" and tuple(surface.shape[-2:]) != size:
+    if recipe.surface.enlarge != "bicubic" and tuple(surface.shape[-2:]) != size:
         # The relief's edges follow the image's, not the working size's pixel grid (a 32² normal map enlarged 16×
-        # bicubically shows it as a staircase): the fast guided filter of the normals, the base's luma as guide.
+        # bicubically shows it as a staircase, and spreads an object's rim a working pixel into a sky), the base's
+        # luma as guide: 'guided', the fast guided filter; 'bilateral', joint bilateral upsampling (round 21).
         from lasagna.compose.color import luma
-        from lasagna.compose.resample import guided_upsample
+        from lasagna.compose.resample import guided_upsample, joint_bilateral_upsample
         from lasagna.compose.surface import facing_normals
 
+        enlarge = guided_upsample if recipe.surface.enlarge == "guided" else joint_bilateral_upsample
         guide = luma(base.to(surface.device)[None].float())
-        normals = facing_normals(guided_upsample(surface_normals(surface), guide))[0].cpu()
-        made_by.update(enlarge="guided")
+        normals = facing_normals(enlarge(surface_normals(surface), guide))[0].cpu()
+        made_by.update(enlarge=recipe.surface.enlarge)
     else:
         normals = surface_normals(enlarge_surface(surface, size))[0].cpu()
     stored = LayerTensors(stored_normals(normals))  # what the 16-bit map gives back, made a band at a time

@@ -626,6 +626,13 @@ def test_a_refined_relight_surface_records_its_refinement_and_renders_from_its_m
     assert guided.stack.document.layer(guided.layer_id).made_by["enlarge"] == "guided"
     assert "enlarge" not in plain.stack.document.layer(plain.layer_id).made_by
     assert guided.layer.shape == plain.layer.shape and not torch.equal(guided.layer, plain.layer)
+    # Joint bilateral (`joint_bilateral_upsample`, tested against Kopf et al.'s formula in tests/compose): recorded,
+    # a layer unlike the bicubic and the guided ones, and the saved stack renders its map's bits (below).
+    write_preset(folder, "relight", surface={**lit, "enlarge": "bilateral"})
+    bilateral = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=[folder])
+    assert bilateral.stack.document.layer(bilateral.layer_id).made_by["enlarge"] == "bilateral"
+    assert bilateral.layer.shape == plain.layer.shape and not torch.equal(bilateral.layer, guided.layer)
+    assert not torch.equal(bilateral.layer, plain.layer)
     # The source elevation from the walls' level: recorded; the light's azimuth is the fit's, its elevation not.
     write_preset(folder, "relight", surface={**lit, "source_elevation": "walls"})
     walled = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=[folder])
@@ -635,6 +642,8 @@ def test_a_refined_relight_surface_records_its_refinement_and_renders_from_its_m
     assert abs((w_az - f_az + 180) % 360 - 180) < 0.02 and abs(w_el - f_el) > 0.01
     guided.stack.save(tmp_path / "g")
     assert torch.equal(load_stack(tmp_path / "g").render().image, guided.stack.render().image)
+    bilateral.stack.save(tmp_path / "b")
+    assert torch.equal(load_stack(tmp_path / "b").render().image, bilateral.stack.render().image)
 
 
 def test_wall_relief_calms_a_surface_layers_walls_and_start_wall_relief_a_free_layers_start(tiny, tmp_path_factory):

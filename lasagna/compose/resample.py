@@ -21,6 +21,12 @@ at 8× its training size sees every edge as a feature of its receptive field: an
   premise — neighbouring pixels of similar luminance have similar colour — and the guided filter's local
   linear model is its closed form. A bilinear enlargement would smear a 32² layer's colour 16 pixels
   across every edge of a 512² photo.
+- ``joint_bilateral_upsample(y, guide)``: joint bilateral upsampling (Kopf, Cohen, Lischinski & Uyttendaele 2007,
+  eq. 2): each full-size pixel the mean of the working-size values of the cells about it, weighted by a Gaussian of
+  the distance to each cell and a Gaussian of the difference between the pixel's guide and the cell's. The output is
+  a convex combination of values the layer already has (no a·I + b: the guide's texture is not copied in), whose
+  edges follow the guide's — a surface layer's normals enlarged so an object's rim stops at the photograph's edge
+  instead of spilling a working pixel's width into a sky (docs/BENCHMARKS.md, round 21).
 """
 
 from __future__ import annotations
@@ -41,6 +47,23 @@ slope to fit; a 32² layer's window then spans ~3/32 of the image."""
 GUIDED_EPS = 1e-3
 """ε of the guided filter (guide in [0, 1]): a window whose guide variance is below ε is treated as flat (its
 layer is smoothed, not sharpened). 1e-3 ≈ σ of 0.03, a texture of low contrast."""
+
+
+JBU_CELLS = 4
+"""Cells per side of the window ``joint_bilateral_upsample`` averages: the 4×4 working-size cells nearest each
+full-size pixel (the two on each side of it), enough for a Gaussian of σ one cell."""
+
+JBU_SIGMA_CELLS = 1.0
+"""σ of the spatial Gaussian of ``joint_bilateral_upsample``, in working-size cells."""
+
+JBU_SIGMA_GUIDE = 0.1
+"""σ of the range Gaussian of ``joint_bilateral_upsample`` on the guide (luma in [0, 1]): chosen by looking at the
+photograph selection set (docs/BENCHMARKS.md, round 21) — 0.05 broke the relief into blocks and took in foliage's
+speckle; 0.1 stops a head's rim at its edge against a sky."""
+
+JBU_WEIGHT_FLOOR = 1e-30
+"""Floor of the summed weights of ``joint_bilateral_upsample``: a guard only — each pixel's own cell weighs at least
+exp(−1/σ²)·exp(−1/2σ_g²), about 1e-22 for a guide in [0, 1] at the default σs, far above it in float32."""
 
 
 def working_size(h: int, w: int, side: int | None) -> tuple[int, int]:
@@ -121,3 +144,35 @@ def gaussian_blur(x: Tensor, sigma: float) -> Tensor:
         else:
             x = F.conv2d(F.pad(x, (0, 0, r, r), mode="reflect"), k[:, :, :, None], groups=c)
     return x
+
+
+def joint_bilateral_upsample(
+    y: Tensor, guide: Tensor, sigma: float = JBU_SIGMA_CELLS, sigma_guide: float = JBU_SIGMA_GUIDE
+) -> Tensor:
+    """Joint bilateral upsampling (module docstring): y (B, C, h, w) at the working size, guide (B, 1, H, W) at full
+    size → (B, C, H, W). With (u, v) a full-size pixel's centre in working-size cell coordinates and q each of the
+    ``JBU_CELLS``² cells about it (clamped at the borders), out = Σ_q y_q·w_q / Σ_q w_q, w_q = exp(−‖(u, v) − q‖² /
+    2σ²)·exp(−(I − Ĩ_q)² / 2σ_g²), Ĩ the guide reduced to (h, w) (``downsample``). At equal sizes: y."""
+    h, w = y.shape[-2:]
+    size = tuple(guide.shape[-2:])
+    if (h, w) == size:
+        return y
+    small = downsample(guide, (h, w)).to(y.dtype)
+    guide = guide.to(y.dtype)
+    u = (torch.arange(size[0], dtype=y.dtype, device=y.device) + 0.5) * h / size[0] - 0.5
+    v = (torch.arange(size[1], dtype=y.dtype, device=y.device) + 0.5) * w / size[1] - 0.5
+    cu, cv = u.floor().long(), v.floor().long()
+    num = torch.zeros((*y.shape[:2], *size), dtype=y.dtype, device=y.device)
+    den = torch.zeros((y.shape[0], 1, *size), dtype=y.dtype, device=y.device)
+    offsets = range(1 - JBU_CELLS // 2, JBU_CELLS // 2 + 1)
+    for dy in offsets:
+        rows = (cu + dy).clamp(0, h - 1)
+        wy = torch.exp(-((u - (cu + dy).to(y.dtype)) ** 2) / (2 * sigma**2))
+        for dx in offsets:
+            cols = (cv + dx).clamp(0, w - 1)
+            wx = torch.exp(-((v - (cv + dx).to(y.dtype)) ** 2) / (2 * sigma**2))
+            cell = small[:, :, rows][:, :, :, cols]
+            weight = wy[:, None] * wx[None, :] * torch.exp(-((guide - cell) ** 2) / (2 * sigma_guide**2))
+            num += weight * y[:, :, rows][:, :, :, cols]
+            den += weight
+    return num / den.clamp_min(JBU_WEIGHT_FLOOR)

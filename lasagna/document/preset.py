@@ -61,9 +61,10 @@ Luminance = Literal["free", "base"]
 # (``lasagna.compose.resample.guided_upsample``) with the base's full-size Rec. 709 luma as guide, so the layer's
 # edges follow the image's. (A colour-over-luminance layer has its own guided rule, ``upsample_colour``.)
 Enlarge = Literal["bilinear", "guided"]
-# How a surface layer's normals are enlarged (``SurfaceDefaults.enlarge``): ``bicubic`` (continuous slopes), or
-# ``guided`` by the image's luma as above.
-SurfaceEnlarge = Literal["bicubic", "guided"]
+# How a surface layer's normals are enlarged (``SurfaceDefaults.enlarge``): ``bicubic`` (continuous slopes),
+# ``guided`` by the image's luma as above, or ``bilateral`` — joint bilateral upsampling with the luma as guide
+# (``lasagna.compose.resample.joint_bilateral_upsample``).
+SurfaceEnlarge = Literal["bicubic", "guided", "bilateral"]
 
 # Floating-point types a diffusers prior may run in ("auto": float16 on CUDA, float32 elsewhere).
 TorchDtype = Literal["auto", "float32", "float16", "bfloat16"]
@@ -409,7 +410,9 @@ class SurfaceDefaults(StrictModel):
         description="How a surface layer's normals are enlarged from the working size to the image's: 'bicubic' "
         "(continuous slopes, `lasagna.compose.surface.enlarge_surface`); 'guided', the fast guided filter with the "
         "image's luma as guide (`lasagna.compose.resample.guided_upsample`), so the relief's edges follow the image's "
-        "instead of the working size's pixel grid.",
+        "instead of the working size's pixel grid; 'bilateral', joint bilateral upsampling with the luma as guide "
+        "(`lasagna.compose.resample.joint_bilateral_upsample`): each pixel a weighted mean of the nearby working-size "
+        "normals of similar luma, so an object's rim stops at its edge without the guide's texture copied in.",
     )
 
 

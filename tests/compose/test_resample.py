@@ -12,6 +12,7 @@ from lasagna.compose.resample import (
     downsample,
     gaussian_blur,
     guided_upsample,
+    joint_bilateral_upsample,
     upsample,
     upsample_colour,
     working_size,
@@ -104,6 +105,60 @@ def test_guided_upsample_keeps_a_constant_and_follows_an_edge():
     blurry = upsample(step, (32, 32))
     truth = guide * 0.5 + 0.25
     assert (out - truth).abs().mean() < 0.5 * (blurry - truth).abs().mean()
+
+
+def _jbu_ref(y: np.ndarray, guide: np.ndarray, small: np.ndarray, sigma: float, sigma_g: float) -> np.ndarray:
+    """Kopf et al. 2007, eq. 2, pixel by pixel in float64: the 4×4 working-size cells nearest each full-size pixel's
+    centre (clamped at the borders), weighted by their distance in cells and their reduced guide's difference."""
+    c, h, w = y.shape
+    big_h, big_w = guide.shape
+    out = np.zeros((c, big_h, big_w))
+    for i in range(big_h):
+        for j in range(big_w):
+            u, v = (i + 0.5) * h / big_h - 0.5, (j + 0.5) * w / big_w - 0.5
+            num, den = np.zeros(c), 0.0
+            for qi in range(int(np.floor(u)) - 1, int(np.floor(u)) + 3):
+                for qj in range(int(np.floor(v)) - 1, int(np.floor(v)) + 3):
+                    ci, cj = min(max(qi, 0), h - 1), min(max(qj, 0), w - 1)
+                    wgt = np.exp(-((u - qi) ** 2 + (v - qj) ** 2) / (2 * sigma**2))
+                    wgt *= np.exp(-((guide[i, j] - small[ci, cj]) ** 2) / (2 * sigma_g**2))
+                    num += wgt * y[:, ci, cj]
+                    den += wgt
+            out[:, i, j] = num / den
+    return out
+
+
+@pytest.mark.parametrize("small_hw,big_hw", [((5, 7), (15, 21)), ((4, 6), (13, 9)), ((3, 3), (3, 3))])
+def test_joint_bilateral_upsample_matches_kopf_et_al(small_hw, big_hw):
+    rng = np.random.default_rng(4)
+    y = rng.random((2, *small_hw))
+    guide = rng.random(big_hw)
+    sigma, sigma_g = 1.0, 0.2
+    small = downsample(torch.from_numpy(guide)[None, None], small_hw)[0, 0].numpy()
+    got = joint_bilateral_upsample(torch.from_numpy(y)[None], torch.from_numpy(guide)[None, None], sigma, sigma_g)
+    ref = y if small_hw == big_hw else _jbu_ref(y, guide, small, sigma, sigma_g)
+    np.testing.assert_allclose(got[0].numpy(), ref, atol=1e-12)
+
+
+def test_joint_bilateral_upsample_stays_in_range_and_stops_at_an_edge():
+    # A convex combination of the working-size values: never outside their range (property, random inputs).
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        y = torch.from_numpy(rng.normal(size=(1, 3, 6, 5)))
+        out = joint_bilateral_upsample(y, torch.from_numpy(rng.random((1, 1, 30, 17))))
+        assert out.shape == (1, 3, 30, 17)
+        lo, hi = y.amin(dim=(2, 3), keepdim=True), y.amax(dim=(2, 3), keepdim=True)
+        assert bool(((out >= lo - 1e-12) & (out <= hi + 1e-12)).all())
+    # A step of the guide inside a working-size cell: the layer, blurred by the reduction, is put back on the
+    # guide's side of the step (far closer to the truth than bilinear), and a constant stays constant.
+    guide = torch.zeros(1, 1, 32, 32, dtype=torch.float64)
+    guide[..., 13:] = 1.0
+    truth = guide * 0.5 + 0.25
+    step = downsample(truth, (8, 8))
+    out = joint_bilateral_upsample(step, guide)
+    assert (out - truth).abs().mean() < 0.25 * (upsample(step, (32, 32)) - truth).abs().mean()
+    const = torch.full((1, 1, 8, 8), 0.7, dtype=torch.float64)
+    torch.testing.assert_close(joint_bilateral_upsample(const, guide), torch.full_like(guide, 0.7), atol=1e-12, rtol=0)
 
 
 def test_upsample_colour_carries_the_luma_in_gamut():
