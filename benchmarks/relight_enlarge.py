@@ -6,11 +6,12 @@ row per enlargement and size, then one JSON line.
 The default relight (`lasagna.edit(image, "relight", label)`, the free ratio from the surface start) is made once
 per scene at its working size (64); the fast guided filter that enlarges it (`enlarge: guided`,
 `lasagna.compose.resample.guided_upsample`, radius ``GUIDED_RADIUS`` and ε ``GUIDED_EPS``) is intercepted, and the
-same working-size ratio is enlarged by each candidate — bilinear, and the guided filter at each radius and ε of the
-grid — then measured as `benchmarks/relight_candidates.py` measures (dB over the unchanged input, all / objects; the
-error split) on the same scenes, with the texture leak on the split's bare painted walls (the ratio's PSNR against
-its own mean: their true ratio is one constant). The shipped row is the enlargement the preset makes; every row
-enlarges one and the same working-size ratio, so the differences are the enlargement's alone.
+same working-size ratio is enlarged by each candidate — bilinear, the guided filter at each radius and ε of the grid,
+and joint bilateral upsampling at each σ of the guide (``BILATERAL_SIGMAS``) — then measured as
+`benchmarks/relight_candidates.py` measures (dB over the unchanged input, all / objects; the error split) on the same
+scenes, with the texture leak on the split's bare painted walls (the ratio's PSNR against its own mean: their true
+ratio is one constant). The shipped row is the enlargement the preset makes; every row enlarges one and the same
+working-size ratio, so the differences are the enlargement's alone.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from lasagna.world.tasks import relight_sources, relighting  # noqa: E402
 PRESET = "relight"
 RADII = (1, 2)
 EPSILONS = (1e-5, 1e-4, 3e-4, 1e-3, 1e-2)
+BILATERAL_SIGMAS = (0.05, 0.1, 0.2)
 
 
 def working_ratios(base: torch.Tensor, labels: list[str]) -> tuple[list[tuple[torch.Tensor, torch.Tensor]], float]:
@@ -71,6 +73,8 @@ def enlargements() -> dict[str, object]:
     for r in RADII:
         for e in EPSILONS:
             out[f"guided r{r} eps{e:g}"] = lambda y, g, r=r, e=e: resample.guided_upsample(y, g, radius=r, eps=e)
+    for s in BILATERAL_SIGMAS:  # joint bilateral upsampling: a convex mean of the ratio's own cells (round 21)
+        out[f"bilateral sigma_g {s:g}"] = lambda y, g, s=s: resample.joint_bilateral_upsample(y, g, sigma_guide=s)
     return out
 
 
