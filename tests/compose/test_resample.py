@@ -161,6 +161,23 @@ def test_joint_bilateral_upsample_stays_in_range_and_stops_at_an_edge():
     torch.testing.assert_close(joint_bilateral_upsample(const, guide), torch.full_like(guide, 0.7), atol=1e-12, rtol=0)
 
 
+def test_joint_bilateral_upsample_works_at_most_at_its_cap(monkeypatch):
+    # A guide longer than JBU_MAX_SIDE: the mean is taken at the capped size (the guide reduced to it), then enlarged
+    # bilinearly; at or below the cap, the mean itself.
+    import lasagna.compose.resample as resample
+
+    rng = np.random.default_rng(6)
+    y = torch.from_numpy(rng.random((1, 3, 4, 6)))
+    guide = torch.from_numpy(rng.random((1, 1, 30, 45)))
+    want = joint_bilateral_upsample(y, downsample(guide, (16, 24)))
+    monkeypatch.setattr(resample, "JBU_MAX_SIDE", 24)
+    got = resample.joint_bilateral_upsample(y, guide)
+    torch.testing.assert_close(got, upsample(want, (30, 45)), atol=1e-12, rtol=0)
+    assert got.shape == (1, 3, 30, 45)
+    small = torch.from_numpy(rng.random((1, 1, 16, 24)))
+    torch.testing.assert_close(resample.joint_bilateral_upsample(y, small), joint_bilateral_upsample(y, small))
+
+
 def test_upsample_colour_carries_the_luma_in_gamut():
     # Colour over luminance: whatever the working-size colour, the enlarged colour's Rec. 709 luma is the full-size
     # luma (float64 numpy), every value in [0, 1]; alpha is the bilinear enlargement, clamped.
