@@ -365,16 +365,17 @@ def _surface_recipe(resolved: cat.Resolved, request: EditRequest, label: str) ->
     """The recipe of a surface layer (``kind="surface"``) lit by ``label`` (checked: ``check_request``): the
     preset's estimator at its working size, then ``refine_steps`` multi-light score-distillation steps
     (``lasagna.distill.surface``) scored by its prior; told the source light (``request.source_light``), the
-    estimator and wall gate of ``surface.told`` when the preset names one. The condition is any light, named or
-    ``az=…,el=…``: a surface is lit by every light alike."""
+    estimator, wall gates and refinement size of ``surface.told`` when the preset names one. The condition is any
+    light, named or ``az=…,el=…``: a surface is lit by every light alike."""
     p = resolved.preset
     surface, estimator = p.surface, resolved.estimator
     if request.source_light is not None and p.surface.told is not None:
         # Told its source light, the layer reads the estimator the preset names for a told light (SurfaceDefaults.told).
         told = p.surface.told
-        surface = p.surface.model_copy(
-            update={"estimator": told.estimator, "wall_relief": told.wall_relief, "closer_walls": told.closer_walls}
-        )
+        update = {"estimator": told.estimator, "wall_relief": told.wall_relief, "closer_walls": told.closer_walls}
+        if told.refine_size is not None:
+            update["refine_size"] = told.refine_size
+        surface = p.surface.model_copy(update=update)
         estimator = resolved.told_estimator
         if estimator is None:
             raise resolved.missing["told_estimator"]

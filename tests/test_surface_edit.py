@@ -737,6 +737,34 @@ def test_a_told_light_reads_the_presets_told_estimator_and_an_untold_one_its_est
     assert "\n" not in str(err.value)
 
 
+def test_a_told_light_refines_at_the_told_size_and_an_untold_one_at_the_presets(tiny, tmp_path_factory):
+    """``surface.told.refine_size``: a surface layer told its source light is refined at the told size — exactly the
+    layer of a preset whose ``refine_size`` (and estimator) are the told ones, recorded in ``made_by.refine_size``;
+    untold, at the preset's own (none here: the working size, nothing recorded). Unset, the told layer keeps the
+    preset's ``refine_size``."""
+    folder = tiny_variant(tiny, tmp_path_factory.mktemp("told-size") / "layers")
+    untold = {**SURFACE, "estimator": "surface-lit-32", "refine_steps": 3, "lr": 0.03, "anchor": 0.01}
+    told = {**untold, "told": {"estimator": "surface-lit-told-32", "refine_size": 32}}
+    as_told = {**untold, "estimator": "surface-lit-told-32", "refine_size": 32}
+
+    def layer_of(surface, **kw):
+        write_preset(folder, "relight", surface=surface, layer_kind="surface")
+        return edit(image(), "relight", "right", catalogue_dirs=[folder], **kw)
+
+    given = layer_of(told, source_light="az=150,el=40")
+    assert given.stack.document.layer(given.layer_id).made_by["refine_size"] == 32
+    torch.testing.assert_close(given.layer, layer_of(as_told, source_light="az=150,el=40").layer, atol=0, rtol=0)
+    at_working = layer_of({**untold, "told": {"estimator": "surface-lit-told-32"}}, source_light="az=150,el=40")
+    assert "refine_size" not in at_working.stack.document.layer(at_working.layer_id).made_by
+    assert float((given.layer - at_working.layer).abs().max()) > 1e-3  # the size changes the layer
+    fitted = layer_of(told)
+    assert "refine_size" not in fitted.stack.document.layer(fitted.layer_id).made_by
+    torch.testing.assert_close(fitted.layer, layer_of(untold).layer, atol=0, rtol=0)
+    inheriting = {**untold, "refine_size": 32, "told": {"estimator": "surface-lit-told-32"}}
+    inherited = layer_of(inheriting, source_light="left")
+    assert inherited.stack.document.layer(inherited.layer_id).made_by["refine_size"] == 32
+
+
 @pytest.mark.parametrize(
     ("rims", "by_closer", "gate"), [(0, False, "own"), (1, False, "own"), (1, True, "own"), (1, True, "working")]
 )

@@ -248,9 +248,10 @@ class CloserWalls(StrictModel):
 
 class ToldSurface(StrictModel):
     """What a surface layer reads when the user tells it the source light (``--from``): its own estimator (one
-    trained to read the light it is given, ``train-surface --light-input``) and that estimator's wall gate. A light
-    the user knows need not be fitted, so the estimator that reads best told it is not the one that reads best alone
-    (docs/BENCHMARKS.md, round 18: rules TL)."""
+    trained to read the light it is given, ``train-surface --light-input``), that estimator's wall gates and the size
+    its refinement works at. A light the user knows need not be fitted, so the estimator that reads best told it is
+    not the one that reads best alone (docs/BENCHMARKS.md, round 18: rules TL), and a surface read told its light
+    is refined best at another size than one whose light was fitted (round 22: rule RS)."""
 
     estimator: NameOrPath = Field(
         description="The surface estimator a surface layer told its source light reads: a catalogue name, or a path "
@@ -267,6 +268,14 @@ class ToldSurface(StrictModel):
         None,
         description="`closer_walls` for this estimator's surface layer (the preset's `surface.closer_walls` applies "
         "when the light is not told).",
+    )
+    refine_size: int | None = Field(
+        None,
+        ge=8,
+        le=4096,
+        strict=True,
+        description="`refine_size` for this estimator's surface layer (the long side its refinement works at); "
+        "null: the preset's `surface.refine_size`, as when the light is not told.",
     )
 
 
