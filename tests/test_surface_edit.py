@@ -45,6 +45,13 @@ def image(seed=0):
     return torch.rand(3, 24, 40)
 
 
+def relight_surface(folder, surface, **kw):
+    """The relight surface layer of ``image()`` toward the right, with ``folder``'s relight preset's ``surface``
+    set to ``surface`` first."""
+    write_preset(folder, "relight", surface=surface, layer_kind="surface")
+    return edit(image(), "relight", "right", catalogue_dirs=[folder], **kw)
+
+
 def test_shading_makes_a_surface_layer_relit_exactly_by_its_light(catalogue, tmp_path):
     res = edit(image(), "shading", "az=20,el=35", catalogue_dirs=catalogue)
     layer = res.stack.document.layer(res.layer_id)
@@ -701,8 +708,7 @@ def test_a_told_light_reads_the_presets_told_estimator_and_an_untold_one_its_est
     as_told = {**untold, "estimator": "surface-lit-told-32", "wall_relief": 0.5}
 
     def layer_of(surface, **kw):
-        write_preset(folder, "relight", surface=surface, layer_kind="surface")
-        return edit(image(), "relight", "right", catalogue_dirs=[folder], **kw)
+        return relight_surface(folder, surface, **kw)
 
     given = layer_of(told, source_light="az=150,el=40")
     record = given.stack.document.layer(given.layer_id).made_by
@@ -748,8 +754,7 @@ def test_a_told_light_refines_at_the_told_size_and_an_untold_one_at_the_presets(
     as_told = {**untold, "estimator": "surface-lit-told-32", "refine_size": 32}
 
     def layer_of(surface, **kw):
-        write_preset(folder, "relight", surface=surface, layer_kind="surface")
-        return edit(image(), "relight", "right", catalogue_dirs=[folder], **kw)
+        return relight_surface(folder, surface, **kw)
 
     given = layer_of(told, source_light="az=150,el=40")
     assert given.stack.document.layer(given.layer_id).made_by["refine_size"] == 32

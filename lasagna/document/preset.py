@@ -13,9 +13,9 @@ from __future__ import annotations
 import os
 import string
 from pathlib import Path
-from typing import Any, Literal, get_args
+from typing import Annotated, Any, Literal, get_args
 
-from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import ConfigDict, Field, Strict, ValidationError, field_validator, model_validator
 
 from lasagna.document.condition import NAMED_DIRECTIONS, parse_direction
 from lasagna.document.models import dumps
@@ -198,6 +198,9 @@ LayerKind = Literal["free", "surface"]
 ``surface`` — a surface (a height field's normals) rendered under the light (`lasagna.compose.surface`)."""
 PRESET_LAYER_KINDS: tuple[str, ...] = ("free", "surface")
 
+ReadSide = Annotated[int, Strict(), Field(ge=8, le=4096)]
+"""A long side, in pixels, that a surface is read or refined at (``CloserWalls.size``, ``refine_size``)."""
+
 Symmetry = Literal["none", "mirrors", "dihedral"]
 """A surface estimator's symmetry ensemble (`lasagna.generators.surface`): one pass; the image and its three mirror
 images, each estimate mapped back and averaged; those and their transposes (all eight symmetries of the square)."""
@@ -216,7 +219,7 @@ class CloserWalls(StrictModel):
     its paint, hence the small gain) and sharper rims, and reads the objects themselves worse; mixed, both gain
     (docs/BENCHMARKS.md, round 20: rules OW, OW3–OW5)."""
 
-    size: int = Field(ge=8, le=4096, strict=True, description="The long side the walls are read at.")
+    size: ReadSide = Field(description="The long side the walls are read at.")
     wall_relief: FiniteFloat = Field(
         ge=0,
         le=1,
@@ -269,11 +272,8 @@ class ToldSurface(StrictModel):
         description="`closer_walls` for this estimator's surface layer (the preset's `surface.closer_walls` applies "
         "when the light is not told).",
     )
-    refine_size: int | None = Field(
+    refine_size: ReadSide | None = Field(
         None,
-        ge=8,
-        le=4096,
-        strict=True,
         description="`refine_size` for this estimator's surface layer (the long side its refinement works at); "
         "null: the preset's `surface.refine_size`, as when the light is not told.",
     )
@@ -298,11 +298,8 @@ class SurfaceDefaults(StrictModel):
     anchor: FiniteFloat = Field(
         1.0, ge=0, description="Weight of ‖h − h₀‖², which keeps the refinement near the estimate."
     )
-    refine_size: int | None = Field(
+    refine_size: ReadSide | None = Field(
         None,
-        ge=8,
-        le=4096,
-        strict=True,
         description="The long side the refinement works at: the estimate enlarged to it, scored on the whole image "
         "for `distill.whole_fraction` of the steps and on crops of the prior's size at native resolution after; "
         "None: the estimate's working size.",
