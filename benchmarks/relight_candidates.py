@@ -11,8 +11,8 @@ or a relit prior (``--prior``: put in place of the preset's ``prior``), each in 
 (``lasagna.edit(..., catalogue_dirs=...)``); an estimator may carry preset settings (``FOLDER@wall_relief=0.5``;
 ``@wall_relief=0.5`` alone: the shipped estimator so set; ``@told={...}`` replaces the whole told route, as JSON),
 so every row runs the whole edit path a user runs. The shipped catalogue is measured in the same run as the
-baseline. Each scene of ``--splits`` (world seed ``--seed``) is lit by its relight task's source light and relit toward its named light (``benchmarks/relight.py``'s task);
-``--kinds``:
+baseline. Each scene of ``--splits`` (world seed ``--seed``) is lit by its relight task's source light and relit
+toward its named light (``benchmarks/relight.py``'s task); ``--kinds``:
 
 * ``free`` — ``lasagna edit --layer relight`` (the default: the free layer started from the estimator's surface);
 * ``surface`` — ``--layer-kind surface`` (the estimator's surface rendered S(target)/S(source), its light fitted);
