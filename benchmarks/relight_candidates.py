@@ -161,6 +161,12 @@ def main(argv=None) -> int:
     p.add_argument("--count", type=int, default=16)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
+        "--shadows",
+        action="store_true",
+        help="the scenes with the world's cast shadows (under the source light and the target light alike: the true "
+        "ratio then holds the shadows a relight removes and casts, which no surface ratio renders)",
+    )
+    p.add_argument(
         "--leak", action="store_true", help="also each layer's texture leak on the split's bare painted walls (dB)"
     )
     p.add_argument(
@@ -186,7 +192,7 @@ def main(argv=None) -> int:
             candidates[f"prior:{folder}"] = [str(candidate_catalogue(Path(tmp) / f"p{i}", prior=folder)), *rest]
         for split in args.splits:
             for size in args.sizes:
-                scene, labels = scenes(split, args.count, args.seed, size)
+                scene, labels = scenes(split, args.count, args.seed, size, shadows=args.shadows)
                 sources = relight_sources(scene.params)
                 rel = relighting(scene, sources)
                 src = torch.cat([light_vector(*parse_direction(s))[None] for s in sources]).float()
@@ -195,7 +201,7 @@ def main(argv=None) -> int:
                 head = lambert(truth, lights_of(labels).float()) / lambert(truth, src)
                 found = [measure("true at the working size", scene, rel, head, None, size)]
                 if args.leak:
-                    walls, wall_labels = scenes(split, args.count, args.seed, size, walls=True)
+                    walls, wall_labels = scenes(split, args.count, args.seed, size, walls=True, shadows=args.shadows)
                     wall_sources = relight_sources(walls.params)
                     wall_base = relighting(walls, wall_sources).base.float()
                 first = args.sheet is not None and not sheet

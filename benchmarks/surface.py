@@ -71,12 +71,14 @@ def lights_of(conditions: list[str]) -> torch.Tensor:
     return torch.stack([light_vector(*parse_direction(c)) for c in conditions])
 
 
-def scenes(split: str, count: int, seed: int, size: int, walls: bool = False):
+def scenes(split: str, count: int, seed: int, size: int, walls: bool = False, shadows: bool = False):
+    """The split's first ``count`` scenes at ``size``, each under a named light cycling through VOCABULARY (walls
+    alone with ``walls``; with ``shadows`` the world's exact cast shadows, `lasagna.world.scene.render`)."""
     labels = [VOCABULARY[i % len(VOCABULARY)] for i in range(count)]
     params = sample_scenes(split, seed, range(count))
     if walls:
         params = params.walls_only()
-    return render(params.with_labels(labels), size), labels
+    return render(params.with_labels(labels), size, shadows=shadows), labels
 
 
 def oracle_normals(scene) -> torch.Tensor:

@@ -76,6 +76,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "spotlight's pool) the estimator must learn as paint (0: off)",
     )
     p.add_argument(
+        "--shadows",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="lit input: probability that a scene's input carries the world's cast shadows under its source light, "
+        "learned as paint (the truth stays shadowless; 0: off)",
+    )
+    p.add_argument(
         "--relief",
         type=float,
         default=0.0,
@@ -155,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
         init_from=args.init_from,
         zoom=args.zoom,
         stray=args.stray,
+        shadows=args.shadows,
         relief=args.relief,
         walls_only=args.walls_only,
         scene_bank=args.scene_bank,

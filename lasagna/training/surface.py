@@ -120,6 +120,15 @@ class SurfaceTrainConfig(LoopConfig):
         "applies: `bare_walls`); 1: every scene (with `relief` 1: every scene a painted wall with relief), the part "
         "of the relight no estimator had learned (docs/BENCHMARKS.md, rounds 16–17)",
     )
+    shadows: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="lit input: the probability that a scene's input carries the world's cast shadows under its "
+        "source light (`lasagna.world.scene.render`'s exact shadow rays), taught as paint — the truth (normals, the "
+        "source light's shading) stays the shadowless contract's; photographs' shade is read as a face turned away "
+        "by an estimator that never saw a shadow (docs/BENCHMARKS.md, round 22's P1) (0: off)",
+    )
     scene_bank: int = Field(
         0,
         ge=0,
@@ -204,15 +213,23 @@ _CROPPED = ("albedo", "normals", "shading", "image", "mask", "depth", "object_in
 
 
 def estimator_input(
-    net: SurfaceConfig, scene, source: torch.Tensor | None, gain: torch.Tensor | None = None
+    net: SurfaceConfig,
+    scene,
+    source: torch.Tensor | None,
+    gain: torch.Tensor | None = None,
+    shadowed: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """What the estimator reads of ``scene``: its albedo, or the scene lit by ``source`` (B, 3), times the stray
-    illumination ``gain`` (B, 1, H, W; `lasagna.world.stray`) where given, clipped to [0, 1]."""
+    illumination ``gain`` (B, 1, H, W; `lasagna.world.stray`) where given, clipped to [0, 1]. Where ``shadowed``
+    (B,) is true the input is ``scene.image`` as rendered — under ``source`` with its cast shadows (`shadowed_scenes`)
+    — instead of the shadowless Lambert image."""
     if net.input == "albedo":
         return scene.albedo
     if source is None:
         raise LasagnaError("a lit-input estimator needs the source lights", "source")
     image = with_light(scene, source).image
+    if shadowed is not None:
+        image = torch.where(shadowed.to(image.device).view(-1, 1, 1, 1), scene.image.to(image.dtype), image)
     return image if gain is None else (image * gain).clamp(0.0, 1.0)
 
 
@@ -225,13 +242,15 @@ def surface_loss(
     device: str | torch.device = "cpu",
     gain: torch.Tensor | None = None,
     given: torch.Tensor | None = None,
+    shadowed: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """The module docstring's L on one batch: ``scene`` (B scenes), ``source`` (B, 3) their source lights (lit
     input), ``lights`` (K·B, 3) the lights their estimate and truth are compared under (K per scene), ``gain`` the
     stray illumination on the input (lit; the truth is unchanged by it), ``given`` (B, 3) the source lights an
-    estimator with a light input reads (zero rows: not known; `given_lights`)."""
+    estimator with a light input reads (zero rows: not known; `given_lights`), ``shadowed`` (B,) the scenes whose input
+    carries its cast shadows (`shadowed_scenes`; the truth stays shadowless)."""
     b = len(scene)
-    image = estimator_input(config.net, scene, source, gain).to(device)
+    image = estimator_input(config.net, scene, source, gain, shadowed).to(device)
     out = net.outputs(image, None if given is None else given.to(device))
     surface, source_shading = out.surface, out.shading
     normals, truth = net.normals(surface), scene.normals.to(device)
@@ -279,6 +298,24 @@ def step_scenes(
     else:
         scene = render(training_scenes(config, rng), big, device=render_device(config, device))
     return close_ups(scene, side, rng) if big != side else scene
+
+
+def shadowed_scenes(
+    config: SurfaceTrainConfig, rng: torch.Generator, device: str | torch.device
+) -> tuple[Scene, torch.Tensor, torch.Tensor]:
+    """One step's scenes for ``config.shadows`` > 0: (scenes, source lights (B, 3), shadowed (B,) bool). The source
+    lights are drawn first (elevation in the relight range), the scenes rendered under them with the world's cast
+    shadows — at zoom × the working size, then cut to close-ups, so a window's shadows are the whole scene's — and
+    each scene's input keeps its shadows with probability ``shadows`` (`estimator_input`); the returned scenes are
+    marked shadowless, so `with_light` relights their normals pointwise as for any other scene."""
+    source = random_lights(config.batch_size, rng, RELIGHT_ELEVATION)
+    shadowed = torch.rand(config.batch_size, generator=rng, dtype=torch.float64) < config.shadows
+    side = config.net.working_size
+    big = int(round(side * config.zoom))
+    where = render_device(config, device)
+    scene = render(training_scenes(config, rng), big, light=source.to(where), shadows=True, device=where)
+    scene = close_ups(scene, side, rng) if big != side else scene
+    return replace(scene, shadows=False), source, shadowed
 
 
 def render_device(config: SurfaceTrainConfig, device: str | torch.device) -> str | torch.device:
@@ -334,16 +371,26 @@ BANK_SEED = 7919
 """Offset of a scene bank's generator from the run's seed (a prime, so a bank's draws are not the run's)."""
 
 
-def step_loss(net: SurfaceEstimator, config: SurfaceTrainConfig, scene: Scene, rng: torch.Generator, device):
-    """(loss, metrics) of one step on ``scene``: its source lights (lit input), the K supervising lights, stray
-    illumination and the lights told to a light-reading estimator drawn from ``rng`` (`surface_loss`)."""
-    source = random_lights(config.batch_size, rng, RELIGHT_ELEVATION) if config.net.input == "lit" else None
+def step_loss(
+    net: SurfaceEstimator,
+    config: SurfaceTrainConfig,
+    scene: Scene,
+    rng: torch.Generator,
+    device,
+    source: torch.Tensor | None = None,
+    shadowed: torch.Tensor | None = None,
+):
+    """(loss, metrics) of one step on ``scene``: its source lights (lit input; drawn here unless given, as
+    `shadowed_scenes` draws them before rendering), the K supervising lights, stray illumination and the lights
+    told to a light-reading estimator drawn from ``rng`` (`surface_loss`)."""
+    if source is None and config.net.input == "lit":
+        source = random_lights(config.batch_size, rng, RELIGHT_ELEVATION)
     lights = random_lights(config.batch_size * config.lights, rng, (0.0, MAX_TRAIN_ELEVATION))
     gain = stray_gain(scene.mask, rng, config.stray) if config.stray > 0 and source is not None else None
     given = None
     if config.net.light_input and source is not None:
         given = given_lights(source, rng, config.light_given, config.light_jitter)
-    return surface_loss(net, config, scene, source, lights, device, gain, given)
+    return surface_loss(net, config, scene, source, lights, device, gain, given, shadowed)
 
 
 def bare_walls(params: SceneParams, pick: torch.Tensor) -> SceneParams:
@@ -361,6 +408,12 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
     check_training_scenes(config.split, config.world_seed, "world_seed")
+    if config.shadows > 0 and (config.net.input != "lit" or config.scene_bank):
+        raise LasagnaError(
+            f"cast shadows are rendered under each scene's source light: expected a lit-input estimator trained on "
+            f"fresh scenes (no --scene-bank), got input {config.net.input!r}, scene bank {config.scene_bank}",
+            "shadows",
+        )
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(config.seed)
         estimator = SurfaceEstimator(config.net)
@@ -379,6 +432,9 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
     bank = SceneBank(config, device) if config.scene_bank else None
 
     def step_fn(net: SurfaceEstimator, rng: torch.Generator, step: int):
+        if config.shadows > 0:
+            scene, source, shadowed = shadowed_scenes(config, rng, device)
+            return step_loss(net, config, scene, rng, device, source, shadowed)
         return step_loss(net, config, step_scenes(config, rng, device, bank), rng, device)
 
     done = train_loop(
