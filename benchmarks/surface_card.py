@@ -67,6 +67,7 @@ OPTIONAL_FLAGS = (
     ("walls_only", "--walls-only", 0.0),
     ("relief", "--relief", 0.0),
     ("stray", "--stray", 0.0),
+    ("shadows", "--shadows", 0.0),
     ("scene_bank", "--scene-bank", 0),
 )
 LIGHT_KEYS = {"light_given", "light_jitter"}  # read only by an estimator told the light (--light-input)
@@ -237,6 +238,12 @@ def main(argv=None) -> int:
         + (
             f" A scene was its wall alone, objects removed, with probability {cfg['walls_only']:g}."
             if cfg.get("walls_only")
+            else ""
+        )
+        + (
+            f" A scene's input kept the world's cast shadows under its source light with probability "
+            f"{cfg['shadows']:g} (the truth shadowless: shadows taught as paint)."
+            if cfg.get("shadows")
             else ""
         ),
         "`select`, `heldout` and `far` (families training never uses) are never seen; every choice is made on "

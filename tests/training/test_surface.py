@@ -196,6 +196,44 @@ def test_a_run_with_stray_illumination_trains_and_resumes(tmp_path):
         assert torch.equal(v, w), k
 
 
+def test_shadowed_scenes_carry_the_worlds_cast_shadows_in_the_input_and_not_in_the_truth():
+    """``shadowed_scenes``: the source lights are drawn first and the scenes rendered under them with the world's cast
+    shadows; a shadowed scene's input is that render's image (shadows only darken, and some pixels are darkened), an
+    unshadowed one's the shadowless Lambert image, and the truth — the normals — is the shadowless render's."""
+    from lasagna.training.surface import estimator_input, shadowed_scenes, training_scenes
+    from lasagna.world.scene import render, with_light
+    from lasagna.world.tasks import RELIGHT_ELEVATION
+
+    config = toy(shadows=0.5, batch_size=6, split="val")
+    scene, source, shadowed = shadowed_scenes(config, torch.Generator().manual_seed(5), "cpu")
+    rng = torch.Generator().manual_seed(5)  # the same draws, in the order the docstring gives
+    assert torch.equal(source, random_lights(6, rng, RELIGHT_ELEVATION))
+    assert torch.equal(shadowed, torch.rand(6, generator=rng, dtype=torch.float64) < 0.5)
+    params = training_scenes(config, rng)
+    cast = render(params, 16, light=source, shadows=True)
+    bare = render(params, 16, light=source, shadows=False)
+    assert not scene.shadows and torch.equal(scene.normals, bare.normals)
+    image = estimator_input(config.net, scene, source, shadowed=torch.ones(6, dtype=torch.bool))
+    torch.testing.assert_close(image, cast.image)
+    torch.testing.assert_close(estimator_input(config.net, scene, source), with_light(bare, source).image)
+    assert (cast.image <= bare.image + 1e-6).all() and (cast.image < bare.image - 0.05).any()
+    mixed = estimator_input(config.net, scene, source, shadowed=shadowed)
+    for i, keep in enumerate(shadowed.tolist()):
+        torch.testing.assert_close(mixed[i], (cast if keep else bare).image[i])
+
+
+def test_a_run_with_cast_shadows_trains_and_resumes_and_needs_a_lit_input_and_fresh_scenes(tmp_path):
+    whole = train_surface(toy(steps=3, shadows=0.5, zoom=2.0), tmp_path / "a")
+    train_surface(toy(steps=1, shadows=0.5, zoom=2.0), tmp_path / "b")
+    resumed = train_surface(toy(steps=3, shadows=0.5, zoom=2.0), tmp_path / "b")
+    for (k, v), w in zip(whole.state_dict().items(), resumed.state_dict().values()):
+        assert torch.equal(v, w), k
+    albedo = SurfaceConfig(input="albedo", channels=(8, 16), blocks=1, working_size=16)
+    for bad in (toy(steps=1, shadows=0.5, net=albedo), toy(steps=1, shadows=0.5, scene_bank=8)):
+        with pytest.raises(LasagnaError, match="cast shadows"):
+            train_surface(bad, tmp_path / "c")
+
+
 def test_given_lights_are_jittered_unit_lights_or_zero_rows():
     from lasagna.training.surface import given_lights
 
