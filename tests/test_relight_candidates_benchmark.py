@@ -100,3 +100,21 @@ def test_an_estimator_spec_carries_preset_settings_and_an_empty_folder_keeps_the
     candidate = load_preset(relight_candidates.PRESET, catalogue_dirs=[folder])
     assert shipped.surface.told is not None and candidate.surface.told is None
     assert candidate.surface.estimator == "candidate-estimator"
+
+
+def test_shadows_render_the_scenes_with_the_worlds_cast_shadows():
+    """``--shadows``: the benchmark's scenes are the world's render with cast shadows (only darker than without, and
+    somewhere strictly so), their normals unchanged."""
+    import torch
+    from surface import scenes
+
+    from lasagna.world.lighting import VOCABULARY
+    from lasagna.world.params import sample_scenes
+    from lasagna.world.scene import render
+
+    cast, labels = scenes("select", 4, 0, 32, shadows=True)
+    bare, _ = scenes("select", 4, 0, 32)
+    assert labels == [VOCABULARY[i] for i in range(4)] and cast.shadows and not bare.shadows
+    want = render(sample_scenes("select", 0, range(4)).with_labels(labels), 32, shadows=True)
+    assert torch.equal(cast.image, want.image) and torch.equal(cast.normals, bare.normals)
+    assert (cast.shading <= bare.shading).all() and (cast.shading < bare.shading).any()

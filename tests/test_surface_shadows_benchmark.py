@@ -1,0 +1,70 @@
+"""benchmarks/surface_shadows.py: the ray march casts a raised plateau's shadow as long as trigonometry says and none
+under a light on the view axis, Frankot–Chellappa integration returns the height field its normals came from, the
+objects are moved to rest on the wall, and the script's rows come back."""
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import surface_shadows  # noqa: E402
+
+from lasagna.compose.surface import light_vector, normals_from_height  # noqa: E402
+from lasagna.world.params import WALL_Z, sample_scenes  # noqa: E402
+
+
+@pytest.mark.parametrize("el", [40.0, 60.0])
+def test_a_plateau_casts_a_shadow_as_long_as_its_height_over_the_lights_slope(el):
+    """A square plateau of height H on a flat floor, lit from the right (az 0) at ``el`` degrees from the view axis:
+    floor pixels left of it are in shadow for H·tan(el) canvas units (float64 trigonometry), ±1 pixel of the march's
+    step; nothing is shadowed above, below or right of it, nor under a light on the view axis."""
+    w, height = 64, 0.3
+    h = torch.zeros(1, 1, w, w, dtype=torch.float64)
+    h[..., 24:40, 40:52] = height
+    light = light_vector(0.0, el, dtype=torch.float64)[None]
+    vis = surface_shadows.cast_shadows(h, light)[0, 0].numpy()
+    pixel = 2.0 / w
+    length = height * math.tan(math.radians(el)) / pixel  # pixels of floor shadow
+    row = vis[32]
+    shadowed = np.flatnonzero(row[:40] == 0)
+    assert shadowed.size and shadowed.max() == 39
+    assert abs(shadowed.size - length) <= 1.0, (shadowed.size, length)
+    assert (
+        (vis[:24] == 1).all() and (vis[40:] == 1).all() and (vis[:, 52:] == 1).all() and (vis[24:40, 40:52] == 1).all()
+    )
+    assert (surface_shadows.cast_shadows(h, torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)) == 1).all()
+
+
+def test_integrating_a_height_fields_normals_returns_it():
+    y, x = torch.meshgrid(
+        torch.linspace(-1, 1, 48, dtype=torch.float64), torch.linspace(-1, 1, 48, dtype=torch.float64), indexing="ij"
+    )
+    bump = (0.3 * torch.exp(-(x**2 + y**2) / 0.15) + 0.1 * torch.exp(-((x - 0.5) ** 2 + (y + 0.4) ** 2) / 0.05))[
+        None, None
+    ]
+    got = surface_shadows.integrate_normals(normals_from_height(bump))
+    want = bump - bump.min()
+    assert float((got - want).abs().max()) < 0.02 * float(want.max())
+
+
+def test_resting_objects_sit_sink_radii_in_front_of_the_wall():
+    params = sample_scenes("select", 0, range(3))
+    moved = surface_shadows.resting(params, 0.5)
+    torch.testing.assert_close(moved.center[..., 2], WALL_Z + 0.5 * params.radius.to(moved.center.dtype))
+    assert torch.equal(moved.center[..., :2], params.center[..., :2]) and torch.equal(moved.size, params.size)
+
+
+def test_the_script_prints_its_rows(capsys):
+    assert surface_shadows.main(["--count", "1", "--size", "24", "--gains", "1"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in ("no shadows", "shadows"):
+        rows = out[key]
+        assert len(rows["told layer"]) == 2 and "its normals, shadows cast from the true heights" in rows
+    march = out["shadows"]["ray march of the true heights against the world's source shadows"]
+    assert 0.5 < march["agree"] <= 1.0
