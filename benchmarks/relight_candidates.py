@@ -114,14 +114,37 @@ def kind_options(kind: str) -> dict:
     ]
 
 
-def edit_ratios(base, labels, sources, kind: str, dirs: list[str] | None) -> tuple[torch.Tensor, float]:
-    """The relight layer of every image through ``lasagna.edit``, and seconds per image."""
+TOLD_OFF_SEED = 11
+"""Seed of ``--told-off``'s noise (docs/BENCHMARKS.md round 23, probes N and N2, and rule WI)."""
+
+
+def off_by(sources: list[str], sigma: float) -> list[str]:
+    """``sources`` (``az=…,el=…``) each off by Gaussian noise of ``sigma`` degrees on its azimuth and its elevation
+    (the elevation kept in [1, 89]), drawn from a generator seeded ``TOLD_OFF_SEED``; ``sigma`` 0 returns them."""
+    if sigma <= 0:
+        return list(sources)
+    g = torch.Generator().manual_seed(TOLD_OFF_SEED)
+    out = []
+    for text in sources:
+        az, el = parse_direction(text)
+        daz, de = (float(v) * sigma for v in torch.randn(2, generator=g, dtype=torch.float64))
+        out.append(f"az={(az + daz) % 360.0:.2f},el={min(max(el + de, 1.0), 89.0):.2f}")
+    return out
+
+
+def edit_ratios(
+    base, labels, sources, kind: str, dirs: list[str] | None, within: float | None = None
+) -> tuple[torch.Tensor, float]:
+    """The relight layer of every image through ``lasagna.edit`` (told ``sources`` for ``given``, with the uncertainty
+    ``within`` where given), and seconds per image."""
     from lasagna import edit
 
     t0 = time.perf_counter()
     out = []
     for i in range(base.shape[0]):
         given = {"source_light": sources[i]} if kind == "given" else {}
+        if given and within is not None:
+            given["source_within"] = within
         out.append(edit(base[i], PRESET, labels[i], catalogue_dirs=dirs, **kind_options(kind), **given).layer[:1])
     return torch.stack(out), (time.perf_counter() - t0) / base.shape[0]
 
@@ -161,6 +184,21 @@ def main(argv=None) -> int:
     p.add_argument("--count", type=int, default=16)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
+        "--told-off",
+        type=float,
+        default=0.0,
+        metavar="DEG",
+        help="given: each told light off by Gaussian noise of DEG degrees on its azimuth and its elevation (seed "
+        "TOLD_OFF_SEED), as a person's reading is (0: the true light)",
+    )
+    p.add_argument(
+        "--within",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="given: told lights carry this uncertainty (`lasagna edit --within`: the elevation fused with the fit's)",
+    )
+    p.add_argument(
         "--shadows",
         action="store_true",
         help="the scenes with the world's cast shadows (under the source light and the target light alike: the true "
@@ -195,6 +233,7 @@ def main(argv=None) -> int:
                 scene, labels = scenes(split, args.count, args.seed, size, shadows=args.shadows)
                 sources = relight_sources(scene.params)
                 rel = relighting(scene, sources)
+                told = off_by(sources, args.told_off)
                 src = torch.cat([light_vector(*parse_direction(s))[None] for s in sources]).float()
                 full, ws = (size, size), (sd.working_size, sd.working_size)
                 truth = surface_normals(enlarge_surface(downsample(scene.normals.float(), ws), full))
@@ -210,12 +249,12 @@ def main(argv=None) -> int:
                     sheet.append([ratio_tile(r) for r in rel.layer[:4]])  # the true ratio S_target / S_source
                 for name, dirs in candidates.items():
                     for kind in args.kinds:
-                        ratio, sec = edit_ratios(rel.base.float(), labels, sources, kind, dirs)
+                        ratio, sec = edit_ratios(rel.base.float(), labels, told, kind, dirs, args.within)
                         if first:
                             sheet.append([ratio_tile(r) for r in ratio[:4]])
                         row = {"candidate": name, "kind": kind, **measure(kind, scene, rel, ratio, sec, size)}
                         if args.leak:  # the layer on bare painted walls, whose true ratio is one constant
-                            y = edit_ratios(wall_base, wall_labels, wall_sources, kind, dirs)[0].double()
+                            y = edit_ratios(wall_base, wall_labels, wall_sources, kind, dirs, args.within)[0].double()
                             row["leak_db"] = round(psnr(y, y.mean(dim=(1, 2, 3), keepdim=True).expand_as(y)), 2)
                         found.append(row)
                 for r in found:

@@ -257,7 +257,9 @@ def edit(
     preset's), ``optimize`` (per-image steps; ``steps`` is its deprecated second name), ``loss``,
     ``guidance``, ``seed``, ``lr``, ``t_min``, ``t_max``, ``aspect``, ``particles`` (over the preset's
     ``distill`` defaults), and a prior of one's own: ``prior``, ``controlnets``, ``corrective``,
-    ``control_image``, ``prompt``, ``negative_prompt``, ``diffusers`` (module docstring).
+    ``control_image``, ``prompt``, ``negative_prompt``, ``diffusers`` (module docstring); for a relight surface
+    layer ``layer_kind``, ``source_light`` (``--from``) and ``source_within`` (``--within``: the reading's uncertainty
+    in degrees, its elevation then fused with the estimator's fit).
     """
     start = time.monotonic()
     if options.get("steps") is not None:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -333,6 +333,10 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
     from lasagna.io.stack import stored_normals
 
     start = time.monotonic()
+    reading = None
+    if recipe.source_within is not None:  # a rough reading of the source light: its elevation fused with the fit's
+        reading = recipe.source_light
+        recipe = replace(recipe, source_light=fused_source_light(recipe, base, device))
     net = SurfaceEstimator.from_pretrained(recipe.estimator, device=device)
     x = working_input(base, recipe.working_size, device)  # (1, 3, h, w)
     sd = recipe.surface
@@ -377,6 +381,8 @@ def _make_surface(recipe: Recipe, base: Tensor, device, callback) -> LayerRun:
         made_by.update(told_estimator=sd.estimator)  # the estimator a told light reads (SurfaceDefaults.told)
     if sd.wall_relief != 1.0:
         made_by.update(wall_relief=sd.wall_relief)
+    if reading is not None:  # the reader's light and its σ; the stack stores the fused light it was told
+        made_by.update(source_read=reading, source_within=recipe.source_within)
     if turned is not None:
         made_by.update(turned_from=turned)  # the fitted light the estimate was turned from to the given one
     if net.config.input == "lit" and recipe.source_light is None and sd.source_elevation != "fit":
@@ -528,6 +534,34 @@ def walls_read_closer(net, base: Tensor, surface: Tensor, sd, light: Tensor | No
 RIM_OBJECT_PROBABILITY = 0.5
 """The closer read's silhouette probability at and above which a pixel of the band round an object is the object's
 (``CloserWalls.rims_by_closer``): the silhouette head's decision threshold, its logit 0."""
+
+
+@torch.no_grad()
+def fused_source_light(recipe: Recipe, base: Tensor, device) -> str:
+    """The source light a surface layer is told when the reader gives theirs with an uncertainty
+    (``recipe.source_within``, degrees): the reader's azimuth, and the elevation fused by inverse variance
+    (`lasagna.compose.surface.fuse_elevation`) with the untold read's — the preset's own estimator and settings,
+    its fit calibrated as an untold layer's is (``recipe.fit_estimator``, ``preset.surface``). A flat wall's ratio
+    follows the told elevation directly, so a reading off by 10° costs more than the fit's error (docs/BENCHMARKS.md
+    round 23, probes N and N2)."""
+    from lasagna.compose.surface import fuse_elevation
+    from lasagna.document.condition import format_direction, parse_direction
+    from lasagna.generators.surface import DomePrior, SurfaceEstimator
+
+    sd = recipe.preset.surface
+    net = SurfaceEstimator.from_pretrained(recipe.fit_estimator, device=device)
+    _, fitted = net.estimate(
+        working_input(base, sd.working_size, device),
+        DomePrior(weight=sd.dome_weight, height=sd.dome_height),
+        symmetry=sd.symmetry,
+        elevation=sd.light_calibration,
+        source_elevation=sd.source_elevation,
+        flat_walls=sd.flat_walls,
+        wall_relief=sd.wall_relief,
+    )
+    az, el = parse_direction(recipe.source_light)
+    fit_el = parse_direction(light_condition(fitted[0]))[1]
+    return format_direction(az, round(fuse_elevation(el, recipe.source_within, fit_el), 2))
 
 
 def light_condition(light: Tensor) -> str:

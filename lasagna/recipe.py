@@ -175,6 +175,8 @@ class Recipe:
     estimator_sha256: str | None = None
     surface: SurfaceDefaults | None = None
     source_light: str | None = None
+    source_within: float | None = None  # the given source light's uncertainty (degrees): fused with the fit's
+    fit_estimator: Path | None = None  # the untold estimator whose fit it is fused with (``source_within``)
 
     @classmethod
     def for_edit(
@@ -407,6 +409,8 @@ def _surface_recipe(resolved: cat.Resolved, request: EditRequest, label: str) ->
         estimator_sha256=file_sha256(estimator / "model.safetensors"),
         surface=surface,
         source_light=request.source_light,
+        source_within=request.source_within,
+        fit_estimator=resolved.estimator if request.source_within is not None else None,
         distill=distill,
         **scoring,
     )

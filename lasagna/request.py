@@ -19,6 +19,10 @@ from lasagna.document.condition import parse_direction
 from lasagna.document.preset import METHODS, PRESET_LAYER_KINDS, DiffusersOptions, Method, Preset
 from lasagna.errors import ConditionError, LasagnaError
 
+MAX_WITHIN = 90.0
+"""The largest uncertainty (degrees) a given source light may carry (``EditRequest.source_within``): beyond it a
+reading says nothing the estimator's fit does not."""
+
 PROMPT_LABEL = "prompt"  # the label of a layer asked for by free text alone (it names the prompt, no more)
 
 # How a learned layer is made (``lasagna.editing`` describes both; the names are the document tier's,
@@ -101,6 +105,7 @@ class EditRequest:
     diffusers: DiffusersOptions | dict | None = None
     layer_kind: str | None = None
     source_light: str | None = None
+    source_within: float | None = None
 
     def __post_init__(self) -> None:
         check_preset_name(self.preset)
@@ -119,6 +124,14 @@ class EditRequest:
                 parse_direction(self.source_light)
             except ConditionError as exc:  # what a light is, said of --from
                 raise exc.at("from") from None
+        if self.source_within is not None:
+            if self.source_light is None:
+                raise LasagnaError(
+                    "--within is how far a given source light may be off; expected --from LIGHT too", "within"
+                )
+            w = self.source_within
+            if isinstance(w, bool) or not isinstance(w, (int, float)) or not 0.0 < float(w) <= MAX_WITHIN:
+                raise LasagnaError(f"got {w!r}; expected degrees in (0, {MAX_WITHIN:g}]", "within")
         if self.prior is None and (self.controlnets or self.corrective is not None):
             raise LasagnaError(
                 "ControlNets and a corrective go with a prior of one's own; expected --prior PATH too", "prior"

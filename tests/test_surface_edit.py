@@ -929,3 +929,63 @@ def test_a_relight_surface_layer_of_a_one_pixel_thin_image_is_made(shape):
         res = edit(picture, "relight", "left", layer_kind="surface", **told)
         assert tuple(res.layer.shape[-2:]) == shape[-2:]
         assert bool(torch.isfinite(res.layer).all())
+
+
+def test_a_rough_source_light_has_its_elevation_fused_with_the_fit(catalogue):
+    """``source_within`` (``--within``): the layer is told the reader's azimuth and the inverse-variance mean of the
+    reader's elevation and the untold layer's fitted one (numpy float64, to the stored text's 0.01°), records the
+    reading in ``made_by``, and equals, bit for bit, the layer told that fused light; a sure reading keeps its
+    elevation, a vague one takes the fit's."""
+    from lasagna.compose.surface import FIT_ELEVATION_SIGMA
+    from lasagna.document.condition import parse_direction
+
+    fitted = edit(image(), "relight", "right", layer_kind="surface", catalogue_dirs=catalogue)
+    fit_el = parse_direction(fitted.stack.document.layer(fitted.layer_id).source_light)[1]
+
+    def told_el(within: float) -> tuple[float, float, object]:
+        res = edit(
+            image(), "relight", "right", source_light="az=250,el=40", source_within=within, catalogue_dirs=catalogue
+        )
+        layer = res.stack.document.layer(res.layer_id)
+        assert layer.made_by["source_read"] == "az=250,el=40" and layer.made_by["source_within"] == within
+        az, el = parse_direction(layer.source_light)
+        assert az == 250.0
+        return el, within, res
+
+    el, within, rough = told_el(12.0)
+    wr, wf = 1.0 / within**2, 1.0 / FIT_ELEVATION_SIGMA**2
+    assert abs(el - (40.0 * wr + fit_el * wf) / (wr + wf)) <= 0.005 + 1e-9
+    light = rough.stack.document.layer(rough.layer_id).source_light
+    told = edit(image(), "relight", "right", source_light=light, catalogue_dirs=catalogue)
+    assert torch.equal(told.layer, rough.layer)
+    assert abs(told_el(0.01)[0] - 40.0) <= 0.01 and abs(told_el(90.0)[0] - fit_el) <= abs(40.0 - fit_el) / 50 + 0.01
+
+
+@pytest.mark.parametrize(
+    ("options", "said"),
+    [
+        ({"source_within": 10.0}, "expected --from LIGHT too"),
+        ({"source_light": "left", "source_within": 0.0}, "expected degrees in (0, 90]"),
+        ({"source_light": "left", "source_within": 91.0}, "expected degrees in (0, 90]"),
+        ({"source_light": "left", "source_within": True}, "expected degrees in (0, 90]"),
+    ],
+)
+def test_within_needs_a_source_light_and_degrees(catalogue, options, said):
+    with pytest.raises(LasagnaError, match=r"within") as info:
+        edit(image(), "relight", "right", catalogue_dirs=catalogue, **options)
+    assert said in str(info.value)
+
+
+def test_cli_within_is_one_line_and_exit_2_without_from(catalogue, tmp_path, capsys, monkeypatch):
+    from lasagna.cli import main
+    from lasagna.io.png import encode_png
+
+    monkeypatch.setenv("LASAGNA_LAYERS", str(catalogue[0]))
+    (tmp_path / "in.png").write_bytes(encode_png(image().double().numpy(), bit_depth=8))
+    argv = ["edit", str(tmp_path / "in.png"), "--layer", "relight", "--condition", "right", "--no-ora"]
+    assert main([*argv, "--within", "10", "-o", str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "expected --from LIGHT too" in err[0] and not (tmp_path / "bad").exists()
+    assert main([*argv, "--from", "az=250,el=40", "--within", "10", "-o", str(tmp_path / "ok")]) == 0
+    layer = json.loads((tmp_path / "ok" / "stack.json").read_text())["layers"][-1]
+    assert layer["made_by"]["source_read"] == "az=250,el=40" and layer["source_light"].startswith("az=250,el=")

@@ -101,6 +101,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="a relight's source light (named or az=…,el=…), when you know it: the layer is then the surface read "
         "told it (a surface layer; default: the light estimated)",
     )
+    p.add_argument(
+        "--within",
+        dest="source_within",
+        type=float,
+        metavar="DEG",
+        help="with --from: how far your reading of the source light may be off (degrees); its elevation is then "
+        "fused with the estimator's own fit, its azimuth kept — give it unless you know the light to a few degrees",
+    )
     distill_arguments(p)
     own_prior_arguments(p)
     p.add_argument("--no-ora", action="store_true", help="do not write stack.ora")
@@ -240,6 +248,7 @@ def _request(args: argparse.Namespace):
         lr=args.lr,
         layer_kind=args.layer_kind,
         source_light=args.source_light,
+        source_within=args.source_within,
         **_own_prior_options(args),
     )
 

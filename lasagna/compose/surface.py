@@ -177,6 +177,21 @@ def calibrate_elevation(light: Tensor, offset: float, gain: float) -> Tensor:
     return _with_elevation(light, (offset + gain * el).clamp(0.0, MAX_FIT_ELEVATION))
 
 
+FIT_ELEVATION_SIGMA = 9.3
+"""The RMS error (degrees) of the relight preset's untold, calibrated source-light fit's elevation on `select` (16
+scenes at 64², docs/BENCHMARKS.md round 23, probe N2; round 18 measured 9.2° on 64 scenes): the weight its fit gets
+against a person's reading in ``fuse_elevation``."""
+
+
+def fuse_elevation(read: float, read_sigma: float, fitted: float, fitted_sigma: float = FIT_ELEVATION_SIGMA) -> float:
+    """The inverse-variance mean (degrees) of two readings of a light's elevation — a person's, ``read`` ±
+    ``read_sigma``, and an estimator's fit, ``fitted`` ± ``fitted_sigma``: (r/σ_r² + f/σ_f²)/(1/σ_r² + 1/σ_f²), the
+    most likely elevation if both errors are Gaussian and independent. A flat wall's relight ratio follows the
+    elevation its source is given directly (docs/BENCHMARKS.md round 23, probes N and N2)."""
+    wr, wf = 1.0 / read_sigma**2, 1.0 / fitted_sigma**2
+    return (read * wr + fitted * wf) / (wr + wf)
+
+
 WALL_WEIGHT_EPS = 1e-6
 """Floor of the summed wall weight in ``wall_elevation`` (an image the silhouette calls all object)."""
 
