@@ -987,5 +987,6 @@ def test_cli_within_is_one_line_and_exit_2_without_from(catalogue, tmp_path, cap
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "expected --from LIGHT too" in err[0] and not (tmp_path / "bad").exists()
     assert main([*argv, "--from", "az=250,el=40", "--within", "10", "-o", str(tmp_path / "ok")]) == 0
+    assert "your az=250,el=40 ± 10°, its elevation fused with the estimator's fit" in capsys.readouterr().out
     layer = json.loads((tmp_path / "ok" / "stack.json").read_text())["layers"][-1]
     assert layer["made_by"]["source_read"] == "az=250,el=40" and layer["source_light"].startswith("az=250,el=")

@@ -366,6 +366,12 @@ def run_one(args: argparse.Namespace) -> int:
     how = (
         f"a surface lit from {layer.light}"
         + (f", source light {layer.source_light}" if layer.source_light else "")
+        + (
+            f" (your {layer.made_by['source_read']} ± {layer.made_by['source_within']:g}°, its elevation fused with "
+            "the estimator's fit)"
+            if layer.made_by and "source_read" in layer.made_by
+            else ""
+        )
         + f" (estimated at {s['working_size']}²"
         + (f", {s['optimize']} multi-light steps" if s["optimize"] else "")
         + ")"
