@@ -548,7 +548,14 @@ def remake_layer(
     return run
 
 
-def reread_surface(stack: Stack, layer_id: str, *, catalogue_dirs=None, device: str | torch.device = "cpu") -> LayerRun:
+def reread_surface(
+    stack: Stack,
+    layer_id: str,
+    *,
+    within: float | None = None,
+    catalogue_dirs=None,
+    device: str | torch.device = "cpu",
+) -> LayerRun:
     """The relight surface layer ``layer_id`` of ``stack`` read again from its image, told the source light it holds
     now — fitted when it was made, or moved since (the editor's source-light drag, ``lasagna light --from``): the
     recipe of ``lasagna edit --layer-kind surface --from`` that light, so the preset's ``surface.told`` estimator
@@ -556,6 +563,10 @@ def reread_surface(stack: Stack, layer_id: str, *, catalogue_dirs=None, device: 
     relief where the fitted light put it (docs/BENCHMARKS.md, round 15); read again, the relief is found for the
     light the user gave. Only the normal map and ``made_by`` change: the layer's lights, ambient, relief gain,
     colour, name, opacity and mask are kept. Recorded as rendered (``metadata["lasagna.edit"]``).
+
+    ``within`` (degrees, ``lasagna light --within``) says the source light it holds is a rough reading: its
+    elevation is fused with the estimator's fit as ``lasagna edit --within`` does, and the layer then holds the fused
+    light.
 
     One-line refusals: not a surface layer; plain shading (no source light to be told); a layer that records no
     preset or conditioning layer (a normal map of one's own)."""
@@ -583,15 +594,20 @@ def reread_surface(stack: Stack, layer_id: str, *, catalogue_dirs=None, device: 
             where=where,
         )
     request = EditRequest(
-        preset=preset, condition=layer.source_light, on=on, layer_kind="surface", source_light=layer.source_light
+        preset=preset,
+        condition=layer.source_light,
+        on=on,
+        layer_kind="surface",
+        source_light=layer.source_light,
+        source_within=within,
     )  # the condition only names the recipe's light: a surface is lit by every light alike
     recipe = Recipe.for_edit(stack, request, catalogue_dirs=catalogue_dirs)
     run = make_layer(recipe, conditioning_input(stack, on), layer_id, device=device)
     kept = layer.model_dump(mode="json")
     mask = stack.tensors[layer_id].mask
-    stack.add_surface(
-        layer_id, run.normals, layer.light, source_light=layer.source_light, ambient=layer.ambient, mask=mask
-    )
+    source = run.source_light  # the light it was told: the one it holds, or that reading fused with the fit (within)
+    stack.add_surface(layer_id, run.normals, layer.light, source_light=source, ambient=layer.ambient, mask=mask)
+    kept["source_light"] = source
     stack.document = stack.document.with_layer({**kept, "made_by": {**run.made_by, "conditioned_on": on}})
     _record(stack, layer_id, time.monotonic() - start, run, rendered=True)
     return run

@@ -68,6 +68,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "rewritten (the other changes need no learning)",
     )
     p.add_argument(
+        "--within",
+        type=float,
+        metavar="DEG",
+        help="with --read-again: the source light is a rough reading, off by up to about DEG degrees; its elevation is "
+        "fused with the estimator's own fit (as lasagna edit --within)",
+    )
+    p.add_argument(
         "--intensity",
         type=float,
         help="the light's intensity k: its direct term times k; above 1 a shading layer brightens (default: kept)",
@@ -84,6 +91,10 @@ def run(args: argparse.Namespace) -> int:
             "nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, --intensity, "
             "--add-light, --clear-lights, --read-again",
             where="light",
+        )
+    if args.within is not None and not args.read_again:
+        raise LasagnaError(
+            "says how rough the source light is for reading the surface again; expected --read-again too", "--within"
         )
     added = [parse_extra_light(spec) for spec in args.add_light or ()]
     colour = None if args.color is None else parse_colour(args.color)
@@ -131,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
     if args.read_again:
         from lasagna.editing import reread_surface
 
-        reread_surface(stack, layer.id)  # one-line refusals: plain shading, a map of one's own
+        reread_surface(stack, layer.id, within=args.within)  # one-line refusals: plain shading, a map of one's own
         unchanged.pop(layer.id)
         said.append(f"read again by {stack.document.layer(layer.id).made_by.get('told_estimator', 'its estimator')}")
     save_in_place(stack, unchanged=unchanged, expect_sha256=sha, extra=keep_ora_current(folder))

@@ -275,6 +275,35 @@ def test_read_again_estimates_a_relights_surface_told_its_source_light(tiny, tmp
     assert np.array_equal(merged, codes(out / "composite.png"))
 
 
+def test_read_again_within_fuses_a_rough_source_light_as_edit_does(tiny, tmp_path, monkeypatch, capsys):
+    """``--from L --within D --read-again``: the layer is read again told L's azimuth and its elevation fused with the
+    fit, exactly as ``lasagna edit --from L --within D`` reads it (the same normal map, the same stored source light,
+    the reading in ``made_by``); ``--within`` without ``--read-again`` is refused in one line, the folder unchanged."""
+    from lasagna import edit
+
+    monkeypatch.setenv("LASAGNA_LAYERS", str(tiny))
+    torch.manual_seed(5)
+    picture = (torch.rand(3, 12, 16) * 255).to(torch.uint8)
+    Image.fromarray(picture.permute(1, 2, 0).numpy()).save(tmp_path / "a.png")
+    out = tmp_path / "out"
+    argv = ["edit", str(tmp_path / "a.png"), "--layer", "relight", "--layer-kind", "surface", "--condition", "right"]
+    assert main([*argv, "-o", str(out)]) == 0
+    before = (out / "stack.json").read_bytes()
+    capsys.readouterr()
+    assert main(["light", str(out), "--from", "az=150,el=40", "--within", "10"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "expected --read-again too" in err and (out / "stack.json").read_bytes() == before
+    assert main(["light", str(out), "--from", "az=150,el=40", "--within", "10", "--read-again"]) == 0
+    layer = load_stack(out).document.layers[-1]
+    fresh = edit(
+        tmp_path / "a.png", "relight", "right", layer_kind="surface", source_light="az=150,el=40", source_within=10
+    )
+    want = fresh.stack.document.layer(fresh.layer_id)
+    assert layer.source_light == want.source_light and layer.source_light.startswith("az=150,el=")
+    assert layer.made_by["source_read"] == "az=150,el=40" and layer.made_by["source_within"] == 10
+    assert np.array_equal(read_normals(out / layer.source), read_normals_of(fresh, tmp_path / "fresh"))
+
+
 def read_normals_of(result, folder) -> np.ndarray:
     result.save(folder)
     return read_normals(folder / result.stack.document.layer(result.layer_id).source)
