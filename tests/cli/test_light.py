@@ -247,6 +247,19 @@ def test_add_light_adds_a_direct_term_and_clear_lights_removes_it(folder, capsys
     np.testing.assert_array_equal(codes(folder / "composite.png"), first)
 
 
+def edited_relight(tiny, tmp_path, monkeypatch, seed: int):
+    """A random 12×16 picture (``tmp_path``/a.png) edited by ``lasagna edit --layer relight --layer-kind surface
+    --condition right`` with the tiny catalogue into ``tmp_path``/out; the folder."""
+    monkeypatch.setenv("LASAGNA_LAYERS", str(tiny))
+    torch.manual_seed(seed)
+    picture = (torch.rand(3, 12, 16) * 255).to(torch.uint8)
+    Image.fromarray(picture.permute(1, 2, 0).numpy()).save(tmp_path / "a.png")
+    out = tmp_path / "out"
+    argv = ["edit", str(tmp_path / "a.png"), "--layer", "relight", "--layer-kind", "surface", "--condition", "right"]
+    assert main([*argv, "-o", str(out)]) == 0
+    return out
+
+
 def test_read_again_estimates_a_relights_surface_told_its_source_light(tiny, tmp_path, monkeypatch, capsys):
     """``--from L --read-again``: a relight surface layer made by ``lasagna edit`` is estimated again told L — its
     normal map on disk exactly the map of ``lasagna edit --layer-kind surface --from L`` (the preset's told estimator,
@@ -254,13 +267,7 @@ def test_read_again_estimates_a_relights_surface_told_its_source_light(tiny, tmp
     one's own) is refused in one line, exit 2, the folder unchanged."""
     from lasagna import edit
 
-    monkeypatch.setenv("LASAGNA_LAYERS", str(tiny))
-    torch.manual_seed(4)
-    picture = (torch.rand(3, 12, 16) * 255).to(torch.uint8)
-    Image.fromarray(picture.permute(1, 2, 0).numpy()).save(tmp_path / "a.png")
-    out = tmp_path / "out"
-    argv = ["edit", str(tmp_path / "a.png"), "--layer", "relight", "--layer-kind", "surface", "--condition", "right"]
-    assert main([*argv, "-o", str(out)]) == 0
+    out = edited_relight(tiny, tmp_path, monkeypatch, seed=4)
     capsys.readouterr()
     assert main(["light", str(out), "--from", "az=150,el=40", "--read-again"]) == 0
     said = capsys.readouterr().out
@@ -281,13 +288,7 @@ def test_read_again_within_fuses_a_rough_source_light_as_edit_does(tiny, tmp_pat
     the reading in ``made_by``); ``--within`` without ``--read-again`` is refused in one line, the folder unchanged."""
     from lasagna import edit
 
-    monkeypatch.setenv("LASAGNA_LAYERS", str(tiny))
-    torch.manual_seed(5)
-    picture = (torch.rand(3, 12, 16) * 255).to(torch.uint8)
-    Image.fromarray(picture.permute(1, 2, 0).numpy()).save(tmp_path / "a.png")
-    out = tmp_path / "out"
-    argv = ["edit", str(tmp_path / "a.png"), "--layer", "relight", "--layer-kind", "surface", "--condition", "right"]
-    assert main([*argv, "-o", str(out)]) == 0
+    out = edited_relight(tiny, tmp_path, monkeypatch, seed=5)
     before = (out / "stack.json").read_bytes()
     capsys.readouterr()
     assert main(["light", str(out), "--from", "az=150,el=40", "--within", "10"]) == 2
