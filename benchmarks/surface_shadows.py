@@ -28,7 +28,6 @@ import argparse
 import json
 import math
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -42,7 +41,7 @@ from _common import machine_info, psnr  # noqa: E402
 from lasagna import edit  # noqa: E402
 from lasagna.compose.surface import AMBIENT, decode_normal_map, lambert  # noqa: E402
 from lasagna.world.lighting import VOCABULARY  # noqa: E402
-from lasagna.world.params import WALL_Z, SceneParams, sample_scenes  # noqa: E402
+from lasagna.world.params import WALL_Z, sample_scenes  # noqa: E402
 from lasagna.world.scene import render  # noqa: E402
 from lasagna.world.tasks import relight_sources, relighting  # noqa: E402
 
@@ -53,13 +52,6 @@ SHADOW_EPS = 1e-3
 bilinear rounding."""
 NZ_MIN = 0.05
 """Normals' z is clamped to this before their slopes are taken (a silhouette's rim would give unbounded slopes)."""
-
-
-def resting(params: SceneParams, sink: float) -> SceneParams:
-    """``params`` with every object's centre ``sink`` bounding radii in front of the wall (z = WALL_Z + sink·r)."""
-    center = params.center.clone()
-    center[..., 2] = WALL_Z + sink * params.radius.to(center.dtype)
-    return replace(params, center=center)
 
 
 def cast_shadows(height: torch.Tensor, light: torch.Tensor, eps: float = SHADOW_EPS) -> torch.Tensor:
@@ -134,7 +126,7 @@ def main(argv=None) -> int:
     labels = [VOCABULARY[i % len(VOCABULARY)] for i in range(args.count)]
     params = sample_scenes(args.split, args.seed, range(args.count)).with_labels(labels)
     if args.sink != "none":
-        params = resting(params, float(args.sink))
+        params = params.resting(float(args.sink))
     out: dict = {"benchmark": "surface_shadows", "split": args.split, "size": args.size, "sink": args.sink}
     for shadows in (False, True):
         scene = render(params, args.size, shadows=shadows)

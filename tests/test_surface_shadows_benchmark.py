@@ -16,7 +16,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import surface_shadows  # noqa: E402
 
 from lasagna.compose.surface import light_vector, normals_from_height  # noqa: E402
-from lasagna.world.params import WALL_Z, sample_scenes  # noqa: E402
 
 
 @pytest.mark.parametrize("el", [40.0, 60.0])
@@ -51,13 +50,6 @@ def test_integrating_a_height_fields_normals_returns_it():
     got = surface_shadows.integrate_normals(normals_from_height(bump))
     want = bump - bump.min()
     assert float((got - want).abs().max()) < 0.02 * float(want.max())
-
-
-def test_resting_objects_sit_sink_radii_in_front_of_the_wall():
-    params = sample_scenes("select", 0, range(3))
-    moved = surface_shadows.resting(params, 0.5)
-    torch.testing.assert_close(moved.center[..., 2], WALL_Z + 0.5 * params.radius.to(moved.center.dtype))
-    assert torch.equal(moved.center[..., :2], params.center[..., :2]) and torch.equal(moved.size, params.size)
 
 
 def test_the_script_prints_its_rows(capsys):

@@ -84,6 +84,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "learned as paint (the truth stays shadowless; 0: off)",
     )
     p.add_argument(
+        "--rest",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="probability that a scene's objects rest on the wall (attached shadows, a height field above the wall) "
+        "instead of floating in front of it (0: as sampled)",
+    )
+    p.add_argument(
+        "--height-weight",
+        type=float,
+        default=0.0,
+        metavar="W",
+        help="weight of the height field's error against the true heights above the wall (the heights a cast "
+        "shadow needs; 0: off)",
+    )
+    p.add_argument(
         "--relief",
         type=float,
         default=0.0,
@@ -165,6 +181,8 @@ def run(args: argparse.Namespace) -> int:
         stray=args.stray,
         shadows=args.shadows,
         relief=args.relief,
+        rest=args.rest,
+        height_weight=args.height_weight,
         walls_only=args.walls_only,
         scene_bank=args.scene_bank,
         render_on=args.render_on,

@@ -7,6 +7,7 @@ every view), compared with the true shading under the same lights::
 
     L = mean_k ‖S(n̂, l_k) − S(n, l_k)‖²  +  λ_n‖n̂ − n‖²  (+ ‖Ŝ_src − S(n, l_src)‖² + λ_l (1 − l̂_src·l_src) lit)
         (+ λ_s BCE(ŝ, mask), an estimator with a silhouette head: where the objects are, for the dome prior)
+        (+ λ_h ‖(h − h̄) − (d − d̄)‖², d the true heights above the wall: what a cast shadow needs, ``height_weight``)
 
 An estimator with a light input (``SurfaceConfig.light_input``) is told its source light on a fraction of the
 scenes (``light_given``), jittered (``light_jitter``) as a light fitted to its own first reading would be, and
@@ -40,7 +41,7 @@ from lasagna.errors import LasagnaError
 from lasagna.generators.surface import MIRRORS, SurfaceConfig, SurfaceEstimator, transpose_normals, view_light
 from lasagna.training.loop import LoopConfig, network_from_checkpoint, train_loop
 from lasagna.training.tasks import SCENE_RANGE
-from lasagna.world.params import SceneParams, sample_scenes
+from lasagna.world.params import WALL_Z, SceneParams, sample_scenes
 from lasagna.world.relief import RELIEF_DRAWS, RELIEF_NAMES, RELIEFS
 from lasagna.world.scene import Scene, render, with_light
 from lasagna.world.splits import SPLITS, check_training_scenes
@@ -48,6 +49,9 @@ from lasagna.world.stray import stray_gain
 from lasagna.world.tasks import RELIGHT_ELEVATION
 
 CHECKPOINT_FORMAT = "lasagna.surface_run"
+REST_SINK = (0.25, 1.0)
+"""Range of a resting scene's sink (its objects' centres this many bounding radii in front of the wall; ``rest``):
+from a third sunk into the wall to just touching it."""
 MAX_TRAIN_ELEVATION = 75.0
 """Highest elevation (degrees from the view axis) of the training lights: grazing lights beyond it shade
 almost every surface at the ambient floor and say little about shape."""
@@ -129,6 +133,22 @@ class SurfaceTrainConfig(LoopConfig):
         "source light's shading) stays the shadowless contract's; photographs' shade is read as a face turned away "
         "by an estimator that never saw a shadow (docs/BENCHMARKS.md, round 22's P1) (0: off)",
     )
+    rest: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="the probability that a scene's objects rest on the wall (`SceneParams.resting`, each scene's "
+        "sink drawn uniformly in ``REST_SINK``) instead of floating in front of it as the world samples them: "
+        "attached shadows, and a height field above the wall that describes the scene (0: as sampled)",
+    )
+    height_weight: float = Field(
+        0.0,
+        ge=0.0,
+        description="λ_h: weight of the height field's squared error against the true heights above the wall "
+        "(depth − WALL_Z, in the close-up's canvas units), each scene's mean removed from both — the heights a "
+        "cast shadow needs, which normals alone leave free across an object's outline (0: off; a height-output "
+        "estimator only)",
+    )
     scene_bank: int = Field(
         0,
         ge=0,
@@ -186,7 +206,8 @@ def close_ups(scene: Scene, side: int, rng: torch.Generator) -> Scene:
     """``scene`` (rendered at a side Z·``side``) as close-ups at ``side``: per scene a square window of a side drawn
     uniformly in [``side``, Z·``side``] pixels, centred on one of its object pixels drawn uniformly (any pixel where
     it has none) and kept inside the image, reduced to ``side`` (antialiased; the normals renormalised; the object
-    index by nearest pixel). Every draw comes from ``rng``, so a resumed run sees the same windows."""
+    index by nearest pixel; the depth's heights above the wall in the close-up's canvas units, big / win times the
+    scene's, as its normals are unchanged). Every draw comes from ``rng``, so a resumed run sees the same windows."""
     big = int(scene.image.shape[-1])
     out: dict[str, list[torch.Tensor]] = {k: [] for k in _CROPPED}
     for i in range(len(scene)):
@@ -202,6 +223,8 @@ def close_ups(scene: Scene, side: int, rng: torch.Generator) -> Scene:
                 x = torch.nn.functional.interpolate(x.double(), size=(side, side), mode="nearest").long()
             else:
                 x = downsample(x, (side, side))
+            if name == "depth":  # the window is the close-up's canvas: heights above the wall scale by big / win
+                x = WALL_Z + (x - WALL_Z) * (big / win)
             out[name].append(x)
     cropped = {k: torch.cat(v) for k, v in out.items()}
     cropped["normals"] = torch.nn.functional.normalize(cropped["normals"], dim=1)
@@ -259,6 +282,10 @@ def surface_loss(
     shading = shading / len(groups)
     loss = shading + config.normal_weight * torch.nn.functional.mse_loss(normals, truth)
     metrics = {"shading_mse": float(shading.detach())}
+    if config.height_weight > 0:
+        height_mse = torch.nn.functional.mse_loss(centred(surface), centred(scene.depth.to(device) - WALL_Z))
+        loss = loss + config.height_weight * height_mse
+        metrics["height_mse"] = float(height_mse.detach())
     if out.silhouette is not None:
         bce = torch.nn.functional.binary_cross_entropy_with_logits(out.silhouette, scene.mask.to(device))
         loss = loss + config.silhouette_weight * bce
@@ -272,9 +299,15 @@ def surface_loss(
     return loss, metrics
 
 
+def centred(height: torch.Tensor) -> torch.Tensor:
+    """``height`` (B, 1, H, W) with each scene's mean removed: a height field is known up to a constant."""
+    return height - height.mean(dim=(-2, -1), keepdim=True)
+
+
 def training_scenes(config: SurfaceTrainConfig, rng: torch.Generator) -> SceneParams:
     """One step's scenes: ``batch_size`` consecutive scenes of the split from a random start, some or all made bare
-    walls (``walls_only``) and flat walls given relief (``relief``), every draw from ``rng``."""
+    walls (``walls_only``), flat walls given relief (``relief``) and objects moved to rest on the wall (``rest``),
+    every draw from ``rng``."""
     start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
     params = sample_scenes(config.split, config.world_seed, range(start, start + config.batch_size))
     if config.walls_only >= 1.0:
@@ -283,6 +316,13 @@ def training_scenes(config: SurfaceTrainConfig, rng: torch.Generator) -> ScenePa
         params = bare_walls(params, torch.rand(len(params), generator=rng) < config.walls_only)
     if config.relief > 0:
         params = with_relief(params, rng, config.relief, SPLITS[config.split].reliefs)
+    if config.rest > 0:
+        rests = torch.rand(len(params), generator=rng, dtype=torch.float64) < config.rest
+        sink = REST_SINK[0] + (REST_SINK[1] - REST_SINK[0]) * torch.rand(
+            len(params), generator=rng, dtype=torch.float64
+        )
+        moved = params.resting(sink)
+        params = replace(params, center=torch.where(rests[:, None, None], moved.center, params.center))
     return params
 
 
@@ -408,6 +448,12 @@ def train_surface(config: SurfaceTrainConfig, out_dir: str | Path, device: str |
     if device is None:
         device = "cuda" if torch.cuda.is_available() else "cpu"
     check_training_scenes(config.split, config.world_seed, "world_seed")
+    if config.height_weight > 0 and config.net.output != "height":
+        raise LasagnaError(
+            f"a height loss needs an estimator that outputs a height field; expected --output height, got "
+            f"{config.net.output!r}",
+            "height_weight",
+        )
     if config.shadows > 0 and (config.net.input != "lit" or config.scene_bank):
         raise LasagnaError(
             f"cast shadows are rendered under each scene's source light: expected a lit-input estimator trained on "

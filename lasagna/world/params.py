@@ -115,6 +115,16 @@ class SceneParams:
         """The same scenes with no objects and a flat wall: textured walls whose true shading is one constant."""
         return replace(self, present=torch.zeros_like(self.present), relief=torch.full_like(self.relief, -1))
 
+    def resting(self, sink: float | torch.Tensor) -> SceneParams:
+        """The same scenes with every object's centre ``sink`` bounding radii in front of the wall (z = ``WALL_Z`` +
+        sink·radius; ``sink`` one number or one per scene, (B,)): the objects rest on the wall — sunk into it for
+        sink < 1 — as a photograph's objects stand on what lies behind them, so their cast shadows are attached and
+        a height field above the wall describes the scene (the world as sampled floats them: ``_CENTRE_Z``)."""
+        sink = torch.as_tensor(sink, dtype=self.center.dtype).reshape(-1, 1)
+        center = self.center.clone()
+        center[..., 2] = WALL_Z + sink * self.radius.to(center.dtype)
+        return replace(self, center=center)
+
     def _names(self, labels: str | Sequence[str], what: str) -> list[str]:
         """One label for all scenes, or one per scene."""
         names = [labels] * len(self) if isinstance(labels, str) else list(labels)

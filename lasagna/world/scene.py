@@ -176,6 +176,9 @@ def _render_chunk(
     tbuf = torch.full((b, k, h, w), float("inf"), **to)
     tbuf[bi, ki, ii, jj] = t
     tmin, kmin = tbuf.min(dim=1)  # (B, H, W)
+    # An object sunk into the wall (`SceneParams.resting`) is hidden where its surface lies behind the wall's plane;
+    # objects as sampled never reach it, so this changes no sampled scene.
+    tmin = torch.where(_RAY_Z - tmin > WALL_Z, tmin, torch.full_like(tmin, float("inf")))
     hit = torch.isfinite(tmin)
     vis_slot = torch.where(hit, kmin, torch.full_like(kmin, -1))
     won = torch.isfinite(t) & (vis_slot[bi, ii, jj] == ki)

@@ -411,3 +411,50 @@ def test_the_light_weight_scales_the_fitted_lights_cosine_error_in_the_loss_and_
     argv += ["--channels", "8,16", "--blocks", "1", "--batch-size", "2", "--steps", "1", "--light-weight", "0.7"]
     assert main([*argv, "--no-progress"]) == 0
     assert json.loads((tmp_path / "run" / "train_config.json").read_text())["light_weight"] == 0.7
+
+
+def test_a_close_ups_heights_are_in_its_own_canvas_units():
+    """``close_ups`` scales the heights above the wall by the window's zoom (big / win), as its normals are the
+    geometry's, unchanged: central differences of a close-up's depth (numpy float64) agree with its normals, where the
+    render's depth, cut and reduced alone, disagrees for every zoomed window."""
+    from lasagna.training.surface import close_ups
+    from lasagna.world.params import WALL_Z, sample_scenes
+    from lasagna.world.scene import render
+
+    scene = render(sample_scenes("train", 5, range(8)).resting(0.5), 96)
+    cut = close_ups(scene, 32, torch.Generator().manual_seed(2))
+    inner = _inside(cut)
+    cos = (_depth_normals(cut) * cut.normals.double().numpy()).sum(1)
+    unscaled = []
+    for i in range(8):
+        if inner[i].sum() < 30:
+            continue
+        assert float(np.median(cos[i][inner[i]])) > 0.99, i
+        peak = float((cut.depth[i] - WALL_Z).max())
+        unscaled.append(peak)
+    assert len(unscaled) >= 4
+    # The heights grew with the zoom: some window's peak exceeds the whole render's tallest object.
+    assert max(unscaled) > float((scene.depth - WALL_Z).max()) * 1.2
+
+
+def test_resting_scenes_and_the_height_loss(tmp_path):
+    """``rest``: the drawn scenes' objects sit REST_SINK radii in front of the wall (some scenes, at 0.5); the height
+    loss is zero for the true heights plus any constant and positive for a flat field; a run with both trains, logs
+    the height error, and a normals-output estimator is refused a height loss."""
+    from lasagna.training.surface import REST_SINK, centred, training_scenes
+    from lasagna.world.params import WALL_Z
+
+    config = toy(rest=0.5, batch_size=64)
+    params = training_scenes(config, torch.Generator().manual_seed(1))
+    sink = (params.center[..., 2] - WALL_Z) / params.radius.to(params.center.dtype)
+    rests = ((sink >= REST_SINK[0] - 1e-9) & (sink <= REST_SINK[1] + 1e-9)).all(1)
+    assert 16 < int(rests.sum()) < 48
+    assert bool((params.center[~rests][..., 2] >= -0.2 - 1e-9).all())  # the others float, as sampled
+    truth = torch.rand(2, 1, 8, 8, dtype=torch.float64)
+    assert float(centred(truth + 3.0).sub(centred(truth)).abs().max()) < 1e-12
+    assert float(centred(truth).abs().mean()) > 0.1
+    train_surface(toy(steps=2, zoom=2.0, rest=1.0, height_weight=1.0), tmp_path / "run")
+    assert all(r["height_mse"] > 0 for r in read_log(tmp_path / "run"))
+    with pytest.raises(LasagnaError, match="height field"):
+        normals = SurfaceConfig(input="lit", output="normals", channels=(8, 16), blocks=1, working_size=16)
+        train_surface(toy(steps=1, height_weight=1.0, net=normals), tmp_path / "refused")

@@ -291,3 +291,18 @@ def test_walls_only_are_flat_textured_walls(split):
     full = render(sample_scenes(split, 0, range(6)), 32)
     wall = (full.mask == 0).expand_as(full.albedo)
     assert torch.equal(s.albedo[wall], full.albedo[wall])  # the very same paint
+
+
+def test_resting_objects_sit_sink_radii_in_front_of_the_wall_and_touch_it():
+    params = sample_scenes("select", 0, range(3))
+    moved = params.resting(0.5)
+    torch.testing.assert_close(moved.center[..., 2], WALL_Z + 0.5 * params.radius.to(moved.center.dtype))
+    assert torch.equal(moved.center[..., :2], params.center[..., :2]) and torch.equal(moved.size, params.size)
+    per_scene = params.resting(torch.tensor([0.0, 0.5, 1.0], dtype=torch.float64))
+    torch.testing.assert_close(per_scene.center[1], moved.center[1])
+    # As sampled the objects float: every object pixel stands well clear of the wall. Resting at sink 0.5, some object
+    # pixels meet the wall's depth (the object passes through it), so their height above the wall reaches zero.
+    floating, resting = render(params, 32), render(moved, 32)
+    on = floating.mask > 0.5
+    assert float((floating.depth[on] - WALL_Z).min()) > 0.05
+    assert float((resting.depth - WALL_Z).abs()[resting.mask > 0.5].min()) < 0.05
