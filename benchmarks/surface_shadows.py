@@ -15,10 +15,13 @@ the ray passes below h):
 
     ratio = (a + (1 − a)·V_t·max(0, n̂·l_t)) / (a + (1 − a)·V_s·max(0, n̂·l_s)),  clamped to [0, 4]
 
-for h the true heights (depth − WALL_Z: the headroom of casting), and the layer's own normals integrated
-(``integrate_normals``, Frankot–Chellappa 1988 on a mirrored extension) times each of ``--gains``. Rows: dB of the
-composite over the unchanged input (all / objects), with and without the world's shadows; the ray march's agreement
-with the world's own shadows (share of pixels, IoU of the shadowed ones). Nothing here is a default: a probe's
+for h the true heights (depth − WALL_Z: the headroom of casting), the layer's own normals integrated
+(``integrate_normals``, Frankot–Chellappa 1988 on a mirrored extension) times each of ``--gains``, and the height
+field of each estimator in ``--heights`` (told the true source light; round 24's height-trained estimators), both
+lights' shadows and the target's alone cast onto the walls (V_t = 1 − (1 − V)·(1 − p), p its silhouette probability;
+the source's shadows left in the image, V_s = 1). Rows:
+dB of the composite over the unchanged input (all / objects), with and without the world's shadows; the ray march's
+agreement with the world's own shadows (share of pixels, IoU of the shadowed ones). Nothing here is a default: a probe's
 reproducible form (docs/BENCHMARKS.md, round 23, S2 and S3).
 """
 
@@ -39,7 +42,9 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from _common import machine_info, psnr  # noqa: E402
 
 from lasagna import edit  # noqa: E402
+from lasagna.compose.resample import downsample  # noqa: E402
 from lasagna.compose.surface import AMBIENT, decode_normal_map, lambert  # noqa: E402
+from lasagna.generators.surface import SurfaceEstimator  # noqa: E402
 from lasagna.world.lighting import VOCABULARY  # noqa: E402
 from lasagna.world.params import WALL_Z, sample_scenes  # noqa: E402
 from lasagna.world.scene import render  # noqa: E402
@@ -100,6 +105,18 @@ def integrate_normals(normals: torch.Tensor) -> torch.Tensor:
     return out - out.amin(dim=(-2, -1), keepdim=True)
 
 
+def estimator_heights(path: str, image: torch.Tensor, light: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(the height field (B, 1, H, W, canvas units), the walls' weight (B, 1, H, W): 1 − the silhouette probability)
+    the surface estimator at ``path`` reads from ``image`` (B, 3, H, W) told ``light`` (B, 3): its eight-view ensemble
+    at its working size, enlarged bilinearly to the image."""
+    net = SurfaceEstimator.from_pretrained(path)
+    small = downsample(image, (net.config.working_size,) * 2)
+    height, objects = net.height_field(small, "dihedral", light), net.silhouette(small, "dihedral")
+    size = image.shape[-2:]
+    up = [F.interpolate(x, size=size, mode="bilinear", align_corners=False) for x in (height, objects)]
+    return up[0], 1.0 - up[1]
+
+
 def shaded(normals: torch.Tensor, light: torch.Tensor, vis: torch.Tensor, ambient: float = AMBIENT) -> torch.Tensor:
     """Lambert with ambient and visibility: a + (1 − a)·V·max(0, n·l)."""
     return ambient + (1.0 - ambient) * vis * (normals * light[:, :, None, None]).sum(1, keepdim=True).clamp_min(0.0)
@@ -122,6 +139,13 @@ def main(argv=None) -> int:
         "--sink", default="0.5", help="objects' centres this many radii in front of the wall ('none': as sampled)"
     )
     p.add_argument("--gains", nargs="+", type=float, default=[1.0, 2.0, 3.0])
+    p.add_argument(
+        "--heights",
+        nargs="*",
+        default=[],
+        metavar="ESTIMATOR",
+        help="surface estimators (folders) whose own height fields, told the true source light, cast the shadows",
+    )
     args = p.parse_args(argv)
     labels = [VOCABULARY[i % len(VOCABULARY)] for i in range(args.count)]
     params = sample_scenes(args.split, args.seed, range(args.count)).with_labels(labels)
@@ -151,6 +175,15 @@ def main(argv=None) -> int:
             vt, vs = cast_shadows(own * g, lt), cast_shadows(own * g, ls)
             rows[f"its normals, shadows cast from their integrated heights x{g:g}"] = gains(
                 rel, scene, (shaded(n, lt, vt) / shaded(n, ls, vs)).clamp(0, RATIO_MAX)
+            )
+        for path in args.heights:
+            own, walls = estimator_heights(path, rel.base.float(), ls)
+            vt, vs = cast_shadows(own, lt), cast_shadows(own, ls)
+            rows[f"its normals, shadows cast from {path}'s heights"] = gains(
+                rel, scene, (shaded(n, lt, vt) / shaded(n, ls, vs)).clamp(0, RATIO_MAX)
+            )
+            rows[f"its normals, the target's shadows cast onto the walls from {path}'s heights"] = gains(
+                rel, scene, (shaded(n, lt, 1 - (1 - vt) * walls) / shaded(n, ls, one)).clamp(0, RATIO_MAX)
             )
         if shadows:
             world = rel.source.shading.float() < lambert(scene.normals.float(), ls) - 1e-4

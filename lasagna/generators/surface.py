@@ -321,6 +321,28 @@ class SurfaceEstimator(Pretrained, nn.Module):
         return surface, light if elevation is None else calibrate_elevation(light, *elevation)
 
     @torch.no_grad()
+    def height_field(self, image: Tensor, symmetry: Symmetry = "none", light: Tensor | None = None) -> Tensor:
+        """The height field (B, 1, H, W, canvas units, each image's mean removed) the head outputs for ``image``,
+        averaged over ``symmetry``'s ensemble — a height moves with its pixels, so each view's field is only moved
+        back — ``light`` (B, 3) mapped into each view as ``estimate`` maps it. What a cast shadow is marched over
+        (an estimator trained with a height loss, `lasagna.training.surface`'s ``height_weight``: the heights of
+        one trained on normals alone are free across an object's outline)."""
+        if self.config.output != "height":
+            raise LasagnaError("this estimator outputs normals; expected a height-output estimator", "height_field")
+        if symmetry not in SYMMETRIES:
+            raise LasagnaError(f"got {symmetry!r}; expected one of {', '.join(SYMMETRIES)}", "symmetry")
+        fields = []
+        transposes = (False, True) if symmetry == "dihedral" else (False,)
+        for transpose in transposes:
+            seen = image.transpose(-1, -2) if transpose else image
+            for dims, sign in MIRRORS if symmetry != "none" else MIRRORS[:1]:
+                h = self.outputs(seen.flip(dims) if dims else seen, view_light(light, dims, sign, transpose)).surface
+                h = h.flip(dims) if dims else h
+                fields.append(h.transpose(-1, -2) if transpose else h)
+        h = torch.stack(fields).mean(0)
+        return h - h.mean(dim=(-2, -1), keepdim=True)
+
+    @torch.no_grad()
     def silhouette(self, image: Tensor, symmetry: Symmetry = "none") -> Tensor:
         """The probability (B, 1, H, W) that each pixel of ``image`` lies on an object, by the silhouette head (its
         sigmoid), averaged over ``symmetry``'s ensemble as ``estimate`` averages the surface."""
