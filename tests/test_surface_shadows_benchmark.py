@@ -60,3 +60,19 @@ def test_the_script_prints_its_rows(capsys):
         assert len(rows["told layer"]) == 2 and "its normals, shadows cast from the true heights" in rows
     march = out["shadows"]["ray march of the true heights against the world's source shadows"]
     assert 0.5 < march["agree"] <= 1.0
+
+
+def test_the_script_casts_from_an_estimators_heights(capsys, tmp_path):
+    """``--heights``: an estimator's own height field casts both lights' shadows and the target's onto the walls (a
+    row each); an estimator whose heights are flat casts nothing, so its rows equal the told layer's."""
+    from lasagna.generators.surface import SurfaceConfig, SurfaceEstimator
+
+    flat = SurfaceEstimator(SurfaceConfig(input="lit", silhouette=True, light_input=True, channels=(4, 8), blocks=1))
+    flat.save_pretrained(tmp_path / "flat")  # a zero-initialised head: every height 0
+    assert (
+        surface_shadows.main(["--count", "1", "--size", "24", "--gains", "1", "--heights", str(tmp_path / "flat")]) == 0
+    )
+    rows = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["shadows"]
+    told = rows["told layer"]
+    assert rows[f"its normals, shadows cast from {tmp_path / 'flat'}'s heights"] == told
+    assert rows[f"its normals, the target's shadows cast onto the walls from {tmp_path / 'flat'}'s heights"] == told

@@ -458,3 +458,36 @@ def test_the_symmetry_ensemble_maps_a_given_light_into_each_view(symmetry):
         swapped = torch.stack([-light[:, 1], -light[:, 0], light[:, 2]], 1)
         t, _ = net.estimate(image.transpose(-1, -2), symmetry=symmetry, light=swapped)
         torch.testing.assert_close(t, _transposed(n), atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("symmetry", ["none", "mirrors", "dihedral"])
+def test_the_height_field_is_the_heads_heights_moved_back_averaged_and_centred(symmetry):
+    """``height_field``: each pass's heights moved back as pixels (a height has no direction to turn), averaged and
+    each image's mean removed (by hand here); the told light turned into each view as ``estimate`` turns it; under the
+    ensemble a mirrored image, told the mirrored light, gives the mirrored field; a normals-output estimator is
+    refused in one line."""
+    from lasagna.generators.surface import MIRRORS, view_light
+
+    torch.manual_seed(4)
+    net = SurfaceEstimator(SurfaceConfig(input="lit", light_input=True, **TOY))
+    torch.nn.init.normal_(net.head.weight, std=0.5)
+    image = torch.rand(2, 3, 12, 12)
+    light = torch.nn.functional.normalize(torch.tensor([[0.5, 0.3, 0.8], [-0.2, 0.6, 0.7]]), dim=1)
+    h = net.height_field(image, symmetry, light)
+    assert h.shape == (2, 1, 12, 12)
+    passes = []
+    for transpose in (False, True) if symmetry == "dihedral" else (False,):
+        seen = image.transpose(-1, -2) if transpose else image
+        for dims, sign in MIRRORS if symmetry != "none" else MIRRORS[:1]:
+            one = net.outputs(seen.flip(dims) if dims else seen, view_light(light, dims, sign, transpose)).surface
+            one = one.flip(dims) if dims else one
+            passes.append(one.transpose(-1, -2) if transpose else one)
+    want = torch.stack(passes).mean(0)
+    torch.testing.assert_close(h, want - want.mean(dim=(-2, -1), keepdim=True), atol=1e-6, rtol=0)
+    torch.testing.assert_close(h.mean(dim=(-2, -1)), torch.zeros(2, 1), atol=1e-6, rtol=0)
+    if symmetry != "none":
+        mirrored = net.height_field(image.flip(-1), symmetry, light * torch.tensor([-1.0, 1.0, 1.0]))
+        torch.testing.assert_close(mirrored, h.flip(-1), atol=1e-5, rtol=0)
+    normals = SurfaceEstimator(SurfaceConfig(input="lit", output="normals", **TOY))
+    with pytest.raises(LasagnaError, match="height_field: this estimator outputs normals"):
+        normals.height_field(image)
