@@ -22,6 +22,7 @@ from lasagna.document.models import MAX_EXTRA_LIGHTS, MAX_RELIEF, ExtraLight, Li
 from lasagna.document.types import Blend, Colour, OpaqueColour
 from lasagna.document.validation import parse_json
 from lasagna.errors import DocumentError, LasagnaError, describe_validation_error
+from lasagna.request import MAX_WITHIN
 
 MAX_TEXT = 1024
 """Longest name, id, preset or condition a request may carry (the document's ids are at most 64 characters;
@@ -45,6 +46,7 @@ SurfaceLight = Annotated[
 """A surface layer's light: a `Light` or a point light ``x=X,y=Y,z=Z`` (``parse_surface_light``)."""
 Ambient = Annotated[float, Field(strict=True, ge=0.0, lt=1.0)]
 Relief = Annotated[float, Field(strict=True, gt=0.0, le=MAX_RELIEF, allow_inf_nan=False)]
+Within = Annotated[float, Field(strict=True, gt=0.0, le=MAX_WITHIN, allow_inf_nan=False)]
 
 
 class RequestError(LasagnaError):
@@ -166,14 +168,16 @@ class SetLight(_Body):
 
 
 class Reread(_Body):
-    """Read a relight surface layer again told its source light (``EditSession.reread_surface``)."""
+    """Read a relight surface layer again told its source light (``EditSession.reread_surface``); ``within`` (degrees)
+    says that light is a rough reading, its elevation fused with the estimator's fit (``lasagna light --within``)."""
 
     op: Literal["reread"]
     version: Version
     id: Text
+    within: Within | None = None
 
     def call(self, session):
-        return session.reread_surface(self.version, self.id)
+        return session.reread_surface(self.version, self.id, within=self.within)
 
 
 class Undo(_Body):

@@ -293,14 +293,16 @@ class EditSession(SessionViews, SessionJobs):
 
         return self._change(version, f"light of {id}", apply)
 
-    def reread_surface(self, version: Any, id: str) -> dict[str, Any]:
+    def reread_surface(self, version: Any, id: str, within: float | None = None) -> dict[str, Any]:
         """Read relight surface layer ``id`` again from its image, told the source light it holds now
         (``lasagna.editing.reread_surface``: the preset's told estimator, about a second for ``relight``): what a
-        dragged source light becomes when the user asks. Its lights and look are kept. One undo step."""
+        dragged source light becomes when the user asks. ``within`` (degrees): that light is a rough reading, its
+        elevation fused with the estimator's fit, and the layer then holds the fused light (``lasagna light
+        --within``). Its lights and look are kept. One undo step."""
         from lasagna.editing import reread_surface
 
         def apply() -> None:
-            reread_surface(self.stack, id, catalogue_dirs=self.catalogue_dirs, device=self.device)
+            reread_surface(self.stack, id, within=within, catalogue_dirs=self.catalogue_dirs, device=self.device)
 
         return self._change(version, f"re-read {id}", apply)
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lasagna.document.condition import parse_direction
 from tests.support.bounded import HANG_SECONDS
 from tests.support.tinylayers import ROOT
 
@@ -458,6 +459,16 @@ def test_a_dragged_source_light_is_read_again_told(browser, server, folder):
     assert layer["made_by"]["told_estimator"] == "surface-lit-told-32"
     assert layer["source_light"] == source and layer["light"] == "right"
     assert not np.array_equal(page_pixels(page), dragged)
+    # "within ±°" filled: the light a rough reading, its elevation fused with the fit; the layer holds the fused light.
+    exact = page_pixels(page)
+    page.fill("#reread-within", "10")
+    page.click("#reread")
+    settle(page, v + 4)
+    fused = page.evaluate("window.lasagna.state.document.layers.at(-1)")
+    assert fused["made_by"]["source_within"] == 10 and fused["made_by"]["source_read"] == source
+    (az, el), (read_az, read_el) = parse_direction(fused["source_light"]), parse_direction(source)
+    assert abs(az - read_az) < 1e-6 and abs(el - read_el) > 0.1  # the reader's azimuth, the elevation fused
+    assert not np.array_equal(page_pixels(page), exact)
     save_and_check(page, folder)
     assert page.errors == []
 

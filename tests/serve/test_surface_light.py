@@ -585,6 +585,23 @@ def test_a_relight_surface_layer_is_read_again_told_its_dragged_source_light(tin
     assert np.array_equal(view(client, level=0)[..., :3], composite_codes(fresh.composite).permute(1, 2, 0).numpy())
     ok(post(client, op="undo"))
     assert np.array_equal(view(client, level=0), dragged)
+    # Told the dragged light within ±10°: read as `lasagna edit --from L --within 10` reads it — the same map and the
+    # fused source light, held by the layer, the reading recorded.
+    within = ok(post(client, op="reread", id=id, within=10))
+    fused = edit(
+        picture,
+        "relight",
+        "right",
+        layer_kind="surface",
+        source_light="az=150,el=40",
+        source_within=10,
+        catalogue_dirs=[catalogue],
+    )
+    want = fused.stack.document.layer(fused.layer_id)
+    layer = next(x for x in within["document"]["layers"] if x["id"] == id)
+    assert layer["source_light"] == want.source_light != "az=150,el=40" and layer["made_by"]["source_within"] == 10
+    assert np.array_equal(view(client, level=0)[..., :3], composite_codes(fused.composite).permute(1, 2, 0).numpy())
+    ok(post(client, op="undo"))
     # A shading layer (its estimator reads the unlit base) made a relight later has no light to be told.
     shaded = ok(post(client, op="learned", preset="shading", condition="left", kind="surface"))
     sid = shaded["document"]["layers"][-1]["id"]
@@ -595,6 +612,9 @@ def test_a_relight_surface_layer_is_read_again_told_its_dragged_source_light(tin
         ({"id": "base"}, "expected a surface layer"),
         ({"id": "nope"}, "nope"),
         ({"id": sid}, "no source light to give"),
+        ({"id": id, "within": 0}, "greater than 0"),
+        ({"id": id, "within": 91}, "less than or equal to 90"),
+        ({"id": id, "within": "10"}, "within"),
     ):
         message = one_line_4xx(post(client, op="reread", **body))
         assert words in message, message

@@ -398,18 +398,26 @@ function lightControl(layer) {
   }
   // Moving the source light only divides the old surface by another light; read again told it, the surface's
   // relief is found for the light the user gives (the preset's told estimator: lasagna edit --from). One step.
+  // "Within ±°" says the light is a rough reading (lasagna light --within): its elevation is fused with the
+  // estimator's own fit, and the layer then holds the fused light. Empty: the light as it is, exactly.
   if (lit.rereadable) {
     const reread = document.createElement("button");
     reread.id = "reread";
     reread.textContent = "Read again from this source light";
     reread.title = "Estimate the surface again, told the source light as it is now (about a second)";
+    const within = numberInput("", () => {}, "0.5");
+    within.id = "reread-within";
+    within.min = "0.5"; within.max = "90"; within.placeholder = "exact";
+    within.title = "How far off the source light may be, in degrees (empty: exact)";
     reread.addEventListener("click", async () => {
       reread.disabled = true;
       status("reading the surface again…");
-      await change({ op: "reread", id: layer.id });
+      const body = { op: "reread", id: layer.id };
+      if (within.value !== "") body.within = parseFloat(within.value);
+      await change(body);
       reread.disabled = false;
     });
-    box.append(reread);
+    box.append(reread, field(" within ±°", within));
   }
   readout.textContent = moving === "source" ? lit.source_light : lit.light;
   drawSphere(sphere, ...shown(), lit.ambient);
