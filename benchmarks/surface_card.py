@@ -68,6 +68,8 @@ OPTIONAL_FLAGS = (
     ("relief", "--relief", 0.0),
     ("stray", "--stray", 0.0),
     ("shadows", "--shadows", 0.0),
+    ("rest", "--rest", 0.0),
+    ("height_weight", "--height-weight", 0.0),
     ("scene_bank", "--scene-bank", 0),
 )
 LIGHT_KEYS = {"light_given", "light_jitter"}  # read only by an estimator told the light (--light-input)
@@ -244,6 +246,16 @@ def main(argv=None) -> int:
             f" A scene's input kept the world's cast shadows under its source light with probability "
             f"{cfg['shadows']:g} (the truth shadowless: shadows taught as paint)."
             if cfg.get("shadows")
+            else ""
+        )
+        + (
+            f" A scene's objects rested on the wall with probability {cfg['rest']:g} (sunk 0.25–1 bounding radii)."
+            if cfg.get("rest")
+            else ""
+        )
+        + (
+            f" Its height field was fitted to the true heights above the wall (weight {cfg['height_weight']:g})."
+            if cfg.get("height_weight")
             else ""
         ),
         "`select`, `heldout` and `far` (families training never uses) are never seen; every choice is made on "

@@ -30,6 +30,8 @@ BASE = {
     "light_weight": 0.1,
     "stray": 0.0,
     "shadows": 0.0,
+    "rest": 0.0,
+    "height_weight": 0.0,
     "relief": 0.5,
     "walls_only": 0.5,
     "scene_bank": 0,
@@ -49,7 +51,16 @@ def parsed(cfg: dict) -> argparse.Namespace:
     "changes",
     [
         {},  # round 17's M: told the light, walls alone and relief walls, warm-up 50
-        {"light_given": 0.5, "light_jitter": 4.0, "light_weight": 1.0, "stray": 0.25, "scene_bank": 64, "shadows": 0.5},
+        {
+            "light_given": 0.5,
+            "light_jitter": 4.0,
+            "light_weight": 1.0,
+            "stray": 0.25,
+            "scene_bank": 64,
+            "shadows": 0.5,
+            "rest": 1.0,
+            "height_weight": 4.0,
+        },
         {"warmup_steps": 100, "relief": 0.0, "walls_only": 0.0, "init_from": None, "world_seed": 7, "zoom": 1.0},
     ],
 )
@@ -62,7 +73,7 @@ def test_the_cards_command_parses_back_to_the_recorded_config(changes, light_inp
     assert args.lr == pytest.approx(cfg["lr"], rel=1e-12) and args.minutes == cfg["max_minutes"]
     assert args.warmup == cfg["warmup_steps"] and args.batch_size == 32 and args.lights == 3
     assert args.world_seed == cfg["world_seed"] and args.zoom == cfg["zoom"] and args.init_from == cfg["init_from"]
-    for key in ("light_weight", "stray", "shadows", "relief", "walls_only", "scene_bank"):
+    for key in ("light_weight", "stray", "shadows", "rest", "height_weight", "relief", "walls_only", "scene_bank"):
         assert getattr(args, key) == cfg[key], key
     if light_input:  # what the scenes were told is read only by an estimator that reads a light
         assert args.light_given == cfg["light_given"] and args.light_jitter == cfg["light_jitter"]
