@@ -43,7 +43,7 @@ from _common import machine_info, psnr  # noqa: E402
 
 from lasagna import edit  # noqa: E402
 from lasagna.compose.resample import downsample  # noqa: E402
-from lasagna.compose.surface import AMBIENT, decode_normal_map, lambert  # noqa: E402
+from lasagna.compose.surface import AMBIENT, decode_normal_map, integrate_normals, lambert  # noqa: E402
 from lasagna.generators.surface import SurfaceEstimator  # noqa: E402
 from lasagna.world.lighting import VOCABULARY  # noqa: E402
 from lasagna.world.params import WALL_Z, sample_scenes  # noqa: E402
@@ -55,8 +55,6 @@ RATIO_MAX = 4.0
 SHADOW_EPS = 1e-3
 """A ray passes below the height field only by more than this (canvas units): a surface never shadows itself by
 bilinear rounding."""
-NZ_MIN = 0.05
-"""Normals' z is clamped to this before their slopes are taken (a silhouette's rim would give unbounded slopes)."""
 
 
 def cast_shadows(height: torch.Tensor, light: torch.Tensor, eps: float = SHADOW_EPS) -> torch.Tensor:
@@ -83,26 +81,6 @@ def cast_shadows(height: torch.Tensor, light: torch.Tensor, eps: float = SHADOW_
             inside = ((col >= 0) & (col <= w - 1) & (row >= 0) & (row <= h - 1))[None, None]
             vis[i : i + 1] = torch.where(inside & (above > hi + k * rise + eps), 0.0, vis[i : i + 1])
     return vis
-
-
-def integrate_normals(normals: torch.Tensor) -> torch.Tensor:
-    """A height field (B, 1, H, W, canvas units, its least value 0) whose gradient fits the slopes of unit
-    ``normals`` in the least-squares sense: Frankot & Chellappa (1988), the slopes mirrored to a periodic image of
-    twice the size so the borders do not wrap. Inverse of `lasagna.compose.surface.normals_from_height` up to a
-    constant, for a smooth field."""
-    nz = normals[:, 2:3].clamp_min(NZ_MIN)
-    p, q = -normals[:, 0:1] / nz, normals[:, 1:2] / nz  # ∂h/∂x (x right) and ∂h/∂row (rows go down, y up)
-    h, w = normals.shape[-2:]
-    p2 = torch.cat([torch.cat([p, -p.flip(-1)], -1), torch.cat([p.flip(-2), -p.flip(-2).flip(-1)], -1)], -2)
-    q2 = torch.cat([torch.cat([q, q.flip(-1)], -1), torch.cat([-q.flip(-2), -q.flip(-2).flip(-1)], -1)], -2)
-    fy = torch.fft.fftfreq(2 * h, dtype=normals.dtype).view(-1, 1) * 2 * math.pi
-    fx = torch.fft.fftfreq(2 * w, dtype=normals.dtype).view(1, -1) * 2 * math.pi
-    denom = fx**2 + fy**2
-    denom[0, 0] = 1.0
-    z = (-1j * fx * torch.fft.fft2(p2) - 1j * fy * torch.fft.fft2(q2)) / denom
-    z[..., 0, 0] = 0.0
-    out = torch.fft.ifft2(z).real[..., :h, :w] * (2.0 / w)  # slopes per canvas unit × pixel size
-    return out - out.amin(dim=(-2, -1), keepdim=True)
 
 
 def estimator_heights(path: str, image: torch.Tensor, light: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -17,7 +17,18 @@ from lasagna import catalogue
 ROOT = Path(__file__).resolve().parents[1]
 
 # Options whose value is written, or is a user's own file the README only shows (a diffusers folder, a photo).
-WRITES = {"-o", "--output", "--out", "--sheet", "--json-out", "--ora", "--psd", "--layers", "--normal-map"}
+WRITES = {
+    "-o",
+    "--output",
+    "--out",
+    "--sheet",
+    "--json-out",
+    "--ora",
+    "--psd",
+    "--layers",
+    "--normal-map",
+    "--height-map",
+}
 USERS_OWN = ("/models/", "runs/", "out/", "shots/", "big/", "photos/", "photo.png", "a.png")  # prefixes
 
 

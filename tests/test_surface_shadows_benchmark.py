@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import surface_shadows  # noqa: E402
 
-from lasagna.compose.surface import light_vector, normals_from_height  # noqa: E402
+from lasagna.compose.surface import light_vector  # noqa: E402
 
 
 @pytest.mark.parametrize("el", [40.0, 60.0])
@@ -38,18 +38,6 @@ def test_a_plateau_casts_a_shadow_as_long_as_its_height_over_the_lights_slope(el
         (vis[:24] == 1).all() and (vis[40:] == 1).all() and (vis[:, 52:] == 1).all() and (vis[24:40, 40:52] == 1).all()
     )
     assert (surface_shadows.cast_shadows(h, torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)) == 1).all()
-
-
-def test_integrating_a_height_fields_normals_returns_it():
-    y, x = torch.meshgrid(
-        torch.linspace(-1, 1, 48, dtype=torch.float64), torch.linspace(-1, 1, 48, dtype=torch.float64), indexing="ij"
-    )
-    bump = (0.3 * torch.exp(-(x**2 + y**2) / 0.15) + 0.1 * torch.exp(-((x - 0.5) ** 2 + (y + 0.4) ** 2) / 0.05))[
-        None, None
-    ]
-    got = surface_shadows.integrate_normals(normals_from_height(bump))
-    want = bump - bump.min()
-    assert float((got - want).abs().max()) < 0.02 * float(want.max())
 
 
 def test_the_script_prints_its_rows(capsys):

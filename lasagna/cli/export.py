@@ -13,6 +13,7 @@ HELP = "export a stack as OpenRaster, PSD and/or per-layer PNGs"
 EXAMPLE = (
     "lasagna export examples/stacks/basic --ora out.ora --psd out.psd --layers out/layers",
     "lasagna export out/photo --normal-map photo-normals.png   # a surface layer's normal map",
+    "lasagna export out/photo --height-map photo-heights.png   # and its heights (a displacement map)",
 )
 
 
@@ -27,7 +28,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="write a surface layer's normal map (16-bit RGB, tangent space, +Y up: the OpenGL convention of "
         "Blender, Krita and Godot), on the canvas, for a game or 2D-lighting engine",
     )
-    p.add_argument("--surface", metavar="ID", help="which surface layer --normal-map writes (default: the topmost)")
+    p.add_argument(
+        "--height-map",
+        metavar="PNG",
+        help="write a surface layer's height map (16-bit grey, the heights whose slopes best fit its normals; white "
+        "is the peak, printed in pixels), on the canvas, for displacement or parallax",
+    )
+    p.add_argument(
+        "--surface", metavar="ID", help="which surface layer --normal-map and --height-map write (default: the topmost)"
+    )
     depth_argument(p, "the PSD")
     max_pixels_argument(p)
 
@@ -37,13 +46,16 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.io.folder import check_not_input, check_writable
     from lasagna.io.survey import survey_stack
 
-    if not (args.ora or args.psd or args.layers or args.normal_map):
+    if not (args.ora or args.psd or args.layers or args.normal_map or args.height_map):
         raise LasagnaError(
-            "nothing to export; expected at least one of --ora, --psd, --layers, --normal-map", where="export"
+            "nothing to export; expected at least one of --ora, --psd, --layers, --normal-map, --height-map",
+            where="export",
         )
-    if args.surface and not args.normal_map:
-        raise LasagnaError("--surface names the layer --normal-map writes; expected --normal-map too", "--surface")
-    for path in (args.ora, args.psd, args.normal_map):
+    if args.surface and not (args.normal_map or args.height_map):
+        raise LasagnaError(
+            "--surface names the layer --normal-map or --height-map writes; expected one of them too", "--surface"
+        )
+    for path in (args.ora, args.psd, args.normal_map, args.height_map):
         if path:
             check_writable(path)
     if args.layers:
@@ -81,11 +93,19 @@ def run(args: argparse.Namespace) -> int:
         from lasagna.export.png import normal_map_png
 
         outputs.append((Path(args.normal_map), normal_map_png(stack, args.surface)))
+    peak = None
+    if args.height_map:
+        from lasagna.export.png import height_map_png
+
+        data, peak = height_map_png(stack, args.surface)
+        outputs.append((Path(args.height_map), data))
     check_not_input([path for path, _ in outputs], stack)
     atomic_write_all(outputs)
     for path in (args.ora, args.psd, args.normal_map):
         if path:
             print(f"wrote {path}")
+    if args.height_map:
+        print(f"wrote {args.height_map} (black 0, white {peak:.6g} pixels above it)")
     if args.layers:
         print(f"wrote {len(layer_files)} layer PNGs and layers.json to {folder}")
     return 0

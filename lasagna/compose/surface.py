@@ -264,6 +264,31 @@ def normals_from_height(height: Tensor) -> Tensor:
     return n * torch.rsqrt((n * n).sum(1, keepdim=True))
 
 
+INTEGRATE_NZ_MIN = 0.05
+"""Normals' z is clamped to this before `integrate_normals` takes their slopes: a silhouette's rim (n_z → 0) would
+give unbounded slopes; 0.05 bounds a slope at about 20 (87°)."""
+
+
+def integrate_normals(normals: torch.Tensor) -> torch.Tensor:
+    """A height field (B, 1, H, W, canvas units, its least value 0) whose gradient fits the slopes of unit
+    ``normals`` in the least-squares sense: Frankot & Chellappa (1988), the slopes mirrored to a periodic image of
+    twice the size so the borders do not wrap. Inverse of `lasagna.compose.surface.normals_from_height` up to a
+    constant, for a smooth field."""
+    nz = normals[:, 2:3].clamp_min(INTEGRATE_NZ_MIN)
+    p, q = -normals[:, 0:1] / nz, normals[:, 1:2] / nz  # ∂h/∂x (x right) and ∂h/∂row (rows go down, y up)
+    h, w = normals.shape[-2:]
+    p2 = torch.cat([torch.cat([p, -p.flip(-1)], -1), torch.cat([p.flip(-2), -p.flip(-2).flip(-1)], -1)], -2)
+    q2 = torch.cat([torch.cat([q, q.flip(-1)], -1), torch.cat([-q.flip(-2), -q.flip(-2).flip(-1)], -1)], -2)
+    fy = torch.fft.fftfreq(2 * h, dtype=normals.dtype).view(-1, 1) * 2 * math.pi
+    fx = torch.fft.fftfreq(2 * w, dtype=normals.dtype).view(1, -1) * 2 * math.pi
+    denom = fx**2 + fy**2
+    denom[0, 0] = 1.0
+    z = (-1j * fx * torch.fft.fft2(p2) - 1j * fy * torch.fft.fft2(q2)) / denom
+    z[..., 0, 0] = 0.0
+    out = torch.fft.ifft2(z).real[..., :h, :w] * (2.0 / w)  # slopes per canvas unit × pixel size
+    return out - out.amin(dim=(-2, -1), keepdim=True)
+
+
 # Bicubic overshoot (or a refining step) can push a normal's z below 0 beside a silhouette; it is kept facing the
 # viewer.
 NORMAL_Z_MIN = 1e-3

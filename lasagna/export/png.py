@@ -16,10 +16,11 @@ import os
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from lasagna.atomic import atomic_write_all
 from lasagna.compose.plan import gradient_tensors, pattern_tensors
-from lasagna.compose.surface import relieved_map
+from lasagna.compose.surface import integrate_normals, relieved_map
 from lasagna.document import AdjustmentLayer, GroupLayer, LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
 from lasagna.io.png import encode_png
@@ -128,6 +129,37 @@ def normal_map_png(stack, layer_id: str | None = None) -> bytes:
     brush and Godot's ``CanvasTexture.normal_texture`` read; flip green for DirectX). Outside the layer, and
     where its mask or alpha is 0, the map holds the flat normal (0.5, 0.5, 1.0). The relief is the layer's
     (``relief`` ≠ 1: the stored map deepened, `compose.surface.relieved_map`), so it lights as the layer renders."""
+    layer, codes = canvas_normal_map(stack, layer_id)
+    return encode_png(codes, bit_depth=16, where=f"layer {layer.id!r} normal map")
+
+
+def height_map_png(stack, layer_id: str | None = None) -> tuple[bytes, float]:
+    """(PNG bytes, peak) of surface layer ``layer_id``'s height map (default: the topmost surface layer) on the
+    canvas: the heights whose slopes best fit the normal map ``normal_map_png`` writes (least squares,
+    Frankot–Chellappa: `compose.surface.integrate_normals`), 16-bit grey, black the lowest point and white ``peak``
+    pixels above it (0 for a flat map: all black, `NORMAL_CODE_SLOPE`) — a displacement or parallax map for Blender
+    or a game engine, whose strength is ``peak`` in the canvas's pixels. A normal map holds slopes only, so a step (an
+    object's outline against what lies behind it) comes back as the steepest slope a normal allows, not as a jump."""
+    layer, codes = canvas_normal_map(stack, layer_id)
+    normals = torch.from_numpy(codes)[None] * 2.0 - 1.0
+    heights = integrate_normals(torch.nn.functional.normalize(normals, dim=1))[0] * (codes.shape[-1] / 2.0)
+    peak = float(heights.max())
+    if peak <= NORMAL_CODE_SLOPE * sum(codes.shape[-2:]):
+        heights, peak = torch.zeros_like(heights), 0.0
+    else:
+        heights = heights / peak
+    return encode_png(heights.numpy(), bit_depth=16, where=f"layer {layer.id!r} height map"), peak
+
+
+NORMAL_CODE_SLOPE = 2.0 / 65535.0
+"""One 16-bit code of a normal map's x or y (n = 2v − 1): the slope a flat map's 0.5, stored as 32768, is off by at
+most. A height map whose peak is within that slope across the canvas's height plus width (in pixels) is a flat map's
+quantisation: written black, peak 0."""
+
+
+def canvas_normal_map(stack, layer_id: str | None = None):
+    """(the surface layer, its normal map's codes (3, H, W) float64 on the canvas) as ``normal_map_png`` writes
+    them; ``layer_id`` None: the topmost surface layer."""
     surfaces = [layer for _, layer in stack.document.walk() if isinstance(layer, SurfaceLayer)]
     if not surfaces:
         raise ExportError("the stack has no surface layer; expected one to write its normal map", "normal map")
@@ -154,4 +186,4 @@ def normal_map_png(stack, layer_id: str | None = None) -> bytes:
     if ys.start < ys.stop and xs.start < xs.stop:
         region = out[:, ys, xs]
         out[:, ys, xs] = np.where(keep[src[1:]][None], color[src], region)
-    return encode_png(out, bit_depth=16, where=f"layer {layer.id!r} normal map")
+    return layer, out

@@ -181,6 +181,49 @@ def test_export_normal_map_is_the_stored_map_on_the_canvas(stack, tmp_path, caps
     assert "no surface layer 'base'; expected one of shape" in capsys.readouterr().err
 
 
+def read_grey16(path) -> np.ndarray:
+    w, h, rows, info = png.Reader(filename=str(path)).read()
+    assert info["bitdepth"] == 16 and info["planes"] == 1
+    return np.array([list(r) for r in rows], dtype=np.float64).reshape(h, w) / 65535.0
+
+
+def test_export_height_map_gives_back_the_heights_the_normals_came_from(tmp_path, capsys):
+    """``--height-map``: a surface layer made from a known height field (two bumps, in canvas units) exports the
+    heights that field had — black its lowest point, white the printed peak in pixels — within 3 % of the peak, read
+    back with pypng in float64; a flat map is all black with peak 0; --surface picks the layer."""
+    from lasagna.cli import main
+
+    h, w = 40, 56
+    y, x = np.meshgrid(np.linspace(-h / w, h / w, h), np.linspace(-1, 1, w), indexing="ij")
+    bump = 0.25 * np.exp(-(x**2 + y**2) / 0.1) + 0.1 * np.exp(-((x - 0.55) ** 2 + (y + 0.2) ** 2) / 0.03)
+    s = Stack.from_image(torch.full((3, h, w), 0.5))
+    s.add_surface("shape", normals_from_height(torch.from_numpy(bump)[None, None])[0].float(), "left")
+    flat = torch.zeros(3, h, w)
+    flat[2] = 1.0
+    s.add_surface("flat", flat, "left")
+    s.save(tmp_path / "s")
+    assert main(["export", str(tmp_path / "s"), "--height-map", str(tmp_path / "h.png"), "--surface", "shape"]) == 0
+    out = capsys.readouterr().out
+    peak = float(out.split("white ")[1].split(" pixels")[0])
+    want = (bump - bump.min()) * (w / 2)  # canvas units (2 across) to pixels
+    assert abs(peak - want.max()) < 0.03 * want.max()
+    np.testing.assert_allclose(read_grey16(tmp_path / "h.png") * peak, want, atol=0.03 * want.max())
+    assert main(["export", str(tmp_path / "s"), "--height-map", str(tmp_path / "f.png")]) == 0  # the topmost: flat
+    assert "white 0 pixels" in capsys.readouterr().out and not read_grey16(tmp_path / "f.png").any()
+
+
+def test_export_height_map_refusals_are_one_line_and_write_nothing(tmp_path, capsys):
+    from lasagna.cli import main
+
+    Stack.from_image(torch.rand(3, 8, 8)).save(tmp_path / "s")
+    assert main(["export", str(tmp_path / "s"), "--height-map", str(tmp_path / "h.png")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no surface layer" in err and not (tmp_path / "h.png").exists()
+    assert main(["export", str(tmp_path / "s"), "--surface", "base", "--layers", str(tmp_path / "l")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "expected one of them too" in err and not (tmp_path / "l").exists()
+
+
 def test_a_2d_engine_lights_our_map_as_we_do(stack, tmp_path):
     """Round trip through the convention a 2D engine reads (Godot's CanvasTexture normal map, OpenGL +Y up):
     decode n = 2·rgb − 1 from the exported 8-bit-per-channel-or-better PNG, light with N·L as a Light2D does
