@@ -20,6 +20,7 @@ BATCH=${BATCH:-512}
 INIT=${INIT:-layers/surface-lit-told-32}
 lit="--input lit --silhouette --light-input --light-given 0.75 --light-jitter 10 --walls-only 0.25 --relief 0.5 --zoom 3
   --channels 32,64,128 --blocks 2 --lights 3 --lr 0.001 --warmup 100 --world-seed 61 --init-from $INIT --rest 1"
+source "$(dirname "$0")/gpu-lib.sh"
 mkdir -p "$OUT" "$RUNS"
 (nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null || echo "no GPU") | tee "$OUT/round24.log"
 runs=(
@@ -29,18 +30,12 @@ runs=(
 )
 for r in "${runs[@]}"; do
   set -- $r
-  name=$1
-  shift 1
-  OMP_NUM_THREADS=4 PYTHONUNBUFFERED=1 $PY -m lasagna train-surface "$@" --out "$RUNS/$name" --working-size 32 \
-    --batch-size "$BATCH" --minutes "$MINUTES" --no-progress >"$RUNS/$name.log" 2>&1 &
-  sleep 1
+  train_in_background "$@" --working-size 32 --batch-size "$BATCH" --minutes "$MINUTES"
 done
 wait
 for r in "${runs[@]}"; do
   set -- $r
-  name=$1
-  { echo "== $name"; tail -n 2 "$RUNS/$name.log"; tail -n 1 "$RUNS/$name/log.jsonl"; } >>"$OUT/round24.log" 2>&1
-  tar -C "$RUNS" -cf "$OUT/$name.tar" "$name/surface" "$name/log.jsonl" "$name/train_config.json" "$name.log"
+  pack_run "$1" "$OUT/round24.log"
 done
 cat "$OUT/round24.log"
 ls -la "$OUT"
