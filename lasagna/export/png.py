@@ -20,6 +20,7 @@ import torch
 
 from lasagna.atomic import atomic_write_all
 from lasagna.compose.plan import gradient_tensors, pattern_tensors
+from lasagna.compose.resample import downsample
 from lasagna.compose.surface import integrate_normals, relieved_map
 from lasagna.document import AdjustmentLayer, GroupLayer, LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
@@ -141,8 +142,16 @@ def height_map_png(stack, layer_id: str | None = None) -> tuple[bytes, float]:
     or a game engine, whose strength is ``peak`` in the canvas's pixels. A normal map holds slopes only, so a step (an
     object's outline against what lies behind it) comes back as the steepest slope a normal allows, not as a jump."""
     layer, codes = canvas_normal_map(stack, layer_id)
-    normals = torch.from_numpy(codes)[None] * 2.0 - 1.0
-    heights = integrate_normals(torch.nn.functional.normalize(normals, dim=1))[0] * (codes.shape[-1] / 2.0)
+    normals = torch.nn.functional.normalize(torch.from_numpy(codes)[None] * 2.0 - 1.0, dim=1)
+    size = tuple(codes.shape[-2:])
+    scale = min(1.0, HEIGHT_MAX_SIDE / max(size))
+    if scale < 1.0:  # integrated at most at HEIGHT_MAX_SIDE (heights are in canvas units, whatever the size)
+        small = (max(1, round(size[0] * scale)), max(1, round(size[1] * scale)))
+        normals = torch.nn.functional.normalize(downsample(normals, small), dim=1)
+    heights = integrate_normals(normals)
+    if scale < 1.0:
+        heights = torch.nn.functional.interpolate(heights, size=size, mode="bilinear", align_corners=False)
+    heights = heights[0] * (size[1] / 2.0)  # canvas units (2 across) to pixels
     peak = float(heights.max())
     if peak <= NORMAL_CODE_SLOPE * sum(codes.shape[-2:]):
         heights, peak = torch.zeros_like(heights), 0.0
@@ -151,6 +160,9 @@ def height_map_png(stack, layer_id: str | None = None) -> tuple[bytes, float]:
     return encode_png(heights.numpy(), bit_depth=16, where=f"layer {layer.id!r} height map"), peak
 
 
+HEIGHT_MAX_SIDE = 1024
+"""The longest side a height map is integrated at: its FFT works on a mirrored image of twice the size in complex
+float64 (about 330 MB at 1024); a larger canvas is integrated reduced and its heights enlarged bilinearly."""
 NORMAL_CODE_SLOPE = 2.0 / 65535.0
 """One 16-bit code of a normal map's x or y (n = 2v − 1): the slope a flat map's 0.5, stored as 32768, is off by at
 most. A height map whose peak is within that slope across the canvas's height plus width (in pixels) is a flat map's
