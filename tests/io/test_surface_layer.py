@@ -219,8 +219,17 @@ def test_export_height_map_gives_back_the_heights_the_normals_came_from(tmp_path
     assert "white 0 pixels" in capsys.readouterr().out and not read_grey16(tmp_path / "f.png").any()
 
 
-def test_export_height_map_refusals_are_one_line_and_write_nothing(tmp_path, capsys):
+def test_export_height_map_refusals_are_one_line_and_write_nothing(stack, tmp_path, capsys):
+    """No surface layer, --surface without a map to write, or the height map aimed at the stack's own normal map: one
+    line, exit 2, nothing written or changed."""
     from lasagna.cli import main
+
+    stack.save(tmp_path / "own")
+    own = tmp_path / "own" / "layers" / "shape.png"
+    before = own.read_bytes()
+    assert main(["export", str(tmp_path / "own"), "--height-map", str(own)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not one of the stack's files" in err and own.read_bytes() == before
 
     Stack.from_image(torch.rand(3, 8, 8)).save(tmp_path / "s")
     assert main(["export", str(tmp_path / "s"), "--height-map", str(tmp_path / "h.png")]) == 2
