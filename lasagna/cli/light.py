@@ -1,5 +1,5 @@
 """``lasagna light``: re-light a stack's surface layer in place — its light, source light, ambient, relief, colour,
-intensity or extra lights — from its stored normal map, with no learning (what dragging the editor's light sphere
+intensity, gloss or extra lights — from its stored normal map, with no learning (what dragging the editor's light sphere
 or its sliders does).
 
 Only stack.json (the commit point), composite.png and a stack.ora the folder holds change: no layer PNG is
@@ -16,7 +16,7 @@ from pathlib import Path
 from lasagna.errors import LasagnaError
 
 HELP = (
-    "re-light a stack's surface layer in place (light, source light, ambient, relief, colour, intensity, more "
+    "re-light a stack's surface layer in place (light, source light, ambient, relief, colour, intensity, gloss, more "
     "lights); no learning"
 )
 EXAMPLE = (
@@ -26,6 +26,7 @@ EXAMPLE = (
     "lasagna light out/chelsea-surface --light x=0.1,y=0.3,z=0.4            # a point light near the left edge",
     "lasagna light out/chelsea-surface --light x=0.2,y=0.1,z=0.3,cone=25,ax=0.5,ay=0.6  # a spot aimed at the eyes",
     "lasagna light out/chelsea-surface --add-light 'right;#a0c0ff;0.5'      # and a blue fill light from the right",
+    "lasagna light out/chelsea-surface --gloss 0.4 --shininess 24           # a highlight where the light falls",
 )
 
 
@@ -79,6 +80,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         help="the light's intensity k: its direct term times k; above 1 a shading layer brightens (default: kept)",
     )
+    p.add_argument(
+        "--gloss",
+        type=float,
+        metavar="G",
+        help="a highlight's strength in [0, 1] (Blinn-Phong, as Lighting Effects' Gloss; 0: none; default: kept)",
+    )
+    p.add_argument(
+        "--shininess",
+        type=float,
+        metavar="P",
+        help="the highlight's exponent in [1, 1024]: larger is smaller and sharper (32 by default; default: kept)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -86,10 +99,11 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.io.survey import survey_stack
 
     fields = (args.light, args.source, args.ambient, args.relief, args.color, args.intensity, args.add_light)
+    fields += (args.gloss, args.shininess)
     if all(v is None for v in fields) and not (args.clear_lights or args.read_again):
         raise LasagnaError(
             "nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, --intensity, "
-            "--add-light, --clear-lights, --read-again",
+            "--gloss, --shininess, --add-light, --clear-lights, --read-again",
             where="light",
         )
     if args.within is not None and not args.read_again:
@@ -121,6 +135,8 @@ def run(args: argparse.Namespace) -> int:
         relief=args.relief,
         light_color=colour,
         light_intensity=args.intensity,
+        gloss=args.gloss,
+        shininess=args.shininess,
         extra_lights=None
         if not (added or args.clear_lights)
         else [*(() if args.clear_lights else layer.extra_lights), *added],
@@ -155,6 +171,8 @@ def run(args: argparse.Namespace) -> int:
         said.append("colour " + ",".join(f"{c:.4g}" for c in lit.light_color))
     if lit.light_intensity != 1.0:
         said.append(f"intensity {lit.light_intensity:g}")
+    if lit.gloss > 0:
+        said.append(f"gloss {lit.gloss:g} (shininess {lit.shininess:g})")
     if lit.extra_lights:
         said.append(f"{len(lit.extra_lights)} more light" + ("s" if len(lit.extra_lights) > 1 else ""))
     wrote = "stack.json, composite.png" + (f", {lit.source}" if args.read_again else "")

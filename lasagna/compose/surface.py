@@ -26,6 +26,11 @@ layers"). This module is that renderer, differentiable and batch-independent:
   its direct term also times m = smoothstep((cos θ − cos C)/(b·(1 − cos C))), θ the angle between the ray from
   the light to the pixel and the axis from the light to the aim point, b the edge's softness (Blender's spot mask
   and ``spot_blend``; a hard edge at b = 0) — Lighting Effects' Spot (`spot_cone`).
+- **Gloss** (a layer's ``gloss`` g and ``shininess`` p): each light's direct term gains a Blinn–Phong highlight,
+  S = a + (1 − a)·Σ kᵢ·cᵢ·fᵢ·(max(0, n·lᵢ) + g·max(0, n·hᵢ)^p·[n·lᵢ > 0]), h = (l + v)/|l + v| the half vector
+  toward the viewer v = +z (an orthographic camera), f a point light's falloff and cone (Blinn 1977; Lighting
+  Effects' Gloss, Blender's specular). g = 0 is the world's contract, rendered by the Lambert-only paths bit for
+  bit; a relight ratio's source light stays diffuse (a photograph's own highlights are in its pixels).
 """
 
 from __future__ import annotations
@@ -38,7 +43,15 @@ from torch import Tensor
 
 from lasagna.compose.layer import LayerTensors
 from lasagna.compose.resample import gaussian_blur
-from lasagna.document.condition import AMBIENT, PointLight, check_ambient, parse_direction, parse_point, unit_vector
+from lasagna.document.condition import (
+    AMBIENT,
+    DEFAULT_SHININESS,
+    PointLight,
+    check_ambient,
+    parse_direction,
+    parse_point,
+    unit_vector,
+)
 from lasagna.errors import LasagnaError
 
 # A normal decoded from a map whose three channels round to (0.5, 0.5, 0.5) — a zero vector, which no unit
@@ -418,14 +431,23 @@ def surface_range(source_light: str | None, ambient: float, peak: float = 1.0) -
 
 def layer_surface_tensors(stored: LayerTensors, layer) -> tuple[LayerTensors, tuple[float, float]]:
     """A surface layer's multiplier and its range, from the layer's light fields (a `SurfaceLayer`: light, source
-    light, ambient, relief, colour, intensity, extra lights) — the one place the compositor and the exports read
-    them."""
-    ambient, intensity = float(layer.ambient), float(layer.light_intensity)
+    light, ambient, relief, colour, intensity, extra lights, gloss and shininess) — the one place the compositor and
+    the exports read them; a highlight raises the range's top by (1 + gloss)."""
+    ambient, intensity, gloss = float(layer.ambient), float(layer.light_intensity), float(layer.gloss)
     extras = tuple((e.light, tuple(e.color), float(e.intensity)) for e in layer.extra_lights)
     tensors = surface_tensors(
-        stored, layer.light, layer.source_light, ambient, float(layer.relief), layer.light_color, intensity, extras
+        stored,
+        layer.light,
+        layer.source_light,
+        ambient,
+        float(layer.relief),
+        layer.light_color,
+        intensity,
+        extras,
+        gloss,
+        float(layer.shininess),
     )
-    peak = intensity * max(layer.light_color) + sum(k * max(c) for _, c, k in extras)
+    peak = (intensity * max(layer.light_color) + sum(k * max(c) for _, c, k in extras)) * (1.0 + gloss)
     return tensors, surface_range(layer.source_light, ambient, peak)
 
 
@@ -438,6 +460,8 @@ def surface_tensors(
     light_color: tuple[float, float, float] = (1.0, 1.0, 1.0),
     light_intensity: float = 1.0,
     extra_lights: tuple[tuple[str, tuple[float, float, float], float], ...] = (),
+    gloss: float = 0.0,
+    shininess: float = DEFAULT_SHININESS,
 ) -> LayerTensors:
     """A surface layer's tensors as the compositor blends them: its normal map ``stored.color`` (..., 3, h, w)
     of values in [0, 1] (the PNG's codes), its relief times ``relief`` (`deepen_normals`), rendered to the
@@ -447,7 +471,9 @@ def surface_tensors(
     white makes it (..., 3, h, w): each channel's direct term times c, a + (1 − a)·c·max(0, n·l) (`coloured`), the
     source light staying white; ``light_intensity`` k multiplies the direct term too (its gain is k·c: one channel
     while that is grey). ``extra_lights`` — (light text, colour, intensity) each — add their direct terms,
-    a + Σᵢ (Sᵢ − a)·kᵢ·cᵢ (`lit_by`). The same stored map and light fields always give the same bits.
+    a + Σᵢ (Sᵢ − a)·kᵢ·cᵢ (`lit_by`). ``gloss`` > 0 adds each light's highlight of exponent ``shininess`` (the module
+    docstring's Gloss; the source light stays diffuse). The same stored map and light fields always give the same
+    bits.
     """
     color = stored.color
     if color.shape[-3] != 3:
@@ -457,7 +483,8 @@ def surface_tensors(
     same_map = (id(color), color._version)
     colour = tuple(float(c) * float(light_intensity) for c in light_color)  # the direct term's gain per channel
     extras = tuple((text, tuple(float(c) * float(k) for c in col)) for text, col, k in extra_lights)
-    key = (*same_map, light, source_light, float(ambient), float(relief), colour, extras)
+    shine = (float(gloss), float(shininess)) if gloss > 0 else (0.0,)
+    key = (*same_map, light, source_light, float(ambient), float(relief), colour, extras, shine)
     hit = _RENDERED.get(stored)
     if hit is not None and hit[0] == key:
         return hit[1]
@@ -468,8 +495,8 @@ def surface_tensors(
     lit = deepen_normals(normals, float(relief))
     point = parse_point(light)
     white = colour == (1.0, 1.0, 1.0)
-    if extras:  # several lights: their direct terms summed, over S(source) for a relight ratio
-        y = lit_by(lit, ((light, colour), *extras), ambient)
+    if extras or gloss > 0:  # several lights or highlights: their direct terms summed, over S(source) for a ratio
+        y = lit_by(lit, ((light, colour), *extras), ambient, float(gloss), float(shininess))
         if source_light is not None:
             source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
             y = y / lambert(lit, source, check_ratio_ambient(ambient))
@@ -604,10 +631,13 @@ def coloured(shading: Tensor, colour: tuple[float, float, float], ambient: float
     return ambient + (shading - ambient) * c
 
 
-def lit_by(normals: Tensor, lights, ambient: float = AMBIENT) -> Tensor:
+def lit_by(
+    normals: Tensor, lights, ambient: float = AMBIENT, gloss: float = 0.0, shininess: float = DEFAULT_SHININESS
+) -> Tensor:
     """a + Σᵢ (Sᵢ − a)·gᵢ of unit ``normals`` (B, 3, H, W) under ``lights`` — (light text, gain (3,)) each, a
     direction or a point light (`point_lambert`), its gain its colour times its intensity: one channel while every
-    gain is grey, else three."""
+    gain is grey, else three; with ``gloss`` > 0 each light's direct term also carries its highlight (`highlight`,
+    the module docstring's Gloss)."""
     check_ambient(ambient)
     grey = all(g[0] == g[1] == g[2] for _, g in lights)
     total = None
@@ -618,10 +648,40 @@ def lit_by(normals: Tensor, lights, ambient: float = AMBIENT) -> Tensor:
             s = lambert(normals, vector, ambient)
         else:
             s = point_lambert(normals, point, ambient)
+        if gloss > 0.0:
+            s = s + (1.0 - ambient) * gloss * highlight(normals, text, shininess)
         g = gain[0] if grey else torch.tensor(gain, dtype=normals.dtype, device=normals.device).view(1, 3, 1, 1)
         term = (s - ambient) * g
         total = term if total is None else total + term
     return ambient + total
+
+
+def highlight(normals: Tensor, light: str, shininess: float = DEFAULT_SHININESS) -> Tensor:
+    """The Blinn–Phong highlight max(0, n·h)^p·[n·l > 0] (B, 1, H, W) of unit ``normals`` under ``light`` (a direction,
+    or a point light with its falloff and cone, as `point_lambert` weighs its direct term): h = (l + v)/|l + v|, v =
+    +z, per pixel for a point light. Zero where the light is behind the surface (n·l ≤ 0), as Lambert's term is."""
+    point = parse_point(light)
+    if point is None:
+        lx, ly, lz = unit_vector(*parse_direction(light))
+        norm = math.sqrt(lx * lx + ly * ly + (lz + 1.0) ** 2)  # |l + v| ≥ 1 for a light in front (lz ≥ 0)
+        hx, hy, hz = lx / norm, ly / norm, (lz + 1.0) / norm
+        ndoth = normals[:, 0:1] * hx + normals[:, 1:2] * hy + normals[:, 2:3] * hz
+        ndotl = normals[:, 0:1] * lx + normals[:, 1:2] * ly + normals[:, 2:3] * lz
+        return ndoth.clamp_min(0.0).pow(float(shininess)) * (ndotl > 0).to(normals.dtype)
+    # A point light: l per pixel, its falloff and cone read off point_lambert's direct term at a = 0 over n·l.
+    h, w = normals.shape[-2:]
+    dx, dy = point_offsets(point, h, w, dtype=normals.dtype, device=normals.device)
+    z = float(point[2])
+    inv = (dx * dx + dy * dy + z * z).rsqrt()
+    lx, ly, lz = dx * inv, dy * inv, z * inv
+    hz = lz + 1.0
+    hinv = (lx * lx + ly * ly + hz * hz).rsqrt()
+    ndoth = (normals[:, 0:1] * lx + normals[:, 1:2] * ly + normals[:, 2:3] * hz) * hinv
+    ndotl = normals[:, 0:1] * lx + normals[:, 1:2] * ly + normals[:, 2:3] * lz
+    flat = torch.zeros_like(normals)
+    flat[:, 2] = 1.0  # the falloff and cone alone: a surface facing +z sees f·l_z, divided back by l_z
+    weight = point_lambert(flat, point, 0.0) / lz
+    return ndoth.clamp_min(0.0).pow(float(shininess)) * (ndotl > 0).to(normals.dtype) * weight
 
 
 def tinted(shading: Tensor, gain: tuple[float, float, float], ambient: float = AMBIENT) -> Tensor:

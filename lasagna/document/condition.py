@@ -52,6 +52,11 @@ its vectors `LIGHTS`; the editor gets them from ``/api/state``)."""
 
 AMBIENT = 0.25
 """Default ambient term a of shading = a + (1 − a)·max(0, n·l) (the world's contract)."""
+DEFAULT_SHININESS = 32.0
+"""A surface layer's highlight exponent p (Blinn–Phong, `lasagna.compose.surface`) when it names none: the highlight
+falls to half its peak where the normal is 12° off the half vector (0.5^(1/32) = cos 12°)."""
+MAX_SHININESS = 1024.0
+"""The largest highlight exponent: at 1024 the highlight is 2° wide at half its peak, under a 16-bit map's steps."""
 
 MAX_ELEVATION = 90.0
 """Elevations lie in [0, MAX_ELEVATION): at 90° the light grazes the image plane."""

@@ -33,7 +33,15 @@ from pydantic import (
 )
 
 from lasagna.document.adjustment import Adjustment
-from lasagna.document.condition import AMBIENT, DIRECTION_PATTERN, POINT_PATTERN, parse_direction, parse_surface_light
+from lasagna.document.condition import (
+    AMBIENT,
+    DEFAULT_SHININESS,
+    DIRECTION_PATTERN,
+    MAX_SHININESS,
+    POINT_PATTERN,
+    parse_direction,
+    parse_surface_light,
+)
 from lasagna.document.gradient import GradientFill
 from lasagna.document.pattern import PatternFill
 from lasagna.document.types import (
@@ -374,6 +382,25 @@ class SurfaceLayer(_Common):
         description="More lights, each added to the layer's own: S = a + (1 − a)·Σ kᵢ·cᵢ·fᵢ·max(0, n·lᵢ) over "
         "``light`` and these (a fill or rim light beside the key); a relight ratio still divides by S(source_light).",
     )
+    gloss: float = Field(
+        0.0,
+        strict=True,
+        ge=0.0,
+        le=1.0,
+        allow_inf_nan=False,
+        description="Highlight strength g: each light's direct term gains g·max(0, n·h)^p where it lights the surface "
+        "(Blinn–Phong, h the half vector toward the viewer; Photoshop's Lighting Effects Gloss, Blender's specular); "
+        "0: Lambert alone, the world's contract. A relight ratio's source light stays diffuse.",
+    )
+    shininess: float = Field(
+        DEFAULT_SHININESS,
+        strict=True,
+        ge=1.0,
+        le=MAX_SHININESS,
+        allow_inf_nan=False,
+        description="Highlight exponent p: larger is a smaller, sharper highlight (32: half its peak 12° off the half "
+        "vector); read only where gloss > 0.",
+    )
     mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
     made_by: dict[str, JsonValue] = Field(
         default_factory=dict,
@@ -675,10 +702,13 @@ class Document(StrictModel):
         light_color: tuple[float, float, float] | None = None,
         light_intensity: float | None = None,
         extra_lights: Any = None,
+        gloss: float | None = None,
+        shininess: float | None = None,
     ) -> Document:
         """A copy where the surface layer ``id`` has a new ``light`` (and ``source_light`` — None for plain shading,
-        ``...`` kept — ``ambient``, ``relief``, ``light_color``, ``light_intensity`` and ``extra_lights``, ExtraLight
-        models or their dicts, ``()`` none, when given); every value checked by the layer's model. No pixels change."""
+        ``...`` kept — ``ambient``, ``relief``, ``light_color``, ``light_intensity``, ``extra_lights`` (ExtraLight
+        models or their dicts, ``()`` none), ``gloss`` and ``shininess``, when given); every value checked by the
+        layer's model. No pixels change."""
         layer = self.layer(id)
         if not isinstance(layer, SurfaceLayer):
             raise DocumentError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", where="set_light")
@@ -697,6 +727,10 @@ class Document(StrictModel):
             changes["extra_lights"] = tuple(
                 e.model_dump() if hasattr(e, "model_dump") else dict(e) for e in extra_lights
             )
+        if gloss is not None:
+            changes["gloss"] = gloss
+        if shininess is not None:
+            changes["shininess"] = shininess
         return self.replace_layer(id, **changes)
 
     def without_layer(self, id: str) -> Document:

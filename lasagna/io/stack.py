@@ -346,10 +346,12 @@ class Stack:
         light_color: tuple[float, float, float] | None = None,
         light_intensity: float | None = None,
         extra_lights: Sequence[Any] | None = None,
+        gloss: float | None = None,
+        shininess: float | None = None,
     ) -> Stack:
         """Re-light the surface layer ``id``: a new ``light`` (and ``source_light`` / ``ambient`` / ``relief`` /
-        ``light_color`` / ``light_intensity`` / ``extra_lights`` when given). No pixels change; the next render
-        draws the stored surface under the new light."""
+        ``light_color`` / ``light_intensity`` / ``extra_lights`` / ``gloss`` / ``shininess`` when given). No pixels
+        change; the next render draws the stored surface under the new light."""
         self.document = self.document.relit(
             id,
             light,
@@ -359,6 +361,8 @@ class Stack:
             light_color=light_color,
             light_intensity=light_intensity,
             extra_lights=extra_lights,
+            gloss=gloss,
+            shininess=shininess,
         )
         return self
 

@@ -212,9 +212,15 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             level = int(q.get("level", "0"))
         except ValueError:
             raise RequestError(f"level is {q.get('level')!r}; expected an integer", "level") from None
-        # Numeric overrides, LAYER:NUMBER each: an opacity slider's, a surface layer's relief, ambient or intensity
-        # slider's.
-        numbers: dict[str, dict[str, float]] = {"opacity": {}, "relief": {}, "ambient": {}, "intensity": {}}
+        # Numeric overrides, LAYER:NUMBER each: an opacity slider's, a surface layer's relief, ambient, intensity or
+        # gloss slider's.
+        numbers: dict[str, dict[str, float]] = {
+            "opacity": {},
+            "relief": {},
+            "ambient": {},
+            "intensity": {},
+            "gloss": {},
+        }
         for name, given in numbers.items():
             for item in q.getlist(name):
                 id, sep, value = item.rpartition(":")
@@ -253,6 +259,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             "ambient": numbers["ambient"],
             "color": colours,
             "intensity": numbers["intensity"],
+            "gloss": numbers["gloss"],
             "solo": q.get("solo") or None,
             "upto": q.get("upto") or None,
         }

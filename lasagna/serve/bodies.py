@@ -17,7 +17,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PlainValidator, ValidationError
 
-from lasagna.document.condition import parse_direction, parse_surface_light
+from lasagna.document.condition import MAX_SHININESS, parse_direction, parse_surface_light
 from lasagna.document.models import MAX_EXTRA_LIGHTS, MAX_RELIEF, ExtraLight, LightIntensity, parses
 from lasagna.document.types import Blend, Colour, OpaqueColour
 from lasagna.document.validation import parse_json
@@ -46,6 +46,8 @@ SurfaceLight = Annotated[
 """A surface layer's light: a `Light` or a point light ``x=X,y=Y,z=Z`` (``parse_surface_light``)."""
 Ambient = Annotated[float, Field(strict=True, ge=0.0, lt=1.0)]
 Relief = Annotated[float, Field(strict=True, gt=0.0, le=MAX_RELIEF, allow_inf_nan=False)]
+Gloss = Annotated[float, Field(strict=True, ge=0.0, le=1.0, allow_inf_nan=False)]
+Shininess = Annotated[float, Field(strict=True, ge=1.0, le=MAX_SHININESS, allow_inf_nan=False)]
 Within = Annotated[float, Field(strict=True, gt=0.0, le=MAX_WITHIN, allow_inf_nan=False)]
 
 
@@ -137,8 +139,8 @@ class AddLearned(_Body):
 
 class SetLight(_Body):
     """Re-light a surface layer (``EditSession.set_light``): ``light``, and ``source_light`` (null: plain
-    shading), ``ambient``, ``relief``, ``light_color``, ``light_intensity`` and ``extra_lights`` (the whole list; ``[]``
-    removes them) when given; an absent field keeps the layer's value."""
+    shading), ``ambient``, ``relief``, ``light_color``, ``light_intensity``, ``extra_lights`` (the whole list; ``[]``
+    removes them), ``gloss`` and ``shininess`` when given; an absent field keeps the layer's value."""
 
     op: Literal["light"]
     version: Version
@@ -150,6 +152,8 @@ class SetLight(_Body):
     light_color: OpaqueColour | None = None
     light_intensity: LightIntensity | None = None
     extra_lights: Annotated[tuple[ExtraLight, ...], Field(max_length=MAX_EXTRA_LIGHTS)] | None = None
+    gloss: Gloss | None = None
+    shininess: Shininess | None = None
 
     def call(self, session):
         keep = "source_light" not in self.model_fields_set  # absent keeps it; null removes it
@@ -164,6 +168,8 @@ class SetLight(_Body):
             light_color=self.light_color,
             light_intensity=self.light_intensity,
             extra_lights=self.extra_lights,
+            gloss=self.gloss,
+            shininess=self.shininess,
         )
 
 

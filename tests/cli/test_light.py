@@ -99,7 +99,7 @@ def test_from_makes_a_relight_ratio_and_none_makes_it_shading_again(folder):
         (
             [],
             "light: nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, "
-            "--intensity, --add-light, --clear-lights",
+            "--intensity, --gloss, --shininess, --add-light, --clear-lights",
         ),
         (["--intensity", "0"], "layers[1].light_intensity: got 0.0; expected greater than 0"),
         (["--add-light", "up"], "layers[1].extra_lights[0].light: expected one of left"),
@@ -114,6 +114,10 @@ def test_from_makes_a_relight_ratio_and_none_makes_it_shading_again(folder):
         (["--add-light", "left"] * 9, "layers[1].extra_lights"),
         (["--intensity", "9"], "layers[1].light_intensity"),
         (["--intensity", "nan"], "layers[1].light_intensity"),
+        (["--gloss", "1.5"], "layers[1].gloss: got 1.5; expected less than or equal to 1"),
+        (["--gloss", "-0.1"], "layers[1].gloss"),
+        (["--shininess", "0.5"], "layers[1].shininess: got 0.5; expected greater than or equal to 1"),
+        (["--shininess", "inf"], "layers[1].shininess"),
         (["--color", "red"], "--color: got 'red'; expected #rrggbb or R,G,B"),
         (["--color", "1,0.5"], "--color: got '1,0.5'; expected #rrggbb or R,G,B"),
         (["--color", "1,2,0"], "layers[1].light_color"),
@@ -217,6 +221,25 @@ def test_intensity_scales_the_lights_direct_term(folder, capsys):
     direct = np.maximum(0.0, np.einsum("chw,c->hw", n, light(200, 40)))
     want = np.clip(base * (0.25 + 0.75 * c[:, None, None] * direct[None]), 0, 1) * 255
     np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), want, atol=0.51)
+
+
+def test_gloss_adds_a_highlight_where_the_light_falls(folder, capsys):
+    """``--gloss g --shininess p``: the composite against numpy float64, a + (1 − a)·(max(0, n·l) + g·max(0, n·h)^p
+    where n·l > 0), h the half vector toward the viewer; the summary says it; --gloss 0 gives the diffuse composite."""
+    assert main(["light", str(folder), "--light", "az=200,el=40", "--gloss", "0.8", "--shininess", "6"]) == 0
+    assert "gloss 0.8 (shininess 6)" in capsys.readouterr().out
+    n = read_normals(folder / "layers" / "shape.png")
+    base = codes(folder / "layers" / "base.png").transpose(2, 0, 1) / 255.0
+    l_vec = light(200, 40)
+    half = (l_vec + np.array([0.0, 0.0, 1.0])) / np.linalg.norm(l_vec + np.array([0.0, 0.0, 1.0]))
+    ndotl = np.einsum("chw,c->hw", n, l_vec)
+    spec = np.maximum(0.0, np.einsum("chw,c->hw", n, half)) ** 6 * (ndotl > 0)
+    s = 0.25 + 0.75 * (np.maximum(0.0, ndotl) + 0.8 * spec)
+    want = np.clip(base * s[None], 0, 1) * 255
+    np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), want, atol=0.51)
+    assert main(["light", str(folder), "--gloss", "0"]) == 0
+    diffuse = np.clip(base * (0.25 + 0.75 * np.maximum(0.0, ndotl))[None], 0, 1) * 255
+    np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), diffuse, atol=0.51)
 
 
 def test_add_light_adds_a_direct_term_and_clear_lights_removes_it(folder, capsys):

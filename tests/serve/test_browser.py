@@ -699,6 +699,35 @@ def test_the_intensity_slider_previews_live_and_commits_one_step(browser, surfac
     assert page.errors == []
 
 
+def test_the_gloss_slider_previews_live_and_commits_one_step(browser, surface_server):
+    """A surface layer's "Gloss" slider: dragging repaints the view live (nothing changes on the server), the release
+    commits one step that sets the gloss and keeps the light; the highlight brightens the page; "shininess" commits
+    one step more; the saved stack renders what the page shows."""
+    folder = surface_server.session.folder
+    page = open_page(browser, surface_server)
+    row(page, "shape").locator(".name").click()
+    page.wait_for_selector("#gloss")
+    assert page.inner_text("#gloss-value") == "0.00"
+    before, v = page_pixels(page), version(page)
+    paints = page.evaluate("window.lasagna.paints.count")
+    slide(page, "gloss", ["0.3", "0.6", "0.9"])
+    page.wait_for_function(f"window.lasagna.paints.count > {paints}")
+    assert version(page) == v
+    page.evaluate('() => document.getElementById("gloss").dispatchEvent(new Event("change"))')
+    settle(page, v + 1)
+    lit = page.evaluate("window.lasagna.state.surfaces.shape")
+    assert lit["gloss"] == 0.9 and lit["light"] == "top-left" and page.inner_text("#gloss-value") == "0.90"
+    glossy = page_pixels(page)
+    assert glossy[..., :3].astype(float).mean() > before[..., :3].astype(float).mean()
+    page.fill("#shininess", "4")
+    page.dispatch_event("#shininess", "change")
+    settle(page, v + 2)
+    assert page.evaluate("window.lasagna.state.surfaces.shape")["shininess"] == 4.0
+    assert not np.array_equal(page_pixels(page), glossy)
+    save_and_check(page, folder)
+    assert page.errors == []
+
+
 def test_extra_lights_are_added_edited_and_removed_one_step_each(browser, surface_server):
     """The "Add light" button adds the key light's opposite at half intensity (one step; the light is added: the
     page brightens where it falls); editing its text and intensity commits the list (one step each); × removes it

@@ -104,6 +104,8 @@ def test_state_gives_each_surface_layers_light(client):
             "light_color": [1.0, 1.0, 1.0],
             "light_intensity": 1.0,
             "extra_lights": [],
+            "gloss": 0.0,
+            "shininess": 32.0,
         }
     }
 
@@ -154,6 +156,8 @@ def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
         "light_color": [1.0, 1.0, 1.0],
         "light_intensity": 1.0,
         "extra_lights": [],
+        "gloss": 0.0,
+        "shininess": 32.0,
     }
     assert np.array_equal(
         view(client, level=0)[..., :3], relit_codes(folder, "right", source_light="left", ambient=0.4, relief=2.5)
@@ -328,6 +332,10 @@ def test_the_relief_preview_is_the_change_bit_for_bit_and_one_undo_step(client, 
         ("intensity", "shape:nan", "intensity.shape: expected a light intensity"),
         ("intensity", "shape:bright", "intensity: intensity is 'shape:bright'; expected LAYER:NUMBER"),
         ("intensity", "base:2", "layer 'base' is a pixels layer; expected a surface layer"),
+        ("gloss", "shape:1.5", r"gloss.shape: expected a gloss in \[0, 1\]"),
+        ("gloss", "shape:nan", "gloss.shape: expected a gloss"),
+        ("gloss", "shape:shiny", "gloss: gloss is 'shape:shiny'; expected LAYER:NUMBER"),
+        ("gloss", "base:0.5", "layer 'base' is a pixels layer; expected a surface layer"),
     ],
 )
 def test_a_bad_slider_preview_is_one_line_400(client, name, param, match):
@@ -450,6 +458,31 @@ def test_the_intensity_preview_is_the_change_bit_for_bit(client, folder):
     v = state(client)["version"]
     message = one_line_4xx(post(client, op="light", id="shape", light="top-left", light_intensity=0))
     assert message.startswith("light_intensity") and state(client)["version"] == v
+
+
+def test_the_gloss_preview_is_the_change_bit_for_bit(client, folder):
+    """``/api/view?gloss=LAYER:G`` (the Gloss slider while dragged) shows, bit for bit, what ``op: light`` with
+    ``gloss`` G gives and what the engine renders of the saved stack; a highlight brightens (the composite's mean
+    rises); ``shininess`` is set the same way; bad values are refused in one line and change nothing."""
+    before = view(client, level=0)
+    preview = view(client, level=0, gloss="shape:0.8")
+    assert np.array_equal(view(client, level=0), before)
+    assert preview[..., :3].astype(float).mean() > before[..., :3].astype(float).mean()
+    s = ok(post(client, op="light", id="shape", light="top-left", gloss=0.8))
+    assert s["surfaces"]["shape"]["gloss"] == 0.8 and s["surfaces"]["shape"]["shininess"] == 32.0
+    assert np.array_equal(view(client, level=0), preview)
+    assert np.array_equal(preview[..., :3], relit_codes(folder, "top-left", gloss=0.8))
+    s = ok(post(client, op="light", id="shape", light="top-left", shininess=4.0))
+    assert s["surfaces"]["shape"]["gloss"] == 0.8 and s["surfaces"]["shape"]["shininess"] == 4.0
+    broad = view(client, level=0)
+    assert np.array_equal(broad[..., :3], relit_codes(folder, "top-left", gloss=0.8, shininess=4.0))
+    ok(post(client, op="save"))
+    fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
+    assert np.array_equal(broad[..., :3], fresh)
+    v = state(client)["version"]
+    for body in ({"gloss": 2}, {"gloss": -0.5}, {"shininess": 0}, {"shininess": 2000}):
+        message = one_line_4xx(post(client, op="light", id="shape", light="top-left", **body))
+        assert message.startswith(next(iter(body))) and state(client)["version"] == v
 
 
 def test_extra_lights_are_set_as_a_list_one_step_and_saved(client, folder):

@@ -20,6 +20,7 @@ const ui = {
   ambient: null,        // a surface layer's ambient term while its slider is dragged: { id, value }
   colour: null,         // a surface layer's light colour while its picker is moved: { id, value: "#rrggbb" }
   intensity: null,      // a surface layer's light intensity while its slider is dragged: { id, value }
+  gloss: null,          // a surface layer's gloss (highlight strength) while its slider is dragged: { id, value }
   lightWhich: {},       // per relight surface layer: which light its sphere moves, "light" or "source"
   normals: null,        // a surface layer's id while the view shows its normal map (its relief applied)
   lightProxy: true,     // a light drag previews at the drag proxy's level (dragLevel); false: at the view's level
@@ -319,6 +320,35 @@ function gainSlider(layer, lit, label, id, field_, value) {
   return f;
 }
 
+// The highlight (Photoshop's Lighting Effects "Gloss", Blender's specular): a Blinn–Phong term of strength g in
+// [0, 1], previewed while its slider moves (/api/view?gloss=…), one change on release; its exponent ("Shininess",
+// larger: smaller and sharper) a number, one change when it is set.
+function glossControl(layer, lit) {
+  const span = document.createElement("span");
+  const input = document.createElement("input");
+  input.type = "range"; input.id = "gloss"; input.min = "0"; input.max = "1"; input.step = "0.05";
+  input.value = String(lit.gloss);
+  const shown = document.createElement("span");
+  shown.id = "gloss-value";
+  shown.textContent = lit.gloss.toFixed(2);
+  input.addEventListener("input", () => {
+    ui.gloss = { id: layer.id, value: parseFloat(input.value) };
+    shown.textContent = ui.gloss.value.toFixed(2);
+    paint();
+  });
+  input.addEventListener("change", async () => {
+    await change({ op: "light", id: layer.id, light: lit.light, gloss: parseFloat(input.value) });
+    ui.gloss = null;
+    paint();
+  });
+  const shininess = numberInput(lit.shininess, (v) => change({ op: "light", id: layer.id, light: lit.light, shininess: v }), "1");
+  shininess.id = "shininess"; shininess.min = "1"; shininess.max = "1024";
+  const g = field("Gloss", input);
+  g.append(" ", shown);
+  span.append(g, field(" shininess", shininess));
+  return span;
+}
+
 function lightControl(layer) {
   const lit = ui.state.surfaces[layer.id];
   const box = document.createElement("div");
@@ -375,7 +405,7 @@ function lightControl(layer) {
   // The light's intensity k (Photoshop's Lighting Effects "Intensity"): its direct term times k; above 1 a shading
   // layer brightens where the light falls.
   const intensityField = gainSlider(layer, lit, "Intensity", "intensity", "light_intensity", lit.light_intensity);
-  box.append(field("Colour", colour), intensityField, field("Show normal map", show));
+  box.append(field("Colour", colour), intensityField, glossControl(layer, lit), field("Show normal map", show));
   box.append(pointControl(layer, lit));
   box.append(extraLightsControl(layer, lit));
   // A relight's sphere moves either light: the target, or the source the ratio divides by (fitted to the image,
@@ -798,6 +828,7 @@ async function fetchView(params) {
   if (params.ambient) q.append("ambient", `${params.ambient.id}:${params.ambient.value}`);
   if (params.colour) q.append("color", `${params.colour.id}:${params.colour.value}`);
   if (params.intensity) q.append("intensity", `${params.intensity.id}:${params.intensity.value}`);
+  if (params.gloss) q.append("gloss", `${params.gloss.id}:${params.gloss.value}`);
   const path = params.normals ? `api/layers/${encodeURIComponent(params.normals)}/normals?level=${params.level}` : `api/view?${q}`;
   const response = await api(path);
   const w = parseInt(response.headers.get("X-Width"), 10), h = parseInt(response.headers.get("X-Height"), 10);
@@ -824,9 +855,10 @@ function paint() {
   if (!ui.state) return;
   const level = levelFor(ui.zoom);
   wanted = {
-    level: ui.drag || ((ui.light || ui.relief || ui.ambient || ui.colour || ui.intensity) && ui.lightProxy) ? dragLevel(level) : level,
+    level: ui.drag || ((ui.light || ui.relief || ui.ambient || ui.colour || ui.intensity || ui.gloss) && ui.lightProxy) ? dragLevel(level) : level,
     drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split,
-    light: ui.light, relief: ui.relief, ambient: ui.ambient, colour: ui.colour, intensity: ui.intensity, normals: ui.normals,
+    light: ui.light, relief: ui.relief, ambient: ui.ambient, colour: ui.colour, intensity: ui.intensity, gloss: ui.gloss,
+    normals: ui.normals,
   };
   if (!inflight) paintLoop();
 }
