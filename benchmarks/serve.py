@@ -21,7 +21,9 @@ the server composites the level-1 view; a 512² stack shows at 2×, level 0):
   drag proxy's level (as an opacity drag: a 2048² stack fitted at ½ previews at 512², the release repaints at
   1024²); ``light_drag_full_fps``: every preview at the view's level (1024²); ``relief_drag_fps``: the layer's
   Relief slider dragged as an opacity slider is (×1…×2), at the drag proxy's level (``intensity_drag_fps``: its
-  Intensity slider, the same way); ``point_drag_fps``: the light
+  Intensity slider, the same way; ``gloss_drag_fps``: its Gloss slider, 0…1, the same way; ``glossy_light_drag_fps``:
+  the light dragged again with that highlight committed, each preview adding a Blinn–Phong term); ``point_drag_fps``:
+  the light
   made a point light ("Point light") and dragged round a circle on the image the same way (each preview lights every
   pixel along its own vector to the point), at the drag proxy's level; ``spot_drag_fps``: that point given a cone
   ("Spot"), dragged the same way.
@@ -244,6 +246,12 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
         v = page.evaluate("window.lasagna.state.version")  # the Intensity slider likewise (×1…×2)
         intensity_fps, _ = page.evaluate(DRAG, ["#intensity", seconds])
         page.wait_for_function(f"window.lasagna.state.version > {v} && window.lasagna.settled()")
+        v = page.evaluate("window.lasagna.state.version")  # the Gloss slider likewise (0…1), released where it ends
+        gloss_fps, _ = page.evaluate(DRAG, ["#gloss", seconds])
+        page.wait_for_function(f"window.lasagna.state.version > {v} && window.lasagna.settled()")
+        # The light dragged again with that highlight on: each preview adds a Blinn–Phong term to the direct one.
+        drag(0.5)
+        glossy_fps, _ = drag(seconds)
         # A point light (one change to make it one), then dragged round a circle on the image: each preview lights
         # every pixel along its own vector to the point.
         v = page.evaluate("window.lasagna.state.version")
@@ -270,6 +278,8 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
             "light_drag_full_fps": round(full_fps, 1),
             "relief_drag_fps": round(relief_fps, 1),
             "intensity_drag_fps": round(intensity_fps, 1),
+            "gloss_drag_fps": round(gloss_fps, 1),
+            "glossy_light_drag_fps": round(glossy_fps, 1),
             "light_view_level": level,
         }
     finally:
@@ -372,6 +382,8 @@ def main() -> None:
         "light_drag_full_fps",
         "relief_drag_fps",
         "intensity_drag_fps",
+        "gloss_drag_fps",
+        "glossy_light_drag_fps",
         "point_drag_fps",
         "spot_drag_fps",
     ]
