@@ -252,6 +252,11 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
         # The light dragged again with that highlight on: each preview adds a Blinn–Phong term to the direct one.
         drag(0.5)
         glossy_fps, _ = drag(seconds)
+        v = page.evaluate("window.lasagna.state.version")  # the highlight off again (one change) for the point light
+        page.evaluate(
+            '() => { const g = document.getElementById("gloss"); g.value = "0"; g.dispatchEvent(new Event("change")); }'
+        )
+        page.wait_for_function(f"window.lasagna.state.version > {v} && window.lasagna.settled()")
         # A point light (one change to make it one), then dragged round a circle on the image: each preview lights
         # every pixel along its own vector to the point.
         v = page.evaluate("window.lasagna.state.version")
