@@ -30,7 +30,9 @@ layers"). This module is that renderer, differentiable and batch-independent:
   S = a + (1 − a)·Σ kᵢ·cᵢ·fᵢ·(max(0, n·lᵢ) + g·max(0, n·hᵢ)^p·[n·lᵢ > 0]), h = (l + v)/|l + v| the half vector
   toward the viewer v = +z (an orthographic camera), f a point light's falloff and cone (Blinn 1977; Lighting
   Effects' Gloss, Blender's specular). g = 0 is the world's contract, rendered by the Lambert-only paths bit for
-  bit; a relight ratio's source light stays diffuse (a photograph's own highlights are in its pixels).
+  bit; a relight ratio's source light stays diffuse (a photograph's own highlights are in its pixels). The layer
+  multiplies, so the highlight takes the colour below it — a metal's highlight (Lighting Effects' Metallic end); a
+  plastic's white one would be added, which a multiply layer cannot.
 """
 
 from __future__ import annotations
