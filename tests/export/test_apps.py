@@ -15,6 +15,7 @@ difference instead of skipping it.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import zipfile
@@ -72,21 +73,7 @@ def _compare(flat_png: Path, folder: Path, label: str) -> tuple[float, float, fl
 def test_krita_flattens_our_ora(tmp_path):
     folder = _app_stack(tmp_path / "stack")
     assert main(["export", str(folder), "--ora", str(tmp_path / "in.ora")]) == 0
-    proc = subprocess.run(
-        [
-            XVFB,
-            "-a",
-            KRITA,
-            "--nosplash",
-            "--export",
-            "--export-filename",
-            str(tmp_path / "flat.png"),
-            str(tmp_path / "in.ora"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=HANG_SECONDS,
-    )
+    proc = _krita_flatten(tmp_path / "in.ora", tmp_path / "flat.png")
     assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
     worst, mean, pair = _compare(tmp_path / "flat.png", folder, "Krita vs reference")
     assert worst <= 3 and mean <= 0.5 and pair <= 1
@@ -197,12 +184,22 @@ def _off_special(flat_png: Path, folder: Path, tiles: dict[str, tuple[int, int]]
 
 
 def _krita_flatten(ora: Path, out: Path) -> subprocess.CompletedProcess:
+    """Krita, headless under Xvfb, flattens ``ora`` to ``out``. Each pytest-xdist worker looks for a free X display
+    from its own base (``xvfb-run -a -n``): two workers starting Xvfb at once from the same base (99) can both take
+    the same display, and one Krita then finds no display to connect to."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0").lstrip("gw") or "0"
+    base = str(XVFB_BASE_DISPLAY + XVFB_DISPLAYS_PER_WORKER * int(worker))
     return subprocess.run(
-        [XVFB, "-a", KRITA, "--nosplash", "--export", "--export-filename", str(out), str(ora)],
+        [XVFB, "-a", "-n", base, KRITA, "--nosplash", "--export", "--export-filename", str(out), str(ora)],
         capture_output=True,
         text=True,
         timeout=HANG_SECONDS,
     )
+
+
+XVFB_BASE_DISPLAY = 99
+"""xvfb-run's own first display; worker k starts its search XVFB_DISPLAYS_PER_WORKER·k displays above it."""
+XVFB_DISPLAYS_PER_WORKER = 10
 
 
 def _gimp_flatten(psd: Path, out: Path) -> subprocess.CompletedProcess:
@@ -308,13 +305,7 @@ def test_krita_flattens_our_nested_groups(tmp_path):
         xml = zf.read("stack.xml").decode()
     # the groups themselves reach Krita: four nested stacks, and no exact-composite layer to fall back on
     assert xml.count("<stack ") == 4 and 'isolation="isolate"' in xml and "Composite (exact)" not in xml
-    proc = subprocess.run(
-        [XVFB, "-a", KRITA, "--nosplash", "--export", "--export-filename", str(tmp_path / "flat.png")]
-        + [str(tmp_path / "in.ora")],
-        capture_output=True,
-        text=True,
-        timeout=HANG_SECONDS,
-    )
+    proc = _krita_flatten(tmp_path / "in.ora", tmp_path / "flat.png")
     assert (tmp_path / "flat.png").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
     with Image.open(tmp_path / "flat.png") as im:
         flat = np.asarray(im.convert("RGB")).astype(int)
