@@ -295,23 +295,24 @@ function drawSphere(canvas, az, el, ambient) {
   ctx.strokeStyle = "#e0a030"; ctx.lineWidth = 2; ctx.stroke();
 }
 
-// A surface layer's gain as a log slider, ×1/4…×8 (input #id, its value in #id-value): dragging previews it
-// (ui[id], sent as /api/view?id=LAYER:G), releasing records one "light" change of ``field``.
-function gainSlider(layer, lit, label, id, field_, value) {
+// A surface layer's light field as a slider (input #id, its value in #id-value): dragging previews it (ui[id], sent
+// as /api/view?id=LAYER:V), releasing records one "light" change of ``field``. ``scale`` maps the field's value to
+// the slider's position and back (``at``, ``of``) and shows it (``text``), within [min, max] by ``step``.
+function lightSlider(layer, lit, label, id, field_, value, scale) {
   const input = document.createElement("input");
-  input.type = "range"; input.id = id; input.min = "-2"; input.max = "3"; input.step = "0.05";
-  input.value = String(Math.log2(value));
+  input.type = "range"; input.id = id; input.min = scale.min; input.max = scale.max; input.step = scale.step;
+  input.value = String(scale.at(value));
   const shown = document.createElement("span");
   shown.id = `${id}-value`;
-  shown.textContent = `×${value.toFixed(2)}`;
-  const gain = () => Math.round(2 ** parseFloat(input.value) * 1000) / 1000;
+  shown.textContent = scale.text(value);
+  const current = () => scale.of(parseFloat(input.value));
   input.addEventListener("input", () => {
-    ui[id] = { id: layer.id, value: gain() };
-    shown.textContent = `×${ui[id].value.toFixed(2)}`;
+    ui[id] = { id: layer.id, value: current() };
+    shown.textContent = scale.text(ui[id].value);
     paint();
   });
   input.addEventListener("change", async () => {
-    await change({ op: "light", id: layer.id, light: lit.light, [field_]: gain() });
+    await change({ op: "light", id: layer.id, light: lit.light, [field_]: current() });
     ui[id] = null;
     paint();
   });
@@ -320,32 +321,24 @@ function gainSlider(layer, lit, label, id, field_, value) {
   return f;
 }
 
+// A gain ×1/4…×8 on a log slider (relief, intensity).
+const GAIN = {
+  min: "-2", max: "3", step: "0.05", at: Math.log2, of: (x) => Math.round(2 ** x * 1000) / 1000,
+  text: (v) => `×${v.toFixed(2)}`,
+};
+function gainSlider(layer, lit, label, id, field_, value) {
+  return lightSlider(layer, lit, label, id, field_, value, GAIN);
+}
+
 // The highlight (Photoshop's Lighting Effects "Gloss", Blender's specular): a Blinn–Phong term of strength g in
 // [0, 1], previewed while its slider moves (/api/view?gloss=…), one change on release; its exponent ("Shininess",
 // larger: smaller and sharper) a number, one change when it is set.
+const UNIT = { min: "0", max: "1", step: "0.05", at: (v) => v, of: (x) => x, text: (v) => v.toFixed(2) };
 function glossControl(layer, lit) {
   const span = document.createElement("span");
-  const input = document.createElement("input");
-  input.type = "range"; input.id = "gloss"; input.min = "0"; input.max = "1"; input.step = "0.05";
-  input.value = String(lit.gloss);
-  const shown = document.createElement("span");
-  shown.id = "gloss-value";
-  shown.textContent = lit.gloss.toFixed(2);
-  input.addEventListener("input", () => {
-    ui.gloss = { id: layer.id, value: parseFloat(input.value) };
-    shown.textContent = ui.gloss.value.toFixed(2);
-    paint();
-  });
-  input.addEventListener("change", async () => {
-    await change({ op: "light", id: layer.id, light: lit.light, gloss: parseFloat(input.value) });
-    ui.gloss = null;
-    paint();
-  });
   const shininess = numberInput(lit.shininess, (v) => change({ op: "light", id: layer.id, light: lit.light, shininess: v }), "1");
   shininess.id = "shininess"; shininess.min = "1"; shininess.max = "1024";
-  const g = field("Gloss", input);
-  g.append(" ", shown);
-  span.append(g, field(" shininess", shininess));
+  span.append(lightSlider(layer, lit, "Gloss", "gloss", "gloss", lit.gloss, UNIT), field(" shininess", shininess));
   return span;
 }
 
