@@ -674,56 +674,43 @@ def test_a_spot_light_is_aimed_by_shift_dragging_and_its_cone_set_by_sliders(bro
     assert page.errors == []
 
 
-def test_the_intensity_slider_previews_live_and_commits_one_step(browser, surface_server):
-    """A surface layer's "Intensity" slider (log scale, ×1/4…×8): dragging repaints the view live (nothing changes on
-    the server), the release commits one step that sets the intensity and keeps the light; a stronger light
-    brightens; the saved stack renders what the page shows."""
+@pytest.mark.parametrize(
+    ("slider", "field", "shown", "values", "want", "want_shown"),
+    [
+        ("intensity", "light_intensity", "×1.00", ["0.5", "1", "1.5"], 2.828, "×2.83"),  # log scale, ×1/4…×8
+        ("gloss", "gloss", "0.00", ["0.3", "0.6", "0.9"], 0.9, "0.90"),  # the highlight's strength, 0…1
+    ],
+)
+def test_a_light_slider_previews_live_and_commits_one_step(
+    browser, surface_server, slider, field, shown, values, want, want_shown
+):
+    """A surface layer's "Intensity" or "Gloss" slider: dragging repaints the view live (nothing changes on the
+    server), the release commits one step that sets the field and keeps the light; a stronger light, or a highlight,
+    brightens; for gloss, "shininess" commits one step more and changes the pixels; the saved stack renders what the
+    page shows."""
     folder = surface_server.session.folder
     page = open_page(browser, surface_server)
     row(page, "shape").locator(".name").click()
-    page.wait_for_selector("#intensity")
-    assert page.inner_text("#intensity-value") == "×1.00"
+    page.wait_for_selector(f"#{slider}")
+    assert page.inner_text(f"#{slider}-value") == shown
     before, v = page_pixels(page), version(page)
     paints = page.evaluate("window.lasagna.paints.count")
-    slide(page, "intensity", ["0.5", "1", "1.5"])
+    slide(page, slider, values)
     page.wait_for_function(f"window.lasagna.paints.count > {paints}")
     assert version(page) == v
-    page.evaluate('() => document.getElementById("intensity").dispatchEvent(new Event("change"))')
+    page.evaluate(f'() => document.getElementById("{slider}").dispatchEvent(new Event("change"))')
     settle(page, v + 1)
     lit = page.evaluate("window.lasagna.state.surfaces.shape")
-    assert abs(lit["light_intensity"] - 2.828) < 1e-3 and lit["light"] == "top-left"
-    assert page.inner_text("#intensity-value") == "×2.83"
+    assert abs(lit[field] - want) < 1e-3 and lit["light"] == "top-left"
+    assert page.inner_text(f"#{slider}-value") == want_shown
     after = page_pixels(page)
     assert after[..., :3].astype(float).mean() > before[..., :3].astype(float).mean()
-    save_and_check(page, folder)
-    assert page.errors == []
-
-
-def test_the_gloss_slider_previews_live_and_commits_one_step(browser, surface_server):
-    """A surface layer's "Gloss" slider: dragging repaints the view live (nothing changes on the server), the release
-    commits one step that sets the gloss and keeps the light; the highlight brightens the page; "shininess" commits
-    one step more; the saved stack renders what the page shows."""
-    folder = surface_server.session.folder
-    page = open_page(browser, surface_server)
-    row(page, "shape").locator(".name").click()
-    page.wait_for_selector("#gloss")
-    assert page.inner_text("#gloss-value") == "0.00"
-    before, v = page_pixels(page), version(page)
-    paints = page.evaluate("window.lasagna.paints.count")
-    slide(page, "gloss", ["0.3", "0.6", "0.9"])
-    page.wait_for_function(f"window.lasagna.paints.count > {paints}")
-    assert version(page) == v
-    page.evaluate('() => document.getElementById("gloss").dispatchEvent(new Event("change"))')
-    settle(page, v + 1)
-    lit = page.evaluate("window.lasagna.state.surfaces.shape")
-    assert lit["gloss"] == 0.9 and lit["light"] == "top-left" and page.inner_text("#gloss-value") == "0.90"
-    glossy = page_pixels(page)
-    assert glossy[..., :3].astype(float).mean() > before[..., :3].astype(float).mean()
-    page.fill("#shininess", "4")
-    page.dispatch_event("#shininess", "change")
-    settle(page, v + 2)
-    assert page.evaluate("window.lasagna.state.surfaces.shape")["shininess"] == 4.0
-    assert not np.array_equal(page_pixels(page), glossy)
+    if slider == "gloss":
+        page.fill("#shininess", "4")
+        page.dispatch_event("#shininess", "change")
+        settle(page, v + 2)
+        assert page.evaluate("window.lasagna.state.surfaces.shape")["shininess"] == 4.0
+        assert not np.array_equal(page_pixels(page), after)
     save_and_check(page, folder)
     assert page.errors == []
 
