@@ -538,3 +538,20 @@ def test_integrating_a_height_fields_normals_returns_it(shape):
     flat = torch.zeros(1, 3, h, w, dtype=torch.float64)
     flat[:, 2] = 1.0
     assert float(integrate_normals(flat).abs().max()) < 1e-12
+
+
+@pytest.mark.parametrize("blend", [0.0, 0.3])
+def test_a_spot_lights_highlight_carries_its_falloff_and_cone(blend):
+    """``highlight`` of a spot light: the Blinn–Phong term per pixel along its own vector to the light, times the
+    light's falloff and cone (numpy float64 of their closed forms, tests/support/lights.py), zero outside the cone."""
+    from lasagna.compose.surface import highlight
+    from tests.support.lights import blinn_phong, spot_field
+
+    torch.manual_seed(3)
+    n = normals_from_height(0.1 * torch.randn(1, 1, 20, 28, dtype=torch.float64))
+    text = f"x=0.3,y=0.4,z=0.5,cone=30,ax=0.6,ay=0.5,blend={blend}"
+    got = highlight(n, text, 12.0)[0, 0].numpy()
+    l_vec, weight = spot_field(n.shape, 0.3, 0.4, 0.5, 30.0, 0.6, 0.5, blend)
+    want = blinn_phong(n[0].numpy(), l_vec, 12.0) * weight
+    np.testing.assert_allclose(got, want, atol=1e-9)
+    assert (want == 0).any() and (want > 0.05).any()  # the cone's outside dark, a highlight inside

@@ -604,20 +604,13 @@ def test_bad_extra_lights_are_refused_by_the_model_and_the_schema(extra, where):
 # ---- gloss: a Blinn–Phong highlight ----------------------------------------------------------------------
 
 
-def blinn(n: np.ndarray, l_vec: np.ndarray, p: float) -> np.ndarray:
-    """numpy float64 of max(0, n·h)^p·[n·l > 0], h the half vector of l and the view +z, per pixel when ``l_vec`` is
-    (3, h, w) (a point light), else one vector."""
-    lv = l_vec if l_vec.ndim == 3 else l_vec[:, None, None]
-    half = lv + np.array([0.0, 0.0, 1.0])[:, None, None]
-    half = half / np.linalg.norm(half, axis=0, keepdims=True)
-    return np.maximum(0.0, (n * half).sum(0)) ** p * ((n * lv).sum(0) > 0)
-
-
 def test_gloss_adds_a_blinn_phong_highlight_and_the_files_flatten_to_it(stack, tmp_path):
     """``gloss`` g and ``shininess`` p render a + (1 − a)·k·(max(0, n·l) + g·max(0, n·h)^p·[n·l > 0]) (numpy float64 of
     the map read by pypng, Blinn 1977): gloss 0 is the layer as before bit for bit; a relight ratio keeps its source
     light diffuse; a point light's highlight carries its falloff; stack.json round-trips it; the ORA and the PSD
     flatten to it."""
+    from tests.support.lights import blinn_phong
+
     stack.save(tmp_path / "s")
     n = read_normals(tmp_path / "s" / "layers" / "shape.png")
     base = stack.tensors["base"].color.double().numpy()
@@ -626,11 +619,13 @@ def test_gloss_adds_a_blinn_phong_highlight_and_the_files_flatten_to_it(stack, t
     assert torch.equal(stack.render().image, plain)
     l_vec = light(60, 40)
     stack.set_light("shape", "az=60,el=40", gloss=0.6, shininess=8.0, light_intensity=1.5)
-    s = 0.25 + 0.75 * 1.5 * (np.maximum(0.0, np.einsum("chw,c->hw", n, l_vec)) + 0.6 * blinn(n, l_vec, 8.0))
+    s = 0.25 + 0.75 * 1.5 * (np.maximum(0.0, np.einsum("chw,c->hw", n, l_vec)) + 0.6 * blinn_phong(n, l_vec, 8.0))
     assert (s - shading(n, l_vec)).max() > 0.3  # the highlight shows
     np.testing.assert_allclose(stack.render().image.double().numpy(), np.clip(base * s[None], 0, 1), atol=2e-6)
     stack.set_light("shape", "right", source_light="left", gloss=0.6, shininess=8.0, light_intensity=1.0)
-    target = 0.25 + 0.75 * (np.maximum(0.0, np.einsum("chw,c->hw", n, light(0, 60))) + 0.6 * blinn(n, light(0, 60), 8))
+    target = 0.25 + 0.75 * (
+        np.maximum(0.0, np.einsum("chw,c->hw", n, light(0, 60))) + 0.6 * blinn_phong(n, light(0, 60), 8)
+    )
     ratio = target / shading(n, light(180, 60))
     np.testing.assert_allclose(stack.render().image.double().numpy(), np.clip(base * ratio, 0, 1), atol=2e-6)
     stack.set_light("shape", "x=0.3,y=0.4,z=0.5", source_light=None, gloss=0.5, shininess=16.0)
@@ -639,7 +634,7 @@ def test_gloss_adds_a_blinn_phong_highlight_and_the_files_flatten_to_it(stack, t
     side = max(h, w)
     d = np.stack([(0.3 - (jj + 0.5) / w) * w / side, ((ii + 0.5) / h - 0.4) * h / side, np.full((h, w), 0.5)])
     dist = np.linalg.norm(d, axis=0)
-    spec = 0.75 * 0.5 * (0.5 / dist) ** 2 * blinn(n, d / dist, 16.0)
+    spec = 0.75 * 0.5 * (0.5 / dist) ** 2 * blinn_phong(n, d / dist, 16.0)
     np.testing.assert_allclose(
         stack.render().image.double().numpy(), np.clip(base * (point_shading(n, 0.3, 0.4, 0.5) + spec), 0, 1), atol=2e-6
     )

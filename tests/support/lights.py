@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 
 
-def spot_reference(n, x, y, z, cone, ax, ay, blend):
-    """numpy float64 of a spot light over unit normals n (3, h, w): the point light's closed form times Blender's
-    spot mask, smoothstep((cos θ − cos C)/(b·(1 − cos C))) (a step at b = 0), θ between the ray from the light to
-    the pixel and the axis from the light to (ax, ay) on the map."""
-    _, h, w = n.shape
+def spot_field(shape, x, y, z, cone, ax, ay, blend):
+    """(unit vectors l (3, h, w) from each pixel to a spot light, its weight (z/|d|)²·m (h, w)) over a map of ``shape``
+    (…, h, w): the point light's closed form times Blender's spot mask m = smoothstep((cos θ − cos C)/(b·(1 − cos C)))
+    (a step at b = 0), θ between the ray from the light to the pixel and the axis from the light to (ax, ay)."""
+    h, w = shape[-2:]
     side = max(h, w)
     jj, ii = np.meshgrid(np.arange(w), np.arange(h))
     d = np.stack([(x - (jj + 0.5) / w) * w / side, ((ii + 0.5) / h - y) * h / side, np.full((h, w), z)])
@@ -22,4 +22,19 @@ def spot_reference(n, x, y, z, cone, ax, ay, blend):
     else:
         t = np.clip((cos - edge) / (blend * (1 - edge)), 0, 1)
         mask = t * t * (3 - 2 * t)
-    return 0.25 + 0.75 * (z / r) ** 2 * mask * np.maximum(0.0, (n * d / r).sum(0))
+    return d / r, (z / r) ** 2 * mask
+
+
+def spot_reference(n, x, y, z, cone, ax, ay, blend):
+    """numpy float64 of a spot light's shading over unit normals n (3, h, w), a = 0.25: a + (1 − a)·f·max(0, n·l)."""
+    l_vec, weight = spot_field(n.shape, x, y, z, cone, ax, ay, blend)
+    return 0.25 + 0.75 * weight * np.maximum(0.0, (n * l_vec).sum(0))
+
+
+def blinn_phong(n, l_vec, p):
+    """numpy float64 of the Blinn–Phong highlight max(0, n·h)^p·[n·l > 0] over unit normals n (3, h, w), ``l_vec`` one
+    unit light (3,) or one per pixel (3, h, w), h the half vector of l and the view +z."""
+    lv = l_vec if l_vec.ndim == 3 else l_vec[:, None, None]
+    half = lv + np.array([0.0, 0.0, 1.0])[:, None, None]
+    half = half / np.linalg.norm(half, axis=0, keepdims=True)
+    return np.maximum(0.0, (n * half).sum(0)) ** p * ((n * lv).sum(0) > 0)
