@@ -11,6 +11,7 @@
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe t-anneal     # ~15 min (round 13)
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe posterior-mean   # ~2 min (round 14)
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe denoise --prior runs/relit-grown/prior
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe told-fit     # ~2 min (round 25)
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe ensemble \
         --members layers/surface-lit-32 layers/surface-lit-closeup-32                   # ~1 min
 
@@ -35,6 +36,13 @@
   the lit estimator's height h₀ + δ and its light refined by Adam so that the log-albedo log Y − log S(n, l) has
   sparse gradients (Charbonnier), with an anchor λ_a‖δ‖² and a smoothness λ_s‖∇²h‖² (both per canvas unit). Rows:
   the relight surface route on `select` (64²) for each (steps, λ_a, λ_s, Charbonnier ε).
+
+* **told-fit** (round 25) — the told route told the light the untold surface layer fits (`lasagna.edit(...,
+  layer_kind="surface")`'s stored ``source_light``), and blends of a told layer on the objects with the free default
+  on the walls (weights: the told estimator's silhouette probability, or the true mask as the blend's best case),
+  beside the free default, the untold layer and the told route told the true light: `select` (16 scenes, world
+  seed ``--seed``, 64²), dB over the unchanged input (all / objects), and each scene's fitted against true light.
+  Asks whether a default can borrow the told route's objects without a person's reading.
 
 * **ensemble** — the lit estimators of ``--members`` (each with the relight's dome prior) averaged: their normals
   (renormalised) and their source shadings, the light fitted to the averages. Rows: the relight surface route on
@@ -745,6 +753,60 @@ def probe_denoise(candidate: Path) -> dict:
     return out
 
 
+def probe_told_fit(seed: int) -> dict:
+    from relight_candidates import measure
+    from surface import scenes as world_scenes
+
+    import lasagna.catalogue as cat
+    from lasagna.catalogue import load_preset
+    from lasagna.compose.resample import upsample
+    from lasagna.editing import edit
+    from lasagna.world.tasks import relight_sources, relighting
+
+    sd = load_preset("relight").surface
+    net = SurfaceEstimator.from_pretrained(cat.find(sd.told.estimator, "estimator"))
+    scene, labels = world_scenes("select", COUNT, seed, 64)
+    sources = relight_sources(scene.params)
+    rel = relighting(scene, sources)
+    names = ("free default", "untold surface layer", "told the fitted light", "told the true light")
+    names += ("fitted-told objects, free walls (silhouette)", "fitted-told objects, free walls (true mask)")
+    names += ("true-told objects, free walls (silhouette)", "mean of the free default and fitted-told")
+    names += ("told the fitted light, unrefined", "mean of the free default and fitted-told, unrefined")
+    layers: dict[str, list] = {n: [] for n in names}
+    fits = []
+    for i in range(COUNT):
+        b, label = rel.base[i].float(), labels[i]
+        free = edit(b, "relight", label, layer_kind="free").layer[:1]
+        untold = edit(b, "relight", label, layer_kind="surface")
+        fitted = next(x for x in untold.stack.document.layers if x.id == untold.layer_id).source_light
+        fits.append({"true": sources[i], "fitted": fitted})
+        told_fit = edit(b, "relight", label, layer_kind="surface", source_light=fitted).layer[:1]
+        told_true = edit(b, "relight", label, layer_kind="surface", source_light=sources[i]).layer[:1]
+        quick = edit(b, "relight", label, layer_kind="surface", source_light=fitted, optimize=0).layer[:1]
+        small = downsample(b[None], working_size(*b.shape[-2:], sd.working_size))
+        p = upsample(net.silhouette(small, sd.symmetry), tuple(b.shape[-2:])).clamp(0, 1)[0]
+        m = scene.mask[i].float()
+        for name, y in zip(
+            names,
+            (
+                free,
+                untold.layer[:1],
+                told_fit,
+                told_true,
+                p * told_fit + (1 - p) * free,
+                m * told_fit + (1 - m) * free,
+                p * told_true + (1 - p) * free,
+                (free + told_fit) / 2,
+                quick,
+                (free + quick) / 2,
+            ),
+            strict=True,
+        ):
+            layers[name].append(y)
+    rows = [measure(n, scene, rel, torch.stack(v), None, 64) for n, v in layers.items()]
+    return {f"select_seed{seed}_64": rows, "lights": fits}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument(
@@ -762,6 +824,7 @@ def main(argv=None) -> int:
             "t-anneal",
             "posterior-mean",
             "denoise",
+            "told-fit",
         ),
         required=True,
     )
@@ -777,6 +840,7 @@ def main(argv=None) -> int:
     )
     p.add_argument("--gains", nargs="+", type=float, default=[1.0, 1.5, 2.0, 3.0], help="start-relief")
     p.add_argument("--members", nargs="+", type=Path, default=[LAYERS / "surface-lit-32", LIT], help="ensemble")
+    p.add_argument("--seed", type=int, default=0, help="told-fit: the world seed of select's scenes")
     p.add_argument("--default", action="store_true", help="gain-fit: measure the default relight instead")
     args = p.parse_args(argv)
     torch.manual_seed(0)
@@ -798,6 +862,7 @@ def main(argv=None) -> int:
         probes = {"srgb": probe_srgb, "profile": probe_profile, "sirfs": probe_sirfs}
         probes.update({"symmetric-particles": probe_symmetric_particles, "wall-level": probe_wall_level})
         probes["truth-start"] = probe_truth_start
+        probes["told-fit"] = lambda: probe_told_fit(args.seed)
         rows = probes[args.probe]()
     record = {"benchmark": "surface_probes", "probe": args.probe, "default": args.default, "rows": rows}
     print_json_line({**record, "machine": machine_info()})
