@@ -22,11 +22,13 @@ the server composites the level-1 view; a 512² stack shows at 2×, level 0):
   1024²); ``light_drag_full_fps``: every preview at the view's level (1024²); ``relief_drag_fps``: the layer's
   Relief slider dragged as an opacity slider is (×1…×2), at the drag proxy's level (``intensity_drag_fps``: its
   Intensity slider, the same way; ``gloss_drag_fps``: its Gloss slider, 0…1, the same way; ``glossy_light_drag_fps``:
-  the light dragged again with that highlight committed, each preview adding a Blinn–Phong term); ``point_drag_fps``:
+  the light dragged again with that highlight committed, each preview adding a Blinn–Phong term; ``shadows_drag_fps``:
+  its Shadows slider, 0…1, and ``shadowed_light_drag_fps`` the light dragged with shadows committed, each preview
+  tracing them over the map's heights); ``point_drag_fps``:
   the light
   made a point light ("Point light") and dragged round a circle on the image the same way (each preview lights every
   pixel along its own vector to the point), at the drag proxy's level; ``spot_drag_fps``: that point given a cone
-  ("Spot"), dragged the same way.
+  ("Spot"), dragged the same way; ``shadowed_spot_drag_fps``: that spot casting shadows, dragged again.
 
 The baseline in the same run is what a server without the cache and the view levels would do per click:
 ``render_stack`` of the whole stack at full size (``baseline_render_ms``, median of 3), before any transfer
@@ -232,6 +234,16 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
             page.wait_for_function("window.lasagna.settled() && window.lasagna.light === null")
             return fps, input_hz
 
+        def set_slider(id: str, value: str) -> None:
+            # A slider set and released (one change), and the page settled after it.
+            v = page.evaluate("window.lasagna.state.version")
+            page.evaluate(
+                "([id, x]) => { const g = document.getElementById(id); g.value = x;"
+                " g.dispatchEvent(new Event('change')); }",
+                [id, value],
+            )
+            page.wait_for_function(f"window.lasagna.state.version > {v} && window.lasagna.settled()")
+
         drag(0.5)  # warm-up: the levels' renderers built, the prefixes cached, the maps' normals decoded
         fps, input_hz = drag(seconds)
         page.evaluate("window.lasagna.lightProxy = false")
@@ -252,11 +264,15 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
         # The light dragged again with that highlight on: each preview adds a Blinn–Phong term to the direct one.
         drag(0.5)
         glossy_fps, _ = drag(seconds)
-        v = page.evaluate("window.lasagna.state.version")  # the highlight off again (one change) for the point light
-        page.evaluate(
-            '() => { const g = document.getElementById("gloss"); g.value = "0"; g.dispatchEvent(new Event("change")); }'
-        )
+        set_slider("gloss", "0")  # the highlight off again for the shadows and the point light
+        # The Shadows slider dragged the same way (0…1: each preview traces the light over the map's heights), then
+        # the light dragged with the shadows committed.
+        v = page.evaluate("window.lasagna.state.version")
+        shadows_fps, _ = page.evaluate(DRAG, ["#shadows", seconds])
         page.wait_for_function(f"window.lasagna.state.version > {v} && window.lasagna.settled()")
+        drag(0.5)
+        shadowed_fps, _ = drag(seconds)
+        set_slider("shadows", "0")
         # A point light (one change to make it one), then dragged round a circle on the image: each preview lights
         # every pixel along its own vector to the point.
         v = page.evaluate("window.lasagna.state.version")
@@ -272,6 +288,9 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
         page.wait_for_function(f"window.lasagna.state.version > {v} && window.lasagna.settled()")
         drag(0.5, "canvas")
         spot_fps, _ = drag(seconds, "canvas")
+        set_slider("shadows", "1")  # the spot dragged again, casting shadows: each preview traces from the point
+        drag(0.5, "canvas")
+        shadowed_spot_fps, _ = drag(seconds, "canvas")
         level = page.evaluate(
             "(() => { const z = window.lasagna.zoom; return z >= 1 ? 0 : Math.floor(Math.log2(1 / z)); })()"
         )
@@ -285,6 +304,9 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
             "intensity_drag_fps": round(intensity_fps, 1),
             "gloss_drag_fps": round(gloss_fps, 1),
             "glossy_light_drag_fps": round(glossy_fps, 1),
+            "shadows_drag_fps": round(shadows_fps, 1),
+            "shadowed_light_drag_fps": round(shadowed_fps, 1),
+            "shadowed_spot_drag_fps": round(shadowed_spot_fps, 1),
             "light_view_level": level,
         }
     finally:
@@ -389,6 +411,9 @@ def main() -> None:
         "intensity_drag_fps",
         "gloss_drag_fps",
         "glossy_light_drag_fps",
+        "shadows_drag_fps",
+        "shadowed_light_drag_fps",
+        "shadowed_spot_drag_fps",
         "point_drag_fps",
         "spot_drag_fps",
     ]

@@ -1,6 +1,6 @@
 """``lasagna light``: re-light a stack's surface layer in place — its light, source light, ambient, relief, colour,
-intensity, gloss or extra lights — from its stored normal map, with no learning (what dragging the editor's light sphere
-or its sliders does).
+intensity, gloss, shadows or extra lights — from its stored normal map, with no learning (what dragging the editor's
+light sphere or its sliders does).
 
 Only stack.json (the commit point), composite.png and a stack.ora the folder holds change: no layer PNG is
 written (``save_in_place`` with every layer unchanged), and a stack.json changed on disk since it was read is
@@ -16,8 +16,8 @@ from pathlib import Path
 from lasagna.errors import LasagnaError
 
 HELP = (
-    "re-light a stack's surface layer in place (light, source light, ambient, relief, colour, intensity, gloss, more "
-    "lights); no learning"
+    "re-light a stack's surface layer in place (light, source light, ambient, relief, colour, intensity, gloss, "
+    "shadows, more lights); no learning"
 )
 EXAMPLE = (
     "lasagna light out/chelsea-surface --light az=30,el=45                  # the topmost surface layer",
@@ -27,6 +27,7 @@ EXAMPLE = (
     "lasagna light out/chelsea-surface --light x=0.2,y=0.1,z=0.3,cone=25,ax=0.5,ay=0.6  # a spot aimed at the eyes",
     "lasagna light out/chelsea-surface --add-light 'right;#a0c0ff;0.5'      # and a blue fill light from the right",
     "lasagna light out/chelsea-surface --gloss 0.4 --shininess 24           # a highlight where the light falls",
+    "lasagna light out/chelsea-surface --light az=250,el=70 --shadows 0.8   # a low light, its bumps casting shadows",
 )
 
 
@@ -92,6 +93,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="P",
         help="the highlight's exponent in [1, 1024]: larger is smaller and sharper (32 by default; default: kept)",
     )
+    p.add_argument(
+        "--shadows",
+        type=float,
+        metavar="S",
+        help="cast shadows' strength in [0, 1]: each light's direct term where the surface's own heights hide it "
+        "times 1 - S (0: none; default: kept)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -99,11 +107,11 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.io.survey import survey_stack
 
     fields = (args.light, args.source, args.ambient, args.relief, args.color, args.intensity, args.add_light)
-    fields += (args.gloss, args.shininess)
+    fields += (args.gloss, args.shininess, args.shadows)
     if all(v is None for v in fields) and not (args.clear_lights or args.read_again):
         raise LasagnaError(
             "nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, --intensity, "
-            "--gloss, --shininess, --add-light, --clear-lights, --read-again",
+            "--gloss, --shininess, --shadows, --add-light, --clear-lights, --read-again",
             where="light",
         )
     if args.within is not None and not args.read_again:
@@ -137,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
         light_intensity=args.intensity,
         gloss=args.gloss,
         shininess=args.shininess,
+        shadows=args.shadows,
         extra_lights=None
         if not (added or args.clear_lights)
         else [*(() if args.clear_lights else layer.extra_lights), *added],
@@ -173,6 +182,8 @@ def run(args: argparse.Namespace) -> int:
         said.append(f"intensity {lit.light_intensity:g}")
     if lit.gloss > 0:
         said.append(f"gloss {lit.gloss:g} (shininess {lit.shininess:g})")
+    if lit.shadows > 0:
+        said.append(f"shadows {lit.shadows:g}")
     if lit.extra_lights:
         said.append(f"{len(lit.extra_lights)} more light" + ("s" if len(lit.extra_lights) > 1 else ""))
     wrote = "stack.json, composite.png" + (f", {lit.source}" if args.read_again else "")

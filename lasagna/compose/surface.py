@@ -33,6 +33,11 @@ layers"). This module is that renderer, differentiable and batch-independent:
   bit; a relight ratio's source light stays diffuse (a photograph's own highlights are in its pixels). The layer
   multiplies, so the highlight takes the colour below it — a metal's highlight (Lighting Effects' Metallic end); a
   plastic's white one would be added, which a multiply layer cannot.
+- **Shadows** (a layer's ``shadows`` s): each light's direct term (its highlight too) also times 1 − s·(1 − V), V
+  that light's visibility over the heights integrated from the layer's normals (`lasagna.compose.shadow`): a bump
+  darkens what lies behind it from the light. s = 0 is the world's contract, rendered by the paths without shadows
+  bit for bit; a relight ratio's source light casts none (a photograph's own shadows are in its pixels, and dividing
+  them out needs their exact edges: docs/BENCHMARKS.md, round 24).
 """
 
 from __future__ import annotations
@@ -44,7 +49,8 @@ import torch
 from torch import Tensor
 
 from lasagna.compose.layer import LayerTensors
-from lasagna.compose.resample import gaussian_blur
+from lasagna.compose.resample import downsample, gaussian_blur
+from lasagna.compose.shadow import SHADOW_MAX_SIDE, visibility
 from lasagna.document.condition import (
     AMBIENT,
     DEFAULT_SHININESS,
@@ -304,6 +310,30 @@ def integrate_normals(normals: torch.Tensor) -> torch.Tensor:
     return out - out.amin(dim=(-2, -1), keepdim=True)
 
 
+def shadow_heights(normals: Tensor) -> Tensor:
+    """The heights (B, 1, h, w, canvas units, least value 0) a layer's shadows are traced over: its unit ``normals``
+    (B, 3, H, W) reduced to at most ``SHADOW_MAX_SIDE`` on a side (antialiased, renormalised), integrated
+    (`integrate_normals`). Canvas units do not depend on the size, so a shadow is as long at any size."""
+    h, w = normals.shape[-2:]
+    scale = min(1.0, SHADOW_MAX_SIDE / max(h, w))
+    small = normals.detach()
+    if scale < 1.0:
+        small = downsample(small, (max(1, round(h * scale)), max(1, round(w * scale))))
+        small = small * torch.rsqrt((small * small).sum(1, keepdim=True).clamp_min(NORMAL_EPS))
+    return integrate_normals(small)
+
+
+def _heights(stored: LayerTensors, same_map: tuple, relief: float, normals: Tensor) -> Tensor:
+    """``shadow_heights`` of a stored map's ``normals`` (its relief applied), kept per map and relief (`_HEIGHTS`)."""
+    key = (*same_map, relief)
+    hit = _HEIGHTS.get(stored)
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    heights = shadow_heights(normals)
+    _HEIGHTS[stored] = (key, heights)
+    return heights
+
+
 # Bicubic overshoot (or a refining step) can push a normal's z below 0 beside a silhouette; it is kept facing the
 # viewer.
 NORMAL_Z_MIN = 1e-3
@@ -410,6 +440,9 @@ def inflate_regions(index: Tensor) -> Tensor:
 _RENDERED: weakref.WeakKeyDictionary[LayerTensors, tuple[tuple, LayerTensors, Tensor | None]] = (
     weakref.WeakKeyDictionary()
 )
+# The heights a stored map's shadows are traced over (`shadow_heights`), kept while the map lives and is unchanged,
+# per relief: a light dragged over a shadow-casting layer integrates its heights once.
+_HEIGHTS: weakref.WeakKeyDictionary[LayerTensors, tuple[tuple, Tensor]] = weakref.WeakKeyDictionary()
 
 
 def memo_tensors() -> list[Tensor]:
@@ -420,6 +453,7 @@ def memo_tensors() -> list[Tensor]:
         out.append(rendered.color)
         if normals is not None:
             out.append(normals)
+    out += [heights for _, heights in list(_HEIGHTS.values())]
     return out
 
 
@@ -433,8 +467,8 @@ def surface_range(source_light: str | None, ambient: float, peak: float = 1.0) -
 
 def layer_surface_tensors(stored: LayerTensors, layer) -> tuple[LayerTensors, tuple[float, float]]:
     """A surface layer's multiplier and its range, from the layer's light fields (a `SurfaceLayer`: light, source
-    light, ambient, relief, colour, intensity, extra lights, gloss and shininess) — the one place the compositor and
-    the exports read them; a highlight raises the range's top by (1 + gloss)."""
+    light, ambient, relief, colour, intensity, extra lights, gloss, shininess and shadows) — the one place the
+    compositor and the exports read them; a highlight raises the range's top by (1 + gloss) (a shadow only lowers)."""
     ambient, intensity, gloss = float(layer.ambient), float(layer.light_intensity), float(layer.gloss)
     extras = tuple((e.light, tuple(e.color), float(e.intensity)) for e in layer.extra_lights)
     tensors = surface_tensors(
@@ -448,6 +482,7 @@ def layer_surface_tensors(stored: LayerTensors, layer) -> tuple[LayerTensors, tu
         extras,
         gloss,
         float(layer.shininess),
+        float(layer.shadows),
     )
     peak = (intensity * max(layer.light_color) + sum(k * max(c) for _, c, k in extras)) * (1.0 + gloss)
     return tensors, surface_range(layer.source_light, ambient, peak)
@@ -464,6 +499,7 @@ def surface_tensors(
     extra_lights: tuple[tuple[str, tuple[float, float, float], float], ...] = (),
     gloss: float = 0.0,
     shininess: float = DEFAULT_SHININESS,
+    shadows: float = 0.0,
 ) -> LayerTensors:
     """A surface layer's tensors as the compositor blends them: its normal map ``stored.color`` (..., 3, h, w)
     of values in [0, 1] (the PNG's codes), its relief times ``relief`` (`deepen_normals`), rendered to the
@@ -474,8 +510,9 @@ def surface_tensors(
     source light staying white; ``light_intensity`` k multiplies the direct term too (its gain is k·c: one channel
     while that is grey). ``extra_lights`` — (light text, colour, intensity) each — add their direct terms,
     a + Σᵢ (Sᵢ − a)·kᵢ·cᵢ (`lit_by`). ``gloss`` > 0 adds each light's highlight of exponent ``shininess`` (the module
-    docstring's Gloss; the source light stays diffuse). The same stored map and light fields always give the same
-    bits.
+    docstring's Gloss; the source light stays diffuse); ``shadows`` > 0 darkens each light's direct term where the
+    map's own heights hide the light (the module docstring's Shadows; the source light casts none). The same stored
+    map and light fields always give the same bits.
     """
     color = stored.color
     if color.shape[-3] != 3:
@@ -486,7 +523,7 @@ def surface_tensors(
     colour = tuple(float(c) * float(light_intensity) for c in light_color)  # the direct term's gain per channel
     extras = tuple((text, tuple(float(c) * float(k) for c in col)) for text, col, k in extra_lights)
     shine = (float(gloss), float(shininess)) if gloss > 0 else (0.0,)
-    key = (*same_map, light, source_light, float(ambient), float(relief), colour, extras, shine)
+    key = (*same_map, light, source_light, float(ambient), float(relief), colour, extras, shine, float(shadows))
     hit = _RENDERED.get(stored)
     if hit is not None and hit[0] == key:
         return hit[1]
@@ -497,8 +534,9 @@ def surface_tensors(
     lit = deepen_normals(normals, float(relief))
     point = parse_point(light)
     white = colour == (1.0, 1.0, 1.0)
-    if extras or gloss > 0:  # several lights or highlights: their direct terms summed, over S(source) for a ratio
-        y = lit_by(lit, ((light, colour), *extras), ambient, float(gloss), float(shininess))
+    if extras or gloss > 0 or shadows > 0:  # several lights, highlights or shadows: direct terms summed, over S(source)
+        heights = _heights(stored, same_map, float(relief), lit) if shadows > 0 else None
+        y = lit_by(lit, ((light, colour), *extras), ambient, float(gloss), float(shininess), float(shadows), heights)
         if source_light is not None:
             source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
             y = y / lambert(lit, source, check_ratio_ambient(ambient))
@@ -634,12 +672,21 @@ def coloured(shading: Tensor, colour: tuple[float, float, float], ambient: float
 
 
 def lit_by(
-    normals: Tensor, lights, ambient: float = AMBIENT, gloss: float = 0.0, shininess: float = DEFAULT_SHININESS
+    normals: Tensor,
+    lights,
+    ambient: float = AMBIENT,
+    gloss: float = 0.0,
+    shininess: float = DEFAULT_SHININESS,
+    shadows: float = 0.0,
+    heights: Tensor | None = None,
 ) -> Tensor:
     """a + Σᵢ (Sᵢ − a)·gᵢ of unit ``normals`` (B, 3, H, W) under ``lights`` — (light text, gain (3,)) each, a
     direction or a point light (`point_lambert`), its gain its colour times its intensity: one channel while every
     gain is grey, else three; with ``gloss`` > 0 each light's direct term also carries its highlight (`highlight`,
-    the module docstring's Gloss)."""
+    the module docstring's Gloss); with ``shadows`` s > 0 each direct term is times 1 − s·(1 − Vᵢ), Vᵢ the light's
+    visibility over ``heights`` (B, 1, h, w, canvas units: `shadow_heights`; `lasagna.compose.shadow.visibility`)."""
+    if shadows > 0.0 and heights is None:
+        raise LasagnaError("shadows need the surface's heights; expected heights (shadow_heights)", "lit_by")
     check_ambient(ambient)
     grey = all(g[0] == g[1] == g[2] for _, g in lights)
     total = None
@@ -654,6 +701,9 @@ def lit_by(
             s = s + (1.0 - ambient) * gloss * highlight(normals, text, shininess)
         g = gain[0] if grey else torch.tensor(gain, dtype=normals.dtype, device=normals.device).view(1, 3, 1, 1)
         term = (s - ambient) * g
+        if shadows > 0.0:
+            seen = visibility(heights, text, tuple(normals.shape[-2:])).to(normals)
+            term = term * (1.0 - shadows * (1.0 - seen))
         total = term if total is None else total + term
     return ambient + total
 

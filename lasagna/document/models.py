@@ -401,6 +401,16 @@ class SurfaceLayer(_Common):
         description="Highlight exponent p: larger is a smaller, sharper highlight (32: half its peak 12° off the half "
         "vector); read only where gloss > 0.",
     )
+    shadows: float = Field(
+        0.0,
+        strict=True,
+        ge=0.0,
+        le=1.0,
+        allow_inf_nan=False,
+        description="Cast-shadow strength s: each light's direct term times 1 − s·(1 − V), V whether the light sees "
+        "the pixel over the heights integrated from the normal map (a bump darkens what lies behind it; "
+        "`lasagna.compose.shadow`); 0: none, the world's contract. A relight ratio's source light casts none.",
+    )
     mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
     made_by: dict[str, JsonValue] = Field(
         default_factory=dict,
@@ -704,11 +714,12 @@ class Document(StrictModel):
         extra_lights: Any = None,
         gloss: float | None = None,
         shininess: float | None = None,
+        shadows: float | None = None,
     ) -> Document:
         """A copy where the surface layer ``id`` has a new ``light`` (and ``source_light`` — None for plain shading,
         ``...`` kept — ``ambient``, ``relief``, ``light_color``, ``light_intensity``, ``extra_lights`` (ExtraLight
-        models or their dicts, ``()`` none), ``gloss`` and ``shininess``, when given); every value checked by the
-        layer's model. No pixels change."""
+        models or their dicts, ``()`` none), ``gloss``, ``shininess`` and ``shadows``, when given); every value checked
+        by the layer's model. No pixels change."""
         layer = self.layer(id)
         if not isinstance(layer, SurfaceLayer):
             raise DocumentError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", where="set_light")
@@ -731,6 +742,8 @@ class Document(StrictModel):
             changes["gloss"] = gloss
         if shininess is not None:
             changes["shininess"] = shininess
+        if shadows is not None:
+            changes["shadows"] = shadows
         return self.replace_layer(id, **changes)
 
     def without_layer(self, id: str) -> Document:

@@ -348,10 +348,11 @@ class Stack:
         extra_lights: Sequence[Any] | None = None,
         gloss: float | None = None,
         shininess: float | None = None,
+        shadows: float | None = None,
     ) -> Stack:
         """Re-light the surface layer ``id``: a new ``light`` (and ``source_light`` / ``ambient`` / ``relief`` /
-        ``light_color`` / ``light_intensity`` / ``extra_lights`` / ``gloss`` / ``shininess`` when given). No pixels
-        change; the next render draws the stored surface under the new light."""
+        ``light_color`` / ``light_intensity`` / ``extra_lights`` / ``gloss`` / ``shininess`` / ``shadows`` when given).
+        No pixels change; the next render draws the stored surface under the new light."""
         self.document = self.document.relit(
             id,
             light,
@@ -363,6 +364,7 @@ class Stack:
             extra_lights=extra_lights,
             gloss=gloss,
             shininess=shininess,
+            shadows=shadows,
         )
         return self
 

@@ -212,14 +212,15 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             level = int(q.get("level", "0"))
         except ValueError:
             raise RequestError(f"level is {q.get('level')!r}; expected an integer", "level") from None
-        # Numeric overrides, LAYER:NUMBER each: an opacity slider's, a surface layer's relief, ambient, intensity or
-        # gloss slider's.
+        # Numeric overrides, LAYER:NUMBER each: an opacity slider's, a surface layer's relief, ambient, intensity,
+        # gloss or shadows slider's.
         numbers: dict[str, dict[str, float]] = {
             "opacity": {},
             "relief": {},
             "ambient": {},
             "intensity": {},
             "gloss": {},
+            "shadows": {},
         }
         for name, given in numbers.items():
             for item in q.getlist(name):
@@ -260,6 +261,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             "color": colours,
             "intensity": numbers["intensity"],
             "gloss": numbers["gloss"],
+            "shadows": numbers["shadows"],
             "solo": q.get("solo") or None,
             "upto": q.get("upto") or None,
         }

@@ -47,6 +47,7 @@ SurfaceLight = Annotated[
 Ambient = Annotated[float, Field(strict=True, ge=0.0, lt=1.0)]
 Relief = Annotated[float, Field(strict=True, gt=0.0, le=MAX_RELIEF, allow_inf_nan=False)]
 Gloss = Annotated[float, Field(strict=True, ge=0.0, le=1.0, allow_inf_nan=False)]
+Shadows = Annotated[float, Field(strict=True, ge=0.0, le=1.0, allow_inf_nan=False)]
 Shininess = Annotated[float, Field(strict=True, ge=1.0, le=MAX_SHININESS, allow_inf_nan=False)]
 Within = Annotated[float, Field(strict=True, gt=0.0, le=MAX_WITHIN, allow_inf_nan=False)]
 
@@ -140,7 +141,7 @@ class AddLearned(_Body):
 class SetLight(_Body):
     """Re-light a surface layer (``EditSession.set_light``): ``light``, and ``source_light`` (null: plain
     shading), ``ambient``, ``relief``, ``light_color``, ``light_intensity``, ``extra_lights`` (the whole list; ``[]``
-    removes them), ``gloss`` and ``shininess`` when given; an absent field keeps the layer's value."""
+    removes them), ``gloss``, ``shininess`` and ``shadows`` when given; an absent field keeps the layer's value."""
 
     op: Literal["light"]
     version: Version
@@ -154,6 +155,7 @@ class SetLight(_Body):
     extra_lights: Annotated[tuple[ExtraLight, ...], Field(max_length=MAX_EXTRA_LIGHTS)] | None = None
     gloss: Gloss | None = None
     shininess: Shininess | None = None
+    shadows: Shadows | None = None
 
     def call(self, session):
         keep = "source_light" not in self.model_fields_set  # absent keeps it; null removes it
@@ -170,6 +172,7 @@ class SetLight(_Body):
             extra_lights=self.extra_lights,
             gloss=self.gloss,
             shininess=self.shininess,
+            shadows=self.shadows,
         )
 
 

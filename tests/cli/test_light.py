@@ -99,7 +99,7 @@ def test_from_makes_a_relight_ratio_and_none_makes_it_shading_again(folder):
         (
             [],
             "light: nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, "
-            "--intensity, --gloss, --shininess, --add-light, --clear-lights",
+            "--intensity, --gloss, --shininess, --shadows, --add-light, --clear-lights",
         ),
         (["--intensity", "0"], "layers[1].light_intensity: got 0.0; expected greater than 0"),
         (["--add-light", "up"], "layers[1].extra_lights[0].light: expected one of left"),
@@ -118,6 +118,8 @@ def test_from_makes_a_relight_ratio_and_none_makes_it_shading_again(folder):
         (["--gloss", "-0.1"], "layers[1].gloss"),
         (["--shininess", "0.5"], "layers[1].shininess: got 0.5; expected greater than or equal to 1"),
         (["--shininess", "inf"], "layers[1].shininess"),
+        (["--shadows", "1.5"], "layers[1].shadows: got 1.5; expected less than or equal to 1"),
+        (["--shadows", "nan"], "layers[1].shadows"),
         (["--color", "red"], "--color: got 'red'; expected #rrggbb or R,G,B"),
         (["--color", "1,0.5"], "--color: got '1,0.5'; expected #rrggbb or R,G,B"),
         (["--color", "1,2,0"], "layers[1].light_color"),
@@ -240,6 +242,37 @@ def test_gloss_adds_a_highlight_where_the_light_falls(folder, capsys):
     assert main(["light", str(folder), "--gloss", "0"]) == 0
     diffuse = np.clip(base * (0.25 + 0.75 * np.maximum(0.0, ndotl))[None], 0, 1) * 255
     np.testing.assert_allclose(codes(folder / "composite.png").transpose(2, 0, 1), diffuse, atol=0.51)
+
+
+def test_shadows_darken_what_the_surfaces_heights_hide_and_zero_removes_them(tmp_path, capsys):
+    """``--shadows s`` with a low light: the composite is the stack's own render of that light (the library's
+    shadows are tested against a numpy ray march in tests/io/test_surface_layer.py), darker than the shadowless
+    composite behind the bump and nowhere brighter; the summary says it; ``--shadows 0`` gives the shadowless
+    composite again, code for code; the layer PNGs are untouched."""
+    rows, cols = torch.meshgrid(torch.arange(24.0), torch.arange(32.0), indexing="ij")
+    bump = 0.3 * torch.exp(-((rows - 12) ** 2 + (cols - 10) ** 2) / 18.0)[None, None]
+    s = Stack.from_image(torch.full((3, 24, 32), 180, dtype=torch.uint8))
+    s.add_surface("shape", normals_from_height(bump)[0], "az=180,el=70")
+    folder = tmp_path / "s"
+    s.save(folder)
+    assert main(["light", str(folder), "--shadows", "0"]) == 0  # writes the shadowless composite
+    plain = codes(folder / "composite.png")
+    files = layer_bytes(folder)
+    assert main(["light", str(folder), "--shadows", "0.9"]) == 0
+    assert "shadows 0.9" in capsys.readouterr().out
+    shadowed = codes(folder / "composite.png")
+    assert (shadowed <= plain).all() and (shadowed < plain - 20).any(axis=2)[:, 14:].sum() > 10
+    assert np.array_equal(shadowed, composite_of(folder)) and layer_bytes(folder) == files
+    assert json.loads((folder / "stack.json").read_text())["layers"][1]["shadows"] == 0.9
+    assert main(["light", str(folder), "--shadows", "0"]) == 0
+    assert np.array_equal(codes(folder / "composite.png"), plain)
+
+
+def composite_of(folder) -> np.ndarray:
+    """The engine's render of the saved stack as 8-bit codes (H, W, 3)."""
+    from lasagna.io.render import composite_codes, render_stack
+
+    return composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy().astype(int)
 
 
 def test_add_light_adds_a_direct_term_and_clear_lights_removes_it(folder, capsys):

@@ -329,6 +329,7 @@ def test_the_relief_gain_lights_the_maps_slopes_times_g_and_reads_back(stack, tm
         *(("light_color", v) for v in ([1, 1], [1, 1, 1.5], [-0.1, 1, 1], "white")),
         *(("gloss", v) for v in (-0.1, 1.5, "0.5")),
         *(("shininess", v) for v in (0.5, 2000)),
+        *(("shadows", v) for v in (-0.1, 1.5, "0.5", True)),
     ],
 )
 def test_a_bad_relief_or_light_colour_is_refused_by_the_model_and_the_schema(field, value):
@@ -645,3 +646,76 @@ def test_gloss_adds_a_blinn_phong_highlight_and_the_files_flatten_to_it(stack, t
     assert torch.equal(load_stack(tmp_path / "t").render().image, stack.render().image)
     stack.set_light("shape", "az=60,el=40", gloss=0.6, shininess=8.0)
     assert_files_flatten(stack, tmp_path / "u")
+
+
+# ---- shadows: cast over the map's own heights ---------------------------------------------------------------------
+
+
+def plateau(h: int = 48, w: int = 64) -> torch.Tensor:
+    """Heights (1, 1, h, w), canvas units: a smooth-edged plateau 0.25 tall (a box with rounded sides), so the
+    normals integrate back to it."""
+    rows, cols = torch.meshgrid(
+        torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij"
+    )
+    inside = torch.sigmoid((9 - (cols - 24).abs()) / 1.2) * torch.sigmoid((8 - (rows - 22).abs()) / 1.2)
+    return (0.25 * inside)[None, None]
+
+
+def test_shadows_darken_what_the_maps_own_heights_hide_from_the_light(tmp_path):
+    """``shadows`` s renders a + (1 − a)·(1 − s·(1 − V))·max(0, n·l): V a numpy float64 ray march over the heights the
+    normals came from (tests/support/lights.py), compared off the shadow's edge (within 2 pixels the integrated heights
+    and the traced edge may differ); shadows 0 is the layer as before, bit for bit; a relight ratio's source light
+    casts none; stack.json round-trips it; the ORA and the PSD flatten to it."""
+    from tests.support.lights import directional_shadow
+
+    height = plateau()
+    base = torch.full((3, 48, 64), 200, dtype=torch.uint8)
+    stack = Stack.from_image(base)
+    stack.add_surface("shape", normals_from_height(height.float())[0], "left")
+    stack.save(tmp_path / "s")
+    n = read_normals(tmp_path / "s" / "layers" / "shape.png")
+    b = stack.tensors["base"].color.double().numpy()
+    plain = stack.render().image
+    stack.set_light("shape", "left", shadows=0.0)
+    assert torch.equal(stack.render().image, plain)
+    l_vec = light(180, 65)
+    v = directional_shadow(height[0, 0].numpy() - float(height.min()), l_vec)
+    far = ~np.any([np.roll(np.roll(v < 0.5, i, 0), j, 1) != (v < 0.5) for i in range(-2, 3) for j in range(-2, 3)], 0)
+    assert (v[far] < 0.5).sum() > 60  # a shadow falls to the plateau's right, away from its edge
+    stack.set_light("shape", "az=180,el=65", shadows=0.8)
+    s = 0.25 + 0.75 * (1 - 0.8 * (1 - v)) * np.maximum(0.0, np.einsum("chw,c->hw", n, l_vec))
+    got = stack.render().image.double().numpy()
+    np.testing.assert_allclose(got[:, far], np.clip(b * s[None], 0, 1)[:, far], atol=2e-3)
+    hidden = far & (v < 0.5) & (np.einsum("chw,c->hw", n, l_vec) > 0.3)  # shadowed where the light would fall
+    assert hidden.sum() > 30 and (got[:, hidden] < b[:, hidden] * shading(n, l_vec)[hidden] - 0.1).all()
+    stack.set_light("shape", "az=180,el=65", source_light="az=0,el=30", shadows=0.8)
+    ratio = s / shading(n, light(0, 30))  # the source light unshadowed
+    got = stack.render().image.double().numpy()
+    np.testing.assert_allclose(got[:, far], np.clip(b * ratio[None], 0, 1)[:, far], atol=3e-3)
+    stack.save(tmp_path / "t")
+    saved = json.loads((tmp_path / "t" / "stack.json").read_text())["layers"][1]
+    assert saved["shadows"] == 0.8
+    jsonschema.validate(json.loads((tmp_path / "t" / "stack.json").read_text()), ROOT_SCHEMA)
+    assert torch.equal(load_stack(tmp_path / "t").render().image, stack.render().image)
+    stack.set_light("shape", "az=180,el=65", source_light=None, shadows=0.8, gloss=0.3)
+    assert_files_flatten(stack, tmp_path / "u")
+
+
+def test_shadows_are_as_long_at_any_size_and_traced_small_on_a_large_layer(monkeypatch):
+    """A shadow is in canvas units: the plateau's at twice the size is twice as many pixels long (within 2 of 2×);
+    above ``SHADOW_MAX_SIDE`` the heights are traced reduced and the shadow keeps its length."""
+    import lasagna.compose.surface as cs
+
+    def shadow_length(size_scale: int) -> int:
+        h = torch.nn.functional.interpolate(plateau(), scale_factor=size_scale, mode="bilinear")
+        s = Stack.from_image(torch.full((3, 48 * size_scale, 64 * size_scale), 200, dtype=torch.uint8))
+        s.add_surface("shape", normals_from_height(h.float())[0], "az=180,el=65")
+        plain = s.render().image
+        s.set_light("shape", "az=180,el=65", shadows=1.0)
+        darker = (s.render().image < plain - 0.05).any(0)
+        return int(darker[22 * size_scale].sum())
+
+    one, two = shadow_length(1), shadow_length(2)
+    assert one > 8 and abs(two - 2 * one) <= 2, (one, two)
+    monkeypatch.setattr(cs, "SHADOW_MAX_SIDE", 64)
+    assert abs(shadow_length(2) - two) <= 3

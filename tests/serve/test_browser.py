@@ -715,6 +715,32 @@ def test_a_light_slider_previews_live_and_commits_one_step(
     assert page.errors == []
 
 
+def test_the_shadows_slider_previews_live_and_commits_one_step(browser, surface_server):
+    """A surface layer's "Shadows" slider under a low light: dragging repaints the view live (nothing changes on the
+    server) and darkens where the dome hides the light, nowhere brightening; the release commits one step that sets
+    ``shadows`` and keeps the light; the saved stack renders what the page shows."""
+    folder = surface_server.session.folder
+    session = surface_server.session
+    session.set_light(session.state()["version"], "shape", "az=135,el=80")  # a low light: the dome casts a shadow
+    page = open_page(browser, surface_server)
+    row(page, "shape").locator(".name").click()
+    page.wait_for_selector("#shadows")
+    assert page.inner_text("#shadows-value") == "0.00"
+    before, v = page_pixels(page), version(page)
+    paints = page.evaluate("window.lasagna.paints.count")
+    slide(page, "shadows", ["0.5", "1"])
+    page.wait_for_function(f"window.lasagna.paints.count > {paints}")
+    assert version(page) == v
+    page.evaluate('() => document.getElementById("shadows").dispatchEvent(new Event("change"))')
+    settle(page, v + 1)
+    lit = page.evaluate("window.lasagna.state.surfaces.shape")
+    assert lit["shadows"] == 1.0 and lit["light"] == "az=135,el=80"
+    after = page_pixels(page)
+    assert (after[..., :3] <= before[..., :3]).all() and (after[..., :3] < before[..., :3] - 8).any()
+    save_and_check(page, folder)
+    assert page.errors == []
+
+
 def test_extra_lights_are_added_edited_and_removed_one_step_each(browser, surface_server):
     """The "Add light" button adds the key light's opposite at half intensity (one step; the light is added: the
     page brightens where it falls); editing its text and intensity commits the list (one step each); × removes it

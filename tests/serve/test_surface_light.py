@@ -106,6 +106,7 @@ def test_state_gives_each_surface_layers_light(client):
             "extra_lights": [],
             "gloss": 0.0,
             "shininess": 32.0,
+            "shadows": 0.0,
         }
     }
 
@@ -158,6 +159,7 @@ def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
         "extra_lights": [],
         "gloss": 0.0,
         "shininess": 32.0,
+        "shadows": 0.0,
     }
     assert np.array_equal(
         view(client, level=0)[..., :3], relit_codes(folder, "right", source_light="left", ambient=0.4, relief=2.5)
@@ -336,6 +338,10 @@ def test_the_relief_preview_is_the_change_bit_for_bit_and_one_undo_step(client, 
         ("gloss", "shape:nan", "gloss.shape: expected a gloss"),
         ("gloss", "shape:shiny", "gloss: gloss is 'shape:shiny'; expected LAYER:NUMBER"),
         ("gloss", "base:0.5", "layer 'base' is a pixels layer; expected a surface layer"),
+        ("shadows", "shape:1.5", r"shadows.shape: expected a shadows strength in \[0, 1\]"),
+        ("shadows", "shape:inf", "shadows.shape: expected a shadows strength"),
+        ("shadows", "shape:deep", "shadows: shadows is 'shape:deep'; expected LAYER:NUMBER"),
+        ("shadows", "base:0.5", "layer 'base' is a pixels layer; expected a surface layer"),
     ],
 )
 def test_a_bad_slider_preview_is_one_line_400(client, name, param, match):
@@ -483,6 +489,28 @@ def test_the_gloss_preview_is_the_change_bit_for_bit(client, folder):
     for body in ({"gloss": 2}, {"gloss": -0.5}, {"shininess": 0}, {"shininess": 2000}):
         message = one_line_4xx(post(client, op="light", id="shape", light="top-left", **body))
         assert message.startswith(next(iter(body))) and state(client)["version"] == v
+
+
+def test_the_shadows_preview_is_the_change_bit_for_bit(client, folder):
+    """``/api/view?shadows=LAYER:S`` (the Shadows slider while dragged) shows, bit for bit, what ``op: light`` with
+    ``shadows`` S gives and what the engine renders of the saved stack, under a low light that makes the map's relief
+    cast shadows (nowhere brighter, somewhere darker); bad values are refused in one line and change nothing."""
+    ok(post(client, op="light", id="shape", light="az=200,el=80"))
+    before = view(client, level=0)
+    preview = view(client, level=0, shadows="shape:1")
+    assert np.array_equal(view(client, level=0), before)
+    assert (preview[..., :3] <= before[..., :3]).all() and (preview[..., :3] < before[..., :3]).any()
+    s = ok(post(client, op="light", id="shape", light="az=200,el=80", shadows=1.0))
+    assert s["surfaces"]["shape"]["shadows"] == 1.0
+    assert np.array_equal(view(client, level=0), preview)
+    assert np.array_equal(preview[..., :3], relit_codes(folder, "az=200,el=80", shadows=1.0))
+    ok(post(client, op="save"))
+    fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
+    assert np.array_equal(preview[..., :3], fresh)
+    v = state(client)["version"]
+    for body in ({"shadows": 2}, {"shadows": -0.5}, {"shadows": "1"}):
+        message = one_line_4xx(post(client, op="light", id="shape", light="top-left", **body))
+        assert message.startswith("shadows") and state(client)["version"] == v
 
 
 def test_extra_lights_are_set_as_a_list_one_step_and_saved(client, folder):

@@ -38,3 +38,61 @@ def blinn_phong(n, l_vec, p):
     half = lv + np.array([0.0, 0.0, 1.0])[:, None, None]
     half = half / np.linalg.norm(half, axis=0, keepdims=True)
     return np.maximum(0.0, (n * half).sum(0)) ** p * ((n * lv).sum(0) > 0)
+
+
+def _bilinear(h, col, row):
+    """numpy float64 bilinear sample of a height field h (H, W) at pixel coordinates (col, row), edges clamped."""
+    hh, ww = h.shape
+    col, row = np.clip(col, 0, ww - 1), np.clip(row, 0, hh - 1)
+    c0, r0 = np.minimum(np.floor(col).astype(int), ww - 2), np.minimum(np.floor(row).astype(int), hh - 2)
+    fc, fr = col - c0, row - r0
+    return (
+        h[r0, c0] * (1 - fc) * (1 - fr)
+        + h[r0, c0 + 1] * fc * (1 - fr)
+        + h[r0 + 1, c0] * (1 - fc) * fr
+        + h[r0 + 1, c0 + 1] * fc * fr
+    )
+
+
+def directional_shadow(h, l_vec, step=0.25, eps=1e-3):
+    """numpy float64 visibility (H, W) in {0, 1} of a directional light over heights h (H, W; canvas units, the canvas
+    2 wide, y up): from each pixel's surface point a ray toward ``l_vec`` marched ``step`` pixels at a time across the
+    image until it leaves the map, blocked where the (bilinear) heights rise above it by more than ``eps``."""
+    hh, ww = h.shape
+    lx, ly, lz = l_vec
+    across = np.hypot(lx, ly)
+    if across < 1e-9:
+        return np.ones_like(h)
+    dc, dr, rise = lx / across, -ly / across, (2.0 / ww) * lz / across
+    rows, cols = np.meshgrid(np.arange(hh, dtype=float), np.arange(ww, dtype=float), indexing="ij")
+    blocked = np.zeros(h.shape, dtype=bool)
+    k = step
+    while True:
+        col, row = cols + k * dc, rows + k * dr
+        inside = (col >= -0.5) & (col <= ww - 0.5) & (row >= -0.5) & (row <= hh - 0.5)
+        if not inside.any():
+            return (~blocked).astype(float)
+        blocked |= inside & (_bilinear(h, col, row) > h + k * rise + eps)
+        k += step
+
+
+def point_shadow(h, x, y, z, step=0.25, eps=1e-3):
+    """numpy float64 visibility (H, W) in {0, 1} of a point light at (x, y) (fractions of the map from its top-left),
+    z (units of its longer side) above the heights' zero, over heights h (canvas units): each pixel's segment to the
+    light marched ``step`` pixels at a time, blocked where the heights inside the map rise above it by more than
+    ``eps``."""
+    hh, ww = h.shape
+    per_pixel = ww / 2.0
+    ground = h * per_pixel
+    lc, lr, lzp = x * ww - 0.5, y * hh - 0.5, z * max(hh, ww)
+    rows, cols = np.meshgrid(np.arange(hh, dtype=float), np.arange(ww, dtype=float), indexing="ij")
+    length = np.hypot(lc - cols, lr - rows)
+    blocked = np.zeros(h.shape, dtype=bool)
+    k = step
+    while (k < length).any():
+        f = np.minimum(k / np.maximum(length, 1e-9), 1.0)
+        col, row = cols + f * (lc - cols), rows + f * (lr - rows)
+        inside = (col >= -0.5) & (col <= ww - 0.5) & (row >= -0.5) & (row <= hh - 0.5) & (k < length)
+        blocked |= inside & (_bilinear(ground, col, row) > ground + f * (lzp - ground) + eps * per_pixel)
+        k += step
+    return (~blocked).astype(float)

@@ -21,6 +21,7 @@ const ui = {
   colour: null,         // a surface layer's light colour while its picker is moved: { id, value: "#rrggbb" }
   intensity: null,      // a surface layer's light intensity while its slider is dragged: { id, value }
   gloss: null,          // a surface layer's gloss (highlight strength) while its slider is dragged: { id, value }
+  shadows: null,        // a surface layer's cast-shadow strength while its slider is dragged: { id, value }
   lightWhich: {},       // per relight surface layer: which light its sphere moves, "light" or "source"
   normals: null,        // a surface layer's id while the view shows its normal map (its relief applied)
   lightProxy: true,     // a light drag previews at the drag proxy's level (dragLevel); false: at the view's level
@@ -398,7 +399,10 @@ function lightControl(layer) {
   // The light's intensity k (Photoshop's Lighting Effects "Intensity"): its direct term times k; above 1 a shading
   // layer brightens where the light falls.
   const intensityField = gainSlider(layer, lit, "Intensity", "intensity", "light_intensity", lit.light_intensity);
-  box.append(field("Colour", colour), intensityField, glossControl(layer, lit), field("Show normal map", show));
+  // Cast shadows (Sprite Lamp's self-shadowing): each light's direct term, where the surface's own heights hide the
+  // light, times 1 − s; previewed while the slider moves (/api/view?shadows=…), one change on release.
+  const shadowsField = lightSlider(layer, lit, "Shadows", "shadows", "shadows", lit.shadows, UNIT);
+  box.append(field("Colour", colour), intensityField, glossControl(layer, lit), shadowsField, field("Show normal map", show));
   box.append(pointControl(layer, lit));
   box.append(extraLightsControl(layer, lit));
   // A relight's sphere moves either light: the target, or the source the ratio divides by (fitted to the image,
@@ -822,6 +826,7 @@ async function fetchView(params) {
   if (params.colour) q.append("color", `${params.colour.id}:${params.colour.value}`);
   if (params.intensity) q.append("intensity", `${params.intensity.id}:${params.intensity.value}`);
   if (params.gloss) q.append("gloss", `${params.gloss.id}:${params.gloss.value}`);
+  if (params.shadows) q.append("shadows", `${params.shadows.id}:${params.shadows.value}`);
   const path = params.normals ? `api/layers/${encodeURIComponent(params.normals)}/normals?level=${params.level}` : `api/view?${q}`;
   const response = await api(path);
   const w = parseInt(response.headers.get("X-Width"), 10), h = parseInt(response.headers.get("X-Height"), 10);
@@ -848,10 +853,10 @@ function paint() {
   if (!ui.state) return;
   const level = levelFor(ui.zoom);
   wanted = {
-    level: ui.drag || ((ui.light || ui.relief || ui.ambient || ui.colour || ui.intensity || ui.gloss) && ui.lightProxy) ? dragLevel(level) : level,
+    level: ui.drag || ((ui.light || ui.relief || ui.ambient || ui.colour || ui.intensity || ui.gloss || ui.shadows) && ui.lightProxy) ? dragLevel(level) : level,
     drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split,
     light: ui.light, relief: ui.relief, ambient: ui.ambient, colour: ui.colour, intensity: ui.intensity, gloss: ui.gloss,
-    normals: ui.normals,
+    shadows: ui.shadows, normals: ui.normals,
   };
   if (!inflight) paintLoop();
 }

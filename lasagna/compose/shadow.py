@@ -1,0 +1,152 @@
+"""Cast shadows over a height field: which pixels of a surface layer see each of its lights.
+
+A surface layer's shading S = a + (1 − a)·max(0, n·l) (`lasagna.compose.surface`) is local: a face turned away
+from the light is dark, but a bump does not darken the ground behind it. With ``shadows`` s > 0 a layer's direct
+term is also times 1 − s·(1 − V), V the visibility of the light over the layer's heights — the height field whose
+slopes best fit its normal map (`lasagna.compose.surface.integrate_normals`, Frankot–Chellappa), the self-shadowing
+of Sprite Lamp's and Laigter's depth maps and of a displacement render. Heights are in canvas units (the canvas is 2
+units wide, y up; `lasagna.compose.surface`), their least value 0: the plane a point light's height is measured
+from.
+
+- **Directional light** l = (l_x, l_y, l_z): a pixel p is in shadow when the ray from its surface point toward the
+  light passes below the height field somewhere ahead, h(p + t·d) > h(p) + t·r for some t > 0, with d = (l_x, l_y)/
+  |(l_x, l_y)| the light's direction across the image and r = l_z/|(l_x, l_y)| the ray's climb per unit of travel.
+  Along each line of direction d that is a running maximum: p is lit iff max_{t > 0} g(p + t·d) ≤ g(p), g(q) =
+  h(q) − r·(q·d). The heights are resampled onto a grid turned so that d runs along its rows (bilinear), the maximum
+  taken ahead of each sample by one ``cummax`` per row, and the answer sampled back at the pixels (bilinear): O(pixels)
+  per light, whatever its elevation — the horizon-map method of Max (1988), for one direction. A light on the view
+  axis casts nothing.
+- **Point or spot light** at (x, y, z) (`lasagna.document.condition.parse_point`: x, y fractions of the map, z in
+  units of its longer side above the heights' zero): a point is hidden when a point nearer the light's foot on the
+  same ray out of it lies less steeply below the light — a running minimum along each ray, on a polar grid about the
+  foot (`point_visibility`); what lies outside the map casts nothing. A spot's cone does not change its shadows.
+
+Shadows are traced on the heights reduced to at most ``SHADOW_MAX_SIDE`` pixels on a side and the visibility
+enlarged bilinearly to the layer (edges soft over about a traced pixel). A height rising above the ray by less than
+``SHADOW_EPS`` casts nothing, so resampling never shadows a smooth surface by itself. The visibility is a constant
+of the stored map and the light: no gradient flows through it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from lasagna.compose.resample import upsample
+from lasagna.document.condition import parse_direction, parse_point, unit_vector
+
+SHADOW_MAX_SIDE = 512
+"""Shadows are traced at most this many pixels on a side (module docstring): a 4096² layer's shadows cost what a
+512² one's do, their edges soft over 1/512 of the layer."""
+SHADOW_EPS = 1e-3
+"""Canvas units (a 512-pixel map's pixel is 2/512 ≈ 0.004): how far the heights must rise above a ray to block it,
+so the bilinear resampling of a smooth surface never shadows itself."""
+ACROSS_MIN = 1e-9
+"""A directional light whose component across the image is below this is on the view axis: it casts no shadow."""
+
+
+def visibility(height: Tensor, light: str, size: tuple[int, int]) -> Tensor:
+    """The visibility (B, 1, *size) in [0, 1] of ``light`` (a condition text: a direction or a point or spot light)
+    from each pixel over ``height`` (B, 1, h, w, canvas units, least value 0), traced at ``height``'s size and
+    enlarged bilinearly to ``size`` (the module docstring). 1 lit, 0 in shadow."""
+    with torch.no_grad():
+        point = parse_point(light)
+        if point is None:
+            seen = directional_visibility(height, unit_vector(*parse_direction(light)))
+        else:
+            seen = point_visibility(height, (float(point[0]), float(point[1]), float(point[2])))
+        return upsample(seen, tuple(size)).clamp(0.0, 1.0)
+
+
+def directional_visibility(height: Tensor, light: tuple[float, float, float], eps: float = SHADOW_EPS) -> Tensor:
+    """Visibility (B, 1, H, W) of the unit ``light`` (x right, y up, z toward the viewer) over ``height`` (B, 1, H,
+    W, canvas units): the running maximum of g = h − r·(q·d) ahead of each pixel along the light's direction d across
+    the image (module docstring), on a grid turned to d."""
+    lx, ly, lz = (float(c) for c in light)
+    across = math.hypot(lx, ly)
+    b, _, h, w = height.shape
+    if across < ACROSS_MIN:
+        return torch.ones_like(height)
+    dc, dr = lx / across, -ly / across  # d in pixel axes: columns right, rows down (y up)
+    rise = (2.0 / w) * lz / across  # canvas units the ray climbs per pixel travelled toward the light
+    reach = math.ceil(math.hypot(h, w) / 2) + 1
+    n = 2 * reach + 1
+    t = torch.arange(-reach, reach + 1, dtype=height.dtype, device=height.device)
+    u, v = t.view(1, n), t.view(n, 1)  # the turned grid: u along d (toward the light), v across it
+    cc, rc = (w - 1) / 2, (h - 1) / 2
+    col, row = cc + u * dc - v * dr, rc + u * dr + v * dc
+    grid = torch.stack([(col + 0.5) / w * 2 - 1, (row + 0.5) / h * 2 - 1], -1)[None].expand(b, n, n, 2)
+    turned = F.grid_sample(height, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    inside = (col >= -0.5) & (col <= w - 0.5) & (row >= -0.5) & (row <= h - 0.5)
+    g = turned - rise * u
+    # Only the map occludes: beyond its edge the heights are unknown and cast nothing.
+    occluder = torch.where(inside, g, torch.full_like(g, -math.inf))
+    behind = occluder.flip(-1).cummax(-1).values.flip(-1)  # max over u' ≥ u
+    ahead = torch.cat([behind[..., 1:], torch.full_like(behind[..., :1], -math.inf)], -1)  # max over u' > u
+    shade = (ahead > g + eps).to(height.dtype)
+    cols = torch.arange(w, dtype=height.dtype, device=height.device).view(1, w) - cc
+    rows = torch.arange(h, dtype=height.dtype, device=height.device).view(h, 1) - rc
+    pu, pv = cols * dc + rows * dr, -cols * dr + rows * dc  # each pixel in the turned grid (a rotation's inverse)
+    back = torch.stack([(pu + reach + 0.5) / n * 2 - 1, (pv + reach + 0.5) / n * 2 - 1], -1)[None].expand(b, h, w, 2)
+    # 1 − the shade sampled back (not the lit share): bilinear weights of zeros sum to exactly 0, so a pixel no shadow
+    # comes near is exactly 1 and a layer without shadows renders as its shading alone.
+    return 1.0 - F.grid_sample(shade, back, mode="bilinear", padding_mode="border", align_corners=False)
+
+
+def point_visibility(height: Tensor, point: tuple[float, float, float], eps: float = SHADOW_EPS) -> Tensor:
+    """Visibility (B, 1, H, W) of a point light at (x, y, z) (fractions of the map from its top-left; z in units of
+    its longer side above the heights' zero) over ``height`` (B, 1, H, W, canvas units). Seen from the light, a point
+    q at distance ρ_q across the image from the light's foot lies σ(q) = (z_L − h(q))/ρ_q below it per unit of
+    travel; p is hidden when a point nearer the foot on the same ray is less steep below the light, min_{ρ_q < ρ_p}
+    σ(q) < σ(p): a running minimum along each ray out of the foot, taken on a polar grid (about a ray per pixel of the
+    map's border, samples one pixel apart along each) and sampled back at the pixels (bilinear), as the direction's
+    running maximum is on its turned grid."""
+    b, _, h, w = height.shape
+    x, y, z = point
+    per_pixel = w / 2.0  # pixels per canvas unit
+    foot_c, foot_r, light_z = x * w - 0.5, y * h - 0.5, z * max(h, w)
+    ground = height * per_pixel  # heights in pixels
+    corners = [(-0.5, -0.5), (w - 0.5, -0.5), (-0.5, h - 0.5), (w - 0.5, h - 0.5)]
+    reach = max(math.hypot(c - foot_c, r - foot_r) for c, r in corners) + 1.0
+    near = math.hypot(max(-0.5 - foot_c, 0.0, foot_c - (w - 0.5)), max(-0.5 - foot_r, 0.0, foot_r - (h - 0.5)))
+    near = max(near - 1.0, 0.0)
+    if near == 0.0:  # the foot over the map (or beside it): every direction
+        first, last = -math.pi, math.pi
+    else:  # outside the map: the angles it subtends, less than a half-turn, measured from its centre's
+        mid = math.atan2((h - 1) / 2 - foot_r, (w - 1) / 2 - foot_c)
+        turns = [math.remainder(math.atan2(r - foot_r, c - foot_c) - mid, 2 * math.pi) for c, r in corners]
+        first, last = mid + min(turns) - 1.0 / reach, mid + max(turns) + 1.0 / reach
+    n_rho = math.ceil(reach - near) + 2
+    # Rays one pixel apart where they leave the map: about its perimeter's pixels, fewer than 2π·reach from a corner.
+    n_ang = min(math.ceil((last - first) * reach), 2 * (h + w)) + 2
+    kw = dict(dtype=height.dtype, device=height.device)
+    rho = (near + torch.arange(n_rho, **kw)).view(1, n_rho)
+    ang = (first + (last - first) * torch.arange(n_ang, **kw) / (n_ang - 1)).view(n_ang, 1)
+    col, row = foot_c + rho * torch.cos(ang), foot_r + rho * torch.sin(ang)
+    grid = torch.stack([(col + 0.5) / w * 2 - 1, (row + 0.5) / h * 2 - 1], -1)[None].expand(b, n_ang, n_rho, 2)
+    under = F.grid_sample(ground, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    inside = (col >= -0.5) & (col <= w - 0.5) & (row >= -0.5) & (row <= h - 0.5)
+    safe = rho.clamp_min(1e-6)
+    steep = (light_z - under) / safe
+    occluder = torch.where(inside & (rho > 0), steep, torch.full_like(steep, math.inf))
+    nearer = torch.cat([torch.full_like(occluder[..., :1], math.inf), occluder.cummin(-1).values[..., :-1]], -1)
+    # Rising more than ``eps`` above the ray at ρ_q is a slope short of σ(p) by eps/ρ_q ≥ eps/ρ_p: the bound that needs
+    # no ρ_q (a height within eps of the ray may block a little early, never a smooth surface itself).
+    shade = (nearer < steep - eps * per_pixel / safe).to(height.dtype)
+    cols = torch.arange(w, **kw).view(1, w) - foot_c
+    rows = torch.arange(h, **kw).view(h, 1) - foot_r
+    p_rho = torch.sqrt(cols * cols + rows * rows)
+    p_ang = torch.atan2(rows, cols)
+    if near > 0.0:
+        p_ang = mid + torch.remainder(p_ang - mid + math.pi, 2 * math.pi) - math.pi
+    else:  # a full turn: the first and last rays are one; wrap a column so pixels between them interpolate
+        shade = torch.cat([shade, shade[..., :1, :]], -2)
+        n_ang += 1
+        last = first + (last - first) * (n_ang - 1) / (n_ang - 2)
+    gi = (p_ang - first) / (last - first) * (n_ang - 1)  # fractional ray index
+    gr = p_rho - near  # fractional sample index
+    back = torch.stack([(gr + 0.5) / n_rho * 2 - 1, (gi + 0.5) / n_ang * 2 - 1], -1)[None].expand(b, h, w, 2)
+    return 1.0 - F.grid_sample(shade, back, mode="bilinear", padding_mode="border", align_corners=False)
