@@ -61,7 +61,9 @@ def cast_shadows(height: torch.Tensor, light: torch.Tensor, eps: float = SHADOW_
     """Visibility (B, 1, H, W) in {0, 1} of each pixel toward ``light`` (B, 3) over ``height`` (B, 1, H, W, canvas
     units: the canvas is 2 wide, y up): the ray from the pixel's surface point toward the light, sampled once per pixel
     of its image-plane path (bilinear), is blocked where the height field rises above it by more than ``eps``. A
-    light on the view axis casts nothing; the ray stops at the image's edge or where it clears the highest point."""
+    light on the view axis casts nothing; the ray stops at the image's edge or where it clears the highest point.
+    The march rounds 23 and 24 measured with, kept so their numbers reproduce; a surface layer's own shadows are
+    `lasagna.compose.shadow`'s (the same rays, by a running maximum)."""
     b, _, h, w = height.shape
     step = 2.0 / w
     vis = torch.ones_like(height)
