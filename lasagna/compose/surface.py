@@ -445,15 +445,18 @@ _RENDERED: weakref.WeakKeyDictionary[LayerTensors, tuple[tuple, LayerTensors, Te
 _HEIGHTS: weakref.WeakKeyDictionary[LayerTensors, tuple[tuple, Tensor]] = weakref.WeakKeyDictionary()
 
 
-def memo_tensors() -> list[Tensor]:
-    """Every tensor ``surface_tensors`` keeps (multipliers, re-lit maps' normals), for a caller that accounts
-    the memory it holds (the editor's session)."""
+def memo_tensors(owners=None) -> list[Tensor]:
+    """Every tensor ``surface_tensors`` keeps (multipliers, re-lit maps' normals, shadows' heights) for the stored
+    maps ``owners`` (LayerTensors; None: every map), for a caller that accounts the memory it holds (the editor's
+    session counts its own maps', not another stack's in the same process)."""
+    mine = None if owners is None else {id(lt) for lt in owners}
     out: list[Tensor] = []
-    for _, rendered, normals in list(_RENDERED.values()):
-        out.append(rendered.color)
-        if normals is not None:
-            out.append(normals)
-    out += [heights for _, heights in list(_HEIGHTS.values())]
+    for stored, (_, rendered, normals) in list(_RENDERED.items()):
+        if mine is None or id(stored) in mine:
+            out.append(rendered.color)
+            if normals is not None:
+                out.append(normals)
+    out += [heights for stored, (_, heights) in list(_HEIGHTS.items()) if mine is None or id(stored) in mine]
     return out
 
 

@@ -130,9 +130,10 @@ class EditSession(SessionViews, SessionJobs):
         generator files."""
         with self.lock:
             maps = [self.stack.tensors, self.unchanged, *(s.tensors for s in (*self.undo_stack, *self.redo_stack))]
-            tensors = [x for m in maps for lt in m.values() for x in lt.tensors()]
-            tensors += [x for _, lt in self.reduced.values() for x in lt.tensors()]
-            tensors += memo_tensors()  # surface layers' multipliers and re-lit normals (compose.surface)
+            owners = [lt for m in maps for lt in m.values()] + [lt for _, lt in self.reduced.values()]
+            tensors = [x for lt in owners for x in lt.tensors()]
+            # Its surface layers' multipliers, re-lit normals and shadows' heights (compose.surface).
+            tensors += memo_tensors(owners)
             held = tensor_bytes(tensors)
             for lv in self.levels.values():
                 w, h = lv.key[:2]

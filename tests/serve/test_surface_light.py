@@ -203,12 +203,31 @@ def test_a_source_light_preview_is_the_view_its_change_gives(client, folder):
     assert np.array_equal(view(client, level=0), both)
 
 
+def surface_stack_folder(session):
+    """A copy of the session's stack folder: an unrelated stack of the same kind."""
+    import shutil
+
+    copy = session.folder.parent / "other"
+    shutil.copytree(session.folder, copy)
+    return copy
+
+
 def test_re_lit_normals_are_kept_and_accounted(session):
     held = session.held_bytes()
     session.view(0, light={"shape": "left"})
     session.view(0, light={"shape": "right"})  # a second light: the map's decoded normals are kept
     sw, sh = 64 * 5 // 8, 48 * 2 // 3
     assert session.held_bytes() - held >= 3 * sw * sh * 4
+    held = session.held_bytes()
+    session.view(0, light={"shape": "az=200,el=80"}, shadows={"shape": 1.0})  # the map's heights are kept too
+    assert session.held_bytes() > held
+    # Another stack's surface in the same process, re-lit and casting shadows, is not this session's to count.
+    held = session.held_bytes()
+    other = load_stack(surface_stack_folder(session))
+    for light in ("left", "right"):
+        other.set_light("shape", light, shadows=0.5)
+        render_stack(other)
+    assert session.held_bytes() == held
 
 
 # ---- the normal map --------------------------------------------------------------------------------
