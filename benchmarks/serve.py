@@ -24,7 +24,7 @@ the server composites the level-1 view; a 512² stack shows at 2×, level 0):
   Intensity slider, the same way; ``gloss_drag_fps``: its Gloss slider, 0…1, the same way; ``glossy_light_drag_fps``:
   the light dragged again with that highlight committed, each preview adding a Blinn–Phong term; ``shadows_drag_fps``:
   its Shadows slider, 0…1, and ``shadowed_light_drag_fps`` the light dragged with shadows committed, each preview
-  tracing them over the map's heights); ``point_drag_fps``:
+  tracing them over the map's heights; ``occlusion_drag_fps``: its Occlusion slider, 0…1); ``point_drag_fps``:
   the light
   made a point light ("Point light") and dragged round a circle on the image the same way (each preview lights every
   pixel along its own vector to the point), at the drag proxy's level; ``spot_drag_fps``: that point given a cone
@@ -273,6 +273,10 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
         drag(0.5)
         shadowed_fps, _ = drag(seconds)
         set_slider("shadows", "0")
+        v = page.evaluate("window.lasagna.state.version")  # the Occlusion slider (0…1), its sky share traced once
+        occlusion_fps, _ = page.evaluate(DRAG, ["#occlusion", seconds])
+        page.wait_for_function(f"window.lasagna.state.version > {v} && window.lasagna.settled()")
+        set_slider("occlusion", "0")
         # A point light (one change to make it one), then dragged round a circle on the image: each preview lights
         # every pixel along its own vector to the point.
         v = page.evaluate("window.lasagna.state.version")
@@ -307,6 +311,7 @@ def measure_light(context, size: int, work: Path, seconds: float = 2.0) -> dict:
             "shadows_drag_fps": round(shadows_fps, 1),
             "shadowed_light_drag_fps": round(shadowed_fps, 1),
             "shadowed_spot_drag_fps": round(shadowed_spot_fps, 1),
+            "occlusion_drag_fps": round(occlusion_fps, 1),
             "light_view_level": level,
         }
     finally:
@@ -414,6 +419,7 @@ def main() -> None:
         "shadows_drag_fps",
         "shadowed_light_drag_fps",
         "shadowed_spot_drag_fps",
+        "occlusion_drag_fps",
         "point_drag_fps",
         "spot_drag_fps",
     ]

@@ -8,9 +8,10 @@ Per ``--sizes`` S: a stack of S² — a base and one surface layer, the normals 
 domes (`relief`) — rendered (`render_stack`, median of ``--repeats`` after a warm-up) under a new light each time, as
 a light drag re-lights it: without shadows (the baseline, in the same run), with ``shadows`` 0.8 under a directional
 light, and under a point light; ``*_cold_ms`` the first render with shadows of a fresh map (the heights integrated
-once, then kept per map). ``--sheet``: per row — the relief, a shading surface read from a photograph (`lasagna
+once, then kept per map); ``occluded_ms`` with ``occlusion`` 0.8 instead (``occluded_cold_ms``: a fresh map's
+first, its sky share traced). ``--sheet``: per row — the relief, a shading surface read from a photograph (`lasagna
 edit --layer shading`), a relight told its source light (`--from`) — the input, the layer lit low without and with
-shadows, and a point light with shadows.
+shadows, and a point light with shadows; a fifth column lit low with shadows and occlusion 0.8.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from lasagna.io.render import render_stack  # noqa: E402
 from lasagna.io.stack import Stack  # noqa: E402
 
 SHADOWS = 0.8
+OCCLUSION = 0.8
 LOW = "az=200,el=70"  # a low light from the left and a little below
 POINT = "x=0.1,y=0.15,z=0.25"
 
@@ -82,12 +84,20 @@ def timings(size: int, repeats: int) -> dict:
     shadowed = median(shadows=SHADOWS)
     points = [f"x={0.1 + 0.05 * k},y=0.2,z=0.25" for k in range(repeats + 1)]
     point = sorted(once(light=p, shadows=SHADOWS) for p in points)[repeats // 2]
+    fresh = relief_stack(size)  # ambient occlusion of a fresh map: its sky share traced on the first render
+    fresh.set_light("shape", LOW, occlusion=OCCLUSION)
+    t0 = time.perf_counter()
+    render_stack(fresh)
+    occluded_cold = time.perf_counter() - t0
+    occluded = median(shadows=0.0, occlusion=OCCLUSION)
     return {
         "size": size,
         "render_ms": round(plain * 1000, 1),
         "shadowed_ms": round(shadowed * 1000, 1),
         "shadowed_point_ms": round(point * 1000, 1),
         "shadowed_cold_ms": round(cold * 1000, 1),
+        "occluded_ms": round(occluded * 1000, 1),
+        "occluded_cold_ms": round(occluded_cold * 1000, 1),
     }
 
 
@@ -103,11 +113,12 @@ def sheet(path: Path) -> None:
     cup = read_photo(ROOT / "examples" / "photos" / "large" / "coffee.jpg")[0]
     made = lasagna.edit(cup, "relight", LOW, layer_kind="surface", source_light="az=120,el=45")
     rows.append((cup, made.stack, made.layer_id))
-    columns: list[list[torch.Tensor]] = [[], [], [], []]
+    columns: list[list[torch.Tensor]] = [[], [], [], [], []]
+    looks = ((LOW, 0.0, 0.0), (LOW, SHADOWS, 0.0), (POINT, SHADOWS, 0.0), (LOW, SHADOWS, OCCLUSION))
     for image, stack, id in rows:
         columns[0].append(image)
-        for k, (light, shadows) in enumerate(((LOW, 0.0), (LOW, SHADOWS), (POINT, SHADOWS))):
-            stack.set_light(id, light, shadows=shadows)
+        for k, (light, shadows, occlusion) in enumerate(looks):
+            stack.set_light(id, light, shadows=shadows, occlusion=occlusion)
             columns[k + 1].append(stack.render().image)
     save_sheet(columns, path)
 
@@ -116,7 +127,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sizes", nargs="+", type=int, default=[512, 2048])
     p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--sheet", type=Path, default=None, help="input | lit low | with shadows | a point light's")
+    p.add_argument(
+        "--sheet",
+        type=Path,
+        default=None,
+        help="input | lit low | with shadows | a point light's | with shadows and occlusion",
+    )
     args = p.parse_args(argv)
     rows = [timings(size, args.repeats) for size in args.sizes]
     for r in rows:

@@ -1,6 +1,6 @@
 """``lasagna light``: re-light a stack's surface layer in place — its light, source light, ambient, relief, colour,
-intensity, gloss, shadows or extra lights — from its stored normal map, with no learning (what dragging the editor's
-light sphere or its sliders does).
+intensity, gloss, shadows, occlusion or extra lights — from its stored normal map, with no learning (what dragging the
+editor's light sphere or its sliders does).
 
 Only stack.json (the commit point), composite.png and a stack.ora the folder holds change: no layer PNG is
 written (``save_in_place`` with every layer unchanged), and a stack.json changed on disk since it was read is
@@ -17,7 +17,7 @@ from lasagna.errors import LasagnaError
 
 HELP = (
     "re-light a stack's surface layer in place (light, source light, ambient, relief, colour, intensity, gloss, "
-    "shadows, more lights); no learning"
+    "shadows, occlusion, more lights); no learning"
 )
 EXAMPLE = (
     "lasagna light out/chelsea-surface --light az=30,el=45                  # the topmost surface layer",
@@ -28,6 +28,7 @@ EXAMPLE = (
     "lasagna light out/chelsea-surface --add-light 'right;#a0c0ff;0.5'      # and a blue fill light from the right",
     "lasagna light out/chelsea-surface --gloss 0.4 --shininess 24           # a highlight where the light falls",
     "lasagna light out/chelsea-surface --light az=250,el=70 --shadows 0.8   # a low light, its bumps casting shadows",
+    "lasagna light out/chelsea-surface --occlusion 0.7                      # less ambient light in its creases",
 )
 
 
@@ -100,6 +101,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="cast shadows' strength in [0, 1]: each light's direct term where the surface's own heights hide it "
         "times 1 - S (0: none; default: kept)",
     )
+    p.add_argument(
+        "--occlusion",
+        type=float,
+        metavar="O",
+        help="ambient occlusion's strength in [0, 1]: the ambient term times 1 - O*(1 - the share of the sky each "
+        "point of the surface's heights sees) (0: none; default: kept)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -107,11 +115,11 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.io.survey import survey_stack
 
     fields = (args.light, args.source, args.ambient, args.relief, args.color, args.intensity, args.add_light)
-    fields += (args.gloss, args.shininess, args.shadows)
+    fields += (args.gloss, args.shininess, args.shadows, args.occlusion)
     if all(v is None for v in fields) and not (args.clear_lights or args.read_again):
         raise LasagnaError(
             "nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, --intensity, "
-            "--gloss, --shininess, --shadows, --add-light, --clear-lights, --read-again",
+            "--gloss, --shininess, --shadows, --occlusion, --add-light, --clear-lights, --read-again",
             where="light",
         )
     if args.within is not None and not args.read_again:
@@ -146,6 +154,7 @@ def run(args: argparse.Namespace) -> int:
         gloss=args.gloss,
         shininess=args.shininess,
         shadows=args.shadows,
+        occlusion=args.occlusion,
         extra_lights=None
         if not (added or args.clear_lights)
         else [*(() if args.clear_lights else layer.extra_lights), *added],
@@ -184,6 +193,8 @@ def run(args: argparse.Namespace) -> int:
         said.append(f"gloss {lit.gloss:g} (shininess {lit.shininess:g})")
     if lit.shadows > 0:
         said.append(f"shadows {lit.shadows:g}")
+    if lit.occlusion > 0:
+        said.append(f"occlusion {lit.occlusion:g}")
     if lit.extra_lights:
         said.append(f"{len(lit.extra_lights)} more light" + ("s" if len(lit.extra_lights) > 1 else ""))
     wrote = "stack.json, composite.png" + (f", {lit.source}" if args.read_again else "")

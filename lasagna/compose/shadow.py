@@ -21,6 +21,12 @@ from.
   same ray out of it lies less steeply below the light — a running minimum along each ray, on a polar grid about the
   foot (`point_visibility`); what lies outside the map casts nothing. A spot's cone does not change its shadows.
 
+- **Ambient occlusion**: the share of the sky a point of the height field sees, cosine-weighted — the mean
+  visibility of ``OCCLUSION_AZIMUTHS`` × ``OCCLUSION_ELEVATIONS`` directional lights spread over the hemisphere so
+  that each stands for an equal share of a cosine-weighted sky (elevations from the view axis asin √u for u the
+  middles of equal bands), traced at most at ``OCCLUSION_MAX_SIDE`` on a side (it varies slowly) — the
+  screen-space ambient occlusion of a height map (Sprite Lamp's and Laigter's AO maps). A flat map sees all of it.
+
 Shadows are traced on the heights reduced to at most ``SHADOW_MAX_SIDE`` pixels on a side and the visibility
 enlarged bilinearly to the layer (edges soft over about a traced pixel). A height rising above the ray by less than
 ``SHADOW_EPS`` casts nothing, so resampling never shadows a smooth surface by itself. The visibility is a constant
@@ -35,7 +41,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from lasagna.compose.resample import upsample
+from lasagna.compose.resample import downsample, upsample
 from lasagna.document.condition import parse_direction, parse_point, unit_vector
 
 SHADOW_MAX_SIDE = 512
@@ -44,6 +50,12 @@ SHADOW_MAX_SIDE = 512
 SHADOW_EPS = 1e-3
 """Canvas units (a 512-pixel map's pixel is 2/512 ≈ 0.004): how far the heights must rise above a ray to block it,
 so the bilinear resampling of a smooth surface never shadows itself."""
+OCCLUSION_MAX_SIDE = 256
+"""Ambient occlusion is traced at most this many pixels on a side: 36 directions, once per map and relief."""
+OCCLUSION_AZIMUTHS = 12
+OCCLUSION_ELEVATIONS = 3
+"""The sky's directions for ambient occlusion: 12 azimuths 30° apart at 3 elevations, each an equal share of a
+cosine-weighted hemisphere (module docstring)."""
 ACROSS_MIN = 1e-9
 """A directional light whose component across the image is below this is on the view axis: it casts no shadow."""
 
@@ -58,6 +70,23 @@ def visibility(height: Tensor, light: str, size: tuple[int, int]) -> Tensor:
             seen = directional_visibility(height, unit_vector(*parse_direction(light)))
         else:
             seen = point_visibility(height, (float(point[0]), float(point[1]), float(point[2])))
+        return upsample(seen, tuple(size)).clamp(0.0, 1.0)
+
+
+def occlusion(height: Tensor, size: tuple[int, int]) -> Tensor:
+    """The ambient visibility (B, 1, *size) in [0, 1] of ``height`` (B, 1, h, w, canvas units): the share of a
+    cosine-weighted sky each point sees (module docstring), traced at most at ``OCCLUSION_MAX_SIDE`` and enlarged
+    bilinearly. 1 where nothing rises around a point."""
+    with torch.no_grad():
+        h, w = height.shape[-2:]
+        scale = min(1.0, OCCLUSION_MAX_SIDE / max(h, w))
+        small = height if scale >= 1.0 else downsample(height, (max(1, round(h * scale)), max(1, round(w * scale))))
+        seen = torch.zeros_like(small)
+        for k in range(OCCLUSION_ELEVATIONS):
+            el = math.degrees(math.asin(math.sqrt((k + 0.5) / OCCLUSION_ELEVATIONS)))
+            for j in range(OCCLUSION_AZIMUTHS):
+                seen += directional_visibility(small, unit_vector(360.0 * (j + 0.5) / OCCLUSION_AZIMUTHS, el))
+        seen /= OCCLUSION_ELEVATIONS * OCCLUSION_AZIMUTHS
         return upsample(seen, tuple(size)).clamp(0.0, 1.0)
 
 

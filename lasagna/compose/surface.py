@@ -33,6 +33,9 @@ layers"). This module is that renderer, differentiable and batch-independent:
   bit; a relight ratio's source light stays diffuse (a photograph's own highlights are in its pixels). The layer
   multiplies, so the highlight takes the colour below it — a metal's highlight (Lighting Effects' Metallic end); a
   plastic's white one would be added, which a multiply layer cannot.
+- **Ambient occlusion** (a layer's ``occlusion`` o): the ambient term a becomes a·(1 − o·(1 − A)), A the share of
+  the sky each point of those heights sees (`lasagna.compose.shadow.occlusion`): creases and the feet of walls get
+  less of the ambient light. It belongs to the surface, not to a light, so a relight ratio has it above and below.
 - **Shadows** (a layer's ``shadows`` s): each light's direct term (its highlight too) also times 1 − s·(1 − V), V
   that light's visibility over the heights integrated from the layer's normals (`lasagna.compose.shadow`): a bump
   darkens what lies behind it from the light. s = 0 is the world's contract, rendered by the paths without shadows
@@ -49,8 +52,9 @@ import torch
 from torch import Tensor
 
 from lasagna.compose.layer import LayerTensors
-from lasagna.compose.resample import downsample, gaussian_blur
+from lasagna.compose.resample import downsample, gaussian_blur, upsample
 from lasagna.compose.shadow import SHADOW_MAX_SIDE, visibility
+from lasagna.compose.shadow import occlusion as sky_share
 from lasagna.document.condition import (
     AMBIENT,
     DEFAULT_SHININESS,
@@ -323,15 +327,18 @@ def shadow_heights(normals: Tensor) -> Tensor:
     return integrate_normals(small)
 
 
-def _heights(stored: LayerTensors, same_map: tuple, relief: float, normals: Tensor) -> Tensor:
-    """``shadow_heights`` of a stored map's ``normals`` (its relief applied), kept per map and relief (`_HEIGHTS`)."""
+def _surface_fields(
+    stored: LayerTensors, same_map: tuple, relief: float, normals: Tensor, with_occlusion: bool
+) -> dict[str, Tensor]:
+    """``heights`` (`shadow_heights`) of a stored map's ``normals`` (its relief applied) and, when asked, its
+    ``occlusion`` (`lasagna.compose.shadow.occlusion` at the heights' size), kept per map and relief (`_HEIGHTS`)."""
     key = (*same_map, relief)
     hit = _HEIGHTS.get(stored)
-    if hit is not None and hit[0] == key:
-        return hit[1]
-    heights = shadow_heights(normals)
-    _HEIGHTS[stored] = (key, heights)
-    return heights
+    fields = dict(hit[1]) if hit is not None and hit[0] == key else {"heights": shadow_heights(normals)}
+    if with_occlusion and "occlusion" not in fields:
+        fields["occlusion"] = sky_share(fields["heights"], tuple(fields["heights"].shape[-2:]))
+    _HEIGHTS[stored] = (key, fields)
+    return fields
 
 
 # Bicubic overshoot (or a refining step) can push a normal's z below 0 beside a silhouette; it is kept facing the
@@ -440,9 +447,15 @@ def inflate_regions(index: Tensor) -> Tensor:
 _RENDERED: weakref.WeakKeyDictionary[LayerTensors, tuple[tuple, LayerTensors, Tensor | None]] = (
     weakref.WeakKeyDictionary()
 )
-# The heights a stored map's shadows are traced over (`shadow_heights`), kept while the map lives and is unchanged,
-# per relief: a light dragged over a shadow-casting layer integrates its heights once.
-_HEIGHTS: weakref.WeakKeyDictionary[LayerTensors, tuple[tuple, Tensor]] = weakref.WeakKeyDictionary()
+SKY_FLOOR = 0.05
+"""The least share of the ambient a point keeps under ambient occlusion: a relight ratio divides by a·A + (1 − a)·
+max(0, n·l_src), and a point that sees neither the sky nor the source light was black in the photograph (nothing is
+known of it), so the ratio there stays at most (a·F + 1 − a)/(a·F) rather than unbounded."""
+
+# The heights a stored map's shadows are traced over (`shadow_heights`) and its ambient occlusion at the traced size,
+# kept while the map lives and is unchanged, per relief: a light dragged over a shadow-casting layer integrates its
+# heights once, and the occlusion (no light's) is traced once.
+_HEIGHTS: weakref.WeakKeyDictionary[LayerTensors, tuple[tuple, dict[str, Tensor]]] = weakref.WeakKeyDictionary()
 
 
 def memo_tensors(owners=None) -> list[Tensor]:
@@ -456,7 +469,9 @@ def memo_tensors(owners=None) -> list[Tensor]:
             out.append(rendered.color)
             if normals is not None:
                 out.append(normals)
-    out += [heights for stored, (_, heights) in list(_HEIGHTS.items()) if mine is None or id(stored) in mine]
+    for stored, (_, fields) in list(_HEIGHTS.items()):
+        if mine is None or id(stored) in mine:
+            out += list(fields.values())
     return out
 
 
@@ -486,6 +501,7 @@ def layer_surface_tensors(stored: LayerTensors, layer) -> tuple[LayerTensors, tu
         gloss,
         float(layer.shininess),
         float(layer.shadows),
+        float(layer.occlusion),
     )
     peak = (intensity * max(layer.light_color) + sum(k * max(c) for _, c, k in extras)) * (1.0 + gloss)
     return tensors, surface_range(layer.source_light, ambient, peak)
@@ -503,6 +519,7 @@ def surface_tensors(
     gloss: float = 0.0,
     shininess: float = DEFAULT_SHININESS,
     shadows: float = 0.0,
+    occlusion: float = 0.0,
 ) -> LayerTensors:
     """A surface layer's tensors as the compositor blends them: its normal map ``stored.color`` (..., 3, h, w)
     of values in [0, 1] (the PNG's codes), its relief times ``relief`` (`deepen_normals`), rendered to the
@@ -514,8 +531,9 @@ def surface_tensors(
     while that is grey). ``extra_lights`` — (light text, colour, intensity) each — add their direct terms,
     a + Σᵢ (Sᵢ − a)·kᵢ·cᵢ (`lit_by`). ``gloss`` > 0 adds each light's highlight of exponent ``shininess`` (the module
     docstring's Gloss; the source light stays diffuse); ``shadows`` > 0 darkens each light's direct term where the
-    map's own heights hide the light (the module docstring's Shadows; the source light casts none). The same stored
-    map and light fields always give the same bits.
+    map's own heights hide the light (the module docstring's Shadows; the source light casts none); ``occlusion`` > 0
+    darkens the ambient term where those heights hide the sky (Ambient occlusion). The same stored map and light
+    fields always give the same bits.
     """
     color = stored.color
     if color.shape[-3] != 3:
@@ -527,6 +545,7 @@ def surface_tensors(
     extras = tuple((text, tuple(float(c) * float(k) for c in col)) for text, col, k in extra_lights)
     shine = (float(gloss), float(shininess)) if gloss > 0 else (0.0,)
     key = (*same_map, light, source_light, float(ambient), float(relief), colour, extras, shine, float(shadows))
+    key += (float(occlusion),)
     hit = _RENDERED.get(stored)
     if hit is not None and hit[0] == key:
         return hit[1]
@@ -537,12 +556,28 @@ def surface_tensors(
     lit = deepen_normals(normals, float(relief))
     point = parse_point(light)
     white = colour == (1.0, 1.0, 1.0)
-    if extras or gloss > 0 or shadows > 0:  # several lights, highlights or shadows: direct terms summed, over S(source)
-        heights = _heights(stored, same_map, float(relief), lit) if shadows > 0 else None
-        y = lit_by(lit, ((light, colour), *extras), ambient, float(gloss), float(shininess), float(shadows), heights)
+    if extras or gloss > 0 or shadows > 0 or occlusion > 0:  # direct terms summed, over S(source) for a ratio
+        fields = (
+            _surface_fields(stored, same_map, float(relief), lit, float(occlusion) > 0) if shadows or occlusion else {}
+        )
+        sky = None
+        if occlusion > 0:  # the ambient's share: 1 − o·(1 − A), enlarged from the traced size
+            sky = 1.0 - float(occlusion) * (1.0 - upsample(fields["occlusion"], tuple(lit.shape[-2:])).to(lit))
+            sky = sky.clamp_min(SKY_FLOOR)
+        y = lit_by(
+            lit,
+            ((light, colour), *extras),
+            ambient,
+            float(gloss),
+            float(shininess),
+            float(shadows),
+            fields.get("heights"),
+            sky,
+        )
         if source_light is not None:
             source = light_vector(*parse_direction(source_light), dtype=normals.dtype, device=normals.device)
-            y = y / lambert(lit, source, check_ratio_ambient(ambient))
+            below = lambert(lit, source, check_ratio_ambient(ambient))
+            y = y / (below if sky is None else below + ambient * (sky - 1.0))
     elif point is not None:  # a point light: S(point), coloured, over S(source) for a relight ratio
         y = point_lambert(lit, point, ambient)
         if not white:
@@ -682,12 +717,14 @@ def lit_by(
     shininess: float = DEFAULT_SHININESS,
     shadows: float = 0.0,
     heights: Tensor | None = None,
+    sky: Tensor | None = None,
 ) -> Tensor:
     """a + Σᵢ (Sᵢ − a)·gᵢ of unit ``normals`` (B, 3, H, W) under ``lights`` — (light text, gain (3,)) each, a
     direction or a point light (`point_lambert`), its gain its colour times its intensity: one channel while every
     gain is grey, else three; with ``gloss`` > 0 each light's direct term also carries its highlight (`highlight`,
     the module docstring's Gloss); with ``shadows`` s > 0 each direct term is times 1 − s·(1 − Vᵢ), Vᵢ the light's
-    visibility over ``heights`` (B, 1, h, w, canvas units: `shadow_heights`; `lasagna.compose.shadow.visibility`)."""
+    visibility over ``heights`` (B, 1, h, w, canvas units: `shadow_heights`; `lasagna.compose.shadow.visibility`);
+    ``sky`` (B, 1, H, W) scales the ambient term a (ambient occlusion: a·sky + Σᵢ …)."""
     if shadows > 0.0 and heights is None:
         raise LasagnaError("shadows need the surface's heights; expected heights (shadow_heights)", "lit_by")
     check_ambient(ambient)
@@ -708,7 +745,7 @@ def lit_by(
             seen = visibility(heights, text, tuple(normals.shape[-2:])).to(normals)
             term = term * (1.0 - shadows * (1.0 - seen))
         total = term if total is None else total + term
-    return ambient + total
+    return (ambient if sky is None else ambient * sky) + total
 
 
 def highlight(normals: Tensor, light: str, shininess: float = DEFAULT_SHININESS) -> Tensor:

@@ -411,6 +411,16 @@ class SurfaceLayer(_Common):
         "the pixel over the heights integrated from the normal map (a bump darkens what lies behind it; "
         "`lasagna.compose.shadow`); 0: none, the world's contract. A relight ratio's source light casts none.",
     )
+    occlusion: float = Field(
+        0.0,
+        strict=True,
+        ge=0.0,
+        le=1.0,
+        allow_inf_nan=False,
+        description="Ambient occlusion strength o: the ambient term a times 1 − o·(1 − A), A the share of the sky "
+        "each point of the map's heights sees (creases and the feet of walls get less ambient light; "
+        "`lasagna.compose.shadow.occlusion`); 0: none, the world's contract. A relight ratio has it above and below.",
+    )
     mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
     made_by: dict[str, JsonValue] = Field(
         default_factory=dict,
@@ -715,11 +725,12 @@ class Document(StrictModel):
         gloss: float | None = None,
         shininess: float | None = None,
         shadows: float | None = None,
+        occlusion: float | None = None,
     ) -> Document:
         """A copy where the surface layer ``id`` has a new ``light`` (and ``source_light`` — None for plain shading,
         ``...`` kept — ``ambient``, ``relief``, ``light_color``, ``light_intensity``, ``extra_lights`` (ExtraLight
-        models or their dicts, ``()`` none), ``gloss``, ``shininess`` and ``shadows``, when given); every value checked
-        by the layer's model. No pixels change."""
+        models or their dicts, ``()`` none), ``gloss``, ``shininess``, ``shadows`` and ``occlusion``, when given);
+        every value checked by the layer's model. No pixels change."""
         layer = self.layer(id)
         if not isinstance(layer, SurfaceLayer):
             raise DocumentError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", where="set_light")
@@ -744,6 +755,8 @@ class Document(StrictModel):
             changes["shininess"] = shininess
         if shadows is not None:
             changes["shadows"] = shadows
+        if occlusion is not None:
+            changes["occlusion"] = occlusion
         return self.replace_layer(id, **changes)
 
     def without_layer(self, id: str) -> Document:

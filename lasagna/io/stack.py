@@ -349,10 +349,11 @@ class Stack:
         gloss: float | None = None,
         shininess: float | None = None,
         shadows: float | None = None,
+        occlusion: float | None = None,
     ) -> Stack:
         """Re-light the surface layer ``id``: a new ``light`` (and ``source_light`` / ``ambient`` / ``relief`` /
-        ``light_color`` / ``light_intensity`` / ``extra_lights`` / ``gloss`` / ``shininess`` / ``shadows`` when given).
-        No pixels change; the next render draws the stored surface under the new light."""
+        ``light_color`` / ``light_intensity`` / ``extra_lights`` / ``gloss`` / ``shininess`` / ``shadows`` /
+        ``occlusion`` when given). No pixels change; the next render draws the stored surface under the new light."""
         self.document = self.document.relit(
             id,
             light,
@@ -365,6 +366,7 @@ class Stack:
             gloss=gloss,
             shininess=shininess,
             shadows=shadows,
+            occlusion=occlusion,
         )
         return self
 

@@ -213,7 +213,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
         except ValueError:
             raise RequestError(f"level is {q.get('level')!r}; expected an integer", "level") from None
         # Numeric overrides, LAYER:NUMBER each: an opacity slider's, a surface layer's relief, ambient, intensity,
-        # gloss or shadows slider's.
+        # gloss, shadows or occlusion slider's.
         numbers: dict[str, dict[str, float]] = {
             "opacity": {},
             "relief": {},
@@ -221,6 +221,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             "intensity": {},
             "gloss": {},
             "shadows": {},
+            "occlusion": {},
         }
         for name, given in numbers.items():
             for item in q.getlist(name):
@@ -262,6 +263,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             "intensity": numbers["intensity"],
             "gloss": numbers["gloss"],
             "shadows": numbers["shadows"],
+            "occlusion": numbers["occlusion"],
             "solo": q.get("solo") or None,
             "upto": q.get("upto") or None,
         }

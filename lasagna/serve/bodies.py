@@ -46,8 +46,8 @@ SurfaceLight = Annotated[
 """A surface layer's light: a `Light` or a point light ``x=X,y=Y,z=Z`` (``parse_surface_light``)."""
 Ambient = Annotated[float, Field(strict=True, ge=0.0, lt=1.0)]
 Relief = Annotated[float, Field(strict=True, gt=0.0, le=MAX_RELIEF, allow_inf_nan=False)]
-Gloss = Annotated[float, Field(strict=True, ge=0.0, le=1.0, allow_inf_nan=False)]
-Shadows = Annotated[float, Field(strict=True, ge=0.0, le=1.0, allow_inf_nan=False)]
+Share = Annotated[float, Field(strict=True, ge=0.0, le=1.0, allow_inf_nan=False)]
+"""A share in [0, 1]: a surface layer's gloss, shadows or occlusion strength."""
 Shininess = Annotated[float, Field(strict=True, ge=1.0, le=MAX_SHININESS, allow_inf_nan=False)]
 Within = Annotated[float, Field(strict=True, gt=0.0, le=MAX_WITHIN, allow_inf_nan=False)]
 
@@ -141,7 +141,8 @@ class AddLearned(_Body):
 class SetLight(_Body):
     """Re-light a surface layer (``EditSession.set_light``): ``light``, and ``source_light`` (null: plain
     shading), ``ambient``, ``relief``, ``light_color``, ``light_intensity``, ``extra_lights`` (the whole list; ``[]``
-    removes them), ``gloss``, ``shininess`` and ``shadows`` when given; an absent field keeps the layer's value."""
+    removes them), ``gloss``, ``shininess``, ``shadows`` and ``occlusion`` when given; an absent field keeps the
+    layer's value."""
 
     op: Literal["light"]
     version: Version
@@ -153,9 +154,10 @@ class SetLight(_Body):
     light_color: OpaqueColour | None = None
     light_intensity: LightIntensity | None = None
     extra_lights: Annotated[tuple[ExtraLight, ...], Field(max_length=MAX_EXTRA_LIGHTS)] | None = None
-    gloss: Gloss | None = None
+    gloss: Share | None = None
     shininess: Shininess | None = None
-    shadows: Shadows | None = None
+    shadows: Share | None = None
+    occlusion: Share | None = None
 
     def call(self, session):
         keep = "source_light" not in self.model_fields_set  # absent keeps it; null removes it
@@ -173,6 +175,7 @@ class SetLight(_Body):
             gloss=self.gloss,
             shininess=self.shininess,
             shadows=self.shadows,
+            occlusion=self.occlusion,
         )
 
 

@@ -99,7 +99,7 @@ def test_from_makes_a_relight_ratio_and_none_makes_it_shading_again(folder):
         (
             [],
             "light: nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, "
-            "--intensity, --gloss, --shininess, --shadows, --add-light, --clear-lights",
+            "--intensity, --gloss, --shininess, --shadows, --occlusion, --add-light, --clear-lights",
         ),
         (["--intensity", "0"], "layers[1].light_intensity: got 0.0; expected greater than 0"),
         (["--add-light", "up"], "layers[1].extra_lights[0].light: expected one of left"),
@@ -120,6 +120,7 @@ def test_from_makes_a_relight_ratio_and_none_makes_it_shading_again(folder):
         (["--shininess", "inf"], "layers[1].shininess"),
         (["--shadows", "1.5"], "layers[1].shadows: got 1.5; expected less than or equal to 1"),
         (["--shadows", "nan"], "layers[1].shadows"),
+        (["--occlusion", "-0.5"], "layers[1].occlusion: got -0.5; expected greater than or equal to 0"),
         (["--color", "red"], "--color: got 'red'; expected #rrggbb or R,G,B"),
         (["--color", "1,0.5"], "--color: got '1,0.5'; expected #rrggbb or R,G,B"),
         (["--color", "1,2,0"], "layers[1].light_color"),
@@ -266,6 +267,10 @@ def test_shadows_darken_what_the_surfaces_heights_hide_and_zero_removes_them(tmp
     assert json.loads((folder / "stack.json").read_text())["layers"][1]["shadows"] == 0.9
     assert main(["light", str(folder), "--shadows", "0"]) == 0
     assert np.array_equal(codes(folder / "composite.png"), plain)
+    assert main(["light", str(folder), "--occlusion", "1"]) == 0  # the bump's foot sees less of the sky
+    assert "occlusion 1" in capsys.readouterr().out
+    occluded = codes(folder / "composite.png")
+    assert (occluded <= plain).all() and (occluded < plain - 3).any() and np.array_equal(occluded, composite_of(folder))
 
 
 def composite_of(folder) -> np.ndarray:

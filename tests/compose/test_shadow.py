@@ -109,3 +109,25 @@ def test_visibility_is_traced_small_and_enlarged_to_the_layer():
     assert v.shape == (1, 1, 192, 192) and 0.0 <= float(v.min()) and float(v.max()) <= 1.0
     small = visibility(h, "az=0,el=60", (96, 96))
     assert torch.allclose(torch.nn.functional.avg_pool2d(v, 2), small, atol=0.26)
+
+
+def test_ambient_occlusion_is_the_share_of_a_cosine_weighted_sky_each_point_sees():
+    """Against a numpy float64 mean of ray marches over the same directions (tests/support/lights.py): within 0.04
+    everywhere but a pixel from an edge; a flat map sees all the sky (exactly 1); beside a tall wall a point sees half
+    of it; the top of the wall all of it."""
+    from lasagna.compose.shadow import occlusion
+    from tests.support.lights import sky_share
+
+    h = smooth_field(4, 48)
+    ours_ = occlusion(torch.tensor(h)[None, None], (48, 48))[0, 0].numpy()
+    ref = sky_share(h)
+    inner = np.zeros_like(h, dtype=bool)
+    inner[2:-2, 2:-2] = True
+    assert np.abs(ours_ - ref)[inner].mean() <= 0.02 and np.abs(ours_ - ref)[inner].max() <= 0.2
+    assert ref.min() < 0.8  # the bumps hide some sky
+    assert torch.equal(occlusion(torch.zeros(1, 1, 20, 30), (20, 30)), torch.ones(1, 1, 20, 30))
+    wall = torch.zeros(1, 1, 40, 40, dtype=torch.float64)
+    wall[..., 20:] = 5.0  # a wall 5 canvas units tall along the map's middle
+    seen = occlusion(wall, (40, 40))[0, 0]
+    assert ((seen[12:28, 18:20] - 0.5).abs() <= 0.05).all(), seen[12:28, 18:20]  # at its foot
+    assert (seen[10:30, 22:38] >= 0.99).all()

@@ -718,7 +718,8 @@ def test_a_light_slider_previews_live_and_commits_one_step(
 def test_the_shadows_slider_previews_live_and_commits_one_step(browser, surface_server):
     """A surface layer's "Shadows" slider under a low light: dragging repaints the view live (nothing changes on the
     server) and darkens where the dome hides the light, nowhere brightening; the release commits one step that sets
-    ``shadows`` and keeps the light; the saved stack renders what the page shows."""
+    ``shadows`` and keeps the light; the "Occlusion" slider then commits one step more, darker at the dome's foot;
+    the saved stack renders what the page shows."""
     folder = surface_server.session.folder
     session = surface_server.session
     session.set_light(session.state()["version"], "shape", "az=135,el=80")  # a low light: the dome casts a shadow
@@ -737,6 +738,13 @@ def test_the_shadows_slider_previews_live_and_commits_one_step(browser, surface_
     assert lit["shadows"] == 1.0 and lit["light"] == "az=135,el=80"
     after = page_pixels(page)
     assert (after[..., :3] <= before[..., :3]).all() and (after[..., :3] < before[..., :3] - 8).any()
+    # The Occlusion slider the same way: the ambient light taken from where the dome hides the sky.
+    paints = page.evaluate("window.lasagna.paints.count")
+    slide(page, "occlusion", ["0.5", "1"], release=True)
+    settle(page, v + 2)
+    assert page.evaluate("window.lasagna.state.surfaces.shape")["occlusion"] == 1.0
+    occluded = page_pixels(page)
+    assert (occluded[..., :3] <= after[..., :3]).all() and (occluded[..., :3] < after[..., :3]).any()
     save_and_check(page, folder)
     assert page.errors == []
 

@@ -107,6 +107,7 @@ def test_state_gives_each_surface_layers_light(client):
             "gloss": 0.0,
             "shininess": 32.0,
             "shadows": 0.0,
+            "occlusion": 0.0,
         }
     }
 
@@ -160,6 +161,7 @@ def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
         "gloss": 0.0,
         "shininess": 32.0,
         "shadows": 0.0,
+        "occlusion": 0.0,
     }
     assert np.array_equal(
         view(client, level=0)[..., :3], relit_codes(folder, "right", source_light="left", ambient=0.4, relief=2.5)
@@ -361,6 +363,8 @@ def test_the_relief_preview_is_the_change_bit_for_bit_and_one_undo_step(client, 
         ("shadows", "shape:inf", "shadows.shape: expected a shadows strength"),
         ("shadows", "shape:deep", "shadows: shadows is 'shape:deep'; expected LAYER:NUMBER"),
         ("shadows", "base:0.5", "layer 'base' is a pixels layer; expected a surface layer"),
+        ("occlusion", "shape:-1", r"occlusion.shape: expected a occlusion strength in \[0, 1\]"),
+        ("occlusion", "base:0.5", "layer 'base' is a pixels layer; expected a surface layer"),
     ],
 )
 def test_a_bad_slider_preview_is_one_line_400(client, name, param, match):
@@ -527,9 +531,17 @@ def test_the_shadows_preview_is_the_change_bit_for_bit(client, folder):
     fresh = composite_codes(render_stack(load_stack(folder)).image).permute(1, 2, 0).numpy()
     assert np.array_equal(preview[..., :3], fresh)
     v = state(client)["version"]
-    for body in ({"shadows": 2}, {"shadows": -0.5}, {"shadows": "1"}):
+    for body in ({"shadows": 2}, {"shadows": -0.5}, {"shadows": "1"}, {"occlusion": 1.5}):
         message = one_line_4xx(post(client, op="light", id="shape", light="top-left", **body))
-        assert message.startswith("shadows") and state(client)["version"] == v
+        assert message.startswith(next(iter(body))) and state(client)["version"] == v
+    # The Occlusion slider likewise: its preview is the change, bit for bit, and takes ambient light from the dome's
+    # foot (nowhere brighter).
+    before = view(client, level=0)
+    preview = view(client, level=0, occlusion="shape:1")
+    assert (preview[..., :3] <= before[..., :3]).all() and (preview[..., :3] < before[..., :3]).any()
+    ok(post(client, op="light", id="shape", light="az=200,el=80", occlusion=1.0))
+    assert np.array_equal(view(client, level=0), preview)
+    assert np.array_equal(preview[..., :3], relit_codes(folder, "az=200,el=80", shadows=1.0, occlusion=1.0))
 
 
 def test_extra_lights_are_set_as_a_list_one_step_and_saved(client, folder):

@@ -96,3 +96,17 @@ def point_shadow(h, x, y, z, step=0.25, eps=1e-3):
         blocked |= inside & (_bilinear(ground, col, row) > ground + f * (lzp - ground) + eps * per_pixel)
         k += step
     return (~blocked).astype(float)
+
+
+def sky_share(h, azimuths=12, elevations=3):
+    """numpy float64 ambient visibility (H, W) of heights h: the mean of ``directional_shadow`` over ``azimuths`` ×
+    ``elevations`` directions, azimuths (j + ½)·360°/``azimuths``, elevations from the view axis asin √((k + ½)/
+    ``elevations``) — equal shares of a cosine-weighted sky."""
+    total = np.zeros_like(h)
+    for k in range(elevations):
+        el = np.arcsin(np.sqrt((k + 0.5) / elevations))
+        for j in range(azimuths):
+            az = np.radians(360.0 * (j + 0.5) / azimuths)
+            l_vec = (np.sin(el) * np.cos(az), np.sin(el) * np.sin(az), np.cos(el))
+            total += directional_shadow(h, l_vec)
+    return total / (azimuths * elevations)

@@ -22,6 +22,7 @@ const ui = {
   intensity: null,      // a surface layer's light intensity while its slider is dragged: { id, value }
   gloss: null,          // a surface layer's gloss (highlight strength) while its slider is dragged: { id, value }
   shadows: null,        // a surface layer's cast-shadow strength while its slider is dragged: { id, value }
+  occlusion: null,      // a surface layer's ambient-occlusion strength while its slider is dragged: { id, value }
   lightWhich: {},       // per relight surface layer: which light its sphere moves, "light" or "source"
   normals: null,        // a surface layer's id while the view shows its normal map (its relief applied)
   lightProxy: true,     // a light drag previews at the drag proxy's level (dragLevel); false: at the view's level
@@ -402,7 +403,10 @@ function lightControl(layer) {
   // Cast shadows (Sprite Lamp's self-shadowing): each light's direct term, where the surface's own heights hide the
   // light, times 1 − s; previewed while the slider moves (/api/view?shadows=…), one change on release.
   const shadowsField = lightSlider(layer, lit, "Shadows", "shadows", "shadows", lit.shadows, UNIT);
-  box.append(field("Colour", colour), intensityField, glossControl(layer, lit), shadowsField, field("Show normal map", show));
+  // Ambient occlusion: the ambient term, where the surface's heights hide the sky (creases), times 1 − o·(1 − A).
+  const occlusionField = lightSlider(layer, lit, "Occlusion", "occlusion", "occlusion", lit.occlusion, UNIT);
+  box.append(field("Colour", colour), intensityField, glossControl(layer, lit), shadowsField, occlusionField);
+  box.append(field("Show normal map", show));
   box.append(pointControl(layer, lit));
   box.append(extraLightsControl(layer, lit));
   // A relight's sphere moves either light: the target, or the source the ratio divides by (fitted to the image,
@@ -827,6 +831,7 @@ async function fetchView(params) {
   if (params.intensity) q.append("intensity", `${params.intensity.id}:${params.intensity.value}`);
   if (params.gloss) q.append("gloss", `${params.gloss.id}:${params.gloss.value}`);
   if (params.shadows) q.append("shadows", `${params.shadows.id}:${params.shadows.value}`);
+  if (params.occlusion) q.append("occlusion", `${params.occlusion.id}:${params.occlusion.value}`);
   const path = params.normals ? `api/layers/${encodeURIComponent(params.normals)}/normals?level=${params.level}` : `api/view?${q}`;
   const response = await api(path);
   const w = parseInt(response.headers.get("X-Width"), 10), h = parseInt(response.headers.get("X-Height"), 10);
@@ -853,10 +858,10 @@ function paint() {
   if (!ui.state) return;
   const level = levelFor(ui.zoom);
   wanted = {
-    level: ui.drag || ((ui.light || ui.relief || ui.ambient || ui.colour || ui.intensity || ui.gloss || ui.shadows) && ui.lightProxy) ? dragLevel(level) : level,
+    level: ui.drag || ((ui.light || ui.relief || ui.ambient || ui.colour || ui.intensity || ui.gloss || ui.shadows || ui.occlusion) && ui.lightProxy) ? dragLevel(level) : level,
     drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split,
     light: ui.light, relief: ui.relief, ambient: ui.ambient, colour: ui.colour, intensity: ui.intensity, gloss: ui.gloss,
-    shadows: ui.shadows, normals: ui.normals,
+    shadows: ui.shadows, occlusion: ui.occlusion, normals: ui.normals,
   };
   if (!inflight) paintLoop();
 }
