@@ -101,13 +101,16 @@ def directional_visibility(height: Tensor, light: tuple[float, float, float], ep
         return torch.ones_like(height)
     dc, dr = lx / across, -ly / across  # d in pixel axes: columns right, rows down (y up)
     rise = (2.0 / w) * lz / across  # canvas units the ray climbs per pixel travelled toward the light
-    reach = math.ceil(math.hypot(h, w) / 2) + 1
-    n = 2 * reach + 1
-    t = torch.arange(-reach, reach + 1, dtype=height.dtype, device=height.device)
-    u, v = t.view(1, n), t.view(n, 1)  # the turned grid: u along d (toward the light), v across it
     cc, rc = (w - 1) / 2, (h - 1) / 2
+    # The turned grid covers the map's corners, one pixel beyond: u along d (toward the light), v across it.
+    corners = [(x - cc, y - rc) for x in (-0.5, w - 0.5) for y in (-0.5, h - 0.5)]
+    reach_u = math.ceil(max(abs(x * dc + y * dr) for x, y in corners)) + 1
+    reach_v = math.ceil(max(abs(-x * dr + y * dc) for x, y in corners)) + 1
+    n_u, n_v = 2 * reach_u + 1, 2 * reach_v + 1
+    u = torch.arange(-reach_u, reach_u + 1, dtype=height.dtype, device=height.device).view(1, n_u)
+    v = torch.arange(-reach_v, reach_v + 1, dtype=height.dtype, device=height.device).view(n_v, 1)
     col, row = cc + u * dc - v * dr, rc + u * dr + v * dc
-    grid = torch.stack([(col + 0.5) / w * 2 - 1, (row + 0.5) / h * 2 - 1], -1)[None].expand(b, n, n, 2)
+    grid = torch.stack([(col + 0.5) / w * 2 - 1, (row + 0.5) / h * 2 - 1], -1)[None].expand(b, n_v, n_u, 2)
     turned = F.grid_sample(height, grid, mode="bilinear", padding_mode="border", align_corners=False)
     inside = (col >= -0.5) & (col <= w - 0.5) & (row >= -0.5) & (row <= h - 0.5)
     g = turned - rise * u
@@ -119,7 +122,8 @@ def directional_visibility(height: Tensor, light: tuple[float, float, float], ep
     cols = torch.arange(w, dtype=height.dtype, device=height.device).view(1, w) - cc
     rows = torch.arange(h, dtype=height.dtype, device=height.device).view(h, 1) - rc
     pu, pv = cols * dc + rows * dr, -cols * dr + rows * dc  # each pixel in the turned grid (a rotation's inverse)
-    back = torch.stack([(pu + reach + 0.5) / n * 2 - 1, (pv + reach + 0.5) / n * 2 - 1], -1)[None].expand(b, h, w, 2)
+    back = torch.stack([(pu + reach_u + 0.5) / n_u * 2 - 1, (pv + reach_v + 0.5) / n_v * 2 - 1], -1)
+    back = back[None].expand(b, h, w, 2)
     # 1 − the shade sampled back (not the lit share): bilinear weights of zeros sum to exactly 0, so a pixel no shadow
     # comes near is exactly 1 and a layer without shadows renders as its shading alone.
     return 1.0 - F.grid_sample(shade, back, mode="bilinear", padding_mode="border", align_corners=False)
