@@ -107,7 +107,8 @@ def directional_visibility(height: Tensor, light: tuple[float, float, float], ep
     reach_u = math.ceil(max(abs(x * dc + y * dr) for x, y in corners)) + 1
     reach_v = math.ceil(max(abs(-x * dr + y * dc) for x, y in corners)) + 1
     n_u, n_v = 2 * reach_u + 1, 2 * reach_v + 1
-    u = torch.arange(-reach_u, reach_u + 1, dtype=height.dtype, device=height.device).view(1, n_u)
+    # u runs from the light's side back (descending), so a running maximum along each row is the maximum ahead.
+    u = torch.arange(reach_u, -reach_u - 1, -1, dtype=height.dtype, device=height.device).view(1, n_u)
     v = torch.arange(-reach_v, reach_v + 1, dtype=height.dtype, device=height.device).view(n_v, 1)
     col, row = cc + u * dc - v * dr, rc + u * dr + v * dc
     grid = torch.stack([(col + 0.5) / w * 2 - 1, (row + 0.5) / h * 2 - 1], -1)[None].expand(b, n_v, n_u, 2)
@@ -116,13 +117,13 @@ def directional_visibility(height: Tensor, light: tuple[float, float, float], ep
     g = turned - rise * u
     # Only the map occludes: beyond its edge the heights are unknown and cast nothing.
     occluder = torch.where(inside, g, torch.full_like(g, -math.inf))
-    behind = occluder.flip(-1).cummax(-1).values.flip(-1)  # max over u' ≥ u
-    ahead = torch.cat([behind[..., 1:], torch.full_like(behind[..., :1], -math.inf)], -1)  # max over u' > u
+    upto = occluder.cummax(-1).values  # max over u' ≥ u (u descends along the row)
+    ahead = torch.cat([torch.full_like(upto[..., :1], -math.inf), upto[..., :-1]], -1)  # max over u' > u
     shade = (ahead > g + eps).to(height.dtype)
     cols = torch.arange(w, dtype=height.dtype, device=height.device).view(1, w) - cc
     rows = torch.arange(h, dtype=height.dtype, device=height.device).view(h, 1) - rc
     pu, pv = cols * dc + rows * dr, -cols * dr + rows * dc  # each pixel in the turned grid (a rotation's inverse)
-    back = torch.stack([(pu + reach_u + 0.5) / n_u * 2 - 1, (pv + reach_v + 0.5) / n_v * 2 - 1], -1)
+    back = torch.stack([(reach_u - pu + 0.5) / n_u * 2 - 1, (pv + reach_v + 0.5) / n_v * 2 - 1], -1)
     back = back[None].expand(b, h, w, 2)
     # 1 − the shade sampled back (not the lit share): bilinear weights of zeros sum to exactly 0, so a pixel no shadow
     # comes near is exactly 1 and a layer without shadows renders as its shading alone.
