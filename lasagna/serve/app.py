@@ -312,7 +312,14 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             directx = q.get("directx", "0")
             if directx not in ("0", "1"):
                 raise RequestError(f"directx is {directx!r}; expected 0 or 1", "directx")
-            return JSONResponse(await run(session.add_normal_map, version, data, q.get("name"), directx == "1"))
+            height = None
+            if q.get("height"):  # a grey height map instead: white ``height`` pixels above black
+                try:
+                    height = float(q["height"])
+                except ValueError:
+                    raise RequestError(f"height is {q['height']!r}; expected a number of pixels", "height") from None
+            args = (version, data, q.get("name"), directx == "1", height)
+            return JSONResponse(await run(session.add_normal_map, *args))
         if kind != "image":
             raise RequestError(f"kind is {kind!r}; expected image or normal-map", "kind")
         return JSONResponse(await run(session.add_image, version, data, q.get("name")))

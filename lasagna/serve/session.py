@@ -386,11 +386,13 @@ class EditSession(SessionViews, SessionJobs):
                 lambda: self.stack.add_layer(id, color, alpha=alpha, bit_depth=img.bit_depth, name=stem),
             )
 
-    def add_normal_map(self, version: Any, data: bytes, name: Any = None, directx: bool = False) -> dict[str, Any]:
+    def add_normal_map(
+        self, version: Any, data: bytes, name: Any = None, directx: bool = False, height: float | None = None
+    ) -> dict[str, Any]:
         """A new surface layer on top from an uploaded normal-map PNG's bytes (``lasagna add-surface``'s reading,
-        `lasagna.io.normal_map`: its codes as stored; ``directx``: +Y down), lit from the top-left; its light is
-        then the page's to drag."""
-        from lasagna.io.normal_map import normal_map_normals
+        `lasagna.io.normal_map`: its codes as stored; ``directx``: +Y down; ``height``: a grey height map, white that
+        many pixels above black), lit from the top-left; its light is then the page's to drag."""
+        from lasagna.io.normal_map import height_map_normals, normal_map_normals
         from lasagna.io.png import PNG_SIGNATURE, parse_header
 
         name = name if isinstance(name, str) and name.strip() else "Normal map"
@@ -406,7 +408,14 @@ class EditSession(SessionViews, SessionJobs):
                     where,
                 )
             try:
-                normals = normal_map_normals(data=data, directx=bool(directx), max_pixels=self.max_pixels, where=where)
+                if height is not None:
+                    if directx:
+                        raise LasagnaError("a height map has no green to flip; expected height or directx", "directx")
+                    normals = height_map_normals(data=data, depth=height, max_pixels=self.max_pixels, where=where)
+                else:
+                    normals = normal_map_normals(
+                        data=data, directx=bool(directx), max_pixels=self.max_pixels, where=where
+                    )
             except BudgetError as exc:
                 raise exc.at(where) from None
             id = self._new_id(stem.lower())

@@ -785,6 +785,32 @@ def test_extra_lights_are_added_edited_and_removed_one_step_each(browser, surfac
     assert page.errors == []
 
 
+def test_a_height_map_is_added_with_its_depth_and_lit(browser, surface_server, tmp_path):
+    """The height field beside "Add normal map", filled, makes the upload a grey height map (white that many pixels
+    above black): one step, a surface layer exactly `height_map_normals` of the file; the saved stack renders what
+    the page shows."""
+    import torch
+    from PIL import Image
+
+    from lasagna.io.normal_map import height_map_normals
+    from lasagna.io.stack import load_stack
+
+    yy, xx = np.mgrid[0:48, 0:64]
+    Image.fromarray(np.round(127 + 120 * np.sin(xx / 4.0)).astype(np.uint8)).save(tmp_path / "waves.png")
+    folder = surface_server.session.folder
+    page = open_page(browser, surface_server)
+    v = version(page)
+    page.fill("#normal-map-height", "6")
+    page.set_input_files("#add-normal-map", str(tmp_path / "waves.png"))
+    settle(page, v + 1)
+    assert page.evaluate("window.lasagna.state.document.layers")[-1]["id"] == "waves"
+    save_and_check(page, folder)
+    got = load_stack(folder).tensors["waves"].color.double() * 2 - 1
+    want = height_map_normals(tmp_path / "waves.png", depth=6.0).double()
+    assert (torch.nn.functional.normalize(got, dim=0) - want).abs().max() <= 5e-5
+    assert page.errors == []
+
+
 def test_a_normal_map_of_ones_own_is_added_and_lit(browser, surface_server, tmp_path):
     """The "Add normal map" button, given a PNG of one's own, adds a surface layer (one step) whose light panel
     opens when it is selected; dragging its light re-lights it; the saved stack renders what the page shows."""

@@ -615,6 +615,33 @@ def test_an_uploaded_normal_map_is_a_surface_layer_as_its_codes_say(client, fold
     assert (maps["bumps"].color - maps["dx"].color).abs().max() <= 1.5 / 65535
 
 
+def test_an_uploaded_height_map_is_the_surface_of_its_slopes(client, folder):
+    """``/api/upload?kind=normal-map&height=PX`` (the page's height field beside "Add normal map") reads a grey PNG as
+    heights, white PX pixels above black: the layer is exactly what ``lasagna add-surface --height PX`` makes of the
+    same file (`height_map_normals`), one undo step, and the saved stack renders what the view shows."""
+    import io
+
+    from PIL import Image
+
+    from lasagna.io.normal_map import height_map_normals
+
+    yy, xx = np.mgrid[0:12, 0:16]
+    grey = np.clip(1 - ((xx - 7.5) ** 2 + (yy - 5.5) ** 2) / 40, 0, 1)
+    out = io.BytesIO()
+    Image.fromarray(np.round(grey * 255).astype(np.uint8)).save(out, format="PNG")
+    v = state(client)["version"]
+    params = {"version": v, "name": "bump.png", "kind": "normal-map", "height": "2.5"}
+    s = ok(client.post("/api/upload", headers=H, params=params, content=out.getvalue()))
+    assert s["document"]["layers"][-1]["id"] == "bump" and s["undo"] == "add bump"
+    ok(post(client, op="save"))
+    stack = load_stack(folder)
+    want = height_map_normals(data=out.getvalue(), depth=2.5)
+    got = stack.tensors["bump"].color.double() * 2 - 1
+    assert (torch.nn.functional.normalize(got, dim=0) - want.double()).abs().max() <= 5e-5
+    fresh = composite_codes(render_stack(stack).image).permute(1, 2, 0).numpy()
+    assert np.array_equal(view(client, level=0)[..., :3], fresh)
+
+
 @pytest.mark.parametrize(
     "params, body, words",
     [
@@ -622,6 +649,9 @@ def test_an_uploaded_normal_map_is_a_surface_layer_as_its_codes_say(client, fold
         ({"kind": "normal-map"}, "GRAY", "has 1 colour channel(s); expected an RGB normal map"),
         ({"kind": "normal-map", "directx": "yes"}, "MAP", "directx is 'yes'; expected 0 or 1"),
         ({"kind": "bump"}, "MAP", "kind is 'bump'; expected image or normal-map"),
+        ({"kind": "normal-map", "height": "tall"}, "GRAY", "height is 'tall'; expected a number of pixels"),
+        ({"kind": "normal-map", "height": "-2"}, "GRAY", "got a depth of -2.0; expected the pixels white stands"),
+        ({"kind": "normal-map", "height": "2", "directx": "1"}, "GRAY", "a height map has no green to flip"),
     ],
 )
 def test_a_bad_normal_map_upload_is_a_one_line_400_and_changes_nothing(client, params, body, words):

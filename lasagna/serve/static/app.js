@@ -997,6 +997,7 @@ function wire() {
     const file = e.target.files[0];
     if (!file) return;
     const q = new URLSearchParams({ version: ui.state.version, name: file.name, kind: "normal-map", directx: $("normal-map-directx").checked ? "1" : "0" });
+    if ($("normal-map-height").value) q.set("height", $("normal-map-height").value);  // a grey height map instead
     await apply(() => api(`api/upload?${q}`, { method: "POST", body: file }));
     e.target.value = "";
   };
