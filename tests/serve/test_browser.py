@@ -706,8 +706,12 @@ def test_a_light_slider_previews_live_and_commits_one_step(
     after = page_pixels(page)
     assert after[..., :3].astype(float).mean() > before[..., :3].astype(float).mean()
     if slider == "gloss":
-        page.fill("#shininess", "4")
-        page.dispatch_event("#shininess", "change")
+        # Set and committed in one task: the panel may be rebuilt between two separate calls on a loaded machine (a
+        # fill lands on the old input, the change on the new one, which still says 32: no change, no step).
+        page.evaluate(
+            '() => { const s = document.getElementById("shininess"); s.value = "4"; '
+            's.dispatchEvent(new Event("change")); }'
+        )
         settle(page, v + 2)
         assert page.evaluate("window.lasagna.state.surfaces.shape")["shininess"] == 4.0
         assert not np.array_equal(page_pixels(page), after)
