@@ -14,6 +14,7 @@ EXAMPLE = (
     "lasagna export examples/stacks/basic --ora out.ora --psd out.psd --layers out/layers",
     "lasagna export out/photo --normal-map photo-normals.png   # a surface layer's normal map",
     "lasagna export out/photo --height-map photo-heights.png   # and its heights (a displacement map)",
+    "lasagna export out/photo --occlusion-map photo-ao.png     # and its ambient occlusion (an AO map)",
 )
 
 
@@ -35,7 +36,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "is the peak, printed in pixels), on the canvas, for displacement or parallax",
     )
     p.add_argument(
-        "--surface", metavar="ID", help="which surface layer --normal-map and --height-map write (default: the topmost)"
+        "--occlusion-map",
+        metavar="PNG",
+        help="write a surface layer's ambient-occlusion map (16-bit grey: the share of the sky each point of its "
+        "heights sees, white open), on the canvas, for a game or 2D-lighting engine",
+    )
+    p.add_argument(
+        "--surface",
+        metavar="ID",
+        help="which surface layer --normal-map, --height-map and --occlusion-map write (default: the topmost)",
     )
     depth_argument(p, "the PSD")
     max_pixels_argument(p)
@@ -46,16 +55,19 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.io.folder import check_not_input, check_writable
     from lasagna.io.survey import survey_stack
 
-    if not (args.ora or args.psd or args.layers or args.normal_map or args.height_map):
+    maps = (args.normal_map, args.height_map, args.occlusion_map)
+    if not (args.ora or args.psd or args.layers or any(maps)):
         raise LasagnaError(
-            "nothing to export; expected at least one of --ora, --psd, --layers, --normal-map, --height-map",
+            "nothing to export; expected at least one of --ora, --psd, --layers, --normal-map, --height-map, "
+            "--occlusion-map",
             where="export",
         )
-    if args.surface and not (args.normal_map or args.height_map):
+    if args.surface and not any(maps):
         raise LasagnaError(
-            "--surface names the layer --normal-map or --height-map writes; expected one of them too", "--surface"
+            "--surface names the layer --normal-map, --height-map or --occlusion-map writes; expected one of them too",
+            "--surface",
         )
-    for path in (args.ora, args.psd, args.normal_map, args.height_map):
+    for path in (args.ora, args.psd, *maps):
         if path:
             check_writable(path)
     if args.layers:
@@ -99,9 +111,13 @@ def run(args: argparse.Namespace) -> int:
 
         data, peak = height_map_png(stack, args.surface)
         outputs.append((Path(args.height_map), data))
+    if args.occlusion_map:
+        from lasagna.export.png import occlusion_map_png
+
+        outputs.append((Path(args.occlusion_map), occlusion_map_png(stack, args.surface)))
     check_not_input([path for path, _ in outputs], stack)
     atomic_write_all(outputs)
-    for path in (args.ora, args.psd, args.normal_map):
+    for path in (args.ora, args.psd, args.normal_map, args.occlusion_map):
         if path:
             print(f"wrote {path}")
     if args.height_map:

@@ -141,15 +141,9 @@ def height_map_png(stack, layer_id: str | None = None) -> tuple[bytes, float]:
     pixels above it (0 for a flat map: all black, `NORMAL_CODE_SLOPE`) — a displacement or parallax map for Blender
     or a game engine, whose strength is ``peak`` in the canvas's pixels. A normal map holds slopes only, so a step (an
     object's outline against what lies behind it) comes back as the steepest slope a normal allows, not as a jump."""
-    layer, codes = canvas_normal_map(stack, layer_id)
-    normals = torch.nn.functional.normalize(torch.from_numpy(codes)[None] * 2.0 - 1.0, dim=1)
+    layer, codes, heights = canvas_heights(stack, layer_id)
     size = tuple(codes.shape[-2:])
-    scale = min(1.0, HEIGHT_MAX_SIDE / max(size))
-    if scale < 1.0:  # integrated at most at HEIGHT_MAX_SIDE (heights are in canvas units, whatever the size)
-        small = (max(1, round(size[0] * scale)), max(1, round(size[1] * scale)))
-        normals = torch.nn.functional.normalize(downsample(normals, small), dim=1)
-    heights = integrate_normals(normals)
-    if scale < 1.0:
+    if tuple(heights.shape[-2:]) != size:
         heights = torch.nn.functional.interpolate(heights, size=size, mode="bilinear", align_corners=False)
     heights = heights[0] * (size[1] / 2.0)  # canvas units (2 across) to pixels
     peak = float(heights.max())
@@ -158,6 +152,32 @@ def height_map_png(stack, layer_id: str | None = None) -> tuple[bytes, float]:
     else:
         heights = heights / peak
     return encode_png(heights.numpy(), bit_depth=16, where=f"layer {layer.id!r} height map"), peak
+
+
+def canvas_heights(stack, layer_id: str | None = None):
+    """(the surface layer, its normal map's codes on the canvas as `canvas_normal_map` gives them, the heights
+    (1, 1, h, w) in canvas units whose slopes best fit them — `compose.surface.integrate_normals` — at most
+    ``HEIGHT_MAX_SIDE`` on a side)."""
+    layer, codes = canvas_normal_map(stack, layer_id)
+    normals = torch.nn.functional.normalize(torch.from_numpy(codes)[None] * 2.0 - 1.0, dim=1)
+    size = tuple(codes.shape[-2:])
+    scale = min(1.0, HEIGHT_MAX_SIDE / max(size))
+    if scale < 1.0:  # integrated at most at HEIGHT_MAX_SIDE (heights are in canvas units, whatever the size)
+        small = (max(1, round(size[0] * scale)), max(1, round(size[1] * scale)))
+        normals = torch.nn.functional.normalize(downsample(normals, small), dim=1)
+    return layer, codes, integrate_normals(normals)
+
+
+def occlusion_map_png(stack, layer_id: str | None = None) -> bytes:
+    """PNG bytes of surface layer ``layer_id``'s ambient-occlusion map (default: the topmost surface layer) on the
+    canvas: 16-bit grey, the share of a cosine-weighted sky each point of its heights sees (`canvas_heights`;
+    `compose.shadow.occlusion`, what the layer's ``occlusion`` darkens its ambient by) — white open, darker in
+    creases and at the feet of walls: an AO map for a game engine or a 2D-lighting tool."""
+    from lasagna.compose.shadow import occlusion
+
+    layer, codes, heights = canvas_heights(stack, layer_id)
+    seen = occlusion(heights, tuple(codes.shape[-2:]))[0]
+    return encode_png(seen.numpy(), bit_depth=16, where=f"layer {layer.id!r} occlusion map")
 
 
 HEIGHT_MAX_SIDE = 1024

@@ -219,6 +219,31 @@ def test_export_height_map_gives_back_the_heights_the_normals_came_from(tmp_path
     assert "white 0 pixels" in capsys.readouterr().out and not read_grey16(tmp_path / "f.png").any()
 
 
+def test_export_occlusion_map_is_the_share_of_the_sky_its_heights_see(tmp_path, capsys):
+    """``--occlusion-map``: a surface layer made from a plateau exports, 16-bit grey read back with pypng in float64,
+    the share of a cosine-weighted sky each point sees over the heights the normals came from (a numpy float64 mean
+    of ray marches, tests/support/lights.py) — within 0.04 in the mean, off the border — darker at the plateau's foot,
+    white on open ground; a flat layer's map is all white."""
+    from lasagna.cli import main
+    from tests.support.lights import sky_share
+
+    height = 3 * plateau()
+    s = Stack.from_image(torch.full((3, 48, 64), 0.5))
+    s.add_surface("shape", normals_from_height(height.float())[0], "left")
+    flat = torch.zeros(3, 48, 64)
+    flat[2] = 1.0
+    s.add_surface("flat", flat, "left")
+    s.save(tmp_path / "s")
+    assert main(["export", str(tmp_path / "s"), "--occlusion-map", str(tmp_path / "ao.png"), "--surface", "shape"]) == 0
+    assert "wrote" in capsys.readouterr().out
+    got = read_grey16(tmp_path / "ao.png")
+    want = sky_share(height[0, 0].numpy() - float(height.min()))
+    assert np.abs(got - want)[3:-3, 3:-3].mean() <= 0.04 and want.min() < 0.7
+    assert got[22, 36] < 0.8 and got[5, 58] > 0.95 and abs(got[5, 58] - want[5, 58]) < 0.05  # its foot; open ground
+    assert main(["export", str(tmp_path / "s"), "--occlusion-map", str(tmp_path / "f.png")]) == 0  # the topmost: flat
+    assert (read_grey16(tmp_path / "f.png") == 1.0).all()
+
+
 def test_export_height_map_refusals_are_one_line_and_write_nothing(stack, tmp_path, capsys):
     """No surface layer, --surface without a map to write, or the height map aimed at the stack's own normal map: one
     line, exit 2, nothing written or changed."""
@@ -235,6 +260,9 @@ def test_export_height_map_refusals_are_one_line_and_write_nothing(stack, tmp_pa
     assert main(["export", str(tmp_path / "s"), "--height-map", str(tmp_path / "h.png")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no surface layer" in err and not (tmp_path / "h.png").exists()
+    assert main(["export", str(tmp_path / "s"), "--occlusion-map", str(tmp_path / "ao.png")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no surface layer" in err and not (tmp_path / "ao.png").exists()
     assert main(["export", str(tmp_path / "s"), "--surface", "base", "--layers", str(tmp_path / "l")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "expected one of them too" in err and not (tmp_path / "l").exists()
