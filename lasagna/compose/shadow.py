@@ -107,27 +107,42 @@ def directional_visibility(height: Tensor, light: tuple[float, float, float], ep
     reach_u = math.ceil(max(abs(x * dc + y * dr) for x, y in corners)) + 1
     reach_v = math.ceil(max(abs(-x * dr + y * dc) for x, y in corners)) + 1
     n_u, n_v = 2 * reach_u + 1, 2 * reach_v + 1
-    # u runs from the light's side back (descending), so a running maximum along each row is the maximum ahead.
-    u = torch.arange(reach_u, -reach_u - 1, -1, dtype=height.dtype, device=height.device).view(1, n_u)
-    v = torch.arange(-reach_v, reach_v + 1, dtype=height.dtype, device=height.device).view(n_v, 1)
-    col, row = cc + u * dc - v * dr, rc + u * dr + v * dc
-    grid = torch.stack([(col + 0.5) / w * 2 - 1, (row + 0.5) / h * 2 - 1], -1)[None].expand(b, n_v, n_u, 2)
-    turned = F.grid_sample(height, grid, mode="bilinear", padding_mode="border", align_corners=False)
-    inside = (col >= -0.5) & (col <= w - 0.5) & (row >= -0.5) & (row <= h - 0.5)
+    # The turned grid in grid_sample's normalised coordinates, each an outer sum of a column's and a row's part (an
+    # affine map, written into one tensor without per-sample Python arithmetic): column j of a row is u = reach_u − j,
+    # running from the light's side back, so a running maximum along each row is the maximum ahead; row i is
+    # v = i − reach_v across it.
+    kw = dict(dtype=height.dtype, device=height.device)
+    xo = (2 * torch.arange(n_u, **kw) + 1) / n_u - 1  # the turned grid's own normalised coordinates
+    yo = (2 * torch.arange(n_v, **kw) + 1) / n_v - 1
+    grid = _affine_grid(xo, yo, (-n_u * dc / w, -n_v * dr / w), (-n_u * dr / h, n_v * dc / h))
+    turned = F.grid_sample(
+        height, grid.expand(b, n_v, n_u, 2), mode="bilinear", padding_mode="border", align_corners=False
+    )
+    u = torch.arange(reach_u, -reach_u - 1, -1, **kw).view(1, n_u)
     g = turned - rise * u
-    # Only the map occludes: beyond its edge the heights are unknown and cast nothing.
-    occluder = torch.where(inside, g, torch.full_like(g, -math.inf))
-    upto = occluder.cummax(-1).values  # max over u' ≥ u (u descends along the row)
-    ahead = torch.cat([torch.full_like(upto[..., :1], -math.inf), upto[..., :-1]], -1)  # max over u' > u
-    shade = (ahead > g + eps).to(height.dtype)
-    cols = torch.arange(w, dtype=height.dtype, device=height.device).view(1, w) - cc
-    rows = torch.arange(h, dtype=height.dtype, device=height.device).view(h, 1) - rc
-    pu, pv = cols * dc + rows * dr, -cols * dr + rows * dc  # each pixel in the turned grid (a rotation's inverse)
-    back = torch.stack([(reach_u - pu + 0.5) / n_u * 2 - 1, (pv + reach_v + 0.5) / n_v * 2 - 1], -1)
-    back = back[None].expand(b, h, w, 2)
+    # Only the map occludes: beyond its edge (normalised coordinates past ±1) the heights are unknown and cast nothing.
+    x, y = grid[..., 0], grid[..., 1]
+    outside = ((x > 1.0) | (x < -1.0) | (y > 1.0) | (y < -1.0))[:, None]
+    upto = g.masked_fill(outside, -math.inf).cummax(-1).values  # max over u' ≥ u (u descends along the row)
+    shade = torch.zeros_like(g)
+    torch.gt(upto[..., :-1], g[..., 1:] + eps, out=shade[..., 1:])  # the maximum over u' > u above the ray
+    # Each pixel in the turned grid (the rotation's inverse), again an outer sum.
+    xp = (2 * torch.arange(w, **kw) + 1) / w - 1
+    yp = (2 * torch.arange(h, **kw) + 1) / h - 1
+    back = _affine_grid(xp, yp, (-w * dc / n_u, -h * dr / n_u), (-w * dr / n_v, h * dc / n_v))
     # 1 − the shade sampled back (not the lit share): bilinear weights of zeros sum to exactly 0, so a pixel no shadow
     # comes near is exactly 1 and a layer without shadows renders as its shading alone.
-    return 1.0 - F.grid_sample(shade, back, mode="bilinear", padding_mode="border", align_corners=False)
+    shade = F.grid_sample(shade, back.expand(b, h, w, 2), mode="bilinear", padding_mode="border", align_corners=False)
+    return 1.0 - shade
+
+
+def _affine_grid(xs: Tensor, ys: Tensor, x_of: tuple[float, float], y_of: tuple[float, float]) -> Tensor:
+    """A sampling grid (1, len(ys), len(xs), 2) of grid_sample's normalised coordinates: at (xs[j], ys[i]) the point
+    (x_of[0]·xs[j] + x_of[1]·ys[i], y_of[0]·xs[j] + y_of[1]·ys[i]) — a linear map, each coordinate an outer sum."""
+    grid = torch.empty(1, ys.numel(), xs.numel(), 2, dtype=xs.dtype, device=xs.device)
+    torch.add((x_of[0] * xs).view(1, -1), (x_of[1] * ys).view(-1, 1), out=grid[0, ..., 0])
+    torch.add((y_of[0] * xs).view(1, -1), (y_of[1] * ys).view(-1, 1), out=grid[0, ..., 1])
+    return grid
 
 
 def point_visibility(height: Tensor, point: tuple[float, float, float], eps: float = SHADOW_EPS) -> Tensor:
