@@ -172,30 +172,38 @@ def point_visibility(height: Tensor, point: tuple[float, float, float], eps: flo
     # Rays one pixel apart where they leave the map: about its perimeter's pixels, fewer than 2π·reach from a corner.
     n_ang = min(math.ceil((last - first) * reach), 2 * (h + w)) + 2
     kw = dict(dtype=height.dtype, device=height.device)
-    rho = (near + torch.arange(n_rho, **kw)).view(1, n_rho)
-    ang = (first + (last - first) * torch.arange(n_ang, **kw) / (n_ang - 1)).view(n_ang, 1)
-    col, row = foot_c + rho * torch.cos(ang), foot_r + rho * torch.sin(ang)
-    grid = torch.stack([(col + 0.5) / w * 2 - 1, (row + 0.5) / h * 2 - 1], -1)[None].expand(b, n_ang, n_rho, 2)
-    under = F.grid_sample(ground, grid, mode="bilinear", padding_mode="border", align_corners=False)
-    inside = (col >= -0.5) & (col <= w - 0.5) & (row >= -0.5) & (row <= h - 0.5)
+    rho = near + torch.arange(n_rho, **kw)
+    ang = first + (last - first) * torch.arange(n_ang, **kw) / (n_ang - 1)  # both ends: a full turn's are one ray
+    # The polar grid in grid_sample's normalised coordinates: the foot's plus ρ·(cos θ, sin θ), an outer product.
+    grid = torch.empty(1, n_ang, n_rho, 2, **kw)
+    torch.outer(torch.cos(ang) * (2.0 / w), rho, out=grid[0, ..., 0]).add_((foot_c + 0.5) * 2.0 / w - 1.0)
+    torch.outer(torch.sin(ang) * (2.0 / h), rho, out=grid[0, ..., 1]).add_((foot_r + 0.5) * 2.0 / h - 1.0)
+    under = F.grid_sample(
+        ground, grid.expand(b, n_ang, n_rho, 2), mode="bilinear", padding_mode="border", align_corners=False
+    )
+    gx, gy = grid[..., 0], grid[..., 1]
+    outside = ((gx > 1.0) | (gx < -1.0) | (gy > 1.0) | (gy < -1.0))[:, None]
     safe = rho.clamp_min(1e-6)
     steep = (light_z - under) / safe
-    occluder = torch.where(inside & (rho > 0), steep, torch.full_like(steep, math.inf))
-    nearer = torch.cat([torch.full_like(occluder[..., :1], math.inf), occluder.cummin(-1).values[..., :-1]], -1)
+    occluder = steep.masked_fill(outside, math.inf)
+    if near == 0.0:
+        occluder[..., 0] = math.inf  # the foot itself (ρ = 0) hides nothing
+    nearer = torch.full_like(steep, math.inf)
+    torch.cummin(occluder[..., :-1], -1, out=(nearer[..., 1:], torch.empty(nearer[..., 1:].shape, dtype=torch.long)))
     # Rising more than ``eps`` above the ray at ρ_q is a slope short of σ(p) by eps/ρ_q ≥ eps/ρ_p: the bound that needs
     # no ρ_q (a height within eps of the ray may block a little early, never a smooth surface itself).
     shade = (nearer < steep - eps * per_pixel / safe).to(height.dtype)
     cols = torch.arange(w, **kw).view(1, w) - foot_c
     rows = torch.arange(h, **kw).view(h, 1) - foot_r
-    p_rho = torch.sqrt(cols * cols + rows * rows)
+    back = torch.empty(1, h, w, 2, **kw)
     p_ang = torch.atan2(rows, cols)
     if near > 0.0:
         p_ang = mid + torch.remainder(p_ang - mid + math.pi, 2 * math.pi) - math.pi
-    else:  # a full turn: the first and last rays are one; wrap a column so pixels between them interpolate
-        shade = torch.cat([shade, shade[..., :1, :]], -2)
-        n_ang += 1
-        last = first + (last - first) * (n_ang - 1) / (n_ang - 2)
-    gi = (p_ang - first) / (last - first) * (n_ang - 1)  # fractional ray index
-    gr = p_rho - near  # fractional sample index
-    back = torch.stack([(gr + 0.5) / n_rho * 2 - 1, (gi + 0.5) / n_ang * 2 - 1], -1)[None].expand(b, h, w, 2)
-    return 1.0 - F.grid_sample(shade, back, mode="bilinear", padding_mode="border", align_corners=False)
+    # The fractional sample along the ray (ρ − near) and the fractional ray, as grid_sample's coordinates.
+    torch.hypot(cols, rows, out=back[0, ..., 0]).add_(0.5 - near).mul_(2.0 / n_rho).sub_(1.0)
+    scale = (n_ang - 1) / (last - first)
+    p_ang.sub_(first).mul_(scale).add_(0.5).mul_(2.0 / n_ang).sub_(1.0)
+    back[0, ..., 1] = p_ang
+    return 1.0 - F.grid_sample(
+        shade, back.expand(b, h, w, 2), mode="bilinear", padding_mode="border", align_corners=False
+    )
