@@ -14,13 +14,12 @@ from.
   Along each line of direction d that is a running maximum: p is lit iff max_{t > 0} g(p + t·d) ≤ g(p), g(q) =
   h(q) − r·(q·d). The heights are resampled onto a grid turned so that d runs along its rows (bilinear), the maximum
   taken ahead of each sample by one ``cummax`` per row, and the answer sampled back at the pixels (bilinear): O(pixels)
-  per light, whatever its elevation — the horizon-map method of Max (1988), for one direction. A light on the view
-  axis casts nothing.
+  per light, whatever its elevation — Max's horizon mapping ("Horizon mapping: shadows for bump-mapped surfaces",
+  1988) for one direction. A light on the view axis casts nothing.
 - **Point or spot light** at (x, y, z) (`lasagna.document.condition.parse_point`: x, y fractions of the map, z in
   units of its longer side above the heights' zero): a point is hidden when a point nearer the light's foot on the
   same ray out of it lies less steeply below the light — a running minimum along each ray, on a polar grid about the
   foot (`point_visibility`); what lies outside the map casts nothing. A spot's cone does not change its shadows.
-
 - **Ambient occlusion**: the share of the sky a point of the height field sees, cosine-weighted — the mean
   visibility of ``OCCLUSION_AZIMUTHS`` × ``OCCLUSION_ELEVATIONS`` directional lights spread over the hemisphere so
   that each stands for an equal share of a cosine-weighted sky (elevations from the view axis asin √u for u the
