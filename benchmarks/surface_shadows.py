@@ -20,7 +20,9 @@ for h the true heights (depth − WALL_Z: the headroom of casting), the layer's 
 field of each estimator in ``--heights`` (told the true source light; round 24's height-trained estimators), both
 lights' shadows and the target's alone cast onto the walls (V_t = 1 − (1 − V)·(1 − p), p its silhouette probability;
 the source's shadows left in the image, V_s = 1). Rows:
-dB of the composite over the unchanged input (all / objects), with and without the world's shadows; the ray march's
+the layer's own ``shadows`` option (0.5 and 1: `lasagna.compose.shadow`, the target light's shadows over its
+integrated heights, the product's render); dB of the composite over the unchanged input (all / objects), with and
+without the world's shadows; the ray march's
 agreement with the world's own shadows (share of pixels, IoU of the shadowed ones). Nothing here is a default: a probe's
 reproducible form (docs/BENCHMARKS.md, round 23, S2 and S3).
 """
@@ -43,7 +45,13 @@ from _common import machine_info, psnr  # noqa: E402
 
 from lasagna import edit  # noqa: E402
 from lasagna.compose.resample import downsample  # noqa: E402
-from lasagna.compose.surface import AMBIENT, decode_normal_map, integrate_normals, lambert  # noqa: E402
+from lasagna.compose.surface import (  # noqa: E402
+    AMBIENT,
+    decode_normal_map,
+    integrate_normals,
+    lambert,
+    layer_surface_tensors,
+)
 from lasagna.generators.surface import SurfaceEstimator  # noqa: E402
 from lasagna.world.lighting import VOCABULARY  # noqa: E402
 from lasagna.world.params import WALL_Z, sample_scenes  # noqa: E402
@@ -95,6 +103,18 @@ def estimator_heights(path: str, image: torch.Tensor, light: torch.Tensor) -> tu
     size = image.shape[-2:]
     up = [F.interpolate(x, size=size, mode="bilinear", align_corners=False) for x in (height, objects)]
     return up[0], 1.0 - up[1]
+
+
+def own_shadows(made, strength: float) -> torch.Tensor:
+    """The relight layer of an edit (``lasagna.edit(...)``'s result) rendered with its ``shadows`` option set to
+    ``strength`` (`lasagna.compose.shadow`: the target light's shadows over the layer's integrated heights, the source
+    light casting none): (1, H, W)."""
+    layer = made.stack.document.layer(made.layer_id).model_copy(update={"shadows": strength})
+    return (
+        layer_surface_tensors(made.stack.tensors[made.layer_id], layer)[0]
+        .color.float()
+        .reshape(1, *made.layer.shape[-2:])
+    )
 
 
 def shaded(normals: torch.Tensor, light: torch.Tensor, vis: torch.Tensor, ambient: float = AMBIENT) -> torch.Tensor:
@@ -150,6 +170,10 @@ def main(argv=None) -> int:
         rows["its normals, shadows cast from the true heights"] = gains(
             rel, scene, (shaded(n, lt, vt) / shaded(n, ls, vs)).clamp(0, RATIO_MAX)
         )
+        for strength in (0.5, 1.0):  # the product's option: `shadows` on the told layer, its own render
+            rows[f"the layer's own shadows {strength:g} (lasagna.compose.shadow, the target's light only)"] = gains(
+                rel, scene, torch.stack([own_shadows(m, strength) for m in made]).clamp(0, RATIO_MAX)
+            )
         own = integrate_normals(n)
         for g in args.gains:
             vt, vs = cast_shadows(own * g, lt), cast_shadows(own * g, ls)
