@@ -105,11 +105,12 @@ def estimator_heights(path: str, image: torch.Tensor, light: torch.Tensor) -> tu
     return up[0], 1.0 - up[1]
 
 
-def own_shadows(made, strength: float) -> torch.Tensor:
+def own_shadows(made, strength: float, depth: float = 1.0) -> torch.Tensor:
     """The relight layer of an edit (``lasagna.edit(...)``'s result) rendered with its ``shadows`` option set to
-    ``strength`` (`lasagna.compose.shadow`: the target light's shadows over the layer's integrated heights, the source
-    light casting none): (1, H, W)."""
-    layer = made.stack.document.layer(made.layer_id).model_copy(update={"shadows": strength})
+    ``strength`` and its ``shadow_depth`` to ``depth`` (`lasagna.compose.shadow`: the target light's shadows over the
+    layer's integrated heights times ``depth``, the source light casting none): (1, H, W)."""
+    update = {"shadows": strength, "shadow_depth": depth}
+    layer = made.stack.document.layer(made.layer_id).model_copy(update=update)
     return (
         layer_surface_tensors(made.stack.tensors[made.layer_id], layer)[0]
         .color.float()
@@ -170,9 +171,10 @@ def main(argv=None) -> int:
         rows["its normals, shadows cast from the true heights"] = gains(
             rel, scene, (shaded(n, lt, vt) / shaded(n, ls, vs)).clamp(0, RATIO_MAX)
         )
-        for strength in (0.5, 1.0):  # the product's option: `shadows` on the told layer, its own render
-            rows[f"the layer's own shadows {strength:g} (lasagna.compose.shadow, the target's light only)"] = gains(
-                rel, scene, torch.stack([own_shadows(m, strength) for m in made]).clamp(0, RATIO_MAX)
+        for strength, depth in ((0.5, 1.0), (1.0, 1.0), (1.0, 2.0), (1.0, 3.0)):  # the product's options, rendered
+            name = f"the layer's own shadows {strength:g}, shadow depth {depth:g} (the target's light only)"
+            rows[name] = gains(
+                rel, scene, torch.stack([own_shadows(m, strength, depth) for m in made]).clamp(0, RATIO_MAX)
             )
         own = integrate_normals(n)
         for g in args.gains:

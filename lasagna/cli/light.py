@@ -102,6 +102,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "times 1 - S (0: none; default: kept)",
     )
     p.add_argument(
+        "--shadow-depth",
+        type=float,
+        metavar="D",
+        help="the heights shadows and occlusion are traced over, times D in (0, 16]: longer shadows, deeper creases; "
+        "the shading unchanged (1 by default; default: kept)",
+    )
+    p.add_argument(
         "--occlusion",
         type=float,
         metavar="O",
@@ -115,11 +122,11 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.io.survey import survey_stack
 
     fields = (args.light, args.source, args.ambient, args.relief, args.color, args.intensity, args.add_light)
-    fields += (args.gloss, args.shininess, args.shadows, args.occlusion)
+    fields += (args.gloss, args.shininess, args.shadows, args.occlusion, args.shadow_depth)
     if all(v is None for v in fields) and not (args.clear_lights or args.read_again):
         raise LasagnaError(
             "nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, --intensity, "
-            "--gloss, --shininess, --shadows, --occlusion, --add-light, --clear-lights, --read-again",
+            "--gloss, --shininess, --shadows, --shadow-depth, --occlusion, --add-light, --clear-lights, --read-again",
             where="light",
         )
     if args.within is not None and not args.read_again:
@@ -155,6 +162,7 @@ def run(args: argparse.Namespace) -> int:
         shininess=args.shininess,
         shadows=args.shadows,
         occlusion=args.occlusion,
+        shadow_depth=args.shadow_depth,
         extra_lights=None
         if not (added or args.clear_lights)
         else [*(() if args.clear_lights else layer.extra_lights), *added],
@@ -195,6 +203,8 @@ def run(args: argparse.Namespace) -> int:
         said.append(f"shadows {lit.shadows:g}")
     if lit.occlusion > 0:
         said.append(f"occlusion {lit.occlusion:g}")
+    if (lit.shadows > 0 or lit.occlusion > 0) and lit.shadow_depth != 1.0:
+        said.append(f"shadow depth {lit.shadow_depth:g}")
     if lit.extra_lights:
         said.append(f"{len(lit.extra_lights)} more light" + ("s" if len(lit.extra_lights) > 1 else ""))
     wrote = "stack.json, composite.png" + (f", {lit.source}" if args.read_again else "")

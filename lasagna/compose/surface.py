@@ -37,10 +37,10 @@ layers"). This module is that renderer, differentiable and batch-independent:
   the sky each point of those heights sees (`lasagna.compose.shadow.occlusion`): creases and the feet of walls get
   less of the ambient light. It belongs to the surface, not to a light, so a relight ratio has it above and below.
 - **Shadows** (a layer's ``shadows`` s): each light's direct term (its highlight too) also times 1 − s·(1 − V), V
-  that light's visibility over the heights integrated from the layer's normals (`lasagna.compose.shadow`): a bump
-  darkens what lies behind it from the light. s = 0 is the world's contract, rendered by the paths without shadows
-  bit for bit; a relight ratio's source light casts none (a photograph's own shadows are in its pixels, and dividing
-  them out needs their exact edges: docs/BENCHMARKS.md, round 24).
+  that light's visibility over the heights integrated from the layer's normals, times its ``shadow_depth``
+  (`lasagna.compose.shadow`): a bump darkens what lies behind it from the light. s = 0 is the world's contract,
+  rendered by the paths without shadows bit for bit; a relight ratio's source light casts none (a photograph's own
+  shadows are in its pixels, and dividing them out needs their exact edges: docs/BENCHMARKS.md, round 24).
 """
 
 from __future__ import annotations
@@ -328,13 +328,14 @@ def shadow_heights(normals: Tensor) -> Tensor:
 
 
 def _surface_fields(
-    stored: LayerTensors, same_map: tuple, relief: float, normals: Tensor, with_occlusion: bool
+    stored: LayerTensors, same_map: tuple, relief: float, depth: float, normals: Tensor, with_occlusion: bool
 ) -> dict[str, Tensor]:
-    """``heights`` (`shadow_heights`) of a stored map's ``normals`` (its relief applied) and, when asked, its
-    ``occlusion`` (`lasagna.compose.shadow.occlusion` at the heights' size), kept per map and relief (`_HEIGHTS`)."""
-    key = (*same_map, relief)
+    """``heights`` (`shadow_heights` of a stored map's ``normals``, its relief applied, times ``depth``) and, when
+    asked, its ``occlusion`` (`lasagna.compose.shadow.occlusion` at the heights' size), kept per map, relief and depth
+    (`_HEIGHTS`)."""
+    key = (*same_map, relief, depth)
     hit = _HEIGHTS.get(stored)
-    fields = dict(hit[1]) if hit is not None and hit[0] == key else {"heights": shadow_heights(normals)}
+    fields = dict(hit[1]) if hit is not None and hit[0] == key else {"heights": shadow_heights(normals) * depth}
     if with_occlusion and "occlusion" not in fields:
         fields["occlusion"] = sky_share(fields["heights"], tuple(fields["heights"].shape[-2:]))
     _HEIGHTS[stored] = (key, fields)
@@ -502,6 +503,7 @@ def layer_surface_tensors(stored: LayerTensors, layer) -> tuple[LayerTensors, tu
         float(layer.shininess),
         float(layer.shadows),
         float(layer.occlusion),
+        float(layer.shadow_depth),
     )
     peak = (intensity * max(layer.light_color) + sum(k * max(c) for _, c, k in extras)) * (1.0 + gloss)
     return tensors, surface_range(layer.source_light, ambient, peak)
@@ -520,6 +522,7 @@ def surface_tensors(
     shininess: float = DEFAULT_SHININESS,
     shadows: float = 0.0,
     occlusion: float = 0.0,
+    shadow_depth: float = 1.0,
 ) -> LayerTensors:
     """A surface layer's tensors as the compositor blends them: its normal map ``stored.color`` (..., 3, h, w)
     of values in [0, 1] (the PNG's codes), its relief times ``relief`` (`deepen_normals`), rendered to the
@@ -532,8 +535,8 @@ def surface_tensors(
     a + Σᵢ (Sᵢ − a)·kᵢ·cᵢ (`lit_by`). ``gloss`` > 0 adds each light's highlight of exponent ``shininess`` (the module
     docstring's Gloss; the source light stays diffuse); ``shadows`` > 0 darkens each light's direct term where the
     map's own heights hide the light (the module docstring's Shadows; the source light casts none); ``occlusion`` > 0
-    darkens the ambient term where those heights hide the sky (Ambient occlusion). The same stored map and light
-    fields always give the same bits.
+    darkens the ambient term where those heights hide the sky (Ambient occlusion); both trace the heights times
+    ``shadow_depth``. The same stored map and light fields always give the same bits.
     """
     color = stored.color
     if color.shape[-3] != 3:
@@ -545,7 +548,7 @@ def surface_tensors(
     extras = tuple((text, tuple(float(c) * float(k) for c in col)) for text, col, k in extra_lights)
     shine = (float(gloss), float(shininess)) if gloss > 0 else (0.0,)
     key = (*same_map, light, source_light, float(ambient), float(relief), colour, extras, shine, float(shadows))
-    key += (float(occlusion),)
+    key += (float(occlusion), float(shadow_depth))
     hit = _RENDERED.get(stored)
     if hit is not None and hit[0] == key:
         return hit[1]
@@ -558,7 +561,9 @@ def surface_tensors(
     white = colour == (1.0, 1.0, 1.0)
     if extras or gloss > 0 or shadows > 0 or occlusion > 0:  # direct terms summed, over S(source) for a ratio
         fields = (
-            _surface_fields(stored, same_map, float(relief), lit, float(occlusion) > 0) if shadows or occlusion else {}
+            _surface_fields(stored, same_map, float(relief), float(shadow_depth), lit, float(occlusion) > 0)
+            if shadows or occlusion
+            else {}
         )
         sky = None
         if occlusion > 0:  # the ambient's share: 1 − o·(1 − A), enlarged from the traced size

@@ -411,6 +411,16 @@ class SurfaceLayer(_Common):
         "the pixel over the heights integrated from the normal map (a bump darkens what lies behind it; "
         "`lasagna.compose.shadow`); 0: none, the world's contract. A relight ratio's source light casts none.",
     )
+    shadow_depth: float = Field(
+        1.0,
+        strict=True,
+        gt=0.0,
+        le=MAX_RELIEF,
+        allow_inf_nan=False,
+        description="The heights shadows and occlusion are traced over, times this: longer shadows and deeper creases "
+        "for a map whose slopes hold less height than it has (an object's outline is a step no normal holds); the "
+        "shading is unchanged. 1: the heights integrated from the map (its relief applied).",
+    )
     occlusion: float = Field(
         0.0,
         strict=True,
@@ -726,11 +736,12 @@ class Document(StrictModel):
         shininess: float | None = None,
         shadows: float | None = None,
         occlusion: float | None = None,
+        shadow_depth: float | None = None,
     ) -> Document:
         """A copy where the surface layer ``id`` has a new ``light`` (and ``source_light`` — None for plain shading,
         ``...`` kept — ``ambient``, ``relief``, ``light_color``, ``light_intensity``, ``extra_lights`` (ExtraLight
-        models or their dicts, ``()`` none), ``gloss``, ``shininess``, ``shadows`` and ``occlusion``, when given);
-        every value checked by the layer's model. No pixels change."""
+        models or their dicts, ``()`` none), ``gloss``, ``shininess``, ``shadows``, ``occlusion`` and
+        ``shadow_depth``, when given); every value checked by the layer's model. No pixels change."""
         layer = self.layer(id)
         if not isinstance(layer, SurfaceLayer):
             raise DocumentError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", where="set_light")
@@ -757,6 +768,8 @@ class Document(StrictModel):
             changes["shadows"] = shadows
         if occlusion is not None:
             changes["occlusion"] = occlusion
+        if shadow_depth is not None:
+            changes["shadow_depth"] = shadow_depth
         return self.replace_layer(id, **changes)
 
     def without_layer(self, id: str) -> Document:

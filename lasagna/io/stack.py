@@ -350,10 +350,12 @@ class Stack:
         shininess: float | None = None,
         shadows: float | None = None,
         occlusion: float | None = None,
+        shadow_depth: float | None = None,
     ) -> Stack:
         """Re-light the surface layer ``id``: a new ``light`` (and ``source_light`` / ``ambient`` / ``relief`` /
         ``light_color`` / ``light_intensity`` / ``extra_lights`` / ``gloss`` / ``shininess`` / ``shadows`` /
-        ``occlusion`` when given). No pixels change; the next render draws the stored surface under the new light."""
+        ``occlusion`` / ``shadow_depth`` when given). No pixels change; the next render draws the stored surface under
+        the new light."""
         self.document = self.document.relit(
             id,
             light,
@@ -367,6 +369,7 @@ class Stack:
             shininess=shininess,
             shadows=shadows,
             occlusion=occlusion,
+            shadow_depth=shadow_depth,
         )
         return self
 

@@ -213,7 +213,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
         except ValueError:
             raise RequestError(f"level is {q.get('level')!r}; expected an integer", "level") from None
         # Numeric overrides, LAYER:NUMBER each: an opacity slider's, a surface layer's relief, ambient, intensity,
-        # gloss, shadows or occlusion slider's.
+        # gloss, shadows, shadow depth or occlusion slider's.
         numbers: dict[str, dict[str, float]] = {
             "opacity": {},
             "relief": {},
@@ -222,6 +222,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             "gloss": {},
             "shadows": {},
             "occlusion": {},
+            "shadow_depth": {},
         }
         for name, given in numbers.items():
             for item in q.getlist(name):
@@ -264,6 +265,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
             "gloss": numbers["gloss"],
             "shadows": numbers["shadows"],
             "occlusion": numbers["occlusion"],
+            "shadow_depth": numbers["shadow_depth"],
             "solo": q.get("solo") or None,
             "upto": q.get("upto") or None,
         }

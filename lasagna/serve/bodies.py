@@ -141,8 +141,8 @@ class AddLearned(_Body):
 class SetLight(_Body):
     """Re-light a surface layer (``EditSession.set_light``): ``light``, and ``source_light`` (null: plain
     shading), ``ambient``, ``relief``, ``light_color``, ``light_intensity``, ``extra_lights`` (the whole list; ``[]``
-    removes them), ``gloss``, ``shininess``, ``shadows`` and ``occlusion`` when given; an absent field keeps the
-    layer's value."""
+    removes them), ``gloss``, ``shininess``, ``shadows``, ``occlusion`` and ``shadow_depth`` when given; an absent
+    field keeps the layer's value."""
 
     op: Literal["light"]
     version: Version
@@ -158,6 +158,7 @@ class SetLight(_Body):
     shininess: Shininess | None = None
     shadows: Share | None = None
     occlusion: Share | None = None
+    shadow_depth: Relief | None = None
 
     def call(self, session):
         keep = "source_light" not in self.model_fields_set  # absent keeps it; null removes it
@@ -176,6 +177,7 @@ class SetLight(_Body):
             shininess=self.shininess,
             shadows=self.shadows,
             occlusion=self.occlusion,
+            shadow_depth=self.shadow_depth,
         )
 
 

@@ -287,7 +287,7 @@ class EditSession(SessionViews, SessionJobs):
     def set_light(self, version: Any, id: str, light: str, **fields: Any) -> dict[str, Any]:
         """Re-light surface layer ``id`` (``Stack.set_light``): its stored normal map is drawn under ``light`` and
         ``fields`` (``source_light``, ``ambient``, ``relief``, ``light_color``, ``light_intensity``, ``extra_lights``,
-        ``gloss``, ``shininess``, ``shadows``, ``occlusion``:
+        ``gloss``, ``shininess``, ``shadows``, ``occlusion``, ``shadow_depth``:
         ``Stack.set_light``'s keywords, an absent one kept); no pixels change, nothing is learned. One undo step."""
 
         def apply() -> None:
@@ -543,8 +543,8 @@ def _surfaces(doc: Document, tensors: dict[str, Any]) -> dict[str, dict[str, Any
     (``parse_direction``: a named light resolved; for a point light, the direction it has from the layer's
     centre) and ``point`` (x, y, z, or None for a directional light) with ``spot`` (a spot light's cone, aim
     [ax, ay] and blend, or None), a relight's source light's as ``source``, the
-    ambient term, the relief gain, the light's colour and intensity, its extra lights, its gloss, shininess, shadows
-    and occlusion, and
+    ambient term, the relief gain, the light's colour and intensity, its extra lights, its gloss, shininess, shadows,
+    shadow depth and occlusion, and
     ``rect``, the layer's
     [x, y, width, height] on the canvas (where a point light's fractions are placed), and ``rereadable`` (a relight
     made by a preset, which ``reread_surface`` can read again told its source light)."""
@@ -579,6 +579,7 @@ def _surfaces(doc: Document, tensors: dict[str, Any]) -> dict[str, dict[str, Any
                 "shininess": float(layer.shininess),
                 "shadows": float(layer.shadows),
                 "occlusion": float(layer.occlusion),
+                "shadow_depth": float(layer.shadow_depth),
             }
     return out
 

@@ -207,13 +207,14 @@ class SessionViews:
         gloss: dict[str, float] | None = None,
         shadows: dict[str, float] | None = None,
         occlusion: dict[str, float] | None = None,
+        shadow_depth: dict[str, float] | None = None,
     ) -> tuple[bytes, int, int]:
         """The composite at reduction ``level`` as RGBA8 bytes (row-major), with transient overrides that are
         not changes (``opacity`` while a slider is dragged; ``light`` of a surface layer while its light is
         dragged: the stored map drawn under it, as ``set_light`` would; ``source`` likewise, a relight surface
         layer's source light while it is dragged; ``relief``, ``ambient``, ``color``, ``intensity``, ``gloss``,
-        ``shadows`` and ``occlusion`` a surface layer's relief gain, ambient term, light colour, intensity, gloss,
-        shadows and occlusion while their controls are moved;
+        ``shadows``, ``occlusion`` and ``shadow_depth`` a surface layer's relief gain, ambient term, light colour,
+        intensity, gloss, shadows, occlusion and shadow depth while their controls are moved;
         ``solo`` one
         layer alone; ``upto`` a layer: the stack up to and including it, the "before" of a before/after split). Layers
         are named at any depth: a soloed layer inside a group shows with the groups that hold it."""
@@ -231,6 +232,7 @@ class SessionViews:
                 *(gloss or {}),
                 *(shadows or {}),
                 *(occlusion or {}),
+                *(shadow_depth or {}),
                 *([solo] if solo else []),
                 *([upto] if upto else []),
             ]
@@ -279,6 +281,15 @@ class SessionViews:
                         )
                     if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= float(v) <= 1.0):
                         raise LasagnaError(f"expected a {name} strength in [0, 1], got {v!r}", f"{name}.{id}")
+            for id, v in (shadow_depth or {}).items():
+                if doc.layer(id).kind != "surface":
+                    raise LasagnaError(
+                        f"layer {id!r} is a {doc.layer(id).kind} layer; expected a surface layer", "shadow_depth"
+                    )
+                if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 < float(v) <= MAX_RELIEF):
+                    raise LasagnaError(
+                        f"expected a shadow depth in (0, {MAX_RELIEF:g}], got {v!r}", f"shadow_depth.{id}"
+                    )
             for id, v in (ambient or {}).items():
                 layer = doc.layer(id)
                 if layer.kind != "surface":
@@ -306,6 +317,7 @@ class SessionViews:
                 gloss or {},
                 shadows or {},
                 occlusion or {},
+                shadow_depth or {},
             )
             w, h = _reduced_side(self.stack.width, level), _reduced_side(self.stack.height, level)
             # The layers reduced to this level, the canvas and the renderer's snapshot below the top layer
@@ -414,12 +426,13 @@ def _overridden(
     gloss: dict[str, float] | None = None,
     shadows: dict[str, float] | None = None,
     occlusion: dict[str, float] | None = None,
+    shadow_depth: dict[str, float] | None = None,
 ) -> list:
     """``doc``'s layer tree with a view's transient overrides (``EditSession.view``), layers named at any depth:
     ``opacity`` per layer; ``light`` (and ``source``, a relight's source light, ``relief``, ``ambient``, ``color``,
-    ``intensity``, ``gloss``, ``shadows``, ``occlusion``) per surface layer; ``solo``: that layer (with what it
-    holds) alone, the groups holding it shown; ``upto``: every layer after it in the tree's order (depth first, a group
-    before its layers) hidden, except its own layers."""
+    ``intensity``, ``gloss``, ``shadows``, ``occlusion``, ``shadow_depth``) per surface layer; ``solo``: that layer
+    (with what it holds) alone, the groups holding it shown; ``upto``: every layer after it in the tree's order (depth
+    first, a group before its layers) hidden, except its own layers."""
     order = [layer.id for _, layer in doc.walk()]
     inside: dict[str, set[str]] = {}  # group id → ids of every layer it holds, at any depth
     holders: dict[str, list[str]] = {}  # layer id → ids of the groups holding it, outermost first
@@ -466,6 +479,8 @@ def _overridden(
                 changes["shadows"] = float(shadows[layer.id])
             if occlusion and layer.id in occlusion:
                 changes["occlusion"] = float(occlusion[layer.id])
+            if shadow_depth and layer.id in shadow_depth:
+                changes["shadow_depth"] = float(shadow_depth[layer.id])
             if shown is not None and layer.id == solo:
                 changes["visible"] = True
             elif shown is not None and layer.id not in shown:

@@ -99,7 +99,7 @@ def test_from_makes_a_relight_ratio_and_none_makes_it_shading_again(folder):
         (
             [],
             "light: nothing to change; expected at least one of --light, --from, --ambient, --relief, --color, "
-            "--intensity, --gloss, --shininess, --shadows, --occlusion, --add-light, --clear-lights",
+            "--intensity, --gloss, --shininess, --shadows, --shadow-depth, --occlusion, --add-light, --clear-lights",
         ),
         (["--intensity", "0"], "layers[1].light_intensity: got 0.0; expected greater than 0"),
         (["--add-light", "up"], "layers[1].extra_lights[0].light: expected one of left"),
@@ -121,6 +121,7 @@ def test_from_makes_a_relight_ratio_and_none_makes_it_shading_again(folder):
         (["--shadows", "1.5"], "layers[1].shadows: got 1.5; expected less than or equal to 1"),
         (["--shadows", "nan"], "layers[1].shadows"),
         (["--occlusion", "-0.5"], "layers[1].occlusion: got -0.5; expected greater than or equal to 0"),
+        (["--shadow-depth", "0"], "layers[1].shadow_depth: got 0.0; expected greater than 0"),
         (["--color", "red"], "--color: got 'red'; expected #rrggbb or R,G,B"),
         (["--color", "1,0.5"], "--color: got '1,0.5'; expected #rrggbb or R,G,B"),
         (["--color", "1,2,0"], "layers[1].light_color"),
@@ -271,6 +272,10 @@ def test_shadows_darken_what_the_surfaces_heights_hide_and_zero_removes_them(tmp
     assert "occlusion 1" in capsys.readouterr().out
     occluded = codes(folder / "composite.png")
     assert (occluded <= plain).all() and (occluded < plain - 3).any() and np.array_equal(occluded, composite_of(folder))
+    assert main(["light", str(folder), "--shadow-depth", "3"]) == 0  # deeper creases traced: darker still
+    assert "shadow depth 3" in capsys.readouterr().out
+    deeper = codes(folder / "composite.png")
+    assert (deeper <= occluded).all() and (deeper < occluded).any() and np.array_equal(deeper, composite_of(folder))
 
 
 def composite_of(folder) -> np.ndarray:

@@ -359,6 +359,7 @@ def test_the_relief_gain_lights_the_maps_slopes_times_g_and_reads_back(stack, tm
         *(("shininess", v) for v in (0.5, 2000)),
         *(("shadows", v) for v in (-0.1, 1.5, "0.5", True)),
         *(("occlusion", v) for v in (-0.1, 1.5, "0.5", None)),
+        *(("shadow_depth", v) for v in (0, -1, 16.5, "2")),
     ],
 )
 def test_a_bad_relief_or_light_colour_is_refused_by_the_model_and_the_schema(field, value):
@@ -728,6 +729,33 @@ def test_shadows_darken_what_the_maps_own_heights_hide_from_the_light(tmp_path):
     assert torch.equal(load_stack(tmp_path / "t").render().image, stack.render().image)
     stack.set_light("shape", "az=180,el=65", source_light=None, shadows=0.8, gloss=0.3)
     assert_files_flatten(stack, tmp_path / "u")
+
+
+def test_shadow_depth_lengthens_the_shadows_and_leaves_the_shading(tmp_path):
+    """``shadow_depth`` d traces the heights times d: the plateau's shadow is about d times as long (at least 1.8×
+    at d 2; its soft rim makes it more than a box's 2×), the shading elsewhere unchanged, d 1 is the layer as before
+    bit for bit, and stack.json round-trips it."""
+    s = Stack.from_image(torch.full((3, 48, 64), 200, dtype=torch.uint8))
+    s.add_surface("shape", normals_from_height(plateau().float())[0], "az=180,el=60")
+    plain = s.render().image
+
+    def shadowed(depth: float) -> torch.Tensor:
+        s.set_light("shape", "az=180,el=60", shadows=1.0, shadow_depth=depth)
+        return s.render().image
+
+    one, two = shadowed(1.0), shadowed(2.0)
+    s.set_light("shape", "az=180,el=60", shadows=1.0)  # the depth as set: 2
+    assert torch.equal(s.render().image, two)
+    length = [int(((plain - img) > 0.05).any(0)[22, 33:].sum()) for img in (one, two)]
+    assert length[0] >= 5 and length[1] >= 1.8 * length[0], length  # the plateau's rim is soft: not exactly 2×
+    untouched = ((plain - one).abs().amax(0) < 1e-6) & ((plain - two).abs().amax(0) < 1e-6)
+    assert untouched.float().mean() > 0.8  # elsewhere the shading is the layer's own
+    s.set_light("shape", "az=180,el=60", shadows=1.0, shadow_depth=1.0)
+    assert torch.equal(s.render().image, one)
+    s.set_light("shape", "az=180,el=60", shadow_depth=2.0)
+    s.save(tmp_path / "s")
+    assert json.loads((tmp_path / "s" / "stack.json").read_text())["layers"][1]["shadow_depth"] == 2.0
+    assert torch.equal(load_stack(tmp_path / "s").render().image, two)
 
 
 def test_shadows_are_as_long_at_any_size_and_traced_small_on_a_large_layer(monkeypatch):

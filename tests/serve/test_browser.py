@@ -749,6 +749,12 @@ def test_the_shadows_slider_previews_live_and_commits_one_step(browser, surface_
     assert page.evaluate("window.lasagna.state.surfaces.shape")["occlusion"] == 1.0
     occluded = page_pixels(page)
     assert (occluded[..., :3] <= after[..., :3]).all() and (occluded[..., :3] < after[..., :3]).any()
+    # The Shadow depth slider (log scale, ×1/4…×8): deeper heights traced, longer shadows; one step on release.
+    slide(page, "shadow_depth", ["1", "2"], release=True)
+    settle(page, v + 3)
+    assert page.evaluate("window.lasagna.state.surfaces.shape")["shadow_depth"] == 4.0
+    deeper = page_pixels(page)
+    assert (deeper[..., :3] <= occluded[..., :3]).all() and (deeper[..., :3] < occluded[..., :3]).any()
     save_and_check(page, folder)
     assert page.errors == []
 

@@ -108,6 +108,7 @@ def test_state_gives_each_surface_layers_light(client):
             "shininess": 32.0,
             "shadows": 0.0,
             "occlusion": 0.0,
+            "shadow_depth": 1.0,
         }
     }
 
@@ -162,6 +163,7 @@ def test_source_light_and_ambient_absent_kept_null_removed(client, folder):
         "shininess": 32.0,
         "shadows": 0.0,
         "occlusion": 0.0,
+        "shadow_depth": 1.0,
     }
     assert np.array_equal(
         view(client, level=0)[..., :3], relit_codes(folder, "right", source_light="left", ambient=0.4, relief=2.5)
@@ -365,6 +367,8 @@ def test_the_relief_preview_is_the_change_bit_for_bit_and_one_undo_step(client, 
         ("shadows", "base:0.5", "layer 'base' is a pixels layer; expected a surface layer"),
         ("occlusion", "shape:-1", r"occlusion.shape: expected a occlusion strength in \[0, 1\]"),
         ("occlusion", "base:0.5", "layer 'base' is a pixels layer; expected a surface layer"),
+        ("shadow_depth", "shape:0", r"shadow_depth.shape: expected a shadow depth in \(0, 16\]"),
+        ("shadow_depth", "base:2", "layer 'base' is a pixels layer; expected a surface layer"),
     ],
 )
 def test_a_bad_slider_preview_is_one_line_400(client, name, param, match):
@@ -542,6 +546,15 @@ def test_the_shadows_preview_is_the_change_bit_for_bit(client, folder):
     ok(post(client, op="light", id="shape", light="az=200,el=80", occlusion=1.0))
     assert np.array_equal(view(client, level=0), preview)
     assert np.array_equal(preview[..., :3], relit_codes(folder, "az=200,el=80", shadows=1.0, occlusion=1.0))
+    # The Shadow depth slider likewise: the heights traced ×3, longer shadows and deeper creases (nowhere brighter).
+    deeper = view(client, level=0, shadow_depth="shape:3")
+    assert (deeper[..., :3] <= preview[..., :3]).all() and (deeper[..., :3] < preview[..., :3]).any()
+    s = ok(post(client, op="light", id="shape", light="az=200,el=80", shadow_depth=3.0))
+    assert s["surfaces"]["shape"]["shadow_depth"] == 3.0 and np.array_equal(view(client, level=0), deeper)
+    want = relit_codes(folder, "az=200,el=80", shadows=1.0, occlusion=1.0, shadow_depth=3.0)
+    assert np.array_equal(deeper[..., :3], want)
+    message = one_line_4xx(post(client, op="light", id="shape", light="top-left", shadow_depth=0))
+    assert message.startswith("shadow_depth")
 
 
 def test_extra_lights_are_set_as_a_list_one_step_and_saved(client, folder):

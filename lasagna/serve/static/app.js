@@ -23,6 +23,7 @@ const ui = {
   gloss: null,          // a surface layer's gloss (highlight strength) while its slider is dragged: { id, value }
   shadows: null,        // a surface layer's cast-shadow strength while its slider is dragged: { id, value }
   occlusion: null,      // a surface layer's ambient-occlusion strength while its slider is dragged: { id, value }
+  shadow_depth: null,   // the heights its shadows and occlusion trace, times this, while its slider is dragged
   lightWhich: {},       // per relight surface layer: which light its sphere moves, "light" or "source"
   normals: null,        // a surface layer's id while the view shows its normal map (its relief applied)
   lightProxy: true,     // a light drag previews at the drag proxy's level (dragLevel); false: at the view's level
@@ -405,7 +406,9 @@ function lightControl(layer) {
   const shadowsField = lightSlider(layer, lit, "Shadows", "shadows", "shadows", lit.shadows, UNIT);
   // Ambient occlusion: the ambient term, where the surface's heights hide the sky (creases), times 1 − o·(1 − A).
   const occlusionField = lightSlider(layer, lit, "Occlusion", "occlusion", "occlusion", lit.occlusion, UNIT);
-  box.append(field("Colour", colour), intensityField, glossControl(layer, lit), shadowsField, occlusionField);
+  // The heights both trace, times a gain (longer shadows, deeper creases; the shading unchanged).
+  const depthField = gainSlider(layer, lit, "Shadow depth", "shadow_depth", "shadow_depth", lit.shadow_depth);
+  box.append(field("Colour", colour), intensityField, glossControl(layer, lit), shadowsField, depthField, occlusionField);
   box.append(field("Show normal map", show));
   box.append(pointControl(layer, lit));
   box.append(extraLightsControl(layer, lit));
@@ -832,6 +835,7 @@ async function fetchView(params) {
   if (params.gloss) q.append("gloss", `${params.gloss.id}:${params.gloss.value}`);
   if (params.shadows) q.append("shadows", `${params.shadows.id}:${params.shadows.value}`);
   if (params.occlusion) q.append("occlusion", `${params.occlusion.id}:${params.occlusion.value}`);
+  if (params.shadow_depth) q.append("shadow_depth", `${params.shadow_depth.id}:${params.shadow_depth.value}`);
   const path = params.normals ? `api/layers/${encodeURIComponent(params.normals)}/normals?level=${params.level}` : `api/view?${q}`;
   const response = await api(path);
   const w = parseInt(response.headers.get("X-Width"), 10), h = parseInt(response.headers.get("X-Height"), 10);
@@ -858,10 +862,10 @@ function paint() {
   if (!ui.state) return;
   const level = levelFor(ui.zoom);
   wanted = {
-    level: ui.drag || ((ui.light || ui.relief || ui.ambient || ui.colour || ui.intensity || ui.gloss || ui.shadows || ui.occlusion) && ui.lightProxy) ? dragLevel(level) : level,
+    level: ui.drag || ((ui.light || ui.relief || ui.ambient || ui.colour || ui.intensity || ui.gloss || ui.shadows || ui.occlusion || ui.shadow_depth) && ui.lightProxy) ? dragLevel(level) : level,
     drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split,
     light: ui.light, relief: ui.relief, ambient: ui.ambient, colour: ui.colour, intensity: ui.intensity, gloss: ui.gloss,
-    shadows: ui.shadows, occlusion: ui.occlusion, normals: ui.normals,
+    shadows: ui.shadows, occlusion: ui.occlusion, shadow_depth: ui.shadow_depth, normals: ui.normals,
   };
   if (!inflight) paintLoop();
 }
