@@ -26,6 +26,19 @@ if TYPE_CHECKING:
     import torch
 
 
+def _read_map(path, data: bytes | None, max_pixels: int, where: str, expected: str):
+    """The decoded PNG (`lasagna.io.png.PngImage`) at ``path`` or of ``data``, its codes as stored; a file that is not
+    a PNG refused in one line saying what was ``expected``."""
+    if data is None:
+        with open(Path(path), "rb") as f:
+            head = f.read(8)
+    else:
+        head = data[:8]
+    if head != PNG_SIGNATURE:
+        raise ImageError(f"not a PNG; expected {expected}", where=where)
+    return read_png(path, max_pixels=max_pixels) if data is None else decode_png(data, where, max_pixels=max_pixels)
+
+
 def normal_map_normals(
     path: str | os.PathLike | None = None,
     *,
@@ -37,14 +50,7 @@ def normal_map_normals(
     """Unit normals (3, h, w), float32, of the normal-map PNG at ``path`` (or its bytes ``data``), +Y up after
     decoding (``directx``: the file's green is flipped); `ImageError` in one line for anything else."""
     where = where or str(path)
-    if data is None:
-        with open(Path(path), "rb") as f:
-            head = f.read(8)
-    else:
-        head = data[:8]
-    if head != PNG_SIGNATURE:
-        raise ImageError("not a PNG; expected a normal map as an 8- or 16-bit RGB PNG", where=where)
-    png = read_png(path, max_pixels=max_pixels) if data is None else decode_png(data, where, max_pixels=max_pixels)
+    png = _read_map(path, data, max_pixels, where, "a normal map as an 8- or 16-bit RGB PNG")
     if png.color.shape[0] != 3:
         raise ImageError(f"has {png.color.shape[0]} colour channel(s); expected an RGB normal map", where=where)
     # torch only now: a file refused above costs no torch import (~1.5 s), as the CLI's other refusals.
@@ -77,14 +83,7 @@ def height_map_normals(
             f"got a depth of {depth!r}; expected the pixels white stands above black, in (0, {MAX_HEIGHT_DEPTH:g}]",
             where="height",
         )
-    if data is None:
-        with open(Path(path), "rb") as f:
-            head = f.read(8)
-    else:
-        head = data[:8]
-    if head != PNG_SIGNATURE:
-        raise ImageError("not a PNG; expected a height map as an 8- or 16-bit grey PNG", where=where)
-    png = read_png(path, max_pixels=max_pixels) if data is None else decode_png(data, where, max_pixels=max_pixels)
+    png = _read_map(path, data, max_pixels, where, "a height map as an 8- or 16-bit grey PNG")
     import torch
 
     from lasagna.compose.surface import normals_from_height

@@ -250,46 +250,25 @@ class SessionViews:
                 if doc.layer(id).kind != "surface" or doc.layer(id).source_light is None:
                     raise LasagnaError(f"layer {id!r} has no source light; expected a relight surface layer", "source")
                 parse_direction(text)
-            for id, v in (relief or {}).items():
-                if doc.layer(id).kind != "surface":
-                    raise LasagnaError(
-                        f"layer {id!r} is a {doc.layer(id).kind} layer; expected a surface layer", "relief"
-                    )
-                if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 < float(v) <= MAX_RELIEF):
-                    raise LasagnaError(f"expected a relief gain in (0, {MAX_RELIEF:g}], got {v!r}", f"relief.{id}")
-            for id, v in (intensity or {}).items():
-                if doc.layer(id).kind != "surface":
-                    raise LasagnaError(
-                        f"layer {id!r} is a {doc.layer(id).kind} layer; expected a surface layer", "intensity"
-                    )
-                if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 < float(v) <= MAX_LIGHT_INTENSITY):
-                    raise LasagnaError(
-                        f"expected a light intensity in (0, {MAX_LIGHT_INTENSITY:g}], got {v!r}", f"intensity.{id}"
-                    )
-            for id, v in (gloss or {}).items():
-                if doc.layer(id).kind != "surface":
-                    raise LasagnaError(
-                        f"layer {id!r} is a {doc.layer(id).kind} layer; expected a surface layer", "gloss"
-                    )
-                if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= float(v) <= 1.0):
-                    raise LasagnaError(f"expected a gloss in [0, 1], got {v!r}", f"gloss.{id}")
-            for name, given in (("shadows", shadows), ("occlusion", occlusion)):
+            # Each slider's value: a surface layer's, finite, within its field's range (the document model's).
+            sliders = (
+                ("relief", relief, True, MAX_RELIEF, "a relief gain"),
+                ("intensity", intensity, True, MAX_LIGHT_INTENSITY, "a light intensity"),
+                ("gloss", gloss, False, 1.0, "a gloss"),
+                ("shadows", shadows, False, 1.0, "a shadows strength"),
+                ("occlusion", occlusion, False, 1.0, "an occlusion strength"),
+                ("shadow_depth", shadow_depth, True, MAX_RELIEF, "a shadow depth"),
+            )
+            for name, given, open_low, top, what in sliders:
                 for id, v in (given or {}).items():
                     if doc.layer(id).kind != "surface":
                         raise LasagnaError(
                             f"layer {id!r} is a {doc.layer(id).kind} layer; expected a surface layer", name
                         )
-                    if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 <= float(v) <= 1.0):
-                        raise LasagnaError(f"expected a {name} strength in [0, 1], got {v!r}", f"{name}.{id}")
-            for id, v in (shadow_depth or {}).items():
-                if doc.layer(id).kind != "surface":
-                    raise LasagnaError(
-                        f"layer {id!r} is a {doc.layer(id).kind} layer; expected a surface layer", "shadow_depth"
-                    )
-                if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.0 < float(v) <= MAX_RELIEF):
-                    raise LasagnaError(
-                        f"expected a shadow depth in (0, {MAX_RELIEF:g}], got {v!r}", f"shadow_depth.{id}"
-                    )
+                    number = isinstance(v, (int, float)) and math.isfinite(v)
+                    if not (number and (0.0 < float(v) if open_low else 0.0 <= float(v)) and float(v) <= top):
+                        span = f"{'(' if open_low else '['}0, {top:g}]"
+                        raise LasagnaError(f"expected {what} in {span}, got {v!r}", f"{name}.{id}")
             for id, v in (ambient or {}).items():
                 layer = doc.layer(id)
                 if layer.kind != "surface":
