@@ -434,6 +434,16 @@ def _overridden(
         after = order[order.index(upto) + 1 :]
         hidden = set(after) - inside.get(upto, set())
 
+    numbers = (
+        ("relief", relief),
+        ("ambient", ambient),
+        ("light_intensity", intensity),
+        ("gloss", gloss),
+        ("shadows", shadows),
+        ("occlusion", occlusion),
+        ("shadow_depth", shadow_depth),
+    )
+
     def visit(layers) -> list:
         out = []
         for layer in layers:
@@ -444,22 +454,11 @@ def _overridden(
                 changes["light"] = light[layer.id]
             if source and layer.id in source:
                 changes["source_light"] = source[layer.id]
-            if relief and layer.id in relief:
-                changes["relief"] = float(relief[layer.id])
-            if ambient and layer.id in ambient:
-                changes["ambient"] = float(ambient[layer.id])
+            for field, given in numbers:  # a surface layer's sliders: their fields, as set_light would set them
+                if given and layer.id in given:
+                    changes[field] = float(given[layer.id])
             if color and layer.id in color:
                 changes["light_color"] = tuple(color[layer.id])
-            if intensity and layer.id in intensity:
-                changes["light_intensity"] = float(intensity[layer.id])
-            if gloss and layer.id in gloss:
-                changes["gloss"] = float(gloss[layer.id])
-            if shadows and layer.id in shadows:
-                changes["shadows"] = float(shadows[layer.id])
-            if occlusion and layer.id in occlusion:
-                changes["occlusion"] = float(occlusion[layer.id])
-            if shadow_depth and layer.id in shadow_depth:
-                changes["shadow_depth"] = float(shadow_depth[layer.id])
             if shown is not None and layer.id == solo:
                 changes["visible"] = True
             elif shown is not None and layer.id not in shown:
