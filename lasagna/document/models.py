@@ -330,6 +330,12 @@ class ExtraLight(StrictModel):
     intensity: LightIntensity = Field(1.0, description="Its intensity (its direct term times it).")
 
 
+def _share(description: str) -> Any:
+    """A surface layer's strength in [0, 1] — its gloss, shadows or occlusion — 0 (off, the world's contract) by
+    default."""
+    return Field(0.0, strict=True, ge=0.0, le=1.0, allow_inf_nan=False, description=description)
+
+
 class SurfaceLayer(_Common):
     """A surface — a tangent-space normal map — rendered to a luminosity multiplier under its light.
 
@@ -382,15 +388,10 @@ class SurfaceLayer(_Common):
         description="More lights, each added to the layer's own: S = a + (1 − a)·Σ kᵢ·cᵢ·fᵢ·max(0, n·lᵢ) over "
         "``light`` and these (a fill or rim light beside the key); a relight ratio still divides by S(source_light).",
     )
-    gloss: float = Field(
-        0.0,
-        strict=True,
-        ge=0.0,
-        le=1.0,
-        allow_inf_nan=False,
-        description="Highlight strength g: each light's direct term gains g·max(0, n·h)^p where it lights the surface "
+    gloss: float = _share(
+        "Highlight strength g: each light's direct term gains g·max(0, n·h)^p where it lights the surface "
         "(Blinn–Phong, h the half vector toward the viewer; Photoshop's Lighting Effects Gloss, Blender's specular); "
-        "0: Lambert alone, the world's contract. A relight ratio's source light stays diffuse.",
+        "0: Lambert alone, the world's contract. A relight ratio's source light stays diffuse."
     )
     shininess: float = Field(
         DEFAULT_SHININESS,
@@ -401,15 +402,10 @@ class SurfaceLayer(_Common):
         description="Highlight exponent p: larger is a smaller, sharper highlight (32: half its peak 12° off the half "
         "vector); read only where gloss > 0.",
     )
-    shadows: float = Field(
-        0.0,
-        strict=True,
-        ge=0.0,
-        le=1.0,
-        allow_inf_nan=False,
-        description="Cast-shadow strength s: each light's direct term times 1 − s·(1 − V), V whether the light sees "
+    shadows: float = _share(
+        "Cast-shadow strength s: each light's direct term times 1 − s·(1 − V), V whether the light sees "
         "the pixel over the heights integrated from the normal map (a bump darkens what lies behind it; "
-        "`lasagna.compose.shadow`); 0: none, the world's contract. A relight ratio's source light casts none.",
+        "`lasagna.compose.shadow`); 0: none, the world's contract. A relight ratio's source light casts none."
     )
     shadow_depth: float = Field(
         1.0,
@@ -421,15 +417,10 @@ class SurfaceLayer(_Common):
         "for a map whose slopes hold less height than it has (an object's outline is a step no normal holds); the "
         "shading is unchanged. 1: the heights integrated from the map (its relief applied).",
     )
-    occlusion: float = Field(
-        0.0,
-        strict=True,
-        ge=0.0,
-        le=1.0,
-        allow_inf_nan=False,
-        description="Ambient occlusion strength o: the ambient term a times 1 − o·(1 − A), A the share of the sky "
+    occlusion: float = _share(
+        "Ambient occlusion strength o: the ambient term a times 1 − o·(1 − A), A the share of the sky "
         "each point of the map's heights sees (creases and the feet of walls get less ambient light; "
-        "`lasagna.compose.shadow.occlusion`); 0: none, the world's contract. A relight ratio has it above and below.",
+        "`lasagna.compose.shadow.occlusion`); 0: none, the world's contract. A relight ratio has it above and below."
     )
     mask: RelativePath | None = Field(None, description="Gray PNG the size of the layer, multiplied into its alpha.")
     made_by: dict[str, JsonValue] = Field(
