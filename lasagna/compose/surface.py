@@ -327,6 +327,17 @@ def shadow_heights(normals: Tensor) -> Tensor:
     return integrate_normals(small)
 
 
+def layer_occlusion(stored: LayerTensors, layer) -> Tensor:
+    """The share of the sky (1, 1, h, w) in [0, 1] each pixel of a surface layer's stored map sees — what its
+    ``occlusion`` darkens the ambient by (`lasagna.compose.shadow.occlusion` over its heights, its relief and shadow
+    depth applied), at the map's size, kept with the map as its render keeps it (the editor's "Show occlusion")."""
+    color = stored.color
+    same_map = (id(color), color._version)
+    lit = deepen_normals(decode_normal_map(color.reshape(-1, *color.shape[-3:])), float(layer.relief))
+    fields = _surface_fields(stored, same_map, float(layer.relief), float(layer.shadow_depth), lit, True)
+    return upsample(fields["occlusion"], tuple(lit.shape[-2:])).clamp(0.0, 1.0)[:1]
+
+
 def _surface_fields(
     stored: LayerTensors, same_map: tuple, relief: float, depth: float, normals: Tensor, with_occlusion: bool
 ) -> dict[str, Tensor]:

@@ -286,6 +286,10 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
         level = _view_args(request)["level"]
         return _pixels(*await run(session.normal_map, request.path_params["id"], level))
 
+    async def occlusion_map(request: Request) -> Response:
+        level = _view_args(request)["level"]
+        return _pixels(*await run(session.occlusion_map, request.path_params["id"], level))
+
     async def thumbnail(request: Request) -> Response:
         data = await run(session.thumbnail, request.path_params["id"])
         return Response(data, media_type="image/png", headers={"Cache-Control": "no-store"})
@@ -370,6 +374,7 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
         Route("/api/view", view),
         Route("/api/layers/{id}/thumb.png", thumbnail),
         Route("/api/layers/{id}/normals", normal_map),
+        Route("/api/layers/{id}/occlusion", occlusion_map),
         Route("/api/export/{kind}", export),
         Route("/api/change", change, methods=["POST"]),
         Route("/api/upload", upload, methods=["POST"]),

@@ -32,7 +32,7 @@ from lasagna.compose.pattern import TileTensors
 from lasagna.compose.plan import plan_from_document, solid_tensors
 from lasagna.compose.render import render
 from lasagna.compose.renderer import Renderer
-from lasagna.compose.surface import relieved_map
+from lasagna.compose.surface import layer_occlusion, relieved_map
 from lasagna.document import Document
 from lasagna.document.condition import parse_direction, parse_surface_light
 from lasagna.document.models import MAX_LIGHT_INTENSITY, MAX_RELIEF
@@ -332,14 +332,26 @@ class SessionViews:
         """Surface layer ``id``'s normal map at reduction ``level`` as RGBA8 bytes of the view's size (the map's RGB
         codes where the layer lies, at its offset; transparent elsewhere), its relief times the layer's ``relief``
         as the exports write it (`compose.surface.relieved_map`): the surface the layer lights, not how it is lit."""
+        return self._surface_map(id, level, "normals", "normal map", _relieved_codes)
+
+    def occlusion_map(self, id: str, level: int = 0) -> tuple[bytes, int, int]:
+        """Surface layer ``id``'s ambient occlusion at reduction ``level`` as RGBA8 bytes of the view's size: grey,
+        the share of the sky each pixel of its heights sees (`compose.surface.layer_occlusion`, its relief and shadow
+        depth applied; white open), where the layer lies; transparent elsewhere — what its ``occlusion`` darkens."""
+        return self._surface_map(id, level, "occlusion", "occlusion map", _occlusion_codes)
+
+    def _surface_map(self, id: str, level: int, what: str, label: str, codes_of) -> tuple[bytes, int, int]:
+        """A surface layer's map ``codes_of(layer, its tensors at the level)`` (3, h, w) in [0, 1] placed at its
+        offset on the view of ``level``, RGBA8 (transparent where the layer is not); refusals name ``what``."""
         self._check_level(level)
         with self._guard():
             layer = self.stack.document.layer(id)
             if layer.kind != "surface":
-                raise LasagnaError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", "normals")
+                raise LasagnaError(f"layer {id!r} is a {layer.kind} layer; expected a surface layer", what)
             w, h = _reduced_side(self.stack.width, level), _reduced_side(self.stack.height, level)
-            self._admit(self._reduction_bytes([layer], level) + 4 * w * h, f"the normal map of {id}", "normals")
+            self._admit(self._reduction_bytes([layer], level) + 4 * w * h, f"the {label} of {id}", what)
             t = self._layer_at(layer, level)
+            full = codes_of(layer, t)
         rgba = np.zeros((h, w, 4), np.uint8)
         f = 2**level
         x0, y0 = layer.offset.x // f, layer.offset.y // f  # as the view places it (_ScaledLayer)
@@ -347,7 +359,7 @@ class SessionViews:
         top, left = max(0, y0), max(0, x0)
         bottom, right = min(h, y0 + mh), min(w, x0 + mw)
         if bottom > top and right > left:
-            part = relieved_map(t.color[:, top - y0 : bottom - y0, left - x0 : right - x0], layer.relief)
+            part = full[:, top - y0 : bottom - y0, left - x0 : right - x0]
             rgba[top:bottom, left:right, :3] = (part.clamp(0, 1) * 255.0).round().to(torch.uint8).permute(1, 2, 0)
             rgba[top:bottom, left:right, 3] = 255
         return rgba.tobytes(), w, h
@@ -389,6 +401,16 @@ class SessionViews:
         if t is not None:
             self.thumbs[id] = (t, rng, data)
         return data
+
+
+def _relieved_codes(layer, tensors) -> torch.Tensor:
+    """A surface layer's stored map with its relief applied (3, h, w): what the normal-map view shows."""
+    return relieved_map(tensors.color, layer.relief)
+
+
+def _occlusion_codes(layer, tensors) -> torch.Tensor:
+    """A surface layer's share of the sky as grey (3, h, w): what the occlusion view shows."""
+    return layer_occlusion(tensors, layer)[0].expand(3, -1, -1)
 
 
 def _overridden(

@@ -401,7 +401,12 @@ def test_dragging_a_surface_layers_light_repaints_live_and_commits_one_step(brow
     stored = load_stack(folder).tensors["shape"].color
     codes = (stored.double() * 255).round().byte().permute(1, 2, 0).numpy()
     assert np.array_equal(page_pixels(page)[8:40, 8:48], codes)
-    page.uncheck("#normal-map")
+    page.check("#occlusion-map")  # the share of the sky, grey; the normal map's box cleared
+    settle(page)
+    assert not page.is_checked("#normal-map")
+    sky = page_pixels(page)[8:40, 8:48, :3].astype(int)
+    assert (sky[..., 0] == sky[..., 1]).all() and (sky[..., 1] == sky[..., 2]).all() and sky.min() < 250
+    page.uncheck("#occlusion-map")
     settle(page)
     assert np.array_equal(page_pixels(page), left)
     assert page.errors == []

@@ -250,6 +250,27 @@ def test_the_normal_map_view_is_the_stored_map_at_its_place(client, folder):
     assert small.shape == (24, 32, 4) and (small[4:20, 4:24, 3] == 255).all()
 
 
+def test_the_occlusion_view_is_the_share_of_the_sky_at_its_place(client, folder):
+    """``/api/layers/ID/occlusion`` (the page's "Show occlusion"): grey codes of the share of a cosine-weighted sky
+    the layer's heights let each pixel see — a numpy float64 mean of ray marches over the heights integrated from the
+    saved map (tests/support/lights.py), within 0.05 in the mean — where the layer lies; transparent elsewhere;
+    darker at the dome's foot than on its top; a deeper ``shadow_depth`` darkens it."""
+    from lasagna.compose.surface import integrate_normals, surface_normals
+    from tests.support.lights import sky_share
+
+    got = pixels(client.get("/api/layers/shape/occlusion", headers=H, params={"level": 0}))
+    assert got.shape == (48, 64, 4) and (got[8:40, 8:48, 3] == 255).all() and (got[:8, :, 3] == 0).all()
+    grey = got[8:40, 8:48, :3].astype(float) / 255
+    assert (grey[..., 0] == grey[..., 1]).all() and (grey[..., 1] == grey[..., 2]).all()
+    stored = load_stack(folder).tensors["shape"].color.double()[None] * 2 - 1
+    heights = integrate_normals(surface_normals(stored))[0, 0].numpy()
+    assert np.abs(grey[..., 0] - sky_share(heights))[2:-2, 2:-2].mean() <= 0.05
+    assert grey[16, 20, 0] > grey[31, 20, 0]  # the dome's top sees more sky than its rim near the layer's edge
+    ok(post(client, op="light", id="shape", light="top-left", shadow_depth=4.0))
+    deeper = pixels(client.get("/api/layers/shape/occlusion", headers=H, params={"level": 0}))
+    assert (deeper[8:40, 8:48, 0] <= got[8:40, 8:48, 0]).all() and (deeper[8:40, 8:48, 0] < got[8:40, 8:48, 0]).any()
+
+
 # ---- refusals ----------------------------------------------------------------------------------------
 
 
@@ -307,8 +328,9 @@ def test_a_bad_preview_is_a_one_line_400(client, params, words):
     "id, params, words",
     [("base", {}, "expected a surface layer"), ("nope", {}, "nope"), ("shape", {"level": 99}, "level")],
 )
-def test_a_bad_normal_map_request_is_a_one_line_4xx(client, id, params, words):
-    assert words in one_line_4xx(client.get(f"/api/layers/{id}/normals", headers=H, params=params))
+@pytest.mark.parametrize("view", ["normals", "occlusion"])
+def test_a_bad_normal_map_request_is_a_one_line_4xx(client, id, params, words, view):
+    assert words in one_line_4xx(client.get(f"/api/layers/{id}/{view}", headers=H, params=params))
 
 
 # ---- the relief ----------------------------------------------------------------------------------

@@ -26,6 +26,7 @@ const ui = {
   shadow_depth: null,   // the heights its shadows and occlusion trace, times this, while its slider is dragged
   lightWhich: {},       // per relight surface layer: which light its sphere moves, "light" or "source"
   normals: null,        // a surface layer's id while the view shows its normal map (its relief applied)
+  occlusionMap: null,   // a surface layer's id while the view shows its ambient occlusion (the share of the sky)
   lightProxy: true,     // a light drag previews at the drag proxy's level (dragLevel); false: at the view's level
   placing: null,        // {id, rect, z, point} while a surface layer's point light is placed by dragging on the canvas
   condition: null,
@@ -91,6 +92,7 @@ function setState(state) {
   if (ui.selected && !ids.includes(ui.selected)) ui.selected = null;
   if (ui.solo && !ids.includes(ui.solo)) ui.solo = null;
   if (ui.normals && !(ui.normals in state.surfaces)) ui.normals = null;
+  if (ui.occlusionMap && !(ui.occlusionMap in state.surfaces)) ui.occlusionMap = null;
   $("folder").textContent = state.folder + (state.dirty ? " •" : "");
   $("undo").disabled = !state.undo;
   $("undo").title = state.undo ? `Undo ${state.undo}` : "Nothing to undo";
@@ -143,6 +145,7 @@ function layerRow(layer, index, n, depth = 0) {
     if (e.target.closest("input, select, button")) return;
     ui.selected = layer.id;
     if (ui.normals && ui.normals !== layer.id) { ui.normals = null; paint(); }
+    if (ui.occlusionMap && ui.occlusionMap !== layer.id) { ui.occlusionMap = null; paint(); }
     drawLayers(); drawProps();
   });
   li.querySelector(".eye").addEventListener("change", (e) => change({ op: "set", id: layer.id, changes: { visible: e.target.checked } }));
@@ -357,7 +360,19 @@ function lightControl(layer) {
   readout.textContent = lit.light;
   const show = document.createElement("input");
   show.type = "checkbox"; show.id = "normal-map"; show.checked = ui.normals === layer.id;
-  show.addEventListener("change", () => { ui.normals = show.checked ? layer.id : null; paint(); });
+  show.addEventListener("change", () => {
+    ui.normals = show.checked ? layer.id : null;
+    if (show.checked) { ui.occlusionMap = null; showSky.checked = false; }
+    paint();
+  });
+  // The share of the sky its heights let each pixel see (what Occlusion darkens), grey: white open.
+  const showSky = document.createElement("input");
+  showSky.type = "checkbox"; showSky.id = "occlusion-map"; showSky.checked = ui.occlusionMap === layer.id;
+  showSky.addEventListener("change", () => {
+    ui.occlusionMap = showSky.checked ? layer.id : null;
+    if (showSky.checked) { ui.normals = null; show.checked = false; }
+    paint();
+  });
   const info = document.createElement("div");
   info.className = "hint";
   info.textContent = lit.source_light ? `relight from ${lit.source_light}` : "shading";
@@ -409,7 +424,7 @@ function lightControl(layer) {
   // The heights both trace, times a gain (longer shadows, deeper creases; the shading unchanged).
   const depthField = gainSlider(layer, lit, "Shadow depth", "shadow_depth", "shadow_depth", lit.shadow_depth);
   box.append(field("Colour", colour), intensityField, glossControl(layer, lit), shadowsField, depthField, occlusionField);
-  box.append(field("Show normal map", show));
+  box.append(field("Show normal map", show), field("Show occlusion", showSky));
   box.append(pointControl(layer, lit));
   box.append(extraLightsControl(layer, lit));
   // A relight's sphere moves either light: the target, or the source the ratio divides by (fitted to the image,
@@ -836,7 +851,8 @@ async function fetchView(params) {
   if (params.shadows) q.append("shadows", `${params.shadows.id}:${params.shadows.value}`);
   if (params.occlusion) q.append("occlusion", `${params.occlusion.id}:${params.occlusion.value}`);
   if (params.shadow_depth) q.append("shadow_depth", `${params.shadow_depth.id}:${params.shadow_depth.value}`);
-  const path = params.normals ? `api/layers/${encodeURIComponent(params.normals)}/normals?level=${params.level}` : `api/view?${q}`;
+  const map = params.normals ? [params.normals, "normals"] : params.occlusionMap ? [params.occlusionMap, "occlusion"] : null;
+  const path = map ? `api/layers/${encodeURIComponent(map[0])}/${map[1]}?level=${params.level}` : `api/view?${q}`;
   const response = await api(path);
   const w = parseInt(response.headers.get("X-Width"), 10), h = parseInt(response.headers.get("X-Height"), 10);
   const data = new Uint8ClampedArray(await response.arrayBuffer());
@@ -866,6 +882,7 @@ function paint() {
     drag: ui.drag, solo: ui.solo, version: ui.state.version, split: ui.split,
     light: ui.light, relief: ui.relief, ambient: ui.ambient, colour: ui.colour, intensity: ui.intensity, gloss: ui.gloss,
     shadows: ui.shadows, occlusion: ui.occlusion, shadow_depth: ui.shadow_depth, normals: ui.normals,
+    occlusionMap: ui.occlusionMap,
   };
   if (!inflight) paintLoop();
 }
@@ -878,7 +895,7 @@ async function paintLoop() {
       wanted = null;
       const image = await fetchView(p);
       let before = null;
-      if (p.split && !p.normals) before = await fetchView({ level: p.level, upto: ui.state.document.layers[0].id });
+      if (p.split && !p.normals && !p.occlusionMap) before = await fetchView({ level: p.level, upto: ui.state.document.layers[0].id });
       ui.image = image; ui.before = before;
       draw();
     }
