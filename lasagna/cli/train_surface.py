@@ -92,6 +92,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "instead of floating in front of it (0: as sampled)",
     )
     p.add_argument(
+        "--low-key",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="probability that each surface (the wall, each object) is painted dark, as photographs' backdrops are "
+        "(0: as sampled)",
+    )
+    p.add_argument(
         "--height-weight",
         type=float,
         default=0.0,
@@ -182,6 +190,7 @@ def run(args: argparse.Namespace) -> int:
         shadows=args.shadows,
         relief=args.relief,
         rest=args.rest,
+        low_key=args.low_key,
         height_weight=args.height_weight,
         walls_only=args.walls_only,
         scene_bank=args.scene_bank,

@@ -52,6 +52,9 @@ CHECKPOINT_FORMAT = "lasagna.surface_run"
 REST_SINK = (0.25, 1.0)
 """Range of a resting scene's sink (its objects' centres this many bounding radii in front of the wall; ``rest``):
 from a third sunk into the wall to just touching it."""
+LOW_KEY_GAIN = (0.08, 0.5)
+"""Range of a low-key surface's albedo gain (``low_key``): the world's paint (HSV value 0.55–0.95) times it reaches
+0.04–0.48, a photograph's dark backdrop or coat."""
 MAX_TRAIN_ELEVATION = 75.0
 """Highest elevation (degrees from the view axis) of the training lights: grazing lights beyond it shade
 almost every surface at the ambient floor and say little about shape."""
@@ -140,6 +143,15 @@ class SurfaceTrainConfig(LoopConfig):
         description="the probability that a scene's objects rest on the wall (`SceneParams.resting`, each scene's "
         "sink drawn uniformly in ``REST_SINK``) instead of floating in front of it as the world samples them: "
         "attached shadows, and a height field above the wall that describes the scene (0: as sampled)",
+    )
+    low_key: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="the probability that each surface (the wall, each object) is painted dark: its albedo times a "
+        "gain drawn uniformly in ``LOW_KEY_GAIN`` (`SceneParams.darkened`) — photographs' low-key backdrops, which "
+        "an estimator that saw only the world's light paint reads as relief turned from the light (docs/BENCHMARKS.md"
+        ", round 25's probe A) (0: as sampled)",
     )
     height_weight: float = Field(
         0.0,
@@ -306,8 +318,8 @@ def centred(height: torch.Tensor) -> torch.Tensor:
 
 def training_scenes(config: SurfaceTrainConfig, rng: torch.Generator) -> SceneParams:
     """One step's scenes: ``batch_size`` consecutive scenes of the split from a random start, some or all made bare
-    walls (``walls_only``), flat walls given relief (``relief``) and objects moved to rest on the wall (``rest``),
-    every draw from ``rng``."""
+    walls (``walls_only``), flat walls given relief (``relief``), objects moved to rest on the wall (``rest``) and
+    surfaces painted dark (``low_key``), every draw from ``rng``."""
     start = int(torch.randint(0, SCENE_RANGE, (1,), generator=rng))
     params = sample_scenes(config.split, config.world_seed, range(start, start + config.batch_size))
     if config.walls_only >= 1.0:
@@ -323,6 +335,14 @@ def training_scenes(config: SurfaceTrainConfig, rng: torch.Generator) -> ScenePa
         )
         moved = params.resting(sink)
         params = replace(params, center=torch.where(rests[:, None, None], moved.center, params.center))
+    if config.low_key > 0:
+        k = params.color.shape[1]
+        dark = torch.rand(len(params), k + 1, generator=rng, dtype=torch.float64) < config.low_key
+        gain = LOW_KEY_GAIN[0] + (LOW_KEY_GAIN[1] - LOW_KEY_GAIN[0]) * torch.rand(
+            len(params), k + 1, generator=rng, dtype=torch.float64
+        )
+        gain = torch.where(dark, gain, torch.ones_like(gain))
+        params = params.darkened(gain[:, k], gain[:, :k])
     return params
 
 

@@ -125,6 +125,22 @@ class SceneParams:
         center[..., 2] = WALL_Z + sink * self.radius.to(center.dtype)
         return replace(self, center=center)
 
+    def darkened(self, wall_gain: torch.Tensor, object_gain: torch.Tensor) -> SceneParams:
+        """The same scenes with darker paint: the wall's albedo times ``wall_gain`` (B,) and each object's times
+        ``object_gain`` (B, K), exactly (a surface's albedo is linear in its colour and colour delta, both scaled) —
+        the low-key paint of photographs (a dark backdrop, a black coat), which the world as sampled never draws
+        (wall and object colours have HSV value ≥ 0.55), so an estimator that never saw it reads every dark
+        region as a face turned from the light."""
+        wall = torch.as_tensor(wall_gain, dtype=self.wall_color.dtype).reshape(-1, 1)
+        obj = torch.as_tensor(object_gain, dtype=self.color.dtype).reshape(len(self), -1, 1)
+        return replace(
+            self,
+            wall_color=self.wall_color * wall,
+            wall_color_delta=self.wall_color_delta * wall,
+            color=self.color * obj,
+            color_delta=self.color_delta * obj,
+        )
+
     def _names(self, labels: str | Sequence[str], what: str) -> list[str]:
         """One label for all scenes, or one per scene."""
         names = [labels] * len(self) if isinstance(labels, str) else list(labels)
