@@ -458,3 +458,26 @@ def test_resting_scenes_and_the_height_loss(tmp_path):
     with pytest.raises(LasagnaError, match="height field"):
         normals = SurfaceConfig(input="lit", output="normals", channels=(8, 16), blocks=1, working_size=16)
         train_surface(toy(steps=1, height_weight=1.0, net=normals), tmp_path / "refused")
+
+
+def test_low_key_paints_some_surfaces_dark_within_its_gains():
+    """``low_key``: about that share of surfaces (wall and objects) painted dark by a gain in ``LOW_KEY_GAIN``, the
+    others and the geometry as drawn; 0 draws nothing (the same scenes, the rng untouched)."""
+    from lasagna.training.surface import LOW_KEY_GAIN, training_scenes
+
+    rng0, rng1 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    plain = training_scenes(toy(batch_size=64), rng0)
+    dark = training_scenes(toy(batch_size=64, low_key=0.3), rng1)
+    assert torch.equal(plain.center, dark.center) and torch.equal(plain.shape, dark.shape)
+    gains = torch.cat(
+        [dark.color[..., 0] / plain.color[..., 0], (dark.wall_color[:, 0] / plain.wall_color[:, 0])[:, None]], 1
+    )
+    darkened = gains < 1 - 1e-9
+    assert 0.2 < float(darkened.double().mean()) < 0.4
+    assert (
+        float(gains[darkened].min()) >= LOW_KEY_GAIN[0] - 1e-9
+        and float(gains[darkened].max()) <= LOW_KEY_GAIN[1] + 1e-9
+    )
+    assert torch.allclose(gains[~darkened], torch.ones_like(gains[~darkened]))
+    torch.testing.assert_close(dark.wall_color_delta, plain.wall_color_delta * gains[:, -1:])
+    assert torch.equal(training_scenes(toy(batch_size=64), torch.Generator().manual_seed(3)).color, plain.color)

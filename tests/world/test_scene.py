@@ -306,3 +306,28 @@ def test_resting_objects_sit_sink_radii_in_front_of_the_wall_and_touch_it():
     on = floating.mask > 0.5
     assert float((floating.depth[on] - WALL_Z).min()) > 0.05
     assert float((resting.depth - WALL_Z).abs()[resting.mask > 0.5].min()) < 0.05
+
+
+def test_darkened_paint_scales_each_surfaces_albedo_and_nothing_else():
+    """``darkened``: a surface's albedo times its gain exactly (the wall by one gain, each object by its own, two-tone
+    paint included), the geometry and the shading untouched."""
+    params = sample_scenes("select", 0, range(4))
+    k = params.color.shape[1]
+    wall = torch.tensor([0.1, 0.5, 1.0, 0.25], dtype=torch.float64)
+    objects = torch.linspace(0.08, 0.9, 4 * k, dtype=torch.float64).reshape(4, k)
+    plain, dark = render(params, 32), render(params.darkened(wall, objects), 32)
+    assert torch.equal(plain.normals, dark.normals) and torch.equal(plain.shading, dark.shading)
+    slot = plain.object_index
+    on_wall = plain.mask[:, 0] < 0.5
+    for b in range(4):
+        w = on_wall[b]
+        torch.testing.assert_close(dark.albedo[b][:, w], plain.albedo[b][:, w] * float(wall[b]), rtol=1e-5, atol=1e-6)
+    seen = 0
+    for b in range(4):
+        for j in range(k):
+            where = slot[b, 0] == j
+            if where.any():
+                seen += 1
+                want = plain.albedo[b][:, where] * float(objects[b, j])
+                torch.testing.assert_close(dark.albedo[b][:, where], want, rtol=1e-5, atol=1e-6)
+    assert seen >= 4
