@@ -20,6 +20,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("psd", help="PSD file to read")
     p.add_argument("-o", "--output", required=True, metavar="FOLDER", help="stack folder to create")
     p.add_argument("--force", action="store_true", help="overwrite a stack already in FOLDER")
+    p.add_argument(
+        "--as-pixels",
+        action="store_true",
+        help="keep a surface layer's rendered multiplier and hidden normal map as the two pixel layers the file holds "
+        "(default: made one surface layer again when its pixels are one light's rendering of the map)",
+    )
     max_pixels_argument(p)
 
 
@@ -28,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     from lasagna.io.folder import check_output_folder, write_stack_folder
 
     out = check_output_folder(args.output, force=args.force)
-    stack = read_psd(args.psd, max_pixels=args.max_pixels, warn=warn)
+    stack = read_psd(args.psd, max_pixels=args.max_pixels, warn=warn, surfaces=not args.as_pixels)
     write_stack_folder(stack, out, force=args.force)
     n = len(stack.document.all_ids)
     print(f"wrote {out / 'stack.json'} ({n} layers, {stack.width}x{stack.height})")

@@ -763,6 +763,13 @@ class Document(StrictModel):
             changes["shadow_depth"] = shadow_depth
         return self.replace_layer(id, **changes)
 
+    def swapped_layer(self, id: str, layer: dict[str, Any]) -> Document:
+        """A copy where layer ``id`` (at any depth) is ``layer`` — a whole layer of any kind with the same id (an
+        import making a multiplier and its normal map one surface layer again)."""
+        if layer.get("id") != id:
+            raise DocumentError(f"the new layer's id is {layer.get('id')!r}; expected {id!r}", "layers")
+        return self._edit_siblings(id, lambda layers, i: layers.__setitem__(i, dict(layer)))
+
     def without_layer(self, id: str) -> Document:
         """A copy without layer ``id`` (at any depth, a group with its layers; a learned layer conditioned on
         it makes this an error)."""

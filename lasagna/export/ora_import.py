@@ -25,6 +25,7 @@ import numpy as np
 from lasagna.document.types import sanitise_name, unique_id
 from lasagna.errors import ImageError
 from lasagna.export.ora import DODGE_PREFIX, MIMETYPE, SVG_TO_BLEND
+from lasagna.export.rasters import NORMALS_DIR
 from lasagna.io.png import (
     DEFAULT_MAX_PIXELS,
     check_size,
@@ -307,6 +308,7 @@ def import_ora(
     max_pixels: int = DEFAULT_MAX_PIXELS,
     max_uncompressed: int = DEFAULT_MAX_UNCOMPRESSED,
     warn: Callable[[str], None] | None = None,
+    surfaces: bool = True,
 ):
     """Read an OpenRaster file as a :class:`~lasagna.io.stack.Stack` (saved to ``out_folder`` if given).
 
@@ -319,7 +321,9 @@ def import_ora(
     any, is dropped (the stack is re-composed from its layers). Without that background the document is
     transparent (``canvas.background`` null: the composite carries alpha, as the file's does) unless its bottom
     visible layer is an opaque, full-canvas ``svg:src-over`` one (nothing shows through it). ``warn`` receives one
-    line per name changed to fit the document's name rule (default: ``warnings.warn``).
+    line per name changed to fit the document's name rule (default: ``warnings.warn``). A surface layer's rendered
+    multiplier over its hidden normal map is made one surface layer again (``lasagna.export.surface_import``) unless
+    ``surfaces`` is false.
     """
     import warnings
 
@@ -355,9 +359,9 @@ def import_ora(
     specs: list[dict] = []
     # Leaves first: their ids come from their files (our writer names each file by its layer's id), so a group
     # whose name happens to sanitise to a leaf's id must yield — a group's id is made up on import, a leaf's is kept.
-    leaf_ids = {
-        id(leaf): unique_id(PurePosixPath(leaf["src"]).stem or leaf["name"], taken) for leaf in _walk_leaves(merged)
-    }
+    # A surface layer's hidden normal map (src data/_normals/<id>.png) is named last, so its layer keeps the id.
+    leaves = sorted(_walk_leaves(merged), key=lambda leaf: leaf["src"].startswith(f"data/{NORMALS_DIR}/"))
+    leaf_ids = {id(leaf): unique_id(PurePosixPath(leaf["src"]).stem or leaf["name"], taken) for leaf in leaves}
 
     def name_of(layer: dict) -> str:
         name = sanitise_name(layer["name"])
@@ -445,6 +449,10 @@ def import_ora(
             ]
 
         stack.document = stack.document.with_layers(nest(shape))
+    from lasagna.export.surface_import import restore_surfaces
+
+    if surfaces:
+        restore_surfaces(stack, warn, str(path))
     if out_folder is not None:
         stack.save(out_folder)
     return stack

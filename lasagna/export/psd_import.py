@@ -571,10 +571,16 @@ def _opaque_base(layers: list[dict], stack_tensors: dict, width: int, height: in
 
 
 def read_psd(
-    path: str | os.PathLike, *, max_pixels: int = DEFAULT_MAX_PIXELS, warn: Callable[[str], None] | None = None
+    path: str | os.PathLike,
+    *,
+    max_pixels: int = DEFAULT_MAX_PIXELS,
+    warn: Callable[[str], None] | None = None,
+    surfaces: bool = True,
 ):
     """A PSD file as a :class:`~lasagna.io.stack.Stack` (module docstring); ``warn`` receives one line per
-    thing that was rasterised or could not be represented (default: ``warnings.warn``)."""
+    thing that was rasterised or could not be represented (default: ``warnings.warn``). A surface layer's rendered
+    multiplier over its hidden normal map is made one surface layer again (``lasagna.export.surface_import``) unless
+    ``surfaces`` is false."""
     import warnings
 
     PSDImage, _, ColorMode, _, _ = _require()
@@ -626,4 +632,7 @@ def read_psd(
         where=where,
     )
     depth = 16 if psd.depth > 8 else 8
-    return Stack(doc, None, reader.tensors, {id: depth for id in reader.tensors})
+    from lasagna.export.surface_import import restore_surfaces
+
+    stack = Stack(doc, None, reader.tensors, {id: depth for id in reader.tensors})
+    return restore_surfaces(stack, warn, where) if surfaces else stack

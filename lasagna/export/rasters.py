@@ -70,6 +70,9 @@ from lasagna.io.png import BitDepth, quantize_band
 
 # ORA/PSD blend names for our blends and the helper layers.
 Op = str
+NORMALS_DIR = "_normals"
+"""A surface layer's hidden normal map is keyed ``_normals/<id>`` (OpenRaster: ``data/_normals/<id>.png``), so an
+import tells it from the layer it belongs to (`lasagna.export.surface_import`)."""
 COMPOSITE_NAME = "Composite (exact)"  # "normal" | "multiply" | "plus" | "screen" | "color-dodge"
 
 
@@ -469,7 +472,7 @@ class _Walk:
         color, alpha, x, y = cropped if cropped is not None else (color[:, :1, :1], np.zeros((1, 1, 1)), 0, 0)
         return ExportLayer(
             f"{layer.name} (normal map)",
-            f"_normals/{layer.id}",
+            f"{NORMALS_DIR}/{layer.id}",
             "normal",
             x=x,
             y=y,

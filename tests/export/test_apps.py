@@ -420,6 +420,33 @@ def test_gimp_flattens_a_surface_layer(tmp_path):
     assert err.max() <= 3
 
 
+@pytest.mark.krita
+@pytest.mark.skipif(
+    not (KRITA and XVFB), reason="krita and xvfb-run are not installed (apt-get install krita xvfb xauth)"
+)
+def test_a_surface_layer_survives_krita_saving_the_ora(tmp_path):
+    """Krita opens our ORA and saves it as its own (its file names, its stack.xml, the dodge half a layer of its
+    own): read back, the relight ratio over its hidden normal map is one surface layer again, lit as it was."""
+    from lasagna.export import import_ora
+
+    folder, _ = _surface_stack(tmp_path / "stack")
+    assert main(["export", str(folder), "--ora", str(tmp_path / "in.ora")]) == 0
+    proc = _krita_flatten(tmp_path / "in.ora", tmp_path / "krita.ora")
+    assert (tmp_path / "krita.ora").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
+    with zipfile.ZipFile(tmp_path / "krita.ora") as zf:
+        assert "data/_normals/shape.png" not in zf.namelist()  # Krita's own file, not ours
+    warnings: list[str] = []
+    back = import_ora(tmp_path / "krita.ora", warn=warnings.append)
+    surfaces = [layer for layer in back.document.layers if layer.kind == "surface"]
+    assert warnings == [] and len(surfaces) == 1
+    assert (surfaces[0].name, surfaces[0].light, surfaces[0].source_light) == ("shape", "az=10,el=55", "left")
+    from lasagna.io.stack import load_stack
+
+    original = load_stack(folder)
+    err = (back.render().image - original.render().image).abs().max()
+    assert float(err) <= 3.5 / 255
+
+
 # ---- transparent documents and 16-bit PSDs ----------------------------------------------------------------
 
 

@@ -38,19 +38,36 @@ def shading(n: np.ndarray, l_vec: np.ndarray, a: float = 0.25) -> np.ndarray:
     return a + (1 - a) * np.maximum(0.0, np.einsum("chw,c->hw", n, l_vec))
 
 
+def _largest_multiplier(stack) -> float:
+    """The largest value of any surface layer's rendered multiplier in ``stack``."""
+    from lasagna.compose.surface import layer_surface_tensors
+
+    return max(
+        float(layer_surface_tensors(stack.tensors[layer.id], layer)[0].color.max())
+        for layer in stack.document.layers
+        if layer.kind == "surface"
+    )
+
+
 def assert_files_flatten(stack, folder) -> None:
-    """``stack`` saved to ``folder`` and exported: our ORA reader (1.5/255) and psd-tools, an independent one
-    (2.5/255; where a multiplier exceeds 1, through the file's exact composite), flatten it to its composite."""
+    """``stack`` saved to ``folder`` and exported: our ORA reader keeping the file's pixels (1.5/255) and psd-tools,
+    an independent one (2.5/255; where a multiplier exceeds 1, through the file's exact composite), flatten it to its
+    composite; read back as surfaces, each restored layer renders within the restoring check's bound, three codes
+    times max(1, y)² of its multiplier y (`lasagna.export.surface_import.MATCH_TOLERANCE`)."""
     from psd_tools import PSDImage
 
     from lasagna.cli import main
     from lasagna.export import import_ora
+    from lasagna.export.surface_import import MATCH_TOLERANCE
 
     stack.save(folder)
     ora, psd = folder.with_suffix(".ora"), folder.with_suffix(".psd")
     assert main(["export", str(folder), "--ora", str(ora), "--psd", str(psd)]) == 0
     ours = stack.render().image.double().numpy()
-    np.testing.assert_allclose(import_ora(ora).render().image.double().numpy(), ours, atol=1.5 / 255)
+    np.testing.assert_allclose(import_ora(ora, surfaces=False).render().image.double().numpy(), ours, atol=1.5 / 255)
+    back = import_ora(ora, warn=lambda line: None)
+    bound = MATCH_TOLERANCE * max(1.0, _largest_multiplier(stack)) ** 2 + 0.5 / 255
+    np.testing.assert_allclose(back.render().image.double().numpy(), ours, atol=bound)
     flat = np.asarray(PSDImage.open(psd).composite(force=True).convert("RGB"), dtype=np.float64)
     np.testing.assert_allclose(flat.transpose(2, 0, 1) / 255, ours, atol=2.5 / 255)
 
@@ -105,11 +122,14 @@ def test_cli_composite_and_exports(stack, tmp_path, capsys):
     assert (
         main(["export", str(tmp_path / "s"), "--ora", str(tmp_path / "s.ora"), "--psd", str(tmp_path / "s.psd")]) == 0
     )
-    # The ORA's layer is the rendered multiplier, not the map: the file flattens to the composite.
-    from lasagna.export.ora_import import import_ora
+    # The ORA's layer is the rendered multiplier, not the map: the file flattens to the composite; read back, the
+    # multiplier over its hidden map is the surface layer again (tests/export/test_surface_import.py).
+    from lasagna.export.ora_import import import_ora, read_ora
 
+    _, _, layers = read_ora(tmp_path / "s.ora")
+    assert {layer["name"]: layer["blend"] for layer in layers}["shape"] == "multiply"
     back = import_ora(tmp_path / "s.ora")
-    assert "surface" not in {layer.kind for layer in back.document.layers}
+    assert back.document.layer("shape").kind == "surface"
     np.testing.assert_allclose(
         back.render().image.double().numpy(), stack.render().image.double().numpy(), atol=1.5 / 255
     )
@@ -293,6 +313,7 @@ def test_a_2d_engine_lights_our_map_as_we_do(stack, tmp_path):
 
 def test_ora_and_psd_carry_the_normal_map_hidden_below_the_shading(stack, tmp_path):
     from lasagna.export import import_ora
+    from lasagna.export.ora_import import read_ora
 
     stack.save(tmp_path / "s")
     from lasagna.cli import main
@@ -300,12 +321,14 @@ def test_ora_and_psd_carry_the_normal_map_hidden_below_the_shading(stack, tmp_pa
     assert (
         main(["export", str(tmp_path / "s"), "--ora", str(tmp_path / "s.ora"), "--psd", str(tmp_path / "s.psd")]) == 0
     )
-    back = import_ora(tmp_path / "s.ora")
-    names = [layer.name for layer in back.document.layers]
-    hidden = [layer for layer in back.document.layers if layer.name.endswith("(normal map)")]
-    assert len(hidden) == 1 and not hidden[0].visible and names.index(hidden[0].name) < len(names) - 1
+    _, _, layers = read_ora(tmp_path / "s.ora")  # the file's own layers (an import makes the pair one surface again)
+    names = [layer["name"] for layer in layers]
+    hidden = [layer for layer in layers if layer["name"].endswith("(normal map)")]
+    assert len(hidden) == 1 and not hidden[0]["visible"] and names.index(hidden[0]["name"]) < len(names) - 1
     stored = stack.tensors["shape"].color.double().numpy()
-    np.testing.assert_allclose(back.tensors[hidden[0].id].color.double().numpy(), stored, atol=0.5 / 255 + 1e-9)
+    np.testing.assert_allclose(hidden[0]["image"].color, stored, atol=0.5 / 255 + 1e-9)
+    back = import_ora(tmp_path / "s.ora")
+    assert back.document.layer("shape").kind == "surface" and len(back.document.layers) == len(names) - 2
     from psd_tools import PSDImage
 
     psd = PSDImage.open(tmp_path / "s.psd")
@@ -376,6 +399,7 @@ def test_a_relieved_layer_exports_the_map_it_lights(stack, tmp_path):
     normals deepened by g, so a reader lights it as the layer renders; the ORA still flattens to the composite."""
     from lasagna.cli import main
     from lasagna.export import import_ora
+    from lasagna.export.ora_import import read_ora
 
     stack.save(tmp_path / "plain")
     stored = read_normals(tmp_path / "plain" / "layers" / "shape.png")
@@ -384,10 +408,12 @@ def test_a_relieved_layer_exports_the_map_it_lights(stack, tmp_path):
     assert main(["export", str(tmp_path / "s"), "--normal-map", str(tmp_path / "n.png")]) == 0
     assert main(["export", str(tmp_path / "s"), "--ora", str(tmp_path / "s.ora")]) == 0
     np.testing.assert_allclose(read_normals(tmp_path / "n.png"), deepened(stored, 2.5), atol=1e-4)
-    back = import_ora(tmp_path / "s.ora")
-    hidden = next(layer for layer in back.document.layers if layer.name.endswith("(normal map)"))
-    codes = back.tensors[hidden.id].color.double().numpy()
+    _, _, layers = read_ora(tmp_path / "s.ora")
+    hidden = next(layer for layer in layers if layer["name"].endswith("(normal map)"))
+    codes = hidden["image"].color
     np.testing.assert_allclose(codes, (deepened(stored, 2.5) + 1) / 2, atol=0.5 / 255 + 1e-4)
+    back = import_ora(tmp_path / "s.ora")  # read back as a surface of the deepened map, relief 1
+    assert back.document.layer("shape").kind == "surface" and back.document.layer("shape").relief == 1.0
     np.testing.assert_allclose(
         back.render().image.double().numpy(), stack.render().image.double().numpy(), atol=1.5 / 255
     )
