@@ -64,12 +64,26 @@ def visibility(height: Tensor, light: str, size: tuple[int, int]) -> Tensor:
     from each pixel over ``height`` (B, 1, h, w, canvas units, least value 0), traced at ``height``'s size and
     enlarged bilinearly to ``size`` (the module docstring). 1 lit, 0 in shadow."""
     with torch.no_grad():
-        point = parse_point(light)
-        if point is None:
-            seen = directional_visibility(height, unit_vector(*parse_direction(light)))
-        else:
-            seen = point_visibility(height, (float(point[0]), float(point[1]), float(point[2])))
-        return upsample(seen, tuple(size)).clamp(0.0, 1.0)
+        return upsample(_traced(height, light), tuple(size)).clamp(0.0, 1.0)
+
+
+def _traced(height: Tensor, light: str) -> Tensor:
+    """``light``'s visibility over ``height`` at its own size (a direction or a point or spot light)."""
+    point = parse_point(light)
+    if point is None:
+        return directional_visibility(height, unit_vector(*parse_direction(light)))
+    return point_visibility(height, (float(point[0]), float(point[1]), float(point[2])))
+
+
+def shadow_factor(height: Tensor, light: str, size: tuple[int, int], strength: float, gain: float = 1.0) -> Tensor:
+    """What a light's direct term is multiplied by for a layer's ``shadows`` s = ``strength``: g·(1 − s·(1 − V))
+    (B, 1, *size), V ``light``'s visibility over ``height`` (`visibility`), g a grey ``gain`` (the light's). Formed
+    at the traced size and then enlarged: bilinear enlargement commutes with an affine map of its values, so this is
+    g times `visibility`'s factor up to float rounding, at one full-size operation instead of five (a light drag
+    repaints it every frame)."""
+    with torch.no_grad():
+        seen = _traced(height, light).clamp(0.0, 1.0)
+        return upsample(gain * (1.0 - strength * (1.0 - seen)), tuple(size))
 
 
 def occlusion(height: Tensor, size: tuple[int, int]) -> Tensor:

@@ -53,7 +53,7 @@ from torch import Tensor
 
 from lasagna.compose.layer import LayerTensors
 from lasagna.compose.resample import downsample, gaussian_blur, upsample
-from lasagna.compose.shadow import SHADOW_MAX_SIDE, visibility
+from lasagna.compose.shadow import SHADOW_MAX_SIDE, shadow_factor
 from lasagna.compose.shadow import occlusion as sky_share
 from lasagna.document.condition import (
     AMBIENT,
@@ -739,7 +739,7 @@ def lit_by(
     direction or a point light (`point_lambert`), its gain its colour times its intensity: one channel while every
     gain is grey, else three; with ``gloss`` > 0 each light's direct term also carries its highlight (`highlight`,
     the module docstring's Gloss); with ``shadows`` s > 0 each direct term is times 1 − s·(1 − Vᵢ), Vᵢ the light's
-    visibility over ``heights`` (B, 1, h, w, canvas units: `shadow_heights`; `lasagna.compose.shadow.visibility`);
+    visibility over ``heights`` (B, 1, h, w, canvas units: `shadow_heights`; `lasagna.compose.shadow.shadow_factor`);
     ``sky`` (B, 1, H, W) scales the ambient term a (ambient occlusion: a·sky + Σᵢ …)."""
     if shadows > 0.0 and heights is None:
         raise LasagnaError("shadows need the surface's heights; expected heights (shadow_heights)", "lit_by")
@@ -756,10 +756,12 @@ def lit_by(
         if gloss > 0.0:
             s = s + (1.0 - ambient) * gloss * highlight(normals, text, shininess)
         g = gain[0] if grey else torch.tensor(gain, dtype=normals.dtype, device=normals.device).view(1, 3, 1, 1)
-        term = (s - ambient) * g
-        if shadows > 0.0:
-            seen = visibility(heights, text, tuple(normals.shape[-2:])).to(normals)
-            term = term * (1.0 - shadows * (1.0 - seen))
+        if shadows > 0.0:  # the grey gain rides on the shadow's factor, formed at the traced size
+            factor = shadow_factor(heights, text, tuple(normals.shape[-2:]), shadows, g if grey else 1.0)
+            term = (s - ambient) * factor.to(normals)
+            term = term if grey else term * g
+        else:
+            term = (s - ambient) * g
         total = term if total is None else total + term
     return (ambient if sky is None else ambient * sky) + total
 
