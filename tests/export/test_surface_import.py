@@ -175,3 +175,18 @@ def test_cli_import_makes_the_surface_again_unless_as_pixels(tmp_path, fmt, caps
         layer["name"]: layer["kind"] for layer in json.loads((tmp_path / "px" / "stack.json").read_text())["layers"]
     }
     assert kinds["Shape"] == "pixels" and kinds["Shape (normal map)"] == "pixels"
+
+
+@pytest.mark.parametrize("fmt", ["ora", "psd"])
+def test_a_surface_layer_inside_a_group_comes_back_inside_it(tmp_path, fmt):
+    """The pair is found at any depth: a surface layer in an isolated group is one surface layer in that group."""
+    stack = made(tmp_path / "plain", light="az=200,el=40")
+    stack.document = stack.document.grouped(["shape"], {"id": "g", "kind": "group", "name": "G", "isolated": True})
+    stack.save(tmp_path / "s")
+    warnings: list[str] = []
+    back = read_back(tmp_path, fmt, warnings)
+    group = next(layer for layer in back.document.layers if layer.kind == "group")
+    assert warnings == [] and [(c.name, c.kind, c.light) for c in group.layers] == [
+        ("Shape", "surface", "az=200,el=40")
+    ]
+    assert float((back.render().image - stack.render().image).abs().max()) <= 3.5 / 255
