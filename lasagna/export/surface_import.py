@@ -50,6 +50,10 @@ FACING_Z = (0.97, 0.9, 0.8)
 """The ratio fit's first round reads only normals this close to the view axis (within 14°, 26° or 37°: each a
 start), which both lights light unless one grazes — the lit sets are not known before a first fit."""
 MIN_FIT_PIXELS = 8
+IDENTIFIABLE = 1e-4
+"""A fit is made only when its system has one solution: the least singular value of the shading fit's design (the
+second least of the ratio's, whose least is the solution's) above this share of the largest; a flat map, or a few
+pixels, says nothing of the light, and a light that happens to render them is not read into the file."""
 """n·w above this counts as lit (a pixel on the terminator takes the ambient either way)."""
 SNAP_SLACK = 1.0 / 255.0
 """A rounder light (whole degrees, a named light), ambient or intensity is kept when its largest error is no more
@@ -154,7 +158,9 @@ def _fit_shading(n: np.ndarray, m: np.ndarray) -> dict | None:
     lit = mf > mf.min() + 1e-3
     for _ in range(FIT_ROUNDS):
         rows = np.concatenate([np.ones((mf.size, 1)), nf * lit[:, None]], 1)
-        x, *_ = np.linalg.lstsq(rows, mf, rcond=None)
+        x, _, _, sv = np.linalg.lstsq(rows, mf, rcond=None)
+        if sv[-1] <= IDENTIFIABLE * sv[0]:
+            return None  # the lit normals do not span the light's three directions: many lights render it
         a, w = float(x[0]), x[1:]
         now = nf @ w > LIT_EPS
         if (now == lit).all():
@@ -205,7 +211,10 @@ def _ratio_from(nf: np.ndarray, mf: np.ndarray, use: np.ndarray) -> tuple[float,
     x = None
     for _ in range(FIT_ROUNDS):
         rows = np.concatenate([(mf - 1.0)[:, None], mf[:, None] * nf * lit_s[:, None], -nf * lit_t[:, None]], 1)
-        y = np.linalg.svd(rows[use], full_matrices=False)[2][-1]
+        _, sv, vt = np.linalg.svd(rows[use], full_matrices=False)
+        if sv[-2] <= IDENTIFIABLE * sv[0]:
+            break  # more than one solution: the normals do not tell both lights apart
+        y = vt[-1]
         y = -y if y[0] < 0 else y  # the singular vector's sign is free; the ambient is positive
         scale = float(np.linalg.norm(y[1:4])) + float(y[0])
         if abs(scale) < 1e-12:

@@ -190,3 +190,18 @@ def test_a_surface_layer_inside_a_group_comes_back_inside_it(tmp_path, fmt):
         ("Shape", "surface", "az=200,el=40")
     ]
     assert float((back.render().image - stack.render().image).abs().max()) <= 3.5 / 255
+
+
+def test_a_map_that_cannot_tell_its_light_stays_pixels(tmp_path):
+    """A flat map under any light renders one value: no light is read into it (one line, the pair kept)."""
+    stack = Stack.from_image(torch.full((3, 16, 16), 0.5))
+    stack.add_layer(
+        "map",
+        torch.full((3, 16, 16), 0.5).index_fill(0, torch.tensor([2]), 1.0),
+        name="Flat (normal map)",
+        visible=False,
+    )
+    stack.add_layer("flat", torch.full((1, 16, 16), 0.625), name="Flat", blend="multiply")
+    warnings: list[str] = []
+    restore_surfaces(stack, warnings.append, "test")
+    assert stack.document.layer("flat").kind == "pixels" and len(warnings) == 1 and "no light fits" in warnings[0]
