@@ -122,6 +122,9 @@ def _surface_of(stack, multiplier, hidden, helpers: list) -> tuple[str, dict | N
         ):
             return "its colour-dodge half differs in size or place", None
         m = m / np.maximum(1.0 - d_t.color.double().numpy(), DODGE_FLOOR)
+    clamp = next((h for h in helpers if h.blend == "darken"), None)
+    if clamp is not None and not bool((stack.tensors[clamp.id].color == 1).all()):
+        return "its white clamp layer was painted on", None  # dropped only while it is the identity it was written as
     if m.shape[0] == 3 and not (np.abs(m - m[:1]).max() <= MATCH_TOLERANCE):
         return "it is coloured (a coloured light or paint)", None
     m = m.mean(0)

@@ -205,3 +205,22 @@ def test_a_map_that_cannot_tell_its_light_stays_pixels(tmp_path):
     warnings: list[str] = []
     restore_surfaces(stack, warnings.append, "test")
     assert stack.document.layer("flat").kind == "pixels" and len(warnings) == 1 and "no light fits" in warnings[0]
+
+
+def test_a_painted_clamp_layer_keeps_the_psd_pair_pixels(tmp_path):
+    """A PSD holds a ratio above 1 as multiply, colour dodge and a white darken clamp; the clamp is dropped only while
+    it is white (the identity it was written as): painted on, the layers stay as read, one line."""
+    made(tmp_path / "s", light="az=10,el=55", source_light="left")
+    assert main(["export", str(tmp_path / "s"), "--psd", str(tmp_path / "s.psd")]) == 0
+    for painted in (False, True):
+        stack = read_psd(tmp_path / "s.psd", surfaces=False)
+        clamp = next(layer for layer in stack.document.layers if layer.name.endswith("(clamp to 1)"))
+        if painted:
+            stack.tensors[clamp.id].color[:, 3:6, 3:6] = 0.5
+        warnings: list[str] = []
+        restore_surfaces(stack, warnings.append, "test")
+        kinds = {layer.name: layer.kind for layer in stack.document.layers}
+        if painted:
+            assert kinds["Shape"] == "pixels" and len(warnings) == 1 and "clamp" in warnings[0]
+        else:
+            assert kinds["Shape"] == "surface" and warnings == [] and clamp.name not in kinds
