@@ -447,6 +447,38 @@ def test_a_surface_layer_survives_krita_saving_the_ora(tmp_path):
     assert float(err) <= 3.5 / 255
 
 
+@pytest.mark.gimp
+@pytest.mark.skipif(not GIMP, reason="gimp is not installed (apt-get install gimp)")
+def test_a_surface_layer_survives_gimp_saving_the_psd(tmp_path):
+    """GIMP opens our PSD and saves it as its own: read back, the relight ratio (multiply, colour dodge and the
+    white clamp, over the hidden normal map) is one surface layer again, lit as it was."""
+    from lasagna.export.psd_import import read_psd
+    from lasagna.io.stack import load_stack
+
+    folder, _ = _surface_stack(tmp_path / "stack")
+    assert main(["export", str(folder), "--psd", str(tmp_path / "in.psd")]) == 0
+    out = tmp_path / "gimp.psd"
+    script = (
+        f'(let* ((image (car (gimp-file-load RUN-NONINTERACTIVE "{tmp_path / "in.psd"}" "in.psd")))'
+        f" (layer (car (gimp-image-get-active-layer image))))"
+        f' (file-psd-save RUN-NONINTERACTIVE image layer "{out}" "gimp.psd" 0 0))'
+    )
+    proc = subprocess.run(
+        [GIMP, "-i", "-d", "-f", "-b", script, "-b", "(gimp-quit 0)"],
+        capture_output=True,
+        text=True,
+        timeout=HANG_SECONDS,
+    )
+    assert out.is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
+    warnings: list[str] = []
+    back = read_psd(out, warn=warnings.append)
+    surfaces = [layer for layer in back.document.layers if layer.kind == "surface"]
+    assert warnings == [] and len(surfaces) == 1
+    assert (surfaces[0].name, surfaces[0].light, surfaces[0].source_light) == ("shape", "az=10,el=55", "left")
+    err = (back.render().image - load_stack(folder).render().image).abs().max()
+    assert float(err) <= 3.5 / 255
+
+
 # ---- transparent documents and 16-bit PSDs ----------------------------------------------------------------
 
 
