@@ -61,6 +61,7 @@ class LayerTensors:
     color: Tensor
     alpha: Tensor | None = None
     mask: Tensor | None = None
+    reduced_by: int = 1  # these are the layer's own tensors reduced by this factor (a zoom level's, 2**level)
     _cache: dict[str, tuple[Any, ...]] = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self) -> None:

@@ -314,12 +314,15 @@ def integrate_normals(normals: torch.Tensor) -> torch.Tensor:
     return out - out.amin(dim=(-2, -1), keepdim=True)
 
 
-def shadow_heights(normals: Tensor) -> Tensor:
+def shadow_heights(normals: Tensor, reduced_by: int = 1) -> Tensor:
     """The heights (B, 1, h, w, canvas units, least value 0) a layer's shadows are traced over: its unit ``normals``
     (B, 3, H, W) reduced to at most ``SHADOW_MAX_SIDE`` on a side (antialiased, renormalised), integrated
-    (`integrate_normals`). Canvas units do not depend on the size, so a shadow is as long at any size."""
+    (`integrate_normals`). Canvas units do not depend on the size, so a shadow is as long at any size. Normals that
+    are themselves the layer's reduced by ``reduced_by`` (a zoom level's) are traced at most ``SHADOW_MAX_SIDE`` /
+    ``reduced_by`` on a side — at the reduction of the full size's trace, so a zoomed-out view and the editor's drag
+    proxy trace what the full render traces, reduced, and no more (a light drag repaints the trace every frame)."""
     h, w = normals.shape[-2:]
-    scale = min(1.0, SHADOW_MAX_SIDE / max(h, w))
+    scale = min(1.0, SHADOW_MAX_SIDE / max(1, int(reduced_by)) / max(h, w))
     small = normals.detach()
     if scale < 1.0:
         small = downsample(small, (max(1, round(h * scale)), max(1, round(w * scale))))
@@ -346,7 +349,10 @@ def _surface_fields(
     (`_HEIGHTS`)."""
     key = (*same_map, relief, depth)
     hit = _HEIGHTS.get(stored)
-    fields = dict(hit[1]) if hit is not None and hit[0] == key else {"heights": shadow_heights(normals) * depth}
+    if hit is not None and hit[0] == key:
+        fields = dict(hit[1])
+    else:
+        fields = {"heights": shadow_heights(normals, stored.reduced_by) * depth}
     if with_occlusion and "occlusion" not in fields:
         fields["occlusion"] = sky_share(fields["heights"], tuple(fields["heights"].shape[-2:]))
     _HEIGHTS[stored] = (key, fields)

@@ -170,7 +170,8 @@ class SessionViews:
                 hit = (t, TileTensors(*reduced))
             else:
                 size = (_reduced_side(t.color.shape[-2], level), _reduced_side(t.color.shape[-1], level))
-                hit = (t, LayerTensors(_reduce(t.color, size), _reduce(t.alpha, size), _reduce(t.mask, size)))
+                reduced = (_reduce(t.color, size), _reduce(t.alpha, size), _reduce(t.mask, size))
+                hit = (t, LayerTensors(*reduced, reduced_by=2**level))
             self.reduced[key] = hit
         return hit[1]
 

@@ -804,6 +804,40 @@ def test_shadows_are_as_long_at_any_size_and_traced_small_on_a_large_layer(monke
     assert abs(shadow_length(2) - two) <= 3
 
 
+def test_a_reduced_layer_traces_at_the_reduction_of_the_full_trace(monkeypatch):
+    """Tensors that are the layer's own reduced by r (a zoom level's, ``LayerTensors.reduced_by``) trace their shadows
+    at most SHADOW_MAX_SIDE / r on a side: at the full size's trace reduced by r. A layer below that side is traced
+    at its own size, reduced or not; the shadow keeps its length in canvas units."""
+    import lasagna.compose.surface as cs
+    from lasagna.compose.layer import LayerTensors
+    from lasagna.compose.surface import shadow_heights
+
+    monkeypatch.setattr(cs, "SHADOW_MAX_SIDE", 64)
+    n = normals_from_height(torch.nn.functional.interpolate(plateau(), scale_factor=4, mode="bilinear").float())
+    assert shadow_heights(n).shape[-2:] == (48, 64)  # 192×256 traced at 64 on its long side
+    half = torch.nn.functional.interpolate(n, scale_factor=0.5, mode="area")
+    assert shadow_heights(half, reduced_by=2).shape[-2:] == (24, 32)  # 96×128, a level's: at 64 / 2
+    assert shadow_heights(half).shape[-2:] == (48, 64)
+    small = normals_from_height(plateau().float())  # 48×64: traced at its own size at level 0 and reduced at level 1
+    assert shadow_heights(small).shape[-2:] == (48, 64)
+    assert shadow_heights(torch.nn.functional.interpolate(small, scale_factor=0.5), reduced_by=2).shape[-2:] == (24, 32)
+
+    def shadow_length(tensors: LayerTensors, layer) -> int:
+        from lasagna.compose.surface import layer_surface_tensors
+
+        lit = layer_surface_tensors(tensors, layer)[0].color[0]
+        return int((lit[lit.shape[0] // 2] < lit.max() - 0.1).sum())
+
+    s = Stack.from_image(torch.full((3, 192, 256), 200, dtype=torch.uint8))
+    s.add_surface("shape", n[0], "az=180,el=65")
+    s.set_light("shape", "az=180,el=65", shadows=1.0)
+    layer, full = s.document.layer("shape"), s.tensors["shape"]
+    reduced = LayerTensors(
+        torch.nn.functional.interpolate(full.color[None], scale_factor=0.5, mode="area")[0], reduced_by=2
+    )
+    assert abs(2 * shadow_length(reduced, layer) - shadow_length(full, layer)) <= 4
+
+
 def test_occlusion_takes_ambient_light_from_where_the_maps_heights_hide_the_sky(tmp_path):
     """``occlusion`` o renders a·(1 − o·(1 − A)) + (1 − a)·max(0, n·l): A the share of a cosine-weighted sky over the
     heights the normals came from (a numpy float64 mean of ray marches, tests/support/lights.py), within 0.04 in the

@@ -776,3 +776,19 @@ def test_a_relight_surface_layer_is_read_again_told_its_dragged_source_light(tin
         message = one_line_4xx(post(client, op="reread", **body))
         assert words in message, message
     assert state(client)["version"] == before["version"]
+
+
+def test_a_zoom_level_traces_shadows_at_the_reduction_of_the_full_trace(client, session, monkeypatch):
+    """A view at level k traces the layer's shadows at SHADOW_MAX_SIDE / 2^k on a side (its tensors carry
+    ``reduced_by`` 2^k), what the full render traces, reduced; the level's preview is still its change, bit for bit."""
+    import lasagna.compose.surface as cs
+
+    side = max(session.stack.tensors["shape"].color.shape[-2:])  # the map's long side, 40
+    monkeypatch.setattr(cs, "SHADOW_MAX_SIDE", 32)  # the full size traced at 32, so a level-1 view at 16
+    ok(post(client, op="light", id="shape", light="az=200,el=80"))
+    cs._HEIGHTS.clear()
+    preview = view(client, level=1, shadows="shape:1")
+    traced = {max(fields["heights"].shape[-2:]) for _, (_, fields) in list(cs._HEIGHTS.items())}
+    assert traced == {16}, (side, traced)  # not the level's own long side, 20, which it was traced at before
+    ok(post(client, op="light", id="shape", light="az=200,el=80", shadows=1.0))
+    assert np.array_equal(view(client, level=1), preview)
