@@ -16,8 +16,10 @@ A fit is kept only if the layer it makes renders the multiplier back (`lasagna.c
 the compositor's own path) within ``MATCH_TOLERANCE`` at every pixel; a whole-degree direction, a named light, an
 ambient of 0.25 and an intensity of 1 are preferred when they render as well. Then the pair becomes one surface
 layer with the multiplier's id, name, opacity, visibility, offset and clip, lit by the fitted light, and the hidden
-map is dropped. Otherwise — a brush stroke over the multiplier, a coloured light, cast shadows, a highlight, a point
-light, several lights — the two stay as they were read, with one warning line that says why: nothing is guessed.
+map is dropped. A coloured light's shading (three channels) is fitted per channel and read as one light of a colour
+when the three fits agree on it (``COLOUR_AGREE_DEG``). Otherwise — a brush stroke over the multiplier, a coloured
+relight ratio, cast shadows, a highlight, a point light, several lights — the two stay as they were read, with one
+warning line that says why: nothing is guessed.
 """
 
 from __future__ import annotations
@@ -50,6 +52,8 @@ FACING_Z = (0.97, 0.9, 0.8)
 """The ratio fit's first round reads only normals this close to the view axis (within 14°, 26° or 37°: each a
 start), which both lights light unless one grazes — the lit sets are not known before a first fit."""
 MIN_FIT_PIXELS = 8
+COLOUR_AGREE_DEG = 0.5
+"""A coloured light's three channel fits must find one light within this many degrees of their mean."""
 IDENTIFIABLE = 1e-4
 """A fit is made only when its system has one solution: the least singular value of the shading fit's design (the
 second least of the ratio's, whose least is the solution's) above this share of the largest; a flat map, or a few
@@ -125,19 +129,19 @@ def _surface_of(stack, multiplier, hidden, helpers: list) -> tuple[str, dict | N
     clamp = next((h for h in helpers if h.blend == "darken"), None)
     if clamp is not None and not bool((stack.tensors[clamp.id].color == 1).all()):
         return "its white clamp layer was painted on", None  # dropped only while it is the identity it was written as
-    if m.shape[0] == 3 and not (np.abs(m - m[:1]).max() <= MATCH_TOLERANCE):
-        return "it is coloured (a coloured light or paint)", None
-    m = m.mean(0)
+    coloured = m.shape[0] == 3 and not (np.abs(m - m[:1]).max() <= MATCH_TOLERANCE)
+    m = m if coloured else m.mean(0, keepdims=True)  # (C, h, w): three channels for a coloured light, else one
     from lasagna.compose.surface import decode_normal_map
 
     # The fit and the choice among rounder lights on a regular subsample (Lambert is per pixel, so the render of
     # a strided map is the strided render); the chosen layer is checked on every pixel.
-    step = max(1, math.ceil(math.sqrt(m.size / FIT_PIXELS)))
+    step = max(1, math.ceil(math.sqrt(m[0].size / FIT_PIXELS)))
     codes = n_t.color[:, ::step, ::step].contiguous()
     n = decode_normal_map(codes[None].double())[0].numpy()
-    few = m[::step, ::step]
+    few = m[:, ::step, ::step]
     scored = []
-    for fit in (_fit_shading(n, few), _fit_ratio(n, few)):
+    fits = [_fit_coloured(n, few)] if coloured else [_fit_shading(n, few[0]), _fit_ratio(n, few[0])]
+    for fit in fits:
         for candidate in [] if fit is None else _rounder(fit):
             err = _error(codes, candidate, few)
             if err is not None:
@@ -173,6 +177,33 @@ def _fit_shading(n: np.ndarray, m: np.ndarray) -> dict | None:
     if not (0.0 <= a < 1.0) or norm <= 1e-9 or w[2] <= 0.0:
         return None
     return {"light": _direction(w / norm), "ambient": a, "light_intensity": norm / (1.0 - a), "source_light": None}
+
+
+def _fit_coloured(n: np.ndarray, m: np.ndarray) -> dict | None:
+    """a, k, c, l of a coloured light's shading M_c = a + (1 − a)·k·c_c·max(0, n·l) (``m`` (3, h, w)): each channel's
+    shading fit, kept when the three agree on the light (within ``COLOUR_AGREE_DEG``) and the ambient (within 0.01);
+    k the largest channel's gain, c the gains over it. A coloured relight ratio is not read (its source is white)."""
+    fits = [_fit_shading(n, channel) for channel in m]
+    if any(f is None for f in fits):
+        return None
+    from lasagna.document.condition import unit_vector
+
+    lights = [np.asarray(unit_vector(*f["light"])) for f in fits]
+    mean = sum(lights) / np.linalg.norm(sum(lights))
+    if min(float(v @ mean) for v in lights) < math.cos(math.radians(COLOUR_AGREE_DEG)):
+        return None
+    ambients = [f["ambient"] for f in fits]
+    if max(ambients) - min(ambients) > 0.01:
+        return None
+    gains = [f["light_intensity"] for f in fits]
+    k = max(gains)
+    return {
+        "light": _direction(mean),
+        "source_light": None,
+        "ambient": float(np.mean(ambients)),
+        "light_intensity": k,
+        "light_color": tuple(g / k for g in gains),
+    }
 
 
 def _fit_ratio(n: np.ndarray, m: np.ndarray) -> dict | None:
@@ -268,12 +299,20 @@ def _rounder(fields: dict) -> list[dict]:
 
     ambients = [fields["ambient"], round(fields["ambient"], 2), round(fields["ambient"], 3)]
     gains = [fields["light_intensity"], round(fields["light_intensity"], 2), round(fields["light_intensity"], 3)]
+    colours = [None] if "light_color" not in fields else [fields["light_color"]]
+    if "light_color" in fields:
+        colours += [
+            tuple(round(c, 2) for c in fields["light_color"]),
+            tuple(round(c, 3) for c in fields["light_color"]),
+        ]
     out = [fields]
     for light in named_or_whole(fields["light"]):
         for source in named_or_whole(fields["source_light"]):
             for a in ambients:
                 for k in gains:
-                    out.append({"light": light, "source_light": source, "ambient": a, "light_intensity": k})
+                    for colour in colours:
+                        rounder = {"light": light, "source_light": source, "ambient": a, "light_intensity": k}
+                        out.append(rounder if colour is None else {**rounder, "light_color": colour})
     return out
 
 
@@ -285,6 +324,7 @@ def _roundness(fields: dict) -> int:
     score += int(round(fields["ambient"], 2) == fields["ambient"]) + int(
         round(fields["light_intensity"], 2) == fields["light_intensity"]
     )
+    score += int(all(round(c, 2) == c for c in fields.get("light_color", ())))
     for light in lights:
         score += 2 if isinstance(light, str) else int(all(float(v).is_integer() for v in light))
     return score
@@ -304,7 +344,10 @@ def _error(codes, fields: dict, m: np.ndarray) -> float | None:
         parse_direction(light)
         if source is not None:
             parse_direction(source)
+        colour = tuple(float(c) for c in fields.get("light_color", (1.0, 1.0, 1.0)))
         if not 0.0 <= fields["ambient"] < 1.0 or not 0.0 < fields["light_intensity"] <= 16.0:
+            return None
+        if not all(0.0 <= c <= 1.0 for c in colour):
             return None
         rendered = surface_tensors(
             LayerTensors(codes, None, None),
@@ -312,14 +355,15 @@ def _error(codes, fields: dict, m: np.ndarray) -> float | None:
             source,
             float(fields["ambient"]),
             1.0,
-            (1.0, 1.0, 1.0),
+            colour,
             float(fields["light_intensity"]),
         ).color
     except (LasagnaError, ValueError):
         return None
     # Above 1 a multiplier is a multiply and colour-dodge pair in the file, y = m/(1 − d), whose rounding grows
     # as y²: the difference is measured in the pair's own steps.
-    return float((np.abs(rendered.double().numpy().mean(0) - m) / np.maximum(1.0, m) ** 2).max())
+    # ``m`` is (C, h, w); a white light renders one channel, a coloured one three (broadcast against each other).
+    return float((np.abs(rendered.double().numpy() - m) / np.maximum(1.0, m) ** 2).max())
 
 
 def _swap(stack, multiplier, gone: list, fields: dict) -> None:
@@ -343,6 +387,7 @@ def _swap(stack, multiplier, gone: list, fields: dict) -> None:
         "source_light": None if fields["source_light"] is None else _text(fields["source_light"]),
         "ambient": float(fields["ambient"]),
         "light_intensity": float(fields["light_intensity"]),
+        **({"light_color": list(fields["light_color"])} if "light_color" in fields else {}),
     }
     SurfaceLayer.model_validate(layer)
     codes = stored_map(stack.tensors[gone[0].id].color)

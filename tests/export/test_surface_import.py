@@ -82,12 +82,12 @@ def test_a_surface_layer_comes_back_as_one_surface_lit_as_it_was(tmp_path, fmt, 
     ("fields", "why"),
     [
         ({"gloss": 0.6}, "codes off"),
-        ({"light_color": (1.0, 0.6, 0.3)}, "coloured"),
+        ({"light_color": (1.0, 0.6, 0.3), "source_light": "left"}, "no light fits"),
     ],
 )
 def test_a_layer_no_single_light_renders_stays_pixels_with_one_line(tmp_path, fields, why):
-    """A highlight or a coloured light is no one-light Lambert rendering: the pair stays as it was read, one
-    warning line naming the layer and why."""
+    """A highlight, or a coloured light in a relight ratio (its source white), is no one-light Lambert rendering the
+    fit reads: the pair stays as it was read, one warning line naming the layer and why."""
     made(tmp_path / "s", **fields)
     warnings: list[str] = []
     back = read_back(tmp_path, "ora", warnings)
@@ -224,3 +224,17 @@ def test_a_painted_clamp_layer_keeps_the_psd_pair_pixels(tmp_path):
             assert kinds["Shape"] == "pixels" and len(warnings) == 1 and "clamp" in warnings[0]
         else:
             assert kinds["Shape"] == "surface" and warnings == [] and clamp.name not in kinds
+
+
+@pytest.mark.parametrize("fmt", ["ora", "psd"])
+def test_a_coloured_light_comes_back_with_its_colour(tmp_path, fmt):
+    """A coloured light's shading (three channels, one light): each channel fitted, the fits agreeing on the light,
+    the layer comes back with the light, its colour within 0.01 and its intensity, rendering within 3.5 codes."""
+    original = made(tmp_path / "s", light="az=150,el=50", light_color=(1.0, 0.6, 0.3))
+    warnings: list[str] = []
+    back = read_back(tmp_path, fmt, warnings)
+    layer = next(layer for layer in back.document.layers if layer.name == "Shape")
+    assert warnings == [] and layer.kind == "surface" and layer.light == "az=150,el=50"
+    np.testing.assert_allclose(layer.light_color, (1.0, 0.6, 0.3), atol=0.01)
+    assert abs(layer.light_intensity - 1.0) < 0.01 and layer.ambient == 0.25
+    assert float((back.render().image - original.render().image).abs().max()) <= 3.5 / 255
