@@ -22,7 +22,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--as-pixels",
         action="store_true",
         help="keep a surface layer's rendered multiplier and hidden normal map as the two pixel layers the file holds "
-        "(default: made one surface layer again when its pixels are one light's rendering of the map)",
+        "(default: made one surface layer again when its pixels are its map's rendering under the light fitted to them "
+        "or named in the map's name)",
     )
     max_pixels_argument(p)
 

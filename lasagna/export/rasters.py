@@ -20,7 +20,8 @@ target cannot express exactly:
   Values above 1 are split into ⌈max y⌉ plus layers of min(max(y − k, 0), 1): additions of
   non-negative values commute with clamping at 1, so the split is exact.
 * A surface layer is written as its rendered multiplier (what it blends as), with its normal map below it as a
-  hidden normal layer "<name> (normal map)" (tangent space, +Y up), so readers flatten it as we do.
+  hidden normal layer "<name> (normal map)" (tangent space, +Y up), so readers flatten it as we do; its name carries
+  the light when the pixels cannot tell it (`lasagna.export.surface_import.map_name`).
 * A dissolve layer is written with our pattern baked into its alpha (0 or 1 per pixel, opacity 1): every
   reader then shows the same pixels (each draws its own pattern for a partial alpha).
 * Negative values, colours above 1 in normal/screen layers, ``blend_space="linear"`` and a
@@ -66,6 +67,7 @@ from lasagna.compose.plan import gradient_tensors, pattern_tensors
 from lasagna.compose.surface import layer_surface_tensors, relieved_map
 from lasagna.document import LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
+from lasagna.export.surface_import import map_name
 from lasagna.io.png import BitDepth, quantize_band
 
 # ORA/PSD blend names for our blends and the helper layers.
@@ -465,13 +467,14 @@ class _Walk:
     def normal_map(self, layer, origin) -> ExportLayer:
         """A surface layer's normal map as a hidden normal layer (tangent space, +Y up) below its rendered
         multiplier: a reader flattens the file as we do, and an artist can show or reuse the map (its relief times
-        the layer's ``relief``, so the map lights as the layer renders)."""
+        the layer's ``relief``, so the map lights as the layer renders). Its name is ``map_name``'s: what the
+        import needs to read the pair back as the layer (`lasagna.export.surface_import`)."""
         color = _numpy(relieved_map(self.stack.tensors[layer.id].color, layer.relief))
         x0, y0 = layer.offset.x + origin[0], layer.offset.y + origin[1]
         cropped = _crop(color, None, x0, y0, self.W, self.H)
         color, alpha, x, y = cropped if cropped is not None else (color[:, :1, :1], np.zeros((1, 1, 1)), 0, 0)
         return ExportLayer(
-            f"{layer.name} (normal map)",
+            map_name(layer),
             f"{NORMALS_DIR}/{layer.id}",
             "normal",
             x=x,

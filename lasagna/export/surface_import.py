@@ -20,15 +20,24 @@ map is dropped. A coloured light's shading (three channels) is fitted per channe
 when the three fits agree on it (``COLOUR_AGREE_DEG``). Otherwise — a brush stroke over the multiplier, a coloured
 relight ratio, cast shadows, a highlight, a point light, several lights — the two stay as they were read, with one
 warning line that says why: nothing is guessed.
+
+What the pixels cannot tell, the map's name does. A layer whose multiplier is not one light's Lambert rendering —
+a point light, several lights, a highlight, cast shadows, ambient occlusion, a coloured relight ratio — is written
+with its render fields after the suffix, as compact JSON (``map_name``): "Shape (normal map) {"light":"x=0.3,…",
+"shadows":0.7}". Paint programs keep a layer's name through a save, so the import reads the fields there — and
+still renders them from the file's map and keeps them only if they match the file's multiplier within
+``MATCH_TOLERANCE`` at every pixel: the name proposes, the pixels confirm.
 """
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
+import torch
 
 NORMAL_MAP_SUFFIX = " (normal map)"
 """What our writers append to a surface layer's name for its hidden normal-map layer (`lasagna.export.rasters`)."""
@@ -62,6 +71,45 @@ pixels, says nothing of the light, and a light that happens to render them is no
 SNAP_SLACK = 1.0 / 255.0
 """A rounder light (whole degrees, a named light), ambient or intensity is kept when its largest error is no more
 than this above the exact fit's."""
+SHADOW_EDGE = 0.5 / 255.0
+"""A pixel is in a cast shadow where it renders more than this below the same light unshadowed. On a shadow and a
+pixel beside it the named fields' render may take any value of its 3×3 neighbourhood: the file's 8-bit map
+integrates to heights a little off the stored map's, which can move a long shadow's soft edge by up to a pixel."""
+NAMED_FIELDS = (
+    "light",
+    "source_light",
+    "ambient",
+    "light_color",
+    "light_intensity",
+    "extra_lights",
+    "gloss",
+    "shininess",
+    "shadows",
+    "shadow_depth",
+    "occlusion",
+)
+"""The render fields a hidden map's name may carry (``map_name``); the relief is in the map itself."""
+
+
+def map_name(layer) -> str:
+    """The hidden normal map's name for surface ``layer`` (`lasagna.export.rasters`): "<name> (normal map)", and,
+    when the fit could not read its multiplier back (a point light, several lights, a highlight, cast shadows,
+    ambient occlusion, a coloured relight ratio), its non-default render fields as compact JSON after a space."""
+    from lasagna.document.condition import parse_point
+
+    plain = f"{layer.name}{NORMAL_MAP_SUFFIX}"
+    fitted = (
+        parse_point(layer.light) is None
+        and not layer.extra_lights
+        and layer.gloss == 0.0
+        and layer.shadows == 0.0
+        and layer.occlusion == 0.0
+        and (layer.source_light is None or tuple(layer.light_color) == (1.0, 1.0, 1.0))
+    )
+    if fitted:
+        return plain
+    fields = layer.model_dump(mode="json", include=set(NAMED_FIELDS), exclude_defaults=True)
+    return f"{plain} {json.dumps({k: fields[k] for k in NAMED_FIELDS if k in fields}, separators=(',', ':'))}"
 
 
 def _pairs(layers: list) -> Iterator[tuple[Any, Any, list]]:
@@ -76,7 +124,8 @@ def _pairs(layers: list) -> Iterator[tuple[Any, Any, list]]:
             and not below.visible
             and below.blend == "normal"
             and above.blend == "multiply"
-            and below.name == above.name + NORMAL_MAP_SUFFIX
+            and below.name.startswith(above.name + NORMAL_MAP_SUFFIX)
+            and below.name[len(above.name + NORMAL_MAP_SUFFIX) :][:2] in ("", " {")
         ):
             helpers = []
             for suffix, blend in ((DODGE_SUFFIX, "color-dodge"), (CLAMP_SUFFIX, "darken")):
@@ -129,6 +178,9 @@ def _surface_of(stack, multiplier, hidden, helpers: list) -> tuple[str, dict | N
     clamp = next((h for h in helpers if h.blend == "darken"), None)
     if clamp is not None and not bool((stack.tensors[clamp.id].color == 1).all()):
         return "its white clamp layer was painted on", None  # dropped only while it is the identity it was written as
+    note = hidden.name[len(multiplier.name + NORMAL_MAP_SUFFIX) :].strip()
+    if note:
+        return _named(n_t.color, note, m)
     coloured = m.shape[0] == 3 and not (np.abs(m - m[:1]).max() <= MATCH_TOLERANCE)
     m = m if coloured else m.mean(0, keepdims=True)  # (C, h, w): three channels for a coloured light, else one
     from lasagna.compose.surface import decode_normal_map
@@ -156,7 +208,56 @@ def _surface_of(stack, multiplier, hidden, helpers: list) -> tuple[str, dict | N
             f"the best light's render is {(least if err is None else err) * 255:.1f} codes off (paint over it, cast "
             "shadows, a highlight, a point light or several lights)"
         ), None
-    return "", chosen
+    return "", {
+        "light": _text(chosen["light"]),
+        "source_light": None if chosen["source_light"] is None else _text(chosen["source_light"]),
+        "ambient": float(chosen["ambient"]),
+        "light_intensity": float(chosen["light_intensity"]),
+        **({"light_color": list(chosen["light_color"])} if "light_color" in chosen else {}),
+    }
+
+
+def _named(codes, note: str, m: np.ndarray) -> tuple[str, dict | None]:
+    """(why not, None) or ("", the layer's render fields) for a map whose name carries them (``map_name``): kept
+    when the layer they make, rendered from the file's map by the compositor's own path, matches the file's
+    multiplier ``m`` (C, h, w) within ``MATCH_TOLERANCE`` at every pixel."""
+    from pydantic import ValidationError
+
+    from lasagna.compose.layer import LayerTensors
+    from lasagna.compose.surface import layer_surface_tensors
+    from lasagna.document import SurfaceLayer
+    from lasagna.errors import LasagnaError
+
+    try:
+        fields = json.loads(note)
+    except ValueError:
+        fields = None
+    if not isinstance(fields, dict) or "light" not in fields or not set(fields) <= set(NAMED_FIELDS):
+        return f"its map's name ends in {note[:60]!r}, not the light fields `lasagna export` writes", None
+    try:
+        layer = SurfaceLayer.model_validate({"id": "named", "source": "named.png", "blend": "multiply", **fields})
+        rendered = layer_surface_tensors(LayerTensors(codes, None, None), layer)[0].color
+    except (ValidationError, LasagnaError) as e:
+        return f"its map's name holds light fields no surface layer takes ({str(e).splitlines()[0]})", None
+    r = rendered.double().numpy()
+    lo = hi = r
+    if layer.shadows > 0.0:  # a shadow may move a pixel: on and beside it, any value its 3×3 neighbourhood renders
+        unshadowed = layer_surface_tensors(LayerTensors(codes, None, None), layer.model_copy(update={"shadows": 0.0}))
+        shadowed = torch.from_numpy(np.abs(unshadowed[0].color.double().numpy() - r).max(0) > SHADOW_EDGE)
+        near = _pool(shadowed.double()[None, None]).numpy()[0] > 0
+        lo = np.where(near, -_pool(-torch.from_numpy(r)[None]).numpy()[0], r)
+        hi = np.where(near, _pool(torch.from_numpy(r)[None]).numpy()[0], r)
+    err = float((np.maximum(np.maximum(lo - m, m - hi), 0.0) / np.maximum(1.0, m) ** 2).max())
+    if err > MATCH_TOLERANCE:
+        return f"its render under the light its map's name gives is {err * 255:.1f} codes off (paint over it)", None
+    return "", layer.model_dump(mode="json", include=set(NAMED_FIELDS))
+
+
+def _pool(x: torch.Tensor) -> torch.Tensor:
+    """The 3×3 neighbourhood maximum of (B, C, h, w) ``x``, edges replicated."""
+    import torch.nn.functional as F
+
+    return F.max_pool2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
 
 
 def _fit_shading(n: np.ndarray, m: np.ndarray) -> dict | None:
@@ -368,7 +469,7 @@ def _error(codes, fields: dict, m: np.ndarray) -> float | None:
 
 def _swap(stack, multiplier, gone: list, fields: dict) -> None:
     """The multiplier replaced in ``stack`` by one surface layer of the map's normals (``gone[0]``, the hidden map)
-    under ``fields``' light; the map and the helpers removed."""
+    with the render ``fields`` (the layer's own names and values); the map and the helpers removed."""
     from lasagna.compose.layer import LayerTensors
     from lasagna.document import SurfaceLayer
     from lasagna.io.stack import stored_map
@@ -383,11 +484,7 @@ def _swap(stack, multiplier, gone: list, fields: dict) -> None:
         "offset": {"x": multiplier.offset.x, "y": multiplier.offset.y},
         "clip": multiplier.clip,
         "source": f"layers/{multiplier.id}.png",
-        "light": _text(fields["light"]),
-        "source_light": None if fields["source_light"] is None else _text(fields["source_light"]),
-        "ambient": float(fields["ambient"]),
-        "light_intensity": float(fields["light_intensity"]),
-        **({"light_color": list(fields["light_color"])} if "light_color" in fields else {}),
+        **fields,
     }
     SurfaceLayer.model_validate(layer)
     codes = stored_map(stack.tensors[gone[0].id].color)
@@ -401,4 +498,4 @@ def _swap(stack, multiplier, gone: list, fields: dict) -> None:
     stack.bit_depths[multiplier.id] = 16
 
 
-__all__ = ["MATCH_TOLERANCE", "NORMAL_MAP_SUFFIX", "restore_surfaces"]
+__all__ = ["MATCH_TOLERANCE", "NORMAL_MAP_SUFFIX", "map_name", "restore_surfaces"]

@@ -426,10 +426,12 @@ def test_gimp_flattens_a_surface_layer(tmp_path):
 )
 def test_a_surface_layer_survives_krita_saving_the_ora(tmp_path):
     """Krita opens our ORA and saves it as its own (its file names, its stack.xml, the dodge half a layer of its
-    own): read back, the relight ratio over its hidden normal map is one surface layer again, lit as it was."""
+    own): read back, the relight ratio over its hidden normal map is one surface layer again, lit as it was, and so
+    is a shadow-casting point light, whose fields Krita kept in its map's name."""
     from lasagna.export import import_ora
 
     folder, _ = _surface_stack(tmp_path / "stack")
+    lamp = _with_a_lamp(folder)
     assert main(["export", str(folder), "--ora", str(tmp_path / "in.ora")]) == 0
     proc = _krita_flatten(tmp_path / "in.ora", tmp_path / "krita.ora")
     assert (tmp_path / "krita.ora").is_file(), proc.stdout[-2000:] + proc.stderr[-2000:]
@@ -438,8 +440,9 @@ def test_a_surface_layer_survives_krita_saving_the_ora(tmp_path):
     warnings: list[str] = []
     back = import_ora(tmp_path / "krita.ora", warn=warnings.append)
     surfaces = [layer for layer in back.document.layers if layer.kind == "surface"]
-    assert warnings == [] and len(surfaces) == 1
+    assert warnings == [] and len(surfaces) == 2
     assert (surfaces[0].name, surfaces[0].light, surfaces[0].source_light) == ("shape", "az=10,el=55", "left")
+    assert surfaces[1].name == "Lamp" and surfaces[1].model_dump(mode="json", include=set(lamp)) == lamp
     from lasagna.io.stack import load_stack
 
     original = load_stack(folder)
@@ -447,15 +450,32 @@ def test_a_surface_layer_survives_krita_saving_the_ora(tmp_path):
     assert float(err) <= 3.5 / 255
 
 
+def _with_a_lamp(folder: Path) -> dict:
+    """``_surface_stack``'s folder with a second surface layer no one-light fit reads (a point light casting
+    shadows, with a highlight): its map's name carries its fields. Returns them."""
+    from lasagna.compose.surface import normals_from_height
+    from lasagna.io.stack import load_stack
+
+    stack = load_stack(folder)
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, 32), torch.linspace(-1.5, 1.5, 48), indexing="ij")
+    height = (0.5 * torch.exp(-((xx - 0.5) ** 2 + yy**2) * 4))[None, None]
+    stack.add_surface("lamp", normals_from_height(height)[0], "x=0.1,y=0.2,z=0.3", name="Lamp")
+    stack.set_light("lamp", "x=0.1,y=0.2,z=0.3", shadows=0.8, shadow_depth=2.0, gloss=0.3)
+    stack.save(folder)
+    return stack.document.layer("lamp").model_dump(mode="json", include={"light", "shadows", "shadow_depth", "gloss"})
+
+
 @pytest.mark.gimp
 @pytest.mark.skipif(not GIMP, reason="gimp is not installed (apt-get install gimp)")
 def test_a_surface_layer_survives_gimp_saving_the_psd(tmp_path):
     """GIMP opens our PSD and saves it as its own: read back, the relight ratio (multiply, colour dodge and the
-    white clamp, over the hidden normal map) is one surface layer again, lit as it was."""
+    white clamp, over the hidden normal map) is one surface layer again, lit as it was, and so is a shadow-casting
+    point light, whose fields GIMP kept in its map's name."""
     from lasagna.export.psd_import import read_psd
     from lasagna.io.stack import load_stack
 
     folder, _ = _surface_stack(tmp_path / "stack")
+    lamp = _with_a_lamp(folder)
     assert main(["export", str(folder), "--psd", str(tmp_path / "in.psd")]) == 0
     out = tmp_path / "gimp.psd"
     script = (
@@ -473,8 +493,9 @@ def test_a_surface_layer_survives_gimp_saving_the_psd(tmp_path):
     warnings: list[str] = []
     back = read_psd(out, warn=warnings.append)
     surfaces = [layer for layer in back.document.layers if layer.kind == "surface"]
-    assert warnings == [] and len(surfaces) == 1
+    assert warnings == [] and len(surfaces) == 2
     assert (surfaces[0].name, surfaces[0].light, surfaces[0].source_light) == ("shape", "az=10,el=55", "left")
+    assert surfaces[1].name == "Lamp" and surfaces[1].model_dump(mode="json", include=set(lamp)) == lamp
     err = (back.render().image - load_stack(folder).render().image).abs().max()
     assert float(err) <= 3.5 / 255
 

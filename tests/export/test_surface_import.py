@@ -18,7 +18,7 @@ from lasagna.compose.surface import normals_from_height
 from lasagna.document.condition import unit_vector
 from lasagna.export import import_ora
 from lasagna.export.psd_import import read_psd
-from lasagna.export.surface_import import restore_surfaces
+from lasagna.export.surface_import import NAMED_FIELDS, map_name, restore_surfaces
 from lasagna.io.stack import Stack, load_stack
 
 
@@ -78,22 +78,148 @@ def test_a_surface_layer_comes_back_as_one_surface_lit_as_it_was(tmp_path, fmt, 
     assert load_stack(tmp_path / "again").document.layer(layer.id).kind == "surface"
 
 
-@pytest.mark.parametrize(
-    ("fields", "why"),
-    [
-        ({"gloss": 0.6}, "codes off"),
-        ({"light_color": (1.0, 0.6, 0.3), "source_light": "left"}, "no light fits"),
-    ],
-)
-def test_a_layer_no_single_light_renders_stays_pixels_with_one_line(tmp_path, fields, why):
-    """A highlight, or a coloured light in a relight ratio (its source white), is no one-light Lambert rendering the
-    fit reads: the pair stays as it was read, one warning line naming the layer and why."""
-    made(tmp_path / "s", **fields)
+def made_with(folder, light: str, source_light: str | None = None, **fields) -> Stack:
+    """``made``'s stack with any of the layer's render fields (``Stack.set_light``'s)."""
+    torch.manual_seed(5)
+    stack = Stack.from_image((torch.rand(3, 48, 64) * 200 + 40).to(torch.uint8))
+    stack.add_surface("shape", bump(), light, source_light=source_light, name="Shape", offset=(0, 0))
+    stack.set_light("shape", light, **fields)
+    stack.save(folder)
+    return stack
+
+
+# Layers no one-light Lambert fit reads back: their map's name carries the fields (`map_name`).
+NAMED = {
+    "shadows": {"light": "az=120,el=35", "shadows": 0.7, "shadow_depth": 3.0},
+    "occlusion": {"light": "az=120,el=55", "occlusion": 0.8},
+    "gloss": {"light": "az=120,el=55", "gloss": 0.6, "shininess": 12.0},
+    "point light": {"light": "x=0.3,y=0.4,z=0.5"},
+    "two lights": {"light": "az=120,el=55", "extra_lights": [{"light": "left", "intensity": 0.5}]},
+    "coloured ratio": {"light": "az=10,el=40", "source_light": "left", "light_color": (1.0, 0.6, 0.3)},
+    "shadowed ratio": {"light": "az=10,el=35", "source_light": "left", "shadows": 0.8, "shadow_depth": 3.0},
+}
+
+
+def _fields(layer) -> dict:
+    return layer.model_dump(mode="json", include=set(NAMED_FIELDS))
+
+
+@pytest.mark.parametrize("fmt", ["ora", "psd"])
+@pytest.mark.parametrize("case", list(NAMED))
+def test_a_layer_the_fit_cannot_read_comes_back_by_its_maps_name(tmp_path, fmt, case):
+    """Shadows, occlusion, a highlight, a point light, two lights, a coloured or a shadowed relight ratio: the file's
+    multiplier is no one-light Lambert rendering (it differs from the best one by more than the match tolerance), so
+    the hidden map's name carries the layer's render fields; read back, the pair is one surface layer with every
+    field as it was, rendering as the original (`assert_alike`), and re-lit it follows the original re-lit."""
+    original = made_with(tmp_path / "s", **NAMED[case])
+    layer = original.document.layer("shape")
+    assert map_name(layer).startswith("Shape (normal map) {")
+    warnings: list[str] = []
+    back = read_back(tmp_path, fmt, warnings)
+    assert warnings == []
+    got = next(layer for layer in back.document.layers if layer.name == "Shape")
+    assert got.kind == "surface" and _fields(got) == _fields(layer)
+    assert not any("(normal map)" in other.name for other in back.document.layers)
+    assert_alike(back, got.id, original)
+    back.set_light(got.id, "az=300,el=50")
+    original.set_light("shape", "az=300,el=50")
+    assert_alike(back, got.id, original)
+    back.save(tmp_path / "again")
+    assert _fields(load_stack(tmp_path / "again").document.layer(got.id)) == _fields(back.document.layer(got.id))
+
+
+@pytest.mark.parametrize("case", list(NAMED))
+def test_without_its_name_the_fit_does_not_read_such_a_layer(tmp_path, case):
+    """The same files with the fields cut from the map's name: the pixels are no one-light Lambert rendering, so the
+    pair stays pixels with one line — what a named layer gives back is the name's, confirmed, not the fit's."""
+    made_with(tmp_path / "s", **NAMED[case])
+    assert main(["export", str(tmp_path / "s"), "--ora", str(tmp_path / "s.ora")]) == 0
+    stack = import_ora(tmp_path / "s.ora", surfaces=False)
+    hidden = next(layer for layer in stack.document.layers if layer.name.startswith("Shape (normal map) {"))
+    renamed = [
+        layer.model_copy(update={"name": "Shape (normal map)"}) if layer.id == hidden.id else layer
+        for layer in stack.document.layers
+    ]
+    stack.document = stack.document.model_copy(update={"layers": renamed})
+    warnings: list[str] = []
+    restore_surfaces(stack, warnings.append, "test")
+    assert len(warnings) == 1 and "'Shape'" in warnings[0]
+    assert {layer.name: layer.kind for layer in stack.document.layers}["Shape"] == "pixels"
+
+
+def assert_alike(back: Stack, id: str, original: Stack) -> None:
+    """The surface layer ``id`` read back renders the original's multiplier y within 3.5 codes × max(1, y)² (the
+    import's steps) away from its cast shadows, and on them and a pixel beside them within that of the range the
+    original renders over the pixel's 3×3 neighbourhood: the file's 8-bit map integrates to heights a little off the
+    stored map's, so a shadow's soft edge may move by up to a pixel. The multipliers, not the composites: the base's
+    noise apart."""
+    from lasagna.compose.surface import layer_surface_tensors
+
+    layer = original.document.layer("shape")
+    was = layer_surface_tensors(original.tensors["shape"], layer)[0].color
+    flat = layer_surface_tensors(original.tensors["shape"], layer.model_copy(update={"shadows": 0.0}))[0].color
+    pool = torch.nn.functional.max_pool2d
+    near = pool(((flat - was).abs() > 0.5 / 255).amax(0, keepdim=True).double()[None], 3, 1, 1)[0, 0] > 0
+    now = layer_surface_tensors(back.tensors[id], back.document.layer(id))[0].color
+    steps = was.clamp_min(1.0) ** 2  # a ratio above 1 is a multiply and colour-dodge pair: steps grow as y²
+    assert float(((now - was).abs() / steps).amax(0)[~near].max()) <= 3.5 / 255
+    padded = torch.nn.functional.pad(was[None], (1, 1, 1, 1), mode="replicate")
+    hi, lo = pool(padded, 3, 1)[0], -pool(-padded, 3, 1)[0]
+    outside = (torch.maximum(lo - now, now - hi).clamp_min(0) / steps).amax(0)
+    assert not bool(near.any()) or float(outside[near].max()) <= 3.5 / 255
+
+
+def test_a_deep_shadows_edge_may_move_a_pixel(tmp_path):
+    """A deep relief with long shadows: the file's 8-bit map integrates to heights a little off the stored map's,
+    and a shadow's soft edge moves (more than ten codes at a pixel). The layer still comes back, its shadow at most a
+    pixel from the original's (`assert_alike`)."""
+    original = made_with(tmp_path / "s", "az=120,el=60", shadows=1.0, shadow_depth=3.0, relief=1.5)
     warnings: list[str] = []
     back = read_back(tmp_path, "ora", warnings)
+    got = next(layer for layer in back.document.layers if layer.name == "Shape")
+    assert warnings == [] and got.kind == "surface" and got.shadows == 1.0 and got.relief == 1.0  # relief in map
+    assert float((back.render().image - original.render().image).abs().max()) > 10 / 255  # an edge did move
+    assert_alike(back, got.id, original)
+
+
+@pytest.mark.parametrize(
+    ("note", "why"),
+    [
+        ("{nonsense", "not the light fields"),
+        ('{"light":"left","colour":"red"}', "not the light fields"),
+        ('{"light":"left","shadows":2}', "no surface layer takes"),
+        ('{"light":"left","shadows":0.3}', "codes off"),
+    ],
+)
+def test_a_map_name_that_is_not_ours_keeps_the_pair_pixels(tmp_path, note, why):
+    """A name that holds no fields we wrote, fields no layer takes, or a light whose render is not the file's
+    multiplier (here the pixels were rendered under another light): one line naming the layer and why."""
+    made_with(tmp_path / "s", "az=120,el=60", shadows=0.7, shadow_depth=3.0)
+    assert main(["export", str(tmp_path / "s"), "--ora", str(tmp_path / "s.ora")]) == 0
+    stack = import_ora(tmp_path / "s.ora", surfaces=False)
+    renamed = [
+        layer.model_copy(update={"name": f"Shape (normal map) {note}"}) if layer.name.startswith("Shape (") else layer
+        for layer in stack.document.layers
+    ]
+    stack.document = stack.document.model_copy(update={"layers": renamed})
+    warnings: list[str] = []
+    restore_surfaces(stack, warnings.append, "test")
     assert len(warnings) == 1 and "'Shape'" in warnings[0] and why in warnings[0]
-    kinds = {layer.name: layer.kind for layer in back.document.layers}
-    assert kinds["Shape"] == "pixels" and kinds["Shape (normal map)"] == "pixels"
+    assert {layer.name: layer.kind for layer in stack.document.layers}["Shape"] == "pixels"
+
+
+def test_paint_over_a_named_layer_keeps_it_pixels(tmp_path):
+    """A stroke ten codes bright over a shadowed layer's multiplier (its map's name intact): the pair stays pixels."""
+    made_with(tmp_path / "s", "az=120,el=60", shadows=0.7, shadow_depth=3.0)
+    assert main(["export", str(tmp_path / "s"), "--ora", str(tmp_path / "s.ora")]) == 0
+    stack = import_ora(tmp_path / "s.ora", surfaces=False)
+    shape = next(layer for layer in stack.document.layers if layer.name == "Shape")
+    stack.tensors[shape.id].color[:, 20:30, 20:30] = (stack.tensors[shape.id].color[:, 20:30, 20:30] - 10 / 255).clamp(
+        min=0
+    )
+    warnings: list[str] = []
+    restore_surfaces(stack, warnings.append, "test")
+    assert len(warnings) == 1 and "codes off (paint over it)" in warnings[0]
 
 
 def test_paint_over_the_multiplier_keeps_it_pixels(tmp_path):
