@@ -75,6 +75,9 @@ SHADOW_EDGE = 0.5 / 255.0
 """A pixel is in a cast shadow where it renders more than this below the same light unshadowed. On a shadow and a
 pixel beside it the named fields' render may take any value of its 3×3 neighbourhood: the file's 8-bit map
 integrates to heights a little off the stored map's, which can move a long shadow's soft edge by up to a pixel."""
+CUT_NAME = 255
+"""GIMP saves a PSD layer's name cut to this many characters (the Pascal string's limit; Krita and Photoshop's
+Unicode name keep more): fields that need a longer name (many extra lights) do not survive GIMP."""
 NAMED_FIELDS = (
     "light",
     "source_light",
@@ -180,7 +183,7 @@ def _surface_of(stack, multiplier, hidden, helpers: list) -> tuple[str, dict | N
         return "its white clamp layer was painted on", None  # dropped only while it is the identity it was written as
     note = hidden.name[len(multiplier.name + NORMAL_MAP_SUFFIX) :].strip()
     if note:
-        return _named(n_t.color, note, m)
+        return _named(n_t.color, hidden.name, note, m)
     coloured = m.shape[0] == 3 and not (np.abs(m - m[:1]).max() <= MATCH_TOLERANCE)
     m = m if coloured else m.mean(0, keepdims=True)  # (C, h, w): three channels for a coloured light, else one
     from lasagna.compose.surface import decode_normal_map
@@ -217,7 +220,7 @@ def _surface_of(stack, multiplier, hidden, helpers: list) -> tuple[str, dict | N
     }
 
 
-def _named(codes, note: str, m: np.ndarray) -> tuple[str, dict | None]:
+def _named(codes, name: str, note: str, m: np.ndarray) -> tuple[str, dict | None]:
     """(why not, None) or ("", the layer's render fields) for a map whose name carries them (``map_name``): kept
     when the layer they make, rendered from the file's map by the compositor's own path, matches the file's
     multiplier ``m`` (C, h, w) within ``MATCH_TOLERANCE`` at every pixel."""
@@ -233,6 +236,8 @@ def _named(codes, note: str, m: np.ndarray) -> tuple[str, dict | None]:
     except ValueError:
         fields = None
     if not isinstance(fields, dict) or "light" not in fields or not set(fields) <= set(NAMED_FIELDS):
+        if fields is None and len(name) == CUT_NAME:
+            return f"its map's name was cut at {CUT_NAME} characters (GIMP's limit) inside its light fields", None
         return f"its map's name ends in {note[:60]!r}, not the light fields `lasagna export` writes", None
     try:
         layer = SurfaceLayer.model_validate({"id": "named", "source": "named.png", "blend": "multiply", **fields})

@@ -208,6 +208,26 @@ def test_a_map_name_that_is_not_ours_keeps_the_pair_pixels(tmp_path, note, why):
     assert {layer.name: layer.kind for layer in stack.document.layers}["Shape"] == "pixels"
 
 
+def test_a_name_cut_at_255_characters_says_so(tmp_path):
+    """Eight extra lights need a 600-character name; GIMP saves a PSD's names cut at 255: the pair stays pixels and
+    the line says the name was cut (the PSD written by us keeps the whole name in its Unicode block)."""
+    extras = [{"light": f"az={30 * i},el=50", "intensity": 0.1, "color": [1.0, 0.9, 0.8]} for i in range(8)]
+    made_with(tmp_path / "s", "az=120,el=35", extra_lights=extras)
+    back = read_back(tmp_path, "psd", [])
+    assert next(layer for layer in back.document.layers if layer.name == "Shape").kind == "surface"
+    stack = read_psd(tmp_path / "s.psd", surfaces=False)
+    hidden = next(layer for layer in stack.document.layers if layer.name.startswith("Shape (normal map) {"))
+    assert len(hidden.name) > 255
+    renamed = [
+        layer.model_copy(update={"name": layer.name[:255]}) if layer.id == hidden.id else layer
+        for layer in stack.document.layers
+    ]
+    stack.document = stack.document.model_copy(update={"layers": renamed})
+    warnings: list[str] = []
+    restore_surfaces(stack, warnings.append, "test")
+    assert len(warnings) == 1 and "cut at 255 characters" in warnings[0]
+
+
 def test_paint_over_a_named_layer_keeps_it_pixels(tmp_path):
     """A stroke ten codes bright over a shadowed layer's multiplier (its map's name intact): the pair stays pixels."""
     made_with(tmp_path / "s", "az=120,el=60", shadows=0.7, shadow_depth=3.0)
