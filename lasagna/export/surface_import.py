@@ -233,7 +233,7 @@ def _named(codes, name: str, note: str, m: np.ndarray) -> tuple[str, dict | None
 
     try:
         fields = json.loads(note)
-    except ValueError:
+    except (ValueError, RecursionError):  # a hostile name may nest deeper than the parser recurses
         fields = None
     if not isinstance(fields, dict) or "light" not in fields or not set(fields) <= set(NAMED_FIELDS):
         if fields is None and len(name) == CUT_NAME:

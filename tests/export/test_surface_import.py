@@ -186,6 +186,7 @@ def test_a_deep_shadows_edge_may_move_a_pixel(tmp_path):
     ("note", "why"),
     [
         ("{nonsense", "not the light fields"),
+        ('{"light":' + "[" * 100_000, "not the light fields"),  # deeper than json's recursion
         ('{"light":"left","colour":"red"}', "not the light fields"),
         ('{"light":"left","shadows":2}', "no surface layer takes"),
         ('{"light":"left","shadows":0.3}', "codes off"),
