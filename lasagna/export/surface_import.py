@@ -73,8 +73,10 @@ SNAP_SLACK = 1.0 / 255.0
 than this above the exact fit's."""
 SHADOW_EDGE = 0.5 / 255.0
 """A pixel is in a cast shadow where it renders more than this below the same light unshadowed. On a shadow and a
-pixel beside it the named fields' render may take any value of its 3×3 neighbourhood: the file's 8-bit map
-integrates to heights a little off the stored map's, which can move a long shadow's soft edge by up to a pixel."""
+pixel beside it the named fields' render may take any value of its 3×3 neighbourhood that a shadow could give the
+pixel itself — between (1 − s)·u and u, u its unshadowed render, s the layer's ``shadows`` (the shadow factor
+1 − s·(1 − V) scales each light's direct term, never the ambient): the file's 8-bit map integrates to heights a
+little off the stored map's, which can move a long shadow's soft edge by up to a pixel."""
 CUT_NAME = 255
 """GIMP saves a PSD layer's name cut to this many characters (the Pascal string's limit; Krita and Photoshop's
 Unicode name keep more): fields that need a longer name (many extra lights) do not survive GIMP."""
@@ -246,12 +248,13 @@ def _named(codes, name: str, note: str, m: np.ndarray) -> tuple[str, dict | None
         return f"its map's name holds light fields no surface layer takes ({str(e).splitlines()[0]})", None
     r = rendered.double().numpy()
     lo = hi = r
-    if layer.shadows > 0.0:  # a shadow may move a pixel: on and beside it, any value its 3×3 neighbourhood renders
+    if layer.shadows > 0.0:  # a shadow may move a pixel: on and beside it, a value of its 3×3 neighbourhood
         unshadowed = layer_surface_tensors(LayerTensors(codes, None, None), layer.model_copy(update={"shadows": 0.0}))
-        shadowed = torch.from_numpy(np.abs(unshadowed[0].color.double().numpy() - r).max(0) > SHADOW_EDGE)
-        near = _pool(shadowed.double()[None, None]).numpy()[0] > 0
-        lo = np.where(near, -_pool(-torch.from_numpy(r)[None]).numpy()[0], r)
-        hi = np.where(near, _pool(torch.from_numpy(r)[None]).numpy()[0], r)
+        u = unshadowed[0].color.double().numpy()
+        near = _pool(torch.from_numpy(np.abs(u - r).max(0) > SHADOW_EDGE).double()[None, None]).numpy()[0] > 0
+        # ... which a shadow could give the pixel itself: between (1 − s)·u (every light hidden) and u (none hidden)
+        lo = np.where(near, np.maximum(-_pool(-torch.from_numpy(r)[None]).numpy()[0], (1.0 - layer.shadows) * u), r)
+        hi = np.where(near, np.minimum(_pool(torch.from_numpy(r)[None]).numpy()[0], u), r)
     err = float((np.maximum(np.maximum(lo - m, m - hi), 0.0) / np.maximum(1.0, m) ** 2).max())
     if err > MATCH_TOLERANCE:
         return f"its render under the light its map's name gives is {err * 255:.1f} codes off (paint over it)", None

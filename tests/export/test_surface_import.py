@@ -229,6 +229,21 @@ def test_a_name_cut_at_255_characters_says_so(tmp_path):
     assert len(warnings) == 1 and "cut at 255 characters" in warnings[0]
 
 
+def test_a_shadows_slack_takes_only_what_a_shadow_could_render():
+    """A 2×2 map whose render spans four orders of magnitude (a relight ratio at ambient 10⁻⁴) with random pixels over
+    it: every pixel is beside a shadow, and the neighbourhood's values span the pixels' — but no shadow brightens, and
+    none darkens a pixel below (1 − s) of its unshadowed render, so the pair stays pixels (it was taken before the
+    slack was bounded so)."""
+    torch.manual_seed(2)
+    stack = Stack.from_image(torch.full((3, 2, 2), 0.5))
+    note = '{"light":"left","source_light":"right","ambient":0.0001,"shadows":1}'
+    stack.add_layer("map", torch.rand(3, 2, 2), name=f"S (normal map) {note}", visible=False)
+    stack.add_layer("s", torch.rand(1, 2, 2), name="S", blend="multiply")
+    warnings: list[str] = []
+    restore_surfaces(stack, warnings.append, "test")
+    assert stack.document.layer("s").kind == "pixels" and len(warnings) == 1 and "codes off" in warnings[0]
+
+
 def test_paint_over_a_named_layer_keeps_it_pixels(tmp_path):
     """A stroke ten codes bright over a shadowed layer's multiplier (its map's name intact): the pair stays pixels."""
     made_with(tmp_path / "s", "az=120,el=60", shadows=0.7, shadow_depth=3.0)
