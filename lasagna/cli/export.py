@@ -13,6 +13,7 @@ HELP = "export a stack as OpenRaster, PSD and/or per-layer PNGs"
 EXAMPLE = (
     "lasagna export examples/stacks/basic --ora out.ora --psd out.psd --layers out/layers",
     "lasagna export out/photo --normal-map photo-normals.png   # a surface layer's normal map",
+    "lasagna export out/photo --normal-map photo-normals-dx.png --directx   # the same, +Y down (Unreal)",
     "lasagna export out/photo --height-map photo-heights.png   # and its heights (a displacement map)",
     "lasagna export out/photo --occlusion-map photo-ao.png     # and its ambient occlusion (an AO map)",
 )
@@ -28,6 +29,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="PNG",
         help="write a surface layer's normal map (16-bit RGB, tangent space, +Y up: the OpenGL convention of "
         "Blender, Krita and Godot), on the canvas, for a game or 2D-lighting engine",
+    )
+    p.add_argument(
+        "--directx",
+        action="store_true",
+        help="write --normal-map +Y down instead (DirectX: green flipped, as Unreal and Substance's DirectX preset "
+        "read it; `lasagna add-surface --directx` reads it back)",
     )
     p.add_argument(
         "--height-map",
@@ -67,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
             "--surface names the layer --normal-map, --height-map or --occlusion-map writes; expected one of them too",
             "--surface",
         )
+    if args.directx and not args.normal_map:
+        raise LasagnaError("--directx is the convention --normal-map writes in; expected --normal-map too", "--directx")
     for path in (args.ora, args.psd, *maps):
         if path:
             check_writable(path)
@@ -104,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
     if args.normal_map:
         from lasagna.export.png import normal_map_png
 
-        outputs.append((Path(args.normal_map), normal_map_png(stack, args.surface)))
+        outputs.append((Path(args.normal_map), normal_map_png(stack, args.surface, directx=args.directx)))
     peak = None
     if args.height_map:
         from lasagna.export.png import height_map_png

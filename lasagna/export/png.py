@@ -124,13 +124,18 @@ def export_layer_pngs(stack, folder: str | os.PathLike, *, clip: bool = False) -
     return atomic_write_all(outputs)
 
 
-def normal_map_png(stack, layer_id: str | None = None) -> bytes:
+def normal_map_png(stack, layer_id: str | None = None, *, directx: bool = False) -> bytes:
     """PNG bytes of surface layer ``layer_id``'s normal map (default: the topmost surface layer) on the canvas:
     16-bit RGB, tangent space, n ↦ (n + 1)/2 with +Y up (the OpenGL convention Blender, Krita's tangent-normal
-    brush and Godot's ``CanvasTexture.normal_texture`` read; flip green for DirectX). Outside the layer, and
-    where its mask or alpha is 0, the map holds the flat normal (0.5, 0.5, 1.0). The relief is the layer's
-    (``relief`` ≠ 1: the stored map deepened, `compose.surface.relieved_map`), so it lights as the layer renders."""
+    brush and Godot's ``CanvasTexture.normal_texture`` read) or, with ``directx``, +Y down: green g ↦ 1 − g, the
+    DirectX convention of Unreal and Substance's DirectX preset (a 16-bit code k becomes 65535 − k exactly). Outside
+    the layer, and where its mask or alpha is 0, the map holds the flat normal (0.5, 0.5, 1.0). The relief is the
+    layer's (``relief`` ≠ 1: the stored map deepened, `compose.surface.relieved_map`), so it lights as the layer
+    renders."""
     layer, codes = canvas_normal_map(stack, layer_id)
+    if directx:
+        codes = codes.copy()
+        codes[1] = 1.0 - codes[1]
     return encode_png(codes, bit_depth=16, where=f"layer {layer.id!r} normal map")
 
 

@@ -201,6 +201,34 @@ def test_export_normal_map_is_the_stored_map_on_the_canvas(stack, tmp_path, caps
     assert "no surface layer 'base'; expected one of shape" in capsys.readouterr().err
 
 
+def test_export_normal_map_directx_flips_green_and_reads_back(stack, tmp_path, capsys):
+    """``--directx`` writes the map +Y down: red and blue the OpenGL map's codes, green 65535 − its code, exactly;
+    ``lasagna add-surface --directx`` reads it back to the layer the OpenGL map gives, bit for bit (within a 16-bit
+    code of the original: add-surface's float32 normals). ``--directx`` alone is one line and exit 2."""
+    from lasagna.cli import main
+
+    stack.save(tmp_path / "s")
+    assert main(["export", str(tmp_path / "s"), "--normal-map", str(tmp_path / "gl.png")]) == 0
+    assert main(["export", str(tmp_path / "s"), "--normal-map", str(tmp_path / "dx.png"), "--directx"]) == 0
+
+    def codes(path):
+        w, h, rows, _ = png.Reader(filename=str(path)).read()
+        return np.array([list(r) for r in rows], dtype=np.int64).reshape(h, w, 3)
+
+    gl, dx = codes(tmp_path / "gl.png"), codes(tmp_path / "dx.png")
+    np.testing.assert_array_equal(dx[..., [0, 2]], gl[..., [0, 2]])
+    np.testing.assert_array_equal(dx[..., 1], 65535 - gl[..., 1])
+    assert main(["add-surface", str(tmp_path / "s"), str(tmp_path / "dx.png"), "--id", "dx", "--directx"]) == 0
+    assert main(["add-surface", str(tmp_path / "s"), str(tmp_path / "gl.png"), "--id", "gl"]) == 0
+    back = load_stack(tmp_path / "s")
+    np.testing.assert_array_equal(back.tensors["dx"].color.numpy(), back.tensors["gl"].color.numpy())
+    assert float((back.tensors["dx"].color - back.tensors["shape"].color).abs().max()) <= 1 / 65535  # float32 normals
+    capsys.readouterr()
+    assert main(["export", str(tmp_path / "s"), "--directx", "--ora", str(tmp_path / "x.ora")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--directx is the convention --normal-map writes in" in err[0]
+
+
 def read_grey16(path) -> np.ndarray:
     w, h, rows, info = png.Reader(filename=str(path)).read()
     assert info["bitdepth"] == 16 and info["planes"] == 1
