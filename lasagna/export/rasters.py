@@ -471,10 +471,13 @@ class _Walk:
         import needs to read the pair back as the layer (`lasagna.export.surface_import`)."""
         color = _numpy(relieved_map(self.stack.tensors[layer.id].color, layer.relief))
         x0, y0 = layer.offset.x + origin[0], layer.offset.y + origin[1]
+        full_h, full_w = color.shape[1:]
         cropped = _crop(color, None, x0, y0, self.W, self.H)
         color, alpha, x, y = cropped if cropped is not None else (color[:, :1, :1], np.zeros((1, 1, 1)), 0, 0)
+        h, w = color.shape[1:]
+        window = None if (h, w) == (full_h, full_w) else (x - x0, y - y0, w, h, full_w, full_h)
         return ExportLayer(
-            map_name(layer),
+            map_name(layer, window),
             f"{NORMALS_DIR}/{layer.id}",
             "normal",
             x=x,

@@ -96,10 +96,13 @@ NAMED_FIELDS = (
 """The render fields a hidden map's name may carry (``map_name``); the relief is in the map itself."""
 
 
-def map_name(layer) -> str:
+def map_name(layer, window: tuple[int, int, int, int, int, int] | None = None) -> str:
     """The hidden normal map's name for surface ``layer`` (`lasagna.export.rasters`): "<name> (normal map)", and,
     when the fit could not read its multiplier back (a point light, several lights, a highlight, cast shadows,
-    ambient occlusion, a coloured relight ratio), its non-default render fields as compact JSON after a space."""
+    ambient occlusion, a coloured relight ratio), its non-default render fields as compact JSON after a space.
+    ``window`` (left, top, width, height, the layer's width, its height): the part of the layer the file holds, in
+    the layer's pixels, when the canvas cut it; a point light is then placed in the part's fractions — the same
+    light, pixel for pixel (`_in_window`)."""
     from lasagna.document.condition import parse_point
 
     plain = f"{layer.name}{NORMAL_MAP_SUFFIX}"
@@ -114,7 +117,36 @@ def map_name(layer) -> str:
     if fitted:
         return plain
     fields = layer.model_dump(mode="json", include=set(NAMED_FIELDS), exclude_defaults=True)
+    fields["light"] = _in_window(fields["light"], window)
+    for extra in fields.get("extra_lights", ()):
+        extra["light"] = _in_window(extra["light"], window)
     return f"{plain} {json.dumps({k: fields[k] for k in NAMED_FIELDS if k in fields}, separators=(',', ':'))}"
+
+
+def _in_window(light: str, window: tuple[int, int, int, int, int, int] | None) -> str:
+    """A point (or spot) light's text for the part ``window`` of its layer (`map_name`): x, y and the aim as the
+    part's fractions of the same pixel, z in the part's longer side (`lasagna.compose.surface.point_offsets` measures
+    in pixels over the longer side, so the rendering is the same); a direction, or a light the part's ranges cannot
+    hold, as it is (the import then finds its render off and says so)."""
+    from lasagna.document.condition import format_point, parse_point
+    from lasagna.errors import LasagnaError
+
+    point = parse_point(light)
+    if point is None or window is None:
+        return light
+    left, top, width, height, full_w, full_h = window
+
+    def x(v: float) -> float:
+        return (v * full_w - left) / width
+
+    def y(v: float) -> float:
+        return (v * full_h - top) / height
+
+    spot = () if point.cone is None else (point.cone, x(point.ax), y(point.ay), point.blend)
+    try:
+        return format_point(x(point.x), y(point.y), point.z * max(full_w, full_h) / max(width, height), *spot)
+    except LasagnaError:
+        return light
 
 
 def _pairs(layers: list) -> Iterator[tuple[Any, Any, list]]:
@@ -257,7 +289,10 @@ def _named(codes, name: str, note: str, m: np.ndarray) -> tuple[str, dict | None
         hi = np.where(near, np.minimum(_pool(torch.from_numpy(r)[None]).numpy()[0], u), r)
     err = float((np.maximum(np.maximum(lo - m, m - hi), 0.0) / np.maximum(1.0, m) ** 2).max())
     if err > MATCH_TOLERANCE:
-        return f"its render under the light its map's name gives is {err * 255:.1f} codes off (paint over it)", None
+        return (
+            f"its render under the light its map's name gives is {err * 255:.1f} codes off (paint over it, or the "
+            "shadows or occlusion of a layer the canvas's edge cut, which its part alone does not cast)"
+        ), None
     return "", layer.model_dump(mode="json", include=set(NAMED_FIELDS))
 
 

@@ -244,6 +244,35 @@ def test_a_shadows_slack_takes_only_what_a_shadow_could_render():
     assert stack.document.layer("s").kind == "pixels" and len(warnings) == 1 and "codes off" in warnings[0]
 
 
+@pytest.mark.parametrize("fmt", ["ora", "psd"])
+def test_a_point_light_on_a_layer_the_canvas_cuts_is_placed_in_its_part(tmp_path, fmt):
+    """A surface layer hanging off the canvas's top-left (the file holds its part on the canvas), lit by a spot and
+    a point extra light: the name places both lights in the part's fractions (the same pixels), and read back the
+    canvas renders within 3.5 codes of the original. Its shadows would not survive the cut (traced over the part's
+    heights alone): that layer stays pixels, the line says why."""
+    torch.manual_seed(5)
+    stack = Stack.from_image((torch.rand(3, 48, 64) * 200 + 40).to(torch.uint8))
+    spot = "x=0.6,y=0.5,z=0.4,cone=40,ax=0.5,ay=0.6"
+    stack.add_surface("shape", bump(), spot, name="Shape", offset=(-16, -8))
+    stack.set_light("shape", spot, extra_lights=[{"light": "x=0.9,y=0.9,z=0.2", "intensity": 0.5}])
+    stack.save(tmp_path / "s")
+    warnings: list[str] = []
+    back = read_back(tmp_path, fmt, warnings)
+    got = next(layer for layer in back.document.layers if layer.name == "Shape")
+    assert warnings == [] and got.kind == "surface" and (got.offset.x, got.offset.y) == (0, 0)
+    from lasagna.document.condition import parse_point
+
+    # The part is columns 16–63, rows 8–47 of the 64 × 48 layer: x' = (64x − 16)/48, y' = (48y − 8)/40, z' = 64z/48.
+    want = ((0.6 * 64 - 16) / 48, (0.5 * 48 - 8) / 40, 0.4 * 64 / 48, 40, (0.5 * 64 - 16) / 48, (0.6 * 48 - 8) / 40)
+    np.testing.assert_allclose(parse_point(got.light)[:6], want, rtol=1e-12)
+    assert float((back.render().image - stack.render().image).abs().max()) <= 3.5 / 255
+    stack.set_light("shape", "az=120,el=60", shadows=1.0, shadow_depth=3.0)
+    stack.save(tmp_path / "s")
+    warnings.clear()
+    back = read_back(tmp_path, fmt, warnings)
+    assert len(warnings) == 1 and "the canvas's edge cut" in warnings[0]
+
+
 def test_paint_over_a_named_layer_keeps_it_pixels(tmp_path):
     """A stroke ten codes bright over a shadowed layer's multiplier (its map's name intact): the pair stays pixels."""
     made_with(tmp_path / "s", "az=120,el=60", shadows=0.7, shadow_depth=3.0)
