@@ -284,7 +284,7 @@ def test_paint_over_a_named_layer_keeps_it_pixels(tmp_path):
     )
     warnings: list[str] = []
     restore_surfaces(stack, warnings.append, "test")
-    assert len(warnings) == 1 and "codes off (paint over it)" in warnings[0]
+    assert len(warnings) == 1 and "codes off (paint over it" in warnings[0]
 
 
 def test_paint_over_the_multiplier_keeps_it_pixels(tmp_path):
