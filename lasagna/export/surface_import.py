@@ -72,11 +72,12 @@ SNAP_SLACK = 1.0 / 255.0
 """A rounder light (whole degrees, a named light), ambient or intensity is kept when its largest error is no more
 than this above the exact fit's."""
 SHADOW_EDGE = 0.5 / 255.0
-"""A pixel is in a cast shadow where it renders more than this below the same light unshadowed. On a shadow and a
-pixel beside it the named fields' render may take any value of its 3×3 neighbourhood that a shadow could give the
-pixel itself — between (1 − s)·u and u, u its unshadowed render, s the layer's ``shadows`` (the shadow factor
-1 − s·(1 − V) scales each light's direct term, never the ambient): the file's 8-bit map integrates to heights a
-little off the stored map's, which can move a long shadow's soft edge by up to a pixel."""
+"""A pixel is in a cast shadow where it renders more than this below the same light unshadowed. On a shadow and
+within a traced pixel of it (`lasagna.compose.shadow.SHADOW_MAX_SIDE`: one pixel up to 512 on a side, four at 2048)
+the named fields' render may take any value of that neighbourhood that a shadow could give the pixel itself —
+between (1 − s)·u and u, u its unshadowed render, s the layer's ``shadows`` (the shadow factor 1 − s·(1 − V) scales
+each light's direct term, never the ambient): the file's 8-bit map integrates to heights a little off the stored
+map's, which can move a long shadow's soft edge by up to a traced pixel."""
 CUT_NAME = 255
 """GIMP saves a PSD layer's name cut to this many characters (the Pascal string's limit; Krita and Photoshop's
 Unicode name keep more): fields that need a longer name (many extra lights) do not survive GIMP."""
@@ -280,13 +281,18 @@ def _named(codes, name: str, note: str, m: np.ndarray) -> tuple[str, dict | None
         return f"its map's name holds light fields no surface layer takes ({str(e).splitlines()[0]})", None
     r = rendered.double().numpy()
     lo = hi = r
-    if layer.shadows > 0.0:  # a shadow may move a pixel: on and beside it, a value of its 3×3 neighbourhood
+    if layer.shadows > 0.0:  # a shadow may move a traced pixel: on and beside it, a value of its neighbourhood
+        from lasagna.compose.shadow import SHADOW_MAX_SIDE
+
         unshadowed = layer_surface_tensors(LayerTensors(codes, None, None), layer.model_copy(update={"shadows": 0.0}))
         u = unshadowed[0].color.double().numpy()
-        near = _pool(torch.from_numpy(np.abs(u - r).max(0) > SHADOW_EDGE).double()[None, None]).numpy()[0] > 0
+        reach = max(1, math.ceil(max(r.shape[-2:]) / SHADOW_MAX_SIDE))  # a traced pixel, in the map's pixels
+        near = _pool(torch.from_numpy(np.abs(u - r).max(0) > SHADOW_EDGE).double()[None, None], reach)
+        near = near.numpy()[0] > 0
         # ... which a shadow could give the pixel itself: between (1 − s)·u (every light hidden) and u (none hidden)
-        lo = np.where(near, np.maximum(-_pool(-torch.from_numpy(r)[None]).numpy()[0], (1.0 - layer.shadows) * u), r)
-        hi = np.where(near, np.minimum(_pool(torch.from_numpy(r)[None]).numpy()[0], u), r)
+        lowest = -_pool(-torch.from_numpy(r)[None], reach).numpy()[0]
+        lo = np.where(near, np.maximum(lowest, (1.0 - layer.shadows) * u), r)
+        hi = np.where(near, np.minimum(_pool(torch.from_numpy(r)[None], reach).numpy()[0], u), r)
     err = float((np.maximum(np.maximum(lo - m, m - hi), 0.0) / np.maximum(1.0, m) ** 2).max())
     if err > MATCH_TOLERANCE:
         return (
@@ -296,11 +302,11 @@ def _named(codes, name: str, note: str, m: np.ndarray) -> tuple[str, dict | None
     return "", layer.model_dump(mode="json", include=set(NAMED_FIELDS))
 
 
-def _pool(x: torch.Tensor) -> torch.Tensor:
-    """The 3×3 neighbourhood maximum of (B, C, h, w) ``x``, edges replicated."""
+def _pool(x: torch.Tensor, reach: int) -> torch.Tensor:
+    """The maximum of (B, C, h, w) ``x`` over each pixel's (2·reach + 1)² neighbourhood, edges replicated."""
     import torch.nn.functional as F
 
-    return F.max_pool2d(F.pad(x, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
+    return F.max_pool2d(F.pad(x, (reach,) * 4, mode="replicate"), 2 * reach + 1, stride=1)
 
 
 def _fit_shading(n: np.ndarray, m: np.ndarray) -> dict | None:

@@ -149,22 +149,26 @@ def test_without_its_name_the_fit_does_not_read_such_a_layer(tmp_path, case):
 
 def assert_alike(back: Stack, id: str, original: Stack) -> None:
     """The surface layer ``id`` read back renders the original's multiplier y within 3.5 codes × max(1, y)² (the
-    import's steps) away from its cast shadows, and on them and a pixel beside them within that of the range the
-    original renders over the pixel's 3×3 neighbourhood: the file's 8-bit map integrates to heights a little off the
-    stored map's, so a shadow's soft edge may move by up to a pixel. The multipliers, not the composites: the base's
+    import's steps) away from its cast shadows, and on them and a traced pixel beside them within that of the range
+    the original renders over that neighbourhood: the file's 8-bit map integrates to heights a little off the
+    stored map's, so a shadow's soft edge may move by up to a traced pixel. The multipliers, not the composites: the base's
     noise apart."""
     from lasagna.compose.surface import layer_surface_tensors
 
     layer = original.document.layer("shape")
     was = layer_surface_tensors(original.tensors["shape"], layer)[0].color
     flat = layer_surface_tensors(original.tensors["shape"], layer.model_copy(update={"shadows": 0.0}))[0].color
-    pool = torch.nn.functional.max_pool2d
-    near = pool(((flat - was).abs() > 0.5 / 255).amax(0, keepdim=True).double()[None], 3, 1, 1)[0, 0] > 0
+    reach = math.ceil(max(was.shape[-2:]) / 512)  # a traced pixel (`SHADOW_MAX_SIDE`), in the map's pixels
+    k = 2 * reach + 1
+
+    def pool(x):
+        return torch.nn.functional.max_pool2d(torch.nn.functional.pad(x, (reach,) * 4, mode="replicate"), k, 1)
+
+    near = pool(((flat - was).abs() > 0.5 / 255).amax(0, keepdim=True).double()[None])[0, 0] > 0
     now = layer_surface_tensors(back.tensors[id], back.document.layer(id))[0].color
     steps = was.clamp_min(1.0) ** 2  # a ratio above 1 is a multiply and colour-dodge pair: steps grow as y²
     assert float(((now - was).abs() / steps).amax(0)[~near].max()) <= 3.5 / 255
-    padded = torch.nn.functional.pad(was[None], (1, 1, 1, 1), mode="replicate")
-    hi, lo = pool(padded, 3, 1)[0], -pool(-padded, 3, 1)[0]
+    hi, lo = pool(was[None])[0], -pool(-was[None])[0]
     outside = (torch.maximum(lo - now, now - hi).clamp_min(0) / steps).amax(0)
     assert not bool(near.any()) or float(outside[near].max()) <= 3.5 / 255
 
@@ -179,6 +183,21 @@ def test_a_deep_shadows_edge_may_move_a_pixel(tmp_path):
     got = next(layer for layer in back.document.layers if layer.name == "Shape")
     assert warnings == [] and got.kind == "surface" and got.shadows == 1.0 and got.relief == 1.0  # relief in map
     assert float((back.render().image - original.render().image).abs().max()) > 10 / 255  # an edge did move
+    assert_alike(back, got.id, original)
+
+
+def test_a_map_larger_than_the_trace_comes_back_with_its_shadows(tmp_path):
+    """A 200 × 1100 map: its shadows are traced at 512 across and enlarged, so a shadow's edge moves by up to a traced
+    pixel, about two of the map's; the layer still comes back (it stayed pixels while the slack was one map pixel)."""
+    torch.manual_seed(5)
+    original = Stack.from_image((torch.rand(3, 200, 1100) * 200 + 40).to(torch.uint8))
+    original.add_surface("shape", bump(200, 1100), "az=120,el=60", name="Shape", offset=(0, 0))
+    original.set_light("shape", "az=120,el=60", shadows=1.0, shadow_depth=3.0, relief=1.5)
+    original.save(tmp_path / "s")
+    warnings: list[str] = []
+    back = read_back(tmp_path, "ora", warnings)
+    got = next(layer for layer in back.document.layers if layer.name == "Shape")
+    assert warnings == [] and got.kind == "surface"
     assert_alike(back, got.id, original)
 
 
