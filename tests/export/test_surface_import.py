@@ -151,8 +151,8 @@ def assert_alike(back: Stack, id: str, original: Stack) -> None:
     """The surface layer ``id`` read back renders the original's multiplier y within 3.5 codes × max(1, y)² (the
     import's steps) away from its cast shadows, and on them and a traced pixel beside them within that of the range
     the original renders over that neighbourhood: the file's 8-bit map integrates to heights a little off the
-    stored map's, so a shadow's soft edge may move by up to a traced pixel. The multipliers, not the composites: the base's
-    noise apart."""
+    stored map's, so a shadow's soft edge may move by up to a traced pixel. The multipliers, not the composites:
+    the base's noise apart."""
     from lasagna.compose.surface import layer_surface_tensors
 
     layer = original.document.layer("shape")
