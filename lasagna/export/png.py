@@ -5,8 +5,10 @@ Never min–max normalised: a pixel stores v = (y − lo)/(hi − lo) for the la
 within 1/65535 of its range), alpha in the PNG's alpha. ``DIR/<id>.png`` per layer, ``DIR/masks/<id>.png``
 per mask, and ``DIR/layers.json`` listing, bottom to top, each file with what is needed to read the
 values back: blend, range, offset, bit depth. Solid layers are written as rectangles of their colour, gradient
-and pattern layers as their fill's pixels (16-bit; the index keeps the ``gradient`` or ``pattern`` record); learned
-layers not rendered yet are listed without a file.
+and pattern layers as their fill's pixels (16-bit; the index keeps the ``gradient`` or ``pattern`` record), a surface
+layer as its stored 16-bit normal map (the index keeps its ``surface`` record: the map's convention, its light and
+every render field, so a reader can light it as the stack does); learned layers not rendered yet are listed without a
+file.
 """
 
 from __future__ import annotations
@@ -24,8 +26,12 @@ from lasagna.compose.resample import downsample
 from lasagna.compose.surface import integrate_normals, relieved_map
 from lasagna.document import AdjustmentLayer, GroupLayer, LearnedLayer, SolidLayer, SurfaceLayer
 from lasagna.errors import ExportError
+from lasagna.export.surface_import import NAMED_FIELDS
 from lasagna.io.png import encode_png
 from lasagna.io.stack import NOT_RENDERED, encode_layer
+
+SURFACE_MAP_CONVENTION = "tangent space, n -> (n + 1)/2, +Y up (OpenGL)"
+"""How a surface layer's file in a per-layer export holds its normals (its index entry's ``surface.normal_map``)."""
 
 
 def layer_pngs(stack, *, clip: bool = False) -> tuple[dict[str, bytes], dict]:
@@ -97,6 +103,11 @@ def layer_pngs(stack, *, clip: bool = False) -> tuple[dict[str, bytes], dict]:
             data, mask = encode_layer(stack, layer.id, clip=clip)
             files[f"{layer.id}.png"] = data
             entry.update(file=f"{layer.id}.png", bit_depth=int.from_bytes(data[24:25], "big"))
+            if isinstance(layer, SurfaceLayer):  # the file is its normal map: the index keeps what lights it
+                entry["surface"] = {
+                    "normal_map": SURFACE_MAP_CONVENTION,
+                    **layer.model_dump(mode="json", include={*NAMED_FIELDS, "relief"}),
+                }
             if mask is not None:
                 files[f"masks/{layer.id}.png"] = mask
                 entry["mask"] = f"masks/{layer.id}.png"

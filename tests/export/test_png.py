@@ -48,3 +48,30 @@ def test_raw_values_depths_and_index(tmp_path):
     assert by_id["shade"]["range"] == [0.0, 2.0] and by_id["shade"]["mask"] == "masks/shade.png"
     assert by_id["relit"]["file"] is None and by_id["relit"]["note"] == NOT_RENDERED
     assert by_id["sun"]["offset"] == {"x": 1, "y": 1}
+
+
+def test_a_surface_layer_is_its_normal_map_with_what_lights_it(tmp_path):
+    """A surface layer's file is its stored 16-bit normal map; the index's ``surface`` record names the convention
+    and every render field, and lighting the file by them (numpy float64: n = 2v − 1 renormalised, Lambert with
+    the record's ambient, colour and intensity) gives the stack's render of the layer within one 16-bit code."""
+    from lasagna.compose.surface import layer_surface_tensors, normals_from_height
+
+    stack = Stack.from_image(torch.full((3, 12, 16), 0.5))
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, 12), torch.linspace(-1, 1, 16), indexing="ij")
+    stack.add_surface("shape", normals_from_height((0.4 * torch.exp(-3 * (xx**2 + yy**2)))[None, None])[0], "left")
+    stack.set_light("shape", "az=150,el=40", ambient=0.3, light_color=(1.0, 0.8, 0.6), light_intensity=1.2)
+    export_layer_pngs(stack, tmp_path / "out")
+    entry = json.loads((tmp_path / "out/layers.json").read_text())["layers"][1]
+    record = entry["surface"]
+    assert entry["file"] == "shape.png" and entry["bit_depth"] == 16 and "+Y up" in record["normal_map"]
+    assert (record["light"], record["ambient"], record["light_intensity"]) == ("az=150,el=40", 0.3, 1.2)
+    assert record["light_color"] == [1.0, 0.8, 0.6] and record["shadows"] == 0.0 and record["relief"] == 1.0
+    v, _ = read_png64(tmp_path / "out/shape.png")
+    n = 2 * v - 1
+    n /= np.linalg.norm(n, axis=0, keepdims=True)
+    az, el = np.radians(150), np.radians(40)
+    light = np.array([np.sin(el) * np.cos(az), np.sin(el) * np.sin(az), np.cos(el)])
+    direct = np.maximum(0.0, np.einsum("chw,c->hw", n, light))
+    want = 0.3 + 0.7 * 1.2 * np.asarray(record["light_color"])[:, None, None] * direct
+    got = layer_surface_tensors(stack.tensors["shape"], stack.document.layer("shape"))[0].color.double().numpy()
+    np.testing.assert_allclose(got, want, atol=1 / 65535 + 1e-6)
