@@ -17,9 +17,9 @@ the compositor's own path) within ``MATCH_TOLERANCE`` at every pixel; a whole-de
 ambient of 0.25 and an intensity of 1 are preferred when they render as well. Then the pair becomes one surface
 layer with the multiplier's id, name, opacity, visibility, offset and clip, lit by the fitted light, and the hidden
 map is dropped. A coloured light's shading (three channels) is fitted per channel and read as one light of a colour
-when the three fits agree on it (``COLOUR_AGREE_DEG``). Otherwise — a brush stroke over the multiplier, a coloured
-relight ratio, cast shadows, a highlight, a point light, several lights — the two stay as they were read, with one
-warning line that says why: nothing is guessed.
+when the three fits agree on it (``COLOUR_AGREE_DEG``). Otherwise — a brush stroke over the multiplier, or, in a
+file whose map's name carries no fields (below), a coloured relight ratio, cast shadows, a highlight, a point light,
+several lights — the two stay as they were read, with one warning line that says why: nothing is guessed.
 
 What the pixels cannot tell, the map's name does. A layer whose multiplier is not one light's Lambert rendering —
 a point light, several lights, a highlight, cast shadows, ambient occlusion, a coloured relight ratio — is written
@@ -57,6 +57,7 @@ FIT_PIXELS = 65536
 FIT_ROUNDS = 8
 """Rounds of the lit set's update; the fit stops earlier when the set no longer changes."""
 LIT_EPS = 1e-6
+"""n·w above this counts as lit (a pixel on the terminator takes the ambient either way)."""
 FACING_Z = (0.97, 0.9, 0.8)
 """The ratio fit's first round reads only normals this close to the view axis (within 14°, 26° or 37°: each a
 start), which both lights light unless one grazes — the lit sets are not known before a first fit."""
@@ -67,7 +68,6 @@ IDENTIFIABLE = 1e-4
 """A fit is made only when its system has one solution: the least singular value of the shading fit's design (the
 second least of the ratio's, whose least is the solution's) above this share of the largest; a flat map, or a few
 pixels, says nothing of the light, and a light that happens to render them is not read into the file."""
-"""n·w above this counts as lit (a pixel on the terminator takes the ambient either way)."""
 SNAP_SLACK = 1.0 / 255.0
 """A rounder light (whole degrees, a named light), ambient or intensity is kept when its largest error is no more
 than this above the exact fit's."""
@@ -178,14 +178,14 @@ def _pairs(layers: list) -> Iterator[tuple[Any, Any, list]]:
 
 def restore_surfaces(stack, warn: Callable[[str], None], where: str):
     """``stack`` (just imported) with each multiplier-over-normal-map pair made one surface layer when the
-    multiplier is its map's rendering under a fitted light (module docstring); the others kept, one ``warn`` line
-    each. Returns the stack."""
+    multiplier is its map's rendering under a light fitted to it or the fields the map's name holds (module
+    docstring); the others kept, one ``warn`` line each. Returns the stack."""
     for multiplier, hidden, helpers in list(_pairs(list(stack.document.layers))):
         reason, surface = _surface_of(stack, multiplier, hidden, helpers)
         if surface is None:
             warn(
                 f"{where}: layer {multiplier.name!r} over its hidden normal map stays pixels: {reason}; expected the "
-                "one-light Lambert rendering of the map that `lasagna export` writes"
+                "map's rendering under one light, or under the fields its name holds, that `lasagna export` writes"
             )
             continue
         _swap(stack, multiplier, [hidden, *helpers], surface)

@@ -108,7 +108,7 @@ def _fields(layer) -> dict:
 @pytest.mark.parametrize("case", list(NAMED))
 def test_a_layer_the_fit_cannot_read_comes_back_by_its_maps_name(tmp_path, fmt, case):
     """Shadows, occlusion, a highlight, a point light, two lights, a coloured or a shadowed relight ratio: the file's
-    multiplier is no one-light Lambert rendering (it differs from the best one by more than the match tolerance), so
+    multiplier is no one-light Lambert rendering (the next test: without its name the fit does not read it), so
     the hidden map's name carries the layer's render fields; read back, the pair is one surface layer with every
     field as it was, rendering as the original (`assert_alike`), and re-lit it follows the original re-lit."""
     original = made_with(tmp_path / "s", **NAMED[case])
