@@ -12,6 +12,8 @@
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe posterior-mean   # ~2 min (round 14)
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe denoise --prior runs/relit-grown/prior
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe told-fit     # ~2 min (round 25)
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe profile-fit  # ~40 s (round 27)
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe profile-fit --tilt   # ~1 min
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/surface_probes.py --probe ensemble \
         --members layers/surface-lit-32 layers/surface-lit-closeup-32                   # ~1 min
 
@@ -43,6 +45,16 @@
   beside the free default, the untold layer and the told route told the true light: `select` (16 scenes, world
   seed ``--seed``, 64²), dB over the unchanged input (all / objects), and each scene's fitted against true light.
   Asks whether a default can borrow the told route's objects without a person's reading.
+
+* **profile-fit** (round 27) — analysis by synthesis over a low-dimensional shape family for the relight's objects,
+  a different design from a per-pixel estimate: each true silhouette inflated by one of five profiles of its
+  distance to the outline d (t = d/R: dome √(1 − (1 − t)²), cone t, parabola 1 − (1 − t)², mesa min(1, 2t), √t) at
+  seven heights (× R, as ``ORACLE_HEIGHTS``), with ``--tilt`` also a plane of 25 slopes added; per object the choice
+  whose Lambert shading under the true source light best explains the lit input's log luminance up to the object's
+  mean paint (least squares over its pixels), and, as the family's ceiling, the choice the truth prefers. Rows: the
+  relight through those normals on `select` (16 scenes, seed ``--seed``, 64², dB over the unchanged input, all /
+  objects), with the one-height dome (the issue's oracle) and the true normals. Best case throughout: the true
+  silhouettes and the true source light.
 
 * **ensemble** — the lit estimators of ``--members`` (each with the relight's dome prior) averaged: their normals
   (renormalised) and their source shadings, the light fitted to the averages. Rows: the relight surface route on
@@ -807,6 +819,80 @@ def probe_told_fit(seed: int) -> dict:
     return {f"select_seed{seed}_64": rows, "lights": fits}
 
 
+FIT_PROFILES = {
+    "dome": lambda t: (1 - (1 - t) ** 2).clamp_min(0).sqrt(),
+    "cone": lambda t: t,
+    "parabola": lambda t: 1 - (1 - t) ** 2,
+    "mesa": lambda t: (2 * t).clamp_max(1.0),
+    "sqrt": lambda t: t.sqrt(),
+}
+"""profile-fit's shape family: a height over an object's silhouette as a function of t = d/R (d the distance to the
+outline, R its largest value + ½)."""
+FIT_TILTS = tuple((a, b) for a in (-0.8, -0.4, 0.0, 0.4, 0.8) for b in (-0.8, -0.4, 0.0, 0.4, 0.8))
+
+
+def probe_profile_fit(seed: int, tilt: bool) -> dict:
+    """Rows for ``--probe profile-fit`` (the module docstring)."""
+    scene, labels = surface.scenes("select", COUNT, seed, SIDE)
+    sources = relight_sources(scene.params)
+    rel = relighting(scene, sources)
+    base, target, mask = rel.base.double(), rel.target.clamp(0, 1).double(), scene.mask
+    src, tgt = surface.lights_of(sources).double(), surface.lights_of(labels).double()
+    before = (psnr(base.clamp(0, 1), target), psnr(base.clamp(0, 1), target, mask))
+    b_, _, h_, w_ = base.shape
+    # d from the shipped dome, inverted (h = √(R² − (R − d)²), in pixels), as `inflation_profile` reads it
+    dome = cs.inflate_regions(scene.object_index).double() * (w_ / 2.0)
+    yy, xx = torch.stack(torch.meshgrid(torch.arange(h_), torch.arange(w_), indexing="ij")).double() * 2.0 / w_
+    luma = base.mean(1).clamp_min(1e-3).log()
+    chosen = {"fitted": torch.zeros(b_, 1, h_, w_, dtype=torch.float64)}
+    chosen["ceiling"] = chosen["fitted"].clone()
+    chosen["dome"] = chosen["fitted"].clone()
+    for b in range(b_):
+        for k in scene.object_index[b, 0].unique().tolist():
+            if k < 0:
+                continue
+            inside = scene.object_index[b, 0] == k
+            top = dome[b, 0][inside]
+            r = (top.max() ** 2 + 0.25).sqrt()
+            t = (r - (r * r - top * top).clamp_min(0).sqrt()) / r
+            scored = []
+            for name, profile in FIT_PROFILES.items():
+                for height in surface.ORACLE_HEIGHTS:
+                    for slope in FIT_TILTS if tilt else ((0.0, 0.0),):
+                        field = torch.zeros(1, 1, h_, w_, dtype=torch.float64)
+                        field[0, 0][inside] = profile(t) * height * r * (2.0 / w_)
+                        field[0, 0][inside] += slope[0] * xx[inside] + slope[1] * yy[inside]
+                        n = cs.normals_from_height(field)
+                        shade = cs.lambert(n, src[b : b + 1])
+                        residual = luma[b][inside] - shade[0, 0][inside].clamp_min(1e-6).log()
+                        composite = (base[b : b + 1] * cs.lambert(n, tgt[b : b + 1]) / shade).clamp(0, 1)
+                        wrong = (composite - target[b : b + 1]).pow(2).mean(1)[0][inside].mean()
+                        scored.append((float(residual.var(unbiased=False)), float(wrong), name, height, slope, field))
+            dome_one = next(c for c in scored if c[2] == "dome" and c[3] == 1.0 and c[4] == (0.0, 0.0))
+            for key, pick in (
+                ("fitted", min(scored, key=lambda c: c[0])),
+                ("ceiling", min(scored, key=lambda c: c[1])),
+                ("dome", dome_one),
+            ):
+                chosen[key][b, 0][inside] = pick[5][0, 0][inside]
+    flat = torch.zeros(b_, 3, h_, w_, dtype=torch.float64)
+    flat[:, 2] = 1.0
+
+    def gain(normals) -> list[float]:
+        composite = (base * cs.lambert(normals, tgt) / cs.lambert(normals, src)).clamp(0, 1)
+        return [round(psnr(composite, target) - before[0], 2), round(psnr(composite, target, mask) - before[1], 2)]
+
+    def field_normals(field):
+        return torch.where(scene.object_index >= 0, cs.normals_from_height(field), flat)
+
+    return {
+        "one-height dome (the issue's oracle)": gain(field_normals(chosen["dome"])),
+        "profile fitted per object (analysis by synthesis)": gain(field_normals(chosen["fitted"])),
+        "profile chosen per object by the truth (the family's ceiling)": gain(field_normals(chosen["ceiling"])),
+        "true normals": gain(scene.normals.double()),
+    }
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument(
@@ -825,9 +911,11 @@ def main(argv=None) -> int:
             "posterior-mean",
             "denoise",
             "told-fit",
+            "profile-fit",
         ),
         required=True,
     )
+    p.add_argument("--tilt", action="store_true", help="profile-fit: also a plane of 25 slopes per object")
     p.add_argument("--modes", nargs="+", default=["whole", "tiles", "both"], help="posterior-mean: the corrections")
     p.add_argument("--prior", type=Path, default=None, help="denoise: the candidate prior (a folder)")
     p.add_argument("--size", type=int, default=64, help="posterior-mean: the scenes' size (32: the prior's own)")
@@ -863,6 +951,7 @@ def main(argv=None) -> int:
         probes.update({"symmetric-particles": probe_symmetric_particles, "wall-level": probe_wall_level})
         probes["truth-start"] = probe_truth_start
         probes["told-fit"] = lambda: probe_told_fit(args.seed)
+        probes["profile-fit"] = lambda: probe_profile_fit(args.seed, args.tilt)
         rows = probes[args.probe]()
     record = {"benchmark": "surface_probes", "probe": args.probe, "default": args.default, "rows": rows}
     print_json_line({**record, "machine": machine_info()})
