@@ -1,4 +1,4 @@
-"""``lasagna serve``: the layer editor in the browser, on one stack folder (or an image: a new stack folder).
+"""``lasagna serve``: the layer editor in the browser, on one stack folder (or an image, an ORA or a PSD: a new one).
 
     lasagna serve STACK|IMAGE [--host 127.0.0.1] [--port N] [--no-browser]
 
@@ -19,12 +19,19 @@ from lasagna.cli.common import PROG, device_argument, max_pixels_argument, warn
 from lasagna.errors import LasagnaError
 from lasagna.version import install_hint
 
-HELP = "open the layer editor in the browser on a stack folder or an image"
-EXAMPLE = "lasagna serve photo.jpg --no-browser   # a new stack folder photo.stack/ beside it; prints the URL"
+HELP = "open the layer editor in the browser on a stack folder, an image, or an ORA or PSD file"
+EXAMPLE = (
+    "lasagna serve photo.jpg --no-browser   # a new stack folder photo.stack/ beside it; prints the URL",
+    "lasagna serve painting.ora --no-browser   # its layers imported into painting.stack/",
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("stack", help="a stack folder (or its stack.json), or an image: a new <stem>.stack folder beside it")
+    p.add_argument(
+        "stack",
+        help="a stack folder (or its stack.json), or an image or an OpenRaster or PSD file: a new <stem>.stack folder "
+        "beside it",
+    )
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=None, help="port (default: a free one)")
     p.add_argument("--no-browser", action="store_true", help="print the URL without opening a browser")
@@ -57,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     # Bound first: a busy port is one line before anything is made or printed (no URL that does not work).
     sock = bind(args.host, args.port or 0)
     with sock:
-        folder, made = open_target(args.stack, max_pixels=args.max_pixels)
+        folder, made = open_target(args.stack, max_pixels=args.max_pixels, warn=warn)
         if made:
             print(f"{PROG}: made the stack folder {folder} from {args.stack}")
         session = EditSession(folder, device=args.device, max_pixels=args.max_pixels)

@@ -675,6 +675,43 @@ def test_an_image_gets_a_stack_folder_beside_it_and_is_reopened(tmp_path):
     assert open_target(folder / "stack.json") == (folder, False)
 
 
+def test_a_layered_file_is_imported_into_a_stack_folder_beside_it(tmp_path, capsys):
+    """``lasagna serve painting.ora`` (or ``.psd``): the file's layers imported into ``painting.stack/`` as
+    ``import-ora`` / ``import-psd`` make them — a surface layer one layer again, lit as it was — and reopened after."""
+    import torch
+
+    from lasagna.cli import main
+    from lasagna.compose.surface import normals_from_height
+    from lasagna.io.stack import Stack
+
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, 24), torch.linspace(-1, 1, 32), indexing="ij")
+    stack = Stack.from_image(torch.full((3, 24, 32), 0.6))
+    stack.add_surface("shape", normals_from_height((0.5 * torch.exp(-3 * (xx**2 + yy**2)))[None, None])[0], "left")
+    stack.set_light("shape", "x=0.3,y=0.4,z=0.5", shadows=0.5)
+    stack.save(tmp_path / "s")
+    for fmt in ("ora", "psd"):
+        assert main(["export", str(tmp_path / "s"), f"--{fmt}", str(tmp_path / f"painting.{fmt}")]) == 0
+        folder, made = open_target(tmp_path / f"painting.{fmt}", warn=pytest.fail)
+        assert made and folder == tmp_path / f"painting{STACK_SUFFIX}"
+        opened = load_stack(folder)
+        surface = next(layer for layer in opened.document.layers if layer.kind == "surface")
+        assert (surface.light, surface.shadows) == ("x=0.3,y=0.4,z=0.5", 0.5)
+        assert float((opened.render().image - stack.render().image).abs().max()) <= 3.5 / 255
+        assert open_target(tmp_path / f"painting.{fmt}") == (folder, False)
+        shutil.rmtree(folder)
+
+
+@pytest.mark.parametrize(("name", "words"), [("bad.ora", "not a zip archive"), ("bad.psd", "does not start with 8BPS")])
+def test_a_layered_file_that_is_not_one_is_refused_before_the_editor_starts(tmp_path, name, words):
+    from lasagna.errors import LasagnaError
+    from lasagna.serve import survey_target
+
+    (tmp_path / name).write_bytes(b"PK but not really")
+    with pytest.raises(LasagnaError, match=words):
+        survey_target(tmp_path / name)
+    assert not (tmp_path / f"bad{STACK_SUFFIX}").exists()
+
+
 def test_bad_targets_are_one_line(tmp_path):
     from lasagna.errors import LasagnaError
 
