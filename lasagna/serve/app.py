@@ -295,7 +295,11 @@ def create_app(session: EditSession, token: str, allowed_hosts: list[str], limit
         return Response(data, media_type="image/png", headers={"Cache-Control": "no-store"})
 
     async def export(request: Request) -> Response:
-        data, name, media = await run(session.export, request.path_params["kind"])
+        q = request.query_params
+        directx = q.get("directx", "0")
+        if directx not in ("0", "1"):
+            raise RequestError(f"directx is {directx!r}; expected 0 or 1", "directx")
+        data, name, media = await run(session.export, request.path_params["kind"], q.get("id"), directx == "1")
         return Response(data, media_type=media, headers={"Content-Disposition": _attachment(name)})
 
     # ---- changes -----------------------------------------------------------------------------------

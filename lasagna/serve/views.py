@@ -41,6 +41,9 @@ from lasagna.io.render import BAND_ROWS, composite_codes, encode_composite, rend
 from lasagna.io.stack import Stack, group_mask_tensors
 from lasagna.limits import FLOAT_BYTES, memory_budget_scope
 
+SURFACE_MAPS = ("normal-map", "height-map", "occlusion-map")
+"""The editor's downloads of a surface layer's maps (``/api/export/<map>?id=…``), as ``lasagna export`` writes them."""
+
 THUMB_SIDE = 96
 """Long side of a layer thumbnail in the layers panel, in pixels."""
 MAX_LEVEL = 6
@@ -80,15 +83,42 @@ class SessionViews:
 
     # ---- exports -------------------------------------------------------------------------------------
 
-    def export(self, kind: str) -> tuple[bytes, str, str]:
-        """(bytes, file name, media type) of the current stack as ``ora``, ``psd`` or ``png`` (the composite)."""
-        if kind not in ("ora", "psd", "png"):
-            raise LasagnaError(f"unknown export {kind!r}; expected ora, psd or png", "export")
+    def export(self, kind: str, layer_id: str | None = None, directx: bool = False) -> tuple[bytes, str, str]:
+        """(bytes, file name, media type) of the current stack as ``ora``, ``psd`` or ``png`` (the composite), or
+        of surface layer ``layer_id``'s ``normal-map`` (``directx``: +Y down), ``height-map`` or ``occlusion-map``
+        on the canvas, as ``lasagna export --normal-map`` (``--directx``), ``--height-map`` and ``--occlusion-map``
+        write them (`lasagna.export.png`)."""
+        if kind not in ("ora", "psd", "png", *SURFACE_MAPS):
+            raise LasagnaError(f"unknown export {kind!r}; expected ora, psd, png, {', '.join(SURFACE_MAPS)}", "export")
+        if kind in SURFACE_MAPS and layer_id is None:
+            raise LasagnaError(f"the {kind} export is a surface layer's; expected ?id=LAYER", "id")
+        if kind not in SURFACE_MAPS and layer_id is not None:
+            raise LasagnaError(f"the {kind} export is the stack's; expected no ?id= (a surface map takes one)", "id")
+        if directx and kind != "normal-map":
+            raise LasagnaError(f"directx is a normal map's convention, not a {kind}'s; expected normal-map", "directx")
+        if kind in SURFACE_MAPS:
+            return self._surface_map_export(kind, str(layer_id), directx)
         with self._guard():
             self._admit(self._render_bytes(encode_layers=kind != "png"), f"the {kind} export", f"export {kind}")
             stack = Stack(self.stack.document, self.folder, dict(self.stack.tensors), dict(self.stack.bit_depths))
         with memory_budget_scope(self.budget):
             return self._encode_export(stack, kind)
+
+    def _surface_map_export(self, kind: str, layer_id: str, directx: bool) -> tuple[bytes, str, str]:
+        from lasagna.export.png import height_map_png, normal_map_png, occlusion_map_png
+
+        with self._guard():
+            self._admit(self._render_bytes(encode_layers=False), f"the {kind} export", f"export {kind}")
+            stack = Stack(self.stack.document, self.folder, dict(self.stack.tensors), dict(self.stack.bit_depths))
+        with memory_budget_scope(self.budget):
+            if kind == "normal-map":
+                data = normal_map_png(stack, layer_id, directx=directx)
+            elif kind == "height-map":
+                data = height_map_png(stack, layer_id)[0]
+            else:
+                data = occlusion_map_png(stack, layer_id)
+        suffix = "-directx" if directx else ""
+        return data, f"{self.folder.name}-{layer_id}-{kind}{suffix}.png", "image/png"
 
     def _encode_export(self, stack: Stack, kind: str) -> tuple[bytes, str, str]:
         result = stack.render()

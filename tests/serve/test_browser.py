@@ -518,6 +518,30 @@ def test_the_relief_slider_previews_live_and_commits_one_step(browser, surface_s
     assert page.errors == []
 
 
+def test_a_surface_layers_maps_are_downloads(browser, surface_server):
+    """A surface layer's panel links its maps: the normal map in the OpenGL and the DirectX convention, the height
+    map and the occlusion map, each a download byte for byte what ``lasagna export`` writes for the layer."""
+    from lasagna.export.png import height_map_png, normal_map_png, occlusion_map_png
+    from lasagna.io.stack import load_stack
+
+    stack = load_stack(surface_server.session.folder)
+    want = {
+        "normal-map": normal_map_png(stack, "shape"),
+        "normal-map&directx=1": normal_map_png(stack, "shape", directx=True),
+        "height-map": height_map_png(stack, "shape")[0],
+        "occlusion-map": occlusion_map_png(stack, "shape"),
+    }
+    page = open_page(browser, surface_server)
+    row(page, "shape").locator(".name").click()
+    page.wait_for_selector(".map-downloads a")
+    for key, data in want.items():
+        with page.expect_download() as d:
+            page.click(f'.map-downloads a[data-map="{key}"]')
+        assert Path(d.value.path()).read_bytes() == data, key
+    assert page.errors == []
+    page.close()
+
+
 def test_the_ambient_slider_previews_live_and_commits_one_step(browser, surface_server):
     """A surface layer's "Ambient" slider: dragging repaints the view live (nothing changes on the server), the
     release commits one step that sets the ambient term and keeps the light and relief; a higher ambient darkens

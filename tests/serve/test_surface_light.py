@@ -792,3 +792,34 @@ def test_a_zoom_level_traces_shadows_at_the_reduction_of_the_full_trace(client, 
     assert traced == {16}, (side, traced)  # not the level's own long side, 20, which it was traced at before
     ok(post(client, op="light", id="shape", light="az=200,el=80", shadows=1.0))
     assert np.array_equal(view(client, level=1), preview)
+
+
+def test_a_surface_layers_maps_download_as_the_cli_writes_them(client, folder):
+    """``/api/export/<map>?id=…``: the normal map (and ``directx=1``), the height map and the occlusion map of the
+    current stack, byte for byte what ``lasagna export --normal-map`` (``--directx``), ``--height-map`` and
+    ``--occlusion-map`` write for the same layer; a relief changed in the editor is in them. Bad asks: one-line 400s."""
+    from lasagna.export.png import height_map_png, normal_map_png, occlusion_map_png
+
+    ok(post(client, op="light", id="shape", light="top-left", relief=1.5))
+    stack = load_stack(folder)
+    stack.set_light("shape", "top-left", relief=1.5)
+    want = {
+        "/api/export/normal-map?id=shape": normal_map_png(stack, "shape"),
+        "/api/export/normal-map?id=shape&directx=1": normal_map_png(stack, "shape", directx=True),
+        "/api/export/height-map?id=shape": height_map_png(stack, "shape")[0],
+        "/api/export/occlusion-map?id=shape": occlusion_map_png(stack, "shape"),
+    }
+    assert want["/api/export/normal-map?id=shape"] != normal_map_png(load_stack(folder), "shape")  # relief 1.5 in it
+    for path, data in want.items():
+        r = client.get(path, headers=H)
+        assert r.status_code == 200 and r.headers["content-type"] == "image/png" and r.content == data, path
+        assert r.headers["content-disposition"].startswith('attachment; filename="lit-shape-')
+    for path, words in [
+        ("/api/export/normal-map", "is a surface layer's; expected ?id=LAYER"),
+        ("/api/export/normal-map?id=tint", "no surface layer 'tint'"),
+        ("/api/export/height-map?id=shape&directx=1", "directx is a normal map's convention"),
+        ("/api/export/normal-map?id=shape&directx=yes", "directx is 'yes'; expected 0 or 1"),
+        ("/api/export/png?id=shape", "is the stack's; expected no ?id="),
+        ("/api/export/bump-map?id=shape", "unknown export 'bump-map'"),
+    ]:
+        assert words in one_line_4xx(client.get(path, headers=H)), path

@@ -193,6 +193,25 @@ function drawLayers() {
   $("solo-label").textContent = ui.solo ? `solo: ${ui.solo}` : "";
 }
 
+// A surface layer's maps for a game or 2D-lighting engine, on the canvas, as `lasagna export --normal-map`
+// (`--directx`: +Y down), `--height-map` and `--occlusion-map` write them.
+function mapDownloads(layer) {
+  const row = document.createElement("div");
+  row.className = "map-downloads";
+  row.append("Download ");
+  const maps = [["normal map", "normal-map", ""], ["DirectX", "normal-map", "&directx=1"],
+                ["height", "height-map", ""], ["occlusion", "occlusion-map", ""]];
+  for (const [text, kind, extra] of maps) {
+    const a = document.createElement("a");
+    a.textContent = text;
+    a.href = `api/export/${kind}?id=${encodeURIComponent(layer.id)}${extra}&token=${encodeURIComponent(token)}`;
+    a.setAttribute("download", "");
+    a.dataset.map = kind + extra;
+    row.append(a, " ");
+  }
+  return row;
+}
+
 function field(label, input) {
   const l = document.createElement("label");
   l.append(label + " ", input);
@@ -425,6 +444,7 @@ function lightControl(layer) {
   const depthField = gainSlider(layer, lit, "Shadow depth", "shadow_depth", "shadow_depth", lit.shadow_depth);
   box.append(field("Colour", colour), intensityField, glossControl(layer, lit), shadowsField, depthField, occlusionField);
   box.append(field("Show normal map", show), field("Show occlusion", showSky));
+  box.append(mapDownloads(layer));
   box.append(pointControl(layer, lit));
   box.append(extraLightsControl(layer, lit));
   // A relight's sphere moves either light: the target, or the source the ratio divides by (fitted to the image,
