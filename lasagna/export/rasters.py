@@ -44,7 +44,8 @@ target cannot express exactly:
   layers are listed flat: exact for a pass-through group of opacity 1 without a mask (W3C Compositing
   Level 1, section 8.1, group invariance), else not.
 
-Every raster is cropped to the canvas (layers may lie partly outside), with its offset adjusted. A transparent
+Every raster is cropped to the canvas (layers may lie partly outside), with its offset adjusted — but a surface
+layer's hidden normal map, which is written whole (``_Walk.normal_map``). A transparent
 document (``canvas.background`` null) gets no background layer, and its exact-composite layer carries the
 composite's alpha: the file is as transparent as the document.
 
@@ -468,16 +469,17 @@ class _Walk:
         """A surface layer's normal map as a hidden normal layer (tangent space, +Y up) below its rendered
         multiplier: a reader flattens the file as we do, and an artist can show or reuse the map (its relief times
         the layer's ``relief``, so the map lights as the layer renders). Its name is ``map_name``'s: what the
-        import needs to read the pair back as the layer (`lasagna.export.surface_import`)."""
+        import needs to read the pair back as the layer (`lasagna.export.surface_import`). Unlike every other
+        raster it is written whole where the canvas cuts the layer (a hidden layer is not flattened, and its
+        cast shadows, occlusion and point lights are the whole map's); a layer wholly off the canvas, whose
+        multiplier is not written, gets a 1 × 1 transparent stand-in."""
         color = _numpy(relieved_map(self.stack.tensors[layer.id].color, layer.relief))
-        x0, y0 = layer.offset.x + origin[0], layer.offset.y + origin[1]
-        full_h, full_w = color.shape[1:]
-        cropped = _crop(color, None, x0, y0, self.W, self.H)
-        color, alpha, x, y = cropped if cropped is not None else (color[:, :1, :1], np.zeros((1, 1, 1)), 0, 0)
-        h, w = color.shape[1:]
-        window = None if (h, w) == (full_h, full_w) else (x - x0, y - y0, w, h, full_w, full_h)
+        x, y = layer.offset.x + origin[0], layer.offset.y + origin[1]
+        alpha = None
+        if _crop(color, None, x, y, self.W, self.H) is None:
+            color, alpha, x, y = color[:, :1, :1], np.zeros((1, 1, 1)), 0, 0
         return ExportLayer(
-            map_name(layer, window),
+            map_name(layer),
             f"{NORMALS_DIR}/{layer.id}",
             "normal",
             x=x,

@@ -27,6 +27,10 @@ with its render fields after the suffix, as compact JSON (``map_name``): "Shape 
 "shadows":0.7}". Paint programs keep a layer's name through a save, so the import reads the fields there — and
 still renders them from the file's map and keeps them only if they match the file's multiplier within
 ``MATCH_TOLERANCE`` at every pixel: the name proposes, the pixels confirm.
+
+Where the canvas cuts a surface layer, the file holds its multiplier's part on the canvas and its normal map whole
+(`lasagna.export.rasters`): the multiplier is checked against its part of the map's render, and the layer comes
+back whole, at the map's place.
 """
 
 from __future__ import annotations
@@ -72,12 +76,15 @@ SNAP_SLACK = 1.0 / 255.0
 """A rounder light (whole degrees, a named light), ambient or intensity is kept when its largest error is no more
 than this above the exact fit's."""
 SHADOW_EDGE = 0.5 / 255.0
-"""A pixel is in a cast shadow where it renders more than this below the same light unshadowed. On a shadow and
-within a traced pixel of it (`lasagna.compose.shadow.SHADOW_MAX_SIDE`: one pixel up to 512 on a side, four at 2048)
-the named fields' render may take any value of that neighbourhood that a shadow could give the pixel itself —
-between (1 − s)·u and u, u its unshadowed render, s the layer's ``shadows`` (the shadow factor 1 − s·(1 − V) scales
-each light's direct term, never the ambient): the file's 8-bit map integrates to heights a little off the stored
-map's, which can move a long shadow's soft edge by up to a traced pixel."""
+"""A pixel is in a cast shadow where it renders more than this below the same light unshadowed."""
+SHADOW_REACH = 2
+"""On a shadow and within this many traced pixels of it (`lasagna.compose.shadow.SHADOW_MAX_SIDE`: a traced pixel is
+one of the map's up to 512 on a side, four at 2048) the named fields' render may take any value of that
+neighbourhood that a shadow could give the pixel itself — between (1 − s)·u and u, u its unshadowed render, s the
+layer's ``shadows`` (the shadow factor 1 − s·(1 − V) scales each light's direct term, never the ambient). The file's
+8-bit map integrates to heights a little off the stored map's, and a grazing light turns a small height error into a
+longer shift of a shadow's edge: measured, one traced pixel for directional lights at 60° from the view axis over a
+deep relief, two for a point light a third of the map's side above it (`tests/export/test_surface_import.py`)."""
 CUT_NAME = 255
 """GIMP saves a PSD layer's name cut to this many characters (the Pascal string's limit; Krita and Photoshop's
 Unicode name keep more): fields that need a longer name (many extra lights) do not survive GIMP."""
@@ -97,13 +104,10 @@ NAMED_FIELDS = (
 """The render fields a hidden map's name may carry (``map_name``); the relief is in the map itself."""
 
 
-def map_name(layer, window: tuple[int, int, int, int, int, int] | None = None) -> str:
+def map_name(layer) -> str:
     """The hidden normal map's name for surface ``layer`` (`lasagna.export.rasters`): "<name> (normal map)", and,
     when the fit could not read its multiplier back (a point light, several lights, a highlight, cast shadows,
-    ambient occlusion, a coloured relight ratio), its non-default render fields as compact JSON after a space.
-    ``window`` (left, top, width, height, the layer's width, its height): the part of the layer the file holds, in
-    the layer's pixels, when the canvas cut it; a point light is then placed in the part's fractions — the same
-    light, pixel for pixel (`_in_window`)."""
+    ambient occlusion, a coloured relight ratio), its non-default render fields as compact JSON after a space."""
     from lasagna.document.condition import parse_point
 
     plain = f"{layer.name}{NORMAL_MAP_SUFFIX}"
@@ -118,36 +122,7 @@ def map_name(layer, window: tuple[int, int, int, int, int, int] | None = None) -
     if fitted:
         return plain
     fields = layer.model_dump(mode="json", include=set(NAMED_FIELDS), exclude_defaults=True)
-    fields["light"] = _in_window(fields["light"], window)
-    for extra in fields.get("extra_lights", ()):
-        extra["light"] = _in_window(extra["light"], window)
     return f"{plain} {json.dumps({k: fields[k] for k in NAMED_FIELDS if k in fields}, separators=(',', ':'))}"
-
-
-def _in_window(light: str, window: tuple[int, int, int, int, int, int] | None) -> str:
-    """A point (or spot) light's text for the part ``window`` of its layer (`map_name`): x, y and the aim as the
-    part's fractions of the same pixel, z in the part's longer side (`lasagna.compose.surface.point_offsets` measures
-    in pixels over the longer side, so the rendering is the same); a direction, or a light the part's ranges cannot
-    hold, as it is (the import then finds its render off and says so)."""
-    from lasagna.document.condition import format_point, parse_point
-    from lasagna.errors import LasagnaError
-
-    point = parse_point(light)
-    if point is None or window is None:
-        return light
-    left, top, width, height, full_w, full_h = window
-
-    def x(v: float) -> float:
-        return (v * full_w - left) / width
-
-    def y(v: float) -> float:
-        return (v * full_h - top) / height
-
-    spot = () if point.cone is None else (point.cone, x(point.ax), y(point.ay), point.blend)
-    try:
-        return format_point(x(point.x), y(point.y), point.z * max(full_w, full_h) / max(width, height), *spot)
-    except LasagnaError:
-        return light
 
 
 def _pairs(layers: list) -> Iterator[tuple[Any, Any, list]]:
@@ -195,10 +170,11 @@ def restore_surfaces(stack, warn: Callable[[str], None], where: str):
 def _surface_of(stack, multiplier, hidden, helpers: list) -> tuple[str, dict | None]:
     """(why not, None) or ("", the surface layer's light fields) for one pair (and its PSD helpers)."""
     m_t, n_t = stack.tensors[multiplier.id], stack.tensors[hidden.id]
-    if (multiplier.offset.x, multiplier.offset.y) != (hidden.offset.x, hidden.offset.y) or tuple(
-        m_t.color.shape[-2:]
-    ) != tuple(n_t.color.shape[-2:]):
-        return "it and the map differ in size or place", None
+    (mh, mw), (hh, hw) = m_t.color.shape[-2:], n_t.color.shape[-2:]
+    left, top = multiplier.offset.x - hidden.offset.x, multiplier.offset.y - hidden.offset.y
+    if left < 0 or top < 0 or left + mw > hw or top + mh > hh:
+        return "its map does not cover it (they differ in size or place)", None
+    window = (slice(None), slice(top, top + mh), slice(left, left + mw))  # the multiplier's part of the map
     if n_t.color.shape[0] != 3:
         return "the map is not RGB", None
     if any(t is not None and not bool((t == 1).all()) for t in (m_t.alpha, m_t.mask, n_t.alpha, n_t.mask)):
@@ -218,7 +194,7 @@ def _surface_of(stack, multiplier, hidden, helpers: list) -> tuple[str, dict | N
         return "its white clamp layer was painted on", None  # dropped only while it is the identity it was written as
     note = hidden.name[len(multiplier.name + NORMAL_MAP_SUFFIX) :].strip()
     if note:
-        return _named(n_t.color, hidden.name, note, m)
+        return _named(n_t.color, window, hidden.name, note, m)
     coloured = m.shape[0] == 3 and not (np.abs(m - m[:1]).max() <= MATCH_TOLERANCE)
     m = m if coloured else m.mean(0, keepdims=True)  # (C, h, w): three channels for a coloured light, else one
     from lasagna.compose.surface import decode_normal_map
@@ -226,7 +202,8 @@ def _surface_of(stack, multiplier, hidden, helpers: list) -> tuple[str, dict | N
     # The fit and the choice among rounder lights on a regular subsample (Lambert is per pixel, so the render of
     # a strided map is the strided render); the chosen layer is checked on every pixel.
     step = max(1, math.ceil(math.sqrt(m[0].size / FIT_PIXELS)))
-    codes = n_t.color[:, ::step, ::step].contiguous()
+    part = n_t.color[window]  # one light's Lambert is per pixel: the multiplier's part of the map renders it
+    codes = part[:, ::step, ::step].contiguous()
     n = decode_normal_map(codes[None].double())[0].numpy()
     few = m[:, ::step, ::step]
     scored = []
@@ -240,7 +217,7 @@ def _surface_of(stack, multiplier, hidden, helpers: list) -> tuple[str, dict | N
         return "no light fits (paint over it, cast shadows, a highlight, a point light or several lights)", None
     least = min(err for err, _ in scored)
     chosen = max(((_roundness(c), -err), i, c) for i, (err, c) in enumerate(scored) if err <= least + SNAP_SLACK)[2]
-    err = _error(n_t.color, chosen, m)
+    err = _error(part.contiguous(), chosen, m)
     if err is None or err > MATCH_TOLERANCE:
         return (
             f"the best light's render is {(least if err is None else err) * 255:.1f} codes off (paint over it, cast "
@@ -255,10 +232,11 @@ def _surface_of(stack, multiplier, hidden, helpers: list) -> tuple[str, dict | N
     }
 
 
-def _named(codes, name: str, note: str, m: np.ndarray) -> tuple[str, dict | None]:
+def _named(codes, window: tuple, name: str, note: str, m: np.ndarray) -> tuple[str, dict | None]:
     """(why not, None) or ("", the layer's render fields) for a map whose name carries them (``map_name``): kept
-    when the layer they make, rendered from the file's map by the compositor's own path, matches the file's
-    multiplier ``m`` (C, h, w) within ``MATCH_TOLERANCE`` at every pixel."""
+    when the layer they make, rendered from the file's whole map by the compositor's own path (its shadows and
+    point lights are the whole map's), matches the file's multiplier ``m`` (C, h, w) on its part of the map
+    (``window``) within ``MATCH_TOLERANCE`` at every pixel."""
     from pydantic import ValidationError
 
     from lasagna.compose.layer import LayerTensors
@@ -286,19 +264,17 @@ def _named(codes, name: str, note: str, m: np.ndarray) -> tuple[str, dict | None
 
         unshadowed = layer_surface_tensors(LayerTensors(codes, None, None), layer.model_copy(update={"shadows": 0.0}))
         u = unshadowed[0].color.double().numpy()
-        reach = max(1, math.ceil(max(r.shape[-2:]) / SHADOW_MAX_SIDE))  # a traced pixel, in the map's pixels
+        reach = SHADOW_REACH * math.ceil(max(r.shape[-2:]) / SHADOW_MAX_SIDE)  # traced pixels, in the map's
         near = _pool(torch.from_numpy(np.abs(u - r).max(0) > SHADOW_EDGE).double()[None, None], reach)
         near = near.numpy()[0] > 0
         # ... which a shadow could give the pixel itself: between (1 − s)·u (every light hidden) and u (none hidden)
         lowest = -_pool(-torch.from_numpy(r)[None], reach).numpy()[0]
         lo = np.where(near, np.maximum(lowest, (1.0 - layer.shadows) * u), r)
         hi = np.where(near, np.minimum(_pool(torch.from_numpy(r)[None], reach).numpy()[0], u), r)
+    lo, hi = lo[window], hi[window]  # the whole map rendered (its shadows), compared where the multiplier is
     err = float((np.maximum(np.maximum(lo - m, m - hi), 0.0) / np.maximum(1.0, m) ** 2).max())
     if err > MATCH_TOLERANCE:
-        return (
-            f"its render under the light its map's name gives is {err * 255:.1f} codes off (paint over it, or the "
-            "shadows or occlusion of a layer the canvas's edge cut, which its part alone does not cast)"
-        ), None
+        return (f"its render under the light its map's name gives is {err * 255:.1f} codes off (paint over it)"), None
     return "", layer.model_dump(mode="json", include=set(NAMED_FIELDS))
 
 
@@ -518,7 +494,8 @@ def _error(codes, fields: dict, m: np.ndarray) -> float | None:
 
 def _swap(stack, multiplier, gone: list, fields: dict) -> None:
     """The multiplier replaced in ``stack`` by one surface layer of the map's normals (``gone[0]``, the hidden map)
-    with the render ``fields`` (the layer's own names and values); the map and the helpers removed."""
+    at the map's place (where the canvas cut the multiplier, the whole layer again) with the render ``fields`` (the
+    layer's own names and values); the map and the helpers removed."""
     from lasagna.compose.layer import LayerTensors
     from lasagna.document import SurfaceLayer
     from lasagna.io.stack import stored_map
@@ -530,7 +507,7 @@ def _swap(stack, multiplier, gone: list, fields: dict) -> None:
         "blend": "multiply",
         "opacity": multiplier.opacity,
         "visible": multiplier.visible,
-        "offset": {"x": multiplier.offset.x, "y": multiplier.offset.y},
+        "offset": {"x": gone[0].offset.x, "y": gone[0].offset.y},  # the whole map's: the layer as it was
         "clip": multiplier.clip,
         "source": f"layers/{multiplier.id}.png",
         **fields,

@@ -452,17 +452,20 @@ def test_a_surface_layer_survives_krita_saving_the_ora(tmp_path):
 
 def _with_a_lamp(folder: Path) -> dict:
     """``_surface_stack``'s folder with a second surface layer no one-light fit reads (a point light casting
-    shadows, with a highlight): its map's name carries its fields. Returns them."""
+    shadows, with a highlight), hanging off the canvas's top-left: its map's name carries its fields, and the file
+    holds its map whole. Returns its fields."""
     from lasagna.compose.surface import normals_from_height
     from lasagna.io.stack import load_stack
 
     stack = load_stack(folder)
     yy, xx = torch.meshgrid(torch.linspace(-1, 1, 32), torch.linspace(-1.5, 1.5, 48), indexing="ij")
     height = (0.5 * torch.exp(-((xx - 0.5) ** 2 + yy**2) * 4))[None, None]
-    stack.add_surface("lamp", normals_from_height(height)[0], "x=0.1,y=0.2,z=0.3", name="Lamp")
+    stack.add_surface("lamp", normals_from_height(height)[0], "x=0.1,y=0.2,z=0.3", name="Lamp", offset=(-10, -6))
     stack.set_light("lamp", "x=0.1,y=0.2,z=0.3", shadows=0.8, shadow_depth=2.0, gloss=0.3)
     stack.save(folder)
-    return stack.document.layer("lamp").model_dump(mode="json", include={"light", "shadows", "shadow_depth", "gloss"})
+    return stack.document.layer("lamp").model_dump(
+        mode="json", include={"light", "shadows", "shadow_depth", "gloss", "offset"}
+    )
 
 
 @pytest.mark.gimp

@@ -18,7 +18,7 @@ from lasagna.compose.surface import normals_from_height
 from lasagna.document.condition import unit_vector
 from lasagna.export import import_ora
 from lasagna.export.psd_import import read_psd
-from lasagna.export.surface_import import NAMED_FIELDS, map_name, restore_surfaces
+from lasagna.export.surface_import import NAMED_FIELDS, SHADOW_REACH, map_name, restore_surfaces
 from lasagna.io.stack import Stack, load_stack
 
 
@@ -149,16 +149,16 @@ def test_without_its_name_the_fit_does_not_read_such_a_layer(tmp_path, case):
 
 def assert_alike(back: Stack, id: str, original: Stack) -> None:
     """The surface layer ``id`` read back renders the original's multiplier y within 3.5 codes × max(1, y)² (the
-    import's steps) away from its cast shadows, and on them and a traced pixel beside them within that of the range
-    the original renders over that neighbourhood: the file's 8-bit map integrates to heights a little off the
-    stored map's, so a shadow's soft edge may move by up to a traced pixel. The multipliers, not the composites:
-    the base's noise apart."""
+    import's steps) away from its cast shadows, and on them and ``SHADOW_REACH`` traced pixels beside them within
+    that of the range the original renders over that neighbourhood: the file's 8-bit map integrates to heights a
+    little off the stored map's, so a shadow's soft edge may move. The multipliers, not the composites: the base's
+    noise apart."""
     from lasagna.compose.surface import layer_surface_tensors
 
     layer = original.document.layer("shape")
     was = layer_surface_tensors(original.tensors["shape"], layer)[0].color
     flat = layer_surface_tensors(original.tensors["shape"], layer.model_copy(update={"shadows": 0.0}))[0].color
-    reach = math.ceil(max(was.shape[-2:]) / 512)  # a traced pixel (`SHADOW_MAX_SIDE`), in the map's pixels
+    reach = SHADOW_REACH * math.ceil(max(was.shape[-2:]) / 512)  # traced pixels (`SHADOW_MAX_SIDE`), in the map's
     k = 2 * reach + 1
 
     def pool(x):
@@ -264,32 +264,24 @@ def test_a_shadows_slack_takes_only_what_a_shadow_could_render():
 
 
 @pytest.mark.parametrize("fmt", ["ora", "psd"])
-def test_a_point_light_on_a_layer_the_canvas_cuts_is_placed_in_its_part(tmp_path, fmt):
-    """A surface layer hanging off the canvas's top-left (the file holds its part on the canvas), lit by a spot and
-    a point extra light: the name places both lights in the part's fractions (the same pixels), and read back the
-    canvas renders within 3.5 codes of the original. Its shadows would not survive the cut (traced over the part's
-    heights alone): that layer stays pixels, the line says why."""
+def test_a_layer_the_canvas_cuts_comes_back_whole(tmp_path, fmt):
+    """A surface layer hanging off the canvas's top-left, lit by a spot with a point extra light and casting shadows:
+    the file holds the multiplier's part on the canvas and the normal map whole, so the layer comes back whole — its
+    place, its size, its lights as they were — and renders as the original (`assert_alike`) over the whole layer,
+    off the canvas too (its shadows traced over the whole map, as the original's are)."""
     torch.manual_seed(5)
     stack = Stack.from_image((torch.rand(3, 48, 64) * 200 + 40).to(torch.uint8))
     spot = "x=0.6,y=0.5,z=0.4,cone=40,ax=0.5,ay=0.6"
     stack.add_surface("shape", bump(), spot, name="Shape", offset=(-16, -8))
-    stack.set_light("shape", spot, extra_lights=[{"light": "x=0.9,y=0.9,z=0.2", "intensity": 0.5}])
+    stack.set_light("shape", spot, extra_lights=[{"light": "x=0.9,y=0.9,z=0.2", "intensity": 0.5}], shadows=0.8)
     stack.save(tmp_path / "s")
     warnings: list[str] = []
     back = read_back(tmp_path, fmt, warnings)
     got = next(layer for layer in back.document.layers if layer.name == "Shape")
-    assert warnings == [] and got.kind == "surface" and (got.offset.x, got.offset.y) == (0, 0)
-    from lasagna.document.condition import parse_point
-
-    # The part is columns 16–63, rows 8–47 of the 64 × 48 layer: x' = (64x − 16)/48, y' = (48y − 8)/40, z' = 64z/48.
-    want = ((0.6 * 64 - 16) / 48, (0.5 * 48 - 8) / 40, 0.4 * 64 / 48, 40, (0.5 * 64 - 16) / 48, (0.6 * 48 - 8) / 40)
-    np.testing.assert_allclose(parse_point(got.light)[:6], want, rtol=1e-12)
-    assert float((back.render().image - stack.render().image).abs().max()) <= 3.5 / 255
-    stack.set_light("shape", "az=120,el=60", shadows=1.0, shadow_depth=3.0)
-    stack.save(tmp_path / "s")
-    warnings.clear()
-    back = read_back(tmp_path, fmt, warnings)
-    assert len(warnings) == 1 and "the canvas's edge cut" in warnings[0]
+    assert warnings == [] and got.kind == "surface" and (got.offset.x, got.offset.y) == (-16, -8)
+    assert tuple(back.tensors[got.id].color.shape) == (3, 48, 64)
+    assert _fields(got) == _fields(stack.document.layer("shape"))
+    assert_alike(back, got.id, stack)  # the whole layer, off the canvas too
 
 
 def test_paint_over_a_named_layer_keeps_it_pixels(tmp_path):
