@@ -4,6 +4,8 @@ png.py      export_layer_pngs: each layer's stored values, never normalised, 16-
 ora.py      export_ora / encode_ora; ora_import.py: import_ora / read_ora (zip-slip and bomb safe)
 psd.py      export_psd / encode_psd (optional extra: pip install 'lasagna-layers[psd]')
 rasters.py  the layers as paint programs see them (dodge pairs, baked alpha, exact-composite layer)
+surface_import.py  a surface layer read back from its rendered multiplier over its hidden normal map
+light_fit.py        the one light that renders a multiplier from a normal map, fitted to the pixels
 
 Names are imported lazily: ``import lasagna.export.ora`` to read an OpenRaster file loads no torch.
 """

@@ -339,10 +339,10 @@ def lambert64(n: np.ndarray, az: float, el: float, a: float, k: float) -> np.nda
 def test_the_fits_recover_the_light_of_exact_renders(az, el, a, k, az_s, el_s):
     """Property: the shading fit of a float64 Lambert render returns its light (within 0.05°), ambient and intensity
     (within 10⁻⁴); the ratio fit of S(l)/S(l_s), the lights 10° or more apart, returns both lights and the ambient."""
-    from lasagna.export.surface_import import _fit_ratio, _fit_shading
+    from lasagna.export.light_fit import fit_ratio, fit_shading
 
     n = bump().double().numpy()
-    fit = _fit_shading(n, lambert64(n, az, el, a, k))
+    fit = fit_shading(n, lambert64(n, az, el, a, k))
     assert fit is not None
     got = np.asarray(unit_vector(*fit["light"]))
     assert math.degrees(math.acos(min(1.0, float(got @ np.asarray(unit_vector(az, el)))))) < 0.05
@@ -350,7 +350,7 @@ def test_the_fits_recover_the_light_of_exact_renders(az, el, a, k, az_s, el_s):
     apart = float(np.asarray(unit_vector(az, el)) @ np.asarray(unit_vector(az_s, el_s)))
     assume(apart < math.cos(math.radians(10)))  # one light over itself is a ratio of one: no light to read
     ratio = lambert64(n, az, el, a, 1.0) / lambert64(n, az_s, el_s, a, 1.0)
-    fit = _fit_ratio(n, ratio)
+    fit = fit_ratio(n, ratio)
     assert fit is not None
     for light, (taz, tel) in ((fit["light"], (az, el)), (fit["source_light"], (az_s, el_s))):
         cos = float(np.asarray(unit_vector(*light)) @ np.asarray(unit_vector(taz, tel)))
