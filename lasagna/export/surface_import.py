@@ -159,15 +159,16 @@ def _surface_of(stack, multiplier, hidden, helpers: list) -> tuple[str, dict | N
         return "its white clamp layer was painted on", None  # dropped only while it is the identity it was written as
     note = hidden.name[len(multiplier.name + NORMAL_MAP_SUFFIX) :].strip()
     if note:
-        return _named(n_t.color, window, hidden.name, note, m)
+        return _named(n_t.color, window, hidden.name, note, m, coarse=stack.bit_depths.get(hidden.id, 8) < 16)
     return fit_light(n_t.color[window], m)
 
 
-def _named(codes, window: tuple, name: str, note: str, m: np.ndarray) -> tuple[str, dict | None]:
+def _named(codes, window: tuple, name: str, note: str, m: np.ndarray, coarse: bool) -> tuple[str, dict | None]:
     """(why not, None) or ("", the layer's render fields) for a map whose name carries them (``map_name``): kept
     when the layer they make, rendered from the file's whole map by the compositor's own path (its shadows and
     point lights are the whole map's), matches the file's multiplier ``m`` (C, h, w) on its part of the map
-    (``window``) within ``MATCH_TOLERANCE`` at every pixel."""
+    (``window``) within ``MATCH_TOLERANCE`` at every pixel. ``coarse``: the file's map is 8-bit (its line then
+    names the cure for shadows and occlusion over a steep relief)."""
     from pydantic import ValidationError
 
     from lasagna.compose.layer import LayerTensors
@@ -205,15 +206,25 @@ def _named(codes, window: tuple, name: str, note: str, m: np.ndarray) -> tuple[s
     lo, hi = lo[window], hi[window]  # the whole map rendered (its shadows), compared where the multiplier is
     err = float((np.maximum(np.maximum(lo - m, m - hi), 0.0) / np.maximum(1.0, m) ** 2).max())
     if err > MATCH_TOLERANCE:
-        return (f"its render under the light its map's name gives is {err * 255:.1f} codes off (paint over it)"), None
+        traced = coarse and (layer.shadows > 0.0 or layer.occlusion > 0.0)
+        why = (
+            "paint over it, or its shadows and occlusion traced over the file's 8-bit normal map, whose rounding a "
+            "steep relief's heights magnify (a PSD written with `lasagna export --depth 16` keeps them)"
+            if traced
+            else "paint over it"
+        )
+        return f"its render under the light its map's name gives is {err * 255:.1f} codes off ({why})", None
     return "", layer.model_dump(mode="json", include=set(NAMED_FIELDS))
 
 
 def _pool(x: torch.Tensor, reach: int) -> torch.Tensor:
-    """The maximum of (B, C, h, w) ``x`` over each pixel's (2·reach + 1)² neighbourhood, edges replicated."""
+    """The maximum of (B, C, h, w) ``x`` over each pixel's (2·reach + 1)² neighbourhood, edges replicated: a running
+    maximum down the columns, then along the rows (separable: 2k comparisons a pixel, not k²)."""
     import torch.nn.functional as F
 
-    return F.max_pool2d(F.pad(x, (reach,) * 4, mode="replicate"), 2 * reach + 1, stride=1)
+    k = 2 * reach + 1
+    x = F.max_pool2d(F.pad(x, (0, 0, reach, reach), mode="replicate"), (k, 1), stride=1)
+    return F.max_pool2d(F.pad(x, (reach, reach, 0, 0), mode="replicate"), (1, k), stride=1)
 
 
 def _swap(stack, multiplier, gone: list, fields: dict) -> None:

@@ -186,6 +186,28 @@ def test_a_deep_shadows_edge_may_move_a_pixel(tmp_path):
     assert_alike(back, got.id, original)
 
 
+def test_a_steep_reliefs_shadows_need_a_16_bit_map(tmp_path):
+    """Boxes on a ground (steps, which a normal map holds as its steepest slopes): integrated from an 8-bit map, their
+    heights are far enough off the 16-bit map's that long shadows move by many pixels — the ORA's pair stays pixels,
+    and its line names the cure; a PSD written with ``--depth 16`` carries the map whole and the layer comes back."""
+    rows, cols = torch.meshgrid(torch.linspace(0, 1, 128), torch.linspace(0, 1, 128), indexing="ij")
+    height = 0.12 * ((cols - 0.3).abs() < 0.1) * ((rows - 0.4).abs() < 0.12) + 0.2 * ((cols - 0.7).abs() < 0.06)
+    stack = Stack.from_image(torch.full((3, 128, 128), 0.7))
+    stack.add_surface("shape", normals_from_height(height[None, None])[0], "az=200,el=70", name="Shape")
+    stack.set_light("shape", "az=200,el=70", shadows=0.8)
+    stack.save(tmp_path / "s")
+    warnings: list[str] = []
+    back = read_back(tmp_path, "ora", warnings)
+    assert next(layer for layer in back.document.layers if layer.name == "Shape").kind == "pixels"
+    assert len(warnings) == 1 and "8-bit normal map" in warnings[0] and "--depth 16" in warnings[0]
+    assert main(["export", str(tmp_path / "s"), "--psd", str(tmp_path / "d.psd"), "--depth", "16"]) == 0
+    warnings.clear()
+    deep = read_psd(tmp_path / "d.psd", warn=warnings.append)
+    got = next(layer for layer in deep.document.layers if layer.name == "Shape")
+    assert warnings == [] and got.kind == "surface" and got.shadows == 0.8
+    assert_alike(deep, got.id, stack)
+
+
 def test_a_map_larger_than_the_trace_comes_back_with_its_shadows(tmp_path):
     """A 200 × 1100 map: its shadows are traced at 512 across and enlarged, so a shadow's edge moves by up to a traced
     pixel, about two of the map's; the layer still comes back (it stayed pixels while the slack was one map pixel)."""
@@ -440,3 +462,14 @@ def test_a_coloured_light_comes_back_with_its_colour(tmp_path, fmt):
     np.testing.assert_allclose(layer.light_color, (1.0, 0.6, 0.3), atol=0.01)
     assert abs(layer.light_intensity - 1.0) < 0.01 and layer.ambient == 0.25
     assert float((back.render().image - original.render().image).abs().max()) <= 3.5 / 255
+
+
+@pytest.mark.parametrize("reach", [1, 2, 8])
+def test_the_separable_neighbourhood_maximum_is_the_square_ones(reach):
+    """The shadows' slack takes each pixel's (2·reach + 1)² neighbourhood maximum by two running maxima (rows, then
+    columns): equal, bit for bit, to the square window's, edges replicated."""
+    from lasagna.export.surface_import import _pool
+
+    x = torch.rand(2, 3, 37, 53, dtype=torch.float64, generator=torch.Generator().manual_seed(reach))
+    padded = torch.nn.functional.pad(x, (reach,) * 4, mode="replicate")
+    assert torch.equal(_pool(x, reach), torch.nn.functional.max_pool2d(padded, 2 * reach + 1, stride=1))
